@@ -1,0 +1,112 @@
+// Builds the Jacobi (PRECOND = 1) or block-Jacobi (PRECOND = 2) preconditioner on the
+// device from the diagonal blocks of Ĥ = P VᵀHV P + (I − P) D (blocks already rotated).
+// Block-Jacobi inverts each d×d block when it is SPD (all leading minors positive) and
+// falls back to the inverse diagonal otherwise, like the CPU reference (cg.rs).
+
+override D: u32 = 3u;
+override WG: u32 = 64u;
+override MASKED: bool = true;
+override PRECOND: u32 = 1u;
+
+struct Params {
+    n_nodes: u32,
+    n_rot: u32,
+    n_partials: u32,
+    n_blocks: u32,
+}
+
+const COL_BITS: u32 = 0x1fffffffu;
+
+@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
+@group(0) @binding(2) var<storage, read> col: array<u32>;
+@group(0) @binding(3) var<storage, read> blocks: array<real>;
+@group(0) @binding(4) var<storage, read> mask: array<u32>;
+@group(0) @binding(5) var<storage, read> dvals: array<real>;
+@group(0) @binding(6) var<storage, read_write> minv: array<real>;
+
+fn inv_or_one(v: real) -> real {
+    if (v > real(0.0)) {
+        return real(1.0) / v;
+    }
+    return real(1.0);
+}
+
+@compute @workgroup_size(WG)
+fn build(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if (i >= params.n_nodes) {
+        return;
+    }
+    var b: array<real, 9>;
+    for (var e = 0u; e < 9u; e++) {
+        b[e] = real(0.0);
+    }
+    for (var k = row_ptr[i]; k < row_ptr[i + 1u]; k++) {
+        if ((col[k] & COL_BITS) == i) {
+            for (var e = 0u; e < D * D; e++) {
+                b[e] = blocks[k * D * D + e];
+            }
+        }
+    }
+    if (MASKED) {
+        let m = mask[i];
+        for (var r = 0u; r < D; r++) {
+            for (var c = 0u; c < D; c++) {
+                if (((m >> r) & 1u) != 0u || ((m >> c) & 1u) != 0u) {
+                    b[r * D + c] = real(0.0);
+                }
+            }
+            if (((m >> r) & 1u) != 0u) {
+                b[r * D + r] = dvals[i * D + r];
+            }
+        }
+    }
+    if (PRECOND == 1u) {
+        for (var a = 0u; a < D; a++) {
+            minv[i * D + a] = inv_or_one(b[a * D + a]);
+        }
+        return;
+    }
+    var out: array<real, 9>;
+    for (var e = 0u; e < 9u; e++) {
+        out[e] = real(0.0);
+    }
+    var spd = false;
+    if (D == 2u) {
+        let det = b[0] * b[3] - b[1] * b[2];
+        if (b[0] > real(0.0) && det > real(0.0)) {
+            spd = true;
+            out[0] = b[3] / det;
+            out[1] = -b[1] / det;
+            out[2] = -b[2] / det;
+            out[3] = b[0] / det;
+        }
+    } else {
+        let c00 = b[4] * b[8] - b[5] * b[7];
+        let c01 = b[5] * b[6] - b[3] * b[8];
+        let c02 = b[3] * b[7] - b[4] * b[6];
+        let det = b[0] * c00 + b[1] * c01 + b[2] * c02;
+        let m2 = b[0] * b[4] - b[1] * b[3];
+        if (b[0] > real(0.0) && m2 > real(0.0) && det > real(0.0)) {
+            spd = true;
+            out[0] = c00 / det;
+            out[1] = (b[2] * b[7] - b[1] * b[8]) / det;
+            out[2] = (b[1] * b[5] - b[2] * b[4]) / det;
+            out[3] = c01 / det;
+            out[4] = (b[0] * b[8] - b[2] * b[6]) / det;
+            out[5] = (b[2] * b[3] - b[0] * b[5]) / det;
+            out[6] = c02 / det;
+            out[7] = (b[1] * b[6] - b[0] * b[7]) / det;
+            out[8] = m2 / det;
+        }
+    }
+    if (!spd) {
+        for (var a = 0u; a < D; a++) {
+            out[a * D + a] = inv_or_one(b[a * D + a]);
+        }
+    }
+    for (var e = 0u; e < D * D; e++) {
+        minv[i * D * D + e] = out[e];
+    }
+}

@@ -1,0 +1,816 @@
+//! Per-node linear equality constraints and the per-node change of basis V_i = [C_i F_i].
+//!
+//! Every constraint touches one node. The rows of all constraints on a node stack into
+//! A_i (each row normalized to unit length, its value scaled alike, because a row's scale
+//! carries no geometry); the node's number of constrained directions r_i is the numerical
+//! rank of A_i: the count of singular values above [`RANK_RTOL`] times the largest. Two
+//! planes make a line, three make a sticky node, and nearly redundant rows add nothing.
+//!
+//! Frames (design.md §2): a free node and a sticky node carry no rotation; a slip whose
+//! constrained directions are coordinate axes carries no rotation either (it only masks
+//! those axes); every other slip node carries an orthonormal V_i whose first r_i columns
+//! span the constrained directions.
+
+use nalgebra::{DMatrix, DVector};
+
+/// Relative rank tolerance for the stacked, row-normalized constraints of one node: a
+/// singular value σ counts when σ > RANK_RTOL · σ_max. Two unit rows at angle θ have
+/// σ_min ≈ θ/√2, so rows closer than about 1.4e-8 rad in angle act as one constraint.
+pub const RANK_RTOL: f64 = 1e-8;
+
+/// Relative consistency tolerance: rows whose values disagree (the least-squares lift
+/// misses a row's value by more than CONSISTENCY_RTOL · max|value| along the unit row)
+/// are contradictory and rejected.
+pub const CONSISTENCY_RTOL: f64 = 1e-8;
+
+/// A node's normal is "nearly parallel to e_x" when |n_x| > this; then the tangent is
+/// built from e_y instead of e_x (seed 000 §0.1.3), keeping |n × e| ≥ 0.43.
+pub const AXIS_SWITCH: f64 = 0.9;
+
+/// Marks a node without a rotation in [`Frames::rot_index`].
+pub const NO_ROTATION: u32 = u32::MAX;
+
+/// What a constraint asks of one node (design.md §1).
+#[derive(Debug, Clone, PartialEq)]
+pub enum ConstraintKind {
+    /// The node does not move, or moves by the given displacement.
+    Sticky { displacement: Option<Vec<f64>> },
+    /// nᵀΔx = offset (3D: a plane; 2D: a line). `normal` need not be unit length.
+    Plane { normal: Vec<f64>, offset: f64 },
+    /// Δx ∈ offset + span(direction).
+    Line {
+        direction: Vec<f64>,
+        offset: Option<Vec<f64>>,
+    },
+    /// Any rows a_kᵀΔx = values_k.
+    Rows { rows: Vec<Vec<f64>>, values: Vec<f64> },
+}
+
+/// One constraint on one node, with a label that names it in error messages
+/// (for example `constraints[3]` or `row 12`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Constraint {
+    pub node: usize,
+    pub kind: ConstraintKind,
+    pub label: String,
+}
+
+/// A constraint the model cannot accept. `label` names the constraint (or node).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{label}: {problem}")]
+pub struct ConstraintError {
+    pub label: String,
+    pub problem: String,
+}
+
+fn cerr(label: &str, problem: impl Into<String>) -> ConstraintError {
+    ConstraintError {
+        label: label.to_string(),
+        problem: problem.into(),
+    }
+}
+
+/// The per-node bases, masks and lifting of a constraint set: everything elimination needs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frames {
+    pub dim: usize,
+    pub n_nodes: usize,
+    /// Per node: bit k set when component k of y_i = V_iᵀΔx_i is constrained.
+    pub mask: Vec<u8>,
+    /// Per node: index into `rot_nodes` / `rotations`, or [`NO_ROTATION`].
+    pub rot_index: Vec<u32>,
+    /// The nodes that carry a rotation, ascending.
+    pub rot_nodes: Vec<u32>,
+    /// d·d values per rotated node: V_i row-major (its columns are the basis [C_i F_i]).
+    pub rotations: Vec<f64>,
+    /// Δx_p: the minimum-norm per-node displacement meeting the prescribed values
+    /// (all zero when the constraints are homogeneous). Length d·n.
+    pub lift: Vec<f64>,
+    /// True when every prescribed value is zero (Δx_p = 0).
+    pub homogeneous: bool,
+}
+
+impl Frames {
+    /// No constraints at all.
+    pub fn unconstrained(dim: usize, n_nodes: usize) -> Self {
+        Frames {
+            dim,
+            n_nodes,
+            mask: vec![0; n_nodes],
+            rot_index: vec![NO_ROTATION; n_nodes],
+            rot_nodes: Vec::new(),
+            rotations: Vec::new(),
+            lift: vec![0.0; dim * n_nodes],
+            homogeneous: true,
+        }
+    }
+
+    /// Builds frames, masks and the lift from a list of constraints (any order; several
+    /// per node combine by rank).
+    pub fn build(
+        dim: usize,
+        n_nodes: usize,
+        constraints: &[Constraint],
+    ) -> Result<Self, ConstraintError> {
+        if dim != 2 && dim != 3 {
+            return Err(cerr("dim", format!("dimension must be 2 or 3, got {dim}")));
+        }
+        let mut per_node: Vec<Vec<usize>> = Vec::new();
+        let mut order: Vec<usize> = (0..constraints.len()).collect();
+        for c in constraints {
+            validate(dim, n_nodes, c)?;
+        }
+        order.sort_by_key(|&k| constraints[k].node);
+        let mut last = usize::MAX;
+        for k in order {
+            if constraints[k].node != last {
+                per_node.push(Vec::new());
+                last = constraints[k].node;
+            }
+            per_node.last_mut().expect("pushed above").push(k);
+        }
+        let mut f = Frames::unconstrained(dim, n_nodes);
+        for group in per_node {
+            let node = constraints[group[0]].node;
+            let cs: Vec<&Constraint> = group.iter().map(|&k| &constraints[k]).collect();
+            let nf = node_frame(dim, &cs)?;
+            f.mask[node] = nf.mask;
+            for a in 0..dim {
+                f.lift[node * dim + a] = nf.lift[a];
+            }
+            if let Some(v) = nf.rotation {
+                f.rot_index[node] = f.rot_nodes.len() as u32;
+                f.rot_nodes.push(node as u32);
+                f.rotations.extend_from_slice(&v[..dim * dim]);
+            }
+        }
+        f.homogeneous = f.lift.iter().all(|&v| v == 0.0);
+        Ok(f)
+    }
+
+    pub fn ndof(&self) -> usize {
+        self.dim * self.n_nodes
+    }
+
+    /// True when some node rotates (a slip constraint off the coordinate axes).
+    pub fn has_rotation(&self) -> bool {
+        !self.rot_nodes.is_empty()
+    }
+
+    /// True when some component is constrained.
+    pub fn has_constraints(&self) -> bool {
+        self.mask.iter().any(|&m| m != 0)
+    }
+
+    /// Number of constrained scalar components.
+    pub fn constrained_dofs(&self) -> usize {
+        self.mask.iter().map(|m| m.count_ones() as usize).sum()
+    }
+
+    pub fn free_dofs(&self) -> usize {
+        self.ndof() - self.constrained_dofs()
+    }
+
+    /// Is component `a` of node `i` (in the node's frame) free?
+    #[inline]
+    pub fn is_free(&self, i: usize, a: usize) -> bool {
+        self.mask[i] & (1 << a) == 0
+    }
+
+    /// V_i row-major for a rotated node, None otherwise.
+    pub fn rotation(&self, i: usize) -> Option<&[f64]> {
+        let r = self.rot_index[i];
+        if r == NO_ROTATION {
+            None
+        } else {
+            let dd = self.dim * self.dim;
+            Some(&self.rotations[r as usize * dd..(r as usize + 1) * dd])
+        }
+    }
+
+    /// y = Vᵀ x (per node; nodes without a rotation are copied).
+    pub fn to_frame(&self, x: &[f64], y: &mut [f64]) {
+        y.copy_from_slice(x);
+        let d = self.dim;
+        for (r, &node) in self.rot_nodes.iter().enumerate() {
+            let v = &self.rotations[r * d * d..(r + 1) * d * d];
+            let i = node as usize;
+            for c in 0..d {
+                let mut s = 0.0;
+                for k in 0..d {
+                    s += v[k * d + c] * x[i * d + k];
+                }
+                y[i * d + c] = s;
+            }
+        }
+    }
+
+    /// x = V y (per node; nodes without a rotation are copied).
+    pub fn from_frame(&self, y: &[f64], x: &mut [f64]) {
+        x.copy_from_slice(y);
+        let d = self.dim;
+        for (r, &node) in self.rot_nodes.iter().enumerate() {
+            let v = &self.rotations[r * d * d..(r + 1) * d * d];
+            let i = node as usize;
+            for k in 0..d {
+                let mut s = 0.0;
+                for c in 0..d {
+                    s += v[k * d + c] * y[i * d + c];
+                }
+                x[i * d + k] = s;
+            }
+        }
+    }
+
+    /// x ← V x in place, per rotated node.
+    pub fn from_frame_in_place(&self, x: &mut [f64]) {
+        let d = self.dim;
+        for (r, &node) in self.rot_nodes.iter().enumerate() {
+            let v = &self.rotations[r * d * d..(r + 1) * d * d];
+            let i = node as usize;
+            let mut t = [0.0f64; 3];
+            t[..d].copy_from_slice(&x[i * d..i * d + d]);
+            for k in 0..d {
+                x[i * d + k] = (0..d).map(|c| v[k * d + c] * t[c]).sum();
+            }
+        }
+    }
+
+    /// x ← Vᵀ x in place, per rotated node.
+    pub fn to_frame_in_place(&self, x: &mut [f64]) {
+        let d = self.dim;
+        for (r, &node) in self.rot_nodes.iter().enumerate() {
+            let v = &self.rotations[r * d * d..(r + 1) * d * d];
+            let i = node as usize;
+            let mut t = [0.0f64; 3];
+            t[..d].copy_from_slice(&x[i * d..i * d + d]);
+            for c in 0..d {
+                x[i * d + c] = (0..d).map(|k| v[k * d + c] * t[k]).sum();
+            }
+        }
+    }
+
+    /// Zeroes the constrained components of a vector in frame coordinates (applies P).
+    pub fn apply_mask(&self, y: &mut [f64]) {
+        let d = self.dim;
+        for (i, &m) in self.mask.iter().enumerate() {
+            if m != 0 {
+                for a in 0..d {
+                    if m & (1 << a) != 0 {
+                        y[i * d + a] = 0.0;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Stacked unit rows and values of every constraint in `cs` (all on one node).
+pub fn node_rows(dim: usize, c: &Constraint) -> (Vec<Vec<f64>>, Vec<f64>) {
+    match &c.kind {
+        ConstraintKind::Sticky { displacement } => {
+            let mut rows = Vec::new();
+            let mut vals = Vec::new();
+            for a in 0..dim {
+                let mut r = vec![0.0; dim];
+                r[a] = 1.0;
+                rows.push(r);
+                vals.push(displacement.as_ref().map_or(0.0, |d| d[a]));
+            }
+            (rows, vals)
+        }
+        ConstraintKind::Plane { normal, offset } => (vec![normal.clone()], vec![*offset]),
+        ConstraintKind::Line { direction, offset } => {
+            let t = unit(direction);
+            let cons = line_constrained_dirs(dim, &t);
+            let vals = cons
+                .iter()
+                .map(|c| offset.as_ref().map_or(0.0, |o| dot(c, o)))
+                .collect();
+            (cons, vals)
+        }
+        ConstraintKind::Rows { rows, values } => (rows.clone(), values.clone()),
+    }
+}
+
+fn validate(dim: usize, n_nodes: usize, c: &Constraint) -> Result<(), ConstraintError> {
+    let l = &c.label;
+    if c.node >= n_nodes {
+        return Err(cerr(
+            l,
+            format!(
+                "node {} is out of range (the system has {n_nodes} nodes, numbered from 0)",
+                c.node
+            ),
+        ));
+    }
+    let vec_check = |name: &str, v: &[f64], nonzero: bool| -> Result<(), ConstraintError> {
+        if v.len() != dim {
+            return Err(cerr(
+                l,
+                format!("{name} has {} components, expected {dim}", v.len()),
+            ));
+        }
+        if let Some(k) = v.iter().position(|x| !x.is_finite()) {
+            return Err(cerr(l, format!("{name}[{k}] is not finite")));
+        }
+        if nonzero && v.iter().all(|&x| x == 0.0) {
+            return Err(cerr(l, format!("{name} is zero")));
+        }
+        Ok(())
+    };
+    match &c.kind {
+        ConstraintKind::Sticky { displacement } => {
+            if let Some(d) = displacement {
+                vec_check("displacement", d, false)?;
+            }
+        }
+        ConstraintKind::Plane { normal, offset } => {
+            vec_check("normal", normal, true)?;
+            if !offset.is_finite() {
+                return Err(cerr(l, "offset is not finite"));
+            }
+        }
+        ConstraintKind::Line { direction, offset } => {
+            vec_check("direction", direction, true)?;
+            if let Some(o) = offset {
+                vec_check("offset", o, false)?;
+            }
+        }
+        ConstraintKind::Rows { rows, values } => {
+            if rows.is_empty() {
+                return Err(cerr(l, "rows is empty"));
+            }
+            if values.len() != rows.len() {
+                return Err(cerr(
+                    l,
+                    format!(
+                        "values has {} entries but there are {} rows",
+                        values.len(),
+                        rows.len()
+                    ),
+                ));
+            }
+            for (k, r) in rows.iter().enumerate() {
+                vec_check(&format!("rows[{k}]"), r, true)?;
+            }
+            if let Some(k) = values.iter().position(|x| !x.is_finite()) {
+                return Err(cerr(l, format!("values[{k}] is not finite")));
+            }
+        }
+    }
+    // A vector can be finite with a norm that overflows (entries near 1e200).
+    let (rows, _) = node_rows(dim, c);
+    for r in &rows {
+        let n = norm(r);
+        if !n.is_finite() || n == 0.0 {
+            return Err(cerr(l, "a normal or direction has a zero or non-finite length"));
+        }
+    }
+    Ok(())
+}
+
+struct NodeFrame {
+    mask: u8,
+    rotation: Option<[f64; 9]>,
+    lift: [f64; 3],
+}
+
+fn node_frame(dim: usize, cs: &[&Constraint]) -> Result<NodeFrame, ConstraintError> {
+    let label = if cs.len() == 1 {
+        cs[0].label.clone()
+    } else {
+        let names: Vec<&str> = cs.iter().map(|c| c.label.as_str()).collect();
+        format!("node {} ({})", cs[0].node, names.join(", "))
+    };
+    // Fast exact paths for the common single constraints (the frame then matches the
+    // seeds' construction to the last bit).
+    if cs.len() == 1 {
+        match &cs[0].kind {
+            ConstraintKind::Sticky { displacement } => {
+                let mut lift = [0.0; 3];
+                if let Some(d) = displacement {
+                    lift[..dim].copy_from_slice(d);
+                }
+                return Ok(NodeFrame {
+                    mask: (1u8 << dim) - 1,
+                    rotation: None,
+                    lift,
+                });
+            }
+            ConstraintKind::Plane { normal, offset } => {
+                let len = norm(normal);
+                let n = unit(normal);
+                let mut lift = [0.0; 3];
+                for a in 0..dim {
+                    lift[a] = n[a] * (offset / len);
+                }
+                return Ok(frame_from_constrained(dim, &[n], lift));
+            }
+            ConstraintKind::Line { direction, offset } => {
+                let t = unit(direction);
+                let mut lift = [0.0; 3];
+                if let Some(o) = offset {
+                    // Minimum-norm point of o + span(t): remove the t component.
+                    let ot = dot(o, &t);
+                    for a in 0..dim {
+                        lift[a] = o[a] - ot * t[a];
+                    }
+                }
+                let cons = line_constrained_dirs(dim, &t);
+                let mut f = frame_from_constrained(dim, &cons, lift);
+                if dim == 3 && f.rotation.is_some() {
+                    // Keep the seed's line frame exactly: V = [m l t].
+                    let t3 = [t[0], t[1], t[2]];
+                    let (m, l) = tangents(&t3);
+                    f.rotation = Some(columns3(&m, &l, &t3));
+                }
+                return Ok(f);
+            }
+            ConstraintKind::Rows { .. } => {}
+        }
+    }
+    // General path: stack unit rows, SVD, rank, minimum-norm lift, consistency.
+    let mut rows: Vec<Vec<f64>> = Vec::new();
+    let mut vals: Vec<f64> = Vec::new();
+    for c in cs {
+        let (r, v) = node_rows(dim, c);
+        for (row, val) in r.into_iter().zip(v) {
+            let len = norm(&row);
+            rows.push(row.iter().map(|x| x / len).collect());
+            vals.push(val / len);
+        }
+    }
+    let k = rows.len();
+    let m = k.max(dim); // pad to square so V is complete
+    let mut a = DMatrix::<f64>::zeros(m, dim);
+    for (i, r) in rows.iter().enumerate() {
+        for j in 0..dim {
+            a[(i, j)] = r[j];
+        }
+    }
+    let svd = a.clone().svd(true, true);
+    let u = svd.u.as_ref().expect("requested U");
+    let vt = svd.v_t.as_ref().expect("requested V^T");
+    let mut idx: Vec<usize> = (0..svd.singular_values.len()).collect();
+    idx.sort_by(|&p, &q| svd.singular_values[q].total_cmp(&svd.singular_values[p]));
+    let smax = svd.singular_values[idx[0]];
+    let r = idx
+        .iter()
+        .filter(|&&j| svd.singular_values[j] > RANK_RTOL * smax)
+        .count();
+    // Minimum-norm lift from the kept singular triplets.
+    let mut b = DVector::<f64>::zeros(m);
+    for (i, v) in vals.iter().enumerate() {
+        b[i] = *v;
+    }
+    let mut lift = [0.0; 3];
+    for &j in idx.iter().take(r) {
+        let coef = u.column(j).dot(&b) / svd.singular_values[j];
+        for c in 0..dim {
+            lift[c] += coef * vt[(j, c)];
+        }
+    }
+    let vmax = vals.iter().fold(0.0f64, |s, v| s.max(v.abs()));
+    for (i, row) in rows.iter().enumerate() {
+        let miss = (dot(row, &lift[..dim]) - vals[i]).abs();
+        if miss > CONSISTENCY_RTOL * vmax {
+            return Err(cerr(
+                &label,
+                format!(
+                    "contradictory constraints on node {}: the rows cannot all hold (a row misses its value by {miss:.3e})",
+                    cs[0].node
+                ),
+            ));
+        }
+    }
+    let dir = |j: usize| -> Vec<f64> { (0..dim).map(|c| vt[(idx[j], c)]).collect() };
+    Ok(match (dim, r) {
+        (_, 0) => NodeFrame {
+            mask: 0,
+            rotation: None,
+            lift,
+        },
+        (d, r) if r == d => NodeFrame {
+            mask: (1u8 << d) - 1,
+            rotation: None,
+            lift,
+        },
+        (_, 1) => frame_from_constrained(dim, &[unit(&dir(0))], lift),
+        (3, 2) => {
+            // The free direction is the remaining right singular vector.
+            let t = unit(&dir(2));
+            let cons = line_constrained_dirs(3, &t);
+            let mut f = frame_from_constrained(3, &cons, lift);
+            if f.rotation.is_some() {
+                let t3 = [t[0], t[1], t[2]];
+                let (m, l) = tangents(&t3);
+                f.rotation = Some(columns3(&m, &l, &t3));
+            }
+            f
+        }
+        _ => unreachable!("rank is at most dim"),
+    })
+}
+
+/// Builds the frame from orthonormal constrained directions: mask only when they are
+/// coordinate axes, else a rotation whose first columns are the constrained directions.
+fn frame_from_constrained(dim: usize, cons: &[Vec<f64>], lift: [f64; 3]) -> NodeFrame {
+    let axis_of = |v: &[f64]| -> Option<usize> {
+        let nz: Vec<usize> = (0..dim).filter(|&a| v[a] != 0.0).collect();
+        (nz.len() == 1).then(|| nz[0])
+    };
+    let axes: Vec<Option<usize>> = cons.iter().map(|c| axis_of(c)).collect();
+    if axes.iter().all(|a| a.is_some()) {
+        let mask = axes.iter().fold(0u8, |m, a| m | (1 << a.expect("checked")));
+        return NodeFrame {
+            mask,
+            rotation: None,
+            lift,
+        };
+    }
+    let r = cons.len();
+    let mut v = [0.0; 9];
+    match dim {
+        2 => {
+            let n = &cons[0];
+            v[0] = n[0];
+            v[1] = -n[1];
+            v[2] = n[1];
+            v[3] = n[0];
+        }
+        _ => {
+            let cols = if r == 1 {
+                let n = [cons[0][0], cons[0][1], cons[0][2]];
+                let (m, l) = tangents(&n);
+                columns3(&n, &m, &l)
+            } else {
+                let c0 = [cons[0][0], cons[0][1], cons[0][2]];
+                let c1 = [cons[1][0], cons[1][1], cons[1][2]];
+                let t = unit(&cross(&c0, &c1));
+                columns3(&c0, &c1, &[t[0], t[1], t[2]])
+            };
+            v = cols;
+        }
+    }
+    NodeFrame {
+        mask: (1u8 << r) - 1,
+        rotation: Some(v),
+        lift,
+    }
+}
+
+/// The two constrained directions of a line with unit direction t (3D), or the one
+/// normal of a 2D line.
+fn line_constrained_dirs(dim: usize, t: &[f64]) -> Vec<Vec<f64>> {
+    if dim == 2 {
+        vec![vec![-t[1], t[0]]]
+    } else {
+        let (m, l) = tangents(&[t[0], t[1], t[2]]);
+        vec![m.to_vec(), l.to_vec()]
+    }
+}
+
+/// m = normalize(n × e_x) (or e_y when n is nearly parallel to e_x), l = n × m.
+pub fn tangents(n: &[f64; 3]) -> ([f64; 3], [f64; 3]) {
+    let e = if n[0].abs() > AXIS_SWITCH {
+        [0.0, 1.0, 0.0]
+    } else {
+        [1.0, 0.0, 0.0]
+    };
+    let m = unit(&cross(n, &e));
+    let m = [m[0], m[1], m[2]];
+    let l = cross(n, &m);
+    (m, l)
+}
+
+/// Row-major 3×3 matrix with the given columns.
+fn columns3(a: &[f64; 3], b: &[f64; 3], c: &[f64; 3]) -> [f64; 9] {
+    [a[0], b[0], c[0], a[1], b[1], c[1], a[2], b[2], c[2]]
+}
+
+fn cross(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// Euclidean norm, scaled so that entries near 1e±200 neither overflow nor underflow.
+fn norm(a: &[f64]) -> f64 {
+    let s = a.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    if s == 0.0 || !s.is_finite() {
+        return s;
+    }
+    s * a.iter().map(|v| (v / s) * (v / s)).sum::<f64>().sqrt()
+}
+
+fn unit(a: &[f64]) -> Vec<f64> {
+    let n = norm(a);
+    a.iter().map(|v| v / n).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    fn c(node: usize, kind: ConstraintKind) -> Constraint {
+        Constraint {
+            node,
+            kind,
+            label: format!("c{node}"),
+        }
+    }
+
+    fn check_orthonormal(f: &Frames, i: usize) {
+        let d = f.dim;
+        let v = f.rotation(i).unwrap();
+        for a in 0..d {
+            for b in 0..d {
+                let s: f64 = (0..d).map(|k| v[k * d + a] * v[k * d + b]).sum();
+                let e = if a == b { 1.0 } else { 0.0 };
+                assert!((s - e).abs() < 1e-14, "VᵀV[{a}][{b}] = {s}");
+            }
+        }
+    }
+
+    #[test]
+    fn plane_frames_are_orthonormal_and_span_the_normal_even_near_e_x() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+        for trial in 0..200 {
+            let n: Vec<f64> = if trial % 2 == 0 {
+                // Within 1e-8 of e_x.
+                vec![1.0, rng.random_range(-1e-8..1e-8), rng.random_range(-1e-8..1e-8)]
+            } else {
+                (0..3).map(|_| rng.random_range(-1.0..1.0)).collect()
+            };
+            let f = Frames::build(
+                3,
+                1,
+                &[c(
+                    0,
+                    ConstraintKind::Plane {
+                        normal: n.clone(),
+                        offset: 0.0,
+                    },
+                )],
+            )
+            .unwrap();
+            if f.rotation(0).is_none() {
+                continue; // exactly axis-aligned: masked without rotation
+            }
+            check_orthonormal(&f, 0);
+            let v = f.rotation(0).unwrap();
+            let nn = unit(&n);
+            // First column is n; the others are orthogonal to n.
+            for k in 0..3 {
+                assert!((v[k * 3] - nn[k]).abs() < 1e-15);
+            }
+            for col in 1..3 {
+                let s: f64 = (0..3).map(|k| v[k * 3 + col] * nn[k]).sum();
+                assert!(s.abs() < 1e-14);
+            }
+            assert_eq!(f.mask[0], 0b001);
+        }
+    }
+
+    #[test]
+    fn axis_aligned_slip_masks_without_rotation() {
+        let f = Frames::build(
+            3,
+            2,
+            &[
+                c(
+                    0,
+                    ConstraintKind::Plane {
+                        normal: vec![0.0, 2.0, 0.0],
+                        offset: 0.0,
+                    },
+                ),
+                c(
+                    1,
+                    ConstraintKind::Line {
+                        direction: vec![0.0, 0.0, -3.0],
+                        offset: None,
+                    },
+                ),
+            ],
+        )
+        .unwrap();
+        assert!(!f.has_rotation());
+        assert_eq!(f.mask, vec![0b010, 0b011]);
+    }
+
+    #[test]
+    fn two_planes_make_a_line_three_make_sticky() {
+        let p = |n: Vec<f64>| ConstraintKind::Plane {
+            normal: n,
+            offset: 0.0,
+        };
+        let f = Frames::build(
+            3,
+            1,
+            &[c(0, p(vec![1.0, 1.0, 0.0])), c(0, p(vec![0.0, 1.0, 1.0]))],
+        )
+        .unwrap();
+        assert_eq!(f.mask[0].count_ones(), 2);
+        check_orthonormal(&f, 0);
+        // The free direction is orthogonal to both normals.
+        let v = f.rotation(0).unwrap();
+        let t = [v[2], v[5], v[8]];
+        assert!(dot(&t, &[1.0, 1.0, 0.0]).abs() < 1e-14);
+        assert!(dot(&t, &[0.0, 1.0, 1.0]).abs() < 1e-14);
+        let f = Frames::build(
+            3,
+            1,
+            &[
+                c(0, p(vec![1.0, 1.0, 0.0])),
+                c(0, p(vec![0.0, 1.0, 1.0])),
+                c(0, p(vec![1.0, 0.0, 1.0])),
+            ],
+        )
+        .unwrap();
+        assert_eq!(f.mask[0], 0b111);
+        assert!(!f.has_rotation());
+    }
+
+    #[test]
+    fn nearly_redundant_rows_add_nothing_and_contradictions_are_errors() {
+        let a = 1e-10;
+        let rows = ConstraintKind::Rows {
+            rows: vec![vec![1.0, 2.0, 0.5], vec![1.0 + a, 2.0, 0.5]],
+            values: vec![0.3, 0.3],
+        };
+        let f = Frames::build(3, 1, &[c(0, rows)]).unwrap();
+        assert_eq!(f.mask[0].count_ones(), 1);
+        let bad = ConstraintKind::Rows {
+            rows: vec![vec![1.0, 2.0, 0.5], vec![2.0, 4.0, 1.0]],
+            values: vec![0.3, 0.3],
+        };
+        let e = Frames::build(3, 1, &[c(0, bad)]).unwrap_err();
+        assert!(e.problem.contains("contradictory"), "{e}");
+    }
+
+    #[test]
+    fn bad_vectors_are_rejected() {
+        for (kind, want) in [
+            (
+                ConstraintKind::Plane {
+                    normal: vec![0.0, 0.0, 0.0],
+                    offset: 0.0,
+                },
+                "zero",
+            ),
+            (
+                ConstraintKind::Plane {
+                    normal: vec![f64::NAN, 0.0, 1.0],
+                    offset: 0.0,
+                },
+                "not finite",
+            ),
+            (
+                ConstraintKind::Line {
+                    direction: vec![1.0, 0.0],
+                    offset: None,
+                },
+                "expected 3",
+            ),
+        ] {
+            let e = Frames::build(3, 1, &[c(0, kind)]).unwrap_err();
+            assert!(e.problem.contains(want), "{e}");
+        }
+        let e = Frames::build(3, 1, &[c(5, ConstraintKind::Sticky { displacement: None })])
+            .unwrap_err();
+        assert!(e.problem.contains("out of range"));
+    }
+
+    #[test]
+    fn rotation_round_trip_is_identity() {
+        let f = Frames::build(
+            3,
+            2,
+            &[c(
+                1,
+                ConstraintKind::Plane {
+                    normal: vec![0.3, -0.4, 0.8],
+                    offset: 0.0,
+                },
+            )],
+        )
+        .unwrap();
+        let x = [1.0, 2.0, 3.0, -1.0, 0.5, 0.25];
+        let mut y = [0.0; 6];
+        let mut z = [0.0; 6];
+        f.to_frame(&x, &mut y);
+        f.from_frame(&y, &mut z);
+        for k in 0..6 {
+            assert!((x[k] - z[k]).abs() < 1e-15);
+        }
+    }
+}

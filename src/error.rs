@@ -1,0 +1,55 @@
+//! Errors. Bad input is an [`InputError`] that names the file, the entry and the fault;
+//! the command line prints it on one line and exits with code 2.
+
+use std::fmt;
+
+/// A fault in user-supplied data.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub struct InputError {
+    /// The file (or command-line option) the fault is in.
+    pub file: String,
+    /// The entry: a JSON path, a matrix entry, a row, a key.
+    pub entry: String,
+    /// What is wrong.
+    pub problem: String,
+}
+
+impl InputError {
+    pub fn new(file: impl Into<String>, entry: impl Into<String>, problem: impl Into<String>) -> Self {
+        InputError {
+            file: file.into(),
+            entry: entry.into(),
+            problem: problem.into(),
+        }
+    }
+}
+
+impl fmt::Display for InputError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        // One line, always: newlines in nested messages are flattened.
+        let problem = self.problem.replace('\n', " ");
+        if self.entry.is_empty() {
+            write!(f, "{}: {}", self.file, problem)
+        } else {
+            write!(f, "{}: {}: {}", self.file, self.entry, problem)
+        }
+    }
+}
+
+/// Faults found while solving (the data was well-formed but the problem is not solvable
+/// as posed, or a solver did not reach its tolerance).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SolveError {
+    /// Cholesky met a non-positive pivot: H is not positive definite on the free subspace.
+    #[error("the eliminated Hessian is not positive definite on the free subspace (Cholesky pivot at node {node}, component {component} in the node's frame)")]
+    NotPositiveDefinite { node: usize, component: usize },
+    /// A CG solver failed; the message says how.
+    #[error("{0}")]
+    Cg(#[from] crate::cg::CgError),
+    /// A GPU failure (no adapter, out of memory, a device error).
+    #[error("{0}")]
+    Gpu(String),
+    /// Anything else from the factorization library.
+    #[error("sparse factorization failed: {0}")]
+    Factorization(String),
+}

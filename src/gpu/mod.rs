@@ -1,0 +1,1 @@
+//! GPU solver (wgpu). Filled in by the GPU work.
