@@ -16,7 +16,7 @@ use faer::sparse::linalg::cholesky::{
 };
 use faer::linalg::cholesky::llt::factor::LltError as PivotError;
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
-use faer::{Conj, MatMut, Par, Side};
+use faer::{Conj, MatMut, Side};
 use std::time::Instant;
 
 /// Timings and sizes of one oracle solve.
@@ -172,7 +172,8 @@ impl CholeskyOracle {
         );
         let a = SparseColMatRef::new(sym, &values);
         let mut l_values = vec![0.0f64; self.symbolic.len_val()];
-        let par = Par::Seq;
+        // faer's global setting: all cores through rayon unless the caller changed it.
+        let par = faer::get_global_parallelism();
         let mut mem = MemBuffer::try_new(self.symbolic.factorize_numeric_llt_scratch::<f64>(
             par,
             Default::default(),
