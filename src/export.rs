@@ -1,0 +1,418 @@
+//! Carry the eliminated system past one machine: write Ĥ and b̂ (frame coordinates,
+//! design.md §2) for PETSc and Matrix Market readers, with a layout file that holds what
+//! recovery needs (per-node masks, rotations, the lift), and recover Δx and the reactions
+//! from a solution y exactly as the in-process solvers do.
+//!
+//! PETSc's binary format (big-endian; PetscInt is 32-bit in Debian's build):
+//! Mat: MAT_FILE_CLASSID, M, N, nnz, row lengths[M], column indices[nnz], values[nnz] f64.
+//! Vec: VEC_FILE_CLASSID, n, values[n] f64. The `.info` file beside the matrix carries
+//! `-matload_block_size d`, so MatLoad keeps the node blocks (point-block Jacobi).
+
+use crate::constraints::{Frames, NO_ROTATION};
+use crate::elimination::{reactions, Eliminated};
+use crate::error::InputError;
+use crate::sparse::BlockCsr;
+use std::io::{BufWriter, Read, Write};
+use std::path::{Path, PathBuf};
+
+pub const MAT_FILE_CLASSID: i32 = 1211216;
+pub const VEC_FILE_CLASSID: i32 = 1211214;
+
+/// What recovery needs, written as `layout.json`.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Layout {
+    pub format: String,
+    pub dim: usize,
+    pub n_nodes: usize,
+    /// Block size recorded for PETSc (= dim).
+    pub block_size: usize,
+    pub free_dofs: usize,
+    pub constrained_dofs: usize,
+    /// Per node: bit k set when component k (in the node's frame) is constrained.
+    pub mask: Vec<u8>,
+    /// The nodes with a rotation and their V_i (row-major, d·d each).
+    pub rot_nodes: Vec<u32>,
+    pub rotations: Vec<f64>,
+    /// Δx_p, the lift (omitted when all zero).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lift: Option<Vec<f64>>,
+    /// Fingerprints of H and g: recovery refuses an H or g from another system.
+    pub hessian_fingerprint: String,
+    pub gradient_fingerprint: String,
+    /// Bytes of the exported PETSc matrix (memory a PETSc run needs, roughly, for Ĥ).
+    pub matrix_bytes: u64,
+}
+
+const LAYOUT_FORMAT: &str = "stickslip-eliminated-v1";
+
+/// The files one export wrote.
+#[derive(Debug, Clone)]
+pub struct ExportFiles {
+    pub matrix_petsc: PathBuf,
+    pub rhs_petsc: PathBuf,
+    pub matrix_mtx: Option<PathBuf>,
+    pub rhs_mtx: Option<PathBuf>,
+    pub layout: PathBuf,
+}
+
+/// FNV-1a over the shape, the pattern and the bits of the values.
+pub fn fingerprint_matrix(h: &BlockCsr) -> String {
+    let mut f = Fnv::new();
+    f.u64(h.dim as u64);
+    f.u64(h.n as u64);
+    for &v in &h.row_ptr {
+        f.u64(v as u64);
+    }
+    for &v in &h.col_idx {
+        f.u64(v as u64);
+    }
+    for &v in &h.values {
+        f.u64(v.to_bits());
+    }
+    format!("{:016x}", f.0)
+}
+
+pub fn fingerprint_vector(g: &[f64]) -> String {
+    let mut f = Fnv::new();
+    f.u64(g.len() as u64);
+    for &v in g {
+        f.u64(v.to_bits());
+    }
+    format!("{:016x}", f.0)
+}
+
+struct Fnv(u64);
+impl Fnv {
+    fn new() -> Self {
+        Fnv(0xcbf29ce484222325)
+    }
+    fn u64(&mut self, v: u64) {
+        for b in v.to_le_bytes() {
+            self.0 ^= b as u64;
+            self.0 = self.0.wrapping_mul(0x100000001b3);
+        }
+    }
+}
+
+/// Writes Ĥ (full, scalar CSR with explicit structure of the free components and the
+/// constrained diagonal) and b̂ to `dir`, plus the layout. `mtx`: also Matrix Market.
+pub fn export(
+    e: &Eliminated,
+    g: &[f64],
+    dir: &Path,
+    mtx: bool,
+) -> std::io::Result<ExportFiles> {
+    std::fs::create_dir_all(dir)?;
+    let hat = e.assemble();
+    let f = e.frames;
+    let d = hat.dim;
+    let nd = hat.ndof();
+    // Scalar CSR rows of Ĥ, keeping free–free entries and the constrained diagonal.
+    let mut row_len: Vec<i32> = Vec::with_capacity(nd);
+    let mut cols: Vec<i32> = Vec::new();
+    let mut vals: Vec<f64> = Vec::new();
+    for i in 0..hat.n {
+        for a in 0..d {
+            let r = i * d + a;
+            let start = cols.len();
+            let row_free = f.is_free(i, a);
+            for k in hat.row_ptr[i]..hat.row_ptr[i + 1] {
+                let j = hat.col_idx[k];
+                for b in 0..d {
+                    let c = j * d + b;
+                    let keep = if r == c {
+                        true
+                    } else {
+                        row_free && f.is_free(j, b)
+                    };
+                    if keep {
+                        cols.push(c as i32);
+                        vals.push(hat.values[k * d * d + a * d + b]);
+                    }
+                }
+            }
+            row_len.push((cols.len() - start) as i32);
+        }
+    }
+    let matrix_petsc = dir.join("hhat.petsc");
+    {
+        let mut w = BufWriter::new(std::fs::File::create(&matrix_petsc)?);
+        for v in [MAT_FILE_CLASSID, nd as i32, nd as i32, cols.len() as i32] {
+            w.write_all(&v.to_be_bytes())?;
+        }
+        for v in &row_len {
+            w.write_all(&v.to_be_bytes())?;
+        }
+        for v in &cols {
+            w.write_all(&v.to_be_bytes())?;
+        }
+        for v in &vals {
+            w.write_all(&v.to_be_bytes())?;
+        }
+        w.flush()?;
+    }
+    std::fs::write(
+        dir.join("hhat.petsc.info"),
+        format!("-matload_block_size {d}\n"),
+    )?;
+    let rhs_petsc = dir.join("bhat.petsc");
+    write_petsc_vec(&rhs_petsc, &e.rhs)?;
+    let (matrix_mtx, rhs_mtx) = if mtx {
+        let mp = dir.join("hhat.mtx");
+        let mut w = BufWriter::new(std::fs::File::create(&mp)?);
+        // Symmetric: lower triangle only.
+        let lower = cols
+            .iter()
+            .enumerate()
+            .filter(|&(k, &c)| (c as usize) <= row_of(&row_len, k))
+            .count();
+        writeln!(w, "%%MatrixMarket matrix coordinate real symmetric")?;
+        writeln!(w, "% stickslip eliminated Hessian (node frames), block size {d}")?;
+        writeln!(w, "{nd} {nd} {lower}")?;
+        let mut k = 0usize;
+        for (r, &len) in row_len.iter().enumerate() {
+            for _ in 0..len {
+                let c = cols[k] as usize;
+                if c <= r {
+                    writeln!(w, "{} {} {:.16e}", r + 1, c + 1, vals[k])?;
+                }
+                k += 1;
+            }
+        }
+        w.flush()?;
+        let vp = dir.join("bhat.mtx");
+        let mut w = BufWriter::new(std::fs::File::create(&vp)?);
+        writeln!(w, "%%MatrixMarket matrix array real general")?;
+        writeln!(w, "{nd} 1")?;
+        for v in &e.rhs {
+            writeln!(w, "{v:.16e}")?;
+        }
+        w.flush()?;
+        (Some(mp), Some(vp))
+    } else {
+        (None, None)
+    };
+    let layout = Layout {
+        format: LAYOUT_FORMAT.to_string(),
+        dim: d,
+        n_nodes: hat.n,
+        block_size: d,
+        free_dofs: f.free_dofs(),
+        constrained_dofs: f.constrained_dofs(),
+        mask: f.mask.clone(),
+        rot_nodes: f.rot_nodes.clone(),
+        rotations: f.rotations.clone(),
+        lift: (!f.homogeneous).then(|| f.lift.clone()),
+        hessian_fingerprint: fingerprint_matrix(e.h),
+        gradient_fingerprint: fingerprint_vector(g),
+        matrix_bytes: 16 + 4 * nd as u64 + 12 * cols.len() as u64,
+    };
+    let layout_path = dir.join("layout.json");
+    std::fs::write(
+        &layout_path,
+        serde_json::to_string(&layout).map_err(std::io::Error::other)?,
+    )?;
+    Ok(ExportFiles {
+        matrix_petsc,
+        rhs_petsc,
+        matrix_mtx,
+        rhs_mtx,
+        layout: layout_path,
+    })
+}
+
+fn row_of(row_len: &[i32], k: usize) -> usize {
+    // Only used for counting; rows are visited in order, so a running search is fine
+    // for the sizes exported (it is called once per entry through `filter`).
+    let mut acc = 0usize;
+    for (r, &l) in row_len.iter().enumerate() {
+        acc += l as usize;
+        if k < acc {
+            return r;
+        }
+    }
+    row_len.len()
+}
+
+pub fn write_petsc_vec(path: &Path, v: &[f64]) -> std::io::Result<()> {
+    let mut w = BufWriter::new(std::fs::File::create(path)?);
+    w.write_all(&VEC_FILE_CLASSID.to_be_bytes())?;
+    w.write_all(&(v.len() as i32).to_be_bytes())?;
+    for x in v {
+        w.write_all(&x.to_be_bytes())?;
+    }
+    w.flush()
+}
+
+/// Reads a PETSc binary Vec.
+pub fn read_petsc_vec(path: &Path) -> Result<Vec<f64>, InputError> {
+    let file = path.display().to_string();
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|mut f| f.read_to_end(&mut bytes))
+        .map_err(|e| InputError::new(&file, "", format!("cannot read: {e}")))?;
+    if bytes.len() < 8 {
+        return Err(InputError::new(&file, "header", "too short for a PETSc Vec"));
+    }
+    let id = i32::from_be_bytes(bytes[0..4].try_into().expect("4 bytes"));
+    if id != VEC_FILE_CLASSID {
+        return Err(InputError::new(
+            &file,
+            "header",
+            format!("not a PETSc Vec (class id {id}, expected {VEC_FILE_CLASSID})"),
+        ));
+    }
+    let n = i32::from_be_bytes(bytes[4..8].try_into().expect("4 bytes"));
+    if n < 0 || bytes.len() != 8 + 8 * n as usize {
+        return Err(InputError::new(
+            &file,
+            "header",
+            format!(
+                "declares {n} entries but holds {} bytes of values",
+                bytes.len() - 8
+            ),
+        ));
+    }
+    let v: Vec<f64> = bytes[8..]
+        .chunks_exact(8)
+        .map(|c| f64::from_be_bytes(c.try_into().expect("8 bytes")))
+        .collect();
+    if let Some(k) = v.iter().position(|x| !x.is_finite()) {
+        return Err(InputError::new(
+            &file,
+            format!("entry {}", k + 1),
+            "value is not finite",
+        ));
+    }
+    Ok(v)
+}
+
+/// Reads and checks a layout file.
+pub fn read_layout(path: &Path) -> Result<Layout, InputError> {
+    let file = path.display().to_string();
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| InputError::new(&file, "", format!("cannot read: {e}")))?;
+    let l: Layout = serde_json::from_str(&text).map_err(|e| {
+        InputError::new(
+            &file,
+            format!("line {} column {}", e.line(), e.column()),
+            e.to_string(),
+        )
+    })?;
+    if l.format != LAYOUT_FORMAT {
+        return Err(InputError::new(
+            &file,
+            "format",
+            format!("unknown layout format '{}' (expected {LAYOUT_FORMAT})", l.format),
+        ));
+    }
+    let d = l.dim;
+    if (d != 2 && d != 3)
+        || l.mask.len() != l.n_nodes
+        || l.rotations.len() != l.rot_nodes.len() * d * d
+        || l.lift.as_ref().is_some_and(|v| v.len() != d * l.n_nodes)
+        || l.rot_nodes.iter().any(|&r| r as usize >= l.n_nodes)
+    {
+        return Err(InputError::new(
+            &file,
+            "",
+            "inconsistent layout (dimension, masks, rotations or lift do not fit the node count)",
+        ));
+    }
+    Ok(l)
+}
+
+impl Layout {
+    /// The frames this layout describes.
+    pub fn frames(&self) -> Frames {
+        let d = self.dim;
+        let mut f = Frames::unconstrained(d, self.n_nodes);
+        f.mask = self.mask.clone();
+        f.rot_nodes = self.rot_nodes.clone();
+        f.rotations = self.rotations.clone();
+        f.rot_index = vec![NO_ROTATION; self.n_nodes];
+        for (k, &node) in self.rot_nodes.iter().enumerate() {
+            f.rot_index[node as usize] = k as u32;
+        }
+        if let Some(l) = &self.lift {
+            f.lift = l.clone();
+            f.homogeneous = false;
+        }
+        f
+    }
+}
+
+/// Δx = Δx_p + V y and f = −(HΔx + g), after checking that H, g and y belong to the
+/// exported system. `names` = (layout, solution, hessian, gradient) file names for errors.
+pub fn recover(
+    layout: &Layout,
+    y: &[f64],
+    h: &BlockCsr,
+    g: &[f64],
+    names: [&str; 4],
+) -> Result<(Vec<f64>, Vec<f64>), InputError> {
+    let nd = layout.dim * layout.n_nodes;
+    if y.len() != nd {
+        return Err(InputError::new(
+            names[1],
+            "",
+            format!(
+                "solution has {} entries, the layout's system has {nd} ({} nodes × {})",
+                y.len(),
+                layout.n_nodes,
+                layout.dim
+            ),
+        ));
+    }
+    if h.dim != layout.dim || h.n != layout.n_nodes || fingerprint_matrix(h) != layout.hessian_fingerprint
+    {
+        return Err(InputError::new(
+            names[0],
+            "hessian_fingerprint",
+            format!("the layout was exported from another system than {}", names[2]),
+        ));
+    }
+    if fingerprint_vector(g) != layout.gradient_fingerprint {
+        return Err(InputError::new(
+            names[0],
+            "gradient_fingerprint",
+            format!("the layout was exported from another system than {}", names[3]),
+        ));
+    }
+    let frames = layout.frames();
+    let e = Eliminated::new(h, g, &frames, Default::default());
+    let dx = e.recover(y);
+    let f = reactions(h, g, &dx);
+    Ok((dx, f))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::elimination::ConstrainedDiagonal;
+    use crate::generate::{random_system, SystemSpec};
+
+    #[test]
+    fn export_round_trip_through_files() {
+        let s = random_system(&SystemSpec::small(3, 77));
+        let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+        let dir = std::env::temp_dir().join(format!("stickslip-export-{}", std::process::id()));
+        let files = export(&e, &s.g, &dir, true).unwrap();
+        let layout = read_layout(&files.layout).unwrap();
+        assert_eq!(layout.frames(), s.frames);
+        let b = read_petsc_vec(&files.rhs_petsc).unwrap();
+        assert_eq!(b, e.rhs);
+        let (y, _) = crate::oracle::solve(&e).unwrap();
+        let (dx, f) = recover(&layout, &y, &s.h, &s.g, ["l", "y", "h", "g"]).unwrap();
+        assert_eq!(dx, e.recover(&y));
+        assert_eq!(f, reactions(&s.h, &s.g, &dx));
+        // A layout from another system is refused.
+        let other = random_system(&SystemSpec::small(3, 78));
+        if other.h.n == s.h.n {
+            assert!(recover(&layout, &y, &other.h, &other.g, ["l", "y", "h", "g"]).is_err());
+        }
+        assert!(recover(&layout, &y[1..], &s.h, &s.g, ["l", "y", "h", "g"]).is_err());
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}
