@@ -184,7 +184,8 @@ pub fn random_system(spec: &SystemSpec) -> GeneratedSystem {
         let mut k = [0.0f64; 9];
         for r in 0..d {
             for c in 0..d {
-                k[r * d + c] = s * a[r] * a[c] / (an * an) + if r == c { 0.1 * s } else { 0.0 };
+                // s·(a_r a_c) keeps the block exactly symmetric (same product order for (r,c), (c,r)).
+                k[r * d + c] = s * (a[r] * a[c]) / (an * an) + if r == c { 0.1 * s } else { 0.0 };
             }
         }
         for (p, q, sign) in [(i, i, 1.0), (j, j, 1.0), (i, j, -1.0), (j, i, -1.0)] {

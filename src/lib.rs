@@ -8,11 +8,24 @@
 //! 3. [`oracle`] (faer sparse Cholesky) or [`cg`] (f64 PCG) solve it.
 //! 4. Recovery Δx = Δx_p + V y and reactions f = −(HΔx + g).
 
+pub mod bench;
 pub mod cg;
+pub mod cli;
 pub mod constraints;
+pub mod driver;
 pub mod elimination;
+pub mod energy;
 pub mod error;
+pub mod export;
 pub mod generate;
 pub mod gpu;
+pub mod integrator;
+pub mod io;
+pub mod mesh;
 pub mod oracle;
+pub mod plots;
+pub mod output;
+pub mod report;
+pub mod scene;
 pub mod sparse;
+pub mod springs;

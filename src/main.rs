@@ -1,1 +1,5 @@
-fn main(){}
+//! The `stickslip` binary: everything lives in [`stickslip::cli`].
+
+fn main() -> std::process::ExitCode {
+    stickslip::cli::main()
+}

@@ -1,1 +1,121 @@
-//! GPU solver (wgpu). Filled in by the GPU work.
+//! GPU solver (wgpu): device-resident PCG on the eliminated system Ĥ y = b̂ of
+//! design.md §2–§4, with WGSL kernels for the per-node rotations, the masked block-sparse
+//! (or matrix-free mass-spring) Hessian product, Jacobi / block-Jacobi preconditioners and
+//! the CG updates with deterministic two-pass reductions.
+
+pub mod context;
+pub mod kernels;
+pub mod solver;
+
+pub use context::{list_adapters, AdapterReport, GpuContext, GpuOptions};
+pub use solver::{BufferRecord, GpuSolveInfo, GpuSolver, KernelRecord, Resources, StageSeconds};
+
+use crate::cg::{CgError, Preconditioner};
+
+/// Why the GPU solver could not run or did not converge.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GpuError {
+    #[error("{0}")]
+    NoAdapter(String),
+    #[error("GPU device error: {0}")]
+    Device(String),
+    #[error("precision {precision} needs SHADER_F64, which adapter '{adapter}' does not offer (use --precision f32)")]
+    NoF64 {
+        adapter: String,
+        precision: Precision,
+    },
+    #[error("GPU buffer '{label}' needs {bytes} bytes but adapter '{adapter}' allows at most {limit} bytes per {what}")]
+    BufferTooLarge {
+        label: String,
+        bytes: u64,
+        limit: u64,
+        what: &'static str,
+        adapter: String,
+    },
+    #[error("the GPU solver does not support this system: {0}")]
+    Unsupported(String),
+    #[error("update does not match the solver's system: {0}")]
+    Mismatch(String),
+    #[error(transparent)]
+    Cg(#[from] CgError),
+}
+
+/// Arithmetic of the GPU CG.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    /// f32 throughout (reductions in f64 where the device has SHADER_F64).
+    #[default]
+    F32,
+    /// f64 throughout; needs SHADER_F64.
+    F64,
+    /// f32 CG inside f64 iterative refinement; stops on the f64 residual.
+    Mixed,
+}
+
+impl std::fmt::Display for Precision {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Precision::F32 => "f32",
+            Precision::F64 => "f64",
+            Precision::Mixed => "mixed",
+        })
+    }
+}
+
+impl std::str::FromStr for Precision {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "f32" => Ok(Precision::F32),
+            "f64" => Ok(Precision::F64),
+            "mixed" => Ok(Precision::Mixed),
+            _ => Err(format!(
+                "unknown precision '{s}' (expected f32, f64 or mixed)"
+            )),
+        }
+    }
+}
+
+/// Parameters of a GPU solve.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GpuParams {
+    pub precision: Precision,
+    /// Stop when the true f64 relative residual ‖b̂ − Ĥy‖/‖b̂‖ ≤ tol.
+    pub tol: f64,
+    /// Limit on CG iterations (all restarts and, for mixed, all inner solves together).
+    pub max_iters: usize,
+    pub preconditioner: Preconditioner,
+    /// Stagnation: the recurrence residual has not improved for this many iterations.
+    pub stagnation_window: usize,
+    /// Restarts from the current iterate when the true residual misses the tolerance.
+    pub max_restarts: usize,
+    /// Iterations recorded in the first submit; doubled after each status read-back.
+    pub first_chunk: usize,
+    /// Cap of the iterations per submit (and per status read-back).
+    pub max_chunk: usize,
+    /// Workgroup size (power of two, 32..=256).
+    pub workgroup_size: u32,
+    /// Mixed: each inner f32 solve reduces the outer residual by this factor.
+    pub inner_tol: f64,
+    /// Mixed: limit on outer refinements.
+    pub max_outer: usize,
+}
+
+impl Default for GpuParams {
+    fn default() -> Self {
+        GpuParams {
+            precision: Precision::F32,
+            tol: 1e-6,
+            max_iters: 10_000,
+            preconditioner: Preconditioner::Jacobi,
+            stagnation_window: 1_000,
+            max_restarts: 3,
+            first_chunk: 8,
+            max_chunk: 256,
+            workgroup_size: 64,
+            inner_tol: 1e-4,
+            max_outer: 30,
+        }
+    }
+}

@@ -1,0 +1,43 @@
+//! GPU solver benchmarks (criterion): the operator kernel and a full f32 solve.
+//! Skips (with a message) when no adapter exists.
+
+use criterion::{criterion_group, criterion_main, Criterion};
+use stickslip::cg::Preconditioner;
+use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
+use stickslip::generate::{random_system, SystemSpec};
+use stickslip::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
+
+fn bench(c: &mut Criterion) {
+    let ctx = match GpuContext::new(&GpuOptions::default()) {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("SKIP gpu benchmarks: {e}");
+            return;
+        }
+    };
+    let s = random_system(&SystemSpec::with_nodes(3, 20_000, 1));
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let params = GpuParams {
+        precision: Precision::F32,
+        tol: 1e-6,
+        preconditioner: Preconditioner::Jacobi,
+        ..Default::default()
+    };
+    let Ok(mut sol) = GpuSolver::new(&ctx, &e, &params) else {
+        eprintln!("SKIP gpu benchmarks: solver could not be built");
+        return;
+    };
+    let y = vec![1.0; e.ndof()];
+    let mut g = c.benchmark_group("gpu");
+    g.sample_size(10);
+    g.bench_function("matvec_3d_20k_f32", |b| {
+        b.iter(|| sol.apply_operator(&y).map(|v| v.len()))
+    });
+    g.bench_function("solve_3d_20k_f32", |b| {
+        b.iter(|| sol.solve().map(|r| r.2.iterations))
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

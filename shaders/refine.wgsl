@@ -1,0 +1,57 @@
+// Mixed precision: the f64 outer loop of iterative refinement around the f32 CG.
+// residual:   r64 = b̂ − Ĥy (q64 = Ĥy from the f64 matvec), rhs32 = f32(r64), and
+//             per-workgroup partials of ‖r64‖² (deterministic, summed by the host).
+// accumulate: y64 += f64(x32), the correction found by the inner f32 CG.
+// Needs SHADER_F64; the scalar types are explicit here.
+
+override WG: u32 = 64u;
+
+struct Params {
+    n_nodes: u32,
+    n_rot: u32,
+    n_partials: u32,
+    n_blocks: u32,
+}
+
+const WG_MAX: u32 = 256u;
+override D: u32 = 3u;
+
+@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(1) var<storage, read> b64: array<f64>;
+@group(0) @binding(2) var<storage, read> q64: array<f64>;
+@group(0) @binding(3) var<storage, read_write> rhs32: array<f32>;
+@group(0) @binding(4) var<storage, read_write> partials64: array<f64>;
+@group(0) @binding(5) var<storage, read> x32: array<f32>;
+@group(0) @binding(6) var<storage, read_write> y64: array<f64>;
+
+var<workgroup> sh: array<f64, WG_MAX>;
+
+@compute @workgroup_size(WG)
+fn residual(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
+    let n = params.n_nodes * D;
+    var s = f64(0.0);
+    for (var k = wid.x * WG + lid.x; k < n; k += params.n_partials * WG) {
+        let rk = b64[k] - q64[k];
+        rhs32[k] = f32(rk);
+        s += rk * rk;
+    }
+    sh[lid.x] = s;
+    workgroupBarrier();
+    for (var h = WG / 2u; h > 0u; h = h >> 1u) {
+        if (lid.x < h) {
+            sh[lid.x] += sh[lid.x + h];
+        }
+        workgroupBarrier();
+    }
+    if (lid.x == 0u) {
+        partials64[wid.x] = sh[0];
+    }
+}
+
+@compute @workgroup_size(WG)
+fn accumulate(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let n = params.n_nodes * D;
+    if (gid.x < n) {
+        y64[gid.x] += f64(x32[gid.x]);
+    }
+}

@@ -1,0 +1,615 @@
+//! The command line (design.md §6): `solve`, `generate`, `info`, and the later `run` and
+//! `bench`. `main.rs` only calls [`main`].
+//!
+//! Exit codes: 0 success; 1 a solve failed (H not positive definite on the free
+//! subspace, CG did not converge, GPU failure) or a subcommand is not available; 2 bad
+//! input or usage. Every error is exactly one line on stderr.
+
+use crate::cg::{self, CgParams, Preconditioner};
+use crate::constraints::{node_rows, Constraint, Frames};
+use crate::elimination::{reactions, ConstrainedDiagonal, Eliminated};
+use crate::error::{InputError, SolveError};
+use crate::generate::{random_system, ConstraintMix, Stencil, SystemSpec};
+use crate::io::{bcjson, mtx};
+use crate::oracle;
+use crate::report::{CgReport, CholeskyReport, Files, Report, Seconds};
+use clap::{ArgGroup, Args, Parser, Subcommand, ValueEnum};
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+#[derive(Debug, Parser)]
+#[command(
+    name = "stickslip",
+    version,
+    about = "Newton systems of implicit simulation with Dirichlet boundary conditions eliminated (CPU Cholesky/CG, GPU CG)"
+)]
+pub struct Cli {
+    /// Print nothing on stderr except errors.
+    #[arg(long, short, global = true)]
+    pub quiet: bool,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Solve one constrained Newton system read from Matrix Market and JSON files.
+    Solve(SolveArgs),
+    /// Write a seeded random system (H.mtx, g.mtx, bc.json) for tests and benchmarks.
+    Generate(GenerateArgs),
+    /// List the GPU adapters.
+    Info,
+    /// Simulate a scene (built-in default when none is given) [not yet implemented].
+    Run(RunArgs),
+    /// CPU-versus-GPU benchmark [not yet implemented].
+    Bench,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum SolverKind {
+    /// Sparse Cholesky (faer), f64: the oracle.
+    Cholesky,
+    /// Preconditioned conjugate gradients on the CPU, f64, matrix-free.
+    Cg,
+    /// Conjugate gradients on the GPU (wgpu).
+    Gpu,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum PrecisionArg {
+    F32,
+    F64,
+    /// f32 inner CG inside f64 iterative refinement.
+    Mixed,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum DiagonalArg {
+    /// D = I on the constrained components.
+    Identity,
+    /// D = diag(VᵀHV) on the constrained components (keeps Ĥ's spectrum within VᵀHV's).
+    Hessian,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum StencilArg {
+    /// 2D: 8 neighbours; 3D: 14 (tetrahedral-mesh-like).
+    Mesh,
+    /// 2D: 4 neighbours; 3D: 6.
+    Face,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum MixArg {
+    /// x = 0 face sticky, x = max face moved, y = 0 face on a tilted plane, a few lines.
+    Realistic,
+    /// Every kind mixed at random, with combinations and redundant rows.
+    Random,
+    /// No constraints.
+    None,
+}
+
+fn positive_f64(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        Ok(_) => Err("must be a positive finite number".into()),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
+#[derive(Debug, Clone, Args)]
+#[command(group(ArgGroup::new("constraint_input").required(true).args(["constraints", "constraint_matrix"])))]
+pub struct SolveArgs {
+    /// H: Matrix Market coordinate real (symmetric or general), dn × dn, node-major.
+    #[arg(long, value_name = "H.mtx")]
+    pub hessian: String,
+    /// g: Matrix Market array (or coordinate) real, dn × 1.
+    #[arg(long, value_name = "g.mtx")]
+    pub gradient: String,
+    /// Per-node constraints as JSON (design.md §6).
+    #[arg(long, value_name = "bc.json")]
+    pub constraints: Option<String>,
+    /// Global constraints B Δx = p: Matrix Market coordinate, m × dn, each row on one node.
+    #[arg(long, value_name = "B.mtx", requires = "dim")]
+    pub constraint_matrix: Option<String>,
+    /// p for --constraint-matrix: Matrix Market array, m × 1 (zero when absent).
+    #[arg(long, value_name = "p.mtx", requires = "constraint_matrix")]
+    pub constraint_values: Option<String>,
+    /// Spatial dimension (default: bc.json's "dim"; required with --constraint-matrix).
+    #[arg(long, value_parser = clap::value_parser!(u8).range(2..=3))]
+    pub dim: Option<u8>,
+    #[arg(long, value_enum, default_value_t = SolverKind::Cholesky)]
+    pub solver: SolverKind,
+    /// Arithmetic (f32 and mixed need --solver gpu) [default: f64].
+    #[arg(long, value_enum)]
+    pub precision: Option<PrecisionArg>,
+    /// Iterative solvers: stop at ‖b̂ − Ĥy‖/‖b̂‖ ≤ tol (the true residual).
+    #[arg(long, default_value = "1e-8", value_parser = positive_f64)]
+    pub tol: f64,
+    /// Iterative solvers: iteration limit [default: 10000].
+    #[arg(long)]
+    pub max_iters: Option<usize>,
+    /// Iterative solvers: none, jacobi or block-jacobi.
+    #[arg(long, default_value = "jacobi")]
+    pub preconditioner: Preconditioner,
+    /// The diagonal D on constrained components of Ĥ.
+    #[arg(long, value_enum, default_value_t = DiagonalArg::Identity)]
+    pub constrained_diagonal: DiagonalArg,
+    /// Δx: Matrix Market array dn × 1, 17 significant digits.
+    #[arg(long, value_name = "dx.mtx")]
+    pub out: String,
+    /// Reactions f = −(HΔx + g): Matrix Market array dn × 1.
+    #[arg(long, value_name = "f.mtx")]
+    pub reactions: Option<String>,
+    /// Timings, sizes and solver details as JSON.
+    #[arg(long, value_name = "report.json")]
+    pub report: Option<String>,
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct GenerateArgs {
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u8).range(2..=3))]
+    pub dim: u8,
+    /// About this many nodes (a square or cubic grid).
+    #[arg(long, default_value_t = 1000)]
+    pub nodes: usize,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    #[arg(long, value_enum, default_value_t = StencilArg::Mesh)]
+    pub stencil: StencilArg,
+    #[arg(long, value_enum, default_value_t = MixArg::Realistic)]
+    pub mix: MixArg,
+    /// Also write the constraints as B.mtx and p.mtx.
+    #[arg(long)]
+    pub matrix_form: bool,
+    #[arg(long, value_name = "DIR")]
+    pub out_dir: PathBuf,
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct RunArgs {
+    /// Scene description (TOML); the built-in default scene when absent.
+    pub scene: Option<PathBuf>,
+}
+
+/// Why a command failed; decides the exit code.
+#[derive(Debug, thiserror::Error)]
+pub enum CliError {
+    /// Bad input data or options: exit 2.
+    #[error("{0}")]
+    Input(#[from] InputError),
+    /// The system could not be solved as posed: exit 1.
+    #[error("{0}")]
+    Solve(#[from] SolveError),
+    /// Anything else (unwritable output, a feature not in this build): exit 1.
+    #[error("{0}")]
+    Failed(String),
+}
+
+impl CliError {
+    pub fn exit_code(&self) -> u8 {
+        match self {
+            CliError::Input(_) => 2,
+            _ => 1,
+        }
+    }
+}
+
+fn write_failed(path: &str, e: std::io::Error) -> CliError {
+    CliError::Failed(format!("cannot write {path}: {e}"))
+}
+
+/// Entry point of the binary.
+pub fn main() -> ExitCode {
+    // A panic is a bug, but the one-line contract holds for it too: no backtrace hint.
+    std::panic::set_hook(Box::new(|info| {
+        let msg = info
+            .payload()
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| info.payload().downcast_ref::<String>().cloned())
+            .unwrap_or_default();
+        let at = info
+            .location()
+            .map(|l| format!(" at {}:{}", l.file(), l.line()))
+            .unwrap_or_default();
+        eprintln!("error: internal error{at}: {}", msg.replace('\n', " "));
+    }));
+    let cli = Cli::parse();
+    match run(&cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {}", e.to_string().replace('\n', " "));
+            ExitCode::from(e.exit_code())
+        }
+    }
+}
+
+/// Runs a parsed command line.
+pub fn run(cli: &Cli) -> Result<(), CliError> {
+    match &cli.command {
+        Command::Solve(a) => {
+            let r = solve(a)?;
+            if !cli.quiet {
+                eprintln!("{}", r.summary());
+            }
+            Ok(())
+        }
+        Command::Generate(a) => generate(a, cli.quiet),
+        Command::Info => info(),
+        Command::Run(_) => Err(CliError::Failed(
+            "`stickslip run` is not yet implemented in this build".into(),
+        )),
+        Command::Bench => Err(CliError::Failed(
+            "`stickslip bench` is not yet implemented in this build".into(),
+        )),
+    }
+}
+
+/// `stickslip info`: the GPU adapters wgpu can see (`WGPU_BACKEND` narrows them).
+fn info() -> Result<(), CliError> {
+    println!("stickslip {}", env!("CARGO_PKG_VERSION"));
+    let adapters = crate::gpu::list_adapters();
+    if adapters.is_empty() {
+        println!(
+            "no GPU adapters (install a Vulkan driver, e.g. mesa-vulkan-drivers for lavapipe)"
+        );
+    }
+    for (k, a) in adapters.iter().enumerate() {
+        println!(
+            "adapter {k}: {} ({}, {}; driver {} {}); shader_f64 {}, subgroup {} ({}..{}), timestamp_query {}, max storage binding {} MiB",
+            a.name,
+            a.backend,
+            a.device_type,
+            a.driver,
+            a.driver_info,
+            a.shader_f64,
+            a.subgroup,
+            a.subgroup_min_size,
+            a.subgroup_max_size,
+            a.timestamp_query,
+            a.max_storage_buffer_binding_size >> 20
+        );
+    }
+    Ok(())
+}
+
+/// What a GPU solve hands back to the pipeline.
+pub struct GpuOutcome {
+    pub y: Vec<f64>,
+    /// Δx as the GPU recovered it.
+    pub dx: Option<Vec<f64>>,
+    pub iterations: usize,
+    pub relative_residual: f64,
+    pub adapter: String,
+    /// The solver's own info (GpuSolveInfo), serialized.
+    pub info: serde_json::Value,
+}
+
+/// The GPU call site, kept in one place. Every GPU failure (no adapter, no SHADER_F64,
+/// a device error, CG not converging) is a solve error: exit 1.
+fn solve_gpu(
+    e: &Eliminated,
+    args: &SolveArgs,
+    precision: PrecisionArg,
+    max_iters: usize,
+) -> Result<GpuOutcome, CliError> {
+    use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
+    let gpu_err = |e: crate::gpu::GpuError| CliError::Solve(SolveError::Gpu(e.to_string()));
+    let ctx = GpuContext::new(&GpuOptions::default()).map_err(gpu_err)?;
+    let params = GpuParams {
+        precision: match precision {
+            PrecisionArg::F32 => Precision::F32,
+            PrecisionArg::F64 => Precision::F64,
+            PrecisionArg::Mixed => Precision::Mixed,
+        },
+        tol: args.tol,
+        max_iters,
+        preconditioner: args.preconditioner,
+        ..GpuParams::default()
+    };
+    let mut solver = GpuSolver::new(&ctx, e, &params).map_err(gpu_err)?;
+    let (y, dx, info) = solver.solve().map_err(gpu_err)?;
+    Ok(GpuOutcome {
+        iterations: info.iterations,
+        relative_residual: info.relative_residual,
+        adapter: info.adapter.clone(),
+        info: serde_json::to_value(&info).unwrap_or(serde_json::Value::Null),
+        y,
+        dx: Some(dx),
+    })
+}
+
+fn precision_name(p: PrecisionArg) -> &'static str {
+    match p {
+        PrecisionArg::F32 => "f32",
+        PrecisionArg::F64 => "f64",
+        PrecisionArg::Mixed => "mixed",
+    }
+}
+
+/// `stickslip solve`: read → constraints → frames → eliminate → solve → recover → write.
+pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
+    let t_start = Instant::now();
+    let precision = args.precision.unwrap_or(PrecisionArg::F64);
+    if args.solver != SolverKind::Gpu && precision != PrecisionArg::F64 {
+        return Err(InputError::new(
+            "command line",
+            "--precision",
+            format!(
+                "{} needs --solver gpu (cholesky and cg compute in f64)",
+                precision_name(precision)
+            ),
+        )
+        .into());
+    }
+    let max_iters = args.max_iters.unwrap_or(CgParams::default().max_iters);
+
+    // 1. Read. bc.json first: it may fix the dimension that H's blocks need.
+    let cli_dim = args.dim.map(usize::from);
+    let bc = match &args.constraints {
+        Some(path) => Some(bcjson::read(path, cli_dim)?),
+        None => None,
+    };
+    let dim = match (cli_dim, bc.as_ref().and_then(|b| b.dim)) {
+        (Some(d), _) | (None, Some(d)) => d,
+        (None, None) => {
+            let file = args.constraints.as_deref().unwrap_or("command line");
+            return Err(InputError::new(
+                file,
+                "dim",
+                "the dimension is not given: add \"dim\": 2 or 3 to the file, or pass --dim",
+            )
+            .into());
+        }
+    };
+    let h = mtx::read_hessian(&args.hessian, dim)?;
+    let (nd, n) = (h.ndof(), h.n);
+    let g = mtx::read_vector(
+        &args.gradient,
+        "g",
+        Some((nd, &format!("{nd} = {dim} × {n} nodes"))),
+    )?;
+    let (constraints, cfile): (Vec<Constraint>, &str) = match (&bc, &args.constraint_matrix) {
+        (Some(bc), _) => (
+            bc.constraints.clone(),
+            args.constraints.as_deref().unwrap_or_default(),
+        ),
+        (None, Some(bpath)) => {
+            let b = mtx::read_matrix(bpath, "B")?;
+            let p = match &args.constraint_values {
+                Some(ppath) => Some((
+                    ppath.as_str(),
+                    mtx::read_vector(
+                        ppath,
+                        "p",
+                        Some((b.nrows, &format!("{} (the rows of B)", b.nrows))),
+                    )?,
+                )),
+                None => None,
+            };
+            let cs = bcjson::constraints_from_matrix(
+                bpath,
+                &b,
+                p.as_ref().map(|(f, v)| (*f, v.as_slice())),
+                dim,
+                n,
+            )?;
+            (cs, bpath.as_str())
+        }
+        (None, None) => unreachable!("clap requires one constraint input"),
+    };
+    let t_read = t_start.elapsed().as_secs_f64();
+
+    // 2. Constraints → per-node frames, masks and the lift Δx_p.
+    let t = Instant::now();
+    let frames = Frames::build(dim, n, &constraints)
+        .map_err(|e| InputError::new(cfile, e.label, e.problem))?;
+    // 3. The eliminated system (lengths were checked while reading).
+    let diag = match args.constrained_diagonal {
+        DiagonalArg::Identity => ConstrainedDiagonal::Identity,
+        DiagonalArg::Hessian => ConstrainedDiagonal::Hessian,
+    };
+    let e = Eliminated::new(&h, &g, &frames, diag);
+    let t_setup = t.elapsed().as_secs_f64();
+
+    // 4. Solve.
+    let t = Instant::now();
+    let mut seconds = Seconds::default();
+    let mut chol = None;
+    let mut cgr = None;
+    let mut gpu = None;
+    let mut adapter = None;
+    let (y, dx_gpu, iterations, relative_residual) = match args.solver {
+        SolverKind::Cholesky => {
+            let (y, info) = oracle::solve(&e)?;
+            seconds.symbolic = Some(info.symbolic_seconds);
+            seconds.numeric = Some(info.numeric_seconds);
+            seconds.triangular = Some(info.solve_seconds);
+            chol = Some(CholeskyReport {
+                matrix_nnz: info.matrix_nnz,
+                factor_nnz: info.factor_nnz,
+                reused_symbolic: info.reused_symbolic,
+            });
+            (y, None, None, info.relative_residual)
+        }
+        SolverKind::Cg => {
+            let params = CgParams {
+                tol: args.tol,
+                max_iters,
+                preconditioner: args.preconditioner,
+                ..CgParams::default()
+            };
+            let (y, info) = cg::solve(&e, &params).map_err(SolveError::from)?;
+            cgr = Some(CgReport {
+                preconditioner: preconditioner_name(args.preconditioner).into(),
+                tol: args.tol,
+                max_iters,
+                restarts: info.restarts,
+            });
+            (y, None, Some(info.iterations), info.relative_residual)
+        }
+        SolverKind::Gpu => {
+            let o = solve_gpu(&e, args, precision, max_iters)?;
+            adapter = Some(o.adapter);
+            gpu = Some(o.info);
+            (o.y, o.dx, Some(o.iterations), o.relative_residual)
+        }
+    };
+    let t_solve = t.elapsed().as_secs_f64();
+
+    // 5. Recover Δx = Δx_p + V y and the reactions f = −(HΔx + g).
+    let t = Instant::now();
+    let dx = dx_gpu.unwrap_or_else(|| e.recover(&y));
+    let f = reactions(&h, &g, &dx);
+    let violation = constraint_violation(dim, &constraints, &dx);
+    let t_recover = t.elapsed().as_secs_f64();
+
+    // 6. Write.
+    let t = Instant::now();
+    let solver = match args.solver {
+        SolverKind::Cholesky => "cholesky",
+        SolverKind::Cg => "cg",
+        SolverKind::Gpu => "gpu",
+    };
+    let note =
+        format!("stickslip solve --solver {solver}: relative residual {relative_residual:.3e}");
+    mtx::write_vector(&args.out, &dx, &format!("dx: {note}"))
+        .map_err(|e| write_failed(&args.out, e))?;
+    if let Some(path) = &args.reactions {
+        mtx::write_vector(path, &f, &format!("reactions f = -(H dx + g): {note}"))
+            .map_err(|e| write_failed(path, e))?;
+    }
+    seconds.read = t_read;
+    seconds.setup = t_setup;
+    seconds.solve = t_solve;
+    seconds.recover = t_recover;
+    seconds.write = t.elapsed().as_secs_f64();
+    seconds.total = t_start.elapsed().as_secs_f64();
+    let report = Report {
+        solver: solver.into(),
+        precision: precision_name(precision).into(),
+        adapter,
+        iterations,
+        relative_residual,
+        seconds,
+        dim,
+        nodes: n,
+        free_dofs: frames.free_dofs(),
+        constrained_dofs: frames.constrained_dofs(),
+        rotated_nodes: frames.rot_nodes.len(),
+        constraints: constraints.len(),
+        prescribed: !frames.homogeneous,
+        constrained_diagonal: match args.constrained_diagonal {
+            DiagonalArg::Identity => "identity",
+            DiagonalArg::Hessian => "hessian",
+        }
+        .into(),
+        constraint_violation: violation,
+        cholesky: chol,
+        cg: cgr,
+        gpu,
+        files: Files {
+            hessian: args.hessian.clone(),
+            gradient: args.gradient.clone(),
+            constraints: args.constraints.clone(),
+            constraint_matrix: args.constraint_matrix.clone(),
+            constraint_values: args.constraint_values.clone(),
+            out: args.out.clone(),
+            reactions: args.reactions.clone(),
+        },
+    };
+    if let Some(path) = &args.report {
+        let mut text =
+            serde_json::to_string_pretty(&report).map_err(|e| CliError::Failed(e.to_string()))?;
+        text.push('\n');
+        std::fs::write(path, text).map_err(|e| write_failed(path, e))?;
+    }
+    Ok(report)
+}
+
+fn preconditioner_name(p: Preconditioner) -> &'static str {
+    match p {
+        Preconditioner::None => "none",
+        Preconditioner::Jacobi => "jacobi",
+        Preconditioner::BlockJacobi => "block-jacobi",
+    }
+}
+
+/// max over constraint rows of |aᵀΔx_i − c| / ‖a‖: how well Δx meets B Δx = p.
+fn constraint_violation(dim: usize, cs: &[Constraint], dx: &[f64]) -> f64 {
+    let mut worst = 0.0f64;
+    for c in cs {
+        let (rows, vals) = node_rows(dim, c);
+        let xi = &dx[c.node * dim..c.node * dim + dim];
+        for (r, v) in rows.iter().zip(vals) {
+            let len = r.iter().map(|x| x * x).sum::<f64>().sqrt();
+            let s: f64 = r.iter().zip(xi).map(|(a, b)| a * b).sum();
+            worst = worst.max((s - v).abs() / len);
+        }
+    }
+    worst
+}
+
+/// `stickslip generate`: a seeded system as H.mtx, g.mtx, bc.json (and B.mtx, p.mtx).
+pub fn generate(args: &GenerateArgs, quiet: bool) -> Result<(), CliError> {
+    let t = Instant::now();
+    if args.nodes == 0 {
+        return Err(InputError::new("command line", "--nodes", "must be at least 1").into());
+    }
+    let dim = usize::from(args.dim);
+    let mut spec = SystemSpec::with_nodes(dim, args.nodes, args.seed);
+    spec.stencil = match args.stencil {
+        StencilArg::Mesh => Stencil::Mesh,
+        StencilArg::Face => Stencil::Face,
+    };
+    spec.mix = match args.mix {
+        MixArg::Realistic => ConstraintMix::Realistic,
+        MixArg::Random => ConstraintMix::Random,
+        MixArg::None => ConstraintMix::None,
+    };
+    let s = random_system(&spec);
+    let dir = &args.out_dir;
+    let shown = dir.display().to_string();
+    std::fs::create_dir_all(dir).map_err(|e| write_failed(&shown, e))?;
+    let comment = format!(
+        "stickslip generate --dim {dim} --nodes {} --seed {} --stencil {:?} --mix {:?}: {} nodes on a {}x{}{} grid",
+        args.nodes,
+        args.seed,
+        args.stencil,
+        args.mix,
+        s.h.n,
+        spec.grid[0],
+        spec.grid[1],
+        if dim == 3 { format!("x{}", spec.grid[2]) } else { String::new() }
+    )
+    .to_lowercase();
+    let path = |name: &str| dir.join(name);
+    let shown = |name: &str| path(name).display().to_string();
+    mtx::write_hessian(path("H.mtx"), &s.h, &comment)
+        .map_err(|e| write_failed(&shown("H.mtx"), e))?;
+    mtx::write_vector(path("g.mtx"), &s.g, &comment)
+        .map_err(|e| write_failed(&shown("g.mtx"), e))?;
+    bcjson::write(path("bc.json"), dim, &s.constraints)
+        .map_err(|e| write_failed(&shown("bc.json"), e))?;
+    if args.matrix_form {
+        let (b, p) = bcjson::constraints_to_matrix(dim, &s.constraints);
+        mtx::write_coo(path("B.mtx"), p.len(), s.h.ndof(), &b, &comment)
+            .map_err(|e| write_failed(&shown("B.mtx"), e))?;
+        mtx::write_vector(path("p.mtx"), &p, &comment)
+            .map_err(|e| write_failed(&shown("p.mtx"), e))?;
+    }
+    if !quiet {
+        eprintln!(
+            "stickslip: wrote {} nodes (dim {dim}, {} blocks, {} constraints, {} free dofs) to {} in {:.2} s",
+            s.h.n,
+            s.h.nnz_blocks(),
+            s.constraints.len(),
+            s.frames.free_dofs(),
+            dir.display(),
+            t.elapsed().as_secs_f64()
+        );
+    }
+    Ok(())
+}

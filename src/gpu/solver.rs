@@ -1,0 +1,2276 @@
+//! Device-resident preconditioned CG (design.md §4).
+//!
+//! Per iteration three dispatches: `matvec` (q = Ĥp fused with p·q partials), `update_xrz`
+//! (α reduced redundantly per workgroup; x, r, z updated; r·z and r·r partials) and
+//! `update_p` (ρ, β and the stop decision reduced redundantly per workgroup; p = z + βp).
+//! Scalars stay on the device; one submit records a chunk of iterations and one small
+//! status read-back follows it; chunks double up to a cap. Success is declared only after
+//! the true residual is recomputed in f64 on the host from the downloaded y.
+
+use super::kernels;
+use super::{GpuContext, GpuError, GpuParams, Precision};
+use crate::cg::{CgError, Preconditioner};
+use crate::constraints::Frames;
+use crate::elimination::{norm2, rotate_block, Eliminated};
+use crate::sparse::BlockCsr;
+use crate::springs::MassSpring;
+use std::collections::BTreeMap;
+use std::time::Instant;
+use wgpu::util::DeviceExt;
+
+/// Scalar type of a kernel instance.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Real {
+    F32,
+    F64,
+}
+
+impl Real {
+    fn name(self) -> &'static str {
+        match self {
+            Real::F32 => "f32",
+            Real::F64 => "f64",
+        }
+    }
+    fn size(self) -> u64 {
+        match self {
+            Real::F32 => 4,
+            Real::F64 => 8,
+        }
+    }
+    fn bytes(self, v: &[f64]) -> Vec<u8> {
+        match self {
+            Real::F32 => {
+                let w: Vec<f32> = v.iter().map(|&x| x as f32).collect();
+                bytemuck::cast_slice(&w).to_vec()
+            }
+            Real::F64 => bytemuck::cast_slice(v).to_vec(),
+        }
+    }
+    fn values(self, b: &[u8]) -> Vec<f64> {
+        match self {
+            Real::F32 => b
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64)
+                .collect(),
+            Real::F64 => b
+                .chunks_exact(8)
+                .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
+                .collect(),
+        }
+    }
+}
+
+/// Uniform parameters shared by every kernel (mirrors `struct Params` in the shaders).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    n_nodes: u32,
+    n_rot: u32,
+    n_partials: u32,
+    n_blocks: u32,
+}
+const _: () = assert!(std::mem::size_of::<Params>() == 16);
+
+/// Length of the scalar (acc) and state (u32) arrays of the CG (see cg.wgsl).
+const N_SCAL: usize = 8;
+const N_STATE: usize = 8;
+/// Top three bits of a packed column index hold the column node's mask.
+const MAX_NODES: usize = 1 << 29;
+
+/// One allocated buffer.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct BufferRecord {
+    pub label: String,
+    pub bytes: u64,
+}
+
+/// One compiled kernel instance.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct KernelRecord {
+    pub name: String,
+    pub entry: String,
+    pub real: String,
+    pub acc: String,
+    pub constants: Vec<(String, f64)>,
+}
+
+/// What the solver allocated, compiled and dispatched: "model only what a scene needs".
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Resources {
+    pub buffers: Vec<BufferRecord>,
+    pub kernels: Vec<KernelRecord>,
+    /// Dispatches recorded per kernel name since the solver was built.
+    pub dispatches: BTreeMap<String, u64>,
+}
+
+impl Resources {
+    pub fn has_buffer(&self, label: &str) -> bool {
+        self.buffers.iter().any(|b| b.label == label)
+    }
+    pub fn dispatches_of(&self, name: &str) -> u64 {
+        self.dispatches.get(name).copied().unwrap_or(0)
+    }
+    pub fn total_bytes(&self) -> u64 {
+        self.buffers.iter().map(|b| b.bytes).sum()
+    }
+}
+
+/// Wall-clock split of a solve.
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize)]
+pub struct StageSeconds {
+    pub upload: f64,
+    pub setup: f64,
+    pub solve: f64,
+    pub download: f64,
+}
+
+/// What a successful GPU solve did.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct GpuSolveInfo {
+    pub adapter: String,
+    pub precision: Precision,
+    /// CG iterations, all restarts and inner solves together.
+    pub iterations: usize,
+    /// Mixed precision: f64 refinement steps (0 otherwise).
+    pub outer_refinements: usize,
+    pub restarts: usize,
+    /// ‖b̂ − Ĥy‖/‖b̂‖ recomputed in f64 on the host from the downloaded y.
+    pub relative_residual: f64,
+    pub seconds: StageSeconds,
+    /// Device time of the CG chunks from timestamp queries, where the adapter has them.
+    pub gpu_seconds: Option<f64>,
+    /// Bytes one CG iteration must move: matrix (or element) data, indices, vectors.
+    pub bytes_per_iteration: u64,
+    /// bytes_per_iteration · iterations / seconds.solve.
+    pub achieved_gb_per_s: f64,
+    /// The same over gpu_seconds.
+    pub achieved_gb_per_s_gpu: Option<f64>,
+    pub dispatches_per_iteration: usize,
+    /// Status and result read-backs of this solve.
+    pub readbacks: usize,
+    pub notes: Vec<String>,
+}
+
+/// The host copy of the system, for the true f64 residual and the recovery lift.
+enum HostOp {
+    Blocks(BlockCsr),
+    Springs(MassSpring),
+}
+
+struct Host {
+    op: HostOp,
+    frames: Frames,
+    rhs: Vec<f64>,
+    diag: Vec<f64>,
+}
+
+impl Host {
+    fn ndof(&self) -> usize {
+        self.rhs.len()
+    }
+
+    /// out = Ĥ y in f64.
+    fn apply(&self, y: &[f64], out: &mut [f64]) {
+        let n = y.len();
+        match &self.op {
+            HostOp::Blocks(h) => {
+                let e = Eliminated {
+                    h,
+                    frames: &self.frames,
+                    rhs: Vec::new(),
+                    diag: self.diag.clone(),
+                };
+                let mut work = vec![0.0; 2 * n];
+                e.apply(y, out, &mut work);
+            }
+            HostOp::Springs(ms) => {
+                let f = &self.frames;
+                let mut w = y.to_vec();
+                f.apply_mask(&mut w);
+                f.from_frame_in_place(&mut w);
+                ms.apply(&w, out);
+                f.to_frame_in_place(out);
+                let d = f.dim;
+                for (i, &m) in f.mask.iter().enumerate() {
+                    for a in 0..d {
+                        if m & (1 << a) != 0 {
+                            out[i * d + a] = self.diag[i * d + a] * y[i * d + a];
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    fn relative_residual(&self, y: &[f64]) -> f64 {
+        let mut hy = vec![0.0; y.len()];
+        self.apply(y, &mut hy);
+        let r: Vec<f64> = self.rhs.iter().zip(&hy).map(|(b, a)| b - a).collect();
+        let bn = norm2(&self.rhs);
+        let rn = norm2(&r);
+        if bn == 0.0 {
+            if rn == 0.0 {
+                0.0
+            } else {
+                1.0
+            }
+        } else {
+            rn / bn
+        }
+    }
+
+    /// Δx = V P y + Δx_p with dx_free = V P y computed on the device.
+    fn add_lift(&self, dx_free: &mut [f64]) {
+        if !self.frames.homogeneous {
+            for (v, l) in dx_free.iter_mut().zip(&self.frames.lift) {
+                *v += l;
+            }
+        }
+    }
+}
+
+#[derive(Clone, Copy)]
+enum Bind {
+    Uniform,
+    Ro,
+    Rw,
+}
+
+struct Kernel {
+    name: &'static str,
+    pipeline: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+}
+
+/// Allocation and compilation with bookkeeping and limit checks.
+struct Builder<'a> {
+    ctx: &'a GpuContext,
+    buffers: Vec<BufferRecord>,
+    kernels: Vec<KernelRecord>,
+    modules: BTreeMap<(String, &'static str, &'static str), wgpu::ShaderModule>,
+}
+
+const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE
+    .union(wgpu::BufferUsages::COPY_DST)
+    .union(wgpu::BufferUsages::COPY_SRC);
+
+impl<'a> Builder<'a> {
+    fn new(ctx: &'a GpuContext) -> Self {
+        Builder {
+            ctx,
+            buffers: Vec::new(),
+            kernels: Vec::new(),
+            modules: BTreeMap::new(),
+        }
+    }
+
+    fn check_size(
+        &self,
+        label: &str,
+        bytes: u64,
+        usage: wgpu::BufferUsages,
+    ) -> Result<(), GpuError> {
+        let l = &self.ctx.limits;
+        let too_large = |limit: u64, what: &'static str| GpuError::BufferTooLarge {
+            label: label.to_string(),
+            bytes,
+            limit,
+            what,
+            adapter: self.ctx.info.name.clone(),
+        };
+        if bytes > l.max_buffer_size {
+            return Err(too_large(l.max_buffer_size, "buffer"));
+        }
+        if usage.contains(wgpu::BufferUsages::STORAGE) && bytes > l.max_storage_buffer_binding_size
+        {
+            return Err(too_large(
+                l.max_storage_buffer_binding_size,
+                "storage binding",
+            ));
+        }
+        Ok(())
+    }
+
+    fn buffer(
+        &mut self,
+        label: &str,
+        bytes: u64,
+        usage: wgpu::BufferUsages,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        // Bindings must not be empty; round up to whole 16-byte units.
+        let bytes = bytes.max(16).div_ceil(16) * 16;
+        self.check_size(label, bytes, usage)?;
+        let b = self.ctx.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: bytes,
+            usage,
+            mapped_at_creation: false,
+        });
+        self.buffers.push(BufferRecord {
+            label: label.to_string(),
+            bytes,
+        });
+        Ok(b)
+    }
+
+    fn init(
+        &mut self,
+        label: &str,
+        data: &[u8],
+        usage: wgpu::BufferUsages,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let mut padded;
+        let contents = if data.len() < 16 || data.len() % 4 != 0 {
+            padded = data.to_vec();
+            padded.resize(data.len().max(16).div_ceil(4) * 4, 0);
+            &padded[..]
+        } else {
+            data
+        };
+        self.check_size(label, contents.len() as u64, usage)?;
+        let b = self
+            .ctx
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents,
+                usage,
+            });
+        self.buffers.push(BufferRecord {
+            label: label.to_string(),
+            bytes: contents.len() as u64,
+        });
+        Ok(b)
+    }
+
+    fn storage(&mut self, label: &str, data: &[u8]) -> Result<wgpu::Buffer, GpuError> {
+        self.init(label, data, STORAGE)
+    }
+
+    fn staging(&mut self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
+        self.buffer(
+            label,
+            bytes,
+            wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn kernel(
+        &mut self,
+        name: &'static str,
+        file: &'static str,
+        src: &'static str,
+        real: Real,
+        acc: Real,
+        entry: &'static str,
+        binds: &[Bind],
+        constants: &[(&str, f64)],
+    ) -> Result<Kernel, GpuError> {
+        let dev = &self.ctx.device;
+        let key = (file.to_string(), real.name(), acc.name());
+        if !self.modules.contains_key(&key) {
+            let code = format!("{}{}", kernels::prelude(real.name(), acc.name()), src);
+            let m = dev.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(&format!("{file} ({}/{})", real.name(), acc.name())),
+                source: wgpu::ShaderSource::Wgsl(code.into()),
+            });
+            self.modules.insert(key.clone(), m);
+        }
+        let module = &self.modules[&key];
+        let entries: Vec<wgpu::BindGroupLayoutEntry> = binds
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupLayoutEntry {
+                binding: i as u32,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: match b {
+                        Bind::Uniform => wgpu::BufferBindingType::Uniform,
+                        Bind::Ro => wgpu::BufferBindingType::Storage { read_only: true },
+                        Bind::Rw => wgpu::BufferBindingType::Storage { read_only: false },
+                    },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            })
+            .collect();
+        let layout = dev.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some(&format!("{name} layout")),
+            entries: &entries,
+        });
+        let pl = dev.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some(&format!("{name} pipeline layout")),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let pipeline = dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(&format!("{name} ({})", real.name())),
+            layout: Some(&pl),
+            module,
+            entry_point: Some(entry),
+            compilation_options: wgpu::PipelineCompilationOptions {
+                constants,
+                zero_initialize_workgroup_memory: true,
+            },
+            cache: None,
+        });
+        self.ctx.check(&format!("building kernel {name}"))?;
+        self.kernels.push(KernelRecord {
+            name: name.to_string(),
+            entry: entry.to_string(),
+            real: real.name().to_string(),
+            acc: acc.name().to_string(),
+            constants: constants.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
+        });
+        Ok(Kernel {
+            name,
+            pipeline,
+            layout,
+        })
+    }
+
+    fn bind(&self, k: &Kernel, label: &str, bufs: &[&wgpu::Buffer]) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry> = bufs
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        self.ctx
+            .device
+            .create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(label),
+                layout: &k.layout,
+                entries: &entries,
+            })
+    }
+}
+
+/// Type-independent data of the system on the device.
+struct Shared {
+    params: wgpu::Buffer,
+    /// Block pattern (assembled) or spring adjacency (matrix-free), columns packed with masks.
+    row_ptr: wgpu::Buffer,
+    col: wgpu::Buffer,
+    mask: Option<wgpu::Buffer>,
+    rot_index: Option<wgpu::Buffer>,
+    rot_nodes: Option<wgpu::Buffer>,
+    /// Springs: the identity pattern of the host-computed diagonal blocks.
+    diag_row_ptr: Option<wgpu::Buffer>,
+    diag_col: Option<wgpu::Buffer>,
+    /// Bound where a kernel's specialization never touches the binding.
+    placeholder: wgpu::Buffer,
+}
+
+impl Shared {
+    fn mask_or(&self) -> &wgpu::Buffer {
+        self.mask.as_ref().unwrap_or(&self.placeholder)
+    }
+}
+
+enum OpData {
+    Blocks {
+        blocks: wgpu::Buffer,
+        rotate: Option<(Kernel, wgpu::BindGroup)>,
+    },
+    Springs {
+        pos: wgpu::Buffer,
+        springs: wgpu::Buffer,
+        mass: wgpu::Buffer,
+        /// Host-rotated diagonal blocks of VᵀHV, for the preconditioner build.
+        diag_blocks: wgpu::Buffer,
+    },
+}
+
+/// Ĥ in one scalar type.
+struct Operator {
+    real: Real,
+    data: OpData,
+    dvals: Option<wgpu::Buffer>,
+    rotations: Option<wgpu::Buffer>,
+    matvec: Kernel,
+}
+
+/// One CG in one scalar type.
+struct Level {
+    real: Real,
+    acc: Real,
+    op: Operator,
+    x: wgpu::Buffer,
+    r: wgpu::Buffer,
+    #[allow(dead_code)]
+    z: wgpu::Buffer,
+    p: wgpu::Buffer,
+    q: wgpu::Buffer,
+    b: wgpu::Buffer,
+    minv: wgpu::Buffer,
+    scal: wgpu::Buffer,
+    state: wgpu::Buffer,
+    k_update_p: Kernel,
+    k_update_xrz: Kernel,
+    k_init: Kernel,
+    bg_cg: wgpu::BindGroup,
+    bg_mv_p: wgpu::BindGroup,
+    bg_mv_x: wgpu::BindGroup,
+    precond: Option<(Kernel, wgpu::BindGroup)>,
+    status_staging: wgpu::Buffer,
+}
+
+/// Mixed precision: the f64 outer loop.
+struct Refine {
+    op: Operator,
+    b64: wgpu::Buffer,
+    y64: wgpu::Buffer,
+    partials64: wgpu::Buffer,
+    k_residual: Kernel,
+    k_accumulate: Kernel,
+    bg_mv: wgpu::BindGroup,
+    bg_refine: wgpu::BindGroup,
+    staging: wgpu::Buffer,
+}
+
+struct Recovery {
+    real: Real,
+    dx: wgpu::Buffer,
+    recover: Option<(Kernel, wgpu::BindGroup)>,
+    rotate: Option<(Kernel, wgpu::BindGroup)>,
+    staging: wgpu::Buffer,
+}
+
+struct Timestamps {
+    set: wgpu::QuerySet,
+    resolve: wgpu::Buffer,
+    period_ns: f64,
+}
+
+/// Result of one CG run (until convergence of the recurrence, the budget or stagnation).
+enum Outcome {
+    Converged,
+    MaxIters,
+    Stagnated,
+}
+
+/// The GPU solver: pipelines, buffers and bind groups built once; `update` uploads new
+/// values for the same pattern and constraint set; `solve` runs device-resident PCG.
+pub struct GpuSolver {
+    ctx: GpuContext,
+    params: GpuParams,
+    dim: usize,
+    n_nodes: usize,
+    wg: u32,
+    n_partials: u32,
+    masked: bool,
+    host: Host,
+    // Held for the solver's lifetime: bind groups reference these buffers.
+    #[allow(dead_code)]
+    shared: Shared,
+    level: Level,
+    refine: Option<Refine>,
+    recovery: Recovery,
+    timestamps: Option<Timestamps>,
+    buffers: Vec<BufferRecord>,
+    kernels: Vec<KernelRecord>,
+    dispatches: BTreeMap<String, u64>,
+    bytes_per_iteration: u64,
+    upload_seconds: f64,
+    setup_seconds: f64,
+    readbacks: usize,
+    gpu_seconds: f64,
+}
+
+fn u32s(v: impl IntoIterator<Item = u32>) -> Vec<u8> {
+    let w: Vec<u32> = v.into_iter().collect();
+    bytemuck::cast_slice(&w).to_vec()
+}
+
+fn check_params(ctx: &GpuContext, p: &GpuParams) -> Result<(), GpuError> {
+    if p.precision != Precision::F32 && !ctx.has_f64() {
+        return Err(GpuError::NoF64 {
+            adapter: ctx.info.name.clone(),
+            precision: p.precision,
+        });
+    }
+    let wg = p.workgroup_size;
+    if !wg.is_power_of_two()
+        || !(32..=256).contains(&wg)
+        || wg > ctx.limits.max_compute_workgroup_size_x
+    {
+        return Err(GpuError::Unsupported(format!(
+            "workgroup size {wg} (expected a power of two in 32..=256 within the adapter's limit {})",
+            ctx.limits.max_compute_workgroup_size_x
+        )));
+    }
+    // Written to reject NaN too.
+    if !(p.tol > 0.0 && p.tol.is_finite()) || p.first_chunk == 0 || p.max_chunk < p.first_chunk {
+        return Err(GpuError::Unsupported(
+            "tol must be positive and 0 < first_chunk <= max_chunk".into(),
+        ));
+    }
+    Ok(())
+}
+
+/// b̂ = −P Vᵀ(g + H Δx_p) for the matrix-free system.
+fn spring_rhs(ms: &MassSpring, g: &[f64], frames: &Frames) -> Vec<f64> {
+    let nd = ms.ndof();
+    let mut r = g.to_vec();
+    if !frames.homogeneous {
+        let mut hl = vec![0.0; nd];
+        ms.apply(&frames.lift, &mut hl);
+        for k in 0..nd {
+            r[k] += hl[k];
+        }
+    }
+    let mut rhs = vec![0.0; nd];
+    frames.to_frame(&r, &mut rhs);
+    for v in rhs.iter_mut() {
+        *v = -*v;
+    }
+    frames.apply_mask(&mut rhs);
+    rhs
+}
+
+/// Diagonal blocks V_iᵀ H_ii V_i of the spring Hessian, computed on the host (O(springs)).
+fn spring_diag_blocks(ms: &MassSpring, frames: &Frames) -> Vec<f64> {
+    let d = ms.dim;
+    let n = ms.n_nodes();
+    let mut out = vec![0.0; n * d * d];
+    for i in 0..n {
+        for a in 0..d {
+            out[i * d * d + a * d + a] = ms.masses[i];
+        }
+    }
+    let h2 = ms.h * ms.h;
+    for (e, &[i, j]) in ms.edges.iter().enumerate() {
+        let k = ms.spring_hessian(e);
+        for node in [i, j] {
+            for c in 0..d * d {
+                out[node * d * d + c] += h2 * k[c];
+            }
+        }
+    }
+    let mut tmp = [0.0f64; 9];
+    for i in 0..n {
+        if let Some(v) = frames.rotation(i) {
+            rotate_block(
+                d,
+                &out[i * d * d..(i + 1) * d * d],
+                Some(v),
+                Some(v),
+                &mut tmp[..d * d],
+            );
+            out[i * d * d..(i + 1) * d * d].copy_from_slice(&tmp[..d * d]);
+        }
+    }
+    out
+}
+
+/// Node adjacency of the springs: per node, (other node, spring) pairs.
+fn spring_adjacency(ms: &MassSpring) -> (Vec<u32>, Vec<u32>) {
+    let n = ms.n_nodes();
+    let mut count = vec![0u32; n + 1];
+    for &[i, j] in &ms.edges {
+        count[i + 1] += 1;
+        count[j + 1] += 1;
+    }
+    for i in 0..n {
+        count[i + 1] += count[i];
+    }
+    let mut fill = count.clone();
+    let mut adj = vec![0u32; 2 * count[n] as usize];
+    for (e, &[i, j]) in ms.edges.iter().enumerate() {
+        for (a, b) in [(i, j), (j, i)] {
+            let k = fill[a] as usize;
+            adj[2 * k] = b as u32;
+            adj[2 * k + 1] = e as u32;
+            fill[a] += 1;
+        }
+    }
+    (count, adj)
+}
+
+fn spring_data(ms: &MassSpring) -> Vec<f64> {
+    let h2 = ms.h * ms.h;
+    ms.rest_lengths
+        .iter()
+        .zip(&ms.stiffness)
+        .flat_map(|(&l, &k)| [l, h2 * k])
+        .collect()
+}
+
+/// System data the builder turns into buffers.
+enum SystemRef<'s> {
+    Blocks(&'s BlockCsr),
+    Springs(&'s MassSpring),
+}
+
+impl GpuSolver {
+    /// Builds the solver for an assembled eliminated system.
+    pub fn new(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<Self, GpuError> {
+        let host = Host {
+            op: HostOp::Blocks(e.h.clone()),
+            frames: e.frames.clone(),
+            rhs: e.rhs.clone(),
+            diag: e.diag.clone(),
+        };
+        Self::build(ctx, host, params)
+    }
+
+    /// Builds the matrix-free solver of a mass-spring system (H = M + h²ΣK_e is never
+    /// assembled) with gradient g and the given constraint frames; D = I.
+    pub fn new_mass_spring(
+        ctx: &GpuContext,
+        ms: &MassSpring,
+        g: &[f64],
+        frames: &Frames,
+        params: &GpuParams,
+    ) -> Result<Self, GpuError> {
+        if frames.dim != ms.dim || frames.n_nodes != ms.n_nodes() || g.len() != ms.ndof() {
+            return Err(GpuError::Mismatch(
+                "the mass-spring system, its gradient and the frames disagree in size".into(),
+            ));
+        }
+        let host = Host {
+            rhs: spring_rhs(ms, g, frames),
+            diag: vec![1.0; ms.ndof()],
+            op: HostOp::Springs(ms.clone()),
+            frames: frames.clone(),
+        };
+        Self::build(ctx, host, params)
+    }
+
+    fn build(ctx: &GpuContext, host: Host, params: &GpuParams) -> Result<Self, GpuError> {
+        check_params(ctx, params)?;
+        let t0 = Instant::now();
+        let f = &host.frames;
+        let d = f.dim;
+        let n = f.n_nodes;
+        if n == 0 || n >= MAX_NODES {
+            return Err(GpuError::Unsupported(format!(
+                "{n} nodes (the GPU solver takes 1 to {} nodes)",
+                MAX_NODES - 1
+            )));
+        }
+        let wg = params.workgroup_size;
+        let max_groups = ctx.limits.max_compute_workgroups_per_dimension as usize;
+        if n.div_ceil(wg as usize) > max_groups {
+            return Err(GpuError::Unsupported(format!(
+                "{n} nodes need more than {max_groups} workgroups of {wg}"
+            )));
+        }
+        let n_partials = (n.div_ceil(wg as usize)).clamp(1, 256) as u32;
+        let masked = f.has_constraints();
+        let rotated = f.has_rotation();
+        let acc = if ctx.has_f64() { Real::F64 } else { Real::F32 };
+        let mut bld = Builder::new(ctx);
+        let sys = match &host.op {
+            HostOp::Blocks(h) => SystemRef::Blocks(h),
+            HostOp::Springs(ms) => SystemRef::Springs(ms),
+        };
+        let n_blocks = match sys {
+            SystemRef::Blocks(h) => h.nnz_blocks(),
+            SystemRef::Springs(ms) => ms.edges.len(),
+        };
+        let prm = Params {
+            n_nodes: n as u32,
+            n_rot: f.rot_nodes.len() as u32,
+            n_partials,
+            n_blocks: n_blocks as u32,
+        };
+        let params_buf = bld.init(
+            "params",
+            bytemuck::bytes_of(&prm),
+            wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        )?;
+        let mask_packed = |j: usize| -> u32 {
+            if masked {
+                (j as u32) | ((f.mask[j] as u32) << 29)
+            } else {
+                j as u32
+            }
+        };
+        let (row_ptr, col, diag_row_ptr, diag_col) = match sys {
+            SystemRef::Blocks(h) => (
+                bld.storage("row_ptr", &u32s(h.row_ptr.iter().map(|&v| v as u32)))?,
+                bld.storage("col_idx", &u32s(h.col_idx.iter().map(|&j| mask_packed(j))))?,
+                None,
+                None,
+            ),
+            SystemRef::Springs(ms) => {
+                let (ptr, adj) = spring_adjacency(ms);
+                (
+                    bld.storage("spring_adj_ptr", &u32s(ptr))?,
+                    bld.storage("spring_adj", &u32s(adj))?,
+                    Some(bld.storage("diag_row_ptr", &u32s(0..=n as u32))?),
+                    Some(bld.storage("diag_col", &u32s((0..n).map(mask_packed)))?),
+                )
+            }
+        };
+        let shared = Shared {
+            params: params_buf,
+            row_ptr,
+            col,
+            mask: if masked {
+                Some(bld.storage("mask", &u32s(f.mask.iter().map(|&m| m as u32)))?)
+            } else {
+                None
+            },
+            rot_index: if rotated {
+                Some(bld.storage("rot_index", &u32s(f.rot_index.iter().copied()))?)
+            } else {
+                None
+            },
+            rot_nodes: if rotated {
+                Some(bld.storage("rot_nodes", &u32s(f.rot_nodes.iter().copied()))?)
+            } else {
+                None
+            },
+            diag_row_ptr,
+            diag_col,
+            placeholder: bld.storage("placeholder", &[0u8; 16])?,
+        };
+        let inner_real = match params.precision {
+            Precision::F64 => Real::F64,
+            _ => Real::F32,
+        };
+        let consts = Consts {
+            d: d as f64,
+            wg: wg as f64,
+            masked,
+            rotated,
+            precond: match params.preconditioner {
+                Preconditioner::None => 0.0,
+                Preconditioner::Jacobi => 1.0,
+                Preconditioner::BlockJacobi => 2.0,
+            },
+        };
+        let op = build_operator(&mut bld, &shared, &host, inner_real, acc, &consts)?;
+        let level = build_level(
+            &mut bld,
+            &shared,
+            op,
+            &host,
+            acc,
+            &consts,
+            params.preconditioner,
+        )?;
+        let refine = if params.precision == Precision::Mixed {
+            let op64 = build_operator(&mut bld, &shared, &host, Real::F64, acc, &consts)?;
+            Some(build_refine(
+                &mut bld, &shared, op64, &level, &host, &consts,
+            )?)
+        } else {
+            None
+        };
+        let y_buf = match &refine {
+            Some(r) => &r.y64,
+            None => &level.x,
+        };
+        let recovery = build_recovery(
+            &mut bld,
+            &shared,
+            y_buf,
+            if refine.is_some() {
+                Real::F64
+            } else {
+                inner_real
+            },
+            if refine.is_some() {
+                refine.as_ref().and_then(|r| r.op.rotations.as_ref())
+            } else {
+                level.op.rotations.as_ref()
+            },
+            &consts,
+            n * d,
+        )?;
+        let timestamps = if ctx.has_timestamps() {
+            let set = ctx.device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("chunk timestamps"),
+                ty: wgpu::QueryType::Timestamp,
+                count: 2,
+            });
+            let resolve = bld.buffer(
+                "timestamp_resolve",
+                16,
+                wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            )?;
+            Some(Timestamps {
+                set,
+                resolve,
+                period_ns: ctx.queue.get_timestamp_period() as f64,
+            })
+        } else {
+            None
+        };
+        ctx.check("allocating GPU buffers")?;
+        let bytes_per_iteration =
+            bytes_per_iteration(&host, &level, &consts, params.preconditioner);
+        let mut s = GpuSolver {
+            ctx: ctx.clone(),
+            params: params.clone(),
+            dim: d,
+            n_nodes: n,
+            wg,
+            n_partials,
+            masked,
+            host,
+            shared,
+            level,
+            refine,
+            recovery,
+            timestamps,
+            buffers: bld.buffers,
+            kernels: bld.kernels,
+            dispatches: BTreeMap::new(),
+            bytes_per_iteration,
+            upload_seconds: 0.0,
+            setup_seconds: 0.0,
+            readbacks: 0,
+            gpu_seconds: 0.0,
+        };
+        s.upload_seconds = t0.elapsed().as_secs_f64();
+        let t1 = Instant::now();
+        s.upload_values()?;
+        s.upload_seconds += t1.elapsed().as_secs_f64();
+        let t2 = Instant::now();
+        s.device_setup()?;
+        s.setup_seconds = t2.elapsed().as_secs_f64();
+        Ok(s)
+    }
+
+    /// New values for the same pattern and constraint set (a later Newton iteration):
+    /// uploads H, b̂ and D only, then rotates and rebuilds the preconditioner on the device.
+    pub fn update(&mut self, e: &Eliminated) -> Result<(), GpuError> {
+        let t0 = Instant::now();
+        let h = match &mut self.host.op {
+            HostOp::Blocks(h) => h,
+            HostOp::Springs(_) => {
+                return Err(GpuError::Mismatch(
+                    "this solver is matrix-free; use update_mass_spring".into(),
+                ))
+            }
+        };
+        if e.h.dim != h.dim || e.h.row_ptr != h.row_ptr || e.h.col_idx != h.col_idx {
+            return Err(GpuError::Mismatch(
+                "the Hessian's block pattern changed; build a new solver".into(),
+            ));
+        }
+        let f = &self.host.frames;
+        if e.frames.mask != f.mask || e.frames.rot_index != f.rot_index {
+            return Err(GpuError::Mismatch(
+                "the constraint set changed; build a new solver".into(),
+            ));
+        }
+        h.values.copy_from_slice(&e.h.values);
+        self.host.frames = e.frames.clone();
+        self.host.rhs.copy_from_slice(&e.rhs);
+        self.host.diag.copy_from_slice(&e.diag);
+        self.upload_values()?;
+        self.upload_seconds = t0.elapsed().as_secs_f64();
+        let t1 = Instant::now();
+        self.device_setup()?;
+        self.setup_seconds = t1.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// New positions (and gradient) of the same mass-spring system and constraint set.
+    pub fn update_mass_spring(&mut self, ms: &MassSpring, g: &[f64]) -> Result<(), GpuError> {
+        let t0 = Instant::now();
+        match &mut self.host.op {
+            HostOp::Springs(old) => {
+                if old.edges != ms.edges || old.dim != ms.dim || old.masses.len() != ms.masses.len()
+                {
+                    return Err(GpuError::Mismatch(
+                        "the springs changed; build a new solver".into(),
+                    ));
+                }
+                *old = ms.clone();
+            }
+            HostOp::Blocks(_) => {
+                return Err(GpuError::Mismatch(
+                    "this solver holds an assembled Hessian; use update".into(),
+                ))
+            }
+        }
+        if g.len() != ms.ndof() {
+            return Err(GpuError::Mismatch(
+                "the gradient has the wrong length".into(),
+            ));
+        }
+        self.host.rhs = spring_rhs(ms, g, &self.host.frames);
+        self.upload_values()?;
+        self.upload_seconds = t0.elapsed().as_secs_f64();
+        let t1 = Instant::now();
+        self.device_setup()?;
+        self.setup_seconds = t1.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    fn write_operator(&self, op: &Operator) {
+        let q = &self.ctx.queue;
+        let host = &self.host;
+        match (&op.data, &host.op) {
+            (OpData::Blocks { blocks, .. }, HostOp::Blocks(h)) => {
+                q.write_buffer(blocks, 0, &op.real.bytes(&h.values));
+            }
+            (
+                OpData::Springs {
+                    pos,
+                    springs,
+                    mass,
+                    diag_blocks,
+                },
+                HostOp::Springs(ms),
+            ) => {
+                q.write_buffer(pos, 0, &op.real.bytes(&ms.positions));
+                q.write_buffer(springs, 0, &op.real.bytes(&spring_data(ms)));
+                q.write_buffer(mass, 0, &op.real.bytes(&ms.masses));
+                q.write_buffer(
+                    diag_blocks,
+                    0,
+                    &op.real.bytes(&spring_diag_blocks(ms, &host.frames)),
+                );
+            }
+            _ => unreachable!("operator kind follows the host system"),
+        }
+        if let Some(dv) = &op.dvals {
+            q.write_buffer(dv, 0, &op.real.bytes(&host.diag));
+        }
+        if let Some(rot) = &op.rotations {
+            q.write_buffer(rot, 0, &op.real.bytes(&host.frames.rotations));
+        }
+    }
+
+    fn upload_values(&mut self) -> Result<(), GpuError> {
+        self.write_operator(&self.level.op);
+        match &self.refine {
+            Some(rf) => {
+                self.write_operator(&rf.op);
+                self.ctx
+                    .queue
+                    .write_buffer(&rf.b64, 0, &Real::F64.bytes(&self.host.rhs));
+            }
+            None => {
+                let l = &self.level;
+                self.ctx
+                    .queue
+                    .write_buffer(&l.b, 0, &l.real.bytes(&self.host.rhs));
+            }
+        }
+        self.ctx.check("uploading the system")
+    }
+
+    fn record(&mut self, name: &'static str) {
+        *self.dispatches.entry(name.to_string()).or_default() += 1;
+    }
+
+    fn node_groups(&self) -> u32 {
+        (self.n_nodes as u32).div_ceil(self.wg)
+    }
+
+    /// Rotation of the H blocks (slip nodes only) and the preconditioner build.
+    fn device_setup(&mut self) -> Result<(), GpuError> {
+        let mut enc = self.encoder("setup");
+        let mut names = Vec::new();
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("setup pass"),
+                timestamp_writes: None,
+            });
+            let groups = self.node_groups();
+            let ops = std::iter::once(&self.level.op).chain(self.refine.as_ref().map(|r| &r.op));
+            for op in ops {
+                if let OpData::Blocks {
+                    rotate: Some((k, bg)),
+                    ..
+                } = &op.data
+                {
+                    pass.set_pipeline(&k.pipeline);
+                    pass.set_bind_group(0, bg, &[]);
+                    pass.dispatch_workgroups(groups, 1, 1);
+                    names.push(k.name);
+                }
+            }
+            if let Some((k, bg)) = &self.level.precond {
+                pass.set_pipeline(&k.pipeline);
+                pass.set_bind_group(0, bg, &[]);
+                pass.dispatch_workgroups(groups, 1, 1);
+                names.push(k.name);
+            }
+        }
+        self.ctx.queue.submit([enc.finish()]);
+        for n in names {
+            self.record(n);
+        }
+        self.wait()?;
+        self.ctx.check("device setup")
+    }
+
+    fn encoder(&self, label: &str) -> wgpu::CommandEncoder {
+        self.ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
+    }
+
+    fn wait(&self) -> Result<(), GpuError> {
+        self.ctx
+            .device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map(|_| ())
+            .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))
+    }
+
+    /// Maps `staging`, copies `bytes` out and unmaps it.
+    fn read(&mut self, staging: &wgpu::Buffer, bytes: u64) -> Result<Vec<u8>, GpuError> {
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, 0..bytes, move |r| {
+            let _ = tx.send(r);
+        });
+        self.wait()?;
+        rx.recv()
+            .map_err(|_| GpuError::Device("buffer mapping was dropped".into()))?
+            .map_err(|e| GpuError::Device(format!("mapping a read-back buffer: {e}")))?;
+        let out = {
+            let view = staging
+                .get_mapped_range(0..bytes)
+                .map_err(|e| GpuError::Device(format!("reading a mapped buffer: {e}")))?;
+            view.to_vec()
+        };
+        staging.unmap();
+        self.readbacks += 1;
+        self.ctx.check("reading back")?;
+        Ok(out)
+    }
+
+    /// Resets the CG scalars: ρ_prev = 1, the convergence threshold, flags cleared.
+    fn reset_scalars(&self, thresh: f64) {
+        let l = &self.level;
+        let mut s = vec![0.0f64; N_SCAL];
+        s[1] = 1.0;
+        s[5] = thresh;
+        self.ctx.queue.write_buffer(&l.scal, 0, &l.acc.bytes(&s));
+        self.ctx
+            .queue
+            .write_buffer(&l.state, 0, &[0u8; 4 * N_STATE]);
+    }
+
+    fn dispatch(&mut self, pass: &mut wgpu::ComputePass<'_>, which: Which, groups: u32) {
+        let (k, bg) = match which {
+            Which::UpdateP => (&self.level.k_update_p, &self.level.bg_cg),
+            Which::UpdateXrz => (&self.level.k_update_xrz, &self.level.bg_cg),
+            Which::Init => (&self.level.k_init, &self.level.bg_cg),
+            Which::MatvecP => (&self.level.op.matvec, &self.level.bg_mv_p),
+            Which::MatvecX => (&self.level.op.matvec, &self.level.bg_mv_x),
+        };
+        pass.set_pipeline(&k.pipeline);
+        pass.set_bind_group(0, bg, &[]);
+        pass.dispatch_workgroups(groups, 1, 1);
+        let name = k.name;
+        self.record(name);
+    }
+
+    /// Starts CG at the current x (zeroed first unless `keep_x`): q = Ĥx, r = b − q,
+    /// z = M⁻¹r, then the first update_p (p = z).
+    fn start(&mut self, keep_x: bool, thresh: f64) -> Result<(), GpuError> {
+        self.reset_scalars(thresh);
+        let mut enc = self.encoder("cg start");
+        if !keep_x {
+            enc.clear_buffer(&self.level.x, 0, None);
+        }
+        {
+            let mut pass = enc
+                .begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("cg start pass"),
+                    timestamp_writes: None,
+                })
+                .forget_lifetime();
+            let g = self.n_partials;
+            self.dispatch(&mut pass, Which::MatvecX, g);
+            self.dispatch(&mut pass, Which::Init, g);
+            self.dispatch(&mut pass, Which::UpdateP, g);
+        }
+        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.check("starting CG")
+    }
+
+    /// Records `k` iterations in one submit, then reads the status back.
+    fn chunk(&mut self, k: usize) -> Result<Status, GpuError> {
+        let mut enc = self.encoder("cg chunk");
+        {
+            let tw = self
+                .timestamps
+                .as_ref()
+                .map(|t| wgpu::ComputePassTimestampWrites {
+                    query_set: &t.set,
+                    beginning_of_pass_write_index: Some(0),
+                    end_of_pass_write_index: Some(1),
+                });
+            let mut pass = enc
+                .begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("cg chunk pass"),
+                    timestamp_writes: tw,
+                })
+                .forget_lifetime();
+            let g = self.n_partials;
+            for _ in 0..k {
+                self.dispatch(&mut pass, Which::MatvecP, g);
+                self.dispatch(&mut pass, Which::UpdateXrz, g);
+                self.dispatch(&mut pass, Which::UpdateP, g);
+            }
+        }
+        let l = &self.level;
+        let sb = l.acc.size() * N_SCAL as u64;
+        enc.copy_buffer_to_buffer(&l.scal, 0, &l.status_staging, 0, sb);
+        enc.copy_buffer_to_buffer(&l.state, 0, &l.status_staging, sb, 4 * N_STATE as u64);
+        if let Some(t) = &self.timestamps {
+            enc.resolve_query_set(&t.set, 0..2, &t.resolve, 0);
+            enc.copy_buffer_to_buffer(
+                &t.resolve,
+                0,
+                &l.status_staging,
+                sb + 4 * N_STATE as u64,
+                16,
+            );
+        }
+        self.ctx.queue.submit([enc.finish()]);
+        let total = sb + 4 * N_STATE as u64 + 16;
+        let staging = self.level.status_staging.clone();
+        let bytes = self.read(&staging, total)?;
+        let scal = self.level.acc.values(&bytes[..sb as usize]);
+        let st: Vec<u32> = bytes[sb as usize..sb as usize + 4 * N_STATE]
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
+        if let Some(t) = &self.timestamps {
+            let o = sb as usize + 4 * N_STATE;
+            let t0 = u64::from_le_bytes(bytes[o..o + 8].try_into().expect("8 bytes"));
+            let t1 = u64::from_le_bytes(bytes[o + 8..o + 16].try_into().expect("8 bytes"));
+            self.gpu_seconds += t1.saturating_sub(t0) as f64 * t.period_ns * 1e-9;
+        }
+        Ok(Status {
+            rr: scal[4],
+            pq: scal[2],
+            iterations: st[2] as usize,
+            converged: st[3] != 0,
+            curvature: st[1] != 0,
+            breakdown: st[4] != 0,
+        })
+    }
+
+    /// Runs CG from the state `start` left until the recurrence residual² ≤ threshold,
+    /// the budget, or stagnation. Returns the outcome and the iterations done.
+    fn run_cg(&mut self, budget: usize, done_before: usize) -> Result<(Outcome, usize), GpuError> {
+        let mut k = self.params.first_chunk;
+        let mut best = f64::INFINITY;
+        let mut best_at = 0usize;
+        let mut iters = 0usize;
+        loop {
+            let kk = k.min(budget.saturating_sub(iters));
+            if kk == 0 {
+                return Ok((Outcome::MaxIters, iters));
+            }
+            let st = self.chunk(kk)?;
+            iters = st.iterations;
+            if st.breakdown {
+                return Err(CgError::Breakdown {
+                    iteration: done_before + iters,
+                }
+                .into());
+            }
+            if st.curvature {
+                return Err(CgError::NonPositiveCurvature {
+                    iteration: done_before + iters + 1,
+                    curvature: st.pq,
+                }
+                .into());
+            }
+            if st.converged {
+                return Ok((Outcome::Converged, iters));
+            }
+            if st.rr < best {
+                best = st.rr;
+                best_at = iters;
+            } else if iters - best_at >= self.params.stagnation_window {
+                return Ok((Outcome::Stagnated, iters));
+            }
+            k = (2 * k).min(self.params.max_chunk);
+        }
+    }
+
+    /// Recovers dx = V P y on the device and downloads y and dx (dx gets the lift in f64).
+    fn download_solution(&mut self) -> Result<(Vec<f64>, Vec<f64>), GpuError> {
+        let nd = (self.n_nodes * self.dim) as u64;
+        let rs = self.recovery.real.size();
+        let y_buf = match &self.refine {
+            Some(r) => r.y64.clone(),
+            None => self.level.x.clone(),
+        };
+        let mut enc = self.encoder("recovery");
+        let mut names = Vec::new();
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("recovery pass"),
+                timestamp_writes: None,
+            });
+            let groups = self.node_groups();
+            if let Some((k, bg)) = &self.recovery.recover {
+                pass.set_pipeline(&k.pipeline);
+                pass.set_bind_group(0, bg, &[]);
+                pass.dispatch_workgroups(groups, 1, 1);
+                names.push(k.name);
+            }
+            if let Some((k, bg)) = &self.recovery.rotate {
+                let nr = self.host.frames.rot_nodes.len() as u32;
+                pass.set_pipeline(&k.pipeline);
+                pass.set_bind_group(0, bg, &[]);
+                pass.dispatch_workgroups(nr.div_ceil(self.wg), 1, 1);
+                names.push(k.name);
+            }
+        }
+        if self.recovery.recover.is_none() {
+            // No constraints: dx = y, no masking work.
+            enc.copy_buffer_to_buffer(&y_buf, 0, &self.recovery.dx, 0, nd * rs);
+        }
+        enc.copy_buffer_to_buffer(&y_buf, 0, &self.recovery.staging, 0, nd * rs);
+        enc.copy_buffer_to_buffer(
+            &self.recovery.dx,
+            0,
+            &self.recovery.staging,
+            nd * rs,
+            nd * rs,
+        );
+        self.ctx.queue.submit([enc.finish()]);
+        for n in names {
+            self.record(n);
+        }
+        let staging = self.recovery.staging.clone();
+        let bytes = self.read(&staging, 2 * nd * rs)?;
+        let half = (nd * rs) as usize;
+        let y = self.recovery.real.values(&bytes[..half]);
+        let mut dx = self.recovery.real.values(&bytes[half..]);
+        self.host.add_lift(&mut dx);
+        Ok((y, dx))
+    }
+
+    /// Solves Ĥ y = b̂; returns y (frame coordinates), Δx = Δx_p + V y and the report.
+    pub fn solve(&mut self) -> Result<(Vec<f64>, Vec<f64>, GpuSolveInfo), GpuError> {
+        self.readbacks = 0;
+        self.gpu_seconds = 0.0;
+        let t0 = Instant::now();
+        let bnorm = norm2(&self.host.rhs);
+        let mut notes = Vec::new();
+        if !self.ctx.has_f64() {
+            notes.push("no SHADER_F64: reductions accumulate in f32".to_string());
+        }
+        let nd = self.host.ndof();
+        let (iterations, outer, restarts, solve_s, dl_s, y, dx) = if bnorm == 0.0 {
+            // Ĥ is SPD: the solution is y = 0 and Δx the lift.
+            let mut dx = vec![0.0; nd];
+            self.host.add_lift(&mut dx);
+            notes.push("b̂ = 0: y = 0 without iterating".into());
+            (0, 0, 0, 0.0, 0.0, vec![0.0; nd], dx)
+        } else if self.refine.is_some() {
+            self.solve_mixed(bnorm, &mut notes)?
+        } else {
+            self.solve_plain(bnorm)?
+        };
+        let _ = t0;
+        let rel = self.host.relative_residual(&y);
+        let bpi = self.bytes_per_iteration;
+        let moved = bpi as f64 * iterations as f64;
+        let gpu_seconds = self.timestamps.as_ref().map(|_| self.gpu_seconds);
+        let info = GpuSolveInfo {
+            adapter: self.ctx.info.name.clone(),
+            precision: self.params.precision,
+            iterations,
+            outer_refinements: outer,
+            restarts,
+            relative_residual: rel,
+            seconds: StageSeconds {
+                upload: self.upload_seconds,
+                setup: self.setup_seconds,
+                solve: solve_s,
+                download: dl_s,
+            },
+            gpu_seconds,
+            bytes_per_iteration: bpi,
+            achieved_gb_per_s: if solve_s > 0.0 {
+                moved / solve_s / 1e9
+            } else {
+                0.0
+            },
+            achieved_gb_per_s_gpu: gpu_seconds.filter(|&s| s > 0.0).map(|s| moved / s / 1e9),
+            dispatches_per_iteration: 3,
+            readbacks: self.readbacks,
+            notes,
+        };
+        Ok((y, dx, info))
+    }
+
+    #[allow(clippy::type_complexity)]
+    fn solve_plain(
+        &mut self,
+        bnorm: f64,
+    ) -> Result<(usize, usize, usize, f64, f64, Vec<f64>, Vec<f64>), GpuError> {
+        let tol = self.params.tol;
+        let thresh = (tol * bnorm).powi(2);
+        let t0 = Instant::now();
+        let mut total = 0usize;
+        let mut restarts = 0usize;
+        let mut dl = 0.0;
+        let mut keep = false;
+        loop {
+            self.start(keep, thresh)?;
+            let (out, it) = self.run_cg(self.params.max_iters - total, total)?;
+            total += it;
+            let td = Instant::now();
+            let (y, dx) = self.download_solution()?;
+            dl += td.elapsed().as_secs_f64();
+            let rel = self.host.relative_residual(&y);
+            match out {
+                Outcome::Converged if rel <= tol => {
+                    let solve = t0.elapsed().as_secs_f64() - dl;
+                    return Ok((total, 0, restarts, solve, dl, y, dx));
+                }
+                Outcome::Converged
+                    if restarts < self.params.max_restarts && total < self.params.max_iters =>
+                {
+                    // The recurrence drifted from the true residual: restart from y.
+                    restarts += 1;
+                    keep = true;
+                }
+                Outcome::MaxIters => {
+                    return Err(CgError::MaxIterations {
+                        iterations: total,
+                        relative_residual: rel,
+                        tol,
+                    }
+                    .into())
+                }
+                _ => {
+                    return Err(CgError::Stagnation {
+                        iterations: total,
+                        relative_residual: rel,
+                        tol,
+                    }
+                    .into())
+                }
+            }
+        }
+    }
+
+    #[allow(clippy::type_complexity)]
+    fn solve_mixed(
+        &mut self,
+        bnorm: f64,
+        notes: &mut Vec<String>,
+    ) -> Result<(usize, usize, usize, f64, f64, Vec<f64>, Vec<f64>), GpuError> {
+        let tol = self.params.tol;
+        let t0 = Instant::now();
+        let mut total = 0usize;
+        let mut dl = 0.0;
+        let mut best = f64::INFINITY;
+        let mut since_best = 0usize;
+        {
+            let rf = self.refine.as_ref().expect("mixed has a refinement level");
+            let mut enc = self.encoder("mixed reset");
+            enc.clear_buffer(&rf.y64, 0, None);
+            self.ctx.queue.submit([enc.finish()]);
+        }
+        let mut outer = 0usize;
+        loop {
+            let rel = self.outer_residual()? / bnorm;
+            if rel <= tol {
+                let td = Instant::now();
+                let (y, dx) = self.download_solution()?;
+                dl += td.elapsed().as_secs_f64();
+                let true_rel = self.host.relative_residual(&y);
+                if true_rel <= tol {
+                    let solve = t0.elapsed().as_secs_f64() - dl;
+                    return Ok((total, outer, 0, solve, dl, y, dx));
+                }
+                notes.push(format!(
+                    "device f64 residual {rel:e} but host residual {true_rel:e}; refining further"
+                ));
+            }
+            if rel < 0.5 * best {
+                best = rel;
+                since_best = 0;
+            } else {
+                since_best += 1;
+            }
+            if since_best >= 3 || outer >= self.params.max_outer || total >= self.params.max_iters {
+                let td = Instant::now();
+                let (y, _) = self.download_solution()?;
+                dl += td.elapsed().as_secs_f64();
+                let _ = dl;
+                let true_rel = self.host.relative_residual(&y);
+                return Err(if total >= self.params.max_iters {
+                    CgError::MaxIterations {
+                        iterations: total,
+                        relative_residual: true_rel,
+                        tol,
+                    }
+                } else {
+                    CgError::Stagnation {
+                        iterations: total,
+                        relative_residual: true_rel,
+                        tol,
+                    }
+                }
+                .into());
+            }
+            // Inner f32 CG on Ĥ d = r to a relative inner_tol, never finer than needed.
+            let inner = self.params.inner_tol.max(0.5 * tol / rel);
+            let thresh = (inner * rel * bnorm).powi(2);
+            self.start(false, thresh)?;
+            let (_, it) = self.run_cg(self.params.max_iters - total, total)?;
+            total += it;
+            outer += 1;
+            let rf = self.refine.as_ref().expect("mixed has a refinement level");
+            let mut enc = self.encoder("mixed accumulate");
+            {
+                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("accumulate pass"),
+                    timestamp_writes: None,
+                });
+                pass.set_pipeline(&rf.k_accumulate.pipeline);
+                pass.set_bind_group(0, &rf.bg_refine, &[]);
+                pass.dispatch_workgroups(
+                    ((self.n_nodes * self.dim) as u32).div_ceil(self.wg),
+                    1,
+                    1,
+                );
+            }
+            self.ctx.queue.submit([enc.finish()]);
+            self.record("accumulate");
+        }
+    }
+
+    /// ‖b̂ − Ĥy‖ in f64 on the device; also sets the inner CG's right-hand side.
+    fn outer_residual(&mut self) -> Result<f64, GpuError> {
+        let g = self.n_partials;
+        let rf = self.refine.as_ref().expect("mixed has a refinement level");
+        let mut enc = self.encoder("mixed residual");
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("residual pass"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&rf.op.matvec.pipeline);
+            pass.set_bind_group(0, &rf.bg_mv, &[]);
+            pass.dispatch_workgroups(g, 1, 1);
+            pass.set_pipeline(&rf.k_residual.pipeline);
+            pass.set_bind_group(0, &rf.bg_refine, &[]);
+            pass.dispatch_workgroups(g, 1, 1);
+        }
+        enc.copy_buffer_to_buffer(&rf.partials64, 0, &rf.staging, 0, 8 * g as u64);
+        self.ctx.queue.submit([enc.finish()]);
+        let name = rf.op.matvec.name;
+        let staging = rf.staging.clone();
+        self.record(name);
+        self.record("residual");
+        let bytes = self.read(&staging, 8 * g as u64)?;
+        // Fixed-order sum of the per-workgroup partials: deterministic.
+        let s: f64 = Real::F64.values(&bytes).iter().sum();
+        Ok(s.max(0.0).sqrt())
+    }
+
+    /// What the solver allocated, compiled and dispatched.
+    pub fn resources(&self) -> Resources {
+        Resources {
+            buffers: self.buffers.clone(),
+            kernels: self.kernels.clone(),
+            dispatches: self.dispatches.clone(),
+        }
+    }
+
+    pub fn adapter_name(&self) -> &str {
+        &self.ctx.info.name
+    }
+
+    pub fn params(&self) -> &GpuParams {
+        &self.params
+    }
+
+    /// Number of partial sums (= workgroups of the reduction kernels).
+    pub fn n_partials(&self) -> u32 {
+        self.n_partials
+    }
+
+    /// Whether this solver's kernels run the masking code.
+    pub fn is_masked(&self) -> bool {
+        self.masked
+    }
+
+    // ---- Kernel-level access for tests (each kernel against its CPU reference). ----
+
+    /// q = Ĥ y with the CG's operator kernel (in the CG's precision).
+    pub fn apply_operator(&mut self, y: &[f64]) -> Result<Vec<f64>, GpuError> {
+        let l = &self.level;
+        self.ctx.queue.write_buffer(&l.p, 0, &l.real.bytes(y));
+        self.ctx
+            .queue
+            .write_buffer(&l.state, 0, &[0u8; 4 * N_STATE]);
+        let mut enc = self.encoder("apply operator");
+        {
+            let mut pass = enc
+                .begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("apply operator pass"),
+                    timestamp_writes: None,
+                })
+                .forget_lifetime();
+            let g = self.n_partials;
+            self.dispatch(&mut pass, Which::MatvecP, g);
+        }
+        let q = self.level.q.clone();
+        self.download(enc, &q, self.level.real, y.len())
+    }
+
+    /// The device's Ĥ blocks after rotation (assembled systems only), unmasked, f64.
+    pub fn rotated_blocks(&mut self) -> Result<Option<Vec<f64>>, GpuError> {
+        let (buf, real, len) = match (&self.level.op.data, &self.host.op) {
+            (OpData::Blocks { blocks, .. }, HostOp::Blocks(h)) => {
+                (blocks.clone(), self.level.op.real, h.values.len())
+            }
+            _ => return Ok(None),
+        };
+        let enc = self.encoder("download blocks");
+        self.download(enc, &buf, real, len).map(Some)
+    }
+
+    /// The preconditioner data built on the device: 1/diag (Jacobi, d·n values) or the
+    /// inverse diagonal blocks (block-Jacobi, d²·n), like `BuiltPreconditioner::data`.
+    pub fn preconditioner_data(&mut self) -> Result<Vec<f64>, GpuError> {
+        let d = self.dim;
+        let len = match self.params.preconditioner {
+            Preconditioner::None => return Ok(Vec::new()),
+            Preconditioner::Jacobi => self.n_nodes * d,
+            Preconditioner::BlockJacobi => self.n_nodes * d * d,
+        };
+        let enc = self.encoder("download preconditioner");
+        let b = self.level.minv.clone();
+        self.download(enc, &b, self.level.real, len)
+    }
+
+    /// Δx = Δx_p + V P y through the device's recovery kernels.
+    pub fn recover_on_device(&mut self, y: &[f64]) -> Result<Vec<f64>, GpuError> {
+        let rr = self.recovery.real;
+        match &self.refine {
+            Some(r) => self.ctx.queue.write_buffer(&r.y64, 0, &rr.bytes(y)),
+            None => self.ctx.queue.write_buffer(&self.level.x, 0, &rr.bytes(y)),
+        }
+        Ok(self.download_solution()?.1)
+    }
+
+    /// Runs `k` PCG iterations from y = 0 (no stopping test) and returns (x, r, p).
+    #[allow(clippy::type_complexity)]
+    pub fn iterate(&mut self, k: usize) -> Result<(Vec<f64>, Vec<f64>, Vec<f64>), GpuError> {
+        if let Some(rf) = &self.refine {
+            // Mixed: the inner CG's right-hand side is b̂ rounded to f32.
+            let rhs = Real::F32.bytes(&self.host.rhs);
+            let _ = rf;
+            self.ctx.queue.write_buffer(&self.level.b, 0, &rhs);
+        }
+        self.start(false, -1.0)?;
+        let _ = self.chunk(k)?;
+        let nd = self.n_nodes * self.dim;
+        let real = self.level.real;
+        let (x, r, p) = (
+            self.level.x.clone(),
+            self.level.r.clone(),
+            self.level.p.clone(),
+        );
+        let xs = self.download(self.encoder("x"), &x, real, nd)?;
+        let rs = self.download(self.encoder("r"), &r, real, nd)?;
+        let ps = self.download(self.encoder("p"), &p, real, nd)?;
+        Ok((xs, rs, ps))
+    }
+
+    fn download(
+        &mut self,
+        mut enc: wgpu::CommandEncoder,
+        buf: &wgpu::Buffer,
+        real: Real,
+        len: usize,
+    ) -> Result<Vec<f64>, GpuError> {
+        let bytes = real.size() * len as u64;
+        let staging = self.ctx.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("test download staging"),
+            size: bytes.max(16).div_ceil(16) * 16,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        enc.copy_buffer_to_buffer(buf, 0, &staging, 0, bytes);
+        self.ctx.queue.submit([enc.finish()]);
+        let b = self.read(&staging, bytes)?;
+        Ok(real.values(&b))
+    }
+}
+
+#[derive(Clone, Copy)]
+enum Which {
+    UpdateP,
+    UpdateXrz,
+    Init,
+    MatvecP,
+    MatvecX,
+}
+
+struct Status {
+    rr: f64,
+    pq: f64,
+    iterations: usize,
+    converged: bool,
+    curvature: bool,
+    breakdown: bool,
+}
+
+struct Consts {
+    d: f64,
+    wg: f64,
+    masked: bool,
+    rotated: bool,
+    precond: f64,
+}
+
+fn flag(b: bool) -> f64 {
+    if b {
+        1.0
+    } else {
+        0.0
+    }
+}
+
+fn build_operator(
+    bld: &mut Builder,
+    sh: &Shared,
+    host: &Host,
+    real: Real,
+    acc: Real,
+    c: &Consts,
+) -> Result<Operator, GpuError> {
+    use Bind::*;
+    let f = &host.frames;
+    let nd = host.ndof() as u64;
+    let rn = real.name();
+    let dvals = if c.masked {
+        Some(bld.buffer(&format!("dvals_{rn}"), nd * real.size(), STORAGE)?)
+    } else {
+        None
+    };
+    let rotations = if c.rotated {
+        Some(bld.buffer(
+            &format!("rotations_{rn}"),
+            f.rotations.len() as u64 * real.size(),
+            STORAGE,
+        )?)
+    } else {
+        None
+    };
+    let (data, matvec) = match &host.op {
+        HostOp::Blocks(h) => {
+            let blocks = bld.buffer(
+                &format!("blocks_{rn}"),
+                h.values.len() as u64 * real.size(),
+                STORAGE,
+            )?;
+            let rotate = match (&rotations, &sh.rot_index, &sh.rot_nodes) {
+                (Some(rot), Some(ri), Some(rnod)) => {
+                    let k = bld.kernel(
+                        "rotate_blocks",
+                        "rotate.wgsl",
+                        kernels::ROTATE,
+                        real,
+                        acc,
+                        "rotate_blocks",
+                        &[Uniform, Ro, Ro, Ro, Ro, Ro, Rw],
+                        &[("D", c.d), ("WG", c.wg)],
+                    )?;
+                    let bg = bld.bind(
+                        &k,
+                        "rotate_blocks bind group",
+                        &[&sh.params, ri, rnod, rot, &sh.row_ptr, &sh.col, &blocks],
+                    );
+                    Some((k, bg))
+                }
+                _ => None,
+            };
+            let mv = bld.kernel(
+                "matvec",
+                "matvec.wgsl",
+                kernels::MATVEC,
+                real,
+                acc,
+                "matvec",
+                &[Uniform, Ro, Ro, Ro, Ro, Ro, Ro, Rw, Rw, Ro],
+                &[("D", c.d), ("WG", c.wg), ("MASKED", flag(c.masked))],
+            )?;
+            (OpData::Blocks { blocks, rotate }, mv)
+        }
+        HostOp::Springs(ms) => {
+            let n = ms.n_nodes() as u64;
+            let pos = bld.buffer(&format!("positions_{rn}"), nd * real.size(), STORAGE)?;
+            let springs = bld.buffer(
+                &format!("springs_{rn}"),
+                2 * ms.edges.len() as u64 * real.size(),
+                STORAGE,
+            )?;
+            let mass = bld.buffer(&format!("masses_{rn}"), n * real.size(), STORAGE)?;
+            let diag_blocks = bld.buffer(
+                &format!("diag_blocks_{rn}"),
+                n * (c.d * c.d) as u64 * real.size(),
+                STORAGE,
+            )?;
+            let mv = bld.kernel(
+                "spring_matvec",
+                "springs.wgsl",
+                kernels::SPRINGS,
+                real,
+                acc,
+                "spring_matvec",
+                &[Uniform, Ro, Ro, Ro, Ro, Ro, Ro, Ro, Ro, Ro, Ro, Rw, Rw, Ro],
+                &[
+                    ("D", c.d),
+                    ("WG", c.wg),
+                    ("MASKED", flag(c.masked)),
+                    ("ROTATE", flag(c.rotated)),
+                ],
+            )?;
+            (
+                OpData::Springs {
+                    pos,
+                    springs,
+                    mass,
+                    diag_blocks,
+                },
+                mv,
+            )
+        }
+    };
+    Ok(Operator {
+        real,
+        data,
+        dvals,
+        rotations,
+        matvec,
+    })
+}
+
+/// Bind group of the operator kernel with input `p`, output `q`.
+#[allow(clippy::too_many_arguments)]
+fn bind_operator(
+    bld: &Builder,
+    sh: &Shared,
+    op: &Operator,
+    label: &str,
+    p: &wgpu::Buffer,
+    q: &wgpu::Buffer,
+    partials: &wgpu::Buffer,
+    state: &wgpu::Buffer,
+) -> wgpu::BindGroup {
+    let ph = &sh.placeholder;
+    let dv = op.dvals.as_ref().unwrap_or(ph);
+    match &op.data {
+        OpData::Blocks { blocks, .. } => bld.bind(
+            &op.matvec,
+            label,
+            &[
+                &sh.params,
+                &sh.row_ptr,
+                &sh.col,
+                blocks,
+                sh.mask_or(),
+                dv,
+                p,
+                q,
+                partials,
+                state,
+            ],
+        ),
+        OpData::Springs {
+            pos, springs, mass, ..
+        } => bld.bind(
+            &op.matvec,
+            label,
+            &[
+                &sh.params,
+                &sh.row_ptr,
+                &sh.col,
+                pos,
+                springs,
+                mass,
+                sh.rot_index.as_ref().unwrap_or(ph),
+                op.rotations.as_ref().unwrap_or(ph),
+                sh.mask_or(),
+                dv,
+                p,
+                q,
+                partials,
+                state,
+            ],
+        ),
+    }
+}
+
+fn build_level(
+    bld: &mut Builder,
+    sh: &Shared,
+    op: Operator,
+    host: &Host,
+    acc: Real,
+    c: &Consts,
+    pc: Preconditioner,
+) -> Result<Level, GpuError> {
+    use Bind::*;
+    let real = op.real;
+    let rn = real.name();
+    let nd = host.ndof() as u64;
+    let vb = nd * real.size();
+    let x = bld.buffer(&format!("x_{rn}"), vb, STORAGE)?;
+    let r = bld.buffer(&format!("r_{rn}"), vb, STORAGE)?;
+    let z = bld.buffer(&format!("z_{rn}"), vb, STORAGE)?;
+    let p = bld.buffer(&format!("p_{rn}"), vb, STORAGE)?;
+    let q = bld.buffer(&format!("q_{rn}"), vb, STORAGE)?;
+    let b = bld.buffer(&format!("b_{rn}"), vb, STORAGE)?;
+    let n = host.frames.n_nodes as u64;
+    let d = host.frames.dim as u64;
+    let minv = match pc {
+        Preconditioner::None => None,
+        Preconditioner::Jacobi => Some(bld.buffer(
+            &format!("precond_jacobi_{rn}"),
+            n * d * real.size(),
+            STORAGE,
+        )?),
+        Preconditioner::BlockJacobi => Some(bld.buffer(
+            &format!("precond_block_{rn}"),
+            n * d * d * real.size(),
+            STORAGE,
+        )?),
+    };
+    let g = host.ndof().div_ceil(c.wg as usize).clamp(1, 256) as u64;
+    // n_partials is computed from nodes, not DOFs; allocate for the larger bound.
+    let partials = bld.buffer("partials", 3 * g.max(256) * acc.size(), STORAGE)?;
+    let scal = bld.buffer("cg_scalars", N_SCAL as u64 * acc.size(), STORAGE)?;
+    let state = bld.buffer("cg_state", 4 * N_STATE as u64, STORAGE)?;
+    let status_staging = bld.staging(
+        "status_staging",
+        N_SCAL as u64 * acc.size() + 4 * N_STATE as u64 + 16,
+    )?;
+    let cg_consts = [("D", c.d), ("WG", c.wg), ("PRECOND", c.precond)];
+    let cg_binds = [Uniform, Rw, Rw, Rw, Rw, Ro, Ro, Ro, Rw, Rw, Rw];
+    let k_update_p = bld.kernel(
+        "update_p",
+        "cg.wgsl",
+        kernels::CG,
+        real,
+        acc,
+        "update_p",
+        &cg_binds,
+        &cg_consts,
+    )?;
+    let k_update_xrz = bld.kernel(
+        "update_xrz",
+        "cg.wgsl",
+        kernels::CG,
+        real,
+        acc,
+        "update_xrz",
+        &cg_binds,
+        &cg_consts,
+    )?;
+    let k_init = bld.kernel(
+        "init",
+        "cg.wgsl",
+        kernels::CG,
+        real,
+        acc,
+        "init",
+        &cg_binds,
+        &cg_consts,
+    )?;
+    let minv_b = minv.as_ref().unwrap_or(&sh.placeholder);
+    let bg_cg = bld.bind(
+        &k_update_p,
+        "cg bind group",
+        &[
+            &sh.params, &x, &r, &z, &p, &q, &b, minv_b, &partials, &scal, &state,
+        ],
+    );
+    let bg_mv_p = bind_operator(
+        bld,
+        sh,
+        &op,
+        "matvec p->q bind group",
+        &p,
+        &q,
+        &partials,
+        &state,
+    );
+    let bg_mv_x = bind_operator(
+        bld,
+        sh,
+        &op,
+        "matvec x->q bind group",
+        &x,
+        &q,
+        &partials,
+        &state,
+    );
+    let precond = match &minv {
+        None => None,
+        Some(mb) => {
+            let k = bld.kernel(
+                "precond_build",
+                "precond.wgsl",
+                kernels::PRECOND,
+                real,
+                acc,
+                "build",
+                &[Uniform, Ro, Ro, Ro, Ro, Ro, Rw],
+                &[
+                    ("D", c.d),
+                    ("WG", c.wg),
+                    ("MASKED", flag(c.masked)),
+                    ("PRECOND", c.precond),
+                ],
+            )?;
+            let dv = op.dvals.as_ref().unwrap_or(&sh.placeholder);
+            let bg = match &op.data {
+                OpData::Blocks { blocks, .. } => bld.bind(
+                    &k,
+                    "precond bind group",
+                    &[
+                        &sh.params,
+                        &sh.row_ptr,
+                        &sh.col,
+                        blocks,
+                        sh.mask_or(),
+                        dv,
+                        mb,
+                    ],
+                ),
+                OpData::Springs { diag_blocks, .. } => bld.bind(
+                    &k,
+                    "precond bind group",
+                    &[
+                        &sh.params,
+                        sh.diag_row_ptr
+                            .as_ref()
+                            .expect("springs have a diagonal pattern"),
+                        sh.diag_col
+                            .as_ref()
+                            .expect("springs have a diagonal pattern"),
+                        diag_blocks,
+                        sh.mask_or(),
+                        dv,
+                        mb,
+                    ],
+                ),
+            };
+            Some((k, bg))
+        }
+    };
+    Ok(Level {
+        real,
+        acc,
+        op,
+        x,
+        r,
+        z,
+        p,
+        q,
+        b,
+        minv: minv.unwrap_or_else(|| sh.placeholder.clone()),
+        scal,
+        state,
+        k_update_p,
+        k_update_xrz,
+        k_init,
+        bg_cg,
+        bg_mv_p,
+        bg_mv_x,
+        precond,
+        status_staging,
+    })
+}
+
+fn build_refine(
+    bld: &mut Builder,
+    sh: &Shared,
+    op: Operator,
+    level: &Level,
+    host: &Host,
+    c: &Consts,
+) -> Result<Refine, GpuError> {
+    use Bind::*;
+    let nd = host.ndof() as u64;
+    let b64 = bld.buffer("b_f64", nd * 8, STORAGE)?;
+    let y64 = bld.buffer("y_f64", nd * 8, STORAGE)?;
+    let q64 = bld.buffer("q_f64", nd * 8, STORAGE)?;
+    let partials64 = bld.buffer("partials_f64", 256 * 8, STORAGE)?;
+    let zero_state = bld.buffer("refine_state", 4 * N_STATE as u64, STORAGE)?;
+    let staging = bld.staging("refine_staging", 256 * 8)?;
+    let consts = [("D", c.d), ("WG", c.wg)];
+    let binds = [Uniform, Ro, Ro, Rw, Rw, Ro, Rw];
+    let k_residual = bld.kernel(
+        "residual",
+        "refine.wgsl",
+        kernels::REFINE,
+        Real::F64,
+        Real::F64,
+        "residual",
+        &binds,
+        &consts,
+    )?;
+    let k_accumulate = bld.kernel(
+        "accumulate",
+        "refine.wgsl",
+        kernels::REFINE,
+        Real::F64,
+        Real::F64,
+        "accumulate",
+        &binds,
+        &consts,
+    )?;
+    let bg_refine = bld.bind(
+        &k_residual,
+        "refine bind group",
+        &[
+            &sh.params,
+            &b64,
+            &q64,
+            &level.b,
+            &partials64,
+            &level.x,
+            &y64,
+        ],
+    );
+    let bg_mv = bind_operator(
+        bld,
+        sh,
+        &op,
+        "matvec f64 y->q bind group",
+        &y64,
+        &q64,
+        &partials64,
+        &zero_state,
+    );
+    Ok(Refine {
+        op,
+        b64,
+        y64,
+        partials64,
+        k_residual,
+        k_accumulate,
+        bg_mv,
+        bg_refine,
+        staging,
+    })
+}
+
+#[allow(clippy::too_many_arguments)]
+fn build_recovery(
+    bld: &mut Builder,
+    sh: &Shared,
+    y: &wgpu::Buffer,
+    real: Real,
+    rotations: Option<&wgpu::Buffer>,
+    c: &Consts,
+    nd: usize,
+) -> Result<Recovery, GpuError> {
+    use Bind::*;
+    let dx = bld.buffer(
+        &format!("dx_{}", real.name()),
+        nd as u64 * real.size(),
+        STORAGE,
+    )?;
+    let staging = bld.staging("solution_staging", 2 * nd as u64 * real.size())?;
+    let acc = real;
+    let recover = match &sh.mask {
+        Some(m) => {
+            let k = bld.kernel(
+                "recover",
+                "recover.wgsl",
+                kernels::RECOVER,
+                real,
+                acc,
+                "recover",
+                &[Uniform, Ro, Ro, Rw],
+                &[("D", c.d), ("WG", c.wg)],
+            )?;
+            let bg = bld.bind(&k, "recover bind group", &[&sh.params, m, y, &dx]);
+            Some((k, bg))
+        }
+        None => None,
+    };
+    let rotate = match (rotations, &sh.rot_index, &sh.rot_nodes) {
+        (Some(rot), Some(ri), Some(rn)) => {
+            let k = bld.kernel(
+                "rotate_vectors",
+                "rotate.wgsl",
+                kernels::ROTATE,
+                real,
+                acc,
+                "rotate_vectors",
+                &[Uniform, Ro, Ro, Ro, Ro, Ro, Rw],
+                &[("D", c.d), ("WG", c.wg), ("TRANSPOSE", 0.0)],
+            )?;
+            let bg = bld.bind(
+                &k,
+                "rotate_vectors bind group",
+                &[&sh.params, ri, rn, rot, &sh.row_ptr, &sh.col, &dx],
+            );
+            Some((k, bg))
+        }
+        _ => None,
+    };
+    Ok(Recovery {
+        real,
+        dx,
+        recover,
+        rotate,
+        staging,
+    })
+}
+
+/// Bytes one CG iteration must move (each array once): operator data and indices, the
+/// vectors read and written by the three kernels, and the preconditioner.
+fn bytes_per_iteration(host: &Host, level: &Level, c: &Consts, pc: Preconditioner) -> u64 {
+    let s = level.real.size();
+    let nd = host.ndof() as u64;
+    let n = host.frames.n_nodes as u64;
+    let d = c.d as u64;
+    let mut op = match &host.op {
+        HostOp::Blocks(h) => h.values.len() as u64 * s + h.col_idx.len() as u64 * 4 + (n + 1) * 4,
+        HostOp::Springs(ms) => {
+            // adjacency (2 u32 per spring end), positions, spring data, masses
+            (n + 1) * 4
+                + 4 * 4 * ms.edges.len() as u64
+                + nd * s
+                + 2 * ms.edges.len() as u64 * s
+                + n * s
+        }
+    };
+    op += 2 * nd * s; // p read, q written
+    if c.masked {
+        op += n * 4 + nd * s; // mask, D
+    }
+    if c.rotated {
+        if let HostOp::Springs(_) = host.op {
+            op += n * 4 + host.frames.rotations.len() as u64 * s;
+        }
+    }
+    // update_xrz: x rw, p r, r rw, q r, z w; update_p: z r, p rw.
+    let vec = (2 + 1 + 2 + 1 + 1 + 1 + 2) * nd * s;
+    let pre = match pc {
+        Preconditioner::None => 0,
+        Preconditioner::Jacobi => nd * s,
+        Preconditioner::BlockJacobi => n * d * d * s,
+    };
+    op + vec + pre
+}

@@ -1,0 +1,613 @@
+//! Implicit Euler as an incremental potential (IPC style), with Dirichlet conditions
+//! eliminated by the per-node change of basis and moving conditions per design.md §5.
+//!
+//! One step n → n+1 (h the time step, x̃ = xⁿ + h vⁿ):
+//!
+//! ```text
+//! E(x) = ½ (x − x̃)ᵀ M (x − x̃) + h² Ψ(x) + Σ_{k unsatisfied} [½ k_M m_k ‖r_k(x)‖² − √m_k λ_kᵀ r_k(x)]
+//! ```
+//!
+//! 1. Static conditions are projected at the start (sticky nodes snapped, slip nodes
+//!    projected onto their plane or line); they then hold through every Newton step
+//!    because every step is homogeneous (Δx has no constrained component).
+//! 2. Moving condition k has a target set at t^{n+1} (x̂_k for sticky, a moved plane or
+//!    line for slip); r_k is the node's offset from it (slip: along the normal only). A node
+//!    with ‖r_k‖/h < ε is snapped onto its target and eliminated; the others carry the
+//!    penalty. When Newton converges with nodes still unsatisfied, k_M doubles (capped;
+//!    with the augmented Lagrangian, λ is updated and k_M doubles only when the residual
+//!    did not halve). k_M persists across steps. The step ends only when every moving node
+//!    is eliminated and Newton has converged with elimination alone.
+//! 3. Newton: eliminated linear solve (oracle / CG / GPU), Armijo backtracking, stop when
+//!    ‖Δx‖∞/h < tol. Frames are built once per constraint set and cached, so are the
+//!    oracle's symbolic analysis and the GPU solver (keyed by the set).
+//! 4. v^{n+1} = (x^{n+1} − xⁿ)/h. Reactions f = +(constrained part of ∇E)/h² per node (the
+//!    components along C_i): the force the supports exert on the body, in newtons, so that
+//!    Σ m (v^{n+1} − vⁿ) = h (M g + Σ f) holds exactly when Newton has converged (a body
+//!    resting on a floor gets an upward f). Sign: M(x − x̃) + h²∇Ψ = ∇E, and at the
+//!    constrained minimum ∇E vanishes on free components and equals h² f on constrained
+//!    ones. This is −1 times `elimination::reactions` (−(HΔx + g), the load on the
+//!    support). Moving nodes are eliminated at the end of every step, so the force that
+//!    drives them shows up as their reaction; no penalty force is left at the end of a step.
+
+use crate::cg::CgParams;
+use crate::constraints::{Constraint, ConstraintKind, Frames};
+use crate::elimination::{ConstrainedDiagonal, Eliminated};
+use crate::energy::inertia;
+use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver};
+use crate::oracle::CholeskyOracle;
+use crate::scene::{BcShape, LinearKind, NodeBc, Scene, SolverSpec};
+use crate::sparse::BlockCsr;
+use std::collections::HashMap;
+use std::time::Instant;
+
+/// Armijo sufficient-decrease constant.
+const ARMIJO: f64 = 1e-4;
+/// Backtracking halvings before the line search gives up.
+const MAX_HALVINGS: usize = 40;
+
+/// What one linear solve cost.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct LinearStats {
+    /// CG iterations; a direct (Cholesky) solve counts as one.
+    pub iterations: usize,
+    pub seconds: f64,
+}
+
+/// The linear solver behind every Newton step, with per-constraint-set caches.
+pub struct LinearSolver {
+    kind: LinearKind,
+    cg: CgParams,
+    gpu_params: GpuParams,
+    gpu_ctx: Option<GpuContext>,
+    oracles: HashMap<Vec<bool>, CholeskyOracle>,
+    gpus: HashMap<Vec<bool>, GpuSolver>,
+    /// GPU adapter name, when the GPU runs.
+    pub adapter: Option<String>,
+}
+
+impl LinearSolver {
+    pub fn new(spec: &SolverSpec) -> Result<Self, String> {
+        let cg = CgParams {
+            tol: spec.cg_tolerance,
+            max_iters: spec.cg_max_iterations,
+            preconditioner: spec.preconditioner,
+            ..CgParams::default()
+        };
+        let gpu_params = GpuParams {
+            precision: spec.precision,
+            tol: spec.cg_tolerance,
+            max_iters: spec.cg_max_iterations,
+            preconditioner: spec.preconditioner,
+            ..GpuParams::default()
+        };
+        let (gpu_ctx, adapter) = if spec.linear == LinearKind::Gpu {
+            let ctx = GpuContext::new(&GpuOptions::default())
+                .map_err(|e| format!("the GPU solver cannot start: {e}"))?;
+            let name = ctx.adapter_name().to_string();
+            (Some(ctx), Some(name))
+        } else {
+            (None, None)
+        };
+        Ok(LinearSolver {
+            kind: spec.linear,
+            cg,
+            gpu_params,
+            gpu_ctx,
+            oracles: HashMap::new(),
+            gpus: HashMap::new(),
+            adapter,
+        })
+    }
+
+    /// Solves the eliminated system and recovers Δx. `key` names the constraint set.
+    pub fn solve(&mut self, key: &[bool], e: &Eliminated) -> Result<(Vec<f64>, LinearStats), String> {
+        let t = Instant::now();
+        match self.kind {
+            LinearKind::Cholesky => {
+                if !self.oracles.contains_key(key) {
+                    let o = CholeskyOracle::analyze(e).map_err(|err| err.to_string())?;
+                    self.oracles.insert(key.to_vec(), o);
+                }
+                let o = self.oracles.get_mut(key).expect("inserted above");
+                let (y, _) = o.solve(e).map_err(|err| err.to_string())?;
+                let dx = e.recover(&y);
+                Ok((dx, LinearStats { iterations: 1, seconds: t.elapsed().as_secs_f64() }))
+            }
+            LinearKind::Cg => {
+                let (y, info) = crate::cg::solve(e, &self.cg).map_err(|err| err.to_string())?;
+                let dx = e.recover(&y);
+                Ok((dx, LinearStats { iterations: info.iterations, seconds: t.elapsed().as_secs_f64() }))
+            }
+            LinearKind::Gpu => {
+                let ctx = self.gpu_ctx.as_ref().ok_or("GPU context missing")?;
+                let mut fresh = false;
+                if !self.gpus.contains_key(key) {
+                    let s = GpuSolver::new(ctx, e, &self.gpu_params).map_err(|err| err.to_string())?;
+                    self.gpus.insert(key.to_vec(), s);
+                    fresh = true;
+                }
+                let s = self.gpus.get_mut(key).expect("inserted above");
+                if !fresh {
+                    s.update(e).map_err(|err| err.to_string())?;
+                }
+                let (_y, dx, info) = s.solve().map_err(|err| err.to_string())?;
+                Ok((dx, LinearStats { iterations: info.iterations, seconds: t.elapsed().as_secs_f64() }))
+            }
+        }
+    }
+}
+
+/// What one step did.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct StepReport {
+    pub step: usize,
+    pub time: f64,
+    pub newton_iterations: usize,
+    pub linear_iterations: usize,
+    pub linear_seconds: f64,
+    /// k_M at the end of the step (meaningful when the scene has moving conditions).
+    pub k_m: f64,
+    /// k_M doublings in this step.
+    pub k_m_doublings: usize,
+    /// Newton iteration at which the last moving node was snapped and eliminated
+    /// (0: all were satisfied at the start of the step); None without moving conditions.
+    pub eliminated_at_iteration: Option<usize>,
+    /// Largest ‖x_k − x̂_k‖ of a moving node at the end of the step (0 once snapped).
+    pub moving_max_error: f64,
+}
+
+/// Time stepper state.
+pub struct Stepper<'s> {
+    pub scene: &'s Scene,
+    pub x: Vec<f64>,
+    pub v: Vec<f64>,
+    pub t: f64,
+    pub step: usize,
+    pub k_m: f64,
+    /// Per moving condition: the augmented-Lagrangian multiplier.
+    lambda: Vec<[f64; 3]>,
+    static_bcs: Vec<usize>,
+    moving_bcs: Vec<usize>,
+    frames: HashMap<Vec<bool>, Frames>,
+    pub linear: LinearSolver,
+    hmat: BlockCsr,
+    /// Reaction force per DOF at the end of the last step (newtons).
+    pub reactions: Vec<f64>,
+    /// Newton tolerance on ‖Δx‖∞/h (m/s).
+    pub newton_tol: f64,
+    /// ε of the moving conditions (m/s).
+    pub moving_eps: f64,
+}
+
+impl<'s> Stepper<'s> {
+    pub fn new(scene: &'s Scene) -> Result<Self, String> {
+        let mut static_bcs = Vec::new();
+        let mut moving_bcs = Vec::new();
+        for (k, b) in scene.bcs.iter().enumerate() {
+            if b.motion.is_some() {
+                moving_bcs.push(k);
+            } else {
+                static_bcs.push(k);
+            }
+        }
+        let mut s = Stepper {
+            scene,
+            x: scene.x0.clone(),
+            v: scene.v0.clone(),
+            t: 0.0,
+            step: 0,
+            k_m: scene.moving.penalty_start,
+            lambda: vec![[0.0; 3]; moving_bcs.len()],
+            static_bcs,
+            moving_bcs,
+            frames: HashMap::new(),
+            linear: LinearSolver::new(&scene.solver)?,
+            hmat: scene.model.zero_matrix(),
+            reactions: vec![0.0; scene.x0.len()],
+            newton_tol: scene.solver.newton_tolerance * scene.characteristic_length,
+            moving_eps: scene.moving.tolerance * scene.characteristic_length,
+        };
+        // Build (and validate) the static constraint set up front: bad conditions fail
+        // before the first step.
+        let key = vec![false; s.moving_bcs.len()];
+        s.frames_for(&key)?;
+        Ok(s)
+    }
+
+    pub fn has_moving(&self) -> bool {
+        !self.moving_bcs.is_empty()
+    }
+
+    fn frames_for(&mut self, key: &[bool]) -> Result<(), String> {
+        if self.frames.contains_key(key) {
+            return Ok(());
+        }
+        let d = self.scene.dim;
+        let mut cs = Vec::new();
+        let active = self
+            .static_bcs
+            .iter()
+            .copied()
+            .chain(self.moving_bcs.iter().zip(key).filter(|(_, &on)| on).map(|(&k, _)| k));
+        for k in active {
+            let b = &self.scene.bcs[k];
+            let kind = match &b.shape {
+                BcShape::Sticky { .. } => ConstraintKind::Sticky { displacement: None },
+                BcShape::Plane { normal, .. } => ConstraintKind::Plane {
+                    normal: normal[..d].to_vec(),
+                    offset: 0.0,
+                },
+                BcShape::Line { direction, .. } => ConstraintKind::Line {
+                    direction: direction[..d].to_vec(),
+                    offset: None,
+                },
+            };
+            cs.push(Constraint {
+                node: b.node,
+                kind,
+                label: b.label.clone(),
+            });
+        }
+        let f = if cs.is_empty() {
+            Frames::unconstrained(d, self.scene.model.n_nodes)
+        } else {
+            Frames::build(d, self.scene.model.n_nodes, &cs).map_err(|e| e.to_string())?
+        };
+        self.frames.insert(key.to_vec(), f);
+        Ok(())
+    }
+
+    /// E(x) for the current step.
+    fn energy(&self, x: &[f64], xt: &[f64], targets: &[BcShape], snapped: &[bool]) -> f64 {
+        let sc = self.scene;
+        let h = sc.time_step;
+        let d = sc.dim;
+        let mut e = inertia::energy(&sc.model.mass, d, x, xt) + h * h * sc.model.potential(x);
+        for (j, &k) in self.moving_bcs.iter().enumerate() {
+            if snapped[j] {
+                continue;
+            }
+            let b = &sc.bcs[k];
+            let m = sc.model.mass[b.node];
+            let r = offset(d, &targets[j], &x[b.node * d..(b.node + 1) * d]);
+            let rr: f64 = r.iter().map(|v| v * v).sum();
+            let lr: f64 = (0..3).map(|a| self.lambda[j][a] * r[a]).sum();
+            e += 0.5 * self.k_m * m * rr - m.sqrt() * lr;
+        }
+        e
+    }
+
+    /// Advances one step.
+    pub fn step(&mut self) -> Result<StepReport, String> {
+        let sc = self.scene;
+        let d = sc.dim;
+        let h = sc.time_step;
+        let t1 = self.t + h;
+        let mut rep = StepReport {
+            step: self.step + 1,
+            time: t1,
+            k_m: self.k_m,
+            ..StepReport::default()
+        };
+
+        // 1. Project onto the static constraint sets.
+        let xn = self.x.clone();
+        let mut x = self.x.clone();
+        for &k in &self.static_bcs {
+            let b = &sc.bcs[k];
+            project(d, &b.shape, &mut x[b.node * d..(b.node + 1) * d]);
+        }
+        let mut xt = vec![0.0; x.len()];
+        for i in 0..x.len() {
+            xt[i] = xn[i] + h * self.v[i];
+        }
+
+        // 2. Moving targets at t^{n+1}; nodes already within ε are snapped now.
+        let targets: Vec<BcShape> = self.moving_bcs.iter().map(|&k| sc.bcs[k].shape_at(t1)).collect();
+        let mut snapped = vec![false; self.moving_bcs.len()];
+        self.snap_satisfied(&mut x, &targets, &mut snapped);
+        let mut all_snapped_at = None;
+        let mut residual_at_update = f64::INFINITY;
+
+        // 3. Newton.
+        let mut g = vec![0.0; x.len()];
+        let mut iter = 0usize;
+        loop {
+            if iter >= sc.solver.max_newton_iterations {
+                return Err(format!(
+                    "Newton did not converge in {} iterations (k_M = {:e}, unsatisfied moving nodes: {})",
+                    iter,
+                    self.k_m,
+                    snapped.iter().filter(|s| !**s).count()
+                ));
+            }
+            if !snapped.is_empty() && snapped.iter().all(|&s| s) && all_snapped_at.is_none() {
+                all_snapped_at = Some(iter);
+            }
+            self.frames_for(&snapped)?;
+            self.gradient(&x, &xt, &targets, &snapped, &mut g);
+            self.hessian(&x, &targets, &snapped);
+            let frames = &self.frames[&snapped];
+            let e = Eliminated::new(&self.hmat, &g, frames, ConstrainedDiagonal::Identity);
+            let (dx, stats) = self
+                .linear
+                .solve(&snapped, &e)
+                .map_err(|err| format!("linear solve failed at Newton iteration {iter}: {err}"))?;
+            rep.linear_iterations += stats.iterations;
+            rep.linear_seconds += stats.seconds;
+            iter += 1;
+            let dmax = dx.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            if !dmax.is_finite() {
+                return Err(format!("the Newton direction is not finite at iteration {iter}"));
+            }
+            if dmax / h < self.newton_tol {
+                let unsat: Vec<usize> = (0..snapped.len()).filter(|&j| !snapped[j]).collect();
+                if unsat.is_empty() {
+                    break;
+                }
+                // Converged with the penalty but nodes still off target.
+                let worst = unsat
+                    .iter()
+                    .map(|&j| {
+                        let b = &sc.bcs[self.moving_bcs[j]];
+                        norm(&offset(d, &targets[j], &x[b.node * d..(b.node + 1) * d]))
+                    })
+                    .fold(0.0f64, f64::max);
+                let mut double = true;
+                if sc.moving.augmented_lagrangian {
+                    for &j in &unsat {
+                        let b = &sc.bcs[self.moving_bcs[j]];
+                        let m = sc.model.mass[b.node];
+                        let r = offset(d, &targets[j], &x[b.node * d..(b.node + 1) * d]);
+                        for a in 0..3 {
+                            self.lambda[j][a] -= self.k_m * m.sqrt() * r[a];
+                        }
+                    }
+                    double = worst > 0.5 * residual_at_update;
+                    residual_at_update = worst;
+                }
+                if double {
+                    if self.k_m >= sc.moving.penalty_max {
+                        return Err(format!(
+                            "{} moving node(s) did not reach their targets (largest offset {worst:e} m, ε·h = {:e} m) with k_M at its cap {:e}",
+                            unsat.len(),
+                            self.moving_eps * h,
+                            sc.moving.penalty_max
+                        ));
+                    }
+                    self.k_m = (2.0 * self.k_m).min(sc.moving.penalty_max);
+                    rep.k_m_doublings += 1;
+                }
+                continue;
+            }
+            // Armijo backtracking on E.
+            let e0 = self.energy(&x, &xt, &targets, &snapped);
+            let slope: f64 = g.iter().zip(&dx).map(|(a, b)| a * b).sum();
+            let mut alpha = 1.0;
+            let mut xtry = vec![0.0; x.len()];
+            let mut accepted = false;
+            for _ in 0..MAX_HALVINGS {
+                for i in 0..x.len() {
+                    xtry[i] = x[i] + alpha * dx[i];
+                }
+                let e1 = self.energy(&xtry, &xt, &targets, &snapped);
+                if e1 <= e0 + ARMIJO * alpha * slope.min(0.0) {
+                    accepted = true;
+                    break;
+                }
+                alpha *= 0.5;
+            }
+            if !accepted {
+                // Energy flat to round-off near the minimum: take the full step.
+                if dmax / h < 1e3 * self.newton_tol {
+                    for i in 0..x.len() {
+                        xtry[i] = x[i] + dx[i];
+                    }
+                } else {
+                    return Err(format!(
+                        "the line search found no decrease at Newton iteration {iter} (‖Δx‖∞/h = {:e} m/s)",
+                        dmax / h
+                    ));
+                }
+            }
+            std::mem::swap(&mut x, &mut xtry);
+            self.snap_satisfied(&mut x, &targets, &mut snapped);
+        }
+        rep.newton_iterations = iter;
+        rep.eliminated_at_iteration = all_snapped_at;
+        rep.k_m = self.k_m;
+
+        // 4. Reactions: the constrained components of ∇E / h², per node, in newtons.
+        let frames = &self.frames[&snapped];
+        let mut gy = vec![0.0; g.len()];
+        frames.to_frame(&g, &mut gy);
+        for (i, &m) in frames.mask.iter().enumerate() {
+            for a in 0..d {
+                if m & (1 << a) == 0 {
+                    gy[i * d + a] = 0.0;
+                }
+            }
+        }
+        frames.from_frame(&gy, &mut self.reactions);
+        for r in self.reactions.iter_mut() {
+            *r /= h * h;
+        }
+
+        // 5. Velocity and state.
+        for i in 0..x.len() {
+            self.v[i] = (x[i] - xn[i]) / h;
+        }
+        self.x = x;
+        self.t = t1;
+        self.step += 1;
+        Ok(rep)
+    }
+
+    /// Snaps every unsnapped moving node within ε·h of its target.
+    fn snap_satisfied(&self, x: &mut [f64], targets: &[BcShape], snapped: &mut [bool]) {
+        let d = self.scene.dim;
+        let h = self.scene.time_step;
+        for (j, &k) in self.moving_bcs.iter().enumerate() {
+            if snapped[j] {
+                continue;
+            }
+            let node = self.scene.bcs[k].node;
+            let xi = &mut x[node * d..(node + 1) * d];
+            if norm(&offset(d, &targets[j], xi)) / h < self.moving_eps {
+                project(d, &targets[j], xi);
+                snapped[j] = true;
+            }
+        }
+    }
+
+    fn gradient(&self, x: &[f64], xt: &[f64], targets: &[BcShape], snapped: &[bool], g: &mut [f64]) {
+        let sc = self.scene;
+        let d = sc.dim;
+        let h = sc.time_step;
+        g.iter_mut().for_each(|v| *v = 0.0);
+        inertia::add_gradient(&sc.model.mass, d, x, xt, g);
+        sc.model.add_potential_gradient(x, h * h, g);
+        for (j, &k) in self.moving_bcs.iter().enumerate() {
+            if snapped[j] {
+                continue;
+            }
+            let node = sc.bcs[k].node;
+            let m = sc.model.mass[node];
+            let r = offset(d, &targets[j], &x[node * d..(node + 1) * d]);
+            let p = projector(d, &targets[j]);
+            for a in 0..d {
+                // ∇[½ k m ‖r‖² − √m λᵀr] = k m r − √m P λ (P the projector with r = P(x − ·)).
+                let pl: f64 = (0..d).map(|c| p[a * 3 + c] * self.lambda[j][c]).sum();
+                g[node * d + a] += self.k_m * m * r[a] - m.sqrt() * pl;
+            }
+        }
+    }
+
+    fn hessian(&mut self, x: &[f64], targets: &[BcShape], snapped: &[bool]) {
+        let sc = self.scene;
+        let d = sc.dim;
+        let h = sc.time_step;
+        self.hmat.values.iter_mut().for_each(|v| *v = 0.0);
+        sc.model.add_mass(&mut self.hmat);
+        sc.model.add_potential_hessian(x, h * h, true, &mut self.hmat);
+        for (j, &k) in self.moving_bcs.iter().enumerate() {
+            if snapped[j] {
+                continue;
+            }
+            let node = sc.bcs[k].node;
+            let m = sc.model.mass[node];
+            let p = projector(d, &targets[j]);
+            let kb = self.hmat.diag_index(node).expect("diagonal block");
+            for a in 0..d {
+                for c in 0..d {
+                    self.hmat.values[kb * d * d + a * d + c] += self.k_m * m * p[a * 3 + c];
+                }
+            }
+        }
+    }
+
+    /// Σ m v.
+    pub fn momentum(&self) -> Vec<f64> {
+        let d = self.scene.dim;
+        let mut p = vec![0.0; d];
+        for (k, v) in self.v.iter().enumerate() {
+            p[k % d] += self.scene.model.mass[k / d] * v;
+        }
+        p
+    }
+
+    /// Center of mass.
+    pub fn center_of_mass(&self) -> Vec<f64> {
+        let d = self.scene.dim;
+        let mut c = vec![0.0; d];
+        for (k, x) in self.x.iter().enumerate() {
+            c[k % d] += self.scene.model.mass[k / d] * x;
+        }
+        let m = self.scene.model.total_mass();
+        c.iter().map(|v| v / m).collect()
+    }
+
+    /// Σ reactions (newtons).
+    pub fn total_reaction(&self) -> Vec<f64> {
+        let d = self.scene.dim;
+        let mut f = vec![0.0; d];
+        for (k, r) in self.reactions.iter().enumerate() {
+            f[k % d] += r;
+        }
+        f
+    }
+
+    /// Kinetic + elastic + gravitational energy (joules).
+    pub fn mechanical_energy(&self) -> f64 {
+        let d = self.scene.dim;
+        let kin: f64 = self
+            .v
+            .iter()
+            .enumerate()
+            .map(|(k, v)| 0.5 * self.scene.model.mass[k / d] * v * v)
+            .sum();
+        kin + self.scene.model.potential(&self.x)
+    }
+}
+
+/// r: the node's offset from its target set (slip: along the normal directions only).
+fn offset(d: usize, s: &BcShape, xi: &[f64]) -> [f64; 3] {
+    let mut p = [0.0; 3];
+    p[..d].copy_from_slice(&xi[..d]);
+    match s {
+        BcShape::Sticky { anchor } => [p[0] - anchor[0], p[1] - anchor[1], p[2] - anchor[2]],
+        BcShape::Plane { normal, offset } => {
+            let dist = (0..3).map(|a| normal[a] * p[a]).sum::<f64>() - offset;
+            [dist * normal[0], dist * normal[1], dist * normal[2]]
+        }
+        BcShape::Line { point, direction } => {
+            let q = [p[0] - point[0], p[1] - point[1], p[2] - point[2]];
+            let s: f64 = (0..3).map(|a| q[a] * direction[a]).sum();
+            [q[0] - s * direction[0], q[1] - s * direction[1], q[2] - s * direction[2]]
+        }
+    }
+}
+
+/// The projector P onto the constrained directions (row-major 3×3): I, nnᵀ or I − ttᵀ.
+fn projector(d: usize, s: &BcShape) -> [f64; 9] {
+    let mut p = [0.0; 9];
+    match s {
+        BcShape::Sticky { .. } => {
+            for a in 0..d {
+                p[a * 3 + a] = 1.0;
+            }
+        }
+        BcShape::Plane { normal, .. } => {
+            for a in 0..3 {
+                for c in 0..3 {
+                    p[a * 3 + c] = normal[a] * normal[c];
+                }
+            }
+        }
+        BcShape::Line { direction, .. } => {
+            for a in 0..3 {
+                for c in 0..3 {
+                    p[a * 3 + c] = if a == c { 1.0 } else { 0.0 } - direction[a] * direction[c];
+                }
+            }
+        }
+    }
+    p
+}
+
+/// Moves a node onto its constraint set (closest point).
+fn project(d: usize, s: &BcShape, xi: &mut [f64]) {
+    let r = offset(d, s, xi);
+    for a in 0..d {
+        xi[a] -= r[a];
+    }
+}
+
+fn norm(v: &[f64; 3]) -> f64 {
+    (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
+}
+
+/// The conditions of a scene (for callers that inspect them).
+pub fn moving_conditions(scene: &Scene) -> Vec<&NodeBc> {
+    scene.bcs.iter().filter(|b| b.motion.is_some()).collect()
+}

@@ -1,0 +1,296 @@
+//! Simulation meshes: node positions, elements, lumped masses, and the generators the
+//! scenes use (2D rectangle of triangles, 3D box of tetrahedra, rod and sheet of springs).
+
+/// Element type of a mesh.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ElementKind {
+    /// Two-node segments (rods; springs only).
+    Segment,
+    /// Three-node triangles (2D solids, or sheets in 3D).
+    Triangle,
+    /// Four-node tetrahedra (3D solids).
+    Tetrahedron,
+}
+
+impl ElementKind {
+    pub fn nodes(self) -> usize {
+        match self {
+            ElementKind::Segment => 2,
+            ElementKind::Triangle => 3,
+            ElementKind::Tetrahedron => 4,
+        }
+    }
+
+    /// VTK cell type id (legacy format).
+    pub fn vtk_type(self) -> u8 {
+        match self {
+            ElementKind::Segment => 3,
+            ElementKind::Triangle => 5,
+            ElementKind::Tetrahedron => 10,
+        }
+    }
+}
+
+/// A mesh in `dim` dimensions. Positions are node-major: node i at `x[dim*i .. dim*i+dim]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Mesh {
+    pub dim: usize,
+    pub x: Vec<f64>,
+    pub kind: ElementKind,
+    /// `kind.nodes()` node indices per element.
+    pub elements: Vec<Vec<usize>>,
+}
+
+impl Mesh {
+    pub fn n_nodes(&self) -> usize {
+        self.x.len() / self.dim
+    }
+
+    pub fn node(&self, i: usize) -> &[f64] {
+        &self.x[i * self.dim..(i + 1) * self.dim]
+    }
+
+    /// Measure (length, area or volume) of element `e` at the stored positions.
+    pub fn measure(&self, e: usize) -> f64 {
+        let el = &self.elements[e];
+        let p = |k: usize| self.node(el[k]);
+        let sub = |a: &[f64], b: &[f64]| -> [f64; 3] {
+            let mut r = [0.0; 3];
+            for k in 0..self.dim {
+                r[k] = a[k] - b[k];
+            }
+            r
+        };
+        match self.kind {
+            ElementKind::Segment => norm3(&sub(p(1), p(0))),
+            ElementKind::Triangle => {
+                let a = sub(p(1), p(0));
+                let b = sub(p(2), p(0));
+                0.5 * norm3(&cross(&a, &b))
+            }
+            ElementKind::Tetrahedron => {
+                let a = sub(p(1), p(0));
+                let b = sub(p(2), p(0));
+                let c = sub(p(3), p(0));
+                dot3(&a, &cross(&b, &c)).abs() / 6.0
+            }
+        }
+    }
+
+    /// Lumped masses: each element gives density·measure / (nodes per element) to its nodes.
+    pub fn lumped_masses(&self, density: f64) -> Vec<f64> {
+        let mut m = vec![0.0; self.n_nodes()];
+        let k = self.kind.nodes() as f64;
+        for (e, el) in self.elements.iter().enumerate() {
+            let share = density * self.measure(e) / k;
+            for &i in el {
+                m[i] += share;
+            }
+        }
+        m
+    }
+
+    /// Unique undirected edges of all elements, sorted.
+    pub fn edges(&self) -> Vec<[usize; 2]> {
+        let mut out = Vec::new();
+        for el in &self.elements {
+            for a in 0..el.len() {
+                for b in a + 1..el.len() {
+                    let (i, j) = (el[a].min(el[b]), el[a].max(el[b]));
+                    out.push([i, j]);
+                }
+            }
+        }
+        out.sort_unstable();
+        out.dedup();
+        out
+    }
+
+    /// Length of the bounding-box diagonal (the characteristic length of a scene).
+    pub fn bbox_diagonal(&self) -> f64 {
+        let d = self.dim;
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        for i in 0..self.n_nodes() {
+            for a in 0..d {
+                lo[a] = lo[a].min(self.x[i * d + a]);
+                hi[a] = hi[a].max(self.x[i * d + a]);
+            }
+        }
+        (0..d).map(|a| (hi[a] - lo[a]).powi(2)).sum::<f64>().sqrt()
+    }
+
+    /// Applies x ← R_z(angle)·x + origin to every node (R_z: rotation about the z axis;
+    /// in 2D the in-plane rotation).
+    pub fn transform(&mut self, angle_z: f64, origin: &[f64]) {
+        let (s, c) = angle_z.sin_cos();
+        let d = self.dim;
+        for i in 0..self.n_nodes() {
+            let p = &mut self.x[i * d..(i + 1) * d];
+            let (x, y) = (p[0], p[1]);
+            p[0] = c * x - s * y + origin[0];
+            p[1] = s * x + c * y + origin[1];
+            if d == 3 {
+                p[2] += origin[2];
+            }
+        }
+    }
+}
+
+/// `[0,w]×[0,h]` split into nx×ny cells of two triangles each (alternating diagonals so
+/// the mesh has no preferred shear direction). Node (i, j) has index j·(nx+1) + i.
+/// In 3D the sheet lies in the plane z = 0.
+pub fn rectangle(dim: usize, size: [f64; 2], cells: [usize; 2]) -> Mesh {
+    let [nx, ny] = cells;
+    let mut x = Vec::with_capacity((nx + 1) * (ny + 1) * dim);
+    for j in 0..=ny {
+        for i in 0..=nx {
+            x.push(size[0] * i as f64 / nx as f64);
+            x.push(size[1] * j as f64 / ny as f64);
+            if dim == 3 {
+                x.push(0.0);
+            }
+        }
+    }
+    let id = |i: usize, j: usize| j * (nx + 1) + i;
+    let mut elements = Vec::with_capacity(2 * nx * ny);
+    for j in 0..ny {
+        for i in 0..nx {
+            let (a, b, c, d) = (id(i, j), id(i + 1, j), id(i + 1, j + 1), id(i, j + 1));
+            // Counter-clockwise triangles; the diagonal alternates like a checkerboard.
+            if (i + j) % 2 == 0 {
+                elements.push(vec![a, b, c]);
+                elements.push(vec![a, c, d]);
+            } else {
+                elements.push(vec![a, b, d]);
+                elements.push(vec![b, c, d]);
+            }
+        }
+    }
+    Mesh {
+        dim,
+        x,
+        kind: ElementKind::Triangle,
+        elements,
+    }
+}
+
+/// `[0,lx]×[0,ly]×[0,lz]` split into nx×ny×nz cubes of six tetrahedra each (Kuhn
+/// subdivision along the main diagonal, positively oriented, conforming across cubes).
+/// Node (i, j, k) has index (k·(ny+1) + j)·(nx+1) + i.
+pub fn cuboid(size: [f64; 3], cells: [usize; 3]) -> Mesh {
+    let [nx, ny, nz] = cells;
+    let mut x = Vec::with_capacity((nx + 1) * (ny + 1) * (nz + 1) * 3);
+    for k in 0..=nz {
+        for j in 0..=ny {
+            for i in 0..=nx {
+                x.push(size[0] * i as f64 / nx as f64);
+                x.push(size[1] * j as f64 / ny as f64);
+                x.push(size[2] * k as f64 / nz as f64);
+            }
+        }
+    }
+    let id = |i: usize, j: usize, k: usize| (k * (ny + 1) + j) * (nx + 1) + i;
+    let mut elements = Vec::with_capacity(6 * nx * ny * nz);
+    // The six monotone paths from corner (0,0,0) to (1,1,1): axis orders.
+    const PATHS: [[usize; 3]; 6] = [
+        [0, 1, 2],
+        [0, 2, 1],
+        [1, 0, 2],
+        [1, 2, 0],
+        [2, 0, 1],
+        [2, 1, 0],
+    ];
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                for path in PATHS {
+                    let mut c = [i, j, k];
+                    let mut tet = vec![id(c[0], c[1], c[2])];
+                    for &axis in &path {
+                        c[axis] += 1;
+                        tet.push(id(c[0], c[1], c[2]));
+                    }
+                    elements.push(tet);
+                }
+            }
+        }
+    }
+    let mut m = Mesh {
+        dim: 3,
+        x,
+        kind: ElementKind::Tetrahedron,
+        elements,
+    };
+    orient_positive(&mut m);
+    m
+}
+
+/// A straight rod of `cells` segments along x from the origin, length `length`.
+pub fn rod(dim: usize, length: f64, cells: usize) -> Mesh {
+    let mut x = Vec::with_capacity((cells + 1) * dim);
+    for i in 0..=cells {
+        x.push(length * i as f64 / cells as f64);
+        x.push(0.0);
+        if dim == 3 {
+            x.push(0.0);
+        }
+    }
+    Mesh {
+        dim,
+        x,
+        kind: ElementKind::Segment,
+        elements: (0..cells).map(|i| vec![i, i + 1]).collect(),
+    }
+}
+
+/// Swaps two nodes of every tetrahedron with negative signed volume.
+fn orient_positive(m: &mut Mesh) {
+    for e in 0..m.elements.len() {
+        let el = m.elements[e].clone();
+        let p = |k: usize| {
+            let n = &m.x[el[k] * 3..el[k] * 3 + 3];
+            [n[0], n[1], n[2]]
+        };
+        let (p0, p1, p2, p3) = (p(0), p(1), p(2), p(3));
+        let a = [p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]];
+        let b = [p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2]];
+        let c = [p3[0] - p0[0], p3[1] - p0[1], p3[2] - p0[2]];
+        if dot3(&a, &cross(&b, &c)) < 0.0 {
+            m.elements[e].swap(2, 3);
+        }
+    }
+}
+
+pub(crate) fn cross(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+pub(crate) fn dot3(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn norm3(a: &[f64; 3]) -> f64 {
+    dot3(a, a).sqrt()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn generated_meshes_have_the_right_measure() {
+        let r = rectangle(2, [2.0, 1.0], [4, 3]);
+        let area: f64 = (0..r.elements.len()).map(|e| r.measure(e)).sum();
+        assert!((area - 2.0).abs() < 1e-12);
+        let b = cuboid([1.0, 2.0, 0.5], [2, 3, 2]);
+        let vol: f64 = (0..b.elements.len()).map(|e| b.measure(e)).sum();
+        assert!((vol - 1.0).abs() < 1e-12);
+        let m = b.lumped_masses(10.0);
+        assert!((m.iter().sum::<f64>() - 10.0).abs() < 1e-12);
+    }
+}

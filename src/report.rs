@@ -1,0 +1,121 @@
+//! The solve report (`--report report.json`) and the one-line human summary.
+
+use serde::Serialize;
+
+/// Wall-clock seconds of the stages of `stickslip solve`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Seconds {
+    /// Reading and validating H, g and the constraints.
+    pub read: f64,
+    /// Frames (per-node bases, ranks, lift) and the eliminated right-hand side.
+    pub setup: f64,
+    /// The solver call (for cholesky: symbolic + numeric + triangular solves).
+    pub solve: f64,
+    /// Recovery of Δx and the reactions.
+    pub recover: f64,
+    /// Writing the output files.
+    pub write: f64,
+    pub total: f64,
+    /// Cholesky only: symbolic analysis, numeric factorization, triangular solves.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub symbolic: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub numeric: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub triangular: Option<f64>,
+}
+
+/// Cholesky details.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CholeskyReport {
+    /// Stored entries of the lower triangle of Ĥ and of the factor L.
+    pub matrix_nnz: usize,
+    pub factor_nnz: usize,
+    /// Whether the symbolic analysis was reused (always false for a one-shot solve).
+    pub reused_symbolic: bool,
+}
+
+/// CG details.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CgReport {
+    pub preconditioner: String,
+    pub tol: f64,
+    pub max_iters: usize,
+    pub restarts: usize,
+}
+
+/// Everything report.json holds.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Report {
+    pub solver: String,
+    pub precision: String,
+    /// The GPU adapter (null for the CPU solvers).
+    pub adapter: Option<String>,
+    /// Solver iterations (null for cholesky, a direct method).
+    pub iterations: Option<usize>,
+    /// ‖b̂ − Ĥy‖/‖b̂‖ recomputed in f64.
+    pub relative_residual: f64,
+    pub seconds: Seconds,
+    pub dim: usize,
+    pub nodes: usize,
+    pub free_dofs: usize,
+    pub constrained_dofs: usize,
+    /// Nodes whose frame is rotated (slip constraints off the coordinate axes).
+    pub rotated_nodes: usize,
+    /// Constraints as given (JSON entries or rows of B).
+    pub constraints: usize,
+    /// True when some prescribed value is nonzero (Δx_p ≠ 0).
+    pub prescribed: bool,
+    pub constrained_diagonal: String,
+    /// max_i ‖B_i Δx_i − p_i‖ over the constraint rows (unit-normalized rows).
+    pub constraint_violation: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cholesky: Option<CholeskyReport>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cg: Option<CgReport>,
+    /// Whatever the GPU solver reports about itself.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gpu: Option<serde_json::Value>,
+    pub files: Files,
+}
+
+/// The files the solve read and wrote.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Files {
+    pub hessian: String,
+    pub gradient: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub constraints: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub constraint_matrix: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub constraint_values: Option<String>,
+    pub out: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reactions: Option<String>,
+}
+
+impl Report {
+    /// One line for stderr.
+    pub fn summary(&self) -> String {
+        let iters = match self.iterations {
+            Some(k) => format!(", {k} iterations"),
+            None => String::new(),
+        };
+        let adapter = match &self.adapter {
+            Some(a) => format!(" on {a}"),
+            None => String::new(),
+        };
+        format!(
+            "stickslip: {} {}{adapter}: {} nodes, {} free + {} constrained dofs{iters}, relative residual {:.2e}, solve {:.3} s, total {:.3} s",
+            self.solver,
+            self.precision,
+            self.nodes,
+            self.free_dofs,
+            self.constrained_dofs,
+            self.relative_residual,
+            self.seconds.solve,
+            self.seconds.total
+        )
+    }
+}

@@ -1,0 +1,693 @@
+//! The command line, end to end through the built binary: bad input exits 2 with one
+//! stderr line naming the file and the entry; an indefinite H exits 1; the seed
+//! examples and generated systems give the right answers through the files.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+const BIN: &str = env!("CARGO_BIN_EXE_stickslip");
+
+/// A fresh directory under the system temp dir, unique per test and process.
+fn tmpdir(name: &str) -> PathBuf {
+    static COUNT: AtomicUsize = AtomicUsize::new(0);
+    let d = std::env::temp_dir().join(format!(
+        "stickslip-cli-{}-{}-{name}",
+        std::process::id(),
+        COUNT.fetch_add(1, Ordering::Relaxed)
+    ));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn write(dir: &Path, name: &str, text: &str) -> String {
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p.to_str().unwrap().to_string()
+}
+
+fn run(args: &[&str]) -> Output {
+    Command::new(BIN)
+        .args(args)
+        .output()
+        .expect("run stickslip")
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// Reads a Matrix Market array vector written by the CLI.
+fn read_vec(path: &str) -> Vec<f64> {
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut lines = text.lines().filter(|l| !l.starts_with('%'));
+    let n: usize = lines
+        .next()
+        .unwrap()
+        .split_whitespace()
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    let v: Vec<f64> = lines.map(|l| l.trim().parse().unwrap()).collect();
+    assert_eq!(v.len(), n);
+    v
+}
+
+/// Dense symmetric H as a general coordinate file.
+fn h_general(d: &[&[f64]]) -> String {
+    let mut e = Vec::new();
+    for (r, row) in d.iter().enumerate() {
+        for (c, &v) in row.iter().enumerate() {
+            if v != 0.0 {
+                e.push(format!("{} {} {v}", r + 1, c + 1));
+            }
+        }
+    }
+    format!(
+        "%%MatrixMarket matrix coordinate real general\n{} {} {}\n{}\n",
+        d.len(),
+        d.len(),
+        e.len(),
+        e.join("\n")
+    )
+}
+
+fn g_array(v: &[f64]) -> String {
+    let body: Vec<String> = v.iter().map(|x| x.to_string()).collect();
+    format!(
+        "%%MatrixMarket matrix array real general\n{} 1\n{}\n",
+        v.len(),
+        body.join("\n")
+    )
+}
+
+/// The 2D two-node spring of seed 002: [[2I, −I], [−I, 2I]].
+const SPRING: [&[f64]; 4] = [
+    &[2.0, 0.0, -1.0, 0.0],
+    &[0.0, 2.0, 0.0, -1.0],
+    &[-1.0, 0.0, 2.0, 0.0],
+    &[0.0, -1.0, 0.0, 2.0],
+];
+
+struct Case {
+    dir: PathBuf,
+    h: String,
+    g: String,
+    bc: String,
+}
+
+/// A valid 2D two-node case whose files the bad-input tests then spoil one at a time.
+fn case(name: &str) -> Case {
+    let dir = tmpdir(name);
+    let h = write(&dir, "H.mtx", &h_general(&SPRING));
+    let g = write(&dir, "g.mtx", &g_array(&[0.0, 0.0, 0.0, 0.0]));
+    let bc = write(
+        &dir,
+        "bc.json",
+        r#"{"dim": 2, "constraints": [{"node": 1, "kind": "sticky", "displacement": [1, 2]}]}"#,
+    );
+    Case { dir, h, g, bc }
+}
+
+impl Case {
+    fn solve(&self, extra: &[&str]) -> Output {
+        let out = self.dir.join("dx.mtx");
+        let mut a = vec![
+            "solve",
+            "--hessian",
+            &self.h,
+            "--gradient",
+            &self.g,
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        if !extra.contains(&"--constraint-matrix") {
+            a.extend(["--constraints", &self.bc]);
+        }
+        a.extend_from_slice(extra);
+        run(&a)
+    }
+}
+
+/// Exit code 2, exactly one stderr line, naming the file and containing every `want`.
+fn assert_input_error(o: &Output, file: &str, want: &[&str]) {
+    let e = stderr(o);
+    assert_eq!(o.status.code(), Some(2), "stderr: {e}");
+    assert_eq!(e.lines().count(), 1, "not one line: {e:?}");
+    assert!(e.starts_with("error: "), "{e}");
+    assert!(e.contains(file), "file {file} not named: {e}");
+    for w in want {
+        assert!(e.contains(w), "missing {w:?} in: {e}");
+    }
+    assert!(!e.contains("panicked") && !e.contains("backtrace"), "{e}");
+}
+
+fn bad_bc(name: &str, json: &str, want: &[&str]) {
+    let c = case(name);
+    let bc = write(&c.dir, "bc.json", json);
+    assert_input_error(&c.solve(&[]), &bc, want);
+}
+
+#[test]
+fn zero_normal() {
+    bad_bc(
+        "zero-normal",
+        r#"{"dim": 2, "constraints": [{"node": 0, "kind": "plane", "normal": [0, 0]}]}"#,
+        &["constraints[0].normal", "zero"],
+    );
+}
+
+#[test]
+fn non_finite_normal() {
+    bad_bc(
+        "inf-normal",
+        r#"{"dim": 2, "constraints": [{"node": 0, "kind": "plane", "normal": [1e999, 1]}]}"#,
+        &["constraints[0].normal[0]", "not a finite number"],
+    );
+}
+
+#[test]
+fn nan_in_h() {
+    let c = case("nan-h");
+    let h = write(
+        &c.dir,
+        "H.mtx",
+        "%%MatrixMarket matrix coordinate real symmetric\n4 4 4\n1 1 2\n2 2 NaN\n3 3 2\n4 4 2\n",
+    );
+    assert_input_error(&c.solve(&[]), &h, &["entry (2, 2)", "NaN", "not finite"]);
+}
+
+#[test]
+fn inf_in_g() {
+    let c = case("inf-g");
+    let g = write(
+        &c.dir,
+        "g.mtx",
+        "%%MatrixMarket matrix array real general\n4 1\n0\n0\ninf\n0\n",
+    );
+    assert_input_error(&c.solve(&[]), &g, &["entry (3, 1)", "not finite"]);
+}
+
+#[test]
+fn node_out_of_range() {
+    bad_bc(
+        "node-range",
+        r#"{"dim": 2, "constraints": [{"node": 0, "kind": "sticky"}, {"node": 2, "kind": "sticky"}]}"#,
+        &["constraints[1]", "node 2 is out of range"],
+    );
+}
+
+#[test]
+fn wrong_g_length() {
+    let c = case("g-len");
+    let g = write(&c.dir, "g.mtx", &g_array(&[0.0; 5]));
+    assert_input_error(
+        &c.solve(&[]),
+        &g,
+        &["line 2", "g has 5 rows, expected 4 = 2 × 2 nodes"],
+    );
+}
+
+#[test]
+fn direction_of_wrong_dimension() {
+    bad_bc(
+        "dir-dim",
+        r#"{"dim": 2, "constraints": [{"node": 0, "kind": "line", "direction": [1, 0, 0]}]}"#,
+        &["constraints[0].direction", "has 3 components, expected 2"],
+    );
+}
+
+#[test]
+fn unknown_kind() {
+    bad_bc(
+        "kind",
+        r#"{"dim": 2, "constraints": [{"node": 0, "kind": "sticky"}, {"node": 1, "kind": "hinge"}]}"#,
+        &["constraints[1].kind", "unknown kind 'hinge'"],
+    );
+}
+
+#[test]
+fn unknown_key() {
+    bad_bc(
+        "key",
+        r#"{"dim": 2, "constraints": [{"node": 0, "kind": "plane", "normal": [1, 0], "offest": 1}]}"#,
+        &["constraints[0].offest", "unknown key"],
+    );
+}
+
+#[test]
+fn malformed_json() {
+    bad_bc(
+        "json",
+        "{\"dim\": 2, \"constraints\": [\n  {\"node\": 0 \"kind\": \"sticky\"}]}",
+        &["line 2, column", "malformed JSON"],
+    );
+}
+
+#[test]
+fn malformed_matrix_market() {
+    let c = case("mm");
+    let h = write(
+        &c.dir,
+        "H.mtx",
+        "%%MatrixMarket matrix coordinate real general\n4 4 4\n1 1 2\n2 2\n3 3 2\n4 4 2\n",
+    );
+    assert_input_error(&c.solve(&[]), &h, &["line 4", "malformed entry"]);
+    let h = write(&c.dir, "H.mtx", "4 4 4\n1 1 2\n");
+    assert_input_error(&c.solve(&[]), &h, &["line 1", "not a Matrix Market file"]);
+}
+
+#[test]
+fn non_symmetric_h() {
+    let c = case("nonsym");
+    let mut d: Vec<Vec<f64>> = SPRING.iter().map(|r| r.to_vec()).collect();
+    d[2][0] = -0.5;
+    let rows: Vec<&[f64]> = d.iter().map(|r| r.as_slice()).collect();
+    let h = write(&c.dir, "H.mtx", &h_general(&rows));
+    assert_input_error(
+        &c.solve(&[]),
+        &h,
+        &["entry (", "not symmetric", "relative tolerance"],
+    );
+}
+
+#[test]
+fn h_not_a_multiple_of_dim() {
+    let c = case("h-dim");
+    let h = write(
+        &c.dir,
+        "H.mtx",
+        "%%MatrixMarket matrix coordinate real symmetric\n3 3 3\n1 1 1\n2 2 1\n3 3 1\n",
+    );
+    assert_input_error(
+        &c.solve(&[]),
+        &h,
+        &["line 2", "not a multiple of the dimension 2"],
+    );
+}
+
+#[test]
+fn contradictory_constraints_on_a_node() {
+    bad_bc(
+        "contra",
+        r#"{"dim": 2, "constraints": [
+            {"node": 0, "kind": "plane", "normal": [1, 0], "offset": 1},
+            {"node": 0, "kind": "rows", "rows": [[2, 0]], "values": [3]}]}"#,
+        &["node 0 (constraints[0], constraints[1])", "contradictory"],
+    );
+}
+
+#[test]
+fn b_row_coupling_two_nodes() {
+    let c = case("b-couple");
+    let b = write(
+        &c.dir,
+        "B.mtx",
+        "%%MatrixMarket matrix coordinate real general\n2 4 3\n1 3 1\n2 1 1\n2 4 1\n",
+    );
+    let o = c.solve(&["--constraint-matrix", &b, "--dim", "2"]);
+    assert_input_error(&o, &b, &["row 2", "couples node 0 and node 1"]);
+}
+
+#[test]
+fn dim_is_required_somewhere() {
+    let c = case("no-dim");
+    let bc = write(&c.dir, "bc.json", r#"{"constraints": []}"#);
+    let out = c.dir.join("dx.mtx");
+    let o = run(&[
+        "solve",
+        "--hessian",
+        &c.h,
+        "--gradient",
+        &c.g,
+        "--constraints",
+        &bc,
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_input_error(&o, &bc, &["dim"]);
+}
+
+#[test]
+fn f32_needs_the_gpu_solver() {
+    let c = case("prec");
+    assert_input_error(
+        &c.solve(&["--precision", "f32"]),
+        "--precision",
+        &["--solver gpu"],
+    );
+}
+
+#[test]
+fn missing_file() {
+    let c = case("missing");
+    let h = c.dir.join("nope.mtx");
+    let o = run(&[
+        "solve",
+        "--hessian",
+        h.to_str().unwrap(),
+        "--gradient",
+        &c.g,
+        "--constraints",
+        &c.bc,
+        "--out",
+        "x.mtx",
+    ]);
+    assert_input_error(&o, "nope.mtx", &["cannot read"]);
+}
+
+/// H indefinite on the free subspace: exit 1, one line, for cholesky and for cg.
+#[test]
+fn indefinite_h_exits_1() {
+    let c = case("indef");
+    // Node 1 is fixed at (1, 2) and H_00 = diag(−2, 2): with g_0 = (2, 2) the
+    // eliminated right-hand side is b̂_0 = −(g_0 + H_01 Δx_1) = (−1, 0), along the
+    // negative-curvature axis, so unpreconditioned CG meets pᵀĤp = −2 at once.
+    write(
+        &c.dir,
+        "H.mtx",
+        &h_general(&[
+            &[-2.0, 0.0, -1.0, 0.0],
+            &[0.0, 2.0, 0.0, -1.0],
+            &[-1.0, 0.0, 2.0, 0.0],
+            &[0.0, -1.0, 0.0, 2.0],
+        ]),
+    );
+    write(&c.dir, "g.mtx", &g_array(&[2.0, 2.0, 0.0, 0.0]));
+    for (solver, want) in [
+        ("cholesky", "not positive definite"),
+        ("cg", "non-positive curvature"),
+    ] {
+        let o = c.solve(&["--solver", solver, "--preconditioner", "none"]);
+        let e = stderr(&o);
+        assert_eq!(o.status.code(), Some(1), "{solver}: {e}");
+        assert_eq!(e.lines().count(), 1, "{e:?}");
+        assert!(e.contains(want), "{solver}: {e}");
+    }
+}
+
+#[test]
+fn later_subcommands_are_clean_errors() {
+    for args in [&["run"][..], &["bench"][..], &["run", "scene.toml"][..]] {
+        let o = run(args);
+        assert_eq!(o.status.code(), Some(1));
+        assert!(stderr(&o).contains("not yet implemented"));
+    }
+    let o = run(&["--help"]);
+    let help = String::from_utf8_lossy(&o.stdout);
+    for sub in ["solve", "generate", "info", "run", "bench"] {
+        assert!(help.contains(sub), "{help}");
+    }
+    assert_eq!(run(&["info"]).status.code(), Some(0));
+    // clap keeps its usage errors: exit 2.
+    assert_eq!(run(&["solve", "--bogus"]).status.code(), Some(2));
+}
+
+/// Seed 002, Example 5.1.1 through the CLI: node 1 fixed at (1, 2) (sticky with a
+/// displacement from the origin), H = [[2I, −I], [−I, 2I]], g = 0. The free node
+/// minimizes |Δx_0|² − Δx_0·Δx_1, so Δx_0 = (0.5, 1); f_0 = 0, f_1 = −(−Δx_0 + 2Δx_1)
+/// = (−1.5, −3). The same through B = [0 0 1 0; 0 0 0 1], p = (1, 2).
+#[test]
+fn seed_example_fixed_node() {
+    let c = case("seed1");
+    let want = [0.5, 1.0, 1.0, 2.0];
+    let want_f = [0.0, 0.0, -1.5, -3.0];
+    let b = write(
+        &c.dir,
+        "B.mtx",
+        "%%MatrixMarket matrix coordinate real general\n2 4 2\n1 3 1\n2 4 1\n",
+    );
+    let p = write(&c.dir, "p.mtx", &g_array(&[1.0, 2.0]));
+    let f = c.dir.join("f.mtx");
+    let f = f.to_str().unwrap();
+    for solver in ["cholesky", "cg"] {
+        for form in [
+            vec![],
+            vec![
+                "--constraint-matrix",
+                &b,
+                "--constraint-values",
+                &p,
+                "--dim",
+                "2",
+            ],
+        ] {
+            let mut a = vec![
+                "--solver",
+                solver,
+                "--tol",
+                "1e-14",
+                "--reactions",
+                f,
+                "--quiet",
+            ];
+            a.extend(form.iter());
+            let o = c.solve(&a);
+            assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+            assert!(o.stderr.is_empty(), "--quiet: {}", stderr(&o));
+            let dx = read_vec(c.dir.join("dx.mtx").to_str().unwrap());
+            let fv = read_vec(f);
+            for k in 0..4 {
+                assert!(
+                    (dx[k] - want[k]).abs() < 1e-14,
+                    "{solver} dx[{k}] = {}",
+                    dx[k]
+                );
+                assert!(
+                    (fv[k] - want_f[k]).abs() < 1e-14,
+                    "{solver} f[{k}] = {}",
+                    fv[k]
+                );
+            }
+        }
+    }
+}
+
+/// Seed 002, Example 5.1.2 through the CLI: node 0 on the line 2x + 3y = 4 (a plane
+/// with normal [2, 3], offset 4), H = I, g = (1, 0, 0, 0). Δx_0 = −g_0 + μ(2, 3) with
+/// 2(−1 + 2μ) + 9μ = 4, μ = 6/13: Δx_0 = (−1/13, 18/13), Δx_1 = 0; the reaction
+/// f_0 = −(Δx_0 + g_0) = −(6/13)(2, 3) is along the normal.
+#[test]
+fn seed_example_node_on_a_line() {
+    let c = case("seed2");
+    let i4: [&[f64]; 4] = [
+        &[1.0, 0.0, 0.0, 0.0],
+        &[0.0, 1.0, 0.0, 0.0],
+        &[0.0, 0.0, 1.0, 0.0],
+        &[0.0, 0.0, 0.0, 1.0],
+    ];
+    write(&c.dir, "H.mtx", &h_general(&i4));
+    write(&c.dir, "g.mtx", &g_array(&[1.0, 0.0, 0.0, 0.0]));
+    write(
+        &c.dir,
+        "bc.json",
+        r#"{"dim": 2, "constraints": [{"node": 0, "kind": "plane", "normal": [2, 3], "offset": 4}]}"#,
+    );
+    let f = c.dir.join("f.mtx");
+    let rep = c.dir.join("report.json");
+    let o = c.solve(&[
+        "--reactions",
+        f.to_str().unwrap(),
+        "--report",
+        rep.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    // The human summary: one line on stderr.
+    assert_eq!(stderr(&o).lines().count(), 1, "{}", stderr(&o));
+    let dx = read_vec(c.dir.join("dx.mtx").to_str().unwrap());
+    let fv = read_vec(f.to_str().unwrap());
+    let want = [-1.0 / 13.0, 18.0 / 13.0, 0.0, 0.0];
+    let want_f = [-12.0 / 13.0, -18.0 / 13.0, 0.0, 0.0];
+    for k in 0..4 {
+        assert!((dx[k] - want[k]).abs() < 1e-15, "dx[{k}] = {}", dx[k]);
+        assert!((fv[k] - want_f[k]).abs() < 1e-15, "f[{k}] = {}", fv[k]);
+    }
+    assert!((2.0 * dx[0] + 3.0 * dx[1] - 4.0).abs() < 1e-14);
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&rep).unwrap()).unwrap();
+    assert_eq!(r["free_dofs"], 3);
+    assert_eq!(r["constrained_dofs"], 1);
+    assert_eq!(r["rotated_nodes"], 1);
+}
+
+fn generate(dir: &Path, dim: &str, nodes: &str, mix: &str) {
+    let o = run(&[
+        "generate",
+        "--dim",
+        dim,
+        "--nodes",
+        nodes,
+        "--seed",
+        "3",
+        "--mix",
+        mix,
+        "--matrix-form",
+        "--out-dir",
+        dir.to_str().unwrap(),
+        "--quiet",
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+}
+
+/// A generated system through cholesky and cg, per-node JSON and global B/p: all four
+/// Δx agree to 1e-9 relative, and the report holds its fields.
+#[test]
+fn generated_system_all_solvers_and_forms_agree() {
+    for (dim, nodes, mix) in [("3", "300", "random"), ("2", "200", "realistic")] {
+        let dir = tmpdir("gen");
+        generate(&dir, dim, nodes, mix);
+        let s = |n: &str| dir.join(n).to_str().unwrap().to_string();
+        let mut results = Vec::new();
+        for solver in ["cholesky", "cg"] {
+            for form in ["json", "matrix"] {
+                let out = s(&format!("dx-{solver}-{form}.mtx"));
+                let rep = s(&format!("report-{solver}-{form}.json"));
+                let (h, g, bc, b, p) =
+                    (s("H.mtx"), s("g.mtx"), s("bc.json"), s("B.mtx"), s("p.mtx"));
+                let mut a = vec![
+                    "solve",
+                    "--hessian",
+                    &h,
+                    "--gradient",
+                    &g,
+                    "--solver",
+                    solver,
+                    "--tol",
+                    "1e-13",
+                    "--max-iters",
+                    "100000",
+                    "--out",
+                    &out,
+                    "--report",
+                    &rep,
+                    "--quiet",
+                ];
+                if form == "json" {
+                    a.extend(["--constraints", bc.as_str()]);
+                } else {
+                    a.extend([
+                        "--constraint-matrix",
+                        &b,
+                        "--constraint-values",
+                        &p,
+                        "--dim",
+                        dim,
+                    ]);
+                }
+                let o = run(&a);
+                assert_eq!(o.status.code(), Some(0), "{solver}/{form}: {}", stderr(&o));
+                let r: serde_json::Value =
+                    serde_json::from_str(&std::fs::read_to_string(&rep).unwrap()).unwrap();
+                for key in [
+                    "solver",
+                    "precision",
+                    "adapter",
+                    "iterations",
+                    "relative_residual",
+                    "seconds",
+                    "free_dofs",
+                    "constrained_dofs",
+                    "nodes",
+                    "dim",
+                    "rotated_nodes",
+                ] {
+                    assert!(r.get(key).is_some(), "report lacks {key}: {r}");
+                }
+                for key in ["read", "setup", "solve", "total"] {
+                    assert!(r["seconds"][key].as_f64().unwrap() >= 0.0);
+                }
+                assert_eq!(r["solver"], solver);
+                assert_eq!(r["precision"], "f64");
+                assert!(r["relative_residual"].as_f64().unwrap() < 1e-12);
+                assert!(r["constraint_violation"].as_f64().unwrap() < 1e-12, "{r}");
+                if solver == "cholesky" {
+                    assert!(r["cholesky"]["factor_nnz"].as_u64().unwrap() > 0);
+                    assert_eq!(r["cholesky"]["reused_symbolic"], false);
+                    assert!(r["seconds"]["numeric"].as_f64().is_some());
+                } else {
+                    assert!(r["iterations"].as_u64().unwrap() > 0);
+                }
+                results.push((format!("{solver}/{form}"), read_vec(&out)));
+            }
+        }
+        let (_, base) = &results[0];
+        let scale = base.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        assert!(scale > 0.0);
+        for (name, v) in &results[1..] {
+            let diff = v
+                .iter()
+                .zip(base)
+                .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+            assert!(
+                diff <= 1e-9 * scale,
+                "{name} differs from cholesky/json by {diff:e} (scale {scale:e})"
+            );
+        }
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}
+
+/// `--solver gpu` through the CLI (f64 and mixed) against cholesky. Without an adapter
+/// a loud skip, unless STICKSLIP_REQUIRE_GPU=1 (CI), where it fails.
+#[test]
+fn gpu_solver_through_the_cli() {
+    let info = run(&["info"]);
+    if !String::from_utf8_lossy(&info.stdout).contains("adapter 0:") {
+        assert!(
+            std::env::var("STICKSLIP_REQUIRE_GPU").map_or(true, |v| v != "1"),
+            "STICKSLIP_REQUIRE_GPU=1 but `stickslip info` lists no adapter"
+        );
+        eprintln!("SKIP gpu_solver_through_the_cli: no GPU adapter");
+        return;
+    }
+    let dir = tmpdir("gpu");
+    generate(&dir, "3", "300", "random");
+    let s = |n: &str| dir.join(n).to_str().unwrap().to_string();
+    let (h, g, bc) = (s("H.mtx"), s("g.mtx"), s("bc.json"));
+    let solve = |extra: &[&str], out: &str| {
+        let mut a = vec![
+            "solve",
+            "--hessian",
+            &h,
+            "--gradient",
+            &g,
+            "--constraints",
+            &bc,
+        ];
+        a.extend(["--out", out, "--quiet"]);
+        a.extend_from_slice(extra);
+        let o = run(&a);
+        assert_eq!(o.status.code(), Some(0), "{extra:?}: {}", stderr(&o));
+        read_vec(out)
+    };
+    let base = solve(&[], &s("dx-chol.mtx"));
+    let scale = base.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    for p in ["f64", "mixed"] {
+        let rep = s(&format!("rep-{p}.json"));
+        let dx = solve(
+            &[
+                "--solver",
+                "gpu",
+                "--precision",
+                p,
+                "--tol",
+                "1e-10",
+                "--report",
+                &rep,
+            ],
+            &s(&format!("dx-{p}.mtx")),
+        );
+        let diff = dx
+            .iter()
+            .zip(&base)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(diff <= 1e-7 * scale, "gpu {p}: differs by {diff:e}");
+        let r: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&rep).unwrap()).unwrap();
+        assert_eq!(r["solver"], "gpu");
+        assert_eq!(r["precision"], p);
+        assert!(r["adapter"].is_string() && r["gpu"].is_object(), "{r}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -1,0 +1,261 @@
+//! Every GPU kernel against its CPU reference. One shared device per test binary; GPU
+//! tests are serialized (lavapipe is slow). Without an adapter they print a loud SKIP
+//! line and return, unless STICKSLIP_REQUIRE_GPU=1 (CI), where a missing adapter fails.
+
+use std::sync::{LazyLock, Mutex, MutexGuard};
+use stickslip::cg::{BuiltPreconditioner, Preconditioner};
+use stickslip::constraints::{Constraint, ConstraintKind, Frames};
+use stickslip::elimination::{rotate_blocks, ConstrainedDiagonal, Eliminated};
+use stickslip::generate::{random_system, SystemSpec};
+use stickslip::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
+use stickslip::springs::MassSpring;
+
+static CTX: LazyLock<Option<GpuContext>> =
+    LazyLock::new(|| match GpuContext::new(&GpuOptions::default()) {
+        Ok(c) => {
+            eprintln!("GPU tests on adapter '{}'", c.adapter_name());
+            Some(c)
+        }
+        Err(e) => {
+            if std::env::var("STICKSLIP_REQUIRE_GPU").is_ok_and(|v| v == "1") {
+                panic!("STICKSLIP_REQUIRE_GPU=1 but no GPU adapter: {e}");
+            }
+            eprintln!("!!!!!!!! SKIP: no GPU adapter ({e}); GPU kernel tests did not run !!!!!!!!");
+            None
+        }
+    });
+static LOCK: Mutex<()> = Mutex::new(());
+
+fn gpu() -> Option<(&'static GpuContext, MutexGuard<'static, ()>)> {
+    let g = LOCK.lock().unwrap_or_else(|p| p.into_inner());
+    CTX.as_ref().map(|c| (c, g))
+}
+
+fn params(precision: Precision, pc: Preconditioner) -> GpuParams {
+    GpuParams {
+        precision,
+        preconditioner: pc,
+        ..Default::default()
+    }
+}
+
+fn max_rel(a: &[f64], b: &[f64]) -> f64 {
+    let scale = b.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(1e-300);
+    a.iter()
+        .zip(b)
+        .fold(0.0f64, |m, (x, y)| m.max((x - y).abs()))
+        / scale
+}
+
+fn test_vector(n: usize) -> Vec<f64> {
+    (0..n)
+        .map(|k| ((k * 7919) % 23) as f64 / 11.0 - 1.0)
+        .collect()
+}
+
+#[test]
+fn matvec_rotation_and_preconditioners_match_cpu() {
+    let Some((ctx, _g)) = gpu() else { return };
+    for (dim, seed) in [(2, 1u64), (3, 2), (3, 5)] {
+        let s = random_system(&SystemSpec::small(dim, seed));
+        assert!(s.frames.has_rotation() && s.frames.has_constraints());
+        for diag in [ConstrainedDiagonal::Identity, ConstrainedDiagonal::Hessian] {
+            let e = Eliminated::new(&s.h, &s.g, &s.frames, diag);
+            let n = e.ndof();
+            let y = test_vector(n);
+            let mut want = vec![0.0; n];
+            let mut work = vec![0.0; 2 * n];
+            e.apply(&y, &mut want, &mut work);
+            let rot = rotate_blocks(&s.h, &s.frames);
+            for (prec, tol) in [(Precision::F64, 1e-13), (Precision::F32, 2e-6)] {
+                for pc in [Preconditioner::Jacobi, Preconditioner::BlockJacobi] {
+                    let mut sol = GpuSolver::new(ctx, &e, &params(prec, pc)).expect("solver");
+                    let got = sol.apply_operator(&y).expect("matvec");
+                    let err = max_rel(&got, &want);
+                    assert!(err <= tol, "matvec {dim}D {prec} seed {seed}: {err:e}");
+                    let blocks = sol.rotated_blocks().expect("download").expect("assembled");
+                    let err = max_rel(&blocks, &rot.values);
+                    assert!(err <= tol, "rotate_blocks {dim}D {prec}: {err:e}");
+                    let pre = sol.preconditioner_data().expect("download");
+                    let cpu = BuiltPreconditioner::new(&e, pc);
+                    let err = max_rel(&pre, cpu.data());
+                    assert!(err <= 10.0 * tol, "precond {pc:?} {dim}D {prec}: {err:e}");
+                    let dx = sol.recover_on_device(&y).expect("recover");
+                    let err = max_rel(&dx, &e.recover(&y));
+                    assert!(err <= tol, "recover {dim}D {prec}: {err:e}");
+                    let r = sol.resources();
+                    assert!(r.dispatches_of("rotate_blocks") >= 1);
+                    assert!(r.dispatches_of("rotate_vectors") >= 1);
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn unmasked_matvec_matches_cpu() {
+    let Some((ctx, _g)) = gpu() else { return };
+    for dim in [2, 3] {
+        let s = random_system(&SystemSpec::small(dim, 9));
+        let f = Frames::unconstrained(dim, s.h.n);
+        let e = Eliminated::new(&s.h, &s.g, &f, ConstrainedDiagonal::Identity);
+        let y = test_vector(e.ndof());
+        let mut want = vec![0.0; y.len()];
+        s.h.matvec(&y, &mut want);
+        let mut sol = GpuSolver::new(ctx, &e, &params(Precision::F64, Preconditioner::Jacobi))
+            .expect("solver");
+        let got = sol.apply_operator(&y).expect("matvec");
+        assert!(max_rel(&got, &want) <= 1e-13);
+        assert_eq!(sol.recover_on_device(&y).expect("recover"), y);
+    }
+}
+
+/// k iterations of the same PCG recurrence on the CPU, in f64.
+fn cpu_pcg(e: &Eliminated, pc: Preconditioner, k: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    let n = e.ndof();
+    let pre = BuiltPreconditioner::new(e, pc);
+    let mut x = vec![0.0; n];
+    let mut r = e.rhs.clone();
+    let mut z = vec![0.0; n];
+    pre.apply(&r, &mut z);
+    let mut p = z.clone();
+    let mut rz: f64 = r.iter().zip(&z).map(|(a, b)| a * b).sum();
+    let mut q = vec![0.0; n];
+    let mut work = vec![0.0; 2 * n];
+    for _ in 0..k {
+        e.apply(&p, &mut q, &mut work);
+        let pq: f64 = p.iter().zip(&q).map(|(a, b)| a * b).sum();
+        let alpha = rz / pq;
+        for i in 0..n {
+            x[i] += alpha * p[i];
+            r[i] -= alpha * q[i];
+        }
+        pre.apply(&r, &mut z);
+        let rz_new: f64 = r.iter().zip(&z).map(|(a, b)| a * b).sum();
+        let beta = rz_new / rz;
+        rz = rz_new;
+        for i in 0..n {
+            p[i] = z[i] + beta * p[i];
+        }
+    }
+    (x, r, p)
+}
+
+#[test]
+fn cg_update_kernels_and_reductions_match_cpu_recurrence() {
+    let Some((ctx, _g)) = gpu() else { return };
+    for (dim, seed, pc) in [
+        (2, 3u64, Preconditioner::Jacobi),
+        (3, 4, Preconditioner::BlockJacobi),
+        (3, 6, Preconditioner::None),
+    ] {
+        let s = random_system(&SystemSpec::small(dim, seed));
+        let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+        let k = 6;
+        let (x, r, p) = cpu_pcg(&e, pc, k);
+        let mut sol = GpuSolver::new(ctx, &e, &params(Precision::F64, pc)).expect("solver");
+        let (gx, gr, gp) = sol.iterate(k).expect("iterate");
+        for (name, a, b) in [("x", &gx, &x), ("r", &gr, &r), ("p", &gp, &p)] {
+            let err = max_rel(a, b);
+            assert!(
+                err <= 1e-11,
+                "{name} after {k} iterations ({dim}D, {pc:?}): {err:e}"
+            );
+        }
+        let res = sol.resources();
+        // One chunk: 3 dispatches per iteration, plus the start (matvec, init, update_p).
+        assert_eq!(res.dispatches_of("update_xrz"), k as u64);
+        assert_eq!(res.dispatches_of("update_p"), k as u64 + 1);
+        assert_eq!(res.dispatches_of("matvec"), k as u64 + 1);
+        // Mixed: the inner f32 CG follows the same recurrence to f32 round-off.
+        let mut sol = GpuSolver::new(ctx, &e, &params(Precision::Mixed, pc)).expect("solver");
+        let (gx, _, _) = sol.iterate(k).expect("iterate");
+        let err = max_rel(&gx, &x);
+        assert!(err <= 1e-4, "f32 inner x after {k} iterations: {err:e}");
+    }
+}
+
+fn spring_frames(ms: &MassSpring) -> Frames {
+    let d = ms.dim;
+    let n = ms.n_nodes();
+    let mut cs = Vec::new();
+    let mut push = |node: usize, kind: ConstraintKind| {
+        let label = format!("c{}", cs.len());
+        cs.push(Constraint { node, kind, label });
+    };
+    push(
+        0,
+        ConstraintKind::Sticky {
+            displacement: Some(vec![0.01; d]),
+        },
+    );
+    let mut nrm = vec![1.0, 2.0];
+    let mut dir = vec![1.0, -1.0];
+    if d == 3 {
+        nrm.push(-0.5);
+        dir.push(0.3);
+    }
+    push(
+        1,
+        ConstraintKind::Plane {
+            normal: nrm,
+            offset: 0.02,
+        },
+    );
+    push(
+        n - 1,
+        ConstraintKind::Line {
+            direction: dir,
+            offset: None,
+        },
+    );
+    let mut ax = vec![0.0; d];
+    ax[1] = 2.0;
+    push(
+        n / 2,
+        ConstraintKind::Plane {
+            normal: ax,
+            offset: 0.0,
+        },
+    );
+    Frames::build(d, n, &cs).expect("valid constraints")
+}
+
+#[test]
+fn spring_kernel_matches_assembled_operator() {
+    let Some((ctx, _g)) = gpu() else { return };
+    for dim in [2, 3] {
+        let ms = MassSpring::random_grid(dim, [4, 4, 3], 11 + dim as u64);
+        let h = ms.assemble();
+        let frames = spring_frames(&ms);
+        assert!(frames.has_rotation());
+        let xt: Vec<f64> = ms.positions.iter().map(|v| v + 0.05).collect();
+        let g = ms.gradient(&xt);
+        let e = Eliminated::new(&h, &g, &frames, ConstrainedDiagonal::Identity);
+        let y = test_vector(e.ndof());
+        let mut want = vec![0.0; y.len()];
+        let mut work = vec![0.0; 2 * y.len()];
+        e.apply(&y, &mut want, &mut work);
+        for (prec, tol) in [(Precision::F64, 1e-13), (Precision::F32, 2e-6)] {
+            for pc in [Preconditioner::Jacobi, Preconditioner::BlockJacobi] {
+                let mut sol = GpuSolver::new_mass_spring(ctx, &ms, &g, &frames, &params(prec, pc))
+                    .expect("solver");
+                let got = sol.apply_operator(&y).expect("spring matvec");
+                let err = max_rel(&got, &want);
+                assert!(err <= tol, "spring matvec {dim}D {prec}: {err:e}");
+                let pre = sol.preconditioner_data().expect("download");
+                let err = max_rel(&pre, BuiltPreconditioner::new(&e, pc).data());
+                assert!(
+                    err <= 10.0 * tol,
+                    "spring precond {dim}D {prec} {pc:?}: {err:e}"
+                );
+                let r = sol.resources();
+                assert!(
+                    !r.buffers.iter().any(|b| b.label.starts_with("blocks")),
+                    "matrix-free assembles nothing"
+                );
+                assert_eq!(r.dispatches_of("rotate_blocks"), 0);
+            }
+        }
+    }
+}

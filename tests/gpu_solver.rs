@@ -1,0 +1,464 @@
+//! The GPU solver against a dense f64 reference on seeded random systems with every
+//! constraint kind, plus "model only what a scene needs", reuse across Newton iterations,
+//! honest failures and the matrix-free spring operator. One shared device per binary,
+//! tests serialized; without an adapter a loud SKIP (a failure with STICKSLIP_REQUIRE_GPU=1).
+
+use std::sync::{LazyLock, Mutex, MutexGuard};
+use stickslip::cg::{CgError, Preconditioner};
+use stickslip::constraints::{Constraint, ConstraintKind, Frames};
+use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
+use stickslip::generate::{random_system, ConstraintMix, SystemSpec};
+use stickslip::gpu::{GpuContext, GpuError, GpuOptions, GpuParams, GpuSolver, Precision};
+use stickslip::springs::MassSpring;
+
+static CTX: LazyLock<Option<GpuContext>> =
+    LazyLock::new(|| match GpuContext::new(&GpuOptions::default()) {
+        Ok(c) => {
+            eprintln!("GPU tests on adapter '{}'", c.adapter_name());
+            Some(c)
+        }
+        Err(e) => {
+            if std::env::var("STICKSLIP_REQUIRE_GPU").is_ok_and(|v| v == "1") {
+                panic!("STICKSLIP_REQUIRE_GPU=1 but no GPU adapter: {e}");
+            }
+            eprintln!("!!!!!!!! SKIP: no GPU adapter ({e}); GPU solver tests did not run !!!!!!!!");
+            None
+        }
+    });
+static LOCK: Mutex<()> = Mutex::new(());
+
+fn gpu() -> Option<(&'static GpuContext, MutexGuard<'static, ()>)> {
+    let g = LOCK.lock().unwrap_or_else(|p| p.into_inner());
+    CTX.as_ref().map(|c| (c, g))
+}
+
+fn norm(v: &[f64]) -> f64 {
+    v.iter().map(|x| x * x).sum::<f64>().sqrt()
+}
+
+fn rel_err(a: &[f64], b: &[f64]) -> f64 {
+    let d: Vec<f64> = a.iter().zip(b).map(|(x, y)| x - y).collect();
+    norm(&d) / norm(b).max(1e-300)
+}
+
+/// Dense Cholesky of the assembled Ĥ: y*, Δx*.
+fn reference(e: &Eliminated) -> (Vec<f64>, Vec<f64>) {
+    let a = e.assemble().to_dense();
+    let chol = nalgebra::Cholesky::new(a).expect("Ĥ is SPD");
+    let y = chol.solve(&nalgebra::DVector::from_column_slice(&e.rhs));
+    let y: Vec<f64> = y.iter().copied().collect();
+    let dx = e.recover(&y);
+    (y, dx)
+}
+
+/// Constrained components of Δx (in each node's frame) equal those of the lift.
+fn constrained_error(f: &Frames, dx: &[f64]) -> f64 {
+    let d = f.dim;
+    let mut a = vec![0.0; dx.len()];
+    let mut b = vec![0.0; dx.len()];
+    f.to_frame(dx, &mut a);
+    f.to_frame(&f.lift, &mut b);
+    let mut worst = 0.0f64;
+    for i in 0..f.n_nodes {
+        for c in 0..d {
+            if !f.is_free(i, c) {
+                worst = worst.max((a[i * d + c] - b[i * d + c]).abs());
+            }
+        }
+    }
+    worst
+}
+
+fn params(precision: Precision, tol: f64, pc: Preconditioner) -> GpuParams {
+    GpuParams {
+        precision,
+        tol,
+        preconditioner: pc,
+        max_iters: 5_000,
+        ..Default::default()
+    }
+}
+
+#[test]
+fn fifty_random_systems_match_the_dense_reference_in_every_precision() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let mut worst = [0.0f64; 3];
+    let mut count = 0;
+    for dim in [2usize, 3] {
+        for seed in 0..25u64 {
+            let s = random_system(&SystemSpec::small(dim, seed));
+            let diag = if seed % 3 == 0 {
+                ConstrainedDiagonal::Hessian
+            } else {
+                ConstrainedDiagonal::Identity
+            };
+            let e = Eliminated::new(&s.h, &s.g, &s.frames, diag);
+            let (_, dx_ref) = reference(&e);
+            let pc = if seed % 2 == 0 {
+                Preconditioner::Jacobi
+            } else {
+                Preconditioner::BlockJacobi
+            };
+            for (k, (prec, tol, bound)) in [
+                (Precision::F64, 1e-12, 1e-9),
+                (Precision::Mixed, 1e-12, 1e-9),
+                (Precision::F32, 1e-6, 1e-4),
+            ]
+            .into_iter()
+            .enumerate()
+            {
+                let mut sol = GpuSolver::new(ctx, &e, &params(prec, tol, pc)).expect("solver");
+                let (y, dx, info) = sol
+                    .solve()
+                    .unwrap_or_else(|err| panic!("{dim}D seed {seed} {prec}: {err}"));
+                assert!(
+                    info.relative_residual <= tol,
+                    "{dim}D seed {seed} {prec}: {info:?}"
+                );
+                assert!((e.relative_residual(&y) - info.relative_residual).abs() <= 1e-3 * tol);
+                let err = rel_err(&dx, &dx_ref);
+                assert!(err <= bound, "{dim}D seed {seed} {prec}: Δx error {err:e}");
+                worst[k] = worst[k].max(err);
+                // Constrained components: exactly the lift up to round-off of the solver's
+                // arithmetic (f64: 1e-14 of ‖Δx‖; f32: f32 round-off of the rotations).
+                let scale = dx.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(1.0);
+                let cbound = if prec == Precision::F32 { 1e-6 } else { 1e-14 };
+                let cerr = constrained_error(&s.frames, &dx);
+                assert!(
+                    cerr <= cbound * scale,
+                    "{dim}D seed {seed} {prec}: constrained {cerr:e}"
+                );
+                // Nodes without rotation: bit-exact lift on the constrained components.
+                for i in 0..s.frames.n_nodes {
+                    if s.frames.rotation(i).is_none() {
+                        for c in 0..dim {
+                            if !s.frames.is_free(i, c) {
+                                assert_eq!(dx[i * dim + c], s.frames.lift[i * dim + c]);
+                            }
+                        }
+                    }
+                }
+                assert!(info.readbacks >= 2 && info.dispatches_per_iteration <= 4);
+            }
+            count += 1;
+        }
+    }
+    println!(
+        "{count} systems: worst Δx relative error f64 {:.2e}, mixed {:.2e}, f32 {:.2e}",
+        worst[0], worst[1], worst[2]
+    );
+}
+
+#[test]
+fn model_only_what_a_scene_needs() {
+    let Some((ctx, _g)) = gpu() else { return };
+    // 2D, sticky and axis-aligned planes only: masking, no rotation.
+    let mut spec = SystemSpec::small(2, 4);
+    spec.mix = ConstraintMix::None;
+    let s = random_system(&spec);
+    let n = s.h.n;
+    let cs = vec![
+        Constraint {
+            node: 0,
+            kind: ConstraintKind::Sticky { displacement: None },
+            label: "a".into(),
+        },
+        Constraint {
+            node: n - 1,
+            kind: ConstraintKind::Plane {
+                normal: vec![0.0, 3.0],
+                offset: 0.01,
+            },
+            label: "b".into(),
+        },
+    ];
+    let frames = Frames::build(2, n, &cs).expect("valid");
+    assert!(!frames.has_rotation() && frames.has_constraints());
+    let e = Eliminated::new(&s.h, &s.g, &frames, ConstrainedDiagonal::Identity);
+    let mut sol = GpuSolver::new(
+        ctx,
+        &e,
+        &params(Precision::F32, 1e-6, Preconditioner::Jacobi),
+    )
+    .expect("solver");
+    let (_, dx, _) = sol.solve().expect("solve");
+    assert_eq!(dx[2 * (n - 1) + 1], frames.lift[2 * (n - 1) + 1]);
+    assert!((dx[2 * (n - 1) + 1] - 0.01 / 3.0).abs() < 1e-17);
+    let r = sol.resources();
+    assert!(
+        !r.buffers.iter().any(|b| b.label.starts_with("rot")),
+        "{:?}",
+        r.buffers
+    );
+    assert_eq!(
+        r.dispatches_of("rotate_blocks") + r.dispatches_of("rotate_vectors"),
+        0
+    );
+    assert!(r.has_buffer("mask"));
+    assert!(r.dispatches_of("recover") >= 1);
+    // f32: no f64 buffer at all.
+    assert!(
+        !r.buffers.iter().any(|b| b.label.contains("f64")),
+        "{:?}",
+        r.buffers
+    );
+    // 2×2 kernels.
+    for k in &r.kernels {
+        if let Some((_, d)) = k.constants.iter().find(|(c, _)| c == "D") {
+            assert_eq!(*d, 2.0, "{k:?}");
+        }
+    }
+    // No constraints at all: the mask-free specialization, no masking work.
+    let free = Frames::unconstrained(3, random_system(&SystemSpec::small(3, 4)).h.n);
+    let s3 = random_system(&SystemSpec::small(3, 4));
+    let e = Eliminated::new(&s3.h, &s3.g, &free, ConstrainedDiagonal::Identity);
+    let mut sol = GpuSolver::new(
+        ctx,
+        &e,
+        &params(Precision::F64, 1e-10, Preconditioner::Jacobi),
+    )
+    .expect("solver");
+    sol.solve().expect("solve");
+    let r = sol.resources();
+    assert!(!sol.is_masked());
+    assert!(!r.has_buffer("mask") && !r.buffers.iter().any(|b| b.label.starts_with("dvals")));
+    assert_eq!(r.dispatches_of("recover"), 0);
+    for k in &r.kernels {
+        if let Some((_, m)) = k.constants.iter().find(|(c, _)| c == "MASKED") {
+            assert_eq!(*m, 0.0, "{k:?}");
+        }
+        if let Some((_, d)) = k.constants.iter().find(|(c, _)| c == "D") {
+            assert_eq!(*d, 3.0);
+        }
+    }
+    assert!(r.buffers.iter().any(|b| b.label.contains("f64")));
+    // Slip constraints: rotation buffers and dispatches exist.
+    let s = random_system(&SystemSpec::small(3, 2));
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let mut sol = GpuSolver::new(
+        ctx,
+        &e,
+        &params(Precision::Mixed, 1e-10, Preconditioner::Jacobi),
+    )
+    .expect("solver");
+    sol.solve().expect("solve");
+    let r = sol.resources();
+    assert!(
+        r.has_buffer("rotations_f32") && r.has_buffer("rotations_f64") && r.has_buffer("rot_nodes")
+    );
+    assert!(r.dispatches_of("rotate_blocks") >= 2 && r.dispatches_of("rotate_vectors") >= 1);
+}
+
+#[test]
+fn update_reuses_every_buffer_and_solves_the_new_values() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let mut s = random_system(&SystemSpec::small(3, 12));
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let mut sol = GpuSolver::new(
+        ctx,
+        &e,
+        &params(Precision::F64, 1e-12, Preconditioner::BlockJacobi),
+    )
+    .expect("solver");
+    let (_, dx1, _) = sol.solve().expect("solve");
+    assert!(rel_err(&dx1, &reference(&e).1) <= 1e-9);
+    let before = sol.resources().buffers;
+    // A "next Newton iteration": new Hessian values on the same pattern, new gradient.
+    for (k, v) in s.h.values.iter_mut().enumerate() {
+        *v *= 1.0 + 0.1 * ((k % 7) as f64 / 7.0);
+    }
+    let hs = s.h.clone();
+    let mut hsym = hs.clone();
+    // Keep symmetry: average with the transpose.
+    let d = 3;
+    for i in 0..hs.n {
+        for k in hs.row_ptr[i]..hs.row_ptr[i + 1] {
+            let j = hs.col_idx[k];
+            let kt = hs.find(j, i).expect("symmetric pattern");
+            for r in 0..d {
+                for c in 0..d {
+                    hsym.values[k * 9 + r * 3 + c] =
+                        0.5 * (hs.values[k * 9 + r * 3 + c] + hs.values[kt * 9 + c * 3 + r]);
+                }
+            }
+        }
+    }
+    let g2: Vec<f64> = s.g.iter().map(|v| -0.5 * v).collect();
+    let e2 = Eliminated::new(&hsym, &g2, &s.frames, ConstrainedDiagonal::Identity);
+    sol.update(&e2).expect("update");
+    let (_, dx2, _) = sol.solve().expect("solve");
+    assert!(rel_err(&dx2, &reference(&e2).1) <= 1e-9);
+    assert_eq!(
+        sol.resources().buffers,
+        before,
+        "update must not reallocate"
+    );
+    // A different constraint set is refused.
+    let other = random_system(&SystemSpec::small(3, 13));
+    if other.h.row_ptr != hsym.row_ptr {
+        let e3 = Eliminated::new(
+            &other.h,
+            &other.g,
+            &other.frames,
+            ConstrainedDiagonal::Identity,
+        );
+        assert!(matches!(sol.update(&e3), Err(GpuError::Mismatch(_))));
+    }
+}
+
+#[test]
+fn failures_are_errors_never_convergence() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = random_system(&SystemSpec::small(3, 7));
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let mut p = params(Precision::F64, 1e-14, Preconditioner::Jacobi);
+    p.max_iters = 3;
+    match GpuSolver::new(ctx, &e, &p).expect("solver").solve() {
+        Err(GpuError::Cg(CgError::MaxIterations {
+            relative_residual,
+            iterations,
+            ..
+        })) => {
+            assert!(relative_residual > 1e-14 && iterations == 3)
+        }
+        other => panic!("expected MaxIterations, got {other:?}"),
+    }
+    // f32 cannot reach 1e-13: stagnation or the limit, never success.
+    let mut p = params(Precision::F32, 1e-13, Preconditioner::Jacobi);
+    p.max_iters = 2_000;
+    p.stagnation_window = 50;
+    match GpuSolver::new(ctx, &e, &p).expect("solver").solve() {
+        Err(GpuError::Cg(CgError::Stagnation { .. } | CgError::MaxIterations { .. })) => {}
+        other => panic!("expected an error, got {other:?}"),
+    }
+    // Indefinite Hessian: non-positive curvature.
+    let mut s = random_system(&SystemSpec::small(2, 8));
+    s.frames = Frames::unconstrained(2, s.h.n);
+    let k = s.h.diag_index(0).expect("diagonal");
+    s.h.values[k * 4] = -1e3;
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    for prec in [Precision::F32, Precision::F64, Precision::Mixed] {
+        let r = GpuSolver::new(ctx, &e, &params(prec, 1e-8, Preconditioner::None))
+            .expect("solver")
+            .solve();
+        assert!(
+            matches!(r, Err(GpuError::Cg(CgError::NonPositiveCurvature { .. }))),
+            "{prec}: {r:?}"
+        );
+    }
+}
+
+#[test]
+fn solves_are_deterministic() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = random_system(&SystemSpec::small(3, 21));
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let mut sol = GpuSolver::new(
+        ctx,
+        &e,
+        &params(Precision::F32, 1e-6, Preconditioner::Jacobi),
+    )
+    .expect("solver");
+    let (y1, _, i1) = sol.solve().expect("solve");
+    let (y2, _, i2) = sol.solve().expect("solve");
+    assert_eq!(y1, y2);
+    assert_eq!(i1.iterations, i2.iterations);
+}
+
+#[test]
+fn matrix_free_springs_solve_like_the_assembled_system() {
+    let Some((ctx, _g)) = gpu() else { return };
+    for dim in [2, 3] {
+        let mut ms = MassSpring::random_grid(dim, [5, 4, 3], 40 + dim as u64);
+        let n = ms.n_nodes();
+        let cs = vec![
+            Constraint {
+                node: 0,
+                kind: ConstraintKind::Sticky {
+                    displacement: Some(vec![0.01; dim]),
+                },
+                label: "s".into(),
+            },
+            Constraint {
+                node: n - 1,
+                kind: ConstraintKind::Plane {
+                    normal: (0..dim).map(|a| 1.0 + a as f64).collect(),
+                    offset: 0.02,
+                },
+                label: "p".into(),
+            },
+        ];
+        let frames = Frames::build(dim, n, &cs).expect("valid");
+        let xt: Vec<f64> = ms.positions.iter().map(|v| v - 0.03).collect();
+        let g = ms.gradient(&xt);
+        let h = ms.assemble();
+        let e = Eliminated::new(&h, &g, &frames, ConstrainedDiagonal::Identity);
+        let (_, dx_ref) = reference(&e);
+        for prec in [Precision::F64, Precision::Mixed] {
+            let p = params(prec, 1e-12, Preconditioner::BlockJacobi);
+            let mut mf = GpuSolver::new_mass_spring(ctx, &ms, &g, &frames, &p).expect("solver");
+            let (_, dx, info) = mf.solve().expect("solve");
+            assert!(
+                rel_err(&dx, &dx_ref) <= 1e-9,
+                "{dim}D {prec}: {:e}",
+                rel_err(&dx, &dx_ref)
+            );
+            assert!(info.relative_residual <= 1e-12);
+            // Newton-like update: move the nodes, upload positions only.
+            let before = mf.resources().buffers;
+            let mut ms2 = ms.clone();
+            for (k, x) in ms2.positions.iter_mut().enumerate() {
+                *x += 0.02 * ((k % 5) as f64 - 2.0);
+            }
+            let g2 = ms2.gradient(&xt);
+            mf.update_mass_spring(&ms2, &g2).expect("update");
+            let (_, dx2, _) = mf.solve().expect("solve");
+            let h2 = ms2.assemble();
+            let e2 = Eliminated::new(&h2, &g2, &frames, ConstrainedDiagonal::Identity);
+            assert!(rel_err(&dx2, &reference(&e2).1) <= 1e-9);
+            assert_eq!(mf.resources().buffers, before);
+        }
+        ms.h = 0.02;
+    }
+}
+
+#[test]
+fn oversized_buffers_are_refused_with_names_and_sizes() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let limit = ctx.report().max_storage_buffer_binding_size;
+    // f64 blocks of a 3D mesh take about 15·72 bytes per node.
+    let nodes = (limit / (15 * 72)) as usize * 6 / 5;
+    if nodes > 400_000 {
+        eprintln!("SKIP oversized-buffer test: binding limit {limit} bytes is too large to exceed cheaply");
+        return;
+    }
+    let s = random_system(&SystemSpec::with_nodes(3, nodes, 1));
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let err = GpuSolver::new(
+        ctx,
+        &e,
+        &params(Precision::F64, 1e-8, Preconditioner::Jacobi),
+    )
+    .err();
+    match err {
+        Some(GpuError::BufferTooLarge {
+            label,
+            bytes,
+            limit: l,
+            ..
+        }) => {
+            assert_eq!(label, "blocks_f64");
+            assert!(bytes > l && l == limit);
+            let msg = GpuError::BufferTooLarge {
+                label,
+                bytes,
+                limit: l,
+                what: "storage binding",
+                adapter: "x".into(),
+            }
+            .to_string();
+            assert!(msg.contains("blocks_f64") && msg.contains(&bytes.to_string()));
+        }
+        other => panic!("expected BufferTooLarge, got {other:?}"),
+    }
+}
