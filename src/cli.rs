@@ -42,8 +42,73 @@ pub enum Command {
     Info,
     /// Simulate a scene (built-in default when none is given) [not yet implemented].
     Run(RunArgs),
-    /// CPU-versus-GPU benchmark [not yet implemented].
-    Bench,
+    /// CPU-versus-GPU benchmark: speed against error over a ladder of sizes.
+    Bench(BenchArgs),
+    /// Write the eliminated system (Ĥ, b̂ in node frames) for PETSc and Matrix Market readers.
+    Export(ExportArgs),
+    /// Turn a solution y of an exported system into Δx and the reaction forces.
+    Recover(RecoverArgs),
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct BenchArgs {
+    /// CI-sized ladder (1,000–8,000 nodes) and a two-tolerance sweep.
+    #[arg(long)]
+    pub quick: bool,
+    /// Node counts to run (comma-separated) instead of the default ladder.
+    #[arg(long, value_delimiter = ',')]
+    pub sizes: Option<Vec<usize>>,
+    /// Dimensions to run (comma-separated).
+    #[arg(long, value_delimiter = ',', default_values_t = [2usize, 3])]
+    pub dims: Vec<usize>,
+    /// CPU solvers only.
+    #[arg(long)]
+    pub no_gpu: bool,
+    /// Largest node count for the Cholesky oracle; above it the reference is CPU CG at 1e-12.
+    #[arg(long, default_value_t = 300_000)]
+    pub oracle_max_nodes: usize,
+    /// Write bench.json, bench.csv and SVG plots here.
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct ExportArgs {
+    #[command(flatten)]
+    pub system: SystemArgs,
+    /// The diagonal D on constrained components of Ĥ.
+    #[arg(long, value_enum, default_value_t = DiagonalArg::Identity)]
+    pub constrained_diagonal: DiagonalArg,
+    /// Skip the Matrix Market copies (hhat.mtx, bhat.mtx); PETSc binary only.
+    #[arg(long)]
+    pub no_mtx: bool,
+    /// Output folder: hhat.petsc(+.info), bhat.petsc, hhat.mtx, bhat.mtx, layout.json.
+    #[arg(long, value_name = "DIR")]
+    pub out_dir: PathBuf,
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct RecoverArgs {
+    /// layout.json written by `stickslip export`.
+    #[arg(long, value_name = "layout.json")]
+    pub layout: String,
+    /// The solution y: a PETSc binary Vec (.petsc) or Matrix Market array (.mtx).
+    #[arg(long, value_name = "y.petsc")]
+    pub solution: String,
+    /// The H the system was exported from (for the reactions, and checked against the layout).
+    #[arg(long, value_name = "H.mtx")]
+    pub hessian: String,
+    /// The g the system was exported from.
+    #[arg(long, value_name = "g.mtx")]
+    pub gradient: String,
+    /// Δx: Matrix Market array dn × 1.
+    #[arg(long, value_name = "dx.mtx")]
+    pub out: String,
+    /// Reactions f = −(HΔx + g): Matrix Market array dn × 1.
+    #[arg(long, value_name = "f.mtx")]
+    pub reactions: Option<String>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -100,7 +165,7 @@ fn positive_f64(s: &str) -> Result<f64, String> {
 
 #[derive(Debug, Clone, Args)]
 #[command(group(ArgGroup::new("constraint_input").required(true).args(["constraints", "constraint_matrix"])))]
-pub struct SolveArgs {
+pub struct SystemArgs {
     /// H: Matrix Market coordinate real (symmetric or general), dn × dn, node-major.
     #[arg(long, value_name = "H.mtx")]
     pub hessian: String,
@@ -119,6 +184,12 @@ pub struct SolveArgs {
     /// Spatial dimension (default: bc.json's "dim"; required with --constraint-matrix).
     #[arg(long, value_parser = clap::value_parser!(u8).range(2..=3))]
     pub dim: Option<u8>,
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct SolveArgs {
+    #[command(flatten)]
+    pub system: SystemArgs,
     #[arg(long, value_enum, default_value_t = SolverKind::Cholesky)]
     pub solver: SolverKind,
     /// Arithmetic (f32 and mixed need --solver gpu) [default: f64].
@@ -241,9 +312,9 @@ pub fn run(cli: &Cli) -> Result<(), CliError> {
         Command::Run(_) => Err(CliError::Failed(
             "`stickslip run` is not yet implemented in this build".into(),
         )),
-        Command::Bench => Err(CliError::Failed(
-            "`stickslip bench` is not yet implemented in this build".into(),
-        )),
+        Command::Bench(a) => bench(a, cli.quiet),
+        Command::Export(a) => export(a, cli.quiet),
+        Command::Recover(a) => recover(a, cli.quiet),
     }
 }
 
@@ -329,33 +400,32 @@ fn precision_name(p: PrecisionArg) -> &'static str {
     }
 }
 
-/// `stickslip solve`: read → constraints → frames → eliminate → solve → recover → write.
-pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
-    let t_start = Instant::now();
-    let precision = args.precision.unwrap_or(PrecisionArg::F64);
-    if args.solver != SolverKind::Gpu && precision != PrecisionArg::F64 {
-        return Err(InputError::new(
-            "command line",
-            "--precision",
-            format!(
-                "{} needs --solver gpu (cholesky and cg compute in f64)",
-                precision_name(precision)
-            ),
-        )
-        .into());
-    }
-    let max_iters = args.max_iters.unwrap_or(CgParams::default().max_iters);
 
+/// H, g, the constraints and their frames, read and checked.
+pub struct LoadedSystem {
+    pub dim: usize,
+    pub h: crate::sparse::BlockCsr,
+    pub g: Vec<f64>,
+    pub constraints: Vec<Constraint>,
+    pub frames: Frames,
+    pub read_seconds: f64,
+    pub frames_seconds: f64,
+}
+
+/// Steps 1–2 shared by `solve` and `export`: read H, g and the constraints (JSON or B/p)
+/// with one-line errors, then build the per-node frames.
+pub fn read_system(sys: &SystemArgs) -> Result<LoadedSystem, CliError> {
+    let t_start = Instant::now();
     // 1. Read. bc.json first: it may fix the dimension that H's blocks need.
-    let cli_dim = args.dim.map(usize::from);
-    let bc = match &args.constraints {
+    let cli_dim = sys.dim.map(usize::from);
+    let bc = match &sys.constraints {
         Some(path) => Some(bcjson::read(path, cli_dim)?),
         None => None,
     };
     let dim = match (cli_dim, bc.as_ref().and_then(|b| b.dim)) {
         (Some(d), _) | (None, Some(d)) => d,
         (None, None) => {
-            let file = args.constraints.as_deref().unwrap_or("command line");
+            let file = sys.constraints.as_deref().unwrap_or("command line");
             return Err(InputError::new(
                 file,
                 "dim",
@@ -364,21 +434,21 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
             .into());
         }
     };
-    let h = mtx::read_hessian(&args.hessian, dim)?;
+    let h = mtx::read_hessian(&sys.hessian, dim)?;
     let (nd, n) = (h.ndof(), h.n);
     let g = mtx::read_vector(
-        &args.gradient,
+        &sys.gradient,
         "g",
         Some((nd, &format!("{nd} = {dim} × {n} nodes"))),
     )?;
-    let (constraints, cfile): (Vec<Constraint>, &str) = match (&bc, &args.constraint_matrix) {
+    let (constraints, cfile): (Vec<Constraint>, &str) = match (&bc, &sys.constraint_matrix) {
         (Some(bc), _) => (
             bc.constraints.clone(),
-            args.constraints.as_deref().unwrap_or_default(),
+            sys.constraints.as_deref().unwrap_or_default(),
         ),
         (None, Some(bpath)) => {
             let b = mtx::read_matrix(bpath, "B")?;
-            let p = match &args.constraint_values {
+            let p = match &sys.constraint_values {
                 Some(ppath) => Some((
                     ppath.as_str(),
                     mtx::read_vector(
@@ -400,19 +470,59 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
         }
         (None, None) => unreachable!("clap requires one constraint input"),
     };
-    let t_read = t_start.elapsed().as_secs_f64();
+    let read_seconds = t_start.elapsed().as_secs_f64();
 
     // 2. Constraints → per-node frames, masks and the lift Δx_p.
     let t = Instant::now();
     let frames = Frames::build(dim, n, &constraints)
         .map_err(|e| InputError::new(cfile, e.label, e.problem))?;
+    Ok(LoadedSystem {
+        dim,
+        h,
+        g,
+        constraints,
+        frames,
+        read_seconds,
+        frames_seconds: t.elapsed().as_secs_f64(),
+    })
+}
+
+/// `stickslip solve`: read → constraints → frames → eliminate → solve → recover → write.
+pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
+    let t_start = Instant::now();
+    let precision = args.precision.unwrap_or(PrecisionArg::F64);
+    if args.solver != SolverKind::Gpu && precision != PrecisionArg::F64 {
+        return Err(InputError::new(
+            "command line",
+            "--precision",
+            format!(
+                "{} needs --solver gpu (cholesky and cg compute in f64)",
+                precision_name(precision)
+            ),
+        )
+        .into());
+    }
+    let max_iters = args.max_iters.unwrap_or(CgParams::default().max_iters);
+
+    // 1–2. Read H, g and the constraints; build the per-node frames.
+    let LoadedSystem {
+        dim,
+        h,
+        g,
+        constraints,
+        frames,
+        read_seconds: t_read,
+        frames_seconds,
+    } = read_system(&args.system)?;
+    let n = h.n;
+    let t = Instant::now();
     // 3. The eliminated system (lengths were checked while reading).
     let diag = match args.constrained_diagonal {
         DiagonalArg::Identity => ConstrainedDiagonal::Identity,
         DiagonalArg::Hessian => ConstrainedDiagonal::Hessian,
     };
     let e = Eliminated::new(&h, &g, &frames, diag);
-    let t_setup = t.elapsed().as_secs_f64();
+    let t_setup = frames_seconds + t.elapsed().as_secs_f64();
 
     // 4. Solve.
     let t = Instant::now();
@@ -511,11 +621,11 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
         cg: cgr,
         gpu,
         files: Files {
-            hessian: args.hessian.clone(),
-            gradient: args.gradient.clone(),
-            constraints: args.constraints.clone(),
-            constraint_matrix: args.constraint_matrix.clone(),
-            constraint_values: args.constraint_values.clone(),
+            hessian: args.system.hessian.clone(),
+            gradient: args.system.gradient.clone(),
+            constraints: args.system.constraints.clone(),
+            constraint_matrix: args.system.constraint_matrix.clone(),
+            constraint_values: args.system.constraint_values.clone(),
             out: args.out.clone(),
             reactions: args.reactions.clone(),
         },
@@ -609,6 +719,99 @@ pub fn generate(args: &GenerateArgs, quiet: bool) -> Result<(), CliError> {
             s.frames.free_dofs(),
             dir.display(),
             t.elapsed().as_secs_f64()
+        );
+    }
+    Ok(())
+}
+
+/// `stickslip bench`: see [`crate::bench`].
+fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
+    if let Some(d) = a.dims.iter().find(|&&d| d != 2 && d != 3) {
+        return Err(InputError::new("command line", "--dims", format!("dimension {d} is not 2 or 3")).into());
+    }
+    if a.sizes.as_ref().is_some_and(|s| s.iter().any(|&n| n < 4)) {
+        return Err(InputError::new("command line", "--sizes", "every size must be at least 4 nodes").into());
+    }
+    let opts = crate::bench::BenchOptions {
+        quick: a.quick,
+        sizes: a.sizes.clone(),
+        dims: a.dims.clone(),
+        no_gpu: a.no_gpu,
+        oracle_max_nodes: a.oracle_max_nodes,
+        out: a.out.clone(),
+        quiet,
+        seed: a.seed,
+    };
+    let command: Vec<String> = std::env::args().collect();
+    let report = crate::bench::run(&opts, &command.join(" ")).map_err(|e| match e {
+        crate::bench::BenchError::Io(m) => CliError::Failed(m),
+        crate::bench::BenchError::Solve(m) => CliError::Failed(format!("bench: {m}")),
+    })?;
+    if !quiet {
+        println!("{}", crate::bench::summary_text(&report));
+    }
+    Ok(())
+}
+
+/// `stickslip export`: read → frames → eliminate → write Ĥ, b̂ and the layout.
+fn export(a: &ExportArgs, quiet: bool) -> Result<(), CliError> {
+    let sys = read_system(&a.system)?;
+    let diag = match a.constrained_diagonal {
+        DiagonalArg::Identity => ConstrainedDiagonal::Identity,
+        DiagonalArg::Hessian => ConstrainedDiagonal::Hessian,
+    };
+    let e = Eliminated::new(&sys.h, &sys.g, &sys.frames, diag);
+    let files = crate::export::export(&e, &sys.g, &a.out_dir, !a.no_mtx)
+        .map_err(|err| write_failed(&a.out_dir.display().to_string(), err))?;
+    if !quiet {
+        eprintln!(
+            "exported {} nodes ({} free of {} DOFs, block size {}) to {}: {}",
+            sys.h.n,
+            sys.frames.free_dofs(),
+            sys.h.ndof(),
+            sys.dim,
+            a.out_dir.display(),
+            files.layout.display()
+        );
+    }
+    Ok(())
+}
+
+/// `stickslip recover`: y → Δx = Δx_p + V y and f = −(HΔx + g), checked against the layout.
+fn recover(a: &RecoverArgs, quiet: bool) -> Result<(), CliError> {
+    let layout = crate::export::read_layout(std::path::Path::new(&a.layout))?;
+    let y = if a.solution.ends_with(".mtx") {
+        mtx::read_vector(&a.solution, "y", None)?
+    } else {
+        crate::export::read_petsc_vec(std::path::Path::new(&a.solution))?
+    };
+    let h = mtx::read_hessian(&a.hessian, layout.dim)?;
+    let nd = h.ndof();
+    let g = mtx::read_vector(
+        &a.gradient,
+        "g",
+        Some((nd, &format!("{nd} = {} × {} nodes", layout.dim, h.n))),
+    )?;
+    let (dx, f) = crate::export::recover(
+        &layout,
+        &y,
+        &h,
+        &g,
+        [&a.layout, &a.solution, &a.hessian, &a.gradient],
+    )?;
+    mtx::write_vector(&a.out, &dx, "dx recovered by stickslip recover")
+        .map_err(|e| write_failed(&a.out, e))?;
+    if let Some(path) = &a.reactions {
+        mtx::write_vector(path, &f, "reactions f = -(H dx + g), stickslip recover")
+            .map_err(|e| write_failed(path, e))?;
+    }
+    if !quiet {
+        let frames = layout.frames();
+        let e = Eliminated::new(&h, &g, &frames, ConstrainedDiagonal::Identity);
+        eprintln!(
+            "recovered {} nodes; relative residual of y in the eliminated system {:.3e}",
+            h.n,
+            e.relative_residual(&y)
         );
     }
     Ok(())

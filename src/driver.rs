@@ -41,7 +41,11 @@ pub enum RunError {
     Input(#[from] InputError),
     /// A step failed (exit code 1).
     #[error("step {step} (t = {time:.6} s) failed: {cause}")]
-    Solve { step: usize, time: f64, cause: String },
+    Solve {
+        step: usize,
+        time: f64,
+        cause: String,
+    },
     /// Output could not be written (exit code 1).
     #[error("cannot write {path}: {cause}")]
     Output { path: String, cause: String },
@@ -123,7 +127,10 @@ pub fn load_scene(name_or_path: &str, size: f64) -> Result<Scene, InputError> {
     Err(InputError::new(
         name_or_path,
         "",
-        format!("no such scene file or built-in scene (built-ins: {})", names.join(", ")),
+        format!(
+            "no such scene file or built-in scene (built-ins: {})",
+            names.join(", ")
+        ),
     ))
 }
 
@@ -133,7 +140,12 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
     // 1–3. Scene, boundary conditions and forms.
     let size = opts.size.unwrap_or(1.0);
     if !(size.is_finite() && size > 0.0) {
-        return Err(InputError::new("--size", "", format!("must be a positive number, got {size}")).into());
+        return Err(InputError::new(
+            "--size",
+            "",
+            format!("must be a positive number, got {size}"),
+        )
+        .into());
     }
     let mut scene = load_scene(opts.scene.as_deref().unwrap_or("default"), size)?;
     if let Some(s) = &opts.solver {
@@ -164,7 +176,8 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         cause,
     })?;
     let csv_path = out.join("steps.csv");
-    let mut csv = StepsCsv::create(&csv_path, scene.dim, stepper.has_moving()).map_err(|e| out_err(&csv_path, e))?;
+    let mut csv = StepsCsv::create(&csv_path, scene.dim, stepper.has_moving())
+        .map_err(|e| out_err(&csv_path, e))?;
 
     let record = |s: &Stepper, rep: Option<&crate::integrator::StepReport>| StepRecord {
         step: s.step,
@@ -186,7 +199,8 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         }
         let path = frames_dir.join(format!("{}_{:05}.vtk", scene.name, s.step));
         let title = format!("stickslip {} step {} t = {}", scene.name, s.step, s.t);
-        write_vtk(&path, &scene, &title, &s.x, &s.v, &s.reactions).map_err(|e| out_err(&path, e))?;
+        write_vtk(&path, &scene, &title, &s.x, &s.v, &s.reactions)
+            .map_err(|e| out_err(&path, e))?;
         frames += 1;
         Ok(())
     };
@@ -199,7 +213,9 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         indicatif::ProgressBar::hidden()
     } else {
         let b = indicatif::ProgressBar::new(scene.steps as u64);
-        if let Ok(style) = indicatif::ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} steps {msg} ({elapsed})") {
+        if let Ok(style) = indicatif::ProgressStyle::with_template(
+            "{prefix} [{bar:30}] {pos}/{len} steps {msg} ({elapsed})",
+        ) {
             b.set_style(style.progress_chars("=> "));
         }
         b.set_prefix(scene.name.clone());
@@ -250,7 +266,10 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         if stepper.step % scene.output.every == 0 || stepper.step == scene.steps {
             write_frame(&stepper)?;
         }
-        bar.set_message(format!("newton {} linear {}", rep.newton_iterations, rep.linear_iterations));
+        bar.set_message(format!(
+            "newton {} linear {}",
+            rep.newton_iterations, rep.linear_iterations
+        ));
         bar.inc(1);
     }
     bar.finish_and_clear();

@@ -100,7 +100,11 @@ impl LinearSolver {
     }
 
     /// Solves the eliminated system and recovers Δx. `key` names the constraint set.
-    pub fn solve(&mut self, key: &[bool], e: &Eliminated) -> Result<(Vec<f64>, LinearStats), String> {
+    pub fn solve(
+        &mut self,
+        key: &[bool],
+        e: &Eliminated,
+    ) -> Result<(Vec<f64>, LinearStats), String> {
         let t = Instant::now();
         match self.kind {
             LinearKind::Cholesky => {
@@ -111,18 +115,31 @@ impl LinearSolver {
                 let o = self.oracles.get_mut(key).expect("inserted above");
                 let (y, _) = o.solve(e).map_err(|err| err.to_string())?;
                 let dx = e.recover(&y);
-                Ok((dx, LinearStats { iterations: 1, seconds: t.elapsed().as_secs_f64() }))
+                Ok((
+                    dx,
+                    LinearStats {
+                        iterations: 1,
+                        seconds: t.elapsed().as_secs_f64(),
+                    },
+                ))
             }
             LinearKind::Cg => {
                 let (y, info) = crate::cg::solve(e, &self.cg).map_err(|err| err.to_string())?;
                 let dx = e.recover(&y);
-                Ok((dx, LinearStats { iterations: info.iterations, seconds: t.elapsed().as_secs_f64() }))
+                Ok((
+                    dx,
+                    LinearStats {
+                        iterations: info.iterations,
+                        seconds: t.elapsed().as_secs_f64(),
+                    },
+                ))
             }
             LinearKind::Gpu => {
                 let ctx = self.gpu_ctx.as_ref().ok_or("GPU context missing")?;
                 let mut fresh = false;
                 if !self.gpus.contains_key(key) {
-                    let s = GpuSolver::new(ctx, e, &self.gpu_params).map_err(|err| err.to_string())?;
+                    let s =
+                        GpuSolver::new(ctx, e, &self.gpu_params).map_err(|err| err.to_string())?;
                     self.gpus.insert(key.to_vec(), s);
                     fresh = true;
                 }
@@ -131,7 +148,13 @@ impl LinearSolver {
                     s.update(e).map_err(|err| err.to_string())?;
                 }
                 let (_y, dx, info) = s.solve().map_err(|err| err.to_string())?;
-                Ok((dx, LinearStats { iterations: info.iterations, seconds: t.elapsed().as_secs_f64() }))
+                Ok((
+                    dx,
+                    LinearStats {
+                        iterations: info.iterations,
+                        seconds: t.elapsed().as_secs_f64(),
+                    },
+                ))
             }
         }
     }
@@ -224,11 +247,13 @@ impl<'s> Stepper<'s> {
         }
         let d = self.scene.dim;
         let mut cs = Vec::new();
-        let active = self
-            .static_bcs
-            .iter()
-            .copied()
-            .chain(self.moving_bcs.iter().zip(key).filter(|(_, &on)| on).map(|(&k, _)| k));
+        let active = self.static_bcs.iter().copied().chain(
+            self.moving_bcs
+                .iter()
+                .zip(key)
+                .filter(|(_, &on)| on)
+                .map(|(&k, _)| k),
+        );
         for k in active {
             let b = &self.scene.bcs[k];
             let kind = match &b.shape {
@@ -303,7 +328,11 @@ impl<'s> Stepper<'s> {
         }
 
         // 2. Moving targets at t^{n+1}; nodes already within ε are snapped now.
-        let targets: Vec<BcShape> = self.moving_bcs.iter().map(|&k| sc.bcs[k].shape_at(t1)).collect();
+        let targets: Vec<BcShape> = self
+            .moving_bcs
+            .iter()
+            .map(|&k| sc.bcs[k].shape_at(t1))
+            .collect();
         let mut snapped = vec![false; self.moving_bcs.len()];
         self.snap_satisfied(&mut x, &targets, &mut snapped);
         let mut all_snapped_at = None;
@@ -338,7 +367,9 @@ impl<'s> Stepper<'s> {
             iter += 1;
             let dmax = dx.iter().fold(0.0f64, |m, v| m.max(v.abs()));
             if !dmax.is_finite() {
-                return Err(format!("the Newton direction is not finite at iteration {iter}"));
+                return Err(format!(
+                    "the Newton direction is not finite at iteration {iter}"
+                ));
             }
             if dmax / h < self.newton_tol {
                 let unsat: Vec<usize> = (0..snapped.len()).filter(|&j| !snapped[j]).collect();
@@ -460,7 +491,14 @@ impl<'s> Stepper<'s> {
         }
     }
 
-    fn gradient(&self, x: &[f64], xt: &[f64], targets: &[BcShape], snapped: &[bool], g: &mut [f64]) {
+    fn gradient(
+        &self,
+        x: &[f64],
+        xt: &[f64],
+        targets: &[BcShape],
+        snapped: &[bool],
+        g: &mut [f64],
+    ) {
         let sc = self.scene;
         let d = sc.dim;
         let h = sc.time_step;
@@ -489,7 +527,8 @@ impl<'s> Stepper<'s> {
         let h = sc.time_step;
         self.hmat.values.iter_mut().for_each(|v| *v = 0.0);
         sc.model.add_mass(&mut self.hmat);
-        sc.model.add_potential_hessian(x, h * h, true, &mut self.hmat);
+        sc.model
+            .add_potential_hessian(x, h * h, true, &mut self.hmat);
         for (j, &k) in self.moving_bcs.iter().enumerate() {
             if snapped[j] {
                 continue;
@@ -563,7 +602,11 @@ fn offset(d: usize, s: &BcShape, xi: &[f64]) -> [f64; 3] {
         BcShape::Line { point, direction } => {
             let q = [p[0] - point[0], p[1] - point[1], p[2] - point[2]];
             let s: f64 = (0..3).map(|a| q[a] * direction[a]).sum();
-            [q[0] - s * direction[0], q[1] - s * direction[1], q[2] - s * direction[2]]
+            [
+                q[0] - s * direction[0],
+                q[1] - s * direction[1],
+                q[2] - s * direction[2],
+            ]
         }
     }
 }

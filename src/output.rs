@@ -20,7 +20,14 @@ use std::path::Path;
 
 /// One VTK legacy ASCII unstructured grid: points, cells, point data (velocity,
 /// reaction_force). 2D scenes are written with z = 0.
-pub fn write_vtk(path: &Path, scene: &Scene, title: &str, x: &[f64], v: &[f64], f: &[f64]) -> std::io::Result<()> {
+pub fn write_vtk(
+    path: &Path,
+    scene: &Scene,
+    title: &str,
+    x: &[f64],
+    v: &[f64],
+    f: &[f64],
+) -> std::io::Result<()> {
     let d = scene.dim;
     let n = x.len() / d;
     let mut s = String::with_capacity(64 * n);
@@ -36,7 +43,11 @@ pub fn write_vtk(path: &Path, scene: &Scene, title: &str, x: &[f64], v: &[f64], 
         vec3(&mut s, x, i);
     }
     let ncells: usize = scene.cells.iter().map(|b| b.cells.len()).sum();
-    let size: usize = scene.cells.iter().map(|b| b.cells.iter().map(|c| c.len() + 1).sum::<usize>()).sum();
+    let size: usize = scene
+        .cells
+        .iter()
+        .map(|b| b.cells.iter().map(|c| c.len() + 1).sum::<usize>())
+        .sum();
     let _ = writeln!(s, "CELLS {ncells} {size}");
     for b in &scene.cells {
         for c in &b.cells {
@@ -91,7 +102,8 @@ impl StepsCsv {
     pub fn create(path: &Path, dim: usize, moving: bool) -> std::io::Result<Self> {
         let mut w = BufWriter::new(File::create(path)?);
         let axes = &["x", "y", "z"][..dim];
-        let mut h = String::from("step,time,newton_iterations,linear_iterations,linear_seconds,energy");
+        let mut h =
+            String::from("step,time,newton_iterations,linear_iterations,linear_seconds,energy");
         for pre in ["com", "p", "f"] {
             for a in axes {
                 let _ = write!(h, ",{pre}_{a}");

@@ -74,7 +74,10 @@ pub struct OutputSpec {
 
 impl Default for OutputSpec {
     fn default() -> Self {
-        OutputSpec { every: 1, vtk: true }
+        OutputSpec {
+            every: 1,
+            vtk: true,
+        }
     }
 }
 
@@ -101,7 +104,9 @@ impl std::str::FromStr for LinearKind {
             "cholesky" => Ok(LinearKind::Cholesky),
             "cg" => Ok(LinearKind::Cg),
             "gpu" => Ok(LinearKind::Gpu),
-            _ => Err(format!("unknown solver '{s}' (expected cholesky, cg or gpu)")),
+            _ => Err(format!(
+                "unknown solver '{s}' (expected cholesky, cg or gpu)"
+            )),
         }
     }
 }
@@ -348,7 +353,10 @@ pub enum BcShape {
     /// Stay on nᵀx = c (unit n).
     Plane { normal: [f64; 3], offset: f64 },
     /// Stay on p + span(t) (unit t).
-    Line { point: [f64; 3], direction: [f64; 3] },
+    Line {
+        point: [f64; 3],
+        direction: [f64; 3],
+    },
 }
 
 /// A scripted rigid motion x ↦ c + vτ + R(ωτ)(x − c), τ = clamp(t, start, end) − start.
@@ -560,7 +568,9 @@ fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, InputError> 
     }
     let h = c.positive("time_step", spec.time_step)?;
     let steps = match (spec.steps, spec.end_time) {
-        (Some(_), Some(_)) => return Err(c.err("end_time", "give either steps or end_time, not both")),
+        (Some(_), Some(_)) => {
+            return Err(c.err("end_time", "give either steps or end_time, not both"))
+        }
         (Some(0), None) => return Err(c.err("steps", "must be at least 1")),
         (Some(n), None) => n,
         (None, Some(t)) => {
@@ -593,10 +603,16 @@ fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, InputError> 
     let m = &spec.moving;
     c.positive("moving.penalty_start", m.penalty_start)?;
     if m.penalty_start > 1e6 {
-        return Err(c.err("moving.penalty_start", "must be at most 1e6 (seed 003: start below 1e6 and double)"));
+        return Err(c.err(
+            "moving.penalty_start",
+            "must be at most 1e6 (seed 003: start below 1e6 and double)",
+        ));
     }
     if !(m.penalty_max >= m.penalty_start) || !m.penalty_max.is_finite() {
-        return Err(c.err("moving.penalty_max", "must be finite and at least moving.penalty_start"));
+        return Err(c.err(
+            "moving.penalty_max",
+            "must be finite and at least moving.penalty_start",
+        ));
     }
     c.positive("moving.tolerance", m.tolerance)?;
     if spec.bodies.is_empty() {
@@ -621,18 +637,30 @@ fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, InputError> 
             MaterialModel::NeoHookean => {
                 for (name, v) in [("stiffness", mat.stiffness.is_some())] {
                     if v {
-                        return Err(c.err(format!("{mk}.{name}"), "is a mass-spring parameter; neo-Hookean takes young and poisson"));
+                        return Err(c.err(
+                            format!("{mk}.{name}"),
+                            "is a mass-spring parameter; neo-Hookean takes young and poisson",
+                        ));
                     }
                 }
-                let young = mat
-                    .young
-                    .ok_or_else(|| c.err(format!("{mk}.young"), "missing (neo-Hookean needs young and poisson)"))?;
+                let young = mat.young.ok_or_else(|| {
+                    c.err(
+                        format!("{mk}.young"),
+                        "missing (neo-Hookean needs young and poisson)",
+                    )
+                })?;
                 let young = c.positive(&format!("{mk}.young"), young)?;
-                let nu = mat
-                    .poisson
-                    .ok_or_else(|| c.err(format!("{mk}.poisson"), "missing (neo-Hookean needs young and poisson)"))?;
+                let nu = mat.poisson.ok_or_else(|| {
+                    c.err(
+                        format!("{mk}.poisson"),
+                        "missing (neo-Hookean needs young and poisson)",
+                    )
+                })?;
                 if !(nu > 0.0 && nu < 0.5) {
-                    return Err(c.err(format!("{mk}.poisson"), format!("must be in (0, 0.5), got {nu}")));
+                    return Err(c.err(
+                        format!("{mk}.poisson"),
+                        format!("must be in (0, 0.5), got {nu}"),
+                    ));
                 }
                 let solid = matches!(
                     (dim, mesh.kind),
@@ -644,23 +672,34 @@ fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, InputError> 
                         format!("neo-Hookean needs a solid mesh (rectangle in 2D, box in 3D), got {:?} in {dim}D", body.mesh.kind),
                     ));
                 }
-                let nh = NeoHookean::new(&mesh, young, nu).map_err(|e| c.err(format!("{key}.mesh"), e))?;
+                let nh = NeoHookean::new(&mesh, young, nu)
+                    .map_err(|e| c.err(format!("{key}.mesh"), e))?;
                 let mut nh = nh;
                 shift_elements(&mut nh.elements, offset);
                 ElementSet::NeoHookean(nh)
             }
             MaterialModel::MassSpring => {
-                for (name, v) in [("young", mat.young.is_some()), ("poisson", mat.poisson.is_some())] {
+                for (name, v) in [
+                    ("young", mat.young.is_some()),
+                    ("poisson", mat.poisson.is_some()),
+                ] {
                     if v {
-                        return Err(c.err(format!("{mk}.{name}"), "is a neo-Hookean parameter; mass-spring takes stiffness"));
+                        return Err(c.err(
+                            format!("{mk}.{name}"),
+                            "is a neo-Hookean parameter; mass-spring takes stiffness",
+                        ));
                     }
                 }
-                let k = mat
-                    .stiffness
-                    .ok_or_else(|| c.err(format!("{mk}.stiffness"), "missing (mass-spring needs stiffness)"))?;
+                let k = mat.stiffness.ok_or_else(|| {
+                    c.err(
+                        format!("{mk}.stiffness"),
+                        "missing (mass-spring needs stiffness)",
+                    )
+                })?;
                 let k = c.positive(&format!("{mk}.stiffness"), k)?;
                 let edges = mesh.edges();
-                let mut sp = Springs::new(dim, &mesh.x, edges, k).map_err(|e| c.err(format!("{key}.mesh"), e))?;
+                let mut sp = Springs::new(dim, &mesh.x, edges, k)
+                    .map_err(|e| c.err(format!("{key}.mesh"), e))?;
                 for e in sp.edges.iter_mut() {
                     e[0] += offset;
                     e[1] += offset;
@@ -707,7 +746,10 @@ fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, InputError> 
         let key = format!("boundary[{k}]");
         let range = match bc.body {
             Some(b) if b >= body_range.len() => {
-                return Err(c.err(format!("{key}.body"), format!("there are {} bodies (numbered from 0)", body_range.len())))
+                return Err(c.err(
+                    format!("{key}.body"),
+                    format!("there are {} bodies (numbered from 0)", body_range.len()),
+                ))
             }
             Some(b) => body_range[b].clone(),
             None => 0..x0.len() / dim,
@@ -723,7 +765,10 @@ fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, InputError> 
             ("direction", bc.direction.is_some(), BcKindSpec::Line),
         ] {
             if present && bc.kind != kinds {
-                return Err(c.err(format!("{key}.{name}"), format!("does not apply to a {:?} boundary", bc.kind).to_lowercase()));
+                return Err(c.err(
+                    format!("{key}.{name}"),
+                    format!("does not apply to a {:?} boundary", bc.kind).to_lowercase(),
+                ));
             }
         }
         for &node in &nodes {
@@ -731,32 +776,44 @@ fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, InputError> 
             let shape = match bc.kind {
                 BcKindSpec::Sticky => BcShape::Sticky { anchor: p },
                 BcKindSpec::Plane => {
-                    let raw = bc
-                        .normal
-                        .as_ref()
-                        .ok_or_else(|| c.err(format!("{key}.normal"), "missing (a plane boundary needs a normal)"))?;
+                    let raw = bc.normal.as_ref().ok_or_else(|| {
+                        c.err(
+                            format!("{key}.normal"),
+                            "missing (a plane boundary needs a normal)",
+                        )
+                    })?;
                     let nraw = c.vector(&format!("{key}.normal"), raw, dim)?;
                     let len = mesh::dot3(&nraw, &nraw).sqrt();
                     let n = c.unit(&format!("{key}.normal"), raw, dim)?;
                     let offset = match bc.offset {
-                        Some(o) if !o.is_finite() => return Err(c.err(format!("{key}.offset"), "must be finite")),
+                        Some(o) if !o.is_finite() => {
+                            return Err(c.err(format!("{key}.offset"), "must be finite"))
+                        }
                         Some(o) => o / len,
                         None => mesh::dot3(&n, &p),
                     };
                     BcShape::Plane { normal: n, offset }
                 }
                 BcKindSpec::Line => {
-                    let raw = bc
-                        .direction
-                        .as_ref()
-                        .ok_or_else(|| c.err(format!("{key}.direction"), "missing (a line boundary needs a direction)"))?;
+                    let raw = bc.direction.as_ref().ok_or_else(|| {
+                        c.err(
+                            format!("{key}.direction"),
+                            "missing (a line boundary needs a direction)",
+                        )
+                    })?;
                     let t = c.unit(&format!("{key}.direction"), raw, dim)?;
                     if dim == 2 {
                         // In 2D a line is a plane with the perpendicular normal.
                         let n = [-t[1], t[0], 0.0];
-                        BcShape::Plane { normal: n, offset: mesh::dot3(&n, &p) }
+                        BcShape::Plane {
+                            normal: n,
+                            offset: mesh::dot3(&n, &p),
+                        }
                     } else {
-                        BcShape::Line { point: p, direction: t }
+                        BcShape::Line {
+                            point: p,
+                            direction: t,
+                        }
                     }
                 }
             };
@@ -829,7 +886,10 @@ fn build_mesh(c: &Ctx, key: &str, m: &MeshSpec, dim: usize, size: f64) -> Result
         MeshKind::Box => 3,
     };
     if m.cells.len() != want_cells {
-        return Err(c.err(format!("{mk}.cells"), format!("must have {want_cells} entries for a {:?} mesh", m.kind).to_lowercase()));
+        return Err(c.err(
+            format!("{mk}.cells"),
+            format!("must have {want_cells} entries for a {:?} mesh", m.kind).to_lowercase(),
+        ));
     }
     if let Some(k) = m.cells.iter().position(|&n| n == 0) {
         return Err(c.err(format!("{mk}.cells[{k}]"), "must be at least 1"));
@@ -841,7 +901,10 @@ fn build_mesh(c: &Ctx, key: &str, m: &MeshSpec, dim: usize, size: f64) -> Result
             .as_ref()
             .ok_or_else(|| c.err(format!("{mk}.size"), format!("missing ({n} lengths)")))?;
         if s.len() != n {
-            return Err(c.err(format!("{mk}.size"), format!("must have {n} entries, got {}", s.len())));
+            return Err(c.err(
+                format!("{mk}.size"),
+                format!("must have {n} entries, got {}", s.len()),
+            ));
         }
         for (a, &v) in s.iter().enumerate() {
             c.positive(&format!("{mk}.size[{a}]"), v)?;
@@ -851,7 +914,10 @@ fn build_mesh(c: &Ctx, key: &str, m: &MeshSpec, dim: usize, size: f64) -> Result
     let mut mesh = match m.kind {
         MeshKind::Rectangle => {
             if dim != 2 {
-                return Err(c.err(format!("{mk}.kind"), "a rectangle is a 2D mesh (use box or sheet in 3D)"));
+                return Err(c.err(
+                    format!("{mk}.kind"),
+                    "a rectangle is a 2D mesh (use box or sheet in 3D)",
+                ));
             }
             let s = size_vec(2)?;
             mesh::rectangle(2, [s[0], s[1]], [cells[0], cells[1]])
@@ -862,7 +928,10 @@ fn build_mesh(c: &Ctx, key: &str, m: &MeshSpec, dim: usize, size: f64) -> Result
         }
         MeshKind::Box => {
             if dim != 3 {
-                return Err(c.err(format!("{mk}.kind"), "a box is a 3D mesh (use rectangle in 2D)"));
+                return Err(c.err(
+                    format!("{mk}.kind"),
+                    "a box is a 3D mesh (use rectangle in 2D)",
+                ));
             }
             let s = size_vec(3)?;
             mesh::cuboid([s[0], s[1], s[2]], [cells[0], cells[1], cells[2]])
@@ -876,7 +945,10 @@ fn build_mesh(c: &Ctx, key: &str, m: &MeshSpec, dim: usize, size: f64) -> Result
         }
     };
     if m.kind != MeshKind::Rod && m.length.is_some() {
-        return Err(c.err(format!("{mk}.length"), "only a rod takes a length (use size)"));
+        return Err(c.err(
+            format!("{mk}.length"),
+            "only a rod takes a length (use size)",
+        ));
     }
     if m.kind == MeshKind::Rod && m.size.is_some() {
         return Err(c.err(format!("{mk}.size"), "a rod takes a length, not a size"));
@@ -886,7 +958,9 @@ fn build_mesh(c: &Ctx, key: &str, m: &MeshSpec, dim: usize, size: f64) -> Result
         None => [0.0; 3],
     };
     let angle = match m.rotate_degrees {
-        Some(a) if !a.is_finite() => return Err(c.err(format!("{mk}.rotate_degrees"), "must be finite")),
+        Some(a) if !a.is_finite() => {
+            return Err(c.err(format!("{mk}.rotate_degrees"), "must be finite"))
+        }
         Some(a) => a.to_radians(),
         None => 0.0,
     };
@@ -903,12 +977,20 @@ fn select(
     range: std::ops::Range<usize>,
     char_len: f64,
 ) -> Result<Vec<usize>, InputError> {
-    let given = [r.bbox.is_some(), r.plane.is_some(), r.nodes.is_some(), r.all.is_some()]
-        .iter()
-        .filter(|&&b| b)
-        .count();
+    let given = [
+        r.bbox.is_some(),
+        r.plane.is_some(),
+        r.nodes.is_some(),
+        r.all.is_some(),
+    ]
+    .iter()
+    .filter(|&&b| b)
+    .count();
     if given != 1 {
-        return Err(c.err(format!("{key}.region"), "give exactly one of box, plane, nodes, all"));
+        return Err(c.err(
+            format!("{key}.region"),
+            "give exactly one of box, plane, nodes, all",
+        ));
     }
     let rk = format!("{key}.region");
     let nodes: Vec<usize> = if let Some(b) = &r.bbox {
@@ -926,7 +1008,10 @@ fn select(
         }
         let tol = match p.tolerance {
             Some(t) if !(t >= 0.0 && t.is_finite()) => {
-                return Err(c.err(format!("{rk}.plane.tolerance"), "must be non-negative and finite"))
+                return Err(c.err(
+                    format!("{rk}.plane.tolerance"),
+                    "must be non-negative and finite",
+                ))
             }
             Some(t) => t,
             None => 1e-9 * char_len,
@@ -960,7 +1045,13 @@ fn select(
     Ok(nodes)
 }
 
-fn build_motion(c: &Ctx, key: &str, m: &MotionSpec, dim: usize, kind: BcKindSpec) -> Result<Motion, InputError> {
+fn build_motion(
+    c: &Ctx,
+    key: &str,
+    m: &MotionSpec,
+    dim: usize,
+    kind: BcKindSpec,
+) -> Result<Motion, InputError> {
     let velocity = match &m.velocity {
         Some(v) => c.vector(&format!("{key}.velocity"), v, dim)?,
         None => [0.0; 3],
@@ -977,21 +1068,31 @@ fn build_motion(c: &Ctx, key: &str, m: &MotionSpec, dim: usize, kind: BcKindSpec
     }
     let axis = if dim == 2 {
         if m.axis.is_some() {
-            return Err(c.err(format!("{key}.axis"), "in 2D the rotation is in-plane; give no axis"));
+            return Err(c.err(
+                format!("{key}.axis"),
+                "in 2D the rotation is in-plane; give no axis",
+            ));
         }
         [0.0, 0.0, 1.0]
     } else if omega != 0.0 {
-        let a = m
-            .axis
-            .as_ref()
-            .ok_or_else(|| c.err(format!("{key}.axis"), "missing (a 3D rotation needs an axis)"))?;
+        let a = m.axis.as_ref().ok_or_else(|| {
+            c.err(
+                format!("{key}.axis"),
+                "missing (a 3D rotation needs an axis)",
+            )
+        })?;
         c.unit(&format!("{key}.axis"), a, 3)?
     } else {
         [0.0, 0.0, 1.0]
     };
     let center = match &m.center {
         Some(p) => c.vector(&format!("{key}.center"), p, dim)?,
-        None if omega != 0.0 => return Err(c.err(format!("{key}.center"), "missing (a rotation needs a center)")),
+        None if omega != 0.0 => {
+            return Err(c.err(
+                format!("{key}.center"),
+                "missing (a rotation needs a center)",
+            ))
+        }
         None => [0.0; 3],
     };
     if !m.start.is_finite() || m.start < 0.0 {
@@ -1056,9 +1157,13 @@ material = { model = "neo-hookean", young = 1e4, poisson = 0.3, density = 100 }
         assert_eq!(e.entry, "time_step");
         let e = entry_of(&OK.replace("cells = [4, 2]", "cells = [4]"));
         assert_eq!(e.entry, "bodies[0].mesh.cells");
-        let e = entry_of(&format!("{OK}\n[[boundary]]\nkind = \"plane\"\nregion = {{ all = true }}\n"));
+        let e = entry_of(&format!(
+            "{OK}\n[[boundary]]\nkind = \"plane\"\nregion = {{ all = true }}\n"
+        ));
         assert_eq!(e.entry, "boundary[0].normal");
-        let e = entry_of(&format!("{OK}\n[[boundary]]\nkind = \"sticky\"\nregion = {{ nodes = [99] }}\n"));
+        let e = entry_of(&format!(
+            "{OK}\n[[boundary]]\nkind = \"sticky\"\nregion = {{ nodes = [99] }}\n"
+        ));
         assert_eq!(e.entry, "boundary[0].region.nodes[0]");
     }
 
@@ -1078,6 +1183,9 @@ material = { model = "neo-hookean", young = 1e4, poisson = 0.3, density = 100 }
         // One line, naming the file and the key.
         let e = entry_of(&OK.replace("poisson = 0.3", "poisson = 0.7"));
         let line = e.to_string();
-        assert!(!line.contains('\n') && line.starts_with("bad.toml: bodies[0].material.poisson: "), "{line}");
+        assert!(
+            !line.contains('\n') && line.starts_with("bad.toml: bodies[0].material.poisson: "),
+            "{line}"
+        );
     }
 }

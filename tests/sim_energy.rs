@@ -5,9 +5,13 @@ use stickslip::mesh;
 
 /// Deterministic pseudo-random perturbation in [-amp, amp].
 fn perturb(x: &mut [f64], amp: f64, seed: u64) {
-    let mut s = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    let mut s = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
     for v in x.iter_mut() {
-        s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         let u = ((s >> 11) as f64) / ((1u64 << 53) as f64);
         *v += amp * (2.0 * u - 1.0);
     }
@@ -23,7 +27,12 @@ fn models() -> Vec<(&'static str, Model, Vec<f64>)> {
     perturb(&mut x2, 0.08, 1);
     out.push((
         "2D neo-Hookean + springs + gravity",
-        Model::new(2, m2, Some(vec![0.0, -9.81]), vec![ElementSet::NeoHookean(nh2), ElementSet::Springs(sp2)]),
+        Model::new(
+            2,
+            m2,
+            Some(vec![0.0, -9.81]),
+            vec![ElementSet::NeoHookean(nh2), ElementSet::Springs(sp2)],
+        ),
         x2,
     ));
     let b = mesh::cuboid([1.0, 0.6, 0.4], [2, 2, 1]);
@@ -34,7 +43,12 @@ fn models() -> Vec<(&'static str, Model, Vec<f64>)> {
     perturb(&mut x3, 0.06, 2);
     out.push((
         "3D neo-Hookean + springs + gravity",
-        Model::new(3, m3, Some(vec![0.0, -9.81, 1.0]), vec![ElementSet::NeoHookean(nh3), ElementSet::Springs(sp3)]),
+        Model::new(
+            3,
+            m3,
+            Some(vec![0.0, -9.81, 1.0]),
+            vec![ElementSet::NeoHookean(nh3), ElementSet::Springs(sp3)],
+        ),
         x3,
     ));
     // A compressed, partly inverted state exercises the indefinite branch.
@@ -43,7 +57,11 @@ fn models() -> Vec<(&'static str, Model, Vec<f64>)> {
     let m = t.lumped_masses(1.0);
     let mut xt: Vec<f64> = t.x.iter().map(|v| 0.4 * v).collect();
     perturb(&mut xt, 0.3, 3);
-    out.push(("3D neo-Hookean, compressed/inverted", Model::new(3, m, None, vec![ElementSet::NeoHookean(nh)]), xt));
+    out.push((
+        "3D neo-Hookean, compressed/inverted",
+        Model::new(3, m, None, vec![ElementSet::NeoHookean(nh)]),
+        xt,
+    ));
     out
 }
 
@@ -103,7 +121,10 @@ fn hessians_match_finite_differences_and_projection_is_psd() {
         model.add_potential_hessian(&x, 1.0, true, &mut hp);
         let eig = nalgebra::SymmetricEigen::new(hp.to_dense());
         let min = eig.eigenvalues.min();
-        assert!(min >= -1e-10 * scale, "{name}: projected Hessian has eigenvalue {min}");
+        assert!(
+            min >= -1e-10 * scale,
+            "{name}: projected Hessian has eigenvalue {min}"
+        );
     }
 }
 
@@ -111,18 +132,28 @@ fn hessians_match_finite_differences_and_projection_is_psd() {
 fn rest_state_is_stress_free_and_rigid_motions_cost_nothing() {
     let b = mesh::cuboid([1.0, 0.5, 0.5], [2, 1, 1]);
     let nh = NeoHookean::new(&b, 1e5, 0.3).expect("valid mesh");
-    let model = Model::new(3, b.lumped_masses(1.0), None, vec![ElementSet::NeoHookean(nh)]);
+    let model = Model::new(
+        3,
+        b.lumped_masses(1.0),
+        None,
+        vec![ElementSet::NeoHookean(nh)],
+    );
     let mut g = vec![0.0; b.x.len()];
     model.add_potential_gradient(&b.x, 1.0, &mut g);
     assert!(g.iter().all(|v| v.abs() < 1e-9), "rest gradient {g:?}");
     assert!(model.elastic_energy(&b.x).abs() < 1e-9);
     // Rotate by 40° about z and translate: energy stays zero.
     let (s, c) = (40f64.to_radians().sin(), 40f64.to_radians().cos());
-    let xr: Vec<f64> = b
-        .x
-        .chunks(3)
-        .flat_map(|p| [c * p[0] - s * p[1] + 1.0, s * p[0] + c * p[1] - 2.0, p[2] + 0.5])
-        .collect();
+    let xr: Vec<f64> =
+        b.x.chunks(3)
+            .flat_map(|p| {
+                [
+                    c * p[0] - s * p[1] + 1.0,
+                    s * p[0] + c * p[1] - 2.0,
+                    p[2] + 0.5,
+                ]
+            })
+            .collect();
     assert!(model.elastic_energy(&xr).abs() < 1e-8);
 }
 
@@ -136,7 +167,9 @@ fn small_strain_matches_linear_elasticity() {
     let nh = NeoHookean::new(&t, e, nu).expect("valid mesh");
     let eps = 1e-5;
     let s = [1.0, 0.3, 0.0, 0.3, -0.5, 0.2, 0.0, 0.2, 0.7];
-    let f: Vec<f64> = (0..9).map(|k| if k % 4 == 0 { 1.0 } else { 0.0 } + eps * s[k]).collect();
+    let f: Vec<f64> = (0..9)
+        .map(|k| if k % 4 == 0 { 1.0 } else { 0.0 } + eps * s[k])
+        .collect();
     let tr: f64 = s[0] + s[4] + s[8];
     let ss: f64 = s.iter().map(|v| v * v).sum();
     let lin = mu_l * eps * eps * ss + 0.5 * la_l * eps * eps * tr * tr;

@@ -5,7 +5,10 @@
 use stickslip::driver::{run, RunOptions, RunSummary};
 
 fn out_dir(name: &str) -> std::path::PathBuf {
-    std::env::temp_dir().join(format!("stickslip-sim-momentum-{}-{name}", std::process::id()))
+    std::env::temp_dir().join(format!(
+        "stickslip-sim-momentum-{}-{name}",
+        std::process::id()
+    ))
 }
 
 fn run_scene(name: &str) -> RunSummary {
@@ -40,7 +43,10 @@ fn momentum_error(s: &RunSummary) -> f64 {
 fn hanging_balances_momentum_every_step() {
     let s = run_scene("hanging");
     let e = momentum_error(&s);
-    eprintln!("hanging: {} steps, worst momentum error {e:.3e} of h·M·|g|", s.steps);
+    eprintln!(
+        "hanging: {} steps, worst momentum error {e:.3e} of h·M·|g|",
+        s.steps
+    );
     assert!(e <= 1e-3, "momentum error {e:e}");
     // The pins carry the weight plus the swing: the reaction is not trivially zero.
     let last = s.records.last().expect("records");
@@ -51,7 +57,10 @@ fn hanging_balances_momentum_every_step() {
 fn bead_balances_momentum_every_step() {
     let s = run_scene("bead");
     let e = momentum_error(&s);
-    eprintln!("bead: {} steps, worst momentum error {e:.3e} of h·M·|g|", s.steps);
+    eprintln!(
+        "bead: {} steps, worst momentum error {e:.3e} of h·M·|g|",
+        s.steps
+    );
     assert!(e <= 1e-3, "momentum error {e:e}");
     // Along the wire t the reaction vanishes, so p·t gains h M (g·t) per step.
     let t = [1.0, -0.5, 0.3];
@@ -60,11 +69,20 @@ fn bead_balances_momentum_every_step() {
     let gt: f64 = s.gravity.iter().zip(&t).map(|(g, t)| g * t).sum();
     let scale = s.time_step * s.total_mass * 9.81;
     for w in s.records.windows(2) {
-        let dpt: f64 = (0..3).map(|k| (w[1].momentum[k] - w[0].momentum[k]) * t[k]).sum();
+        let dpt: f64 = (0..3)
+            .map(|k| (w[1].momentum[k] - w[0].momentum[k]) * t[k])
+            .sum();
         let err = (dpt - s.time_step * s.total_mass * gt).abs() / scale;
-        assert!(err <= 1e-3, "step {}: along-wire momentum error {err:e}", w[1].step);
+        assert!(
+            err <= 1e-3,
+            "step {}: along-wire momentum error {err:e}",
+            w[1].step
+        );
         let ft: f64 = (0..3).map(|k| w[1].reaction[k] * t[k]).sum();
-        assert!(ft.abs() <= 1e-9 * s.total_mass * 9.81, "reaction along the wire {ft:e}");
+        assert!(
+            ft.abs() <= 1e-9 * s.total_mass * 9.81,
+            "reaction along the wire {ft:e}"
+        );
     }
 }
 
@@ -72,7 +90,10 @@ fn bead_balances_momentum_every_step() {
 fn incline_slides_with_g_sin_theta() {
     let s = run_scene("incline");
     let e = momentum_error(&s);
-    eprintln!("incline: {} steps, worst momentum error {e:.3e} of h·M·|g|", s.steps);
+    eprintln!(
+        "incline: {} steps, worst momentum error {e:.3e} of h·M·|g|",
+        s.steps
+    );
     assert!(e <= 1e-3, "momentum error {e:e}");
     let (sin, cos) = (30f64.to_radians().sin(), 30f64.to_radians().cos());
     let t = [cos, sin, 0.0]; // up the slope
@@ -85,7 +106,11 @@ fn incline_slides_with_g_sin_theta() {
         let (a, b) = (&w[0], &w[1]);
         // No reaction along the slope (nor along z).
         let ft: f64 = (0..3).map(|k| b.reaction[k] * t[k]).sum();
-        assert!(ft.abs() <= 1e-9 * m * g, "step {}: reaction along the slope {ft:e}", b.step);
+        assert!(
+            ft.abs() <= 1e-9 * m * g,
+            "step {}: reaction along the slope {ft:e}",
+            b.step
+        );
         assert!(b.reaction[2].abs() <= 1e-9 * m * g);
         // Center-of-mass speed down the slope grows by h g sin 30° per step.
         let va: f64 = (0..3).map(|k| a.momentum[k] * t[k]).sum::<f64>() / m;
@@ -103,6 +128,12 @@ fn incline_slides_with_g_sin_theta() {
     let n_steps = s.steps as f64;
     let expect = -h * h * g * sin * n_steps * (n_steps + 1.0) / 2.0;
     let c0: f64 = (0..3).map(|k| s.records[0].com[k] * t[k]).sum();
-    let c1: f64 = (0..3).map(|k| s.records.last().expect("records").com[k] * t[k]).sum();
-    assert!(((c1 - c0) - expect).abs() <= 1e-3 * expect.abs(), "COM moved {} expected {expect}", c1 - c0);
+    let c1: f64 = (0..3)
+        .map(|k| s.records.last().expect("records").com[k] * t[k])
+        .sum();
+    assert!(
+        ((c1 - c0) - expect).abs() <= 1e-3 * expect.abs(),
+        "COM moved {} expected {expect}",
+        c1 - c0
+    );
 }

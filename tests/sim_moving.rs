@@ -6,7 +6,10 @@ use stickslip::driver::{load_scene, run, RunOptions, RunSummary};
 use stickslip::scene::BcShape;
 
 fn run_scene(name: &str) -> RunSummary {
-    let out = std::env::temp_dir().join(format!("stickslip-sim-moving-{}-{name}", std::process::id()));
+    let out = std::env::temp_dir().join(format!(
+        "stickslip-sim-moving-{}-{name}",
+        std::process::id()
+    ));
     let opts = RunOptions {
         scene: Some(name.into()),
         out: Some(out.clone()),
@@ -15,7 +18,11 @@ fn run_scene(name: &str) -> RunSummary {
     };
     let s = run(&opts).unwrap_or_else(|e| panic!("{name}: {e}"));
     let csv = std::fs::read_to_string(out.join("steps.csv")).expect("steps.csv");
-    assert!(csv.lines().next().expect("header").ends_with(",k_m,eliminated_at_iteration"));
+    assert!(csv
+        .lines()
+        .next()
+        .expect("header")
+        .ends_with(",k_m,eliminated_at_iteration"));
     let _ = std::fs::remove_dir_all(&out);
     s
 }
@@ -28,8 +35,14 @@ fn check(name: &str) {
         "{name}: {} moving nodes, k_M {:e} → {:e} ({} doublings), history {:?}",
         m.moving_nodes, m.k_m_start, m.k_m_final, m.k_m_doublings, m.k_m_history
     );
-    eprintln!("{name}: elimination took over at Newton iteration (per step) {:?}", m.eliminated_at_iteration);
-    eprintln!("{name}: first step eliminated at its start: {:?}", m.first_step_eliminated_at_start);
+    eprintln!(
+        "{name}: elimination took over at Newton iteration (per step) {:?}",
+        m.eliminated_at_iteration
+    );
+    eprintln!(
+        "{name}: first step eliminated at its start: {:?}",
+        m.first_step_eliminated_at_start
+    );
     assert!(m.all_eliminated_every_step);
     assert_eq!(m.eliminated_at_iteration.len(), s.steps);
     // At the end, every moving node sits on its target set at t_end (it was snapped, then
@@ -40,14 +53,22 @@ fn check(name: &str) {
     for b in scene.bcs.iter().filter(|b| b.motion.is_some()) {
         let x = &s.final_positions[b.node * d..(b.node + 1) * d];
         let off = match b.shape_at(s.end_time) {
-            BcShape::Sticky { anchor } => (0..d).map(|a| (x[a] - anchor[a]).powi(2)).sum::<f64>().sqrt(),
-            BcShape::Plane { normal, offset } => ((0..d).map(|a| normal[a] * x[a]).sum::<f64>() - offset).abs(),
+            BcShape::Sticky { anchor } => (0..d)
+                .map(|a| (x[a] - anchor[a]).powi(2))
+                .sum::<f64>()
+                .sqrt(),
+            BcShape::Plane { normal, offset } => {
+                ((0..d).map(|a| normal[a] * x[a]).sum::<f64>() - offset).abs()
+            }
             BcShape::Line { .. } => unreachable!("no line in these scenes"),
         };
         worst = worst.max(off);
     }
     eprintln!("{name}: largest final offset of a moving node from its target {worst:e} m (ε·h = {eps_h:e} m)");
-    assert!(worst <= 1e-9 * scene.characteristic_length, "offset {worst:e}");
+    assert!(
+        worst <= 1e-9 * scene.characteristic_length,
+        "offset {worst:e}"
+    );
 }
 
 #[test]
@@ -58,4 +79,52 @@ fn twist_moving_end_reaches_target_then_is_eliminated() {
 #[test]
 fn compress_ceiling_reaches_target_then_is_eliminated() {
     check("compress");
+}
+
+#[test]
+fn augmented_lagrangian_variant_reaches_targets_too() {
+    let text = stickslip::scene::builtin("twist")
+        .expect("builtin")
+        .replace("tolerance = 1e-3", "tolerance = 1e-3\naugmented_lagrangian = true");
+    let dir = std::env::temp_dir().join(format!("stickslip-sim-moving-al-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("tmp");
+    let path = dir.join("twist-al.toml");
+    std::fs::write(&path, text).expect("write");
+    let opts = RunOptions {
+        scene: Some(path.display().to_string()),
+        out: Some(dir.join("out")),
+        steps: Some(20),
+        quiet: true,
+        ..RunOptions::default()
+    };
+    let s = run(&opts).unwrap_or_else(|e| panic!("twist-al: {e}"));
+    let m = s.moving_boundary.as_ref().expect("moving");
+    eprintln!(
+        "twist (augmented Lagrangian): k_M history {:?}, elimination iterations {:?}",
+        m.k_m_history, m.eliminated_at_iteration
+    );
+    assert!(m.settings.augmented_lagrangian && m.all_eliminated_every_step);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn seed_line_node_stays_on_2x_plus_3y_eq_4() {
+    let out = std::env::temp_dir().join(format!("stickslip-sim-seed-line-{}", std::process::id()));
+    let opts = RunOptions {
+        scene: Some("seed-line".into()),
+        out: Some(out.clone()),
+        quiet: true,
+        ..RunOptions::default()
+    };
+    let s = run(&opts).unwrap_or_else(|e| panic!("seed-line: {e}"));
+    let scene = load_scene("seed-line", 1.0).expect("scene");
+    let node = scene.bcs[0].node;
+    let x = &s.final_positions[2 * node..2 * node + 2];
+    let r = 2.0 * x[0] + 3.0 * x[1] - 4.0;
+    eprintln!("seed-line: node {node} ends at ({}, {}), 2x + 3y − 4 = {r:e}", x[0], x[1]);
+    assert!(r.abs() <= 1e-12);
+    // It slid: the line is free along (3, −2)/√13.
+    let x0 = &scene.x0[2 * node..2 * node + 2];
+    assert!((x[0] - x0[0]).abs() > 1e-3);
+    let _ = std::fs::remove_dir_all(&out);
 }

@@ -90,7 +90,12 @@ pub struct Model {
 }
 
 impl Model {
-    pub fn new(dim: usize, mass: Vec<f64>, gravity: Option<Vec<f64>>, sets: Vec<ElementSet>) -> Self {
+    pub fn new(
+        dim: usize,
+        mass: Vec<f64>,
+        gravity: Option<Vec<f64>>,
+        sets: Vec<ElementSet>,
+    ) -> Self {
         let n = mass.len();
         let mut rows: Vec<Vec<usize>> = (0..n).map(|i| vec![i]).collect();
         for s in &sets {
@@ -116,7 +121,11 @@ impl Model {
                     let nodes = s.nodes(e);
                     for &a in nodes {
                         for &b in nodes {
-                            idx.push(pattern.find(a, b).expect("pattern holds every element pair"));
+                            idx.push(
+                                pattern
+                                    .find(a, b)
+                                    .expect("pattern holds every element pair"),
+                            );
                         }
                     }
                 }
@@ -147,7 +156,12 @@ impl Model {
     pub fn elastic_energy(&self, x: &[f64]) -> f64 {
         self.sets
             .iter()
-            .map(|s| (0..s.len()).into_par_iter().map(|e| s.energy(x, e)).sum::<f64>())
+            .map(|s| {
+                (0..s.len())
+                    .into_par_iter()
+                    .map(|e| s.energy(x, e))
+                    .sum::<f64>()
+            })
             .sum()
     }
 

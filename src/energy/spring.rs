@@ -12,7 +12,12 @@ pub struct Springs {
 
 impl Springs {
     /// Springs on `edges` with rest lengths from the positions `x`.
-    pub fn new(dim: usize, x: &[f64], edges: Vec<[usize; 2]>, stiffness: f64) -> Result<Self, String> {
+    pub fn new(
+        dim: usize,
+        x: &[f64],
+        edges: Vec<[usize; 2]>,
+        stiffness: f64,
+    ) -> Result<Self, String> {
         let mut rest = Vec::with_capacity(edges.len());
         for (s, e) in edges.iter().enumerate() {
             let l = (0..dim)
@@ -54,7 +59,11 @@ impl Springs {
         let d = self.dim;
         let (v, l) = self.diff(x, s);
         let l0 = self.rest[s];
-        let c = if l > 0.0 { self.stiffness / l0 * (l - l0) / l } else { 0.0 };
+        let c = if l > 0.0 {
+            self.stiffness / l0 * (l - l0) / l
+        } else {
+            0.0
+        };
         for a in 0..d {
             out[a] = -c * v[a];
             out[d + a] = c * v[a];

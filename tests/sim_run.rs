@@ -1,0 +1,183 @@
+//! `stickslip run` of the built-in default scene: it finishes, writes steps.csv,
+//! summary.json and VTK frames, and the frames parse (a small legacy-VTK reader checks the
+//! counts and that every number is finite). Also: input errors name their key.
+
+use std::path::Path;
+use stickslip::driver::{run, RunError, RunOptions};
+
+/// Parses a legacy ASCII unstructured grid; returns (points, cells, point-data vectors).
+fn parse_vtk(path: &Path) -> (usize, usize, Vec<String>) {
+    let text = std::fs::read_to_string(path).expect("frame readable");
+    let mut lines = text.lines();
+    assert!(lines
+        .next()
+        .expect("version")
+        .starts_with("# vtk DataFile Version"));
+    lines.next().expect("title");
+    assert_eq!(lines.next(), Some("ASCII"));
+    assert_eq!(lines.next(), Some("DATASET UNSTRUCTURED_GRID"));
+    let mut tok = lines.flat_map(|l| l.split_whitespace()).peekable();
+    let mut next = move || tok.next();
+    let num = |t: Option<&str>| -> f64 {
+        let t = t.expect("truncated");
+        let v: f64 = t.parse().unwrap_or_else(|_| panic!("not a number: {t}"));
+        assert!(v.is_finite(), "non-finite {t}");
+        v
+    };
+    let int = |t: Option<&str>| -> usize { t.expect("truncated").parse().expect("integer") };
+    assert_eq!(next(), Some("POINTS"));
+    let n = int(next());
+    assert_eq!(next(), Some("double"));
+    for _ in 0..3 * n {
+        num(next());
+    }
+    assert_eq!(next(), Some("CELLS"));
+    let nc = int(next());
+    let size = int(next());
+    let mut read = 0;
+    for _ in 0..nc {
+        let m = int(next());
+        read += m + 1;
+        for _ in 0..m {
+            let i = int(next());
+            assert!(i < n, "cell index {i} out of range");
+        }
+    }
+    assert_eq!(read, size);
+    assert_eq!(next(), Some("CELL_TYPES"));
+    assert_eq!(int(next()), nc);
+    for _ in 0..nc {
+        let t = int(next());
+        assert!([3, 5, 10].contains(&t));
+    }
+    assert_eq!(next(), Some("POINT_DATA"));
+    assert_eq!(int(next()), n);
+    let mut names = Vec::new();
+    while let Some(t) = next() {
+        assert_eq!(t, "VECTORS");
+        names.push(next().expect("name").to_string());
+        assert_eq!(next(), Some("double"));
+        for _ in 0..3 * n {
+            num(next());
+        }
+    }
+    (n, nc, names)
+}
+
+#[test]
+fn default_scene_runs_and_writes_frames_that_parse() {
+    let out = std::env::temp_dir().join(format!("stickslip-sim-run-{}", std::process::id()));
+    let opts = RunOptions {
+        out: Some(out.clone()),
+        quiet: true,
+        ..RunOptions::default()
+    };
+    let t = std::time::Instant::now();
+    let s = run(&opts).unwrap_or_else(|e| panic!("default: {e}"));
+    eprintln!(
+        "default: {} nodes, {} steps, {:.2} s wall (test profile), newton {}, k_M history {:?}",
+        s.nodes,
+        s.steps,
+        t.elapsed().as_secs_f64(),
+        s.newton_iterations,
+        s.moving_boundary.as_ref().map(|m| m.k_m_history.clone())
+    );
+    let frames: Vec<_> = std::fs::read_dir(out.join("frames"))
+        .expect("frames dir")
+        .map(|e| e.expect("entry").path())
+        .collect();
+    assert_eq!(frames.len(), s.frames);
+    assert!(frames.len() >= 2);
+    for f in &frames {
+        let (n, nc, names) = parse_vtk(f);
+        assert_eq!(n, s.nodes);
+        assert_eq!(nc, s.elements);
+        assert_eq!(names, ["velocity", "reaction_force"]);
+    }
+    let csv = std::fs::read_to_string(out.join("steps.csv")).expect("steps.csv");
+    assert_eq!(csv.lines().count(), s.steps + 2);
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary"))
+            .expect("json");
+    for key in [
+        "total_mass",
+        "time_step",
+        "gravity",
+        "steps",
+        "wall_seconds",
+        "solver",
+    ] {
+        assert!(json.get(key).is_some(), "summary.json lacks {key}");
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn bad_scene_files_are_input_errors_naming_the_key() {
+    let dir = std::env::temp_dir().join(format!("stickslip-sim-bad-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("tmp");
+    let base = stickslip::scene::builtin("compress").expect("builtin");
+    let cases = [
+        (
+            base.replace("poisson = 0.4", "poisson = 0.6"),
+            "bodies[0].material.poisson",
+        ),
+        (
+            base.replace("poisson = 0.4", "poissons = 0.4"),
+            "bodies[0].material.poissons",
+        ),
+        (
+            base.replace("time_step = 0.01", "time_step = -0.01"),
+            "time_step",
+        ),
+        (
+            base.replace("end = 0.4", "end = 0.4, spin = 2.0"),
+            "boundary[1].motion.spin",
+        ),
+        (
+            base.replace("kind = \"rectangle\"", "kind = \"circle\""),
+            "bodies[0].mesh.kind",
+        ),
+        (
+            base.replace("cells = [8, 8]", "cells = [8, 0]"),
+            "bodies[0].mesh.cells[1]",
+        ),
+    ];
+    for (k, (text, key)) in cases.iter().enumerate() {
+        let path = dir.join(format!("bad{k}.toml"));
+        std::fs::write(&path, text).expect("write");
+        let opts = RunOptions {
+            scene: Some(path.display().to_string()),
+            out: Some(dir.join("out")),
+            quiet: true,
+            ..RunOptions::default()
+        };
+        match run(&opts) {
+            Err(RunError::Input(e)) => {
+                assert_eq!(e.entry, *key, "case {k}: {e}");
+                assert_eq!(RunError::Input(e.clone()).exit_code(), 2);
+                let line = e.to_string();
+                assert!(!line.contains('\n'), "{line}");
+                assert!(line.contains(&path.display().to_string()), "{line}");
+            }
+            other => panic!("case {k}: expected an input error, got {other:?}"),
+        }
+    }
+    let opts = RunOptions {
+        scene: Some("no-such-scene".into()),
+        quiet: true,
+        ..RunOptions::default()
+    };
+    assert!(matches!(run(&opts), Err(RunError::Input(_))));
+    let opts = RunOptions {
+        scene: Some("hanging".into()),
+        solver: Some("magic".into()),
+        quiet: true,
+        ..RunOptions::default()
+    };
+    match run(&opts) {
+        Err(RunError::Input(e)) => assert_eq!(e.file, "--solver"),
+        other => panic!("expected an input error, got {other:?}"),
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
