@@ -5,7 +5,9 @@ use std::time::Instant;
 use stickslip::cg::{self, CgParams, Preconditioner};
 use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::generate::{random_system, SystemSpec};
-use stickslip::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
+use stickslip::gpu::{
+    measure_copy_bandwidth, GpuContext, GpuOptions, GpuParams, GpuSolver, Precision,
+};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
@@ -60,7 +62,47 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         println!("matvec alone: {:.1} ms", t.elapsed().as_secs_f64() * 200.0);
     }
+    let reps: usize = std::env::var("PROFILE_REPS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(10);
+    let copy_gbs = measure_copy_bandwidth(&ctx)?;
+    println!("adapter: {}; copy bandwidth (128 MiB copy_buffer_to_buffer, read+write) {copy_gbs:.2} GB/s", ctx.adapter_name());
+    if let Some(prof) = sol.profile_kernels(reps)? {
+        let line: Vec<String> = prof
+            .iter()
+            .map(|k| {
+                format!(
+                    "{} {:.2} (mean {:.2}) ms",
+                    k.name,
+                    k.best_s * 1e3,
+                    k.mean_s * 1e3
+                )
+            })
+            .collect();
+        println!(
+            "per-kernel device time (best of {reps}): {}; sum of the CG three {:.2} ms",
+            line.join(", "),
+            prof.iter().take(3).map(|k| k.best_s).sum::<f64>() * 1e3
+        );
+    }
+    if std::env::var("PROFILE_ONLY").is_ok() {
+        return Ok(());
+    }
     let (_, dx, info) = sol.solve()?;
+    println!(
+        "gpu: {} iterations ({} recorded, {:.1}% over), {} dispatches/iteration, {} readbacks, {:.1} MB/iteration, {:.2} GB/s wall ({:.2} of copy), {} GB/s timestamps ({} of copy)",
+        info.iterations,
+        info.recorded_iterations,
+        100.0 * (info.recorded_iterations as f64 / info.iterations.max(1) as f64 - 1.0),
+        info.dispatches_per_iteration,
+        info.readbacks,
+        info.bytes_per_iteration as f64 / 1e6,
+        info.achieved_gb_per_s,
+        info.achieved_gb_per_s / copy_gbs,
+        info.achieved_gb_per_s_gpu.map(|g| format!("{g:.2}")).unwrap_or("-".into()),
+        info.achieved_gb_per_s_gpu.map(|g| format!("{:.2}", g / copy_gbs)).unwrap_or("-".into()),
+    );
     println!("gpu: {}", serde_json::to_string_pretty(&info)?);
     println!("gpu: solver build (pipelines, buffers, upload, setup) {build:.3} s");
     let r = sol.resources();
@@ -70,6 +112,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         r.total_bytes() as f64 / (1 << 20) as f64,
         r.dispatches
     );
+    if std::env::var("SKIP_CPU").is_ok() {
+        return Ok(());
+    }
     let t = Instant::now();
     let (y_cpu, cinfo) = cg::solve(
         &e,
@@ -89,18 +134,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .sum::<f64>()
         .sqrt();
     let nrm: f64 = dx_cpu.iter().map(|a| a * a).sum::<f64>().sqrt();
-    // CPU CG moves the same arrays in f64 (its matvec also rotates per call).
-    let cpu_bytes = info.bytes_per_iteration as f64
-        * if precision == Precision::F32 {
-            2.0
-        } else {
-            1.0
-        };
+    // f64 blocks, usize indices and ~18 vector passes per CPU iteration.
+    let cpu_bytes = stickslip::bench::cpu_cg_bytes_per_iteration(&e) as f64;
     println!(
-        "cpu cg (f64, 1 thread): {} iterations, {:.3} s, {:.2} ms/iteration, ~{:.2} GB/s, residual {:.2e}",
+        "cpu cg (f64, 1 thread): {} iterations, {:.3} s, {:.2} ms/iteration, {:.1} MB/iteration, ~{:.2} GB/s, residual {:.2e}",
         cinfo.iterations,
         cpu_s,
         1e3 * cpu_s / cinfo.iterations.max(1) as f64,
+        cpu_bytes / 1e6,
         cpu_bytes * cinfo.iterations as f64 / cpu_s / 1e9,
         cinfo.relative_residual
     );

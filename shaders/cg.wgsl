@@ -82,22 +82,27 @@ fn write_rz_rr(lid: u32, wg: u32, prz: acc, prr: acc) {
     }
 }
 
-fn precondition(i: u32, rv: array<real, 3>) -> array<real, 3> {
-    var zv = rv;
+// Block-Jacobi z_i = M_i⁻¹ r_i, explicit 3- and 2-component paths (no private arrays).
+fn block3(i: u32, rv: vec3<real>) -> vec3<real> {
+    let m = 9u * i;
+    return vec3<real>(
+        minv[m] * rv.x + minv[m + 1u] * rv.y + minv[m + 2u] * rv.z,
+        minv[m + 3u] * rv.x + minv[m + 4u] * rv.y + minv[m + 5u] * rv.z,
+        minv[m + 6u] * rv.x + minv[m + 7u] * rv.y + minv[m + 8u] * rv.z,
+    );
+}
+
+fn block2(i: u32, rv: vec2<real>) -> vec2<real> {
+    let m = 4u * i;
+    return vec2<real>(minv[m] * rv.x + minv[m + 1u] * rv.y, minv[m + 2u] * rv.x + minv[m + 3u] * rv.y);
+}
+
+// z_k = M⁻¹ r_k for the diagonal preconditioners (0 none, 1 Jacobi), one component.
+fn diag_z(k: u32, rk: real) -> real {
     if (PRECOND == 1u) {
-        for (var a = 0u; a < D; a++) {
-            zv[a] = minv[i * D + a] * rv[a];
-        }
-    } else if (PRECOND == 2u) {
-        for (var a = 0u; a < D; a++) {
-            var s = real(0.0);
-            for (var c = 0u; c < D; c++) {
-                s += minv[i * D * D + a * D + c] * rv[c];
-            }
-            zv[a] = s;
-        }
+        return minv[k] * rk;
     }
-    return zv;
+    return rk;
 }
 
 @compute @workgroup_size(WG)
@@ -155,20 +160,55 @@ fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
     let alpha = real(alpha_acc);
     var prz = acc(0.0);
     var prr = acc(0.0);
-    for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += params.n_partials * WG) {
-        var rv = array<real, 3>(real(0.0), real(0.0), real(0.0));
-        for (var a = 0u; a < D; a++) {
-            let k = i * D + a;
+    let stride = params.n_partials * WG;
+    if (PRECOND != 2u) {
+        // Diagonal preconditioners: element-wise over the d·n components.
+        let n = params.n_nodes * D;
+        for (var k = wid.x * WG + lid.x; k < n; k += stride) {
             x[k] += alpha * p[k];
             let rk = r[k] - alpha * q[k];
             r[k] = rk;
-            rv[a] = rk;
+            let zk = diag_z(k, rk);
+            z[k] = zk;
+            prz += acc(rk) * acc(zk);
+            prr += acc(rk) * acc(rk);
         }
-        let zv = precondition(i, rv);
-        for (var a = 0u; a < D; a++) {
-            z[i * D + a] = zv[a];
-            prz += acc(rv[a]) * acc(zv[a]);
-            prr += acc(rv[a]) * acc(rv[a]);
+    } else if (D == 3u) {
+        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
+            let k = 3u * i;
+            let pv = vec3<real>(p[k], p[k + 1u], p[k + 2u]);
+            let xv = vec3<real>(x[k], x[k + 1u], x[k + 2u]) + alpha * pv;
+            let qv = vec3<real>(q[k], q[k + 1u], q[k + 2u]);
+            let rv = vec3<real>(r[k], r[k + 1u], r[k + 2u]) - alpha * qv;
+            let zv = block3(i, rv);
+            x[k] = xv.x;
+            x[k + 1u] = xv.y;
+            x[k + 2u] = xv.z;
+            r[k] = rv.x;
+            r[k + 1u] = rv.y;
+            r[k + 2u] = rv.z;
+            z[k] = zv.x;
+            z[k + 1u] = zv.y;
+            z[k + 2u] = zv.z;
+            prz += acc(rv.x) * acc(zv.x) + acc(rv.y) * acc(zv.y) + acc(rv.z) * acc(zv.z);
+            prr += acc(rv.x) * acc(rv.x) + acc(rv.y) * acc(rv.y) + acc(rv.z) * acc(rv.z);
+        }
+    } else {
+        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
+            let k = 2u * i;
+            let pv = vec2<real>(p[k], p[k + 1u]);
+            let xv = vec2<real>(x[k], x[k + 1u]) + alpha * pv;
+            let qv = vec2<real>(q[k], q[k + 1u]);
+            let rv = vec2<real>(r[k], r[k + 1u]) - alpha * qv;
+            let zv = block2(i, rv);
+            x[k] = xv.x;
+            x[k + 1u] = xv.y;
+            r[k] = rv.x;
+            r[k + 1u] = rv.y;
+            z[k] = zv.x;
+            z[k + 1u] = zv.y;
+            prz += acc(rv.x) * acc(zv.x) + acc(rv.y) * acc(zv.y);
+            prr += acc(rv.x) * acc(rv.x) + acc(rv.y) * acc(rv.y);
         }
     }
     write_rz_rr(lid.x, wid.x, prz, prr);
@@ -186,20 +226,42 @@ fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
 fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
     var prz = acc(0.0);
     var prr = acc(0.0);
-    for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += params.n_partials * WG) {
-        var rv = array<real, 3>(real(0.0), real(0.0), real(0.0));
-        for (var a = 0u; a < D; a++) {
-            let k = i * D + a;
+    let stride = params.n_partials * WG;
+    let n = params.n_nodes * D;
+    for (var k = wid.x * WG + lid.x; k < n; k += stride) {
+        let rk = b[k] - q[k];
+        r[k] = rk;
+        p[k] = real(0.0);
+    }
+    if (PRECOND != 2u) {
+        for (var k = wid.x * WG + lid.x; k < n; k += stride) {
             let rk = b[k] - q[k];
-            r[k] = rk;
-            rv[a] = rk;
-            p[k] = real(0.0);
+            let zk = diag_z(k, rk);
+            z[k] = zk;
+            prz += acc(rk) * acc(zk);
+            prr += acc(rk) * acc(rk);
         }
-        let zv = precondition(i, rv);
-        for (var a = 0u; a < D; a++) {
-            z[i * D + a] = zv[a];
-            prz += acc(rv[a]) * acc(zv[a]);
-            prr += acc(rv[a]) * acc(rv[a]);
+    } else if (D == 3u) {
+        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
+            let k = 3u * i;
+            // Recomputed rather than read back: r[k] may come from another workgroup.
+            let rv = vec3<real>(b[k], b[k + 1u], b[k + 2u]) - vec3<real>(q[k], q[k + 1u], q[k + 2u]);
+            let zv = block3(i, rv);
+            z[k] = zv.x;
+            z[k + 1u] = zv.y;
+            z[k + 2u] = zv.z;
+            prz += acc(rv.x) * acc(zv.x) + acc(rv.y) * acc(zv.y) + acc(rv.z) * acc(zv.z);
+            prr += acc(rv.x) * acc(rv.x) + acc(rv.y) * acc(rv.y) + acc(rv.z) * acc(rv.z);
+        }
+    } else {
+        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
+            let k = 2u * i;
+            let rv = vec2<real>(b[k], b[k + 1u]) - vec2<real>(q[k], q[k + 1u]);
+            let zv = block2(i, rv);
+            z[k] = zv.x;
+            z[k + 1u] = zv.y;
+            prz += acc(rv.x) * acc(zv.x) + acc(rv.y) * acc(zv.y);
+            prr += acc(rv.x) * acc(rv.x) + acc(rv.y) * acc(rv.y);
         }
     }
     write_rz_rr(lid.x, wid.x, prz, prr);

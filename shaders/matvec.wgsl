@@ -3,6 +3,13 @@
 //   q_i = P_i Σ_j Ĥ_ij P_j p_j + (I − P_i) D_i p_i,   partials[0·G + wg] = Σ p·q.
 // The scalar types `real` and `acc` come from a one-line alias prelude (WGSL overrides
 // cannot change types); everything else is specialized with override constants.
+//
+// Block storage ("planes", one thread per block row, vector loads): block k, row-major
+// entries e0..e8, is split over three arrays so that a row reads with three loads:
+//   D = 3: blk_a[k] = (e0, e1, e2, e3), blk_b[k] = (e4, e5, e6, e7), blk_c[k] = e8
+//   D = 2: blk_a[k] = (e0, e1, e2, e3); blk_b, blk_c unused.
+// The planes also keep each binding below the adapter's storage binding limit: the
+// largest plane holds 4 of the 9 values (f64 blocks of a 216k-node mesh fit in 128 MiB).
 
 override D: u32 = 3u;          // block size (2 or 3)
 override WG: u32 = 64u;        // workgroup size (power of two, ≤ WG_MAX)
@@ -23,61 +30,69 @@ const COL_BITS: u32 = 0x1fffffffu;
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
 @group(0) @binding(2) var<storage, read> col: array<u32>;
-@group(0) @binding(3) var<storage, read> blocks: array<real>;
+@group(0) @binding(3) var<storage, read> blk_a: array<vec4<real>>;
 @group(0) @binding(4) var<storage, read> mask: array<u32>;
 @group(0) @binding(5) var<storage, read> dvals: array<real>;
 @group(0) @binding(6) var<storage, read> p: array<real>;
 @group(0) @binding(7) var<storage, read_write> q: array<real>;
 @group(0) @binding(8) var<storage, read_write> partials: array<acc>;
 @group(0) @binding(9) var<storage, read> state: array<u32>;
+@group(0) @binding(10) var<storage, read> blk_b: array<vec4<real>>;
+@group(0) @binding(11) var<storage, read> blk_c: array<real>;
 
 var<workgroup> sh: array<acc, WG_MAX>;
+var<workgroup> wg_done: u32;
 
-fn bit(m: u32, c: u32) -> bool {
-    return MASKED && ((m >> c) & 1u) != 0u;
+// Component a of a packed mask is set (constrained).
+fn mbits3(m: u32) -> vec3<bool> {
+    return ((vec3<u32>(m) >> vec3<u32>(0u, 1u, 2u)) & vec3<u32>(1u)) != vec3<u32>(0u);
 }
 
-fn row3(i: u32) -> array<real, 3> {
+fn mbits2(m: u32) -> vec2<bool> {
+    return ((vec2<u32>(m) >> vec2<u32>(0u, 1u)) & vec2<u32>(1u)) != vec2<u32>(0u);
+}
+
+fn p3(j: u32) -> vec3<real> {
+    return vec3<real>(p[3u * j], p[3u * j + 1u], p[3u * j + 2u]);
+}
+
+fn p2(j: u32) -> vec2<real> {
+    return vec2<real>(p[2u * j], p[2u * j + 1u]);
+}
+
+// Row i, D = 3, accumulated as columns of the block: Σ_k B_k p_j.
+fn row3(i: u32) -> vec3<real> {
     var s = vec3<real>(real(0.0));
     let k1 = row_ptr[i + 1u];
     for (var k = row_ptr[i]; k < k1; k++) {
         let cj = col[k];
-        let j = cj & COL_BITS;
-        let mj = cj >> 29u;
-        let z = real(0.0);
-        let pj = vec3<real>(
-            select(p[3u * j], z, bit(mj, 0u)),
-            select(p[3u * j + 1u], z, bit(mj, 1u)),
-            select(p[3u * j + 2u], z, bit(mj, 2u)),
-        );
-        let b = 9u * k;
-        s += vec3<real>(
-            dot(vec3<real>(blocks[b], blocks[b + 1u], blocks[b + 2u]), pj),
-            dot(vec3<real>(blocks[b + 3u], blocks[b + 4u], blocks[b + 5u]), pj),
-            dot(vec3<real>(blocks[b + 6u], blocks[b + 7u], blocks[b + 8u]), pj),
-        );
+        var pj = p3(cj & COL_BITS);
+        if (MASKED) {
+            pj = select(pj, vec3<real>(real(0.0)), mbits3(cj >> 29u));
+        }
+        let a = blk_a[k];
+        let b = blk_b[k];
+        let c = blk_c[k];
+        s += vec3<real>(a.x, a.w, b.z) * pj.x + vec3<real>(a.y, b.x, b.w) * pj.y
+            + vec3<real>(a.z, b.y, c) * pj.z;
     }
-    return array<real, 3>(s.x, s.y, s.z);
+    return s;
 }
 
-fn row2(i: u32) -> array<real, 3> {
+fn row2(i: u32) -> vec2<real> {
     var s = vec2<real>(real(0.0));
     let k1 = row_ptr[i + 1u];
     for (var k = row_ptr[i]; k < k1; k++) {
         let cj = col[k];
-        let j = cj & COL_BITS;
-        let mj = cj >> 29u;
-        let z = real(0.0);
-        let pj = vec2<real>(select(p[2u * j], z, bit(mj, 0u)), select(p[2u * j + 1u], z, bit(mj, 1u)));
-        let b = 4u * k;
-        s += vec2<real>(
-            dot(vec2<real>(blocks[b], blocks[b + 1u]), pj),
-            dot(vec2<real>(blocks[b + 2u], blocks[b + 3u]), pj),
-        );
+        var pj = p2(cj & COL_BITS);
+        if (MASKED) {
+            pj = select(pj, vec2<real>(real(0.0)), mbits2(cj >> 29u));
+        }
+        let a = blk_a[k];
+        s += a.xz * pj.x + a.yw * pj.y;
     }
-    return array<real, 3>(s.x, s.y, real(0.0));
+    return s;
 }
-var<workgroup> wg_done: u32;
 
 @compute @workgroup_size(WG)
 fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
@@ -92,27 +107,28 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
     var part = acc(0.0);
     for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
         // Explicit 3- and 2-component paths: the override D removes the dead one, and
-        // the straight-line code avoids dynamically indexed private arrays (about 4× faster
-        // on lavapipe than the generic loops).
-        var s = array<real, 3>(real(0.0), real(0.0), real(0.0));
+        // the straight-line vector code avoids dynamically indexed private arrays.
         if (D == 3u) {
-            s = row3(i);
-        } else {
-            s = row2(i);
-        }
-        var mi = 0u;
-        if (MASKED) {
-            mi = mask[i];
-        }
-        for (var r = 0u; r < D; r++) {
-            let idx = i * D + r;
-            let pr = p[idx];
-            var v = s[r];
-            if (MASKED && ((mi >> r) & 1u) != 0u) {
-                v = dvals[idx] * pr;
+            var v = row3(i);
+            let pi = p3(i);
+            if (MASKED) {
+                let dv = vec3<real>(dvals[3u * i], dvals[3u * i + 1u], dvals[3u * i + 2u]);
+                v = select(v, dv * pi, mbits3(mask[i]));
             }
-            q[idx] = v;
-            part += acc(pr) * acc(v);
+            q[3u * i] = v.x;
+            q[3u * i + 1u] = v.y;
+            q[3u * i + 2u] = v.z;
+            part += acc(pi.x) * acc(v.x) + acc(pi.y) * acc(v.y) + acc(pi.z) * acc(v.z);
+        } else {
+            var v = row2(i);
+            let pi = p2(i);
+            if (MASKED) {
+                let dv = vec2<real>(dvals[2u * i], dvals[2u * i + 1u]);
+                v = select(v, dv * pi, mbits2(mask[i]));
+            }
+            q[2u * i] = v.x;
+            q[2u * i + 1u] = v.y;
+            part += acc(pi.x) * acc(v.x) + acc(pi.y) * acc(v.y);
         }
     }
     sh[lid.x] = part;

@@ -20,10 +20,24 @@ const COL_BITS: u32 = 0x1fffffffu;
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
 @group(0) @binding(2) var<storage, read> col: array<u32>;
-@group(0) @binding(3) var<storage, read> blocks: array<real>;
+// Block planes as in matvec.wgsl: blk_a[k] = e0..e3, blk_b[k] = e4..e7, blk_c[k] = e8.
+@group(0) @binding(3) var<storage, read> blk_a: array<vec4<real>>;
 @group(0) @binding(4) var<storage, read> mask: array<u32>;
 @group(0) @binding(5) var<storage, read> dvals: array<real>;
 @group(0) @binding(6) var<storage, read_write> minv: array<real>;
+@group(0) @binding(7) var<storage, read> blk_b: array<vec4<real>>;
+@group(0) @binding(8) var<storage, read> blk_c: array<real>;
+
+// Block k as row-major d×d values (the first D·D entries are meaningful).
+fn load_block(k: u32) -> array<real, 9> {
+    let a = blk_a[k];
+    if (D == 3u) {
+        let b = blk_b[k];
+        return array<real, 9>(a.x, a.y, a.z, a.w, b.x, b.y, b.z, b.w, blk_c[k]);
+    }
+    let z = real(0.0);
+    return array<real, 9>(a.x, a.y, a.z, a.w, z, z, z, z, z);
+}
 
 fn inv_or_one(v: real) -> real {
     if (v > real(0.0)) {
@@ -44,9 +58,7 @@ fn build(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     for (var k = row_ptr[i]; k < row_ptr[i + 1u]; k++) {
         if ((col[k] & COL_BITS) == i) {
-            for (var e = 0u; e < D * D; e++) {
-                b[e] = blocks[k * D * D + e];
-            }
+            b = load_block(k);
         }
     }
     if (MASKED) {

@@ -1,5 +1,5 @@
 // Per-node changes of basis V_i, run only for scenes with slip nodes.
-// rotate_blocks: Ĥ_ij = V_iᵀ H_ij V_j for every block that touches a rotated node (setup).
+// (rotate_blocks, Ĥ_ij = V_iᵀ H_ij V_j on the block planes, is in rotate_blocks.wgsl.)
 // rotate_vectors: x_i ← V_i x_i (TRANSPOSE = false) or V_iᵀ x_i, over the rotated nodes.
 
 override D: u32 = 3u;
@@ -13,69 +13,17 @@ struct Params {
     n_blocks: u32,
 }
 
-const COL_BITS: u32 = 0x1fffffffu;
 const NO_ROTATION: u32 = 0xffffffffu;
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> rot_index: array<u32>;
 @group(0) @binding(2) var<storage, read> rot_nodes: array<u32>;
 @group(0) @binding(3) var<storage, read> rotations: array<real>;
-@group(0) @binding(4) var<storage, read> row_ptr: array<u32>;
-@group(0) @binding(5) var<storage, read> col: array<u32>;
-@group(0) @binding(6) var<storage, read_write> data: array<real>;
+@group(0) @binding(4) var<storage, read_write> data: array<real>;
 
 // V_r[a][b], row-major: its columns are the frame basis.
 fn v(r: u32, a: u32, b: u32) -> real {
     return rotations[r * D * D + a * D + b];
-}
-
-@compute @workgroup_size(WG)
-fn rotate_blocks(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if (i >= params.n_nodes) {
-        return;
-    }
-    let ri = rot_index[i];
-    for (var k = row_ptr[i]; k < row_ptr[i + 1u]; k++) {
-        let rj = rot_index[col[k] & COL_BITS];
-        if (ri == NO_ROTATION && rj == NO_ROTATION) {
-            continue;
-        }
-        let base = k * D * D;
-        var b: array<real, 9>;
-        for (var e = 0u; e < D * D; e++) {
-            b[e] = data[base + e];
-        }
-        // t = B V_j
-        var t: array<real, 9>;
-        for (var r = 0u; r < D; r++) {
-            for (var c = 0u; c < D; c++) {
-                if (rj == NO_ROTATION) {
-                    t[r * D + c] = b[r * D + c];
-                } else {
-                    var s = real(0.0);
-                    for (var m = 0u; m < D; m++) {
-                        s += b[r * D + m] * v(rj, m, c);
-                    }
-                    t[r * D + c] = s;
-                }
-            }
-        }
-        // out = V_iᵀ t
-        for (var r = 0u; r < D; r++) {
-            for (var c = 0u; c < D; c++) {
-                if (ri == NO_ROTATION) {
-                    data[base + r * D + c] = t[r * D + c];
-                } else {
-                    var s = real(0.0);
-                    for (var m = 0u; m < D; m++) {
-                        s += v(ri, m, r) * t[m * D + c];
-                    }
-                    data[base + r * D + c] = s;
-                }
-            }
-        }
-    }
 }
 
 @compute @workgroup_size(WG)

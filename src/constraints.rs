@@ -11,16 +11,18 @@
 //! those axes); every other slip node carries an orthonormal V_i whose first r_i columns
 //! span the constrained directions.
 
-use nalgebra::{DMatrix, DVector};
 
 /// Relative rank tolerance for the stacked, row-normalized constraints of one node: a
 /// singular value σ counts when σ > RANK_RTOL · σ_max. Two unit rows at angle θ have
 /// σ_min ≈ θ/√2, so rows closer than about 1.4e-8 rad in angle act as one constraint.
 pub const RANK_RTOL: f64 = 1e-8;
 
-/// Relative consistency tolerance: rows whose values disagree (the least-squares lift
-/// misses a row's value by more than CONSISTENCY_RTOL · max|value| along the unit row)
-/// are contradictory and rejected.
+/// Relative consistency tolerance: rows whose values disagree are contradictory and
+/// rejected. A row is missed when the least-squares lift misses its value (along the unit
+/// row) by more than max(CONSISTENCY_RTOL · max|value|, 64 ε (σ_max/σ_r)(‖lift‖ + max|value|)):
+/// the second term is the rounding a consistent but nearly dependent set of rows
+/// (smallest kept singular value σ_r) can produce, at most ~1.4e-6 relative since
+/// σ_r > RANK_RTOL · σ_max.
 pub const CONSISTENCY_RTOL: f64 = 1e-8;
 
 /// A node's normal is "nearly parallel to e_x" when |n_x| > this; then the tangent is
@@ -443,38 +445,38 @@ fn node_frame(dim: usize, cs: &[&Constraint]) -> Result<NodeFrame, ConstraintErr
     }
     let k = rows.len();
     let m = k.max(dim); // pad to square so V is complete
-    let mut a = DMatrix::<f64>::zeros(m, dim);
-    for (i, r) in rows.iter().enumerate() {
-        for j in 0..dim {
-            a[(i, j)] = r[j];
-        }
-    }
-    let svd = a.clone().svd(true, true);
-    let u = svd.u.as_ref().expect("requested U");
-    let vt = svd.v_t.as_ref().expect("requested V^T");
-    let mut idx: Vec<usize> = (0..svd.singular_values.len()).collect();
-    idx.sort_by(|&p, &q| svd.singular_values[q].total_cmp(&svd.singular_values[p]));
-    let smax = svd.singular_values[idx[0]];
+    // faer's dense SVD: accurate to round-off on rank-deficient blocks (nalgebra 0.34's
+    // SVD was seen to return a factorization off by 5e-2 on such a 3×3, see tests).
+    let a = faer::Mat::<f64>::from_fn(m, dim, |i, j| if i < k { rows[i][j] } else { 0.0 });
+    let svd = a.svd().map_err(|e| {
+        cerr(&label, format!("the singular value decomposition of the rows failed: {e:?}"))
+    })?;
+    let (u, sv, v) = (svd.U(), svd.S(), svd.V());
+    let sigma: Vec<f64> = (0..dim).map(|j| sv[j]).collect();
+    let mut idx: Vec<usize> = (0..dim).collect();
+    idx.sort_by(|&p, &q| sigma[q].total_cmp(&sigma[p]));
+    let smax = sigma[idx[0]];
     let r = idx
         .iter()
-        .filter(|&&j| svd.singular_values[j] > RANK_RTOL * smax)
+        .filter(|&&j| sigma[j] > RANK_RTOL * smax)
         .count();
     // Minimum-norm lift from the kept singular triplets.
-    let mut b = DVector::<f64>::zeros(m);
-    for (i, v) in vals.iter().enumerate() {
-        b[i] = *v;
-    }
     let mut lift = [0.0; 3];
     for &j in idx.iter().take(r) {
-        let coef = u.column(j).dot(&b) / svd.singular_values[j];
+        let ub: f64 = (0..k).map(|i| u[(i, j)] * vals[i]).sum();
+        let coef = ub / sigma[j];
         for c in 0..dim {
-            lift[c] += coef * vt[(j, c)];
+            lift[c] += coef * v[(c, j)];
         }
     }
     let vmax = vals.iter().fold(0.0f64, |s, v| s.max(v.abs()));
+    let lift_norm = norm(&lift[..dim]);
+    let smin_kept = if r > 0 { sigma[idx[r - 1]] } else { smax };
+    let tol = (CONSISTENCY_RTOL * vmax)
+        .max(64.0 * f64::EPSILON * (smax / smin_kept) * (lift_norm + vmax));
     for (i, row) in rows.iter().enumerate() {
         let miss = (dot(row, &lift[..dim]) - vals[i]).abs();
-        if miss > CONSISTENCY_RTOL * vmax {
+        if miss > tol {
             return Err(cerr(
                 &label,
                 format!(
@@ -484,7 +486,7 @@ fn node_frame(dim: usize, cs: &[&Constraint]) -> Result<NodeFrame, ConstraintErr
             ));
         }
     }
-    let dir = |j: usize| -> Vec<f64> { (0..dim).map(|c| vt[(idx[j], c)]).collect() };
+    let dir = |j: usize| -> Vec<f64> { (0..dim).map(|c| v[(c, idx[j])]).collect() };
     Ok(match (dim, r) {
         (_, 0) => NodeFrame {
             mask: 0,
@@ -755,6 +757,36 @@ mod tests {
         };
         let e = Frames::build(3, 1, &[c(0, bad)]).unwrap_err();
         assert!(e.problem.contains("contradictory"), "{e}");
+    }
+
+    /// Three rows, the third an exact combination of the first two, with consistent
+    /// values: nalgebra 0.34's SVD factored this block with an error of 5e-2 and made it
+    /// look contradictory; the frame must be a line with an exact lift.
+    #[test]
+    fn dependent_rows_with_consistent_values_form_a_line() {
+        let rows = vec![
+            vec![-0.8903906045381308, 0.44743133743890545, -0.08372436698986958],
+            vec![0.1787047698398585, -0.7666862336085959, -0.6166496772329882],
+            vec![-0.5121120358653778, -0.4637409631693257, -0.7229699729591847],
+        ];
+        let values = vec![-0.04979598171710053, 0.13127464870145872, 0.10055917227601849];
+        let f = Frames::build(
+            3,
+            1,
+            &[c(
+                0,
+                ConstraintKind::Rows {
+                    rows: rows.clone(),
+                    values: values.clone(),
+                },
+            )],
+        )
+        .unwrap();
+        assert_eq!(f.mask[0].count_ones(), 2);
+        check_orthonormal(&f, 0);
+        for (r, v) in rows.iter().zip(&values) {
+            assert!((dot(r, &f.lift[..3]) - v).abs() < 1e-15);
+        }
     }
 
     #[test]

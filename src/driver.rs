@@ -10,7 +10,7 @@
 //! 6. output: frames every k steps, one steps.csv row per step, summary.json at the end.
 
 use crate::error::InputError;
-use crate::integrator::Stepper;
+use crate::integrator::{InitError, Stepper};
 use crate::output::{write_vtk, StepRecord, StepsCsv};
 use crate::scene::{self, LinearKind, MovingSpec, Scene};
 use std::path::{Path, PathBuf};
@@ -170,10 +170,15 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
     let frames_dir = out.join("frames");
     std::fs::create_dir_all(&frames_dir).map_err(|e| out_err(&frames_dir, e))?;
 
-    let mut stepper = Stepper::new(&scene).map_err(|cause| RunError::Solve {
-        step: 0,
-        time: 0.0,
-        cause,
+    let mut stepper = Stepper::new(&scene).map_err(|e| match e {
+        InitError::Input { entry, problem } => {
+            RunError::Input(InputError::new(scene.file.clone(), entry, problem))
+        }
+        InitError::Solver(cause) => RunError::Solve {
+            step: 0,
+            time: 0.0,
+            cause,
+        },
     })?;
     let csv_path = out.join("steps.csv");
     let mut csv = StepsCsv::create(&csv_path, scene.dim, stepper.has_moving())

@@ -35,7 +35,7 @@ use crate::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::energy::inertia;
 use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver};
 use crate::oracle::CholeskyOracle;
-use crate::scene::{BcShape, LinearKind, NodeBc, Scene, SolverSpec};
+use crate::scene::{BcShape, LinearKind, Scene, SolverSpec};
 use crate::sparse::BlockCsr;
 use std::collections::HashMap;
 use std::time::Instant;
@@ -160,6 +160,15 @@ impl LinearSolver {
     }
 }
 
+/// Why a stepper could not start.
+#[derive(Debug, Clone, PartialEq)]
+pub enum InitError {
+    /// The scene's conditions are inconsistent; `entry` names the scene entry.
+    Input { entry: String, problem: String },
+    /// The linear solver cannot start.
+    Solver(String),
+}
+
 /// What one step did.
 #[derive(Debug, Clone, Default, serde::Serialize)]
 pub struct StepReport {
@@ -203,7 +212,10 @@ pub struct Stepper<'s> {
 }
 
 impl<'s> Stepper<'s> {
-    pub fn new(scene: &'s Scene) -> Result<Self, String> {
+    /// Fails with [`InitError::Input`] when the scene's conditions are inconsistent (for
+    /// example contradictory rows on one node) and [`InitError::Solver`] when the linear
+    /// solver cannot start (no GPU adapter).
+    pub fn new(scene: &'s Scene) -> Result<Self, InitError> {
         let mut static_bcs = Vec::new();
         let mut moving_bcs = Vec::new();
         for (k, b) in scene.bcs.iter().enumerate() {
@@ -224,7 +236,7 @@ impl<'s> Stepper<'s> {
             static_bcs,
             moving_bcs,
             frames: HashMap::new(),
-            linear: LinearSolver::new(&scene.solver)?,
+            linear: LinearSolver::new(&scene.solver).map_err(InitError::Solver)?,
             hmat: scene.model.zero_matrix(),
             reactions: vec![0.0; scene.x0.len()],
             newton_tol: scene.solver.newton_tolerance * scene.characteristic_length,
@@ -233,7 +245,20 @@ impl<'s> Stepper<'s> {
         // Build (and validate) the static constraint set up front: bad conditions fail
         // before the first step.
         let key = vec![false; s.moving_bcs.len()];
-        s.frames_for(&key)?;
+        if let Err(e) = s.build_frames(&key) {
+            return Err(InitError::Input {
+                entry: e.label,
+                problem: e.problem,
+            });
+        }
+        // Every moving node eliminated at once: the largest set a step can reach.
+        let all = vec![true; s.moving_bcs.len()];
+        if let Err(e) = s.build_frames(&all) {
+            return Err(InitError::Input {
+                entry: e.label,
+                problem: e.problem,
+            });
+        }
         Ok(s)
     }
 
@@ -242,6 +267,10 @@ impl<'s> Stepper<'s> {
     }
 
     fn frames_for(&mut self, key: &[bool]) -> Result<(), String> {
+        self.build_frames(key).map_err(|e| e.to_string())
+    }
+
+    fn build_frames(&mut self, key: &[bool]) -> Result<(), crate::constraints::ConstraintError> {
         if self.frames.contains_key(key) {
             return Ok(());
         }
@@ -276,7 +305,7 @@ impl<'s> Stepper<'s> {
         let f = if cs.is_empty() {
             Frames::unconstrained(d, self.scene.model.n_nodes)
         } else {
-            Frames::build(d, self.scene.model.n_nodes, &cs).map_err(|e| e.to_string())?
+            Frames::build(d, self.scene.model.n_nodes, &cs)?
         };
         self.frames.insert(key.to_vec(), f);
         Ok(())
@@ -648,9 +677,4 @@ fn project(d: usize, s: &BcShape, xi: &mut [f64]) {
 
 fn norm(v: &[f64; 3]) -> f64 {
     (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
-}
-
-/// The conditions of a scene (for callers that inspect them).
-pub fn moving_conditions(scene: &Scene) -> Vec<&NodeBc> {
-    scene.bcs.iter().filter(|b| b.motion.is_some()).collect()
 }

@@ -56,9 +56,22 @@ fn dense_kkt(h: &DMatrix<f64>, g: &[f64], b: &DMatrix<f64>, p: &DVector<f64>) ->
     for i in 0..m {
         rhs[nd + i] = p[i];
     }
-    let svd = k.svd(true, true);
-    let eps = 1e-12 * svd.singular_values.max();
-    let sol = svd.solve(&rhs, eps).expect("SVD solve");
+    // Pseudo-inverse through faer's SVD (accurate on rank-deficient matrices, which
+    // nalgebra 0.34's SVD is not always: see constraints.rs).
+    let nk = nd + m;
+    let kf = faer::Mat::<f64>::from_fn(nk, nk, |i, j| k[(i, j)]);
+    let svd = kf.svd().expect("SVD");
+    let (u, sv, v) = (svd.U(), svd.S(), svd.V());
+    let smax = (0..nk).map(|j| sv[j]).fold(0.0f64, f64::max);
+    let mut sol = DVector::zeros(nk);
+    for j in 0..nk {
+        if sv[j] > 1e-12 * smax {
+            let c: f64 = (0..nk).map(|i| u[(i, j)] * rhs[i]).sum::<f64>() / sv[j];
+            for i in 0..nk {
+                sol[i] += c * v[(i, j)];
+            }
+        }
+    }
     let dx = sol.rows(0, nd).into_owned();
     let lambda = sol.rows(nd, m).into_owned();
     Kkt {

@@ -75,7 +75,7 @@ fn default_scene_runs_and_writes_frames_that_parse() {
     let t = std::time::Instant::now();
     let s = run(&opts).unwrap_or_else(|e| panic!("default: {e}"));
     eprintln!(
-        "default: {} nodes, {} steps, {:.2} s wall (test profile), newton {}, k_M history {:?}",
+        "default: {} nodes, {} steps, {:.2} s wall, newton {}, k_M history {:?}",
         s.nodes,
         s.steps,
         t.elapsed().as_secs_f64(),

@@ -235,3 +235,127 @@ impl GpuContext {
         }
     }
 }
+
+/// Copy bandwidth of the adapter in GB/s, counting read + write bytes: a timestamped
+/// `copy_buffer_to_buffer` between two 128 MiB buffers (smaller where the adapter's buffer
+/// limit is lower), best of several repetitions after a warm-up copy. Without
+/// TIMESTAMP_QUERY the host wall time of submit + wait is used instead.
+pub fn measure_copy_bandwidth(ctx: &GpuContext) -> Result<f64, GpuError> {
+    const REPS: usize = 5;
+    let bytes = (128u64 << 20).min(ctx.limits.max_buffer_size / 4 * 4);
+    let dev = &ctx.device;
+    let mk = |label: &str, usage: wgpu::BufferUsages| {
+        dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: bytes,
+            usage,
+            mapped_at_creation: false,
+        })
+    };
+    let src = mk(
+        "copy bandwidth src",
+        wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+    );
+    let dst = mk("copy bandwidth dst", wgpu::BufferUsages::COPY_DST);
+    // Touch the source so that the copy reads committed memory.
+    let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+        label: Some("copy bandwidth init"),
+    });
+    enc.clear_buffer(&src, 0, None);
+    ctx.queue.submit([enc.finish()]);
+    let wait = || {
+        dev.poll(wgpu::PollType::wait_indefinitely())
+            .map(|_| ())
+            .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))
+    };
+    wait()?;
+    let ts = ctx.has_timestamps();
+    let set = ts.then(|| {
+        dev.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some("copy bandwidth timestamps"),
+            ty: wgpu::QueryType::Timestamp,
+            count: 2,
+        })
+    });
+    let resolve = mk_small(
+        dev,
+        "copy bandwidth resolve",
+        wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+    );
+    let staging = mk_small(
+        dev,
+        "copy bandwidth staging",
+        wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+    );
+    let period = ctx.queue.get_timestamp_period() as f64;
+    let mut best = f64::INFINITY;
+    for rep in 0..=REPS {
+        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("copy bandwidth"),
+        });
+        // Empty compute passes bracket the copy: their timestamps need only TIMESTAMP_QUERY
+        // (encoder-level timestamps would need TIMESTAMP_QUERY_INSIDE_ENCODERS).
+        let mark = |enc: &mut wgpu::CommandEncoder, i: u32| {
+            if let Some(s) = &set {
+                enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("copy bandwidth mark"),
+                    timestamp_writes: Some(wgpu::ComputePassTimestampWrites {
+                        query_set: s,
+                        beginning_of_pass_write_index: Some(i),
+                        end_of_pass_write_index: None,
+                    }),
+                });
+            }
+        };
+        mark(&mut enc, 0);
+        enc.copy_buffer_to_buffer(&src, 0, &dst, 0, bytes);
+        mark(&mut enc, 1);
+        if let Some(s) = &set {
+            enc.resolve_query_set(s, 0..2, &resolve, 0);
+            enc.copy_buffer_to_buffer(&resolve, 0, &staging, 0, 16);
+        }
+        let t = std::time::Instant::now();
+        ctx.queue.submit([enc.finish()]);
+        wait()?;
+        let wall = t.elapsed().as_secs_f64();
+        let secs = if ts {
+            let (tx, rx) = std::sync::mpsc::channel();
+            staging.map_async(wgpu::MapMode::Read, 0..16, move |r| {
+                let _ = tx.send(r);
+            });
+            wait()?;
+            rx.recv()
+                .map_err(|_| GpuError::Device("buffer mapping was dropped".into()))?
+                .map_err(|e| GpuError::Device(format!("mapping timestamps: {e}")))?;
+            let v: Vec<u8> = staging
+                .get_mapped_range(0..16)
+                .map_err(|e| GpuError::Device(format!("reading timestamps: {e}")))?
+                .to_vec();
+            staging.unmap();
+            let t0 = u64::from_le_bytes(v[0..8].try_into().expect("8 bytes"));
+            let t1 = u64::from_le_bytes(v[8..16].try_into().expect("8 bytes"));
+            let s = t1.saturating_sub(t0) as f64 * period * 1e-9;
+            if s > 0.0 {
+                s
+            } else {
+                wall
+            }
+        } else {
+            wall
+        };
+        if rep > 0 {
+            best = best.min(secs);
+        }
+    }
+    ctx.check("measuring copy bandwidth")?;
+    Ok(2.0 * bytes as f64 / best / 1e9)
+}
+
+fn mk_small(dev: &wgpu::Device, label: &str, usage: wgpu::BufferUsages) -> wgpu::Buffer {
+    dev.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: 16,
+        usage,
+        mapped_at_creation: false,
+    })
+}

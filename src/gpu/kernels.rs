@@ -7,6 +7,7 @@
 
 pub const MATVEC: &str = include_str!("../../shaders/matvec.wgsl");
 pub const ROTATE: &str = include_str!("../../shaders/rotate.wgsl");
+pub const ROTATE_BLOCKS: &str = include_str!("../../shaders/rotate_blocks.wgsl");
 pub const PRECOND: &str = include_str!("../../shaders/precond.wgsl");
 pub const CG: &str = include_str!("../../shaders/cg.wgsl");
 pub const RECOVER: &str = include_str!("../../shaders/recover.wgsl");

@@ -116,6 +116,14 @@ impl Resources {
     }
 }
 
+/// Device time of one kernel (see `GpuSolver::profile_kernels`).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct KernelTime {
+    pub name: String,
+    pub best_s: f64,
+    pub mean_s: f64,
+}
+
 /// Wall-clock split of a solve.
 #[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize)]
 pub struct StageSeconds {
@@ -132,6 +140,9 @@ pub struct GpuSolveInfo {
     pub precision: Precision,
     /// CG iterations, all restarts and inner solves together.
     pub iterations: usize,
+    /// Iterations recorded into command buffers (the chunks); those past convergence are
+    /// no-ops on the device but still cost their dispatches. ≥ `iterations`.
+    pub recorded_iterations: usize,
     /// Mixed precision: f64 refinement steps (0 otherwise).
     pub outer_refinements: usize,
     pub restarts: usize,
@@ -473,17 +484,85 @@ impl Shared {
     }
 }
 
+/// Values per block in each of the three block planes (see matvec.wgsl): D = 3 splits the
+/// row-major 3×3 block as (e0..e3), (e4..e7), (e8); D = 2 keeps the 2×2 block in plane 0.
+fn plane_widths(d: usize) -> [usize; 3] {
+    if d == 3 {
+        [4, 4, 1]
+    } else {
+        [4, 0, 0]
+    }
+}
+
+/// Row-major d×d blocks → the three planes.
+fn to_planes(d: usize, values: &[f64]) -> [Vec<f64>; 3] {
+    let w = plane_widths(d);
+    let dd = d * d;
+    let n = values.len() / dd;
+    let mut out = [
+        Vec::with_capacity(n * w[0]),
+        Vec::with_capacity(n * w[1]),
+        Vec::with_capacity(n * w[2]),
+    ];
+    for b in values.chunks_exact(dd) {
+        let mut o = 0;
+        for (p, &wp) in out.iter_mut().zip(&w) {
+            p.extend_from_slice(&b[o..o + wp]);
+            o += wp;
+        }
+    }
+    out
+}
+
+/// The three planes → row-major d×d blocks.
+fn from_planes(d: usize, n_blocks: usize, planes: &[Vec<f64>; 3]) -> Vec<f64> {
+    let w = plane_widths(d);
+    let mut out = Vec::with_capacity(n_blocks * d * d);
+    for k in 0..n_blocks {
+        for (p, &wp) in planes.iter().zip(&w) {
+            out.extend_from_slice(&p[k * wp..(k + 1) * wp]);
+        }
+    }
+    out
+}
+
+/// Allocates the three block planes `{label}`, `{label}_b`, `{label}_c` (each checked
+/// against the binding limit on its own; unused planes take 16 bytes).
+fn plane_buffers(
+    bld: &mut Builder,
+    label: &str,
+    d: usize,
+    n_blocks: usize,
+    real: Real,
+) -> Result<[wgpu::Buffer; 3], GpuError> {
+    let w = plane_widths(d);
+    Ok([
+        bld.buffer(label, (n_blocks * w[0]) as u64 * real.size(), STORAGE)?,
+        bld.buffer(
+            &format!("{label}_b"),
+            (n_blocks * w[1]) as u64 * real.size(),
+            STORAGE,
+        )?,
+        bld.buffer(
+            &format!("{label}_c"),
+            (n_blocks * w[2]) as u64 * real.size(),
+            STORAGE,
+        )?,
+    ])
+}
+
 enum OpData {
     Blocks {
-        blocks: wgpu::Buffer,
+        /// Block planes (see `plane_widths`).
+        blocks: [wgpu::Buffer; 3],
         rotate: Option<(Kernel, wgpu::BindGroup)>,
     },
     Springs {
         pos: wgpu::Buffer,
         springs: wgpu::Buffer,
         mass: wgpu::Buffer,
-        /// Host-rotated diagonal blocks of VᵀHV, for the preconditioner build.
-        diag_blocks: wgpu::Buffer,
+        /// Host-rotated diagonal blocks of VᵀHV (as planes), for the preconditioner build.
+        diag_blocks: [wgpu::Buffer; 3],
     },
 }
 
@@ -523,13 +602,17 @@ struct Level {
 
 /// Mixed precision: the f64 outer loop.
 struct Refine {
-    op: Operator,
+    /// The f64 operator; `None` when its blocks exceed the storage binding limit, and then
+    /// the outer residual is computed on the host from the downloaded y.
+    op: Option<Operator>,
+    /// f64 rotations for the recovery when `op` is `None`.
+    rotations64: Option<wgpu::Buffer>,
     b64: wgpu::Buffer,
     y64: wgpu::Buffer,
     partials64: wgpu::Buffer,
     k_residual: Kernel,
     k_accumulate: Kernel,
-    bg_mv: wgpu::BindGroup,
+    bg_mv: Option<wgpu::BindGroup>,
     bg_refine: wgpu::BindGroup,
     staging: wgpu::Buffer,
 }
@@ -581,6 +664,8 @@ pub struct GpuSolver {
     setup_seconds: f64,
     readbacks: usize,
     gpu_seconds: f64,
+    /// Iterations recorded in chunks since the solve began.
+    recorded: usize,
 }
 
 fn u32s(v: impl IntoIterator<Item = u32>) -> Vec<u8> {
@@ -859,7 +944,20 @@ impl GpuSolver {
             params.preconditioner,
         )?;
         let refine = if params.precision == Precision::Mixed {
-            let op64 = build_operator(&mut bld, &shared, &host, Real::F64, acc, &consts)?;
+            let op64 = if blocks_fit(ctx, &host, Real::F64)
+                && std::env::var_os("STICKSLIP_MIXED_HOST_RESIDUAL").is_none()
+            {
+                Some(build_operator(
+                    &mut bld,
+                    &shared,
+                    &host,
+                    Real::F64,
+                    acc,
+                    &consts,
+                )?)
+            } else {
+                None
+            };
             Some(build_refine(
                 &mut bld, &shared, op64, &level, &host, &consts,
             )?)
@@ -880,7 +978,10 @@ impl GpuSolver {
                 inner_real
             },
             if refine.is_some() {
-                refine.as_ref().and_then(|r| r.op.rotations.as_ref())
+                refine.as_ref().and_then(|r| {
+                    r.op.as_ref()
+                        .map_or(r.rotations64.as_ref(), |o| o.rotations.as_ref())
+                })
             } else {
                 level.op.rotations.as_ref()
             },
@@ -931,6 +1032,7 @@ impl GpuSolver {
             setup_seconds: 0.0,
             readbacks: 0,
             gpu_seconds: 0.0,
+            recorded: 0,
         };
         s.upload_seconds = t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
@@ -1015,7 +1117,11 @@ impl GpuSolver {
         let host = &self.host;
         match (&op.data, &host.op) {
             (OpData::Blocks { blocks, .. }, HostOp::Blocks(h)) => {
-                q.write_buffer(blocks, 0, &op.real.bytes(&h.values));
+                for (buf, v) in blocks.iter().zip(to_planes(h.dim, &h.values)) {
+                    if !v.is_empty() {
+                        q.write_buffer(buf, 0, &op.real.bytes(&v));
+                    }
+                }
             }
             (
                 OpData::Springs {
@@ -1029,11 +1135,12 @@ impl GpuSolver {
                 q.write_buffer(pos, 0, &op.real.bytes(&ms.positions));
                 q.write_buffer(springs, 0, &op.real.bytes(&spring_data(ms)));
                 q.write_buffer(mass, 0, &op.real.bytes(&ms.masses));
-                q.write_buffer(
-                    diag_blocks,
-                    0,
-                    &op.real.bytes(&spring_diag_blocks(ms, &host.frames)),
-                );
+                let diag = spring_diag_blocks(ms, &host.frames);
+                for (buf, v) in diag_blocks.iter().zip(to_planes(ms.dim, &diag)) {
+                    if !v.is_empty() {
+                        q.write_buffer(buf, 0, &op.real.bytes(&v));
+                    }
+                }
             }
             _ => unreachable!("operator kind follows the host system"),
         }
@@ -1049,7 +1156,18 @@ impl GpuSolver {
         self.write_operator(&self.level.op);
         match &self.refine {
             Some(rf) => {
-                self.write_operator(&rf.op);
+                match &rf.op {
+                    Some(op) => self.write_operator(op),
+                    None => {
+                        if let Some(rot) = &rf.rotations64 {
+                            self.ctx.queue.write_buffer(
+                                rot,
+                                0,
+                                &Real::F64.bytes(&self.host.frames.rotations),
+                            );
+                        }
+                    }
+                }
                 self.ctx
                     .queue
                     .write_buffer(&rf.b64, 0, &Real::F64.bytes(&self.host.rhs));
@@ -1082,7 +1200,8 @@ impl GpuSolver {
                 timestamp_writes: None,
             });
             let groups = self.node_groups();
-            let ops = std::iter::once(&self.level.op).chain(self.refine.as_ref().map(|r| &r.op));
+            let ops = std::iter::once(&self.level.op)
+                .chain(self.refine.as_ref().and_then(|r| r.op.as_ref()));
             for op in ops {
                 if let OpData::Blocks {
                     rotate: Some((k, bg)),
@@ -1199,6 +1318,7 @@ impl GpuSolver {
 
     /// Records `k` iterations in one submit, then reads the status back.
     fn chunk(&mut self, k: usize) -> Result<Status, GpuError> {
+        self.recorded += k;
         let mut enc = self.encoder("cg chunk");
         {
             let tw = self
@@ -1261,13 +1381,28 @@ impl GpuSolver {
         })
     }
 
-    /// Runs CG from the state `start` left until the recurrence residual² ≤ threshold,
+    /// Runs CG from the state `start` left until the recurrence residual² ≤ `thresh`,
     /// the budget, or stagnation. Returns the outcome and the iterations done.
-    fn run_cg(&mut self, budget: usize, done_before: usize) -> Result<(Outcome, usize), GpuError> {
-        let mut k = self.params.first_chunk;
+    ///
+    /// Chunk sizing: the first chunks double from `first_chunk`; once two status reads
+    /// exist, the next chunk is the number of iterations predicted to reach `thresh` at the
+    /// residual reduction rate observed over the later half of the run so far, clamped to
+    /// [first_chunk, min(2·previous, max_chunk)]. Iterations recorded past convergence are
+    /// then at most about one prediction error (or `first_chunk`), not half the run.
+    fn run_cg(
+        &mut self,
+        budget: usize,
+        done_before: usize,
+        thresh: f64,
+    ) -> Result<(Outcome, usize), GpuError> {
+        let floor = self.params.first_chunk;
+        let cap = self.params.max_chunk;
+        let mut k = floor;
         let mut best = f64::INFINITY;
         let mut best_at = 0usize;
         let mut iters = 0usize;
+        // (iterations, ln r·r) at each status read.
+        let mut hist: Vec<(usize, f64)> = Vec::new();
         loop {
             let kk = k.min(budget.saturating_sub(iters));
             if kk == 0 {
@@ -1297,7 +1432,10 @@ impl GpuSolver {
             } else if iters - best_at >= self.params.stagnation_window {
                 return Ok((Outcome::Stagnated, iters));
             }
-            k = (2 * k).min(self.params.max_chunk);
+            if st.rr > 0.0 && st.rr.is_finite() {
+                hist.push((iters, st.rr.ln()));
+            }
+            k = next_chunk(&hist, thresh, kk, floor, cap);
         }
     }
 
@@ -1360,6 +1498,7 @@ impl GpuSolver {
     pub fn solve(&mut self) -> Result<(Vec<f64>, Vec<f64>, GpuSolveInfo), GpuError> {
         self.readbacks = 0;
         self.gpu_seconds = 0.0;
+        self.recorded = 0;
         let t0 = Instant::now();
         let bnorm = norm2(&self.host.rhs);
         let mut notes = Vec::new();
@@ -1387,6 +1526,7 @@ impl GpuSolver {
             adapter: self.ctx.info.name.clone(),
             precision: self.params.precision,
             iterations,
+            recorded_iterations: self.recorded.max(iterations),
             outer_refinements: outer,
             restarts,
             relative_residual: rel,
@@ -1425,7 +1565,7 @@ impl GpuSolver {
         let mut keep = false;
         loop {
             self.start(keep, thresh)?;
-            let (out, it) = self.run_cg(self.params.max_iters - total, total)?;
+            let (out, it) = self.run_cg(self.params.max_iters - total, total, thresh)?;
             total += it;
             let td = Instant::now();
             let (y, dx) = self.download_solution()?;
@@ -1475,6 +1615,13 @@ impl GpuSolver {
         let mut dl = 0.0;
         let mut best = f64::INFINITY;
         let mut since_best = 0usize;
+        if self.refine.as_ref().is_some_and(|r| r.op.is_none()) {
+            notes.push(
+                "mixed: the f64 blocks exceed the adapter's storage binding limit; only the f32 \
+                 blocks live on the device and the outer f64 residual is computed on the host"
+                    .into(),
+            );
+        }
         {
             let rf = self.refine.as_ref().expect("mixed has a refinement level");
             let mut enc = self.encoder("mixed reset");
@@ -1528,7 +1675,7 @@ impl GpuSolver {
             let inner = self.params.inner_tol.max(0.5 * tol / rel);
             let thresh = (inner * rel * bnorm).powi(2);
             self.start(false, thresh)?;
-            let (_, it) = self.run_cg(self.params.max_iters - total, total)?;
+            let (_, it) = self.run_cg(self.params.max_iters - total, total, thresh)?;
             total += it;
             outer += 1;
             let rf = self.refine.as_ref().expect("mixed has a refinement level");
@@ -1551,18 +1698,32 @@ impl GpuSolver {
         }
     }
 
-    /// ‖b̂ − Ĥy‖ in f64 on the device; also sets the inner CG's right-hand side.
+    /// ‖b̂ − Ĥy‖ in f64 (on the device, or on the host when the f64 blocks do not fit);
+    /// also sets the inner CG's right-hand side.
     fn outer_residual(&mut self) -> Result<f64, GpuError> {
         let g = self.n_partials;
         let rf = self.refine.as_ref().expect("mixed has a refinement level");
+        let (Some(op), Some(bg_mv)) = (&rf.op, &rf.bg_mv) else {
+            // Host path: download y (f64), r = b̂ − Ĥy in f64, upload f32(r).
+            let nd = self.host.ndof();
+            let y64 = rf.y64.clone();
+            let y = self.download(self.encoder("download y"), &y64, Real::F64, nd)?;
+            let mut hy = vec![0.0; nd];
+            self.host.apply(&y, &mut hy);
+            let r: Vec<f64> = self.host.rhs.iter().zip(&hy).map(|(b, a)| b - a).collect();
+            self.ctx
+                .queue
+                .write_buffer(&self.level.b, 0, &Real::F32.bytes(&r));
+            return Ok(norm2(&r));
+        };
         let mut enc = self.encoder("mixed residual");
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("residual pass"),
                 timestamp_writes: None,
             });
-            pass.set_pipeline(&rf.op.matvec.pipeline);
-            pass.set_bind_group(0, &rf.bg_mv, &[]);
+            pass.set_pipeline(&op.matvec.pipeline);
+            pass.set_bind_group(0, bg_mv, &[]);
             pass.dispatch_workgroups(g, 1, 1);
             pass.set_pipeline(&rf.k_residual.pipeline);
             pass.set_bind_group(0, &rf.bg_refine, &[]);
@@ -1570,7 +1731,7 @@ impl GpuSolver {
         }
         enc.copy_buffer_to_buffer(&rf.partials64, 0, &rf.staging, 0, 8 * g as u64);
         self.ctx.queue.submit([enc.finish()]);
-        let name = rf.op.matvec.name;
+        let name = op.matvec.name;
         let staging = rf.staging.clone();
         self.record(name);
         self.record("residual");
@@ -1631,16 +1792,132 @@ impl GpuSolver {
         self.download(enc, &q, self.level.real, y.len())
     }
 
+    /// Device time per CG kernel in seconds (fastest and mean of `reps` iterations; the
+    /// fastest is the figure least disturbed by other load on a shared CPU adapter), from timestamp
+    /// queries around each dispatch in its own compute pass: `matvec` (or `spring_matvec`),
+    /// `update_xrz`, `update_p`, and for mixed precision the f64 `matvec_f64` and
+    /// `residual`. Runs from y = 0 without a stopping test; `None` without TIMESTAMP_QUERY.
+    pub fn profile_kernels(&mut self, reps: usize) -> Result<Option<Vec<KernelTime>>, GpuError> {
+        let Some(period) = self.timestamps.as_ref().map(|t| t.period_ns) else {
+            return Ok(None);
+        };
+        let reps = reps.max(1);
+        if self.refine.is_some() {
+            let rhs = Real::F32.bytes(&self.host.rhs);
+            self.ctx.queue.write_buffer(&self.level.b, 0, &rhs);
+        }
+        self.start(false, -1.0)?;
+        let dev = &self.ctx.device;
+        let n_q = 10u32;
+        let set = dev.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some("profile timestamps"),
+            ty: wgpu::QueryType::Timestamp,
+            count: n_q,
+        });
+        let qb = 8 * n_q as u64;
+        let resolve = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("profile resolve"),
+            size: qb,
+            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        let staging = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("profile staging"),
+            size: qb,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut names: Vec<String> = vec![
+            self.level.op.matvec.name.to_string(),
+            "update_xrz".into(),
+            "update_p".into(),
+        ];
+        if self.refine.as_ref().is_some_and(|r| r.op.is_some()) {
+            names.push(format!("{}_f64", self.level.op.matvec.name));
+            names.push("residual".into());
+        }
+        let mut best = vec![f64::INFINITY; names.len()];
+        let mut sum = vec![0.0f64; names.len()];
+        let g = self.n_partials;
+        for _ in 0..reps {
+            let mut enc = self.encoder("profile");
+            let mut slot = 0u32;
+            let pass_for = |enc: &mut wgpu::CommandEncoder, slot: &mut u32| {
+                let tw = wgpu::ComputePassTimestampWrites {
+                    query_set: &set,
+                    beginning_of_pass_write_index: Some(*slot),
+                    end_of_pass_write_index: Some(*slot + 1),
+                };
+                *slot += 2;
+                enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("profile pass"),
+                    timestamp_writes: Some(tw),
+                })
+                .forget_lifetime()
+            };
+            for which in [Which::MatvecP, Which::UpdateXrz, Which::UpdateP] {
+                let mut pass = pass_for(&mut enc, &mut slot);
+                self.dispatch(&mut pass, which, g);
+            }
+            if let Some((rf, op, bg_mv)) = self
+                .refine
+                .as_ref()
+                .and_then(|rf| Some((rf, rf.op.as_ref()?, rf.bg_mv.as_ref()?)))
+            {
+                let mut pass = pass_for(&mut enc, &mut slot);
+                pass.set_pipeline(&op.matvec.pipeline);
+                pass.set_bind_group(0, bg_mv, &[]);
+                pass.dispatch_workgroups(g, 1, 1);
+                drop(pass);
+                let mut pass = pass_for(&mut enc, &mut slot);
+                pass.set_pipeline(&rf.k_residual.pipeline);
+                pass.set_bind_group(0, &rf.bg_refine, &[]);
+                pass.dispatch_workgroups(g, 1, 1);
+            }
+            enc.resolve_query_set(&set, 0..slot, &resolve, 0);
+            enc.copy_buffer_to_buffer(&resolve, 0, &staging, 0, 8 * slot as u64);
+            self.ctx.queue.submit([enc.finish()]);
+            let bytes = self.read(&staging, 8 * slot as u64)?;
+            let t: Vec<u64> = bytes
+                .chunks_exact(8)
+                .map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")))
+                .collect();
+            for j in 0..names.len() {
+                let dt = t[2 * j + 1].saturating_sub(t[2 * j]) as f64 * period * 1e-9;
+                best[j] = best[j].min(dt);
+                sum[j] += dt;
+            }
+        }
+        Ok(Some(
+            names
+                .into_iter()
+                .zip(best.into_iter().zip(sum))
+                .map(|(name, (best_s, sum_s))| KernelTime {
+                    name,
+                    best_s,
+                    mean_s: sum_s / reps as f64,
+                })
+                .collect(),
+        ))
+    }
+
     /// The device's Ĥ blocks after rotation (assembled systems only), unmasked, f64.
     pub fn rotated_blocks(&mut self) -> Result<Option<Vec<f64>>, GpuError> {
-        let (buf, real, len) = match (&self.level.op.data, &self.host.op) {
+        let (bufs, real, d, nb) = match (&self.level.op.data, &self.host.op) {
             (OpData::Blocks { blocks, .. }, HostOp::Blocks(h)) => {
-                (blocks.clone(), self.level.op.real, h.values.len())
+                (blocks.clone(), self.level.op.real, h.dim, h.nnz_blocks())
             }
             _ => return Ok(None),
         };
-        let enc = self.encoder("download blocks");
-        self.download(enc, &buf, real, len).map(Some)
+        let w = plane_widths(d);
+        let mut planes: [Vec<f64>; 3] = Default::default();
+        for ((buf, &wp), out) in bufs.iter().zip(&w).zip(planes.iter_mut()) {
+            if wp > 0 {
+                let enc = self.encoder("download blocks");
+                *out = self.download(enc, buf, real, nb * wp)?;
+            }
+        }
+        Ok(Some(from_planes(d, nb, &planes)))
     }
 
     /// The preconditioner data built on the device: 1/diag (Jacobi, d·n values) or the
@@ -1712,6 +1989,28 @@ impl GpuSolver {
     }
 }
 
+/// Size of the next chunk from the status history (see `GpuSolver::run_cg`).
+fn next_chunk(hist: &[(usize, f64)], thresh: f64, prev: usize, floor: usize, cap: usize) -> usize {
+    let grow = (2 * prev).min(cap).max(floor);
+    let Some(&(it, lr)) = hist.last() else {
+        return grow;
+    };
+    // The rate over the later half of the run: early CG iterations are not representative,
+    // and a single chunk's rate is noisy (the CG residual is not monotone).
+    let Some(&(it0, lr0)) = hist.iter().rev().find(|&&(i, _)| 2 * i <= it) else {
+        return grow;
+    };
+    let rate = (lr0 - lr) / (it - it0) as f64;
+    if !(rate > 0.0) || !(thresh > 0.0) {
+        return grow;
+    }
+    let need = (lr - thresh.ln()) / rate;
+    if !need.is_finite() {
+        return grow;
+    }
+    (need.max(0.0).ceil() as usize).clamp(floor, grow)
+}
+
 #[derive(Clone, Copy)]
 enum Which {
     UpdateP,
@@ -1774,27 +2073,33 @@ fn build_operator(
     };
     let (data, matvec) = match &host.op {
         HostOp::Blocks(h) => {
-            let blocks = bld.buffer(
-                &format!("blocks_{rn}"),
-                h.values.len() as u64 * real.size(),
-                STORAGE,
-            )?;
+            let blocks = plane_buffers(bld, &format!("blocks_{rn}"), h.dim, h.nnz_blocks(), real)?;
             let rotate = match (&rotations, &sh.rot_index, &sh.rot_nodes) {
                 (Some(rot), Some(ri), Some(rnod)) => {
                     let k = bld.kernel(
                         "rotate_blocks",
-                        "rotate.wgsl",
-                        kernels::ROTATE,
+                        "rotate_blocks.wgsl",
+                        kernels::ROTATE_BLOCKS,
                         real,
                         acc,
                         "rotate_blocks",
-                        &[Uniform, Ro, Ro, Ro, Ro, Ro, Rw],
+                        &[Uniform, Ro, Ro, Ro, Ro, Ro, Rw, Rw, Rw],
                         &[("D", c.d), ("WG", c.wg)],
                     )?;
                     let bg = bld.bind(
                         &k,
                         "rotate_blocks bind group",
-                        &[&sh.params, ri, rnod, rot, &sh.row_ptr, &sh.col, &blocks],
+                        &[
+                            &sh.params,
+                            ri,
+                            rnod,
+                            rot,
+                            &sh.row_ptr,
+                            &sh.col,
+                            &blocks[0],
+                            &blocks[1],
+                            &blocks[2],
+                        ],
                     );
                     Some((k, bg))
                 }
@@ -1807,7 +2112,7 @@ fn build_operator(
                 real,
                 acc,
                 "matvec",
-                &[Uniform, Ro, Ro, Ro, Ro, Ro, Ro, Rw, Rw, Ro],
+                &[Uniform, Ro, Ro, Ro, Ro, Ro, Ro, Rw, Rw, Ro, Ro, Ro],
                 &[("D", c.d), ("WG", c.wg), ("MASKED", flag(c.masked))],
             )?;
             (OpData::Blocks { blocks, rotate }, mv)
@@ -1821,11 +2126,8 @@ fn build_operator(
                 STORAGE,
             )?;
             let mass = bld.buffer(&format!("masses_{rn}"), n * real.size(), STORAGE)?;
-            let diag_blocks = bld.buffer(
-                &format!("diag_blocks_{rn}"),
-                n * (c.d * c.d) as u64 * real.size(),
-                STORAGE,
-            )?;
+            let diag_blocks =
+                plane_buffers(bld, &format!("diag_blocks_{rn}"), ms.dim, n as usize, real)?;
             let mv = bld.kernel(
                 "spring_matvec",
                 "springs.wgsl",
@@ -1861,6 +2163,20 @@ fn build_operator(
     })
 }
 
+/// Whether the block planes of an assembled operator in `real` fit the adapter's limits.
+fn blocks_fit(ctx: &GpuContext, host: &Host, real: Real) -> bool {
+    let HostOp::Blocks(h) = &host.op else {
+        return true;
+    };
+    let limit = ctx
+        .limits
+        .max_storage_buffer_binding_size
+        .min(ctx.limits.max_buffer_size);
+    plane_widths(h.dim)
+        .iter()
+        .all(|&w| (h.nnz_blocks() * w) as u64 * real.size() <= limit)
+}
+
 /// Bind group of the operator kernel with input `p`, output `q`.
 #[allow(clippy::too_many_arguments)]
 fn bind_operator(
@@ -1883,13 +2199,15 @@ fn bind_operator(
                 &sh.params,
                 &sh.row_ptr,
                 &sh.col,
-                blocks,
+                &blocks[0],
                 sh.mask_or(),
                 dv,
                 p,
                 q,
                 partials,
                 state,
+                &blocks[1],
+                &blocks[2],
             ],
         ),
         OpData::Springs {
@@ -2031,7 +2349,7 @@ fn build_level(
                 real,
                 acc,
                 "build",
-                &[Uniform, Ro, Ro, Ro, Ro, Ro, Rw],
+                &[Uniform, Ro, Ro, Ro, Ro, Ro, Rw, Ro, Ro],
                 &[
                     ("D", c.d),
                     ("WG", c.wg),
@@ -2048,10 +2366,12 @@ fn build_level(
                         &sh.params,
                         &sh.row_ptr,
                         &sh.col,
-                        blocks,
+                        &blocks[0],
                         sh.mask_or(),
                         dv,
                         mb,
+                        &blocks[1],
+                        &blocks[2],
                     ],
                 ),
                 OpData::Springs { diag_blocks, .. } => bld.bind(
@@ -2065,10 +2385,12 @@ fn build_level(
                         sh.diag_col
                             .as_ref()
                             .expect("springs have a diagonal pattern"),
-                        diag_blocks,
+                        &diag_blocks[0],
                         sh.mask_or(),
                         dv,
                         mb,
+                        &diag_blocks[1],
+                        &diag_blocks[2],
                     ],
                 ),
             };
@@ -2102,7 +2424,7 @@ fn build_level(
 fn build_refine(
     bld: &mut Builder,
     sh: &Shared,
-    op: Operator,
+    op: Option<Operator>,
     level: &Level,
     host: &Host,
     c: &Consts,
@@ -2150,18 +2472,29 @@ fn build_refine(
             &y64,
         ],
     );
-    let bg_mv = bind_operator(
-        bld,
-        sh,
-        &op,
-        "matvec f64 y->q bind group",
-        &y64,
-        &q64,
-        &partials64,
-        &zero_state,
-    );
+    let bg_mv = op.as_ref().map(|op| {
+        bind_operator(
+            bld,
+            sh,
+            op,
+            "matvec f64 y->q bind group",
+            &y64,
+            &q64,
+            &partials64,
+            &zero_state,
+        )
+    });
+    let rotations64 = match (&op, host.frames.has_rotation()) {
+        (None, true) => Some(bld.buffer(
+            "rotations_f64",
+            host.frames.rotations.len() as u64 * 8,
+            STORAGE,
+        )?),
+        _ => None,
+    };
     Ok(Refine {
         op,
+        rotations64,
         b64,
         y64,
         partials64,
@@ -2217,13 +2550,13 @@ fn build_recovery(
                 real,
                 acc,
                 "rotate_vectors",
-                &[Uniform, Ro, Ro, Ro, Ro, Ro, Rw],
+                &[Uniform, Ro, Ro, Ro, Rw],
                 &[("D", c.d), ("WG", c.wg), ("TRANSPOSE", 0.0)],
             )?;
             let bg = bld.bind(
                 &k,
                 "rotate_vectors bind group",
-                &[&sh.params, ri, rn, rot, &sh.row_ptr, &sh.col, &dx],
+                &[&sh.params, ri, rn, rot, &dx],
             );
             Some((k, bg))
         }
