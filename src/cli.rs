@@ -240,8 +240,21 @@ pub struct GenerateArgs {
 
 #[derive(Debug, Clone, Args)]
 pub struct RunArgs {
-    /// Scene description (TOML); the built-in default scene when absent.
-    pub scene: Option<PathBuf>,
+    /// A scene file (TOML) or a built-in scene name (default, hanging, incline, bead,
+    /// twist, compress, seed-line); the built-in `default` when absent.
+    pub scene: Option<String>,
+    /// Output folder for frames (VTK), steps.csv and summary.json [default: out/<scene>].
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Override the scene's linear solver.
+    #[arg(long, value_enum)]
+    pub solver: Option<SolverKind>,
+    /// Mesh resolution multiplier (scales every generated mesh's cell count per axis).
+    #[arg(long, value_parser = positive_f64)]
+    pub size: Option<f64>,
+    /// Override the number of time steps.
+    #[arg(long)]
+    pub steps: Option<usize>,
 }
 
 /// Why a command failed; decides the exit code.
@@ -309,9 +322,7 @@ pub fn run(cli: &Cli) -> Result<(), CliError> {
         }
         Command::Generate(a) => generate(a, cli.quiet),
         Command::Info => info(),
-        Command::Run(_) => Err(CliError::Failed(
-            "`stickslip run` is not yet implemented in this build".into(),
-        )),
+        Command::Run(a) => run_scene(a, cli.quiet),
         Command::Bench(a) => bench(a, cli.quiet),
         Command::Export(a) => export(a, cli.quiet),
         Command::Recover(a) => recover(a, cli.quiet),
@@ -815,4 +826,44 @@ fn recover(a: &RecoverArgs, quiet: bool) -> Result<(), CliError> {
         );
     }
     Ok(())
+}
+
+/// `stickslip run`: see [`crate::driver`].
+fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
+    let opts = crate::driver::RunOptions {
+        scene: a.scene.clone(),
+        out: a.out.clone(),
+        solver: a.solver.map(|s| {
+            match s {
+                SolverKind::Cholesky => "cholesky",
+                SolverKind::Cg => "cg",
+                SolverKind::Gpu => "gpu",
+            }
+            .to_string()
+        }),
+        size: a.size,
+        steps: a.steps,
+        quiet,
+    };
+    match crate::driver::run(&opts) {
+        Ok(summary) => {
+            if !quiet {
+                eprintln!(
+                    "{}: {} steps of {} s on {} nodes with {} in {:.2} s ({} Newton, {} linear iterations); output in {}",
+                    summary.scene,
+                    summary.steps,
+                    summary.time_step,
+                    summary.nodes,
+                    summary.solver,
+                    summary.wall_seconds,
+                    summary.newton_iterations,
+                    summary.linear_iterations,
+                    summary.out_dir
+                );
+            }
+            Ok(())
+        }
+        Err(crate::driver::RunError::Input(e)) => Err(CliError::Input(e)),
+        Err(e) => Err(CliError::Failed(e.to_string())),
+    }
 }

@@ -767,3 +767,27 @@ fn export_recover_round_trip_and_bad_recovery_inputs() {
     ]);
     assert_input_error(&o, &bad, &["line"]);
 }
+
+/// Bad scene files: exit 2 and one stderr line naming the file and the key.
+#[test]
+fn bad_scene_files_name_the_key() {
+    let dir = tmpdir("scene");
+    let base = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/default.toml"))
+        .unwrap();
+    for (name, from, to, want) in [
+        ("poisson", "poisson = 0.35", "poisson = 0.7", "poisson"),
+        ("young", "young = 2e5", "young = -1.0", "young"),
+        ("unknown", "time_step = 0.01", "time_step = 0.01\ntimestep = 0.02", "timestep"),
+        ("kind", "kind = \"plane\"", "kind = \"hinge\"", "kind"),
+        ("dt", "time_step = 0.01", "time_step = 0.0", "time_step"),
+    ] {
+        let text = base.replacen(from, to, 1);
+        assert_ne!(text, base, "{name}: edit did not apply");
+        let path = write(&dir, &format!("{name}.toml"), &text);
+        let o = run(&["run", &path, "--out", dir.join("out").to_str().unwrap(), "--quiet"]);
+        assert_input_error(&o, &path, &[want]);
+    }
+    let o = run(&["run", "no-such-scene", "--quiet"]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert_eq!(stderr(&o).lines().count(), 1);
+}

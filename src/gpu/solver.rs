@@ -536,18 +536,12 @@ fn plane_buffers(
     real: Real,
 ) -> Result<[wgpu::Buffer; 3], GpuError> {
     let w = plane_widths(d);
+    // An unused plane still binds as one vec4<real> (32 bytes for f64).
+    let bytes = |wp: usize| ((n_blocks * wp) as u64 * real.size()).max(4 * real.size());
     Ok([
-        bld.buffer(label, (n_blocks * w[0]) as u64 * real.size(), STORAGE)?,
-        bld.buffer(
-            &format!("{label}_b"),
-            (n_blocks * w[1]) as u64 * real.size(),
-            STORAGE,
-        )?,
-        bld.buffer(
-            &format!("{label}_c"),
-            (n_blocks * w[2]) as u64 * real.size(),
-            STORAGE,
-        )?,
+        bld.buffer(label, bytes(w[0]), STORAGE)?,
+        bld.buffer(&format!("{label}_b"), bytes(w[1]), STORAGE)?,
+        bld.buffer(&format!("{label}_c"), bytes(w[2]), STORAGE)?,
     ])
 }
 
