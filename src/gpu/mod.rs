@@ -92,7 +92,8 @@ pub struct GpuParams {
     pub stagnation_window: usize,
     /// Restarts from the current iterate when the true residual misses the tolerance.
     pub max_restarts: usize,
-    /// Iterations recorded in the first submit; doubled after each status read-back.
+    /// Iterations recorded in the first submit, and the smallest chunk; later chunks follow
+    /// the predicted iterations left to the tolerance (at most doubling each time).
     pub first_chunk: usize,
     /// Cap of the iterations per submit (and per status read-back).
     pub max_chunk: usize,

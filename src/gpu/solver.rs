@@ -4,7 +4,8 @@
 //! (α reduced redundantly per workgroup; x, r, z updated; r·z and r·r partials) and
 //! `update_p` (ρ, β and the stop decision reduced redundantly per workgroup; p = z + βp).
 //! Scalars stay on the device; one submit records a chunk of iterations and one small
-//! status read-back follows it; chunks double up to a cap. Success is declared only after
+//! status read-back follows it; chunk sizes follow the predicted iterations left
+//! (see `run_cg`). Success is declared only after
 //! the true residual is recomputed in f64 on the host from the downloaded y.
 
 use super::kernels;
@@ -1995,7 +1996,8 @@ fn next_chunk(hist: &[(usize, f64)], thresh: f64, prev: usize, floor: usize, cap
         return grow;
     };
     let rate = (lr0 - lr) / (it - it0) as f64;
-    if !(rate > 0.0) || !(thresh > 0.0) {
+    // Written to reject NaN too.
+    if rate.is_nan() || rate <= 0.0 || thresh.is_nan() || thresh <= 0.0 {
         return grow;
     }
     let need = (lr - thresh.ln()) / rate;
@@ -2600,4 +2602,25 @@ fn bytes_per_iteration(host: &Host, level: &Level, c: &Consts, pc: Preconditione
         Preconditioner::BlockJacobi => n * d * d * s,
     };
     op + vec + pre
+}
+
+#[cfg(test)]
+mod tests {
+    use super::next_chunk;
+
+    #[test]
+    fn chunks_follow_the_predicted_remaining_iterations() {
+        // No history, or too little of it: double within [floor, cap].
+        assert_eq!(next_chunk(&[], 1e-12, 8, 8, 256), 16);
+        assert_eq!(next_chunk(&[(8, 0.0)], 1e-12, 8, 8, 256), 16);
+        // ln r·r falls by 0.1 per iteration; 10 more iterations reach the threshold.
+        let t = (-6.0f64).exp();
+        let h = [(8, -0.8), (24, -2.4), (50, -5.0)];
+        assert_eq!(next_chunk(&h, t, 26, 8, 256), 10);
+        // Never below the floor, never above double the previous chunk.
+        assert_eq!(next_chunk(&h, (-5.1f64).exp(), 26, 8, 256), 8);
+        assert_eq!(next_chunk(&h, (-50.0f64).exp(), 26, 8, 256), 52);
+        // No progress: plain doubling.
+        assert_eq!(next_chunk(&[(8, -1.0), (24, -1.0)], t, 16, 8, 256), 32);
+    }
 }
