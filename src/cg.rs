@@ -35,6 +35,26 @@ impl std::str::FromStr for Preconditioner {
     }
 }
 
+/// Symmetric diagonal equilibration of Ĥ before CG: solve (SĤS) z = S b̂, y = S z.
+///
+/// S is constant within a node (s_i = 2^round(−½ log₂(tr H_ii / d))), so it commutes with
+/// the node's rotation V_i: the scaled system is again an eliminated system on the same
+/// frames (any solver, the GPU's included, can take it), and powers of two make the
+/// scaling itself exact. What it buys: with [`Preconditioner::None`] it is the difference
+/// between converging and not on stiffness contrasts (1e8); with Jacobi or block-Jacobi
+/// PCG it changes nothing but rounding (those preconditioners already are a symmetric
+/// diagonal scaling), so it is off by default. The stopping test stays on the unscaled
+/// residual ‖b̂ − Ĥy‖/‖b̂‖. STABILITY.md has the measurements.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Scaling {
+    /// Solve Ĥ as given.
+    #[default]
+    None,
+    /// Per-node power-of-two scaling from the trace of H's diagonal blocks.
+    NodeDiagonal,
+}
+
 /// Parameters of a CG solve.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CgParams {
@@ -45,8 +65,17 @@ pub struct CgParams {
     pub preconditioner: Preconditioner,
     /// Stagnation: the best recurrence residual has not improved for this many iterations.
     pub stagnation_window: usize,
-    /// Restarts allowed when the true residual misses the tolerance at recurrence convergence.
+    /// Restarts allowed when the true residual misses the tolerance at recurrence
+    /// convergence, or when CG stagnates (a restart from the true residual is tried
+    /// before giving up).
     pub max_restarts: usize,
+    /// Every this many iterations the true residual is recomputed (one extra product);
+    /// when the recurrence residual has drifted below it by more than 2× (rounding, loss
+    /// of orthogonality), the recurrence residual is replaced by the true one. 0: only
+    /// at convergence.
+    pub check_every: usize,
+    /// Diagonal equilibration (off by default; see [`Scaling`]).
+    pub scaling: Scaling,
 }
 
 impl Default for CgParams {
@@ -57,6 +86,8 @@ impl Default for CgParams {
             preconditioner: Preconditioner::Jacobi,
             stagnation_window: 1_000,
             max_restarts: 3,
+            check_every: 64,
+            scaling: Scaling::None,
         }
     }
 }
@@ -68,8 +99,18 @@ pub struct CgInfo {
     /// The true relative residual ‖b̂ − Ĥy‖/‖b̂‖, recomputed in f64 at the end.
     pub relative_residual: f64,
     pub restarts: usize,
+    /// Times the recurrence residual was replaced by the true residual.
+    pub residual_replacements: usize,
+    /// Lanczos estimate of κ(M⁻¹Ĥ) from the CG coefficients of the last cycle (extreme
+    /// Ritz values; a lower bound on the true κ that tightens with iterations). None
+    /// when CG ran fewer than 2 iterations.
+    pub condition_estimate: Option<f64>,
+    /// Largest loss of local conjugacy |p_kᵀĤp_{k−1}|/√(p_kᵀĤp_k · p_{k−1}ᵀĤp_{k−1})
+    /// seen (≈ ε when CG is healthy; near 1 means the recurrences lost orthogonality).
+    pub conjugacy_loss: f64,
+    /// Whether the solve ran on the equilibrated system.
+    pub scaled: bool,
 }
-
 /// Why CG stopped without reaching its tolerance.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum CgError {
@@ -244,137 +285,207 @@ pub fn solve(e: &Eliminated, params: &CgParams) -> Result<(Vec<f64>, CgInfo), Cg
     solve_with(e, &pre, None, params)
 }
 
-/// Solves Ĥ y = b̂ by PCG with a prebuilt preconditioner, from `y0` (or zero).
+/// Solves Ĥ y = b̂ by PCG with a prebuilt preconditioner, from `y0` (or zero). With
+/// [`Scaling::NodeDiagonal`] a preconditioner of the same kind is built on the scaled
+/// system instead of `pre`.
 pub fn solve_with(
     e: &Eliminated,
     pre: &BuiltPreconditioner,
     y0: Option<&[f64]>,
     params: &CgParams,
 ) -> Result<(Vec<f64>, CgInfo), CgError> {
-    let n = e.ndof();
-    let b = &e.rhs;
-    let bnorm = norm2(b);
-    let mut y = match y0 {
-        Some(v) => v.to_vec(),
-        None => vec![0.0; n],
-    };
-    if bnorm == 0.0 {
-        // Ĥ is SPD, so the solution is exactly zero.
-        return Ok((
-            vec![0.0; n],
-            CgInfo {
-                iterations: 0,
-                relative_residual: 0.0,
-                restarts: 0,
-            },
-        ));
-    }
-    let mut work = vec![0.0; 2 * n];
-    let mut r = vec![0.0; n];
-    let mut z = vec![0.0; n];
-    let mut p = vec![0.0; n];
-    let mut q = vec![0.0; n];
-    let mut iterations = 0usize;
-    let mut restarts = 0usize;
-    let true_residual = |y: &[f64], r: &mut [f64], work: &mut [f64]| -> f64 {
-        e.apply(y, r, work);
-        for (ri, bi) in r.iter_mut().zip(b) {
-            *ri = bi - *ri;
-        }
-        norm2(r) / bnorm
-    };
-    loop {
-        // (Re)start: r = b − Ĥy, z = M⁻¹r, p = z.
-        let mut rel = true_residual(&y, &mut r, &mut work);
-        if rel <= params.tol {
-            return Ok((
-                y,
-                CgInfo {
-                    iterations,
-                    relative_residual: rel,
-                    restarts,
-                },
-            ));
-        }
-        pre.apply(&r, &mut z);
-        p.copy_from_slice(&z);
-        let mut rz = dot(&r, &z);
-        let mut best = rel;
-        let mut best_at = iterations;
-        loop {
-            if iterations >= params.max_iters {
-                let rel = true_residual(&y, &mut r, &mut work);
-                return Err(CgError::MaxIterations {
-                    iterations,
-                    relative_residual: rel,
-                    tol: params.tol,
-                });
-            }
-            e.apply(&p, &mut q, &mut work);
-            let pq = dot(&p, &q);
-            iterations += 1;
-            if !pq.is_finite() || !rz.is_finite() {
-                return Err(CgError::Breakdown {
-                    iteration: iterations,
-                });
-            }
-            if pq <= 0.0 {
-                return Err(CgError::NonPositiveCurvature {
-                    iteration: iterations,
-                    curvature: pq,
-                });
-            }
-            let alpha = rz / pq;
-            for k in 0..n {
-                y[k] += alpha * p[k];
-                r[k] -= alpha * q[k];
-            }
-            rel = norm2(&r) / bnorm;
-            if rel <= params.tol {
-                break;
-            }
-            if rel < best {
-                best = rel;
-                best_at = iterations;
-            } else if iterations - best_at >= params.stagnation_window {
-                let rel = true_residual(&y, &mut r, &mut work);
-                return Err(CgError::Stagnation {
-                    iterations,
-                    relative_residual: rel,
-                    tol: params.tol,
-                });
-            }
-            pre.apply(&r, &mut z);
-            let rz_new = dot(&r, &z);
-            let beta = rz_new / rz;
-            rz = rz_new;
-            for k in 0..n {
-                p[k] = z[k] + beta * p[k];
-            }
-        }
-        // The recurrence says converged: check the truth.
-        let rel_true = true_residual(&y, &mut r, &mut work);
-        if rel_true <= params.tol {
-            return Ok((
-                y,
-                CgInfo {
-                    iterations,
-                    relative_residual: rel_true,
-                    restarts,
-                },
-            ));
-        }
-        if restarts >= params.max_restarts {
-            return Err(CgError::Stagnation {
-                iterations,
-                relative_residual: rel_true,
-                tol: params.tol,
-            });
-        }
-        restarts += 1;
+    match params.scaling {
+        Scaling::None => pcg(e, pre, y0, params),
+        Scaling::NodeDiagonal => solve_equilibrated(e, y0, params),
     }
 }
 
+/// The equilibrated system S Ĥ S, S b̂ (see [`Scaling`]); `node_scale` holds s_i.
+#[derive(Debug, Clone)]
+pub struct Equilibrated {
+    pub h: BlockCsr,
+    pub rhs: Vec<f64>,
+    pub diag: Vec<f64>,
+    pub node_scale: Vec<f64>,
+}
+
+impl Equilibrated {
+    /// The scaled system as an eliminated system on the same frames.
+    pub fn eliminated<'a>(&'a self, frames: &'a Frames) -> Eliminated<'a> {
+        Eliminated {
+            h: &self.h,
+            frames,
+            rhs: self.rhs.clone(),
+            diag: self.diag.clone(),
+        }
+    }
+
+    /// y = S z.
+    pub fn unscale(&self, z: &[f64]) -> Vec<f64> {
+        let d = self.h.dim;
+        z.iter()
+            .enumerate()
+            .map(|(k, v)| v * self.node_scale[k / d])
+            .collect()
+    }
+
+    /// z = S⁻¹ y.
+    pub fn scale(&self, y: &[f64]) -> Vec<f64> {
+        let d = self.h.dim;
+        y.iter()
+            .enumerate()
+            .map(|(k, v)| v / self.node_scale[k / d])
+            .collect()
+    }
+}
+
+/// Builds S Ĥ S with s_i = 2^round(−½ log₂(tr H_ii / d)) (1 where the trace is not a
+/// positive finite number). The trace is invariant under the node's rotation.
+pub fn equilibrate(e: &Eliminated) -> Equilibrated {
+    let h = e.h;
+    let d = h.dim;
+    let s: Vec<f64> = (0..h.n)
+        .map(|i| {
+            let t = h.diag_index(i).map_or(0.0, |k| {
+                (0..d).map(|a| h.values[k * d * d + a * d + a]).sum::<f64>() / d as f64
+            });
+            if t > 0.0 && t.is_finite() {
+                (-0.5 * t.log2()).round().clamp(-1000.0, 1000.0).exp2()
+            } else {
+                1.0
+            }
+        })
+        .collect();
+    let mut hs = h.clone();
+    for i in 0..h.n {
+        for k in h.row_ptr[i]..h.row_ptr[i + 1] {
+            let f = s[i] * s[h.col_idx[k]];
+            for v in &mut hs.values[k * d * d..(k + 1) * d * d] {
+                *v *= f;
+            }
+        }
+    }
+    let rhs = e
+        .rhs
+        .iter()
+        .enumerate()
+        .map(|(k, v)| v * s[k / d])
+        .collect();
+    let diag = e
+        .diag
+        .iter()
+        .enumerate()
+        .map(|(k, v)| v * s[k / d] * s[k / d])
+        .collect();
+    Equilibrated {
+        h: hs,
+        rhs,
+        diag,
+        node_scale: s,
+    }
+}
+
+/// PCG on the equilibrated system; the tolerance is met on the unscaled residual. When
+/// the scaled solve converges but the unscaled residual misses, the scaled tolerance is
+/// tightened by the ratio and CG continues from where it is (at most `max_restarts` times).
+fn solve_equilibrated(
+    e: &Eliminated,
+    y0: Option<&[f64]>,
+    params: &CgParams,
+) -> Result<(Vec<f64>, CgInfo), CgError> {
+    let eq = equilibrate(e);
+    let es = eq.eliminated(e.frames);
+    let pre = BuiltPreconditioner::new(&es, params.preconditioner);
+    let mut z = y0.map(|y| eq.scale(y));
+    let mut p = params.clone();
+    p.scaling = Scaling::None;
+    let mut used = 0usize;
+    let mut restarts = 0usize;
+    let with_true = |err: CgError, y: &[f64]| -> CgError {
+        let rel = e.relative_residual(y);
+        match err {
+            CgError::Stagnation { iterations, .. } => CgError::Stagnation {
+                iterations,
+                relative_residual: rel,
+                tol: params.tol,
+            },
+            CgError::MaxIterations { iterations, .. } => CgError::MaxIterations {
+                iterations,
+                relative_residual: rel,
+                tol: params.tol,
+            },
+            other => other,
+        }
+    };
+    loop {
+        p.max_iters = params.max_iters.saturating_sub(used);
+        match pcg(&es, &pre, z.as_deref(), &p) {
+            Ok((zs, mut info)) => {
+                used += info.iterations;
+                let y = eq.unscale(&zs);
+                let rel = e.relative_residual(&y);
+                if rel <= params.tol {
+                    info.iterations = used;
+                    info.relative_residual = rel;
+                    info.restarts += restarts;
+                    info.scaled = true;
+                    return Ok((y, info));
+                }
+                if restarts >= params.max_restarts || used >= params.max_iters {
+                    let err = CgError::Stagnation {
+                        iterations: used,
+                        relative_residual: rel,
+                        tol: params.tol,
+                    };
+                    return Err(with_true(err, &y));
+                }
+                // Tighten the scaled tolerance by how far the unscaled residual missed.
+                p.tol = (p.tol * 0.5 * params.tol / rel).max(f64::MIN_POSITIVE);
+                restarts += 1;
+                z = Some(zs);
+            }
+            Err(err) => {
+                // The residual an error reports is the unscaled one; recompute it from the
+                // scaled iterate the solver reached (rerun is not possible: report it
+                // through the relative residual of the zero iterate when we have none).
+                let y = z.as_deref().map(|zz| eq.unscale(zz));
+                return Err(match (err, y) {
+                    (CgError::Stagnation { iterations, relative_residual, .. }, _)
+                    | (CgError::MaxIterations { iterations, relative_residual, .. }, _)
+                        if relative_residual.is_nan() =>
+                    {
+                        CgError::Breakdown { iteration: iterations }
+                    }
+                    (err @ CgError::Stagnation { .. }, _) | (err @ CgError::MaxIterations { .. }, _) => {
+                        unscaled_error(err, used, params.tol)
+                    }
+                    (other, _) => other,
+                });
+            }
+        }
+    }
+}
+
+/// An error from the scaled solve, restated with the total iterations and the caller's
+/// tolerance. Its residual is the scaled one's (S changes norms by at most the spread
+/// of s_i; the exact unscaled value needs the iterate, which [`pcg`] reports on errors
+/// through [`CgError::reached_residual`] of the scaled system).
+fn unscaled_error(err: CgError, used: usize, tol: f64) -> CgError {
+    match err {
+        CgError::Stagnation { iterations, relative_residual, .. } => CgError::Stagnation {
+            iterations: used + iterations,
+            relative_residual,
+            tol,
+        },
+        CgError::MaxIterations { iterations, relative_residual, .. } => CgError::MaxIterations {
+            iterations: used + iterations,
+            relative_residual,
+            tol,
+        },
+        other => other,
+    }
+}
+PCGCORE
 fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
