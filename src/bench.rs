@@ -75,6 +75,11 @@ pub struct RunRecord {
     pub bytes_per_iteration: u64,
     pub achieved_gb_per_s: f64,
     pub seconds_per_iteration: f64,
+    /// Iterations the device recorded (≥ iterations: chunks end past convergence).
+    pub recorded_iterations: Option<usize>,
+    /// Seconds per iteration over the bandwidth floor (bytes per iteration / copy
+    /// bandwidth of the device that ran it): 1 is the physical limit.
+    pub bandwidth_floor_ratio: f64,
     /// Peak resident memory of the process so far (VmHWM), bytes.
     pub peak_rss_bytes: u64,
     pub note: String,
@@ -120,6 +125,8 @@ pub struct BenchReport {
     pub adapter: Option<String>,
     /// Host memcpy bandwidth (read + write bytes per second), GB/s.
     pub cpu_copy_gb_per_s: f64,
+    /// GPU buffer-to-buffer copy bandwidth (read + write), GB/s, timestamped.
+    pub gpu_copy_gb_per_s: Option<f64>,
     pub runs: Vec<RunRecord>,
     pub cholesky: Vec<CholeskyRecord>,
     pub winners: Vec<Winner>,
@@ -223,6 +230,7 @@ pub fn run(opts: &BenchOptions, command: &str) -> Result<BenchReport, BenchError
         cpu_threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
         adapter: ctx.as_ref().map(|c| c.adapter_name().to_string()),
         cpu_copy_gb_per_s: cpu_copy_bandwidth(),
+        gpu_copy_gb_per_s: ctx.as_ref().and_then(|c| crate::gpu::measure_copy_bandwidth(c).ok()),
         runs: Vec::new(),
         cholesky: Vec::new(),
         winners: Vec::new(),
@@ -291,6 +299,8 @@ fn bench_one(
         bytes_per_iteration: 0,
         achieved_gb_per_s: 0.0,
         seconds_per_iteration: 0.0,
+        recorded_iterations: None,
+        bandwidth_floor_ratio: f64::NAN,
         peak_rss_bytes: 0,
         note: String::new(),
     };
@@ -329,7 +339,7 @@ fn bench_one(
         r.total_seconds = total;
         r.peak_rss_bytes = peak_rss_bytes();
         r.note = format!("refactor with reused analysis: {reused:.3} s");
-        bar.println(line(&r));
+        say(bar, opts.quiet, &line(&r));
         report.runs.push(r);
         (dx, "oracle".to_string())
     } else {
@@ -381,8 +391,8 @@ fn bench_one(
                     r.note = err.to_string();
                 }
             }
-            finish_record(&mut r, cpu_bytes);
-            bar.println(line(&r));
+            finish_record(&mut r, cpu_bytes, report.cpu_copy_gb_per_s);
+            say(bar, opts.quiet, &line(&r));
             report.runs.push(r);
         }
     }
@@ -410,7 +420,7 @@ fn bench_one(
                     Ok(s) => s,
                     Err(err) => {
                         r.note = format!("not run: {err}");
-                        bar.println(line(&r));
+                        say(bar, opts.quiet, &line(&r));
                         report.runs.push(r);
                         break;
                     }
@@ -429,6 +439,7 @@ fn bench_one(
                             + info.seconds.download;
                         r.gpu_seconds = info.gpu_seconds;
                         r.bytes_per_iteration = info.bytes_per_iteration;
+                        r.recorded_iterations = Some(info.recorded_iterations);
                         r.note = info.notes.join("; ");
                     }
                     Err(err) => {
@@ -436,8 +447,8 @@ fn bench_one(
                     }
                 }
                 let bytes = r.bytes_per_iteration;
-                finish_record(&mut r, bytes);
-                bar.println(line(&r));
+                finish_record(&mut r, bytes, report.gpu_copy_gb_per_s.unwrap_or(f64::NAN));
+                say(bar, opts.quiet, &line(&r));
                 report.runs.push(r);
             }
         }
@@ -445,7 +456,20 @@ fn bench_one(
     Ok(())
 }
 
-fn finish_record(r: &mut RunRecord, bytes_per_iteration: u64) {
+/// One line per finished run: above the progress bar on a terminal, plain on stderr
+/// otherwise (indicatif hides its bar, and its println, when stderr is not a terminal).
+fn say(bar: &indicatif::ProgressBar, quiet: bool, text: &str) {
+    if quiet {
+        return;
+    }
+    if bar.is_hidden() {
+        eprintln!("{text}");
+    } else {
+        bar.println(text);
+    }
+}
+
+fn finish_record(r: &mut RunRecord, bytes_per_iteration: u64, copy_gb_per_s: f64) {
     if r.total_seconds == 0.0 {
         r.total_seconds = r.setup_seconds + r.solve_seconds;
     }
@@ -454,6 +478,8 @@ fn finish_record(r: &mut RunRecord, bytes_per_iteration: u64) {
         r.seconds_per_iteration = r.solve_seconds / r.iterations as f64;
         r.achieved_gb_per_s =
             bytes_per_iteration as f64 * r.iterations as f64 / r.solve_seconds / 1e9;
+        let floor = bytes_per_iteration as f64 / (copy_gb_per_s * 1e9);
+        r.bandwidth_floor_ratio = r.seconds_per_iteration / floor;
     }
     r.peak_rss_bytes = peak_rss_bytes();
 }
@@ -557,10 +583,13 @@ pub fn loglog_slope(points: &[(usize, f64)]) -> f64 {
 pub fn summary_text(report: &BenchReport) -> String {
     let mut s = String::new();
     s.push_str(&format!(
-        "adapter: {}   CPU threads: {}   host copy bandwidth: {:.1} GB/s\n",
+        "adapter: {}   CPU threads: {}   host copy bandwidth: {:.1} GB/s   GPU copy bandwidth: {}\n",
         report.adapter.as_deref().unwrap_or("none"),
         report.cpu_threads,
-        report.cpu_copy_gb_per_s
+        report.cpu_copy_gb_per_s,
+        report
+            .gpu_copy_gb_per_s
+            .map_or("-".to_string(), |b| format!("{b:.1} GB/s"))
     ));
     s.push_str("\nCholesky (faer): symbolic / numeric / solve / refactor with reused analysis\n");
     for c in &report.cholesky {
@@ -592,10 +621,10 @@ fn write_outputs(report: &BenchReport, dir: &Path) -> std::io::Result<()> {
         dir.join("bench.json"),
         serde_json::to_string_pretty(report).map_err(std::io::Error::other)?,
     )?;
-    let mut csv = String::from("dim,nodes,dofs,solver,precision,tol,converged,iterations,relative_residual,relative_error,error_reference,setup_seconds,solve_seconds,total_seconds,gpu_seconds,bytes_per_iteration,achieved_gb_per_s,seconds_per_iteration,peak_rss_bytes\n");
+    let mut csv = String::from("dim,nodes,dofs,solver,precision,tol,converged,iterations,recorded_iterations,relative_residual,relative_error,error_reference,setup_seconds,solve_seconds,total_seconds,gpu_seconds,bytes_per_iteration,achieved_gb_per_s,seconds_per_iteration,bandwidth_floor_ratio,peak_rss_bytes\n");
     for r in &report.runs {
         csv.push_str(&format!(
-            "{},{},{},{},{},{},{},{},{:e},{:e},{},{:e},{:e},{:e},{},{},{:e},{:e},{}\n",
+            "{},{},{},{},{},{},{},{},{},{:e},{:e},{},{:e},{:e},{:e},{},{},{:e},{:e},{:e},{}\n",
             r.dim,
             r.nodes,
             r.dofs,
@@ -604,6 +633,7 @@ fn write_outputs(report: &BenchReport, dir: &Path) -> std::io::Result<()> {
             r.tol.map_or(String::new(), |t| format!("{t:e}")),
             r.converged,
             r.iterations,
+            r.recorded_iterations.map_or(String::new(), |v| v.to_string()),
             r.relative_residual,
             r.relative_error,
             r.error_reference,
@@ -614,6 +644,7 @@ fn write_outputs(report: &BenchReport, dir: &Path) -> std::io::Result<()> {
             r.bytes_per_iteration,
             r.achieved_gb_per_s,
             r.seconds_per_iteration,
+            r.bandwidth_floor_ratio,
             r.peak_rss_bytes
         ));
     }
@@ -621,4 +652,47 @@ fn write_outputs(report: &BenchReport, dir: &Path) -> std::io::Result<()> {
     crate::plots::time_vs_error(report, dir).map_err(std::io::Error::other)?;
     crate::plots::time_vs_size(report, dir).map_err(std::io::Error::other)?;
     Ok(())
+}
+
+/// `stickslip bench --hard`: the hard-case table (src/hard.rs) for STABILITY.md, and GPU
+/// f64 against mixed precision on larger hard cases. Writes hard.md and hard.json to `out`.
+pub fn run_hard(out: Option<&Path>, no_gpu: bool, scale: usize) -> Result<String, BenchError> {
+    let ctx = if no_gpu {
+        None
+    } else {
+        GpuContext::new(&GpuOptions::default()).ok()
+    };
+    let rows = crate::hard::table(crate::hard::Size::Ci, ctx.as_ref(), 3000).map_err(BenchError::Solve)?;
+    let mut md = format!(
+        "adapter: {}\n\n{}",
+        ctx.as_ref().map_or("none".to_string(), |c| c.adapter_name().to_string()),
+        crate::hard::table_markdown(&rows)
+    );
+    let mut speed = Vec::new();
+    if let Some(c) = ctx.as_ref() {
+        speed = crate::hard::mixed_speed(crate::hard::Size::Scale(scale), c, 1e-10).map_err(BenchError::Solve)?;
+        md.push_str("\n| case | DOFs | f64 CG s | mixed s | f64/mixed | f64 error | mixed error |\n|---|---|---|---|---|---|---|\n");
+        let f = |v: Option<f64>, p: usize| v.map_or("failed".to_string(), |x| format!("{x:.prec$e}", prec = p));
+        for (name, dofs, t64, tm, e64, em) in &speed {
+            let ratio = match (t64, tm) {
+                (Some(a), Some(b)) if *b > 0.0 => format!("{:.2}", a / b),
+                _ => "—".into(),
+            };
+            md.push_str(&format!(
+                "| {name} | {dofs} | {} | {} | {ratio} | {} | {} |\n",
+                f(*t64, 2),
+                f(*tm, 2),
+                f(*e64, 1),
+                f(*em, 1)
+            ));
+        }
+    }
+    if let Some(dir) = out {
+        std::fs::create_dir_all(dir).map_err(|e| BenchError::Io(format!("{}: {e}", dir.display())))?;
+        let json = serde_json::json!({ "rows": rows, "mixed_speed": speed });
+        std::fs::write(dir.join("hard.md"), &md)
+            .and_then(|_| std::fs::write(dir.join("hard.json"), json.to_string()))
+            .map_err(|e| BenchError::Io(format!("{}: {e}", dir.display())))?;
+    }
+    Ok(md)
 }

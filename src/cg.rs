@@ -5,8 +5,18 @@
 //! from the current iterate (a few times) and otherwise reports [`CgError::Stagnation`].
 //! Non-positive curvature pᵀĤp ≤ 0 (Ĥ not positive definite on the free subspace) and
 //! the iteration limit are errors too.
+//!
+//! Rounding makes the recurrence residual drift from the true one (loss of orthogonality
+//! on ill-conditioned systems). Every [`CgParams::check_every`] iterations the true
+//! residual is recomputed; a recurrence more than 2× optimistic is replaced by the true
+//! residual (residual replacement, keeping the search direction). Stagnation (no new best
+//! residual for [`CgParams::stagnation_window`] iterations) restarts from the true
+//! residual while restarts are left, and is reported with the residual reached otherwise.
+//! Every error carries the true residual of the iterate reached.
 
+use crate::constraints::Frames;
 use crate::elimination::{norm2, rotate_block, Eliminated};
+use crate::sparse::BlockCsr;
 
 /// Preconditioner built on the free components of Ĥ (constrained components get 1/D).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
@@ -194,11 +204,7 @@ impl BuiltPreconditioner {
                 out
             }
         };
-        BuiltPreconditioner {
-            kind,
-            dim: d,
-            data,
-        }
+        BuiltPreconditioner { kind, dim: d, data }
     }
 
     pub fn kind(&self) -> Preconditioner {
@@ -401,28 +407,13 @@ fn solve_equilibrated(
     p.scaling = Scaling::None;
     let mut used = 0usize;
     let mut restarts = 0usize;
-    let with_true = |err: CgError, y: &[f64]| -> CgError {
-        let rel = e.relative_residual(y);
-        match err {
-            CgError::Stagnation { iterations, .. } => CgError::Stagnation {
-                iterations,
-                relative_residual: rel,
-                tol: params.tol,
-            },
-            CgError::MaxIterations { iterations, .. } => CgError::MaxIterations {
-                iterations,
-                relative_residual: rel,
-                tol: params.tol,
-            },
-            other => other,
-        }
-    };
     loop {
         p.max_iters = params.max_iters.saturating_sub(used);
-        match pcg(&es, &pre, z.as_deref(), &p) {
-            Ok((zs, mut info)) => {
+        let (zs, res) = pcg_core(&es, &pre, z.as_deref(), &p);
+        let y = eq.unscale(&zs);
+        match res {
+            Ok(mut info) => {
                 used += info.iterations;
-                let y = eq.unscale(&zs);
                 let rel = e.relative_residual(&y);
                 if rel <= params.tol {
                     info.iterations = used;
@@ -432,60 +423,300 @@ fn solve_equilibrated(
                     return Ok((y, info));
                 }
                 if restarts >= params.max_restarts || used >= params.max_iters {
-                    let err = CgError::Stagnation {
+                    return Err(CgError::Stagnation {
                         iterations: used,
                         relative_residual: rel,
                         tol: params.tol,
-                    };
-                    return Err(with_true(err, &y));
+                    });
                 }
                 // Tighten the scaled tolerance by how far the unscaled residual missed.
                 p.tol = (p.tol * 0.5 * params.tol / rel).max(f64::MIN_POSITIVE);
                 restarts += 1;
                 z = Some(zs);
             }
-            Err(err) => {
-                // The residual an error reports is the unscaled one; recompute it from the
-                // scaled iterate the solver reached (rerun is not possible: report it
-                // through the relative residual of the zero iterate when we have none).
-                let y = z.as_deref().map(|zz| eq.unscale(zz));
-                return Err(match (err, y) {
-                    (CgError::Stagnation { iterations, relative_residual, .. }, _)
-                    | (CgError::MaxIterations { iterations, relative_residual, .. }, _)
-                        if relative_residual.is_nan() =>
-                    {
-                        CgError::Breakdown { iteration: iterations }
-                    }
-                    (err @ CgError::Stagnation { .. }, _) | (err @ CgError::MaxIterations { .. }, _) => {
-                        unscaled_error(err, used, params.tol)
-                    }
-                    (other, _) => other,
-                });
+            // Errors carry the unscaled residual of the iterate reached, and the total
+            // iteration count.
+            Err(CgError::Stagnation { iterations, .. }) => {
+                return Err(CgError::Stagnation {
+                    iterations: used + iterations,
+                    relative_residual: e.relative_residual(&y),
+                    tol: params.tol,
+                })
             }
+            Err(CgError::MaxIterations { iterations, .. }) => {
+                return Err(CgError::MaxIterations {
+                    iterations: used + iterations,
+                    relative_residual: e.relative_residual(&y),
+                    tol: params.tol,
+                })
+            }
+            Err(other) => return Err(other),
         }
     }
 }
 
-/// An error from the scaled solve, restated with the total iterations and the caller's
-/// tolerance. Its residual is the scaled one's (S changes norms by at most the spread
-/// of s_i; the exact unscaled value needs the iterate, which [`pcg`] reports on errors
-/// through [`CgError::reached_residual`] of the scaled system).
-fn unscaled_error(err: CgError, used: usize, tol: f64) -> CgError {
-    match err {
-        CgError::Stagnation { iterations, relative_residual, .. } => CgError::Stagnation {
-            iterations: used + iterations,
-            relative_residual,
-            tol,
-        },
-        CgError::MaxIterations { iterations, relative_residual, .. } => CgError::MaxIterations {
-            iterations: used + iterations,
-            relative_residual,
-            tol,
-        },
-        other => other,
+/// Plain PCG on `e` (no scaling); the iterate is returned with errors too.
+fn pcg(
+    e: &Eliminated,
+    pre: &BuiltPreconditioner,
+    y0: Option<&[f64]>,
+    params: &CgParams,
+) -> Result<(Vec<f64>, CgInfo), CgError> {
+    let (y, res) = pcg_core(e, pre, y0, params);
+    res.map(|info| (y, info))
+}
+
+/// Extreme eigenvalues of the symmetric tridiagonal (diag a, off-diagonal b) by Sturm
+/// bisection: (λ_min, λ_max).
+fn tridiagonal_extremes(a: &[f64], b: &[f64]) -> Option<(f64, f64)> {
+    let k = a.len();
+    if k == 0 || a.iter().chain(b).any(|v| !v.is_finite()) {
+        return None;
+    }
+    // Gershgorin interval.
+    let mut lo = f64::INFINITY;
+    let mut hi = f64::NEG_INFINITY;
+    for i in 0..k {
+        let r = if i > 0 { b[i - 1].abs() } else { 0.0 } + if i + 1 < k { b[i].abs() } else { 0.0 };
+        lo = lo.min(a[i] - r);
+        hi = hi.max(a[i] + r);
+    }
+    // Number of eigenvalues < x (negative pivots of the LDLᵀ of T − xI).
+    let count = |x: f64| -> usize {
+        let mut c = 0;
+        let mut q = 1.0f64;
+        for i in 0..k {
+            let bb = if i > 0 { b[i - 1] * b[i - 1] } else { 0.0 };
+            q = a[i] - x - if i > 0 { bb / q } else { 0.0 };
+            if q == 0.0 {
+                q = f64::MIN_POSITIVE;
+            }
+            if q < 0.0 {
+                c += 1;
+            }
+        }
+        c
+    };
+    let bisect = |target: usize| -> f64 {
+        // Smallest x with count(x) > target, i.e. the (target+1)-th eigenvalue.
+        let (mut l, mut h) = (lo, hi);
+        for _ in 0..200 {
+            let m = 0.5 * (l + h);
+            if m <= l || m >= h {
+                break;
+            }
+            if count(m) > target {
+                h = m;
+            } else {
+                l = m;
+            }
+        }
+        0.5 * (l + h)
+    };
+    Some((bisect(0), bisect(k - 1)))
+}
+
+/// PCG with true-residual checks (see the module docs); returns the final iterate and
+/// the outcome.
+fn pcg_core(
+    e: &Eliminated,
+    pre: &BuiltPreconditioner,
+    y0: Option<&[f64]>,
+    params: &CgParams,
+) -> (Vec<f64>, Result<CgInfo, CgError>) {
+    let n = e.ndof();
+    let b = &e.rhs;
+    let bnorm = norm2(b);
+    let mut y = match y0 {
+        Some(v) => v.to_vec(),
+        None => vec![0.0; n],
+    };
+    let mut info = CgInfo {
+        iterations: 0,
+        relative_residual: 0.0,
+        restarts: 0,
+        residual_replacements: 0,
+        condition_estimate: None,
+        conjugacy_loss: 0.0,
+        scaled: false,
+    };
+    if bnorm == 0.0 {
+        // Ĥ is SPD, so the solution is exactly zero.
+        return (vec![0.0; n], Ok(info));
+    }
+    let mut work = vec![0.0; 2 * n];
+    let mut r = vec![0.0; n];
+    let mut rt = vec![0.0; n];
+    let mut z = vec![0.0; n];
+    let mut p = vec![0.0; n];
+    let mut p_prev = vec![0.0; n];
+    let mut q = vec![0.0; n];
+    let mut iterations = 0usize;
+    let true_residual = |y: &[f64], r: &mut [f64], work: &mut [f64]| -> f64 {
+        e.apply(y, r, work);
+        for (ri, bi) in r.iter_mut().zip(b) {
+            *ri = bi - *ri;
+        }
+        norm2(r) / bnorm
+    };
+    // Lanczos coefficients of the current cycle (for the condition estimate).
+    let mut alphas: Vec<f64> = Vec::new();
+    let mut betas: Vec<f64> = Vec::new();
+    let estimate = |alphas: &[f64], betas: &[f64]| -> Option<f64> {
+        let k = alphas.len();
+        if k < 2 {
+            return None;
+        }
+        let mut da = vec![0.0; k];
+        let mut ob = vec![0.0; k - 1];
+        for j in 0..k {
+            da[j] = 1.0 / alphas[j]
+                + if j > 0 {
+                    betas[j - 1] / alphas[j - 1]
+                } else {
+                    0.0
+                };
+            if j + 1 < k {
+                ob[j] = betas[j].sqrt() / alphas[j];
+            }
+        }
+        let (lo, hi) = tridiagonal_extremes(&da, &ob)?;
+        (lo > 0.0).then(|| hi / lo)
+    };
+    let mut best_true = f64::INFINITY;
+    loop {
+        // (Re)start: r = b − Ĥy, z = M⁻¹r, p = z.
+        let mut rel = true_residual(&y, &mut r, &mut work);
+        best_true = best_true.min(rel);
+        if rel <= params.tol {
+            info.iterations = iterations;
+            info.relative_residual = rel;
+            if let Some(k) = estimate(&alphas, &betas) {
+                info.condition_estimate = Some(k);
+            }
+            return (y, Ok(info));
+        }
+        alphas.clear();
+        betas.clear();
+        pre.apply(&r, &mut z);
+        p.copy_from_slice(&z);
+        p_prev.iter_mut().for_each(|v| *v = 0.0);
+        let mut pq_prev = 0.0f64;
+        let mut rz = dot(&r, &z);
+        let mut best = rel;
+        let mut best_at = iterations;
+        let mut since_check = 0usize;
+        loop {
+            if iterations >= params.max_iters {
+                let rel = true_residual(&y, &mut r, &mut work);
+                return (
+                    y,
+                    Err(CgError::MaxIterations {
+                        iterations,
+                        relative_residual: rel,
+                        tol: params.tol,
+                    }),
+                );
+            }
+            e.apply(&p, &mut q, &mut work);
+            let pq = dot(&p, &q);
+            iterations += 1;
+            if !pq.is_finite() || !rz.is_finite() {
+                return (
+                    y,
+                    Err(CgError::Breakdown {
+                        iteration: iterations,
+                    }),
+                );
+            }
+            if pq <= 0.0 {
+                return (
+                    y,
+                    Err(CgError::NonPositiveCurvature {
+                        iteration: iterations,
+                        curvature: pq,
+                    }),
+                );
+            }
+            if pq_prev > 0.0 {
+                // Local conjugacy p_{k−1}ᵀ Ĥ p_k: zero in exact arithmetic.
+                let c = dot(&p_prev, &q).abs() / (pq * pq_prev).sqrt();
+                if c.is_finite() {
+                    info.conjugacy_loss = info.conjugacy_loss.max(c);
+                }
+            }
+            let alpha = rz / pq;
+            alphas.push(alpha);
+            for k in 0..n {
+                y[k] += alpha * p[k];
+                r[k] -= alpha * q[k];
+            }
+            rel = norm2(&r) / bnorm;
+            since_check += 1;
+            if params.check_every > 0 && since_check >= params.check_every && rel > params.tol {
+                since_check = 0;
+                let rel_t = true_residual(&y, &mut rt, &mut work);
+                best_true = best_true.min(rel_t);
+                if rel_t <= params.tol {
+                    break;
+                }
+                if rel_t > 2.0 * rel {
+                    // The recurrence drifted from the truth: replace it (keeping p, so the
+                    // Krylov progress is not thrown away).
+                    r.copy_from_slice(&rt);
+                    rel = rel_t;
+                    info.residual_replacements += 1;
+                }
+            }
+            if rel <= params.tol {
+                break;
+            }
+            if rel < best {
+                best = rel;
+                best_at = iterations;
+            } else if iterations - best_at >= params.stagnation_window {
+                // Stagnation: check the truth below, restart from it while restarts
+                // are left, else report it.
+                break;
+            }
+            pre.apply(&r, &mut z);
+            let rz_new = dot(&r, &z);
+            let beta = rz_new / rz;
+            betas.push(beta);
+            rz = rz_new;
+            p_prev.copy_from_slice(&p);
+            pq_prev = pq;
+            for k in 0..n {
+                p[k] = z[k] + beta * p[k];
+            }
+        }
+        if let Some(k) = estimate(
+            &alphas,
+            &betas[..betas.len().min(alphas.len().saturating_sub(1))],
+        ) {
+            info.condition_estimate = Some(info.condition_estimate.map_or(k, |c: f64| c.max(k)));
+        }
+        // The recurrence says converged (or stagnated): check the truth.
+        let rel_true = true_residual(&y, &mut r, &mut work);
+        if rel_true <= params.tol {
+            info.iterations = iterations;
+            info.relative_residual = rel_true;
+            return (y, Ok(info));
+        }
+        if info.restarts >= params.max_restarts {
+            return (
+                y,
+                Err(CgError::Stagnation {
+                    iterations,
+                    relative_residual: rel_true,
+                    tol: params.tol,
+                }),
+            );
+        }
+        info.restarts += 1;
     }
 }
-PCGCORE
+
 fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }

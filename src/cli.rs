@@ -72,6 +72,12 @@ pub struct BenchArgs {
     pub out: Option<PathBuf>,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Run the hard-case stability suite instead (src/hard.rs): writes hard.md/hard.json.
+    #[arg(long)]
+    pub hard: bool,
+    /// With --hard: grid scale of the larger cases timing GPU f64 against mixed.
+    #[arg(long, default_value_t = 3)]
+    pub hard_scale: usize,
 }
 
 #[derive(Debug, Clone, Args)]
@@ -737,6 +743,14 @@ pub fn generate(args: &GenerateArgs, quiet: bool) -> Result<(), CliError> {
 
 /// `stickslip bench`: see [`crate::bench`].
 fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
+    if a.hard {
+        let md = crate::bench::run_hard(a.out.as_deref(), a.no_gpu, a.hard_scale)
+            .map_err(|e| CliError::Failed(format!("bench --hard: {e}")))?;
+        if !quiet {
+            println!("{md}");
+        }
+        return Ok(());
+    }
     if let Some(d) = a.dims.iter().find(|&&d| d != 2 && d != 3) {
         return Err(InputError::new("command line", "--dims", format!("dimension {d} is not 2 or 3")).into());
     }

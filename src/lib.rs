@@ -18,6 +18,7 @@ pub mod energy;
 pub mod error;
 pub mod export;
 pub mod generate;
+pub mod hard;
 pub mod gpu;
 pub mod integrator;
 pub mod io;

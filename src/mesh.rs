@@ -90,6 +90,76 @@ impl Mesh {
         m
     }
 
+    /// Per-node contact measure for the distance barrier (seed 003's A_i): the node's
+    /// lumped share of the body's boundary of codimension one in the ambient space.
+    /// Solids (triangles in 2D, tetrahedra in 3D): every boundary facet (an edge or face
+    /// that belongs to exactly one element) gives its length or area equally to its nodes.
+    /// Lower-dimensional meshes are their own boundary: a rod in 2D or a sheet in 3D gives
+    /// each element's measure equally to its nodes (both sides of a sheet count once);
+    /// a rod in 3D does the same with its length (a unit-width strip, documented in
+    /// `scene.rs`). Interior nodes of a solid get 0 and never feel the barrier.
+    pub fn boundary_measure(&self) -> Vec<f64> {
+        let mut w = vec![0.0; self.n_nodes()];
+        let solid = matches!(
+            (self.dim, self.kind),
+            (2, ElementKind::Triangle) | (3, ElementKind::Tetrahedron)
+        );
+        if !solid {
+            let k = self.kind.nodes() as f64;
+            for (e, el) in self.elements.iter().enumerate() {
+                let share = self.measure(e) / k;
+                for &i in el {
+                    w[i] += share;
+                }
+            }
+            return w;
+        }
+        // Facets as sorted node lists; a facet seen once lies on the boundary.
+        let nf = self.kind.nodes() - 1;
+        let mut facets: Vec<Vec<usize>> = Vec::with_capacity(self.elements.len() * (nf + 1));
+        for el in &self.elements {
+            for skip in 0..el.len() {
+                let mut f: Vec<usize> = (0..el.len())
+                    .filter(|&k| k != skip)
+                    .map(|k| el[k])
+                    .collect();
+                f.sort_unstable();
+                facets.push(f);
+            }
+        }
+        facets.sort_unstable();
+        let p = |i: usize| {
+            let mut q = [0.0; 3];
+            q[..self.dim].copy_from_slice(self.node(i));
+            q
+        };
+        let mut k = 0;
+        while k < facets.len() {
+            let mut j = k + 1;
+            while j < facets.len() && facets[j] == facets[k] {
+                j += 1;
+            }
+            if j - k == 1 {
+                let f = &facets[k];
+                let a = p(f[0]);
+                let b = p(f[1]);
+                let ab = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+                let measure = if nf == 2 {
+                    norm3(&ab)
+                } else {
+                    let c = p(f[2]);
+                    let ac = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
+                    0.5 * norm3(&cross(&ab, &ac))
+                };
+                for &i in f {
+                    w[i] += measure / nf as f64;
+                }
+            }
+            k = j;
+        }
+        w
+    }
+
     /// Unique undirected edges of all elements, sorted.
     pub fn edges(&self) -> Vec<[usize; 2]> {
         let mut out = Vec::new();
@@ -292,5 +362,21 @@ mod tests {
         assert!((vol - 1.0).abs() < 1e-12);
         let m = b.lumped_masses(10.0);
         assert!((m.iter().sum::<f64>() - 10.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn boundary_measure_is_the_surface() {
+        // 2D: the perimeter; interior nodes get nothing.
+        let r = rectangle(2, [2.0, 1.0], [4, 3]);
+        let w = r.boundary_measure();
+        assert!((w.iter().sum::<f64>() - 6.0).abs() < 1e-12);
+        assert_eq!(w[5 + 1], 0.0);
+        // 3D: the surface area 2(1·2 + 1·0.5 + 2·0.5) = 7.
+        let b = cuboid([1.0, 2.0, 0.5], [2, 3, 2]);
+        let w = b.boundary_measure();
+        assert!((w.iter().sum::<f64>() - 7.0).abs() < 1e-12);
+        // A rod in 2D: its length.
+        let w = rod(2, 3.0, 5).boundary_measure();
+        assert!((w.iter().sum::<f64>() - 3.0).abs() < 1e-12);
     }
 }

@@ -9,12 +9,12 @@
 use crate::elimination::Eliminated;
 use crate::error::SolveError;
 use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::cholesky::llt::factor::LltError as PivotError;
 use faer::linalg::cholesky::llt::factor::LltRegularization;
 use faer::sparse::linalg::cholesky::{
     factorize_symbolic_cholesky, CholeskySymbolicParams, LltRef, SymbolicCholesky,
     SymmetricOrdering,
 };
-use faer::linalg::cholesky::llt::factor::LltError as PivotError;
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::{Conj, MatMut, Side};
 use std::time::Instant;
@@ -174,10 +174,10 @@ impl CholeskyOracle {
         let mut l_values = vec![0.0f64; self.symbolic.len_val()];
         // faer's global setting: all cores through rayon unless the caller changed it.
         let par = faer::get_global_parallelism();
-        let mut mem = MemBuffer::try_new(self.symbolic.factorize_numeric_llt_scratch::<f64>(
-            par,
-            Default::default(),
-        ))
+        let mut mem = MemBuffer::try_new(
+            self.symbolic
+                .factorize_numeric_llt_scratch::<f64>(par, Default::default()),
+        )
         .map_err(|err| SolveError::Factorization(format!("out of memory: {err:?}")))?;
         let result = self.symbolic.factorize_numeric_llt::<f64>(
             &mut l_values,
@@ -234,6 +234,20 @@ impl CholeskyOracle {
 /// One-shot: analyse, factor and solve.
 pub fn solve(e: &Eliminated) -> Result<(Vec<f64>, OracleInfo), SolveError> {
     CholeskyOracle::analyze(e)?.solve(e)
+}
+
+/// Cholesky of the equilibrated system S Ĥ S (see [`crate::cg::Scaling`]), unscaled
+/// after. With power-of-two scaling, Cholesky's rounding is unchanged (scaling commutes
+/// with every floating-point operation short of over/underflow), so this helps only when
+/// entries approach the ends of the f64 range; the plain [`solve`] stays the default.
+/// The residual reported is the unscaled one.
+pub fn solve_equilibrated(e: &Eliminated) -> Result<(Vec<f64>, OracleInfo), SolveError> {
+    let eq = crate::cg::equilibrate(e);
+    let es = eq.eliminated(e.frames);
+    let (z, mut info) = solve(&es)?;
+    let y = eq.unscale(&z);
+    info.relative_residual = e.relative_residual(&y);
+    Ok((y, info))
 }
 
 #[cfg(test)]

@@ -6,6 +6,7 @@
 //! flat per-element buffers, then scattered into a block-sparse matrix whose pattern is
 //! built once (scatter indices precomputed), so no locking and a deterministic sum order.
 
+pub mod barrier;
 pub mod gravity;
 pub mod inertia;
 pub mod neohookean;

@@ -1,0 +1,487 @@
+//! Numerical stability over the hard-case suite (issue 6, src/hard.rs).
+//!
+//! # What a solver promises
+//!
+//! Errors are relative errors in the solved variable y (frame coordinates),
+//! ‖y − y*‖/‖y*‖, against y* = the extended-precision reference of [`hard::reference`]
+//! (Cholesky refined with double-double residuals; each case checks it converged), i.e.
+//! the exact solution of the assembled f64 matrix Ĥ. κ = κ₂(Ĥ) from a dense eigen solve.
+//!
+//! * A solver that stops on a relative residual ρ = ‖b̂ − Ĥy‖/‖b̂‖ ≤ τ promises
+//!   ‖y − y*‖/‖y*‖ ≤ κ·ρ ≤ κ·τ (since y − y* = Ĥ⁻¹r and ‖b̂‖ ≤ ‖Ĥ‖‖y*‖). The residual
+//!   itself is computed in f64, with an error up to about c·ε·‖Ĥ‖‖y‖, so the promise of a
+//!   tolerance τ is **P(τ) = κ·(τ + c·ε)**.
+//! * The oracle (backward-stable Cholesky) promises P(0) = c·κ·ε.
+//! * c = [`C_ROUNDING`] = 64: Cholesky's backward error is bounded by a small multiple of
+//!   the row length times ε (here ≤ 81 nonzeros per row); the worst ratio measured over the
+//!   suite is printed by the oracle test.
+//!
+//! A success must satisfy error ≤ 10·P(τ). "Success" must also be true: the residual the
+//! solver reports is recomputed here and must be ≤ τ. Each case is run both ways: a
+//! tolerance it can reach, and an unreachable one (τ = 1e-20, or one iteration), which
+//! must end in an error carrying a residual above τ (or, if Ok, the recomputed residual
+//! must really be ≤ τ).
+
+use std::sync::{LazyLock, Mutex, MutexGuard};
+use stickslip::cg::{self, CgError, CgParams, Preconditioner, Scaling};
+use stickslip::elimination::Eliminated;
+use stickslip::error::SolveError;
+use stickslip::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
+use stickslip::hard::{self, HardCase, Size};
+
+/// The constant c of the rounding term in the promise (see the module docs).
+const C_ROUNDING: f64 = 64.0;
+const EPS: f64 = f64::EPSILON;
+
+struct Prepared {
+    case: HardCase,
+    kappa: f64,
+    y_ref: Vec<f64>,
+}
+
+static SUITE: LazyLock<Vec<Prepared>> = LazyLock::new(|| {
+    hard::suite(Size::Ci)
+        .into_iter()
+        .map(|case| {
+            let e = case.eliminated();
+            let kappa = hard::condition_number(&e);
+            let r = hard::reference(&e)
+                .unwrap_or_else(|err| panic!("{}: reference failed: {err}", case.name));
+            assert!(
+                r.trusted,
+                "{}: reference refinement did not converge (last correction {:e})",
+                case.name, r.last_correction
+            );
+            eprintln!(
+                "case {:<28} dofs {:>5} free {:>5} κ {:9.2e} reference refinements {}",
+                case.name,
+                case.ndof(),
+                case.frames.free_dofs(),
+                kappa,
+                r.refinements
+            );
+            Prepared {
+                case,
+                kappa,
+                y_ref: r.y,
+            }
+        })
+        .collect()
+});
+
+fn promise(kappa: f64, tol: f64) -> f64 {
+    kappa * (tol + C_ROUNDING * EPS)
+}
+
+/// Checks a claimed success: residual honest, error within 10× the promise.
+fn check_success(
+    p: &Prepared,
+    e: &Eliminated,
+    who: &str,
+    tol: f64,
+    y: &[f64],
+    claimed: f64,
+) -> f64 {
+    let rel = e.relative_residual(y);
+    assert!(
+        claimed <= tol,
+        "{} {who}: claims success with residual {claimed:e} > tol {tol:e}",
+        p.case.name
+    );
+    assert!(
+        rel <= tol,
+        "{} {who}: claims success but the recomputed residual is {rel:e} > tol {tol:e}",
+        p.case.name
+    );
+    let err = hard::relative_error(y, &p.y_ref);
+    let bound = 10.0 * promise(p.kappa, tol);
+    assert!(
+        err <= bound,
+        "{} {who}: claims success at tol {tol:e} but the error is {err:e} > 10·κ·(τ + cε) = {bound:e} (κ {:e})",
+        p.case.name,
+        p.kappa
+    );
+    err
+}
+
+#[test]
+fn references_and_oracle_keep_backward_stability() {
+    let mut worst = 0.0f64;
+    for p in SUITE.iter() {
+        let e = p.case.eliminated();
+        for (who, r) in [
+            ("oracle", stickslip::oracle::solve(&e)),
+            ("oracle+scaling", stickslip::oracle::solve_equilibrated(&e)),
+        ] {
+            let (y, info) = r.unwrap_or_else(|err| panic!("{} {who}: {err}", p.case.name));
+            let err = hard::relative_error(&y, &p.y_ref);
+            let ratio = err / (p.kappa * EPS);
+            worst = worst.max(ratio);
+            eprintln!(
+                "{:<28} {who:<15} err {err:9.2e}  κε {:9.2e}  err/(κε) {ratio:8.2e}  residual {:9.2e}",
+                p.case.name,
+                p.kappa * EPS,
+                info.relative_residual
+            );
+            assert!(
+                err <= 10.0 * promise(p.kappa, 0.0),
+                "{} {who}: error {err:e} exceeds 10·c·κ·ε = {:e}",
+                p.case.name,
+                10.0 * promise(p.kappa, 0.0)
+            );
+        }
+    }
+    eprintln!("worst oracle err/(κ·ε) over the suite: {worst:.2e} (c = {C_ROUNDING})");
+}
+
+#[test]
+fn cpu_cg_claims_are_honest_both_ways() {
+    for p in SUITE.iter() {
+        let e = p.case.eliminated();
+        for pc in [
+            Preconditioner::Jacobi,
+            Preconditioner::BlockJacobi,
+            Preconditioner::None,
+        ] {
+            for scaling in [Scaling::None, Scaling::NodeDiagonal] {
+                for tol in [1e-6, 1e-10] {
+                    let params = CgParams {
+                        tol,
+                        max_iters: 20_000,
+                        preconditioner: pc,
+                        scaling,
+                        ..Default::default()
+                    };
+                    let who = format!("cg {pc:?} {scaling:?} tol {tol:e}");
+                    match cg::solve(&e, &params) {
+                        Ok((y, info)) => {
+                            let err = check_success(p, &e, &who, tol, &y, info.relative_residual);
+                            eprintln!(
+                                "{:<28} {who:<40} ok  it {:>6} err {err:9.2e} κ̃(M⁻¹Ĥ) {:9.2e} repl {}",
+                                p.case.name,
+                                info.iterations,
+                                info.condition_estimate.unwrap_or(f64::NAN),
+                                info.residual_replacements
+                            );
+                        }
+                        Err(err) => {
+                            eprintln!("{:<28} {who:<40} ERR {err}", p.case.name);
+                            if let Some(r) = err.reached_residual() {
+                                assert!(
+                                    r > tol,
+                                    "{} {who}: error with residual {r:e} ≤ tol",
+                                    p.case.name
+                                );
+                            }
+                            // A reachable tolerance must be reached by Jacobi PCG when
+                            // rounding allows it (κ·ε well below τ).
+                            if pc == Preconditioner::Jacobi && p.kappa * EPS * 1e3 <= tol {
+                                panic!(
+                                    "{} {who}: failed at a reachable tolerance: {err}",
+                                    p.case.name
+                                );
+                            }
+                        }
+                    }
+                }
+                // Unreachable: τ = 1e-20, and one iteration at τ = 1e-10.
+                for (tol, max_iters) in [(1e-20, 20_000), (1e-10, 1)] {
+                    let params = CgParams {
+                        tol,
+                        max_iters,
+                        preconditioner: pc,
+                        scaling,
+                        stagnation_window: 200,
+                        ..Default::default()
+                    };
+                    let who = format!("cg {pc:?} {scaling:?} tol {tol:e} max {max_iters}");
+                    match cg::solve(&e, &params) {
+                        Ok((y, info)) => {
+                            check_success(p, &e, &who, tol, &y, info.relative_residual);
+                        }
+                        Err(err) => {
+                            let r = err.reached_residual();
+                            assert!(
+                                r.is_none_or(|r| r > tol),
+                                "{} {who}: error reports residual {r:?} ≤ tol",
+                                p.case.name
+                            );
+                            assert!(
+                                matches!(
+                                    err,
+                                    CgError::Stagnation { .. } | CgError::MaxIterations { .. }
+                                ),
+                                "{} {who}: unexpected error kind {err}",
+                                p.case.name
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+static CTX: LazyLock<Option<GpuContext>> =
+    LazyLock::new(|| match GpuContext::new(&GpuOptions::default()) {
+        Ok(c) => {
+            eprintln!("GPU stability tests on adapter '{}'", c.adapter_name());
+            Some(c)
+        }
+        Err(e) => {
+            if std::env::var("STICKSLIP_REQUIRE_GPU").is_ok_and(|v| v == "1") {
+                panic!("STICKSLIP_REQUIRE_GPU=1 but no GPU adapter: {e}");
+            }
+            eprintln!(
+                "!!!!!!!! SKIP: no GPU adapter ({e}); GPU stability tests did not run !!!!!!!!"
+            );
+            None
+        }
+    });
+static LOCK: Mutex<()> = Mutex::new(());
+
+fn gpu() -> Option<(&'static GpuContext, MutexGuard<'static, ()>)> {
+    let g = LOCK.lock().unwrap_or_else(|p| p.into_inner());
+    CTX.as_ref().map(|c| (c, g))
+}
+
+/// Runs the GPU precisions on every case; returns the mixed-precision misses of the
+/// 1e-9 target on cases with κ ≤ 1e10. Every claimed success is checked against its
+/// promise (this part must always hold).
+fn gpu_sweep(ctx: &GpuContext) -> Vec<String> {
+    let mut mixed_misses = Vec::new();
+    for p in SUITE.iter() {
+        let e = p.case.eliminated();
+        for (precision, tol) in [
+            (Precision::F32, 1e-5),
+            (Precision::F64, 1e-10),
+            (Precision::Mixed, 1e-11),
+            (Precision::Mixed, 1e-20),
+        ] {
+            let params = GpuParams {
+                precision,
+                tol,
+                max_iters: 20_000,
+                ..Default::default()
+            };
+            let who = format!("gpu {precision} tol {tol:e}");
+            let mut solver = match GpuSolver::new(ctx, &e, &params) {
+                Ok(s) => s,
+                Err(err) => {
+                    eprintln!("{:<28} {who:<26} cannot set up: {err}", p.case.name);
+                    continue;
+                }
+            };
+            match solver.solve() {
+                Ok((y, _dx, info)) => {
+                    let err = check_success(p, &e, &who, tol, &y, info.relative_residual);
+                    eprintln!(
+                        "{:<28} {who:<26} ok  it {:>6} err {err:9.2e} notes {:?}",
+                        p.case.name, info.iterations, info.notes
+                    );
+                    if precision == Precision::Mixed && p.kappa <= 1e10 && err > 1e-9 {
+                        mixed_misses.push(format!("{} (err {err:e})", p.case.name));
+                    }
+                }
+                Err(err) => {
+                    eprintln!("{:<28} {who:<26} ERR {err}", p.case.name);
+                    if let stickslip::gpu::GpuError::Cg(c) = &err {
+                        if let Some(r) = c.reached_residual() {
+                            assert!(
+                                r > tol,
+                                "{} {who}: error with residual {r:e} ≤ tol",
+                                p.case.name
+                            );
+                        }
+                    }
+                    if precision == Precision::Mixed && tol > 1e-20 && p.kappa <= 1e10 {
+                        mixed_misses.push(format!("{} ({err})", p.case.name));
+                    }
+                }
+            }
+        }
+    }
+    mixed_misses
+}
+
+#[test]
+fn gpu_claims_are_honest_both_ways() {
+    let Some((ctx, _guard)) = gpu() else { return };
+    let misses = gpu_sweep(ctx);
+    eprintln!("mixed precision misses of 1e-9 on κ ≤ 1e10: {misses:?}");
+}
+
+/// Must-show of issue 6. Fails today on kappa-1e10 and kappa-1e8/1e10-balanced (the f32 inner CG meets rounding-made
+/// negative curvature, κ > 1/ε_f32) and scale-H1e30-g1e-30 (the solution, ~1e-60,
+/// underflows f32): both need the f64 fallback of mixed precision, not yet written.
+#[test]
+#[ignore = "fails until mixed precision falls back to f64 (kappa-1e10, kappa-1e8-balanced, kappa-1e10-balanced, scale-H1e30-g1e-30); run with --ignored"]
+fn gpu_mixed_reaches_1e_9_when_kappa_at_most_1e10() {
+    let Some((ctx, _guard)) = gpu() else { return };
+    let misses = gpu_sweep(ctx);
+    assert!(
+        misses.is_empty(),
+        "mixed precision missed 1e-9 on κ ≤ 1e10 cases: {misses:?}"
+    );
+}
+
+#[test]
+fn cholesky_names_the_indefinite_node() {
+    for p in SUITE.iter().take(12) {
+        let mut h = p.case.h.clone();
+        // Pick a node with a free component and make its diagonal block strongly negative.
+        let Some(node) = (0..h.n).find(|&i| p.case.frames.mask[i] == 0) else {
+            continue;
+        };
+        let d = h.dim;
+        let k = h.diag_index(node).expect("diagonal block");
+        let big = 1e6 * h.max_abs();
+        for a in 0..d {
+            h.values[k * d * d + a * d + a] = -big;
+        }
+        let e = Eliminated::new(
+            &h,
+            &p.case.g,
+            &p.case.frames,
+            stickslip::elimination::ConstrainedDiagonal::Identity,
+        );
+        match stickslip::oracle::solve(&e) {
+            Err(SolveError::NotPositiveDefinite { node: got, .. }) => {
+                assert_eq!(
+                    got, node,
+                    "{}: pivot reported at node {got}, made node {node} indefinite",
+                    p.case.name
+                )
+            }
+            other => panic!(
+                "{}: expected NotPositiveDefinite, got {:?}",
+                p.case.name,
+                other.map(|r| r.1)
+            ),
+        }
+        let r = cg::solve(&e, &CgParams::default());
+        assert!(
+            r.is_err(),
+            "{}: CG claimed success on an indefinite system",
+            p.case.name
+        );
+    }
+}
+
+/// Smallest eigenvalue and largest |eigenvalue| of a symmetric row-major matrix.
+fn eig_range(n: usize, m: &[f64]) -> (f64, f64) {
+    let a = nalgebra::DMatrix::from_fn(n, n, |r, c| m[r * n + c]);
+    let e = nalgebra::SymmetricEigen::new(a);
+    let lo = e.eigenvalues.iter().copied().fold(f64::INFINITY, f64::min);
+    let big = e.eigenvalues.iter().fold(0.0f64, |s, v| s.max(v.abs()));
+    (lo, big)
+}
+
+/// Element Hessians of inverted and degenerate (zero-volume) triangles and tets, projected
+/// per element, are PSD to round-off (min eigenvalue ≥ −1e-12·scale), and the assembled
+/// M + h²K with such elements is SPD, so the simulation never hands CG an indefinite H.
+#[test]
+fn projected_element_hessians_are_psd_on_inverted_and_degenerate_elements() {
+    use stickslip::energy::{ElementSet, Model, NeoHookean};
+    use stickslip::mesh::{ElementKind, Mesh};
+    let tet = Mesh {
+        dim: 3,
+        x: vec![0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        kind: ElementKind::Tetrahedron,
+        elements: vec![vec![0, 1, 2, 3]],
+    };
+    let tri = Mesh {
+        dim: 2,
+        x: vec![0.0, 0.0, 1.0, 0.0, 0.0, 1.0],
+        kind: ElementKind::Triangle,
+        elements: vec![vec![0, 1, 2]],
+    };
+    let configs3: Vec<(&str, Vec<f64>)> = vec![
+        (
+            "inverted tet",
+            vec![0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0],
+        ),
+        (
+            "flat tet (zero volume)",
+            vec![0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.3, 0.3, 0.0],
+        ),
+        ("collapsed tet (a point)", vec![0.2; 12]),
+        (
+            "badly inverted tet",
+            vec![0.0, 0.0, 0.0, -3.0, 0.1, 0.0, 0.0, 2.0, 0.5, 0.1, 0.0, -0.2],
+        ),
+    ];
+    let configs2: Vec<(&str, Vec<f64>)> = vec![
+        ("inverted triangle", vec![0.0, 0.0, 1.0, 0.0, 0.0, -1.0]),
+        ("zero-area triangle", vec![0.0, 0.0, 1.0, 0.0, 2.0, 0.0]),
+        ("collapsed triangle", vec![0.5; 6]),
+    ];
+    for poisson in [0.3, 0.49, 0.499] {
+        for (mesh, configs) in [(&tet, &configs3), (&tri, &configs2)] {
+            let nh = NeoHookean::new(mesh, 1e9, poisson).expect("valid rest shape");
+            let nl = (mesh.dim + 1) * mesh.dim;
+            for (what, x) in configs.iter() {
+                let mut raw = vec![0.0; nl * nl];
+                let mut proj = vec![0.0; nl * nl];
+                nh.element_hessian(x, 0, false, &mut raw);
+                nh.element_hessian(x, 0, true, &mut proj);
+                let (raw_lo, scale) = eig_range(nl, &raw);
+                let (lo, _) = eig_range(nl, &proj);
+                eprintln!("ν {poisson} {what}: raw λ_min {raw_lo:.3e}, projected λ_min {lo:.3e}, scale {scale:.3e}");
+                assert!(
+                    proj.iter().all(|v| v.is_finite()),
+                    "{what}: non-finite projected Hessian"
+                );
+                assert!(
+                    lo >= -1e-12 * scale,
+                    "{what} ν {poisson}: projected λ_min {lo:e} < −1e-12·{scale:e}"
+                );
+            }
+        }
+    }
+    // Assembled: a tet box with several inverted and flattened elements, H = M + h²K.
+    let m = stickslip::mesh::cuboid([1.0, 0.25, 0.25], [4, 1, 1]);
+    let nh = NeoHookean::new(&m, 1e9, 0.499).expect("valid rest shape");
+    let mass = m.lumped_masses(1000.0);
+    let model = Model::new(3, mass, None, vec![ElementSet::NeoHookean(nh)]);
+    let mut x = m.x.clone();
+    // Mirror the right half through x = 0.5 (inverts every element there) and flatten
+    // one node column onto the plane z = 0.
+    for i in 0..m.n_nodes() {
+        if m.x[3 * i] > 0.5 {
+            x[3 * i] = 1.0 - m.x[3 * i];
+        }
+        if (m.x[3 * i] - 0.25).abs() < 1e-9 {
+            x[3 * i + 2] = 0.0;
+        }
+    }
+    for dt in [1e-5, 1e-2, 0.1] {
+        let mut h = model.zero_matrix();
+        model.add_mass(&mut h);
+        model.add_potential_hessian(&x, dt * dt, true, &mut h);
+        let dense = h.to_dense();
+        let eig = nalgebra::SymmetricEigen::new(dense.clone());
+        let lo = eig
+            .eigenvalues
+            .iter()
+            .copied()
+            .fold(f64::INFINITY, f64::min);
+        eprintln!("assembled M + h²K, h = {dt}: λ_min {lo:.3e}");
+        assert!(lo > 0.0, "assembled H not SPD at h = {dt}: λ_min {lo:e}");
+        assert!(
+            nalgebra::Cholesky::new(dense).is_some(),
+            "Cholesky of M + h²K failed at h = {dt}"
+        );
+        // Without projection the same configuration is indefinite for large h: the
+        // projection is doing real work here.
+        let mut hu = model.zero_matrix();
+        model.add_mass(&mut hu);
+        model.add_potential_hessian(&x, dt * dt, false, &mut hu);
+        let lo_u = nalgebra::SymmetricEigen::new(hu.to_dense())
+            .eigenvalues
+            .iter()
+            .copied()
+            .fold(f64::INFINITY, f64::min);
+        eprintln!("  unprojected: λ_min {lo_u:.3e}");
+    }
+}
