@@ -1,5 +1,9 @@
-//! GPU solver benchmarks (criterion): the operator kernel and a full f32 solve.
-//! Skips (with a message) when no adapter exists.
+//! GPU solver benchmarks (criterion), on a generated 3D system of 20k nodes with slip
+//! nodes (so the rotation kernels run): the masked operator, the rotation on recovery
+//! (V y), the preconditioner build, CG iterations (matvec + fused updates + the two-pass
+//! reductions) and a full f32 solve. Wall times include the host transfers each call
+//! needs; device-only kernel times come from `GpuSolver::profile_kernels` (examples/
+//! gpu_measure.rs, `stickslip bench`). Skips (with a message) when no adapter exists.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use stickslip::cg::Preconditioner;
@@ -32,6 +36,18 @@ fn bench(c: &mut Criterion) {
     g.sample_size(10);
     g.bench_function("matvec_3d_20k_f32", |b| {
         b.iter(|| sol.apply_operator(&y).map(|v| v.len()))
+    });
+    g.bench_function("recover_rotate_3d_20k_f32", |b| {
+        b.iter(|| sol.recover_on_device(&y).map(|v| v.len()))
+    });
+    g.bench_function("preconditioner_build_3d_20k_f32", |b| {
+        b.iter(|| sol.preconditioner_data().map(|v| v.len()))
+    });
+    g.bench_function("cg_iterations_1_3d_20k_f32", |b| {
+        b.iter(|| sol.iterate(1).map(|r| r.0.len()))
+    });
+    g.bench_function("cg_iterations_16_3d_20k_f32", |b| {
+        b.iter(|| sol.iterate(16).map(|r| r.0.len()))
     });
     g.bench_function("solve_3d_20k_f32", |b| {
         b.iter(|| sol.solve().map(|r| r.2.iterations))

@@ -10,7 +10,7 @@
 //! 6. output: frames every k steps, one steps.csv row per step, summary.json at the end.
 
 use crate::error::InputError;
-use crate::integrator::{InitError, Stepper};
+use crate::integrator::{ContactCounters, InitError, Stepper};
 use crate::output::{write_vtk, StepRecord, StepsCsv};
 use crate::scene::{self, LinearKind, MovingSpec, Scene};
 use std::path::{Path, PathBuf};
@@ -79,6 +79,21 @@ pub struct MovingSummary {
     pub all_eliminated_every_step: bool,
 }
 
+/// Contact history of a run (scenes with obstacles).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ContactSummary {
+    pub obstacles: usize,
+    /// Per obstacle: d̂ (m) and κ (Pa) as resolved (defaults filled in).
+    pub dhat: Vec<f64>,
+    pub kappa: Vec<f64>,
+    /// Smallest node–obstacle signed distance over every Newton iterate of the run.
+    pub min_distance: f64,
+    /// Line searches cut by the CCD bound (α_C < 1).
+    pub ccd_limited_line_searches: usize,
+    /// Summed contact force at the end (newtons).
+    pub final_contact_force: Vec<f64>,
+}
+
 /// What a run did (summary.json holds everything but the per-step records and state).
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct RunSummary {
@@ -104,6 +119,10 @@ pub struct RunSummary {
     pub frames: usize,
     pub out_dir: String,
     pub moving_boundary: Option<MovingSummary>,
+    /// What the contact code did: all zero for a scene without obstacles.
+    pub contact_counters: ContactCounters,
+    /// Contact history; None for a scene without obstacles.
+    pub contact: Option<ContactSummary>,
     #[serde(skip)]
     pub records: Vec<StepRecord>,
     #[serde(skip)]
@@ -181,8 +200,13 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         },
     })?;
     let csv_path = out.join("steps.csv");
-    let mut csv = StepsCsv::create(&csv_path, scene.dim, stepper.has_moving())
-        .map_err(|e| out_err(&csv_path, e))?;
+    let mut csv = StepsCsv::create(
+        &csv_path,
+        scene.dim,
+        stepper.has_moving(),
+        stepper.has_contact(),
+    )
+    .map_err(|e| out_err(&csv_path, e))?;
 
     let record = |s: &Stepper, rep: Option<&crate::integrator::StepReport>| StepRecord {
         step: s.step,
@@ -196,6 +220,13 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         reaction: s.total_reaction(),
         k_m: s.k_m,
         eliminated_at_iteration: rep.and_then(|r| r.eliminated_at_iteration),
+        min_distance: match rep {
+            Some(r) => r.min_distance,
+            None => s.min_distance(&s.x).map(|m| m.0),
+        },
+        contact: s.total_contact().unwrap_or_default(),
+        max_slope: rep.and_then(|r| r.max_slope),
+        ascent_directions: rep.map_or(0, |r| r.ascent_directions),
     };
     let mut frames = 0usize;
     let mut write_frame = |s: &Stepper| -> Result<(), RunError> {
@@ -204,7 +235,8 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         }
         let path = frames_dir.join(format!("{}_{:05}.vtk", scene.name, s.step));
         let title = format!("stickslip {} step {} t = {}", scene.name, s.step, s.t);
-        write_vtk(&path, &scene, &title, &s.x, &s.v, &s.reactions)
+        let c = s.has_contact().then_some(&s.contact_forces[..]);
+        write_vtk(&path, &scene, &title, &s.x, &s.v, &s.reactions, c)
             .map_err(|e| out_err(&path, e))?;
         frames += 1;
         Ok(())
@@ -240,6 +272,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         all_eliminated_every_step: true,
     });
     let (mut newton, mut linear, mut linear_s) = (0usize, 0usize, 0.0f64);
+    let mut ccd_limited = 0usize;
     for _ in 0..scene.steps {
         let rep = stepper.step().map_err(|cause| RunError::Solve {
             step: stepper.step + 1,
@@ -249,6 +282,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         newton += rep.newton_iterations;
         linear += rep.linear_iterations;
         linear_s += rep.linear_seconds;
+        ccd_limited += rep.ccd_limited;
         if let Some(m) = moving.as_mut() {
             m.k_m_doublings += rep.k_m_doublings;
             if rep.k_m != m.k_m_final {
@@ -280,6 +314,17 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
     bar.finish_and_clear();
     csv.finish().map_err(|e| out_err(&csv_path, e))?;
 
+    let contact = stepper.has_contact().then(|| ContactSummary {
+        obstacles: scene.obstacles.len(),
+        dhat: scene.obstacles.iter().map(|o| o.plane.dhat).collect(),
+        kappa: scene.obstacles.iter().map(|o| o.plane.kappa).collect(),
+        min_distance: records
+            .iter()
+            .filter_map(|r| r.min_distance)
+            .fold(f64::INFINITY, f64::min),
+        ccd_limited_line_searches: ccd_limited,
+        final_contact_force: stepper.total_contact().unwrap_or_default(),
+    });
     let summary = RunSummary {
         scene: scene.name.clone(),
         file: scene.file.clone(),
@@ -302,6 +347,8 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         frames,
         out_dir: out.display().to_string(),
         moving_boundary: moving,
+        contact_counters: stepper.contact_counters(),
+        contact,
         records,
         final_positions: stepper.x.clone(),
         final_velocities: stepper.v.clone(),

@@ -28,15 +28,29 @@
 //!    ones. This is −1 times `elimination::reactions` (−(HΔx + g), the load on the
 //!    support). Moving nodes are eliminated at the end of every step, so the force that
 //!    drives them shows up as their reaction; no penalty force is left at the end of a step.
+//!
+//! Contact (only when the scene declares obstacles; seed 003): E gains h² P_b(x), the
+//! distance barrier of [`crate::energy::barrier`] against every half-space at its
+//! end-of-step position. Each line search starts from the CCD bound α_C (every node covers
+//! at most [`CCD_FRACTION`] of its distance to every plane) and backtracks from there, so
+//! every Newton iterate is penetration-free; the smallest distance over all iterates of a
+//! step is reported. A moving half-space that would overtake a node within one step pushes
+//! that (unconstrained) node's initial guess ahead of it first (to half its gap at tⁿ):
+//! only the starting iterate changes, the minimized energy does not. The contact force
+//! c = −∇P_b (newtons) is an external force counted apart from the reactions:
+//! Σ m (v^{n+1} − vⁿ) = h (M g + Σ f + Σ c). On a constrained node within d̂, the reaction
+//! is taken net of the barrier (f = constrained part of ∇E/h², which includes h²∇P_b).
 
 use crate::cg::CgParams;
 use crate::constraints::{Constraint, ConstraintKind, Frames};
 use crate::elimination::{ConstrainedDiagonal, Eliminated};
+use crate::energy::barrier::{Barrier, HalfSpace};
 use crate::energy::inertia;
 use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver};
 use crate::oracle::CholeskyOracle;
 use crate::scene::{BcShape, LinearKind, Scene, SolverSpec};
 use crate::sparse::BlockCsr;
+use std::cell::Cell;
 use std::collections::HashMap;
 use std::time::Instant;
 
@@ -44,6 +58,9 @@ use std::time::Instant;
 const ARMIJO: f64 = 1e-4;
 /// Backtracking halvings before the line search gives up.
 const MAX_HALVINGS: usize = 40;
+/// CCD filter: a Newton step may cover at most this fraction of any node's distance to an
+/// obstacle (IPC's 1 − s with s = 0.1).
+pub const CCD_FRACTION: f64 = 0.9;
 
 /// What one linear solve cost.
 #[derive(Debug, Clone, Copy, Default)]
@@ -186,6 +203,33 @@ pub struct StepReport {
     pub eliminated_at_iteration: Option<usize>,
     /// Largest ‖x_k − x̂_k‖ of a moving node at the end of the step (0 once snapped).
     pub moving_max_error: f64,
+    /// Contact only: the smallest signed distance of any node to any obstacle over every
+    /// Newton iterate of the step (including its starting iterate).
+    pub min_distance: Option<f64>,
+    /// Largest directional derivative gᵀΔx over the step's line-searched Newton iterates
+    /// (negative: every Newton step was a descent direction); None when no line search ran.
+    pub max_slope: Option<f64>,
+    /// Line-searched iterates whose Newton step was not a descent direction (gᵀΔx ≥ 0).
+    pub ascent_directions: usize,
+    /// Line searches whose CCD bound α_C was below 1.
+    pub ccd_limited: usize,
+}
+
+/// What the contact code did (all zero for a scene without obstacles).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct ContactCounters {
+    /// Barrier energy, gradient or Hessian evaluations.
+    pub barrier_evaluations: u64,
+    /// CCD (α_C) computations.
+    pub ccd_calls: u64,
+    /// Initial guesses pushed ahead of a moving obstacle.
+    pub pushed_nodes: u64,
+}
+
+/// The barrier and the obstacles' half-spaces for the current step.
+struct Contact {
+    barrier: Barrier,
+    planes: Vec<HalfSpace>,
 }
 
 /// Time stepper state.
@@ -209,6 +253,13 @@ pub struct Stepper<'s> {
     pub newton_tol: f64,
     /// ε of the moving conditions (m/s).
     pub moving_eps: f64,
+    /// None for a scene without obstacles: no contact code runs at all.
+    contact: Option<Contact>,
+    barrier_evals: Cell<u64>,
+    ccd_calls: u64,
+    pushed_nodes: u64,
+    /// Contact force per DOF at the end of the last step (newtons; empty without obstacles).
+    pub contact_forces: Vec<f64>,
 }
 
 impl<'s> Stepper<'s> {
@@ -241,6 +292,18 @@ impl<'s> Stepper<'s> {
             reactions: vec![0.0; scene.x0.len()],
             newton_tol: scene.solver.newton_tolerance * scene.characteristic_length,
             moving_eps: scene.moving.tolerance * scene.characteristic_length,
+            contact: scene.has_obstacles().then(|| Contact {
+                barrier: Barrier::new(scene.dim, scene.contact_weight.clone()),
+                planes: scene.obstacles.iter().map(|o| o.at(0.0)).collect(),
+            }),
+            barrier_evals: Cell::new(0),
+            ccd_calls: 0,
+            pushed_nodes: 0,
+            contact_forces: if scene.has_obstacles() {
+                vec![0.0; scene.x0.len()]
+            } else {
+                Vec::new()
+            },
         };
         // Build (and validate) the static constraint set up front: bad conditions fail
         // before the first step.
@@ -264,6 +327,39 @@ impl<'s> Stepper<'s> {
 
     pub fn has_moving(&self) -> bool {
         !self.moving_bcs.is_empty()
+    }
+
+    pub fn has_contact(&self) -> bool {
+        self.contact.is_some()
+    }
+
+    /// What the contact code has done so far.
+    pub fn contact_counters(&self) -> ContactCounters {
+        ContactCounters {
+            barrier_evaluations: self.barrier_evals.get(),
+            ccd_calls: self.ccd_calls,
+            pushed_nodes: self.pushed_nodes,
+        }
+    }
+
+    /// Smallest signed distance of any node to any obstacle at its current (end-of-step)
+    /// position, with the node and the obstacle's index; None without obstacles.
+    pub fn min_distance(&self, x: &[f64]) -> Option<(f64, usize, usize)> {
+        self.contact
+            .as_ref()
+            .map(|c| c.barrier.min_distance(x, &c.planes))
+    }
+
+    /// Fails naming the node and the obstacle when an iterate touches or crosses one.
+    fn check_distance(&self, x: &[f64], when: &str) -> Result<Option<f64>, String> {
+        match self.min_distance(x) {
+            Some((d, node, j)) if d.is_nan() || d <= 0.0 => Err(format!(
+                "node {node} is at signed distance {d:e} m from {} {when}: the configuration must stay penetration-free",
+                self.scene.obstacles[j].label
+            )),
+            Some((d, _, _)) => Ok(Some(d)),
+            None => Ok(None),
+        }
     }
 
     fn frames_for(&mut self, key: &[bool]) -> Result<(), String> {
@@ -328,6 +424,10 @@ impl<'s> Stepper<'s> {
             let lr: f64 = (0..3).map(|a| self.lambda[j][a] * r[a]).sum();
             e += 0.5 * self.k_m * m * rr - m.sqrt() * lr;
         }
+        if let Some(c) = &self.contact {
+            self.barrier_evals.set(self.barrier_evals.get() + 1);
+            e += h * h * c.barrier.energy(x, &c.planes);
+        }
         e
     }
 
@@ -354,6 +454,10 @@ impl<'s> Stepper<'s> {
         let mut xt = vec![0.0; x.len()];
         for i in 0..x.len() {
             xt[i] = xn[i] + h * self.v[i];
+        }
+        if self.contact.is_some() {
+            self.advance_obstacles(t1, &mut x);
+            rep.min_distance = self.check_distance(&x, "at the start of the step")?;
         }
 
         // 2. Moving targets at t^{n+1}; nodes already within ε are snapped now.
@@ -419,8 +523,8 @@ impl<'s> Stepper<'s> {
                         let b = &sc.bcs[self.moving_bcs[j]];
                         let m = sc.model.mass[b.node];
                         let r = offset(d, &targets[j], &x[b.node * d..(b.node + 1) * d]);
-                        for a in 0..3 {
-                            self.lambda[j][a] -= self.k_m * m.sqrt() * r[a];
+                        for (l, ra) in self.lambda[j].iter_mut().zip(r) {
+                            *l -= self.k_m * m.sqrt() * ra;
                         }
                     }
                     double = worst > 0.5 * residual_at_update;
@@ -440,10 +544,24 @@ impl<'s> Stepper<'s> {
                 }
                 continue;
             }
-            // Armijo backtracking on E.
+            // Armijo backtracking on E, from the CCD bound α_C when there is contact.
             let e0 = self.energy(&x, &xt, &targets, &snapped);
             let slope: f64 = g.iter().zip(&dx).map(|(a, b)| a * b).sum();
-            let mut alpha = 1.0;
+            rep.max_slope = Some(rep.max_slope.map_or(slope, |m| m.max(slope)));
+            if slope.is_nan() || slope >= 0.0 {
+                rep.ascent_directions += 1;
+            }
+            let alpha_c = match &self.contact {
+                Some(c) => {
+                    self.ccd_calls += 1;
+                    c.barrier.ccd(&x, &dx, &c.planes, CCD_FRACTION)
+                }
+                None => 1.0,
+            };
+            if alpha_c < 1.0 {
+                rep.ccd_limited += 1;
+            }
+            let mut alpha = alpha_c;
             let mut xtry = vec![0.0; x.len()];
             let mut accepted = false;
             for _ in 0..MAX_HALVINGS {
@@ -458,10 +576,10 @@ impl<'s> Stepper<'s> {
                 alpha *= 0.5;
             }
             if !accepted {
-                // Energy flat to round-off near the minimum: take the full step.
+                // Energy flat to round-off near the minimum: take the full (CCD-bounded) step.
                 if dmax / h < 1e3 * self.newton_tol {
                     for i in 0..x.len() {
-                        xtry[i] = x[i] + dx[i];
+                        xtry[i] = x[i] + alpha_c * dx[i];
                     }
                 } else {
                     return Err(format!(
@@ -472,6 +590,13 @@ impl<'s> Stepper<'s> {
             }
             std::mem::swap(&mut x, &mut xtry);
             self.snap_satisfied(&mut x, &targets, &mut snapped);
+            if self.contact.is_some() {
+                let d = self.check_distance(&x, &format!("after Newton iteration {iter}"))?;
+                rep.min_distance = match (rep.min_distance, d) {
+                    (Some(a), Some(b)) => Some(a.min(b)),
+                    (a, b) => a.or(b),
+                };
+            }
         }
         rep.newton_iterations = iter;
         rep.eliminated_at_iteration = all_snapped_at;
@@ -491,6 +616,13 @@ impl<'s> Stepper<'s> {
         frames.from_frame(&gy, &mut self.reactions);
         for r in self.reactions.iter_mut() {
             *r /= h * h;
+        }
+        // Contact forces c = −∇P_b at the same x as the reactions.
+        if let Some(c) = &self.contact {
+            self.barrier_evals.set(self.barrier_evals.get() + 1);
+            self.contact_forces.iter_mut().for_each(|v| *v = 0.0);
+            c.barrier
+                .add_gradient(&x, &c.planes, -1.0, &mut self.contact_forces);
         }
 
         // 5. Velocity and state.
@@ -548,6 +680,10 @@ impl<'s> Stepper<'s> {
                 g[node * d + a] += self.k_m * m * r[a] - m.sqrt() * pl;
             }
         }
+        if let Some(c) = &self.contact {
+            self.barrier_evals.set(self.barrier_evals.get() + 1);
+            c.barrier.add_gradient(x, &c.planes, h * h, g);
+        }
     }
 
     fn hessian(&mut self, x: &[f64], targets: &[BcShape], snapped: &[bool]) {
@@ -572,6 +708,44 @@ impl<'s> Stepper<'s> {
                 }
             }
         }
+        if let Some(c) = &self.contact {
+            self.barrier_evals.set(self.barrier_evals.get() + 1);
+            c.barrier.add_hessian(x, &c.planes, h * h, &mut self.hmat);
+        }
+    }
+
+    /// Moves the obstacles to t1 (their position for the whole step). A node that a moving
+    /// half-space would overtake by more than half its gap at tⁿ starts the step at half
+    /// that gap instead (a new initial guess; boundary nodes are left alone and fail the
+    /// distance check that follows when they penetrate).
+    fn advance_obstacles(&mut self, t1: f64, x: &mut [f64]) {
+        let sc = self.scene;
+        let d = sc.dim;
+        let Some(c) = self.contact.as_mut() else {
+            return;
+        };
+        let mut constrained = vec![false; sc.model.n_nodes];
+        for b in &sc.bcs {
+            constrained[b.node] = true;
+        }
+        for (j, o) in sc.obstacles.iter().enumerate() {
+            let old = c.planes[j];
+            let new = o.at(t1);
+            c.planes[j] = new;
+            if o.motion.is_none() {
+                continue;
+            }
+            for &i in &c.barrier.surface {
+                let p = &mut x[i * d..(i + 1) * d];
+                let (d_old, d_new) = (old.distance(p), new.distance(p));
+                if d_new < 0.5 * d_old && !constrained[i] {
+                    for (pa, na) in p.iter_mut().zip(new.normal) {
+                        *pa += (0.5 * d_old - d_new) * na;
+                    }
+                    self.pushed_nodes += 1;
+                }
+            }
+        }
     }
 
     /// Σ m v.
@@ -593,6 +767,17 @@ impl<'s> Stepper<'s> {
         }
         let m = self.scene.model.total_mass();
         c.iter().map(|v| v / m).collect()
+    }
+
+    /// Σ contact forces (newtons); None without obstacles.
+    pub fn total_contact(&self) -> Option<Vec<f64>> {
+        self.contact.as_ref()?;
+        let d = self.scene.dim;
+        let mut f = vec![0.0; d];
+        for (k, c) in self.contact_forces.iter().enumerate() {
+            f[k % d] += c;
+        }
+        Some(f)
     }
 
     /// Σ reactions (newtons).

@@ -314,6 +314,117 @@ pub fn rod(dim: usize, length: f64, cells: usize) -> Mesh {
     }
 }
 
+/// Reads a Gmsh MSH 4.1 file (ASCII or binary, through `mshio`): 3-node triangles in 2D,
+/// 4-node tetrahedra in 3D. Elements of lower dimension (boundary lines, faces, points) are
+/// skipped; nodes no kept element uses are dropped (they would carry no mass); triangles
+/// are made counter-clockwise and tetrahedra positively oriented. The error says what is
+/// wrong, the caller names the file.
+pub fn gmsh(dim: usize, bytes: &[u8]) -> Result<Mesh, String> {
+    use mshio::mshfile::ElementType;
+    use std::collections::HashMap;
+    let f = mshio::parse_msh_bytes(bytes)
+        .map_err(|e| format!("not a readable Gmsh MSH 4.1 file ({e})").replace('\n', " "))?;
+    let nodes = f.data.nodes.ok_or("the file has no $Nodes section")?;
+    let els = f.data.elements.ok_or("the file has no $Elements section")?;
+    // Node tag → (position). Tags are consecutive from min_node_tag when not sparse.
+    let mut pos: HashMap<u64, [f64; 3]> = HashMap::new();
+    let mut next = nodes.min_node_tag;
+    for b in &nodes.node_blocks {
+        let mut tags = vec![0u64; b.nodes.len()];
+        match &b.node_tags {
+            Some(m) => {
+                for (&tag, &i) in m {
+                    if i < tags.len() {
+                        tags[i] = tag;
+                    }
+                }
+            }
+            None => {
+                for t in tags.iter_mut() {
+                    *t = next;
+                    next += 1;
+                }
+            }
+        }
+        for (t, n) in tags.iter().zip(&b.nodes) {
+            pos.insert(*t, [n.x, n.y, n.z]);
+        }
+    }
+    let (want, kind) = if dim == 2 {
+        (ElementType::Tri3, ElementKind::Triangle)
+    } else {
+        (ElementType::Tet4, ElementKind::Tetrahedron)
+    };
+    let mut index: HashMap<u64, usize> = HashMap::new();
+    let mut x = Vec::new();
+    let mut elements = Vec::new();
+    for b in &els.element_blocks {
+        if b.entity_dim as usize != dim {
+            continue;
+        }
+        if b.element_type != want {
+            return Err(format!(
+                "element type {:?} is not supported ({dim}D takes {:?} only)",
+                b.element_type, want
+            ));
+        }
+        for e in &b.elements {
+            let mut el = Vec::with_capacity(e.nodes.len());
+            for &tag in &e.nodes {
+                let i = match index.get(&tag) {
+                    Some(&i) => i,
+                    None => {
+                        let p = pos.get(&tag).ok_or_else(|| {
+                            format!("element {} uses node {tag}, which is not in $Nodes", e.element_tag)
+                        })?;
+                        if dim == 2 && p[2] != 0.0 {
+                            return Err(format!(
+                                "node {tag} has z = {} but a 2D mesh must lie in z = 0",
+                                p[2]
+                            ));
+                        }
+                        if p.iter().any(|v| !v.is_finite()) {
+                            return Err(format!("node {tag} has a non-finite coordinate"));
+                        }
+                        let i = x.len() / dim;
+                        x.extend_from_slice(&p[..dim]);
+                        index.insert(tag, i);
+                        i
+                    }
+                };
+                el.push(i);
+            }
+            elements.push(el);
+        }
+    }
+    if elements.is_empty() {
+        return Err(format!(
+            "the file has no {} (element type {:?})",
+            if dim == 2 { "triangles" } else { "tetrahedra" },
+            want
+        ));
+    }
+    let mut m = Mesh {
+        dim,
+        x,
+        kind,
+        elements,
+    };
+    if dim == 2 {
+        for el in m.elements.iter_mut() {
+            let p = |k: usize| [m.x[el[k] * 2], m.x[el[k] * 2 + 1]];
+            let (a, b, c) = (p(0), p(1), p(2));
+            let area2 = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
+            if area2 < 0.0 {
+                el.swap(1, 2);
+            }
+        }
+    } else {
+        orient_positive(&mut m);
+    }
+    Ok(m)
+}
+
 /// Swaps two nodes of every tetrahedron with negative signed volume.
 fn orient_positive(m: &mut Mesh) {
     for e in 0..m.elements.len() {

@@ -3,8 +3,11 @@
 //! steps.csv, one row per step (row 0 is the initial state, with zero iteration counts and
 //! zero reaction):
 //! `step,time,newton_iterations,linear_iterations,linear_seconds,energy,com_x,com_y[,com_z],
-//! p_x,p_y[,p_z],f_x,f_y[,f_z]` and, for scenes with moving conditions,
-//! `,k_m,eliminated_at_iteration`. `energy` is the mechanical energy (kinetic + elastic +
+//! p_x,p_y[,p_z],f_x,f_y[,f_z]`; for scenes with obstacles `,min_distance,c_x,c_y[,c_z]`;
+//! and, for scenes with moving conditions, `,k_m,eliminated_at_iteration`.
+//! `min_distance` is the smallest signed distance of any node to any obstacle over every
+//! Newton iterate of the step (row 0: at t = 0) and `c` the summed contact force (newtons,
+//! −∇P_b, an external force apart from the reactions `f`). `energy` is the mechanical energy (kinetic + elastic +
 //! gravitational, joules); `f` is the summed reaction force in newtons (the constrained
 //! components of −∇E / h², see [`crate::integrator`]); `linear_iterations` counts CG
 //! iterations, one per direct solve; `k_m` is the penalty stiffness at the end of the step
@@ -19,7 +22,7 @@ use std::io::{BufWriter, Write};
 use std::path::Path;
 
 /// One VTK legacy ASCII unstructured grid: points, cells, point data (velocity,
-/// reaction_force). 2D scenes are written with z = 0.
+/// reaction_force, and contact_force when `c` is given). 2D scenes are written with z = 0.
 pub fn write_vtk(
     path: &Path,
     scene: &Scene,
@@ -27,6 +30,7 @@ pub fn write_vtk(
     x: &[f64],
     v: &[f64],
     f: &[f64],
+    c: Option<&[f64]>,
 ) -> std::io::Result<()> {
     let d = scene.dim;
     let n = x.len() / d;
@@ -73,6 +77,12 @@ pub fn write_vtk(
     for i in 0..n {
         vec3(&mut s, f, i);
     }
+    if let Some(c) = c {
+        let _ = writeln!(s, "VECTORS contact_force double");
+        for i in 0..n {
+            vec3(&mut s, c, i);
+        }
+    }
     std::fs::write(path, s)
 }
 
@@ -90,16 +100,25 @@ pub struct StepRecord {
     pub reaction: Vec<f64>,
     pub k_m: f64,
     pub eliminated_at_iteration: Option<usize>,
+    /// Contact only: smallest node–obstacle signed distance over the step's iterates.
+    pub min_distance: Option<f64>,
+    /// Summed contact force (empty without obstacles).
+    pub contact: Vec<f64>,
+    /// Largest gᵀΔx over the step's line-searched Newton iterates (None: no line search).
+    pub max_slope: Option<f64>,
+    /// Line-searched iterates whose step was not a descent direction.
+    pub ascent_directions: usize,
 }
 
 /// The steps.csv writer.
 pub struct StepsCsv {
     w: BufWriter<File>,
     moving: bool,
+    contact: bool,
 }
 
 impl StepsCsv {
-    pub fn create(path: &Path, dim: usize, moving: bool) -> std::io::Result<Self> {
+    pub fn create(path: &Path, dim: usize, moving: bool, contact: bool) -> std::io::Result<Self> {
         let mut w = BufWriter::new(File::create(path)?);
         let axes = &["x", "y", "z"][..dim];
         let mut h =
@@ -109,11 +128,17 @@ impl StepsCsv {
                 let _ = write!(h, ",{pre}_{a}");
             }
         }
+        if contact {
+            h.push_str(",min_distance");
+            for a in axes {
+                let _ = write!(h, ",c_{a}");
+            }
+        }
         if moving {
             h.push_str(",k_m,eliminated_at_iteration");
         }
         writeln!(w, "{h}")?;
-        Ok(StepsCsv { w, moving })
+        Ok(StepsCsv { w, moving, contact })
     }
 
     pub fn row(&mut self, r: &StepRecord) -> std::io::Result<()> {
@@ -123,6 +148,12 @@ impl StepsCsv {
         );
         for v in r.com.iter().chain(&r.momentum).chain(&r.reaction) {
             let _ = write!(s, ",{v:.17e}");
+        }
+        if self.contact {
+            let _ = write!(s, ",{:.17e}", r.min_distance.unwrap_or(f64::NAN));
+            for v in &r.contact {
+                let _ = write!(s, ",{v:.17e}");
+            }
         }
         if self.moving {
             let _ = write!(s, ",{:e},", r.k_m);

@@ -288,6 +288,9 @@ pub enum MeshKind {
     Rod,
     /// Triangulated rectangle (in 3D in the plane z = 0): springs on its edges.
     Sheet,
+    /// A Gmsh MSH 4.1 file (`file`): triangles in 2D, tetrahedra in 3D. The file fixes
+    /// the resolution (the run's size option does not apply); no `cells` or `size`.
+    Gmsh,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -299,7 +302,10 @@ pub struct MeshSpec {
     /// Rod length.
     pub length: Option<f64>,
     /// Cells per axis (rod: one number), multiplied by the run's size option.
+    #[serde(default)]
     pub cells: Vec<usize>,
+    /// Gmsh: the .msh file, relative to the scene file's folder unless absolute.
+    pub file: Option<String>,
     /// Translation applied after the rotation.
     pub origin: Option<Vec<f64>>,
     /// Rotation about the z axis (2D: in-plane), degrees.
@@ -627,7 +633,7 @@ impl Ctx<'_> {
     fn unit(&self, key: &str, v: &[f64], dim: usize) -> Result<[f64; 3], InputError> {
         let mut u = self.vector(key, v, dim)?;
         let n = mesh::dot3(&u, &u).sqrt();
-        if !(n > 0.0) || !n.is_finite() {
+        if n.is_nan() || n <= 0.0 || !n.is_finite() {
             return Err(self.err(key, "must be a nonzero vector"));
         }
         for x in u.iter_mut() {
@@ -688,7 +694,7 @@ fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, InputError> 
             "must be at most 1e6 (seed 003: start below 1e6 and double)",
         ));
     }
-    if !(m.penalty_max >= m.penalty_start) || !m.penalty_max.is_finite() {
+    if m.penalty_max.is_nan() || m.penalty_max < m.penalty_start || !m.penalty_max.is_finite() {
         return Err(c.err(
             "moving.penalty_max",
             "must be finite and at least moving.penalty_start",
@@ -823,7 +829,7 @@ fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, InputError> 
         Some(l) => l,
         None => all_mesh.bbox_diagonal(),
     };
-    if !(char_len > 0.0) {
+    if char_len.is_nan() || char_len <= 0.0 {
         return Err(c.err("bodies", "all nodes coincide (zero characteristic length)"));
     }
 
@@ -1001,7 +1007,7 @@ fn build_obstacles(
         };
         for i in 0..x0.len() / dim {
             let d = plane.distance(&x0[i * dim..(i + 1) * dim]);
-            if !(d > 0.0) {
+            if d.is_nan() || d <= 0.0 {
                 return Err(c.err(
                     key,
                     format!(
@@ -1039,10 +1045,17 @@ fn scaled(cells: usize, size: f64) -> usize {
 
 fn build_mesh(c: &Ctx, key: &str, m: &MeshSpec, dim: usize, size: f64) -> Result<Mesh, InputError> {
     let mk = format!("{key}.mesh");
+    if m.kind == MeshKind::Gmsh {
+        return gmsh_mesh(c, &mk, m, dim);
+    }
+    if m.file.is_some() {
+        return Err(c.err(format!("{mk}.file"), "only a gmsh mesh takes a file"));
+    }
     let want_cells = match m.kind {
         MeshKind::Rod => 1,
         MeshKind::Rectangle | MeshKind::Sheet => 2,
         MeshKind::Box => 3,
+        MeshKind::Gmsh => 0,
     };
     if m.cells.len() != want_cells {
         return Err(c.err(
@@ -1102,6 +1115,7 @@ fn build_mesh(c: &Ctx, key: &str, m: &MeshSpec, dim: usize, size: f64) -> Result
             let l = c.positive(&format!("{mk}.length"), l)?;
             mesh::rod(dim, l, cells[0])
         }
+        MeshKind::Gmsh => unreachable!("handled above"),
     };
     if m.kind != MeshKind::Rod && m.length.is_some() {
         return Err(c.err(
@@ -1112,6 +1126,55 @@ fn build_mesh(c: &Ctx, key: &str, m: &MeshSpec, dim: usize, size: f64) -> Result
     if m.kind == MeshKind::Rod && m.size.is_some() {
         return Err(c.err(format!("{mk}.size"), "a rod takes a length, not a size"));
     }
+    let origin = match &m.origin {
+        Some(o) => c.vector(&format!("{mk}.origin"), o, dim)?,
+        None => [0.0; 3],
+    };
+    let angle = match m.rotate_degrees {
+        Some(a) if !a.is_finite() => {
+            return Err(c.err(format!("{mk}.rotate_degrees"), "must be finite"))
+        }
+        Some(a) => a.to_radians(),
+        None => 0.0,
+    };
+    mesh.transform(angle, &origin);
+    Ok(mesh)
+}
+
+/// Loads `mesh.file` (Gmsh), then applies rotation and origin like the generated meshes.
+fn gmsh_mesh(c: &Ctx, mk: &str, m: &MeshSpec, dim: usize) -> Result<Mesh, InputError> {
+    for (name, given) in [
+        ("cells", !m.cells.is_empty()),
+        ("size", m.size.is_some()),
+        ("length", m.length.is_some()),
+    ] {
+        if given {
+            return Err(c.err(
+                format!("{mk}.{name}"),
+                "does not apply to a gmsh mesh (the file fixes it)",
+            ));
+        }
+    }
+    let f = m.file.as_ref().ok_or_else(|| {
+        c.err(
+            format!("{mk}.file"),
+            "missing (a gmsh mesh needs a .msh file)",
+        )
+    })?;
+    let path = std::path::Path::new(f);
+    let path = if path.is_absolute() {
+        path.to_path_buf()
+    } else {
+        std::path::Path::new(c.file)
+            .parent()
+            .map(|d| d.join(path))
+            .unwrap_or_else(|| path.to_path_buf())
+    };
+    let shown = path.display().to_string();
+    let bytes = std::fs::read(&path)
+        .map_err(|e| c.err(format!("{mk}.file"), format!("{shown}: cannot read: {e}")))?;
+    let mut mesh = mesh::gmsh(dim, &bytes)
+        .map_err(|e| c.err(format!("{mk}.file"), format!("{shown}: {e}")))?;
     let origin = match &m.origin {
         Some(o) => c.vector(&format!("{mk}.origin"), o, dim)?,
         None => [0.0; 3],
@@ -1258,7 +1321,9 @@ fn build_motion(
         return Err(c.err(format!("{key}.start"), "must be a non-negative time"));
     }
     let end = match m.end {
-        Some(e) if !(e > m.start) => return Err(c.err(format!("{key}.end"), "must be after start")),
+        Some(e) if e.is_nan() || e <= m.start => {
+            return Err(c.err(format!("{key}.end"), "must be after start"))
+        }
         Some(e) => e,
         None => f64::INFINITY,
     };

@@ -500,3 +500,94 @@ fn mixed_with_the_outer_residual_on_the_host_matches_the_reference() {
         assert!(constrained_error(&s.frames, &dx) < 1e-12);
     }
 }
+
+/// Mixed precision's f64 fallback, triggered deterministically by kappa-1e8-balanced of the
+/// hard suite (the f32 inner CG meets rounding-made non-positive curvature): the report
+/// says why and where, the error meets 1e-9 and the promise κ·(τ + 64ε) of the tolerance,
+/// on the GPU and (forced) on the CPU. The f64 level exists only after a fallback. An
+/// extreme Ĥ scale (the solution ~1e-60 underflows f32) needs no fallback at all.
+#[test]
+fn mixed_falls_back_to_f64_and_says_so() {
+    use stickslip::hard::{self, Size};
+    let Some((ctx, _g)) = gpu() else { return };
+    let case = hard::conditioned(Size::Ci, 1e8, true);
+    let e = case.eliminated();
+    let y_ref = hard::reference(&e).expect("reference").y;
+    let kappa = 1e8;
+    let tol = 1e-11;
+    let promise = 10.0 * kappa * (tol + 64.0 * f64::EPSILON);
+    for cpu in [false, true] {
+        let mut sol = GpuSolver::new(
+            ctx,
+            &e,
+            &params(Precision::Mixed, tol, Preconditioner::Jacobi),
+        )
+        .expect("solver");
+        assert!(
+            !sol.resources()
+                .buffers
+                .iter()
+                .any(|b| b.label.starts_with("fallback_")),
+            "the f64 fallback level is built only on first use"
+        );
+        sol.force_cpu_fallback(cpu);
+        let (y, _, info) = sol.solve().expect("mixed with fallback");
+        let why = info.fallback.as_deref().expect("fell back");
+        assert!(why.contains("non-positive curvature"), "{why}");
+        assert!(
+            why.contains(if cpu { "on the CPU" } else { "on the GPU" }),
+            "{why}"
+        );
+        assert!(
+            info.notes.iter().any(|n| n.contains("fell back to f64")),
+            "{info:?}"
+        );
+        assert!(info.relative_residual <= tol, "{info:?}");
+        let err = rel_err(&y, &y_ref);
+        assert!(err <= 1e-9 && err <= promise, "cpu {cpu}: err {err:e}");
+        let gpu_level = sol
+            .resources()
+            .buffers
+            .iter()
+            .any(|b| b.label == "fallback_x_f64");
+        assert_eq!(gpu_level, !cpu);
+        // The solver stays usable: a second solve repeats the same result.
+        let (y2, _, info2) = sol.solve().expect("second solve");
+        assert_eq!(y, y2);
+        assert_eq!(info.fallback, info2.fallback);
+    }
+    // f32 underflow of the solution (~1e-60): fixed by the normalization, no fallback.
+    let case = hard::scaled(Size::Ci, 1e30, 1e-30);
+    let e = case.eliminated();
+    let y_ref = hard::reference(&e).expect("reference").y;
+    let mut sol = GpuSolver::new(
+        ctx,
+        &e,
+        &params(Precision::Mixed, tol, Preconditioner::Jacobi),
+    )
+    .expect("solver");
+    let (y, _, info) = sol.solve().expect("scaled mixed");
+    assert_eq!(info.fallback, None, "{info:?}");
+    assert!(info.notes.iter().any(|n| n.contains("2^-")), "{info:?}");
+    assert!(rel_err(&y, &y_ref) <= 1e-9, "{}", rel_err(&y, &y_ref));
+    // A genuinely indefinite Ĥ: the f32 failure falls back, and f64 CG names the curvature.
+    let mut s = random_system(&SystemSpec::small(2, 8));
+    s.frames = Frames::unconstrained(2, s.h.n);
+    let k = s.h.diag_index(0).expect("diagonal");
+    s.h.values[k * 4] = -1e3;
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let mut sol = GpuSolver::new(
+        ctx,
+        &e,
+        &params(Precision::Mixed, 1e-8, Preconditioner::None),
+    )
+    .expect("solver");
+    let r = sol.solve();
+    assert!(
+        matches!(r, Err(GpuError::Cg(CgError::NonPositiveCurvature { .. }))),
+        "{r:?}"
+    );
+    assert!(sol
+        .last_fallback()
+        .is_some_and(|w| w.contains("on the GPU")));
+}

@@ -311,11 +311,10 @@ fn gpu_claims_are_honest_both_ways() {
     eprintln!("mixed precision misses of 1e-9 on κ ≤ 1e10: {misses:?}");
 }
 
-/// Must-show of issue 6. Fails today on kappa-1e10 and kappa-1e8/1e10-balanced (the f32 inner CG meets rounding-made
-/// negative curvature, κ > 1/ε_f32) and scale-H1e30-g1e-30 (the solution, ~1e-60,
-/// underflows f32): both need the f64 fallback of mixed precision, not yet written.
+/// Must-show of issue 6. kappa-1e8/1e10-balanced need mixed precision's f64 fallback (the
+/// f32 inner CG meets rounding-made negative curvature, κ > 1/ε_f32); scale-H1e30-g1e-30
+/// needs the normalized inner solve (the solution, ~1e-60, underflows f32).
 #[test]
-#[ignore = "fails until mixed precision falls back to f64 (kappa-1e10, kappa-1e8-balanced, kappa-1e10-balanced, scale-H1e30-g1e-30); run with --ignored"]
 fn gpu_mixed_reaches_1e_9_when_kappa_at_most_1e10() {
     let Some((ctx, _guard)) = gpu() else { return };
     let misses = gpu_sweep(ctx);

@@ -41,11 +41,7 @@ pub struct HalfSpace {
 impl HalfSpace {
     /// Signed distance of point p (first `dim` entries used).
     pub fn distance(&self, p: &[f64]) -> f64 {
-        p.iter()
-            .zip(&self.normal)
-            .map(|(a, b)| a * b)
-            .sum::<f64>()
-            - self.offset
+        p.iter().zip(&self.normal).map(|(a, b)| a * b).sum::<f64>() - self.offset
     }
 }
 
@@ -190,8 +186,10 @@ mod tests {
         for &d in &[1e-4, 1e-3, 5e-3, 9.9e-3] {
             let (_, g, h) = scalar(d, dhat, kappa);
             let eps = 1e-7 * d;
-            let fd_g = (scalar(d + eps, dhat, kappa).0 - scalar(d - eps, dhat, kappa).0) / (2.0 * eps);
-            let fd_h = (scalar(d + eps, dhat, kappa).1 - scalar(d - eps, dhat, kappa).1) / (2.0 * eps);
+            let fd_g =
+                (scalar(d + eps, dhat, kappa).0 - scalar(d - eps, dhat, kappa).0) / (2.0 * eps);
+            let fd_h =
+                (scalar(d + eps, dhat, kappa).1 - scalar(d - eps, dhat, kappa).1) / (2.0 * eps);
             assert!((g - fd_g).abs() <= 1e-6 * g.abs(), "d {d}: {g} vs {fd_g}");
             assert!((h - fd_h).abs() <= 1e-6 * h.abs(), "d {d}: {h} vs {fd_h}");
             assert!(g < 0.0 && h > 0.0);

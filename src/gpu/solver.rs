@@ -161,6 +161,8 @@ pub struct GpuSolveInfo {
     pub dispatches_per_iteration: usize,
     /// Status and result read-backs of this solve.
     pub readbacks: usize,
+    /// Mixed: why the solve fell back to f64 CG and where that ran (None: it did not).
+    pub fallback: Option<String>,
     pub notes: Vec<String>,
 }
 
@@ -213,6 +215,28 @@ impl Host {
                 }
             }
         }
+    }
+
+    /// Largest |diagonal entry| of H (its diagonal blocks, before rotation and masking).
+    fn diag_max(&self) -> f64 {
+        let (d, blocks): (usize, Vec<f64>) = match &self.op {
+            HostOp::Blocks(h) => {
+                let dd = h.dim * h.dim;
+                let mut v = Vec::with_capacity(h.n * dd);
+                for i in 0..h.n {
+                    if let Some(k) = h.diag_index(i) {
+                        v.extend_from_slice(&h.values[k * dd..(k + 1) * dd]);
+                    }
+                }
+                (h.dim, v)
+            }
+            HostOp::Springs(ms) => (ms.dim, spring_diag_blocks(ms, &self.frames)),
+        };
+        blocks
+            .chunks_exact(d * d)
+            .flat_map(|b| (0..d).map(move |a| b[a * d + a].abs()))
+            .filter(|v| v.is_finite())
+            .fold(0.0, f64::max)
     }
 
     fn relative_residual(&self, y: &[f64]) -> f64 {
@@ -605,7 +629,11 @@ struct Refine {
     b64: wgpu::Buffer,
     y64: wgpu::Buffer,
     partials64: wgpu::Buffer,
+    /// [1/‖r‖, 2^s·‖r‖]: the inner right-hand side's normalization and the correction's
+    /// scale back (see refine.wgsl).
+    factors: wgpu::Buffer,
     k_residual: Kernel,
+    k_scale_rhs: Kernel,
     k_accumulate: Kernel,
     bg_mv: Option<wgpu::BindGroup>,
     bg_refine: wgpu::BindGroup,
@@ -661,6 +689,15 @@ pub struct GpuSolver {
     gpu_seconds: f64,
     /// Iterations recorded in chunks since the solve began.
     recorded: usize,
+    consts: Consts,
+    /// Mixed: the f32 operator holds 2^s·Ĥ (this factor; 1 unless Ĥ's diagonal is extreme).
+    inner_scale: f64,
+    /// Mixed: the f64 CG level of the fallback, built on first use.
+    fallback_level: Option<Level>,
+    /// Mixed: run the fallback on the CPU even where an f64 GPU level could be built.
+    force_cpu_fallback: bool,
+    /// Mixed: why and where the last solve fell back to f64.
+    last_fallback: Option<String>,
 }
 
 fn u32s(v: impl IntoIterator<Item = u32>) -> Vec<u8> {
@@ -1005,6 +1042,7 @@ impl GpuSolver {
         ctx.check("allocating GPU buffers")?;
         let bytes_per_iteration =
             bytes_per_iteration(&host, &level, &consts, params.preconditioner);
+        let host_diag_max = host.diag_max();
         let mut s = GpuSolver {
             ctx: ctx.clone(),
             params: params.clone(),
@@ -1028,6 +1066,15 @@ impl GpuSolver {
             readbacks: 0,
             gpu_seconds: 0.0,
             recorded: 0,
+            consts,
+            inner_scale: if params.precision == Precision::Mixed {
+                inner_scale(host_diag_max)
+            } else {
+                1.0
+            },
+            fallback_level: None,
+            force_cpu_fallback: false,
+            last_fallback: None,
         };
         s.upload_seconds = t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
@@ -1107,12 +1154,21 @@ impl GpuSolver {
         Ok(())
     }
 
-    fn write_operator(&self, op: &Operator) {
+    /// Writes Ĥ's values into `op`, multiplied by `scale` (a power of two: exact) except
+    /// for the geometry (positions, rest lengths, rotations).
+    fn write_operator(&self, op: &Operator, scale: f64) {
         let q = &self.ctx.queue;
         let host = &self.host;
+        let sc = |v: &[f64]| -> Vec<f64> {
+            if scale == 1.0 {
+                v.to_vec()
+            } else {
+                v.iter().map(|x| x * scale).collect()
+            }
+        };
         match (&op.data, &host.op) {
             (OpData::Blocks { blocks, .. }, HostOp::Blocks(h)) => {
-                for (buf, v) in blocks.iter().zip(to_planes(h.dim, &h.values)) {
+                for (buf, v) in blocks.iter().zip(to_planes(h.dim, &sc(&h.values))) {
                     if !v.is_empty() {
                         q.write_buffer(buf, 0, &op.real.bytes(&v));
                     }
@@ -1128,9 +1184,13 @@ impl GpuSolver {
                 HostOp::Springs(ms),
             ) => {
                 q.write_buffer(pos, 0, &op.real.bytes(&ms.positions));
-                q.write_buffer(springs, 0, &op.real.bytes(&spring_data(ms)));
-                q.write_buffer(mass, 0, &op.real.bytes(&ms.masses));
-                let diag = spring_diag_blocks(ms, &host.frames);
+                let mut sd = spring_data(ms);
+                for v in sd.iter_mut().skip(1).step_by(2) {
+                    *v *= scale;
+                }
+                q.write_buffer(springs, 0, &op.real.bytes(&sd));
+                q.write_buffer(mass, 0, &op.real.bytes(&sc(&ms.masses)));
+                let diag = sc(&spring_diag_blocks(ms, &host.frames));
                 for (buf, v) in diag_blocks.iter().zip(to_planes(ms.dim, &diag)) {
                     if !v.is_empty() {
                         q.write_buffer(buf, 0, &op.real.bytes(&v));
@@ -1140,7 +1200,7 @@ impl GpuSolver {
             _ => unreachable!("operator kind follows the host system"),
         }
         if let Some(dv) = &op.dvals {
-            q.write_buffer(dv, 0, &op.real.bytes(&host.diag));
+            q.write_buffer(dv, 0, &op.real.bytes(&sc(&host.diag)));
         }
         if let Some(rot) = &op.rotations {
             q.write_buffer(rot, 0, &op.real.bytes(&host.frames.rotations));
@@ -1148,11 +1208,14 @@ impl GpuSolver {
     }
 
     fn upload_values(&mut self) -> Result<(), GpuError> {
-        self.write_operator(&self.level.op);
+        self.write_operator(&self.level.op, self.inner_scale);
+        if let Some(fl) = &self.fallback_level {
+            self.write_operator(&fl.op, 1.0);
+        }
         match &self.refine {
             Some(rf) => {
                 match &rf.op {
-                    Some(op) => self.write_operator(op),
+                    Some(op) => self.write_operator(op, 1.0),
                     None => {
                         if let Some(rot) = &rf.rotations64 {
                             self.ctx.queue.write_buffer(
@@ -1187,6 +1250,12 @@ impl GpuSolver {
 
     /// Rotation of the H blocks (slip nodes only) and the preconditioner build.
     fn device_setup(&mut self) -> Result<(), GpuError> {
+        self.setup_levels(true, true)
+    }
+
+    /// Rotation and preconditioner build of the main levels (`main`: the CG level and the
+    /// refinement operator) and/or of the f64 fallback level where it exists.
+    fn setup_levels(&mut self, main: bool, fallback: bool) -> Result<(), GpuError> {
         let mut enc = self.encoder("setup");
         let mut names = Vec::new();
         {
@@ -1195,8 +1264,11 @@ impl GpuSolver {
                 timestamp_writes: None,
             });
             let groups = self.node_groups();
-            let ops = std::iter::once(&self.level.op)
-                .chain(self.refine.as_ref().and_then(|r| r.op.as_ref()));
+            let main_ops = std::iter::once(&self.level.op)
+                .chain(self.refine.as_ref().and_then(|r| r.op.as_ref()))
+                .filter(|_| main);
+            let fb = self.fallback_level.as_ref().filter(|_| fallback);
+            let ops = main_ops.chain(fb.map(|l| &l.op));
             for op in ops {
                 if let OpData::Blocks {
                     rotate: Some((k, bg)),
@@ -1209,7 +1281,11 @@ impl GpuSolver {
                     names.push(k.name);
                 }
             }
-            if let Some((k, bg)) = &self.level.precond {
+            let pre = std::iter::once(&self.level)
+                .filter(|_| main)
+                .chain(fb)
+                .filter_map(|l| l.precond.as_ref());
+            for (k, bg) in pre {
                 pass.set_pipeline(&k.pipeline);
                 pass.set_bind_group(0, bg, &[]);
                 pass.dispatch_workgroups(groups, 1, 1);
@@ -1494,6 +1570,7 @@ impl GpuSolver {
         self.readbacks = 0;
         self.gpu_seconds = 0.0;
         self.recorded = 0;
+        self.last_fallback = None;
         let t0 = Instant::now();
         let bnorm = norm2(&self.host.rhs);
         let mut notes = Vec::new();
@@ -1541,6 +1618,7 @@ impl GpuSolver {
             achieved_gb_per_s_gpu: gpu_seconds.filter(|&s| s > 0.0).map(|s| moved / s / 1e9),
             dispatches_per_iteration: 3,
             readbacks: self.readbacks,
+            fallback: self.last_fallback.clone(),
             notes,
         };
         Ok((y, dx, info))
@@ -1608,8 +1686,6 @@ impl GpuSolver {
         let t0 = Instant::now();
         let mut total = 0usize;
         let mut dl = 0.0;
-        let mut best = f64::INFINITY;
-        let mut since_best = 0usize;
         if self.refine.as_ref().is_some_and(|r| r.op.is_none()) {
             notes.push(
                 "mixed: the f64 blocks exceed the adapter's storage binding limit; only the f32 \
@@ -1617,14 +1693,17 @@ impl GpuSolver {
                     .into(),
             );
         }
-        {
-            let rf = self.refine.as_ref().expect("mixed has a refinement level");
-            let mut enc = self.encoder("mixed reset");
-            enc.clear_buffer(&rf.y64, 0, None);
-            self.ctx.queue.submit([enc.finish()]);
+        if self.inner_scale != 1.0 {
+            notes.push(format!(
+                "mixed: Ĥ's diagonal is extreme; the f32 operator holds 2^{} Ĥ (exact) and the \
+                 corrections are scaled back in f64",
+                self.inner_scale.log2()
+            ));
         }
+        self.clear_y64();
         let mut outer = 0usize;
-        loop {
+        let mut prev = f64::INFINITY;
+        let reason: String = loop {
             let rel = self.outer_residual()? / bnorm;
             if rel <= tol {
                 let td = Instant::now();
@@ -1639,13 +1718,17 @@ impl GpuSolver {
                     "device f64 residual {rel:e} but host residual {true_rel:e}; refining further"
                 ));
             }
-            if rel < 0.5 * best {
-                best = rel;
-                since_best = 0;
-            } else {
-                since_best += 1;
+            if !rel.is_finite() {
+                self.clear_y64();
+                break format!("the f64 residual is not finite after outer step {outer}");
             }
-            if since_best >= 3 || outer >= self.params.max_outer || total >= self.params.max_iters {
+            if outer > 0 && rel > 0.5 * prev {
+                break format!(
+                    "outer step {outer}: the f32 inner solve reduced the f64 residual only from \
+                     {prev:.3e} to {rel:.3e} (less than 2×)"
+                );
+            }
+            if outer >= self.params.max_outer || total >= self.params.max_iters {
                 let td = Instant::now();
                 let (y, _) = self.download_solution()?;
                 dl += td.elapsed().as_secs_f64();
@@ -1666,50 +1749,334 @@ impl GpuSolver {
                 }
                 .into());
             }
-            // Inner f32 CG on Ĥ d = r to a relative inner_tol, never finer than needed.
-            let inner = self.params.inner_tol.max(0.5 * tol / rel);
-            let thresh = (inner * rel * bnorm).powi(2);
+            prev = rel;
+            // Inner f32 CG on 2^s Ĥ d̃ = r/‖r‖ (unit right-hand side) to a relative
+            // inner_tol, the last one included: it is not clamped to just reach tol, because
+            // refinement's error/residual ratio approaches κ (f32 noise spreads over the
+            // whole spectrum), so the extra digits of the last step are what make the error
+            // match f64 CG's (needles: 8.9e-9 with the clamp at tol = 1e-11).
+            let inner = self.params.inner_tol;
+            let thresh = inner * inner;
             self.start(false, thresh)?;
-            let (_, it) = self.run_cg(self.params.max_iters - total, total, thresh)?;
-            total += it;
-            outer += 1;
-            let rf = self.refine.as_ref().expect("mixed has a refinement level");
-            let mut enc = self.encoder("mixed accumulate");
-            {
-                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("accumulate pass"),
-                    timestamp_writes: None,
-                });
-                pass.set_pipeline(&rf.k_accumulate.pipeline);
-                pass.set_bind_group(0, &rf.bg_refine, &[]);
-                pass.dispatch_workgroups(
-                    ((self.n_nodes * self.dim) as u32).div_ceil(self.wg),
-                    1,
-                    1,
-                );
+            match self.run_cg(self.params.max_iters - total, total, thresh) {
+                Ok((_, it)) => {
+                    total += it;
+                    outer += 1;
+                    self.accumulate();
+                }
+                Err(GpuError::Cg(CgError::NonPositiveCurvature {
+                    iteration,
+                    curvature,
+                })) => {
+                    total = total.max(iteration.saturating_sub(1));
+                    outer += 1;
+                    // x is the last iterate before the rejected step: keep its progress.
+                    self.accumulate();
+                    break format!(
+                        "outer step {outer}: the f32 inner CG met non-positive curvature \
+                         pᵀĤp = {curvature:e} at iteration {iteration} (f32 rounding; f64 CG \
+                         checks Ĥ again)"
+                    );
+                }
+                Err(GpuError::Cg(CgError::Breakdown { iteration })) => {
+                    total = total.max(iteration);
+                    outer += 1;
+                    break format!(
+                        "outer step {outer}: the f32 inner CG broke down (non-finite value) at \
+                         iteration {iteration}"
+                    );
+                }
+                Err(e) => return Err(e),
             }
+        };
+        // Fallback: f64 CG for the rest of the solve, warm-started from the f64 iterate.
+        let on_gpu = self.refine.as_ref().is_some_and(|r| r.op.is_some())
+            && !self.force_cpu_fallback
+            && match self.ensure_fallback_level() {
+                Ok(()) => true,
+                Err(e @ GpuError::BufferTooLarge { .. }) => {
+                    notes.push(format!("f64 fallback level does not fit on the GPU: {e}"));
+                    false
+                }
+                Err(e) => return Err(e),
+            };
+        let place = if on_gpu {
+            "f64 CG on the GPU"
+        } else {
+            "f64 CG on the CPU (src/cg.rs)"
+        };
+        let msg = format!("{reason}; finished by {place}, warm-started from the f64 iterate");
+        notes.push(format!("mixed fell back to f64: {msg}"));
+        self.last_fallback = Some(msg);
+        let (it, restarts, y, dx) = if on_gpu {
+            self.fallback_gpu(total, &mut dl)?
+        } else {
+            self.fallback_cpu(total, &mut dl)?
+        };
+        let solve = t0.elapsed().as_secs_f64() - dl;
+        Ok((total + it, outer, restarts, solve, dl, y, dx))
+    }
+
+    fn clear_y64(&mut self) {
+        let rf = self.refine.as_ref().expect("mixed has a refinement level");
+        let mut enc = self.encoder("mixed reset");
+        enc.clear_buffer(&rf.y64, 0, None);
+        self.ctx.queue.submit([enc.finish()]);
+    }
+
+    /// y64 += 2^s·‖r‖·x32 (the factors written by `outer_residual`).
+    fn accumulate(&mut self) {
+        let rf = self.refine.as_ref().expect("mixed has a refinement level");
+        let mut enc = self.encoder("mixed accumulate");
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("accumulate pass"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&rf.k_accumulate.pipeline);
+            pass.set_bind_group(0, &rf.bg_refine, &[]);
+            pass.dispatch_workgroups(((self.n_nodes * self.dim) as u32).div_ceil(self.wg), 1, 1);
+        }
+        self.ctx.queue.submit([enc.finish()]);
+        self.record("accumulate");
+    }
+
+    /// Forces the f64 fallback of mixed precision onto the CPU (src/cg.rs) even where the
+    /// GPU could run it (for tests and comparisons).
+    pub fn force_cpu_fallback(&mut self, yes: bool) {
+        self.force_cpu_fallback = yes;
+    }
+
+    /// Why and where the last mixed solve fell back to f64 (also after an error).
+    pub fn last_fallback(&self) -> Option<&str> {
+        self.last_fallback.as_deref()
+    }
+
+    /// Builds the f64 CG level of the fallback (once; kept across solves and updates).
+    fn ensure_fallback_level(&mut self) -> Result<(), GpuError> {
+        if self.fallback_level.is_some() {
+            return Ok(());
+        }
+        let ctx = self.ctx.clone();
+        let mut bld = Builder::new(&ctx);
+        let acc = self.level.acc;
+        let op = build_operator(
+            &mut bld,
+            &self.shared,
+            &self.host,
+            Real::F64,
+            acc,
+            &self.consts,
+        )?;
+        let level = build_level(
+            &mut bld,
+            &self.shared,
+            op,
+            &self.host,
+            acc,
+            &self.consts,
+            self.params.preconditioner,
+        )?;
+        ctx.check("allocating the f64 fallback level")?;
+        self.buffers
+            .extend(bld.buffers.into_iter().map(|b| BufferRecord {
+                label: format!("fallback_{}", b.label),
+                bytes: b.bytes,
+            }));
+        self.kernels.extend(bld.kernels);
+        self.fallback_level = Some(level);
+        if let Some(fl) = &self.fallback_level {
+            self.write_operator(&fl.op, 1.0);
+        }
+        self.setup_levels(false, true)
+    }
+
+    /// The fallback on the GPU: the f64 level takes the CG's place for the run.
+    fn fallback_gpu(
+        &mut self,
+        done: usize,
+        dl: &mut f64,
+    ) -> Result<(usize, usize, Vec<f64>, Vec<f64>), GpuError> {
+        let Some(mut fb) = self.fallback_level.take() else {
+            return Err(GpuError::Device("the f64 fallback level is missing".into()));
+        };
+        std::mem::swap(&mut self.level, &mut fb);
+        let r = self.fallback_gpu_run(done, dl);
+        std::mem::swap(&mut self.level, &mut fb);
+        self.fallback_level = Some(fb);
+        r
+    }
+
+    fn fallback_gpu_run(
+        &mut self,
+        done: usize,
+        dl: &mut f64,
+    ) -> Result<(usize, usize, Vec<f64>, Vec<f64>), GpuError> {
+        let tol = self.params.tol;
+        let thresh = (tol * norm2(&self.host.rhs)).powi(2);
+        let nd = self.host.ndof() as u64;
+        let y64 = self
+            .refine
+            .as_ref()
+            .expect("mixed has a refinement level")
+            .y64
+            .clone();
+        self.ctx
+            .queue
+            .write_buffer(&self.level.b, 0, &Real::F64.bytes(&self.host.rhs));
+        let mut enc = self.encoder("fallback warm start");
+        enc.copy_buffer_to_buffer(&y64, 0, &self.level.x, 0, nd * 8);
+        self.ctx.queue.submit([enc.finish()]);
+        let mut total = 0usize;
+        let mut restarts = 0usize;
+        loop {
+            self.start(true, thresh)?;
+            let budget = self.params.max_iters.saturating_sub(done + total);
+            let (out, it) = self.run_cg(budget, done + total, thresh)?;
+            total += it;
+            let mut enc = self.encoder("fallback result");
+            enc.copy_buffer_to_buffer(&self.level.x, 0, &y64, 0, nd * 8);
             self.ctx.queue.submit([enc.finish()]);
-            self.record("accumulate");
+            let td = Instant::now();
+            let (y, dx) = self.download_solution()?;
+            *dl += td.elapsed().as_secs_f64();
+            let rel = self.host.relative_residual(&y);
+            match out {
+                Outcome::Converged if rel <= tol => return Ok((total, restarts, y, dx)),
+                Outcome::Converged
+                    if restarts < self.params.max_restarts
+                        && done + total < self.params.max_iters =>
+                {
+                    restarts += 1;
+                }
+                Outcome::MaxIters => {
+                    return Err(CgError::MaxIterations {
+                        iterations: done + total,
+                        relative_residual: rel,
+                        tol,
+                    }
+                    .into())
+                }
+                _ => {
+                    return Err(CgError::Stagnation {
+                        iterations: done + total,
+                        relative_residual: rel,
+                        tol,
+                    }
+                    .into())
+                }
+            }
         }
     }
 
+    /// The fallback on the CPU: `cg::solve_with` from the downloaded f64 iterate.
+    fn fallback_cpu(
+        &mut self,
+        done: usize,
+        dl: &mut f64,
+    ) -> Result<(usize, usize, Vec<f64>, Vec<f64>), GpuError> {
+        let nd = self.host.ndof();
+        let y64 = self
+            .refine
+            .as_ref()
+            .expect("mixed has a refinement level")
+            .y64
+            .clone();
+        let td = Instant::now();
+        let y0 = self.download(self.encoder("download y"), &y64, Real::F64, nd)?;
+        *dl += td.elapsed().as_secs_f64();
+        let HostOp::Blocks(h) = &self.host.op else {
+            return Err(GpuError::Unsupported(
+                "the CPU fallback of mixed precision needs an assembled Hessian".into(),
+            ));
+        };
+        let e = Eliminated {
+            h,
+            frames: &self.host.frames,
+            rhs: self.host.rhs.clone(),
+            diag: self.host.diag.clone(),
+        };
+        let pc = self.params.preconditioner;
+        let pre = crate::cg::BuiltPreconditioner::new(&e, pc);
+        let cp = crate::cg::CgParams {
+            tol: self.params.tol,
+            max_iters: self.params.max_iters.saturating_sub(done),
+            preconditioner: pc,
+            stagnation_window: self.params.stagnation_window,
+            max_restarts: self.params.max_restarts,
+            ..Default::default()
+        };
+        let warm = y0.iter().all(|v| v.is_finite()).then_some(&y0[..]);
+        let (y, info) = crate::cg::solve_with(&e, &pre, warm, &cp).map_err(|err| match err {
+            CgError::NonPositiveCurvature {
+                iteration,
+                curvature,
+            } => CgError::NonPositiveCurvature {
+                iteration: iteration + done,
+                curvature,
+            },
+            CgError::Stagnation {
+                iterations,
+                relative_residual,
+                tol,
+            } => CgError::Stagnation {
+                iterations: iterations + done,
+                relative_residual,
+                tol,
+            },
+            CgError::MaxIterations {
+                iterations,
+                relative_residual,
+                tol,
+            } => CgError::MaxIterations {
+                iterations: iterations + done,
+                relative_residual,
+                tol,
+            },
+            CgError::Breakdown { iteration } => CgError::Breakdown {
+                iteration: iteration + done,
+            },
+        })?;
+        self.ctx.queue.write_buffer(&y64, 0, &Real::F64.bytes(&y));
+        let td = Instant::now();
+        let (_, dx) = self.download_solution()?;
+        *dl += td.elapsed().as_secs_f64();
+        Ok((info.iterations, info.restarts, y, dx))
+    }
+
     /// ‖b̂ − Ĥy‖ in f64 (on the device, or on the host when the f64 blocks do not fit);
-    /// also sets the inner CG's right-hand side.
+    /// also sets the inner CG's right-hand side to r/‖r‖ and the factors
+    /// [1/‖r‖, 2^s·‖r‖] of the refinement kernels.
     fn outer_residual(&mut self) -> Result<f64, GpuError> {
         let g = self.n_partials;
+        let nd = self.host.ndof();
+        let scale = self.inner_scale;
+        let factors = |rn: f64| -> Vec<u8> {
+            let inv = if rn > 0.0 && (1.0 / rn).is_finite() {
+                1.0 / rn
+            } else {
+                1.0
+            };
+            Real::F64.bytes(&[inv, scale / inv])
+        };
         let rf = self.refine.as_ref().expect("mixed has a refinement level");
         let (Some(op), Some(bg_mv)) = (&rf.op, &rf.bg_mv) else {
-            // Host path: download y (f64), r = b̂ − Ĥy in f64, upload f32(r).
-            let nd = self.host.ndof();
+            // Host path: download y (f64), r = b̂ − Ĥy in f64, upload f32(r/‖r‖).
             let y64 = rf.y64.clone();
+            let fb = rf.factors.clone();
             let y = self.download(self.encoder("download y"), &y64, Real::F64, nd)?;
             let mut hy = vec![0.0; nd];
             self.host.apply(&y, &mut hy);
-            let r: Vec<f64> = self.host.rhs.iter().zip(&hy).map(|(b, a)| b - a).collect();
+            let mut r: Vec<f64> = self.host.rhs.iter().zip(&hy).map(|(b, a)| b - a).collect();
+            let rn = norm2(&r);
+            let f = factors(rn);
+            let inv = Real::F64.values(&f)[0];
+            r.iter_mut().for_each(|v| *v *= inv);
             self.ctx
                 .queue
                 .write_buffer(&self.level.b, 0, &Real::F32.bytes(&r));
-            return Ok(norm2(&r));
+            self.ctx.queue.write_buffer(&fb, 0, &f);
+            return Ok(rn);
         };
         let mut enc = self.encoder("mixed residual");
         {
@@ -1733,7 +2100,22 @@ impl GpuSolver {
         let bytes = self.read(&staging, 8 * g as u64)?;
         // Fixed-order sum of the per-workgroup partials: deterministic.
         let s: f64 = Real::F64.values(&bytes).iter().sum();
-        Ok(s.max(0.0).sqrt())
+        let rn = s.max(0.0).sqrt();
+        let rf = self.refine.as_ref().expect("mixed has a refinement level");
+        self.ctx.queue.write_buffer(&rf.factors, 0, &factors(rn));
+        let mut enc = self.encoder("mixed scale rhs");
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("scale rhs pass"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&rf.k_scale_rhs.pipeline);
+            pass.set_bind_group(0, &rf.bg_refine, &[]);
+            pass.dispatch_workgroups((nd as u32).div_ceil(self.wg), 1, 1);
+        }
+        self.ctx.queue.submit([enc.finish()]);
+        self.record("scale_rhs");
+        Ok(rn)
     }
 
     /// What the solver allocated, compiled and dispatched.
@@ -1984,6 +2366,21 @@ impl GpuSolver {
     }
 }
 
+/// The power of two 2^s that brings H's largest diagonal entry to [1, 2) when it lies
+/// outside [2^-20, 2^20] (else 1): the f32 operator of mixed precision holds 2^s·Ĥ, which
+/// is exact in floating point and keeps f32 far from underflow and overflow.
+fn inner_scale(diag_max: f64) -> f64 {
+    if !(diag_max > 0.0 && diag_max.is_finite()) {
+        return 1.0;
+    }
+    let e = diag_max.log2().floor();
+    if e.abs() <= 20.0 {
+        1.0
+    } else {
+        (-e).exp2()
+    }
+}
+
 /// Size of the next chunk from the status history (see `GpuSolver::run_cg`).
 fn next_chunk(hist: &[(usize, f64)], thresh: f64, prev: usize, floor: usize, cap: usize) -> usize {
     let grow = (2 * prev).min(cap).max(floor);
@@ -2025,6 +2422,7 @@ struct Status {
     breakdown: bool,
 }
 
+#[derive(Clone, Copy)]
 struct Consts {
     d: f64,
     wg: f64,
@@ -2433,8 +2831,9 @@ fn build_refine(
     let partials64 = bld.buffer("partials_f64", 256 * 8, STORAGE)?;
     let zero_state = bld.buffer("refine_state", 4 * N_STATE as u64, STORAGE)?;
     let staging = bld.staging("refine_staging", 256 * 8)?;
+    let factors = bld.buffer("refine_factors_f64", 2 * 8, STORAGE)?;
     let consts = [("D", c.d), ("WG", c.wg)];
-    let binds = [Uniform, Ro, Ro, Rw, Rw, Ro, Rw];
+    let binds = [Uniform, Ro, Rw, Rw, Rw, Ro, Rw, Ro];
     let k_residual = bld.kernel(
         "residual",
         "refine.wgsl",
@@ -2442,6 +2841,16 @@ fn build_refine(
         Real::F64,
         Real::F64,
         "residual",
+        &binds,
+        &consts,
+    )?;
+    let k_scale_rhs = bld.kernel(
+        "scale_rhs",
+        "refine.wgsl",
+        kernels::REFINE,
+        Real::F64,
+        Real::F64,
+        "scale_rhs",
         &binds,
         &consts,
     )?;
@@ -2466,6 +2875,7 @@ fn build_refine(
             &partials64,
             &level.x,
             &y64,
+            &factors,
         ],
     );
     let bg_mv = op.as_ref().map(|op| {
@@ -2494,7 +2904,9 @@ fn build_refine(
         b64,
         y64,
         partials64,
+        factors,
         k_residual,
+        k_scale_rhs,
         k_accumulate,
         bg_mv,
         bg_refine,

@@ -1,0 +1,405 @@
+//! Contact with analytic obstacles (seed 003: distance barrier, CCD-filtered line search).
+//!
+//! - `drop` and `squash`: every Newton iterate of every step keeps every node at a positive
+//!   distance from every obstacle (the per-step minimum over iterates, also in steps.csv);
+//!   every line-searched Newton step is a descent direction (gᵀΔx < 0).
+//! - `drop`: at rest the contact force carries the weight to 1e-2·M·|g|; momentum balance
+//!   p_k − p_{k−1} = h (M g + f_k + c_k) holds every step to 1e-3 of h·M·|g|.
+//! - The barrier's gradient and Hessian against finite differences; the Hessian is PSD.
+//! - A scene without obstacles runs no contact code (counters stay 0).
+//! - Every linear solver gives the same contact trajectory; slip, sticky and moving
+//!   boundaries combine with a moving obstacle; a penetrating start is an input error.
+
+use stickslip::driver::{run, RunError, RunOptions, RunSummary};
+use stickslip::energy::barrier::{Barrier, HalfSpace};
+use stickslip::sparse::BlockCsr;
+
+fn out_dir(name: &str) -> std::path::PathBuf {
+    std::env::temp_dir().join(format!(
+        "stickslip-sim-contact-{}-{name}",
+        std::process::id()
+    ))
+}
+
+fn run_opts(
+    scene: &str,
+    tag: &str,
+    solver: Option<&str>,
+    steps: Option<usize>,
+) -> (Result<RunSummary, RunError>, String) {
+    let out = out_dir(tag);
+    let opts = RunOptions {
+        scene: Some(scene.into()),
+        out: Some(out.clone()),
+        solver: solver.map(|s| s.to_string()),
+        steps,
+        quiet: true,
+        ..RunOptions::default()
+    };
+    let r = run(&opts);
+    let csv = std::fs::read_to_string(out.join("steps.csv")).unwrap_or_default();
+    let _ = std::fs::remove_dir_all(&out);
+    (r, csv)
+}
+
+fn run_scene(scene: &str) -> (RunSummary, String) {
+    let (r, csv) = run_opts(scene, scene, None, None);
+    (r.unwrap_or_else(|e| panic!("{scene}: {e}")), csv)
+}
+
+/// Largest |Δp − h(Mg + f + c)| / (h M |g|) over the steps.
+fn momentum_error(s: &RunSummary) -> f64 {
+    let h = s.time_step;
+    let m = s.total_mass;
+    let gn = s.gravity.iter().map(|g| g * g).sum::<f64>().sqrt();
+    let scale = h * m * gn;
+    let mut worst = 0.0f64;
+    for w in s.records.windows(2) {
+        let (a, b) = (&w[0], &w[1]);
+        for k in 0..s.dimension {
+            let dp = b.momentum[k] - a.momentum[k];
+            let pred = h * (m * s.gravity[k] + b.reaction[k] + b.contact[k]);
+            worst = worst.max((dp - pred).abs() / scale);
+        }
+    }
+    worst
+}
+
+/// Every step's minimum distance over its iterates is positive; every line-searched Newton
+/// step descends. Returns the smallest distance of the run.
+fn check_iterates(name: &str, s: &RunSummary, csv: &str) -> f64 {
+    let header = csv.lines().next().expect("steps.csv header");
+    let axes = &["x", "y", "z"][..s.dimension];
+    let want: String = std::iter::once(",min_distance".to_string())
+        .chain(axes.iter().map(|a| format!(",c_{a}")))
+        .collect();
+    assert!(header.contains(&want), "{name}: header {header}");
+    let col = header
+        .split(',')
+        .position(|c| c == "min_distance")
+        .expect("min_distance column");
+    let mut worst = f64::INFINITY;
+    for (r, line) in s.records.iter().zip(csv.lines().skip(1)) {
+        let d = r
+            .min_distance
+            .unwrap_or_else(|| panic!("{name}: step {} has no min_distance", r.step));
+        assert!(
+            d > 0.0,
+            "{name}: step {}: an iterate reached distance {d:e}",
+            r.step
+        );
+        let from_csv: f64 = line
+            .split(',')
+            .nth(col)
+            .expect("column")
+            .parse()
+            .expect("number");
+        assert_eq!(
+            from_csv, d,
+            "{name}: steps.csv min_distance at step {}",
+            r.step
+        );
+        worst = worst.min(d);
+        assert_eq!(
+            r.ascent_directions, 0,
+            "{name}: step {}: non-descent Newton step",
+            r.step
+        );
+        if let Some(sl) = r.max_slope {
+            assert!(sl < 0.0, "{name}: step {}: gᵀΔx = {sl:e}", r.step);
+        }
+    }
+    let with_ls = s.records.iter().filter(|r| r.max_slope.is_some()).count();
+    let slope = s
+        .records
+        .iter()
+        .filter_map(|r| r.max_slope)
+        .fold(f64::NEG_INFINITY, f64::max);
+    eprintln!(
+        "{name}: smallest node–obstacle distance over every Newton iterate {worst:.4e} m (d̂ = {:.4e} m); largest gᵀΔx over {} line-searched steps {slope:.3e}",
+        s.contact.as_ref().expect("contact").dhat[0],
+        s.newton_iterations,
+    );
+    assert!(with_ls > 0);
+    worst
+}
+
+#[test]
+fn drop_stays_apart_comes_to_rest_and_balances_momentum() {
+    let (s, csv) = run_scene("drop");
+    check_iterates("drop", &s, &csv);
+    let c = s.contact.as_ref().expect("contact summary");
+    assert!(c.ccd_limited_line_searches > 0, "the CCD bound never acted");
+    let e = momentum_error(&s);
+    eprintln!("drop: worst momentum error {e:.3e} of h·M·|g| (contact counted as external)");
+    assert!(e <= 1e-3, "momentum error {e:e}");
+    // At rest: speed tiny, the contact force carries the weight.
+    let m = s.total_mass;
+    let g = 9.81;
+    let last = s.records.last().expect("records");
+    let vmax = s
+        .final_velocities
+        .iter()
+        .fold(0.0f64, |a, v| a.max(v.abs()));
+    let mut imbalance = 0.0f64;
+    for k in 0..3 {
+        imbalance = imbalance.max((last.contact[k] + m * s.gravity[k]).abs());
+    }
+    eprintln!(
+        "drop: at t = {} s max |v| = {vmax:.3e} m/s, contact force {:?} N vs weight {:.4} N, imbalance {:.3e} of M·|g|",
+        last.time,
+        last.contact,
+        m * g,
+        imbalance / (m * g)
+    );
+    assert!(vmax < 1e-3, "not at rest: max |v| = {vmax:e}");
+    assert!(imbalance <= 1e-2 * m * g, "imbalance {imbalance:e} N");
+    // The ground does the work: no Dirichlet reaction in this scene.
+    assert!(last.reaction.iter().all(|&f| f == 0.0));
+    // It actually landed: it fell, touched (inside d̂), and sits above the plane.
+    assert!(c.min_distance < c.dhat[0]);
+}
+
+#[test]
+fn squash_stays_apart_and_balances_momentum() {
+    let (s, csv) = run_scene("squash");
+    check_iterates("squash", &s, &csv);
+    let e = momentum_error(&s);
+    let last = s.records.last().expect("records");
+    eprintln!(
+        "squash: worst momentum error {e:.3e} of h·M·|g|; at the end contact {:?} N, reaction {:?} N",
+        last.contact, last.reaction
+    );
+    assert!(e <= 1e-3, "momentum error {e:e}");
+    // The ceiling pushes down, the ground pushes up.
+    assert!(last.contact[1] > s.total_mass * 9.81 && last.reaction[1] < 0.0);
+}
+
+/// Gradient and Hessian of P_b against central differences, 2D and 3D, two planes, nodes
+/// inside and outside d̂; the Hessian is PSD.
+#[test]
+fn barrier_gradient_and_hessian_match_finite_differences() {
+    for dim in [2usize, 3] {
+        let n = 5;
+        let planes = [
+            HalfSpace {
+                normal: [0.0, 1.0, 0.0],
+                offset: 0.0,
+                dhat: 0.01,
+                kappa: 1e5,
+            },
+            HalfSpace {
+                normal: if dim == 3 {
+                    [0.6, 0.0, 0.8]
+                } else {
+                    [0.6, 0.8, 0.0]
+                },
+                offset: -0.02,
+                dhat: 0.02,
+                kappa: 3e4,
+            },
+        ];
+        let weight = vec![0.1, 0.2, 0.0, 0.05, 0.3];
+        let bar = Barrier::new(dim, weight);
+        // Points near both planes, one interior node (w = 0), one far away.
+        let pts: [[f64; 3]; 5] = [
+            [0.01, 0.004, 0.0],
+            [0.002, 0.0005, 0.001],
+            [0.0, 0.001, 0.0],
+            [1.0, 1.0, 1.0],
+            [-0.02, 0.008, 0.0],
+        ];
+        let mut x = Vec::new();
+        for p in &pts {
+            x.extend_from_slice(&p[..dim]);
+        }
+        let (dmin, _, _) = bar.min_distance(&x, &planes);
+        assert!(dmin > 0.0);
+        let mut g = vec![0.0; n * dim];
+        let active = bar.add_gradient(&x, &planes, 1.0, &mut g);
+        assert!(active >= 3, "{dim}D: only {active} active pairs");
+        let rows: Vec<Vec<usize>> = (0..n).map(|i| vec![i]).collect();
+        let mut hm = BlockCsr::from_pattern(dim, &rows);
+        bar.add_hessian(&x, &planes, 1.0, &mut hm);
+        let mut worst_g = 0.0f64;
+        let mut worst_h = 0.0f64;
+        let gscale = g.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        let hscale = hm.values.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        for k in 0..n * dim {
+            let eps = 1e-8;
+            let mut xp = x.clone();
+            let mut xm = x.clone();
+            xp[k] += eps;
+            xm[k] -= eps;
+            let fd = (bar.energy(&xp, &planes) - bar.energy(&xm, &planes)) / (2.0 * eps);
+            worst_g = worst_g.max((fd - g[k]).abs() / gscale);
+            let mut gp = vec![0.0; n * dim];
+            let mut gm = vec![0.0; n * dim];
+            bar.add_gradient(&xp, &planes, 1.0, &mut gp);
+            bar.add_gradient(&xm, &planes, 1.0, &mut gm);
+            for r in 0..n * dim {
+                let fdh = (gp[r] - gm[r]) / (2.0 * eps);
+                // Only node-diagonal blocks exist: off-diagonal node pairs must be 0.
+                let exact = if r / dim == k / dim {
+                    let kb = hm.diag_index(r / dim).expect("diag");
+                    hm.values[kb * dim * dim + (r % dim) * dim + k % dim]
+                } else {
+                    0.0
+                };
+                worst_h = worst_h.max((fdh - exact).abs() / hscale);
+            }
+        }
+        eprintln!(
+            "barrier {dim}D: relative FD error gradient {worst_g:.2e}, Hessian {worst_h:.2e}"
+        );
+        assert!(worst_g < 1e-6, "{dim}D gradient FD error {worst_g:e}");
+        assert!(worst_h < 1e-6, "{dim}D Hessian FD error {worst_h:e}");
+        // PSD: every diagonal block w b'' n nᵀ summed over planes.
+        for i in 0..n {
+            let kb = hm.diag_index(i).expect("diag");
+            let blk = &hm.values[kb * dim * dim..(kb + 1) * dim * dim];
+            let m = nalgebra::DMatrix::from_row_slice(dim, dim, blk);
+            let eig = m.symmetric_eigen();
+            let lo = eig.eigenvalues.iter().fold(f64::INFINITY, |a, &v| a.min(v));
+            let hi = eig.eigenvalues.iter().fold(0.0f64, |a, &v| a.max(v));
+            assert!(
+                lo >= -1e-12 * hi.max(1.0),
+                "{dim}D node {i}: eigenvalue {lo:e}"
+            );
+        }
+    }
+}
+
+#[test]
+fn scene_without_obstacles_runs_no_contact_code() {
+    let (r, csv) = run_opts("compress", "no-contact", None, Some(5));
+    let s = r.unwrap_or_else(|e| panic!("compress: {e}"));
+    eprintln!("compress: contact counters {:?}", s.contact_counters);
+    assert_eq!(s.contact_counters.barrier_evaluations, 0);
+    assert_eq!(s.contact_counters.ccd_calls, 0);
+    assert_eq!(s.contact_counters.pushed_nodes, 0);
+    assert!(s.contact.is_none());
+    assert!(s
+        .records
+        .iter()
+        .all(|r| r.min_distance.is_none() && r.contact.is_empty()));
+    let header = csv.lines().next().expect("header");
+    assert!(
+        !header.contains("min_distance") && !header.contains("c_x"),
+        "{header}"
+    );
+    // And a scene with obstacles does count.
+    let (r, _) = run_opts("squash", "contact-counted", None, Some(2));
+    let s = r.unwrap_or_else(|e| panic!("squash: {e}"));
+    assert!(s.contact_counters.barrier_evaluations > 0 && s.contact_counters.ccd_calls > 0);
+}
+
+fn max_diff(a: &RunSummary, b: &RunSummary) -> f64 {
+    let mut worst = a
+        .final_positions
+        .iter()
+        .zip(&b.final_positions)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f64, f64::max);
+    for (ra, rb) in a.records.iter().zip(&b.records) {
+        for (x, y) in ra.com.iter().zip(&rb.com) {
+            worst = worst.max((x - y).abs());
+        }
+    }
+    worst / a.characteristic_length
+}
+
+#[test]
+fn drop_same_trajectory_with_every_linear_solver() {
+    let steps = Some(40);
+    let (chol, _) = run_opts("drop", "drop-chol", Some("cholesky"), steps);
+    let chol = chol.unwrap_or_else(|e| panic!("drop cholesky: {e}"));
+    let (cg, csv) = run_opts("drop", "drop-cg", Some("cg"), steps);
+    let cg = cg.unwrap_or_else(|e| panic!("drop cg: {e}"));
+    check_iterates("drop (cg)", &cg, &csv);
+    let d = max_diff(&chol, &cg);
+    eprintln!("drop: cholesky vs cg: max |Δx|/L = {d:.3e}");
+    assert!(d <= 1e-6, "cholesky and cg differ by {d:e} L");
+    match run_opts("drop", "drop-gpu", Some("gpu"), steps) {
+        (Ok(gpu), csv) => {
+            check_iterates("drop (gpu)", &gpu, &csv);
+            let d = max_diff(&chol, &gpu);
+            eprintln!(
+                "drop: cholesky vs gpu ({:?}): max |Δx|/L = {d:.3e}",
+                gpu.adapter
+            );
+            assert!(d <= 1e-6, "cholesky and gpu differ by {d:e} L");
+        }
+        (Err(RunError::Solve { step: 0, cause, .. }), _) if cause.contains("cannot start") => {
+            if std::env::var_os("STICKSLIP_REQUIRE_GPU").is_some() {
+                panic!("STICKSLIP_REQUIRE_GPU is set but the GPU solver cannot start: {cause}");
+            }
+            eprintln!("SKIP drop: GPU comparison NOT RUN (no adapter): {cause}");
+        }
+        (Err(e), _) => panic!("drop gpu: {e}"),
+    }
+}
+
+/// A scene file variant written to a temporary folder.
+fn variant(tag: &str, text: &str) -> std::path::PathBuf {
+    let dir = out_dir(&format!("{tag}-scene"));
+    std::fs::create_dir_all(&dir).expect("tmp");
+    let path = dir.join(format!("{tag}.toml"));
+    std::fs::write(&path, text).expect("write");
+    path
+}
+
+/// The ground rises under the square at 1 m/s for 0.1 s (a moving obstacle) while the left edge slips on the
+/// wall x = 0 and the top is a moving sticky boundary: all three together with contact.
+#[test]
+fn moving_obstacle_with_slip_and_moving_sticky_boundaries() {
+    let text = stickslip::scene::builtin("squash")
+        .expect("builtin")
+        .replace(
+            "normal = [0.0, 1.0]\n",
+            "normal = [0.0, 1.0]\nmotion = { velocity = [0.0, 1.0], end = 0.1 }\n",
+        )
+        + "\n[[boundary]]\nkind = \"plane\"\nnormal = [1.0, 0.0]\nregion = { box = { min = [-0.001, 0.1], max = [0.001, 0.9] } }\n";
+    let path = variant("squash-moving-ground", &text);
+    let (r, csv) = run_opts(
+        &path.display().to_string(),
+        "squash-moving-ground",
+        None,
+        Some(40),
+    );
+    let s = r.unwrap_or_else(|e| panic!("squash with a moving ground: {e}"));
+    check_iterates("squash (rising ground, slip wall)", &s, &csv);
+    let e = momentum_error(&s);
+    eprintln!(
+        "squash (rising ground): momentum error {e:.3e}, pushed initial guesses {}",
+        s.contact_counters.pushed_nodes
+    );
+    assert!(e <= 1e-3, "momentum error {e:e}");
+    // The ground moves 1 cm per step, faster than the gap closes: it overtook nodes'
+    // starting guesses, which were pushed ahead of it.
+    assert!(s.contact_counters.pushed_nodes > 0);
+    let _ = std::fs::remove_dir_all(path.parent().expect("dir"));
+}
+
+#[test]
+fn penetrating_start_names_the_node_and_the_obstacle() {
+    let text = stickslip::scene::builtin("squash")
+        .expect("builtin")
+        .replace("point = [0.0, 0.0]", "point = [0.0, 0.5]");
+    let err = stickslip::scene::parse(&text, "pen.toml", 1.0).expect_err("must fail");
+    eprintln!("{err}");
+    assert_eq!(err.entry, "obstacle[0]");
+    assert!(err.problem.contains("node 0 ") && err.problem.contains("penetration-free"));
+    let bad = stickslip::scene::builtin("drop").expect("builtin").replace(
+        "normal = [0.0, 1.0, 0.0]",
+        "normal = [0.0, 1.0, 0.0]\ndhatt = 1.0",
+    );
+    let err = stickslip::scene::parse(&bad, "typo.toml", 1.0).expect_err("must fail");
+    assert!(err.entry.starts_with("obstacle[0]"), "{err}");
+    let bad = stickslip::scene::builtin("drop").expect("builtin").replace(
+        "normal = [0.0, 1.0, 0.0]",
+        "normal = [0.0, 1.0, 0.0]\ndhat = -1.0",
+    );
+    let err = stickslip::scene::parse(&bad, "neg.toml", 1.0).expect_err("must fail");
+    assert_eq!(err.entry, "obstacle[0].dhat");
+}
