@@ -1,13 +1,13 @@
 //! `stickslip bench`: the CPU-versus-GPU comparison on the same generated systems, as
 //! speed against error (issue 5).
 //!
-//! Per size of the ladder (2D and 3D, realistic constraint mix):
-//! 1. generate the system; 2. reference solution: the Cholesky oracle (symbolic, numeric
-//! and solve timed apart, then a refactorization reusing the analysis), or a tight f64 CG
-//! where the oracle does not fit (the record says which); 3. every solver over a sweep of
+//! Per size of the ladder (2D and 3D, realistic constraint mix), in four steps: generate
+//! the system; solve it for a reference (the Cholesky oracle, with symbolic, numeric and
+//! solve timed apart, then a refactorization reusing the analysis; or a tight f64 CG where
+//! the oracle does not fit, and the record says which); run every solver over a sweep of
 //! tolerances, recording time, iterations, the f64 relative residual and the relative
-//! error against the reference; 4. derived tables: which solver reaches a given error
-//! first, time per iteration and the log-log scaling slope.
+//! error against the reference; derive the tables (which solver reaches a given error
+//! first, time per iteration, the log-log scaling slope).
 
 use crate::cg::{self, BuiltPreconditioner, CgParams, Preconditioner};
 use crate::elimination::{norm2, ConstrainedDiagonal, Eliminated};

@@ -59,7 +59,8 @@ impl<'a> Eliminated<'a> {
                 let mut dd = rotated_diagonal(h, frames);
                 // A zero (or negative) diagonal would break positivity; fall back to 1.
                 for v in dd.iter_mut() {
-                    if !(*v > 0.0) || !v.is_finite() {
+                    // NaN compares false: it falls back to 1 as well.
+                    if v.is_nan() || *v <= 0.0 || !v.is_finite() {
                         *v = 1.0;
                     }
                 }

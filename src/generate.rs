@@ -190,8 +190,8 @@ pub fn random_system(spec: &SystemSpec) -> GeneratedSystem {
         }
         for (p, q, sign) in [(i, i, 1.0), (j, j, 1.0), (i, j, -1.0), (j, i, -1.0)] {
             let kb = h.find(p, q).expect("pattern holds every edge");
-            for e in 0..d * d {
-                h.values[kb * d * d + e] += sign * k[e];
+            for (hv, kv) in h.values[kb * d * d..(kb + 1) * d * d].iter_mut().zip(&k) {
+                *hv += sign * kv;
             }
         }
     }

@@ -375,7 +375,10 @@ pub fn gmsh(dim: usize, bytes: &[u8]) -> Result<Mesh, String> {
                     Some(&i) => i,
                     None => {
                         let p = pos.get(&tag).ok_or_else(|| {
-                            format!("element {} uses node {tag}, which is not in $Nodes", e.element_tag)
+                            format!(
+                                "element {} uses node {tag}, which is not in $Nodes",
+                                e.element_tag
+                            )
                         })?;
                         if dim == 2 && p[2] != 0.0 {
                             return Err(format!(

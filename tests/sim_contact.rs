@@ -403,3 +403,87 @@ fn penetrating_start_names_the_node_and_the_obstacle() {
     let err = stickslip::scene::parse(&bad, "neg.toml", 1.0).expect_err("must fail");
     assert_eq!(err.entry, "obstacle[0].dhat");
 }
+
+/// A unit square of four triangles around a center node (one given clockwise), a boundary
+/// line block that must be skipped, and an unused node that must be dropped.
+const SQUARE_MSH: &str = "$MeshFormat
+4.1 0 8
+$EndMeshFormat
+$Nodes
+1 6 1 6
+2 1 0 6
+1
+2
+3
+4
+5
+6
+0 0 0
+1 0 0
+1 1 0
+0 1 0
+0.5 0.5 0
+7 7 0
+$EndNodes
+$Elements
+2 5 1 5
+1 1 1 1
+5 1 2
+2 1 2 4
+1 1 2 5
+2 3 2 5
+3 3 4 5
+4 4 1 5
+$EndElements
+";
+
+#[test]
+fn gmsh_meshes_load_and_run_with_contact() {
+    let m = stickslip::mesh::gmsh(2, SQUARE_MSH.as_bytes()).expect("2D msh");
+    assert_eq!(m.n_nodes(), 5, "the unused node is dropped");
+    assert_eq!(m.elements.len(), 4);
+    let area: f64 = (0..4).map(|e| m.measure(e)).sum();
+    assert!((area - 1.0).abs() < 1e-12);
+    for e in &m.elements {
+        let p = |k: usize| [m.x[e[k] * 2], m.x[e[k] * 2 + 1]];
+        let (a, b, c) = (p(0), p(1), p(2));
+        assert!((b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]) > 0.0);
+    }
+    // 3D: one tetrahedron given with negative orientation.
+    let tet = "$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\n1 4 1 4\n3 1 0 4\n1\n2\n3\n4\n0 0 0\n0 1 0\n1 0 0\n0 0 1\n$EndNodes\n$Elements\n1 1 1 1\n3 1 4 1\n1 1 2 3 4\n$EndElements\n";
+    let m3 = stickslip::mesh::gmsh(3, tet.as_bytes()).expect("3D msh");
+    assert_eq!(m3.elements.len(), 1);
+    assert!((m3.measure(0) - 1.0 / 6.0).abs() < 1e-12);
+
+    // A scene that drops the square onto the ground.
+    let dir = out_dir("gmsh-scene");
+    std::fs::create_dir_all(&dir).expect("tmp");
+    std::fs::write(dir.join("square.msh"), SQUARE_MSH).expect("write msh");
+    let scene = "dimension = 2\ntime_step = 0.01\nsteps = 20\ngravity = [0.0, -9.81]\n[output]\nvtk = false\n[[bodies]]\nmesh = { kind = \"gmsh\", file = \"square.msh\", origin = [0.0, 0.02] }\nmaterial = { model = \"neo-hookean\", young = 1e4, poisson = 0.3, density = 100.0 }\n[[obstacle]]\nkind = \"half-space\"\npoint = [0.0, 0.0]\nnormal = [0.0, 1.0]\n";
+    let path = dir.join("gmsh.toml");
+    std::fs::write(&path, scene).expect("write scene");
+    let (r, csv) = run_opts(&path.display().to_string(), "gmsh-run", None, None);
+    let s = r.unwrap_or_else(|e| panic!("gmsh scene: {e}"));
+    assert_eq!(s.nodes, 5);
+    check_iterates("gmsh square", &s, &csv);
+    // Errors name the scene file, the key and the .msh file with the problem.
+    std::fs::write(dir.join("bad.msh"), "$MeshFormat\n9 9 9\n").expect("write");
+    for (file, want) in [
+        ("missing.msh", "cannot read"),
+        ("bad.msh", "not a readable"),
+    ] {
+        let text = scene.replace("square.msh", file);
+        let p = dir.join(format!("{file}.toml"));
+        std::fs::write(&p, &text).expect("write");
+        let err =
+            stickslip::driver::load_scene(&p.display().to_string(), 1.0).expect_err("must fail");
+        eprintln!("{err}");
+        assert_eq!(err.entry, "bodies[0].mesh.file");
+        assert!(
+            err.problem.contains(file) && err.problem.contains(want),
+            "{err}"
+        );
+        assert!(!err.to_string().contains('\n'));
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
