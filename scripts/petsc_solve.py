@@ -22,7 +22,11 @@ import time
 def find_petsc_dir():
     if os.environ.get("PETSC_DIR"):
         return
+    # The 32-bit-index real build: the export writes 32-bit PetscInt (a "-64-real"
+    # build would misread it).
     for d in sorted(glob.glob("/usr/lib/petscdir/petsc*/*-real")):
+        if "-64-" in os.path.basename(d):
+            continue
         os.environ["PETSC_DIR"] = d
         sys.path.append(os.path.join(d, "lib/python3/dist-packages"))
         return

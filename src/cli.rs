@@ -40,7 +40,7 @@ pub enum Command {
     Generate(GenerateArgs),
     /// List the GPU adapters.
     Info,
-    /// Simulate a scene (built-in default when none is given) [not yet implemented].
+    /// Simulate a scene (the built-in default scene when none is given).
     Run(RunArgs),
     /// CPU-versus-GPU benchmark: speed against error over a ladder of sizes.
     Bench(BenchArgs),
@@ -306,7 +306,27 @@ pub fn main() -> ExitCode {
             .unwrap_or_default();
         eprintln!("error: internal error{at}: {}", msg.replace('\n', " "));
     }));
-    let cli = Cli::parse();
+    let cli = match Cli::try_parse() {
+        Ok(c) => c,
+        Err(e) => {
+            use clap::error::ErrorKind;
+            match e.kind() {
+                // Help and version are not errors: clap prints them as usual.
+                ErrorKind::DisplayHelp
+                | ErrorKind::DisplayVersion
+                | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => e.exit(),
+                _ => {
+                    // One line, like every other error: clap's first line, without its
+                    // tips and usage block.
+                    let text = e.to_string();
+                    let first = text.lines().next().unwrap_or("invalid usage");
+                    let first = first.strip_prefix("error: ").unwrap_or(first);
+                    eprintln!("error: command line: {first} (see --help)");
+                    return ExitCode::from(2);
+                }
+            }
+        }
+    };
     match run(&cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
@@ -465,6 +485,20 @@ pub fn read_system(sys: &SystemArgs) -> Result<LoadedSystem, CliError> {
         ),
         (None, Some(bpath)) => {
             let b = mtx::read_matrix(bpath, "B")?;
+            // Every row of B holds a nonzero, so more rows than entries is a corrupt size
+            // line: refuse it before allocating per row.
+            if b.nrows > b.entries.len() {
+                return Err(InputError::new(
+                    bpath.as_str(),
+                    format!("line {}", b.size_line),
+                    format!(
+                        "B declares {} rows but holds {} entries; every row needs a nonzero",
+                        b.nrows,
+                        b.entries.len()
+                    ),
+                )
+                .into());
+            }
             let p = match &sys.constraint_values {
                 Some(ppath) => Some((
                     ppath.as_str(),
@@ -671,9 +705,14 @@ fn constraint_violation(dim: usize, cs: &[Constraint], dx: &[f64]) -> f64 {
         let (rows, vals) = node_rows(dim, c);
         let xi = &dx[c.node * dim..c.node * dim + dim];
         for (r, v) in rows.iter().zip(vals) {
-            let len = r.iter().map(|x| x * x).sum::<f64>().sqrt();
+            // Scaled norm: rows near 1e±200 are accepted and must not turn into 0 or ∞.
+            let len = crate::elimination::norm2(r);
             let s: f64 = r.iter().zip(xi).map(|(a, b)| a * b).sum();
-            worst = worst.max((s - v).abs() / len);
+            let miss = (s - v).abs() / len;
+            if !miss.is_finite() {
+                return f64::NAN;
+            }
+            worst = worst.max(miss);
         }
     }
     worst
@@ -786,7 +825,7 @@ fn export(a: &ExportArgs, quiet: bool) -> Result<(), CliError> {
         DiagonalArg::Hessian => ConstrainedDiagonal::Hessian,
     };
     let e = Eliminated::new(&sys.h, &sys.g, &sys.frames, diag);
-    let files = crate::export::export(&e, &sys.g, &a.out_dir, !a.no_mtx)
+    let files = crate::export::export(&e, diag, &sys.g, &a.out_dir, !a.no_mtx)
         .map_err(|err| write_failed(&a.out_dir.display().to_string(), err))?;
     if !quiet {
         eprintln!(
@@ -805,8 +844,13 @@ fn export(a: &ExportArgs, quiet: bool) -> Result<(), CliError> {
 /// `stickslip recover`: y → Δx = Δx_p + V y and f = −(HΔx + g), checked against the layout.
 fn recover(a: &RecoverArgs, quiet: bool) -> Result<(), CliError> {
     let layout = crate::export::read_layout(std::path::Path::new(&a.layout))?;
+    let nd_layout = layout.dim * layout.n_nodes;
     let y = if a.solution.ends_with(".mtx") {
-        mtx::read_vector(&a.solution, "y", None)?
+        mtx::read_vector(
+            &a.solution,
+            "y",
+            Some((nd_layout, &format!("{nd_layout} = {} × {} nodes (the layout's system)", layout.dim, layout.n_nodes))),
+        )?
     } else {
         crate::export::read_petsc_vec(std::path::Path::new(&a.solution))?
     };
@@ -817,26 +861,23 @@ fn recover(a: &RecoverArgs, quiet: bool) -> Result<(), CliError> {
         "g",
         Some((nd, &format!("{nd} = {} × {} nodes", layout.dim, h.n))),
     )?;
-    let (dx, f) = crate::export::recover(
+    let rec = crate::export::recover(
         &layout,
         &y,
         &h,
         &g,
         [&a.layout, &a.solution, &a.hessian, &a.gradient],
     )?;
-    mtx::write_vector(&a.out, &dx, "dx recovered by stickslip recover")
+    mtx::write_vector(&a.out, &rec.dx, "dx recovered by stickslip recover")
         .map_err(|e| write_failed(&a.out, e))?;
     if let Some(path) = &a.reactions {
-        mtx::write_vector(path, &f, "reactions f = -(H dx + g), stickslip recover")
+        mtx::write_vector(path, &rec.reactions, "reactions f = -(H dx + g), stickslip recover")
             .map_err(|e| write_failed(path, e))?;
     }
     if !quiet {
-        let frames = layout.frames();
-        let e = Eliminated::new(&h, &g, &frames, ConstrainedDiagonal::Identity);
         eprintln!(
-            "recovered {} nodes; relative residual of y in the eliminated system {:.3e}",
-            h.n,
-            e.relative_residual(&y)
+            "recovered {} nodes; relative residual of y in the exported system {:.3e}",
+            h.n, rec.relative_residual
         );
     }
     Ok(())

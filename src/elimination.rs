@@ -282,7 +282,8 @@ pub fn rotated_diagonal(h: &BlockCsr, f: &Frames) -> Vec<f64> {
     out
 }
 
-pub(crate) fn norm2(v: &[f64]) -> f64 {
+/// Euclidean norm, scaled so that entries near 1e±200 neither overflow nor underflow.
+pub fn norm2(v: &[f64]) -> f64 {
     // Scaled to survive entries near 1e±200.
     let s = v.iter().fold(0.0f64, |m, x| m.max(x.abs()));
     if s == 0.0 || !s.is_finite() {

@@ -9,7 +9,7 @@
 //! `-matload_block_size d`, so MatLoad keeps the node blocks (point-block Jacobi).
 
 use crate::constraints::{Frames, NO_ROTATION};
-use crate::elimination::{reactions, Eliminated};
+use crate::elimination::{reactions, ConstrainedDiagonal, Eliminated};
 use crate::error::InputError;
 use crate::sparse::BlockCsr;
 use std::io::{BufWriter, Read, Write};
@@ -37,6 +37,9 @@ pub struct Layout {
     /// Δx_p, the lift (omitted when all zero).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lift: Option<Vec<f64>>,
+    /// The diagonal D on constrained components: "identity" or "hessian".
+    #[serde(default = "identity_name")]
+    pub constrained_diagonal: String,
     /// Fingerprints of H and g: recovery refuses an H or g from another system.
     pub hessian_fingerprint: String,
     pub gradient_fingerprint: String,
@@ -45,6 +48,19 @@ pub struct Layout {
 }
 
 const LAYOUT_FORMAT: &str = "stickslip-eliminated-v1";
+
+fn identity_name() -> String {
+    "identity".to_string()
+}
+
+/// A count that must fit PETSc's 32-bit PetscInt (Debian's build).
+fn petsc_int(v: usize, what: &str) -> std::io::Result<i32> {
+    i32::try_from(v).map_err(|_| {
+        std::io::Error::other(format!(
+            "{what} = {v} exceeds PETSc's 32-bit PetscInt (2^31 - 1); split the system or use a 64-bit-index PETSc reader"
+        ))
+    })
+}
 
 /// The files one export wrote.
 #[derive(Debug, Clone)]
@@ -99,19 +115,23 @@ impl Fnv {
 /// constrained diagonal) and b̂ to `dir`, plus the layout. `mtx`: also Matrix Market.
 pub fn export(
     e: &Eliminated,
+    diag: ConstrainedDiagonal,
     g: &[f64],
     dir: &Path,
     mtx: bool,
 ) -> std::io::Result<ExportFiles> {
-    std::fs::create_dir_all(dir)?;
     let hat = e.assemble();
     let f = e.frames;
     let d = hat.dim;
     let nd = hat.ndof();
+    petsc_int(nd, "the number of DOFs")?;
+    std::fs::create_dir_all(dir)?;
     // Scalar CSR rows of Ĥ, keeping free–free entries and the constrained diagonal.
     let mut row_len: Vec<i32> = Vec::with_capacity(nd);
     let mut cols: Vec<i32> = Vec::new();
     let mut vals: Vec<f64> = Vec::new();
+    // Entries on or below the diagonal (the symmetric Matrix Market copy holds those).
+    let mut lower = 0usize;
     for i in 0..hat.n {
         for a in 0..d {
             let r = i * d + a;
@@ -127,18 +147,21 @@ pub fn export(
                         row_free && f.is_free(j, b)
                     };
                     if keep {
+                        // c < nd ≤ i32::MAX, checked above.
                         cols.push(c as i32);
                         vals.push(hat.values[k * d * d + a * d + b]);
+                        lower += usize::from(c <= r);
                     }
                 }
             }
             row_len.push((cols.len() - start) as i32);
         }
     }
+    let nnz = petsc_int(cols.len(), "the number of stored entries")?;
     let matrix_petsc = dir.join("hhat.petsc");
     {
         let mut w = BufWriter::new(std::fs::File::create(&matrix_petsc)?);
-        for v in [MAT_FILE_CLASSID, nd as i32, nd as i32, cols.len() as i32] {
+        for v in [MAT_FILE_CLASSID, nd as i32, nd as i32, nnz] {
             w.write_all(&v.to_be_bytes())?;
         }
         for v in &row_len {
@@ -162,11 +185,6 @@ pub fn export(
         let mp = dir.join("hhat.mtx");
         let mut w = BufWriter::new(std::fs::File::create(&mp)?);
         // Symmetric: lower triangle only.
-        let lower = cols
-            .iter()
-            .enumerate()
-            .filter(|&(k, &c)| (c as usize) <= row_of(&row_len, k))
-            .count();
         writeln!(w, "%%MatrixMarket matrix coordinate real symmetric")?;
         writeln!(w, "% stickslip eliminated Hessian (node frames), block size {d}")?;
         writeln!(w, "{nd} {nd} {lower}")?;
@@ -204,6 +222,11 @@ pub fn export(
         rot_nodes: f.rot_nodes.clone(),
         rotations: f.rotations.clone(),
         lift: (!f.homogeneous).then(|| f.lift.clone()),
+        constrained_diagonal: match diag {
+            ConstrainedDiagonal::Identity => "identity",
+            ConstrainedDiagonal::Hessian => "hessian",
+        }
+        .to_string(),
         hessian_fingerprint: fingerprint_matrix(e.h),
         gradient_fingerprint: fingerprint_vector(g),
         matrix_bytes: 16 + 4 * nd as u64 + 12 * cols.len() as u64,
@@ -222,23 +245,10 @@ pub fn export(
     })
 }
 
-fn row_of(row_len: &[i32], k: usize) -> usize {
-    // Only used for counting; rows are visited in order, so a running search is fine
-    // for the sizes exported (it is called once per entry through `filter`).
-    let mut acc = 0usize;
-    for (r, &l) in row_len.iter().enumerate() {
-        acc += l as usize;
-        if k < acc {
-            return r;
-        }
-    }
-    row_len.len()
-}
-
 pub fn write_petsc_vec(path: &Path, v: &[f64]) -> std::io::Result<()> {
     let mut w = BufWriter::new(std::fs::File::create(path)?);
     w.write_all(&VEC_FILE_CLASSID.to_be_bytes())?;
-    w.write_all(&(v.len() as i32).to_be_bytes())?;
+    w.write_all(&petsc_int(v.len(), "the vector length")?.to_be_bytes())?;
     for x in v {
         w.write_all(&x.to_be_bytes())?;
     }
@@ -308,17 +318,61 @@ pub fn read_layout(path: &Path) -> Result<Layout, InputError> {
         ));
     }
     let d = l.dim;
-    if (d != 2 && d != 3)
-        || l.mask.len() != l.n_nodes
-        || l.rotations.len() != l.rot_nodes.len() * d * d
-        || l.lift.as_ref().is_some_and(|v| v.len() != d * l.n_nodes)
-        || l.rot_nodes.iter().any(|&r| r as usize >= l.n_nodes)
-    {
-        return Err(InputError::new(
-            &file,
-            "",
-            "inconsistent layout (dimension, masks, rotations or lift do not fit the node count)",
-        ));
+    let bad = |entry: &str, problem: String| Err(InputError::new(&file, entry, problem));
+    if d != 2 && d != 3 {
+        return bad("dim", format!("dimension {d} is not 2 or 3"));
+    }
+    if l.block_size != d {
+        return bad("block_size", format!("block size {} differs from dim {d}", l.block_size));
+    }
+    if l.mask.len() != l.n_nodes {
+        return bad("mask", format!("{} masks for {} nodes", l.mask.len(), l.n_nodes));
+    }
+    if let Some(i) = l.mask.iter().position(|&m| m >> d != 0) {
+        return bad(&format!("mask[{i}]"), format!("bits beyond the {d} components"));
+    }
+    let constrained: usize = l.mask.iter().map(|m| m.count_ones() as usize).sum();
+    if constrained != l.constrained_dofs || d * l.n_nodes - constrained != l.free_dofs {
+        return bad(
+            "free_dofs",
+            "free_dofs and constrained_dofs disagree with the masks".to_string(),
+        );
+    }
+    if l.rot_nodes.windows(2).any(|w| w[0] >= w[1]) {
+        return bad("rot_nodes", "not strictly increasing".to_string());
+    }
+    if l.rot_nodes.last().is_some_and(|&r| r as usize >= l.n_nodes) {
+        return bad("rot_nodes", "a node index is out of range".to_string());
+    }
+    if l.rotations.len() != l.rot_nodes.len() * d * d {
+        return bad(
+            "rotations",
+            format!("{} values for {} rotated nodes of dimension {d}", l.rotations.len(), l.rot_nodes.len()),
+        );
+    }
+    // Each V_i must be orthonormal: recovery applies it as given.
+    for (k, v) in l.rotations.chunks_exact(d * d).enumerate() {
+        for a in 0..d {
+            for b in 0..d {
+                let s: f64 = (0..d).map(|r| v[r * d + a] * v[r * d + b]).sum();
+                let want = if a == b { 1.0 } else { 0.0 };
+                if !((s - want).abs() <= 1e-12) {
+                    return bad(
+                        &format!("rotations[{k}]"),
+                        "the rotation is not orthonormal (|VᵀV − I| > 1e-12)".to_string(),
+                    );
+                }
+            }
+        }
+    }
+    if l.lift.as_ref().is_some_and(|v| v.len() != d * l.n_nodes || v.iter().any(|x| !x.is_finite())) {
+        return bad("lift", format!("expected {} finite values", d * l.n_nodes));
+    }
+    if l.constrained_diagonal != "identity" && l.constrained_diagonal != "hessian" {
+        return bad(
+            "constrained_diagonal",
+            format!("'{}' is not identity or hessian", l.constrained_diagonal),
+        );
     }
     Ok(l)
 }
@@ -351,7 +405,7 @@ pub fn recover(
     h: &BlockCsr,
     g: &[f64],
     names: [&str; 4],
-) -> Result<(Vec<f64>, Vec<f64>), InputError> {
+) -> Result<Recovered, InputError> {
     let nd = layout.dim * layout.n_nodes;
     if y.len() != nd {
         return Err(InputError::new(
@@ -381,10 +435,28 @@ pub fn recover(
         ));
     }
     let frames = layout.frames();
-    let e = Eliminated::new(h, g, &frames, Default::default());
+    let diag = if layout.constrained_diagonal == "hessian" {
+        ConstrainedDiagonal::Hessian
+    } else {
+        ConstrainedDiagonal::Identity
+    };
+    let e = Eliminated::new(h, g, &frames, diag);
     let dx = e.recover(y);
     let f = reactions(h, g, &dx);
-    Ok((dx, f))
+    Ok(Recovered {
+        relative_residual: e.relative_residual(y),
+        dx,
+        reactions: f,
+    })
+}
+
+/// What [`recover`] returns.
+#[derive(Debug, Clone)]
+pub struct Recovered {
+    pub dx: Vec<f64>,
+    pub reactions: Vec<f64>,
+    /// ‖b̂ − Ĥy‖/‖b̂‖ of y in the exported system (with the exported D).
+    pub relative_residual: f64,
 }
 
 #[cfg(test)]
@@ -398,15 +470,27 @@ mod tests {
         let s = random_system(&SystemSpec::small(3, 77));
         let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
         let dir = std::env::temp_dir().join(format!("stickslip-export-{}", std::process::id()));
-        let files = export(&e, &s.g, &dir, true).unwrap();
+        let files = export(&e, ConstrainedDiagonal::Identity, &s.g, &dir, true).unwrap();
         let layout = read_layout(&files.layout).unwrap();
         assert_eq!(layout.frames(), s.frames);
         let b = read_petsc_vec(&files.rhs_petsc).unwrap();
         assert_eq!(b, e.rhs);
         let (y, _) = crate::oracle::solve(&e).unwrap();
-        let (dx, f) = recover(&layout, &y, &s.h, &s.g, ["l", "y", "h", "g"]).unwrap();
-        assert_eq!(dx, e.recover(&y));
-        assert_eq!(f, reactions(&s.h, &s.g, &dx));
+        let rec = recover(&layout, &y, &s.h, &s.g, ["l", "y", "h", "g"]).unwrap();
+        assert_eq!(rec.dx, e.recover(&y));
+        assert_eq!(rec.reactions, reactions(&s.h, &s.g, &rec.dx));
+        assert_eq!(rec.relative_residual, e.relative_residual(&y));
+        // The Matrix Market copy holds exactly the lower triangle of the PETSc matrix.
+        let text = std::fs::read_to_string(files.matrix_mtx.as_ref().unwrap()).unwrap();
+        let size: Vec<usize> = text
+            .lines()
+            .find(|l| !l.starts_with('%'))
+            .unwrap()
+            .split_whitespace()
+            .map(|t| t.parse().unwrap())
+            .collect();
+        let entries = text.lines().filter(|l| !l.starts_with('%')).count() - 1;
+        assert_eq!(size[2], entries);
         // A layout from another system is refused.
         let other = random_system(&SystemSpec::small(3, 78));
         if other.h.n == s.h.n {

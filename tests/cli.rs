@@ -111,6 +111,15 @@ fn case(name: &str) -> Case {
 }
 
 impl Case {
+    /// `solve` with another H file.
+    fn solve_with_h(&self, h: &str) -> Output {
+        let out = self.dir.join("dx.mtx");
+        run(&[
+            "solve", "--hessian", h, "--gradient", &self.g, "--constraints", &self.bc, "--out",
+            out.to_str().unwrap(),
+        ])
+    }
+
     fn solve(&self, extra: &[&str]) -> Output {
         let out = self.dir.join("dx.mtx");
         let mut a = vec![
@@ -395,8 +404,11 @@ fn help_lists_every_subcommand() {
         assert!(help.contains(sub), "{help}");
     }
     assert_eq!(run(&["info"]).status.code(), Some(0));
-    // clap keeps its usage errors: exit 2.
-    assert_eq!(run(&["solve", "--bogus"]).status.code(), Some(2));
+    // Usage errors: exit 2, one line like every other error.
+    let o = run(&["solve", "--bogus"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert_eq!(stderr(&o).lines().count(), 1, "{}", stderr(&o));
+    assert!(stderr(&o).contains("--bogus"));
 }
 
 /// Seed 002, Example 5.1.1 through the CLI: node 1 fixed at (1, 2) (sticky with a
@@ -739,7 +751,7 @@ fn export_recover_round_trip_and_bad_recovery_inputs() {
         "recover", "--layout", &format!("{ex}/layout.json"), "--solution", &short,
         "--hessian", &s("H.mtx"), "--gradient", &s("g.mtx"), "--out", &s("x.mtx"),
     ]);
-    assert_input_error(&o, &short, &["entries"]);
+    assert_input_error(&o, &short, &["rows", "expected"]);
     // A layout from another system of the same size.
     let other = tmpdir("export-other");
     let o = run(&[
@@ -790,4 +802,46 @@ fn bad_scene_files_name_the_key() {
     let o = run(&["run", "no-such-scene", "--quiet"]);
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
     assert_eq!(stderr(&o).lines().count(), 1);
+}
+
+/// Corrupt size lines and tampered layouts are input errors, never panics or aborts.
+#[test]
+fn corrupt_sizes_and_tampered_layouts_exit_2() {
+    let c = case("sizes");
+    // An H whose size line declares far more rows than it holds.
+    let h = write(
+        &c.dir,
+        "huge.mtx",
+        "%%MatrixMarket matrix coordinate real general\n18446744073709551614 18446744073709551614 0\n",
+    );
+    let o = c.solve_with_h(&h);
+    assert_input_error(&o, &h, &["line 2"]);
+    let h = write(
+        &c.dir,
+        "big.mtx",
+        "%%MatrixMarket matrix coordinate real general\n2000000 2000000 1\n1 1 1.0\n",
+    );
+    let o = c.solve_with_h(&h);
+    assert_input_error(&o, &h, &["line 2", "entries"]);
+
+    // A layout with a duplicated rotated node or stray mask bits.
+    let dir = tmpdir("layout");
+    generate(&dir, "3", "300", "random");
+    let s = |n: &str| dir.join(n).to_str().unwrap().to_string();
+    let ex = s("ex");
+    let o = run(&[
+        "export", "--hessian", &s("H.mtx"), "--gradient", &s("g.mtx"), "--constraints",
+        &s("bc.json"), "--out-dir", &ex, "--quiet", "--no-mtx",
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let text = std::fs::read_to_string(format!("{ex}/layout.json")).unwrap();
+    let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
+    v["mask"][0] = serde_json::json!(255);
+    let bad = write(&dir, "bad_mask.json", &v.to_string());
+    let y = write(&dir, "y.mtx", &g_array(&vec![0.0; 900]));
+    let o = run(&[
+        "recover", "--layout", &bad, "--solution", &y, "--hessian", &s("H.mtx"), "--gradient",
+        &s("g.mtx"), "--out", &s("x.mtx"),
+    ]);
+    assert_input_error(&o, &bad, &["mask[0]"]);
 }

@@ -69,7 +69,7 @@ fn petsc_two_ranks_matches_the_oracle() {
     let t_cg = t.elapsed().as_secs_f64();
 
     let dir = std::env::temp_dir().join(format!("stickslip-petsc-{}", std::process::id()));
-    let files = export::export(&e, &s.g, &dir, false).expect("export");
+    let files = export::export(&e, ConstrainedDiagonal::Identity, &s.g, &dir, false).expect("export");
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/petsc_solve.py");
     let t = Instant::now();
     let out = Command::new("mpiexec")
@@ -99,7 +99,9 @@ fn petsc_two_ranks_matches_the_oracle() {
 
     let layout = export::read_layout(&files.layout).expect("layout");
     let y = export::read_petsc_vec(&dir.join("y.petsc")).expect("solution");
-    let (dx, _f) = export::recover(&layout, &y, &s.h, &s.g, ["layout", "y", "H", "g"]).expect("recover");
+    let dx = export::recover(&layout, &y, &s.h, &s.g, ["layout", "y", "H", "g"])
+        .expect("recover")
+        .dx;
 
     let num: f64 = dx.iter().zip(&dx_ref).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
     let den: f64 = dx_ref.iter().map(|a| a * a).sum::<f64>().sqrt();

@@ -43,6 +43,9 @@ fn err(file: &str, entry: impl Into<String>, problem: impl Into<String>) -> Inpu
 /// Parses a Matrix Market matrix (coordinate or array; real, integer or double; general
 /// or symmetric). Values are checked for finiteness here, so every later stage sees
 /// finite numbers only.
+/// Largest row or column count accepted (2³¹ − 1: indices are 32-bit on the GPU and in PETSc).
+pub const MAX_DIMENSION: usize = i32::MAX as usize;
+
 pub fn parse(file: &str, text: &str) -> Result<Coo, InputError> {
     let mut lines = text.lines().enumerate().map(|(k, l)| (k + 1, l));
     // Header.
@@ -146,6 +149,17 @@ pub fn parse(file: &str, text: &str) -> Result<Coo, InputError> {
         }
     };
     let (nrows, ncols) = (dims[0], dims[1]);
+    // Indices travel as 32-bit integers (GPU buffers, PETSc's PetscInt); larger sizes are
+    // refused here, before anything is allocated from them.
+    if nrows > MAX_DIMENSION || ncols > MAX_DIMENSION {
+        return Err(err(
+            file,
+            format!("line {sl}"),
+            format!(
+                "the size line declares {nrows} × {ncols}; at most {MAX_DIMENSION} rows and columns are supported"
+            ),
+        ));
+    }
     if symmetric && nrows != ncols {
         return Err(err(
             file,
@@ -320,6 +334,18 @@ pub fn hessian_from_coo(file: &str, coo: &Coo, dim: usize) -> Result<BlockCsr, I
         ));
     }
     let nd = coo.nrows;
+    // Every row of a Hessian holds at least its diagonal (mass), so a size line far
+    // beyond the entries is a corrupt file, not a system: refuse it before allocating.
+    if nd / 64 > coo.entries.len() {
+        return Err(err(
+            file,
+            format!("line {}", coo.size_line),
+            format!(
+                "the size line declares {nd} rows but the file holds only {} entries (a Hessian has an entry on every row's diagonal)",
+                coo.entries.len()
+            ),
+        ));
+    }
     let mut t = Vec::with_capacity(coo.entries.len() + nd);
     t.extend_from_slice(&coo.entries);
     t.extend((0..nd).map(|k| (k, k, 0.0)));
