@@ -26,7 +26,8 @@ fn bench_operators(c: &mut Criterion) {
         let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
         let n = s.h.ndof();
         // Bytes one product must move: blocks + column indices + row pointers + x + y.
-        let bytes = s.h.values.len() * 8 + s.h.col_idx.len() * 8 + s.h.row_ptr.len() * 8 + 2 * n * 8;
+        let bytes =
+            s.h.values.len() * 8 + s.h.col_idx.len() * 8 + s.h.row_ptr.len() * 8 + 2 * n * 8;
         g.throughput(Throughput::Bytes(bytes as u64));
         let x: Vec<f64> = (0..n).map(|k| (k % 7) as f64 - 3.0).collect();
         let mut y = vec![0.0; n];
@@ -55,9 +56,10 @@ fn bench_cg(c: &mut Criterion) {
                 preconditioner: pc,
                 ..Default::default()
             };
-            g.bench_function(BenchmarkId::new(format!("50-iterations-{pc:?}"), &name), |b| {
-                b.iter(|| cg::solve_with(&e, &pre, None, &params).err())
-            });
+            g.bench_function(
+                BenchmarkId::new(format!("50-iterations-{pc:?}"), &name),
+                |b| b.iter(|| cg::solve_with(&e, &pre, None, &params).err()),
+            );
         }
     }
     g.finish();
@@ -69,12 +71,17 @@ fn bench_cholesky(c: &mut Criterion) {
     for (name, s) in systems().into_iter().take(2) {
         let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
         g.bench_function(BenchmarkId::new("analyze+factor+solve", &name), |b| {
-            b.iter(|| stickslip::oracle::solve(&e).map(|r| r.1.relative_residual).ok())
+            b.iter(|| {
+                stickslip::oracle::solve(&e)
+                    .map(|r| r.1.relative_residual)
+                    .ok()
+            })
         });
         let mut oracle = CholeskyOracle::analyze(&e).expect("analysis");
-        g.bench_function(BenchmarkId::new("factor+solve (symbolic reused)", &name), |b| {
-            b.iter(|| oracle.solve(&e).map(|r| r.1.relative_residual).ok())
-        });
+        g.bench_function(
+            BenchmarkId::new("factor+solve (symbolic reused)", &name),
+            |b| b.iter(|| oracle.solve(&e).map(|r| r.1.relative_residual).ok()),
+        );
     }
     g.finish();
 }

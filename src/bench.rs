@@ -196,7 +196,8 @@ pub fn cpu_copy_bandwidth() -> f64 {
 pub fn cpu_cg_bytes_per_iteration(e: &Eliminated) -> u64 {
     let h = e.h;
     let idx = std::mem::size_of::<usize>() as u64;
-    let matrix = h.values.len() as u64 * 8 + h.col_idx.len() as u64 * idx + h.row_ptr.len() as u64 * idx;
+    let matrix =
+        h.values.len() as u64 * 8 + h.col_idx.len() as u64 * idx + h.row_ptr.len() as u64 * idx;
     matrix + 18 * h.ndof() as u64 * 8
 }
 
@@ -230,7 +231,9 @@ pub fn run(opts: &BenchOptions, command: &str) -> Result<BenchReport, BenchError
         cpu_threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
         adapter: ctx.as_ref().map(|c| c.adapter_name().to_string()),
         cpu_copy_gb_per_s: cpu_copy_bandwidth(),
-        gpu_copy_gb_per_s: ctx.as_ref().and_then(|c| crate::gpu::measure_copy_bandwidth(c).ok()),
+        gpu_copy_gb_per_s: ctx
+            .as_ref()
+            .and_then(|c| crate::gpu::measure_copy_bandwidth(c).ok()),
         runs: Vec::new(),
         cholesky: Vec::new(),
         winners: Vec::new(),
@@ -261,7 +264,8 @@ pub fn run(opts: &BenchOptions, command: &str) -> Result<BenchReport, BenchError
     bar.finish_and_clear();
     derive_tables(&mut report);
     if let Some(dir) = &opts.out {
-        write_outputs(&report, dir).map_err(|e| BenchError::Io(format!("{}: {e}", dir.display())))?;
+        write_outputs(&report, dir)
+            .map_err(|e| BenchError::Io(format!("{}: {e}", dir.display())))?;
     }
     Ok(report)
 }
@@ -537,10 +541,9 @@ pub fn derive_tables(report: &mut BenchReport) {
         for quantity in ["seconds_per_iteration", "seconds_to_1e-6_error"] {
             let mut points = Vec::new();
             for &(d, nodes) in sizes.iter().filter(|s| s.0 == dim) {
-                let runs = report
-                    .runs
-                    .iter()
-                    .filter(|r| r.dim == d && r.nodes == nodes && r.solver == solver && r.converged);
+                let runs = report.runs.iter().filter(|r| {
+                    r.dim == d && r.nodes == nodes && r.solver == solver && r.converged
+                });
                 let v = if quantity == "seconds_per_iteration" {
                     runs.filter(|r| r.seconds_per_iteration > 0.0)
                         .map(|r| r.seconds_per_iteration)
@@ -595,7 +598,13 @@ pub fn summary_text(report: &BenchReport) -> String {
     for c in &report.cholesky {
         s.push_str(&format!(
             "  {}D {:>8} nodes  {:>8.3} s  {:>8.3} s  {:>8.3} s  {:>8.3} s  nnz(L) {}\n",
-            c.dim, c.nodes, c.symbolic_seconds, c.numeric_seconds, c.solve_seconds, c.reused_numeric_seconds, c.factor_nnz
+            c.dim,
+            c.nodes,
+            c.symbolic_seconds,
+            c.numeric_seconds,
+            c.solve_seconds,
+            c.reused_numeric_seconds,
+            c.factor_nnz
         ));
     }
     s.push_str("\nFirst to reach a relative error (total seconds)\n");
@@ -633,7 +642,8 @@ fn write_outputs(report: &BenchReport, dir: &Path) -> std::io::Result<()> {
             r.tol.map_or(String::new(), |t| format!("{t:e}")),
             r.converged,
             r.iterations,
-            r.recorded_iterations.map_or(String::new(), |v| v.to_string()),
+            r.recorded_iterations
+                .map_or(String::new(), |v| v.to_string()),
             r.relative_residual,
             r.relative_error,
             r.error_reference,
@@ -662,17 +672,22 @@ pub fn run_hard(out: Option<&Path>, no_gpu: bool, scale: usize) -> Result<String
     } else {
         GpuContext::new(&GpuOptions::default()).ok()
     };
-    let rows = crate::hard::table(crate::hard::Size::Ci, ctx.as_ref(), 3000).map_err(BenchError::Solve)?;
+    let rows =
+        crate::hard::table(crate::hard::Size::Ci, ctx.as_ref(), 3000).map_err(BenchError::Solve)?;
     let mut md = format!(
         "adapter: {}\n\n{}",
-        ctx.as_ref().map_or("none".to_string(), |c| c.adapter_name().to_string()),
+        ctx.as_ref()
+            .map_or("none".to_string(), |c| c.adapter_name().to_string()),
         crate::hard::table_markdown(&rows)
     );
     let mut speed = Vec::new();
     if let Some(c) = ctx.as_ref() {
-        speed = crate::hard::mixed_speed(crate::hard::Size::Scale(scale), c, 1e-10).map_err(BenchError::Solve)?;
+        speed = crate::hard::mixed_speed(crate::hard::Size::Scale(scale), c, 1e-10)
+            .map_err(BenchError::Solve)?;
         md.push_str("\n| case | DOFs | f64 CG s | mixed s | f64/mixed | f64 error | mixed error |\n|---|---|---|---|---|---|---|\n");
-        let f = |v: Option<f64>, p: usize| v.map_or("failed".to_string(), |x| format!("{x:.prec$e}", prec = p));
+        let f = |v: Option<f64>, p: usize| {
+            v.map_or("failed".to_string(), |x| format!("{x:.prec$e}", prec = p))
+        };
         for (name, dofs, t64, tm, e64, em) in &speed {
             let ratio = match (t64, tm) {
                 (Some(a), Some(b)) if *b > 0.0 => format!("{:.2}", a / b),
@@ -688,7 +703,8 @@ pub fn run_hard(out: Option<&Path>, no_gpu: bool, scale: usize) -> Result<String
         }
     }
     if let Some(dir) = out {
-        std::fs::create_dir_all(dir).map_err(|e| BenchError::Io(format!("{}: {e}", dir.display())))?;
+        std::fs::create_dir_all(dir)
+            .map_err(|e| BenchError::Io(format!("{}: {e}", dir.display())))?;
         let json = serde_json::json!({ "rows": rows, "mixed_speed": speed });
         std::fs::write(dir.join("hard.md"), &md)
             .and_then(|_| std::fs::write(dir.join("hard.json"), json.to_string()))

@@ -437,7 +437,6 @@ fn precision_name(p: PrecisionArg) -> &'static str {
     }
 }
 
-
 /// H, g, the constraints and their frames, read and checked.
 pub struct LoadedSystem {
     pub dim: usize,
@@ -791,10 +790,20 @@ fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
         return Ok(());
     }
     if let Some(d) = a.dims.iter().find(|&&d| d != 2 && d != 3) {
-        return Err(InputError::new("command line", "--dims", format!("dimension {d} is not 2 or 3")).into());
+        return Err(InputError::new(
+            "command line",
+            "--dims",
+            format!("dimension {d} is not 2 or 3"),
+        )
+        .into());
     }
     if a.sizes.as_ref().is_some_and(|s| s.iter().any(|&n| n < 4)) {
-        return Err(InputError::new("command line", "--sizes", "every size must be at least 4 nodes").into());
+        return Err(InputError::new(
+            "command line",
+            "--sizes",
+            "every size must be at least 4 nodes",
+        )
+        .into());
     }
     let opts = crate::bench::BenchOptions {
         quick: a.quick,
@@ -849,7 +858,13 @@ fn recover(a: &RecoverArgs, quiet: bool) -> Result<(), CliError> {
         mtx::read_vector(
             &a.solution,
             "y",
-            Some((nd_layout, &format!("{nd_layout} = {} × {} nodes (the layout's system)", layout.dim, layout.n_nodes))),
+            Some((
+                nd_layout,
+                &format!(
+                    "{nd_layout} = {} × {} nodes (the layout's system)",
+                    layout.dim, layout.n_nodes
+                ),
+            )),
         )?
     } else {
         crate::export::read_petsc_vec(std::path::Path::new(&a.solution))?
@@ -871,8 +886,12 @@ fn recover(a: &RecoverArgs, quiet: bool) -> Result<(), CliError> {
     mtx::write_vector(&a.out, &rec.dx, "dx recovered by stickslip recover")
         .map_err(|e| write_failed(&a.out, e))?;
     if let Some(path) = &a.reactions {
-        mtx::write_vector(path, &rec.reactions, "reactions f = -(H dx + g), stickslip recover")
-            .map_err(|e| write_failed(path, e))?;
+        mtx::write_vector(
+            path,
+            &rec.reactions,
+            "reactions f = -(H dx + g), stickslip recover",
+        )
+        .map_err(|e| write_failed(path, e))?;
     }
     if !quiet {
         eprintln!(

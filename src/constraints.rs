@@ -11,7 +11,6 @@
 //! those axes); every other slip node carries an orthonormal V_i whose first r_i columns
 //! span the constrained directions.
 
-
 /// Relative rank tolerance for the stacked, row-normalized constraints of one node: a
 /// singular value σ counts when σ > RANK_RTOL · σ_max. Two unit rows at angle θ have
 /// σ_min ≈ θ/√2, so rows closer than about 1.4e-8 rad in angle act as one constraint.
@@ -45,7 +44,10 @@ pub enum ConstraintKind {
         offset: Option<Vec<f64>>,
     },
     /// Any rows a_kᵀΔx = values_k.
-    Rows { rows: Vec<Vec<f64>>, values: Vec<f64> },
+    Rows {
+        rows: Vec<Vec<f64>>,
+        values: Vec<f64>,
+    },
 }
 
 /// One constraint on one node, with a label that names it in error messages
@@ -366,7 +368,10 @@ fn validate(dim: usize, n_nodes: usize, c: &Constraint) -> Result<(), Constraint
     for r in &rows {
         let n = norm(r);
         if !n.is_finite() || n == 0.0 {
-            return Err(cerr(l, "a normal or direction has a zero or non-finite length"));
+            return Err(cerr(
+                l,
+                "a normal or direction has a zero or non-finite length",
+            ));
         }
     }
     Ok(())
@@ -445,21 +450,21 @@ fn node_frame(dim: usize, cs: &[&Constraint]) -> Result<NodeFrame, ConstraintErr
     }
     let k = rows.len();
     let m = k.max(dim); // pad to square so V is complete
-    // faer's dense SVD: accurate to round-off on rank-deficient blocks (nalgebra 0.34's
-    // SVD was seen to return a factorization off by 5e-2 on such a 3×3, see tests).
+                        // faer's dense SVD: accurate to round-off on rank-deficient blocks (nalgebra 0.34's
+                        // SVD was seen to return a factorization off by 5e-2 on such a 3×3, see tests).
     let a = faer::Mat::<f64>::from_fn(m, dim, |i, j| if i < k { rows[i][j] } else { 0.0 });
     let svd = a.svd().map_err(|e| {
-        cerr(&label, format!("the singular value decomposition of the rows failed: {e:?}"))
+        cerr(
+            &label,
+            format!("the singular value decomposition of the rows failed: {e:?}"),
+        )
     })?;
     let (u, sv, v) = (svd.U(), svd.S(), svd.V());
     let sigma: Vec<f64> = (0..dim).map(|j| sv[j]).collect();
     let mut idx: Vec<usize> = (0..dim).collect();
     idx.sort_by(|&p, &q| sigma[q].total_cmp(&sigma[p]));
     let smax = sigma[idx[0]];
-    let r = idx
-        .iter()
-        .filter(|&&j| sigma[j] > RANK_RTOL * smax)
-        .count();
+    let r = idx.iter().filter(|&&j| sigma[j] > RANK_RTOL * smax).count();
     // Minimum-norm lift from the kept singular triplets.
     let mut lift = [0.0; 3];
     for &j in idx.iter().take(r) {
@@ -648,7 +653,11 @@ mod tests {
         for trial in 0..200 {
             let n: Vec<f64> = if trial % 2 == 0 {
                 // Within 1e-8 of e_x.
-                vec![1.0, rng.random_range(-1e-8..1e-8), rng.random_range(-1e-8..1e-8)]
+                vec![
+                    1.0,
+                    rng.random_range(-1e-8..1e-8),
+                    rng.random_range(-1e-8..1e-8),
+                ]
             } else {
                 (0..3).map(|_| rng.random_range(-1.0..1.0)).collect()
             };
@@ -765,11 +774,23 @@ mod tests {
     #[test]
     fn dependent_rows_with_consistent_values_form_a_line() {
         let rows = vec![
-            vec![-0.8903906045381308, 0.44743133743890545, -0.08372436698986958],
+            vec![
+                -0.8903906045381308,
+                0.44743133743890545,
+                -0.08372436698986958,
+            ],
             vec![0.1787047698398585, -0.7666862336085959, -0.6166496772329882],
-            vec![-0.5121120358653778, -0.4637409631693257, -0.7229699729591847],
+            vec![
+                -0.5121120358653778,
+                -0.4637409631693257,
+                -0.7229699729591847,
+            ],
         ];
-        let values = vec![-0.04979598171710053, 0.13127464870145872, 0.10055917227601849];
+        let values = vec![
+            -0.04979598171710053,
+            0.13127464870145872,
+            0.10055917227601849,
+        ];
         let f = Frames::build(
             3,
             1,

@@ -52,6 +52,9 @@ pub enum RunError {
 }
 
 impl RunError {
+    /// The process exit code for this error: 2 for bad input ([`RunError::Input`]: the
+    /// scene, its entries or the command-line options), 1 for everything else (a failed
+    /// step, output that could not be written). The command line exits with it.
     pub fn exit_code(&self) -> i32 {
         match self {
             RunError::Input(_) => 2,
@@ -157,15 +160,8 @@ pub fn load_scene(name_or_path: &str, size: f64) -> Result<Scene, InputError> {
 pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
     let wall = Instant::now();
     // 1–3. Scene, boundary conditions and forms.
+    // `--size` is checked (once) by the scene parser, which names `--size`.
     let size = opts.size.unwrap_or(1.0);
-    if !(size.is_finite() && size > 0.0) {
-        return Err(InputError::new(
-            "--size",
-            "",
-            format!("must be a positive number, got {size}"),
-        )
-        .into());
-    }
     let mut scene = load_scene(opts.scene.as_deref().unwrap_or("default"), size)?;
     if let Some(s) = &opts.solver {
         scene.solver.linear = s
@@ -175,6 +171,14 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
     if let Some(n) = opts.steps {
         if n == 0 {
             return Err(InputError::new("--steps", "", "must be at least 1").into());
+        }
+        if n > scene::MAX_STEPS {
+            return Err(InputError::new(
+                "--steps",
+                "",
+                format!("{n} is more than the cap of {}", scene::MAX_STEPS),
+            )
+            .into());
         }
         scene.steps = n;
     }

@@ -35,8 +35,14 @@ pub struct Eliminated<'a> {
 impl<'a> Eliminated<'a> {
     /// Forms b̂ = −P Vᵀ(g + H Δx_p) and D.
     pub fn new(h: &'a BlockCsr, g: &[f64], frames: &'a Frames, diag: ConstrainedDiagonal) -> Self {
-        assert_eq!(h.dim, frames.dim, "H and the constraints disagree on the dimension");
-        assert_eq!(h.n, frames.n_nodes, "H and the constraints disagree on the node count");
+        assert_eq!(
+            h.dim, frames.dim,
+            "H and the constraints disagree on the dimension"
+        );
+        assert_eq!(
+            h.n, frames.n_nodes,
+            "H and the constraints disagree on the node count"
+        );
         assert_eq!(g.len(), h.ndof(), "g has the wrong length");
         let nd = h.ndof();
         let mut r = g.to_vec();
@@ -312,7 +318,12 @@ mod tests {
             a.matvec(&y, &mut o2);
             let scale = norm2(&o1);
             for k in 0..n {
-                assert!((o1[k] - o2[k]).abs() <= 1e-13 * scale, "{k}: {} vs {}", o1[k], o2[k]);
+                assert!(
+                    (o1[k] - o2[k]).abs() <= 1e-13 * scale,
+                    "{k}: {} vs {}",
+                    o1[k],
+                    o2[k]
+                );
             }
             assert!(a.check_symmetric().is_ok());
         }

@@ -15,7 +15,11 @@ pub struct InputError {
 }
 
 impl InputError {
-    pub fn new(file: impl Into<String>, entry: impl Into<String>, problem: impl Into<String>) -> Self {
+    pub fn new(
+        file: impl Into<String>,
+        entry: impl Into<String>,
+        problem: impl Into<String>,
+    ) -> Self {
         InputError {
             file: file.into(),
             entry: entry.into(),

@@ -186,7 +186,10 @@ pub fn export(
         let mut w = BufWriter::new(std::fs::File::create(&mp)?);
         // Symmetric: lower triangle only.
         writeln!(w, "%%MatrixMarket matrix coordinate real symmetric")?;
-        writeln!(w, "% stickslip eliminated Hessian (node frames), block size {d}")?;
+        writeln!(
+            w,
+            "% stickslip eliminated Hessian (node frames), block size {d}"
+        )?;
         writeln!(w, "{nd} {nd} {lower}")?;
         let mut k = 0usize;
         for (r, &len) in row_len.iter().enumerate() {
@@ -263,7 +266,11 @@ pub fn read_petsc_vec(path: &Path) -> Result<Vec<f64>, InputError> {
         .and_then(|mut f| f.read_to_end(&mut bytes))
         .map_err(|e| InputError::new(&file, "", format!("cannot read: {e}")))?;
     if bytes.len() < 8 {
-        return Err(InputError::new(&file, "header", "too short for a PETSc Vec"));
+        return Err(InputError::new(
+            &file,
+            "header",
+            "too short for a PETSc Vec",
+        ));
     }
     let id = i32::from_be_bytes(bytes[0..4].try_into().expect("4 bytes"));
     if id != VEC_FILE_CLASSID {
@@ -314,7 +321,10 @@ pub fn read_layout(path: &Path) -> Result<Layout, InputError> {
         return Err(InputError::new(
             &file,
             "format",
-            format!("unknown layout format '{}' (expected {LAYOUT_FORMAT})", l.format),
+            format!(
+                "unknown layout format '{}' (expected {LAYOUT_FORMAT})",
+                l.format
+            ),
         ));
     }
     let d = l.dim;
@@ -323,13 +333,22 @@ pub fn read_layout(path: &Path) -> Result<Layout, InputError> {
         return bad("dim", format!("dimension {d} is not 2 or 3"));
     }
     if l.block_size != d {
-        return bad("block_size", format!("block size {} differs from dim {d}", l.block_size));
+        return bad(
+            "block_size",
+            format!("block size {} differs from dim {d}", l.block_size),
+        );
     }
     if l.mask.len() != l.n_nodes {
-        return bad("mask", format!("{} masks for {} nodes", l.mask.len(), l.n_nodes));
+        return bad(
+            "mask",
+            format!("{} masks for {} nodes", l.mask.len(), l.n_nodes),
+        );
     }
     if let Some(i) = l.mask.iter().position(|&m| m >> d != 0) {
-        return bad(&format!("mask[{i}]"), format!("bits beyond the {d} components"));
+        return bad(
+            &format!("mask[{i}]"),
+            format!("bits beyond the {d} components"),
+        );
     }
     let constrained: usize = l.mask.iter().map(|m| m.count_ones() as usize).sum();
     if constrained != l.constrained_dofs || d * l.n_nodes - constrained != l.free_dofs {
@@ -347,7 +366,11 @@ pub fn read_layout(path: &Path) -> Result<Layout, InputError> {
     if l.rotations.len() != l.rot_nodes.len() * d * d {
         return bad(
             "rotations",
-            format!("{} values for {} rotated nodes of dimension {d}", l.rotations.len(), l.rot_nodes.len()),
+            format!(
+                "{} values for {} rotated nodes of dimension {d}",
+                l.rotations.len(),
+                l.rot_nodes.len()
+            ),
         );
     }
     // Each V_i must be orthonormal: recovery applies it as given.
@@ -356,7 +379,7 @@ pub fn read_layout(path: &Path) -> Result<Layout, InputError> {
             for b in 0..d {
                 let s: f64 = (0..d).map(|r| v[r * d + a] * v[r * d + b]).sum();
                 let want = if a == b { 1.0 } else { 0.0 };
-                if !((s - want).abs() <= 1e-12) {
+                if s.is_nan() || (s - want).abs() > 1e-12 {
                     return bad(
                         &format!("rotations[{k}]"),
                         "the rotation is not orthonormal (|VᵀV − I| > 1e-12)".to_string(),
@@ -365,7 +388,10 @@ pub fn read_layout(path: &Path) -> Result<Layout, InputError> {
             }
         }
     }
-    if l.lift.as_ref().is_some_and(|v| v.len() != d * l.n_nodes || v.iter().any(|x| !x.is_finite())) {
+    if l.lift
+        .as_ref()
+        .is_some_and(|v| v.len() != d * l.n_nodes || v.iter().any(|x| !x.is_finite()))
+    {
         return bad("lift", format!("expected {} finite values", d * l.n_nodes));
     }
     if l.constrained_diagonal != "identity" && l.constrained_diagonal != "hessian" {
@@ -419,19 +445,27 @@ pub fn recover(
             ),
         ));
     }
-    if h.dim != layout.dim || h.n != layout.n_nodes || fingerprint_matrix(h) != layout.hessian_fingerprint
+    if h.dim != layout.dim
+        || h.n != layout.n_nodes
+        || fingerprint_matrix(h) != layout.hessian_fingerprint
     {
         return Err(InputError::new(
             names[0],
             "hessian_fingerprint",
-            format!("the layout was exported from another system than {}", names[2]),
+            format!(
+                "the layout was exported from another system than {}",
+                names[2]
+            ),
         ));
     }
     if fingerprint_vector(g) != layout.gradient_fingerprint {
         return Err(InputError::new(
             names[0],
             "gradient_fingerprint",
-            format!("the layout was exported from another system than {}", names[3]),
+            format!(
+                "the layout was exported from another system than {}",
+                names[3]
+            ),
         ));
     }
     let frames = layout.frames();

@@ -55,7 +55,11 @@ impl SystemSpec {
         let g = if dim == 2 {
             [rng.random_range(3..8), rng.random_range(3..8), 1]
         } else {
-            [rng.random_range(2..5), rng.random_range(2..5), rng.random_range(2..4)]
+            [
+                rng.random_range(2..5),
+                rng.random_range(2..5),
+                rng.random_range(2..4),
+            ]
         };
         SystemSpec {
             dim,

@@ -58,6 +58,11 @@ use std::time::Instant;
 const ARMIJO: f64 = 1e-4;
 /// Backtracking halvings before the line search gives up.
 const MAX_HALVINGS: usize = 40;
+/// Largest relative residual ‖b̂ − Ĥy‖/‖b̂‖ accepted from a Cholesky solve inside Newton.
+/// A factorization that succeeds on a nearly singular Ĥ can return a direction this far
+/// off; the step then fails (naming the residual) instead of line-searching a wrong
+/// direction, as the CG and GPU paths fail when they miss their tolerance.
+pub const CHOLESKY_MAX_RESIDUAL: f64 = 1e-8;
 /// CCD filter: a Newton step may cover at most this fraction of any node's distance to an
 /// obstacle (IPC's 1 − s with s = 0.1).
 pub const CCD_FRACTION: f64 = 0.9;
@@ -130,7 +135,8 @@ impl LinearSolver {
                     self.oracles.insert(key.to_vec(), o);
                 }
                 let o = self.oracles.get_mut(key).expect("inserted above");
-                let (y, _) = o.solve(e).map_err(|err| err.to_string())?;
+                let (y, info) = o.solve(e).map_err(|err| err.to_string())?;
+                check_cholesky_residual(info.relative_residual)?;
                 let dx = e.recover(&y);
                 Ok((
                     dx,
@@ -260,6 +266,24 @@ pub struct Stepper<'s> {
     pushed_nodes: u64,
     /// Contact force per DOF at the end of the last step (newtons; empty without obstacles).
     pub contact_forces: Vec<f64>,
+    /// Reused work vectors of [`Stepper::step`] (no allocation per Newton iteration).
+    work: StepWork,
+}
+
+/// Work vectors of one step, kept between steps so the Newton loop does not allocate them.
+/// Every entry is overwritten before it is read; they carry no state between steps.
+#[derive(Default)]
+struct StepWork {
+    /// xⁿ, the positions at the start of the step.
+    xn: Vec<f64>,
+    /// x̃ = xⁿ + h vⁿ.
+    xt: Vec<f64>,
+    /// ∇E at the current iterate.
+    g: Vec<f64>,
+    /// The line search's trial iterate (swapped with x when accepted).
+    xtry: Vec<f64>,
+    /// The gradient in the nodes' frames (reactions).
+    gy: Vec<f64>,
 }
 
 impl<'s> Stepper<'s> {
@@ -304,6 +328,7 @@ impl<'s> Stepper<'s> {
             } else {
                 Vec::new()
             },
+            work: StepWork::default(),
         };
         // Build (and validate) the static constraint set up front: bad conditions fail
         // before the first step.
@@ -444,14 +469,29 @@ impl<'s> Stepper<'s> {
             ..StepReport::default()
         };
 
+        // Work vectors, taken from the stepper and put back at the end of the step (an
+        // error path drops them; the next step reallocates).
+        let mut w = std::mem::take(&mut self.work);
+        let n = self.x.len();
+        for v in [&mut w.xt, &mut w.g, &mut w.xtry, &mut w.gy] {
+            v.clear();
+            v.resize(n, 0.0);
+        }
+        let StepWork {
+            mut xn,
+            mut xt,
+            mut g,
+            mut xtry,
+            mut gy,
+        } = w;
+
         // 1. Project onto the static constraint sets.
-        let xn = self.x.clone();
+        xn.clone_from(&self.x);
         let mut x = self.x.clone();
         for &k in &self.static_bcs {
             let b = &sc.bcs[k];
             project(d, &b.shape, &mut x[b.node * d..(b.node + 1) * d]);
         }
-        let mut xt = vec![0.0; x.len()];
         for i in 0..x.len() {
             xt[i] = xn[i] + h * self.v[i];
         }
@@ -472,7 +512,6 @@ impl<'s> Stepper<'s> {
         let mut residual_at_update = f64::INFINITY;
 
         // 3. Newton.
-        let mut g = vec![0.0; x.len()];
         let mut iter = 0usize;
         loop {
             if iter >= sc.solver.max_newton_iterations {
@@ -562,7 +601,6 @@ impl<'s> Stepper<'s> {
                 rep.ccd_limited += 1;
             }
             let mut alpha = alpha_c;
-            let mut xtry = vec![0.0; x.len()];
             let mut accepted = false;
             for _ in 0..MAX_HALVINGS {
                 for i in 0..x.len() {
@@ -604,7 +642,6 @@ impl<'s> Stepper<'s> {
 
         // 4. Reactions: the constrained components of ∇E / h², per node, in newtons.
         let frames = &self.frames[&snapped];
-        let mut gy = vec![0.0; g.len()];
         frames.to_frame(&g, &mut gy);
         for (i, &m) in frames.mask.iter().enumerate() {
             for a in 0..d {
@@ -629,7 +666,15 @@ impl<'s> Stepper<'s> {
         for i in 0..x.len() {
             self.v[i] = (x[i] - xn[i]) / h;
         }
-        self.x = x;
+        // The old positions' buffer becomes next step's xⁿ work vector.
+        xn = std::mem::replace(&mut self.x, x);
+        self.work = StepWork {
+            xn,
+            xt,
+            g,
+            xtry,
+            gy,
+        };
         self.t = t1;
         self.step += 1;
         Ok(rep)
@@ -803,6 +848,17 @@ impl<'s> Stepper<'s> {
     }
 }
 
+/// Fails (saying the residual) when a Cholesky solve's relative residual is above
+/// [`CHOLESKY_MAX_RESIDUAL`] or NaN.
+fn check_cholesky_residual(r: f64) -> Result<(), String> {
+    if r.is_nan() || r > CHOLESKY_MAX_RESIDUAL {
+        return Err(format!(
+            "the Cholesky solve has relative residual {r:e}, above the limit {CHOLESKY_MAX_RESIDUAL:e} (the eliminated Hessian is too ill-conditioned)"
+        ));
+    }
+    Ok(())
+}
+
 /// r: the node's offset from its target set (slip: along the normal directions only).
 fn offset(d: usize, s: &BcShape, xi: &[f64]) -> [f64; 3] {
     let mut p = [0.0; 3];
@@ -862,4 +918,23 @@ fn project(d: usize, s: &BcShape, xi: &mut [f64]) {
 
 fn norm(v: &[f64; 3]) -> f64 {
     (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cholesky_residual_above_the_limit_fails_the_solve() {
+        assert!(check_cholesky_residual(0.0).is_ok());
+        assert!(check_cholesky_residual(1e-12).is_ok());
+        assert!(check_cholesky_residual(CHOLESKY_MAX_RESIDUAL).is_ok());
+        for r in [2e-8, 1e-3, f64::INFINITY, f64::NAN] {
+            let e = check_cholesky_residual(r).expect_err("must fail");
+            assert!(
+                e.contains("relative residual") && e.contains(&format!("{r:e}")),
+                "{e}"
+            );
+        }
+    }
 }

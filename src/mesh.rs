@@ -207,12 +207,46 @@ impl Mesh {
     }
 }
 
+/// Most nodes a generated mesh (rectangle, sheet, box, rod) may have: 50 million per
+/// body. A scene asking for more (its `cells` times the run's `--size`) is an input error;
+/// the generators below panic past it. At 3 coordinates per node this is already about
+/// 1.2 GB of positions alone, far beyond what one Newton step can factor.
+pub const MAX_NODES: usize = 50_000_000;
+
+/// Node and element counts of a generated grid with `cells[a]` cells along each axis (a rod
+/// has one axis, a rectangle or sheet two, a box three) and `per_cell` elements per cell,
+/// in checked arithmetic: None when the node count exceeds [`MAX_NODES`] (or overflows
+/// `usize`). Under the cap the element count cannot overflow either.
+pub fn grid_counts(cells: &[usize], per_cell: usize) -> Option<(usize, usize)> {
+    let mut nodes = 1usize;
+    let mut elements = per_cell;
+    for &n in cells {
+        nodes = nodes.checked_mul(n.checked_add(1)?)?;
+        if nodes > MAX_NODES {
+            return None;
+        }
+        elements = elements.checked_mul(n)?;
+    }
+    Some((nodes, elements))
+}
+
+/// [`grid_counts`], panicking past the cap (the generators' callers validate first).
+fn grid_counts_or_panic(cells: &[usize], per_cell: usize) -> (usize, usize) {
+    grid_counts(cells, per_cell).unwrap_or_else(|| {
+        panic!("a mesh of {cells:?} cells has more than {MAX_NODES} nodes (mesh::MAX_NODES)")
+    })
+}
+
 /// `[0,w]×[0,h]` split into nx×ny cells of two triangles each (alternating diagonals so
 /// the mesh has no preferred shear direction). Node (i, j) has index j·(nx+1) + i.
 /// In 3D the sheet lies in the plane z = 0.
+///
+/// # Panics
+/// When the mesh would have more than [`MAX_NODES`] nodes (check with [`grid_counts`]).
 pub fn rectangle(dim: usize, size: [f64; 2], cells: [usize; 2]) -> Mesh {
     let [nx, ny] = cells;
-    let mut x = Vec::with_capacity((nx + 1) * (ny + 1) * dim);
+    let (nodes, n_elements) = grid_counts_or_panic(&cells, 2);
+    let mut x = Vec::with_capacity(nodes * dim);
     for j in 0..=ny {
         for i in 0..=nx {
             x.push(size[0] * i as f64 / nx as f64);
@@ -223,7 +257,7 @@ pub fn rectangle(dim: usize, size: [f64; 2], cells: [usize; 2]) -> Mesh {
         }
     }
     let id = |i: usize, j: usize| j * (nx + 1) + i;
-    let mut elements = Vec::with_capacity(2 * nx * ny);
+    let mut elements = Vec::with_capacity(n_elements);
     for j in 0..ny {
         for i in 0..nx {
             let (a, b, c, d) = (id(i, j), id(i + 1, j), id(i + 1, j + 1), id(i, j + 1));
@@ -248,9 +282,13 @@ pub fn rectangle(dim: usize, size: [f64; 2], cells: [usize; 2]) -> Mesh {
 /// `[0,lx]×[0,ly]×[0,lz]` split into nx×ny×nz cubes of six tetrahedra each (Kuhn
 /// subdivision along the main diagonal, positively oriented, conforming across cubes).
 /// Node (i, j, k) has index (k·(ny+1) + j)·(nx+1) + i.
+///
+/// # Panics
+/// When the mesh would have more than [`MAX_NODES`] nodes (check with [`grid_counts`]).
 pub fn cuboid(size: [f64; 3], cells: [usize; 3]) -> Mesh {
     let [nx, ny, nz] = cells;
-    let mut x = Vec::with_capacity((nx + 1) * (ny + 1) * (nz + 1) * 3);
+    let (nodes, n_elements) = grid_counts_or_panic(&cells, 6);
+    let mut x = Vec::with_capacity(nodes * 3);
     for k in 0..=nz {
         for j in 0..=ny {
             for i in 0..=nx {
@@ -261,7 +299,7 @@ pub fn cuboid(size: [f64; 3], cells: [usize; 3]) -> Mesh {
         }
     }
     let id = |i: usize, j: usize, k: usize| (k * (ny + 1) + j) * (nx + 1) + i;
-    let mut elements = Vec::with_capacity(6 * nx * ny * nz);
+    let mut elements = Vec::with_capacity(n_elements);
     // The six monotone paths from corner (0,0,0) to (1,1,1): axis orders.
     const PATHS: [[usize; 3]; 6] = [
         [0, 1, 2],
@@ -297,8 +335,12 @@ pub fn cuboid(size: [f64; 3], cells: [usize; 3]) -> Mesh {
 }
 
 /// A straight rod of `cells` segments along x from the origin, length `length`.
+///
+/// # Panics
+/// When the rod would have more than [`MAX_NODES`] nodes (check with [`grid_counts`]).
 pub fn rod(dim: usize, length: f64, cells: usize) -> Mesh {
-    let mut x = Vec::with_capacity((cells + 1) * dim);
+    let (nodes, _) = grid_counts_or_panic(&[cells], 1);
+    let mut x = Vec::with_capacity(nodes * dim);
     for i in 0..=cells {
         x.push(length * i as f64 / cells as f64);
         x.push(0.0);
@@ -492,5 +534,28 @@ mod tests {
         // A rod in 2D: its length.
         let w = rod(2, 3.0, 5).boundary_measure();
         assert!((w.iter().sum::<f64>() - 3.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn grid_counts_are_checked_against_the_cap() {
+        assert_eq!(grid_counts(&[4, 3], 2), Some((20, 24)));
+        assert_eq!(grid_counts(&[2, 3, 2], 6), Some((36, 72)));
+        assert_eq!(grid_counts(&[5], 1), Some((6, 5)));
+        // Exactly at the cap, and one past it.
+        assert_eq!(
+            grid_counts(&[MAX_NODES - 1], 1),
+            Some((MAX_NODES, MAX_NODES - 1))
+        );
+        assert_eq!(grid_counts(&[MAX_NODES], 1), None);
+        // (n+1)³ would overflow usize: rejected, not wrapped or saturated.
+        assert_eq!(grid_counts(&[usize::MAX, usize::MAX, usize::MAX], 6), None);
+        assert_eq!(grid_counts(&[usize::MAX], 1), None);
+        assert_eq!(grid_counts(&[1 << 22, 1 << 22, 1 << 22], 6), None);
+    }
+
+    #[test]
+    #[should_panic(expected = "MAX_NODES")]
+    fn generators_panic_past_the_cap() {
+        let _ = cuboid([1.0; 3], [1 << 22, 1 << 22, 1 << 22]);
     }
 }

@@ -80,7 +80,9 @@ pub fn time_vs_error(report: &BenchReport, dir: &Path) -> Result<(), String> {
                 .draw_series(LineSeries::new(pts.clone(), c.stroke_width(2)))
                 .map_err(|e| e.to_string())?
                 .label(s.as_str())
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(2)));
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(2))
+                });
             chart
                 .draw_series(pts.into_iter().map(|p| Circle::new(p, 3, c.filled())))
                 .map_err(|e| e.to_string())?;
@@ -113,10 +115,16 @@ pub fn time_vs_size(report: &BenchReport, dir: &Path) -> Result<(), String> {
         let path = dir.join(format!("time_vs_size_{dim}d.svg"));
         let root = SVGBackend::new(&path, (720, 480)).into_drawing_area();
         root.fill(&WHITE).map_err(|e| e.to_string())?;
-        let (x0, x1) = bounds(fits.iter().flat_map(|f| f.points.iter().map(|p| p.0 as f64)));
+        let (x0, x1) = bounds(
+            fits.iter()
+                .flat_map(|f| f.points.iter().map(|p| p.0 as f64)),
+        );
         let (y0, y1) = bounds(fits.iter().flat_map(|f| f.points.iter().map(|p| p.1)));
         let mut chart = ChartBuilder::on(&root)
-            .caption(format!("{dim}D: seconds per CG iteration"), ("sans-serif", 18))
+            .caption(
+                format!("{dim}D: seconds per CG iteration"),
+                ("sans-serif", 18),
+            )
             .margin(12)
             .x_label_area_size(40)
             .y_label_area_size(60)
@@ -137,7 +145,9 @@ pub fn time_vs_size(report: &BenchReport, dir: &Path) -> Result<(), String> {
                 .draw_series(LineSeries::new(pts.clone(), c.stroke_width(2)))
                 .map_err(|e| e.to_string())?
                 .label(format!("{} (slope {:.2})", f.solver, f.slope))
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(2)));
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(2))
+                });
             chart
                 .draw_series(pts.into_iter().map(|p| Circle::new(p, 3, c.filled())))
                 .map_err(|e| e.to_string())?;

@@ -45,6 +45,30 @@ use crate::gpu::Precision;
 use crate::mesh::{self, ElementKind, Mesh};
 use serde::Deserialize;
 
+/// Most steps a run may take (`steps`, `end_time / time_step`, or `--steps`): one billion.
+pub const MAX_STEPS: usize = 1_000_000_000;
+
+/// Checks a scene name: it becomes the default output folder `out/<name>` and the prefix
+/// of every frame file, so it must be a plain file name: not empty, no path separator
+/// (`/` or `\\`), no `..`, no NUL or other control character. The error says what is wrong.
+pub fn check_name(name: &str) -> Result<(), String> {
+    if name.is_empty() {
+        return Err("must not be empty".into());
+    }
+    if name.contains(['/', '\\']) {
+        return Err(format!(
+            "must be a plain file name without path separators, got {name:?}"
+        ));
+    }
+    if name.contains("..") {
+        return Err(format!("must not contain \"..\", got {name:?}"));
+    }
+    if name.chars().any(char::is_control) {
+        return Err(format!("must not contain control characters, got {name:?}"));
+    }
+    Ok(())
+}
+
 /// The built-in scenes, by name (the files in `scenes/`).
 pub const BUILTIN: &[(&str, &str)] = &[
     ("default", include_str!("../scenes/default.toml")),
@@ -649,8 +673,13 @@ fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, InputError> 
     if dim != 2 && dim != 3 {
         return Err(c.err("dimension", format!("must be 2 or 3, got {dim}")));
     }
+    // The one check of the run's `--size` (the resolution multiplier).
     if !(size.is_finite() && size > 0.0) {
-        return Err(c.err("size", format!("must be positive, got {size}")));
+        return Err(InputError::new(
+            "--size",
+            "",
+            format!("must be a positive number, got {size}"),
+        ));
     }
     let h = c.positive("time_step", spec.time_step)?;
     let steps = match (spec.steps, spec.end_time) {
@@ -658,10 +687,24 @@ fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, InputError> 
             return Err(c.err("end_time", "give either steps or end_time, not both"))
         }
         (Some(0), None) => return Err(c.err("steps", "must be at least 1")),
+        (Some(n), None) if n > MAX_STEPS => {
+            return Err(c.err("steps", format!("{n} is more than the cap of {MAX_STEPS}")))
+        }
         (Some(n), None) => n,
         (None, Some(t)) => {
             let t = c.positive("end_time", t)?;
-            ((t / h).round() as usize).max(1)
+            let n = (t / h).round();
+            // Checked before the cast (`as usize` saturates); NaN is rejected explicitly.
+            if n.is_nan() || n > MAX_STEPS as f64 {
+                return Err(c.err(
+                    "end_time",
+                    format!(
+                        "end_time / time_step = {:e} steps, more than the cap of {MAX_STEPS}",
+                        t / h
+                    ),
+                ));
+            }
+            (n as usize).max(1)
         }
         (None, None) => return Err(c.err("steps", "missing: give steps or end_time")),
     };
@@ -935,6 +978,15 @@ fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, InputError> 
             .map(|s| s.to_string_lossy().into_owned())
             .unwrap_or_else(|| "scene".into())
     });
+    // The name becomes a folder and file names: no separators, no `..`.
+    if let Err(problem) = check_name(&name) {
+        let problem = if spec.name.is_some() {
+            problem
+        } else {
+            format!("(taken from the file name) {problem}; give a `name`")
+        };
+        return Err(c.err("name", problem));
+    }
     Ok(Scene {
         name,
         file: file.to_string(),
@@ -1039,8 +1091,15 @@ fn point(x: &[f64], dim: usize, i: usize) -> [f64; 3] {
     p
 }
 
-fn scaled(cells: usize, size: f64) -> usize {
-    ((cells as f64 * size).round() as usize).max(1)
+/// `cells · size`, rounded, at least 1; None when it is above [`mesh::MAX_NODES`] (checked
+/// before the cast: `as usize` would saturate).
+fn scaled(cells: usize, size: f64) -> Option<usize> {
+    let n = (cells as f64 * size).round();
+    if n <= mesh::MAX_NODES as f64 {
+        Some((n as usize).max(1))
+    } else {
+        None
+    }
 }
 
 fn build_mesh(c: &Ctx, key: &str, m: &MeshSpec, dim: usize, size: f64) -> Result<Mesh, InputError> {
@@ -1066,7 +1125,31 @@ fn build_mesh(c: &Ctx, key: &str, m: &MeshSpec, dim: usize, size: f64) -> Result
     if let Some(k) = m.cells.iter().position(|&n| n == 0) {
         return Err(c.err(format!("{mk}.cells[{k}]"), "must be at least 1"));
     }
-    let cells: Vec<usize> = m.cells.iter().map(|&n| scaled(n, size)).collect();
+    // Node and element counts in checked arithmetic, against the per-body cap.
+    let too_big = || {
+        let by = if size == 1.0 {
+            String::new()
+        } else {
+            format!(" times --size {size}")
+        };
+        c.err(
+            format!("{mk}.cells"),
+            format!(
+                "{:?}{by} gives more than {} nodes, the cap per body (mesh::MAX_NODES)",
+                m.cells,
+                mesh::MAX_NODES
+            ),
+        )
+    };
+    let cells: Vec<usize> = m
+        .cells
+        .iter()
+        .map(|&n| scaled(n, size))
+        .collect::<Option<_>>()
+        .ok_or_else(too_big)?;
+    if mesh::grid_counts(&cells, 1).is_none() {
+        return Err(too_big());
+    }
     let size_vec = |n: usize| -> Result<Vec<f64>, InputError> {
         let s = m
             .size
@@ -1411,5 +1494,89 @@ material = { model = "neo-hookean", young = 1e4, poisson = 0.3, density = 100 }
             !line.contains('\n') && line.starts_with("bad.toml: bodies[0].material.poisson: "),
             "{line}"
         );
+    }
+
+    const BOX: &str = r#"
+dimension = 3
+time_step = 0.01
+steps = 3
+[[bodies]]
+mesh = { kind = "box", size = [1.0, 0.5, 0.5], cells = [4, 2, 2] }
+material = { model = "neo-hookean", young = 1e4, poisson = 0.3, density = 100 }
+"#;
+
+    #[test]
+    fn huge_meshes_are_input_errors_not_overflows() {
+        // --size 1e7 on a box: (4e7+1)(2e7+1)² nodes overflows usize.
+        let e = parse(BOX, "box.toml", 1e7).expect_err("too big");
+        assert_eq!(e.entry, "bodies[0].mesh.cells");
+        assert!(
+            e.problem.contains("--size") && e.problem.contains("cap"),
+            "{e}"
+        );
+        // Every builtin scene, at a size that overflows.
+        for (name, text) in BUILTIN {
+            let e = parse(text, name, 1e300).expect_err(name);
+            assert!(e.entry.ends_with(".mesh.cells"), "{name}: {e}");
+        }
+        // Over the cap without overflow, and from the file alone (size 1).
+        let e = entry_of(&BOX.replace("cells = [4, 2, 2]", "cells = [1000, 1000, 100]"));
+        assert_eq!(e.entry, "bodies[0].mesh.cells");
+        assert!(!e.problem.contains("--size"), "{e}");
+        let e = entry_of(&OK.replace("cells = [4, 2]", "cells = [18446744073709551615, 2]"));
+        assert_eq!(e.entry, "bodies[0].mesh.cells");
+        // Within the cap it still parses.
+        let s = parse(BOX, "box.toml", 2.0).expect("valid");
+        assert_eq!(s.x0.len(), 3 * 9 * 5 * 5);
+    }
+
+    #[test]
+    fn step_counts_are_capped() {
+        let e = entry_of(&OK.replace("steps = 3", "end_time = 1e300"));
+        assert_eq!(e.entry, "end_time");
+        assert!(e.problem.contains("cap"), "{e}");
+        let e = entry_of(&OK.replace("steps = 3", "steps = 1000000001"));
+        assert_eq!(e.entry, "steps");
+        let e = entry_of(&OK.replace("steps = 3", "steps = 18446744073709551615"));
+        assert_eq!(e.entry, "steps");
+        let s = parse(&OK.replace("steps = 3", "end_time = 0.1"), "ok.toml", 1.0).expect("ok");
+        assert_eq!(s.steps, 10);
+        let s = parse(
+            &OK.replace("steps = 3", &format!("steps = {MAX_STEPS}")),
+            "ok.toml",
+            1.0,
+        )
+        .expect("at the cap");
+        assert_eq!(s.steps, MAX_STEPS);
+    }
+
+    #[test]
+    fn size_is_checked_once_naming_the_option() {
+        for size in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            let e = parse(OK, "ok.toml", size).expect_err("bad size");
+            assert_eq!(e.file, "--size", "{e}");
+            assert!(
+                e.to_string()
+                    .starts_with("--size: must be a positive number"),
+                "{e}"
+            );
+        }
+    }
+
+    #[test]
+    fn names_must_be_plain_file_names() {
+        for bad in ["", "a/b", "/abs", "..", "../up", "a\\b", "x..y", "a\nb"] {
+            let text = format!("name = {bad:?}\n{OK}");
+            let e = entry_of(&text);
+            assert_eq!(e.entry, "name", "{bad:?}: {e}");
+        }
+        for good in ["scene", "my-scene_2", "a.b", "drop v2"] {
+            let s = parse(&format!("name = {good:?}\n{OK}"), "ok.toml", 1.0).expect(good);
+            assert_eq!(s.name, good);
+        }
+        // A name taken from the file stem is checked too ("...toml" has the stem "..").
+        let e = parse(OK, "dir/...toml", 1.0).expect_err("stem ..");
+        assert_eq!(e.entry, "name");
+        assert_eq!(parse(OK, "dir/ok.toml", 1.0).expect("ok").name, "ok");
     }
 }

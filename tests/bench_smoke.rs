@@ -22,27 +22,47 @@ fn bench_quick_writes_json_csv_and_plots() {
     let runs = json["runs"].as_array().expect("runs");
     assert!(!runs.is_empty());
     for key in [
-        "dim", "nodes", "solver", "precision", "converged", "iterations", "relative_residual",
-        "relative_error", "error_reference", "setup_seconds", "solve_seconds", "total_seconds",
-        "bytes_per_iteration", "achieved_gb_per_s", "peak_rss_bytes",
+        "dim",
+        "nodes",
+        "solver",
+        "precision",
+        "converged",
+        "iterations",
+        "relative_residual",
+        "relative_error",
+        "error_reference",
+        "setup_seconds",
+        "solve_seconds",
+        "total_seconds",
+        "bytes_per_iteration",
+        "achieved_gb_per_s",
+        "peak_rss_bytes",
     ] {
         assert!(runs[0].get(key).is_some(), "run record lacks {key}");
     }
     for solver in ["cholesky", "cg-jacobi", "cg-block-jacobi"] {
         assert!(
-            runs.iter().any(|r| r["solver"] == solver && r["converged"] == true),
+            runs.iter()
+                .any(|r| r["solver"] == solver && r["converged"] == true),
             "no converged {solver} run"
         );
     }
     // The GPU solvers run whenever an adapter exists; CI requires one.
     if std::env::var_os("STICKSLIP_REQUIRE_GPU").is_some() {
         for p in ["gpu-f32", "gpu-f64", "gpu-mixed"] {
-            assert!(runs.iter().any(|r| r["solver"] == p && r["converged"] == true), "no converged {p} run");
+            assert!(
+                runs.iter()
+                    .any(|r| r["solver"] == p && r["converged"] == true),
+                "no converged {p} run"
+            );
         }
     }
     // Every converged iterative run is within 10× of what its tolerance promises… in the
     // residual; the error is reported, not asserted here (stability suite checks it).
-    for r in runs.iter().filter(|r| r["converged"] == true && r["tol"].is_number()) {
+    for r in runs
+        .iter()
+        .filter(|r| r["converged"] == true && r["tol"].is_number())
+    {
         let tol = r["tol"].as_f64().unwrap();
         assert!(r["relative_residual"].as_f64().unwrap() <= tol, "{r}");
     }
@@ -51,7 +71,10 @@ fn bench_quick_writes_json_csv_and_plots() {
     assert!(dir.join("bench.csv").exists());
     let svgs = std::fs::read_dir(&dir)
         .unwrap()
-        .filter(|e| e.as_ref().is_ok_and(|e| e.path().extension().is_some_and(|x| x == "svg")))
+        .filter(|e| {
+            e.as_ref()
+                .is_ok_and(|e| e.path().extension().is_some_and(|x| x == "svg"))
+        })
         .count();
     assert!(svgs >= 2, "{svgs} plots");
     std::fs::remove_dir_all(&dir).ok();

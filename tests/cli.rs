@@ -115,7 +115,14 @@ impl Case {
     fn solve_with_h(&self, h: &str) -> Output {
         let out = self.dir.join("dx.mtx");
         run(&[
-            "solve", "--hessian", h, "--gradient", &self.g, "--constraints", &self.bc, "--out",
+            "solve",
+            "--hessian",
+            h,
+            "--gradient",
+            &self.g,
+            "--constraints",
+            &self.bc,
+            "--out",
             out.to_str().unwrap(),
         ])
     }
@@ -400,7 +407,9 @@ fn indefinite_h_exits_1() {
 fn help_lists_every_subcommand() {
     let o = run(&["--help"]);
     let help = String::from_utf8_lossy(&o.stdout);
-    for sub in ["solve", "generate", "info", "run", "bench", "export", "recover"] {
+    for sub in [
+        "solve", "generate", "info", "run", "bench", "export", "recover",
+    ] {
         assert!(help.contains(sub), "{help}");
     }
     assert_eq!(run(&["info"]).status.code(), Some(0));
@@ -709,11 +718,26 @@ fn export_recover_round_trip_and_bad_recovery_inputs() {
     let s = |n: &str| dir.join(n).to_str().unwrap().to_string();
     let ex = s("ex");
     let o = run(&[
-        "export", "--hessian", &s("H.mtx"), "--gradient", &s("g.mtx"), "--constraints",
-        &s("bc.json"), "--out-dir", &ex, "--quiet",
+        "export",
+        "--hessian",
+        &s("H.mtx"),
+        "--gradient",
+        &s("g.mtx"),
+        "--constraints",
+        &s("bc.json"),
+        "--out-dir",
+        &ex,
+        "--quiet",
     ]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
-    for f in ["hhat.petsc", "hhat.petsc.info", "bhat.petsc", "hhat.mtx", "bhat.mtx", "layout.json"] {
+    for f in [
+        "hhat.petsc",
+        "hhat.petsc.info",
+        "bhat.petsc",
+        "hhat.mtx",
+        "bhat.mtx",
+        "layout.json",
+    ] {
         assert!(dir.join("ex").join(f).exists(), "{f} missing");
     }
     // g for the unconstrained solve is −b̂.
@@ -722,23 +746,57 @@ fn export_recover_round_trip_and_bad_recovery_inputs() {
     let gneg = write(&dir, "gneg.mtx", &g_array(&neg));
     let free = write(&dir, "free.json", r#"{"dim": 3, "constraints": []}"#);
     let o = run(&[
-        "solve", "--hessian", &format!("{ex}/hhat.mtx"), "--gradient", &gneg, "--constraints",
-        &free, "--out", &s("y.mtx"), "--quiet",
+        "solve",
+        "--hessian",
+        &format!("{ex}/hhat.mtx"),
+        "--gradient",
+        &gneg,
+        "--constraints",
+        &free,
+        "--out",
+        &s("y.mtx"),
+        "--quiet",
     ]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     let o = run(&[
-        "recover", "--layout", &format!("{ex}/layout.json"), "--solution", &s("y.mtx"),
-        "--hessian", &s("H.mtx"), "--gradient", &s("g.mtx"), "--out", &s("dx_rec.mtx"),
-        "--reactions", &s("f_rec.mtx"), "--quiet",
+        "recover",
+        "--layout",
+        &format!("{ex}/layout.json"),
+        "--solution",
+        &s("y.mtx"),
+        "--hessian",
+        &s("H.mtx"),
+        "--gradient",
+        &s("g.mtx"),
+        "--out",
+        &s("dx_rec.mtx"),
+        "--reactions",
+        &s("f_rec.mtx"),
+        "--quiet",
     ]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     let o = run(&[
-        "solve", "--hessian", &s("H.mtx"), "--gradient", &s("g.mtx"), "--constraints",
-        &s("bc.json"), "--out", &s("dx.mtx"), "--reactions", &s("f.mtx"), "--quiet",
+        "solve",
+        "--hessian",
+        &s("H.mtx"),
+        "--gradient",
+        &s("g.mtx"),
+        "--constraints",
+        &s("bc.json"),
+        "--out",
+        &s("dx.mtx"),
+        "--reactions",
+        &s("f.mtx"),
+        "--quiet",
     ]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     let rel = |a: &[f64], b: &[f64]| {
-        let n: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum::<f64>().sqrt();
+        let n: f64 = a
+            .iter()
+            .zip(b)
+            .map(|(x, y)| (x - y) * (x - y))
+            .sum::<f64>()
+            .sqrt();
         n / b.iter().map(|x| x * x).sum::<f64>().sqrt()
     };
     // Both are Cholesky solves of the same SPD system in f64 (condition ~1e2): 1e-12.
@@ -748,34 +806,84 @@ fn export_recover_round_trip_and_bad_recovery_inputs() {
     // Wrong length.
     let short = write(&dir, "short.mtx", &g_array(&bhat[1..]));
     let o = run(&[
-        "recover", "--layout", &format!("{ex}/layout.json"), "--solution", &short,
-        "--hessian", &s("H.mtx"), "--gradient", &s("g.mtx"), "--out", &s("x.mtx"),
+        "recover",
+        "--layout",
+        &format!("{ex}/layout.json"),
+        "--solution",
+        &short,
+        "--hessian",
+        &s("H.mtx"),
+        "--gradient",
+        &s("g.mtx"),
+        "--out",
+        &s("x.mtx"),
     ]);
     assert_input_error(&o, &short, &["rows", "expected"]);
     // A layout from another system of the same size.
     let other = tmpdir("export-other");
     let o = run(&[
-        "generate", "--dim", "3", "--nodes", "300", "--seed", "4", "--mix", "random",
-        "--out-dir", other.to_str().unwrap(), "--quiet",
+        "generate",
+        "--dim",
+        "3",
+        "--nodes",
+        "300",
+        "--seed",
+        "4",
+        "--mix",
+        "random",
+        "--out-dir",
+        other.to_str().unwrap(),
+        "--quiet",
     ]);
     assert_eq!(o.status.code(), Some(0));
     let ex2 = other.join("ex").to_str().unwrap().to_string();
     let o2 = |n: &str| other.join(n).to_str().unwrap().to_string();
     let o = run(&[
-        "export", "--hessian", &o2("H.mtx"), "--gradient", &o2("g.mtx"), "--constraints",
-        &o2("bc.json"), "--out-dir", &ex2, "--quiet", "--no-mtx",
+        "export",
+        "--hessian",
+        &o2("H.mtx"),
+        "--gradient",
+        &o2("g.mtx"),
+        "--constraints",
+        &o2("bc.json"),
+        "--out-dir",
+        &ex2,
+        "--quiet",
+        "--no-mtx",
     ]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     let o = run(&[
-        "recover", "--layout", &format!("{ex2}/layout.json"), "--solution", &s("y.mtx"),
-        "--hessian", &s("H.mtx"), "--gradient", &s("g.mtx"), "--out", &s("x.mtx"),
+        "recover",
+        "--layout",
+        &format!("{ex2}/layout.json"),
+        "--solution",
+        &s("y.mtx"),
+        "--hessian",
+        &s("H.mtx"),
+        "--gradient",
+        &s("g.mtx"),
+        "--out",
+        &s("x.mtx"),
     ]);
     assert_input_error(&o, &format!("{ex2}/layout.json"), &["another system"]);
     // A malformed layout.
-    let bad = write(&dir, "bad_layout.json", r#"{"format": "stickslip-eliminated-v1", "dim": 3"#);
+    let bad = write(
+        &dir,
+        "bad_layout.json",
+        r#"{"format": "stickslip-eliminated-v1", "dim": 3"#,
+    );
     let o = run(&[
-        "recover", "--layout", &bad, "--solution", &s("y.mtx"), "--hessian", &s("H.mtx"),
-        "--gradient", &s("g.mtx"), "--out", &s("x.mtx"),
+        "recover",
+        "--layout",
+        &bad,
+        "--solution",
+        &s("y.mtx"),
+        "--hessian",
+        &s("H.mtx"),
+        "--gradient",
+        &s("g.mtx"),
+        "--out",
+        &s("x.mtx"),
     ]);
     assert_input_error(&o, &bad, &["line"]);
 }
@@ -789,14 +897,25 @@ fn bad_scene_files_name_the_key() {
     for (name, from, to, want) in [
         ("poisson", "poisson = 0.35", "poisson = 0.7", "poisson"),
         ("young", "young = 2e5", "young = -1.0", "young"),
-        ("unknown", "time_step = 0.01", "time_step = 0.01\ntimestep = 0.02", "timestep"),
+        (
+            "unknown",
+            "time_step = 0.01",
+            "time_step = 0.01\ntimestep = 0.02",
+            "timestep",
+        ),
         ("kind", "kind = \"plane\"", "kind = \"hinge\"", "kind"),
         ("dt", "time_step = 0.01", "time_step = 0.0", "time_step"),
     ] {
         let text = base.replacen(from, to, 1);
         assert_ne!(text, base, "{name}: edit did not apply");
         let path = write(&dir, &format!("{name}.toml"), &text);
-        let o = run(&["run", &path, "--out", dir.join("out").to_str().unwrap(), "--quiet"]);
+        let o = run(&[
+            "run",
+            &path,
+            "--out",
+            dir.join("out").to_str().unwrap(),
+            "--quiet",
+        ]);
         assert_input_error(&o, &path, &[want]);
     }
     let o = run(&["run", "no-such-scene", "--quiet"]);
@@ -830,8 +949,17 @@ fn corrupt_sizes_and_tampered_layouts_exit_2() {
     let s = |n: &str| dir.join(n).to_str().unwrap().to_string();
     let ex = s("ex");
     let o = run(&[
-        "export", "--hessian", &s("H.mtx"), "--gradient", &s("g.mtx"), "--constraints",
-        &s("bc.json"), "--out-dir", &ex, "--quiet", "--no-mtx",
+        "export",
+        "--hessian",
+        &s("H.mtx"),
+        "--gradient",
+        &s("g.mtx"),
+        "--constraints",
+        &s("bc.json"),
+        "--out-dir",
+        &ex,
+        "--quiet",
+        "--no-mtx",
     ]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     let text = std::fs::read_to_string(format!("{ex}/layout.json")).unwrap();
@@ -840,8 +968,17 @@ fn corrupt_sizes_and_tampered_layouts_exit_2() {
     let bad = write(&dir, "bad_mask.json", &v.to_string());
     let y = write(&dir, "y.mtx", &g_array(&vec![0.0; 900]));
     let o = run(&[
-        "recover", "--layout", &bad, "--solution", &y, "--hessian", &s("H.mtx"), "--gradient",
-        &s("g.mtx"), "--out", &s("x.mtx"),
+        "recover",
+        "--layout",
+        &bad,
+        "--solution",
+        &y,
+        "--hessian",
+        &s("H.mtx"),
+        "--gradient",
+        &s("g.mtx"),
+        "--out",
+        &s("x.mtx"),
     ]);
     assert_input_error(&o, &bad, &["mask[0]"]);
 }

@@ -104,13 +104,20 @@ fn oracle_and_cg_match_the_dense_kkt_solve_on_200_random_systems() {
         constrained += s.frames.constrained_dofs();
         let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
         let (y, info) = oracle::solve(&e).expect("oracle");
-        assert!(info.relative_residual < 1e-12, "case {case}: residual {}", info.relative_residual);
+        assert!(
+            info.relative_residual < 1e-12,
+            "case {case}: residual {}",
+            info.relative_residual
+        );
         let dx = e.recover(&y);
         let (b, p) = global_b(dim, n, &s.constraints);
         let kkt = dense_kkt(&s.h.to_dense(), &s.g, &b, &p);
 
         let err = rel(&dx, &kkt.dx);
-        assert!(err <= 1e-9, "case {case} (dim {dim}): oracle vs KKT {err:e}");
+        assert!(
+            err <= 1e-9,
+            "case {case} (dim {dim}): oracle vs KKT {err:e}"
+        );
 
         let bdx = &b * DVector::from_column_slice(&dx) - &p;
         let dxn = DVector::from_column_slice(&dx).norm();

@@ -34,7 +34,9 @@ fn petsc_two_ranks_matches_the_oracle() {
         if std::env::var_os("STICKSLIP_REQUIRE_PETSC").is_some() {
             panic!("STICKSLIP_REQUIRE_PETSC is set but mpiexec or python3-petsc4py is missing");
         }
-        eprintln!("SKIP petsc_two_ranks_matches_the_oracle: mpiexec or python3-petsc4py not installed");
+        eprintln!(
+            "SKIP petsc_two_ranks_matches_the_oracle: mpiexec or python3-petsc4py not installed"
+        );
         return;
     }
     let s = random_system(&SystemSpec::with_nodes(3, 50_000, 7));
@@ -48,7 +50,10 @@ fn petsc_two_ranks_matches_the_oracle() {
         kinds(|k| matches!(k, K::Plane { .. })),
         kinds(|k| matches!(k, K::Line { .. })),
     );
-    assert!(ns > 0 && np > 0 && nl > 0, "sticky {ns}, plane {np}, line {nl}");
+    assert!(
+        ns > 0 && np > 0 && nl > 0,
+        "sticky {ns}, plane {np}, line {nl}"
+    );
     let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
 
     let t = Instant::now();
@@ -69,7 +74,8 @@ fn petsc_two_ranks_matches_the_oracle() {
     let t_cg = t.elapsed().as_secs_f64();
 
     let dir = std::env::temp_dir().join(format!("stickslip-petsc-{}", std::process::id()));
-    let files = export::export(&e, ConstrainedDiagonal::Identity, &s.g, &dir, false).expect("export");
+    let files =
+        export::export(&e, ConstrainedDiagonal::Identity, &s.g, &dir, false).expect("export");
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/petsc_solve.py");
     let t = Instant::now();
     let out = Command::new("mpiexec")
@@ -103,7 +109,12 @@ fn petsc_two_ranks_matches_the_oracle() {
         .expect("recover")
         .dx;
 
-    let num: f64 = dx.iter().zip(&dx_ref).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
+    let num: f64 = dx
+        .iter()
+        .zip(&dx_ref)
+        .map(|(a, b)| (a - b) * (a - b))
+        .sum::<f64>()
+        .sqrt();
     let den: f64 = dx_ref.iter().map(|a| a * a).sum::<f64>().sqrt();
     let err = num / den;
     let dxmax = dx.iter().fold(0.0f64, |m, v| m.max(v.abs()));

@@ -85,7 +85,10 @@ fn compress_ceiling_reaches_target_then_is_eliminated() {
 fn augmented_lagrangian_variant_reaches_targets_too() {
     let text = stickslip::scene::builtin("twist")
         .expect("builtin")
-        .replace("tolerance = 1e-3", "tolerance = 1e-3\naugmented_lagrangian = true");
+        .replace(
+            "tolerance = 1e-3",
+            "tolerance = 1e-3\naugmented_lagrangian = true",
+        );
     let dir = std::env::temp_dir().join(format!("stickslip-sim-moving-al-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("tmp");
     let path = dir.join("twist-al.toml");
@@ -121,7 +124,10 @@ fn seed_line_node_stays_on_2x_plus_3y_eq_4() {
     let node = scene.bcs[0].node;
     let x = &s.final_positions[2 * node..2 * node + 2];
     let r = 2.0 * x[0] + 3.0 * x[1] - 4.0;
-    eprintln!("seed-line: node {node} ends at ({}, {}), 2x + 3y − 4 = {r:e}", x[0], x[1]);
+    eprintln!(
+        "seed-line: node {node} ends at ({}, {}), 2x + 3y − 4 = {r:e}",
+        x[0], x[1]
+    );
     assert!(r.abs() <= 1e-12);
     // It slid: the line is free along (3, −2)/√13.
     let x0 = &scene.x0[2 * node..2 * node + 2];

@@ -65,7 +65,9 @@ fn compare(name: &str, steps: usize) {
         Err(RunError::Solve { step: 0, cause, .. }) if cause.contains("cannot start") => {
             // No adapter: skip loudly, unless CI demands a GPU (lavapipe there).
             if std::env::var_os("STICKSLIP_REQUIRE_GPU").is_some() {
-                panic!("{name}: STICKSLIP_REQUIRE_GPU is set but the GPU solver cannot start: {cause}");
+                panic!(
+                    "{name}: STICKSLIP_REQUIRE_GPU is set but the GPU solver cannot start: {cause}"
+                );
             }
             eprintln!("SKIP {name}: GPU comparison NOT RUN (no adapter): {cause}");
         }

@@ -41,7 +41,7 @@ impl NeoHookean {
     pub fn new(mesh: &Mesh, young: f64, poisson: f64) -> Result<Self, String> {
         let d = mesh.dim;
         let nn = d + 1;
-        if mesh.elements.first().map_or(false, |e| e.len() != nn) {
+        if mesh.elements.first().is_some_and(|e| e.len() != nn) {
             return Err(format!(
                 "neo-Hookean needs {} elements in {d}D",
                 if d == 2 { "triangle" } else { "tetrahedron" }
@@ -62,7 +62,8 @@ impl NeoHookean {
                 }
             }
             let det = dm.determinant();
-            if !(det > 0.0) {
+            // NaN (a non-finite rest position) is rejected explicitly, like det ≤ 0.
+            if det.is_nan() || det <= 0.0 {
                 return Err(format!("element {e} is degenerate or inverted at rest"));
             }
             volume.push(det / if d == 2 { 2.0 } else { 6.0 });
@@ -72,7 +73,7 @@ impl NeoHookean {
             // F = Ds Dm⁻¹ ⇒ ∂F_ij/∂x_{a,i} = (Dm⁻¹)_{a−1, j} for a ≥ 1; node 0 takes minus the sum.
             let mut g0 = vec![0.0; d];
             let start = shape_grads.len();
-            shape_grads.extend(std::iter::repeat(0.0).take(nn * d));
+            shape_grads.extend(std::iter::repeat_n(0.0, nn * d));
             for a in 1..nn {
                 for j in 0..d {
                     let v = inv[(a - 1, j)];

@@ -24,7 +24,8 @@ impl Springs {
                 .map(|a| (x[e[1] * dim + a] - x[e[0] * dim + a]).powi(2))
                 .sum::<f64>()
                 .sqrt();
-            if !(l > 0.0) {
+            // NaN (a non-finite node position) is rejected explicitly, like l ≤ 0.
+            if l.is_nan() || l <= 0.0 {
                 return Err(format!("spring {s} has zero rest length"));
             }
             rest.push(l);
