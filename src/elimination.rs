@@ -45,20 +45,7 @@ impl<'a> Eliminated<'a> {
         );
         assert_eq!(g.len(), h.ndof(), "g has the wrong length");
         let nd = h.ndof();
-        let mut r = g.to_vec();
-        if !frames.homogeneous {
-            let mut hl = vec![0.0; nd];
-            h.matvec(&frames.lift, &mut hl);
-            for k in 0..nd {
-                r[k] += hl[k];
-            }
-        }
-        let mut rhs = vec![0.0; nd];
-        frames.to_frame(&r, &mut rhs);
-        for v in rhs.iter_mut() {
-            *v = -*v;
-        }
-        frames.apply_mask(&mut rhs);
+        let rhs = eliminated_rhs(g, frames, |x, y| h.matvec(x, y));
         let d = match diag {
             ConstrainedDiagonal::Identity => vec![1.0; nd],
             ConstrainedDiagonal::Hessian => {
@@ -212,6 +199,30 @@ impl<'a> Eliminated<'a> {
             rn / bn
         }
     }
+}
+
+/// b̂ = −P Vᵀ(g + H Δx_p), with H given as a product (assembled or matrix-free).
+pub fn eliminated_rhs(
+    g: &[f64],
+    frames: &Frames,
+    apply_h: impl FnOnce(&[f64], &mut [f64]),
+) -> Vec<f64> {
+    let nd = g.len();
+    let mut r = g.to_vec();
+    if !frames.homogeneous {
+        let mut hl = vec![0.0; nd];
+        apply_h(&frames.lift, &mut hl);
+        for (rk, hk) in r.iter_mut().zip(&hl) {
+            *rk += hk;
+        }
+    }
+    let mut rhs = vec![0.0; nd];
+    frames.to_frame(&r, &mut rhs);
+    for v in rhs.iter_mut() {
+        *v = -*v;
+    }
+    frames.apply_mask(&mut rhs);
+    rhs
 }
 
 /// f = −(H Δx + g): the constraint (support) forces at the solution.

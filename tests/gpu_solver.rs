@@ -328,7 +328,10 @@ fn failures_are_errors_never_convergence() {
     p.max_iters = 2_000;
     p.stagnation_window = 50;
     match GpuSolver::new(ctx, &e, &p).expect("solver").solve() {
-        Err(GpuError::Cg(CgError::Stagnation { .. } | CgError::MaxIterations { .. })) => {}
+        Err(
+            GpuError::Cg(CgError::Stagnation { .. } | CgError::MaxIterations { .. })
+            | GpuError::InF32(CgError::Stagnation { .. }),
+        ) => {}
         other => panic!("expected an error, got {other:?}"),
     }
     // Indefinite Hessian: non-positive curvature.
@@ -341,10 +344,15 @@ fn failures_are_errors_never_convergence() {
         let r = GpuSolver::new(ctx, &e, &params(prec, 1e-8, Preconditioner::None))
             .expect("solver")
             .solve();
-        assert!(
-            matches!(r, Err(GpuError::Cg(CgError::NonPositiveCurvature { .. }))),
-            "{prec}: {r:?}"
-        );
+        // f32 reports it as an f32 failure (rounding could cause it there).
+        let ok = match prec {
+            Precision::F32 => matches!(
+                r,
+                Err(GpuError::InF32(CgError::NonPositiveCurvature { .. }))
+            ),
+            _ => matches!(r, Err(GpuError::Cg(CgError::NonPositiveCurvature { .. }))),
+        };
+        assert!(ok, "{prec}: {r:?}");
     }
 }
 

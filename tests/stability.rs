@@ -285,7 +285,9 @@ fn gpu_sweep(ctx: &GpuContext) -> Vec<String> {
                 }
                 Err(err) => {
                     eprintln!("{:<28} {who:<26} ERR {err}", p.case.name);
-                    if let stickslip::gpu::GpuError::Cg(c) = &err {
+                    if let stickslip::gpu::GpuError::Cg(c) | stickslip::gpu::GpuError::InF32(c) =
+                        &err
+                    {
                         if let Some(r) = c.reached_residual() {
                             assert!(
                                 r > tol,

@@ -40,6 +40,10 @@ pub enum GpuError {
     Mismatch(String),
     #[error(transparent)]
     Cg(#[from] CgError),
+    /// A CG failure in f32 arithmetic: on an ill-conditioned system rounding alone can
+    /// produce non-positive curvature or stagnation, so the message says so.
+    #[error("{0} — in f32 arithmetic, where rounding on an ill-conditioned system can cause this; --precision mixed or f64 tells the two apart")]
+    InF32(CgError),
 }
 
 /// Arithmetic of the GPU CG.

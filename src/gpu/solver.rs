@@ -733,22 +733,7 @@ fn check_params(ctx: &GpuContext, p: &GpuParams) -> Result<(), GpuError> {
 
 /// b̂ = −P Vᵀ(g + H Δx_p) for the matrix-free system.
 fn spring_rhs(ms: &MassSpring, g: &[f64], frames: &Frames) -> Vec<f64> {
-    let nd = ms.ndof();
-    let mut r = g.to_vec();
-    if !frames.homogeneous {
-        let mut hl = vec![0.0; nd];
-        ms.apply(&frames.lift, &mut hl);
-        for k in 0..nd {
-            r[k] += hl[k];
-        }
-    }
-    let mut rhs = vec![0.0; nd];
-    frames.to_frame(&r, &mut rhs);
-    for v in rhs.iter_mut() {
-        *v = -*v;
-    }
-    frames.apply_mask(&mut rhs);
-    rhs
+    crate::elimination::eliminated_rhs(g, frames, |x, y| ms.apply(x, y))
 }
 
 /// Diagonal blocks V_iᵀ H_ii V_i of the spring Hessian, computed on the host (O(springs)).
@@ -1587,7 +1572,13 @@ impl GpuSolver {
         } else if self.refine.is_some() {
             self.solve_mixed(bnorm, &mut notes)?
         } else {
-            self.solve_plain(bnorm)?
+            let f32_only = self.params.precision == Precision::F32;
+            self.solve_plain(bnorm).map_err(|e| match e {
+                GpuError::Cg(
+                    c @ (CgError::NonPositiveCurvature { .. } | CgError::Stagnation { .. }),
+                ) if f32_only => GpuError::InF32(c),
+                other => other,
+            })?
         };
         let _ = t0;
         let rel = self.host.relative_residual(&y);
