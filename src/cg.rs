@@ -15,7 +15,8 @@
 //! Every error carries the true residual of the iterate reached.
 
 use crate::constraints::Frames;
-use crate::elimination::{norm2, rotate_block, Eliminated};
+use crate::elimination::{rotate_block, Eliminated};
+use crate::linalg::{dot, norm2};
 use crate::sparse::BlockCsr;
 
 /// Preconditioner built on the free components of Ĥ (constrained components get 1/D).
@@ -715,10 +716,6 @@ fn pcg_core(
         }
         info.restarts += 1;
     }
-}
-
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
 #[cfg(test)]

@@ -11,6 +11,8 @@
 //! those axes); every other slip node carries an orthonormal V_i whose first r_i columns
 //! span the constrained directions.
 
+use crate::linalg::{cross3, dot, norm2, unit};
+
 /// Relative rank tolerance for the stacked, row-normalized constraints of one node: a
 /// singular value σ counts when σ > RANK_RTOL · σ_max. Two unit rows at angle θ have
 /// σ_min ≈ θ/√2, so rows closer than about 1.4e-8 rad in angle act as one constraint.
@@ -366,7 +368,7 @@ fn validate(dim: usize, n_nodes: usize, c: &Constraint) -> Result<(), Constraint
     // A vector can be finite with a norm that overflows (entries near 1e200).
     let (rows, _) = node_rows(dim, c);
     for r in &rows {
-        let n = norm(r);
+        let n = norm2(r);
         if !n.is_finite() || n == 0.0 {
             return Err(cerr(
                 l,
@@ -406,7 +408,7 @@ fn node_frame(dim: usize, cs: &[&Constraint]) -> Result<NodeFrame, ConstraintErr
                 });
             }
             ConstraintKind::Plane { normal, offset } => {
-                let len = norm(normal);
+                let len = norm2(normal);
                 let n = unit(normal);
                 let mut lift = [0.0; 3];
                 for a in 0..dim {
@@ -443,7 +445,7 @@ fn node_frame(dim: usize, cs: &[&Constraint]) -> Result<NodeFrame, ConstraintErr
     for c in cs {
         let (r, v) = node_rows(dim, c);
         for (row, val) in r.into_iter().zip(v) {
-            let len = norm(&row);
+            let len = norm2(&row);
             rows.push(row.iter().map(|x| x / len).collect());
             vals.push(val / len);
         }
@@ -475,7 +477,7 @@ fn node_frame(dim: usize, cs: &[&Constraint]) -> Result<NodeFrame, ConstraintErr
         }
     }
     let vmax = vals.iter().fold(0.0f64, |s, v| s.max(v.abs()));
-    let lift_norm = norm(&lift[..dim]);
+    let lift_norm = norm2(&lift[..dim]);
     let smin_kept = if r > 0 { sigma[idx[r - 1]] } else { smax };
     let tol = (CONSISTENCY_RTOL * vmax)
         .max(64.0 * f64::EPSILON * (smax / smin_kept) * (lift_norm + vmax));
@@ -554,7 +556,7 @@ fn frame_from_constrained(dim: usize, cons: &[Vec<f64>], lift: [f64; 3]) -> Node
             } else {
                 let c0 = [cons[0][0], cons[0][1], cons[0][2]];
                 let c1 = [cons[1][0], cons[1][1], cons[1][2]];
-                let t = unit(&cross(&c0, &c1));
+                let t = unit(&cross3(&c0, &c1));
                 columns3(&c0, &c1, &[t[0], t[1], t[2]])
             };
             v = cols;
@@ -585,41 +587,15 @@ pub fn tangents(n: &[f64; 3]) -> ([f64; 3], [f64; 3]) {
     } else {
         [1.0, 0.0, 0.0]
     };
-    let m = unit(&cross(n, &e));
+    let m = unit(&cross3(n, &e));
     let m = [m[0], m[1], m[2]];
-    let l = cross(n, &m);
+    let l = cross3(n, &m);
     (m, l)
 }
 
 /// Row-major 3×3 matrix with the given columns.
 fn columns3(a: &[f64; 3], b: &[f64; 3], c: &[f64; 3]) -> [f64; 9] {
     [a[0], b[0], c[0], a[1], b[1], c[1], a[2], b[2], c[2]]
-}
-
-fn cross(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| x * y).sum()
-}
-
-/// Euclidean norm, scaled so that entries near 1e±200 neither overflow nor underflow.
-fn norm(a: &[f64]) -> f64 {
-    let s = a.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    if s == 0.0 || !s.is_finite() {
-        return s;
-    }
-    s * a.iter().map(|v| (v / s) * (v / s)).sum::<f64>().sqrt()
-}
-
-fn unit(a: &[f64]) -> Vec<f64> {
-    let n = norm(a);
-    a.iter().map(|v| v / n).collect()
 }
 
 #[cfg(test)]

@@ -75,35 +75,7 @@ impl<'a> Eliminated<'a> {
     /// out = Ĥ y, matrix-free: mask, rotate (slip nodes only), block product, rotate back,
     /// mask, and D on constrained components. `work` must have length 2·d·n.
     pub fn apply(&self, y: &[f64], out: &mut [f64], work: &mut [f64]) {
-        let f = self.frames;
-        let n = y.len();
-        let (w, q) = work.split_at_mut(n);
-        let w = &mut w[..n];
-        let q = &mut q[..n];
-        if f.has_constraints() {
-            // w = V P y
-            w.copy_from_slice(y);
-            f.apply_mask(w);
-            f.from_frame_in_place(w);
-            self.h.matvec(w, q);
-            // out = P Vᵀ q + (I − P) D y
-            f.to_frame_in_place(q);
-            out.copy_from_slice(q);
-            let d = f.dim;
-            for (i, &m) in f.mask.iter().enumerate() {
-                if m != 0 {
-                    for a in 0..d {
-                        if m & (1 << a) != 0 {
-                            let k = i * d + a;
-                            out[k] = self.diag[k] * y[k];
-                        }
-                    }
-                }
-            }
-        } else {
-            // Nothing to rotate or mask: the plain product.
-            self.h.matvec(y, out);
-        }
+        apply_eliminated(self.h, self.frames, &self.diag, y, out, work);
     }
 
     /// Ĥ assembled in frame coordinates on H's block pattern: block (i, j) is
@@ -180,24 +152,69 @@ impl<'a> Eliminated<'a> {
         let mut hy = vec![0.0; n];
         let mut work = vec![0.0; 2 * n];
         self.apply(y, &mut hy, &mut work);
-        let rn = norm2(
-            &self
-                .rhs
-                .iter()
-                .zip(&hy)
-                .map(|(b, a)| b - a)
-                .collect::<Vec<_>>(),
-        );
-        let bn = norm2(&self.rhs);
-        if bn == 0.0 {
-            if rn == 0.0 {
-                0.0
-            } else {
-                1.0
+        relative_residual_from(&self.rhs, &mut hy)
+    }
+}
+
+/// out = Ĥ y, matrix-free, for H, the frames and D given separately: the steps of
+/// [`Eliminated::apply`] without an [`Eliminated`] (no b̂ needed, D borrowed).
+/// `work` must have length 2·d·n; its contents on entry do not matter.
+pub fn apply_eliminated(
+    h: &BlockCsr,
+    f: &Frames,
+    diag: &[f64],
+    y: &[f64],
+    out: &mut [f64],
+    work: &mut [f64],
+) {
+    let n = y.len();
+    let (w, q) = work.split_at_mut(n);
+    let w = &mut w[..n];
+    let q = &mut q[..n];
+    if f.has_constraints() {
+        // w = V P y
+        w.copy_from_slice(y);
+        f.apply_mask(w);
+        f.from_frame_in_place(w);
+        h.matvec(w, q);
+        // out = P Vᵀ q + (I − P) D y
+        f.to_frame_in_place(q);
+        out.copy_from_slice(q);
+        let d = f.dim;
+        for (i, &m) in f.mask.iter().enumerate() {
+            if m != 0 {
+                for a in 0..d {
+                    if m & (1 << a) != 0 {
+                        let k = i * d + a;
+                        out[k] = diag[k] * y[k];
+                    }
+                }
             }
-        } else {
-            rn / bn
         }
+    } else {
+        // Nothing to rotate or mask: the plain product.
+        h.matvec(y, out);
+    }
+}
+
+/// ‖b̂ − Ĥy‖ / ‖b̂‖ in f64 from `hy` = Ĥy (1 when b̂ = 0 and the residual is not, 0 when
+/// both vanish). Overwrites `hy` with the residual b̂ − Ĥy.
+pub fn relative_residual_from(rhs: &[f64], hy: &mut [f64]) -> f64 {
+    let m = hy.len().min(rhs.len());
+    let hy = &mut hy[..m];
+    for (a, b) in hy.iter_mut().zip(rhs) {
+        *a = b - *a;
+    }
+    let rn = norm2(hy);
+    let bn = norm2(rhs);
+    if bn == 0.0 {
+        if rn == 0.0 {
+            0.0
+        } else {
+            1.0
+        }
+    } else {
+        rn / bn
     }
 }
 
@@ -299,15 +316,8 @@ pub fn rotated_diagonal(h: &BlockCsr, f: &Frames) -> Vec<f64> {
     out
 }
 
-/// Euclidean norm, scaled so that entries near 1e±200 neither overflow nor underflow.
-pub fn norm2(v: &[f64]) -> f64 {
-    // Scaled to survive entries near 1e±200.
-    let s = v.iter().fold(0.0f64, |m, x| m.max(x.abs()));
-    if s == 0.0 || !s.is_finite() {
-        return s;
-    }
-    s * v.iter().map(|x| (x / s) * (x / s)).sum::<f64>().sqrt()
-}
+/// The scaled Euclidean norm, re-exported from its home in [`crate::linalg`].
+pub use crate::linalg::norm2;
 
 #[cfg(test)]
 mod tests {

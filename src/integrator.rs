@@ -47,6 +47,7 @@ use crate::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::energy::barrier::{Barrier, HalfSpace};
 use crate::energy::inertia;
 use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver};
+use crate::linalg::norm3;
 use crate::oracle::CholeskyOracle;
 use crate::scene::{BcShape, LinearKind, Scene, SolverSpec};
 use crate::sparse::BlockCsr;
@@ -553,7 +554,7 @@ impl<'s> Stepper<'s> {
                     .iter()
                     .map(|&j| {
                         let b = &sc.bcs[self.moving_bcs[j]];
-                        norm(&offset(d, &targets[j], &x[b.node * d..(b.node + 1) * d]))
+                        norm3(&offset(d, &targets[j], &x[b.node * d..(b.node + 1) * d]))
                     })
                     .fold(0.0f64, f64::max);
                 let mut double = true;
@@ -690,7 +691,7 @@ impl<'s> Stepper<'s> {
             }
             let node = self.scene.bcs[k].node;
             let xi = &mut x[node * d..(node + 1) * d];
-            if norm(&offset(d, &targets[j], xi)) / h < self.moving_eps {
+            if norm3(&offset(d, &targets[j], xi)) / h < self.moving_eps {
                 project(d, &targets[j], xi);
                 snapped[j] = true;
             }
@@ -914,10 +915,6 @@ fn project(d: usize, s: &BcShape, xi: &mut [f64]) {
     for a in 0..d {
         xi[a] -= r[a];
     }
-}
-
-fn norm(v: &[f64; 3]) -> f64 {
-    (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
 }
 
 #[cfg(test)]

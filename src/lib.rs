@@ -22,6 +22,7 @@ pub mod gpu;
 pub mod hard;
 pub mod integrator;
 pub mod io;
+pub mod linalg;
 pub mod mesh;
 pub mod oracle;
 pub mod output;

@@ -1,6 +1,8 @@
 //! Simulation meshes: node positions, elements, lumped masses, and the generators the
 //! scenes use (2D rectangle of triangles, 3D box of tetrahedra, rod and sheet of springs).
 
+use crate::linalg::{cross3, norm3};
+
 /// Element type of a mesh.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ElementKind {
@@ -66,13 +68,13 @@ impl Mesh {
             ElementKind::Triangle => {
                 let a = sub(p(1), p(0));
                 let b = sub(p(2), p(0));
-                0.5 * norm3(&cross(&a, &b))
+                0.5 * norm3(&cross3(&a, &b))
             }
             ElementKind::Tetrahedron => {
                 let a = sub(p(1), p(0));
                 let b = sub(p(2), p(0));
                 let c = sub(p(3), p(0));
-                dot3(&a, &cross(&b, &c)).abs() / 6.0
+                dot3(&a, &cross3(&b, &c)).abs() / 6.0
             }
         }
     }
@@ -149,7 +151,7 @@ impl Mesh {
                 } else {
                     let c = p(f[2]);
                     let ac = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
-                    0.5 * norm3(&cross(&ab, &ac))
+                    0.5 * norm3(&cross3(&ab, &ac))
                 };
                 for &i in f {
                     w[i] += measure / nf as f64;
@@ -482,26 +484,14 @@ fn orient_positive(m: &mut Mesh) {
         let a = [p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]];
         let b = [p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2]];
         let c = [p3[0] - p0[0], p3[1] - p0[1], p3[2] - p0[2]];
-        if dot3(&a, &cross(&b, &c)) < 0.0 {
+        if dot3(&a, &cross3(&b, &c)) < 0.0 {
             m.elements[e].swap(2, 3);
         }
     }
 }
 
-pub(crate) fn cross(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
 pub(crate) fn dot3(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn norm3(a: &[f64; 3]) -> f64 {
-    dot3(a, a).sqrt()
 }
 
 #[cfg(test)]

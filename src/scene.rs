@@ -487,7 +487,7 @@ impl Motion {
 /// Rodrigues rotation of v about unit axis k by angle θ.
 fn rotate(v: &[f64; 3], k: &[f64; 3], theta: f64) -> [f64; 3] {
     let (s, c) = theta.sin_cos();
-    let kxv = mesh::cross(k, v);
+    let kxv = crate::linalg::cross3(k, v);
     let kv = mesh::dot3(k, v);
     let mut o = [0.0; 3];
     for a in 0..3 {

@@ -12,7 +12,9 @@ use super::kernels;
 use super::{GpuContext, GpuError, GpuParams, Precision};
 use crate::cg::{CgError, Preconditioner};
 use crate::constraints::Frames;
-use crate::elimination::{norm2, rotate_block, Eliminated};
+use crate::elimination::{
+    apply_eliminated, norm2, relative_residual_from, rotate_block, Eliminated,
+};
 use crate::sparse::BlockCsr;
 use crate::springs::MassSpring;
 use std::collections::BTreeMap;
@@ -177,44 +179,64 @@ struct Host {
     frames: Frames,
     rhs: Vec<f64>,
     diag: Vec<f64>,
+    /// Reusable f64 scratch for the host products: Ĥy (d·n) and the work of the product
+    /// (2·d·n); its contents between calls do not matter.
+    scratch: Vec<f64>,
 }
 
-impl Host {
-    fn ndof(&self) -> usize {
-        self.rhs.len()
-    }
-
-    /// out = Ĥ y in f64.
-    fn apply(&self, y: &[f64], out: &mut [f64]) {
-        let n = y.len();
-        match &self.op {
-            HostOp::Blocks(h) => {
-                let e = Eliminated {
-                    h,
-                    frames: &self.frames,
-                    rhs: Vec::new(),
-                    diag: self.diag.clone(),
-                };
-                let mut work = vec![0.0; 2 * n];
-                e.apply(y, out, &mut work);
-            }
-            HostOp::Springs(ms) => {
-                let f = &self.frames;
-                let mut w = y.to_vec();
-                f.apply_mask(&mut w);
-                f.from_frame_in_place(&mut w);
-                ms.apply(&w, out);
-                f.to_frame_in_place(out);
-                let d = f.dim;
-                for (i, &m) in f.mask.iter().enumerate() {
-                    for a in 0..d {
-                        if m & (1 << a) != 0 {
-                            out[i * d + a] = self.diag[i * d + a] * y[i * d + a];
-                        }
+/// out = Ĥ y in f64 for the host operator; `work` has length 2·d·n (contents ignored).
+fn host_apply(op: &HostOp, f: &Frames, diag: &[f64], y: &[f64], out: &mut [f64], work: &mut [f64]) {
+    match op {
+        HostOp::Blocks(h) => apply_eliminated(h, f, diag, y, out, work),
+        HostOp::Springs(ms) => {
+            let w = &mut work[..y.len()];
+            w.copy_from_slice(y);
+            f.apply_mask(w);
+            f.from_frame_in_place(w);
+            ms.apply(w, out);
+            f.to_frame_in_place(out);
+            let d = f.dim;
+            for (i, &m) in f.mask.iter().enumerate() {
+                for a in 0..d {
+                    if m & (1 << a) != 0 {
+                        out[i * d + a] = diag[i * d + a] * y[i * d + a];
                     }
                 }
             }
         }
+    }
+}
+
+impl Host {
+    fn new(op: HostOp, frames: Frames, rhs: Vec<f64>, diag: Vec<f64>) -> Self {
+        let scratch = vec![0.0; 3 * rhs.len()];
+        Host {
+            op,
+            frames,
+            rhs,
+            diag,
+            scratch,
+        }
+    }
+
+    fn ndof(&self) -> usize {
+        self.rhs.len()
+    }
+
+    /// out = Ĥ y in f64 (no per-call allocation once the scratch has its size).
+    fn apply(&mut self, y: &[f64], out: &mut [f64]) {
+        let n = y.len();
+        let Host {
+            op,
+            frames,
+            diag,
+            scratch,
+            ..
+        } = self;
+        if scratch.len() < 3 * n {
+            scratch.resize(3 * n, 0.0);
+        }
+        host_apply(op, frames, diag, y, out, &mut scratch[..2 * n]);
     }
 
     /// Largest |diagonal entry| of H (its diagonal blocks, before rotation and masking).
@@ -239,21 +261,22 @@ impl Host {
             .fold(0.0, f64::max)
     }
 
-    fn relative_residual(&self, y: &[f64]) -> f64 {
-        let mut hy = vec![0.0; y.len()];
-        self.apply(y, &mut hy);
-        let r: Vec<f64> = self.rhs.iter().zip(&hy).map(|(b, a)| b - a).collect();
-        let bn = norm2(&self.rhs);
-        let rn = norm2(&r);
-        if bn == 0.0 {
-            if rn == 0.0 {
-                0.0
-            } else {
-                1.0
-            }
-        } else {
-            rn / bn
+    /// ‖b̂ − Ĥy‖ / ‖b̂‖ in f64, as [`Eliminated::relative_residual`].
+    fn relative_residual(&mut self, y: &[f64]) -> f64 {
+        let n = y.len();
+        let Host {
+            op,
+            frames,
+            rhs,
+            diag,
+            scratch,
+        } = self;
+        if scratch.len() < 3 * n {
+            scratch.resize(3 * n, 0.0);
         }
+        let (hy, work) = scratch.split_at_mut(n);
+        host_apply(op, frames, diag, y, hy, &mut work[..2 * n]);
+        relative_residual_from(rhs, hy)
     }
 
     /// Δx = V P y + Δx_p with dx_free = V P y computed on the device.
@@ -813,12 +836,12 @@ enum SystemRef<'s> {
 impl GpuSolver {
     /// Builds the solver for an assembled eliminated system.
     pub fn new(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<Self, GpuError> {
-        let host = Host {
-            op: HostOp::Blocks(e.h.clone()),
-            frames: e.frames.clone(),
-            rhs: e.rhs.clone(),
-            diag: e.diag.clone(),
-        };
+        let host = Host::new(
+            HostOp::Blocks(e.h.clone()),
+            e.frames.clone(),
+            e.rhs.clone(),
+            e.diag.clone(),
+        );
         Self::build(ctx, host, params)
     }
 
@@ -836,12 +859,12 @@ impl GpuSolver {
                 "the mass-spring system, its gradient and the frames disagree in size".into(),
             ));
         }
-        let host = Host {
-            rhs: spring_rhs(ms, g, frames),
-            diag: vec![1.0; ms.ndof()],
-            op: HostOp::Springs(ms.clone()),
-            frames: frames.clone(),
-        };
+        let host = Host::new(
+            HostOp::Springs(ms.clone()),
+            frames.clone(),
+            spring_rhs(ms, g, frames),
+            vec![1.0; ms.ndof()],
+        );
         Self::build(ctx, host, params)
     }
 
@@ -2056,9 +2079,12 @@ impl GpuSolver {
             let y64 = rf.y64.clone();
             let fb = rf.factors.clone();
             let y = self.download(self.encoder("download y"), &y64, Real::F64, nd)?;
-            let mut hy = vec![0.0; nd];
-            self.host.apply(&y, &mut hy);
-            let mut r: Vec<f64> = self.host.rhs.iter().zip(&hy).map(|(b, a)| b - a).collect();
+            let mut r = vec![0.0; nd];
+            self.host.apply(&y, &mut r);
+            // r = b̂ − Ĥy in place.
+            for (v, b) in r.iter_mut().zip(&self.host.rhs) {
+                *v = b - *v;
+            }
             let rn = norm2(&r);
             let f = factors(rn);
             let inv = Real::F64.values(&f)[0];
