@@ -31,6 +31,53 @@ fn bounds(vals: impl Iterator<Item = f64>) -> (f64, f64) {
     (lo / 2.0, hi * 2.0)
 }
 
+/// One log-log plot with a line and markers per series, legend in a box.
+fn log_log_plot(
+    path: &Path,
+    caption: &str,
+    x_desc: &str,
+    y_desc: &str,
+    series: &[(String, Vec<(f64, f64)>)],
+) -> Result<(), String> {
+    let root = SVGBackend::new(path, (720, 480)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| e.to_string())?;
+    let (x0, x1) = bounds(series.iter().flat_map(|s| s.1.iter().map(|p| p.0)));
+    let (y0, y1) = bounds(series.iter().flat_map(|s| s.1.iter().map(|p| p.1)));
+    let mut chart = ChartBuilder::on(&root)
+        .caption(caption, ("sans-serif", 18))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())
+        .map_err(|e| e.to_string())?;
+    chart
+        .configure_mesh()
+        .x_desc(x_desc)
+        .y_desc(y_desc)
+        .x_label_formatter(&|v| format!("{v:.0e}"))
+        .y_label_formatter(&|v| format!("{v:.0e}"))
+        .draw()
+        .map_err(|e| e.to_string())?;
+    for (k, (label, pts)) in series.iter().enumerate() {
+        let c = COLORS[k % COLORS.len()];
+        chart
+            .draw_series(LineSeries::new(pts.clone(), c.stroke_width(2)))
+            .map_err(|e| e.to_string())?
+            .label(label.as_str())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(2)));
+        chart
+            .draw_series(pts.iter().map(|&p| Circle::new(p, 3, c.filled())))
+            .map_err(|e| e.to_string())?;
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| e.to_string())?;
+    root.present().map_err(|e| e.to_string())
+}
+
 /// One plot per (dimension, size): total seconds against the relative error reached.
 pub fn time_vs_error(report: &BenchReport, dir: &Path) -> Result<(), String> {
     let mut sizes: Vec<(usize, usize)> = report.runs.iter().map(|r| (r.dim, r.nodes)).collect();
@@ -45,55 +92,25 @@ pub fn time_vs_error(report: &BenchReport, dir: &Path) -> Result<(), String> {
         let mut solvers: Vec<String> = runs.iter().map(|r| r.solver.clone()).collect();
         solvers.sort();
         solvers.dedup();
-        let path = dir.join(format!("time_vs_error_{dim}d_{nodes}.svg"));
-        let root = SVGBackend::new(&path, (720, 480)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| e.to_string())?;
-        let (x0, x1) = bounds(runs.iter().map(|r| r.relative_error.max(ERROR_FLOOR)));
-        let (y0, y1) = bounds(runs.iter().map(|r| r.total_seconds));
-        let mut chart = ChartBuilder::on(&root)
-            .caption(
-                format!("{dim}D, {nodes} nodes: time to reach an error"),
-                ("sans-serif", 18),
-            )
-            .margin(12)
-            .x_label_area_size(40)
-            .y_label_area_size(60)
-            .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())
-            .map_err(|e| e.to_string())?;
-        chart
-            .configure_mesh()
-            .x_desc("relative error of Δx (vs oracle)")
-            .y_desc("seconds")
-            .x_label_formatter(&|v| format!("{v:.0e}"))
-            .y_label_formatter(&|v| format!("{v:.0e}"))
-            .draw()
-            .map_err(|e| e.to_string())?;
-        for (k, s) in solvers.iter().enumerate() {
-            let c = COLORS[k % COLORS.len()];
-            let mut pts: Vec<(f64, f64)> = runs
-                .iter()
-                .filter(|r| &r.solver == s)
-                .map(|r| (r.relative_error.max(ERROR_FLOOR), r.total_seconds))
-                .collect();
-            pts.sort_by(|a, b| a.0.total_cmp(&b.0));
-            chart
-                .draw_series(LineSeries::new(pts.clone(), c.stroke_width(2)))
-                .map_err(|e| e.to_string())?
-                .label(s.as_str())
-                .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(2))
-                });
-            chart
-                .draw_series(pts.into_iter().map(|p| Circle::new(p, 3, c.filled())))
-                .map_err(|e| e.to_string())?;
-        }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .draw()
-            .map_err(|e| e.to_string())?;
-        root.present().map_err(|e| e.to_string())?;
+        let series: Vec<(String, Vec<(f64, f64)>)> = solvers
+            .into_iter()
+            .map(|s| {
+                let mut pts: Vec<(f64, f64)> = runs
+                    .iter()
+                    .filter(|r| r.solver == s)
+                    .map(|r| (r.relative_error.max(ERROR_FLOOR), r.total_seconds))
+                    .collect();
+                pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+                (s, pts)
+            })
+            .collect();
+        log_log_plot(
+            &dir.join(format!("time_vs_error_{dim}d_{nodes}.svg")),
+            &format!("{dim}D, {nodes} nodes: time to reach an error"),
+            "relative error of Δx (vs oracle)",
+            "seconds",
+            &series,
+        )?;
     }
     Ok(())
 }
@@ -104,61 +121,27 @@ pub fn time_vs_size(report: &BenchReport, dir: &Path) -> Result<(), String> {
     dims.sort_unstable();
     dims.dedup();
     for dim in dims {
-        let fits: Vec<_> = report
+        let series: Vec<(String, Vec<(f64, f64)>)> = report
             .scaling
             .iter()
             .filter(|f| f.dim == dim && f.quantity == "seconds_per_iteration")
+            .map(|f| {
+                (
+                    format!("{} (slope {:.2})", f.solver, f.slope),
+                    f.points.iter().map(|p| (p.0 as f64, p.1)).collect(),
+                )
+            })
             .collect();
-        if fits.is_empty() {
+        if series.is_empty() {
             continue;
         }
-        let path = dir.join(format!("time_vs_size_{dim}d.svg"));
-        let root = SVGBackend::new(&path, (720, 480)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| e.to_string())?;
-        let (x0, x1) = bounds(
-            fits.iter()
-                .flat_map(|f| f.points.iter().map(|p| p.0 as f64)),
-        );
-        let (y0, y1) = bounds(fits.iter().flat_map(|f| f.points.iter().map(|p| p.1)));
-        let mut chart = ChartBuilder::on(&root)
-            .caption(
-                format!("{dim}D: seconds per CG iteration"),
-                ("sans-serif", 18),
-            )
-            .margin(12)
-            .x_label_area_size(40)
-            .y_label_area_size(60)
-            .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())
-            .map_err(|e| e.to_string())?;
-        chart
-            .configure_mesh()
-            .x_desc("nodes")
-            .y_desc("seconds per iteration")
-            .x_label_formatter(&|v| format!("{v:.0e}"))
-            .y_label_formatter(&|v| format!("{v:.0e}"))
-            .draw()
-            .map_err(|e| e.to_string())?;
-        for (k, f) in fits.iter().enumerate() {
-            let c = COLORS[k % COLORS.len()];
-            let pts: Vec<(f64, f64)> = f.points.iter().map(|p| (p.0 as f64, p.1)).collect();
-            chart
-                .draw_series(LineSeries::new(pts.clone(), c.stroke_width(2)))
-                .map_err(|e| e.to_string())?
-                .label(format!("{} (slope {:.2})", f.solver, f.slope))
-                .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(2))
-                });
-            chart
-                .draw_series(pts.into_iter().map(|p| Circle::new(p, 3, c.filled())))
-                .map_err(|e| e.to_string())?;
-        }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .draw()
-            .map_err(|e| e.to_string())?;
-        root.present().map_err(|e| e.to_string())?;
+        log_log_plot(
+            &dir.join(format!("time_vs_size_{dim}d.svg")),
+            &format!("{dim}D: seconds per CG iteration"),
+            "nodes",
+            "seconds per iteration",
+            &series,
+        )?;
     }
     Ok(())
 }
