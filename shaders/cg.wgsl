@@ -18,15 +18,6 @@ override D: u32 = 3u;
 override WG: u32 = 64u;
 override PRECOND: u32 = 1u;   // 0 none, 1 Jacobi, 2 block-Jacobi
 
-struct Params {
-    n_nodes: u32,
-    n_rot: u32,
-    n_partials: u32,
-    n_blocks: u32,
-}
-
-const WG_MAX: u32 = 256u;
-
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read_write> x: array<real>;
 @group(0) @binding(2) var<storage, read_write> r: array<real>;

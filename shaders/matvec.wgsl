@@ -15,14 +15,6 @@ override D: u32 = 3u;          // block size (2 or 3)
 override WG: u32 = 64u;        // workgroup size (power of two, ≤ WG_MAX)
 override MASKED: bool = true;  // false: the scene has no constraints, no masking work
 
-struct Params {
-    n_nodes: u32,
-    n_rot: u32,
-    n_partials: u32,
-    n_blocks: u32,
-}
-
-const WG_MAX: u32 = 256u;
 // Column indices carry the column node's mask in their top three bits, so P_j costs
 // no extra memory traffic.
 const COL_BITS: u32 = 0x1fffffffu;

@@ -8,13 +8,6 @@ override WG: u32 = 64u;
 override MASKED: bool = true;
 override PRECOND: u32 = 1u;
 
-struct Params {
-    n_nodes: u32,
-    n_rot: u32,
-    n_partials: u32,
-    n_blocks: u32,
-}
-
 const COL_BITS: u32 = 0x1fffffffu;
 
 @group(0) @binding(0) var<uniform> params: Params;

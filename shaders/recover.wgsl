@@ -5,13 +5,6 @@
 override D: u32 = 3u;
 override WG: u32 = 64u;
 
-struct Params {
-    n_nodes: u32,
-    n_rot: u32,
-    n_partials: u32,
-    n_blocks: u32,
-}
-
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> mask: array<u32>;
 @group(0) @binding(2) var<storage, read> y: array<real>;

@@ -10,14 +10,6 @@
 
 override WG: u32 = 64u;
 
-struct Params {
-    n_nodes: u32,
-    n_rot: u32,
-    n_partials: u32,
-    n_blocks: u32,
-}
-
-const WG_MAX: u32 = 256u;
 override D: u32 = 3u;
 
 @group(0) @binding(0) var<uniform> params: Params;

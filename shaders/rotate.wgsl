@@ -6,13 +6,6 @@ override D: u32 = 3u;
 override WG: u32 = 64u;
 override TRANSPOSE: bool = false;
 
-struct Params {
-    n_nodes: u32,
-    n_rot: u32,
-    n_partials: u32,
-    n_blocks: u32,
-}
-
 const NO_ROTATION: u32 = 0xffffffffu;
 
 @group(0) @binding(0) var<uniform> params: Params;

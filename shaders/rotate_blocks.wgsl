@@ -5,13 +5,6 @@
 override D: u32 = 3u;
 override WG: u32 = 64u;
 
-struct Params {
-    n_nodes: u32,
-    n_rot: u32,
-    n_partials: u32,
-    n_blocks: u32,
-}
-
 const COL_BITS: u32 = 0x1fffffffu;
 const NO_ROTATION: u32 = 0xffffffffu;
 

@@ -13,14 +13,6 @@ override WG: u32 = 64u;
 override MASKED: bool = true;
 override ROTATE: bool = true;
 
-struct Params {
-    n_nodes: u32,
-    n_rot: u32,
-    n_partials: u32,
-    n_blocks: u32,
-}
-
-const WG_MAX: u32 = 256u;
 const NO_ROTATION: u32 = 0xffffffffu;
 
 @group(0) @binding(0) var<uniform> params: Params;
