@@ -2,34 +2,15 @@
 //! tests are serialized (lavapipe is slow). Without an adapter they print a loud SKIP
 //! line and return, unless STICKSLIP_REQUIRE_GPU=1 (CI), where a missing adapter fails.
 
-use std::sync::{LazyLock, Mutex, MutexGuard};
 use stickslip::cg::{BuiltPreconditioner, Preconditioner};
 use stickslip::constraints::{Constraint, ConstraintKind, Frames};
 use stickslip::elimination::{rotate_blocks, ConstrainedDiagonal, Eliminated};
 use stickslip::generate::{random_system, SystemSpec};
-use stickslip::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
+use stickslip::gpu::{GpuParams, GpuSolver, Precision};
 use stickslip::springs::MassSpring;
 
-static CTX: LazyLock<Option<GpuContext>> =
-    LazyLock::new(|| match GpuContext::new(&GpuOptions::default()) {
-        Ok(c) => {
-            eprintln!("GPU tests on adapter '{}'", c.adapter_name());
-            Some(c)
-        }
-        Err(e) => {
-            if std::env::var("STICKSLIP_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("STICKSLIP_REQUIRE_GPU=1 but no GPU adapter: {e}");
-            }
-            eprintln!("!!!!!!!! SKIP: no GPU adapter ({e}); GPU kernel tests did not run !!!!!!!!");
-            None
-        }
-    });
-static LOCK: Mutex<()> = Mutex::new(());
-
-fn gpu() -> Option<(&'static GpuContext, MutexGuard<'static, ()>)> {
-    let g = LOCK.lock().unwrap_or_else(|p| p.into_inner());
-    CTX.as_ref().map(|c| (c, g))
-}
+mod common;
+use common::gpu::gpu;
 
 fn params(precision: Precision, pc: Preconditioner) -> GpuParams {
     GpuParams {

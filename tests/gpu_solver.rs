@@ -3,34 +3,15 @@
 //! honest failures and the matrix-free spring operator. One shared device per binary,
 //! tests serialized; without an adapter a loud SKIP (a failure with STICKSLIP_REQUIRE_GPU=1).
 
-use std::sync::{LazyLock, Mutex, MutexGuard};
 use stickslip::cg::{CgError, Preconditioner};
 use stickslip::constraints::{Constraint, ConstraintKind, Frames};
 use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::generate::{random_system, ConstraintMix, SystemSpec};
-use stickslip::gpu::{GpuContext, GpuError, GpuOptions, GpuParams, GpuSolver, Precision};
+use stickslip::gpu::{GpuError, GpuParams, GpuSolver, Precision};
 use stickslip::springs::MassSpring;
 
-static CTX: LazyLock<Option<GpuContext>> =
-    LazyLock::new(|| match GpuContext::new(&GpuOptions::default()) {
-        Ok(c) => {
-            eprintln!("GPU tests on adapter '{}'", c.adapter_name());
-            Some(c)
-        }
-        Err(e) => {
-            if std::env::var("STICKSLIP_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("STICKSLIP_REQUIRE_GPU=1 but no GPU adapter: {e}");
-            }
-            eprintln!("!!!!!!!! SKIP: no GPU adapter ({e}); GPU solver tests did not run !!!!!!!!");
-            None
-        }
-    });
-static LOCK: Mutex<()> = Mutex::new(());
-
-fn gpu() -> Option<(&'static GpuContext, MutexGuard<'static, ()>)> {
-    let g = LOCK.lock().unwrap_or_else(|p| p.into_inner());
-    CTX.as_ref().map(|c| (c, g))
-}
+mod common;
+use common::gpu::gpu;
 
 fn norm(v: &[f64]) -> f64 {
     v.iter().map(|x| x * x).sum::<f64>().sqrt()

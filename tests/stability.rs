@@ -22,11 +22,11 @@
 //! must end in an error carrying a residual above τ (or, if Ok, the recomputed residual
 //! must really be ≤ τ).
 
-use std::sync::{LazyLock, Mutex, MutexGuard};
+use std::sync::LazyLock;
 use stickslip::cg::{self, CgError, CgParams, Preconditioner, Scaling};
 use stickslip::elimination::Eliminated;
 use stickslip::error::SolveError;
-use stickslip::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
+use stickslip::gpu::{GpuContext, GpuParams, GpuSolver, Precision};
 use stickslip::hard::{self, HardCase, Size};
 
 /// The constant c of the rounding term in the promise (see the module docs).
@@ -222,28 +222,8 @@ fn cpu_cg_claims_are_honest_both_ways() {
     }
 }
 
-static CTX: LazyLock<Option<GpuContext>> =
-    LazyLock::new(|| match GpuContext::new(&GpuOptions::default()) {
-        Ok(c) => {
-            eprintln!("GPU stability tests on adapter '{}'", c.adapter_name());
-            Some(c)
-        }
-        Err(e) => {
-            if std::env::var("STICKSLIP_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("STICKSLIP_REQUIRE_GPU=1 but no GPU adapter: {e}");
-            }
-            eprintln!(
-                "!!!!!!!! SKIP: no GPU adapter ({e}); GPU stability tests did not run !!!!!!!!"
-            );
-            None
-        }
-    });
-static LOCK: Mutex<()> = Mutex::new(());
-
-fn gpu() -> Option<(&'static GpuContext, MutexGuard<'static, ()>)> {
-    let g = LOCK.lock().unwrap_or_else(|p| p.into_inner());
-    CTX.as_ref().map(|c| (c, g))
-}
+mod common;
+use common::gpu::gpu;
 
 /// Runs the GPU precisions on every case; returns the mixed-precision misses of the
 /// 1e-9 target on cases with κ ≤ 1e10. Every claimed success is checked against its
