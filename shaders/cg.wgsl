@@ -10,7 +10,7 @@
 //
 // Slot discipline (no workgroup reads a slot another workgroup of the same dispatch writes):
 //   scal:  0 ρ (A writes, C reads)  1 ρ_prev (C writes, A reads)  2 p·q (C)  3 α (C)
-//          4 r·r (A)  5 threshold tol²‖b‖² (host)
+//          4 r·r (A)  5 threshold tol²‖b‖² (host)  6 direction scale kept by init (host)
 //   state: 0 done (A writes, B/C read)  1 halt: non-positive curvature (C writes, A reads)
 //          2 iterations (C, workgroup 0 only)  3 converged (A)  4 breakdown (A)
 
@@ -211,18 +211,23 @@ fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
     }
 }
 
-// (Re)start from the current x, with q = Ĥx already computed: r = b − q, z = M⁻¹r, p = 0
-// (so the next update_p sets p = z), and the r·z, r·r partials.
+// (Re)start from the current x, with q = Ĥx already computed: r = b − q, z = M⁻¹r, the
+// r·z, r·r partials, and p = scal[6]·p. A restart has scal[6] = 0, so p = 0 and the next
+// update_p sets p = z. Mixed precision's reliable update keeps the search direction
+// instead: b is the new, renormalized true residual, x and q are zero, and scal[6] rescales
+// p (and the host rescales ρ_prev) to the new normalization, so CG goes on, not over.
 @compute @workgroup_size(WG)
 fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
     var prz = acc(0.0);
     var prr = acc(0.0);
     let stride = params.n_partials * WG;
     let n = params.n_nodes * D;
+    let keep = real(scal[6]);
     for (var k = wid.x * WG + lid.x; k < n; k += stride) {
         let rk = b[k] - q[k];
         r[k] = rk;
-        p[k] = real(0.0);
+        // select, not 0·p: p may hold non-finite values after a breakdown.
+        p[k] = select(real(0.0), keep * p[k], keep != real(0.0));
     }
     if (PRECOND != 2u) {
         for (var k = wid.x * WG + lid.x; k < n; k += stride) {

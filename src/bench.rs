@@ -684,6 +684,11 @@ pub fn run_hard(out: Option<&Path>, no_gpu: bool, scale: usize) -> Result<String
     if let Some(c) = ctx.as_ref() {
         speed = crate::hard::mixed_speed(crate::hard::Size::Scale(scale), c, 1e-10)
             .map_err(BenchError::Solve)?;
+        md.push_str(&format!(
+            "\nGPU f64 CG against mixed precision, both to residual tol 1e-10, best of {} \
+             solves after a warm-up, grid scale {scale}:\n",
+            crate::hard::SPEED_REPS
+        ));
         md.push_str("\n| case | DOFs | f64 CG s | mixed s | f64/mixed | f64 error | mixed error |\n|---|---|---|---|---|---|---|\n");
         let f = |v: Option<f64>, p: usize| {
             v.map_or("failed".to_string(), |x| format!("{x:.prec$e}", prec = p))

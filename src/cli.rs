@@ -207,6 +207,11 @@ pub struct SolveArgs {
     /// Iterative solvers: iteration limit [default: 10000].
     #[arg(long)]
     pub max_iters: Option<usize>,
+    /// --precision mixed: also certify the relative error ‖y − y*‖/‖y*‖ ≤ this by
+    /// extended-precision refinement (double-double residuals), after --tol is met. A small
+    /// residual bounds the error only by κ·tol; this bounds it directly.
+    #[arg(long, value_parser = positive_f64)]
+    pub error_tol: Option<f64>,
     /// Iterative solvers: none, jacobi or block-jacobi.
     #[arg(long, default_value = "jacobi")]
     pub preconditioner: Preconditioner,
@@ -415,6 +420,7 @@ fn solve_gpu(
         tol: args.tol,
         max_iters,
         preconditioner: args.preconditioner,
+        error_tol: args.error_tol,
         ..GpuParams::default()
     };
     let mut solver = GpuSolver::new(&ctx, e, &params).map_err(gpu_err)?;
@@ -549,6 +555,16 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
                 "{} needs --solver gpu (cholesky and cg compute in f64)",
                 precision_name(precision)
             ),
+        )
+        .into());
+    }
+    if args.error_tol.is_some()
+        && (args.solver != SolverKind::Gpu || precision != PrecisionArg::Mixed)
+    {
+        return Err(InputError::new(
+            "command line",
+            "--error-tol",
+            "needs --solver gpu --precision mixed (extended-precision refinement)",
         )
         .into());
     }

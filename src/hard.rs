@@ -636,36 +636,9 @@ pub struct Reference {
     pub trusted: bool,
 }
 
-/// Two-sum and two-product: s + e = a + b and p + e = a·b exactly.
-fn two_sum(a: f64, b: f64) -> (f64, f64) {
-    let s = a + b;
-    let bb = s - a;
-    (s, (a - (s - bb)) + (b - bb))
-}
-
-/// b − A y for the assembled Ĥ with every product and sum carried in double-double, then
-/// rounded: the residual is exact to about ε relative to itself, however cancelling.
+/// b − A y in double-double (see [`BlockCsr::residual_dd`]).
 pub fn residual_dd(a: &BlockCsr, b: &[f64], y: &[f64]) -> Vec<f64> {
-    let d = a.dim;
-    let mut out = vec![0.0; b.len()];
-    for i in 0..a.n {
-        for r in 0..d {
-            let (mut hi, mut lo) = (b[i * d + r], 0.0f64);
-            for k in a.row_ptr[i]..a.row_ptr[i + 1] {
-                let j = a.col_idx[k];
-                for c in 0..d {
-                    let av = a.values[k * d * d + r * d + c];
-                    let p = -av * y[j * d + c];
-                    let pe = (-av).mul_add(y[j * d + c], -p);
-                    let (s, e) = two_sum(hi, p);
-                    hi = s;
-                    lo += e + pe;
-                }
-            }
-            out[i * d + r] = hi + lo;
-        }
-    }
-    out
+    a.residual_dd(b, y)
 }
 
 /// Solves the assembled Ĥ y = b̂ by sparse Cholesky, then refines with residuals in
@@ -841,19 +814,23 @@ pub fn table(
             }
         }
         let Some(ctx) = gpu else { continue };
-        for (precision, tol) in [
-            (Precision::F32, 1e-5),
-            (Precision::F64, 1e-10),
-            (Precision::Mixed, 1e-10),
-            (Precision::Mixed, 1e-13),
+        for (precision, tol, error_tol) in [
+            (Precision::F32, 1e-5, None),
+            (Precision::F64, 1e-10, None),
+            (Precision::Mixed, 1e-10, None),
+            (Precision::Mixed, 1e-10, Some(1e-10)),
         ] {
             let params = GpuParams {
                 precision,
                 tol,
                 max_iters: 20_000,
+                error_tol,
                 ..Default::default()
             };
-            let name = format!("gpu {precision}");
+            let name = match error_tol {
+                Some(et) => format!("gpu {precision} error_tol {et:.0e}"),
+                None => format!("gpu {precision}"),
+            };
             let t = Instant::now();
             let res = GpuSolver::new(ctx, &e, &params).and_then(|mut s| s.solve());
             match res {
@@ -864,7 +841,13 @@ pub fn table(
                     Some(&y),
                     Some(info.iterations),
                     info.seconds.solve,
-                    info.notes.join("; "),
+                    info.error_estimate
+                        .map(|est| format!("error estimate {est:.1e}"))
+                        .into_iter()
+                        .chain(info.fallback.map(|f| format!("fell back to f64: {f}")))
+                        .chain(info.notes.into_iter().filter(|n| n.starts_with("mixed: Ĥ")))
+                        .collect::<Vec<_>>()
+                        .join("; "),
                 )),
                 Err(err) => rows.push(row(
                     &name,
@@ -909,8 +892,12 @@ pub fn table_markdown(rows: &[TableRow]) -> String {
     s
 }
 
+/// Timed solves per solver in [`mixed_speed`] (after one warm-up solve).
+pub const SPEED_REPS: usize = 3;
+
 /// GPU f64 CG against mixed precision on larger cases: (case, DOFs, f64 seconds, mixed
-/// seconds, f64 error, mixed error), both at tolerance `tol`; None for a failed solve.
+/// seconds, f64 error, mixed error), both at tolerance `tol`, best of [`SPEED_REPS`];
+/// None for a failed solve.
 #[allow(clippy::type_complexity)]
 pub fn mixed_speed(
     size: Size,
@@ -940,16 +927,32 @@ pub fn mixed_speed(
     for case in cases {
         let e = case.eliminated();
         let r = reference(&e).map_err(|err| format!("{}: reference: {err}", case.name))?;
-        let mut res = [(None, None), (None, None)];
-        for (k, precision) in [Precision::F64, Precision::Mixed].into_iter().enumerate() {
-            let params = GpuParams {
-                precision,
-                tol,
-                max_iters: 50_000,
-                ..Default::default()
-            };
-            if let Ok((y, _, info)) = GpuSolver::new(ctx, &e, &params).and_then(|mut s| s.solve()) {
-                res[k] = (Some(info.seconds.solve), Some(relative_error(&y, &r.y)));
+        let mut res: [(Option<f64>, Option<f64>); 2] = [(None, None), (None, None)];
+        // Both solvers built first, then solved alternately, best of SPEED_REPS after one
+        // warm-up solve each: the ratio of one run on a shared 2-core machine is noise.
+        let mut solvers: Vec<Option<GpuSolver>> = [Precision::F64, Precision::Mixed]
+            .into_iter()
+            .map(|precision| {
+                let params = GpuParams {
+                    precision,
+                    tol,
+                    max_iters: 50_000,
+                    ..Default::default()
+                };
+                GpuSolver::new(ctx, &e, &params).ok()
+            })
+            .collect();
+        for rep in 0..=SPEED_REPS {
+            for (k, sol) in solvers.iter_mut().enumerate() {
+                let Some(sol) = sol else { continue };
+                if let Ok((y, _, info)) = sol.solve() {
+                    if rep > 0 {
+                        let best = res[k]
+                            .0
+                            .map_or(info.seconds.solve, |b| b.min(info.seconds.solve));
+                        res[k] = (Some(best), Some(relative_error(&y, &r.y)));
+                    }
+                }
             }
         }
         out.push((

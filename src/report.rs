@@ -106,8 +106,17 @@ impl Report {
             Some(a) => format!(" on {a}"),
             None => String::new(),
         };
+        // Mixed precision with extended-precision refinement claims an error bound.
+        let est = self
+            .gpu
+            .as_ref()
+            .and_then(|g| g.get("error_estimate"))
+            .and_then(|v| v.as_f64())
+            .map_or(String::new(), |e| {
+                format!(", estimated relative error {e:.2e}")
+            });
         format!(
-            "stickslip: {} {}{adapter}: {} nodes, {} free + {} constrained dofs{iters}, relative residual {:.2e}, solve {:.3} s, total {:.3} s",
+            "stickslip: {} {}{adapter}: {} nodes, {} free + {} constrained dofs{iters}, relative residual {:.2e}{est}, solve {:.3} s, total {:.3} s",
             self.solver,
             self.precision,
             self.nodes,

@@ -356,6 +356,24 @@ fn f32_needs_the_gpu_solver() {
 }
 
 #[test]
+fn error_tol_needs_gpu_mixed() {
+    let c = case("etol");
+    for extra in [
+        &["--error-tol", "1e-10"][..],
+        &[
+            "--solver",
+            "gpu",
+            "--precision",
+            "f64",
+            "--error-tol",
+            "1e-10",
+        ][..],
+    ] {
+        assert_input_error(&c.solve(extra), "--error-tol", &["--precision mixed"]);
+    }
+}
+
+#[test]
 fn missing_file() {
     let c = case("missing");
     let h = c.dir.join("nope.mtx");
@@ -679,21 +697,22 @@ fn gpu_solver_through_the_cli() {
     };
     let base = solve(&[], &s("dx-chol.mtx"));
     let scale = base.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    for p in ["f64", "mixed"] {
-        let rep = s(&format!("rep-{p}.json"));
-        let dx = solve(
-            &[
-                "--solver",
-                "gpu",
-                "--precision",
-                p,
-                "--tol",
-                "1e-10",
-                "--report",
-                &rep,
-            ],
-            &s(&format!("dx-{p}.mtx")),
-        );
+    for (p, error_tol) in [("f64", None), ("mixed", None), ("mixed", Some("1e-12"))] {
+        let rep = s(&format!("rep-{p}-{}.json", error_tol.is_some()));
+        let mut args = vec![
+            "--solver",
+            "gpu",
+            "--precision",
+            p,
+            "--tol",
+            "1e-10",
+            "--report",
+            &rep,
+        ];
+        if let Some(et) = error_tol {
+            args.extend(["--error-tol", et]);
+        }
+        let dx = solve(&args, &s(&format!("dx-{p}.mtx")));
         let diff = dx
             .iter()
             .zip(&base)
@@ -704,6 +723,15 @@ fn gpu_solver_through_the_cli() {
         assert_eq!(r["solver"], "gpu");
         assert_eq!(r["precision"], p);
         assert!(r["adapter"].is_string() && r["gpu"].is_object(), "{r}");
+        // --error-tol: the report carries the certified estimate, ≤ the request.
+        let est = r["gpu"]["error_estimate"].as_f64();
+        match error_tol {
+            Some(et) => assert!(
+                est.is_some_and(|e| e <= et.parse::<f64>().unwrap()),
+                "error estimate {est:?} for --error-tol {et}"
+            ),
+            None => assert!(est.is_none(), "{r}"),
+        }
     }
     std::fs::remove_dir_all(&dir).ok();
 }

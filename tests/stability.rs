@@ -222,6 +222,31 @@ fn cpu_cg_claims_are_honest_both_ways() {
     }
 }
 
+/// Checks a success claimed on an error estimate (mixed precision's extended-precision
+/// refinement, `GpuSolveInfo::error_estimate`): the estimate is ≤ tol and the true error is
+/// within 10× of it.
+fn check_error_claim(p: &Prepared, who: &str, tol: f64, est: f64, y: &[f64]) -> f64 {
+    assert!(
+        est <= tol,
+        "{} {who}: claims success with error estimate {est:e} > tol {tol:e}",
+        p.case.name
+    );
+    let err = hard::relative_error(y, &p.y_ref);
+    assert!(
+        err <= 10.0 * tol,
+        "{} {who}: claims an error ≤ {tol:e} (estimate {est:e}) but the error is {err:e}",
+        p.case.name
+    );
+    err
+}
+
+/// The must-show's bound on κ: the two nominal κ = 1e10 cases measure κ = 1.000129e10
+/// (the generator sets it through a power-iteration λ_max), and they are included.
+const KAPPA_TARGET: f64 = 1.001e10;
+/// Mixed precision's certified error in the must-show runs: 10× below the 1e-9 target, so
+/// the test's own 10× allowance on an estimate still meets it.
+const MIXED_ERROR_TOL: f64 = 1e-10;
+
 mod common;
 use common::gpu::gpu;
 
@@ -232,19 +257,25 @@ fn gpu_sweep(ctx: &GpuContext) -> Vec<String> {
     let mut mixed_misses = Vec::new();
     for p in SUITE.iter() {
         let e = p.case.eliminated();
-        for (precision, tol) in [
-            (Precision::F32, 1e-5),
-            (Precision::F64, 1e-10),
-            (Precision::Mixed, 1e-11),
-            (Precision::Mixed, 1e-20),
+        for (precision, tol, error_tol) in [
+            (Precision::F32, 1e-5, None),
+            (Precision::F64, 1e-10, None),
+            (Precision::Mixed, 1e-11, None),
+            (Precision::Mixed, 1e-11, Some(MIXED_ERROR_TOL)),
+            (Precision::Mixed, 1e-20, None),
         ] {
             let params = GpuParams {
                 precision,
                 tol,
                 max_iters: 20_000,
+                error_tol,
                 ..Default::default()
             };
-            let who = format!("gpu {precision} tol {tol:e}");
+            let who = match error_tol {
+                Some(et) => format!("gpu {precision} tol {tol:e} error_tol {et:e}"),
+                None => format!("gpu {precision} tol {tol:e}"),
+            };
+            let target = error_tol.is_some() && p.kappa <= KAPPA_TARGET;
             let mut solver = match GpuSolver::new(ctx, &e, &params) {
                 Ok(s) => s,
                 Err(err) => {
@@ -254,12 +285,24 @@ fn gpu_sweep(ctx: &GpuContext) -> Vec<String> {
             };
             match solver.solve() {
                 Ok((y, _dx, info)) => {
-                    let err = check_success(p, &e, &who, tol, &y, info.relative_residual);
+                    let err = match info.error_estimate {
+                        // Extended-precision refinement claimed an error ≤ error_tol (or,
+                        // past the f64 residual floor, ≤ tol).
+                        Some(est) => check_error_claim(p, &who, error_tol.unwrap_or(tol), est, &y),
+                        None => {
+                            assert!(
+                                error_tol.is_none(),
+                                "{} {who}: success with error_tol but no error estimate",
+                                p.case.name
+                            );
+                            check_success(p, &e, &who, tol, &y, info.relative_residual)
+                        }
+                    };
                     eprintln!(
                         "{:<28} {who:<26} ok  it {:>6} err {err:9.2e} notes {:?}",
                         p.case.name, info.iterations, info.notes
                     );
-                    if precision == Precision::Mixed && p.kappa <= 1e10 && err > 1e-9 {
+                    if target && err > 1e-9 {
                         mixed_misses.push(format!("{} (err {err:e})", p.case.name));
                     }
                 }
@@ -276,7 +319,7 @@ fn gpu_sweep(ctx: &GpuContext) -> Vec<String> {
                             );
                         }
                     }
-                    if precision == Precision::Mixed && tol > 1e-20 && p.kappa <= 1e10 {
+                    if target {
                         mixed_misses.push(format!("{} ({err})", p.case.name));
                     }
                 }
@@ -286,18 +329,15 @@ fn gpu_sweep(ctx: &GpuContext) -> Vec<String> {
     mixed_misses
 }
 
+/// Every GPU claim is honest both ways (each claim checked inside the sweep), and the
+/// must-show of issue 6: mixed precision with `error_tol` reaches relative error ≤ 1e-9 on
+/// every case with κ ≤ 1e10. kappa-1e8/1e10-balanced need mixed precision's f64 fallback
+/// (the f32 inner CG meets rounding-made negative curvature, κ > 1/ε_f32); kappa-1e10
+/// needs the extended-precision stage (the f64 residual floor, ~1.6e-7, is above any
+/// useful tol); scale-H1e30-g1e-30 needs the normalized inner solve (the solution, ~1e-60,
+/// underflows f32). One sweep for both: it is the slowest part of this binary.
 #[test]
-fn gpu_claims_are_honest_both_ways() {
-    let Some((ctx, _guard)) = gpu() else { return };
-    let misses = gpu_sweep(ctx);
-    eprintln!("mixed precision misses of 1e-9 on κ ≤ 1e10: {misses:?}");
-}
-
-/// Must-show of issue 6. kappa-1e8/1e10-balanced need mixed precision's f64 fallback (the
-/// f32 inner CG meets rounding-made negative curvature, κ > 1/ε_f32); scale-H1e30-g1e-30
-/// needs the normalized inner solve (the solution, ~1e-60, underflows f32).
-#[test]
-fn gpu_mixed_reaches_1e_9_when_kappa_at_most_1e10() {
+fn gpu_claims_are_honest_and_mixed_reaches_1e_9_when_kappa_at_most_1e10() {
     let Some((ctx, _guard)) = gpu() else { return };
     let misses = gpu_sweep(ctx);
     assert!(
