@@ -11,12 +11,19 @@
 // Slot discipline (no workgroup reads a slot another workgroup of the same dispatch writes):
 //   scal:  0 ρ (A writes, C reads)  1 ρ_prev (C writes, A reads)  2 p·q (C)  3 α (C)
 //          4 r·r (A)  5 threshold tol²‖b‖² (host)  6 direction scale kept by init (host)
+//          7 β of the first update_p of a run (A, workgroup 0)
+//          8 + 2j: α_j (C)   8 + 2j + 1: β_{j+1} (A), for j < HIST: the Lanczos
+//          coefficients of this run, from which the host estimates κ(M⁻¹Ĥ)
 //   state: 0 done (A writes, B/C read)  1 halt: non-positive curvature (C writes, A reads)
 //          2 iterations (C, workgroup 0 only)  3 converged (A)  4 breakdown (A)
 
 override D: u32 = 3u;
 override WG: u32 = 64u;
 override PRECOND: u32 = 1u;   // 0 none, 1 Jacobi, 2 block-Jacobi
+override HIST: u32 = 0u;      // Lanczos coefficients recorded per run (0: none)
+
+// First slot of the coefficient history in `scal` (N_SCAL in src/gpu/solver.rs).
+const SCAL_HIST: u32 = 8u;
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read_write> x: array<real>;
@@ -124,7 +131,16 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
     if (stop) {
         return;
     }
-    let beta = real(rz / scal[1]);
+    let beta_acc = rz / scal[1];
+    let beta = real(beta_acc);
+    if (wid.x == 0u && lid.x == 0u) {
+        let it = state[2];
+        if (it == 0u) {
+            scal[7] = beta_acc;
+        } else if (it <= HIST) {
+            scal[SCAL_HIST + 2u * (it - 1u) + 1u] = beta_acc;
+        }
+    }
     let n = params.n_nodes * D;
     for (var k = wid.x * WG + lid.x; k < n; k += params.n_partials * WG) {
         p[k] = z[k] + beta * p[k];
@@ -207,7 +223,11 @@ fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
         scal[1] = scal[0];
         scal[2] = pq;
         scal[3] = alpha_acc;
-        state[2] += 1u;
+        let it = state[2];
+        if (it < HIST) {
+            scal[SCAL_HIST + 2u * it] = alpha_acc;
+        }
+        state[2] = it + 1u;
     }
 }
 

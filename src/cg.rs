@@ -467,6 +467,32 @@ fn pcg(
     res.map(|info| (y, info))
 }
 
+/// κ of M⁻¹Ĥ estimated from the CG coefficients of one uninterrupted run: the extreme
+/// eigenvalues of the Lanczos tridiagonal T (diagonal 1/α_j + β_j/α_{j−1}, off-diagonal
+/// √β_{j+1}/α_j), `betas[j]` being the β computed after α_j. An underestimate that tightens
+/// as CG runs. None with fewer than 2 coefficients or a non-positive λ_min.
+pub fn lanczos_condition(alphas: &[f64], betas: &[f64]) -> Option<f64> {
+    let k = alphas.len();
+    if k < 2 || betas.len() + 1 < k {
+        return None;
+    }
+    let mut da = vec![0.0; k];
+    let mut ob = vec![0.0; k - 1];
+    for j in 0..k {
+        da[j] = 1.0 / alphas[j]
+            + if j > 0 {
+                betas[j - 1] / alphas[j - 1]
+            } else {
+                0.0
+            };
+        if j + 1 < k {
+            ob[j] = betas[j].sqrt() / alphas[j];
+        }
+    }
+    let (lo, hi) = tridiagonal_extremes(&da, &ob)?;
+    (lo > 0.0).then(|| hi / lo)
+}
+
 /// Extreme eigenvalues of the symmetric tridiagonal (diag a, off-diagonal b) by Sturm
 /// bisection: (λ_min, λ_max).
 fn tridiagonal_extremes(a: &[f64], b: &[f64]) -> Option<(f64, f64)> {
@@ -563,27 +589,7 @@ fn pcg_core(
     // Lanczos coefficients of the current cycle (for the condition estimate).
     let mut alphas: Vec<f64> = Vec::new();
     let mut betas: Vec<f64> = Vec::new();
-    let estimate = |alphas: &[f64], betas: &[f64]| -> Option<f64> {
-        let k = alphas.len();
-        if k < 2 {
-            return None;
-        }
-        let mut da = vec![0.0; k];
-        let mut ob = vec![0.0; k - 1];
-        for j in 0..k {
-            da[j] = 1.0 / alphas[j]
-                + if j > 0 {
-                    betas[j - 1] / alphas[j - 1]
-                } else {
-                    0.0
-                };
-            if j + 1 < k {
-                ob[j] = betas[j].sqrt() / alphas[j];
-            }
-        }
-        let (lo, hi) = tridiagonal_extremes(&da, &ob)?;
-        (lo > 0.0).then(|| hi / lo)
-    };
+    let estimate = lanczos_condition;
     let mut best_true = f64::INFINITY;
     loop {
         // (Re)start: r = b − Ĥy, z = M⁻¹r, p = z.

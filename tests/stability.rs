@@ -506,3 +506,63 @@ fn projected_element_hessians_are_psd_on_inverted_and_degenerate_elements() {
         eprintln!("  unprojected: λ_min {lo_u:.3e}");
     }
 }
+
+/// The GPU's κ̃(M⁻¹Ĥ), from the Lanczos coefficients cg.wgsl records, matches the CPU
+/// CG's (both f64, Jacobi, one uninterrupted run: the same Ritz values up to rounding in
+/// the coefficients; 2% allows different summation orders in the reductions), and it
+/// steers mixed precision: f32 is left for f64 where κ̃·ε_f32 is large (kappa-1e6, 0.09),
+/// and kept where it is small (contrast-1e4, 1e-5).
+#[test]
+fn gpu_condition_estimate_matches_cpu_and_steers_mixed() {
+    let Some((ctx, _guard)) = gpu() else { return };
+    for (name, leaves_f32) in [
+        ("kappa-1e6", true),
+        ("contrast-1e4", false),
+        ("needles", false),
+    ] {
+        let p = SUITE
+            .iter()
+            .find(|p| p.case.name == name)
+            .expect("case in the suite");
+        let e = p.case.eliminated();
+        let tol = 1e-10;
+        let (_, cpu) = cg::solve(
+            &e,
+            &CgParams {
+                tol,
+                max_iters: 20_000,
+                ..Default::default()
+            },
+        )
+        .expect("CPU CG converges");
+        let solve = |precision| {
+            let params = GpuParams {
+                precision,
+                tol,
+                max_iters: 20_000,
+                ..Default::default()
+            };
+            GpuSolver::new(ctx, &e, &params)
+                .and_then(|mut s| s.solve())
+                .unwrap_or_else(|err| panic!("{name} gpu {precision}: {err}"))
+                .2
+        };
+        let g64 = solve(Precision::F64);
+        let (kc, kg) = (
+            cpu.condition_estimate.expect("CPU estimate"),
+            g64.condition_estimate.expect("GPU estimate"),
+        );
+        eprintln!("{name}: κ̃ CPU {kc:.4e}, GPU f64 {kg:.4e}");
+        assert!(
+            (kg - kc).abs() <= 0.02 * kc,
+            "{name}: GPU κ̃ {kg:e} against CPU {kc:e}"
+        );
+        let mixed = solve(Precision::Mixed);
+        let left = mixed.fallback.as_deref().is_some_and(|f| f.contains("κ̃"));
+        assert_eq!(
+            left, leaves_f32,
+            "{name}: mixed fallback {:?}",
+            mixed.fallback
+        );
+    }
+}

@@ -77,6 +77,14 @@ const _: () = assert!(std::mem::size_of::<Params>() == 16);
 
 /// Length of the scalar (acc) and state (u32) arrays of the CG (see cg.wgsl).
 const N_SCAL: usize = 8;
+/// Lanczos coefficients (α, β pairs) recorded per CG run after the scalars (cg.wgsl).
+const LANCZOS_HIST: usize = 1024;
+/// Length of the `scal` array: the scalars, then the coefficient history.
+const SCAL_LEN: usize = N_SCAL + 2 * LANCZOS_HIST;
+/// Mixed: f32 CG is abandoned for f64 once κ̃(M⁻¹Ĥ)·ε_f32 exceeds this. There f32 CG's
+/// loss of orthogonality costs more iterations than f32 saves (kappa-1e6, κ̃ε = 0.09:
+/// 2.3× f64's count; needles, 0.014: 1.6×; see STABILITY.md).
+const F32_KAPPA_LIMIT: f64 = 0.05;
 const N_STATE: usize = 8;
 /// Top three bits of a packed column index hold the column node's mask.
 const MAX_NODES: usize = 1 << 29;
@@ -172,6 +180,10 @@ pub struct GpuSolveInfo {
     /// f64 residual cannot resolve `tol` (its rounding floor ε‖Ĥ‖‖y‖/‖b̂‖ is above it), so
     /// `relative_residual` may exceed `tol`. None: success means relative_residual ≤ tol.
     pub error_estimate: Option<f64>,
+    /// κ̃(M⁻¹Ĥ), M the preconditioner, from the Lanczos coefficients of the CG runs (the
+    /// largest over uninterrupted runs; an underestimate that tightens as CG runs; the
+    /// f32 runs of mixed see the f32 operator). None when no run had 2 iterations.
+    pub condition_estimate: Option<f64>,
     pub notes: Vec<String>,
 }
 
@@ -728,6 +740,15 @@ pub struct GpuSolver {
     force_cpu_fallback: bool,
     /// Mixed: why and where the last solve fell back to f64.
     last_fallback: Option<String>,
+    /// The scalars and coefficient history of the last status read.
+    last_scal: Vec<f64>,
+    /// The Lanczos coefficients of the current uninterrupted CG sequence.
+    lz_alphas: Vec<f64>,
+    lz_betas: Vec<f64>,
+    /// The next run continues the sequence (set by a reliable update).
+    lz_resumed: bool,
+    /// Largest κ̃(M⁻¹Ĥ) of the closed sequences of this solve.
+    kappa_est: Option<f64>,
     /// Mixed: the error estimate of the extended-precision refinement of the last solve.
     last_error_estimate: Option<f64>,
     /// Mixed: the assembled Ĥ for the double-double residuals (built on first use).
@@ -1120,6 +1141,11 @@ impl GpuSolver {
             chunk_hint: None,
             last_error_estimate: None,
             assembled: None,
+            last_scal: vec![0.0; SCAL_LEN],
+            lz_alphas: Vec::new(),
+            lz_betas: Vec::new(),
+            lz_resumed: false,
+            kappa_est: None,
         };
         s.upload_seconds = t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
@@ -1447,6 +1473,7 @@ impl GpuSolver {
         self.ctx
             .queue
             .write_buffer(&l.state, 0, &[0u8; 4 * N_STATE]);
+        self.lz_resumed = true;
         let mut enc = self.encoder("cg reliable update");
         enc.clear_buffer(&self.level.x, 0, None);
         enc.clear_buffer(&self.level.q, 0, None);
@@ -1492,7 +1519,8 @@ impl GpuSolver {
             }
         }
         let l = &self.level;
-        let sb = l.acc.size() * N_SCAL as u64;
+        // The scalars and the coefficient history (16 KiB in f64: no extra read-back).
+        let sb = l.acc.size() * SCAL_LEN as u64;
         enc.copy_buffer_to_buffer(&l.scal, 0, &l.status_staging, 0, sb);
         enc.copy_buffer_to_buffer(&l.state, 0, &l.status_staging, sb, 4 * N_STATE as u64);
         if let Some(t) = &self.timestamps {
@@ -1521,14 +1549,55 @@ impl GpuSolver {
             self.gpu_seconds += t1.saturating_sub(t0) as f64 * t.period_ns * 1e-9;
         }
         self.last_rho_prev = scal[1];
-        Ok(Status {
+        let st_out = Status {
             rr: scal[4],
             pq: scal[2],
             iterations: st[2] as usize,
             converged: st[3] != 0,
             curvature: st[1] != 0,
             breakdown: st[4] != 0,
-        })
+        };
+        self.last_scal = scal;
+        Ok(st_out)
+    }
+
+    /// Appends the Lanczos coefficients of the run that just ended (from the last status
+    /// read) to the current sequence: continued across a reliable update (joined by the
+    /// β of its first update_p), else after closing the previous sequence.
+    fn lanczos_collect(&mut self, iterations: usize) {
+        let resumed = std::mem::take(&mut self.lz_resumed);
+        if !resumed || self.lz_alphas.is_empty() {
+            self.lanczos_close();
+        } else {
+            self.lz_betas.push(self.last_scal[7]);
+        }
+        let n = iterations.min(LANCZOS_HIST);
+        let h = &self.last_scal[N_SCAL..];
+        self.lz_alphas.extend((0..n).map(|j| h[2 * j]));
+        self.lz_betas
+            .extend((0..n.saturating_sub(1)).map(|j| h[2 * j + 1]));
+        if iterations > LANCZOS_HIST {
+            // Truncated: the next run cannot continue this sequence.
+            self.lanczos_close();
+        }
+    }
+
+    /// Ends the current coefficient sequence, keeping the largest estimate so far.
+    fn lanczos_close(&mut self) {
+        if let Some(k) = crate::cg::lanczos_condition(&self.lz_alphas, &self.lz_betas) {
+            self.kappa_est = Some(self.kappa_est.map_or(k, |c: f64| c.max(k)));
+        }
+        self.lz_alphas.clear();
+        self.lz_betas.clear();
+    }
+
+    /// κ̃(M⁻¹Ĥ) of the current sequence and the earlier ones.
+    fn kappa_now(&self) -> Option<f64> {
+        let cur = crate::cg::lanczos_condition(&self.lz_alphas, &self.lz_betas);
+        match (cur, self.kappa_est) {
+            (Some(a), Some(b)) => Some(a.max(b)),
+            (a, b) => a.or(b),
+        }
     }
 
     /// Runs CG from the state `start` left until the recurrence residual² ≤ `thresh`,
@@ -1540,6 +1609,21 @@ impl GpuSolver {
     /// [first_chunk, min(2·previous, max_chunk)]. Iterations recorded past convergence are
     /// then at most about one prediction error (or `first_chunk`), not half the run.
     fn run_cg(
+        &mut self,
+        budget: usize,
+        done_before: usize,
+        thresh: f64,
+    ) -> Result<(Outcome, usize), GpuError> {
+        let res = self.run_cg_chunks(budget, done_before, thresh);
+        if let Ok((_, it)) = &res {
+            self.lanczos_collect(*it);
+        } else {
+            self.lz_resumed = false;
+        }
+        res
+    }
+
+    fn run_cg_chunks(
         &mut self,
         budget: usize,
         done_before: usize,
@@ -1651,6 +1735,10 @@ impl GpuSolver {
         self.recorded = 0;
         self.last_fallback = None;
         self.last_error_estimate = None;
+        self.lz_alphas.clear();
+        self.lz_betas.clear();
+        self.lz_resumed = false;
+        self.kappa_est = None;
         let t0 = Instant::now();
         let bnorm = norm2(&self.host.rhs);
         let mut notes = Vec::new();
@@ -1676,6 +1764,7 @@ impl GpuSolver {
             })?
         };
         let _ = t0;
+        self.lanczos_close();
         let rel = self.host.relative_residual(&y);
         let bpi = self.bytes_per_iteration;
         let moved = bpi as f64 * iterations as f64;
@@ -1706,6 +1795,7 @@ impl GpuSolver {
             readbacks: self.readbacks,
             fallback: self.last_fallback.clone(),
             error_estimate: self.last_error_estimate,
+            condition_estimate: self.kappa_est,
             notes,
         };
         Ok((y, dx, info))
@@ -1874,6 +1964,17 @@ impl GpuSolver {
                     if matches!(out, Outcome::Converged) {
                         keep = Some((self.last_rho_prev, rn));
                         seg_len = Some(it.max(1));
+                    }
+                    if let Some(k) = self.kappa_now() {
+                        let ke = k * f64::from(f32::EPSILON);
+                        if ke > F32_KAPPA_LIMIT {
+                            break format!(
+                                "outer step {outer}: κ̃(M⁻¹Ĥ) ≈ {k:.2e} from the f32 CG's \
+                                 Lanczos coefficients; κ̃·ε_f32 = {ke:.2} > {F32_KAPPA_LIMIT}, \
+                                 where f32 CG loses orthogonality and costs more iterations \
+                                 than it saves"
+                            );
+                        }
                     }
                 }
                 Err(GpuError::Cg(CgError::NonPositiveCurvature {
@@ -2987,13 +3088,18 @@ fn build_level(
     let g = host.ndof().div_ceil(c.wg as usize).clamp(1, 256) as u64;
     // n_partials is computed from nodes, not DOFs; allocate for the larger bound.
     let partials = bld.buffer("partials", 3 * g.max(256) * acc.size(), STORAGE)?;
-    let scal = bld.buffer("cg_scalars", N_SCAL as u64 * acc.size(), STORAGE)?;
+    let scal = bld.buffer("cg_scalars", SCAL_LEN as u64 * acc.size(), STORAGE)?;
     let state = bld.buffer("cg_state", 4 * N_STATE as u64, STORAGE)?;
     let status_staging = bld.staging(
         "status_staging",
-        N_SCAL as u64 * acc.size() + 4 * N_STATE as u64 + 16,
+        SCAL_LEN as u64 * acc.size() + 4 * N_STATE as u64 + 16,
     )?;
-    let cg_consts = [("D", c.d), ("WG", c.wg), ("PRECOND", c.precond)];
+    let cg_consts = [
+        ("D", c.d),
+        ("WG", c.wg),
+        ("PRECOND", c.precond),
+        ("HIST", LANCZOS_HIST as f64),
+    ];
     let cg_binds = [Uniform, Rw, Rw, Rw, Rw, Ro, Ro, Ro, Rw, Rw, Rw];
     let k_update_p = bld.kernel(
         "update_p",
