@@ -207,9 +207,9 @@ pub struct SolveArgs {
     /// Iterative solvers: iteration limit [default: 10000].
     #[arg(long)]
     pub max_iters: Option<usize>,
-    /// --precision mixed: also certify the relative error ‖y − y*‖/‖y*‖ ≤ this by
-    /// extended-precision refinement (double-double residuals), after --tol is met. A small
-    /// residual bounds the error only by κ·tol; this bounds it directly.
+    /// --precision mixed: after --tol is met, refine with double-double residuals until the
+    /// estimated relative error ‖y − y*‖/‖y*‖ is ≤ this. A small residual bounds the error
+    /// only by κ·tol; this targets the error directly.
     #[arg(long, value_parser = positive_f64)]
     pub error_tol: Option<f64>,
     /// Iterative solvers: none, jacobi or block-jacobi.

@@ -288,7 +288,16 @@ fn gpu_sweep(ctx: &GpuContext) -> Vec<String> {
                     let err = match info.error_estimate {
                         // Extended-precision refinement claimed an error ≤ error_tol (or,
                         // past the f64 residual floor, ≤ tol).
-                        Some(est) => check_error_claim(p, &who, error_tol.unwrap_or(tol), est, &y),
+                        Some(est) => {
+                            // After the residual criterion: ≤ error_tol. After a stagnation
+                            // on the f64 residual floor: ≤ min(tol, error_tol).
+                            let bound = if info.relative_residual <= tol {
+                                error_tol.unwrap_or(tol)
+                            } else {
+                                error_tol.map_or(tol, |et| et.min(tol))
+                            };
+                            check_error_claim(p, &who, bound, est, &y)
+                        }
                         None => {
                             assert!(
                                 error_tol.is_none(),

@@ -111,12 +111,13 @@ pub struct GpuParams {
     pub inner_tol: f64,
     /// Mixed: limit on outer steps (reliable updates).
     pub max_outer: usize,
-    /// Mixed: also certify the relative error ‖y − y*‖/‖y*‖ ≤ error_tol (y* the exact
-    /// solution of the f64 Ĥ) by extended-precision refinement (double-double residuals on
-    /// the host, f64 CG corrections on the GPU) once the residual criterion is met. A small
-    /// residual bounds the error only by κ·tol; this bounds it directly. The estimate is in
-    /// `GpuSolveInfo::error_estimate`. Needs an assembled Hessian and the f64 operator on
-    /// the device. None: residual criterion only.
+    /// Mixed: once the residual criterion is met, go on with extended-precision refinement
+    /// (double-double residuals on the host, f64 CG corrections on the GPU) until the
+    /// estimated relative error ‖y − y*‖/‖y*‖ is ≤ error_tol (y* the exact solution of the
+    /// f64 Ĥ; the estimate comes from the contraction of consecutive corrections). A small
+    /// residual bounds the error only by κ·tol; this targets the error directly. The
+    /// estimate is in `GpuSolveInfo::error_estimate`. Needs an assembled Hessian and the
+    /// f64 operator on the device. None: residual criterion only.
     pub error_tol: Option<f64>,
 }
 
