@@ -761,6 +761,10 @@ pub struct GpuSolver {
     last_rho_prev: f64,
     /// Size of the first chunk of the next `run_cg` (mixed: the previous segment's length).
     chunk_hint: Option<usize>,
+    /// r·r where the next `run_cg` starts, when known (mixed: 1, the unit right-hand side
+    /// with x = 0): the first point of its rate history, so the chunk after the first is
+    /// predicted instead of doubled.
+    start_rr: Option<f64>,
 }
 
 fn u32s(v: impl IntoIterator<Item = u32>) -> Vec<u8> {
@@ -1143,6 +1147,7 @@ impl GpuSolver {
             last_fallback: None,
             last_rho_prev: 1.0,
             chunk_hint: None,
+            start_rr: None,
             last_error_estimate: None,
             assembled: None,
             last_scal: vec![0.0; SCAL_LEN],
@@ -1643,6 +1648,9 @@ impl GpuSolver {
         let mut iters = 0usize;
         // (iterations, ln r·r) at each status read.
         let mut hist: Vec<(usize, f64)> = Vec::new();
+        if let Some(rr0) = self.start_rr.take().filter(|v| *v > 0.0 && v.is_finite()) {
+            hist.push((0, rr0.ln()));
+        }
         loop {
             let kk = k.min(budget.saturating_sub(iters));
             if kk == 0 {
@@ -1962,6 +1970,7 @@ impl GpuSolver {
                 _ => self.start(false, thresh)?,
             }
             self.chunk_hint = seg_len;
+            self.start_rr = Some(1.0);
             match self.run_cg(self.params.max_iters - total, total, thresh) {
                 Ok((out, it)) => {
                     total += it;
