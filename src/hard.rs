@@ -636,11 +636,6 @@ pub struct Reference {
     pub trusted: bool,
 }
 
-/// b − A y in double-double (see [`BlockCsr::residual_dd`]).
-pub fn residual_dd(a: &BlockCsr, b: &[f64], y: &[f64]) -> Vec<f64> {
-    a.residual_dd(b, y)
-}
-
 /// Solves the assembled Ĥ y = b̂ by sparse Cholesky, then refines with residuals in
 /// double-double until the correction is below 1e-16 relative (at most 30 steps). The
 /// result is the solution of the assembled f64 matrix Ĥ to about ε when κ(Ĥ)·ε ≪ 1
@@ -653,7 +648,7 @@ pub fn reference(e: &Eliminated) -> Result<Reference, crate::error::SolveError> 
     let mut last = f64::INFINITY;
     let mut steps = 0;
     while steps < 30 {
-        let r = residual_dd(&a, &e.rhs, &y);
+        let r = a.residual_dd(&e.rhs, &y);
         if norm2(&r) == 0.0 {
             last = 0.0;
             break;

@@ -1418,12 +1418,14 @@ impl GpuSolver {
         Ok(out)
     }
 
-    /// Resets the CG scalars: ρ_prev = 1, the convergence threshold, flags cleared.
-    fn reset_scalars(&self, thresh: f64) {
+    /// Resets the CG scalars: ρ_prev, the convergence threshold, the direction scale kept
+    /// by `init` (0: p = 0), flags cleared.
+    fn reset_scalars(&self, thresh: f64, rho_prev: f64, pscale: f64) {
         let l = &self.level;
         let mut s = vec![0.0f64; N_SCAL];
-        s[1] = 1.0;
+        s[1] = rho_prev;
         s[5] = thresh;
+        s[6] = pscale;
         self.ctx.queue.write_buffer(&l.scal, 0, &l.acc.bytes(&s));
         self.ctx
             .queue
@@ -1448,25 +1450,7 @@ impl GpuSolver {
     /// Starts CG at the current x (zeroed first unless `keep_x`): q = Ĥx, r = b − q,
     /// z = M⁻¹r, then the first update_p (p = z).
     fn start(&mut self, keep_x: bool, thresh: f64) -> Result<(), GpuError> {
-        self.reset_scalars(thresh);
-        let mut enc = self.encoder("cg start");
-        if !keep_x {
-            enc.clear_buffer(&self.level.x, 0, None);
-        }
-        {
-            let mut pass = enc
-                .begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("cg start pass"),
-                    timestamp_writes: None,
-                })
-                .forget_lifetime();
-            let g = self.n_partials;
-            self.dispatch(&mut pass, Which::MatvecX, g);
-            self.dispatch(&mut pass, Which::Init, g);
-            self.dispatch(&mut pass, Which::UpdateP, g);
-        }
-        self.ctx.queue.submit([enc.finish()]);
-        self.ctx.check("starting CG")
+        self.begin(thresh, Begin::Restart { keep_x })
     }
 
     /// Mixed precision's reliable update: CG goes on from the new right-hand side b (the
@@ -1475,32 +1459,48 @@ impl GpuSolver {
     /// `rho_prev` is ρ_prev in the new normalization. Restarting instead (p = 0) throws the
     /// Krylov space away and costs mixed 40% more iterations than f64 CG (64k nodes).
     fn resume(&mut self, thresh: f64, rho_prev: f64, pscale: f64) -> Result<(), GpuError> {
-        let l = &self.level;
-        let mut s = vec![0.0f64; N_SCAL];
-        s[1] = rho_prev;
-        s[5] = thresh;
-        s[6] = pscale;
-        self.ctx.queue.write_buffer(&l.scal, 0, &l.acc.bytes(&s));
-        self.ctx
-            .queue
-            .write_buffer(&l.state, 0, &[0u8; 4 * N_STATE]);
-        self.lz_resumed = true;
-        let mut enc = self.encoder("cg reliable update");
-        enc.clear_buffer(&self.level.x, 0, None);
-        enc.clear_buffer(&self.level.q, 0, None);
+        self.begin(thresh, Begin::Resume { rho_prev, pscale })
+    }
+
+    /// The common start of a CG run: scalars, then init and the first update_p. A restart
+    /// computes q = Ĥx; a resume has x = 0, so it clears q instead of a product.
+    fn begin(&mut self, thresh: f64, how: Begin) -> Result<(), GpuError> {
+        let (label, what) = match how {
+            Begin::Restart { .. } => ("cg start", "starting CG"),
+            Begin::Resume { .. } => ("cg reliable update", "reliable update"),
+        };
+        let mut enc = self.encoder(label);
+        match how {
+            Begin::Restart { keep_x } => {
+                self.reset_scalars(thresh, 1.0, 0.0);
+                self.lz_resumed = false;
+                if !keep_x {
+                    enc.clear_buffer(&self.level.x, 0, None);
+                }
+            }
+            Begin::Resume { rho_prev, pscale } => {
+                self.reset_scalars(thresh, rho_prev, pscale);
+                self.lz_resumed = true;
+                enc.clear_buffer(&self.level.x, 0, None);
+                enc.clear_buffer(&self.level.q, 0, None);
+            }
+        }
         {
             let mut pass = enc
                 .begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("cg reliable update pass"),
+                    label: Some(label),
                     timestamp_writes: None,
                 })
                 .forget_lifetime();
             let g = self.n_partials;
+            if matches!(how, Begin::Restart { .. }) {
+                self.dispatch(&mut pass, Which::MatvecX, g);
+            }
             self.dispatch(&mut pass, Which::Init, g);
             self.dispatch(&mut pass, Which::UpdateP, g);
         }
         self.ctx.queue.submit([enc.finish()]);
-        self.ctx.check("reliable update")
+        self.ctx.check(what)
     }
 
     /// Records `k` iterations in one submit, then reads the status back.
@@ -2144,14 +2144,9 @@ impl GpuSolver {
             };
             self.assembled = Some(e.assemble());
         }
-        let Some(mut fb) = self.fallback_level.take() else {
-            return Err(GpuError::Device("the f64 fallback level is missing".into()));
-        };
         let a = self.assembled.take().expect("assembled above");
-        std::mem::swap(&mut self.level, &mut fb);
-        let res = self.refine_extended_run(&a, &mut y, done, notes, target);
-        std::mem::swap(&mut self.level, &mut fb);
-        self.fallback_level = Some(fb);
+        let res =
+            self.on_fallback_level(|s| s.refine_extended_run(&a, &mut y, done, notes, target));
         self.assembled = Some(a);
         let (its, est) = res?;
         self.last_error_estimate = Some(est);
@@ -2336,20 +2331,28 @@ impl GpuSolver {
         self.setup_levels(false, true)
     }
 
+    /// Runs `f` with the f64 fallback level in the CG's place, then puts both back.
+    fn on_fallback_level<T>(
+        &mut self,
+        f: impl FnOnce(&mut Self) -> Result<T, GpuError>,
+    ) -> Result<T, GpuError> {
+        let Some(mut fb) = self.fallback_level.take() else {
+            return Err(GpuError::Device("the f64 fallback level is missing".into()));
+        };
+        std::mem::swap(&mut self.level, &mut fb);
+        let r = f(self);
+        std::mem::swap(&mut self.level, &mut fb);
+        self.fallback_level = Some(fb);
+        r
+    }
+
     /// The fallback on the GPU: the f64 level takes the CG's place for the run.
     fn fallback_gpu(
         &mut self,
         done: usize,
         dl: &mut f64,
     ) -> Result<(usize, usize, Vec<f64>, Vec<f64>), GpuError> {
-        let Some(mut fb) = self.fallback_level.take() else {
-            return Err(GpuError::Device("the f64 fallback level is missing".into()));
-        };
-        std::mem::swap(&mut self.level, &mut fb);
-        let r = self.fallback_gpu_run(done, dl);
-        std::mem::swap(&mut self.level, &mut fb);
-        self.fallback_level = Some(fb);
-        r
+        self.on_fallback_level(|s| s.fallback_gpu_run(done, dl))
     }
 
     fn fallback_gpu_run(
@@ -2850,6 +2853,15 @@ fn next_chunk(hist: &[(usize, f64)], thresh: f64, prev: usize, floor: usize, cap
         return grow;
     }
     (need.max(0.0).ceil() as usize).clamp(floor, grow)
+}
+
+/// How `GpuSolver::begin` starts a CG run.
+#[derive(Clone, Copy)]
+enum Begin {
+    /// From the current x (or zero), p = 0.
+    Restart { keep_x: bool },
+    /// Mixed's reliable update: x = 0, p kept and rescaled.
+    Resume { rho_prev: f64, pscale: f64 },
 }
 
 #[derive(Clone, Copy)]
