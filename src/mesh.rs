@@ -99,7 +99,7 @@ impl Mesh {
     /// Lower-dimensional meshes are their own boundary: a rod in 2D or a sheet in 3D gives
     /// each element's measure equally to its nodes (both sides of a sheet count once);
     /// a rod in 3D does the same with its length (a unit-width strip, documented in
-    /// `scene.rs`). Interior nodes of a solid get 0 and never feel the barrier.
+    /// `scene/mod.rs`). Interior nodes of a solid get 0 and never feel the barrier.
     pub fn boundary_measure(&self) -> Vec<f64> {
         let mut w = vec![0.0; self.n_nodes()];
         let solid = matches!(

@@ -1,0 +1,195 @@
+//! Body meshes for a scene: the generated ones (rectangle, box, rod, sheet) scaled by the
+//! run's size option, and Gmsh files, each then rotated and translated.
+
+use super::resolve::Ctx;
+use super::spec::{MeshKind, MeshSpec};
+use crate::error::InputError;
+use crate::mesh::{self, Mesh};
+
+/// `cells · size`, rounded, at least 1; None when it is above [`mesh::MAX_NODES`] (checked
+/// before the cast: `as usize` would saturate).
+fn scaled(cells: usize, size: f64) -> Option<usize> {
+    let n = (cells as f64 * size).round();
+    if n <= mesh::MAX_NODES as f64 {
+        Some((n as usize).max(1))
+    } else {
+        None
+    }
+}
+
+pub(super) fn build_mesh(
+    c: &Ctx,
+    key: &str,
+    m: &MeshSpec,
+    dim: usize,
+    size: f64,
+) -> Result<Mesh, InputError> {
+    let mk = format!("{key}.mesh");
+    if m.kind == MeshKind::Gmsh {
+        return gmsh_mesh(c, &mk, m, dim);
+    }
+    if m.file.is_some() {
+        return Err(c.err(format!("{mk}.file"), "only a gmsh mesh takes a file"));
+    }
+    let want_cells = match m.kind {
+        MeshKind::Rod => 1,
+        MeshKind::Rectangle | MeshKind::Sheet => 2,
+        MeshKind::Box => 3,
+        MeshKind::Gmsh => 0,
+    };
+    if m.cells.len() != want_cells {
+        return Err(c.err(
+            format!("{mk}.cells"),
+            format!("must have {want_cells} entries for a {:?} mesh", m.kind).to_lowercase(),
+        ));
+    }
+    if let Some(k) = m.cells.iter().position(|&n| n == 0) {
+        return Err(c.err(format!("{mk}.cells[{k}]"), "must be at least 1"));
+    }
+    // Node and element counts in checked arithmetic, against the per-body cap.
+    let too_big = || {
+        let by = if size == 1.0 {
+            String::new()
+        } else {
+            format!(" times --size {size}")
+        };
+        c.err(
+            format!("{mk}.cells"),
+            format!(
+                "{:?}{by} gives more than {} nodes, the cap per body (mesh::MAX_NODES)",
+                m.cells,
+                mesh::MAX_NODES
+            ),
+        )
+    };
+    let cells: Vec<usize> = m
+        .cells
+        .iter()
+        .map(|&n| scaled(n, size))
+        .collect::<Option<_>>()
+        .ok_or_else(too_big)?;
+    if mesh::grid_counts(&cells, 1).is_none() {
+        return Err(too_big());
+    }
+    let size_vec = |n: usize| -> Result<Vec<f64>, InputError> {
+        let s = m
+            .size
+            .as_ref()
+            .ok_or_else(|| c.err(format!("{mk}.size"), format!("missing ({n} lengths)")))?;
+        if s.len() != n {
+            return Err(c.err(
+                format!("{mk}.size"),
+                format!("must have {n} entries, got {}", s.len()),
+            ));
+        }
+        for (a, &v) in s.iter().enumerate() {
+            c.positive(&format!("{mk}.size[{a}]"), v)?;
+        }
+        Ok(s.clone())
+    };
+    let mut mesh = match m.kind {
+        MeshKind::Rectangle => {
+            if dim != 2 {
+                return Err(c.err(
+                    format!("{mk}.kind"),
+                    "a rectangle is a 2D mesh (use box or sheet in 3D)",
+                ));
+            }
+            let s = size_vec(2)?;
+            mesh::rectangle(2, [s[0], s[1]], [cells[0], cells[1]])
+        }
+        MeshKind::Sheet => {
+            let s = size_vec(2)?;
+            mesh::rectangle(dim, [s[0], s[1]], [cells[0], cells[1]])
+        }
+        MeshKind::Box => {
+            if dim != 3 {
+                return Err(c.err(
+                    format!("{mk}.kind"),
+                    "a box is a 3D mesh (use rectangle in 2D)",
+                ));
+            }
+            let s = size_vec(3)?;
+            mesh::cuboid([s[0], s[1], s[2]], [cells[0], cells[1], cells[2]])
+        }
+        MeshKind::Rod => {
+            let l = m
+                .length
+                .ok_or_else(|| c.err(format!("{mk}.length"), "missing (a rod needs a length)"))?;
+            let l = c.positive(&format!("{mk}.length"), l)?;
+            mesh::rod(dim, l, cells[0])
+        }
+        MeshKind::Gmsh => unreachable!("handled above"),
+    };
+    if m.kind != MeshKind::Rod && m.length.is_some() {
+        return Err(c.err(
+            format!("{mk}.length"),
+            "only a rod takes a length (use size)",
+        ));
+    }
+    if m.kind == MeshKind::Rod && m.size.is_some() {
+        return Err(c.err(format!("{mk}.size"), "a rod takes a length, not a size"));
+    }
+    let origin = match &m.origin {
+        Some(o) => c.vector(&format!("{mk}.origin"), o, dim)?,
+        None => [0.0; 3],
+    };
+    let angle = match m.rotate_degrees {
+        Some(a) if !a.is_finite() => {
+            return Err(c.err(format!("{mk}.rotate_degrees"), "must be finite"))
+        }
+        Some(a) => a.to_radians(),
+        None => 0.0,
+    };
+    mesh.transform(angle, &origin);
+    Ok(mesh)
+}
+
+/// Loads `mesh.file` (Gmsh), then applies rotation and origin like the generated meshes.
+fn gmsh_mesh(c: &Ctx, mk: &str, m: &MeshSpec, dim: usize) -> Result<Mesh, InputError> {
+    for (name, given) in [
+        ("cells", !m.cells.is_empty()),
+        ("size", m.size.is_some()),
+        ("length", m.length.is_some()),
+    ] {
+        if given {
+            return Err(c.err(
+                format!("{mk}.{name}"),
+                "does not apply to a gmsh mesh (the file fixes it)",
+            ));
+        }
+    }
+    let f = m.file.as_ref().ok_or_else(|| {
+        c.err(
+            format!("{mk}.file"),
+            "missing (a gmsh mesh needs a .msh file)",
+        )
+    })?;
+    let path = std::path::Path::new(f);
+    let path = if path.is_absolute() {
+        path.to_path_buf()
+    } else {
+        std::path::Path::new(c.file)
+            .parent()
+            .map(|d| d.join(path))
+            .unwrap_or_else(|| path.to_path_buf())
+    };
+    let shown = path.display().to_string();
+    let bytes = std::fs::read(&path)
+        .map_err(|e| c.err(format!("{mk}.file"), format!("{shown}: cannot read: {e}")))?;
+    let mut mesh = mesh::gmsh(dim, &bytes)
+        .map_err(|e| c.err(format!("{mk}.file"), format!("{shown}: {e}")))?;
+    let origin = match &m.origin {
+        Some(o) => c.vector(&format!("{mk}.origin"), o, dim)?,
+        None => [0.0; 3],
+    };
+    let angle = match m.rotate_degrees {
+        Some(a) if !a.is_finite() => {
+            return Err(c.err(format!("{mk}.rotate_degrees"), "must be finite"))
+        }
+        Some(a) => a.to_radians(),
+        None => 0.0,
+    };
+    mesh.transform(angle, &origin);
+    Ok(mesh)
+}
