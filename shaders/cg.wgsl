@@ -22,7 +22,7 @@ override WG: u32 = 64u;
 override PRECOND: u32 = 1u;   // 0 none, 1 Jacobi, 2 block-Jacobi
 override HIST: u32 = 0u;      // Lanczos coefficients recorded per run (0: none)
 
-// First slot of the coefficient history in `scal` (N_SCAL in src/gpu/solver.rs).
+// First slot of the coefficient history in `scal` (N_SCAL in src/gpu/solver/mod.rs).
 const SCAL_HIST: u32 = 8u;
 
 @group(0) @binding(0) var<uniform> params: Params;

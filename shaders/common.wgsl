@@ -1,7 +1,7 @@
 // Declarations every stickslip kernel shares, prepended by `gpu::kernels::prelude`
 // after the scalar-type aliases. WGSL has no include, so this is the one copy.
 
-// Uniform parameters of every kernel; mirrors `Params` in src/gpu/solver.rs
+// Uniform parameters of every kernel; mirrors `Params` in src/gpu/solver/mod.rs
 // (four u32, 16 bytes, size-asserted there).
 struct Params {
     n_nodes: u32,

@@ -1,0 +1,361 @@
+//! Device allocation and kernel compilation: the scalar type of a kernel instance
+//! (`Real`), the uniform `Params`, the `Builder` (buffers and pipelines with bookkeeping
+//! and limit checks), the type-independent device data (`Shared`) and the block-plane
+//! layout helpers.
+
+use super::info::{BufferRecord, KernelRecord};
+use crate::gpu::{kernels, GpuContext, GpuError};
+use std::collections::BTreeMap;
+use wgpu::util::DeviceExt;
+
+/// Scalar type of a kernel instance.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Real {
+    F32,
+    F64,
+}
+
+impl Real {
+    pub(super) fn name(self) -> &'static str {
+        match self {
+            Real::F32 => "f32",
+            Real::F64 => "f64",
+        }
+    }
+    pub(super) fn size(self) -> u64 {
+        match self {
+            Real::F32 => 4,
+            Real::F64 => 8,
+        }
+    }
+    pub(super) fn bytes(self, v: &[f64]) -> Vec<u8> {
+        match self {
+            Real::F32 => {
+                let w: Vec<f32> = v.iter().map(|&x| x as f32).collect();
+                bytemuck::cast_slice(&w).to_vec()
+            }
+            Real::F64 => bytemuck::cast_slice(v).to_vec(),
+        }
+    }
+    pub(super) fn values(self, b: &[u8]) -> Vec<f64> {
+        match self {
+            Real::F32 => b
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64)
+                .collect(),
+            Real::F64 => b
+                .chunks_exact(8)
+                .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
+                .collect(),
+        }
+    }
+}
+
+#[derive(Clone, Copy)]
+pub(super) enum Bind {
+    Uniform,
+    Ro,
+    Rw,
+}
+
+pub(super) struct Kernel {
+    pub(super) name: &'static str,
+    pub(super) pipeline: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+}
+
+/// Allocation and compilation with bookkeeping and limit checks.
+pub(super) struct Builder<'a> {
+    ctx: &'a GpuContext,
+    pub(super) buffers: Vec<BufferRecord>,
+    pub(super) kernels: Vec<KernelRecord>,
+    modules: BTreeMap<(String, &'static str, &'static str), wgpu::ShaderModule>,
+}
+
+pub(super) const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE
+    .union(wgpu::BufferUsages::COPY_DST)
+    .union(wgpu::BufferUsages::COPY_SRC);
+
+impl<'a> Builder<'a> {
+    pub(super) fn new(ctx: &'a GpuContext) -> Self {
+        Builder {
+            ctx,
+            buffers: Vec::new(),
+            kernels: Vec::new(),
+            modules: BTreeMap::new(),
+        }
+    }
+
+    fn check_size(
+        &self,
+        label: &str,
+        bytes: u64,
+        usage: wgpu::BufferUsages,
+    ) -> Result<(), GpuError> {
+        let l = &self.ctx.limits;
+        let too_large = |limit: u64, what: &'static str| GpuError::BufferTooLarge {
+            label: label.to_string(),
+            bytes,
+            limit,
+            what,
+            adapter: self.ctx.info.name.clone(),
+        };
+        if bytes > l.max_buffer_size {
+            return Err(too_large(l.max_buffer_size, "buffer"));
+        }
+        if usage.contains(wgpu::BufferUsages::STORAGE) && bytes > l.max_storage_buffer_binding_size
+        {
+            return Err(too_large(
+                l.max_storage_buffer_binding_size,
+                "storage binding",
+            ));
+        }
+        Ok(())
+    }
+
+    pub(super) fn buffer(
+        &mut self,
+        label: &str,
+        bytes: u64,
+        usage: wgpu::BufferUsages,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        // Bindings must not be empty; round up to whole 16-byte units.
+        let bytes = bytes.max(16).div_ceil(16) * 16;
+        self.check_size(label, bytes, usage)?;
+        let b = self.ctx.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: bytes,
+            usage,
+            mapped_at_creation: false,
+        });
+        self.buffers.push(BufferRecord {
+            label: label.to_string(),
+            bytes,
+        });
+        Ok(b)
+    }
+
+    pub(super) fn init(
+        &mut self,
+        label: &str,
+        data: &[u8],
+        usage: wgpu::BufferUsages,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let mut padded;
+        let contents = if data.len() < 16 || data.len() % 4 != 0 {
+            padded = data.to_vec();
+            padded.resize(data.len().max(16).div_ceil(4) * 4, 0);
+            &padded[..]
+        } else {
+            data
+        };
+        self.check_size(label, contents.len() as u64, usage)?;
+        let b = self
+            .ctx
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents,
+                usage,
+            });
+        self.buffers.push(BufferRecord {
+            label: label.to_string(),
+            bytes: contents.len() as u64,
+        });
+        Ok(b)
+    }
+
+    pub(super) fn storage(&mut self, label: &str, data: &[u8]) -> Result<wgpu::Buffer, GpuError> {
+        self.init(label, data, STORAGE)
+    }
+
+    pub(super) fn staging(&mut self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
+        self.buffer(
+            label,
+            bytes,
+            wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn kernel(
+        &mut self,
+        name: &'static str,
+        file: &'static str,
+        src: &'static str,
+        real: Real,
+        acc: Real,
+        entry: &'static str,
+        binds: &[Bind],
+        constants: &[(&str, f64)],
+    ) -> Result<Kernel, GpuError> {
+        let dev = &self.ctx.device;
+        let key = (file.to_string(), real.name(), acc.name());
+        if !self.modules.contains_key(&key) {
+            let code = format!("{}{}", kernels::prelude(real.name(), acc.name()), src);
+            let m = dev.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(&format!("{file} ({}/{})", real.name(), acc.name())),
+                source: wgpu::ShaderSource::Wgsl(code.into()),
+            });
+            self.modules.insert(key.clone(), m);
+        }
+        let module = &self.modules[&key];
+        let entries: Vec<wgpu::BindGroupLayoutEntry> = binds
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupLayoutEntry {
+                binding: i as u32,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: match b {
+                        Bind::Uniform => wgpu::BufferBindingType::Uniform,
+                        Bind::Ro => wgpu::BufferBindingType::Storage { read_only: true },
+                        Bind::Rw => wgpu::BufferBindingType::Storage { read_only: false },
+                    },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            })
+            .collect();
+        let layout = dev.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some(&format!("{name} layout")),
+            entries: &entries,
+        });
+        let pl = dev.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some(&format!("{name} pipeline layout")),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let pipeline = dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(&format!("{name} ({})", real.name())),
+            layout: Some(&pl),
+            module,
+            entry_point: Some(entry),
+            compilation_options: wgpu::PipelineCompilationOptions {
+                constants,
+                zero_initialize_workgroup_memory: true,
+            },
+            cache: None,
+        });
+        self.ctx.check(&format!("building kernel {name}"))?;
+        self.kernels.push(KernelRecord {
+            name: name.to_string(),
+            entry: entry.to_string(),
+            real: real.name().to_string(),
+            acc: acc.name().to_string(),
+            constants: constants.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
+        });
+        Ok(Kernel {
+            name,
+            pipeline,
+            layout,
+        })
+    }
+
+    pub(super) fn bind(&self, k: &Kernel, label: &str, bufs: &[&wgpu::Buffer]) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry> = bufs
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        self.ctx
+            .device
+            .create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(label),
+                layout: &k.layout,
+                entries: &entries,
+            })
+    }
+}
+
+/// Type-independent data of the system on the device.
+pub(super) struct Shared {
+    pub(super) params: wgpu::Buffer,
+    /// Block pattern (assembled) or spring adjacency (matrix-free), columns packed with masks.
+    pub(super) row_ptr: wgpu::Buffer,
+    pub(super) col: wgpu::Buffer,
+    pub(super) mask: Option<wgpu::Buffer>,
+    pub(super) rot_index: Option<wgpu::Buffer>,
+    pub(super) rot_nodes: Option<wgpu::Buffer>,
+    /// Springs: the identity pattern of the host-computed diagonal blocks.
+    pub(super) diag_row_ptr: Option<wgpu::Buffer>,
+    pub(super) diag_col: Option<wgpu::Buffer>,
+    /// Bound where a kernel's specialization never touches the binding.
+    pub(super) placeholder: wgpu::Buffer,
+}
+
+impl Shared {
+    pub(super) fn mask_or(&self) -> &wgpu::Buffer {
+        self.mask.as_ref().unwrap_or(&self.placeholder)
+    }
+}
+
+/// Values per block in each of the three block planes (see matvec.wgsl): D = 3 splits the
+/// row-major 3×3 block as (e0..e3), (e4..e7), (e8); D = 2 keeps the 2×2 block in plane 0.
+pub(super) fn plane_widths(d: usize) -> [usize; 3] {
+    if d == 3 {
+        [4, 4, 1]
+    } else {
+        [4, 0, 0]
+    }
+}
+
+/// Row-major d×d blocks → the three planes.
+pub(super) fn to_planes(d: usize, values: &[f64]) -> [Vec<f64>; 3] {
+    let w = plane_widths(d);
+    let dd = d * d;
+    let n = values.len() / dd;
+    let mut out = [
+        Vec::with_capacity(n * w[0]),
+        Vec::with_capacity(n * w[1]),
+        Vec::with_capacity(n * w[2]),
+    ];
+    for b in values.chunks_exact(dd) {
+        let mut o = 0;
+        for (p, &wp) in out.iter_mut().zip(&w) {
+            p.extend_from_slice(&b[o..o + wp]);
+            o += wp;
+        }
+    }
+    out
+}
+
+/// The three planes → row-major d×d blocks.
+pub(super) fn from_planes(d: usize, n_blocks: usize, planes: &[Vec<f64>; 3]) -> Vec<f64> {
+    let w = plane_widths(d);
+    let mut out = Vec::with_capacity(n_blocks * d * d);
+    for k in 0..n_blocks {
+        for (p, &wp) in planes.iter().zip(&w) {
+            out.extend_from_slice(&p[k * wp..(k + 1) * wp]);
+        }
+    }
+    out
+}
+
+/// Allocates the three block planes `{label}`, `{label}_b`, `{label}_c` (each checked
+/// against the binding limit on its own; unused planes take 16 bytes).
+pub(super) fn plane_buffers(
+    bld: &mut Builder,
+    label: &str,
+    d: usize,
+    n_blocks: usize,
+    real: Real,
+) -> Result<[wgpu::Buffer; 3], GpuError> {
+    let w = plane_widths(d);
+    // An unused plane still binds as one vec4<real> (32 bytes for f64).
+    let bytes = |wp: usize| ((n_blocks * wp) as u64 * real.size()).max(4 * real.size());
+    Ok([
+        bld.buffer(label, bytes(w[0]), STORAGE)?,
+        bld.buffer(&format!("{label}_b"), bytes(w[1]), STORAGE)?,
+        bld.buffer(&format!("{label}_c"), bytes(w[2]), STORAGE)?,
+    ])
+}
+
+pub(super) fn u32s(v: impl IntoIterator<Item = u32>) -> Vec<u8> {
+    let w: Vec<u32> = v.into_iter().collect();
+    bytemuck::cast_slice(&w).to_vec()
+}

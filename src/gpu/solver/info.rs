@@ -1,0 +1,108 @@
+//! The public report types: what a solve did (`GpuSolveInfo`, `StageSeconds`), what the
+//! solver allocated, compiled and dispatched (`Resources`, `BufferRecord`,
+//! `KernelRecord`) and kernel timings (`KernelTime`).
+
+use crate::gpu::Precision;
+use std::collections::BTreeMap;
+
+/// One allocated buffer.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct BufferRecord {
+    pub label: String,
+    pub bytes: u64,
+}
+
+/// One compiled kernel instance.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct KernelRecord {
+    pub name: String,
+    pub entry: String,
+    pub real: String,
+    pub acc: String,
+    pub constants: Vec<(String, f64)>,
+}
+
+/// What the solver allocated, compiled and dispatched: "model only what a scene needs".
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Resources {
+    pub buffers: Vec<BufferRecord>,
+    pub kernels: Vec<KernelRecord>,
+    /// Dispatches recorded per kernel name since the solver was built.
+    pub dispatches: BTreeMap<String, u64>,
+}
+
+impl Resources {
+    pub fn has_buffer(&self, label: &str) -> bool {
+        self.buffers.iter().any(|b| b.label == label)
+    }
+    pub fn dispatches_of(&self, name: &str) -> u64 {
+        self.dispatches.get(name).copied().unwrap_or(0)
+    }
+    pub fn total_bytes(&self) -> u64 {
+        self.buffers.iter().map(|b| b.bytes).sum()
+    }
+}
+
+/// Device time of one kernel (see `GpuSolver::profile_kernels`).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct KernelTime {
+    pub name: String,
+    pub best_s: f64,
+    pub mean_s: f64,
+}
+
+/// Wall-clock split of a solve.
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize)]
+pub struct StageSeconds {
+    pub upload: f64,
+    pub setup: f64,
+    pub solve: f64,
+    pub download: f64,
+}
+
+/// What a successful GPU solve did.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct GpuSolveInfo {
+    pub adapter: String,
+    pub precision: Precision,
+    /// CG iterations, all restarts and inner solves together.
+    pub iterations: usize,
+    /// Iterations recorded into command buffers (the chunks); those past convergence are
+    /// no-ops on the device but still cost their dispatches. ≥ `iterations`.
+    pub recorded_iterations: usize,
+    /// Mixed precision: f32 segments, each ended by a reliable update (the true residual
+    /// recomputed in f64 and put in place of the f32 one); 0 otherwise.
+    pub outer_refinements: usize,
+    pub restarts: usize,
+    /// ‖b̂ − Ĥy‖/‖b̂‖ recomputed in f64 on the host from the downloaded y.
+    pub relative_residual: f64,
+    pub seconds: StageSeconds,
+    /// Device time of the CG chunks from timestamp queries, where the adapter has them.
+    pub gpu_seconds: Option<f64>,
+    /// Bytes one CG iteration must move: matrix (or element) data, indices, vectors.
+    pub bytes_per_iteration: u64,
+    /// bytes_per_iteration · iterations / seconds.solve.
+    pub achieved_gb_per_s: f64,
+    /// The same over gpu_seconds.
+    pub achieved_gb_per_s_gpu: Option<f64>,
+    pub dispatches_per_iteration: usize,
+    /// Status and result read-backs of this solve.
+    pub readbacks: usize,
+    /// Mixed: why the solve fell back to f64 CG and where that ran (None: it did not).
+    pub fallback: Option<String>,
+    /// Mixed, when extended-precision refinement ran (f64 CG stagnated above `tol`, or
+    /// `error_tol` was set): its estimate of the relative error ‖y − y*‖/‖y*‖, y* the exact
+    /// solution of Ĥ as assembled in f64 on the host (the device's rotated blocks and the
+    /// matrix-free residual round differently: their solutions differ by about κε). After a
+    /// stagnation, success was claimed on this estimate being ≤ min(tol, error_tol),
+    /// because the f64 residual cannot resolve `tol` (its rounding floor ε‖Ĥ‖‖y‖/‖b̂‖ is
+    /// above it), so `relative_residual` may exceed `tol`. It is an estimate from the
+    /// contraction of consecutive corrections (as LAPACK's refinement error bounds), not
+    /// a proof. None: success means relative_residual ≤ tol.
+    pub error_estimate: Option<f64>,
+    /// κ̃(M⁻¹Ĥ), M the preconditioner, from the Lanczos coefficients of the CG runs (the
+    /// largest over uninterrupted runs; an underestimate that tightens as CG runs; the
+    /// f32 runs of mixed see the f32 operator). None when no run had 2 iterations.
+    pub condition_estimate: Option<f64>,
+    pub notes: Vec<String>,
+}

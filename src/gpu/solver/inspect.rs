@@ -1,0 +1,213 @@
+//! Kernel-level access for tests and benchmarks: the operator product, per-kernel device
+//! timings, the rotated blocks, the preconditioner data, the recovery and raw iterations.
+
+use super::builder::{from_planes, plane_widths, Real};
+use super::host::HostOp;
+use super::info::KernelTime;
+use super::levels::OpData;
+use super::run::Which;
+use super::{GpuSolver, N_STATE};
+use crate::cg::Preconditioner;
+use crate::gpu::GpuError;
+
+impl GpuSolver {
+    // ---- Kernel-level access for tests (each kernel against its CPU reference). ----
+
+    /// q = Ĥ y with the CG's operator kernel (in the CG's precision).
+    pub fn apply_operator(&mut self, y: &[f64]) -> Result<Vec<f64>, GpuError> {
+        let l = &self.level;
+        self.ctx.queue.write_buffer(&l.p, 0, &l.real.bytes(y));
+        self.ctx
+            .queue
+            .write_buffer(&l.state, 0, &[0u8; 4 * N_STATE]);
+        let mut enc = self.encoder("apply operator");
+        {
+            let mut pass = enc
+                .begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("apply operator pass"),
+                    timestamp_writes: None,
+                })
+                .forget_lifetime();
+            let g = self.n_partials;
+            self.dispatch(&mut pass, Which::MatvecP, g);
+        }
+        let q = self.level.q.clone();
+        self.download(enc, &q, self.level.real, y.len())
+    }
+
+    /// Device time per CG kernel in seconds (fastest and mean of `reps` iterations; the
+    /// fastest is the figure least disturbed by other load on a shared CPU adapter), from timestamp
+    /// queries around each dispatch in its own compute pass: `matvec` (or `spring_matvec`),
+    /// `update_xrz`, `update_p`, and for mixed precision the f64 `matvec_f64` and
+    /// `residual`. Runs from y = 0 without a stopping test; `None` without TIMESTAMP_QUERY.
+    pub fn profile_kernels(&mut self, reps: usize) -> Result<Option<Vec<KernelTime>>, GpuError> {
+        let Some(period) = self.timestamps.as_ref().map(|t| t.period_ns) else {
+            return Ok(None);
+        };
+        let reps = reps.max(1);
+        if self.refine.is_some() {
+            let rhs = Real::F32.bytes(&self.host.rhs);
+            self.ctx.queue.write_buffer(&self.level.b, 0, &rhs);
+        }
+        self.start(false, -1.0)?;
+        let dev = &self.ctx.device;
+        let n_q = 10u32;
+        let set = dev.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some("profile timestamps"),
+            ty: wgpu::QueryType::Timestamp,
+            count: n_q,
+        });
+        let qb = 8 * n_q as u64;
+        let resolve = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("profile resolve"),
+            size: qb,
+            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        let staging = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("profile staging"),
+            size: qb,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut names: Vec<String> = vec![
+            self.level.op.matvec.name.to_string(),
+            "update_xrz".into(),
+            "update_p".into(),
+        ];
+        if self.refine.as_ref().is_some_and(|r| r.op.is_some()) {
+            names.push(format!("{}_f64", self.level.op.matvec.name));
+            names.push("residual".into());
+        }
+        let mut best = vec![f64::INFINITY; names.len()];
+        let mut sum = vec![0.0f64; names.len()];
+        let g = self.n_partials;
+        for _ in 0..reps {
+            let mut enc = self.encoder("profile");
+            let mut slot = 0u32;
+            let pass_for = |enc: &mut wgpu::CommandEncoder, slot: &mut u32| {
+                let tw = wgpu::ComputePassTimestampWrites {
+                    query_set: &set,
+                    beginning_of_pass_write_index: Some(*slot),
+                    end_of_pass_write_index: Some(*slot + 1),
+                };
+                *slot += 2;
+                enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("profile pass"),
+                    timestamp_writes: Some(tw),
+                })
+                .forget_lifetime()
+            };
+            for which in [Which::MatvecP, Which::UpdateXrz, Which::UpdateP] {
+                let mut pass = pass_for(&mut enc, &mut slot);
+                self.dispatch(&mut pass, which, g);
+            }
+            if let Some((rf, op, bg_mv)) = self
+                .refine
+                .as_ref()
+                .and_then(|rf| Some((rf, rf.op.as_ref()?, rf.bg_mv.as_ref()?)))
+            {
+                let mut pass = pass_for(&mut enc, &mut slot);
+                pass.set_pipeline(&op.matvec.pipeline);
+                pass.set_bind_group(0, bg_mv, &[]);
+                pass.dispatch_workgroups(g, 1, 1);
+                drop(pass);
+                let mut pass = pass_for(&mut enc, &mut slot);
+                pass.set_pipeline(&rf.k_residual.pipeline);
+                pass.set_bind_group(0, &rf.bg_refine, &[]);
+                pass.dispatch_workgroups(g, 1, 1);
+            }
+            enc.resolve_query_set(&set, 0..slot, &resolve, 0);
+            enc.copy_buffer_to_buffer(&resolve, 0, &staging, 0, 8 * slot as u64);
+            self.ctx.queue.submit([enc.finish()]);
+            let bytes = self.read(&staging, 8 * slot as u64)?;
+            let t: Vec<u64> = bytes
+                .chunks_exact(8)
+                .map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")))
+                .collect();
+            for j in 0..names.len() {
+                let dt = t[2 * j + 1].saturating_sub(t[2 * j]) as f64 * period * 1e-9;
+                best[j] = best[j].min(dt);
+                sum[j] += dt;
+            }
+        }
+        Ok(Some(
+            names
+                .into_iter()
+                .zip(best.into_iter().zip(sum))
+                .map(|(name, (best_s, sum_s))| KernelTime {
+                    name,
+                    best_s,
+                    mean_s: sum_s / reps as f64,
+                })
+                .collect(),
+        ))
+    }
+
+    /// The device's Ĥ blocks after rotation (assembled systems only), unmasked, f64.
+    pub fn rotated_blocks(&mut self) -> Result<Option<Vec<f64>>, GpuError> {
+        let (bufs, real, d, nb) = match (&self.level.op.data, &self.host.op) {
+            (OpData::Blocks { blocks, .. }, HostOp::Blocks(h)) => {
+                (blocks.clone(), self.level.op.real, h.dim, h.nnz_blocks())
+            }
+            _ => return Ok(None),
+        };
+        let w = plane_widths(d);
+        let mut planes: [Vec<f64>; 3] = Default::default();
+        for ((buf, &wp), out) in bufs.iter().zip(&w).zip(planes.iter_mut()) {
+            if wp > 0 {
+                let enc = self.encoder("download blocks");
+                *out = self.download(enc, buf, real, nb * wp)?;
+            }
+        }
+        Ok(Some(from_planes(d, nb, &planes)))
+    }
+
+    /// The preconditioner data built on the device: 1/diag (Jacobi, d·n values) or the
+    /// inverse diagonal blocks (block-Jacobi, d²·n), like `BuiltPreconditioner::data`.
+    pub fn preconditioner_data(&mut self) -> Result<Vec<f64>, GpuError> {
+        let d = self.dim;
+        let len = match self.params.preconditioner {
+            Preconditioner::None => return Ok(Vec::new()),
+            Preconditioner::Jacobi => self.n_nodes * d,
+            Preconditioner::BlockJacobi => self.n_nodes * d * d,
+        };
+        let enc = self.encoder("download preconditioner");
+        let b = self.level.minv.clone();
+        self.download(enc, &b, self.level.real, len)
+    }
+
+    /// Δx = Δx_p + V P y through the device's recovery kernels.
+    pub fn recover_on_device(&mut self, y: &[f64]) -> Result<Vec<f64>, GpuError> {
+        let rr = self.recovery.real;
+        match &self.refine {
+            Some(r) => self.ctx.queue.write_buffer(&r.y64, 0, &rr.bytes(y)),
+            None => self.ctx.queue.write_buffer(&self.level.x, 0, &rr.bytes(y)),
+        }
+        Ok(self.download_solution()?.1)
+    }
+
+    /// Runs `k` PCG iterations from y = 0 (no stopping test) and returns (x, r, p).
+    #[allow(clippy::type_complexity)]
+    pub fn iterate(&mut self, k: usize) -> Result<(Vec<f64>, Vec<f64>, Vec<f64>), GpuError> {
+        if let Some(rf) = &self.refine {
+            // Mixed: the inner CG's right-hand side is b̂ rounded to f32.
+            let rhs = Real::F32.bytes(&self.host.rhs);
+            let _ = rf;
+            self.ctx.queue.write_buffer(&self.level.b, 0, &rhs);
+        }
+        self.start(false, -1.0)?;
+        let _ = self.chunk(k)?;
+        let nd = self.n_nodes * self.dim;
+        let real = self.level.real;
+        let (x, r, p) = (
+            self.level.x.clone(),
+            self.level.r.clone(),
+            self.level.p.clone(),
+        );
+        let xs = self.download(self.encoder("x"), &x, real, nd)?;
+        let rs = self.download(self.encoder("r"), &r, real, nd)?;
+        let ps = self.download(self.encoder("p"), &p, real, nd)?;
+        Ok((xs, rs, ps))
+    }
+}

@@ -1,0 +1,149 @@
+//! Per-system device work of `GpuSolver::new` and `update`: writing Ĥ's values, b̂ and
+//! D into the device levels, and the setup kernels (block rotation, preconditioner
+//! build).
+
+use super::builder::{to_planes, Real};
+use super::host::{spring_data, spring_diag_blocks, HostOp};
+use super::levels::{OpData, Operator};
+use super::GpuSolver;
+use crate::gpu::GpuError;
+
+impl GpuSolver {
+    /// Writes Ĥ's values into `op`, multiplied by `scale` (a power of two: exact) except
+    /// for the geometry (positions, rest lengths, rotations).
+    pub(super) fn write_operator(&self, op: &Operator, scale: f64) {
+        let q = &self.ctx.queue;
+        let host = &self.host;
+        let sc = |v: &[f64]| -> Vec<f64> {
+            if scale == 1.0 {
+                v.to_vec()
+            } else {
+                v.iter().map(|x| x * scale).collect()
+            }
+        };
+        match (&op.data, &host.op) {
+            (OpData::Blocks { blocks, .. }, HostOp::Blocks(h)) => {
+                for (buf, v) in blocks.iter().zip(to_planes(h.dim, &sc(&h.values))) {
+                    if !v.is_empty() {
+                        q.write_buffer(buf, 0, &op.real.bytes(&v));
+                    }
+                }
+            }
+            (
+                OpData::Springs {
+                    pos,
+                    springs,
+                    mass,
+                    diag_blocks,
+                },
+                HostOp::Springs(ms),
+            ) => {
+                q.write_buffer(pos, 0, &op.real.bytes(&ms.positions));
+                let mut sd = spring_data(ms);
+                for v in sd.iter_mut().skip(1).step_by(2) {
+                    *v *= scale;
+                }
+                q.write_buffer(springs, 0, &op.real.bytes(&sd));
+                q.write_buffer(mass, 0, &op.real.bytes(&sc(&ms.masses)));
+                let diag = sc(&spring_diag_blocks(ms, &host.frames));
+                for (buf, v) in diag_blocks.iter().zip(to_planes(ms.dim, &diag)) {
+                    if !v.is_empty() {
+                        q.write_buffer(buf, 0, &op.real.bytes(&v));
+                    }
+                }
+            }
+            _ => unreachable!("operator kind follows the host system"),
+        }
+        if let Some(dv) = &op.dvals {
+            q.write_buffer(dv, 0, &op.real.bytes(&sc(&host.diag)));
+        }
+        if let Some(rot) = &op.rotations {
+            q.write_buffer(rot, 0, &op.real.bytes(&host.frames.rotations));
+        }
+    }
+
+    pub(super) fn upload_values(&mut self) -> Result<(), GpuError> {
+        self.write_operator(&self.level.op, self.inner_scale);
+        if let Some(fl) = &self.fallback_level {
+            self.write_operator(&fl.op, 1.0);
+        }
+        match &self.refine {
+            Some(rf) => {
+                match &rf.op {
+                    Some(op) => self.write_operator(op, 1.0),
+                    None => {
+                        if let Some(rot) = &rf.rotations64 {
+                            self.ctx.queue.write_buffer(
+                                rot,
+                                0,
+                                &Real::F64.bytes(&self.host.frames.rotations),
+                            );
+                        }
+                    }
+                }
+                self.ctx
+                    .queue
+                    .write_buffer(&rf.b64, 0, &Real::F64.bytes(&self.host.rhs));
+            }
+            None => {
+                let l = &self.level;
+                self.ctx
+                    .queue
+                    .write_buffer(&l.b, 0, &l.real.bytes(&self.host.rhs));
+            }
+        }
+        self.ctx.check("uploading the system")
+    }
+
+    /// Rotation of the H blocks (slip nodes only) and the preconditioner build.
+    pub(super) fn device_setup(&mut self) -> Result<(), GpuError> {
+        self.setup_levels(true, true)
+    }
+
+    /// Rotation and preconditioner build of the main levels (`main`: the CG level and the
+    /// refinement operator) and/or of the f64 fallback level where it exists.
+    pub(super) fn setup_levels(&mut self, main: bool, fallback: bool) -> Result<(), GpuError> {
+        let mut enc = self.encoder("setup");
+        let mut names = Vec::new();
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("setup pass"),
+                timestamp_writes: None,
+            });
+            let groups = self.node_groups();
+            let main_ops = std::iter::once(&self.level.op)
+                .chain(self.refine.as_ref().and_then(|r| r.op.as_ref()))
+                .filter(|_| main);
+            let fb = self.fallback_level.as_ref().filter(|_| fallback);
+            let ops = main_ops.chain(fb.map(|l| &l.op));
+            for op in ops {
+                if let OpData::Blocks {
+                    rotate: Some((k, bg)),
+                    ..
+                } = &op.data
+                {
+                    pass.set_pipeline(&k.pipeline);
+                    pass.set_bind_group(0, bg, &[]);
+                    pass.dispatch_workgroups(groups, 1, 1);
+                    names.push(k.name);
+                }
+            }
+            let pre = std::iter::once(&self.level)
+                .filter(|_| main)
+                .chain(fb)
+                .filter_map(|l| l.precond.as_ref());
+            for (k, bg) in pre {
+                pass.set_pipeline(&k.pipeline);
+                pass.set_bind_group(0, bg, &[]);
+                pass.dispatch_workgroups(groups, 1, 1);
+                names.push(k.name);
+            }
+        }
+        self.ctx.queue.submit([enc.finish()]);
+        for n in names {
+            self.record(n);
+        }
+        self.wait()?;
+        self.ctx.check("device setup")
+    }
+}
