@@ -1,0 +1,158 @@
+//! Which f32 rounding costs mixed precision its iterations? A CPU emulation of the GPU's
+//! mixed-precision CG (Jacobi PCG on a unit right-hand side, reliable updates each time the
+//! recurrence residual drops by δ = 0.1, f64 true residuals and f64 dot products), with the
+//! matrix and the vectors rounded to f32 separately:
+//!
+//! `cargo run --release --example f32_emulation -- [scale] [case ...]`
+//!
+//! Columns: iterations to a true relative residual of 1e-10 (`fail` on non-positive
+//! curvature or 20000 iterations) for f64 CG, f32 matrix + f32 vectors (what the GPU runs),
+//! f32 matrix + f64 vectors, and f64 matrix + f32 vectors. Used in STABILITY.md.
+
+use stickslip::hard::{self, Size};
+use stickslip::sparse::BlockCsr;
+
+const TOL: f64 = 1e-10;
+const DELTA: f64 = 0.1;
+const MAX_ITERS: usize = 20_000;
+
+/// Which quantities are rounded to f32.
+#[derive(Clone, Copy)]
+struct Rounding {
+    matrix: bool,
+    vectors: bool,
+}
+
+impl Rounding {
+    fn v(self, x: f64) -> f64 {
+        if self.vectors {
+            x as f32 as f64
+        } else {
+            x
+        }
+    }
+}
+
+/// q = H p with the stored matrix `m` (f64 or f64 copies of f32 values), summed in f64
+/// (exact products of two f32 numbers), the result rounded like a vector.
+fn matvec(h: &BlockCsr, m: &[f64], p: &[f64], rd: Rounding, q: &mut [f64]) {
+    let d = h.dim;
+    for i in 0..h.n {
+        for a in 0..d {
+            let mut s = 0.0;
+            for k in h.row_ptr[i]..h.row_ptr[i + 1] {
+                let j = h.col_idx[k];
+                for c in 0..d {
+                    s += m[k * d * d + a * d + c] * p[j * d + c];
+                }
+            }
+            q[i * d + a] = rd.v(s);
+        }
+    }
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// Iterations to ‖b − Hy‖ ≤ TOL‖b‖, or `None`.
+fn solve(h: &BlockCsr, b: &[f64], rd: Rounding) -> Option<usize> {
+    let n = b.len();
+    let d = h.dim;
+    let m: Vec<f64> = if rd.matrix {
+        h.values.iter().map(|&v| v as f32 as f64).collect()
+    } else {
+        h.values.clone()
+    };
+    let minv: Vec<f64> = (0..n)
+        .map(|k| {
+            let kb = h.diag_index(k / d)?;
+            Some(rd.v(1.0 / h.values[kb * d * d + (k % d) * (d + 1)]))
+        })
+        .collect::<Option<_>>()?;
+    // f64 CG: one segment to TOL; else segments of DELTA.
+    let f64_cg = !rd.matrix && !rd.vectors;
+    let bn = dot(b, b).sqrt();
+    let (mut y, mut rt) = (vec![0.0; n], b.to_vec());
+    let (mut p, mut q, mut hy) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+    let (mut rho_prev, mut rn_prev, mut total) = (1.0, 0.0, 0usize);
+    loop {
+        let rn = dot(&rt, &rt).sqrt();
+        if rn <= TOL * bn {
+            return Some(total);
+        }
+        // Reliable update: unit right-hand side, direction rescaled to it.
+        let ps = if total == 0 { 0.0 } else { rn_prev / rn };
+        p.iter_mut().for_each(|v| *v = rd.v(*v * ps));
+        rho_prev = if total == 0 { 1.0 } else { rho_prev * ps * ps };
+        let thresh = if f64_cg {
+            (TOL * bn / rn).powi(2)
+        } else {
+            DELTA * DELTA
+        };
+        let mut x = vec![0.0; n];
+        let mut r: Vec<f64> = rt.iter().map(|v| rd.v(v / rn)).collect();
+        let mut z: Vec<f64> = r.iter().zip(&minv).map(|(a, m)| rd.v(a * m)).collect();
+        loop {
+            let rho = dot(&r, &z);
+            if dot(&r, &r) <= thresh {
+                break;
+            }
+            let beta = rho / rho_prev;
+            for k in 0..n {
+                p[k] = rd.v(z[k] + beta * p[k]);
+            }
+            matvec(h, &m, &p, rd, &mut q);
+            let pq = dot(&p, &q);
+            // Written to reject NaN too.
+            if pq.is_nan() || pq <= 0.0 || total >= MAX_ITERS {
+                return None;
+            }
+            let alpha = rho / pq;
+            for k in 0..n {
+                x[k] = rd.v(x[k] + alpha * p[k]);
+                r[k] = rd.v(r[k] - alpha * q[k]);
+                z[k] = rd.v(r[k] * minv[k]);
+            }
+            rho_prev = rho;
+            total += 1;
+        }
+        y.iter_mut().zip(&x).for_each(|(y, x)| *y += rn * x);
+        h.matvec(&y, &mut hy);
+        for k in 0..n {
+            rt[k] = b[k] - hy[k];
+        }
+        rn_prev = rn;
+    }
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let scale: usize = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(1);
+    let names = args.get(2..).unwrap_or_default();
+    let size = if scale <= 1 {
+        Size::Ci
+    } else {
+        Size::Scale(scale)
+    };
+    let show = |v: Option<usize>| v.map_or("fail".to_string(), |i| i.to_string());
+    println!("| case | DOFs | f64 | f32 matrix, f32 vectors | f32 matrix, f64 vectors | f64 matrix, f32 vectors |");
+    println!("|---|---|---|---|---|---|");
+    for case in hard::suite(size) {
+        if !names.is_empty() && !names.contains(&case.name) {
+            continue;
+        }
+        let e = case.eliminated();
+        let h = e.assemble();
+        let run = |matrix, vectors| show(solve(&h, &e.rhs, Rounding { matrix, vectors }));
+        println!(
+            "| {} | {} | {} | {} | {} | {} |",
+            case.name,
+            e.rhs.len(),
+            run(false, false),
+            run(true, true),
+            run(true, false),
+            run(false, true)
+        );
+    }
+}
