@@ -55,8 +55,9 @@ pub struct BenchArgs {
     /// CI-sized ladder (1,000–8,000 nodes) and a two-tolerance sweep.
     #[arg(long)]
     pub quick: bool,
-    /// Node counts to run (comma-separated) instead of the default ladder.
-    #[arg(long, value_delimiter = ',')]
+    /// Node counts to run (comma-separated) instead of the default ladder; each 4 to
+    /// 20,000,000.
+    #[arg(long, value_delimiter = ',', value_parser = generated_nodes)]
     pub sizes: Option<Vec<usize>>,
     /// Dimensions to run (comma-separated).
     #[arg(long, value_delimiter = ',', default_values_t = [2usize, 3])]
@@ -75,8 +76,9 @@ pub struct BenchArgs {
     /// Run the hard-case stability suite instead (src/hard.rs): writes hard.md/hard.json.
     #[arg(long)]
     pub hard: bool,
-    /// With --hard: grid scale of the larger cases timing GPU f64 against mixed.
-    #[arg(long, default_value_t = 3)]
+    /// With --hard: grid scale of the larger cases timing GPU f64 against mixed (1 to 20;
+    /// (6·scale)³ nodes).
+    #[arg(long, default_value_t = 3, value_parser = hard_scale)]
     pub hard_scale: usize,
 }
 
@@ -169,6 +171,50 @@ fn positive_f64(s: &str) -> Result<f64, String> {
     }
 }
 
+/// A relative tolerance: in (0, 1). At 1 or above, y = 0 already meets it.
+fn relative_tol(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 && v < 1.0 => Ok(v),
+        Ok(_) => Err("must be a relative tolerance in (0, 1)".into()),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
+/// An iteration limit: at least 1.
+fn positive_usize(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(0) => Err("must be at least 1".into()),
+        Ok(v) => Ok(v),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
+/// Largest generated system (`generate --nodes`, `bench --sizes`): about 2 KiB per node
+/// for a 3D mesh-stencil H (27 blocks of 9 f64) and its copies, so 20M nodes is ~40 GiB of
+/// Hessian before any solver state.
+pub const MAX_GENERATED_NODES: usize = 20_000_000;
+
+/// Largest `bench --hard-scale`: the timed cases have (6·scale)³ nodes, 1.7M at 20.
+pub const MAX_HARD_SCALE: usize = 20;
+
+fn generated_nodes(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(v) if v > MAX_GENERATED_NODES => Err(format!(
+            "{v} is more than the cap of {MAX_GENERATED_NODES} nodes"
+        )),
+        Ok(v) => Ok(v),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
+fn hard_scale(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(v) if (1..=MAX_HARD_SCALE).contains(&v) => Ok(v),
+        Ok(_) => Err(format!("must be in 1..={MAX_HARD_SCALE}")),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
 #[derive(Debug, Clone, Args)]
 #[command(group(ArgGroup::new("constraint_input").required(true).args(["constraints", "constraint_matrix"])))]
 pub struct SystemArgs {
@@ -202,15 +248,15 @@ pub struct SolveArgs {
     #[arg(long, value_enum)]
     pub precision: Option<PrecisionArg>,
     /// Iterative solvers: stop at ‖b̂ − Ĥy‖/‖b̂‖ ≤ tol (the true residual).
-    #[arg(long, default_value = "1e-8", value_parser = positive_f64)]
+    #[arg(long, default_value = "1e-8", value_parser = relative_tol)]
     pub tol: f64,
-    /// Iterative solvers: iteration limit [default: 10000].
-    #[arg(long)]
+    /// Iterative solvers: iteration limit, at least 1 [default: 10000].
+    #[arg(long, value_parser = positive_usize)]
     pub max_iters: Option<usize>,
     /// --precision mixed: after --tol is met, refine with double-double residuals until the
     /// estimated relative error ‖y − y*‖/‖y*‖ is ≤ this. A small residual bounds the error
     /// only by κ·tol; this targets the error directly.
-    #[arg(long, value_parser = positive_f64)]
+    #[arg(long, value_parser = relative_tol)]
     pub error_tol: Option<f64>,
     /// Iterative solvers: none, jacobi or block-jacobi.
     #[arg(long, default_value = "jacobi")]
@@ -233,8 +279,8 @@ pub struct SolveArgs {
 pub struct GenerateArgs {
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u8).range(2..=3))]
     pub dim: u8,
-    /// About this many nodes (a square or cubic grid).
-    #[arg(long, default_value_t = 1000)]
+    /// About this many nodes (a square or cubic grid); at most 20,000,000.
+    #[arg(long, default_value_t = 1000, value_parser = generated_nodes)]
     pub nodes: usize,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -321,11 +367,21 @@ pub fn main() -> ExitCode {
                 | ErrorKind::DisplayVersion
                 | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => e.exit(),
                 _ => {
-                    // One line, like every other error: clap's first line, without its
-                    // tips and usage block.
+                    // One line, like every other error: clap's first paragraph (which
+                    // lists the missing arguments, if any), without tips and usage.
                     let text = e.to_string();
-                    let first = text.lines().next().unwrap_or("invalid usage");
-                    let first = first.strip_prefix("error: ").unwrap_or(first);
+                    let first: Vec<&str> = text
+                        .lines()
+                        .take_while(|l| !l.trim().is_empty())
+                        .map(str::trim)
+                        .collect();
+                    let first = first.join(" ");
+                    let first = first.strip_prefix("error: ").unwrap_or(&first);
+                    let first = if first.is_empty() {
+                        "invalid usage"
+                    } else {
+                        first
+                    };
                     eprintln!("error: command line: {first} (see --help)");
                     return ExitCode::from(2);
                 }
@@ -641,6 +697,10 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
     let f = reactions(&h, &g, &dx);
     let violation = constraint_violation(dim, &constraints, &dx);
     let t_recover = t.elapsed().as_secs_f64();
+    // Finite data can still overflow (H·Δx_p, a lift of 1e308): never write NaN as a result.
+    all_finite("the solution y", &y)?;
+    all_finite("Δx", &dx)?;
+    all_finite("the reactions f = −(HΔx + g)", &f)?;
 
     // 6. Write.
     let t = Instant::now();
@@ -703,6 +763,20 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
         std::fs::write(path, text).map_err(|e| write_failed(path, e))?;
     }
     Ok(report)
+}
+
+/// A solve error when `v` holds a NaN or an infinity: the inputs were finite (the readers
+/// check that), so f64 overflowed on the way.
+fn all_finite(what: &str, v: &[f64]) -> Result<(), CliError> {
+    match v.iter().position(|x| !x.is_finite()) {
+        None => Ok(()),
+        Some(k) => Err(SolveError::NotFinite(format!(
+            "{what} has a non-finite entry ({} at index {k}): the data's magnitudes overflow \
+             f64 on the way (H·Δx_p, g, or the lift); scale the system",
+            v[k]
+        ))
+        .into()),
+    }
 }
 
 fn preconditioner_name(p: Preconditioner) -> &'static str {
@@ -797,6 +871,14 @@ pub fn generate(args: &GenerateArgs, quiet: bool) -> Result<(), CliError> {
 
 /// `stickslip bench`: see [`crate::bench`].
 fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
+    // Fail before a long run, not after it, when the output folder cannot be written.
+    if let Some(out) = &a.out {
+        let shown = out.display().to_string();
+        std::fs::create_dir_all(out).map_err(|e| write_failed(&shown, e))?;
+        let probe = out.join(".stickslip-write-probe");
+        std::fs::write(&probe, b"").map_err(|e| write_failed(&shown, e))?;
+        let _ = std::fs::remove_file(&probe);
+    }
     if a.hard {
         let md = crate::bench::run_hard(a.out.as_deref(), a.no_gpu, a.hard_scale)
             .map_err(|e| CliError::Failed(format!("bench --hard: {e}")))?;
@@ -850,6 +932,7 @@ fn export(a: &ExportArgs, quiet: bool) -> Result<(), CliError> {
         DiagonalArg::Hessian => ConstrainedDiagonal::Hessian,
     };
     let e = Eliminated::new(&sys.h, &sys.g, &sys.frames, diag);
+    all_finite("b̂ = −Vᵀ(g + HΔx_p)", &e.rhs)?;
     let files = crate::export::export(&e, diag, &sys.g, &a.out_dir, !a.no_mtx)
         .map_err(|err| write_failed(&a.out_dir.display().to_string(), err))?;
     if !quiet {
@@ -899,6 +982,8 @@ fn recover(a: &RecoverArgs, quiet: bool) -> Result<(), CliError> {
         &g,
         [&a.layout, &a.solution, &a.hessian, &a.gradient],
     )?;
+    all_finite("Δx", &rec.dx)?;
+    all_finite("the reactions f = −(HΔx + g)", &rec.reactions)?;
     mtx::write_vector(&a.out, &rec.dx, "dx recovered by stickslip recover")
         .map_err(|e| write_failed(&a.out, e))?;
     if let Some(path) = &a.reactions {

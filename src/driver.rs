@@ -40,7 +40,7 @@ pub enum RunError {
     #[error("{0}")]
     Input(#[from] InputError),
     /// A step failed (exit code 1).
-    #[error("step {step} (t = {time:.6} s) failed: {cause}")]
+    #[error("step {step} (t = {} s) failed: {cause}", show_time(.time))]
     Solve {
         step: usize,
         time: f64,
@@ -49,6 +49,34 @@ pub enum RunError {
     /// Output could not be written (exit code 1).
     #[error("cannot write {path}: {cause}")]
     Output { path: String, cause: String },
+}
+
+/// A time for a message: fixed-point when it reads well, else scientific (a time step of
+/// 1e300 must not print 300 digits, nor 1e-300 print 0.000000).
+fn show_time(t: &f64) -> String {
+    if *t == 0.0 || (1e-3..1e6).contains(&t.abs()) {
+        format!("{t:.6}")
+    } else {
+        format!("{t:.6e}")
+    }
+}
+
+/// The first non-finite entry of a step's state or record, if any, as "what (value)".
+fn non_finite(s: &Stepper, r: &StepRecord) -> Option<String> {
+    let vectors: [(&str, &[f64]); 6] = [
+        ("positions", &s.x),
+        ("velocities", &s.v),
+        ("reactions", &s.reactions),
+        ("centre of mass", &r.com),
+        ("momentum", &r.momentum),
+        ("total reaction", &r.reaction),
+    ];
+    for (what, v) in vectors {
+        if let Some(x) = v.iter().find(|x| !x.is_finite()) {
+            return Some(format!("{what} ({x})"));
+        }
+    }
+    (!r.energy.is_finite()).then(|| format!("mechanical energy ({})", r.energy))
 }
 
 impl RunError {
@@ -246,7 +274,20 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         Ok(())
     };
 
-    let mut records = vec![record(&stepper, None)];
+    let first = record(&stepper, None);
+    if let Some(what) = non_finite(&stepper, &first) {
+        // Finite entries whose products overflow (sizes near 1e300, ...): the scene's fault.
+        return Err(InputError::new(
+            scene.file.clone(),
+            "scene",
+            format!(
+                "the initial state is not finite: {what}; the scene's magnitudes (mesh size, \
+                 density, offsets, time step) overflow f64"
+            ),
+        )
+        .into());
+    }
+    let mut records = vec![first];
     csv.row(&records[0]).map_err(|e| out_err(&csv_path, e))?;
     write_frame(&stepper)?;
 
@@ -304,6 +345,16 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
             }
         }
         let r = record(&stepper, Some(&rep));
+        if let Some(what) = non_finite(&stepper, &r) {
+            return Err(RunError::Solve {
+                step: stepper.step,
+                time: stepper.t,
+                cause: format!(
+                    "the state is not finite after the step: {what} (f64 overflow or \
+                     underflow; check the scene's magnitudes and time step)"
+                ),
+            });
+        }
         csv.row(&r).map_err(|e| out_err(&csv_path, e))?;
         records.push(r);
         if stepper.step % scene.output.every == 0 || stepper.step == scene.steps {

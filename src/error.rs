@@ -56,4 +56,7 @@ pub enum SolveError {
     /// Anything else from the factorization library.
     #[error("sparse factorization failed: {0}")]
     Factorization(String),
+    /// Finite data whose solve or recovery overflowed f64; the message says where.
+    #[error("{0}")]
+    NotFinite(String),
 }

@@ -2,11 +2,16 @@
 
 /// Euclidean norm, scaled so that entries near 1e±200 neither overflow nor underflow.
 ///
-/// Returns 0 for an all-zero (or empty) vector, and the largest |entry| itself when it is
-/// not finite (∞, or NaN only if every entry is NaN: `f64::max` skips NaN).
+/// Returns 0 for an all-zero (or empty) vector, NaN when any entry is NaN (a residual
+/// with a NaN in it must never look small), and ∞ when an entry is infinite.
 pub fn norm2(v: &[f64]) -> f64 {
-    // Scaled to survive entries near 1e±200.
-    let s = v.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    let mut s = 0.0f64;
+    for x in v {
+        if x.is_nan() {
+            return f64::NAN;
+        }
+        s = s.max(x.abs());
+    }
     if s == 0.0 || !s.is_finite() {
         return s;
     }
@@ -36,4 +41,22 @@ pub fn norm3(a: &[f64; 3]) -> f64 {
 pub fn unit(a: &[f64]) -> Vec<f64> {
     let n = norm2(a);
     a.iter().map(|v| v / n).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::norm2;
+
+    #[test]
+    fn norm2_propagates_nan_and_survives_extreme_scales() {
+        assert!(norm2(&[1.0, f64::NAN, 2.0]).is_nan());
+        assert!(norm2(&[f64::NAN; 4]).is_nan());
+        assert_eq!(norm2(&[1.0, f64::INFINITY]), f64::INFINITY);
+        assert_eq!(norm2(&[]), 0.0);
+        // A handful of roundings (scale, square, sum, root, rescale): 8 ulps.
+        for sc in [1e200, 1e-200] {
+            let n = norm2(&[3.0 * sc, 4.0 * sc]);
+            assert!((n / (5.0 * sc) - 1.0).abs() <= 8.0 * f64::EPSILON, "{n:e}");
+        }
+    }
 }

@@ -1010,3 +1010,132 @@ fn corrupt_sizes_and_tampered_layouts_exit_2() {
     ]);
     assert_input_error(&o, &bad, &["mask[0]"]);
 }
+
+#[test]
+fn missing_required_option_is_named() {
+    let c = case("missing-out");
+    let o = run(&[
+        "solve",
+        "--hessian",
+        &c.h,
+        "--gradient",
+        &c.g,
+        "--constraints",
+        &c.bc,
+    ]);
+    let e = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert_eq!(e.lines().count(), 1, "{e:?}");
+    assert!(e.contains("--out"), "the missing option is not named: {e}");
+}
+
+#[test]
+fn option_values_out_of_range_exit_2() {
+    let c = case("ranges");
+    for (extra, want) in [
+        (&["--solver", "cg", "--max-iters", "0"][..], "--max-iters"),
+        (&["--solver", "cg", "--tol", "10"][..], "--tol"),
+        (&["--solver", "cg", "--tol", "1"][..], "--tol"),
+    ] {
+        assert_input_error(&c.solve(extra), "command line", &[want]);
+    }
+    let gen = c.dir.join("gen");
+    let o = run(&[
+        "generate",
+        "--nodes",
+        "1000000000000",
+        "--out-dir",
+        gen.to_str().unwrap(),
+    ]);
+    assert_input_error(&o, "command line", &["--nodes", "cap"]);
+    assert!(!gen.exists(), "nothing is written for a rejected size");
+    for args in [
+        &["bench", "--sizes", "18446744073709551615", "--no-gpu"][..],
+        &["bench", "--hard", "--hard-scale", "0"][..],
+        &["bench", "--hard", "--hard-scale", "1000000000"][..],
+    ] {
+        assert_input_error(&run(args), "command line", &[args[2]]);
+    }
+}
+
+/// Finite data whose solve overflows f64 (g = 1e308 everywhere, or a lift of 1e308 through
+/// H·Δx_p) must fail with exit 1, not write NaN with exit 0; every solver.
+#[test]
+fn overflowing_data_fails_instead_of_writing_nan() {
+    let c = case("overflow");
+    // y = Ĥ⁻¹b̂ ≈ 1e308 / 1e-10: beyond f64.
+    let soft: Vec<Vec<f64>> = SPRING
+        .iter()
+        .map(|r| r.iter().map(|v| v * 1e-10).collect())
+        .collect();
+    let soft: Vec<&[f64]> = soft.iter().map(|r| &r[..]).collect();
+    let soft_h = write(&c.dir, "H_soft.mtx", &h_general(&soft));
+    let big_g = write(&c.dir, "g_big.mtx", &g_array(&[1e308; 4]));
+    let big_lift = write(
+        &c.dir,
+        "bc_big.json",
+        r#"{"dim": 2, "constraints": [{"node": 1, "kind": "sticky", "displacement": [1e308, 1e308]}]}"#,
+    );
+    for solver in ["cholesky", "cg"] {
+        for (h, g, bc) in [(&soft_h, &big_g, &c.bc), (&c.h, &c.g, &big_lift)] {
+            let out = c.dir.join(format!("dx-{solver}.mtx"));
+            let o = run(&[
+                "solve",
+                "--hessian",
+                h,
+                "--gradient",
+                g,
+                "--constraints",
+                bc,
+                "--solver",
+                solver,
+                "--out",
+                out.to_str().unwrap(),
+            ]);
+            let e = stderr(&o);
+            assert_eq!(o.status.code(), Some(1), "{solver}: {e}");
+            assert_eq!(e.lines().count(), 1, "{e:?}");
+            assert!(!e.contains("panicked"), "{e}");
+            if let Ok(text) = std::fs::read_to_string(&out) {
+                assert!(
+                    !text.contains("NaN") && !text.contains("inf"),
+                    "{solver} wrote {text}"
+                );
+            }
+        }
+    }
+}
+
+/// A scene whose magnitudes overflow: a time step of 1e-300 fails at step 1 with the time
+/// in scientific notation (not "0.000000"), and no NaN row is written to steps.csv.
+#[test]
+fn run_stops_on_a_non_finite_state() {
+    let dir = tmpdir("run-nonfinite");
+    let scene = write(
+        &dir,
+        "tiny_dt.toml",
+        r#"name = "tiny_dt"
+dimension = 2
+time_step = 1e-300
+steps = 3
+gravity = [0.0, -9.81]
+
+[[bodies]]
+mesh = { kind = "rectangle", size = [1.0, 0.5], cells = [4, 2] }
+material = { model = "neo-hookean", young = 1e4, poisson = 0.3, density = 100.0 }
+
+[[boundary]]
+kind = "sticky"
+region = { box = { min = [-0.001, -1.0], max = [0.001, 1.0] } }
+"#,
+    );
+    let out = dir.join("out");
+    let o = run(&["run", &scene, "--out", out.to_str().unwrap(), "--quiet"]);
+    let e = stderr(&o);
+    assert!(matches!(o.status.code(), Some(1) | Some(2)), "{e}");
+    assert_eq!(e.lines().count(), 1, "{e:?}");
+    assert!(!e.contains("0.000000 s"), "{e}");
+    if let Ok(csv) = std::fs::read_to_string(out.join("steps.csv")) {
+        assert!(!csv.contains("NaN") && !csv.contains("inf"), "{csv}");
+    }
+}
