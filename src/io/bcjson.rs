@@ -8,6 +8,7 @@ use super::mtx;
 use crate::constraints::{node_rows, Constraint, ConstraintKind};
 use crate::error::InputError;
 use serde_json::{Map, Value};
+use std::fmt::Write as _;
 
 /// The contents of bc.json.
 #[derive(Debug, Clone, PartialEq)]
@@ -78,6 +79,136 @@ fn tag_overflowing_numbers(text: &str) -> Option<String> {
     })
 }
 
+/// Marks the error of a repeated key; the rest of the message is the key's JSON path.
+const DUPLICATE_TAG: &str = "\u{1}duplicate:";
+
+/// One step of the JSON path of the value being read (built only when an error needs it).
+enum Step<'a> {
+    Key(&'a str),
+    Index(usize),
+}
+
+struct At<'a> {
+    parent: Option<&'a At<'a>>,
+    step: Step<'a>,
+}
+
+fn path_of(at: Option<&At>, key: &str) -> String {
+    let mut steps = Vec::new();
+    let mut cur = at;
+    while let Some(a) = cur {
+        steps.push(a);
+        cur = a.parent;
+    }
+    let mut s = String::new();
+    for a in steps.iter().rev() {
+        match a.step {
+            Step::Key(k) => {
+                if !s.is_empty() {
+                    s.push('.');
+                }
+                s.push_str(k);
+            }
+            Step::Index(i) => {
+                let _ = write!(s, "[{i}]");
+            }
+        }
+    }
+    if !s.is_empty() {
+        s.push('.');
+    }
+    s.push_str(key);
+    s
+}
+
+/// Deserializes a `serde_json::Value` as serde_json does, except that an object that
+/// repeats a key is an error (serde_json keeps the last value silently).
+struct UniqueKeys<'a> {
+    at: Option<&'a At<'a>>,
+}
+
+impl<'de> serde::de::DeserializeSeed<'de> for UniqueKeys<'_> {
+    type Value = Value;
+    fn deserialize<D: serde::Deserializer<'de>>(self, d: D) -> Result<Value, D::Error> {
+        d.deserialize_any(self)
+    }
+}
+
+impl<'de> serde::de::Visitor<'de> for UniqueKeys<'_> {
+    type Value = Value;
+    fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        f.write_str("any JSON value")
+    }
+    fn visit_bool<E>(self, v: bool) -> Result<Value, E> {
+        Ok(Value::Bool(v))
+    }
+    fn visit_i64<E>(self, v: i64) -> Result<Value, E> {
+        Ok(Value::Number(v.into()))
+    }
+    fn visit_u64<E>(self, v: u64) -> Result<Value, E> {
+        Ok(Value::Number(v.into()))
+    }
+    fn visit_f64<E>(self, v: f64) -> Result<Value, E> {
+        Ok(serde_json::Number::from_f64(v).map_or(Value::Null, Value::Number))
+    }
+    fn visit_str<E>(self, v: &str) -> Result<Value, E> {
+        Ok(Value::String(v.to_string()))
+    }
+    fn visit_string<E>(self, v: String) -> Result<Value, E> {
+        Ok(Value::String(v))
+    }
+    fn visit_unit<E>(self) -> Result<Value, E> {
+        Ok(Value::Null)
+    }
+    fn visit_none<E>(self) -> Result<Value, E> {
+        Ok(Value::Null)
+    }
+    fn visit_some<D: serde::Deserializer<'de>>(self, d: D) -> Result<Value, D::Error> {
+        serde::de::DeserializeSeed::deserialize(self, d)
+    }
+    fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<Value, A::Error> {
+        let mut out = Vec::with_capacity(seq.size_hint().unwrap_or(0).min(4096));
+        loop {
+            let at = At {
+                parent: self.at,
+                step: Step::Index(out.len()),
+            };
+            match seq.next_element_seed(UniqueKeys { at: Some(&at) })? {
+                Some(v) => out.push(v),
+                None => return Ok(Value::Array(out)),
+            }
+        }
+    }
+    fn visit_map<A: serde::de::MapAccess<'de>>(self, mut map: A) -> Result<Value, A::Error> {
+        let mut out = Map::new();
+        while let Some(key) = map.next_key::<String>()? {
+            if out.contains_key(&key) {
+                return Err(serde::de::Error::custom(format!(
+                    "{DUPLICATE_TAG}{}",
+                    path_of(self.at, &key)
+                )));
+            }
+            let v = {
+                let at = At {
+                    parent: self.at,
+                    step: Step::Key(&key),
+                };
+                map.next_value_seed(UniqueKeys { at: Some(&at) })?
+            };
+            out.insert(key, v);
+        }
+        Ok(Value::Object(out))
+    }
+}
+
+/// Parses JSON text into a Value, refusing repeated keys.
+fn from_str_unique(text: &str) -> Result<Value, serde_json::Error> {
+    let mut de = serde_json::Deserializer::from_str(text);
+    let v = serde::de::DeserializeSeed::deserialize(UniqueKeys { at: None }, &mut de)?;
+    de.end()?;
+    Ok(v)
+}
+
 fn number(file: &str, path: &str, v: &Value) -> Result<f64, InputError> {
     match v {
         Value::Number(n) => n
@@ -95,6 +226,11 @@ fn number(file: &str, path: &str, v: &Value) -> Result<f64, InputError> {
             format!("expected a number, found {}", kind_of(other)),
         )),
     }
+}
+
+/// A value from the file quoted in a message: its JSON, one line, at most 60 characters.
+fn shown(v: &Value) -> String {
+    super::one_line(&v.to_string(), 60)
 }
 
 fn kind_of(v: &Value) -> &'static str {
@@ -150,16 +286,27 @@ const KINDS: &str = "sticky, plane, line or rows";
 /// dimension when it is known. Node ranges and rank/consistency are checked later by
 /// `Frames::build`, whose errors carry the `constraints[k]` labels.
 pub fn parse(file: &str, text: &str, dim: Option<usize>) -> Result<ConstraintFile, InputError> {
+    let text = super::strip_bom(text);
     let tagged = tag_overflowing_numbers(text);
-    let root: Value = serde_json::from_str(tagged.as_deref().unwrap_or(text)).map_err(|e| {
+    let root: Value = from_str_unique(tagged.as_deref().unwrap_or(text)).map_err(|e| {
         // serde_json appends " at line L column C"; move the position into the entry.
         let msg = e.to_string();
-        let msg = msg.split(" at line ").next().unwrap_or(&msg).to_string();
-        err(
-            file,
-            format!("line {}, column {}", e.line(), e.column()),
-            format!("malformed JSON: {msg}"),
-        )
+        let msg = msg.rsplit_once(" at line ").map_or(msg.as_str(), |m| m.0);
+        let (line, column) = (e.line(), e.column());
+        match msg.strip_prefix(DUPLICATE_TAG) {
+            Some(path) => err(
+                file,
+                super::one_line(path, 200),
+                format!(
+                    "duplicate key (the object gives it again at line {line}, column {column})"
+                ),
+            ),
+            None => err(
+                file,
+                format!("line {line}, column {column}"),
+                format!("malformed JSON: {}", super::one_line(msg, 200)),
+            ),
+        }
     })?;
     let Value::Object(top) = &root else {
         return Err(err(
@@ -175,7 +322,7 @@ pub fn parse(file: &str, text: &str, dim: Option<usize>) -> Result<ConstraintFil
         if k != "dim" && k != "constraints" {
             return Err(err(
                 file,
-                k.as_str(),
+                super::one_line(k, 60),
                 "unknown key (expected dim and constraints)",
             ));
         }
@@ -184,7 +331,13 @@ pub fn parse(file: &str, text: &str, dim: Option<usize>) -> Result<ConstraintFil
         None => None,
         Some(v) => match v.as_u64() {
             Some(d @ (2 | 3)) => Some(d as usize),
-            _ => return Err(err(file, "dim", format!("must be 2 or 3, found {v}"))),
+            _ => {
+                return Err(err(
+                    file,
+                    "dim",
+                    format!("must be 2 or 3, found {}", shown(v)),
+                ))
+            }
         },
     };
     if let (Some(a), Some(b)) = (dim, file_dim) {
@@ -248,7 +401,7 @@ fn parse_constraint(
             err(
                 file,
                 format!("{label}.node"),
-                format!("expected a node index (an integer ≥ 0), found {n}"),
+                format!("expected a node index (an integer ≥ 0), found {}", shown(n)),
             )
         })?,
     };
@@ -267,7 +420,7 @@ fn parse_constraint(
             return Err(err(
                 file,
                 format!("{label}.kind"),
-                format!("expected a string ({KINDS}), found {x}"),
+                format!("expected a string ({KINDS}), found {}", shown(x)),
             ))
         }
     };
@@ -280,7 +433,10 @@ fn parse_constraint(
             return Err(err(
                 file,
                 format!("{label}.kind"),
-                format!("unknown kind '{other}' (expected {KINDS})"),
+                format!(
+                    "unknown kind '{}' (expected {KINDS})",
+                    super::one_line(other, 60)
+                ),
             ))
         }
     };
@@ -340,7 +496,7 @@ fn parse_constraint(
                     return Err(err(
                         file,
                         p("rows"),
-                        format!("expected a non-empty array of rows, found {x}"),
+                        format!("expected a non-empty array of rows, found {}", shown(x)),
                     ))
                 }
                 None => return Err(err(file, p("rows"), "missing")),
@@ -380,7 +536,7 @@ fn check_keys(
         if k != "node" && k != "kind" && !allowed.contains(&k.as_str()) {
             return Err(err(
                 file,
-                format!("{label}.{k}"),
+                format!("{label}.{}", super::one_line(k, 60)),
                 format!(
                     "unknown key for kind {kind} (allowed: node, kind, {})",
                     allowed.join(", ")
@@ -467,7 +623,26 @@ pub fn constraints_from_matrix(
                 "the row is empty (every row of B must touch exactly one node)",
             ));
         };
+        // Each entry was finite as read; duplicates can sum past f64.
+        if let Some(a) = row.iter().position(|x| !x.is_finite()) {
+            return Err(err(
+                b_file,
+                format!("row {}", r + 1),
+                format!(
+                    "the duplicate entries in column {} sum to {}, which is not finite",
+                    node * dim + a + 1,
+                    row[a]
+                ),
+            ));
+        }
         let value = p.map_or(0.0, |(_, pv)| pv[r]);
+        if let Some((pf, _)) = p.filter(|_| !value.is_finite()) {
+            return Err(err(
+                pf,
+                format!("row {}", r + 1),
+                format!("p is {value}, which is not finite"),
+            ));
+        }
         out.push(Constraint {
             node,
             kind: ConstraintKind::Rows {

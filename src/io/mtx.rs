@@ -12,6 +12,14 @@
 //! 1.0 s to build and validate the blocks), and its errors carry neither line numbers
 //! nor 1-based entries; this one reports every fault by line or entry.
 //! [`read_coo_nalgebra`] keeps the library path for comparison (and the timing test).
+//!
+//! Nothing is allocated from a size line alone: the entry list is reserved for no more
+//! than the text can hold, vectors are checked against their expected length on the size
+//! line ([`read_vector`]), H against the other inputs ([`read_hessian_bounded`]), and
+//! every size line against [`MAX_DIMENSION`] and the machine's memory
+//! ([`MIN_BYTES_PER_ROW`]). Duplicate coordinate entries sum, and the sums are checked
+//! for finiteness where they are formed (vectors here, H in `BlockCsr::validate`, B in
+//! `bcjson::constraints_from_matrix`).
 
 use crate::error::InputError;
 use crate::sparse::BlockCsr;
@@ -30,25 +38,66 @@ pub struct Coo {
     pub size_line: usize,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Layout {
-    Coordinate,
-    Array,
-}
-
 fn err(file: &str, entry: impl Into<String>, problem: impl Into<String>) -> InputError {
     InputError::new(file, entry, problem)
 }
 
-/// Parses a Matrix Market matrix (coordinate or array; real, integer or double; general
-/// or symmetric). Values are checked for finiteness here, so every later stage sees
-/// finite numbers only.
+/// Text from the file quoted in a message: at most 60 characters, with control
+/// characters and unusual spaces (tab, no-break space, BOM) shown as escapes, since they
+/// are often the fault.
+fn quote(s: &str) -> String {
+    super::escaped(s.trim_matches(' '), 60)
+}
+
 /// Largest row or column count accepted (2³¹ − 1: indices are 32-bit on the GPU and in PETSc).
 pub const MAX_DIMENSION: usize = i32::MAX as usize;
 
-pub fn parse(file: &str, text: &str) -> Result<Coo, InputError> {
-    let mut lines = text.lines().enumerate().map(|(k, l)| (k + 1, l));
-    // Header.
+/// The least memory a system row costs once read (H's diagonal block and its triplet,
+/// g, Δx, b̂, y, the lift, the reactions: well over 64 bytes). A size line declaring
+/// more rows than the machine's memory holds at this rate is refused before reading on.
+pub const MIN_BYTES_PER_ROW: u64 = 64;
+
+/// The most rows (or columns) a size line may declare on a machine with `memory` bytes.
+pub fn max_rows_for_memory(memory: u64) -> usize {
+    usize::try_from(memory / MIN_BYTES_PER_ROW)
+        .unwrap_or(usize::MAX)
+        .min(MAX_DIMENSION)
+}
+
+/// The header and size line of a Matrix Market file: what it declares, before any entry.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Header {
+    pub nrows: usize,
+    pub ncols: usize,
+    /// The stored entries the size line announces (coordinate), or rows × columns (array).
+    pub entries: usize,
+    pub coordinate: bool,
+    /// The file said `symmetric` (entries then hold the lower triangle only).
+    pub symmetric: bool,
+    /// 1-based line number of the size line.
+    pub size_line: usize,
+}
+
+impl Header {
+    /// The length of the vector the file declares (n × 1 or 1 × n), None for a matrix.
+    pub fn vector_len(&self) -> Option<usize> {
+        if self.ncols == 1 {
+            Some(self.nrows)
+        } else if self.nrows == 1 {
+            Some(self.ncols)
+        } else {
+            None
+        }
+    }
+}
+
+/// Reads the header and the size line from `lines` (numbered, 1-based), leaving the
+/// iterator after the size line. Checks the banner, the size line's form and
+/// MAX_DIMENSION.
+fn parse_header<'a>(
+    file: &str,
+    lines: &mut impl Iterator<Item = (usize, &'a str)>,
+) -> Result<Header, InputError> {
     let (hl, header) = loop {
         match lines.next() {
             Some((_, l)) if l.trim().is_empty() => continue,
@@ -64,6 +113,7 @@ pub fn parse(file: &str, text: &str) -> Result<Coo, InputError> {
     };
     let toks: Vec<String> = header
         .split_whitespace()
+        .take(6)
         .map(|t| t.to_ascii_lowercase())
         .collect();
     if toks.first().map(String::as_str) != Some("%%matrixmarket") {
@@ -80,14 +130,17 @@ pub fn parse(file: &str, text: &str) -> Result<Coo, InputError> {
             "malformed header: expected '%%MatrixMarket matrix coordinate|array real|integer general|symmetric'",
         ));
     }
-    let layout = match toks[2].as_str() {
-        "coordinate" => Layout::Coordinate,
-        "array" => Layout::Array,
+    let coordinate = match toks[2].as_str() {
+        "coordinate" => true,
+        "array" => false,
         other => {
             return Err(err(
                 file,
                 format!("line {hl}"),
-                format!("unknown format '{other}' (expected coordinate or array)"),
+                format!(
+                    "unknown format '{}' (expected coordinate or array)",
+                    quote(other)
+                ),
             ))
         }
     };
@@ -97,7 +150,10 @@ pub fn parse(file: &str, text: &str) -> Result<Coo, InputError> {
             return Err(err(
                 file,
                 format!("line {hl}"),
-                format!("unsupported field '{other}' (expected real or integer)"),
+                format!(
+                    "unsupported field '{}' (expected real or integer)",
+                    quote(other)
+                ),
             ))
         }
     }
@@ -108,11 +164,14 @@ pub fn parse(file: &str, text: &str) -> Result<Coo, InputError> {
             return Err(err(
                 file,
                 format!("line {hl}"),
-                format!("unsupported symmetry '{other}' (expected general or symmetric)"),
+                format!(
+                    "unsupported symmetry '{}' (expected general or symmetric)",
+                    quote(other)
+                ),
             ))
         }
     };
-    if symmetric && layout == Layout::Array {
+    if symmetric && !coordinate {
         return Err(err(
             file,
             format!("line {hl}"),
@@ -120,15 +179,11 @@ pub fn parse(file: &str, text: &str) -> Result<Coo, InputError> {
         ));
     }
     // Size line: the first line that is neither a comment nor blank.
-    let mut data = lines.filter(|(_, l)| {
-        let t = l.trim_start();
-        !t.is_empty() && !t.starts_with('%')
-    });
-    let (sl, size) = data
-        .next()
+    let (sl, size) = lines
+        .find(|(_, l)| is_data(l))
         .ok_or_else(|| err(file, "", "the size line is missing after the header"))?;
-    let dims: Vec<&str> = size.split_whitespace().collect();
-    let want = if layout == Layout::Coordinate { 3 } else { 2 };
+    let want = if coordinate { 3 } else { 2 };
+    let dims: Vec<&str> = size.split_whitespace().take(want + 1).collect();
     let parsed: Option<Vec<usize>> = dims.iter().map(|t| t.parse::<usize>().ok()).collect();
     let dims = match parsed {
         Some(d) if d.len() == want => d,
@@ -138,7 +193,7 @@ pub fn parse(file: &str, text: &str) -> Result<Coo, InputError> {
                 format!("line {sl}"),
                 format!(
                     "malformed size line '{}': expected {}",
-                    size.trim(),
+                    quote(size),
                     if want == 3 {
                         "'rows columns entries'"
                     } else {
@@ -167,58 +222,169 @@ pub fn parse(file: &str, text: &str) -> Result<Coo, InputError> {
             format!("a symmetric matrix must be square, the size line says {nrows} × {ncols}"),
         ));
     }
-    let expected = if layout == Layout::Coordinate {
+    let entries = if coordinate {
         dims[2]
     } else {
         nrows
             .checked_mul(ncols)
             .ok_or_else(|| err(file, format!("line {sl}"), "the matrix is too large"))?
     };
-    // Guard the allocation against absurd counts in a corrupt size line.
-    let mut entries = Vec::with_capacity(expected.min(1 << 26));
+    Ok(Header {
+        nrows,
+        ncols,
+        entries,
+        coordinate,
+        symmetric,
+        size_line: sl,
+    })
+}
+
+/// Refuses a size line declaring more rows or columns than this machine's memory holds
+/// at [`MIN_BYTES_PER_ROW`].
+fn check_memory(file: &str, h: &Header) -> Result<(), InputError> {
+    let Some(mem) = super::memory_bytes() else {
+        return Ok(());
+    };
+    let big = h.nrows.max(h.ncols);
+    if big > max_rows_for_memory(mem) {
+        return Err(err(
+            file,
+            format!("line {}", h.size_line),
+            format!(
+                "the size line declares {} × {}; a system of {big} rows needs at least {} ({MIN_BYTES_PER_ROW} bytes a row), more than this machine's {} of memory",
+                h.nrows,
+                h.ncols,
+                super::human_bytes((big as u64).saturating_mul(MIN_BYTES_PER_ROW)),
+                super::human_bytes(mem)
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// A line that is neither blank nor a comment.
+fn is_data(l: &str) -> bool {
+    let t = l.trim_start();
+    !t.is_empty() && !t.starts_with('%')
+}
+
+/// Parses a Matrix Market matrix (coordinate or array; real, integer or double; general
+/// or symmetric). Values are checked for finiteness here, so every later stage sees
+/// finite numbers only (sums of duplicates are checked where they are summed). A leading
+/// byte-order mark is skipped.
+pub fn parse(file: &str, text: &str) -> Result<Coo, InputError> {
+    parse_checked(file, text, |_| Ok(()))
+}
+
+/// [`parse`], calling `check` on the header before any entry is read or stored, so that
+/// a size line the other inputs contradict is refused before it costs anything.
+pub fn parse_checked(
+    file: &str,
+    text: &str,
+    check: impl FnOnce(&Header) -> Result<(), InputError>,
+) -> Result<Coo, InputError> {
+    let text = super::strip_bom(text);
+    let mut lines = text.lines().enumerate().map(|(k, l)| (k + 1, l));
+    let h = parse_header(file, &mut lines)?;
+    // The caller's check first: another input's size names the fault more precisely.
+    check(&h)?;
+    check_memory(file, &h)?;
+    let Header {
+        nrows,
+        ncols,
+        entries: expected,
+        coordinate,
+        symmetric,
+        size_line: sl,
+    } = h;
+    let data = lines.filter(|(_, l)| is_data(l));
+    // A size line can announce more entries than the file holds: reserve no more than
+    // the text can hold (a coordinate entry takes at least 6 bytes, an array value 2).
+    let fit = text.len() / if coordinate { 6 } else { 2 } + 1;
+    let mut entries = Vec::with_capacity(expected.min(fit));
     let value = |line: usize, tok: &str| -> Result<f64, InputError> {
         tok.parse::<f64>().map_err(|_| {
             err(
                 file,
                 format!("line {line}"),
-                format!("cannot read '{tok}' as a number"),
+                format!("cannot read '{}' as a number", quote(tok)),
             )
         })
     };
-    match layout {
-        Layout::Coordinate => {
-            for (ln, l) in data {
-                let mut it = l.split_ascii_whitespace();
-                let (Some(a), Some(b), Some(v), None) =
-                    (it.next(), it.next(), it.next(), it.next())
-                else {
+    if coordinate {
+        for (ln, l) in data {
+            let mut it = l.split_ascii_whitespace();
+            let (Some(a), Some(b), Some(v), None) = (it.next(), it.next(), it.next(), it.next())
+            else {
+                return Err(err(
+                    file,
+                    format!("line {ln}"),
+                    format!(
+                        "malformed entry '{}': expected 'row column value'",
+                        quote(l)
+                    ),
+                ));
+            };
+            let idx = |t: &str, n: usize, what: &str| -> Result<usize, InputError> {
+                match t.parse::<usize>() {
+                    Ok(i) if i >= 1 && i <= n => Ok(i - 1),
+                    Ok(i) => Err(err(
+                        file,
+                        format!("line {ln}"),
+                        format!("{what} index {i} is out of range 1..={n}"),
+                    )),
+                    Err(_) => Err(err(
+                        file,
+                        format!("line {ln}"),
+                        format!(
+                            "cannot read {what} index '{}' as a positive integer",
+                            quote(t)
+                        ),
+                    )),
+                }
+            };
+            let r = idx(a, nrows, "row")?;
+            let c = idx(b, ncols, "column")?;
+            let v = value(ln, v)?;
+            if !v.is_finite() {
+                return Err(err(
+                    file,
+                    format!("entry ({}, {})", r + 1, c + 1),
+                    format!("value {v} is not finite"),
+                ));
+            }
+            if symmetric && c > r {
+                return Err(err(
+                    file,
+                    format!("entry ({}, {})", r + 1, c + 1),
+                    "entry above the diagonal in a symmetric file (symmetric Matrix Market stores the lower triangle only)",
+                ));
+            }
+            if entries.len() == expected {
+                return Err(err(
+                    file,
+                    format!("line {ln}"),
+                    format!("more entries than the {expected} the size line (line {sl}) announces"),
+                ));
+            }
+            entries.push((r, c, v));
+        }
+    } else {
+        // Column-major, one value per line (several per line are accepted).
+        for (ln, l) in data {
+            for tok in l.split_ascii_whitespace() {
+                let k = entries.len();
+                if k == expected {
                     return Err(err(
                         file,
                         format!("line {ln}"),
                         format!(
-                            "malformed entry '{}': expected 'row column value'",
-                            l.trim()
+                            "more values than the {expected} the size line (line {sl}) announces"
                         ),
                     ));
-                };
-                let idx = |t: &str, n: usize, what: &str| -> Result<usize, InputError> {
-                    match t.parse::<usize>() {
-                        Ok(i) if i >= 1 && i <= n => Ok(i - 1),
-                        Ok(i) => Err(err(
-                            file,
-                            format!("line {ln}"),
-                            format!("{what} index {i} is out of range 1..={n}"),
-                        )),
-                        Err(_) => Err(err(
-                            file,
-                            format!("line {ln}"),
-                            format!("cannot read {what} index '{t}' as a positive integer"),
-                        )),
-                    }
-                };
-                let r = idx(a, nrows, "row")?;
-                let c = idx(b, ncols, "column")?;
-                let v = value(ln, v)?;
+                }
+                let (r, c) = (k % nrows, k / nrows);
+                let v = value(ln, tok)?;
                 if !v.is_finite() {
                     return Err(err(
                         file,
@@ -226,48 +392,7 @@ pub fn parse(file: &str, text: &str) -> Result<Coo, InputError> {
                         format!("value {v} is not finite"),
                     ));
                 }
-                if symmetric && c > r {
-                    return Err(err(
-                        file,
-                        format!("entry ({}, {})", r + 1, c + 1),
-                        "entry above the diagonal in a symmetric file (symmetric Matrix Market stores the lower triangle only)",
-                    ));
-                }
-                if entries.len() == expected {
-                    return Err(err(
-                        file,
-                        format!("line {ln}"),
-                        format!(
-                            "more entries than the {expected} the size line (line {sl}) announces"
-                        ),
-                    ));
-                }
                 entries.push((r, c, v));
-            }
-        }
-        Layout::Array => {
-            // Column-major, one value per line (several per line are accepted).
-            for (ln, l) in data {
-                for tok in l.split_ascii_whitespace() {
-                    let k = entries.len();
-                    if k == expected {
-                        return Err(err(
-                            file,
-                            format!("line {ln}"),
-                            format!("more values than the {expected} the size line (line {sl}) announces"),
-                        ));
-                    }
-                    let (r, c) = (k % nrows, k / nrows);
-                    let v = value(ln, tok)?;
-                    if !v.is_finite() {
-                        return Err(err(
-                            file,
-                            format!("entry ({}, {})", r + 1, c + 1),
-                            format!("value {v} is not finite"),
-                        ));
-                    }
-                    entries.push((r, c, v));
-                }
             }
         }
     }
@@ -290,6 +415,24 @@ pub fn parse(file: &str, text: &str) -> Result<Coo, InputError> {
     })
 }
 
+/// The header of the Matrix Market file at `path`, read from its first MiB only (the
+/// size line comes after the comments): a cheap look at what another input declares,
+/// e.g. g's length before H's blocks are allocated. Errors say why it could not be read;
+/// the full read reports them again, so a caller may ignore them.
+pub fn read_header(path: &str) -> Result<Header, InputError> {
+    let bytes = super::read_limited_prefix(path, 1 << 20)?;
+    // Cut at the last complete line (the prefix may end inside a line or a character).
+    let end = bytes
+        .iter()
+        .rposition(|&b| b == b'\n')
+        .map_or(bytes.len(), |k| k + 1);
+    let text = std::str::from_utf8(&bytes[..end])
+        .map_err(|_| err(path, "", "the header is not UTF-8 text"))?;
+    let text = super::strip_bom(text);
+    let mut lines = text.lines().enumerate().map(|(k, l)| (k + 1, l));
+    parse_header(path, &mut lines)
+}
+
 /// The same read through `nalgebra_sparse` (pest). Kept to compare speed and results;
 /// symmetric files come back with both triangles.
 pub fn read_coo_nalgebra(file: &str, text: &str) -> Result<Coo, InputError> {
@@ -305,87 +448,166 @@ pub fn read_coo_nalgebra(file: &str, text: &str) -> Result<Coo, InputError> {
     })
 }
 
+/// What the other inputs say about H's size, checked on H's size line before any entry
+/// is stored or any block allocated ([`read_hessian_bounded`]).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct HessianBounds<'a> {
+    /// The most rows H may have, and what fixes it for messages, e.g.
+    /// `(81, "the 81 rows of g (g.mtx)")` from g's size line ([`read_header`]), or the
+    /// layout's d·n in `recover`. H declaring more is refused; fewer is left to the
+    /// reader of the other input, which names its own file.
+    pub max_rows: Option<(usize, &'a str)>,
+    /// How many nodes the constraints can fix completely: the number of constraints in
+    /// bc.json, or the rows of B. A solvable system needs an entry of H in the diagonal
+    /// block of every node that keeps a free direction (Ĥ is positive definite there),
+    /// so H can declare at most its stored entries plus this many nodes; a size line
+    /// beyond that is corrupt. None: not known, and only the loose legacy ratio
+    /// (64 rows per stored entry) applies.
+    pub constrained_nodes: Option<usize>,
+}
+
+/// Checks H's declared shape against `dim` and `bounds` (`entries`: the stored entries).
+fn check_hessian_size(
+    file: &str,
+    h: &Header,
+    dim: usize,
+    bounds: &HessianBounds,
+) -> Result<(), InputError> {
+    let sl = format!("line {}", h.size_line);
+    if h.nrows != h.ncols {
+        return Err(err(
+            file,
+            sl,
+            format!("H is {} × {}, expected a square matrix", h.nrows, h.ncols),
+        ));
+    }
+    if h.nrows == 0 {
+        return Err(err(file, sl, "H is empty (0 × 0)"));
+    }
+    let nd = h.nrows;
+    if nd % dim != 0 {
+        return Err(err(
+            file,
+            sl,
+            format!(
+                "H has {nd} rows, not a multiple of the dimension {dim} (rows are node-major, {dim} per node)"
+            ),
+        ));
+    }
+    let n = nd / dim;
+    match bounds.constrained_nodes {
+        Some(c) => {
+            if n > h.entries.saturating_add(c) {
+                return Err(err(
+                    file,
+                    sl,
+                    format!(
+                        "H declares {nd} rows ({n} nodes) but stores only {} entries and the constraints fix at most {c} nodes; every node that is not fully constrained needs an entry in its diagonal block",
+                        h.entries
+                    ),
+                ));
+            }
+        }
+        None => {
+            // Every row of a Hessian holds at least its diagonal (mass), so a size line
+            // far beyond the entries is a corrupt file, not a system.
+            if nd / 64 > h.entries {
+                return Err(err(
+                    file,
+                    sl,
+                    format!(
+                        "the size line declares {nd} rows but the file holds only {} entries (a Hessian has an entry on every row's diagonal)",
+                        h.entries
+                    ),
+                ));
+            }
+        }
+    }
+    if let Some((max, what)) = bounds.max_rows {
+        if nd > max {
+            return Err(err(
+                file,
+                sl,
+                format!("H declares {nd} rows, more than {what}"),
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// Builds H as a block matrix: square, a multiple of `dim`, finite, symmetric.
 /// Every node gets a diagonal block (explicit zeros
 /// where the file has none) so the constrained diagonal D always has a place.
+/// The size line is checked as by [`read_hessian`] (no bounds from other inputs).
 pub fn hessian_from_coo(file: &str, coo: &Coo, dim: usize) -> Result<BlockCsr, InputError> {
-    let sl = format!("line {}", coo.size_line);
-    if coo.nrows != coo.ncols {
-        return Err(err(
-            file,
-            sl,
-            format!(
-                "H is {} × {}, expected a square matrix",
-                coo.nrows, coo.ncols
-            ),
-        ));
-    }
-    if coo.nrows == 0 {
-        return Err(err(file, sl, "H is empty (0 × 0)"));
-    }
-    if coo.nrows % dim != 0 {
-        return Err(err(
-            file,
-            sl,
-            format!(
-                "H has {} rows, not a multiple of the dimension {dim} (rows are node-major, {dim} per node)",
-                coo.nrows
-            ),
-        ));
-    }
+    let h = Header {
+        nrows: coo.nrows,
+        ncols: coo.ncols,
+        entries: coo.entries.len(),
+        coordinate: true,
+        symmetric: coo.symmetric,
+        size_line: coo.size_line,
+    };
+    check_hessian_size(file, &h, dim, &HessianBounds::default())?;
+    build_hessian(file, coo, dim)
+}
+
+/// The blocks of an H whose size has been checked.
+fn build_hessian(file: &str, coo: &Coo, dim: usize) -> Result<BlockCsr, InputError> {
     let nd = coo.nrows;
-    // Every row of a Hessian holds at least its diagonal (mass), so a size line far
-    // beyond the entries is a corrupt file, not a system: refuse it before allocating.
-    if nd / 64 > coo.entries.len() {
-        return Err(err(
-            file,
-            format!("line {}", coo.size_line),
-            format!(
-                "the size line declares {nd} rows but the file holds only {} entries (a Hessian has an entry on every row's diagonal)",
-                coo.entries.len()
-            ),
-        ));
-    }
     let mut t = Vec::with_capacity(coo.entries.len() + nd);
     t.extend_from_slice(&coo.entries);
     t.extend((0..nd).map(|k| (k, k, 0.0)));
     let h = BlockCsr::from_triplets(dim, nd, &t, coo.symmetric);
+    // Finiteness after duplicates are summed (1e308 twice is inf), and symmetry.
     h.validate(file)?;
     Ok(h)
 }
 
-/// Reads H from `path`.
+/// Reads H from `path`, with no bounds from the other inputs: prefer
+/// [`read_hessian_bounded`], which refuses a corrupt size line before allocating.
 pub fn read_hessian(path: &str, dim: usize) -> Result<BlockCsr, InputError> {
-    let text = super::read_text(path)?;
-    let coo = parse(path, &text)?;
-    hessian_from_coo(path, &coo, dim)
+    read_hessian_bounded(path, dim, &HessianBounds::default())
 }
 
-/// A vector from a parsed file: n × 1 or 1 × n, array or coordinate (missing coordinate
-/// entries are 0, duplicates sum). `name` and `expected` describe it for messages, e.g.
-/// `("g", Some((12, "12 = 3 × 4 nodes")))`.
-pub fn vector_from_coo(
+/// Reads H from `path`, checking its size line against `dim` and `bounds` before any
+/// entry is stored, so a small file declaring a huge system fails at once (its size
+/// line named) instead of allocating for the declared size.
+pub fn read_hessian_bounded(
+    path: &str,
+    dim: usize,
+    bounds: &HessianBounds,
+) -> Result<BlockCsr, InputError> {
+    let text = super::read_text(path)?;
+    let coo = parse_checked(path, &text, |h| check_hessian_size(path, h, dim, bounds))?;
+    drop(text);
+    build_hessian(path, &coo, dim)
+}
+
+/// The length of a vector of shape `nrows × ncols`, and whether it is a column; checked
+/// against `expected`.
+fn vector_shape(
     file: &str,
-    coo: &Coo,
+    h: &Header,
     name: &str,
     expected: Option<(usize, &str)>,
-) -> Result<Vec<f64>, InputError> {
-    let sl = format!("line {}", coo.size_line);
-    let (len, column) = if coo.ncols == 1 {
-        (coo.nrows, true)
-    } else if coo.nrows == 1 {
-        (coo.ncols, false)
+) -> Result<(usize, bool), InputError> {
+    let sl = format!("line {}", h.size_line);
+    let (len, column) = if h.ncols == 1 {
+        (h.nrows, true)
+    } else if h.nrows == 1 {
+        (h.ncols, false)
     } else {
         return Err(err(
             file,
             sl,
             format!(
                 "{name} is {} × {}, expected a vector (n × 1 or 1 × n)",
-                coo.nrows, coo.ncols
+                h.nrows, h.ncols
             ),
         ));
     };
-    if coo.symmetric && len > 1 {
+    if h.symmetric && len > 1 {
         return Err(err(
             file,
             sl,
@@ -401,36 +623,86 @@ pub fn vector_from_coo(
             ));
         }
     }
+    Ok((len, column))
+}
+
+/// A vector from a parsed file: n × 1 or 1 × n, array or coordinate (missing coordinate
+/// entries are 0, duplicates sum, and a sum that overflows is an error naming the entry).
+/// `name` and `expected` describe it for messages, e.g. `("g", Some((12, "12 = 3 × 4 nodes")))`.
+pub fn vector_from_coo(
+    file: &str,
+    coo: &Coo,
+    name: &str,
+    expected: Option<(usize, &str)>,
+) -> Result<Vec<f64>, InputError> {
+    let h = Header {
+        nrows: coo.nrows,
+        ncols: coo.ncols,
+        entries: coo.entries.len(),
+        coordinate: true,
+        symmetric: coo.symmetric,
+        size_line: coo.size_line,
+    };
+    let (len, column) = vector_shape(file, &h, name, expected)?;
     let mut v = vec![0.0; len];
     for &(r, c, x) in &coo.entries {
         v[if column { r } else { c }] += x;
     }
+    // Each value was finite as read; duplicates (coordinate files) can sum past f64.
+    if let Some(k) = v.iter().position(|x| !x.is_finite()) {
+        let (r, c) = if column { (k + 1, 1) } else { (1, k + 1) };
+        return Err(err(
+            file,
+            format!("entry ({r}, {c})"),
+            format!(
+                "the duplicate entries for it sum to {}, which is not finite",
+                v[k]
+            ),
+        ));
+    }
     Ok(v)
 }
 
-/// Reads a vector from `path` (see [`vector_from_coo`]).
+/// Reads a vector from `path` (see [`vector_from_coo`]); the shape and `expected` are
+/// checked on the size line, before any entry is read.
 pub fn read_vector(
     path: &str,
     name: &str,
     expected: Option<(usize, &str)>,
 ) -> Result<Vec<f64>, InputError> {
     let text = super::read_text(path)?;
-    let coo = parse(path, &text)?;
+    let coo = parse_checked(path, &text, |h| {
+        vector_shape(path, h, name, expected).map(|_| ())
+    })?;
+    drop(text);
     vector_from_coo(path, &coo, name, expected)
 }
 
-/// Reads a general (non-symmetric) coordinate matrix such as B.
+/// Reads a general (non-symmetric) coordinate matrix such as B, where every row holds
+/// a nonzero: a size line declaring more rows than stored entries is refused before
+/// any entry is read.
 pub fn read_matrix(path: &str, name: &str) -> Result<Coo, InputError> {
     let text = super::read_text(path)?;
-    let coo = parse(path, &text)?;
-    if coo.symmetric {
-        return Err(err(
-            path,
-            "line 1",
-            format!("{name} must be stored as general, not symmetric"),
-        ));
-    }
-    Ok(coo)
+    parse_checked(path, &text, |h| {
+        if h.symmetric {
+            return Err(err(
+                path,
+                "line 1",
+                format!("{name} must be stored as general, not symmetric"),
+            ));
+        }
+        if h.nrows > h.entries {
+            return Err(err(
+                path,
+                format!("line {}", h.size_line),
+                format!(
+                    "{name} declares {} rows but holds {} entries; every row needs a nonzero",
+                    h.nrows, h.entries
+                ),
+            ));
+        }
+        Ok(())
+    })
 }
 
 fn create(path: &std::path::Path) -> std::io::Result<std::io::BufWriter<std::fs::File>> {
