@@ -532,34 +532,44 @@ pub fn read_system(sys: &SystemArgs) -> Result<LoadedSystem, CliError> {
             .into());
         }
     };
-    let h = mtx::read_hessian(&sys.hessian, dim)?;
+    // B before H: its rows bound the nodes H may leave without entries.
+    let b = match (&bc, &sys.constraint_matrix) {
+        (None, Some(bpath)) => Some(mtx::read_matrix(bpath, "B")?),
+        _ => None,
+    };
+    // H's size line is checked before any of its entries is stored: no more rows than
+    // g declares, and no more nodes than its entries plus the nodes the constraints fix.
+    let g_rows = mtx::read_header(&sys.gradient)
+        .ok()
+        .and_then(|h| h.vector_len());
+    let g_what = g_rows.map(|r| format!("the {r} rows of g ({})", sys.gradient));
+    let constrained_nodes = match (&bc, &b) {
+        (Some(bc), _) => bc.constraints.len(),
+        (None, Some(b)) => b.nrows,
+        (None, None) => 0,
+    };
+    let h = mtx::read_hessian_bounded(
+        &sys.hessian,
+        dim,
+        &mtx::HessianBounds {
+            max_rows: g_rows.zip(g_what.as_deref()),
+            constrained_nodes: Some(constrained_nodes),
+        },
+    )?;
     let (nd, n) = (h.ndof(), h.n);
     let g = mtx::read_vector(
         &sys.gradient,
         "g",
         Some((nd, &format!("{nd} = {dim} × {n} nodes"))),
     )?;
-    let (constraints, cfile): (Vec<Constraint>, &str) = match (&bc, &sys.constraint_matrix) {
+    let (constraints, cfile): (Vec<Constraint>, &str) = match (&bc, &b) {
         (Some(bc), _) => (
             bc.constraints.clone(),
             sys.constraints.as_deref().unwrap_or_default(),
         ),
-        (None, Some(bpath)) => {
-            let b = mtx::read_matrix(bpath, "B")?;
-            // Every row of B holds a nonzero, so more rows than entries is a corrupt size
-            // line: refuse it before allocating per row.
-            if b.nrows > b.entries.len() {
-                return Err(InputError::new(
-                    bpath.as_str(),
-                    format!("line {}", b.size_line),
-                    format!(
-                        "B declares {} rows but holds {} entries; every row needs a nonzero",
-                        b.nrows,
-                        b.entries.len()
-                    ),
-                )
-                .into());
-            }
+        (None, Some(b)) => {
+            // B was read above (read_matrix refuses more rows than entries).
+            let bpath = sys.constraint_matrix.as_deref().unwrap_or_default();
             let p = match &sys.constraint_values {
                 Some(ppath) => Some((
                     ppath.as_str(),
@@ -573,12 +583,12 @@ pub fn read_system(sys: &SystemArgs) -> Result<LoadedSystem, CliError> {
             };
             let cs = bcjson::constraints_from_matrix(
                 bpath,
-                &b,
+                b,
                 p.as_ref().map(|(f, v)| (*f, v.as_slice())),
                 dim,
                 n,
             )?;
-            (cs, bpath.as_str())
+            (cs, bpath)
         }
         (None, None) => unreachable!("clap requires one constraint input"),
     };
@@ -586,8 +596,13 @@ pub fn read_system(sys: &SystemArgs) -> Result<LoadedSystem, CliError> {
 
     // 2. Constraints → per-node frames, masks and the lift Δx_p.
     let t = Instant::now();
+    // With B and p, a contradiction is in p's values as much as in B: name both files.
+    let vfile = match (&bc, &sys.constraint_values) {
+        (None, Some(ppath)) => format!(" (values from {ppath})"),
+        _ => String::new(),
+    };
     let frames = Frames::build(dim, n, &constraints)
-        .map_err(|e| InputError::new(cfile, e.label, e.problem))?;
+        .map_err(|e| InputError::new(cfile, e.label, format!("{}{vfile}", e.problem)))?;
     Ok(LoadedSystem {
         dim,
         h,
@@ -968,7 +983,16 @@ fn recover(a: &RecoverArgs, quiet: bool) -> Result<(), CliError> {
     } else {
         crate::export::read_petsc_vec(std::path::Path::new(&a.solution))?
     };
-    let h = mtx::read_hessian(&a.hessian, layout.dim)?;
+    let what = format!("the {nd_layout} rows of the layout's system ({})", a.layout);
+    let h = mtx::read_hessian_bounded(
+        &a.hessian,
+        layout.dim,
+        &mtx::HessianBounds {
+            max_rows: Some((nd_layout, &what)),
+            // The layout fixes the size; no bound from the entries.
+            constrained_nodes: Some(layout.n_nodes),
+        },
+    )?;
     let nd = h.ndof();
     let g = mtx::read_vector(
         &a.gradient,

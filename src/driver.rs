@@ -166,9 +166,8 @@ pub struct RunSummary {
 pub fn load_scene(name_or_path: &str, size: f64) -> Result<Scene, InputError> {
     let p = Path::new(name_or_path);
     if p.is_file() {
-        let text = std::fs::read_to_string(p)
-            .map_err(|e| InputError::new(name_or_path, "", format!("cannot read: {e}")))?;
-        return scene::parse(&text, name_or_path, size);
+        let text = crate::io::read_text(name_or_path)?;
+        return scene::parse(crate::io::strip_bom(&text), name_or_path, size);
     }
     if let Some(text) = scene::builtin(name_or_path) {
         return scene::parse(text, &format!("scenes/{name_or_path}.toml"), size);

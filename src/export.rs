@@ -261,10 +261,21 @@ pub fn write_petsc_vec(path: &Path, v: &[f64]) -> std::io::Result<()> {
 /// Reads a PETSc binary Vec.
 pub fn read_petsc_vec(path: &Path) -> Result<Vec<f64>, InputError> {
     let file = path.display().to_string();
+    let cannot = |e: std::io::Error| InputError::new(&file, "", format!("cannot read: {e}"));
+    // The header first, then at most the bytes it declares (+1 to see a longer file):
+    // a device or a huge file is never read whole.
+    let mut f = std::fs::File::open(path).map_err(cannot)?;
     let mut bytes = Vec::new();
-    std::fs::File::open(path)
-        .and_then(|mut f| f.read_to_end(&mut bytes))
-        .map_err(|e| InputError::new(&file, "", format!("cannot read: {e}")))?;
+    (&mut f).take(8).read_to_end(&mut bytes).map_err(cannot)?;
+    if bytes.len() == 8 {
+        let id = i32::from_be_bytes(bytes[0..4].try_into().expect("4 bytes"));
+        let n = i32::from_be_bytes(bytes[4..8].try_into().expect("4 bytes"));
+        if id == VEC_FILE_CLASSID && n >= 0 {
+            f.take(8 * n as u64 + 1)
+                .read_to_end(&mut bytes)
+                .map_err(cannot)?;
+        }
+    }
     if bytes.len() < 8 {
         return Err(InputError::new(
             &file,
@@ -308,9 +319,8 @@ pub fn read_petsc_vec(path: &Path) -> Result<Vec<f64>, InputError> {
 /// Reads and checks a layout file.
 pub fn read_layout(path: &Path) -> Result<Layout, InputError> {
     let file = path.display().to_string();
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| InputError::new(&file, "", format!("cannot read: {e}")))?;
-    let l: Layout = serde_json::from_str(&text).map_err(|e| {
+    let text = crate::io::read_text(&file)?;
+    let l: Layout = serde_json::from_str(crate::io::strip_bom(&text)).map_err(|e| {
         InputError::new(
             &file,
             format!("line {} column {}", e.line(), e.column()),
