@@ -30,6 +30,14 @@ pub const CONSISTENCY_RTOL: f64 = 1e-8;
 /// built from e_y instead of e_x (seed 000 §0.1.3), keeping |n × e| ≥ 0.43.
 pub const AXIS_SWITCH: f64 = 0.9;
 
+/// The shortest normal, direction or row accepted: the smallest normal f64 (about
+/// 2.2e-308). A subnormal length has lost its significant digits, and dividing by it
+/// (normalizing, or an offset / |normal|) can overflow.
+pub const MIN_LENGTH: f64 = f64::MIN_POSITIVE;
+
+/// At most this many constraint labels are listed when a message names a node's set.
+const LABELS_SHOWN: usize = 8;
+
 /// Marks a node without a rotation in [`Frames::rot_index`].
 pub const NO_ROTATION: u32 = u32::MAX;
 
@@ -67,12 +75,15 @@ pub struct Constraint {
 pub struct ConstraintError {
     pub label: String,
     pub problem: String,
+    /// The node whose constraints are at fault, when the fault is in one node's set.
+    pub node: Option<usize>,
 }
 
 fn cerr(label: &str, problem: impl Into<String>) -> ConstraintError {
     ConstraintError {
         label: label.to_string(),
         problem: problem.into(),
+        node: None,
     }
 }
 
@@ -118,6 +129,20 @@ impl Frames {
         n_nodes: usize,
         constraints: &[Constraint],
     ) -> Result<Self, ConstraintError> {
+        Self::build_with_tolerance(dim, n_nodes, constraints, 0.0)
+    }
+
+    /// [`Frames::build`] with an absolute floor `abs_tol` under the consistency tolerance
+    /// (see [`CONSISTENCY_RTOL`]): a row counts as missed only when it misses its value by
+    /// more than `abs_tol` too. bc.json and B.mtx use 0 (their values are displacements
+    /// with no scale of their own); a scene, whose values are positions, passes the
+    /// rounding level of its coordinates.
+    pub fn build_with_tolerance(
+        dim: usize,
+        n_nodes: usize,
+        constraints: &[Constraint],
+        abs_tol: f64,
+    ) -> Result<Self, ConstraintError> {
         if dim != 2 && dim != 3 {
             return Err(cerr("dim", format!("dimension must be 2 or 3, got {dim}")));
         }
@@ -139,7 +164,10 @@ impl Frames {
         for group in per_node {
             let node = constraints[group[0]].node;
             let cs: Vec<&Constraint> = group.iter().map(|&k| &constraints[k]).collect();
-            let nf = node_frame(dim, &cs)?;
+            let nf = node_frame(dim, &cs, abs_tol).map_err(|e| ConstraintError {
+                node: Some(node),
+                ..e
+            })?;
             f.mask[node] = nf.mask;
             for a in 0..dim {
                 f.lift[node * dim + a] = nf.lift[a];
@@ -320,8 +348,24 @@ fn validate(dim: usize, n_nodes: usize, c: &Constraint) -> Result<(), Constraint
         if let Some(k) = v.iter().position(|x| !x.is_finite()) {
             return Err(cerr(l, format!("{name}[{k}] is not finite")));
         }
-        if nonzero && v.iter().all(|&x| x == 0.0) {
-            return Err(cerr(l, format!("{name} is zero")));
+        if nonzero {
+            if v.iter().all(|&x| x == 0.0) {
+                return Err(cerr(l, format!("{name} is zero")));
+            }
+            // A vector can be finite with a norm that overflows (entries near 1e200), or
+            // so short (subnormal) that it has lost its digits and 1/length overflows.
+            let len = norm2(v);
+            if !len.is_finite() {
+                return Err(cerr(l, format!("{name} has a length that overflows f64")));
+            }
+            if len < MIN_LENGTH {
+                return Err(cerr(
+                    l,
+                    format!(
+                        "{name} has length {len:e}, below {MIN_LENGTH:.1e} (the smallest normal f64): too short to normalize reliably"
+                    ),
+                ));
+            }
         }
         Ok(())
     };
@@ -365,17 +409,6 @@ fn validate(dim: usize, n_nodes: usize, c: &Constraint) -> Result<(), Constraint
             }
         }
     }
-    // A vector can be finite with a norm that overflows (entries near 1e200).
-    let (rows, _) = node_rows(dim, c);
-    for r in &rows {
-        let n = norm2(r);
-        if !n.is_finite() || n == 0.0 {
-            return Err(cerr(
-                l,
-                "a normal or direction has a zero or non-finite length",
-            ));
-        }
-    }
     Ok(())
 }
 
@@ -385,13 +418,43 @@ struct NodeFrame {
     lift: [f64; 3],
 }
 
-fn node_frame(dim: usize, cs: &[&Constraint]) -> Result<NodeFrame, ConstraintError> {
-    let label = if cs.len() == 1 {
-        cs[0].label.clone()
+/// Names the constraints of one node in messages: the constraint's own label when there is
+/// one, else `node N (a, b, ...)` listing at most [`LABELS_SHOWN`] of them.
+fn node_label(cs: &[&Constraint]) -> String {
+    if cs.len() == 1 {
+        return cs[0].label.clone();
+    }
+    let names: Vec<&str> = cs
+        .iter()
+        .take(LABELS_SHOWN)
+        .map(|c| c.label.as_str())
+        .collect();
+    let more = if cs.len() > LABELS_SHOWN {
+        format!(" and {} more", cs.len() - LABELS_SHOWN)
     } else {
-        let names: Vec<&str> = cs.iter().map(|c| c.label.as_str()).collect();
-        format!("node {} ({})", cs[0].node, names.join(", "))
+        String::new()
     };
+    format!("node {} ({}{more})", cs[0].node, names.join(", "))
+}
+
+/// The lift must be a finite displacement: values near the top of the f64 range, or
+/// divided by a short row, can overflow.
+fn check_lift(dim: usize, label: &str, lift: &[f64; 3]) -> Result<(), ConstraintError> {
+    if lift[..dim].iter().all(|v| v.is_finite()) {
+        Ok(())
+    } else {
+        Err(cerr(
+            label,
+            format!(
+                "the prescribed displacement is not finite ({:?}): the prescribed values overflow f64",
+                &lift[..dim]
+            ),
+        ))
+    }
+}
+
+fn node_frame(dim: usize, cs: &[&Constraint], abs_tol: f64) -> Result<NodeFrame, ConstraintError> {
+    let label = node_label(cs);
     // Fast exact paths for the common single constraints (the frame then matches the
     // seeds' construction to the last bit).
     if cs.len() == 1 {
@@ -401,6 +464,7 @@ fn node_frame(dim: usize, cs: &[&Constraint]) -> Result<NodeFrame, ConstraintErr
                 if let Some(d) = displacement {
                     lift[..dim].copy_from_slice(d);
                 }
+                check_lift(dim, &label, &lift)?;
                 return Ok(NodeFrame {
                     mask: (1u8 << dim) - 1,
                     rotation: None,
@@ -409,11 +473,21 @@ fn node_frame(dim: usize, cs: &[&Constraint]) -> Result<NodeFrame, ConstraintErr
             }
             ConstraintKind::Plane { normal, offset } => {
                 let len = norm2(normal);
+                let along = offset / len;
+                if !along.is_finite() {
+                    return Err(cerr(
+                        &label,
+                        format!(
+                            "offset / |normal| = {offset:e} / {len:e} overflows f64: the plane is not at a finite distance"
+                        ),
+                    ));
+                }
                 let n = unit(normal);
                 let mut lift = [0.0; 3];
                 for a in 0..dim {
-                    lift[a] = n[a] * (offset / len);
+                    lift[a] = n[a] * along;
                 }
+                check_lift(dim, &label, &lift)?;
                 return Ok(frame_from_constrained(dim, &[n], lift));
             }
             ConstraintKind::Line { direction, offset } => {
@@ -426,6 +500,7 @@ fn node_frame(dim: usize, cs: &[&Constraint]) -> Result<NodeFrame, ConstraintErr
                         lift[a] = o[a] - ot * t[a];
                     }
                 }
+                check_lift(dim, &label, &lift)?;
                 let cons = line_constrained_dirs(dim, &t);
                 let mut f = frame_from_constrained(dim, &cons, lift);
                 if dim == 3 && f.rotation.is_some() {
@@ -439,22 +514,66 @@ fn node_frame(dim: usize, cs: &[&Constraint]) -> Result<NodeFrame, ConstraintErr
             ConstraintKind::Rows { .. } => {}
         }
     }
-    // General path: stack unit rows, SVD, rank, minimum-norm lift, consistency.
-    let mut rows: Vec<Vec<f64>> = Vec::new();
+    // General path: stack unit rows, reduce to d×d, SVD, rank, minimum-norm lift,
+    // consistency.
+    let mut rows: Vec<[f64; 3]> = Vec::new();
     let mut vals: Vec<f64> = Vec::new();
-    for c in cs {
+    // Per row: the index in `cs` of the constraint it comes from (named in messages).
+    let mut owner: Vec<usize> = Vec::new();
+    for (ci, c) in cs.iter().enumerate() {
         let (r, v) = node_rows(dim, c);
-        for (row, val) in r.into_iter().zip(v) {
+        for (ri, (row, val)) in r.into_iter().zip(v).enumerate() {
             let len = norm2(&row);
-            rows.push(row.iter().map(|x| x / len).collect());
-            vals.push(val / len);
+            let scaled = val / len;
+            if !scaled.is_finite() {
+                let who = if cs.len() > 1 {
+                    format!("{}: ", c.label)
+                } else {
+                    String::new()
+                };
+                let which = match &c.kind {
+                    ConstraintKind::Rows { rows, .. } if rows.len() > 1 => {
+                        format!("values[{ri}] / |rows[{ri}]|")
+                    }
+                    ConstraintKind::Rows { .. } => "the value / |row|".to_string(),
+                    ConstraintKind::Plane { .. } => "offset / |normal|".to_string(),
+                    _ => "the prescribed value".to_string(),
+                };
+                return Err(cerr(
+                    &label,
+                    format!(
+                        "{who}{which} = {val:e} / {len:e} overflows f64: the prescribed displacement is not finite"
+                    ),
+                ));
+            }
+            let mut u = [0.0; 3];
+            for a in 0..dim {
+                u[a] = row[a] / len;
+            }
+            rows.push(u);
+            vals.push(scaled);
+            owner.push(ci);
         }
     }
     let k = rows.len();
-    let m = k.max(dim); // pad to square so V is complete
-                        // faer's dense SVD: accurate to round-off on rank-deficient blocks (nalgebra 0.34's
-                        // SVD was seen to return a factorization off by 5e-2 on such a 3×3, see tests).
-    let a = faer::Mat::<f64>::from_fn(m, dim, |i, j| if i < k { rows[i][j] } else { 0.0 });
+    // The d×d block to decompose and the values it carries. Up to d rows: the rows
+    // themselves, zero-padded (V complete). More rows: rank ≤ d, so the Householder QR
+    // [A | vals] = Q [R | c] reduces them to R (d×d) and c = Q₁ᵀvals first; A = Q₁R has
+    // R's singular values and right singular vectors, and U_Aᵀvals = U_Rᵀc. Orthogonal
+    // transformations keep the conditioning of A (forming AᵀA would square it), and the
+    // memory is O(k·d), not the k×k U of a full SVD of A.
+    let (block, c) = if k <= dim {
+        let mut b = [[0.0; 3]; 3];
+        let mut c = [0.0; 3];
+        b[..k].copy_from_slice(&rows);
+        c[..k].copy_from_slice(&vals);
+        (b, c)
+    } else {
+        householder_reduce(dim, &rows, &vals)
+    };
+    // faer's dense SVD: accurate to round-off on rank-deficient blocks (nalgebra 0.34's
+    // SVD was seen to return a factorization off by 5e-2 on such a 3×3, see tests).
+    let a = faer::Mat::<f64>::from_fn(dim, dim, |i, j| block[i][j]);
     let svd = a.svd().map_err(|e| {
         cerr(
             &label,
@@ -470,30 +589,43 @@ fn node_frame(dim: usize, cs: &[&Constraint]) -> Result<NodeFrame, ConstraintErr
     // Minimum-norm lift from the kept singular triplets.
     let mut lift = [0.0; 3];
     for &j in idx.iter().take(r) {
-        let ub: f64 = (0..k).map(|i| u[(i, j)] * vals[i]).sum();
+        let ub: f64 = (0..dim).map(|i| u[(i, j)] * c[i]).sum();
         let coef = ub / sigma[j];
-        for c in 0..dim {
-            lift[c] += coef * v[(c, j)];
+        for a in 0..dim {
+            lift[a] += coef * v[(a, j)];
         }
     }
+    check_lift(dim, &label, &lift)?;
     let vmax = vals.iter().fold(0.0f64, |s, v| s.max(v.abs()));
     let lift_norm = norm2(&lift[..dim]);
     let smin_kept = if r > 0 { sigma[idx[r - 1]] } else { smax };
     let tol = (CONSISTENCY_RTOL * vmax)
-        .max(64.0 * f64::EPSILON * (smax / smin_kept) * (lift_norm + vmax));
+        .max(64.0 * f64::EPSILON * (smax / smin_kept) * (lift_norm + vmax))
+        .max(abs_tol);
+    // The worst row names the contradiction (a NaN miss, from values that overflow in
+    // the product, counts as the worst).
+    let mut worst: Option<(usize, f64)> = None;
     for (i, row) in rows.iter().enumerate() {
-        let miss = (dot(row, &lift[..dim]) - vals[i]).abs();
-        if miss > tol {
-            return Err(cerr(
-                &label,
-                format!(
-                    "contradictory constraints on node {}: the rows cannot all hold (a row misses its value by {miss:.3e})",
-                    cs[0].node
-                ),
-            ));
+        let miss = (dot(&row[..dim], &lift[..dim]) - vals[i]).abs();
+        if (miss.is_nan() || miss > tol) && worst.is_none_or(|(_, w)| miss.is_nan() || miss > w) {
+            worst = Some((i, miss));
         }
     }
-    let dir = |j: usize| -> Vec<f64> { (0..dim).map(|c| v[(c, idx[j])]).collect() };
+    if let Some((i, miss)) = worst {
+        let of = if cs.len() > 1 {
+            format!(" of {}", cs[owner[i]].label)
+        } else {
+            String::new()
+        };
+        return Err(cerr(
+            &label,
+            format!(
+                "contradictory constraints on node {}: the rows cannot all hold (a row{of} misses its value by {miss:.3e})",
+                cs[0].node
+            ),
+        ));
+    }
+    let dir = |j: usize| -> Vec<f64> { (0..dim).map(|a| v[(a, idx[j])]).collect() };
     Ok(match (dim, r) {
         (_, 0) => NodeFrame {
             mask: 0,
@@ -520,6 +652,56 @@ fn node_frame(dim: usize, cs: &[&Constraint]) -> Result<NodeFrame, ConstraintErr
         }
         _ => unreachable!("rank is at most dim"),
     })
+}
+
+/// Householder QR of the k×d block of unit rows with its values as an extra column,
+/// [A | vals] = Q [R | c] (k > d): returns R's d×d upper triangle (row-major) and the first
+/// d entries of c = Qᵀvals. Each reflector is computed from its column scaled by the
+/// column's largest entry, so neither its norm nor vᵀv can underflow or overflow. Time
+/// O(k·d²), memory O(k·d).
+fn householder_reduce(dim: usize, rows: &[[f64; 3]], vals: &[f64]) -> ([[f64; 3]; 3], [f64; 3]) {
+    let k = rows.len();
+    // Column-major [A | vals].
+    let mut cols: Vec<Vec<f64>> = (0..dim)
+        .map(|j| rows.iter().map(|r| r[j]).collect())
+        .collect();
+    cols.push(vals.to_vec());
+    let mut v = vec![0.0; k];
+    for j in 0..dim {
+        let s = cols[j][j..].iter().fold(0.0f64, |m, x| m.max(x.abs()));
+        if s == 0.0 {
+            continue; // the column is already zero below the diagonal
+        }
+        let vj = &mut v[..k - j];
+        for (vi, x) in vj.iter_mut().zip(&cols[j][j..]) {
+            *vi = x / s;
+        }
+        let nv = vj.iter().map(|x| x * x).sum::<f64>().sqrt();
+        // alpha = −sign(v₀)‖v‖ avoids cancellation in v₀ − alpha.
+        let alpha = if vj[0] >= 0.0 { -nv } else { nv };
+        vj[0] -= alpha;
+        // vᵀv = 2‖v‖(‖v‖ + |v₀|) ≥ 2, since the largest |entry| of v is 1.
+        let vtv: f64 = vj.iter().map(|x| x * x).sum();
+        for col in cols.iter_mut().skip(j + 1) {
+            let t = 2.0 * vj.iter().zip(&col[j..]).map(|(a, b)| a * b).sum::<f64>() / vtv;
+            for (x, vi) in col[j..].iter_mut().zip(vj.iter()) {
+                *x -= t * vi;
+            }
+        }
+        cols[j][j] = alpha * s;
+        for x in cols[j][j + 1..].iter_mut() {
+            *x = 0.0;
+        }
+    }
+    let mut r = [[0.0; 3]; 3];
+    let mut c = [0.0; 3];
+    for i in 0..dim {
+        for j in i..dim {
+            r[i][j] = cols[j][i];
+        }
+        c[i] = cols[dim][i];
+    }
+    (r, c)
 }
 
 /// Builds the frame from orthonormal constrained directions: mask only when they are
@@ -817,6 +999,46 @@ mod tests {
         let e = Frames::build(3, 1, &[c(5, ConstraintKind::Sticky { displacement: None })])
             .unwrap_err();
         assert!(e.problem.contains("out of range"));
+    }
+
+    /// The QR reduction keeps what the SVD needs: RᵀR = AᵀA and Rᵀc = Aᵀvals (so A and R
+    /// share singular values and right singular vectors, and the lift is the same).
+    #[test]
+    fn householder_reduction_preserves_the_normal_matrix_and_values() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        for (dim, k) in [(3, 4), (3, 50), (2, 3), (2, 200)] {
+            let rows: Vec<[f64; 3]> = (0..k)
+                .map(|_| {
+                    let mut r = [0.0; 3];
+                    for x in r.iter_mut().take(dim) {
+                        *x = rng.random_range(-1.0..1.0);
+                    }
+                    r
+                })
+                .collect();
+            let vals: Vec<f64> = (0..k).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let (r, c) = householder_reduce(dim, &rows, &vals);
+            for a in 0..dim {
+                for b in 0..dim {
+                    let ata: f64 = rows.iter().map(|x| x[a] * x[b]).sum();
+                    let rtr: f64 = (0..dim).map(|i| r[i][a] * r[i][b]).sum();
+                    assert!(
+                        (ata - rtr).abs() < 1e-12 * k as f64,
+                        "{dim} {k}: {ata} {rtr}"
+                    );
+                }
+                let atv: f64 = rows.iter().zip(&vals).map(|(x, v)| x[a] * v).sum();
+                let rtc: f64 = (0..dim).map(|i| r[i][a] * c[i]).sum();
+                assert!(
+                    (atv - rtc).abs() < 1e-12 * k as f64,
+                    "{dim} {k}: {atv} {rtc}"
+                );
+                // Upper triangular.
+                for row in r.iter().take(dim).skip(a + 1) {
+                    assert_eq!(row[a], 0.0);
+                }
+            }
+        }
     }
 
     #[test]

@@ -8,8 +8,10 @@
 //! ```
 //!
 //! 1. Static conditions are projected at the start (sticky nodes snapped, slip nodes
-//!    projected onto their plane or line); they then hold through every Newton step
-//!    because every step is homogeneous (Δx has no constrained component).
+//!    projected onto their plane or line; a node with several conditions onto their
+//!    intersection, which must exist: see [`crate::scene::joint_targets`]); they then hold
+//!    through every Newton step because every step is homogeneous (Δx has no constrained
+//!    component).
 //! 2. Moving condition k has a target set at t^{n+1} (x̂_k for sticky, a moved plane or
 //!    line for slip); r_k is the node's offset from it (slip: along the normal only). A node
 //!    with ‖r_k‖/h < ε is snapped onto its target and eliminated; the others carry the
@@ -49,7 +51,9 @@ use crate::energy::inertia;
 use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver};
 use crate::linalg::norm3;
 use crate::oracle::CholeskyOracle;
-use crate::scene::{BcShape, LinearKind, Scene, SolverSpec};
+use crate::scene::{
+    check_solver_size, joint_targets, BcShape, JointTarget, LinearKind, Scene, SolverSpec,
+};
 use crate::sparse::BlockCsr;
 use std::cell::Cell;
 use std::collections::HashMap;
@@ -250,6 +254,10 @@ pub struct Stepper<'s> {
     /// Per moving condition: the augmented-Lagrangian multiplier.
     lambda: Vec<[f64; 3]>,
     static_bcs: Vec<usize>,
+    /// The static conditions projected one by one: those alone on their node.
+    single_static_bcs: Vec<usize>,
+    /// Nodes with several static conditions, projected onto their intersection.
+    joint: Vec<JointTarget>,
     moving_bcs: Vec<usize>,
     frames: HashMap<Vec<bool>, Frames>,
     pub linear: LinearSolver,
@@ -289,9 +297,18 @@ struct StepWork {
 
 impl<'s> Stepper<'s> {
     /// Fails with [`InitError::Input`] when the scene's conditions are inconsistent (for
-    /// example contradictory rows on one node) and [`InitError::Solver`] when the linear
-    /// solver cannot start (no GPU adapter).
+    /// example contradictory conditions on one node, see [`joint_targets`]) or the scene
+    /// is too big for its linear solver ([`check_solver_size`]: the solver may have been
+    /// overridden after parsing), and [`InitError::Solver`] when the linear solver cannot
+    /// start (no GPU adapter).
     pub fn new(scene: &'s Scene) -> Result<Self, InitError> {
+        // The solver may have been overridden after the scene was parsed (`--solver`).
+        check_solver_size(scene.dim, scene.model.n_nodes, scene.solver.linear).map_err(|p| {
+            InitError::Input {
+                entry: "solver.linear".into(),
+                problem: format!("{p} (or --solver)"),
+            }
+        })?;
         let mut static_bcs = Vec::new();
         let mut moving_bcs = Vec::new();
         for (k, b) in scene.bcs.iter().enumerate() {
@@ -301,6 +318,27 @@ impl<'s> Stepper<'s> {
                 static_bcs.push(k);
             }
         }
+        // Nodes with several static conditions: they must agree (checked again here for
+        // scenes built without the parser) and are projected onto their intersection.
+        let joint = joint_targets(
+            scene.dim,
+            &scene.x0,
+            &scene.bcs,
+            scene.characteristic_length,
+        )
+        .map_err(|e| InitError::Input {
+            entry: e.label,
+            problem: e.problem,
+        })?;
+        let mut is_joint = vec![false; scene.model.n_nodes];
+        for j in &joint {
+            is_joint[j.node] = true;
+        }
+        let single_static_bcs = static_bcs
+            .iter()
+            .copied()
+            .filter(|&k| !is_joint[scene.bcs[k].node])
+            .collect();
         let mut s = Stepper {
             scene,
             x: scene.x0.clone(),
@@ -310,6 +348,8 @@ impl<'s> Stepper<'s> {
             k_m: scene.moving.penalty_start,
             lambda: vec![[0.0; 3]; moving_bcs.len()],
             static_bcs,
+            single_static_bcs,
+            joint,
             moving_bcs,
             frames: HashMap::new(),
             linear: LinearSolver::new(&scene.solver).map_err(InitError::Solver)?,
@@ -486,12 +526,16 @@ impl<'s> Stepper<'s> {
             mut gy,
         } = w;
 
-        // 1. Project onto the static constraint sets.
+        // 1. Project onto the static constraint sets (a node with several conditions onto
+        //    their intersection, not onto each in turn).
         xn.clone_from(&self.x);
         let mut x = self.x.clone();
-        for &k in &self.static_bcs {
+        for &k in &self.single_static_bcs {
             let b = &sc.bcs[k];
             project(d, &b.shape, &mut x[b.node * d..(b.node + 1) * d]);
+        }
+        for j in &self.joint {
+            j.project(d, &mut x[j.node * d..(j.node + 1) * d]);
         }
         for i in 0..x.len() {
             xt[i] = xn[i] + h * self.v[i];
@@ -586,6 +630,13 @@ impl<'s> Stepper<'s> {
             }
             // Armijo backtracking on E, from the CCD bound α_C when there is contact.
             let e0 = self.energy(&x, &xt, &targets, &snapped);
+            if !e0.is_finite() {
+                // Positions far beyond the scene (a plane offset near 1e300) overflow the
+                // energy; line-searching NaN would "converge" and write NaN results.
+                return Err(format!(
+                    "the energy is not finite (E = {e0:e}) at Newton iteration {iter}: the positions or velocities have overflowed"
+                ));
+            }
             let slope: f64 = g.iter().zip(&dx).map(|(a, b)| a * b).sum();
             rep.max_slope = Some(rep.max_slope.map_or(slope, |m| m.max(slope)));
             if slope.is_nan() || slope >= 0.0 {
@@ -663,7 +714,21 @@ impl<'s> Stepper<'s> {
                 .add_gradient(&x, &c.planes, -1.0, &mut self.contact_forces);
         }
 
-        // 5. Velocity and state.
+        // 5. Velocity and state. A kinetic energy that overflows (a static condition whose
+        //    target lies near the end of the f64 range pulls its node there in one step)
+        //    fails the step instead of writing NaN energies.
+        let ke: f64 = (0..x.len())
+            .map(|i| {
+                let v = (x[i] - xn[i]) / h;
+                sc.model.mass[i / d] * v * v
+            })
+            .sum();
+        if !ke.is_finite() {
+            return Err(format!(
+                "the velocities overflow (2·kinetic energy = {ke:e}): a node was moved by about {:e} m in one step",
+                (0..x.len()).map(|i| (x[i] - xn[i]).abs()).fold(0.0f64, f64::max)
+            ));
+        }
         for i in 0..x.len() {
             self.v[i] = (x[i] - xn[i]) / h;
         }

@@ -209,11 +209,42 @@ impl Mesh {
     }
 }
 
-/// Most nodes a generated mesh (rectangle, sheet, box, rod) may have: 50 million per
-/// body. A scene asking for more (its `cells` times the run's `--size`) is an input error;
-/// the generators below panic past it. At 3 coordinates per node this is already about
-/// 1.2 GB of positions alone, far beyond what one Newton step can factor.
-pub const MAX_NODES: usize = 50_000_000;
+/// Most nodes a 2D scene may have, all bodies together (and so each body): 16 million.
+///
+/// A run keeps per node the mesh, the elements' reference data, the block Hessian (7
+/// blocks of d² f64 per node in a 2D triangle mesh, 15 in a 3D Kuhn tetrahedral mesh), the
+/// eliminated system and the solver's vectors or factor. Measured peak resident memory of
+/// `stickslip run` (one step, release build, VTK output on or off alike): 2D triangles
+/// 1.7 kB per node with CG, and 3.8 kB (90k nodes) to 4.0 kB (361k) with Cholesky, whose
+/// fill grows slowly (total ∝ n^1.04: about 75 GB at 16 million); 3D tetrahedra 10.9 kB
+/// per node with CG (30k to 227k nodes: 87 GB at 8 million); mass-spring rods and sheets
+/// 1–2 kB. The caps keep a run under about 100 GB, what a 128 GB machine can hold.
+pub const MAX_SCENE_NODES_2D: usize = 16_000_000;
+
+/// Most nodes a 3D scene may have, all bodies together: 8 million (see
+/// [`MAX_SCENE_NODES_2D`] for the memory per node). A sparse Cholesky factor of a 3D mesh
+/// grows faster than the node count: [`MAX_CHOLESKY_NODES_3D`] caps it separately.
+pub const MAX_SCENE_NODES_3D: usize = 8_000_000;
+
+/// Most nodes of a 3D scene run with the sparse Cholesky solver: 400 thousand. Its factor
+/// fills in faster than the node count grows: peak memory of one step measured 1.3 GB at
+/// 30k nodes (43 kB per node) and 7.4 GB at 97k (76 kB per node), total ∝ n^1.48, which
+/// reaches some 60 GB at 400k. (2D fill grows slowly and fits under the scene cap.)
+pub const MAX_CHOLESKY_NODES_3D: usize = 400_000;
+
+/// [`MAX_SCENE_NODES_2D`] or [`MAX_SCENE_NODES_3D`].
+pub fn max_scene_nodes(dim: usize) -> usize {
+    if dim == 3 {
+        MAX_SCENE_NODES_3D
+    } else {
+        MAX_SCENE_NODES_2D
+    }
+}
+
+/// Most nodes a generated mesh (rectangle, sheet, box, rod) may have: the larger scene
+/// cap. The generators below panic past it; scenes check their own, smaller or equal, cap
+/// ([`max_scene_nodes`]) before generating.
+pub const MAX_NODES: usize = MAX_SCENE_NODES_2D;
 
 /// Node and element counts of a generated grid with `cells[a]` cells along each axis (a rod
 /// has one axis, a rectangle or sheet two, a box three) and `per_cell` elements per cell,

@@ -6,27 +6,106 @@ use super::spec::{MeshKind, MeshSpec};
 use crate::error::InputError;
 use crate::mesh::{self, Mesh};
 
-/// `cells · size`, rounded, at least 1; None when it is above [`mesh::MAX_NODES`] (checked
-/// before the cast: `as usize` would saturate).
+/// `cells · size`, rounded, at least 1; None when it is 2⁶² or more (checked before the
+/// cast: `as usize` would saturate). The node caps are checked on the product after.
 fn scaled(cells: usize, size: f64) -> Option<usize> {
     let n = (cells as f64 * size).round();
-    if n <= mesh::MAX_NODES as f64 {
+    if n < (1u64 << 62) as f64 {
         Some((n as usize).max(1))
     } else {
         None
     }
 }
 
+/// `cells = [..][ times --size S] gives`: how a generated mesh's size is named in messages.
+fn cells_text(m: &MeshSpec, size: f64) -> String {
+    let by = if size == 1.0 {
+        String::new()
+    } else {
+        format!(" times --size {size}")
+    };
+    format!("cells = {:?}{by} gives", m.cells)
+}
+
+/// The node count of a generated mesh whose `cells` are well formed, before generating it:
+/// Some(Some(n)), or Some(None) past `usize` or the generators' cap. None for a gmsh mesh
+/// or malformed cells ([`build_mesh`] reports those).
+fn generated_nodes(m: &MeshSpec, size: f64) -> Option<Option<usize>> {
+    let want = match m.kind {
+        MeshKind::Rod => 1,
+        MeshKind::Rectangle | MeshKind::Sheet => 2,
+        MeshKind::Box => 3,
+        MeshKind::Gmsh => return None,
+    };
+    if m.cells.len() != want || m.cells.contains(&0) {
+        return None;
+    }
+    // Π (cells + 1) in checked arithmetic (the exact count is named in messages).
+    let mut nodes = Some(1usize);
+    for &n in &m.cells {
+        nodes = match (nodes, scaled(n, size)) {
+            (Some(p), Some(k)) => p.checked_mul(k + 1),
+            _ => None,
+        };
+    }
+    Some(nodes)
+}
+
+/// Checks the node cap over every generated body before any mesh is allocated (a gmsh
+/// body counts when it is loaded). Returns the planned node count of the generated bodies.
+pub(super) fn check_planned_nodes(
+    c: &Ctx,
+    meshes: &[&MeshSpec],
+    dim: usize,
+    size: f64,
+) -> Result<usize, InputError> {
+    let mut before = 0usize;
+    for (b, m) in meshes.iter().enumerate() {
+        if let Some(nodes) = generated_nodes(m, size) {
+            if let Some(p) = over_cap(&cells_text(m, size), nodes, before, dim) {
+                return Err(c.err(format!("bodies[{b}].mesh.cells"), p));
+            }
+            before += nodes.expect("under the cap");
+        }
+    }
+    Ok(before)
+}
+
+/// The problem when a body of `nodes` nodes (None: more than `usize` or the generators'
+/// cap) after `before` nodes of earlier bodies is over the scene's cap; None when it fits.
+fn over_cap(what: &str, nodes: Option<usize>, before: usize, dim: usize) -> Option<String> {
+    let cap = mesh::max_scene_nodes(dim);
+    let why = format!(
+        "the cap for a {dim}D scene, all bodies together (mesh::MAX_SCENE_NODES_{dim}D, what a run fits in about 100 GB of memory)"
+    );
+    match nodes {
+        None => Some(format!("{what} more than {cap} nodes, {why}")),
+        Some(n) if n > cap => Some(format!("{what} {n} nodes, more than {cap}, {why}")),
+        Some(n) if n > cap - before.min(cap) => Some(format!(
+            "{what} {n} nodes; with the {before} nodes of the bodies before it the scene has {}, more than {cap}, {why}",
+            before + n
+        )),
+        Some(_) => None,
+    }
+}
+
+/// Builds one body's mesh. `before`: the nodes of the bodies before it (the scene's node
+/// cap counts all bodies together, and is checked before a generated mesh is allocated).
 pub(super) fn build_mesh(
     c: &Ctx,
     key: &str,
     m: &MeshSpec,
     dim: usize,
     size: f64,
+    before: usize,
 ) -> Result<Mesh, InputError> {
     let mk = format!("{key}.mesh");
     if m.kind == MeshKind::Gmsh {
-        return gmsh_mesh(c, &mk, m, dim);
+        let mesh = gmsh_mesh(c, &mk, m, dim)?;
+        if let Some(p) = over_cap("the file has", Some(mesh.n_nodes()), before, dim) {
+            return Err(c.err(format!("{mk}.file"), p));
+        }
+        return Ok(mesh);
     }
     if m.file.is_some() {
         return Err(c.err(format!("{mk}.file"), "only a gmsh mesh takes a file"));
@@ -46,31 +125,16 @@ pub(super) fn build_mesh(
     if let Some(k) = m.cells.iter().position(|&n| n == 0) {
         return Err(c.err(format!("{mk}.cells[{k}]"), "must be at least 1"));
     }
-    // Node and element counts in checked arithmetic, against the per-body cap.
-    let too_big = || {
-        let by = if size == 1.0 {
-            String::new()
-        } else {
-            format!(" times --size {size}")
-        };
-        c.err(
-            format!("{mk}.cells"),
-            format!(
-                "{:?}{by} gives more than {} nodes, the cap per body (mesh::MAX_NODES)",
-                m.cells,
-                mesh::MAX_NODES
-            ),
-        )
-    };
+    // Node count in checked arithmetic, against the scene's cap, before allocating.
+    let nodes = generated_nodes(m, size).expect("cells checked above");
+    if let Some(p) = over_cap(&cells_text(m, size), nodes, before, dim) {
+        return Err(c.err(format!("{mk}.cells"), p));
+    }
     let cells: Vec<usize> = m
         .cells
         .iter()
-        .map(|&n| scaled(n, size))
-        .collect::<Option<_>>()
-        .ok_or_else(too_big)?;
-    if mesh::grid_counts(&cells, 1).is_none() {
-        return Err(too_big());
-    }
+        .map(|&n| scaled(n, size).expect("under the cap"))
+        .collect();
     let size_vec = |n: usize| -> Result<Vec<f64>, InputError> {
         let s = m
             .size

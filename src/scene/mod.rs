@@ -37,6 +37,13 @@
 //! gap within a few percent of d̂ below d̂ for everyday loads. Every node must start at a
 //! positive distance from every obstacle; otherwise the scene is rejected naming the node.
 //!
+//! Limits, all checked before anything big is allocated: a name of at most
+//! [`MAX_NAME_BYTES`] bytes; at most [`mesh::MAX_SCENE_NODES_2D`] or
+//! [`mesh::MAX_SCENE_NODES_3D`] nodes over all bodies together (what a run fits in about
+//! 100 GB), and [`mesh::MAX_CHOLESKY_NODES_3D`] for a 3D scene solved by Cholesky; several
+//! static conditions on one node must agree at the initial configuration
+//! ([`joint_targets`]).
+//!
 //! Layout: `spec` holds the file schema (serde), `resolve` turns a parsed file into a
 //! [`Scene`], and `mesh_build` generates or loads each body's mesh.
 
@@ -59,12 +66,24 @@ use resolve::resolve;
 /// Most steps a run may take (`steps`, `end_time / time_step`, or `--steps`): one billion.
 pub const MAX_STEPS: usize = 1_000_000_000;
 
+/// Longest scene name, in bytes of UTF-8. The name is a folder and the prefix of every
+/// frame file (`<name>_00001.vtk`), and file systems allow 255 bytes per path component.
+pub const MAX_NAME_BYTES: usize = 100;
+
 /// Checks a scene name: it becomes the default output folder `out/<name>` and the prefix
-/// of every frame file, so it must be a plain file name: not empty, no path separator
-/// (`/` or `\\`), no `..`, no NUL or other control character. The error says what is wrong.
+/// of every frame file, so it must be a plain file name: not empty, at most
+/// [`MAX_NAME_BYTES`] bytes, no path separator (`/` or `\\`), no `..`, no NUL or other
+/// control character. The error says what is wrong.
 pub fn check_name(name: &str) -> Result<(), String> {
     if name.is_empty() {
         return Err("must not be empty".into());
+    }
+    if name.len() > MAX_NAME_BYTES {
+        let head: String = name.chars().take(20).collect();
+        return Err(format!(
+            "is {} bytes long, more than the cap of {MAX_NAME_BYTES} bytes (it names the output folder and every frame file), got {head:?}...",
+            name.len()
+        ));
     }
     if name.contains(['/', '\\']) {
         return Err(format!(
@@ -76,6 +95,19 @@ pub fn check_name(name: &str) -> Result<(), String> {
     }
     if name.chars().any(char::is_control) {
         return Err(format!("must not contain control characters, got {name:?}"));
+    }
+    Ok(())
+}
+
+/// Fails (saying why) when the sparse Cholesky solver would not fit in memory: a 3D scene
+/// of more than [`mesh::MAX_CHOLESKY_NODES_3D`] nodes. CG and the GPU have no cap of their
+/// own beyond the scene's ([`mesh::max_scene_nodes`]).
+pub fn check_solver_size(dim: usize, nodes: usize, linear: LinearKind) -> Result<(), String> {
+    if linear == LinearKind::Cholesky && dim == 3 && nodes > mesh::MAX_CHOLESKY_NODES_3D {
+        return Err(format!(
+            "the Cholesky solver is capped at {} nodes in 3D (mesh::MAX_CHOLESKY_NODES_3D: its factor grows faster than the mesh, about 76 kB per node at 100k nodes) and this scene has {nodes}; use linear = \"cg\" or \"gpu\"",
+            mesh::MAX_CHOLESKY_NODES_3D
+        ));
     }
     Ok(())
 }
@@ -207,6 +239,132 @@ impl NodeBc {
             }
         }
     }
+}
+
+/// Where a node with several static conditions is held: the point of their intersection
+/// nearest its initial position, and the directions it stays free to move along.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JointTarget {
+    pub node: usize,
+    /// The nearest point of the intersection to the node's initial position.
+    pub point: [f64; 3],
+    /// Orthonormal free directions of the intersection (none: the node is held at `point`).
+    pub free: Vec<[f64; 3]>,
+}
+
+impl JointTarget {
+    /// Moves a node onto the intersection: x ← p + Σ_f f fᵀ(x − p).
+    pub fn project(&self, d: usize, xi: &mut [f64]) {
+        let mut y = self.point;
+        for f in &self.free {
+            let s: f64 = (0..d).map(|a| f[a] * (xi[a] - self.point[a])).sum();
+            for a in 0..d {
+                y[a] += s * f[a];
+            }
+        }
+        xi[..d].copy_from_slice(&y[..d]);
+    }
+}
+
+/// Absolute floor of the consistency tolerance for a scene's conditions:
+/// [`CONSISTENCY_RTOL`](crate::constraints::CONSISTENCY_RTOL) relative to the scene's
+/// length scale (L plus the largest |coordinate|), so that coordinates and offsets that
+/// agree up to rounding (a node at 0.30000000000000004 on the plane x = 0.3) are
+/// consistent while conditions that disagree by a visible distance are not.
+pub fn consistency_floor(x0: &[f64], characteristic_length: f64) -> f64 {
+    let xmax = x0.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    crate::constraints::CONSISTENCY_RTOL * (characteristic_length + xmax)
+}
+
+/// The nodes that carry several static (non-moving) conditions, each with the
+/// intersection of its conditions at the initial configuration. The conditions of such a
+/// node must agree: they go through the same rank and consistency test as bc.json
+/// ([`Frames::build_with_tolerance`](crate::constraints::Frames::build_with_tolerance)),
+/// written for the displacement from the node's initial position, with the floor
+/// [`consistency_floor`]. Contradictory ones (a sticky node and a plane it is not on, two
+/// parallel planes apart) are an error naming the node and the boundary entries. Moving
+/// conditions are not looked at: a moving node carries exactly one condition.
+pub fn joint_targets(
+    dim: usize,
+    x0: &[f64],
+    bcs: &[NodeBc],
+    characteristic_length: f64,
+) -> Result<Vec<JointTarget>, crate::constraints::ConstraintError> {
+    use crate::constraints::{Constraint, ConstraintKind, Frames};
+    let n_nodes = x0.len() / dim;
+    let mut count = vec![0u32; n_nodes];
+    for b in bcs.iter().filter(|b| b.motion.is_none()) {
+        count[b.node] += 1;
+    }
+    let mut cs = Vec::new();
+    for b in bcs
+        .iter()
+        .filter(|b| b.motion.is_none() && count[b.node] > 1)
+    {
+        let i = b.node;
+        let mut p = [0.0; 3];
+        p[..dim].copy_from_slice(&x0[i * dim..(i + 1) * dim]);
+        let kind = match &b.shape {
+            BcShape::Sticky { anchor } => ConstraintKind::Sticky {
+                displacement: Some((0..dim).map(|a| anchor[a] - p[a]).collect()),
+            },
+            BcShape::Plane { normal, offset } => ConstraintKind::Plane {
+                normal: normal[..dim].to_vec(),
+                offset: offset - mesh::dot3(normal, &p),
+            },
+            BcShape::Line { point, direction } => ConstraintKind::Line {
+                direction: direction[..dim].to_vec(),
+                offset: Some((0..dim).map(|a| point[a] - p[a]).collect()),
+            },
+        };
+        cs.push(Constraint {
+            node: i,
+            kind,
+            label: b.label.clone(),
+        });
+    }
+    if cs.is_empty() {
+        return Ok(Vec::new());
+    }
+    let floor = consistency_floor(x0, characteristic_length);
+    let frames = Frames::build_with_tolerance(dim, n_nodes, &cs, floor).map_err(|mut e| {
+        // Say where the node is: the conditions are compared at its initial position.
+        if let Some(i) = e.node {
+            e.problem = format!(
+                "{} at the node's initial position {:?}; the conditions on one node must agree there (to {floor:.1e} m)",
+                e.problem,
+                &x0[i * dim..(i + 1) * dim]
+            );
+        }
+        e
+    })?;
+    let mut out = Vec::new();
+    let mut nodes: Vec<usize> = cs.iter().map(|c| c.node).collect();
+    nodes.sort_unstable();
+    nodes.dedup();
+    for i in nodes {
+        let mut point = [0.0; 3];
+        for a in 0..dim {
+            point[a] = x0[i * dim + a] + frames.lift[i * dim + a];
+        }
+        let free = (0..dim)
+            .filter(|&a| frames.is_free(i, a))
+            .map(|a| {
+                let mut f = [0.0; 3];
+                match frames.rotation(i) {
+                    Some(v) => (0..dim).for_each(|k| f[k] = v[k * dim + a]),
+                    None => f[a] = 1.0,
+                }
+                f
+            })
+            .collect();
+        out.push(JointTarget {
+            node: i,
+            point,
+            free,
+        });
+    }
+    Ok(out)
 }
 
 /// A half-space obstacle as resolved from the scene.

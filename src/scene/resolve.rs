@@ -2,14 +2,18 @@
 //! (errors name their key path), bodies assembled, boundary regions selected, motions
 //! and obstacles built.
 
-use super::mesh_build::build_mesh;
+use super::mesh_build::{build_mesh, check_planned_nodes};
 use super::spec::{
     BcKindSpec, MaterialModel, MotionSpec, ObstacleKind, ObstacleSpec, RegionSpec, SceneFile,
 };
-use super::{check_name, BcShape, CellBlock, Motion, NodeBc, Obstacle, Scene, MAX_STEPS};
+use super::{
+    check_name, check_solver_size, BcShape, CellBlock, Motion, NodeBc, Obstacle, Scene, MAX_STEPS,
+};
+use crate::constraints::MIN_LENGTH;
 use crate::energy::barrier::HalfSpace;
 use crate::energy::{ElementSet, Model, NeoHookean, Springs};
 use crate::error::InputError;
+use crate::linalg::norm2;
 use crate::mesh::{self, ElementKind, Mesh};
 
 pub(super) struct Ctx<'a> {
@@ -43,16 +47,49 @@ impl Ctx<'_> {
         Ok(out)
     }
 
+    /// The vector scaled to unit length. Its length (computed scaled, so entries near
+    /// 1e±200 neither overflow nor underflow) must be finite and at least
+    /// [`MIN_LENGTH`]: a subnormal length has lost its digits.
     fn unit(&self, key: &str, v: &[f64], dim: usize) -> Result<[f64; 3], InputError> {
         let mut u = self.vector(key, v, dim)?;
-        let n = mesh::dot3(&u, &u).sqrt();
-        if n.is_nan() || n <= 0.0 || !n.is_finite() {
-            return Err(self.err(key, "must be a nonzero vector"));
-        }
+        let n = self.length(key, &u[..dim])?;
         for x in u.iter_mut() {
             *x /= n;
         }
         Ok(u)
+    }
+
+    /// The (scaled) length of a vector that is to be normalized: finite and at least
+    /// [`MIN_LENGTH`], else an error on `key`.
+    fn length(&self, key: &str, v: &[f64]) -> Result<f64, InputError> {
+        let n = norm2(v);
+        if n == 0.0 {
+            return Err(self.err(key, "must be a nonzero vector"));
+        }
+        if !n.is_finite() || n < MIN_LENGTH {
+            return Err(self.err(
+                key,
+                format!(
+                    "must be a nonzero vector of length between {MIN_LENGTH:.1e} and the largest f64, got length {n:e}"
+                ),
+            ));
+        }
+        Ok(n)
+    }
+
+    /// `offset / len` (a plane's offset along its unit normal), which must be finite.
+    fn along(&self, key: &str, offset: f64, len: f64) -> Result<f64, InputError> {
+        if !offset.is_finite() {
+            return Err(self.err(key, "must be finite"));
+        }
+        let a = offset / len;
+        if !a.is_finite() {
+            return Err(self.err(
+                key,
+                format!("offset / |normal| = {offset:e} / {len:e} overflows f64"),
+            ));
+        }
+        Ok(a)
     }
 }
 
@@ -137,6 +174,11 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
         return Err(c.err("bodies", "at least one body is needed"));
     }
 
+    // The node caps, over all generated bodies, before any mesh is allocated.
+    let meshes: Vec<&super::spec::MeshSpec> = spec.bodies.iter().map(|b| &b.mesh).collect();
+    let planned = check_planned_nodes(&c, &meshes, dim, size)?;
+    check_solver_size(dim, planned, s.linear).map_err(|p| c.err("solver.linear", p))?;
+
     // Bodies: meshes, materials, masses, element sets.
     let mut x0 = Vec::new();
     let mut v0 = Vec::new();
@@ -149,7 +191,7 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
     let mut max_young = 0.0f64;
     for (b, body) in spec.bodies.iter().enumerate() {
         let key = format!("bodies[{b}]");
-        let mut mesh = build_mesh(&c, &key, &body.mesh, dim, size)?;
+        let mut mesh = build_mesh(&c, &key, &body.mesh, dim, size, x0.len() / dim)?;
         let mat = &body.material;
         let mk = format!("{key}.material");
         let density = c.positive(&format!("{mk}.density"), mat.density)?;
@@ -251,6 +293,8 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
         mass.extend(m);
         sets.push(set);
     }
+    // Again with gmsh bodies counted.
+    check_solver_size(dim, x0.len() / dim, s.linear).map_err(|p| c.err("solver.linear", p))?;
     let all_mesh = Mesh {
         dim,
         x: x0.clone(),
@@ -308,13 +352,10 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
                         )
                     })?;
                     let nraw = c.vector(&format!("{key}.normal"), raw, dim)?;
-                    let len = mesh::dot3(&nraw, &nraw).sqrt();
+                    let len = c.length(&format!("{key}.normal"), &nraw[..dim])?;
                     let n = c.unit(&format!("{key}.normal"), raw, dim)?;
                     let offset = match bc.offset {
-                        Some(o) if !o.is_finite() => {
-                            return Err(c.err(format!("{key}.offset"), "must be finite"))
-                        }
-                        Some(o) => o / len,
+                        Some(o) => c.along(&format!("{key}.offset"), o, len)?,
                         None => mesh::dot3(&n, &p),
                     };
                     BcShape::Plane { normal: n, offset }
@@ -359,6 +400,9 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
             ));
         }
     }
+    // Several static conditions on one node must agree at the initial configuration
+    // (the same test as bc.json; the stepper projects such a node onto their intersection).
+    super::joint_targets(dim, &x0, &bcs, char_len).map_err(|e| c.err(e.label, e.problem))?;
     let obstacles = build_obstacles(&c, &spec.obstacle, dim, &x0, char_len, max_young)?;
     let model = Model::new(dim, mass, Some(gravity.clone()), sets);
     let name = spec.name.clone().unwrap_or_else(|| {
@@ -513,11 +557,9 @@ fn select(
             .collect()
     } else if let Some(p) = &r.plane {
         let nraw = c.vector(&format!("{rk}.plane.normal"), &p.normal, dim)?;
-        let len = mesh::dot3(&nraw, &nraw).sqrt();
+        let len = c.length(&format!("{rk}.plane.normal"), &nraw[..dim])?;
         let n = c.unit(&format!("{rk}.plane.normal"), &p.normal, dim)?;
-        if !p.offset.is_finite() {
-            return Err(c.err(format!("{rk}.plane.offset"), "must be finite"));
-        }
+        let off = c.along(&format!("{rk}.plane.offset"), p.offset, len)?;
         let tol = match p.tolerance {
             Some(t) if !(t >= 0.0 && t.is_finite()) => {
                 return Err(c.err(
@@ -528,7 +570,6 @@ fn select(
             Some(t) => t,
             None => 1e-9 * char_len,
         };
-        let off = p.offset / len;
         range
             .filter(|&i| (mesh::dot3(&n, &point(x, dim, i)) - off).abs() <= tol)
             .collect()
