@@ -917,7 +917,14 @@ impl<'s> Stepper<'s> {
 /// Fails (saying the residual) when a Cholesky solve's relative residual is above
 /// [`CHOLESKY_MAX_RESIDUAL`] or NaN.
 fn check_cholesky_residual(r: f64) -> Result<(), String> {
-    if r.is_nan() || r > CHOLESKY_MAX_RESIDUAL {
+    if !r.is_finite() {
+        // NaN or ∞ is overflow in the system (g, H·Δx_p), not ill-conditioning.
+        return Err(format!(
+            "the Cholesky solve's relative residual is {r}: the Newton system overflows f64 \
+             (check the scene's magnitudes: sizes, offsets, time step)"
+        ));
+    }
+    if r > CHOLESKY_MAX_RESIDUAL {
         return Err(format!(
             "the Cholesky solve has relative residual {r:e}, above the limit {CHOLESKY_MAX_RESIDUAL:e} (the eliminated Hessian is too ill-conditioned)"
         ));

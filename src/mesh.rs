@@ -397,8 +397,15 @@ pub fn rod(dim: usize, length: f64, cells: usize) -> Mesh {
 pub fn gmsh(dim: usize, bytes: &[u8]) -> Result<Mesh, String> {
     use mshio::mshfile::ElementType;
     use std::collections::HashMap;
-    let f = mshio::parse_msh_bytes(bytes)
-        .map_err(|e| format!("not a readable Gmsh MSH 4.1 file ({e})").replace('\n', " "))?;
+    let f = mshio::parse_msh_bytes(bytes).map_err(|e| {
+        // mshio's messages can carry a hex dump of the file: keep one readable line.
+        let e = e.to_string();
+        let e = e.split("Hex dump").next().unwrap_or_default();
+        format!(
+            "not a readable Gmsh MSH 4.1 file ({})",
+            crate::io::one_line(e, 200)
+        )
+    })?;
     let nodes = f.data.nodes.ok_or("the file has no $Nodes section")?;
     let els = f.data.elements.ok_or("the file has no $Elements section")?;
     // Node tag → (position). Tags are consecutive from min_node_tag when not sparse.
