@@ -569,7 +569,14 @@ fn node_frame(dim: usize, cs: &[&Constraint], abs_tol: f64) -> Result<NodeFrame,
         c[..k].copy_from_slice(&vals);
         (b, c)
     } else {
-        householder_reduce(dim, &rows, &vals)
+        // vals scaled to max |value| ≤ 1 for the reduction (c is linear in vals): finite
+        // values near 1e307 must not overflow in the reflections' sums.
+        let vmax = vals.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let vs = if vmax > 0.0 { vmax } else { 1.0 };
+        let scaled: Vec<f64> = vals.iter().map(|v| v / vs).collect();
+        let (b, mut c) = householder_reduce(dim, &rows, &scaled);
+        c.iter_mut().for_each(|x| *x *= vs);
+        (b, c)
     };
     // faer's dense SVD: accurate to round-off on rank-deficient blocks (nalgebra 0.34's
     // SVD was seen to return a factorization off by 5e-2 on such a 3×3, see tests).

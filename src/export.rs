@@ -270,6 +270,18 @@ pub fn read_petsc_vec(path: &Path) -> Result<Vec<f64>, InputError> {
     if bytes.len() == 8 {
         let id = i32::from_be_bytes(bytes[0..4].try_into().expect("4 bytes"));
         let n = i32::from_be_bytes(bytes[4..8].try_into().expect("4 bytes"));
+        let limit = crate::io::input_limit();
+        if id == VEC_FILE_CLASSID && n >= 0 && 8 * n as u64 > limit {
+            return Err(InputError::new(
+                &file,
+                "header",
+                format!(
+                    "declares {n} entries ({}), more than the input limit of {}",
+                    crate::io::human_bytes(8 * n as u64),
+                    crate::io::human_bytes(limit)
+                ),
+            ));
+        }
         if id == VEC_FILE_CLASSID && n >= 0 {
             f.take(8 * n as u64 + 1)
                 .read_to_end(&mut bytes)

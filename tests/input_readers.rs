@@ -2,12 +2,12 @@
 //! that sum past f64, the file blamed for B and p, size lines declaring huge systems,
 //! byte-order marks, devices and oversized files, repeated JSON keys, and file text
 //! quoted in messages. Bad input exits 2 with one stderr line naming the file and the
-//! entry; a BOM is skipped and the solve succeeds.
+//! entry; a BOM is skipped and the solve succeeds. No timing asserts (timings belong in
+//! benchmarks): a regression to allocating a declared size aborts the process instead.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::time::{Duration, Instant};
 
 use stickslip::io::mtx::{self, HessianBounds};
 
@@ -219,10 +219,8 @@ fn huge_declared_dimension_fails_at_once() {
                 "%%MatrixMarket matrix coordinate real symmetric\n{rows} {rows} 4\n1 1 2\n2 2 2\n3 3 2\n4 4 2\n"
             ),
         );
-        let t = Instant::now();
         let o = c.solve(&h, &c.g, &c.bc);
         assert_input_error(&o, &h, &["line 2", rows]);
-        assert!(t.elapsed() < Duration::from_secs(10), "{:?}", t.elapsed());
         let b = write(&c.dir, "B.mtx", B);
         let p = write(&c.dir, "p.mtx", P);
         let o = run(&[
@@ -249,9 +247,7 @@ fn huge_declared_dimension_fails_at_once() {
         "H_mem.mtx",
         "%%MatrixMarket matrix coordinate real symmetric\n2000000000 2000000000 40000000\n1 1 2\n",
     );
-    let t = Instant::now();
     assert_input_error(&c.solve(&h, &c.g, &c.bc), &h, &["line 2"]);
-    assert!(t.elapsed() < Duration::from_secs(10), "{:?}", t.elapsed());
     // Vectors are checked on their size line, before their entries.
     let g = write(
         &c.dir,
@@ -323,7 +319,6 @@ fn bounded_hessian_reader() {
         text.push_str(&format!("{k} {k} 1\n"));
     }
     let amp = write(&dir, "H_amp.mtx", &text);
-    let t = Instant::now();
     let e = mtx::read_hessian_bounded(
         &amp,
         2,
@@ -338,7 +333,6 @@ fn bounded_hessian_reader() {
         e.contains("line 2: H declares 1280000 rows (640000 nodes) but stores only 20000 entries"),
         "{e}"
     );
-    assert!(t.elapsed() < Duration::from_secs(5));
     // A machine cannot hold more rows than its memory at 64 bytes a row.
     assert_eq!(mtx::max_rows_for_memory(64 << 30), 1 << 30);
     assert_eq!(mtx::max_rows_for_memory(u64::MAX), mtx::MAX_DIMENSION);
@@ -368,7 +362,6 @@ fn byte_order_marks_are_skipped() {
 fn devices_and_non_text_files() {
     let c = case("dev");
     if Path::new("/dev/zero").exists() {
-        let t = Instant::now();
         for o in [
             c.solve("/dev/zero", &c.g, &c.bc),
             c.solve(&c.h, "/dev/zero", &c.bc),
@@ -376,7 +369,6 @@ fn devices_and_non_text_files() {
         ] {
             assert_input_error(&o, "/dev/zero", &["byte 0", "NUL", "not a text file"]);
         }
-        assert!(t.elapsed() < Duration::from_secs(10));
     }
     let bin = c.dir.join("bin.mtx");
     std::fs::write(
@@ -408,7 +400,6 @@ fn oversized_files_are_refused_unread() {
     }
     drop(f);
     let h = p.to_str().unwrap();
-    let t = Instant::now();
     assert_input_error(
         &c.solve(h, &c.g, &c.bc),
         h,
@@ -417,7 +408,6 @@ fn oversized_files_are_refused_unread() {
             "limit for input files",
         ],
     );
-    assert!(t.elapsed() < Duration::from_secs(10));
     std::fs::remove_file(&p).ok();
 }
 
@@ -491,4 +481,27 @@ fn quoted_file_text_stays_one_short_line() {
     );
     let e = assert_input_error(&c.solve(&c.h, &c.g, &bc), &bc, &["constraints[0].kind"]);
     assert!(e.len() < 400, "{e}");
+}
+
+/// g given as a named pipe: the look-ahead at g's size line must not open it (a writer
+/// whose reader went away dies, and the full read then blocks forever).
+#[cfg(unix)]
+#[test]
+fn gradient_through_a_named_pipe() {
+    let c = case("fifo");
+    let fifo = c.dir.join("g.fifo");
+    let made = Command::new("mkfifo").arg(&fifo).status();
+    if !made.is_ok_and(|s| s.success()) {
+        eprintln!("SKIP: mkfifo is not available");
+        return;
+    }
+    let fifo_s = fifo.to_str().unwrap().to_string();
+    let writer = std::thread::spawn(move || std::fs::write(&fifo_s, G));
+    let o = c.solve(&c.h, fifo.to_str().unwrap(), &c.bc);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    writer
+        .join()
+        .unwrap()
+        .expect("the writer got its data read");
+    assert_dx(&c, &o);
 }

@@ -2,12 +2,12 @@
 //! with one stderr line naming the file and the entry, never a panic, an abort or a
 //! silently wrong answer. Covers many rows on one node (reduced by QR, not a k×k SVD),
 //! lifts that overflow, contradictory scene conditions on one node, overlong scene names
-//! and the scene node caps; plus library checks of the many-rows frames.
+//! and the scene node caps; plus library checks of the many-rows frames. No timing
+//! asserts (timings belong in benchmarks): the 100,000-row case needed 80 GB before.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::time::Instant;
 
 use stickslip::constraints::{Constraint, ConstraintKind, Frames};
 use stickslip::integrator::Stepper;
@@ -151,10 +151,7 @@ fn many_consistent_rows_on_one_node_give_the_right_frame_quickly() {
         },
         label: "constraints[0]".into(),
     }];
-    let t = Instant::now();
     let f = Frames::build(3, 2, &cs).expect("consistent rows");
-    let secs = t.elapsed().as_secs_f64();
-    assert!(secs < 1.0, "5000 rows took {secs} s");
     assert_eq!(
         f.mask[1].count_ones(),
         2,
@@ -180,9 +177,7 @@ fn many_consistent_rows_on_one_node_give_the_right_frame_quickly() {
         kind: ConstraintKind::Rows { rows, values },
         label: "constraints[0]".into(),
     }];
-    let t = Instant::now();
     let f = Frames::build(3, 1, &cs).expect("consistent rows");
-    assert!(t.elapsed().as_secs_f64() < 5.0);
     assert_eq!(f.mask[0].count_ones(), 2);
 }
 
@@ -235,10 +230,8 @@ fn many_rows_through_the_binary() {
         {"node": 1, "kind": "rows", "rows": rows, "values": values}]});
     let bc = write(&dir, "bc.json", &json.to_string());
     let out = dir.join("dx.mtx");
-    let t = Instant::now();
     let o = solve(&h, &g, &["--constraints", &bc], &out);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
-    assert!(t.elapsed().as_secs_f64() < 10.0);
     let dx = read_vec(&out);
     for (r, v) in rows.iter().zip(&values).step_by(97) {
         assert!((dot(r, &dx[3..6]) - v).abs() < 1e-12);
@@ -639,7 +632,6 @@ fn scenes_over_the_node_caps_are_input_errors() {
         "{}{body}{body}{body}",
         SCENE_2D.replace("cells = [4, 2]", "cells = [1, 1]")
     );
-    let t = Instant::now();
     let (path, o) = run_scene(&dir, "three", &three);
     assert_input_error(
         &o,
@@ -650,7 +642,6 @@ fn scenes_over_the_node_caps_are_input_errors() {
             "all bodies together",
         ],
     );
-    assert!(t.elapsed().as_secs_f64() < 5.0);
     // 3D: a 200³ box and a rod.
     let box3 = r#"name = "b"
 dimension = 3
@@ -694,4 +685,29 @@ material = { model = "mass-spring", stiffness = 1e4, density = 100.0 }"#,
             "531441",
         ],
     );
+}
+
+/// Values near f64's top on more rows than dimensions: the QR reduction scales them, so a
+/// finite lift of 5e307 is kept (unscaled, the reflections' sums overflowed to NaN).
+#[test]
+fn many_rows_with_huge_finite_values_keep_their_lift() {
+    for (k, v) in [(4usize, 5e307), (1000, 1e306)] {
+        let cs = vec![Constraint {
+            node: 0,
+            kind: ConstraintKind::Rows {
+                rows: vec![vec![1.0, 0.0, 0.0]; k],
+                values: vec![v; k],
+            },
+            label: "constraints[0]".into(),
+        }];
+        let f = Frames::build(3, 1, &cs).expect("consistent, finite rows");
+        assert_eq!(f.mask[0], 1, "x fixed");
+        // One reduction of k equal rows: a few roundings relative to v.
+        assert!(
+            (f.lift[0] / v - 1.0).abs() < 1e-13,
+            "{} for {v:e}",
+            f.lift[0]
+        );
+        assert_eq!(&f.lift[1..3], &[0.0, 0.0]);
+    }
 }

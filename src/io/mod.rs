@@ -194,10 +194,12 @@ pub fn read_limited(
 pub fn read_limited_prefix(path: &str, max: u64) -> Result<Vec<u8>, InputError> {
     let cannot =
         |e: std::io::Error| InputError::new(path, "", format!("cannot read the file: {e}"));
-    let f = std::fs::File::open(path).map_err(cannot)?;
-    if !f.metadata().map_err(cannot)?.is_file() {
+    // Checked before opening: opening a FIFO for a look would take its writer's data (or
+    // kill the writer with SIGPIPE when closed), leaving the full read to block forever.
+    if !std::fs::metadata(path).map_err(cannot)?.is_file() {
         return Err(InputError::new(path, "", "not a regular file"));
     }
+    let f = std::fs::File::open(path).map_err(cannot)?;
     let mut buf = Vec::new();
     f.take(max).read_to_end(&mut buf).map_err(cannot)?;
     if let Some(k) = buf.iter().position(|&b| b == 0) {

@@ -239,8 +239,9 @@ fn gmsh_mesh(c: &Ctx, mk: &str, m: &MeshSpec, dim: usize) -> Result<Mesh, InputE
             .unwrap_or_else(|| path.to_path_buf())
     };
     let shown = path.display().to_string();
-    // 2 GiB: far above any mesh under the node caps, and a device is never read whole.
-    let bytes = crate::io::read_limited(&path, 2 << 30, false)
+    // The general input limit (an 8M-node MSH 4.1 ASCII mesh is ~2.5 GB); a device is
+    // never read whole.
+    let bytes = crate::io::read_limited(&path, crate::io::input_limit(), false)
         .map_err(|e| c.err(format!("{mk}.file"), format!("{shown}: {}", e.problem)))?;
     let mut mesh = mesh::gmsh(dim, &bytes)
         .map_err(|e| c.err(format!("{mk}.file"), format!("{shown}: {e}")))?;
