@@ -209,6 +209,25 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         }
         scene.steps = n;
     }
+    // The inertia term m/h² must be a finite, nonzero f64 for every node: a time step so
+    // small (or a mass so large) that it overflows is the scene's fault, not a step's.
+    let h2 = scene.time_step * scene.time_step;
+    if let Some(m) = scene
+        .model
+        .mass
+        .iter()
+        .find(|&&m| m > 0.0 && !(h2 > 0.0 && (m / h2).is_finite()))
+    {
+        return Err(InputError::new(
+            scene.file.clone(),
+            "time_step",
+            format!(
+                "h = {:.3e} s gives an inertia term m/h² = {:.3e}/{h2:.3e} that is not a finite f64",
+                scene.time_step, m
+            ),
+        )
+        .into());
+    }
     let out = opts
         .out
         .clone()
