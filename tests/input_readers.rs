@@ -7,56 +7,11 @@
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
-use std::sync::atomic::{AtomicUsize, Ordering};
+
+mod common;
+use common::cli::{assert_input_error, run, stderr, tmpdir, write};
 
 use stickslip::io::mtx::{self, HessianBounds};
-
-const BIN: &str = env!("CARGO_BIN_EXE_stickslip");
-
-fn tmpdir(name: &str) -> PathBuf {
-    static COUNT: AtomicUsize = AtomicUsize::new(0);
-    let d = std::env::temp_dir().join(format!(
-        "stickslip-readers-{}-{}-{name}",
-        std::process::id(),
-        COUNT.fetch_add(1, Ordering::Relaxed)
-    ));
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn write(dir: &Path, name: &str, text: &str) -> String {
-    let p = dir.join(name);
-    std::fs::write(&p, text).unwrap();
-    p.to_str().unwrap().to_string()
-}
-
-fn run(args: &[&str]) -> Output {
-    Command::new(BIN)
-        .args(args)
-        .output()
-        .expect("run stickslip")
-}
-
-fn stderr(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).into_owned()
-}
-
-/// Exit 2, one stderr line that starts with `error: FILE: ` (the file blamed is `file`,
-/// not merely mentioned) and contains every `want`.
-fn assert_input_error(o: &Output, file: &str, want: &[&str]) -> String {
-    let e = stderr(o);
-    assert_eq!(o.status.code(), Some(2), "stderr: {e}");
-    assert_eq!(e.lines().count(), 1, "not one line: {e:?}");
-    assert!(
-        e.starts_with(&format!("error: {file}: ")),
-        "file {file} not blamed: {e}"
-    );
-    for w in want {
-        assert!(e.contains(w), "missing {w:?} in: {e}");
-    }
-    assert!(!e.contains("panicked") && !e.contains("backtrace"), "{e}");
-    e
-}
 
 /// The 2D two-node spring of seed 002, H = [[2I, −I], [−I, 2I]], lower triangle.
 const H: &str = "%%MatrixMarket matrix coordinate real symmetric\n4 4 6\n1 1 2\n2 2 2\n3 1 -1\n3 3 2\n4 2 -1\n4 4 2\n";

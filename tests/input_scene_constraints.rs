@@ -5,59 +5,14 @@
 //! and the scene node caps; plus library checks of the many-rows frames. No timing
 //! asserts (timings belong in benchmarks): the 100,000-row case needed 80 GB before.
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::path::Path;
+use std::process::Output;
+
+mod common;
+use common::cli::{assert_input_error, run, stderr, tmpdir, write};
 
 use stickslip::constraints::{Constraint, ConstraintKind, Frames};
 use stickslip::integrator::Stepper;
-
-const BIN: &str = env!("CARGO_BIN_EXE_stickslip");
-
-/// A fresh directory under the system temp dir, unique per test and process.
-fn tmpdir(name: &str) -> PathBuf {
-    static COUNT: AtomicUsize = AtomicUsize::new(0);
-    let d = std::env::temp_dir().join(format!(
-        "stickslip-isc-{}-{}-{name}",
-        std::process::id(),
-        COUNT.fetch_add(1, Ordering::Relaxed)
-    ));
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn write(dir: &Path, name: &str, text: &str) -> String {
-    let p = dir.join(name);
-    std::fs::write(&p, text).unwrap();
-    p.to_str().unwrap().to_string()
-}
-
-fn run(args: &[&str]) -> Output {
-    Command::new(BIN)
-        .args(args)
-        .output()
-        .expect("run stickslip")
-}
-
-fn stderr(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).into_owned()
-}
-
-/// Exit code 2, exactly one stderr line `error: FILE: ...` containing every `want`.
-fn assert_input_error(o: &Output, file: &str, want: &[&str]) -> String {
-    let e = stderr(o);
-    assert_eq!(o.status.code(), Some(2), "stderr: {e}");
-    assert_eq!(e.lines().count(), 1, "not one line: {e:?}");
-    assert!(
-        e.starts_with(&format!("error: {file}: ")),
-        "file {file} not named first: {e}"
-    );
-    for w in want {
-        assert!(e.contains(w), "missing {w:?} in: {e}");
-    }
-    assert!(!e.contains("panicked") && !e.contains("backtrace"), "{e}");
-    e
-}
 
 /// A 3D system of `n` nodes: H = tridiagonal-ish SPD (4 on the diagonal, −1 between
 /// neighbours' matching components), g = a fixed pattern. Returns (H path, g path).
