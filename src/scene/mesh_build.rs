@@ -151,7 +151,7 @@ pub(super) fn build_mesh(
         }
         Ok(s.clone())
     };
-    let mut mesh = match m.kind {
+    let mesh = match m.kind {
         MeshKind::Rectangle => {
             if dim != 2 {
                 return Err(c.err(
@@ -194,19 +194,7 @@ pub(super) fn build_mesh(
     if m.kind == MeshKind::Rod && m.size.is_some() {
         return Err(c.err(format!("{mk}.size"), "a rod takes a length, not a size"));
     }
-    let origin = match &m.origin {
-        Some(o) => c.vector(&format!("{mk}.origin"), o, dim)?,
-        None => [0.0; 3],
-    };
-    let angle = match m.rotate_degrees {
-        Some(a) if !a.is_finite() => {
-            return Err(c.err(format!("{mk}.rotate_degrees"), "must be finite"))
-        }
-        Some(a) => a.to_radians(),
-        None => 0.0,
-    };
-    mesh.transform(angle, &origin);
-    Ok(mesh)
+    place(c, &mk, m, dim, mesh)
 }
 
 /// Loads `mesh.file` (Gmsh), then applies rotation and origin like the generated meshes.
@@ -243,8 +231,13 @@ fn gmsh_mesh(c: &Ctx, mk: &str, m: &MeshSpec, dim: usize) -> Result<Mesh, InputE
     // never read whole.
     let bytes = crate::io::read_limited(&path, crate::io::input_limit(), false)
         .map_err(|e| c.err(format!("{mk}.file"), format!("{shown}: {}", e.problem)))?;
-    let mut mesh = mesh::gmsh(dim, &bytes)
+    let mesh = mesh::gmsh(dim, &bytes)
         .map_err(|e| c.err(format!("{mk}.file"), format!("{shown}: {e}")))?;
+    place(c, mk, m, dim, mesh)
+}
+
+/// Applies the spec's `rotate_degrees` (about z) and then its `origin` to a built mesh.
+fn place(c: &Ctx, mk: &str, m: &MeshSpec, dim: usize, mut mesh: Mesh) -> Result<Mesh, InputError> {
     let origin = match &m.origin {
         Some(o) => c.vector(&format!("{mk}.origin"), o, dim)?,
         None => [0.0; 3],

@@ -268,15 +268,8 @@ impl GpuSolver {
         target: f64,
     ) -> Result<(usize, Vec<f64>, Vec<f64>), GpuError> {
         let nd = self.host.ndof();
-        let y64 = self
-            .refine
-            .as_ref()
-            .expect("mixed has a refinement level")
-            .y64
-            .clone();
-        let td = Instant::now();
-        let mut y = self.download(self.encoder("download y"), &y64, Real::F64, nd)?;
-        *dl += td.elapsed().as_secs_f64();
+        let y64 = self.y64();
+        let mut y = self.download_y64(nd, dl)?;
         if self.assembled.is_none() {
             let HostOp::Blocks(h) = &self.host.op else {
                 return Err(GpuError::Unsupported(
@@ -404,6 +397,24 @@ impl GpuSolver {
         .into())
     }
 
+    /// The f64 iterate y of mixed precision (a handle to its device buffer).
+    fn y64(&self) -> wgpu::Buffer {
+        self.refine
+            .as_ref()
+            .expect("mixed has a refinement level")
+            .y64
+            .clone()
+    }
+
+    /// Downloads the f64 iterate y (`nd` values), adding the time to `dl`.
+    fn download_y64(&mut self, nd: usize, dl: &mut f64) -> Result<Vec<f64>, GpuError> {
+        let y64 = self.y64();
+        let td = Instant::now();
+        let y = self.download(self.encoder("download y"), &y64, Real::F64, nd)?;
+        *dl += td.elapsed().as_secs_f64();
+        Ok(y)
+    }
+
     fn clear_y64(&mut self) {
         let rf = self.refine.as_ref().expect("mixed has a refinement level");
         let mut enc = self.encoder("mixed reset");
@@ -499,12 +510,7 @@ impl GpuSolver {
         let tol = self.params.tol;
         let thresh = (tol * norm2(&self.host.rhs)).powi(2);
         let nd = self.host.ndof() as u64;
-        let y64 = self
-            .refine
-            .as_ref()
-            .expect("mixed has a refinement level")
-            .y64
-            .clone();
+        let y64 = self.y64();
         self.ctx
             .queue
             .write_buffer(&self.level.b, 0, &Real::F64.bytes(&self.host.rhs));
@@ -560,15 +566,8 @@ impl GpuSolver {
         dl: &mut f64,
     ) -> Result<(usize, usize, Vec<f64>, Vec<f64>), GpuError> {
         let nd = self.host.ndof();
-        let y64 = self
-            .refine
-            .as_ref()
-            .expect("mixed has a refinement level")
-            .y64
-            .clone();
-        let td = Instant::now();
-        let y0 = self.download(self.encoder("download y"), &y64, Real::F64, nd)?;
-        *dl += td.elapsed().as_secs_f64();
+        let y64 = self.y64();
+        let y0 = self.download_y64(nd, dl)?;
         let HostOp::Blocks(h) = &self.host.op else {
             return Err(GpuError::Unsupported(
                 "the CPU fallback of mixed precision needs an assembled Hessian".into(),
