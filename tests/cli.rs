@@ -1077,35 +1077,45 @@ fn overflowing_data_fails_instead_of_writing_nan() {
     }
 }
 
-/// A scene whose magnitudes overflow: a time step of 1e-300 (m/h² = ∞) is the scene's
-/// fault (exit 2, naming time_step), and no NaN row is written to steps.csv.
-#[test]
-fn run_stops_on_a_non_finite_state() {
-    let dir = tmpdir("run-nonfinite");
+/// Runs a 4×2-cell neo-Hookean rectangle scene with the given time step and `[[boundary]]`
+/// body; whatever the outcome, steps.csv must hold no NaN or ∞ row. Returns the scene
+/// file and the run's output.
+fn run_rectangle_scene(name: &str, time_step: &str, boundary: &str) -> (String, Output) {
+    let dir = tmpdir(name);
     let scene = write(
         &dir,
-        "tiny_dt.toml",
-        r#"name = "tiny_dt"
+        &format!("{name}.toml"),
+        &format!(
+            r#"name = "{name}"
 dimension = 2
-time_step = 1e-300
+time_step = {time_step}
 steps = 3
 gravity = [0.0, -9.81]
 
 [[bodies]]
-mesh = { kind = "rectangle", size = [1.0, 0.5], cells = [4, 2] }
-material = { model = "neo-hookean", young = 1e4, poisson = 0.3, density = 100.0 }
+mesh = {{ kind = "rectangle", size = [1.0, 0.5], cells = [4, 2] }}
+material = {{ model = "neo-hookean", young = 1e4, poisson = 0.3, density = 100.0 }}
 
 [[boundary]]
-kind = "sticky"
-region = { box = { min = [-0.001, -1.0], max = [0.001, 1.0] } }
-"#,
+{boundary}
+region = {{ box = {{ min = [-0.001, -1.0], max = [0.001, 1.0] }} }}
+"#
+        ),
     );
     let out = dir.join("out");
     let o = run(&["run", &scene, "--out", out.to_str().unwrap(), "--quiet"]);
-    assert_input_error(&o, &scene, &["time_step", "not a finite f64"]);
     if let Ok(csv) = std::fs::read_to_string(out.join("steps.csv")) {
         assert!(!csv.contains("NaN") && !csv.contains("inf"), "{csv}");
     }
+    (scene, o)
+}
+
+/// A scene whose magnitudes overflow: a time step of 1e-300 (m/h² = ∞) is the scene's
+/// fault (exit 2, naming time_step), and no NaN row is written to steps.csv.
+#[test]
+fn run_stops_on_a_non_finite_state() {
+    let (scene, o) = run_rectangle_scene("tiny_dt", "1e-300", r#"kind = "sticky""#);
+    assert_input_error(&o, &scene, &["time_step", "not a finite f64"]);
 }
 
 /// A plane 1e300 away: every input is finite, but the first step's Newton system
@@ -1113,34 +1123,13 @@ region = { box = { min = [-0.001, -1.0], max = [0.001, 1.0] } }
 /// steps.csv holds no NaN row.
 #[test]
 fn run_step_that_overflows_fails_cleanly() {
-    let dir = tmpdir("run-overflow");
-    let scene = write(
-        &dir,
-        "far_plane.toml",
-        r#"name = "far_plane"
-dimension = 2
-time_step = 0.01
-steps = 3
-gravity = [0.0, -9.81]
-
-[[bodies]]
-mesh = { kind = "rectangle", size = [1.0, 0.5], cells = [4, 2] }
-material = { model = "neo-hookean", young = 1e4, poisson = 0.3, density = 100.0 }
-
-[[boundary]]
-kind = "plane"
-normal = [1.0, 0.0]
-offset = 1e300
-region = { box = { min = [-0.001, -1.0], max = [0.001, 1.0] } }
-"#,
+    let (_, o) = run_rectangle_scene(
+        "far_plane",
+        "0.01",
+        "kind = \"plane\"\nnormal = [1.0, 0.0]\noffset = 1e300",
     );
-    let out = dir.join("out");
-    let o = run(&["run", &scene, "--out", out.to_str().unwrap(), "--quiet"]);
     let e = stderr(&o);
     assert_eq!(o.status.code(), Some(1), "{e}");
     assert_eq!(e.lines().count(), 1, "{e:?}");
     assert!(e.contains("step 1") && e.contains("overflow"), "{e}");
-    if let Ok(csv) = std::fs::read_to_string(out.join("steps.csv")) {
-        assert!(!csv.contains("NaN") && !csv.contains("inf"), "{csv}");
-    }
 }
