@@ -1,6 +1,11 @@
-//! Runs one hard case (src/hard.rs) at a grid scale on the GPU in f64 and mixed precision:
-//! `cargo run --release --example hard_case -- NAME [scale] [tol] [inner_tol]`.
+//! Runs one hard case (src/hard.rs) at a grid scale on the GPU: f64 CG and mixed precision,
+//! each without and with the coarse correction on the translations, solved alternately
+//! (best of `reps` after a warm-up, so machine noise hits every configuration alike):
+//! `cargo run --release --example hard_case -- NAME [scale] [tol] [reps]`.
+//! `STICKSLIP_NO_DIFF=1` turns the f32 difference form off (`GpuParams::f32_difference`);
+//! `STICKSLIP_INNER_TOL=δ` sets mixed precision's reliable-update factor.
 
+use stickslip::coarse::CoarseSpace;
 use stickslip::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
 use stickslip::hard::{self, Size};
 
@@ -9,8 +14,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let name = args.get(1).cloned().unwrap_or_else(|| "kappa-1e6".into());
     let scale: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(1);
     let tol: f64 = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(1e-10);
-    let inner_tol: f64 = args
-        .get(4)
+    let reps: usize = args.get(4).and_then(|s| s.parse().ok()).unwrap_or(1);
+    let diff = std::env::var_os("STICKSLIP_NO_DIFF").is_none();
+    let inner_tol = std::env::var("STICKSLIP_INNER_TOL")
+        .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(GpuParams::default().inner_tol);
     let size = if scale <= 1 {
@@ -24,26 +31,58 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .ok_or_else(|| format!("no hard case named {name}"))?;
     let e = case.eliminated();
     let ctx = GpuContext::new(&GpuOptions::default())?;
-    for precision in [Precision::F64, Precision::Mixed] {
+    let configs = [
+        (Precision::F64, CoarseSpace::None),
+        (Precision::Mixed, CoarseSpace::None),
+        (Precision::F64, CoarseSpace::Translations),
+        (Precision::Mixed, CoarseSpace::Translations),
+    ];
+    let mut solvers = Vec::new();
+    for (precision, coarse) in configs {
         let params = GpuParams {
             precision,
             tol,
             max_iters: 50_000,
+            coarse,
+            f32_difference: diff,
             inner_tol,
             ..Default::default()
         };
-        let mut sol = GpuSolver::new(&ctx, &e, &params)?;
-        let (_, _, info) = sol.solve()?;
+        solvers.push(GpuSolver::new(&ctx, &e, &params)?);
+    }
+    let mut best = vec![f64::INFINITY; configs.len()];
+    let mut last = vec![None; configs.len()];
+    for rep in 0..=reps {
+        for (k, sol) in solvers.iter_mut().enumerate() {
+            let (_, _, info) = sol.solve()?;
+            if rep > 0 {
+                best[k] = best[k].min(info.seconds.solve);
+            }
+            last[k] = Some(info);
+        }
+    }
+    println!(
+        "{name}: {} DOFs, tol {tol:e}, best of {reps}, f32 difference form {}",
+        case.ndof(),
+        if diff { "on" } else { "off" }
+    );
+    for (k, (precision, coarse)) in configs.iter().enumerate() {
+        let Some(info) = &last[k] else { continue };
         println!(
-            "{name} ({} dofs) {precision}: {} iterations, {} segments, solve {:.3} s, residual {:.2e}, κ̃ {:?}, fallback {:?}",
-            case.ndof(),
+            "  {precision:<5} coarse {:<12} {:>6} iterations ({:>2} segments)  {:>8.3} s  {:>6.2} ms/iteration  residual {:.2e}  κ̃ {}  fallback {:?}",
+            coarse.name(),
             info.iterations,
             info.outer_refinements,
-            info.seconds.solve,
+            best[k],
+            1e3 * best[k] / info.iterations.max(1) as f64,
             info.relative_residual,
-            info.condition_estimate.map(|k| format!("{k:.2e}")),
+            info.condition_estimate
+                .map_or("—".to_string(), |k| format!("{k:.2e}")),
             info.fallback
         );
+    }
+    for (f, m, label) in [(0, 1, "none"), (2, 3, "translations")] {
+        println!("  f64/mixed, coarse {label}: {:.2}", best[f] / best[m]);
     }
     Ok(())
 }

@@ -14,6 +14,7 @@
 //          7 β of the first update_p of a run (A, workgroup 0)
 //          8 + 2j: α_j (C)   8 + 2j + 1: β_{j+1} (A), for j < HIST: the Lanczos
 //          coefficients of this run, from which the host estimates κ(M⁻¹Ĥ)
+//   partials: slot 0 p·q (B), 1 r·z, 2 r·r (C or init), 3..3+D Zᵀr (C or init, COARSE)
 //   state: 0 done (A writes, B/C read)  1 halt: non-positive curvature (C writes, A reads)
 //          2 iterations (C, workgroup 0 only)  3 converged (A)  4 breakdown (A)
 
@@ -21,6 +22,13 @@ override D: u32 = 3u;
 override WG: u32 = 64u;
 override PRECOND: u32 = 1u;   // 0 none, 1 Jacobi, 2 block-Jacobi
 override HIST: u32 = 0u;      // Lanczos coefficients recorded per run (0: none)
+// Coarse correction on the rigid translations (src/coarse.rs): z = M⁻¹r + Z E⁺ Zᵀr with
+// Z_i = P_i V_iᵀ computed on the fly from the mask and the rotations (no basis stored).
+// C and init write the partials of r·M⁻¹r and Zᵀr; A reduces them, forms c = E⁺Zᵀr and
+// ρ = r·M⁻¹r + Zᵀr·c, and adds Z_i c to p. z holds M⁻¹r only.
+override COARSE: bool = false;
+override MASKED: bool = false;
+override ROTATED: bool = false;
 
 // First slot of the coefficient history in `scal` (N_SCAL in src/gpu/solver/mod.rs).
 const SCAL_HIST: u32 = 8u;
@@ -36,10 +44,19 @@ const SCAL_HIST: u32 = 8u;
 @group(0) @binding(8) var<storage, read_write> partials: array<acc>;
 @group(0) @binding(9) var<storage, read_write> scal: array<acc>;
 @group(0) @binding(10) var<storage, read_write> state: array<u32>;
+@group(0) @binding(11) var<storage, read> cmask: array<u32>;
+@group(0) @binding(12) var<storage, read> rot_index: array<u32>;
+@group(0) @binding(13) var<storage, read> rotations: array<real>;
+@group(0) @binding(14) var<storage, read> einv: array<acc>;
+
+const NO_ROTATION: u32 = 0xffffffffu;
 
 var<workgroup> sh: array<acc, WG_MAX>;
 var<workgroup> sh2: array<acc, WG_MAX>;
 var<workgroup> bcast: acc;
+// COARSE: the fused reductions of (r·z, r·r, Zᵀr) in one tree instead of three.
+var<workgroup> sh4: array<vec4<acc>, WG_MAX>;
+var<workgroup> bcast4: vec4<acc>;
 var<workgroup> wg_u: u32;
 
 // Sum of partial slot `slot` in a fixed order, identical in every workgroup.
@@ -62,10 +79,10 @@ fn reduce_slot(slot: u32, lid: u32) -> acc {
     return workgroupUniformLoad(&bcast);
 }
 
-// Workgroup tree sums of sh and sh2 into slots 1 and 2 of this workgroup's partials.
-fn write_rz_rr(lid: u32, wg: u32, prz: acc, prr: acc) {
-    sh[lid] = prz;
-    sh2[lid] = prr;
+// Workgroup tree sums of a and b into partial slots s1 and s2 of this workgroup.
+fn write_pair(lid: u32, wg: u32, s1: u32, s2: u32, a: acc, b: acc) {
+    sh[lid] = a;
+    sh2[lid] = b;
     workgroupBarrier();
     for (var h = WG / 2u; h > 0u; h = h >> 1u) {
         if (lid < h) {
@@ -75,9 +92,175 @@ fn write_rz_rr(lid: u32, wg: u32, prz: acc, prr: acc) {
         workgroupBarrier();
     }
     if (lid == 0u) {
-        partials[params.n_partials + wg] = sh[0];
-        partials[2u * params.n_partials + wg] = sh2[0];
+        partials[s1 * params.n_partials + wg] = sh[0];
+        partials[s2 * params.n_partials + wg] = sh2[0];
     }
+}
+
+// The partials of C and init: r·z and r·r (slots 1, 2) and, with COARSE, Zᵀr (slots
+// 3..3+D) in one tree.
+fn write_partials(lid: u32, wg: u32, prz: acc, prr: acc, zr: vec3<acc>) {
+    if (!COARSE) {
+        write_pair(lid, wg, 1u, 2u, prz, prr);
+        return;
+    }
+    sh4[lid] = vec4<acc>(prz, prr, zr.x, zr.y);
+    sh[lid] = zr.z;
+    workgroupBarrier();
+    for (var h = WG / 2u; h > 0u; h = h >> 1u) {
+        if (lid < h) {
+            sh4[lid] += sh4[lid + h];
+            sh[lid] += sh[lid + h];
+        }
+        workgroupBarrier();
+    }
+    if (lid == 0u) {
+        let np = params.n_partials;
+        let v = sh4[0];
+        partials[np + wg] = v.x;
+        partials[2u * np + wg] = v.y;
+        partials[3u * np + wg] = v.z;
+        partials[4u * np + wg] = v.w;
+        if (D == 3u) {
+            partials[5u * np + wg] = sh[0];
+        }
+    }
+}
+
+// COARSE: slots 1..3+D summed in one pass and one tree, identical in every workgroup:
+// (r·z, r·r, Zᵀr.x, Zᵀr.y) and Zᵀr.z.
+fn reduce_coarse(lid: u32) -> array<acc, 5> {
+    let np = params.n_partials;
+    var v = vec4<acc>(acc(0.0));
+    var w = acc(0.0);
+    for (var t = lid; t < np; t += WG) {
+        v += vec4<acc>(partials[np + t], partials[2u * np + t], partials[3u * np + t], partials[4u * np + t]);
+        if (D == 3u) {
+            w += partials[5u * np + t];
+        }
+    }
+    sh4[lid] = v;
+    sh[lid] = w;
+    workgroupBarrier();
+    for (var h = WG / 2u; h > 0u; h = h >> 1u) {
+        if (lid < h) {
+            sh4[lid] += sh4[lid + h];
+            sh[lid] += sh[lid + h];
+        }
+        workgroupBarrier();
+    }
+    if (lid == 0u) {
+        bcast4 = sh4[0];
+        bcast = sh[0];
+    }
+    let a = workgroupUniformLoad(&bcast4);
+    let b = workgroupUniformLoad(&bcast);
+    return array<acc, 5>(a.x, a.y, a.z, a.w, b);
+}
+
+// Component a of node i is constrained (bit a of its mask).
+fn cbits3(i: u32) -> vec3<bool> {
+    if (!MASKED) {
+        return vec3<bool>(false);
+    }
+    let m = cmask[i];
+    return ((vec3<u32>(m) >> vec3<u32>(0u, 1u, 2u)) & vec3<u32>(1u)) != vec3<u32>(0u);
+}
+
+fn cbits2(i: u32) -> vec2<bool> {
+    if (!MASKED) {
+        return vec2<bool>(false);
+    }
+    let m = cmask[i];
+    return ((vec2<u32>(m) >> vec2<u32>(0u, 1u)) & vec2<u32>(1u)) != vec2<u32>(0u);
+}
+
+// V_r[a][b], row-major: its columns are the frame basis.
+fn rv_at(ri: u32, a: u32, b: u32) -> real {
+    return rotations[ri * D * D + a * D + b];
+}
+
+// Z_iᵀ r_i = V_i P_i r_i (the node's share of Zᵀr), D = 3.
+fn zt3(i: u32, rv: vec3<real>) -> vec3<acc> {
+    var w = select(rv, vec3<real>(real(0.0)), cbits3(i));
+    if (ROTATED) {
+        let ri = rot_index[i];
+        if (ri != NO_ROTATION) {
+            w = vec3<real>(
+                rv_at(ri, 0u, 0u) * w.x + rv_at(ri, 0u, 1u) * w.y + rv_at(ri, 0u, 2u) * w.z,
+                rv_at(ri, 1u, 0u) * w.x + rv_at(ri, 1u, 1u) * w.y + rv_at(ri, 1u, 2u) * w.z,
+                rv_at(ri, 2u, 0u) * w.x + rv_at(ri, 2u, 1u) * w.y + rv_at(ri, 2u, 2u) * w.z,
+            );
+        }
+    }
+    return vec3<acc>(w);
+}
+
+fn zt2(i: u32, rv: vec2<real>) -> vec3<acc> {
+    var w = select(rv, vec2<real>(real(0.0)), cbits2(i));
+    if (ROTATED) {
+        let ri = rot_index[i];
+        if (ri != NO_ROTATION) {
+            w = vec2<real>(
+                rv_at(ri, 0u, 0u) * w.x + rv_at(ri, 0u, 1u) * w.y,
+                rv_at(ri, 1u, 0u) * w.x + rv_at(ri, 1u, 1u) * w.y,
+            );
+        }
+    }
+    return vec3<acc>(acc(w.x), acc(w.y), acc(0.0));
+}
+
+// Z_i c = P_i V_iᵀ c, D = 3.
+fn zc3(i: u32, c: vec3<real>) -> vec3<real> {
+    var t = c;
+    if (ROTATED) {
+        let ri = rot_index[i];
+        if (ri != NO_ROTATION) {
+            t = vec3<real>(
+                rv_at(ri, 0u, 0u) * c.x + rv_at(ri, 1u, 0u) * c.y + rv_at(ri, 2u, 0u) * c.z,
+                rv_at(ri, 0u, 1u) * c.x + rv_at(ri, 1u, 1u) * c.y + rv_at(ri, 2u, 1u) * c.z,
+                rv_at(ri, 0u, 2u) * c.x + rv_at(ri, 1u, 2u) * c.y + rv_at(ri, 2u, 2u) * c.z,
+            );
+        }
+    }
+    return select(t, vec3<real>(real(0.0)), cbits3(i));
+}
+
+fn zc2(i: u32, c: vec2<real>) -> vec2<real> {
+    var t = c;
+    if (ROTATED) {
+        let ri = rot_index[i];
+        if (ri != NO_ROTATION) {
+            t = vec2<real>(
+                rv_at(ri, 0u, 0u) * c.x + rv_at(ri, 1u, 0u) * c.y,
+                rv_at(ri, 0u, 1u) * c.x + rv_at(ri, 1u, 1u) * c.y,
+            );
+        }
+    }
+    return select(t, vec2<real>(real(0.0)), cbits2(i));
+}
+
+// z_i = M_i⁻¹ r_i for any PRECOND, node-wise (the COARSE and block-Jacobi paths).
+fn pz3(i: u32, rv: vec3<real>) -> vec3<real> {
+    if (PRECOND == 2u) {
+        return block3(i, rv);
+    }
+    if (PRECOND == 1u) {
+        let k = 3u * i;
+        return vec3<real>(minv[k], minv[k + 1u], minv[k + 2u]) * rv;
+    }
+    return rv;
+}
+
+fn pz2(i: u32, rv: vec2<real>) -> vec2<real> {
+    if (PRECOND == 2u) {
+        return block2(i, rv);
+    }
+    if (PRECOND == 1u) {
+        let k = 2u * i;
+        return vec2<real>(minv[k], minv[k + 1u]) * rv;
+    }
+    return rv;
 }
 
 // Block-Jacobi z_i = M_i⁻¹ r_i, explicit 3- and 2-component paths (no private arrays).
@@ -105,8 +288,27 @@ fn diag_z(k: u32, rk: real) -> real {
 
 @compute @workgroup_size(WG)
 fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
-    let rz = reduce_slot(1u, lid.x);
-    let rr = reduce_slot(2u, lid.x);
+    var rz: acc;
+    var rr: acc;
+    // Coarse coefficients c = E⁺Zᵀr (zero without COARSE).
+    var cc = vec3<acc>(acc(0.0));
+    if (!COARSE) {
+        rz = reduce_slot(1u, lid.x);
+        rr = reduce_slot(2u, lid.x);
+    } else {
+        let red = reduce_coarse(lid.x);
+        rz = red[0];
+        rr = red[1];
+        let zr = vec3<acc>(red[2], red[3], red[4]);
+        for (var a = 0u; a < D; a++) {
+            var s = acc(0.0);
+            for (var b = 0u; b < D; b++) {
+                s += einv[a * D + b] * zr[b];
+            }
+            cc[a] = s;
+        }
+        rz += dot(zr, cc);
+    }
     if (lid.x == 0u) {
         wg_u = state[1];
     }
@@ -141,9 +343,29 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
             scal[SCAL_HIST + 2u * (it - 1u) + 1u] = beta_acc;
         }
     }
-    let n = params.n_nodes * D;
-    for (var k = wid.x * WG + lid.x; k < n; k += params.n_partials * WG) {
-        p[k] = z[k] + beta * p[k];
+    let stride = params.n_partials * WG;
+    if (!COARSE) {
+        let n = params.n_nodes * D;
+        for (var k = wid.x * WG + lid.x; k < n; k += stride) {
+            p[k] = z[k] + beta * p[k];
+        }
+    } else if (D == 3u) {
+        let c = vec3<real>(cc);
+        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
+            let k = 3u * i;
+            let zv = vec3<real>(z[k], z[k + 1u], z[k + 2u]) + zc3(i, c);
+            p[k] = zv.x + beta * p[k];
+            p[k + 1u] = zv.y + beta * p[k + 1u];
+            p[k + 2u] = zv.z + beta * p[k + 2u];
+        }
+    } else {
+        let c = vec2<real>(real(cc.x), real(cc.y));
+        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
+            let k = 2u * i;
+            let zv = vec2<real>(z[k], z[k + 1u]) + zc2(i, c);
+            p[k] = zv.x + beta * p[k];
+            p[k + 1u] = zv.y + beta * p[k + 1u];
+        }
     }
 }
 
@@ -167,8 +389,9 @@ fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
     let alpha = real(alpha_acc);
     var prz = acc(0.0);
     var prr = acc(0.0);
+    var zr = vec3<acc>(acc(0.0));
     let stride = params.n_partials * WG;
-    if (PRECOND != 2u) {
+    if (PRECOND != 2u && !COARSE) {
         // Diagonal preconditioners: element-wise over the d·n components.
         let n = params.n_nodes * D;
         for (var k = wid.x * WG + lid.x; k < n; k += stride) {
@@ -187,7 +410,10 @@ fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
             let xv = vec3<real>(x[k], x[k + 1u], x[k + 2u]) + alpha * pv;
             let qv = vec3<real>(q[k], q[k + 1u], q[k + 2u]);
             let rv = vec3<real>(r[k], r[k + 1u], r[k + 2u]) - alpha * qv;
-            let zv = block3(i, rv);
+            let zv = pz3(i, rv);
+            if (COARSE) {
+                zr += zt3(i, rv);
+            }
             x[k] = xv.x;
             x[k + 1u] = xv.y;
             x[k + 2u] = xv.z;
@@ -207,7 +433,10 @@ fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
             let xv = vec2<real>(x[k], x[k + 1u]) + alpha * pv;
             let qv = vec2<real>(q[k], q[k + 1u]);
             let rv = vec2<real>(r[k], r[k + 1u]) - alpha * qv;
-            let zv = block2(i, rv);
+            let zv = pz2(i, rv);
+            if (COARSE) {
+                zr += zt2(i, rv);
+            }
             x[k] = xv.x;
             x[k + 1u] = xv.y;
             r[k] = rv.x;
@@ -218,7 +447,7 @@ fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
             prr += acc(rv.x) * acc(rv.x) + acc(rv.y) * acc(rv.y);
         }
     }
-    write_rz_rr(lid.x, wid.x, prz, prr);
+    write_partials(lid.x, wid.x, prz, prr, zr);
     if (wid.x == 0u && lid.x == 0u) {
         scal[1] = scal[0];
         scal[2] = pq;
@@ -249,7 +478,8 @@ fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid
         // select, not 0·p: p may hold non-finite values after a breakdown.
         p[k] = select(real(0.0), keep * p[k], keep != real(0.0));
     }
-    if (PRECOND != 2u) {
+    var zr = vec3<acc>(acc(0.0));
+    if (PRECOND != 2u && !COARSE) {
         for (var k = wid.x * WG + lid.x; k < n; k += stride) {
             let rk = b[k] - q[k];
             let zk = diag_z(k, rk);
@@ -262,7 +492,10 @@ fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid
             let k = 3u * i;
             // Recomputed rather than read back: r[k] may come from another workgroup.
             let rv = vec3<real>(b[k], b[k + 1u], b[k + 2u]) - vec3<real>(q[k], q[k + 1u], q[k + 2u]);
-            let zv = block3(i, rv);
+            let zv = pz3(i, rv);
+            if (COARSE) {
+                zr += zt3(i, rv);
+            }
             z[k] = zv.x;
             z[k + 1u] = zv.y;
             z[k + 2u] = zv.z;
@@ -273,12 +506,15 @@ fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid
         for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
             let k = 2u * i;
             let rv = vec2<real>(b[k], b[k + 1u]) - vec2<real>(q[k], q[k + 1u]);
-            let zv = block2(i, rv);
+            let zv = pz2(i, rv);
+            if (COARSE) {
+                zr += zt2(i, rv);
+            }
             z[k] = zv.x;
             z[k + 1u] = zv.y;
             prz += acc(rv.x) * acc(zv.x) + acc(rv.y) * acc(zv.y);
             prr += acc(rv.x) * acc(rv.x) + acc(rv.y) * acc(rv.y);
         }
     }
-    write_rz_rr(lid.x, wid.x, prz, prr);
+    write_partials(lid.x, wid.x, prz, prr, zr);
 }

@@ -14,6 +14,14 @@
 override D: u32 = 3u;          // block size (2 or 3)
 override WG: u32 = 64u;        // workgroup size (power of two, ≤ WG_MAX)
 override MASKED: bool = true;  // false: the scene has no constraints, no masking work
+// Difference form (f32 operators): Σ_{j≠i} Ĥ_ij (p̄_j − p̄_i) + S_i p̄_i with p̄ = P p and
+// S_i = Σ_j Ĥ_ij summed in f64 on the host (`rowsum`); the diagonal block stays in the
+// loop without a branch: its term Ĥ_ii(p̄_i − p̄_i) is exactly zero.
+// Equal to Σ_j Ĥ_ij p̄_j in exact arithmetic. Why: rounding Ĥ's blocks to f32 breaks
+// K·(translation) = 0 by ε_f32·‖K‖, which moves the small eigenvalue of a nearly free body
+// (its mass) by κ·ε_f32; in this form the rounded operator still maps a translation t to
+// S t (to f32 accuracy), so the near-null modes keep their eigenvalues (STABILITY.md).
+override DIFF: bool = false;
 
 // Column indices carry the column node's mask in their top three bits, so P_j costs
 // no extra memory traffic.
@@ -31,6 +39,7 @@ const COL_BITS: u32 = 0x1fffffffu;
 @group(0) @binding(9) var<storage, read> state: array<u32>;
 @group(0) @binding(10) var<storage, read> blk_b: array<vec4<real>>;
 @group(0) @binding(11) var<storage, read> blk_c: array<real>;
+@group(0) @binding(12) var<storage, read> rowsum: array<real>;
 
 var<workgroup> sh: array<acc, WG_MAX>;
 var<workgroup> wg_done: u32;
@@ -52,9 +61,16 @@ fn p2(j: u32) -> vec2<real> {
     return vec2<real>(p[2u * j], p[2u * j + 1u]);
 }
 
-// Row i, D = 3, accumulated as columns of the block: Σ_k B_k p_j.
+// Row i, D = 3, accumulated as columns of the block: Σ_k B_k p_j (DIFF: see above).
 fn row3(i: u32) -> vec3<real> {
     var s = vec3<real>(real(0.0));
+    var pi = vec3<real>(real(0.0));
+    if (DIFF) {
+        pi = p3(i);
+        if (MASKED) {
+            pi = select(pi, vec3<real>(real(0.0)), mbits3(mask[i]));
+        }
+    }
     let k1 = row_ptr[i + 1u];
     for (var k = row_ptr[i]; k < k1; k++) {
         let cj = col[k];
@@ -62,17 +78,35 @@ fn row3(i: u32) -> vec3<real> {
         if (MASKED) {
             pj = select(pj, vec3<real>(real(0.0)), mbits3(cj >> 29u));
         }
+        if (DIFF) {
+            pj -= pi;
+        }
         let a = blk_a[k];
         let b = blk_b[k];
         let c = blk_c[k];
         s += vec3<real>(a.x, a.w, b.z) * pj.x + vec3<real>(a.y, b.x, b.w) * pj.y
             + vec3<real>(a.z, b.y, c) * pj.z;
     }
+    if (DIFF) {
+        let m = 9u * i;
+        s += vec3<real>(
+            rowsum[m] * pi.x + rowsum[m + 1u] * pi.y + rowsum[m + 2u] * pi.z,
+            rowsum[m + 3u] * pi.x + rowsum[m + 4u] * pi.y + rowsum[m + 5u] * pi.z,
+            rowsum[m + 6u] * pi.x + rowsum[m + 7u] * pi.y + rowsum[m + 8u] * pi.z,
+        );
+    }
     return s;
 }
 
 fn row2(i: u32) -> vec2<real> {
     var s = vec2<real>(real(0.0));
+    var pi = vec2<real>(real(0.0));
+    if (DIFF) {
+        pi = p2(i);
+        if (MASKED) {
+            pi = select(pi, vec2<real>(real(0.0)), mbits2(mask[i]));
+        }
+    }
     let k1 = row_ptr[i + 1u];
     for (var k = row_ptr[i]; k < k1; k++) {
         let cj = col[k];
@@ -80,8 +114,15 @@ fn row2(i: u32) -> vec2<real> {
         if (MASKED) {
             pj = select(pj, vec2<real>(real(0.0)), mbits2(cj >> 29u));
         }
+        if (DIFF) {
+            pj -= pi;
+        }
         let a = blk_a[k];
         s += a.xz * pj.x + a.yw * pj.y;
+    }
+    if (DIFF) {
+        let m = 4u * i;
+        s += vec2<real>(rowsum[m] * pi.x + rowsum[m + 1u] * pi.y, rowsum[m + 2u] * pi.x + rowsum[m + 3u] * pi.y);
     }
     return s;
 }

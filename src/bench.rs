@@ -10,6 +10,7 @@
 //! first, time per iteration, the log-log scaling slope).
 
 use crate::cg::{self, BuiltPreconditioner, CgParams, Preconditioner};
+use crate::coarse::CoarseSpace;
 use crate::elimination::{norm2, ConstrainedDiagonal, Eliminated};
 use crate::generate::{random_system, SystemSpec};
 use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
@@ -34,6 +35,8 @@ pub struct BenchOptions {
     pub out: Option<PathBuf>,
     pub quiet: bool,
     pub seed: u64,
+    /// Coarse correction of every CG (CPU and GPU alike).
+    pub coarse: CoarseSpace,
 }
 
 impl Default for BenchOptions {
@@ -47,6 +50,7 @@ impl Default for BenchOptions {
             out: None,
             quiet: false,
             seed: 1,
+            coarse: CoarseSpace::default(),
         }
     }
 }
@@ -367,7 +371,7 @@ fn bench_one(
             _ => "cg-jacobi",
         };
         let t = Instant::now();
-        let pre = BuiltPreconditioner::new(&e, pc);
+        let pre = BuiltPreconditioner::new(&e, pc).with_coarse(&e, opts.coarse, None);
         let setup = t.elapsed().as_secs_f64();
         for &tol in tols {
             let mut r = base(name, "f64");
@@ -378,6 +382,7 @@ fn bench_one(
                 tol,
                 max_iters: 50_000,
                 preconditioner: pc,
+                coarse: opts.coarse,
                 ..Default::default()
             };
             let t = Instant::now();
@@ -417,6 +422,7 @@ fn bench_one(
                     tol,
                     max_iters: 50_000,
                     preconditioner: Preconditioner::Jacobi,
+                    coarse: opts.coarse,
                     ..Default::default()
                 };
                 let t = Instant::now();
@@ -666,7 +672,12 @@ fn write_outputs(report: &BenchReport, dir: &Path) -> std::io::Result<()> {
 
 /// `stickslip bench --hard`: the hard-case table (src/hard.rs) for STABILITY.md, and GPU
 /// f64 against mixed precision on larger hard cases. Writes hard.md and hard.json to `out`.
-pub fn run_hard(out: Option<&Path>, no_gpu: bool, scale: usize) -> Result<String, BenchError> {
+pub fn run_hard(
+    out: Option<&Path>,
+    no_gpu: bool,
+    scale: usize,
+    coarse: &[CoarseSpace],
+) -> Result<String, BenchError> {
     let ctx = if no_gpu {
         None
     } else {
@@ -682,29 +693,39 @@ pub fn run_hard(out: Option<&Path>, no_gpu: bool, scale: usize) -> Result<String
     );
     let mut speed = Vec::new();
     if let Some(c) = ctx.as_ref() {
-        speed = crate::hard::mixed_speed(crate::hard::Size::Scale(scale), c, 1e-10)
-            .map_err(BenchError::Solve)?;
-        md.push_str(&format!(
-            "\nGPU f64 CG against mixed precision, both to residual tol 1e-10, best of {} \
-             solves after a warm-up, grid scale {scale}:\n",
-            crate::hard::SPEED_REPS
-        ));
-        md.push_str("\n| case | DOFs | f64 CG s | mixed s | f64/mixed | f64 error | mixed error |\n|---|---|---|---|---|---|---|\n");
         let f = |v: Option<f64>, p: usize| {
             v.map_or("failed".to_string(), |x| format!("{x:.prec$e}", prec = p))
         };
-        for (name, dofs, t64, tm, e64, em) in &speed {
-            let ratio = match (t64, tm) {
-                (Some(a), Some(b)) if *b > 0.0 => format!("{:.2}", a / b),
-                _ => "—".into(),
-            };
+        for &cs in coarse {
+            let rows = crate::hard::mixed_speed(crate::hard::Size::Scale(scale), c, 1e-10, cs)
+                .map_err(BenchError::Solve)?;
             md.push_str(&format!(
-                "| {name} | {dofs} | {} | {} | {ratio} | {} | {} |\n",
-                f(*t64, 2),
-                f(*tm, 2),
-                f(*e64, 1),
-                f(*em, 1)
+                "\nGPU f64 CG against mixed precision, both Jacobi with coarse correction \
+                 `{}`, to residual tol 1e-10, best of {} solves after a warm-up, grid scale \
+                 {scale}:\n",
+                cs.name(),
+                crate::hard::SPEED_REPS
             ));
+            md.push_str("\n| case | DOFs | f64 CG s (its) | mixed s (its) | f64/mixed | f64 error | mixed error |\n|---|---|---|---|---|---|---|\n");
+            for r in &rows {
+                let ratio = match (r.f64_seconds, r.mixed_seconds) {
+                    (Some(a), Some(b)) if b > 0.0 => format!("{:.2}", a / b),
+                    _ => "—".into(),
+                };
+                let it = |v: Option<usize>| v.map_or("—".to_string(), |i| i.to_string());
+                md.push_str(&format!(
+                    "| {} | {} | {} ({}) | {} ({}) | {ratio} | {} | {} |\n",
+                    r.case,
+                    r.dofs,
+                    f(r.f64_seconds, 2),
+                    it(r.f64_iterations),
+                    f(r.mixed_seconds, 2),
+                    it(r.mixed_iterations),
+                    f(r.f64_error, 1),
+                    f(r.mixed_error, 1)
+                ));
+            }
+            speed.extend(rows);
         }
     }
     if let Some(dir) = out {

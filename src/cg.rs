@@ -14,6 +14,7 @@
 //! residual while restarts are left, and is reported with the residual reached otherwise.
 //! Every error carries the true residual of the iterate reached.
 
+use crate::coarse::{Coarse, CoarseSpace};
 use crate::constraints::Frames;
 use crate::elimination::{rotate_block, Eliminated};
 use crate::linalg::{dot, norm2};
@@ -87,6 +88,8 @@ pub struct CgParams {
     pub check_every: usize,
     /// Diagonal equilibration (off by default; see [`Scaling`]).
     pub scaling: Scaling,
+    /// Coarse correction added to the preconditioner (see [`crate::coarse`]).
+    pub coarse: CoarseSpace,
 }
 
 impl Default for CgParams {
@@ -99,6 +102,7 @@ impl Default for CgParams {
             max_restarts: 3,
             check_every: 64,
             scaling: Scaling::None,
+            coarse: CoarseSpace::default(),
         }
     }
 }
@@ -165,6 +169,8 @@ pub struct BuiltPreconditioner {
     dim: usize,
     /// Jacobi: 1/diag (length dn). BlockJacobi: d·d inverse blocks per node.
     data: Vec<f64>,
+    /// The coarse correction added to M⁻¹ (see [`crate::coarse`]).
+    coarse: Option<Coarse>,
 }
 
 impl BuiltPreconditioner {
@@ -205,7 +211,35 @@ impl BuiltPreconditioner {
                 out
             }
         };
-        BuiltPreconditioner { kind, dim: d, data }
+        BuiltPreconditioner {
+            kind,
+            dim: d,
+            data,
+            coarse: None,
+        }
+    }
+
+    /// Adds the coarse correction of `space` on `e` (nothing for [`CoarseSpace::None`], or
+    /// when every translation is constrained). `node_scale`: e is an equilibrated SĤS.
+    pub fn with_coarse(
+        mut self,
+        e: &Eliminated,
+        space: CoarseSpace,
+        node_scale: Option<&[f64]>,
+    ) -> Self {
+        self.coarse = match space {
+            CoarseSpace::None => None,
+            CoarseSpace::Translations => {
+                let mut work = vec![0.0; 2 * e.ndof()];
+                Coarse::translations(e.frames, node_scale, |v, out| e.apply(v, out, &mut work))
+            }
+        };
+        self
+    }
+
+    /// The coarse correction, when there is one.
+    pub fn coarse(&self) -> Option<&Coarse> {
+        self.coarse.as_ref()
     }
 
     pub fn kind(&self) -> Preconditioner {
@@ -214,6 +248,13 @@ impl BuiltPreconditioner {
 
     /// z = M⁻¹ r.
     pub fn apply(&self, r: &[f64], z: &mut [f64]) {
+        self.apply_pointwise(r, z);
+        if let Some(c) = &self.coarse {
+            c.add_correction(r, z);
+        }
+    }
+
+    fn apply_pointwise(&self, r: &[f64], z: &mut [f64]) {
         match self.kind {
             Preconditioner::None => z.copy_from_slice(r),
             Preconditioner::Jacobi => {
@@ -288,7 +329,8 @@ fn invert_spd(d: usize, a: &[f64]) -> Option<[f64; 9]> {
 
 /// Solves Ĥ y = b̂ by PCG from y = 0.
 pub fn solve(e: &Eliminated, params: &CgParams) -> Result<(Vec<f64>, CgInfo), CgError> {
-    let pre = BuiltPreconditioner::new(e, params.preconditioner);
+    let pre =
+        BuiltPreconditioner::new(e, params.preconditioner).with_coarse(e, params.coarse, None);
     solve_with(e, &pre, None, params)
 }
 
@@ -402,7 +444,11 @@ fn solve_equilibrated(
 ) -> Result<(Vec<f64>, CgInfo), CgError> {
     let eq = equilibrate(e);
     let es = eq.eliminated(e.frames);
-    let pre = BuiltPreconditioner::new(&es, params.preconditioner);
+    let pre = BuiltPreconditioner::new(&es, params.preconditioner).with_coarse(
+        &es,
+        params.coarse,
+        Some(&eq.node_scale),
+    );
     let mut z = y0.map(|y| eq.scale(y));
     let mut p = params.clone();
     p.scaling = Scaling::None;

@@ -6,6 +6,7 @@
 //! input or usage. Every error is exactly one line on stderr.
 
 use crate::cg::{self, CgParams, Preconditioner};
+use crate::coarse::CoarseSpace;
 use crate::constraints::{node_rows, Constraint, Frames};
 use crate::elimination::{reactions, ConstrainedDiagonal, Eliminated};
 use crate::error::{InputError, SolveError};
@@ -80,6 +81,10 @@ pub struct BenchArgs {
     /// (6·scale)³ nodes).
     #[arg(long, default_value_t = 3, value_parser = hard_scale)]
     pub hard_scale: usize,
+    /// Coarse correction of every CG, CPU and GPU: none or translations [default:
+    /// translations; with --hard and no --coarse the f64-vs-mixed timing runs both].
+    #[arg(long)]
+    pub coarse: Option<CoarseSpace>,
 }
 
 #[derive(Debug, Clone, Args)]
@@ -261,6 +266,11 @@ pub struct SolveArgs {
     /// Iterative solvers: none, jacobi or block-jacobi.
     #[arg(long, default_value = "jacobi")]
     pub preconditioner: Preconditioner,
+    /// Iterative solvers: coarse correction added to the preconditioner, none or
+    /// translations (the d rigid translations solved exactly: a free or sliding body's
+    /// slowest modes; see README "Solver options").
+    #[arg(long, default_value = "translations")]
+    pub coarse: CoarseSpace,
     /// The diagonal D on constrained components of Ĥ.
     #[arg(long, value_enum, default_value_t = DiagonalArg::Identity)]
     pub constrained_diagonal: DiagonalArg,
@@ -477,6 +487,7 @@ fn solve_gpu(
         max_iters,
         preconditioner: args.preconditioner,
         error_tol: args.error_tol,
+        coarse: args.coarse,
         ..GpuParams::default()
     };
     let mut solver = GpuSolver::new(&ctx, e, &params).map_err(gpu_err)?;
@@ -686,11 +697,13 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
                 tol: args.tol,
                 max_iters,
                 preconditioner: args.preconditioner,
+                coarse: args.coarse,
                 ..CgParams::default()
             };
             let (y, info) = cg::solve(&e, &params).map_err(SolveError::from)?;
             cgr = Some(CgReport {
                 preconditioner: preconditioner_name(args.preconditioner).into(),
+                coarse: args.coarse.name().into(),
                 tol: args.tol,
                 max_iters,
                 restarts: info.restarts,
@@ -895,7 +908,11 @@ fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
         let _ = std::fs::remove_file(&probe);
     }
     if a.hard {
-        let md = crate::bench::run_hard(a.out.as_deref(), a.no_gpu, a.hard_scale)
+        let coarse = match a.coarse {
+            Some(c) => vec![c],
+            None => vec![CoarseSpace::Translations, CoarseSpace::None],
+        };
+        let md = crate::bench::run_hard(a.out.as_deref(), a.no_gpu, a.hard_scale, &coarse)
             .map_err(|e| CliError::Failed(format!("bench --hard: {e}")))?;
         if !quiet {
             println!("{md}");
@@ -927,6 +944,7 @@ fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
         out: a.out.clone(),
         quiet,
         seed: a.seed,
+        coarse: a.coarse.unwrap_or_default(),
     };
     let command: Vec<String> = std::env::args().collect();
     let report = crate::bench::run(&opts, &command.join(" ")).map_err(|e| match e {

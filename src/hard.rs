@@ -716,6 +716,7 @@ pub fn table(
     dense_max: usize,
 ) -> Result<Vec<TableRow>, String> {
     use crate::cg::{CgParams, Preconditioner, Scaling};
+    use crate::coarse::CoarseSpace;
     use crate::gpu::{GpuParams, GpuSolver, Precision};
     use std::time::Instant;
     let mut rows = Vec::new();
@@ -762,27 +763,46 @@ pub fn table(
                 err.to_string(),
             )),
         }
-        for (name, pc, scaling, tol) in [
-            ("cg jacobi", Preconditioner::Jacobi, Scaling::None, 1e-10),
+        // Default coarse correction (translations) unless the name says "no coarse".
+        for (name, pc, scaling, coarse) in [
+            (
+                "cg jacobi",
+                Preconditioner::Jacobi,
+                Scaling::None,
+                CoarseSpace::Translations,
+            ),
+            (
+                "cg jacobi no coarse",
+                Preconditioner::Jacobi,
+                Scaling::None,
+                CoarseSpace::None,
+            ),
             (
                 "cg block-jacobi",
                 Preconditioner::BlockJacobi,
                 Scaling::None,
-                1e-10,
+                CoarseSpace::Translations,
             ),
-            ("cg none", Preconditioner::None, Scaling::None, 1e-10),
+            (
+                "cg none",
+                Preconditioner::None,
+                Scaling::None,
+                CoarseSpace::Translations,
+            ),
             (
                 "cg none+scaling",
                 Preconditioner::None,
                 Scaling::NodeDiagonal,
-                1e-10,
+                CoarseSpace::Translations,
             ),
         ] {
+            let tol = 1e-10;
             let params = CgParams {
                 tol,
                 max_iters: 20_000,
                 preconditioner: pc,
                 scaling,
+                coarse,
                 ..Default::default()
             };
             let t = Instant::now();
@@ -809,22 +829,34 @@ pub fn table(
             }
         }
         let Some(ctx) = gpu else { continue };
-        for (precision, tol, error_tol) in [
-            (Precision::F32, 1e-5, None),
-            (Precision::F64, 1e-10, None),
-            (Precision::Mixed, 1e-10, None),
-            (Precision::Mixed, 1e-10, Some(1e-10)),
+        for (precision, tol, error_tol, coarse) in [
+            (Precision::F32, 1e-5, None, CoarseSpace::Translations),
+            (Precision::F64, 1e-10, None, CoarseSpace::Translations),
+            (Precision::Mixed, 1e-10, None, CoarseSpace::Translations),
+            (Precision::Mixed, 1e-10, None, CoarseSpace::None),
+            (
+                Precision::Mixed,
+                1e-10,
+                Some(1e-10),
+                CoarseSpace::Translations,
+            ),
         ] {
             let params = GpuParams {
                 precision,
                 tol,
                 max_iters: 20_000,
                 error_tol,
+                coarse,
                 ..Default::default()
             };
+            let suffix = if coarse == CoarseSpace::None {
+                " no coarse"
+            } else {
+                ""
+            };
             let name = match error_tol {
-                Some(et) => format!("gpu {precision} error_tol {et:.0e}"),
-                None => format!("gpu {precision}"),
+                Some(et) => format!("gpu {precision} error_tol {et:.0e}{suffix}"),
+                None => format!("gpu {precision}{suffix}"),
             };
             let t = Instant::now();
             let res = GpuSolver::new(ctx, &e, &params).and_then(|mut s| s.solve());
@@ -890,25 +922,32 @@ pub fn table_markdown(rows: &[TableRow]) -> String {
 /// Timed solves per solver in [`mixed_speed`] (after one warm-up solve).
 pub const SPEED_REPS: usize = 3;
 
-/// GPU f64 CG against mixed precision on larger cases: (case, DOFs, f64 seconds, mixed
-/// seconds, f64 error, mixed error), both at tolerance `tol`, best of [`SPEED_REPS`];
-/// None for a failed solve.
-#[allow(clippy::type_complexity)]
+/// One case of [`mixed_speed`]: best solve seconds, iterations and relative error of GPU
+/// f64 CG and of mixed precision (None for a failed solve).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct SpeedRow {
+    pub case: String,
+    pub dofs: usize,
+    /// The coarse correction both solvers used.
+    pub coarse: String,
+    pub f64_seconds: Option<f64>,
+    pub mixed_seconds: Option<f64>,
+    pub f64_iterations: Option<usize>,
+    pub mixed_iterations: Option<usize>,
+    pub f64_error: Option<f64>,
+    pub mixed_error: Option<f64>,
+    /// Why mixed left f32, when it did.
+    pub mixed_fallback: Option<String>,
+}
+
+/// GPU f64 CG against mixed precision on larger cases, both Jacobi with the coarse
+/// correction `coarse`, at tolerance `tol`, best of [`SPEED_REPS`] after a warm-up.
 pub fn mixed_speed(
     size: Size,
     ctx: &crate::gpu::GpuContext,
     tol: f64,
-) -> Result<
-    Vec<(
-        String,
-        usize,
-        Option<f64>,
-        Option<f64>,
-        Option<f64>,
-        Option<f64>,
-    )>,
-    String,
-> {
+    coarse: crate::coarse::CoarseSpace,
+) -> Result<Vec<SpeedRow>, String> {
     use crate::gpu::{GpuParams, GpuSolver, Precision};
     let cases = vec![
         stiffness_contrast(size, 1e4),
@@ -922,7 +961,9 @@ pub fn mixed_speed(
     for case in cases {
         let e = case.eliminated();
         let r = reference(&e).map_err(|err| format!("{}: reference: {err}", case.name))?;
-        let mut res: [(Option<f64>, Option<f64>); 2] = [(None, None), (None, None)];
+        // (best seconds, iterations, error, fallback) per solver.
+        type Best = Option<(f64, usize, f64, Option<String>)>;
+        let mut res: [Best; 2] = [None, None];
         // Both solvers built first, then solved alternately, best of SPEED_REPS after one
         // warm-up solve each: the ratio of one run on a shared 2-core machine is noise.
         let mut solvers: Vec<Option<GpuSolver>> = [Precision::F64, Precision::Mixed]
@@ -932,6 +973,7 @@ pub fn mixed_speed(
                     precision,
                     tol,
                     max_iters: 50_000,
+                    coarse,
                     ..Default::default()
                 };
                 GpuSolver::new(ctx, &e, &params).ok()
@@ -943,21 +985,31 @@ pub fn mixed_speed(
                 if let Ok((y, _, info)) = sol.solve() {
                     if rep > 0 {
                         let best = res[k]
-                            .0
-                            .map_or(info.seconds.solve, |b| b.min(info.seconds.solve));
-                        res[k] = (Some(best), Some(relative_error(&y, &r.y)));
+                            .as_ref()
+                            .map_or(info.seconds.solve, |b| b.0.min(info.seconds.solve));
+                        res[k] = Some((
+                            best,
+                            info.iterations,
+                            relative_error(&y, &r.y),
+                            info.fallback.clone(),
+                        ));
                     }
                 }
             }
         }
-        out.push((
-            case.name.clone(),
-            case.ndof(),
-            res[0].0,
-            res[1].0,
-            res[0].1,
-            res[1].1,
-        ));
+        let [a, b] = res;
+        out.push(SpeedRow {
+            case: case.name.clone(),
+            dofs: case.ndof(),
+            coarse: coarse.name().into(),
+            f64_seconds: a.as_ref().map(|v| v.0),
+            mixed_seconds: b.as_ref().map(|v| v.0),
+            f64_iterations: a.as_ref().map(|v| v.1),
+            mixed_iterations: b.as_ref().map(|v| v.1),
+            f64_error: a.as_ref().map(|v| v.2),
+            mixed_error: b.as_ref().map(|v| v.2),
+            mixed_fallback: b.and_then(|v| v.3),
+        });
     }
     Ok(out)
 }

@@ -98,6 +98,7 @@ impl LinearSolver {
             tol: spec.cg_tolerance,
             max_iters: spec.cg_max_iterations,
             preconditioner: spec.preconditioner,
+            coarse: spec.coarse,
             ..CgParams::default()
         };
         let gpu_params = GpuParams {
@@ -105,6 +106,7 @@ impl LinearSolver {
             tol: spec.cg_tolerance,
             max_iters: spec.cg_max_iterations,
             preconditioner: spec.preconditioner,
+            coarse: spec.coarse,
             ..GpuParams::default()
         };
         let (gpu_ctx, adapter) = if spec.linear == LinearKind::Gpu {

@@ -11,6 +11,7 @@
 pub mod bench;
 pub mod cg;
 pub mod cli;
+pub mod coarse;
 pub mod constraints;
 pub mod driver;
 pub mod elimination;

@@ -39,6 +39,8 @@ pub struct CholeskyReport {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct CgReport {
     pub preconditioner: String,
+    /// The coarse correction added to it ("none" or "translations").
+    pub coarse: String,
     pub tol: f64,
     pub max_iters: usize,
     pub restarts: usize,

@@ -3,6 +3,7 @@
 //! line and return, unless STICKSLIP_REQUIRE_GPU=1 (CI), where a missing adapter fails.
 
 use stickslip::cg::{BuiltPreconditioner, Preconditioner};
+use stickslip::coarse::CoarseSpace;
 use stickslip::constraints::{Constraint, ConstraintKind, Frames};
 use stickslip::elimination::{rotate_blocks, ConstrainedDiagonal, Eliminated};
 use stickslip::generate::{random_system, SystemSpec};
@@ -48,9 +49,17 @@ fn matvec_rotation_and_preconditioners_match_cpu() {
             let mut work = vec![0.0; 2 * n];
             e.apply(&y, &mut want, &mut work);
             let rot = rotate_blocks(&s.h, &s.frames);
-            for (prec, tol) in [(Precision::F64, 1e-13), (Precision::F32, 2e-6)] {
+            for (prec, tol, diff) in [
+                (Precision::F64, 1e-13, false),
+                (Precision::F32, 2e-6, false),
+                (Precision::F32, 2e-6, true),
+            ] {
                 for pc in [Preconditioner::Jacobi, Preconditioner::BlockJacobi] {
-                    let mut sol = GpuSolver::new(ctx, &e, &params(prec, pc)).expect("solver");
+                    let prm = GpuParams {
+                        f32_difference: diff,
+                        ..params(prec, pc)
+                    };
+                    let mut sol = GpuSolver::new(ctx, &e, &prm).expect("solver");
                     let got = sol.apply_operator(&y).expect("matvec");
                     let err = max_rel(&got, &want);
                     assert!(err <= tol, "matvec {dim}D {prec} seed {seed}: {err:e}");
@@ -73,6 +82,46 @@ fn matvec_rotation_and_preconditioners_match_cpu() {
     }
 }
 
+/// The f32 difference form keeps a free body's translations: on kappa-1e6 (a free spring
+/// grid, Ĥt = m t exactly for a translation t, m = λ_max/(κ − 1)) the f32 operator in the
+/// difference form maps t to m t within a few f32 roundings of m t itself, while plain f32
+/// blocks miss it by ~κ·ε_f32 of m t (each row's blocks, of size λ_max, cancel to m).
+#[test]
+fn f32_difference_form_keeps_the_translations() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let case = stickslip::hard::conditioned(stickslip::hard::Size::Ci, 1e6, false);
+    let e = case.eliminated();
+    let n = e.ndof();
+    for axis in 0..3 {
+        let t: Vec<f64> = (0..n).map(|k| f64::from(k % 3 == axis)).collect();
+        let mut want = vec![0.0; n];
+        let mut work = vec![0.0; 2 * n];
+        e.apply(&t, &mut want, &mut work);
+        let mut errs = [0.0; 2];
+        for (k, diff) in [false, true].into_iter().enumerate() {
+            let prm = GpuParams {
+                f32_difference: diff,
+                ..params(Precision::F32, Preconditioner::Jacobi)
+            };
+            let mut sol = GpuSolver::new(ctx, &e, &prm).expect("solver");
+            errs[k] = max_rel(&sol.apply_operator(&t).expect("matvec"), &want);
+        }
+        // The row sum S_i = m I is rounded once to f32: ε_f32 = 6e-8 relative; 1e-6
+        // leaves room for the 2^s-free upload and the f32 products.
+        assert!(
+            errs[1] <= 1e-6,
+            "difference form, axis {axis}: {:e}",
+            errs[1]
+        );
+        // κ·ε_f32 = 0.06 expected; 1e-3 is far below it and far above the form's error.
+        assert!(
+            errs[0] >= 1e-3,
+            "plain f32 blocks, axis {axis}: {:e}",
+            errs[0]
+        );
+    }
+}
+
 #[test]
 fn unmasked_matvec_matches_cpu() {
     let Some((ctx, _g)) = gpu() else { return };
@@ -92,9 +141,14 @@ fn unmasked_matvec_matches_cpu() {
 }
 
 /// k iterations of the same PCG recurrence on the CPU, in f64.
-fn cpu_pcg(e: &Eliminated, pc: Preconditioner, k: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+fn cpu_pcg(
+    e: &Eliminated,
+    pc: Preconditioner,
+    coarse: CoarseSpace,
+    k: usize,
+) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
     let n = e.ndof();
-    let pre = BuiltPreconditioner::new(e, pc);
+    let pre = BuiltPreconditioner::new(e, pc).with_coarse(e, coarse, None);
     let mut x = vec![0.0; n];
     let mut r = e.rhs.clone();
     let mut z = vec![0.0; n];
@@ -122,25 +176,38 @@ fn cpu_pcg(e: &Eliminated, pc: Preconditioner, k: usize) -> (Vec<f64>, Vec<f64>,
     (x, r, p)
 }
 
+/// The GPU's PCG updates (with and without the coarse correction on the translations,
+/// whose Z_i = P_i V_iᵀ the kernels compute from the mask and the rotations of these
+/// systems' slip nodes) follow the CPU recurrence to 1e-11: six f64 iterations on a
+/// well-conditioned system lose a few hundred ulps at most.
 #[test]
 fn cg_update_kernels_and_reductions_match_cpu_recurrence() {
     let Some((ctx, _g)) = gpu() else { return };
-    for (dim, seed, pc) in [
-        (2, 3u64, Preconditioner::Jacobi),
-        (3, 4, Preconditioner::BlockJacobi),
-        (3, 6, Preconditioner::None),
+    for (dim, seed, pc, coarse) in [
+        (2, 3u64, Preconditioner::Jacobi, CoarseSpace::None),
+        (3, 4, Preconditioner::BlockJacobi, CoarseSpace::None),
+        (3, 6, Preconditioner::None, CoarseSpace::None),
+        (2, 3, Preconditioner::Jacobi, CoarseSpace::Translations),
+        (3, 4, Preconditioner::BlockJacobi, CoarseSpace::Translations),
+        (3, 6, Preconditioner::None, CoarseSpace::Translations),
+        (3, 7, Preconditioner::Jacobi, CoarseSpace::Translations),
     ] {
         let s = random_system(&SystemSpec::small(dim, seed));
+        assert!(s.frames.has_rotation(), "the systems have slip nodes");
         let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
         let k = 6;
-        let (x, r, p) = cpu_pcg(&e, pc, k);
-        let mut sol = GpuSolver::new(ctx, &e, &params(Precision::F64, pc)).expect("solver");
+        let (x, r, p) = cpu_pcg(&e, pc, coarse, k);
+        let prm = GpuParams {
+            coarse,
+            ..params(Precision::F64, pc)
+        };
+        let mut sol = GpuSolver::new(ctx, &e, &prm).expect("solver");
         let (gx, gr, gp) = sol.iterate(k).expect("iterate");
         for (name, a, b) in [("x", &gx, &x), ("r", &gr, &r), ("p", &gp, &p)] {
             let err = max_rel(a, b);
             assert!(
                 err <= 1e-11,
-                "{name} after {k} iterations ({dim}D, {pc:?}): {err:e}"
+                "{name} after {k} iterations ({dim}D, {pc:?}, coarse {coarse:?}): {err:e}"
             );
         }
         let res = sol.resources();
@@ -149,10 +216,18 @@ fn cg_update_kernels_and_reductions_match_cpu_recurrence() {
         assert_eq!(res.dispatches_of("update_p"), k as u64 + 1);
         assert_eq!(res.dispatches_of("matvec"), k as u64 + 1);
         // Mixed: the inner f32 CG follows the same recurrence to f32 round-off.
-        let mut sol = GpuSolver::new(ctx, &e, &params(Precision::Mixed, pc)).expect("solver");
+        // (Also with the difference form of the f32 operator, on by default.)
+        let prm = GpuParams {
+            precision: Precision::Mixed,
+            ..prm
+        };
+        let mut sol = GpuSolver::new(ctx, &e, &prm).expect("solver");
         let (gx, _, _) = sol.iterate(k).expect("iterate");
         let err = max_rel(&gx, &x);
-        assert!(err <= 1e-4, "f32 inner x after {k} iterations: {err:e}");
+        assert!(
+            err <= 1e-4,
+            "f32 inner x after {k} iterations (coarse {coarse:?}): {err:e}"
+        );
     }
 }
 

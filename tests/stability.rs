@@ -24,6 +24,7 @@
 
 use std::sync::LazyLock;
 use stickslip::cg::{self, CgError, CgParams, Preconditioner, Scaling};
+use stickslip::coarse::CoarseSpace;
 use stickslip::elimination::Eliminated;
 use stickslip::error::SolveError;
 use stickslip::gpu::{GpuContext, GpuParams, GpuSolver, Precision};
@@ -138,10 +139,13 @@ fn references_and_oracle_keep_backward_stability() {
 fn cpu_cg_claims_are_honest_both_ways() {
     for p in SUITE.iter() {
         let e = p.case.eliminated();
-        for pc in [
-            Preconditioner::Jacobi,
-            Preconditioner::BlockJacobi,
-            Preconditioner::None,
+        for (pc, coarse) in [
+            (Preconditioner::Jacobi, CoarseSpace::Translations),
+            (Preconditioner::Jacobi, CoarseSpace::None),
+            (Preconditioner::BlockJacobi, CoarseSpace::Translations),
+            (Preconditioner::BlockJacobi, CoarseSpace::None),
+            (Preconditioner::None, CoarseSpace::Translations),
+            (Preconditioner::None, CoarseSpace::None),
         ] {
             for scaling in [Scaling::None, Scaling::NodeDiagonal] {
                 for tol in [1e-6, 1e-10] {
@@ -150,9 +154,10 @@ fn cpu_cg_claims_are_honest_both_ways() {
                         max_iters: 20_000,
                         preconditioner: pc,
                         scaling,
+                        coarse,
                         ..Default::default()
                     };
-                    let who = format!("cg {pc:?} {scaling:?} tol {tol:e}");
+                    let who = format!("cg {pc:?}+{} {scaling:?} tol {tol:e}", coarse.name());
                     match cg::solve(&e, &params) {
                         Ok((y, info)) => {
                             let err = check_success(p, &e, &who, tol, &y, info.relative_residual);
@@ -191,10 +196,14 @@ fn cpu_cg_claims_are_honest_both_ways() {
                         max_iters,
                         preconditioner: pc,
                         scaling,
+                        coarse,
                         stagnation_window: 200,
                         ..Default::default()
                     };
-                    let who = format!("cg {pc:?} {scaling:?} tol {tol:e} max {max_iters}");
+                    let who = format!(
+                        "cg {pc:?}+{} {scaling:?} tol {tol:e} max {max_iters}",
+                        coarse.name()
+                    );
                     match cg::solve(&e, &params) {
                         Ok((y, info)) => {
                             check_success(p, &e, &who, tol, &y, info.relative_residual);
@@ -257,23 +266,32 @@ fn gpu_sweep(ctx: &GpuContext) -> Vec<String> {
     let mut mixed_misses = Vec::new();
     for p in SUITE.iter() {
         let e = p.case.eliminated();
-        for (precision, tol, error_tol) in [
-            (Precision::F32, 1e-5, None),
-            (Precision::F64, 1e-10, None),
-            (Precision::Mixed, 1e-11, None),
-            (Precision::Mixed, 1e-11, Some(MIXED_ERROR_TOL)),
-            (Precision::Mixed, 1e-20, None),
+        // The default coarse correction (translations), and mixed without it: claims
+        // must be honest either way.
+        for (precision, tol, error_tol, coarse) in [
+            (Precision::F32, 1e-5, None, CoarseSpace::Translations),
+            (Precision::F64, 1e-10, None, CoarseSpace::Translations),
+            (Precision::Mixed, 1e-11, None, CoarseSpace::Translations),
+            (Precision::Mixed, 1e-11, None, CoarseSpace::None),
+            (
+                Precision::Mixed,
+                1e-11,
+                Some(MIXED_ERROR_TOL),
+                CoarseSpace::Translations,
+            ),
+            (Precision::Mixed, 1e-20, None, CoarseSpace::Translations),
         ] {
             let params = GpuParams {
                 precision,
                 tol,
                 max_iters: 20_000,
                 error_tol,
+                coarse,
                 ..Default::default()
             };
             let who = match error_tol {
                 Some(et) => format!("gpu {precision} tol {tol:e} error_tol {et:e}"),
-                None => format!("gpu {precision} tol {tol:e}"),
+                None => format!("gpu {precision}+{} tol {tol:e}", coarse.name()),
             };
             let target = error_tol.is_some() && p.kappa <= KAPPA_TARGET;
             let mut solver = match GpuSolver::new(ctx, &e, &params) {
@@ -519,15 +537,18 @@ fn projected_element_hessians_are_psd_on_inverted_and_degenerate_elements() {
 /// The GPU's κ̃(M⁻¹Ĥ), from the Lanczos coefficients cg.wgsl records, matches the CPU
 /// CG's (both f64, Jacobi, one uninterrupted run: the same Ritz values up to rounding in
 /// the coefficients; 2% allows different summation orders in the reductions), and it
-/// steers mixed precision: f32 is left for f64 where κ̃·ε_f32 is large (kappa-1e6, 0.09),
-/// and kept where it is small (contrast-1e4, 1e-5).
+/// steers mixed precision: without the coarse correction f32 is left for f64 where
+/// κ̃·ε_f32 is large (kappa-1e6, 0.09), and kept where it is small (contrast-1e4, 1e-5).
+/// With the coarse correction on the translations (the default) kappa-1e6's κ̃ drops below
+/// 1e4 (its small eigenvalues were the translations) and mixed stays in f32.
 #[test]
 fn gpu_condition_estimate_matches_cpu_and_steers_mixed() {
     let Some((ctx, _guard)) = gpu() else { return };
-    for (name, leaves_f32) in [
-        ("kappa-1e6", true),
-        ("contrast-1e4", false),
-        ("needles", false),
+    for (name, coarse, leaves_f32) in [
+        ("kappa-1e6", CoarseSpace::None, true),
+        ("kappa-1e6", CoarseSpace::Translations, false),
+        ("contrast-1e4", CoarseSpace::None, false),
+        ("needles", CoarseSpace::None, false),
     ] {
         let p = SUITE
             .iter()
@@ -540,6 +561,7 @@ fn gpu_condition_estimate_matches_cpu_and_steers_mixed() {
             &CgParams {
                 tol,
                 max_iters: 20_000,
+                coarse,
                 ..Default::default()
             },
         )
@@ -549,6 +571,7 @@ fn gpu_condition_estimate_matches_cpu_and_steers_mixed() {
                 precision,
                 tol,
                 max_iters: 20_000,
+                coarse,
                 ..Default::default()
             };
             GpuSolver::new(ctx, &e, &params)
@@ -561,7 +584,13 @@ fn gpu_condition_estimate_matches_cpu_and_steers_mixed() {
             cpu.condition_estimate.expect("CPU estimate"),
             g64.condition_estimate.expect("GPU estimate"),
         );
-        eprintln!("{name}: κ̃ CPU {kc:.4e}, GPU f64 {kg:.4e}");
+        eprintln!(
+            "{name} coarse {}: κ̃ CPU {kc:.4e}, GPU f64 {kg:.4e}",
+            coarse.name()
+        );
+        if name == "kappa-1e6" && coarse == CoarseSpace::Translations {
+            assert!(kc < 1e4, "{name}: κ̃ {kc:e} with the coarse correction");
+        }
         assert!(
             (kg - kc).abs() <= 0.02 * kc,
             "{name}: GPU κ̃ {kg:e} against CPU {kc:e}"

@@ -13,6 +13,7 @@ pub use solver::{
 };
 
 use crate::cg::{CgError, Preconditioner};
+pub use crate::coarse::CoarseSpace;
 
 /// Why the GPU solver could not run or did not converge.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -119,6 +120,14 @@ pub struct GpuParams {
     /// estimate is in `GpuSolveInfo::error_estimate`. Needs an assembled Hessian and the
     /// f64 operator on the device. None: residual criterion only.
     pub error_tol: Option<f64>,
+    /// Coarse correction added to the preconditioner, in every level (see
+    /// [`crate::coarse`]); the same choice as [`crate::cg::CgParams::coarse`].
+    pub coarse: CoarseSpace,
+    /// f32 operators of an assembled Ĥ use the difference form (`shaders/matvec.wgsl`
+    /// `DIFF`: node row sums summed in f64), which keeps the eigenvalues of the rigid
+    /// translations that plain f32 rounding perturbs by κ·ε_f32. Costs one d×d block per
+    /// node; f64 operators never use it.
+    pub f32_difference: bool,
 }
 
 impl Default for GpuParams {
@@ -136,6 +145,8 @@ impl Default for GpuParams {
             inner_tol: 0.1,
             max_outer: 200,
             error_tol: None,
+            coarse: CoarseSpace::default(),
+            f32_difference: true,
         }
     }
 }

@@ -2,6 +2,7 @@
 //! with their defaults. [`super::parse`] reads a file into [`SceneFile`] and resolves it.
 
 use crate::cg::Preconditioner;
+use crate::coarse::CoarseSpace;
 use crate::gpu::Precision;
 use serde::Deserialize;
 
@@ -125,6 +126,9 @@ pub struct SolverSpec {
     pub cg_max_iterations: usize,
     #[serde(default)]
     pub preconditioner: Preconditioner,
+    /// CG and GPU: coarse correction on the rigid translations ("none" or "translations").
+    #[serde(default)]
+    pub coarse: CoarseSpace,
     /// GPU arithmetic.
     #[serde(default = "default_precision")]
     pub precision: Precision,
@@ -162,6 +166,7 @@ impl Default for SolverSpec {
             cg_tolerance: default_cg_tol(),
             cg_max_iterations: default_cg_iters(),
             preconditioner: Preconditioner::default(),
+            coarse: CoarseSpace::default(),
             precision: default_precision(),
             newton_tolerance: default_newton_tol(),
             max_newton_iterations: default_newton_iters(),

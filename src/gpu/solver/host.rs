@@ -200,3 +200,31 @@ pub(super) fn spring_data(ms: &MassSpring) -> Vec<f64> {
         .flat_map(|(&l, &k)| [l, h2 * k])
         .collect()
 }
+
+/// S_i = Σ_j Ĥ_ij for every node i, d·d row-major, in f64 (the difference form's diagonal,
+/// see `shaders/matvec.wgsl`); Ĥ_ij = V_iᵀ H_ij V_j where a rotation is involved, unmasked
+/// like the device blocks.
+pub(super) fn row_sums(h: &BlockCsr, f: &Frames) -> Vec<f64> {
+    let d = h.dim;
+    let dd = d * d;
+    let mut out = vec![0.0; h.n * dd];
+    let mut rb = [0.0f64; 9];
+    for i in 0..h.n {
+        let s = &mut out[i * dd..(i + 1) * dd];
+        let vi = f.rotation(i);
+        for k in h.row_ptr[i]..h.row_ptr[i + 1] {
+            let vj = f.rotation(h.col_idx[k]);
+            let b = h.block(k);
+            let b = if vi.is_none() && vj.is_none() {
+                b
+            } else {
+                rotate_block(d, b, vi, vj, &mut rb[..dd]);
+                &rb[..dd]
+            };
+            for (se, be) in s.iter_mut().zip(b) {
+                *se += be;
+            }
+        }
+    }
+    out
+}

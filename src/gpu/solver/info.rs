@@ -65,6 +65,10 @@ pub struct StageSeconds {
 pub struct GpuSolveInfo {
     pub adapter: String,
     pub precision: Precision,
+    /// The coarse correction added to the preconditioner ("none" or "translations").
+    pub coarse: String,
+    /// Whether the f32 operator ran in difference form (f32 and mixed, assembled Ĥ).
+    pub f32_difference: bool,
     /// CG iterations, all restarts and inner solves together.
     pub iterations: usize,
     /// Iterations recorded into command buffers (the chunks); those past convergence are

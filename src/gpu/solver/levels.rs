@@ -30,6 +30,8 @@ pub(super) struct Operator {
     pub(super) data: OpData,
     pub(super) dvals: Option<wgpu::Buffer>,
     pub(super) rotations: Option<wgpu::Buffer>,
+    /// Difference form (f32 blocks): S_i = Σ_j Ĥ_ij per node, d·d row-major.
+    pub(super) rowsum: Option<wgpu::Buffer>,
     pub(super) matvec: Kernel,
 }
 
@@ -48,6 +50,8 @@ pub(super) struct Level {
     pub(super) minv: wgpu::Buffer,
     pub(super) scal: wgpu::Buffer,
     pub(super) state: wgpu::Buffer,
+    /// Coarse correction: E⁺ (d×d, accumulator type) of this level's operator.
+    pub(super) einv: Option<wgpu::Buffer>,
     pub(super) k_update_p: Kernel,
     pub(super) k_update_xrz: Kernel,
     pub(super) k_init: Kernel,
@@ -127,6 +131,16 @@ pub(super) fn build_operator(
     } else {
         None
     };
+    let diff = c.diff && real == Real::F32 && matches!(host.op, HostOp::Blocks(_));
+    let rowsum = if diff {
+        Some(bld.buffer(
+            &format!("rowsum_{rn}"),
+            nd * f.dim as u64 * real.size(),
+            STORAGE,
+        )?)
+    } else {
+        None
+    };
     let (data, matvec) = match &host.op {
         HostOp::Blocks(h) => {
             let blocks = plane_buffers(bld, &format!("blocks_{rn}"), h.dim, h.nnz_blocks(), real)?;
@@ -168,8 +182,13 @@ pub(super) fn build_operator(
                 real,
                 acc,
                 "matvec",
-                &[Uniform, Ro, Ro, Ro, Ro, Ro, Ro, Rw, Rw, Ro, Ro, Ro],
-                &[("D", c.d), ("WG", c.wg), ("MASKED", flag(c.masked))],
+                &[Uniform, Ro, Ro, Ro, Ro, Ro, Ro, Rw, Rw, Ro, Ro, Ro, Ro],
+                &[
+                    ("D", c.d),
+                    ("WG", c.wg),
+                    ("MASKED", flag(c.masked)),
+                    ("DIFF", flag(diff)),
+                ],
             )?;
             (OpData::Blocks { blocks, rotate }, mv)
         }
@@ -215,6 +234,7 @@ pub(super) fn build_operator(
         data,
         dvals,
         rotations,
+        rowsum,
         matvec,
     })
 }
@@ -264,6 +284,7 @@ fn bind_operator(
                 state,
                 &blocks[1],
                 &blocks[2],
+                op.rowsum.as_ref().unwrap_or(ph),
             ],
         ),
         OpData::Springs {
@@ -327,8 +348,15 @@ pub(super) fn build_level(
         )?),
     };
     let g = host.ndof().div_ceil(c.wg as usize).clamp(1, 256) as u64;
-    // n_partials is computed from nodes, not DOFs; allocate for the larger bound.
-    let partials = bld.buffer("partials", 3 * g.max(256) * acc.size(), STORAGE)?;
+    // n_partials is computed from nodes, not DOFs; allocate for the larger bound. Slots:
+    // p·q, r·z, r·r, and with the coarse correction d more for Zᵀr.
+    let slots = if c.coarse { 3 + d } else { 3 };
+    let partials = bld.buffer("partials", slots * g.max(256) * acc.size(), STORAGE)?;
+    let einv = if c.coarse {
+        Some(bld.buffer("coarse_einv", d * d * acc.size(), STORAGE)?)
+    } else {
+        None
+    };
     let scal = bld.buffer("cg_scalars", SCAL_LEN as u64 * acc.size(), STORAGE)?;
     let state = bld.buffer("cg_state", 4 * N_STATE as u64, STORAGE)?;
     let status_staging = bld.staging(
@@ -340,8 +368,13 @@ pub(super) fn build_level(
         ("WG", c.wg),
         ("PRECOND", c.precond),
         ("HIST", LANCZOS_HIST as f64),
+        ("COARSE", flag(c.coarse)),
+        ("MASKED", flag(c.masked)),
+        ("ROTATED", flag(c.rotated)),
     ];
-    let cg_binds = [Uniform, Rw, Rw, Rw, Rw, Ro, Ro, Ro, Rw, Rw, Rw];
+    let cg_binds = [
+        Uniform, Rw, Rw, Rw, Rw, Ro, Ro, Ro, Rw, Rw, Rw, Ro, Ro, Ro, Ro,
+    ];
     let k_update_p = bld.kernel(
         "update_p",
         "cg.wgsl",
@@ -377,7 +410,21 @@ pub(super) fn build_level(
         &k_update_p,
         "cg bind group",
         &[
-            &sh.params, &x, &r, &z, &p, &q, &b, minv_b, &partials, &scal, &state,
+            &sh.params,
+            &x,
+            &r,
+            &z,
+            &p,
+            &q,
+            &b,
+            minv_b,
+            &partials,
+            &scal,
+            &state,
+            sh.mask_or(),
+            sh.rot_index.as_ref().unwrap_or(&sh.placeholder),
+            op.rotations.as_ref().unwrap_or(&sh.placeholder),
+            einv.as_ref().unwrap_or(&sh.placeholder),
         ],
     );
     let bg_mv_p = bind_operator(
@@ -471,6 +518,7 @@ pub(super) fn build_level(
         minv: minv.unwrap_or_else(|| sh.placeholder.clone()),
         scal,
         state,
+        einv,
         k_update_p,
         k_update_xrz,
         k_init,

@@ -474,6 +474,7 @@ impl GpuSolver {
         self.fallback_level = Some(level);
         if let Some(fl) = &self.fallback_level {
             self.write_operator(&fl.op, 1.0);
+            self.write_coarse(fl, 1.0);
         }
         self.setup_levels(false, true)
     }
@@ -580,11 +581,13 @@ impl GpuSolver {
             diag: self.host.diag.clone(),
         };
         let pc = self.params.preconditioner;
-        let pre = crate::cg::BuiltPreconditioner::new(&e, pc);
+        let pre =
+            crate::cg::BuiltPreconditioner::new(&e, pc).with_coarse(&e, self.params.coarse, None);
         let cp = crate::cg::CgParams {
             tol: self.params.tol,
             max_iters: self.params.max_iters.saturating_sub(done),
             preconditioner: pc,
+            coarse: self.params.coarse,
             stagnation_window: self.params.stagnation_window,
             max_restarts: self.params.max_restarts,
             ..Default::default()

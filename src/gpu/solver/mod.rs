@@ -28,6 +28,7 @@ pub use info::{BufferRecord, GpuSolveInfo, KernelRecord, KernelTime, Resources, 
 
 use super::{GpuContext, GpuError, GpuParams, Precision};
 use crate::cg::{CgError, Preconditioner};
+use crate::coarse::CoarseSpace;
 use crate::constraints::Frames;
 use crate::elimination::{norm2, Eliminated};
 use crate::sparse::BlockCsr;
@@ -122,6 +123,8 @@ pub struct GpuSolver {
     last_rho_prev: f64,
     /// Size of the first chunk of the next `run_cg` (mixed: the previous segment's length).
     chunk_hint: Option<usize>,
+    /// E⁺ of the coarse correction (d×d, for Ĥ itself), when it is on.
+    coarse_einv: Option<Vec<f64>>,
     /// r·r where the next `run_cg` starts, when known (mixed: 1, the unit right-hand side
     /// with x = 0): the first point of its rate history, so the chunk after the first is
     /// predicted instead of doubled.
@@ -135,6 +138,10 @@ struct Consts {
     masked: bool,
     rotated: bool,
     precond: f64,
+    /// Coarse correction on the translations in every CG level.
+    coarse: bool,
+    /// Difference form of f32 block operators.
+    diff: bool,
 }
 
 fn check_params(ctx: &GpuContext, p: &GpuParams) -> Result<(), GpuError> {
@@ -326,6 +333,8 @@ impl GpuSolver {
                 Preconditioner::Jacobi => 1.0,
                 Preconditioner::BlockJacobi => 2.0,
             },
+            coarse: params.coarse != CoarseSpace::None,
+            diff: params.f32_difference,
         };
         let op = build_operator(&mut bld, &shared, &host, inner_real, acc, &consts)?;
         let level = build_level(
@@ -440,6 +449,7 @@ impl GpuSolver {
             last_rho_prev: 1.0,
             chunk_hint: None,
             start_rr: None,
+            coarse_einv: None,
             last_error_estimate: None,
             assembled: None,
             last_scal: vec![0.0; SCAL_LEN],
@@ -671,6 +681,8 @@ impl GpuSolver {
         let info = GpuSolveInfo {
             adapter: self.ctx.info.name.clone(),
             precision: self.params.precision,
+            coarse: self.params.coarse.name().into(),
+            f32_difference: self.level.op.rowsum.is_some(),
             iterations,
             recorded_iterations: self.recorded.max(iterations),
             outer_refinements: outer,

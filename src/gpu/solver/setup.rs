@@ -3,9 +3,10 @@
 //! build).
 
 use super::builder::{to_planes, Real};
-use super::host::{spring_data, spring_diag_blocks, HostOp};
-use super::levels::{OpData, Operator};
+use super::host::{row_sums, spring_data, spring_diag_blocks, HostOp};
+use super::levels::{Level, OpData, Operator};
 use super::GpuSolver;
+use crate::coarse::{translations_einv_from_blocks, Coarse};
 use crate::gpu::GpuError;
 
 impl GpuSolver {
@@ -27,6 +28,9 @@ impl GpuSolver {
                     if !v.is_empty() {
                         q.write_buffer(buf, 0, &op.real.bytes(&v));
                     }
+                }
+                if let Some(rs) = &op.rowsum {
+                    q.write_buffer(rs, 0, &op.real.bytes(&sc(&row_sums(h, &host.frames))));
                 }
             }
             (
@@ -62,10 +66,40 @@ impl GpuSolver {
         }
     }
 
+    /// E⁺ of the coarse correction for the current values (zeros when every translation
+    /// is constrained: the correction then adds nothing).
+    pub(super) fn compute_coarse(&mut self) {
+        if !self.consts.coarse {
+            return;
+        }
+        let d = self.host.frames.dim;
+        let einv = match &self.host.op {
+            // One pass over the blocks (no basis, no products).
+            HostOp::Blocks(h) => translations_einv_from_blocks(h, &self.host.frames),
+            HostOp::Springs(_) => {
+                let frames = self.host.frames.clone();
+                let host = &mut self.host;
+                Coarse::translations(&frames, None, |v, o| host.apply(v, o)).map(|c| c.einv)
+            }
+        };
+        self.coarse_einv = Some(einv.unwrap_or_else(|| vec![0.0; d * d]));
+    }
+
+    /// Writes E⁺ into a level whose operator is `scale`·Ĥ (its E⁺ is E⁺/scale).
+    pub(super) fn write_coarse(&self, level: &Level, scale: f64) {
+        if let (Some(buf), Some(e)) = (&level.einv, &self.coarse_einv) {
+            let v: Vec<f64> = e.iter().map(|x| x / scale).collect();
+            self.ctx.queue.write_buffer(buf, 0, &level.acc.bytes(&v));
+        }
+    }
+
     pub(super) fn upload_values(&mut self) -> Result<(), GpuError> {
+        self.compute_coarse();
         self.write_operator(&self.level.op, self.inner_scale);
+        self.write_coarse(&self.level, self.inner_scale);
         if let Some(fl) = &self.fallback_level {
             self.write_operator(&fl.op, 1.0);
+            self.write_coarse(fl, 1.0);
         }
         match &self.refine {
             Some(rf) => {
