@@ -21,6 +21,9 @@ override MASKED: bool = true;  // false: the scene has no constraints, no maskin
 // K·(translation) = 0 by ε_f32·‖K‖, which moves the small eigenvalue of a nearly free body
 // (its mass) by κ·ε_f32; in this form the rounded operator still maps a translation t to
 // S t (to f32 accuracy), so the near-null modes keep their eigenvalues (STABILITY.md).
+// Only on rows whose node and neighbours are unrotated: differences are taken in each
+// node's frame, so next to a rotated slip node a translation's p̄_j − p̄_i is not zero and
+// those rows keep the plain f32 error.
 override DIFF: bool = false;
 
 // Column indices carry the column node's mask in their top three bits, so P_j costs

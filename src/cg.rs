@@ -329,6 +329,10 @@ fn invert_spd(d: usize, a: &[f64]) -> Option<[f64; 9]> {
 
 /// Solves Ĥ y = b̂ by PCG from y = 0.
 pub fn solve(e: &Eliminated, params: &CgParams) -> Result<(Vec<f64>, CgInfo), CgError> {
+    if params.scaling == Scaling::NodeDiagonal {
+        // The equilibrated solve builds its own preconditioner on SĤS.
+        return solve_equilibrated(e, None, params);
+    }
     let pre =
         BuiltPreconditioner::new(e, params.preconditioner).with_coarse(e, params.coarse, None);
     solve_with(e, &pre, None, params)

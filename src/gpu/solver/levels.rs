@@ -733,5 +733,20 @@ pub(super) fn bytes_per_iteration(
         Preconditioner::Jacobi => nd * s,
         Preconditioner::BlockJacobi => n * d * d * s,
     };
-    op + vec + pre
+    // The difference form reads each node's row sum S_i.
+    if level.op.rowsum.is_some() {
+        op += n * d * d * s;
+    }
+    // The coarse correction reads the mask (update_xrz and update_p) and the rotations
+    // of the rotated nodes, where there are any.
+    let mut coarse = 0;
+    if c.coarse {
+        if c.masked {
+            coarse += 2 * n * 4;
+        }
+        if c.rotated {
+            coarse += 2 * (n * 4 + host.frames.rotations.len() as u64 * s);
+        }
+    }
+    op + vec + pre + coarse
 }

@@ -681,7 +681,12 @@ impl GpuSolver {
         let info = GpuSolveInfo {
             adapter: self.ctx.info.name.clone(),
             precision: self.params.precision,
-            coarse: self.params.coarse.name().into(),
+            coarse: match &self.coarse_einv {
+                Some(e) if e.iter().all(|&v| v == 0.0) => {
+                    "translations (inactive: every translation is constrained)".into()
+                }
+                _ => self.params.coarse.name().into(),
+            },
             f32_difference: self.level.op.rowsum.is_some(),
             iterations,
             recorded_iterations: self.recorded.max(iterations),
