@@ -46,14 +46,16 @@ impl std::str::FromStr for CoarseSpace {
 }
 
 /// A built coarse correction: Z node by node and E⁺. Z_i = s_i⁻¹ P_i V_iᵀ (s_i the node
-/// scale of an equilibrated system, else 1), stored only where it is not s_i⁻¹·I, so
-/// applying it costs one pass over r and one over z, not 2d dense vector passes.
+/// scale of an equilibrated system, else 1). Applying it is one dense pass over r and one
+/// over z as if every Z_i were s_i⁻¹·I, then a fix-up at the masked or rotated nodes only:
+/// no basis vectors, no per-node branch in the dense passes.
 #[derive(Debug, Clone)]
 pub struct Coarse {
     dim: usize,
     n_nodes: usize,
-    /// P_i V_iᵀ (d×d, row = frame component, column = axis) of masked or rotated nodes.
-    special: Vec<Option<[f64; 9]>>,
+    /// (node, P_i V_iᵀ) of the masked or rotated nodes, d×d row-major (row = frame
+    /// component, column = axis), by node.
+    special: Vec<(usize, [f64; 9])>,
     /// 1/s_i per node for an equilibrated system SĤS.
     inv_scale: Option<Vec<f64>>,
     /// E⁺, d×d row-major.
@@ -75,7 +77,7 @@ impl Coarse {
     ) -> Option<Self> {
         let d = frames.dim;
         let special = (0..frames.n_nodes)
-            .map(|i| {
+            .filter_map(|i| {
                 let mask = frames.mask[i];
                 let v = frames.rotation(i);
                 if mask == 0 && v.is_none() {
@@ -90,7 +92,7 @@ impl Coarse {
                         };
                     }
                 }
-                Some(m)
+                Some((i, m))
             })
             .collect();
         let mut c = Coarse {
@@ -111,17 +113,20 @@ impl Coarse {
         self.dim
     }
 
+    fn scale(&self, i: usize) -> f64 {
+        self.inv_scale.as_ref().map_or(1.0, |v| v[i])
+    }
+
     /// Column a of Z (the translation along axis a in frame coordinates), length d·n.
     pub fn column(&self, a: usize) -> Vec<f64> {
         let d = self.dim;
         let mut out = vec![0.0; d * self.n_nodes];
         for i in 0..self.n_nodes {
-            let s = self.inv_scale.as_ref().map_or(1.0, |v| v[i]);
+            out[i * d + a] = self.scale(i);
+        }
+        for (i, m) in &self.special {
             for c in 0..d {
-                out[i * d + c] = s * match &self.special[i] {
-                    None => f64::from(a == c),
-                    Some(m) => m[c * d + a],
-                };
+                out[i * d + c] = self.scale(*i) * m[c * d + a];
             }
         }
         out
@@ -130,41 +135,57 @@ impl Coarse {
     /// z += Z E⁺ Zᵀ r.
     pub fn add_correction(&self, r: &[f64], z: &mut [f64]) {
         let d = self.dim;
+        // Zᵀr: the dense pass as if Z_i = s_i⁻¹I, then the special nodes' difference.
         let mut zr = [0.0f64; 3];
-        for i in 0..self.n_nodes {
-            let s = self.inv_scale.as_ref().map_or(1.0, |v| v[i]);
-            let ri = &r[i * d..(i + 1) * d];
-            match &self.special[i] {
-                None => {
+        match &self.inv_scale {
+            None => {
+                for ri in r.chunks_exact(d) {
+                    for (acc, v) in zr.iter_mut().zip(ri) {
+                        *acc += v;
+                    }
+                }
+            }
+            Some(sc) => {
+                for (ri, s) in r.chunks_exact(d).zip(sc) {
                     for (acc, v) in zr.iter_mut().zip(ri) {
                         *acc += s * v;
                     }
                 }
-                Some(m) => {
-                    for (a, acc) in zr.iter_mut().enumerate().take(d) {
-                        *acc += s * (0..d).map(|c| m[c * d + a] * ri[c]).sum::<f64>();
-                    }
-                }
+            }
+        }
+        for (i, m) in &self.special {
+            let s = self.scale(*i);
+            let ri = &r[i * d..(i + 1) * d];
+            for (a, acc) in zr.iter_mut().enumerate().take(d) {
+                *acc += s * ((0..d).map(|c| m[c * d + a] * ri[c]).sum::<f64>() - ri[a]);
             }
         }
         let mut cc = [0.0f64; 3];
         for (a, ca) in cc.iter_mut().enumerate().take(d) {
             *ca = (0..d).map(|b| self.einv[a * d + b] * zr[b]).sum();
         }
-        for i in 0..self.n_nodes {
-            let s = self.inv_scale.as_ref().map_or(1.0, |v| v[i]);
-            let zi = &mut z[i * d..(i + 1) * d];
-            match &self.special[i] {
-                None => {
+        // z += Z c, the same way round.
+        match &self.inv_scale {
+            None => {
+                for zi in z.chunks_exact_mut(d) {
+                    for (v, ca) in zi.iter_mut().zip(&cc) {
+                        *v += ca;
+                    }
+                }
+            }
+            Some(sc) => {
+                for (zi, s) in z.chunks_exact_mut(d).zip(sc) {
                     for (v, ca) in zi.iter_mut().zip(&cc) {
                         *v += s * ca;
                     }
                 }
-                Some(m) => {
-                    for (c, v) in zi.iter_mut().enumerate() {
-                        *v += s * (0..d).map(|a| m[c * d + a] * cc[a]).sum::<f64>();
-                    }
-                }
+            }
+        }
+        for (i, m) in &self.special {
+            let s = self.scale(*i);
+            let zi = &mut z[i * d..(i + 1) * d];
+            for (c, v) in zi.iter_mut().enumerate() {
+                *v += s * ((0..d).map(|a| m[c * d + a] * cc[a]).sum::<f64>() - cc[c]);
             }
         }
     }
