@@ -6,7 +6,7 @@
 //! `STICKSLIP_INNER_TOL=δ` sets mixed precision's reliable-update factor.
 
 use stickslip::coarse::CoarseSpace;
-use stickslip::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
+use stickslip::gpu::{DifferenceForm, GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
 use stickslip::hard::{self, Size};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -44,7 +44,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             tol,
             max_iters: 50_000,
             coarse,
-            f32_difference: diff,
+            f32_difference: if diff {
+                DifferenceForm::Auto
+            } else {
+                DifferenceForm::Off
+            },
             inner_tol,
             ..Default::default()
         };

@@ -200,6 +200,50 @@ pub fn translations_einv_from_blocks(
     h: &crate::sparse::BlockCsr,
     frames: &crate::constraints::Frames,
 ) -> Option<Vec<f64>> {
+    let (e, _) = translations_galerkin_from_blocks(h, frames);
+    pseudo_inverse(h.dim, &e)
+}
+
+/// The smallest Rayleigh quotient tᵀĤt/tᵀt over the translations t = Zc (the stiffness
+/// of the softest rigid translation per unit displacement²; for a free body its mass
+/// term), from E and G = ZᵀZ. `None` when every translation is constrained.
+pub fn softest_translation(
+    h: &crate::sparse::BlockCsr,
+    frames: &crate::constraints::Frames,
+) -> Option<f64> {
+    let d = h.dim;
+    let (e, g) = translations_galerkin_from_blocks(h, frames);
+    if e.iter().chain(&g).any(|v| !v.is_finite()) {
+        return None;
+    }
+    // G^{-1/2} on G's range, then λ_min of G^{-1/2} E G^{-1/2}.
+    let ge = nalgebra::SymmetricEigen::new(nalgebra::DMatrix::from_row_slice(d, d, &g));
+    let gmax = ge.eigenvalues.iter().copied().fold(0.0, f64::max);
+    if gmax <= 0.0 {
+        return None;
+    }
+    let mut w = nalgebra::DMatrix::<f64>::zeros(d, d);
+    let mut rank = 0;
+    for (j, &l) in ge.eigenvalues.iter().enumerate() {
+        if l > PINV_RTOL * gmax {
+            let v = ge.eigenvectors.column(j);
+            w += v * v.transpose() / l.sqrt();
+            rank += 1;
+        }
+    }
+    let m = &w * nalgebra::DMatrix::from_row_slice(d, d, &e) * &w;
+    let ev = nalgebra::SymmetricEigen::new(m).eigenvalues;
+    // The d − rank null directions of G show up as zeros: skip them.
+    let mut vals: Vec<f64> = ev.iter().copied().collect();
+    vals.sort_by(f64::total_cmp);
+    vals.get(d - rank).copied().filter(|v| *v > 0.0)
+}
+
+/// (E, G) = (Σ_ij Q_i H_ij Q_j, Σ_i Q_i), d×d each, symmetrized.
+fn translations_galerkin_from_blocks(
+    h: &crate::sparse::BlockCsr,
+    frames: &crate::constraints::Frames,
+) -> (Vec<f64>, Vec<f64>) {
     let d = h.dim;
     let dd = d * d;
     // Q_i where it is not the identity.
@@ -226,9 +270,14 @@ pub fn translations_einv_from_blocks(
         })
         .collect();
     let mut e = vec![0.0; dd];
+    let mut g = vec![0.0; dd];
     let mut t = [0.0; 9];
     let mut u = [0.0; 9];
     for i in 0..h.n {
+        match &q[i] {
+            None => (0..d).for_each(|a| g[a * d + a] += 1.0),
+            Some(qi) => g.iter_mut().zip(&qi[..dd]).for_each(|(ge, qe)| *ge += qe),
+        }
         for k in h.row_ptr[i]..h.row_ptr[i + 1] {
             let j = h.col_idx[k];
             let b = h.block(k);
@@ -247,7 +296,8 @@ pub fn translations_einv_from_blocks(
         }
     }
     symmetrize(d, &mut e);
-    pseudo_inverse(d, &e)
+    symmetrize(d, &mut g);
+    (e, g)
 }
 
 fn mat_mul(d: usize, a: &[f64], b: &[f64], out: &mut [f64]) {
@@ -449,5 +499,25 @@ mod tests {
                 assert!((x - y).abs() <= 1e-12 * scale, "{a:?} vs {b:?}");
             }
         }
+    }
+
+    /// kappa-1e6 is a free grid with mass m = λ_max/(κ − 1) per node: its softest
+    /// translation has Rayleigh quotient m exactly; sticky nodes stiffen it by orders.
+    #[test]
+    fn softest_translation_is_the_mass_of_a_free_body() {
+        let case = crate::hard::conditioned(crate::hard::Size::Ci, 1e6, false);
+        let h = &case.h;
+        let m = h.values[h.diag_index(0).expect("diagonal") * 9]
+            - (h.row_ptr[0]..h.row_ptr[1])
+                .filter(|&k| h.col_idx[k] != 0)
+                .map(|k| -h.values[k * 9])
+                .sum::<f64>();
+        let lz = softest_translation(h, &case.frames).expect("free body");
+        // m from one row's cancellation (a few ulps of the diagonal, ~1e-10 of m) and λ_Z
+        // from a 3×3 eigenproblem.
+        assert!((lz - m).abs() <= 1e-6 * m, "λ_Z {lz:e} against m {m:e}");
+        let pinned = crate::hard::stiffness_contrast(crate::hard::Size::Ci, 1e4);
+        let lp = softest_translation(&pinned.h, &pinned.frames).expect("free components");
+        assert!(lp > 1e3 * m, "{lp:e}");
     }
 }

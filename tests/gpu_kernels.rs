@@ -7,7 +7,7 @@ use stickslip::coarse::CoarseSpace;
 use stickslip::constraints::{Constraint, ConstraintKind, Frames};
 use stickslip::elimination::{rotate_blocks, ConstrainedDiagonal, Eliminated};
 use stickslip::generate::{random_system, SystemSpec};
-use stickslip::gpu::{GpuParams, GpuSolver, Precision};
+use stickslip::gpu::{DifferenceForm, GpuParams, GpuSolver, Precision};
 use stickslip::springs::MassSpring;
 
 mod common;
@@ -56,7 +56,11 @@ fn matvec_rotation_and_preconditioners_match_cpu() {
             ] {
                 for pc in [Preconditioner::Jacobi, Preconditioner::BlockJacobi] {
                     let prm = GpuParams {
-                        f32_difference: diff,
+                        f32_difference: if diff {
+                            DifferenceForm::On
+                        } else {
+                            DifferenceForm::Off
+                        },
                         ..params(prec, pc)
                     };
                     let mut sol = GpuSolver::new(ctx, &e, &prm).expect("solver");
@@ -100,7 +104,11 @@ fn f32_difference_form_keeps_the_translations() {
         let mut errs = [0.0; 2];
         for (k, diff) in [false, true].into_iter().enumerate() {
             let prm = GpuParams {
-                f32_difference: diff,
+                f32_difference: if diff {
+                    DifferenceForm::On
+                } else {
+                    DifferenceForm::Off
+                },
                 ..params(Precision::F32, Preconditioner::Jacobi)
             };
             let mut sol = GpuSolver::new(ctx, &e, &prm).expect("solver");
@@ -120,6 +128,16 @@ fn f32_difference_form_keeps_the_translations() {
             errs[0]
         );
     }
+    // The default (Auto) turns it on here, and off on a body pinned by sticky nodes, where
+    // it would cost the matvec without keeping anything.
+    let uses = |e: &Eliminated| {
+        let sol = GpuSolver::new(ctx, e, &params(Precision::F32, Preconditioner::Jacobi))
+            .expect("solver");
+        sol.resources().has_buffer("rowsum_f32")
+    };
+    assert!(uses(&e));
+    let pinned = stickslip::hard::stiffness_contrast(stickslip::hard::Size::Ci, 1e4);
+    assert!(!uses(&pinned.eliminated()));
 }
 
 #[test]

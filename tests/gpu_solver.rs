@@ -8,7 +8,7 @@ use stickslip::coarse::CoarseSpace;
 use stickslip::constraints::{Constraint, ConstraintKind, Frames};
 use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::generate::{random_system, ConstraintMix, SystemSpec};
-use stickslip::gpu::{GpuError, GpuParams, GpuSolver, Precision};
+use stickslip::gpu::{DifferenceForm, GpuError, GpuParams, GpuSolver, Precision};
 use stickslip::springs::MassSpring;
 
 mod common;
@@ -178,12 +178,13 @@ fn model_only_what_a_scene_needs() {
     );
     assert!(r.has_buffer("mask"));
     assert!(r.dispatches_of("recover") >= 1);
-    // Defaults: the f32 operator's row sums (difference form) and the coarse E⁺.
-    assert!(r.has_buffer("rowsum_f32") && r.has_buffer("coarse_einv"));
+    // Defaults: the coarse E⁺; no row sums, the difference form being automatic and this
+    // body pinned by a sticky node (it is on for free bodies: tests/gpu_kernels.rs).
+    assert!(r.has_buffer("coarse_einv") && !r.has_buffer("rowsum_f32"));
     // Neither when not asked for.
     let bare = GpuParams {
         coarse: CoarseSpace::None,
-        f32_difference: false,
+        f32_difference: DifferenceForm::Off,
         ..params(Precision::F32, 1e-6, Preconditioner::Jacobi)
     };
     let mut sol2 = GpuSolver::new(ctx, &e, &bare).expect("solver");
@@ -532,7 +533,7 @@ fn mixed_falls_back_to_f64_and_says_so() {
     // positive and mixed leaves f32 on its κ̃ estimate instead.
     let no_coarse = GpuParams {
         coarse: CoarseSpace::None,
-        f32_difference: false,
+        f32_difference: DifferenceForm::Off,
         ..params(Precision::Mixed, tol, Preconditioner::Jacobi)
     };
     for cpu in [false, true] {

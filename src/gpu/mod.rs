@@ -84,6 +84,20 @@ impl std::str::FromStr for Precision {
     }
 }
 
+/// The f32 difference form of the operator (`GpuParams::f32_difference`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum DifferenceForm {
+    Off,
+    /// On where plain f32 blocks would move the softest rigid translation's eigenvalue
+    /// by more than 0.1%: ε_f32·max diag(Ĥ) > 1e-3·λ_Z, λ_Z its Rayleigh quotient
+    /// (`coarse::softest_translation`): free or sliding bodies with large κ. Elsewhere
+    /// it buys nothing and costs the f32 matvec 9–14% on lavapipe.
+    #[default]
+    Auto,
+    On,
+}
+
 /// Parameters of a GPU solve.
 #[derive(Debug, Clone, PartialEq)]
 pub struct GpuParams {
@@ -123,11 +137,11 @@ pub struct GpuParams {
     /// Coarse correction added to the preconditioner, in every level (see
     /// [`crate::coarse`]); the same choice as [`crate::cg::CgParams::coarse`].
     pub coarse: CoarseSpace,
-    /// f32 operators of an assembled Ĥ use the difference form (`shaders/matvec.wgsl`
-    /// `DIFF`: node row sums summed in f64), which keeps the eigenvalues of the rigid
-    /// translations that plain f32 rounding perturbs by κ·ε_f32. Costs one d×d block per
-    /// node; f64 operators never use it.
-    pub f32_difference: bool,
+    /// Whether f32 operators of an assembled Ĥ use the difference form
+    /// (`shaders/matvec.wgsl` `DIFF`: node row sums summed in f64), which keeps the
+    /// eigenvalues of the rigid translations that plain f32 rounding perturbs by
+    /// ε_f32·‖Ĥ‖. See [`DifferenceForm`]; f64 operators never use it.
+    pub f32_difference: DifferenceForm,
 }
 
 impl Default for GpuParams {
@@ -146,7 +160,7 @@ impl Default for GpuParams {
             max_outer: 200,
             error_tol: None,
             coarse: CoarseSpace::default(),
-            f32_difference: true,
+            f32_difference: DifferenceForm::default(),
         }
     }
 }

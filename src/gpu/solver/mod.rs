@@ -26,7 +26,7 @@ mod setup;
 
 pub use info::{BufferRecord, GpuSolveInfo, KernelRecord, KernelTime, Resources, StageSeconds};
 
-use super::{GpuContext, GpuError, GpuParams, Precision};
+use super::{DifferenceForm, GpuContext, GpuError, GpuParams, Precision};
 use crate::cg::{CgError, Preconditioner};
 use crate::coarse::CoarseSpace;
 use crate::constraints::Frames;
@@ -142,6 +142,23 @@ struct Consts {
     coarse: bool,
     /// Difference form of f32 block operators.
     diff: bool,
+}
+
+/// Relative move of the softest translation's eigenvalue above which
+/// [`DifferenceForm::Auto`] turns the difference form on.
+const DIFF_AUTO_THRESHOLD: f64 = 1e-3;
+
+/// Whether the f32 operator of `host` should use the difference form.
+fn wants_difference_form(host: &Host, choice: DifferenceForm) -> bool {
+    let HostOp::Blocks(h) = &host.op else {
+        return false;
+    };
+    match choice {
+        DifferenceForm::Off => false,
+        DifferenceForm::On => true,
+        DifferenceForm::Auto => crate::coarse::softest_translation(h, &host.frames)
+            .is_some_and(|lz| f64::from(f32::EPSILON) * host.diag_max() > DIFF_AUTO_THRESHOLD * lz),
+    }
 }
 
 fn check_params(ctx: &GpuContext, p: &GpuParams) -> Result<(), GpuError> {
@@ -334,7 +351,7 @@ impl GpuSolver {
                 Preconditioner::BlockJacobi => 2.0,
             },
             coarse: params.coarse != CoarseSpace::None,
-            diff: params.f32_difference,
+            diff: inner_real == Real::F32 && wants_difference_form(&host, params.f32_difference),
         };
         let op = build_operator(&mut bld, &shared, &host, inner_real, acc, &consts)?;
         let level = build_level(

@@ -1,0 +1,76 @@
+//! Device time per CG kernel (timestamp queries, best of `reps`) of one generated 3D system
+//! in f64 and f32, with and without the coarse correction and the f32 difference form: what
+//! each option costs per iteration on this adapter.
+//! `cargo run --release --example kernel_ab -- [nodes] [reps] [realistic|none]` (the
+//! constraint mix: slip nodes with rotations, or no constraints at all).
+
+use stickslip::coarse::CoarseSpace;
+use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
+use stickslip::generate::{random_system, ConstraintMix, SystemSpec};
+use stickslip::gpu::{DifferenceForm, GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args: Vec<String> = std::env::args().collect();
+    let nodes: usize = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(64_000);
+    let reps: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(20);
+    let mut spec = SystemSpec::with_nodes(3, nodes, 1);
+    if args.get(3).is_some_and(|m| m == "none") {
+        spec.mix = ConstraintMix::None;
+    }
+    let s = random_system(&spec);
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let ctx = GpuContext::new(&GpuOptions::default())?;
+    println!(
+        "{} nodes, {} rotated, {} constrained DOFs, adapter {}, best of {reps} per kernel (ms)",
+        s.h.n,
+        s.frames.rot_nodes.len(),
+        s.frames.constrained_dofs(),
+        ctx.adapter_name()
+    );
+    println!("| precision | coarse | f32 difference form | matvec | update_xrz | update_p | sum |");
+    println!("|---|---|---|---|---|---|---|");
+    let configs = [
+        (Precision::F64, CoarseSpace::None, false),
+        (Precision::F64, CoarseSpace::Translations, false),
+        (Precision::F32, CoarseSpace::None, false),
+        (Precision::F32, CoarseSpace::None, true),
+        (Precision::F32, CoarseSpace::Translations, true),
+    ];
+    for (precision, coarse, diff) in configs {
+        let params = GpuParams {
+            precision,
+            coarse,
+            f32_difference: if diff {
+                DifferenceForm::On
+            } else {
+                DifferenceForm::Off
+            },
+            ..Default::default()
+        };
+        let mut sol = GpuSolver::new(&ctx, &e, &params)?;
+        let Some(times) = sol.profile_kernels(reps)? else {
+            println!("no timestamp queries on this adapter");
+            return Ok(());
+        };
+        let t = |name: &str| {
+            times
+                .iter()
+                .find(|k| k.name == name)
+                .map_or(f64::NAN, |k| 1e3 * k.best_s)
+        };
+        let (m, x, p) = (t("matvec"), t("update_xrz"), t("update_p"));
+        println!(
+            "| {precision} | {} | {} | {m:.2} | {x:.2} | {p:.2} | {:.2} |",
+            coarse.name(),
+            if precision == Precision::F64 {
+                "—"
+            } else if diff {
+                "on"
+            } else {
+                "off"
+            },
+            m + x + p
+        );
+    }
+    Ok(())
+}
