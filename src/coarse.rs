@@ -278,21 +278,30 @@ fn translations_galerkin_from_blocks(
             None => (0..d).for_each(|a| g[a * d + a] += 1.0),
             Some(qi) => g.iter_mut().zip(&qi[..dd]).for_each(|(ge, qe)| *ge += qe),
         }
+        // Row i's sum first: for a nearly free body its blocks (size ‖K‖) cancel to the
+        // mass term, and summing every block straight into E would carry rounding of
+        // ‖K‖ into an E of size n·m (kappa-1e8-balanced at 81k DOFs: 505 mixed iterations
+        // against 456 with the row sums first, as with matrix-free products).
+        let mut row = [0.0; 9];
         for k in h.row_ptr[i]..h.row_ptr[i + 1] {
             let j = h.col_idx[k];
             let b = h.block(k);
-            // t = B Q_j, u = Q_i t.
+            // t = B Q_j.
             match &q[j] {
                 None => t[..dd].copy_from_slice(b),
                 Some(qj) => mat_mul(d, b, &qj[..dd], &mut t[..dd]),
             }
-            match &q[i] {
-                None => u[..dd].copy_from_slice(&t[..dd]),
-                Some(qi) => mat_mul(d, &qi[..dd], &t[..dd], &mut u[..dd]),
+            for (re, te) in row[..dd].iter_mut().zip(&t[..dd]) {
+                *re += te;
             }
-            for (ee, ue) in e.iter_mut().zip(&u[..dd]) {
-                *ee += ue;
-            }
+        }
+        // u = Q_i row.
+        match &q[i] {
+            None => u[..dd].copy_from_slice(&row[..dd]),
+            Some(qi) => mat_mul(d, &qi[..dd], &row[..dd], &mut u[..dd]),
+        }
+        for (ee, ue) in e.iter_mut().zip(&u[..dd]) {
+            *ee += ue;
         }
     }
     symmetrize(d, &mut e);
