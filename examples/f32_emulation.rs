@@ -17,13 +17,6 @@ const TOL: f64 = 1e-10;
 const DELTA: f64 = 0.1;
 const MAX_ITERS: usize = 20_000;
 
-thread_local! {
-    /// STICKSLIP_EMU_ACC32=1: the matvec sums in f32 like the GPU's kernel (default: f64).
-    static ACC32: std::cell::Cell<bool> = std::cell::Cell::new(
-        std::env::var_os("STICKSLIP_EMU_ACC32").is_some(),
-    );
-}
-
 /// Which quantities are rounded to f32.
 #[derive(Clone, Copy)]
 struct Rounding {
@@ -37,6 +30,8 @@ struct Rounding {
     diff: bool,
     /// Additive coarse correction on the rigid translations: z = D⁻¹r + Z E⁻¹ Zᵀ r.
     coarse: bool,
+    /// The matvec sums in f32 like the GPU's kernel (STICKSLIP_EMU_ACC32=1; default f64).
+    acc32: bool,
 }
 
 impl Rounding {
@@ -65,7 +60,7 @@ fn matvec(h: &BlockCsr, m: &[f64], p: &[f64], rd: Rounding, q: &mut [f64]) {
                         p[j * d + c]
                     };
                     s += m[k * d * d + a * d + c] * pj;
-                    if ACC32.with(|v| v.get()) {
+                    if rd.acc32 {
                         s = rd.v(s);
                     }
                 }
@@ -231,6 +226,7 @@ fn main() {
             Some(m) => m.transpose().iter().copied().collect(),
             None => vec![0.0; d * d],
         };
+        let acc32 = std::env::var_os("STICKSLIP_EMU_ACC32").is_some();
         let run_c = |matrix, vectors, diag64, diff, coarse| {
             show(solve(
                 &h,
@@ -243,6 +239,7 @@ fn main() {
                     diag64,
                     diff,
                     coarse,
+                    acc32,
                 },
             ))
         };

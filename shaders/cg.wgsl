@@ -79,8 +79,8 @@ fn reduce_slot(slot: u32, lid: u32) -> acc {
     return workgroupUniformLoad(&bcast);
 }
 
-// Workgroup tree sums of a and b into partial slots s1 and s2 of this workgroup.
-fn write_pair(lid: u32, wg: u32, s1: u32, s2: u32, a: acc, b: acc) {
+// Workgroup tree sums of r·z and r·r into partial slots 1 and 2 of this workgroup.
+fn write_rz_rr(lid: u32, wg: u32, a: acc, b: acc) {
     sh[lid] = a;
     sh2[lid] = b;
     workgroupBarrier();
@@ -92,20 +92,15 @@ fn write_pair(lid: u32, wg: u32, s1: u32, s2: u32, a: acc, b: acc) {
         workgroupBarrier();
     }
     if (lid == 0u) {
-        partials[s1 * params.n_partials + wg] = sh[0];
-        partials[s2 * params.n_partials + wg] = sh2[0];
+        partials[params.n_partials + wg] = sh[0];
+        partials[2u * params.n_partials + wg] = sh2[0];
     }
 }
 
-// The partials of C and init: r·z and r·r (slots 1, 2) and, with COARSE, Zᵀr (slots
-// 3..3+D) in one tree.
-fn write_partials(lid: u32, wg: u32, prz: acc, prr: acc, zr: vec3<acc>) {
-    if (!COARSE) {
-        write_pair(lid, wg, 1u, 2u, prz, prr);
-        return;
-    }
-    sh4[lid] = vec4<acc>(prz, prr, zr.x, zr.y);
-    sh[lid] = zr.z;
+// COARSE: one workgroup tree over (v, w) per invocation; the sums land in sh4[0], sh[0].
+fn tree4(lid: u32, v: vec4<acc>, w: acc) {
+    sh4[lid] = v;
+    sh[lid] = w;
     workgroupBarrier();
     for (var h = WG / 2u; h > 0u; h = h >> 1u) {
         if (lid < h) {
@@ -114,6 +109,16 @@ fn write_partials(lid: u32, wg: u32, prz: acc, prr: acc, zr: vec3<acc>) {
         }
         workgroupBarrier();
     }
+}
+
+// The partials of C and init: r·z and r·r (slots 1, 2) and, with COARSE, Zᵀr (slots
+// 3..3+D) in one tree.
+fn write_partials(lid: u32, wg: u32, prz: acc, prr: acc, zr: vec3<acc>) {
+    if (!COARSE) {
+        write_rz_rr(lid, wg, prz, prr);
+        return;
+    }
+    tree4(lid, vec4<acc>(prz, prr, zr.x, zr.y), zr.z);
     if (lid == 0u) {
         let np = params.n_partials;
         let v = sh4[0];
@@ -139,16 +144,7 @@ fn reduce_coarse(lid: u32) -> array<acc, 5> {
             w += partials[5u * np + t];
         }
     }
-    sh4[lid] = v;
-    sh[lid] = w;
-    workgroupBarrier();
-    for (var h = WG / 2u; h > 0u; h = h >> 1u) {
-        if (lid < h) {
-            sh4[lid] += sh4[lid + h];
-            sh[lid] += sh[lid + h];
-        }
-        workgroupBarrier();
-    }
+    tree4(lid, v, w);
     if (lid == 0u) {
         bcast4 = sh4[0];
         bcast = sh[0];

@@ -62,6 +62,27 @@ pub struct Coarse {
     pub einv: Vec<f64>,
 }
 
+/// Z_i = P_i V_iᵀ of node i (d×d row-major: row = frame component, column = axis), or
+/// `None` where it is the identity (a free node without rotation).
+fn node_basis(frames: &crate::constraints::Frames, i: usize) -> Option<[f64; 9]> {
+    let d = frames.dim;
+    let mask = frames.mask[i];
+    let v = frames.rotation(i);
+    if mask == 0 && v.is_none() {
+        return None;
+    }
+    let mut m = [0.0; 9];
+    for c in (0..d).filter(|&c| mask & (1 << c) == 0) {
+        for a in 0..d {
+            m[c * d + a] = match v {
+                Some(v) => v[a * d + c],
+                None => f64::from(a == c),
+            };
+        }
+    }
+    Some(m)
+}
+
 /// Relative size below which an eigenvalue of E counts as zero (a translation whose
 /// every component is constrained: its column of Z vanishes).
 const PINV_RTOL: f64 = 1e-12;
@@ -77,23 +98,7 @@ impl Coarse {
     ) -> Option<Self> {
         let d = frames.dim;
         let special = (0..frames.n_nodes)
-            .filter_map(|i| {
-                let mask = frames.mask[i];
-                let v = frames.rotation(i);
-                if mask == 0 && v.is_none() {
-                    return None;
-                }
-                let mut m = [0.0; 9];
-                for c in (0..d).filter(|&c| mask & (1 << c) == 0) {
-                    for a in 0..d {
-                        m[c * d + a] = match v {
-                            Some(v) => v[a * d + c],
-                            None => f64::from(a == c),
-                        };
-                    }
-                }
-                Some((i, m))
-            })
+            .filter_map(|i| node_basis(frames, i).map(|m| (i, m)))
             .collect();
         let mut c = Coarse {
             dim: d,
@@ -246,27 +251,18 @@ fn translations_galerkin_from_blocks(
 ) -> (Vec<f64>, Vec<f64>) {
     let d = h.dim;
     let dd = d * d;
-    // Q_i where it is not the identity.
+    // Q_i = Z_iᵀZ_i = V_i P_i V_iᵀ where Z_i is not the identity.
     let q: Vec<Option<[f64; 9]>> = (0..h.n)
         .map(|i| {
-            let mask = frames.mask[i];
-            let v = frames.rotation(i);
-            if mask == 0 {
-                return None;
-            }
-            let mut out = [0.0; 9];
-            for a in 0..d {
-                for b in 0..d {
-                    out[a * d + b] = (0..d)
-                        .filter(|&c| mask & (1 << c) == 0)
-                        .map(|c| match v {
-                            Some(v) => v[a * d + c] * v[b * d + c],
-                            None => f64::from(a == c && b == c),
-                        })
-                        .sum();
+            node_basis(frames, i).map(|m| {
+                let mut out = [0.0; 9];
+                for a in 0..d {
+                    for b in 0..d {
+                        out[a * d + b] = (0..d).map(|c| m[c * d + a] * m[c * d + b]).sum();
+                    }
                 }
-            }
-            Some(out)
+                out
+            })
         })
         .collect();
     let mut e = vec![0.0; dd];
