@@ -33,14 +33,14 @@ const COL_BITS: u32 = 0x1fffffffu;
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
 @group(0) @binding(2) var<storage, read> col: array<u32>;
-@group(0) @binding(3) var<storage, read> blk_a: array<vec4<real>>;
+@group(0) @binding(3) var<storage, read> blk_a: array<blk4>;
 @group(0) @binding(4) var<storage, read> mask: array<u32>;
 @group(0) @binding(5) var<storage, read> dvals: array<real>;
 @group(0) @binding(6) var<storage, read> p: array<real>;
 @group(0) @binding(7) var<storage, read_write> q: array<real>;
 @group(0) @binding(8) var<storage, read_write> partials: array<acc>;
 @group(0) @binding(9) var<storage, read> state: array<u32>;
-@group(0) @binding(10) var<storage, read> blk_b: array<vec4<real>>;
+@group(0) @binding(10) var<storage, read> blk_b: array<blk4>;
 @group(0) @binding(11) var<storage, read> blk_c: array<real>;
 @group(0) @binding(12) var<storage, read> rowsum: array<real>;
 
@@ -84,8 +84,8 @@ fn row3(i: u32) -> vec3<real> {
         if (DIFF) {
             pj -= pi;
         }
-        let a = blk_a[k];
-        let b = blk_b[k];
+        let a = unpack4(blk_a[k]);
+        let b = unpack4(blk_b[k]);
         let c = blk_c[k];
         s += vec3<real>(a.x, a.w, b.z) * pj.x + vec3<real>(a.y, b.x, b.w) * pj.y
             + vec3<real>(a.z, b.y, c) * pj.z;
@@ -120,7 +120,7 @@ fn row2(i: u32) -> vec2<real> {
         if (DIFF) {
             pj -= pi;
         }
-        let a = blk_a[k];
+        let a = unpack4(blk_a[k]);
         s += a.xz * pj.x + a.yw * pj.y;
     }
     if (DIFF) {

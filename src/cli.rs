@@ -437,13 +437,14 @@ fn info() -> Result<(), CliError> {
     }
     for (k, a) in adapters.iter().enumerate() {
         println!(
-            "adapter {k}: {} ({}, {}; driver {} {}); shader_f64 {}, subgroup {} ({}..{}), timestamp_query {}, max storage binding {} MiB",
+            "adapter {k}: {} ({}, {}; driver {} {}); shader_f64 {}, shader_int64 {}, subgroup {} ({}..{}), timestamp_query {}, max storage binding {} MiB",
             a.name,
             a.backend,
             a.device_type,
             a.driver,
             a.driver_info,
             a.shader_f64,
+            a.shader_int64,
             a.subgroup,
             a.subgroup_min_size,
             a.subgroup_max_size,

@@ -63,10 +63,26 @@ fn matvec_rotation_and_preconditioners_match_cpu() {
                         },
                         ..params(prec, pc)
                     };
+                    // f32 blocks are read as u64 pairs where the device has SHADER_INT64
+                    // and as vec4<f32> where it has not: both paths, same tolerance.
+                    if prec == Precision::F32 {
+                        let plain = ctx.without_int64();
+                        let mut sol = GpuSolver::new(&plain, &e, &prm).expect("solver");
+                        let got = sol.apply_operator(&y).expect("matvec");
+                        let err = max_rel(&got, &want);
+                        assert!(err <= tol, "vec4 matvec {dim}D {prec} seed {seed}: {err:e}");
+                        assert!(sol.resources().kernels.iter().all(|k| !k.packed));
+                    }
                     let mut sol = GpuSolver::new(ctx, &e, &prm).expect("solver");
                     let got = sol.apply_operator(&y).expect("matvec");
                     let err = max_rel(&got, &want);
                     assert!(err <= tol, "matvec {dim}D {prec} seed {seed}: {err:e}");
+                    let packed = sol
+                        .resources()
+                        .kernels
+                        .iter()
+                        .any(|k| k.name == "matvec" && k.packed);
+                    assert_eq!(packed, prec == Precision::F32 && ctx.has_int64());
                     let blocks = sol.rotated_blocks().expect("download").expect("assembled");
                     let err = max_rel(&blocks, &rot.values);
                     assert!(err <= tol, "rotate_blocks {dim}D {prec}: {err:e}");

@@ -376,6 +376,56 @@ fn solves_are_deterministic() {
     assert_eq!(i1.iterations, i2.iterations);
 }
 
+/// The number of workgroups only changes the order of the partial sums: every choice
+/// reaches the tolerance on the same system and reports how many it used (capped at one
+/// per workgroup_size nodes). On a CPU adapter the default is a few per hardware thread.
+#[test]
+fn any_number_of_workgroups_solves_the_same_system() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = random_system(&SystemSpec::with_nodes(3, 1728, 4));
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let (y_ref, _) = reference(&e);
+    let n = e.frames.n_nodes;
+    let cap = n.div_ceil(64) as u32;
+    assert!(cap > 5, "the test needs more nodes than 5 workgroups cover");
+    let default_groups = ctx.workgroups(None) as u32;
+    if ctx.is_cpu() {
+        assert!(default_groups < 256, "CPU adapter default {default_groups}");
+    }
+    let mut iters = Vec::new();
+    for groups in [Some(1), Some(5), Some(256), None] {
+        let prm = GpuParams {
+            workgroups: groups,
+            ..params(Precision::F64, 1e-10, Preconditioner::Jacobi)
+        };
+        let mut sol = GpuSolver::new(ctx, &e, &prm).expect("solver");
+        let (y, _, info) = sol.solve().expect("solve");
+        assert_eq!(
+            info.workgroups,
+            groups.unwrap_or(default_groups).min(cap),
+            "{groups:?}"
+        );
+        // κ(Ĥ) of this system is below 1e3: 1e-10 residual bounds the error by 1e-7.
+        let err = rel_err(&y, &y_ref);
+        assert!(err <= 1e-7, "workgroups {groups:?}: error {err:e}");
+        iters.push(info.iterations);
+    }
+    // Reordered f64 sums perturb CG only at the rounding level.
+    let (lo, hi) = (iters.iter().min(), iters.iter().max());
+    assert!(
+        hi.zip(lo).is_some_and(|(h, l)| h - l <= 2),
+        "iterations {iters:?}"
+    );
+    let bad = GpuParams {
+        workgroups: Some(0),
+        ..params(Precision::F64, 1e-10, Preconditioner::Jacobi)
+    };
+    assert!(matches!(
+        GpuSolver::new(ctx, &e, &bad),
+        Err(GpuError::Unsupported(_))
+    ));
+}
+
 #[test]
 fn matrix_free_springs_solve_like_the_assembled_system() {
     let Some((ctx, _g)) = gpu() else { return };

@@ -32,6 +32,7 @@ pub struct AdapterReport {
     pub driver: String,
     pub driver_info: String,
     pub shader_f64: bool,
+    pub shader_int64: bool,
     pub subgroup: bool,
     pub timestamp_query: bool,
     pub subgroup_min_size: u32,
@@ -57,6 +58,7 @@ fn report(a: &wgpu::Adapter) -> AdapterReport {
         driver: info.driver,
         driver_info: info.driver_info,
         shader_f64: f.contains(wgpu::Features::SHADER_F64),
+        shader_int64: f.contains(wgpu::Features::SHADER_INT64),
         subgroup: f.contains(wgpu::Features::SUBGROUP),
         timestamp_query: f.contains(wgpu::Features::TIMESTAMP_QUERY),
         max_storage_buffers_per_shader_stage: l.max_storage_buffers_per_shader_stage,
@@ -173,8 +175,10 @@ impl GpuContext {
                 })?
             }
         };
-        let wanted =
-            wgpu::Features::SHADER_F64 | wgpu::Features::SUBGROUP | wgpu::Features::TIMESTAMP_QUERY;
+        let wanted = wgpu::Features::SHADER_F64
+            | wgpu::Features::SHADER_INT64
+            | wgpu::Features::SUBGROUP
+            | wgpu::Features::TIMESTAMP_QUERY;
         let features = adapter.features() & wanted;
         let limits = adapter.limits();
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
@@ -214,6 +218,41 @@ impl GpuContext {
 
     pub fn has_f64(&self) -> bool {
         self.features.contains(wgpu::Features::SHADER_F64)
+    }
+
+    /// 64-bit integers in shaders: f32 matvecs then read their blocks as u64 pairs
+    /// (`gpu::kernels::prelude`).
+    pub fn has_int64(&self) -> bool {
+        self.features.contains(wgpu::Features::SHADER_INT64)
+    }
+
+    /// The same device as an adapter without SHADER_INT64 would be used: f32 matvecs
+    /// read their blocks as `vec4<f32>`. For tests of that path on adapters that have it.
+    pub fn without_int64(&self) -> GpuContext {
+        let mut c = self.clone();
+        c.features.remove(wgpu::Features::SHADER_INT64);
+        c
+    }
+
+    /// Whether the adapter is a CPU (lavapipe, WARP, SwiftShader).
+    pub fn is_cpu(&self) -> bool {
+        self.info.device_type == wgpu::DeviceType::Cpu
+    }
+
+    /// The workgroups of the grid-stride CG kernels (`GpuParams::workgroups`): the
+    /// requested number, else 256 on a GPU and 4 per hardware thread (at least 8) on a
+    /// CPU adapter, always within 1..=256 (the partial-sum buffers' size).
+    pub fn workgroups(&self, requested: Option<u32>) -> usize {
+        let n = match requested {
+            Some(n) => n as usize,
+            None if self.is_cpu() => {
+                4 * std::thread::available_parallelism()
+                    .map_or(4, |t| t.get())
+                    .max(2)
+            }
+            None => 256,
+        };
+        n.clamp(1, 256)
     }
 
     pub fn has_timestamps(&self) -> bool {

@@ -17,10 +17,34 @@ pub const RECOVER: &str = include_str!("../../shaders/recover.wgsl");
 pub const REFINE: &str = include_str!("../../shaders/refine.wgsl");
 pub const SPRINGS: &str = include_str!("../../shaders/springs.wgsl");
 
-/// The (real, acc) pairs the solver instantiates.
-pub const PRELUDES: [(&str, &str); 3] = [("f32", "f64"), ("f32", "f32"), ("f64", "f64")];
+/// The (real, acc, packed) triples the solver instantiates; `packed` is f32 blocks read
+/// as u64 pairs (see [`prelude`]).
+pub const PRELUDES: [(&str, &str, bool); 5] = [
+    ("f32", "f64", false),
+    ("f32", "f32", false),
+    ("f32", "f64", true),
+    ("f32", "f32", true),
+    ("f64", "f64", false),
+];
 
-/// The prelude of a kernel instance: the scalar-type aliases and the shared declarations.
-pub fn prelude(real: &str, acc: &str) -> String {
-    format!("alias real = {real};\nalias acc = {acc};\n{COMMON}\n")
+/// The prelude of a kernel instance: the scalar-type aliases, the block-load type
+/// `blk4` with its `unpack4`, and the shared declarations.
+///
+/// `packed` (f32 only, needs SHADER_INT64) reads four f32 block entries as two u64:
+/// the bytes are the same as a `vec4<f32>`, so no writer changes. Why: llvmpipe
+/// (lavapipe) loads a storage vector one component at a time in a loop over the SIMD
+/// lanes, whatever the component's width, so halving the components read per block
+/// is what makes an f32 matvec cheaper than an f64 one there; on a GPU both are one
+/// 16-byte load.
+pub fn prelude(real: &str, acc: &str, packed: bool) -> String {
+    let blk = if packed {
+        "alias blk4 = vec2<u64>;\n\
+         fn unpack4(v: vec2<u64>) -> vec4<f32> {\n\
+         \x20   return bitcast<vec4<f32>>(vec4<u32>(u32(v.x), u32(v.x >> 32u), u32(v.y), u32(v.y >> 32u)));\n\
+         }\n"
+            .to_string()
+    } else {
+        format!("alias blk4 = vec4<{real}>;\nfn unpack4(v: vec4<{real}>) -> vec4<{real}> {{ return v; }}\n")
+    };
+    format!("alias real = {real};\nalias acc = {acc};\n{blk}{COMMON}\n")
 }

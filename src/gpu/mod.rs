@@ -118,6 +118,14 @@ pub struct GpuParams {
     pub max_chunk: usize,
     /// Workgroup size (power of two, 32..=256).
     pub workgroup_size: u32,
+    /// Workgroups of the grid-stride CG kernels (matvec, update_xrz, update_p), which is
+    /// also the number of partial sums each reduction leaves; fewer when the system has
+    /// fewer workgroups' worth of nodes. None: 256 on a GPU; on a CPU adapter (lavapipe)
+    /// 4 per hardware thread, at least 8. Why fewer there: every workgroup of the update
+    /// kernels re-reduces all partials through barrier trees, and llvmpipe runs barriers
+    /// as coroutine switches, about 4 µs per workgroup and kernel; with 256 workgroups
+    /// that was 40% of an f64 CG iteration at 27k nodes on a 2-core machine.
+    pub workgroups: Option<u32>,
     /// Mixed: reliable-update factor δ. The f32 CG's recurrence residual is replaced by
     /// the true residual, recomputed in f64, each time it has dropped by δ (CG then goes on
     /// with its search direction kept). Smaller δ means fewer f64 products but more drift
@@ -156,6 +164,7 @@ impl Default for GpuParams {
             first_chunk: 8,
             max_chunk: 256,
             workgroup_size: 64,
+            workgroups: None,
             inner_tol: 0.1,
             max_outer: 200,
             error_tol: None,

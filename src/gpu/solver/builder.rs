@@ -191,8 +191,13 @@ impl<'a> Builder<'a> {
     ) -> Result<Kernel, GpuError> {
         let dev = &self.ctx.device;
         let key = (file.to_string(), real.name(), acc.name());
+        let packed = real == Real::F32 && self.ctx.has_int64();
         if !self.modules.contains_key(&key) {
-            let code = format!("{}{}", kernels::prelude(real.name(), acc.name()), src);
+            let code = format!(
+                "{}{}",
+                kernels::prelude(real.name(), acc.name(), packed),
+                src
+            );
             let m = dev.create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some(&format!("{file} ({}/{})", real.name(), acc.name())),
                 source: wgpu::ShaderSource::Wgsl(code.into()),
@@ -244,6 +249,7 @@ impl<'a> Builder<'a> {
             entry: entry.to_string(),
             real: real.name().to_string(),
             acc: acc.name().to_string(),
+            packed,
             constants: constants.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
         });
         Ok(Kernel {

@@ -19,6 +19,8 @@ pub struct KernelRecord {
     pub entry: String,
     pub real: String,
     pub acc: String,
+    /// f32 blocks read as u64 pairs (`gpu::kernels::prelude`; f32 with SHADER_INT64).
+    pub packed: bool,
     pub constants: Vec<(String, f64)>,
 }
 
@@ -91,6 +93,9 @@ pub struct GpuSolveInfo {
     /// The same over gpu_seconds.
     pub achieved_gb_per_s_gpu: Option<f64>,
     pub dispatches_per_iteration: usize,
+    /// Workgroups of each CG kernel dispatch (`GpuParams::workgroups`, at most one per
+    /// `workgroup_size` nodes).
+    pub workgroups: u32,
     /// Status and result read-backs of this solve.
     pub readbacks: usize,
     /// Mixed: why the solve fell back to f64 CG and where that ran (None: it did not).

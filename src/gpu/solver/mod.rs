@@ -178,6 +178,13 @@ fn check_params(ctx: &GpuContext, p: &GpuParams) -> Result<(), GpuError> {
             ctx.limits.max_compute_workgroup_size_x
         )));
     }
+    if let Some(g) = p.workgroups {
+        if !(1..=256).contains(&g) {
+            return Err(GpuError::Unsupported(format!(
+                "workgroups {g} (expected 1..=256: the partial sums of a reduction)"
+            )));
+        }
+    }
     // Written to reject NaN too.
     if !(p.tol > 0.0 && p.tol.is_finite()) || p.first_chunk == 0 || p.max_chunk < p.first_chunk {
         return Err(GpuError::Unsupported(
@@ -265,7 +272,8 @@ impl GpuSolver {
                 "{n} nodes need more than {max_groups} workgroups of {wg}"
             )));
         }
-        let n_partials = (n.div_ceil(wg as usize)).clamp(1, 256) as u32;
+        let n_partials =
+            (n.div_ceil(wg as usize)).clamp(1, ctx.workgroups(params.workgroups)) as u32;
         let masked = f.has_constraints();
         let rotated = f.has_rotation();
         let acc = if ctx.has_f64() { Real::F64 } else { Real::F32 };
@@ -725,6 +733,7 @@ impl GpuSolver {
             },
             achieved_gb_per_s_gpu: gpu_seconds.filter(|&s| s > 0.0).map(|s| moved / s / 1e9),
             dispatches_per_iteration: 3,
+            workgroups: self.n_partials,
             readbacks: self.readbacks,
             fallback: self.last_fallback.clone(),
             error_estimate: self.last_error_estimate,
