@@ -3,7 +3,8 @@
 //! (best of `reps` after a warm-up, so machine noise hits every configuration alike):
 //! `cargo run --release --example hard_case -- NAME [scale] [tol] [reps]`.
 //! `STICKSLIP_NO_DIFF=1` turns the f32 difference form off (`GpuParams::f32_difference`);
-//! `STICKSLIP_INNER_TOL=δ` sets mixed precision's reliable-update factor.
+//! `STICKSLIP_INNER_TOL=δ` sets mixed precision's reliable-update factor;
+//! `STICKSLIP_WORKGROUPS=n` the workgroups of the CG kernels (`GpuParams::workgroups`).
 
 use stickslip::coarse::CoarseSpace;
 use stickslip::gpu::{DifferenceForm, GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
@@ -20,6 +21,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(GpuParams::default().inner_tol);
+    let workgroups = std::env::var("STICKSLIP_WORKGROUPS")
+        .ok()
+        .and_then(|s| s.parse().ok());
     let size = if scale <= 1 {
         Size::Ci
     } else {
@@ -50,6 +54,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 DifferenceForm::Off
             },
             inner_tol,
+            workgroups,
             ..Default::default()
         };
         solvers.push(GpuSolver::new(&ctx, &e, &params)?);
@@ -73,12 +78,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for (k, (precision, coarse)) in configs.iter().enumerate() {
         let Some(info) = &last[k] else { continue };
         println!(
-            "  {precision:<5} coarse {:<12} {:>6} iterations ({:>2} segments)  {:>8.3} s  {:>6.2} ms/iteration  residual {:.2e}  κ̃ {}  fallback {:?}",
+            "  {precision:<5} coarse {:<12} {:>6} iterations ({:>2} segments, {} recorded, {} read-backs)  {:>8.3} s  {:>6.2} ms/iteration (device {})  residual {:.2e}  κ̃ {}  fallback {:?}",
             coarse.name(),
             info.iterations,
             info.outer_refinements,
+            info.recorded_iterations,
+            info.readbacks,
             best[k],
             1e3 * best[k] / info.iterations.max(1) as f64,
+            info.gpu_seconds.map_or("—".to_string(), |s| format!(
+                "{:.2} ms/iteration",
+                1e3 * s / info.iterations.max(1) as f64
+            )),
             info.relative_residual,
             info.condition_estimate
                 .map_or("—".to_string(), |k| format!("{k:.2e}")),

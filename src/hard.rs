@@ -920,7 +920,7 @@ pub fn table_markdown(rows: &[TableRow]) -> String {
 }
 
 /// Timed solves per solver in [`mixed_speed`] (after one warm-up solve).
-pub const SPEED_REPS: usize = 3;
+pub const SPEED_REPS: usize = 5;
 
 /// One case of [`mixed_speed`]: best solve seconds, iterations and relative error of GPU
 /// f64 CG and of mixed precision (None for a failed solve).

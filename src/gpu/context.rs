@@ -240,13 +240,13 @@ impl GpuContext {
     }
 
     /// The workgroups of the grid-stride CG kernels (`GpuParams::workgroups`): the
-    /// requested number, else 256 on a GPU and 4 per hardware thread (at least 8) on a
+    /// requested number, else 256 on a GPU and 8 per hardware thread (at least 16) on a
     /// CPU adapter, always within 1..=256 (the partial-sum buffers' size).
     pub fn workgroups(&self, requested: Option<u32>) -> usize {
         let n = match requested {
             Some(n) => n as usize,
             None if self.is_cpu() => {
-                4 * std::thread::available_parallelism()
+                8 * std::thread::available_parallelism()
                     .map_or(4, |t| t.get())
                     .max(2)
             }

@@ -121,7 +121,7 @@ pub struct GpuParams {
     /// Workgroups of the grid-stride CG kernels (matvec, update_xrz, update_p), which is
     /// also the number of partial sums each reduction leaves; fewer when the system has
     /// fewer workgroups' worth of nodes. None: 256 on a GPU; on a CPU adapter (lavapipe)
-    /// 4 per hardware thread, at least 8. Why fewer there: every workgroup of the update
+    /// 8 per hardware thread. Why fewer there: every workgroup of the update
     /// kernels re-reduces all partials through barrier trees, and llvmpipe runs barriers
     /// as coroutine switches, about 4 µs per workgroup and kernel; with 256 workgroups
     /// that was 40% of an f64 CG iteration at 27k nodes on a 2-core machine.
