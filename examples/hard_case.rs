@@ -73,7 +73,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!(
         "{name}: {} DOFs, tol {tol:e}, best of {reps}, f32 difference form {}",
         case.ndof(),
-        if diff { "on" } else { "off" }
+        if diff { "auto" } else { "off" }
     );
     for (k, (precision, coarse)) in configs.iter().enumerate() {
         let Some(info) = &last[k] else { continue };

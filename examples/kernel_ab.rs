@@ -3,6 +3,7 @@
 //! each option costs per iteration on this adapter.
 //! `cargo run --release --example kernel_ab -- [nodes] [reps] [realistic|none]` (the
 //! constraint mix: slip nodes with rotations, or no constraints at all).
+//! `STICKSLIP_WORKGROUPS=n` sets the workgroups of the CG kernels (`GpuParams::workgroups`).
 
 use stickslip::coarse::CoarseSpace;
 use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
@@ -20,12 +21,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let s = random_system(&spec);
     let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
     let ctx = GpuContext::new(&GpuOptions::default())?;
+    let workgroups: Option<u32> = std::env::var("STICKSLIP_WORKGROUPS")
+        .ok()
+        .and_then(|s| s.parse().ok());
     println!(
-        "{} nodes, {} rotated, {} constrained DOFs, adapter {}, best of {reps} per kernel (ms)",
+        "{} nodes, {} rotated, {} constrained DOFs, adapter {}, {} workgroups, best of {reps} per kernel (ms)",
         s.h.n,
         s.frames.rot_nodes.len(),
         s.frames.constrained_dofs(),
-        ctx.adapter_name()
+        ctx.adapter_name(),
+        ctx.workgroups(workgroups)
     );
     println!("| precision | coarse | f32 difference form | matvec | update_xrz | update_p | sum |");
     println!("|---|---|---|---|---|---|---|");
@@ -45,6 +50,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             } else {
                 DifferenceForm::Off
             },
+            workgroups,
             ..Default::default()
         };
         let mut sol = GpuSolver::new(&ctx, &e, &params)?;
