@@ -241,7 +241,7 @@ impl GpuContext {
 
     /// The workgroups of the grid-stride CG kernels (`GpuParams::workgroups`): the
     /// requested number, else 256 on a GPU and 8 per hardware thread (at least 16) on a
-    /// CPU adapter, always within 1..=256 (the partial-sum buffers' size).
+    /// CPU adapter, always within 1..=[`super::MAX_WORKGROUPS`].
     pub fn workgroups(&self, requested: Option<u32>) -> usize {
         let n = match requested {
             Some(n) => n as usize,
@@ -250,9 +250,9 @@ impl GpuContext {
                     .map_or(4, |t| t.get())
                     .max(2)
             }
-            None => 256,
+            None => super::MAX_WORKGROUPS as usize,
         };
-        n.clamp(1, 256)
+        n.clamp(1, super::MAX_WORKGROUPS as usize)
     }
 
     pub fn has_timestamps(&self) -> bool {

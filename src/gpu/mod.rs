@@ -98,6 +98,10 @@ pub enum DifferenceForm {
     On,
 }
 
+/// Upper bound of the workgroups of the grid-stride CG kernels (`GpuParams::workgroups`),
+/// and so of the partial sums one reduction leaves: the partial-sum buffers hold this many.
+pub const MAX_WORKGROUPS: u32 = 256;
+
 /// Parameters of a GPU solve.
 #[derive(Debug, Clone, PartialEq)]
 pub struct GpuParams {
@@ -120,7 +124,8 @@ pub struct GpuParams {
     pub workgroup_size: u32,
     /// Workgroups of the grid-stride CG kernels (matvec, update_xrz, update_p), which is
     /// also the number of partial sums each reduction leaves; fewer when the system has
-    /// fewer workgroups' worth of nodes. None: 256 on a GPU; on a CPU adapter (lavapipe)
+    /// fewer workgroups' worth of nodes; 1..=[`MAX_WORKGROUPS`]. None: 256 on a GPU; on a
+    /// CPU adapter (lavapipe)
     /// 8 per hardware thread. Why fewer there: every workgroup of the update
     /// kernels re-reduces all partials through barrier trees, and llvmpipe runs barriers
     /// as coroutine switches, about 4 µs per workgroup and kernel; with 256 workgroups

@@ -7,7 +7,7 @@ use super::builder::{plane_buffers, plane_widths, Bind, Builder, Kernel, Real, S
 use super::host::{Host, HostOp};
 use super::{Consts, LANCZOS_HIST, N_STATE, SCAL_LEN};
 use crate::cg::Preconditioner;
-use crate::gpu::{kernels, GpuContext, GpuError};
+use crate::gpu::{kernels, GpuContext, GpuError, MAX_WORKGROUPS};
 
 pub(super) enum OpData {
     Blocks {
@@ -347,11 +347,11 @@ pub(super) fn build_level(
             STORAGE,
         )?),
     };
-    let g = host.ndof().div_ceil(c.wg as usize).clamp(1, 256) as u64;
-    // n_partials is computed from nodes, not DOFs; allocate for the larger bound. Slots:
-    // p·q, r·z, r·r, and with the coarse correction d more for Zᵀr.
+    // One partial per workgroup and slot, sized for the most workgroups. Slots: p·q, r·z,
+    // r·r, and with the coarse correction d more for Zᵀr.
     let slots = if c.coarse { 3 + d } else { 3 };
-    let partials = bld.buffer("partials", slots * g.max(256) * acc.size(), STORAGE)?;
+    let g = u64::from(MAX_WORKGROUPS);
+    let partials = bld.buffer("partials", slots * g * acc.size(), STORAGE)?;
     let einv = if c.coarse {
         Some(bld.buffer("coarse_einv", d * d * acc.size(), STORAGE)?)
     } else {
@@ -543,9 +543,9 @@ pub(super) fn build_refine(
     let b64 = bld.buffer("b_f64", nd * 8, STORAGE)?;
     let y64 = bld.buffer("y_f64", nd * 8, STORAGE)?;
     let q64 = bld.buffer("q_f64", nd * 8, STORAGE)?;
-    let partials64 = bld.buffer("partials_f64", 256 * 8, STORAGE)?;
+    let partials64 = bld.buffer("partials_f64", u64::from(MAX_WORKGROUPS) * 8, STORAGE)?;
     let zero_state = bld.buffer("refine_state", 4 * N_STATE as u64, STORAGE)?;
-    let staging = bld.staging("refine_staging", 256 * 8)?;
+    let staging = bld.staging("refine_staging", u64::from(MAX_WORKGROUPS) * 8)?;
     let factors = bld.buffer("refine_factors_f64", 2 * 8, STORAGE)?;
     let consts = [("D", c.d), ("WG", c.wg)];
     let binds = [Uniform, Ro, Rw, Rw, Rw, Ro, Rw, Ro];

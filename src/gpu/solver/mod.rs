@@ -26,7 +26,7 @@ mod setup;
 
 pub use info::{BufferRecord, GpuSolveInfo, KernelRecord, KernelTime, Resources, StageSeconds};
 
-use super::{DifferenceForm, GpuContext, GpuError, GpuParams, Precision};
+use super::{DifferenceForm, GpuContext, GpuError, GpuParams, Precision, MAX_WORKGROUPS};
 use crate::cg::{CgError, Preconditioner};
 use crate::coarse::CoarseSpace;
 use crate::constraints::Frames;
@@ -179,9 +179,9 @@ fn check_params(ctx: &GpuContext, p: &GpuParams) -> Result<(), GpuError> {
         )));
     }
     if let Some(g) = p.workgroups {
-        if !(1..=256).contains(&g) {
+        if !(1..=MAX_WORKGROUPS).contains(&g) {
             return Err(GpuError::Unsupported(format!(
-                "workgroups {g} (expected 1..=256: the partial sums of a reduction)"
+                "workgroups {g} (expected 1..={MAX_WORKGROUPS}: the partial sums of a reduction)"
             )));
         }
     }
