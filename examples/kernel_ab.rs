@@ -32,14 +32,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ctx.adapter_name(),
         ctx.workgroups(workgroups)
     );
-    println!("| precision | coarse | f32 difference form | matvec | update_xrz | update_p | sum |");
-    println!("|---|---|---|---|---|---|---|");
+    println!("| precision | coarse | f32 difference form | matvec | update_xrz | update_p | coarse_restrict + coarse_solve | sum |");
+    println!("|---|---|---|---|---|---|---|---|");
     let configs = [
         (Precision::F64, CoarseSpace::None, false),
         (Precision::F64, CoarseSpace::Translations, false),
+        (Precision::F64, CoarseSpace::Aggregates, false),
         (Precision::F32, CoarseSpace::None, false),
         (Precision::F32, CoarseSpace::None, true),
         (Precision::F32, CoarseSpace::Translations, true),
+        (Precision::F32, CoarseSpace::Aggregates, false),
     ];
     for (precision, coarse, diff) in configs {
         let params = GpuParams {
@@ -62,11 +64,19 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             times
                 .iter()
                 .find(|k| k.name == name)
-                .map_or(f64::NAN, |k| 1e3 * k.best_s)
+                .map_or(0.0, |k| 1e3 * k.best_s)
         };
         let (m, x, p) = (t("matvec"), t("update_xrz"), t("update_p"));
+        let c = t("coarse_restrict") + t("coarse_solve");
+        if c > 0.0 {
+            eprintln!(
+                "restrict {:.2} ms, solve {:.2} ms",
+                t("coarse_restrict"),
+                t("coarse_solve")
+            );
+        }
         println!(
-            "| {precision} | {} | {} | {m:.2} | {x:.2} | {p:.2} | {:.2} |",
+            "| {precision} | {} | {} | {m:.2} | {x:.2} | {p:.2} | {c:.2} | {:.2} |",
             coarse.name(),
             if precision == Precision::F64 {
                 "—"
@@ -75,7 +85,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             } else {
                 "off"
             },
-            m + x + p
+            m + x + p + c
         );
     }
     Ok(())

@@ -27,6 +27,11 @@ override HIST: u32 = 0u;      // Lanczos coefficients recorded per run (0: none)
 // C and init write the partials of r·M⁻¹r and Zᵀr; A reduces them, forms c = E⁺Zᵀr and
 // ρ = r·M⁻¹r + Zᵀr·c, and adds Z_i c to p. z holds M⁻¹r only.
 override COARSE: bool = false;
+// Coarse correction on the translations of N_AGG aggregates (coarse.wgsl): C and init
+// write r·M⁻¹r only; the restrict and solve dispatches that follow them leave w = Zᵀr and
+// c = E⁺w in `wc`, and A adds w·c to ρ and Z_i c_{agg(i)} to p.
+override AGG: bool = false;
+override N_AGG: u32 = 1u;
 override MASKED: bool = false;
 override ROTATED: bool = false;
 
@@ -48,8 +53,11 @@ const SCAL_HIST: u32 = 8u;
 @group(0) @binding(12) var<storage, read> rot_index: array<u32>;
 @group(0) @binding(13) var<storage, read> rotations: array<real>;
 @group(0) @binding(14) var<storage, read> einv: array<acc>;
+@group(0) @binding(15) var<storage, read> agg_of: array<u32>;
+@group(0) @binding(16) var<storage, read> wc: array<acc>;
 
 const NO_ROTATION: u32 = 0xffffffffu;
+const NO_AGGREGATE: u32 = 0xffffffffu;
 
 var<workgroup> sh: array<acc, WG_MAX>;
 var<workgroup> sh2: array<acc, WG_MAX>;
@@ -152,6 +160,27 @@ fn reduce_coarse(lid: u32) -> array<acc, 5> {
     let a = workgroupUniformLoad(&bcast4);
     let b = workgroupUniformLoad(&bcast);
     return array<acc, 5>(a.x, a.y, a.z, a.w, b);
+}
+
+// AGG: w·c = Zᵀr·E⁺Zᵀr from coarse.wgsl's output, identical in every workgroup.
+fn wc_dot(lid: u32) -> acc {
+    let kc = D * N_AGG;
+    var s = acc(0.0);
+    for (var t = lid; t < kc; t += WG) {
+        s += wc[t] * wc[kc + t];
+    }
+    sh[lid] = s;
+    workgroupBarrier();
+    for (var h = WG / 2u; h > 0u; h = h >> 1u) {
+        if (lid < h) {
+            sh[lid] += sh[lid + h];
+        }
+        workgroupBarrier();
+    }
+    if (lid == 0u) {
+        bcast = sh[0];
+    }
+    return workgroupUniformLoad(&bcast);
 }
 
 // Component a of node i is constrained (bit a of its mask).
@@ -288,7 +317,10 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
     var rr: acc;
     // Coarse coefficients c = E⁺Zᵀr (zero without COARSE).
     var cc = vec3<acc>(acc(0.0));
-    if (!COARSE) {
+    if (AGG) {
+        rz = reduce_slot(1u, lid.x) + wc_dot(lid.x);
+        rr = reduce_slot(2u, lid.x);
+    } else if (!COARSE) {
         rz = reduce_slot(1u, lid.x);
         rr = reduce_slot(2u, lid.x);
     } else {
@@ -340,7 +372,29 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
         }
     }
     let stride = params.n_partials * WG;
-    if (!COARSE) {
+    if (AGG) {
+        let kc = D * N_AGG;
+        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
+            let g = agg_of[i];
+            var c = vec3<real>(real(0.0));
+            if (g != NO_AGGREGATE) {
+                let o = kc + g * D;
+                c = vec3<real>(real(wc[o]), real(wc[o + 1u]), real(wc[o + D - 1u]));
+            }
+            if (D == 3u) {
+                let k = 3u * i;
+                let zv = vec3<real>(z[k], z[k + 1u], z[k + 2u]) + zc3(i, c);
+                p[k] = zv.x + beta * p[k];
+                p[k + 1u] = zv.y + beta * p[k + 1u];
+                p[k + 2u] = zv.z + beta * p[k + 2u];
+            } else {
+                let k = 2u * i;
+                let zv = vec2<real>(z[k], z[k + 1u]) + zc2(i, c.xy);
+                p[k] = zv.x + beta * p[k];
+                p[k + 1u] = zv.y + beta * p[k + 1u];
+            }
+        }
+    } else if (!COARSE) {
         let n = params.n_nodes * D;
         for (var k = wid.x * WG + lid.x; k < n; k += stride) {
             p[k] = z[k] + beta * p[k];

@@ -21,6 +21,10 @@ override MASKED: bool = true;  // false: the scene has no constraints, no maskin
 // K·(translation) = 0 by ε_f32·‖K‖, which moves the small eigenvalue of a nearly free body
 // (its mass) by κ·ε_f32; in this form the rounded operator still maps a translation t to
 // S t (to f32 accuracy), so the near-null modes keep their eigenvalues (STABILITY.md).
+// A smooth mode v gives terms of size ‖Ĥ‖·|v_j − v_i| that cancel to its small eigenvalue;
+// rounding each term's sum to f32 would put ε_f32‖Ĥ‖|v_j − v_i| noise back on every
+// row, so the row is summed in `acc` (f64 where the device has it), which keeps the
+// bending modes of a stiffness-dominated body too, not only its translations.
 // Only on rows whose node and neighbours are unrotated: differences are taken in each
 // node's frame, so next to a rotated slip node a translation's p̄_j − p̄_i is not zero and
 // those rows keep the plain f32 error.
@@ -67,6 +71,9 @@ fn p2(j: u32) -> vec2<real> {
 // Row i, D = 3, accumulated as columns of the block: Σ_k B_k p_j (DIFF: see above).
 fn row3(i: u32) -> vec3<real> {
     var s = vec3<real>(real(0.0));
+    // DIFF: the row is summed in `acc` (products of two f32 are exact in f64), so the
+    // form's small terms are not rounded to f32 one by one (see DIFF above).
+    var sa = vec3<acc>(acc(0.0));
     var pi = vec3<real>(real(0.0));
     if (DIFF) {
         pi = p3(i);
@@ -87,22 +94,30 @@ fn row3(i: u32) -> vec3<real> {
         let a = unpack4(blk_a[k]);
         let b = unpack4(blk_b[k]);
         let c = blk_c[k];
-        s += vec3<real>(a.x, a.w, b.z) * pj.x + vec3<real>(a.y, b.x, b.w) * pj.y
-            + vec3<real>(a.z, b.y, c) * pj.z;
+        if (DIFF) {
+            sa += vec3<acc>(vec3<real>(a.x, a.w, b.z)) * acc(pj.x) + vec3<acc>(vec3<real>(a.y, b.x, b.w)) * acc(pj.y)
+                + vec3<acc>(vec3<real>(a.z, b.y, c)) * acc(pj.z);
+        } else {
+            s += vec3<real>(a.x, a.w, b.z) * pj.x + vec3<real>(a.y, b.x, b.w) * pj.y
+                + vec3<real>(a.z, b.y, c) * pj.z;
+        }
     }
     if (DIFF) {
         let m = 9u * i;
-        s += vec3<real>(
-            rowsum[m] * pi.x + rowsum[m + 1u] * pi.y + rowsum[m + 2u] * pi.z,
-            rowsum[m + 3u] * pi.x + rowsum[m + 4u] * pi.y + rowsum[m + 5u] * pi.z,
-            rowsum[m + 6u] * pi.x + rowsum[m + 7u] * pi.y + rowsum[m + 8u] * pi.z,
+        let pa = vec3<acc>(pi);
+        sa += vec3<acc>(
+            acc(rowsum[m]) * pa.x + acc(rowsum[m + 1u]) * pa.y + acc(rowsum[m + 2u]) * pa.z,
+            acc(rowsum[m + 3u]) * pa.x + acc(rowsum[m + 4u]) * pa.y + acc(rowsum[m + 5u]) * pa.z,
+            acc(rowsum[m + 6u]) * pa.x + acc(rowsum[m + 7u]) * pa.y + acc(rowsum[m + 8u]) * pa.z,
         );
+        s = vec3<real>(sa);
     }
     return s;
 }
 
 fn row2(i: u32) -> vec2<real> {
     var s = vec2<real>(real(0.0));
+    var sa = vec2<acc>(acc(0.0));
     var pi = vec2<real>(real(0.0));
     if (DIFF) {
         pi = p2(i);
@@ -121,11 +136,20 @@ fn row2(i: u32) -> vec2<real> {
             pj -= pi;
         }
         let a = unpack4(blk_a[k]);
-        s += a.xz * pj.x + a.yw * pj.y;
+        if (DIFF) {
+            sa += vec2<acc>(a.xz) * acc(pj.x) + vec2<acc>(a.yw) * acc(pj.y);
+        } else {
+            s += a.xz * pj.x + a.yw * pj.y;
+        }
     }
     if (DIFF) {
         let m = 4u * i;
-        s += vec2<real>(rowsum[m] * pi.x + rowsum[m + 1u] * pi.y, rowsum[m + 2u] * pi.x + rowsum[m + 3u] * pi.y);
+        let pa = vec2<acc>(pi);
+        sa += vec2<acc>(
+            acc(rowsum[m]) * pa.x + acc(rowsum[m + 1u]) * pa.y,
+            acc(rowsum[m + 2u]) * pa.x + acc(rowsum[m + 3u]) * pa.y,
+        );
+        s = vec2<real>(sa);
     }
     return s;
 }

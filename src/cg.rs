@@ -233,6 +233,7 @@ impl BuiltPreconditioner {
                 let mut work = vec![0.0; 2 * e.ndof()];
                 Coarse::translations(e.frames, node_scale, |v, out| e.apply(v, out, &mut work))
             }
+            CoarseSpace::Aggregates => Coarse::aggregates(e.h, e.frames, node_scale),
         };
         self
     }

@@ -81,8 +81,9 @@ pub struct BenchArgs {
     /// (6·scale)³ nodes).
     #[arg(long, default_value_t = 3, value_parser = hard_scale)]
     pub hard_scale: usize,
-    /// Coarse correction of every CG, CPU and GPU: none or translations [default:
-    /// translations; with --hard and no --coarse the f64-vs-mixed timing runs both].
+    /// Coarse correction of every CG, CPU and GPU: aggregates, translations or none
+    /// [default: aggregates; with --hard and no --coarse the f64-vs-mixed timing runs
+    /// aggregates and translations].
     #[arg(long)]
     pub coarse: Option<CoarseSpace>,
 }
@@ -266,10 +267,11 @@ pub struct SolveArgs {
     /// Iterative solvers: none, jacobi or block-jacobi.
     #[arg(long, default_value = "jacobi")]
     pub preconditioner: Preconditioner,
-    /// Iterative solvers: coarse correction added to the preconditioner, none or
-    /// translations (the d rigid translations solved exactly: a free or sliding body's
-    /// slowest modes; see README "Solver options").
-    #[arg(long, default_value = "translations")]
+    /// Iterative solvers: coarse correction added to the preconditioner: aggregates (the
+    /// translations of each aggregate of about 64 nodes, at most 128 aggregates: a body's
+    /// smooth modes), translations (the d rigid translations only) or none; see README
+    /// "Solver options".
+    #[arg(long, default_value = "aggregates")]
     pub coarse: CoarseSpace,
     /// The diagonal D on constrained components of Ĥ.
     #[arg(long, value_enum, default_value_t = DiagonalArg::Identity)]
@@ -911,7 +913,7 @@ fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
     if a.hard {
         let coarse = match a.coarse {
             Some(c) => vec![c],
-            None => vec![CoarseSpace::Translations, CoarseSpace::None],
+            None => vec![CoarseSpace::Aggregates, CoarseSpace::Translations],
         };
         let md = crate::bench::run_hard(a.out.as_deref(), a.no_gpu, a.hard_scale, &coarse)
             .map_err(|e| CliError::Failed(format!("bench --hard: {e}")))?;

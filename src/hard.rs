@@ -763,10 +763,16 @@ pub fn table(
                 err.to_string(),
             )),
         }
-        // Default coarse correction (translations) unless the name says "no coarse".
+        // Default coarse correction (aggregates) unless the name says otherwise.
         for (name, pc, scaling, coarse) in [
             (
                 "cg jacobi",
+                Preconditioner::Jacobi,
+                Scaling::None,
+                CoarseSpace::Aggregates,
+            ),
+            (
+                "cg jacobi translations",
                 Preconditioner::Jacobi,
                 Scaling::None,
                 CoarseSpace::Translations,
@@ -781,19 +787,19 @@ pub fn table(
                 "cg block-jacobi",
                 Preconditioner::BlockJacobi,
                 Scaling::None,
-                CoarseSpace::Translations,
+                CoarseSpace::Aggregates,
             ),
             (
                 "cg none",
                 Preconditioner::None,
                 Scaling::None,
-                CoarseSpace::Translations,
+                CoarseSpace::Aggregates,
             ),
             (
                 "cg none+scaling",
                 Preconditioner::None,
                 Scaling::NodeDiagonal,
-                CoarseSpace::Translations,
+                CoarseSpace::Aggregates,
             ),
         ] {
             let tol = 1e-10;
@@ -830,15 +836,16 @@ pub fn table(
         }
         let Some(ctx) = gpu else { continue };
         for (precision, tol, error_tol, coarse) in [
-            (Precision::F32, 1e-5, None, CoarseSpace::Translations),
-            (Precision::F64, 1e-10, None, CoarseSpace::Translations),
+            (Precision::F32, 1e-5, None, CoarseSpace::Aggregates),
+            (Precision::F64, 1e-10, None, CoarseSpace::Aggregates),
+            (Precision::Mixed, 1e-10, None, CoarseSpace::Aggregates),
             (Precision::Mixed, 1e-10, None, CoarseSpace::Translations),
             (Precision::Mixed, 1e-10, None, CoarseSpace::None),
             (
                 Precision::Mixed,
                 1e-10,
                 Some(1e-10),
-                CoarseSpace::Translations,
+                CoarseSpace::Aggregates,
             ),
         ] {
             let params = GpuParams {
@@ -849,10 +856,10 @@ pub fn table(
                 coarse,
                 ..Default::default()
             };
-            let suffix = if coarse == CoarseSpace::None {
-                " no coarse"
-            } else {
-                ""
+            let suffix = match coarse {
+                CoarseSpace::None => " no coarse",
+                CoarseSpace::Translations => " translations",
+                CoarseSpace::Aggregates => "",
             };
             let name = match error_tol {
                 Some(et) => format!("gpu {precision} error_tol {et:.0e}{suffix}"),

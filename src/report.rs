@@ -39,7 +39,7 @@ pub struct CholeskyReport {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct CgReport {
     pub preconditioner: String,
-    /// The coarse correction added to it ("none" or "translations").
+    /// The coarse correction added to it ("aggregates", "translations" or "none").
     pub coarse: String,
     pub tol: f64,
     pub max_iters: usize,

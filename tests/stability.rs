@@ -140,6 +140,8 @@ fn cpu_cg_claims_are_honest_both_ways() {
     for p in SUITE.iter() {
         let e = p.case.eliminated();
         for (pc, coarse) in [
+            (Preconditioner::Jacobi, CoarseSpace::Aggregates),
+            (Preconditioner::BlockJacobi, CoarseSpace::Aggregates),
             (Preconditioner::Jacobi, CoarseSpace::Translations),
             (Preconditioner::Jacobi, CoarseSpace::None),
             (Preconditioner::BlockJacobi, CoarseSpace::Translations),
@@ -266,20 +268,21 @@ fn gpu_sweep(ctx: &GpuContext) -> Vec<String> {
     let mut mixed_misses = Vec::new();
     for p in SUITE.iter() {
         let e = p.case.eliminated();
-        // The default coarse correction (translations), and mixed without it: claims
-        // must be honest either way.
+        // The default coarse correction (aggregates), mixed with the translations only and
+        // without any: claims must be honest every way.
         for (precision, tol, error_tol, coarse) in [
-            (Precision::F32, 1e-5, None, CoarseSpace::Translations),
-            (Precision::F64, 1e-10, None, CoarseSpace::Translations),
+            (Precision::F32, 1e-5, None, CoarseSpace::Aggregates),
+            (Precision::F64, 1e-10, None, CoarseSpace::Aggregates),
+            (Precision::Mixed, 1e-11, None, CoarseSpace::Aggregates),
             (Precision::Mixed, 1e-11, None, CoarseSpace::Translations),
             (Precision::Mixed, 1e-11, None, CoarseSpace::None),
             (
                 Precision::Mixed,
                 1e-11,
                 Some(MIXED_ERROR_TOL),
-                CoarseSpace::Translations,
+                CoarseSpace::Aggregates,
             ),
-            (Precision::Mixed, 1e-20, None, CoarseSpace::Translations),
+            (Precision::Mixed, 1e-20, None, CoarseSpace::Aggregates),
         ] {
             let params = GpuParams {
                 precision,

@@ -89,10 +89,14 @@ impl std::str::FromStr for Precision {
 #[serde(rename_all = "kebab-case")]
 pub enum DifferenceForm {
     Off,
-    /// On where plain f32 blocks would move the softest rigid translation's eigenvalue
-    /// by more than 0.1%: ε_f32·max diag(Ĥ) > 1e-3·λ_Z, λ_Z its Rayleigh quotient
-    /// (`coarse::softest_translation`): free or sliding bodies with large κ. Elsewhere
-    /// it buys nothing and costs the f32 matvec 9–14% on lavapipe.
+    /// On wherever the device has SHADER_F64, where the form sums each row in f64 (the
+    /// products of two f32 are exact there), so it keeps every smooth mode, not only the
+    /// translations, and costs the f32 matvec about 5% on lavapipe: on dt-1e2 with the
+    /// aggregate coarse space mixed needs 273 iterations with it against f64's 265, and
+    /// 331 without it (STABILITY.md). On an f32-only device, whose form sums in f32 and
+    /// keeps only the translations, it is on where plain f32 blocks would move the softest
+    /// rigid translation's eigenvalue by more than 0.1%: ε_f32·max diag(Ĥ) > 1e-3·λ_Z,
+    /// λ_Z its Rayleigh quotient (`coarse::softest_translation`).
     #[default]
     Auto,
     On,

@@ -126,7 +126,8 @@ pub struct SolverSpec {
     pub cg_max_iterations: usize,
     #[serde(default)]
     pub preconditioner: Preconditioner,
-    /// CG and GPU: coarse correction on the rigid translations ("none" or "translations").
+    /// CG and GPU: coarse correction added to the preconditioner ("aggregates", the
+    /// default, "translations" or "none").
     #[serde(default)]
     pub coarse: CoarseSpace,
     /// GPU arithmetic.

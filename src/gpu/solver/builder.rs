@@ -279,7 +279,16 @@ impl<'a> Builder<'a> {
 }
 
 /// Type-independent data of the system on the device.
+/// The aggregates of the coarse correction (coarse.wgsl): each node's aggregate, and the
+/// nodes of each aggregate as offsets and a list.
+pub(super) struct AggBuffers {
+    pub(super) of_node: wgpu::Buffer,
+    pub(super) ptr: wgpu::Buffer,
+    pub(super) nodes: wgpu::Buffer,
+}
+
 pub(super) struct Shared {
+    pub(super) agg: Option<AggBuffers>,
     pub(super) params: wgpu::Buffer,
     /// Block pattern (assembled) or spring adjacency (matrix-free), columns packed with masks.
     pub(super) row_ptr: wgpu::Buffer,

@@ -67,8 +67,10 @@ pub struct StageSeconds {
 pub struct GpuSolveInfo {
     pub adapter: String,
     pub precision: Precision,
-    /// The coarse correction added to the preconditioner ("none" or "translations", with
-    /// a remark when every translation is constrained and the correction adds nothing).
+    /// The coarse correction added to the preconditioner ("aggregates (count)",
+    /// "translations" or "none", with a remark when every translation is constrained and
+    /// the correction adds nothing; matrix-free springs get "translations" for
+    /// aggregates, whose E needs H's blocks).
     pub coarse: String,
     /// Whether the f32 operator ran in difference form (f32 and mixed, assembled Ĥ).
     pub f32_difference: bool,

@@ -38,7 +38,8 @@ impl GpuSolver {
     /// Device time per CG kernel in seconds (fastest and mean of `reps` iterations; the
     /// fastest is the figure least disturbed by other load on a shared CPU adapter), from timestamp
     /// queries around each dispatch in its own compute pass: `matvec` (or `spring_matvec`),
-    /// `update_xrz`, `update_p`, and for mixed precision the f64 `matvec_f64` and
+    /// `update_xrz`, with aggregates `coarse_restrict` and `coarse_solve`, `update_p`, and
+    /// for mixed precision the f64 `matvec_f64` and
     /// `residual`. Runs from y = 0 without a stopping test; `None` without TIMESTAMP_QUERY.
     pub fn profile_kernels(&mut self, reps: usize) -> Result<Option<Vec<KernelTime>>, GpuError> {
         let Some(period) = self.timestamps.as_ref().map(|t| t.period_ns) else {
@@ -51,7 +52,7 @@ impl GpuSolver {
         }
         self.start(false, -1.0)?;
         let dev = &self.ctx.device;
-        let n_q = 10u32;
+        let n_q = 14u32;
         let set = dev.create_query_set(&wgpu::QuerySetDescriptor {
             label: Some("profile timestamps"),
             ty: wgpu::QueryType::Timestamp,
@@ -70,11 +71,15 @@ impl GpuSolver {
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let mut names: Vec<String> = vec![
-            self.level.op.matvec.name.to_string(),
-            "update_xrz".into(),
-            "update_p".into(),
-        ];
+        let mut names: Vec<String> =
+            vec![self.level.op.matvec.name.to_string(), "update_xrz".into()];
+        let mut steps = vec![Which::MatvecP, Which::UpdateXrz];
+        if self.level.agg.is_some() {
+            names.extend(["coarse_restrict".into(), "coarse_solve".into()]);
+            steps.extend([Which::Restrict, Which::CoarseSolve]);
+        }
+        names.push("update_p".into());
+        steps.push(Which::UpdateP);
         if self.refine.as_ref().is_some_and(|r| r.op.is_some()) {
             names.push(format!("{}_f64", self.level.op.matvec.name));
             names.push("residual".into());
@@ -98,7 +103,7 @@ impl GpuSolver {
                 })
                 .forget_lifetime()
             };
-            for which in [Which::MatvecP, Which::UpdateXrz, Which::UpdateP] {
+            for &which in &steps {
                 let mut pass = pass_for(&mut enc, &mut slot);
                 self.dispatch(&mut pass, which, g);
             }

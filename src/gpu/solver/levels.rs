@@ -50,8 +50,11 @@ pub(super) struct Level {
     pub(super) minv: wgpu::Buffer,
     pub(super) scal: wgpu::Buffer,
     pub(super) state: wgpu::Buffer,
-    /// Coarse correction: E⁺ (d×d, accumulator type) of this level's operator.
+    /// Coarse correction: E⁺ (k×k, accumulator type) of this level's operator.
     pub(super) einv: Option<wgpu::Buffer>,
+    /// Aggregate coarse correction: the restrict and solve kernels (coarse.wgsl), their
+    /// bind group.
+    pub(super) agg: Option<(Kernel, Kernel, wgpu::BindGroup)>,
     pub(super) k_update_p: Kernel,
     pub(super) k_update_xrz: Kernel,
     pub(super) k_init: Kernel,
@@ -352,8 +355,15 @@ pub(super) fn build_level(
     let slots = if c.coarse { 3 + d } else { 3 };
     let g = u64::from(MAX_WORKGROUPS);
     let partials = bld.buffer("partials", slots * g * acc.size(), STORAGE)?;
-    let einv = if c.coarse {
-        Some(bld.buffer("coarse_einv", d * d * acc.size(), STORAGE)?)
+    let kc = d * u64::from(c.agg.max(1));
+    let einv = if c.coarse || c.agg > 0 {
+        Some(bld.buffer("coarse_einv", kc * kc * acc.size(), STORAGE)?)
+    } else {
+        None
+    };
+    // Aggregates: w = Zᵀr and c = E⁺w.
+    let wc = if c.agg > 0 {
+        Some(bld.buffer("coarse_wc", 2 * kc * acc.size(), STORAGE)?)
     } else {
         None
     };
@@ -369,11 +379,13 @@ pub(super) fn build_level(
         ("PRECOND", c.precond),
         ("HIST", LANCZOS_HIST as f64),
         ("COARSE", flag(c.coarse)),
+        ("AGG", flag(c.agg > 0)),
+        ("N_AGG", f64::from(c.agg.max(1))),
         ("MASKED", flag(c.masked)),
         ("ROTATED", flag(c.rotated)),
     ];
     let cg_binds = [
-        Uniform, Rw, Rw, Rw, Rw, Ro, Ro, Ro, Rw, Rw, Rw, Ro, Ro, Ro, Ro,
+        Uniform, Rw, Rw, Rw, Rw, Ro, Ro, Ro, Rw, Rw, Rw, Ro, Ro, Ro, Ro, Ro, Ro,
     ];
     let k_update_p = bld.kernel(
         "update_p",
@@ -425,8 +437,60 @@ pub(super) fn build_level(
             sh.rot_index.as_ref().unwrap_or(&sh.placeholder),
             op.rotations.as_ref().unwrap_or(&sh.placeholder),
             einv.as_ref().unwrap_or(&sh.placeholder),
+            sh.agg.as_ref().map_or(&sh.placeholder, |a| &a.of_node),
+            wc.as_ref().unwrap_or(&sh.placeholder),
         ],
     );
+    let agg = match (&sh.agg, &wc, &einv) {
+        (Some(ab), Some(wc), Some(einv)) => {
+            let consts = [
+                ("D", c.d),
+                ("WG", c.wg),
+                ("MASKED", flag(c.masked)),
+                ("ROTATED", flag(c.rotated)),
+                ("N_AGG", f64::from(c.agg)),
+            ];
+            let binds = [Uniform, Ro, Ro, Ro, Ro, Ro, Ro, Ro, Ro, Rw];
+            let k_restrict = bld.kernel(
+                "coarse_restrict",
+                "coarse.wgsl",
+                kernels::COARSE,
+                real,
+                acc,
+                "restrict_r",
+                &binds,
+                &consts,
+            )?;
+            let k_solve = bld.kernel(
+                "coarse_solve",
+                "coarse.wgsl",
+                kernels::COARSE,
+                real,
+                acc,
+                "solve",
+                &binds,
+                &consts,
+            )?;
+            let bg = bld.bind(
+                &k_restrict,
+                "coarse bind group",
+                &[
+                    &sh.params,
+                    &r,
+                    &state,
+                    sh.mask_or(),
+                    sh.rot_index.as_ref().unwrap_or(&sh.placeholder),
+                    op.rotations.as_ref().unwrap_or(&sh.placeholder),
+                    &ab.ptr,
+                    &ab.nodes,
+                    einv,
+                    wc,
+                ],
+            );
+            Some((k_restrict, k_solve, bg))
+        }
+        _ => None,
+    };
     let bg_mv_p = bind_operator(
         bld,
         sh,
@@ -519,6 +583,7 @@ pub(super) fn build_level(
         scal,
         state,
         einv,
+        agg,
         k_update_p,
         k_update_xrz,
         k_init,
@@ -741,6 +806,18 @@ pub(super) fn bytes_per_iteration(
     // of the rotated nodes, where there are any.
     let mut coarse = 0;
     if c.coarse {
+        if c.masked {
+            coarse += 2 * n * 4;
+        }
+        if c.rotated {
+            coarse += 2 * (n * 4 + host.frames.rotations.len() as u64 * s);
+        }
+    }
+    // Aggregates: restrict reads r, the node lists, the mask and rotations; solve reads
+    // E⁺ (k² values); update_p reads each node's aggregate and the mask again.
+    if c.agg > 0 {
+        let kc = d * u64::from(c.agg);
+        coarse += nd * s + 2 * n * 4 + kc * kc * level.acc.size() + n * 4;
         if c.masked {
             coarse += 2 * n * 4;
         }

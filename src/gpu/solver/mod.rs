@@ -28,12 +28,12 @@ pub use info::{BufferRecord, GpuSolveInfo, KernelRecord, KernelTime, Resources, 
 
 use super::{DifferenceForm, GpuContext, GpuError, GpuParams, Precision, MAX_WORKGROUPS};
 use crate::cg::{CgError, Preconditioner};
-use crate::coarse::CoarseSpace;
+use crate::coarse::{Aggregation, CoarseSpace};
 use crate::constraints::Frames;
 use crate::elimination::{norm2, Eliminated};
 use crate::sparse::BlockCsr;
 use crate::springs::MassSpring;
-use builder::{u32s, Builder, Real, Shared};
+use builder::{u32s, AggBuffers, Builder, Real, Shared};
 use host::{spring_adjacency, spring_rhs, Host, HostOp};
 use levels::{
     blocks_fit, build_level, build_operator, build_recovery, build_refine, bytes_per_iteration,
@@ -123,8 +123,10 @@ pub struct GpuSolver {
     last_rho_prev: f64,
     /// Size of the first chunk of the next `run_cg` (mixed: the previous segment's length).
     chunk_hint: Option<usize>,
-    /// E⁺ of the coarse correction (d×d, for Ĥ itself), when it is on.
+    /// E⁺ of the coarse correction (k×k, for Ĥ itself), when it is on.
     coarse_einv: Option<Vec<f64>>,
+    /// The aggregates of `--coarse aggregates` (assembled Ĥ only).
+    aggregation: Option<Aggregation>,
     /// r·r where the next `run_cg` starts, when known (mixed: 1, the unit right-hand side
     /// with x = 0): the first point of its rate history, so the chunk after the first is
     /// predicted instead of doubled.
@@ -138,8 +140,11 @@ struct Consts {
     masked: bool,
     rotated: bool,
     precond: f64,
-    /// Coarse correction on the translations in every CG level.
+    /// Coarse correction on the rigid translations in every CG level (fused into the
+    /// CG reductions).
     coarse: bool,
+    /// Coarse correction on the translations of this many aggregates (coarse.wgsl); 0: off.
+    agg: u32,
     /// Difference form of f32 block operators.
     diff: bool,
 }
@@ -149,13 +154,14 @@ struct Consts {
 const DIFF_AUTO_THRESHOLD: f64 = 1e-3;
 
 /// Whether the f32 operator of `host` should use the difference form.
-fn wants_difference_form(host: &Host, choice: DifferenceForm) -> bool {
+fn wants_difference_form(host: &Host, choice: DifferenceForm, acc: Real) -> bool {
     let HostOp::Blocks(h) = &host.op else {
         return false;
     };
     match choice {
         DifferenceForm::Off => false,
         DifferenceForm::On => true,
+        DifferenceForm::Auto if acc == Real::F64 => true,
         DifferenceForm::Auto => crate::coarse::softest_translation(h, &host.frames)
             .is_some_and(|lz| f64::from(f32::EPSILON) * host.diag_max() > DIFF_AUTO_THRESHOLD * lz),
     }
@@ -321,7 +327,27 @@ impl GpuSolver {
                 )
             }
         };
+        // Aggregates need H's blocks (E from one pass over them): matrix-free springs keep
+        // the rigid translations. No aggregate (every node fixed): no correction.
+        let aggregation = match (&host.op, params.coarse) {
+            (HostOp::Blocks(h), CoarseSpace::Aggregates) => {
+                Some(Aggregation::build(h, f)).filter(|a| a.count > 0)
+            }
+            _ => None,
+        };
+        let agg_buffers = match &aggregation {
+            Some(a) => {
+                let (ptr, nodes) = a.lists();
+                Some(AggBuffers {
+                    of_node: bld.storage("aggregate_of_node", &u32s(a.of_node.iter().copied()))?,
+                    ptr: bld.storage("aggregate_ptr", &u32s(ptr))?,
+                    nodes: bld.storage("aggregate_nodes", &u32s(nodes))?,
+                })
+            }
+            None => None,
+        };
         let shared = Shared {
+            agg: agg_buffers,
             params: params_buf,
             row_ptr,
             col,
@@ -358,8 +384,11 @@ impl GpuSolver {
                 Preconditioner::Jacobi => 1.0,
                 Preconditioner::BlockJacobi => 2.0,
             },
-            coarse: params.coarse != CoarseSpace::None,
-            diff: inner_real == Real::F32 && wants_difference_form(&host, params.f32_difference),
+            coarse: params.coarse == CoarseSpace::Translations
+                || (params.coarse == CoarseSpace::Aggregates && aggregation.is_none()),
+            agg: aggregation.as_ref().map_or(0, |a| a.count as u32),
+            diff: inner_real == Real::F32
+                && wants_difference_form(&host, params.f32_difference, acc),
         };
         let op = build_operator(&mut bld, &shared, &host, inner_real, acc, &consts)?;
         let level = build_level(
@@ -475,6 +504,7 @@ impl GpuSolver {
             chunk_hint: None,
             start_rr: None,
             coarse_einv: None,
+            aggregation,
             last_error_estimate: None,
             assembled: None,
             last_scal: vec![0.0; SCAL_LEN],
@@ -706,10 +736,13 @@ impl GpuSolver {
         let info = GpuSolveInfo {
             adapter: self.ctx.info.name.clone(),
             precision: self.params.precision,
-            coarse: match &self.coarse_einv {
-                Some(e) if e.iter().all(|&v| v == 0.0) => {
-                    "translations (inactive: every translation is constrained)".into()
-                }
+            coarse: match (&self.coarse_einv, &self.aggregation) {
+                (Some(e), _) if e.iter().all(|&v| v == 0.0) => format!(
+                    "{} (inactive: every translation is constrained)",
+                    self.params.coarse.name()
+                ),
+                (_, Some(a)) => format!("aggregates ({})", a.count),
+                _ if self.consts.coarse => "translations".into(),
                 _ => self.params.coarse.name().into(),
             },
             f32_difference: self.level.op.rowsum.is_some(),

@@ -34,6 +34,23 @@ impl GpuSolver {
             Which::Init => (&self.level.k_init, &self.level.bg_cg),
             Which::MatvecP => (&self.level.op.matvec, &self.level.bg_mv_p),
             Which::MatvecX => (&self.level.op.matvec, &self.level.bg_mv_x),
+            Which::Restrict | Which::CoarseSolve => {
+                let Some((kr, ks, bg)) = &self.level.agg else {
+                    return;
+                };
+                let (k, groups) = if matches!(which, Which::Restrict) {
+                    (kr, groups.min(self.consts.agg))
+                } else {
+                    let rows = self.dim as u32 * self.consts.agg;
+                    (ks, groups.min(rows.div_ceil(self.wg)))
+                };
+                pass.set_pipeline(&k.pipeline);
+                pass.set_bind_group(0, bg, &[]);
+                pass.dispatch_workgroups(groups.max(1), 1, 1);
+                let name = k.name;
+                self.record(name);
+                return;
+            }
         };
         pass.set_pipeline(&k.pipeline);
         pass.set_bind_group(0, bg, &[]);
@@ -97,6 +114,8 @@ impl GpuSolver {
                 self.dispatch(&mut pass, Which::MatvecX, g);
             }
             self.dispatch(&mut pass, Which::Init, g);
+            self.dispatch(&mut pass, Which::Restrict, g);
+            self.dispatch(&mut pass, Which::CoarseSolve, g);
             self.dispatch(&mut pass, Which::UpdateP, g);
         }
         self.ctx.queue.submit([enc.finish()]);
@@ -126,6 +145,8 @@ impl GpuSolver {
             for _ in 0..k {
                 self.dispatch(&mut pass, Which::MatvecP, g);
                 self.dispatch(&mut pass, Which::UpdateXrz, g);
+                self.dispatch(&mut pass, Which::Restrict, g);
+                self.dispatch(&mut pass, Which::CoarseSolve, g);
                 self.dispatch(&mut pass, Which::UpdateP, g);
             }
         }
@@ -327,6 +348,9 @@ pub(super) enum Which {
     Init,
     MatvecP,
     MatvecX,
+    /// Aggregate coarse correction: w = Zᵀr, then c = E⁺w (no-ops without aggregates).
+    Restrict,
+    CoarseSolve,
 }
 
 pub(super) struct Status {

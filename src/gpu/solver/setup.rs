@@ -6,7 +6,7 @@ use super::builder::{to_planes, Real};
 use super::host::{row_sums, spring_data, spring_diag_blocks, HostOp};
 use super::levels::{Level, OpData, Operator};
 use super::GpuSolver;
-use crate::coarse::{translations_einv_from_blocks, Coarse};
+use crate::coarse::{aggregates_einv_from_blocks, translations_einv_from_blocks, Coarse};
 use crate::gpu::GpuError;
 
 impl GpuSolver {
@@ -69,20 +69,22 @@ impl GpuSolver {
     /// E⁺ of the coarse correction for the current values (zeros when every translation
     /// is constrained: the correction then adds nothing).
     pub(super) fn compute_coarse(&mut self) {
-        if !self.consts.coarse {
+        if !self.consts.coarse && self.consts.agg == 0 {
             return;
         }
         let d = self.host.frames.dim;
-        let einv = match &self.host.op {
+        let k = d * self.aggregation.as_ref().map_or(1, |a| a.count);
+        let einv = match (&self.host.op, &self.aggregation) {
+            (HostOp::Blocks(h), Some(a)) => aggregates_einv_from_blocks(h, &self.host.frames, a),
             // One pass over the blocks (no basis, no products).
-            HostOp::Blocks(h) => translations_einv_from_blocks(h, &self.host.frames),
-            HostOp::Springs(_) => {
+            (HostOp::Blocks(h), None) => translations_einv_from_blocks(h, &self.host.frames),
+            (HostOp::Springs(_), _) => {
                 let frames = self.host.frames.clone();
                 let host = &mut self.host;
                 Coarse::translations(&frames, None, |v, o| host.apply(v, o)).map(|c| c.einv)
             }
         };
-        self.coarse_einv = Some(einv.unwrap_or_else(|| vec![0.0; d * d]));
+        self.coarse_einv = Some(einv.unwrap_or_else(|| vec![0.0; k * k]));
     }
 
     /// Writes E⁺ into a level whose operator is `scale`·Ĥ (its E⁺ is E⁺/scale).
