@@ -73,6 +73,11 @@ fn reduce_slot(slot: u32, lid: u32) -> acc {
     for (var t = lid; t < params.n_partials; t += WG) {
         s += partials[slot * params.n_partials + t];
     }
+    return tree_sum(lid, s);
+}
+
+// The workgroup's sum of every invocation's `s`, returned to all of them.
+fn tree_sum(lid: u32, s: acc) -> acc {
     sh[lid] = s;
     workgroupBarrier();
     for (var h = WG / 2u; h > 0u; h = h >> 1u) {
@@ -169,18 +174,7 @@ fn wc_dot(lid: u32) -> acc {
     for (var t = lid; t < kc; t += WG) {
         s += wc[t] * wc[kc + t];
     }
-    sh[lid] = s;
-    workgroupBarrier();
-    for (var h = WG / 2u; h > 0u; h = h >> 1u) {
-        if (lid < h) {
-            sh[lid] += sh[lid + h];
-        }
-        workgroupBarrier();
-    }
-    if (lid == 0u) {
-        bcast = sh[0];
-    }
-    return workgroupUniformLoad(&bcast);
+    return tree_sum(lid, s);
 }
 
 // Component a of node i is constrained (bit a of its mask).

@@ -275,6 +275,18 @@ fn node_basis(frames: &crate::constraints::Frames, i: usize) -> Option<[f64; 9]>
 /// every component is constrained: its column of Z vanishes).
 const PINV_RTOL: f64 = 1e-12;
 
+/// The nodes whose Z_i is not the identity (constrained or rotated), with Z_i.
+fn special_nodes(frames: &crate::constraints::Frames) -> Vec<(usize, [f64; 9])> {
+    (0..frames.n_nodes)
+        .filter_map(|i| node_basis(frames, i).map(|m| (i, m)))
+        .collect()
+}
+
+/// 1/s_i per node of an equilibrated system.
+fn inverse_scale(node_scale: Option<&[f64]>) -> Option<Vec<f64>> {
+    node_scale.map(|s| s.iter().map(|v| 1.0 / v).collect())
+}
+
 impl Coarse {
     /// The translations of `frames` (scaled by 1/s_i per node when `node_scale` is given,
     /// for an equilibrated system SĤS), E = ZᵀĤZ with `apply` computing Ĥv. `None` when
@@ -285,14 +297,12 @@ impl Coarse {
         mut apply: impl FnMut(&[f64], &mut [f64]),
     ) -> Option<Self> {
         let d = frames.dim;
-        let special = (0..frames.n_nodes)
-            .filter_map(|i| node_basis(frames, i).map(|m| (i, m)))
-            .collect();
+        let special = special_nodes(frames);
         let mut c = Coarse {
             dim: d,
             n_nodes: frames.n_nodes,
             special,
-            inv_scale: node_scale.map(|s| s.iter().map(|v| 1.0 / v).collect()),
+            inv_scale: inverse_scale(node_scale),
             agg: None,
             einv: Vec::new(),
         };
@@ -311,14 +321,12 @@ impl Coarse {
         node_scale: Option<&[f64]>,
     ) -> Option<Self> {
         let agg = Aggregation::build(h, frames);
-        let inv_scale: Option<Vec<f64>> = node_scale.map(|s| s.iter().map(|v| 1.0 / v).collect());
+        let inv_scale = inverse_scale(node_scale);
         let einv = aggregates_einv(h, frames, &agg, inv_scale.as_deref())?;
         Some(Coarse {
             dim: h.dim,
             n_nodes: h.n,
-            special: (0..frames.n_nodes)
-                .filter_map(|i| node_basis(frames, i).map(|m| (i, m)))
-                .collect(),
+            special: special_nodes(frames),
             inv_scale,
             agg: Some(agg),
             einv,
@@ -373,7 +381,17 @@ impl Coarse {
         let d = self.dim;
         let k = self.k();
         // Zᵀr: the dense pass as if Z_i = s_i⁻¹I, then the special nodes' difference.
-        let mut zr = vec![0.0f64; k];
+        // Zᵀr and c: on the stack for the translations (k ≤ 3), where this runs once per
+        // CG iteration on small systems too; on the heap for aggregates (k ≤ 3·128).
+        let mut small = [0.0f64; 6];
+        let mut big = Vec::new();
+        let buf: &mut [f64] = if 2 * k <= small.len() {
+            &mut small[..2 * k]
+        } else {
+            big.resize(2 * k, 0.0);
+            &mut big
+        };
+        let (zr, cc) = buf.split_at_mut(k);
         for (i, ri) in r.chunks_exact(d).enumerate() {
             let Some(o) = self.offset(i) else { continue };
             let s = self.scale(i);
@@ -389,11 +407,9 @@ impl Coarse {
                 *acc += s * ((0..d).map(|c| m[c * d + a] * ri[c]).sum::<f64>() - ri[a]);
             }
         }
-        let cc: Vec<f64> = self
-            .einv
-            .chunks_exact(k)
-            .map(|row| crate::linalg::dot(row, &zr))
-            .collect();
+        for (ca, row) in cc.iter_mut().zip(self.einv.chunks_exact(k)) {
+            *ca = crate::linalg::dot(row, zr);
+        }
         // z += Z c, the same way round.
         for (i, zi) in z.chunks_exact_mut(d).enumerate() {
             let Some(o) = self.offset(i) else { continue };
