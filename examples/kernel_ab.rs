@@ -2,33 +2,62 @@
 //! in f64 and f32, with and without the coarse correction and the f32 difference form: what
 //! each option costs per iteration on this adapter.
 //! `cargo run --release --example kernel_ab -- [nodes] [reps] [realistic|none]` (the
-//! constraint mix: slip nodes with rotations, or no constraints at all).
+//! constraint mix: slip nodes with rotations, or no constraints at all), or
+//! `kernel_ab -- NAME:SCALE [reps]` for a hard case of src/hard.rs at a grid scale.
 //! `STICKSLIP_WORKGROUPS=n` sets the workgroups of the CG kernels (`GpuParams::workgroups`).
 
 use stickslip::coarse::CoarseSpace;
 use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::generate::{random_system, ConstraintMix, SystemSpec};
 use stickslip::gpu::{DifferenceForm, GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
+use stickslip::hard::{self, Size};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
-    let nodes: usize = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(64_000);
     let reps: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(20);
-    let mut spec = SystemSpec::with_nodes(3, nodes, 1);
-    if args.get(3).is_some_and(|m| m == "none") {
-        spec.mix = ConstraintMix::None;
+    let hard_case = args
+        .get(1)
+        .and_then(|a| a.split_once(':'))
+        .map(|(name, scale)| (name.to_string(), scale.parse::<usize>().unwrap_or(1)));
+    // Either a hard case or a generated system; the eliminated system borrows from it.
+    let mut case = None;
+    let mut generated = None;
+    if let Some((name, scale)) = hard_case {
+        let size = if scale <= 1 {
+            Size::Ci
+        } else {
+            Size::Scale(scale)
+        };
+        let c = hard::suite(size)
+            .into_iter()
+            .find(|c| c.name == name)
+            .ok_or_else(|| format!("no hard case named {name}"))?;
+        println!("hard case {name}, grid scale {scale}, {} DOFs", c.ndof());
+        case = Some(c);
+    } else {
+        let nodes: usize = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(64_000);
+        let mut spec = SystemSpec::with_nodes(3, nodes, 1);
+        if args.get(3).is_some_and(|m| m == "none") {
+            spec.mix = ConstraintMix::None;
+        }
+        generated = Some(random_system(&spec));
     }
-    let s = random_system(&spec);
-    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let (e, n, rotated) = match (&case, &generated) {
+        (Some(c), _) => (c.eliminated(), c.h.n, c.frames.rot_nodes.len()),
+        (None, Some(s)) => (
+            Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity),
+            s.h.n,
+            s.frames.rot_nodes.len(),
+        ),
+        (None, None) => unreachable!("one of the two is built above"),
+    };
     let ctx = GpuContext::new(&GpuOptions::default())?;
     let workgroups: Option<u32> = std::env::var("STICKSLIP_WORKGROUPS")
         .ok()
         .and_then(|s| s.parse().ok());
     println!(
-        "{} nodes, {} rotated, {} constrained DOFs, adapter {}, {} workgroups, best of {reps} per kernel (ms)",
-        s.h.n,
-        s.frames.rot_nodes.len(),
-        s.frames.constrained_dofs(),
+        "{n} nodes, {rotated} rotated, {} free DOFs, adapter {}, {} workgroups, best of {reps} per kernel (ms)",
+        e.ndof(),
         ctx.adapter_name(),
         ctx.workgroups(workgroups)
     );
@@ -42,6 +71,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         (Precision::F32, CoarseSpace::None, true),
         (Precision::F32, CoarseSpace::Translations, true),
         (Precision::F32, CoarseSpace::Aggregates, false),
+        (Precision::F32, CoarseSpace::Aggregates, true),
     ];
     for (precision, coarse, diff) in configs {
         let params = GpuParams {

@@ -78,7 +78,8 @@ pub struct BenchArgs {
     #[arg(long)]
     pub hard: bool,
     /// With --hard: grid scale of the larger cases timing GPU f64 against mixed (1 to 20;
-    /// (6·scale)³ nodes).
+    /// (6·scale)³ nodes; the two cantilever cases also run at twice the scale with the
+    /// first coarse space, where they reach the others' size).
     #[arg(long, default_value_t = 3, value_parser = hard_scale)]
     pub hard_scale: usize,
     /// Coarse correction of every CG, CPU and GPU: aggregates, translations or none

@@ -121,8 +121,12 @@ pub struct GpuSolver {
     assembled: Option<BlockCsr>,
     /// ρ_prev (scal[1]) at the last status read: what a reliable update rescales.
     last_rho_prev: f64,
-    /// Size of the first chunk of the next `run_cg` (mixed: the previous segment's length).
+    /// Size of the first chunk of the next `run_cg` (mixed: the length the previous
+    /// segment's late rate predicts).
     chunk_hint: Option<usize>,
+    /// The fall of ln r·r per iteration over the later half of the last converged run
+    /// (mixed: predicts the next segment's length).
+    last_rate: Option<f64>,
     /// E⁺ of the coarse correction (k×k, for Ĥ itself), when it is on.
     coarse_einv: Option<Vec<f64>>,
     /// The aggregates of `--coarse aggregates` (assembled Ĥ only).
@@ -502,6 +506,7 @@ impl GpuSolver {
             last_fallback: None,
             last_rho_prev: 1.0,
             chunk_hint: None,
+            last_rate: None,
             start_rr: None,
             coarse_einv: None,
             aggregation,
