@@ -677,12 +677,20 @@ pub fn run_hard(
     no_gpu: bool,
     scale: usize,
     coarse: &[CoarseSpace],
+    quiet: bool,
 ) -> Result<String, BenchError> {
     let ctx = if no_gpu {
         None
     } else {
         GpuContext::new(&GpuOptions::default()).ok()
     };
+    // A line per stage and per timed case: the whole run takes minutes (16 at scale 5).
+    let say = |text: &str| {
+        if !quiet {
+            eprintln!("bench --hard: {text}");
+        }
+    };
+    say("the CI-size table, every case, solver and precision");
     let rows =
         crate::hard::table(crate::hard::Size::Ci, ctx.as_ref(), 3000).map_err(BenchError::Solve)?;
     let mut md = format!(
@@ -699,9 +707,29 @@ pub fn run_hard(
         for (k, &cs) in coarse.iter().enumerate() {
             // The cantilevers at twice the scale for the first coarse space only: with the
             // translations, neohookean at 107k DOFs takes minutes per solve.
-            let rows =
-                crate::hard::mixed_speed(crate::hard::Size::Scale(scale), c, 1e-10, cs, k == 0)
-                    .map_err(BenchError::Solve)?;
+            say(&format!(
+                "GPU f64 CG against mixed, coarse {}, grid scale {scale}",
+                cs.name()
+            ));
+            let mut done = |r: &crate::hard::SpeedRow| {
+                let s = |v: Option<f64>| v.map_or("failed".to_string(), |x| format!("{x:.3} s"));
+                say(&format!(
+                    "  {} ({} DOFs): f64 {}, mixed {}",
+                    r.case,
+                    r.dofs,
+                    s(r.f64_seconds),
+                    s(r.mixed_seconds)
+                ));
+            };
+            let rows = crate::hard::mixed_speed(
+                crate::hard::Size::Scale(scale),
+                c,
+                1e-10,
+                cs,
+                k == 0,
+                &mut done,
+            )
+            .map_err(BenchError::Solve)?;
             md.push_str(&format!(
                 "\nGPU f64 CG against mixed precision, both Jacobi with coarse correction \
                  `{}`, to residual tol 1e-10, best of {} solves after a warm-up, grid scale \

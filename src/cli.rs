@@ -916,7 +916,7 @@ fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
             Some(c) => vec![c],
             None => vec![CoarseSpace::Aggregates, CoarseSpace::Translations],
         };
-        let md = crate::bench::run_hard(a.out.as_deref(), a.no_gpu, a.hard_scale, &coarse)
+        let md = crate::bench::run_hard(a.out.as_deref(), a.no_gpu, a.hard_scale, &coarse, quiet)
             .map_err(|e| CliError::Failed(format!("bench --hard: {e}")))?;
         if !quiet {
             println!("{md}");

@@ -950,13 +950,14 @@ pub struct SpeedRow {
 /// GPU f64 CG against mixed precision on larger cases, both Jacobi with the coarse
 /// correction `coarse`, at tolerance `tol`, best of [`SPEED_REPS`] after a warm-up. The
 /// cantilever cases (`neohookean-nu0.49`, `dt-1e2`) run at `size`, and with
-/// `cantilevers_twice` at twice its scale too.
+/// `cantilevers_twice` at twice its scale too. `progress` sees each row when it is done.
 pub fn mixed_speed(
     size: Size,
     ctx: &crate::gpu::GpuContext,
     tol: f64,
     coarse: crate::coarse::CoarseSpace,
     cantilevers_twice: bool,
+    progress: &mut dyn FnMut(&SpeedRow),
 ) -> Result<Vec<SpeedRow>, String> {
     use crate::gpu::{GpuParams, GpuSolver, Precision};
     // The two cantilever cases have a sixth of the others' DOFs at one grid scale, so they
@@ -1029,6 +1030,9 @@ pub fn mixed_speed(
             mixed_error: b.as_ref().map(|v| v.2),
             mixed_fallback: b.and_then(|v| v.3),
         });
+        if let Some(row) = out.last() {
+            progress(row);
+        }
     }
     Ok(out)
 }
