@@ -10,11 +10,7 @@ fn main() {
     let args: Vec<String> = std::env::args().collect();
     let scale: usize = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(1);
     let names = args.get(2..).unwrap_or_default();
-    let size = if scale <= 1 {
-        Size::Ci
-    } else {
-        Size::Scale(scale)
-    };
+    let size = Size::from_scale(scale);
     println!("| case | DOFs | aggregates | none | translations | aggregates | s none | s translations | s aggregates |");
     println!("|---|---|---|---|---|---|---|---|---|");
     for case in hard::suite(size) {

@@ -189,11 +189,7 @@ fn main() {
     let args: Vec<String> = std::env::args().collect();
     let scale: usize = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(1);
     let names = args.get(2..).unwrap_or_default();
-    let size = if scale <= 1 {
-        Size::Ci
-    } else {
-        Size::Scale(scale)
-    };
+    let size = Size::from_scale(scale);
     let show = |v: Option<usize>| v.map_or("fail".to_string(), |i| i.to_string());
     println!("| case | DOFs | f64 | f32 matrix, f32 vectors | f32 matrix, f64 vectors | f64 matrix, f32 vectors | f32 off-diagonal + f64 diagonal blocks, f32 vectors | f32 difference form, f32 vectors | f64 + coarse | f32 + coarse | f32 diff + coarse |");
     println!("|---|---|---|---|---|---|---|---|---|---|---|");

@@ -33,15 +33,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let workgroups = std::env::var("STICKSLIP_WORKGROUPS")
         .ok()
         .and_then(|s| s.parse().ok());
-    let size = if scale <= 1 {
-        Size::Ci
-    } else {
-        Size::Scale(scale)
-    };
-    let case = hard::suite(size)
-        .into_iter()
-        .find(|c| c.name == name)
-        .ok_or_else(|| format!("no hard case named {name}"))?;
+    let size = Size::from_scale(scale);
+    let case = hard::named(size, &name).ok_or_else(|| format!("no hard case named {name}"))?;
     let e = case.eliminated();
     let ctx = GpuContext::new(&GpuOptions::default())?;
     let coarse: CoarseSpace = std::env::var("STICKSLIP_COARSE")

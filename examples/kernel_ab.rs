@@ -23,15 +23,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut case = None;
     let mut generated = None;
     if let Some((name, scale)) = hard_case {
-        let size = if scale <= 1 {
-            Size::Ci
-        } else {
-            Size::Scale(scale)
-        };
-        let c = hard::suite(size)
-            .into_iter()
-            .find(|c| c.name == name)
-            .ok_or_else(|| format!("no hard case named {name}"))?;
+        let size = Size::from_scale(scale);
+        let c = hard::named(size, &name).ok_or_else(|| format!("no hard case named {name}"))?;
         println!("hard case {name}, grid scale {scale}, {} DOFs", c.ndof());
         case = Some(c);
     } else {

@@ -726,6 +726,17 @@ mod tests {
     use super::*;
     use crate::constraints::{Constraint, ConstraintKind, Frames};
 
+    /// CPU CG iterations to 1e-10 with the coarse space `coarse` (default Jacobi).
+    fn cg_iterations(e: &crate::elimination::Eliminated, coarse: CoarseSpace) -> usize {
+        let p = crate::cg::CgParams {
+            tol: 1e-10,
+            max_iters: 20_000,
+            coarse,
+            ..Default::default()
+        };
+        crate::cg::solve(e, &p).expect("converges").1.iterations
+    }
+
     /// E⁺ of an SPD matrix is its inverse; a zero row and column is dropped.
     #[test]
     fn pseudo_inverse_inverts_and_drops_null_modes() {
@@ -799,7 +810,6 @@ mod tests {
     /// f64 CG needs far fewer iterations with it.
     #[test]
     fn correction_finds_sliding_translations_in_rotated_frames() {
-        use crate::cg::{self, CgParams};
         use crate::elimination::{ConstrainedDiagonal, Eliminated};
         let case = crate::hard::conditioned(crate::hard::Size::Ci, 1e6, false);
         let h = &case.h;
@@ -819,15 +829,7 @@ mod tests {
         let frames = Frames::build(3, h.n, &cons).expect("planes");
         assert!(frames.has_rotation());
         let e = Eliminated::new(h, &case.g, &frames, ConstrainedDiagonal::Identity);
-        let its = |coarse| {
-            let p = CgParams {
-                tol: 1e-10,
-                max_iters: 20_000,
-                coarse,
-                ..Default::default()
-            };
-            cg::solve(&e, &p).expect("converges").1.iterations
-        };
+        let its = |coarse| cg_iterations(&e, coarse);
         let (plain, with) = (its(CoarseSpace::None), its(CoarseSpace::Translations));
         eprintln!("sliding body: {plain} iterations without the correction, {with} with");
         // Measured 147 against 91 (0.62); 0.75 leaves room for rounding-order changes.
@@ -983,22 +985,13 @@ mod tests {
     /// than with the rigid translations alone, and kappa-1e6 (a free body) too.
     #[test]
     fn aggregates_cut_the_iterations_of_stiffness_dominated_and_free_bodies() {
-        use crate::cg::{self, CgParams};
         use crate::hard::{self, Size};
         for case in [
             hard::time_step(Size::Scale(3), 1e2),
             hard::conditioned(Size::Scale(2), 1e6, false),
         ] {
             let e = case.eliminated();
-            let its = |coarse| {
-                let p = CgParams {
-                    tol: 1e-10,
-                    max_iters: 20_000,
-                    coarse,
-                    ..Default::default()
-                };
-                cg::solve(&e, &p).expect("converges").1.iterations
-            };
+            let its = |coarse| cg_iterations(&e, coarse);
             let (t, a) = (its(CoarseSpace::Translations), its(CoarseSpace::Aggregates));
             eprintln!("{}: translations {t}, aggregates {a}", case.name);
             // Measured 331 → 229 (dt-1e2) and 272 → 129 (kappa-1e6, Scale(3)); 0.8 leaves

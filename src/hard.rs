@@ -54,6 +54,15 @@ pub enum Size {
 }
 
 impl Size {
+    /// The size of a command-line grid scale: 0 or 1 is the CI size.
+    pub fn from_scale(scale: usize) -> Size {
+        if scale <= 1 {
+            Size::Ci
+        } else {
+            Size::Scale(scale)
+        }
+    }
+
     fn k(self) -> usize {
         match self {
             Size::Ci => 1,
@@ -583,6 +592,11 @@ pub fn suite(size: Size) -> Vec<HardCase> {
         conditioned(size, 1e10, true),
         conditioned(size, 1e12, true),
     ]
+}
+
+/// The case of the suite named `name`, at `size`.
+pub fn named(size: Size, name: &str) -> Option<HardCase> {
+    suite(size).into_iter().find(|c| c.name == name)
 }
 
 /// Extreme eigenvalues (λ_min, λ_max) of Ĥ restricted to the free components, by a dense
