@@ -13,8 +13,8 @@ use crate::cg::{self, BuiltPreconditioner, CgParams, Preconditioner};
 use crate::coarse::CoarseSpace;
 use crate::elimination::{norm2, ConstrainedDiagonal, Eliminated};
 use crate::generate::{random_system, SystemSpec};
-use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
-use crate::oracle::CholeskyOracle;
+use crate::gpu::{GpuContext, GpuOptions, GpuParams, Precision};
+use crate::{LayoutKey, SolveDetails, SolveStats, Solver, SolverConfig, Step};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -315,15 +315,25 @@ fn bench_one(
     // 2. Reference.
     let (reference, ref_name) = if n <= opts.oracle_max_nodes {
         let t = Instant::now();
-        let mut oracle =
-            CholeskyOracle::analyze(&e).map_err(|err| BenchError::Solve(err.to_string()))?;
-        let (y, info) = oracle
-            .solve(&e)
+        let layout = LayoutKey::fresh();
+        let mut oracle = Solver::new(SolverConfig::cholesky())
             .map_err(|err| BenchError::Solve(err.to_string()))?;
+        let mut factor = || match oracle.solve_eliminated(layout, &e) {
+            Ok(Step {
+                y,
+                stats:
+                    SolveStats {
+                        details: SolveDetails::Cholesky(info),
+                        ..
+                    },
+                ..
+            }) => Ok((y, info)),
+            Ok(_) => Err(BenchError::Solve("not a Cholesky solve".into())),
+            Err(err) => Err(BenchError::Solve(err.to_string())),
+        };
+        let (y, info) = factor()?;
         let total = t.elapsed().as_secs_f64();
-        let (_, info2) = oracle
-            .solve(&e)
-            .map_err(|err| BenchError::Solve(err.to_string()))?;
+        let (_, info2) = factor()?;
         // Same phases as the first factorization, analysis skipped.
         let reused = info2.numeric_seconds + info2.solve_seconds;
         debug_assert!(info2.reused_symbolic);
@@ -425,19 +435,37 @@ fn bench_one(
                     coarse: opts.coarse,
                     ..Default::default()
                 };
-                let t = Instant::now();
-                let mut solver = match GpuSolver::new(ctx, &e, &params) {
-                    Ok(s) => s,
-                    Err(err) => {
+                let config = SolverConfig::gpu(precision)
+                    .gpu_params(params)
+                    .gpu_context(ctx.clone());
+                let solved = Solver::new(config)
+                    .and_then(|mut s| s.solve_eliminated(LayoutKey::fresh(), &e));
+                let (dx, info) = match solved {
+                    Ok(Step {
+                        dx,
+                        stats:
+                            SolveStats {
+                                details: SolveDetails::Gpu(info),
+                                seconds,
+                                ..
+                            },
+                        ..
+                    }) => {
+                        r.setup_seconds = seconds.setup;
+                        (dx, Ok(*info))
+                    }
+                    Ok(_) => continue,
+                    // The device could not take this system or precision: no further tolerance will run.
+                    Err(crate::Error::Device(err)) => {
                         r.note = format!("not run: {err}");
                         say(bar, opts.quiet, &line(&r));
                         report.runs.push(r);
                         break;
                     }
+                    Err(err) => (Vec::new(), Err(err)),
                 };
-                r.setup_seconds = t.elapsed().as_secs_f64();
-                match solver.solve() {
-                    Ok((_, dx, info)) => {
+                match info {
+                    Ok(info) => {
                         r.converged = true;
                         r.iterations = info.iterations;
                         r.relative_residual = info.relative_residual;

@@ -5,15 +5,15 @@
 //! subspace, CG did not converge, GPU failure) or a subcommand is not available; 2 bad
 //! input or usage. Every error is exactly one line on stderr.
 
-use crate::cg::{self, CgParams, Preconditioner};
+use crate::cg::Preconditioner;
 use crate::coarse::CoarseSpace;
 use crate::constraints::{node_rows, Constraint, Frames};
-use crate::elimination::{reactions, ConstrainedDiagonal, Eliminated};
-use crate::error::{InputError, SolveError};
+use crate::elimination::{ConstrainedDiagonal, Eliminated};
+use crate::error::{Error, InputError, SolveError};
 use crate::generate::{random_system, ConstraintMix, Stencil, SystemSpec};
 use crate::io::{bcjson, mtx};
-use crate::oracle;
 use crate::report::{CgReport, CholeskyReport, Files, Report, Seconds};
+use crate::{Precision, Problem, SolveDetails, Solver, SolverConfig, SolverKind};
 use clap::{ArgGroup, Args, Parser, Subcommand, ValueEnum};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -94,8 +94,8 @@ pub struct ExportArgs {
     #[command(flatten)]
     pub system: SystemArgs,
     /// The diagonal D on constrained components of Ĥ.
-    #[arg(long, value_enum, default_value_t = DiagonalArg::Identity)]
-    pub constrained_diagonal: DiagonalArg,
+    #[arg(long, value_enum, default_value_t = ConstrainedDiagonal::Identity)]
+    pub constrained_diagonal: ConstrainedDiagonal,
     /// Skip the Matrix Market copies (hhat.mtx, bhat.mtx); PETSc binary only.
     #[arg(long)]
     pub no_mtx: bool,
@@ -124,32 +124,6 @@ pub struct RecoverArgs {
     /// Reactions f = −(HΔx + g): Matrix Market array dn × 1.
     #[arg(long, value_name = "f.mtx")]
     pub reactions: Option<String>,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum SolverKind {
-    /// Sparse Cholesky (faer), f64: the oracle.
-    Cholesky,
-    /// Preconditioned conjugate gradients on the CPU, f64, matrix-free.
-    Cg,
-    /// Conjugate gradients on the GPU (wgpu).
-    Gpu,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum PrecisionArg {
-    F32,
-    F64,
-    /// f32 inner CG inside f64 iterative refinement.
-    Mixed,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum DiagonalArg {
-    /// D = I on the constrained components.
-    Identity,
-    /// D = diag(VᵀHV) on the constrained components (keeps Ĥ's spectrum within VᵀHV's).
-    Hessian,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -253,7 +227,7 @@ pub struct SolveArgs {
     pub solver: SolverKind,
     /// Arithmetic (f32 and mixed need --solver gpu) [default: f64].
     #[arg(long, value_enum)]
-    pub precision: Option<PrecisionArg>,
+    pub precision: Option<Precision>,
     /// Iterative solvers: stop at ‖b̂ − Ĥy‖/‖b̂‖ ≤ tol (the true residual).
     #[arg(long, default_value = "1e-8", value_parser = relative_tol)]
     pub tol: f64,
@@ -275,8 +249,8 @@ pub struct SolveArgs {
     #[arg(long, default_value = "aggregates")]
     pub coarse: CoarseSpace,
     /// The diagonal D on constrained components of Ĥ.
-    #[arg(long, value_enum, default_value_t = DiagonalArg::Identity)]
-    pub constrained_diagonal: DiagonalArg,
+    #[arg(long, value_enum, default_value_t = ConstrainedDiagonal::Identity)]
+    pub constrained_diagonal: ConstrainedDiagonal,
     /// Δx: Matrix Market array dn × 1, 17 significant digits.
     #[arg(long, value_name = "dx.mtx")]
     pub out: String,
@@ -458,62 +432,6 @@ fn info() -> Result<(), CliError> {
     Ok(())
 }
 
-/// What a GPU solve hands back to the pipeline.
-pub struct GpuOutcome {
-    pub y: Vec<f64>,
-    /// Δx as the GPU recovered it.
-    pub dx: Option<Vec<f64>>,
-    pub iterations: usize,
-    pub relative_residual: f64,
-    pub adapter: String,
-    /// The solver's own info (GpuSolveInfo), serialized.
-    pub info: serde_json::Value,
-}
-
-/// The GPU call site, kept in one place. Every GPU failure (no adapter, no SHADER_F64,
-/// a device error, CG not converging) is a solve error: exit 1.
-fn solve_gpu(
-    e: &Eliminated,
-    args: &SolveArgs,
-    precision: PrecisionArg,
-    max_iters: usize,
-) -> Result<GpuOutcome, CliError> {
-    use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
-    let gpu_err = |e: crate::gpu::GpuError| CliError::Solve(SolveError::Gpu(e.to_string()));
-    let ctx = GpuContext::new(&GpuOptions::default()).map_err(gpu_err)?;
-    let params = GpuParams {
-        precision: match precision {
-            PrecisionArg::F32 => Precision::F32,
-            PrecisionArg::F64 => Precision::F64,
-            PrecisionArg::Mixed => Precision::Mixed,
-        },
-        tol: args.tol,
-        max_iters,
-        preconditioner: args.preconditioner,
-        error_tol: args.error_tol,
-        coarse: args.coarse,
-        ..GpuParams::default()
-    };
-    let mut solver = GpuSolver::new(&ctx, e, &params).map_err(gpu_err)?;
-    let (y, dx, info) = solver.solve().map_err(gpu_err)?;
-    Ok(GpuOutcome {
-        iterations: info.iterations,
-        relative_residual: info.relative_residual,
-        adapter: info.adapter.clone(),
-        info: serde_json::to_value(&info).unwrap_or(serde_json::Value::Null),
-        y,
-        dx: Some(dx),
-    })
-}
-
-fn precision_name(p: PrecisionArg) -> &'static str {
-    match p {
-        PrecisionArg::F32 => "f32",
-        PrecisionArg::F64 => "f64",
-        PrecisionArg::Mixed => "mixed",
-    }
-}
-
 /// H, g, the constraints and their frames, read and checked.
 pub struct LoadedSystem {
     pub dim: usize,
@@ -632,20 +550,31 @@ pub fn read_system(sys: &SystemArgs) -> Result<LoadedSystem, CliError> {
 /// `stickslip solve`: read → constraints → frames → eliminate → solve → recover → write.
 pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
     let t_start = Instant::now();
-    let precision = args.precision.unwrap_or(PrecisionArg::F64);
-    if args.solver != SolverKind::Gpu && precision != PrecisionArg::F64 {
+    let precision = args.precision.unwrap_or(Precision::F64);
+    let max_iters = args.max_iters.unwrap_or(crate::solver::DEFAULT_MAX_ITERS);
+    // The configuration is checked before any file is read (f32 on the CPU, --error-tol
+    // without mixed): one line naming the option.
+    let mut config = match args.solver {
+        SolverKind::Cholesky => SolverConfig::cholesky(),
+        SolverKind::Cg => SolverConfig::cg(),
+        SolverKind::Gpu => SolverConfig::gpu(precision),
+    }
+    .tol(args.tol)
+    .max_iters(max_iters)
+    .preconditioner(args.preconditioner)
+    .coarse(args.coarse)
+    .constrained_diagonal(args.constrained_diagonal);
+    config.precision = precision;
+    config.error_tol = args.error_tol;
+    if args.solver != SolverKind::Gpu && precision != Precision::F64 {
         return Err(InputError::new(
             "command line",
             "--precision",
-            format!(
-                "{} needs --solver gpu (cholesky and cg compute in f64)",
-                precision_name(precision)
-            ),
+            format!("{precision} needs --solver gpu (cholesky and cg compute in f64)"),
         )
         .into());
     }
-    if args.error_tol.is_some()
-        && (args.solver != SolverKind::Gpu || precision != PrecisionArg::Mixed)
+    if args.error_tol.is_some() && (args.solver != SolverKind::Gpu || precision != Precision::Mixed)
     {
         return Err(InputError::new(
             "command line",
@@ -654,7 +583,6 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
         )
         .into());
     }
-    let max_iters = args.max_iters.unwrap_or(CgParams::default().max_iters);
 
     // 1–2. Read H, g and the constraints; build the per-node frames.
     let LoadedSystem {
@@ -667,25 +595,25 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
         frames_seconds,
     } = read_system(&args.system)?;
     let n = h.n;
-    let t = Instant::now();
-    // 3. The eliminated system (lengths were checked while reading).
-    let diag = match args.constrained_diagonal {
-        DiagonalArg::Identity => ConstrainedDiagonal::Identity,
-        DiagonalArg::Hessian => ConstrainedDiagonal::Hessian,
-    };
-    let e = Eliminated::new(&h, &g, &frames, diag);
-    let t_setup = frames_seconds + t.elapsed().as_secs_f64();
+    let problem = Problem::from_checked_parts(h, g, constraints, frames);
 
-    // 4. Solve.
+    // 3–5. Eliminate, solve, recover Δx = Δx_p + V y and f = −(HΔx + g). Every GPU
+    // failure (no adapter, no SHADER_F64, a device error) is a solve error: exit 1.
     let t = Instant::now();
+    let mut solver = Solver::new(config).map_err(solve_error)?;
+    let t_open = t.elapsed().as_secs_f64();
+    let sol = solver.solve(&problem).map_err(solve_error)?;
+    let st = &sol.stats;
+    let (dx, f) = (&sol.dx, &sol.reactions);
+    let constraints = problem.constraints();
+    let frames = problem.frames();
+    let violation = constraint_violation(dim, constraints, dx);
     let mut seconds = Seconds::default();
     let mut chol = None;
     let mut cgr = None;
     let mut gpu = None;
-    let mut adapter = None;
-    let (y, dx_gpu, iterations, relative_residual) = match args.solver {
-        SolverKind::Cholesky => {
-            let (y, info) = oracle::solve(&e)?;
+    match &st.details {
+        SolveDetails::Cholesky(info) => {
             seconds.symbolic = Some(info.symbolic_seconds);
             seconds.numeric = Some(info.numeric_seconds);
             seconds.triangular = Some(info.solve_seconds);
@@ -694,17 +622,8 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
                 factor_nnz: info.factor_nnz,
                 reused_symbolic: info.reused_symbolic,
             });
-            (y, None, None, info.relative_residual)
         }
-        SolverKind::Cg => {
-            let params = CgParams {
-                tol: args.tol,
-                max_iters,
-                preconditioner: args.preconditioner,
-                coarse: args.coarse,
-                ..CgParams::default()
-            };
-            let (y, info) = cg::solve(&e, &params).map_err(SolveError::from)?;
+        SolveDetails::Cg(info) => {
             cgr = Some(CgReport {
                 preconditioner: preconditioner_name(args.preconditioner).into(),
                 coarse: args.coarse.name().into(),
@@ -712,35 +631,16 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
                 max_iters,
                 restarts: info.restarts,
             });
-            (y, None, Some(info.iterations), info.relative_residual)
         }
-        SolverKind::Gpu => {
-            let o = solve_gpu(&e, args, precision, max_iters)?;
-            adapter = Some(o.adapter);
-            gpu = Some(o.info);
-            (o.y, o.dx, Some(o.iterations), o.relative_residual)
+        SolveDetails::Gpu(info) => {
+            gpu = Some(serde_json::to_value(info).unwrap_or(serde_json::Value::Null));
         }
-    };
-    let t_solve = t.elapsed().as_secs_f64();
-
-    // 5. Recover Δx = Δx_p + V y and the reactions f = −(HΔx + g).
-    let t = Instant::now();
-    let dx = dx_gpu.unwrap_or_else(|| e.recover(&y));
-    let f = reactions(&h, &g, &dx);
-    let violation = constraint_violation(dim, &constraints, &dx);
-    let t_recover = t.elapsed().as_secs_f64();
-    // Finite data can still overflow (H·Δx_p, a lift of 1e308): never write NaN as a result.
-    all_finite("the solution y", &y)?;
-    all_finite("Δx", &dx)?;
-    all_finite("the reactions f = −(HΔx + g)", &f)?;
+    }
+    let relative_residual = st.relative_residual;
 
     // 6. Write.
     let t = Instant::now();
-    let solver = match args.solver {
-        SolverKind::Cholesky => "cholesky",
-        SolverKind::Cg => "cg",
-        SolverKind::Gpu => "gpu",
-    };
+    let solver = args.solver.name();
     let note =
         format!("stickslip solve --solver {solver}: relative residual {relative_residual:.3e}");
     mtx::write_vector(&args.out, &dx, &format!("dx: {note}"))
@@ -750,16 +650,16 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
             .map_err(|e| write_failed(path, e))?;
     }
     seconds.read = t_read;
-    seconds.setup = t_setup;
-    seconds.solve = t_solve;
-    seconds.recover = t_recover;
+    seconds.setup = frames_seconds + t_open + st.seconds.setup;
+    seconds.solve = st.seconds.solve;
+    seconds.recover = st.seconds.recover;
     seconds.write = t.elapsed().as_secs_f64();
     seconds.total = t_start.elapsed().as_secs_f64();
     let report = Report {
         solver: solver.into(),
-        precision: precision_name(precision).into(),
-        adapter,
-        iterations,
+        precision: precision.to_string(),
+        adapter: st.adapter.clone(),
+        iterations: st.iterations,
         relative_residual,
         seconds,
         dim,
@@ -770,8 +670,8 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
         constraints: constraints.len(),
         prescribed: !frames.homogeneous,
         constrained_diagonal: match args.constrained_diagonal {
-            DiagonalArg::Identity => "identity",
-            DiagonalArg::Hessian => "hessian",
+            ConstrainedDiagonal::Identity => "identity",
+            ConstrainedDiagonal::Hessian => "hessian",
         }
         .into(),
         constraint_violation: violation,
@@ -797,17 +697,18 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
     Ok(report)
 }
 
-/// A solve error when `v` holds a NaN or an infinity: the inputs were finite (the readers
-/// check that), so f64 overflowed on the way.
+/// A solve error (exit 1) when `v` holds a NaN or an infinity.
 fn all_finite(what: &str, v: &[f64]) -> Result<(), CliError> {
-    match v.iter().position(|x| !x.is_finite()) {
-        None => Ok(()),
-        Some(k) => Err(SolveError::NotFinite(format!(
-            "{what} has a non-finite entry ({} at index {k}): the data's magnitudes overflow \
-             f64 on the way (H·Δx_p, g, or the lift); scale the system",
-            v[k]
-        ))
-        .into()),
+    crate::solver::all_finite(what, v).map_err(solve_error)
+}
+
+/// The facade's errors as the command line reports them: bad input exits 2, everything
+/// else (unsolvable system, GPU failure) exits 1.
+fn solve_error(e: Error) -> CliError {
+    match e {
+        Error::Input(e) => CliError::Input(e),
+        Error::Solve(e) => CliError::Solve(e),
+        Error::Device(msg) => CliError::Solve(SolveError::Gpu(msg)),
     }
 }
 
@@ -964,10 +865,7 @@ fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
 /// `stickslip export`: read → frames → eliminate → write Ĥ, b̂ and the layout.
 fn export(a: &ExportArgs, quiet: bool) -> Result<(), CliError> {
     let sys = read_system(&a.system)?;
-    let diag = match a.constrained_diagonal {
-        DiagonalArg::Identity => ConstrainedDiagonal::Identity,
-        DiagonalArg::Hessian => ConstrainedDiagonal::Hessian,
-    };
+    let diag = a.constrained_diagonal;
     let e = Eliminated::new(&sys.h, &sys.g, &sys.frames, diag);
     all_finite("b̂ = −Vᵀ(g + HΔx_p)", &e.rhs)?;
     let files = crate::export::export(&e, diag, &sys.g, &a.out_dir, !a.no_mtx)
@@ -1054,14 +952,7 @@ fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
     let opts = crate::driver::RunOptions {
         scene: a.scene.clone(),
         out: a.out.clone(),
-        solver: a.solver.map(|s| {
-            match s {
-                SolverKind::Cholesky => "cholesky",
-                SolverKind::Cg => "cg",
-                SolverKind::Gpu => "gpu",
-            }
-            .to_string()
-        }),
+        solver: a.solver.map(|s| s.name().to_string()),
         size: a.size,
         steps: a.steps,
         quiet,

@@ -69,6 +69,98 @@ pub struct Constraint {
     pub label: String,
 }
 
+/// Builders. A constraint built here has an empty label; [`crate::Problem`] names it
+/// `constraints[k]` (its place in the list) in error messages.
+impl Constraint {
+    fn unlabelled(node: usize, kind: ConstraintKind) -> Self {
+        Constraint {
+            node,
+            kind,
+            label: String::new(),
+        }
+    }
+
+    /// The node does not move (or moves by [`Constraint::displacement`]).
+    pub fn sticky(node: usize) -> Self {
+        Self::unlabelled(node, ConstraintKind::Sticky { displacement: None })
+    }
+
+    /// nᵀΔx = 0 (3D: a plane; 2D: a line); `normal` need not be unit length. Set the
+    /// value with [`Constraint::offset`] or [`Constraint::displacement`].
+    pub fn plane(node: usize, normal: &[f64]) -> Self {
+        Self::unlabelled(
+            node,
+            ConstraintKind::Plane {
+                normal: normal.to_vec(),
+                offset: 0.0,
+            },
+        )
+    }
+
+    /// Δx ∈ span(direction) (3D): the node slides along a line.
+    pub fn line(node: usize, direction: &[f64]) -> Self {
+        Self::unlabelled(
+            node,
+            ConstraintKind::Line {
+                direction: direction.to_vec(),
+                offset: None,
+            },
+        )
+    }
+
+    /// Any rows a_kᵀΔx = values_k on one node.
+    pub fn rows(node: usize, rows: &[&[f64]], values: &[f64]) -> Self {
+        Self::unlabelled(
+            node,
+            ConstraintKind::Rows {
+                rows: rows.iter().map(|r| r.to_vec()).collect(),
+                values: values.to_vec(),
+            },
+        )
+    }
+
+    /// Prescribes a displacement `v` (length d) along the constrained directions: a
+    /// sticky node moves by `v`; a plane's value becomes nᵀv; a line passes through `v`;
+    /// rows' values become a_kᵀv. A `v` of the wrong length is reported when the problem
+    /// is built.
+    pub fn displacement(mut self, v: &[f64]) -> Self {
+        match &mut self.kind {
+            ConstraintKind::Sticky { displacement } => *displacement = Some(v.to_vec()),
+            ConstraintKind::Line { offset, .. } => *offset = Some(v.to_vec()),
+            ConstraintKind::Plane { normal, offset } => {
+                *offset = if v.len() == normal.len() {
+                    dot(normal, v)
+                } else {
+                    f64::NAN // reported as a non-finite offset
+                };
+            }
+            ConstraintKind::Rows { rows, values } => {
+                *values = rows
+                    .iter()
+                    .map(|r| {
+                        if r.len() == v.len() {
+                            dot(r, v)
+                        } else {
+                            f64::NAN
+                        }
+                    })
+                    .collect();
+            }
+        }
+        self
+    }
+
+    /// The value c of a plane constraint nᵀΔx = c (with n as given, not normalized).
+    /// Only planes have a single value: on other kinds this does nothing (use
+    /// [`Constraint::displacement`]).
+    pub fn offset(mut self, c: f64) -> Self {
+        if let ConstraintKind::Plane { offset, .. } = &mut self.kind {
+            *offset = c;
+        }
+        self
+    }
+}
+
 /// A constraint the model cannot accept. `label` names the constraint (or node).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("{label}: {problem}")]

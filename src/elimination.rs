@@ -13,6 +13,7 @@ use crate::sparse::BlockCsr;
 
 /// The diagonal D placed on constrained components.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum ConstrainedDiagonal {
     /// D = I.
     #[default]

@@ -60,3 +60,38 @@ pub enum SolveError {
     #[error("{0}")]
     NotFinite(String),
 }
+
+/// The one error of the library facade ([`crate::Problem`], [`crate::Solver`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum Error {
+    /// The caller's data or configuration is malformed: the message names the entry
+    /// (`H`, `g`, `constraints[k]`, a configuration field) and what is wrong with it.
+    #[error(transparent)]
+    Input(#[from] InputError),
+    /// The data is well-formed but the system cannot be solved as posed (H not positive
+    /// definite on the free subspace, CG not reaching its tolerance, overflow).
+    #[error(transparent)]
+    Solve(#[from] SolveError),
+    /// The GPU cannot run this solve: no adapter, no SHADER_F64 for f64 or mixed, a
+    /// system larger than the device allows, or a device failure.
+    #[error("{0}")]
+    Device(String),
+}
+
+impl From<crate::gpu::GpuError> for Error {
+    fn from(e: crate::gpu::GpuError) -> Self {
+        use crate::gpu::GpuError as G;
+        match e {
+            // CG ran and did not converge: the system, not the device, is at fault.
+            G::Cg(_) | G::InF32(_) => Error::Solve(SolveError::Gpu(e.to_string())),
+            G::Mismatch(_) => Error::Input(InputError::new("problem", "", e.to_string())),
+            _ => Error::Device(e.to_string()),
+        }
+    }
+}
+
+impl From<crate::cg::CgError> for Error {
+    fn from(e: crate::cg::CgError) -> Self {
+        Error::Solve(SolveError::Cg(e))
+    }
+}

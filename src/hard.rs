@@ -731,7 +731,8 @@ pub fn table(
 ) -> Result<Vec<TableRow>, String> {
     use crate::cg::{CgParams, Preconditioner, Scaling};
     use crate::coarse::CoarseSpace;
-    use crate::gpu::{GpuParams, GpuSolver, Precision};
+    use crate::gpu::{GpuParams, Precision};
+    use crate::{SolveDetails, SolverConfig, Step};
     use std::time::Instant;
     let mut rows = Vec::new();
     for case in suite(size) {
@@ -757,8 +758,8 @@ pub fn table(
             note,
         };
         let t = Instant::now();
-        match crate::oracle::solve(&e) {
-            Ok((y, _)) => rows.push(row(
+        match solve_once(SolverConfig::cholesky(), &e) {
+            Ok(Step { y, .. }) => rows.push(row(
                 "cholesky",
                 0.0,
                 true,
@@ -826,16 +827,20 @@ pub fn table(
                 ..Default::default()
             };
             let t = Instant::now();
-            match crate::cg::solve(&e, &params) {
-                Ok((y, info)) => rows.push(row(
+            match solve_once(SolverConfig::cg().cg_params(params), &e) {
+                Ok(Step { y, stats, .. }) => rows.push(row(
                     name,
                     tol,
                     true,
                     Some(&y),
-                    Some(info.iterations),
+                    stats.iterations,
                     t.elapsed().as_secs_f64(),
-                    info.condition_estimate
-                        .map_or(String::new(), |k| format!("κ̃(M⁻¹Ĥ) {k:.1e}")),
+                    match stats.details {
+                        SolveDetails::Cg(info) => info
+                            .condition_estimate
+                            .map_or(String::new(), |k| format!("κ̃(M⁻¹Ĥ) {k:.1e}")),
+                        _ => String::new(),
+                    },
                 )),
                 Err(err) => rows.push(row(
                     name,
@@ -880,9 +885,15 @@ pub fn table(
                 None => format!("gpu {precision}{suffix}"),
             };
             let t = Instant::now();
-            let res = GpuSolver::new(ctx, &e, &params).and_then(|mut s| s.solve());
+            let config = SolverConfig::gpu(precision)
+                .gpu_params(params)
+                .gpu_context(ctx.clone());
+            let res = solve_once(config, &e).and_then(|step| match step.stats.details {
+                SolveDetails::Gpu(info) => Ok((step.y, *info)),
+                _ => Err(crate::Error::Device("not a GPU solve".into())),
+            });
             match res {
-                Ok((y, _, info)) => rows.push(row(
+                Ok((y, info)) => rows.push(row(
                     &name,
                     tol,
                     true,
@@ -910,6 +921,11 @@ pub fn table(
         }
     }
     Ok(rows)
+}
+
+/// One solve of `e` with a fresh solver of `config`.
+fn solve_once(config: crate::SolverConfig, e: &Eliminated) -> Result<crate::Step, crate::Error> {
+    crate::Solver::new(config)?.solve_eliminated(crate::LayoutKey::fresh(), e)
 }
 
 /// The rows as a Markdown table.
@@ -973,7 +989,8 @@ pub fn mixed_speed(
     cantilevers_twice: bool,
     progress: &mut dyn FnMut(&SpeedRow),
 ) -> Result<Vec<SpeedRow>, String> {
-    use crate::gpu::{GpuParams, GpuSolver, Precision};
+    use crate::gpu::{GpuParams, Precision};
+    use crate::{LayoutKey, SolveDetails, Solver, SolverConfig};
     // The two cantilever cases have a sixth of the others' DOFs at one grid scale, so they
     // run at twice the scale too: every case then has an instance of 81k–107k DOFs at
     // scale 5 ("the larger cases"), and the smaller ones show where mixed stops paying.
@@ -1000,7 +1017,8 @@ pub fn mixed_speed(
         let mut res: [Best; 2] = [None, None];
         // Both solvers built first, then solved alternately, best of SPEED_REPS after one
         // warm-up solve each: the ratio of one run on a shared 2-core machine is noise.
-        let mut solvers: Vec<Option<GpuSolver>> = [Precision::F64, Precision::Mixed]
+        let layout = LayoutKey::fresh();
+        let mut solvers: Vec<Option<Solver>> = [Precision::F64, Precision::Mixed]
             .into_iter()
             .map(|precision| {
                 let params = GpuParams {
@@ -1010,13 +1028,23 @@ pub fn mixed_speed(
                     coarse,
                     ..Default::default()
                 };
-                GpuSolver::new(ctx, &e, &params).ok()
+                let config = SolverConfig::gpu(precision)
+                    .gpu_params(params)
+                    .gpu_context(ctx.clone());
+                // The warm-up solve (rep 0) builds the device buffers; later reps reuse them.
+                Solver::new(config).ok()
             })
             .collect();
         for rep in 0..=SPEED_REPS {
             for (k, sol) in solvers.iter_mut().enumerate() {
                 let Some(sol) = sol else { continue };
-                if let Ok((y, _, info)) = sol.solve() {
+                let solved =
+                    sol.solve_eliminated(layout, &e)
+                        .map(|step| match step.stats.details {
+                            SolveDetails::Gpu(info) => Some((step.y, *info)),
+                            _ => None,
+                        });
+                if let Ok(Some((y, info))) = solved {
                     if rep > 0 {
                         let best = res[k]
                             .as_ref()

@@ -43,18 +43,16 @@
 //! Σ m (v^{n+1} − vⁿ) = h (M g + Σ f + Σ c). On a constrained node within d̂, the reaction
 //! is taken net of the barrier (f = constrained part of ∇E/h², which includes h²∇P_b).
 
-use crate::cg::CgParams;
 use crate::constraints::{Constraint, ConstraintKind, Frames};
 use crate::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::energy::barrier::{Barrier, HalfSpace};
 use crate::energy::inertia;
-use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver};
 use crate::linalg::norm3;
-use crate::oracle::CholeskyOracle;
 use crate::scene::{
     check_solver_size, joint_targets, BcShape, JointTarget, LinearKind, Scene, SolverSpec,
 };
 use crate::sparse::BlockCsr;
+use crate::{LayoutKey, Solver};
 use std::cell::Cell;
 use std::collections::HashMap;
 use std::time::Instant;
@@ -80,51 +78,24 @@ pub struct LinearStats {
     pub seconds: f64,
 }
 
-/// The linear solver behind every Newton step, with per-constraint-set caches.
+/// The linear solver behind every Newton step: the library [`Solver`], with one
+/// [`LayoutKey`] per constraint set so that each set keeps its analysis or GPU buffers.
 pub struct LinearSolver {
     kind: LinearKind,
-    cg: CgParams,
-    gpu_params: GpuParams,
-    gpu_ctx: Option<GpuContext>,
-    oracles: HashMap<Vec<bool>, CholeskyOracle>,
-    gpus: HashMap<Vec<bool>, GpuSolver>,
+    solver: Solver,
+    layouts: HashMap<Vec<bool>, LayoutKey>,
     /// GPU adapter name, when the GPU runs.
     pub adapter: Option<String>,
 }
 
 impl LinearSolver {
     pub fn new(spec: &SolverSpec) -> Result<Self, String> {
-        let cg = CgParams {
-            tol: spec.cg_tolerance,
-            max_iters: spec.cg_max_iterations,
-            preconditioner: spec.preconditioner,
-            coarse: spec.coarse,
-            ..CgParams::default()
-        };
-        let gpu_params = GpuParams {
-            precision: spec.precision,
-            tol: spec.cg_tolerance,
-            max_iters: spec.cg_max_iterations,
-            preconditioner: spec.preconditioner,
-            coarse: spec.coarse,
-            ..GpuParams::default()
-        };
-        let (gpu_ctx, adapter) = if spec.linear == LinearKind::Gpu {
-            let ctx = GpuContext::new(&GpuOptions::default())
-                .map_err(|e| format!("the GPU solver cannot start: {e}"))?;
-            let name = ctx.adapter_name().to_string();
-            (Some(ctx), Some(name))
-        } else {
-            (None, None)
-        };
+        let solver = Solver::new(spec.config()).map_err(|e| e.to_string())?;
         Ok(LinearSolver {
             kind: spec.linear,
-            cg,
-            gpu_params,
-            gpu_ctx,
-            oracles: HashMap::new(),
-            gpus: HashMap::new(),
-            adapter,
+            adapter: solver.adapter().map(str::to_string),
+            solver,
+            layouts: HashMap::new(),
         })
     }
 
@@ -135,58 +106,25 @@ impl LinearSolver {
         e: &Eliminated,
     ) -> Result<(Vec<f64>, LinearStats), String> {
         let t = Instant::now();
-        match self.kind {
-            LinearKind::Cholesky => {
-                if !self.oracles.contains_key(key) {
-                    let o = CholeskyOracle::analyze(e).map_err(|err| err.to_string())?;
-                    self.oracles.insert(key.to_vec(), o);
-                }
-                let o = self.oracles.get_mut(key).expect("inserted above");
-                let (y, info) = o.solve(e).map_err(|err| err.to_string())?;
-                check_cholesky_residual(info.relative_residual)?;
-                let dx = e.recover(&y);
-                Ok((
-                    dx,
-                    LinearStats {
-                        iterations: 1,
-                        seconds: t.elapsed().as_secs_f64(),
-                    },
-                ))
-            }
-            LinearKind::Cg => {
-                let (y, info) = crate::cg::solve(e, &self.cg).map_err(|err| err.to_string())?;
-                let dx = e.recover(&y);
-                Ok((
-                    dx,
-                    LinearStats {
-                        iterations: info.iterations,
-                        seconds: t.elapsed().as_secs_f64(),
-                    },
-                ))
-            }
-            LinearKind::Gpu => {
-                let ctx = self.gpu_ctx.as_ref().ok_or("GPU context missing")?;
-                let mut fresh = false;
-                if !self.gpus.contains_key(key) {
-                    let s =
-                        GpuSolver::new(ctx, e, &self.gpu_params).map_err(|err| err.to_string())?;
-                    self.gpus.insert(key.to_vec(), s);
-                    fresh = true;
-                }
-                let s = self.gpus.get_mut(key).expect("inserted above");
-                if !fresh {
-                    s.update(e).map_err(|err| err.to_string())?;
-                }
-                let (_y, dx, info) = s.solve().map_err(|err| err.to_string())?;
-                Ok((
-                    dx,
-                    LinearStats {
-                        iterations: info.iterations,
-                        seconds: t.elapsed().as_secs_f64(),
-                    },
-                ))
-            }
+        let layout = *self
+            .layouts
+            .entry(key.to_vec())
+            .or_insert_with(LayoutKey::fresh);
+        let step = self
+            .solver
+            .solve_eliminated(layout, e)
+            .map_err(|err| err.to_string())?;
+        if self.kind == LinearKind::Cholesky {
+            check_cholesky_residual(step.stats.relative_residual)?;
         }
+        Ok((
+            step.dx,
+            LinearStats {
+                // A direct (Cholesky) solve counts as one.
+                iterations: step.stats.iterations.unwrap_or(1),
+                seconds: t.elapsed().as_secs_f64(),
+            },
+        ))
     }
 }
 

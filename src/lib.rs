@@ -1,34 +1,141 @@
-//! stickslip: Newton systems of implicit, optimization-based simulation (incremental
-//! potential) with Dirichlet boundary conditions eliminated by a per-node change of basis,
-//! solved by a sparse Cholesky oracle and CG on the CPU, and by CG on the GPU (wgpu).
+//! stickslip solves the Newton systems of implicit, optimization-based simulation
+//! (incremental potential) with Dirichlet boundary conditions (sticky nodes, slip on
+//! planes and lines of any orientation, general per-node rows, prescribed displacements)
+//! eliminated by a per-node change of basis. It solves the eliminated SPD system with a
+//! sparse Cholesky (faer), conjugate gradients on the CPU, or conjugate gradients on the
+//! GPU (wgpu, f32 / f64 / mixed precision), then recovers the step Δx and the reaction
+//! forces the constraints exert.
 //!
-//! The pipeline, in the order a solve runs:
-//! 1. [`constraints`]: per-node constraints → frames V_i, masks and the lift Δx_p.
-//! 2. [`elimination`]: the eliminated SPD system Ĥ y = b̂ (matrix-free or assembled).
-//! 3. [`oracle`] (faer sparse Cholesky) or [`cg`] (f64 PCG) solve it.
-//! 4. Recovery Δx = Δx_p + V y and reactions f = −(HΔx + g).
+//! # One way in
+//!
+//! A [`Problem`] holds H (as triplets, both triangles, duplicates summed), the gradient g
+//! and the per-node [`Constraint`]s; a [`Solver`] built from a [`SolverConfig`] solves it
+//! and hands back a [`Solution`]. Keep the solver and call
+//! [`Problem::update_values`] for the next Newton iteration: while the sparsity pattern and
+//! the constraints stay the same, the Cholesky analysis and the GPU's device buffers are
+//! reused.
+//!
+//! ```
+//! use stickslip::{Constraint, Error, Precision, Problem, Solver, SolverConfig};
+//!
+//! # fn main() -> Result<(), Error> {
+//! // A 3D chain of 10 nodes joined by unit springs, with a small mass term on the
+//! // diagonal (H is then SPD, as an incremental potential's Hessian is).
+//! let n = 10;
+//! let mut triplets = Vec::new();
+//! for i in 0..n {
+//!     for a in 0..3 {
+//!         triplets.push((3 * i + a, 3 * i + a, 0.1));
+//!     }
+//! }
+//! for i in 0..n - 1 {
+//!     for a in 0..3 {
+//!         let (p, q) = (3 * i + a, 3 * (i + 1) + a);
+//!         triplets.extend([(p, p, 1.0), (q, q, 1.0), (p, q, -1.0), (q, p, -1.0)]);
+//!     }
+//! }
+//! let g: Vec<f64> = (0..3 * n).map(|k| -0.01 * (k as f64).sin()).collect();
+//! let constraints = vec![
+//!     Constraint::sticky(0),
+//!     Constraint::plane(4, &[0.0, 1.0, 0.0]).offset(0.01),
+//!     Constraint::line(7, &[1.0, 1.0, 0.0]),
+//!     Constraint::rows(9, &[&[1.0, 0.0, 0.0]], &[0.0]),
+//! ];
+//! let mut problem = Problem::from_triplets(3, n, &triplets, &g, &constraints)?;
+//!
+//! // The GPU in mixed precision where a GPU with SHADER_F64 exists, CPU CG otherwise.
+//! let mut solver = match Solver::new(SolverConfig::gpu(Precision::Mixed).tol(1e-8)) {
+//!     Ok(s) => s,
+//!     Err(Error::Device(why)) => {
+//!         eprintln!("no GPU ({why}); solving on the CPU");
+//!         Solver::new(SolverConfig::cg().tol(1e-8))?
+//!     }
+//!     Err(e) => return Err(e),
+//! };
+//! let sol = solver.solve(&problem)?;
+//! assert!(sol.dx[0..3].iter().all(|&v| v == 0.0)); // the sticky node stays
+//! assert!((sol.dx[3 * 4 + 1] - 0.01).abs() < 1e-12); // node 4 meets its plane
+//! assert!(sol.stats.relative_residual <= 1e-8);
+//!
+//! // The next Newton iteration: same pattern, new values; the solver reuses its analysis.
+//! let g2: Vec<f64> = g.iter().map(|v| 2.0 * v).collect();
+//! problem.update_values(&triplets, &g2)?;
+//! let sol2 = solver.solve(&problem)?;
+//! assert!(sol2.stats.reused);
+//! # Ok(())
+//! # }
+//! ```
+//!
+//! [`SolverConfig`] lists every default in one table. Errors are one [`Error`]: bad input
+//! (naming the entry), a system that cannot be solved as posed, or a device failure.
+//!
+//! # Layers
+//!
+//! The facade is built from modules that stay public for users who need the pieces:
+//! [`constraints`] (constraints → per-node frames V_i, masks and the lift Δx_p),
+//! [`elimination`] (the eliminated system Ĥ y = b̂, matrix-free or assembled),
+//! [`oracle`] (faer sparse Cholesky), [`cg`] (f64 PCG), [`coarse`] (the coarse
+//! correction), [`gpu`] (the wgpu solver), [`sparse`] (block-sparse H), [`io`] (Matrix
+//! Market and bc.json readers) and [`generate`] (seeded random systems). With the `sim`
+//! feature (on by default) come the simulation driver's modules, and with `cli` the
+//! `stickslip` command line. docs/method.md gives the method.
 
-pub mod bench;
+mod linalg;
+mod problem;
+mod solver;
+
 pub mod cg;
-pub mod cli;
 pub mod coarse;
 pub mod constraints;
-pub mod driver;
 pub mod elimination;
-pub mod energy;
 pub mod error;
-pub mod export;
 pub mod generate;
 pub mod gpu;
-pub mod hard;
-pub mod integrator;
 pub mod io;
-pub mod linalg;
-pub mod mesh;
 pub mod oracle;
-pub mod output;
-pub mod plots;
-pub mod report;
-pub mod scene;
 pub mod sparse;
 pub mod springs;
+
+pub use cg::Preconditioner;
+pub use coarse::CoarseSpace;
+pub use constraints::Constraint;
+pub use elimination::ConstrainedDiagonal;
+pub use error::{Error, InputError, SolveError};
+pub use gpu::Precision;
+pub use problem::Problem;
+pub use solver::{
+    LayoutKey, Solution, SolveDetails, SolveSeconds, SolveStats, Solver, SolverConfig, SolverKind,
+    Step,
+};
+
+// The simulation driver: scenes, meshes, energies, the time stepper.
+#[cfg(feature = "sim")]
+pub mod driver;
+#[cfg(feature = "sim")]
+pub mod energy;
+#[cfg(feature = "sim")]
+pub mod hard;
+#[cfg(feature = "sim")]
+pub mod integrator;
+#[cfg(feature = "sim")]
+pub mod mesh;
+#[cfg(feature = "sim")]
+mod output;
+#[cfg(feature = "sim")]
+pub mod scene;
+
+// The command line and what only it uses. Public for the binary and its tests, not an
+// API: embed the solver through the names at the crate root.
+#[cfg(feature = "cli")]
+#[doc(hidden)]
+pub mod bench;
+#[cfg(feature = "cli")]
+#[doc(hidden)]
+pub mod cli;
+#[cfg(feature = "cli")]
+#[doc(hidden)]
+pub mod export;
+#[cfg(feature = "cli")]
+mod plots;
+#[cfg(feature = "cli")]
+mod report;

@@ -33,6 +33,7 @@ pub fn cross3(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
 }
 
 /// Unscaled Euclidean norm of a 3-vector, √(a₀² + a₁² + a₂²).
+#[cfg(feature = "sim")]
 pub fn norm3(a: &[f64; 3]) -> f64 {
     (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt()
 }

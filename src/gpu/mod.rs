@@ -49,6 +49,7 @@ pub enum GpuError {
 
 /// Arithmetic of the GPU CG.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum Precision {
     /// f32 throughout (reductions in f64 where the device has SHADER_F64).

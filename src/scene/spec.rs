@@ -81,38 +81,9 @@ fn yes() -> bool {
     true
 }
 
-/// Which linear solver runs the eliminated Newton systems.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, serde::Serialize)]
-#[serde(rename_all = "lowercase")]
-pub enum LinearKind {
-    Cholesky,
-    Cg,
-    Gpu,
-}
-
-impl std::str::FromStr for LinearKind {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "cholesky" => Ok(LinearKind::Cholesky),
-            "cg" => Ok(LinearKind::Cg),
-            "gpu" => Ok(LinearKind::Gpu),
-            _ => Err(format!(
-                "unknown solver '{s}' (expected cholesky, cg or gpu)"
-            )),
-        }
-    }
-}
-
-impl std::fmt::Display for LinearKind {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            LinearKind::Cholesky => "cholesky",
-            LinearKind::Cg => "cg",
-            LinearKind::Gpu => "gpu",
-        })
-    }
-}
+/// Which linear solver runs the eliminated Newton systems: the library's
+/// [`crate::SolverKind`] under the scene file's name for it (`[solver] linear`).
+pub use crate::solver::SolverKind as LinearKind;
 
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -139,6 +110,21 @@ pub struct SolverSpec {
     #[serde(default = "default_newton_iters")]
     pub max_newton_iterations: usize,
     pub characteristic_length: Option<f64>,
+}
+
+impl SolverSpec {
+    /// The library solver configuration this scene's solver settings ask for.
+    pub fn config(&self) -> crate::SolverConfig {
+        match self.linear {
+            LinearKind::Cholesky => crate::SolverConfig::cholesky(),
+            LinearKind::Cg => crate::SolverConfig::cg(),
+            LinearKind::Gpu => crate::SolverConfig::gpu(self.precision),
+        }
+        .tol(self.cg_tolerance)
+        .max_iters(self.cg_max_iterations)
+        .preconditioner(self.preconditioner)
+        .coarse(self.coarse)
+    }
 }
 
 fn default_linear() -> LinearKind {

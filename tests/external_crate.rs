@@ -1,0 +1,31 @@
+//! A crate outside stickslip (tests/external-crate) depends on it by path with
+//! `default-features = false`, uses only the names at the crate root, and checks every
+//! solver against the others. Built in its own target folder so it cannot share (or
+//! wait on) this build's lock.
+
+use std::process::Command;
+
+#[test]
+fn an_external_crate_embeds_the_solver_without_default_features() {
+    let root = env!("CARGO_MANIFEST_DIR");
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let out = Command::new(cargo)
+        .args(["run", "--quiet", "--manifest-path"])
+        .arg(format!("{root}/tests/external-crate/Cargo.toml"))
+        .env("CARGO_TARGET_DIR", format!("{root}/target/external-crate"))
+        .output()
+        .expect("cargo runs");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    print!("{stdout}");
+    assert!(
+        out.status.success(),
+        "external crate failed:\n{stdout}\n{stderr}"
+    );
+    assert!(
+        stdout.contains("external crate: all solvers agree"),
+        "{stdout}"
+    );
+    // Without a GPU it says so loudly; with STICKSLIP_REQUIRE_GPU=1 it fails instead.
+    assert!(stdout.contains("round 1 cholesky"), "{stdout}");
+}
