@@ -29,3 +29,33 @@ fn an_external_crate_embeds_the_solver_without_default_features() {
     // Without a GPU it says so loudly; with STICKSLIP_REQUIRE_GPU=1 it fails instead.
     assert!(stdout.contains("round 1 cholesky"), "{stdout}");
 }
+
+#[test]
+fn the_solver_library_alone_pulls_in_none_of_the_command_lines_crates() {
+    let root = env!("CARGO_MANIFEST_DIR");
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let out = Command::new(cargo)
+        .args([
+            "tree",
+            "-e",
+            "normal",
+            "--no-default-features",
+            "--prefix",
+            "none",
+            "--manifest-path",
+        ])
+        .arg(format!("{root}/Cargo.toml"))
+        .output()
+        .expect("cargo runs");
+    let tree = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(tree.lines().any(|l| l.starts_with("wgpu ")), "{tree}");
+    for name in ["clap", "indicatif", "plotters", "toml", "mshio"] {
+        let hit = tree.lines().find(|l| l.starts_with(&format!("{name} ")));
+        assert!(hit.is_none(), "{name} is a dependency of the core: {hit:?}");
+    }
+}

@@ -7,6 +7,7 @@
 //! built once (scatter indices precomputed), so no locking and a deterministic sum order.
 
 pub mod barrier;
+pub mod eigensystem;
 pub mod gravity;
 pub mod inertia;
 pub mod neohookean;
