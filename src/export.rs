@@ -1,5 +1,5 @@
 //! Carry the eliminated system past one machine: write Ĥ and b̂ (frame coordinates,
-//! design.md §2) for PETSc and Matrix Market readers, with a layout file that holds what
+//! docs/method.md, "The eliminated system") for PETSc and Matrix Market readers, with a layout file that holds what
 //! recovery needs (per-node masks, rotations, the lift), and recover Δx and the reactions
 //! from a solution y exactly as the in-process solvers do.
 //!
