@@ -360,8 +360,8 @@ fn gpu_sweep(ctx: &GpuContext) -> Vec<String> {
 }
 
 /// Every GPU claim is honest both ways (each claim checked inside the sweep), and the
-/// accuracy guarantee of STABILITY.md: mixed precision with `error_tol` reaches relative error ≤ 1e-9 on
-/// every case with κ ≤ 1e10. kappa-1e8/1e10-balanced need mixed precision's f64 fallback
+/// accuracy guarantee of STABILITY.md: mixed precision with `error_tol` reaches relative
+/// error ≤ 1e-9 on every case with κ ≤ 1e10. kappa-1e8/1e10-balanced need mixed precision's f64 fallback
 /// (the f32 inner CG meets rounding-made negative curvature, κ > 1/ε_f32); kappa-1e10
 /// needs the extended-precision stage (the f64 residual floor, ~1.6e-7, is above any
 /// useful tol); scale-H1e30-g1e-30 needs the normalized inner solve (the solution, ~1e-60,
