@@ -6,10 +6,10 @@
 //! rank of A_i: the count of singular values above [`RANK_RTOL`] times the largest. Two
 //! planes make a line, three make a sticky node, and nearly redundant rows add nothing.
 //!
-//! Frames (docs/method.md, "Constraints and node frames"): a free node and a sticky node carry no rotation; a slip whose
-//! constrained directions are coordinate axes carries no rotation either (it only masks
-//! those axes); every other slip node carries an orthonormal V_i whose first r_i columns
-//! span the constrained directions.
+//! Frames (docs/method.md, "Constraints and node frames"): a free node and a sticky node
+//! carry no rotation; a slip whose constrained directions are coordinate axes carries no
+//! rotation either (it only masks those axes); every other slip node carries an orthonormal
+//! V_i whose first r_i columns span the constrained directions.
 
 use crate::linalg::{cross3, dot, norm2, unit};
 

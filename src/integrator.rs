@@ -33,8 +33,8 @@
 //!    drives them shows up as their reaction; no penalty force is left at the end of a step.
 //!
 //! Contact (only when the scene declares obstacles; docs/method.md, "Contact with
-//! half-spaces"): E gains h² P_b(x), the
-//! distance barrier of [`crate::energy::barrier`] against every half-space at its
+//! half-spaces"): E gains h² P_b(x), the distance barrier of [`crate::energy::barrier`]
+//! against every half-space at its
 //! end-of-step position. Each line search starts from the CCD bound α_C (every node covers
 //! at most [`CCD_FRACTION`] of its distance to every plane) and backtracks from there, so
 //! every Newton iterate is penetration-free; the smallest distance over all iterates of a

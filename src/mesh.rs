@@ -93,8 +93,8 @@ impl Mesh {
     }
 
     /// Per-node contact measure w_i of the distance barrier (docs/method.md, "Contact with
-    /// half-spaces"): the node's
-    /// lumped share of the body's boundary of codimension one in the ambient space.
+    /// half-spaces"): the node's lumped share of the body's boundary of codimension one in
+    /// the ambient space.
     /// Solids (triangles in 2D, tetrahedra in 3D): every boundary facet (an edge or face
     /// that belongs to exactly one element) gives its length or area equally to its nodes.
     /// Lower-dimensional meshes are their own boundary: a rod in 2D or a sheet in 3D gives

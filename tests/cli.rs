@@ -471,8 +471,8 @@ fn worked_example_fixed_node() {
 
 /// Worked example 2 of docs/method.md through the CLI: node 0 on the line 2x + 3y = 4
 /// (a plane with normal [2, 3], offset 4), H = I, g = (1, 0, 0, 0). Δx_0 = −g_0 +
-/// μ(2, 3) with 2(−1 + 2μ) + 9μ = 4, μ = 6/13: Δx_0 = (−1/13, 18/13), Δx_1 = 0; the reaction
-/// f_0 = −(Δx_0 + g_0) = −(6/13)(2, 3) is along the normal.
+/// μ(2, 3) with 2(−1 + 2μ) + 9μ = 4, μ = 6/13: Δx_0 = (−1/13, 18/13), Δx_1 = 0; the
+/// reaction f_0 = −(Δx_0 + g_0) = −(6/13)(2, 3) is along the normal.
 #[test]
 fn worked_example_node_on_a_line() {
     let c = case("worked2");
@@ -708,8 +708,8 @@ fn gpu_solver_through_the_cli() {
 }
 
 /// `export` and `recover` through the CLI: export a generated system, solve the exported
-/// Ĥ y = b̂ as a plain unconstrained system (H = Ĥ, g = −b̂), recover, and compare with a direct solve;
-/// then the malformed and mismatched recovery inputs exit 2 with one line.
+/// Ĥ y = b̂ as a plain unconstrained system (H = Ĥ, g = −b̂), recover, and compare with a
+/// direct solve; then the malformed and mismatched recovery inputs exit 2 with one line.
 #[test]
 fn export_recover_round_trip_and_bad_recovery_inputs() {
     let dir = tmpdir("export");

@@ -203,7 +203,8 @@ fn reduced_system_equals_in_place_masked_system() {
 }
 
 /// Constrained components come out exactly as prescribed: the rotation is exact where
-/// docs/method.md says it is (sticky nodes and axis-aligned slips carry no rotation at all).
+/// docs/method.md says it is (sticky nodes and axis-aligned slips carry no rotation at
+/// all).
 #[test]
 fn constrained_components_are_exact() {
     for case in 0..20u64 {

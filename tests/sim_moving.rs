@@ -1,6 +1,7 @@
-//! Moving boundary conditions (docs/method.md, "Moving boundary conditions"): in `twist` and `compress` every moving node
-//! reaches its target within ε·h and is then eliminated, every step; k_M history and the
-//! Newton iteration at which elimination took over are recorded.
+//! Moving boundary conditions (docs/method.md, "Moving boundary conditions"): in `twist`
+//! and `compress` every moving node reaches its target within ε·h and is then eliminated,
+//! every step; k_M history and the Newton iteration at which elimination took over are
+//! recorded.
 
 use stickslip::driver::{load_scene, run, RunOptions, RunSummary};
 use stickslip::scene::BcShape;
