@@ -1,5 +1,5 @@
 //! CPU f64 CG iterations (Jacobi, tol 1e-10) on every hard case with each coarse space:
-//! `cargo run --release --example coarse_ab -- [scale] [case ...]`. Used in STABILITY.md.
+//! `cargo run --release --example coarse_ab -- [scale] [case ...]`. Used in docs/coarse.md.
 
 use std::time::Instant;
 use stickslip::cg::{self, CgParams, Preconditioner};

@@ -8,7 +8,7 @@
 //! Columns: iterations to a true relative residual of 1e-10 (`fail` on non-positive
 //! curvature or 20000 iterations) for f64 CG, f32 matrix + f32 vectors (what the GPU runs),
 //! f32 matrix + f64 vectors, f64 matrix + f32 vectors, and f32 off-diagonal blocks with f64
-//! diagonal blocks + f32 vectors. Used in STABILITY.md.
+//! diagonal blocks + f32 vectors. Used in docs/precision.md.
 
 use stickslip::hard::{self, Size};
 use stickslip::sparse::BlockCsr;

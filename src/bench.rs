@@ -1,5 +1,5 @@
 //! `stickslip bench`: the CPU-versus-GPU comparison on the same generated systems, as
-//! speed against error (issue 5).
+//! speed against error (BENCHMARKS.md).
 //!
 //! Per size of the ladder (2D and 3D, realistic constraint mix), in four steps: generate
 //! the system; solve it for a reference (the Cholesky oracle, with symbolic, numeric and

@@ -1,5 +1,5 @@
-//! The command line (design.md §6): `solve`, `generate`, `info`, and the later `run` and
-//! `bench`. `main.rs` only calls [`main`].
+//! The command line (README.md, "Usage"): `solve`, `generate`, `info`, `run`, `bench`,
+//! `export` and `recover`. `main.rs` only calls [`main`].
 //!
 //! Exit codes: 0 success; 1 a solve failed (H not positive definite on the free
 //! subspace, CG did not converge, GPU failure) or a subcommand is not available; 2 bad
@@ -205,7 +205,7 @@ pub struct SystemArgs {
     /// g: Matrix Market array (or coordinate) real, dn × 1.
     #[arg(long, value_name = "g.mtx")]
     pub gradient: String,
-    /// Per-node constraints as JSON (design.md §6).
+    /// Per-node constraints as JSON (README.md, "Constraint JSON").
     #[arg(long, value_name = "bc.json")]
     pub constraints: Option<String>,
     /// Global constraints B Δx = p: Matrix Market coordinate, m × dn, each row on one node.
@@ -285,7 +285,7 @@ pub struct GenerateArgs {
 #[derive(Debug, Clone, Args)]
 pub struct RunArgs {
     /// A scene file (TOML) or a built-in scene name (default, hanging, incline, bead,
-    /// twist, compress, seed-line, drop, squash); the built-in `default` when absent.
+    /// twist, compress, slip-line, drop, squash); the built-in `default` when absent.
     pub scene: Option<String>,
     /// Output folder for frames (VTK), steps.csv and summary.json [default: out/<scene>].
     #[arg(long, value_name = "DIR")]

@@ -6,10 +6,10 @@
 //! rank of A_i: the count of singular values above [`RANK_RTOL`] times the largest. Two
 //! planes make a line, three make a sticky node, and nearly redundant rows add nothing.
 //!
-//! Frames (design.md §2): a free node and a sticky node carry no rotation; a slip whose
-//! constrained directions are coordinate axes carries no rotation either (it only masks
-//! those axes); every other slip node carries an orthonormal V_i whose first r_i columns
-//! span the constrained directions.
+//! Frames (docs/method.md, "Constraints and node frames"): a free node and a sticky node
+//! carry no rotation; a slip whose constrained directions are coordinate axes carries no
+//! rotation either (it only masks those axes); every other slip node carries an orthonormal
+//! V_i whose first r_i columns span the constrained directions.
 
 use crate::linalg::{cross3, dot, norm2, unit};
 
@@ -27,7 +27,8 @@ pub const RANK_RTOL: f64 = 1e-8;
 pub const CONSISTENCY_RTOL: f64 = 1e-8;
 
 /// A node's normal is "nearly parallel to e_x" when |n_x| > this; then the tangent is
-/// built from e_y instead of e_x (seed 000 §0.1.3), keeping |n × e| ≥ 0.43.
+/// built from e_y instead of e_x, keeping |n × e| ≥ 0.43 (docs/method.md, "Constraints and
+/// node frames").
 pub const AXIS_SWITCH: f64 = 0.9;
 
 /// The shortest normal, direction or row accepted: the smallest normal f64 (about
@@ -41,7 +42,7 @@ const LABELS_SHOWN: usize = 8;
 /// Marks a node without a rotation in [`Frames::rot_index`].
 pub const NO_ROTATION: u32 = u32::MAX;
 
-/// What a constraint asks of one node (design.md §1).
+/// What a constraint asks of one node (docs/method.md, "The constrained Newton step").
 #[derive(Debug, Clone, PartialEq)]
 pub enum ConstraintKind {
     /// The node does not move, or moves by the given displacement.

@@ -1,4 +1,4 @@
-//! The eliminated system of design.md §2:
+//! The eliminated system (docs/method.md, "The eliminated system"):
 //!
 //! ```text
 //! Ĥ y = b̂,   Ĥ = P VᵀHV P + (I − P) D,   b̂ = −P Vᵀ (g + H Δx_p),   Δx = Δx_p + V y

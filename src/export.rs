@@ -1,7 +1,7 @@
 //! Carry the eliminated system past one machine: write Ĥ and b̂ (frame coordinates,
-//! design.md §2) for PETSc and Matrix Market readers, with a layout file that holds what
-//! recovery needs (per-node masks, rotations, the lift), and recover Δx and the reactions
-//! from a solution y exactly as the in-process solvers do.
+//! docs/method.md, "The eliminated system") for PETSc and Matrix Market readers, with a
+//! layout file that holds what recovery needs (per-node masks, rotations, the lift), and
+//! recover Δx and the reactions from a solution y exactly as the in-process solvers do.
 //!
 //! PETSc's binary format (big-endian; PetscInt is 32-bit in Debian's build):
 //! Mat: MAT_FILE_CLASSID, M, N, nnz, row lengths[M], column indices[nnz], values[nnz] f64.

@@ -1,4 +1,4 @@
-//! Hard cases for the solvers (issue 6): seeded, CI-sized by default and scalable.
+//! Hard cases for the solvers (STABILITY.md): seeded, CI-sized by default and scalable.
 //!
 //! Every case is an eliminated Newton system (H, g, constraints) that stresses one thing:
 //! stiffness contrast, near incompressibility (neo-Hookean Hessians of a tet box), sliver

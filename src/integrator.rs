@@ -1,5 +1,6 @@
 //! Implicit Euler as an incremental potential (IPC style), with Dirichlet conditions
-//! eliminated by the per-node change of basis and moving conditions per design.md §5.
+//! eliminated by the per-node change of basis and moving conditions as in docs/method.md
+//! ("Time integration", "Moving boundary conditions").
 //!
 //! One step n → n+1 (h the time step, x̃ = xⁿ + h vⁿ):
 //!
@@ -31,8 +32,9 @@
 //!    support). Moving nodes are eliminated at the end of every step, so the force that
 //!    drives them shows up as their reaction; no penalty force is left at the end of a step.
 //!
-//! Contact (only when the scene declares obstacles; seed 003): E gains h² P_b(x), the
-//! distance barrier of [`crate::energy::barrier`] against every half-space at its
+//! Contact (only when the scene declares obstacles; docs/method.md, "Contact with
+//! half-spaces"): E gains h² P_b(x), the distance barrier of [`crate::energy::barrier`]
+//! against every half-space at its
 //! end-of-step position. Each line search starts from the CCD bound α_C (every node covers
 //! at most [`CCD_FRACTION`] of its distance to every plane) and backtracks from there, so
 //! every Newton iterate is penetration-free; the smallest distance over all iterates of a

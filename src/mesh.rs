@@ -92,8 +92,9 @@ impl Mesh {
         m
     }
 
-    /// Per-node contact measure for the distance barrier (seed 003's A_i): the node's
-    /// lumped share of the body's boundary of codimension one in the ambient space.
+    /// Per-node contact measure w_i of the distance barrier (docs/method.md, "Contact with
+    /// half-spaces"): the node's lumped share of the body's boundary of codimension one in
+    /// the ambient space.
     /// Solids (triangles in 2D, tetrahedra in 3D): every boundary facet (an edge or face
     /// that belongs to exactly one element) gives its length or area equally to its nodes.
     /// Lower-dimensional meshes are their own boundary: a rod in 2D or a sheet in 3D gives

@@ -1,5 +1,5 @@
-//! `stickslip bench --quick --out DIR` end to end (issue 5): runs the CI-sized ladder on
-//! whatever adapter exists (lavapipe in CI) and checks the files and the JSON fields.
+//! `stickslip bench --quick --out DIR` end to end (BENCHMARKS.md): runs the CI-sized ladder
+//! on whatever adapter exists (lavapipe in CI) and checks the files and the JSON fields.
 
 use std::process::Command;
 

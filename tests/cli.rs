@@ -53,7 +53,7 @@ fn g_array(v: &[f64]) -> String {
     )
 }
 
-/// The 2D two-node spring of seed 002: [[2I, −I], [−I, 2I]].
+/// The 2D two-node spring of the worked examples (docs/method.md): [[2I, −I], [−I, 2I]].
 const SPRING: [&[f64]; 4] = [
     &[2.0, 0.0, -1.0, 0.0],
     &[0.0, 2.0, 0.0, -1.0],
@@ -409,13 +409,13 @@ fn help_lists_every_subcommand() {
     assert!(stderr(&o).contains("--bogus"));
 }
 
-/// Seed 002, Example 5.1.1 through the CLI: node 1 fixed at (1, 2) (sticky with a
-/// displacement from the origin), H = [[2I, −I], [−I, 2I]], g = 0. The free node
+/// Worked example 1 of docs/method.md through the CLI: node 1 fixed at (1, 2) (sticky
+/// with a displacement from the origin), H = [[2I, −I], [−I, 2I]], g = 0. The free node
 /// minimizes |Δx_0|² − Δx_0·Δx_1, so Δx_0 = (0.5, 1); f_0 = 0, f_1 = −(−Δx_0 + 2Δx_1)
 /// = (−1.5, −3). The same through B = [0 0 1 0; 0 0 0 1], p = (1, 2).
 #[test]
-fn seed_example_fixed_node() {
-    let c = case("seed1");
+fn worked_example_fixed_node() {
+    let c = case("worked1");
     let want = [0.5, 1.0, 1.0, 2.0];
     let want_f = [0.0, 0.0, -1.5, -3.0];
     let b = write(
@@ -469,13 +469,13 @@ fn seed_example_fixed_node() {
     }
 }
 
-/// Seed 002, Example 5.1.2 through the CLI: node 0 on the line 2x + 3y = 4 (a plane
-/// with normal [2, 3], offset 4), H = I, g = (1, 0, 0, 0). Δx_0 = −g_0 + μ(2, 3) with
-/// 2(−1 + 2μ) + 9μ = 4, μ = 6/13: Δx_0 = (−1/13, 18/13), Δx_1 = 0; the reaction
-/// f_0 = −(Δx_0 + g_0) = −(6/13)(2, 3) is along the normal.
+/// Worked example 2 of docs/method.md through the CLI: node 0 on the line 2x + 3y = 4
+/// (a plane with normal [2, 3], offset 4), H = I, g = (1, 0, 0, 0). Δx_0 = −g_0 +
+/// μ(2, 3) with 2(−1 + 2μ) + 9μ = 4, μ = 6/13: Δx_0 = (−1/13, 18/13), Δx_1 = 0; the
+/// reaction f_0 = −(Δx_0 + g_0) = −(6/13)(2, 3) is along the normal.
 #[test]
-fn seed_example_node_on_a_line() {
-    let c = case("seed2");
+fn worked_example_node_on_a_line() {
+    let c = case("worked2");
     let i4: [&[f64]; 4] = [
         &[1.0, 0.0, 0.0, 0.0],
         &[0.0, 1.0, 0.0, 0.0],
@@ -707,9 +707,9 @@ fn gpu_solver_through_the_cli() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// Issue 7 through the CLI: export a generated system, solve the exported Ĥ y = b̂ as a
-/// plain unconstrained system (H = Ĥ, g = −b̂), recover, and compare with a direct solve;
-/// then the malformed and mismatched recovery inputs exit 2 with one line.
+/// `export` and `recover` through the CLI: export a generated system, solve the exported
+/// Ĥ y = b̂ as a plain unconstrained system (H = Ĥ, g = −b̂), recover, and compare with a
+/// direct solve; then the malformed and mismatched recovery inputs exit 2 with one line.
 #[test]
 fn export_recover_round_trip_and_bad_recovery_inputs() {
     let dir = tmpdir("export");

@@ -750,7 +750,7 @@ fn error_tol_after_update_uses_the_new_hessian() {
 }
 
 /// The coarse correction on the translations and the f32 difference form make mixed
-/// precision hold on the free-body hard cases (issue 6): on kappa-1e6 and
+/// precision hold on the free-body hard cases (STABILITY.md): on kappa-1e6 and
 /// kappa-1e8-balanced (5184 DOFs) mixed stays in f32 to 1e-10 (no fallback) within 1.3×
 /// the iterations of f64 CG with the same preconditioner (measured 1.18 and 1.11; without
 /// the two, mixed left f32 on its κ̃ estimate or met non-positive curvature), and the

@@ -13,7 +13,8 @@ use common::cli::{assert_input_error, run, stderr, tmpdir, write};
 
 use stickslip::io::mtx::{self, HessianBounds};
 
-/// The 2D two-node spring of seed 002, H = [[2I, −I], [−I, 2I]], lower triangle.
+/// The 2D two-node spring of the worked examples (docs/method.md),
+/// H = [[2I, −I], [−I, 2I]], lower triangle.
 const H: &str = "%%MatrixMarket matrix coordinate real symmetric\n4 4 6\n1 1 2\n2 2 2\n3 1 -1\n3 3 2\n4 2 -1\n4 4 2\n";
 const G: &str = "%%MatrixMarket matrix array real general\n4 1\n0\n0\n0\n0\n";
 /// Node 1 sticky, moved by (1, 2): Δx = (0.5, 1, 1, 2).

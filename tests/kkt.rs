@@ -1,4 +1,5 @@
-//! The elimination against the constrained problem itself (design.md §7, seed 000 eq. 5).
+//! The elimination against the constrained problem itself (docs/method.md, "The
+//! constrained Newton step" and "Checks that keep the math honest").
 //!
 //! For 200 seeded random systems (2D and 3D, mesh-like block sparsity, every constraint
 //! kind mixed, normals within 1e-8 of e_x, redundant rows, prescribed values) the dense
@@ -142,7 +143,8 @@ fn reduced_system_equals_in_place_masked_system() {
 }
 
 /// Constrained components come out exactly as prescribed: the rotation is exact where
-/// the seeds say it is (sticky nodes and axis-aligned slips carry no rotation at all).
+/// docs/method.md says it is (sticky nodes and axis-aligned slips carry no rotation at
+/// all).
 #[test]
 fn constrained_components_are_exact() {
     for case in 0..20u64 {

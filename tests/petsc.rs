@@ -1,6 +1,7 @@
-//! Round trip through PETSc over MPI (issue 7): a 3D system of 50,653 nodes with sticky,
-//! plane and line constraints is exported, solved by PETSc (CG + point-block Jacobi,
-//! rtol 1e-12) on 2 MPI ranks, recovered, and compared with the Cholesky oracle.
+//! Round trip through PETSc over MPI (README.md, "Beyond one machine"): a 3D system of
+//! 50,653 nodes with sticky, plane and line constraints is exported, solved by PETSc
+//! (CG + point-block Jacobi, rtol 1e-12) on 2 MPI ranks, recovered, and compared with the
+//! Cholesky oracle.
 //!
 //! Needs `mpiexec` and Debian's python3-petsc4py. Without them the test prints SKIP and
 //! passes, unless STICKSLIP_REQUIRE_PETSC is set (`.ci/run` sets it): then it fails.

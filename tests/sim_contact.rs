@@ -1,4 +1,5 @@
-//! Contact with analytic obstacles (seed 003: distance barrier, CCD-filtered line search).
+//! Contact with analytic obstacles (docs/method.md, "Contact with half-spaces": distance
+//! barrier, CCD-filtered line search).
 //!
 //! - `drop` and `squash`: every Newton iterate of every step keeps every node at a positive
 //!   distance from every obstacle (the per-step minimum over iterates, also in steps.csv);

@@ -1,6 +1,7 @@
 //! Momentum balance per step: p_k − p_{k−1} = h·(M·g + f_k), f_k the summed reaction force,
-//! to a relative error ≤ 1e-3 of h·M·|g| (design.md §7). Incline: the reaction has no
-//! component along the slope and the center of mass gains h·g·sin 30° of speed along it.
+//! to a relative error ≤ 1e-3 of h·M·|g| (docs/method.md, "Checks that keep the math
+//! honest"). Incline: the reaction has no component along the slope and the center of
+//! mass gains h·g·sin 30° of speed along it.
 
 use stickslip::driver::{run, RunOptions, RunSummary};
 

@@ -1,6 +1,7 @@
-//! Moving boundary conditions (design.md §5): in `twist` and `compress` every moving node
-//! reaches its target within ε·h and is then eliminated, every step; k_M history and the
-//! Newton iteration at which elimination took over are recorded.
+//! Moving boundary conditions (docs/method.md, "Moving boundary conditions"): in `twist`
+//! and `compress` every moving node reaches its target within ε·h and is then eliminated,
+//! every step; k_M history and the Newton iteration at which elimination took over are
+//! recorded.
 
 use stickslip::driver::{load_scene, run, RunOptions, RunSummary};
 use stickslip::scene::BcShape;
@@ -111,21 +112,21 @@ fn augmented_lagrangian_variant_reaches_targets_too() {
 }
 
 #[test]
-fn seed_line_node_stays_on_2x_plus_3y_eq_4() {
-    let out = std::env::temp_dir().join(format!("stickslip-sim-seed-line-{}", std::process::id()));
+fn slip_line_node_stays_on_2x_plus_3y_eq_4() {
+    let out = std::env::temp_dir().join(format!("stickslip-sim-slip-line-{}", std::process::id()));
     let opts = RunOptions {
-        scene: Some("seed-line".into()),
+        scene: Some("slip-line".into()),
         out: Some(out.clone()),
         quiet: true,
         ..RunOptions::default()
     };
-    let s = run(&opts).unwrap_or_else(|e| panic!("seed-line: {e}"));
-    let scene = load_scene("seed-line", 1.0).expect("scene");
+    let s = run(&opts).unwrap_or_else(|e| panic!("slip-line: {e}"));
+    let scene = load_scene("slip-line", 1.0).expect("scene");
     let node = scene.bcs[0].node;
     let x = &s.final_positions[2 * node..2 * node + 2];
     let r = 2.0 * x[0] + 3.0 * x[1] - 4.0;
     eprintln!(
-        "seed-line: node {node} ends at ({}, {}), 2x + 3y − 4 = {r:e}",
+        "slip-line: node {node} ends at ({}, {}), 2x + 3y − 4 = {r:e}",
         x[0], x[1]
     );
     assert!(r.abs() <= 1e-12);

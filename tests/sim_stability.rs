@@ -1,4 +1,4 @@
-//! Hard scenes run to the end or stop with a clear message (issue 6): `twist` with a
+//! Hard scenes run to the end or stop with a clear message: `twist` with a
 //! nearly incompressible, very stiff material (ν = 0.499, E = 1e9) and `incline` with a
 //! tiny (1e-5 s) and a huge (0.1 s) time step. CI-sized: fewer steps than the scene files.
 //!

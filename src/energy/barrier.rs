@@ -1,5 +1,5 @@
-//! Distance barrier against analytic half-spaces (seed 003, "Distance Barrier for
-//! Nonpenetration"), exactly as the seed writes it:
+//! Distance barrier against analytic half-spaces (docs/method.md, "Contact with
+//! half-spaces"):
 //!
 //! ```text
 //! P_b(x) = Σ_i Σ_j w_i d̂_j b_j(d_ij(x)),
@@ -9,8 +9,8 @@
 //! with d_ij = n_jᵀ x_i − c_j the signed distance of node i to half-space j (unit outward
 //! normal n_j, plane offset c_j = n_jᵀ p_j) and w_i the node's contact measure (area in
 //! 3D, length in 2D; [`crate::mesh::Mesh::boundary_measure`]). The integrator adds h² P_b to
-//! the incremental potential. (This is the seed's form, not the (d − d̂)² ln variant of
-//! other IPC texts.) With s = d/d̂:
+//! the incremental potential. (This is the form d̂·b(d) with b linear times log, not the
+//! (d − d̂)² ln variant of other IPC texts.) With s = d/d̂:
 //!
 //! ```text
 //! ∂P/∂d  = w κ/2 (ln s + 1 − 1/s)       (≤ 0: the barrier pushes away from the plane)

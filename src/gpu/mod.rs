@@ -1,7 +1,8 @@
 //! GPU solver (wgpu): device-resident PCG on the eliminated system Ĥ y = b̂ of
-//! design.md §2–§4, with WGSL kernels for the per-node rotations, the masked block-sparse
-//! (or matrix-free mass-spring) Hessian product, Jacobi / block-Jacobi preconditioners and
-//! the CG updates with deterministic two-pass reductions.
+//! docs/method.md ("The eliminated system", "Solvers", "The GPU CG loop"), with WGSL
+//! kernels for the per-node rotations, the masked block-sparse (or matrix-free mass-spring)
+//! Hessian product, Jacobi / block-Jacobi preconditioners and the CG updates with
+//! deterministic two-pass reductions.
 
 pub mod context;
 pub mod kernels;

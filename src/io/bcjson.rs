@@ -1,5 +1,6 @@
-//! Constraint input: the per-node JSON of design.md §6 (`bc.json`), and the global form
-//! B Δx = p (B.mtx with optional p.mtx) where every row of B touches one node.
+//! Constraint input: the per-node JSON of README.md, "Constraint JSON" (`bc.json`), and
+//! the global form B Δx = p (B.mtx with optional p.mtx) where every row of B touches one
+//! node.
 //!
 //! The JSON is read into a `serde_json::Value` and walked by hand (not derived) so that
 //! every fault names its JSON path, e.g. `constraints[3].normal[1]`.
@@ -659,7 +660,7 @@ fn json_vec(v: &[f64]) -> Value {
     Value::Array(v.iter().map(|&x| Value::from(x)).collect())
 }
 
-/// One constraint as the JSON object of design.md §6.
+/// One constraint as the JSON object of README.md, "Constraint JSON".
 pub fn constraint_to_json(c: &Constraint) -> Value {
     let mut o = Map::new();
     o.insert("node".into(), Value::from(c.node));

@@ -15,7 +15,8 @@
 //! - A moving boundary node is satisfied (snapped and eliminated) when
 //!   ‖x_k − x̂_k‖ / h < `moving.tolerance` · L (per second); default 1e-3 · L/s.
 //!
-//! Obstacles (`[[obstacle]]`, seed 003's distance barrier; see [`crate::energy::barrier`]):
+//! Obstacles (`[[obstacle]]`, the distance barrier of docs/method.md, "Contact with
+//! half-spaces"; see [`crate::energy::barrier`]):
 //!
 //! ```toml
 //! [[obstacle]]
@@ -120,7 +121,7 @@ pub const BUILTIN: &[(&str, &str)] = &[
     ("bead", include_str!("../../scenes/bead.toml")),
     ("twist", include_str!("../../scenes/twist.toml")),
     ("compress", include_str!("../../scenes/compress.toml")),
-    ("seed-line", include_str!("../../scenes/seed-line.toml")),
+    ("slip-line", include_str!("../../scenes/slip-line.toml")),
     ("drop", include_str!("../../scenes/drop.toml")),
     ("squash", include_str!("../../scenes/squash.toml")),
 ];

@@ -160,7 +160,7 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
     if m.penalty_start > 1e6 {
         return Err(c.err(
             "moving.penalty_start",
-            "must be at most 1e6 (seed 003: start below 1e6 and double)",
+            "must be at most 1e6 (the penalty starts at most there and doubles)",
         ));
     }
     if m.penalty_max.is_nan() || m.penalty_max < m.penalty_start || !m.penalty_max.is_finite() {

@@ -162,7 +162,7 @@ impl Default for SolverSpec {
     }
 }
 
-/// Moving boundary conditions (design.md §5).
+/// Moving boundary conditions (docs/method.md, "Moving boundary conditions").
 #[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct MovingSpec {

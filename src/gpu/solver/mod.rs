@@ -1,4 +1,4 @@
-//! Device-resident preconditioned CG (design.md §4).
+//! Device-resident preconditioned CG (docs/method.md, "The GPU CG loop").
 //!
 //! Per iteration three dispatches: `matvec` (q = Ĥp fused with p·q partials), `update_xrz`
 //! (α reduced redundantly per workgroup; x, r, z updated; r·z and r·r partials) and

@@ -1,4 +1,4 @@
-//! The two small examples of seed 002 (Examples 5.1.1 and 5.1.2), with answers worked
+//! The two worked examples of docs/method.md ("Worked examples"), with answers worked
 //! out by hand in the comments. Two nodes in 2D starting at the origin, so the
 //! constraints on positions become constraints on Δx.
 
@@ -40,14 +40,14 @@ fn solve_both(h: &BlockCsr, g: &[f64], cs: &[Constraint]) -> (Vec<f64>, Vec<f64>
     (dx.clone(), reactions(h, g, &dx))
 }
 
-/// Example 5.1.1: fix the second node at (1, 2).
+/// Worked example 1: fix the second node at (1, 2).
 ///
 /// H is a unit spring between the nodes plus unit mass: [[2I, −I], [−I, 2I]], g = 0.
 /// Δx_2 = (1, 2); the free node minimizes ½·2|Δx_1|² − Δx_1·Δx_2, so Δx_1 = Δx_2/2
 /// = (0.5, 1). Reactions f = −(HΔx + g): f_1 = −(2·(0.5, 1) − (1, 2)) = 0 and
 /// f_2 = −(−(0.5, 1) + 2·(1, 2)) = (−1.5, −3).
 #[test]
-fn seed_example_fixed_node_at_1_2() {
+fn worked_example_fixed_node_at_1_2() {
     let h = h_from_dense(&[
         [2.0, 0.0, -1.0, 0.0],
         [0.0, 2.0, 0.0, -1.0],
@@ -69,7 +69,7 @@ fn seed_example_fixed_node_at_1_2() {
         assert!((dx[k] - want[k]).abs() < 1e-15, "dx[{k}] = {}", dx[k]);
         assert!((f[k] - want_f[k]).abs() < 1e-15, "f[{k}] = {}", f[k]);
     }
-    // The same through the seed's own B: rows [0 0 1 0; 0 0 0 1], p = (1, 2).
+    // The same through the global form B Δx = p: rows [0 0 1 0; 0 0 0 1], p = (1, 2).
     let rows = [Constraint {
         node: 1,
         kind: ConstraintKind::Rows {
@@ -84,14 +84,14 @@ fn seed_example_fixed_node_at_1_2() {
     }
 }
 
-/// Example 5.1.2: the first node on the line 2x + 3y = 4.
+/// Worked example 2: the first node on the line 2x + 3y = 4.
 ///
 /// H = I, g = (1, 0, 0, 0). Minimize ½|d|² + d_x subject to 2d_x + 3d_y = 4:
 /// d = −g_1 + μ(2, 3) with 2(−1 + 2μ) + 9μ = 4, so μ = 6/13 and
 /// Δx_1 = (−1/13, 18/13); the second node has no force, Δx_2 = 0. The reaction
 /// f_1 = −(d + g_1) = −(6/13)(2, 3) lies along the normal.
 #[test]
-fn seed_example_node_on_line_2x_plus_3y_eq_4() {
+fn worked_example_node_on_line_2x_plus_3y_eq_4() {
     let h = h_from_dense(&[
         [1.0, 0.0, 0.0, 0.0],
         [0.0, 1.0, 0.0, 0.0],
