@@ -1,7 +1,8 @@
 //! A crate outside stickslip (tests/external-crate) depends on it by path with
 //! `default-features = false`, uses only the names at the crate root, and checks every
-//! solver against the others. Built in its own target folder so it cannot share (or
-//! wait on) this build's lock.
+//! solver against the others. It builds in release into this build's target folder, so
+//! the dependencies compiled for the tests are reused (cargo releases its lock before it
+//! runs the test binaries).
 
 use std::process::Command;
 
@@ -10,9 +11,9 @@ fn an_external_crate_embeds_the_solver_without_default_features() {
     let root = env!("CARGO_MANIFEST_DIR");
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let out = Command::new(cargo)
-        .args(["run", "--quiet", "--manifest-path"])
+        .args(["run", "--release", "--quiet", "--manifest-path"])
         .arg(format!("{root}/tests/external-crate/Cargo.toml"))
-        .env("CARGO_TARGET_DIR", format!("{root}/target/external-crate"))
+        .env("CARGO_TARGET_DIR", format!("{root}/target"))
         .output()
         .expect("cargo runs");
     let stdout = String::from_utf8_lossy(&out.stdout);
