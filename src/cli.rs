@@ -287,7 +287,7 @@ pub struct RunArgs {
     /// A scene file (TOML) or a built-in scene name (default, hanging, incline, bead,
     /// twist, compress, slip-line, drop, squash); the built-in `default` when absent.
     pub scene: Option<String>,
-    /// Output folder for frames (VTK), steps.csv and summary.json [default: out/<scene>].
+    /// Output folder for frames (VTK), steps.csv and summary.json [default: out/SCENE].
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
     /// Override the scene's linear solver.

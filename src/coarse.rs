@@ -228,7 +228,7 @@ impl Aggregation {
     }
 
     /// The nodes of each aggregate as (offsets, nodes): aggregate a holds
-    /// nodes[offsets[a]..offsets[a + 1]], in increasing order.
+    /// `nodes[offsets[a]..offsets[a + 1]]`, in increasing order.
     pub fn lists(&self) -> (Vec<u32>, Vec<u32>) {
         let mut offsets = vec![0u32; self.count + 1];
         for &a in self.of_node.iter().filter(|a| **a != NO_AGGREGATE) {

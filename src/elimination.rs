@@ -317,7 +317,7 @@ pub fn rotated_diagonal(h: &BlockCsr, f: &Frames) -> Vec<f64> {
     out
 }
 
-/// The scaled Euclidean norm, re-exported from its home in [`crate::linalg`].
+/// The scaled Euclidean norm, re-exported from the crate's linear-algebra helpers.
 pub use crate::linalg::norm2;
 
 #[cfg(test)]

@@ -4,8 +4,8 @@
 //! recover Δx and the reactions from a solution y exactly as the in-process solvers do.
 //!
 //! PETSc's binary format (big-endian; PetscInt is 32-bit in Debian's build):
-//! Mat: MAT_FILE_CLASSID, M, N, nnz, row lengths[M], column indices[nnz], values[nnz] f64.
-//! Vec: VEC_FILE_CLASSID, n, values[n] f64. The `.info` file beside the matrix carries
+//! Mat: `MAT_FILE_CLASSID, M, N, nnz, row lengths[M], column indices[nnz], values[nnz]` f64.
+//! Vec: `VEC_FILE_CLASSID, n, values[n]` f64. The `.info` file beside the matrix carries
 //! `-matload_block_size d`, so MatLoad keeps the node blocks (point-block Jacobi).
 
 use crate::constraints::{Frames, NO_ROTATION};

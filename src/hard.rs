@@ -4,7 +4,7 @@
 //! stiffness contrast, near incompressibility (neo-Hookean Hessians of a tet box), sliver
 //! and needle elements, extreme time steps, heavy or total constraint, slip normals within
 //! 1e-12 of an axis, nearly redundant planes, entries near 1e±30, and a prescribed
-//! condition number up to 1e12. [`reference`] gives an extended-precision solution
+//! condition number up to 1e12. [`reference()`] gives an extended-precision solution
 //! (Cholesky plus iterative refinement with double-double residuals) to measure errors
 //! against when the oracle's own error κ·ε is not negligible; [`condition_number`] the
 //! exact κ(Ĥ) of small cases by a dense eigen solve.

@@ -1,5 +1,5 @@
 //! SVG plots of the benchmark, drawn with plotters' SVG backend (text is written as SVG
-//! <text>, so no system fonts are needed).
+//! `<text>`, so no system fonts are needed).
 
 use crate::bench::BenchReport;
 use plotters::prelude::*;

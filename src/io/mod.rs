@@ -1,6 +1,6 @@
 //! File formats of the command line: Matrix Market for H, g, B, p, Δx and reactions
 //! ([`mtx`]), and the per-node constraint JSON ([`bcjson`]). Every fault in a file is an
-//! [`InputError`](crate::error::InputError) naming the file, the entry and the problem.
+//! [`InputError`] naming the file, the entry and the problem.
 //!
 //! Input files are read through [`read_text`] (or [`read_bytes`] for binary formats),
 //! which bound what a file can make us hold: a file larger than [`input_limit`] (the

@@ -213,9 +213,9 @@ pub struct BodySpec {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum MeshKind {
-    /// 2D: [0,w]×[0,h] of triangles.
+    /// 2D: `[0,w]×[0,h]` of triangles.
     Rectangle,
-    /// 3D: [0,lx]×[0,ly]×[0,lz] of tetrahedra.
+    /// 3D: `[0,lx]×[0,ly]×[0,lz]` of tetrahedra.
     Box,
     /// A chain of springs along x.
     Rod,
