@@ -31,14 +31,18 @@
 //!    support). Moving nodes are eliminated at the end of every step, so the force that
 //!    drives them shows up as their reaction; no penalty force is left at the end of a step.
 //!
-//! Contact (only when the scene declares obstacles; seed 003): E gains h² P_b(x), the
-//! distance barrier of [`crate::energy::barrier`] against every half-space at its
-//! end-of-step position. Each line search starts from the CCD bound α_C (every node covers
-//! at most [`CCD_FRACTION`] of its distance to every plane) and backtracks from there, so
-//! every Newton iterate is penetration-free; the smallest distance over all iterates of a
-//! step is reported. A moving half-space that would overtake a node within one step pushes
-//! that (unconstrained) node's initial guess ahead of it first (to half its gap at tⁿ):
-//! only the starting iterate changes, the minimized energy does not. The contact force
+//! Contact (only when the scene declares obstacles): E gains h² P_b(x), the distance
+//! barrier of [`crate::energy::barrier`] against every half-space at its end-of-step
+//! position. Each line search starts from the CCD bound α_C (every node, interior nodes
+//! included, covers at most [`CCD_FRACTION`] of its distance to every plane) and backtracks
+//! from there, so every Newton iterate keeps every node on the allowed side; the smallest
+//! distance over all nodes and iterates of a step is reported. Interior nodes of a solid
+//! carry no barrier: when the bound is what stops one (the line search takes α_C and the
+//! node sets it), the step fails naming the node and the obstacle, since Newton would only
+//! creep towards the plane from there (the body has inverted). A moving half-space that
+//! would overtake a node within one step pushes that (unconstrained) node's initial guess
+//! ahead of it first (to half its gap at tⁿ): only the starting iterate changes, the
+//! minimized energy does not. The contact force
 //! c = −∇P_b (newtons) is an external force counted apart from the reactions:
 //! Σ m (v^{n+1} − vⁿ) = h (M g + Σ f + Σ c). On a constrained node within d̂, the reaction
 //! is taken net of the barrier (f = constrained part of ∇E/h², which includes h²∇P_b).
@@ -46,7 +50,7 @@
 use crate::cg::CgParams;
 use crate::constraints::{Constraint, ConstraintKind, Frames};
 use crate::elimination::{ConstrainedDiagonal, Eliminated};
-use crate::energy::barrier::{Barrier, HalfSpace};
+use crate::energy::barrier::{Barrier, Ccd, HalfSpace};
 use crate::energy::inertia;
 use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver};
 use crate::linalg::norm3;
@@ -430,6 +434,27 @@ impl<'s> Stepper<'s> {
         }
     }
 
+    /// Fails when the step the line search took is the CCD bound α_C < 1 and the node that
+    /// sets the bound has no barrier weight (an interior node of a solid). Nothing in E holds
+    /// such a node off the obstacle, so Newton would keep heading for the plane, each step
+    /// cut to 0.9 of the gap, and stall. At α_C/[`CCD_FRACTION`] that node touches the
+    /// plane while every other node is still off it: the body's interior crosses its own
+    /// boundary, so the body has (or is about to have) inverted.
+    fn check_unbarriered_limit(&self, x: &[f64], ccd: &Ccd, iter: usize) -> Result<(), String> {
+        let (Some(c), Some((node, j))) = (&self.contact, ccd.limit) else {
+            return Ok(());
+        };
+        if ccd.alpha >= 1.0 || c.barrier.weight[node] > 0.0 {
+            return Ok(());
+        }
+        let d = self.scene.dim;
+        let gap = c.planes[j].distance(&x[node * d..(node + 1) * d]);
+        Err(format!(
+            "interior node {node} (no contact barrier) is held off {} only by the CCD bound at Newton iteration {iter} (distance {gap:e} m before the step): the body has likely inverted; use a stiffer material, a smaller time step or a finer mesh",
+            self.scene.obstacles[j].label
+        ))
+    }
+
     fn frames_for(&mut self, key: &[bool]) -> Result<(), String> {
         self.build_frames(key).map_err(|e| e.to_string())
     }
@@ -644,13 +669,17 @@ impl<'s> Stepper<'s> {
             if slope.is_nan() || slope >= 0.0 {
                 rep.ascent_directions += 1;
             }
-            let alpha_c = match &self.contact {
+            let ccd = match &self.contact {
                 Some(c) => {
                     self.ccd_calls += 1;
                     c.barrier.ccd(&x, &dx, &c.planes, CCD_FRACTION)
                 }
-                None => 1.0,
+                None => Ccd {
+                    alpha: 1.0,
+                    limit: None,
+                },
             };
+            let alpha_c = ccd.alpha;
             if alpha_c < 1.0 {
                 rep.ccd_limited += 1;
             }
@@ -670,6 +699,7 @@ impl<'s> Stepper<'s> {
             if !accepted {
                 // Energy flat to round-off near the minimum: take the full (CCD-bounded) step.
                 if dmax / h < 1e3 * self.newton_tol {
+                    alpha = alpha_c;
                     for i in 0..x.len() {
                         xtry[i] = x[i] + alpha_c * dx[i];
                     }
@@ -679,6 +709,9 @@ impl<'s> Stepper<'s> {
                         dmax / h
                     ));
                 }
+            }
+            if alpha == alpha_c {
+                self.check_unbarriered_limit(&x, &ccd, iter)?;
             }
             std::mem::swap(&mut x, &mut xtry);
             self.snap_satisfied(&mut x, &targets, &mut snapped);
@@ -827,10 +860,12 @@ impl<'s> Stepper<'s> {
         }
     }
 
-    /// Moves the obstacles to t1 (their position for the whole step). A node that a moving
-    /// half-space would overtake by more than half its gap at tⁿ starts the step at half
-    /// that gap instead (a new initial guess; boundary nodes are left alone and fail the
-    /// distance check that follows when they penetrate).
+    /// Moves the obstacles to t1 (their position for the whole step). A node (interior
+    /// nodes included) that a moving half-space would overtake by more than half its gap at
+    /// tⁿ starts the step at half that gap instead (a new initial guess; the push is monotone
+    /// in the gap, so it keeps the nodes' order along the normal). Nodes with a boundary
+    /// condition are left alone and fail the distance check that follows when they
+    /// penetrate.
     fn advance_obstacles(&mut self, t1: f64, x: &mut [f64]) {
         let sc = self.scene;
         let d = sc.dim;
@@ -848,7 +883,7 @@ impl<'s> Stepper<'s> {
             if o.motion.is_none() {
                 continue;
             }
-            for &i in &c.barrier.surface {
+            for i in 0..sc.model.n_nodes {
                 let p = &mut x[i * d..(i + 1) * d];
                 let (d_old, d_new) = (old.distance(p), new.distance(p));
                 if d_new < 0.5 * d_old && !constrained[i] {
