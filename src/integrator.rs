@@ -456,8 +456,8 @@ impl<'s> Stepper<'s> {
     /// sets the bound has no barrier weight (an interior node of a solid). Nothing in E holds
     /// such a node off the obstacle, so Newton would keep heading for the plane, each step
     /// cut to 0.9 of the gap, and stall. At α_C/[`CCD_FRACTION`] that node touches the
-    /// plane while every other node is still off it: the body's interior crosses its own
-    /// boundary, so the body has (or is about to have) inverted.
+    /// plane before any other node has reached it (barring an exact tie): the body's
+    /// interior crosses its own boundary, so the body has (or is about to have) inverted.
     fn check_unbarriered_limit(&self, x: &[f64], ccd: &Ccd, iter: usize) -> Result<(), String> {
         let (Some(c), Some((node, j))) = (&self.contact, ccd.limit) else {
             return Ok(());
@@ -468,7 +468,7 @@ impl<'s> Stepper<'s> {
         let d = self.scene.dim;
         let gap = c.planes[j].distance(&x[node * d..(node + 1) * d]);
         Err(format!(
-            "interior node {node} (no contact barrier) is held off {} only by the CCD bound at Newton iteration {iter} (distance {gap:e} m before the step): the body has likely inverted; use a stiffer material, a smaller time step or a finer mesh",
+            "interior node {node} (no contact barrier) is held off {} only by the CCD bound at Newton iteration {iter} (it was {gap:e} m away, the step covers {CCD_FRACTION} of that): the body has likely inverted; use a stiffer material, a smaller time step or a finer mesh",
             self.scene.obstacles[j].label
         ))
     }
