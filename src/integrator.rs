@@ -33,21 +33,25 @@
 //!    drives them shows up as their reaction; no penalty force is left at the end of a step.
 //!
 //! Contact (only when the scene declares obstacles; docs/method.md, "Contact with
-//! half-spaces"): E gains h² P_b(x), the distance barrier of [`crate::energy::barrier`]
-//! against every half-space at its
-//! end-of-step position. Each line search starts from the CCD bound α_C (every node covers
-//! at most [`CCD_FRACTION`] of its distance to every plane) and backtracks from there, so
-//! every Newton iterate is penetration-free; the smallest distance over all iterates of a
-//! step is reported. A moving half-space that would overtake a node within one step pushes
-//! that (unconstrained) node's initial guess ahead of it first (to half its gap at tⁿ):
-//! only the starting iterate changes, the minimized energy does not. The contact force
+//! half-spaces"): E gains h² P_b(x), the distance
+//! barrier of [`crate::energy::barrier`] against every half-space at its end-of-step
+//! position. Each line search starts from the CCD bound α_C (every node, interior nodes
+//! included, covers at most [`CCD_FRACTION`] of its distance to every plane) and backtracks
+//! from there, so every Newton iterate keeps every node on the allowed side; the smallest
+//! distance over all nodes and iterates of a step is reported. Interior nodes of a solid
+//! carry no barrier: when the bound is what stops one (the line search takes α_C and the
+//! node sets it), the step fails naming the node and the obstacle, since Newton would only
+//! creep towards the plane from there (the body has inverted). A moving half-space that
+//! would overtake a node within one step pushes that (unconstrained) node's initial guess
+//! ahead of it first (to half its gap at tⁿ): only the starting iterate changes, the
+//! minimized energy does not. The contact force
 //! c = −∇P_b (newtons) is an external force counted apart from the reactions:
 //! Σ m (v^{n+1} − vⁿ) = h (M g + Σ f + Σ c). On a constrained node within d̂, the reaction
 //! is taken net of the barrier (f = constrained part of ∇E/h², which includes h²∇P_b).
 
 use crate::constraints::{Constraint, ConstraintKind, Frames};
 use crate::elimination::{ConstrainedDiagonal, Eliminated};
-use crate::energy::barrier::{Barrier, HalfSpace};
+use crate::energy::barrier::{Barrier, Ccd, HalfSpace};
 use crate::energy::inertia;
 use crate::linalg::norm3;
 use crate::scene::{
@@ -237,6 +241,24 @@ struct StepWork {
     gy: Vec<f64>,
 }
 
+/// The moving conditions within one step.
+struct MovingTargets {
+    /// Per moving condition, its target set at t^{n+1}.
+    shapes: Vec<BcShape>,
+    /// Per moving condition, whether its node has been snapped onto the target and
+    /// eliminated (the key of the constraint set).
+    snapped: Vec<bool>,
+}
+
+/// One Newton direction, for the line search.
+struct NewtonStep {
+    dx: Vec<f64>,
+    /// ‖Δx‖∞.
+    dmax: f64,
+    /// The iteration it was computed at (counting from 1), for messages.
+    iter: usize,
+}
+
 impl<'s> Stepper<'s> {
     /// Fails with [`InitError::Input`] when the scene's conditions are inconsistent (for
     /// example contradictory conditions on one node, see [`joint_targets`]) or the scene
@@ -370,6 +392,27 @@ impl<'s> Stepper<'s> {
         }
     }
 
+    /// Fails when the step the line search took is the CCD bound α_C < 1 and the node that
+    /// sets the bound has no barrier weight (an interior node of a solid). Nothing in E holds
+    /// such a node off the obstacle, so Newton would keep heading for the plane, each step
+    /// cut to 0.9 of the gap, and stall. At α_C/[`CCD_FRACTION`] that node touches the
+    /// plane before any other node has reached it (barring an exact tie): the body's
+    /// interior crosses its own boundary, so the body has (or is about to have) inverted.
+    fn check_unbarriered_limit(&self, x: &[f64], ccd: &Ccd, iter: usize) -> Result<(), String> {
+        let (Some(c), Some((node, j))) = (&self.contact, ccd.limit) else {
+            return Ok(());
+        };
+        if ccd.alpha >= 1.0 || c.barrier.weight[node] > 0.0 {
+            return Ok(());
+        }
+        let d = self.scene.dim;
+        let gap = c.planes[j].distance(&x[node * d..(node + 1) * d]);
+        Err(format!(
+            "interior node {node} (no contact barrier) is held off {} only by the CCD bound at Newton iteration {iter} (it was {gap:e} m away, the step covers {CCD_FRACTION} of that): the body has likely inverted; use a stiffer material, a smaller time step or a finer mesh",
+            self.scene.obstacles[j].label
+        ))
+    }
+
     fn frames_for(&mut self, key: &[bool]) -> Result<(), String> {
         self.build_frames(key).map_err(|e| e.to_string())
     }
@@ -439,38 +482,67 @@ impl<'s> Stepper<'s> {
         e
     }
 
-    /// Advances one step.
+    /// Advances one step: the start-of-step projection, Newton (with the moving-boundary
+    /// updates and the CCD-bounded line search), then the end-of-step recovery of forces,
+    /// velocities and state.
     pub fn step(&mut self) -> Result<StepReport, String> {
-        let sc = self.scene;
-        let d = sc.dim;
-        let h = sc.time_step;
-        let t1 = self.t + h;
+        let t1 = self.t + self.scene.time_step;
         let mut rep = StepReport {
             step: self.step + 1,
             time: t1,
             k_m: self.k_m,
             ..StepReport::default()
         };
-
         // Work vectors, taken from the stepper and put back at the end of the step (an
         // error path drops them; the next step reallocates).
+        let mut w = self.take_work();
+        // 1. Static projection, x̃, obstacles at t^{n+1}.
+        let mut x = self.start_of_step(t1, &mut w, &mut rep)?;
+        // 2. Moving targets at t^{n+1}; nodes already within ε are snapped now.
+        let mut moving = MovingTargets {
+            shapes: self
+                .moving_bcs
+                .iter()
+                .map(|&k| self.scene.bcs[k].shape_at(t1))
+                .collect(),
+            snapped: vec![false; self.moving_bcs.len()],
+        };
+        self.snap_satisfied(&mut x, &moving.shapes, &mut moving.snapped);
+        // 3. Newton.
+        self.newton(&mut x, &mut moving, &mut w, &mut rep)?;
+        // 4. Reactions and contact forces at the converged iterate.
+        self.recover_forces(&x, &moving.snapped, &mut w);
+        // 5. Velocity and state.
+        self.finish_step(x, w, t1)?;
+        Ok(rep)
+    }
+
+    /// The work vectors, sized for this scene.
+    fn take_work(&mut self) -> StepWork {
         let mut w = std::mem::take(&mut self.work);
         let n = self.x.len();
         for v in [&mut w.xt, &mut w.g, &mut w.xtry, &mut w.gy] {
             v.clear();
             v.resize(n, 0.0);
         }
-        let StepWork {
-            mut xn,
-            mut xt,
-            mut g,
-            mut xtry,
-            mut gy,
-        } = w;
+        w
+    }
 
-        // 1. Project onto the static constraint sets (a node with several conditions onto
-        //    their intersection, not onto each in turn).
-        xn.clone_from(&self.x);
+    /// Start of step: xⁿ and x̃ = xⁿ + h vⁿ into `w`, and the starting iterate, returned:
+    /// the positions projected onto the static constraint sets (a node with several
+    /// conditions onto their intersection, not onto each in turn). With obstacles, moves
+    /// them to t1 (pushing overtaken starting guesses ahead) and records the starting
+    /// distance, which must be positive.
+    fn start_of_step(
+        &mut self,
+        t1: f64,
+        w: &mut StepWork,
+        rep: &mut StepReport,
+    ) -> Result<Vec<f64>, String> {
+        let sc = self.scene;
+        let d = sc.dim;
+        let h = sc.time_step;
+        w.xn.clone_from(&self.x);
         let mut x = self.x.clone();
         for &k in &self.single_static_bcs {
             let b = &sc.bcs[k];
@@ -480,25 +552,30 @@ impl<'s> Stepper<'s> {
             j.project(d, &mut x[j.node * d..(j.node + 1) * d]);
         }
         for i in 0..x.len() {
-            xt[i] = xn[i] + h * self.v[i];
+            w.xt[i] = w.xn[i] + h * self.v[i];
         }
         if self.contact.is_some() {
             self.advance_obstacles(t1, &mut x);
             rep.min_distance = self.check_distance(&x, "at the start of the step")?;
         }
+        Ok(x)
+    }
 
-        // 2. Moving targets at t^{n+1}; nodes already within ε are snapped now.
-        let targets: Vec<BcShape> = self
-            .moving_bcs
-            .iter()
-            .map(|&k| sc.bcs[k].shape_at(t1))
-            .collect();
-        let mut snapped = vec![false; self.moving_bcs.len()];
-        self.snap_satisfied(&mut x, &targets, &mut snapped);
+    /// Newton on E from `x`, which ends at the converged iterate: per iteration the
+    /// eliminated solve; when it has converged with moving nodes still off target, the
+    /// moving-boundary update; otherwise the CCD-bounded line search. The step is done when
+    /// ‖Δx‖∞/h < tol with every moving node snapped and eliminated.
+    fn newton(
+        &mut self,
+        x: &mut Vec<f64>,
+        moving: &mut MovingTargets,
+        w: &mut StepWork,
+        rep: &mut StepReport,
+    ) -> Result<(), String> {
+        let sc = self.scene;
+        let h = sc.time_step;
         let mut all_snapped_at = None;
         let mut residual_at_update = f64::INFINITY;
-
-        // 3. Newton.
         let mut iter = 0usize;
         loop {
             if iter >= sc.solver.max_newton_iterations {
@@ -506,23 +583,14 @@ impl<'s> Stepper<'s> {
                     "Newton did not converge in {} iterations (k_M = {:e}, unsatisfied moving nodes: {})",
                     iter,
                     self.k_m,
-                    snapped.iter().filter(|s| !**s).count()
+                    moving.snapped.iter().filter(|s| !**s).count()
                 ));
             }
+            let snapped = &moving.snapped;
             if !snapped.is_empty() && snapped.iter().all(|&s| s) && all_snapped_at.is_none() {
                 all_snapped_at = Some(iter);
             }
-            self.frames_for(&snapped)?;
-            self.gradient(&x, &xt, &targets, &snapped, &mut g);
-            self.hessian(&x, &targets, &snapped);
-            let frames = &self.frames[&snapped];
-            let e = Eliminated::new(&self.hmat, &g, frames, ConstrainedDiagonal::Identity);
-            let (dx, stats) = self
-                .linear
-                .solve(&snapped, &e)
-                .map_err(|err| format!("linear solve failed at Newton iteration {iter}: {err}"))?;
-            rep.linear_iterations += stats.iterations;
-            rep.linear_seconds += stats.seconds;
+            let dx = self.newton_direction(x, moving, w, iter, rep)?;
             iter += 1;
             let dmax = dx.iter().fold(0.0f64, |m, v| m.max(v.abs()));
             if !dmax.is_finite() {
@@ -531,99 +599,18 @@ impl<'s> Stepper<'s> {
                 ));
             }
             if dmax / h < self.newton_tol {
-                let unsat: Vec<usize> = (0..snapped.len()).filter(|&j| !snapped[j]).collect();
-                if unsat.is_empty() {
+                if moving.snapped.iter().all(|&s| s) {
                     break;
                 }
                 // Converged with the penalty but nodes still off target.
-                let worst = unsat
-                    .iter()
-                    .map(|&j| {
-                        let b = &sc.bcs[self.moving_bcs[j]];
-                        norm3(&offset(d, &targets[j], &x[b.node * d..(b.node + 1) * d]))
-                    })
-                    .fold(0.0f64, f64::max);
-                let mut double = true;
-                if sc.moving.augmented_lagrangian {
-                    for &j in &unsat {
-                        let b = &sc.bcs[self.moving_bcs[j]];
-                        let m = sc.model.mass[b.node];
-                        let r = offset(d, &targets[j], &x[b.node * d..(b.node + 1) * d]);
-                        for (l, ra) in self.lambda[j].iter_mut().zip(r) {
-                            *l -= self.k_m * m.sqrt() * ra;
-                        }
-                    }
-                    double = worst > 0.5 * residual_at_update;
-                    residual_at_update = worst;
-                }
-                if double {
-                    if self.k_m >= sc.moving.penalty_max {
-                        return Err(format!(
-                            "{} moving node(s) did not reach their targets (largest offset {worst:e} m, ε·h = {:e} m) with k_M at its cap {:e}",
-                            unsat.len(),
-                            self.moving_eps * h,
-                            sc.moving.penalty_max
-                        ));
-                    }
-                    self.k_m = (2.0 * self.k_m).min(sc.moving.penalty_max);
-                    rep.k_m_doublings += 1;
-                }
+                self.update_moving_penalty(x, moving, &mut residual_at_update, rep)?;
                 continue;
             }
-            // Armijo backtracking on E, from the CCD bound α_C when there is contact.
-            let e0 = self.energy(&x, &xt, &targets, &snapped);
-            if !e0.is_finite() {
-                // Positions far beyond the scene (a plane offset near 1e300) overflow the
-                // energy; line-searching NaN would "converge" and write NaN results.
-                return Err(format!(
-                    "the energy is not finite (E = {e0:e}) at Newton iteration {iter}: the positions or velocities have overflowed"
-                ));
-            }
-            let slope: f64 = g.iter().zip(&dx).map(|(a, b)| a * b).sum();
-            rep.max_slope = Some(rep.max_slope.map_or(slope, |m| m.max(slope)));
-            if slope.is_nan() || slope >= 0.0 {
-                rep.ascent_directions += 1;
-            }
-            let alpha_c = match &self.contact {
-                Some(c) => {
-                    self.ccd_calls += 1;
-                    c.barrier.ccd(&x, &dx, &c.planes, CCD_FRACTION)
-                }
-                None => 1.0,
-            };
-            if alpha_c < 1.0 {
-                rep.ccd_limited += 1;
-            }
-            let mut alpha = alpha_c;
-            let mut accepted = false;
-            for _ in 0..MAX_HALVINGS {
-                for i in 0..x.len() {
-                    xtry[i] = x[i] + alpha * dx[i];
-                }
-                let e1 = self.energy(&xtry, &xt, &targets, &snapped);
-                if e1 <= e0 + ARMIJO * alpha * slope.min(0.0) {
-                    accepted = true;
-                    break;
-                }
-                alpha *= 0.5;
-            }
-            if !accepted {
-                // Energy flat to round-off near the minimum: take the full (CCD-bounded) step.
-                if dmax / h < 1e3 * self.newton_tol {
-                    for i in 0..x.len() {
-                        xtry[i] = x[i] + alpha_c * dx[i];
-                    }
-                } else {
-                    return Err(format!(
-                        "the line search found no decrease at Newton iteration {iter} (‖Δx‖∞/h = {:e} m/s)",
-                        dmax / h
-                    ));
-                }
-            }
-            std::mem::swap(&mut x, &mut xtry);
-            self.snap_satisfied(&mut x, &targets, &mut snapped);
+            let step = NewtonStep { dx, dmax, iter };
+            self.line_search(x, &step, moving, w, rep)?;
+            self.snap_satisfied(x, &moving.shapes, &mut moving.snapped);
             if self.contact.is_some() {
-                let d = self.check_distance(&x, &format!("after Newton iteration {iter}"))?;
+                let d = self.check_distance(x, &format!("after Newton iteration {iter}"))?;
                 rep.min_distance = match (rep.min_distance, d) {
                     (Some(a), Some(b)) => Some(a.min(b)),
                     (a, b) => a.or(b),
@@ -633,32 +620,208 @@ impl<'s> Stepper<'s> {
         rep.newton_iterations = iter;
         rep.eliminated_at_iteration = all_snapped_at;
         rep.k_m = self.k_m;
+        Ok(())
+    }
 
-        // 4. Reactions: the constrained components of ∇E / h², per node, in newtons.
-        let frames = &self.frames[&snapped];
-        frames.to_frame(&g, &mut gy);
+    /// The Newton direction Δx at `x`: ∇E (left in `w.g` for the line search and the
+    /// reactions), ∇²E, and the eliminated solve for the current constraint set (the
+    /// static conditions and the snapped moving nodes). `iter` names the iteration in errors.
+    fn newton_direction(
+        &mut self,
+        x: &[f64],
+        moving: &MovingTargets,
+        w: &mut StepWork,
+        iter: usize,
+        rep: &mut StepReport,
+    ) -> Result<Vec<f64>, String> {
+        let snapped = &moving.snapped;
+        self.frames_for(snapped)?;
+        self.gradient(x, &w.xt, &moving.shapes, snapped, &mut w.g);
+        self.hessian(x, &moving.shapes, snapped);
+        let frames = &self.frames[snapped];
+        let e = Eliminated::new(&self.hmat, &w.g, frames, ConstrainedDiagonal::Identity);
+        let (dx, stats) = self
+            .linear
+            .solve(snapped, &e)
+            .map_err(|err| format!("linear solve failed at Newton iteration {iter}: {err}"))?;
+        rep.linear_iterations += stats.iterations;
+        rep.linear_seconds += stats.seconds;
+        Ok(dx)
+    }
+
+    /// Moving-boundary update, when Newton has converged with moving nodes still off their
+    /// targets: with the augmented Lagrangian, λ_k −= k_M √m_k r_k and k_M doubles only
+    /// when the largest offset did not halve since the last update; without it, k_M
+    /// doubles. Fails when k_M would have to pass its cap.
+    fn update_moving_penalty(
+        &mut self,
+        x: &[f64],
+        moving: &MovingTargets,
+        residual_at_update: &mut f64,
+        rep: &mut StepReport,
+    ) -> Result<(), String> {
+        let sc = self.scene;
+        let d = sc.dim;
+        let h = sc.time_step;
+        let targets = &moving.shapes;
+        let unsat: Vec<usize> = (0..moving.snapped.len())
+            .filter(|&j| !moving.snapped[j])
+            .collect();
+        let worst = unsat
+            .iter()
+            .map(|&j| {
+                let b = &sc.bcs[self.moving_bcs[j]];
+                norm3(&offset(d, &targets[j], &x[b.node * d..(b.node + 1) * d]))
+            })
+            .fold(0.0f64, f64::max);
+        let mut double = true;
+        if sc.moving.augmented_lagrangian {
+            for &j in &unsat {
+                let b = &sc.bcs[self.moving_bcs[j]];
+                let m = sc.model.mass[b.node];
+                let r = offset(d, &targets[j], &x[b.node * d..(b.node + 1) * d]);
+                for (l, ra) in self.lambda[j].iter_mut().zip(r) {
+                    *l -= self.k_m * m.sqrt() * ra;
+                }
+            }
+            double = worst > 0.5 * *residual_at_update;
+            *residual_at_update = worst;
+        }
+        if double {
+            if self.k_m >= sc.moving.penalty_max {
+                return Err(format!(
+                    "{} moving node(s) did not reach their targets (largest offset {worst:e} m, ε·h = {:e} m) with k_M at its cap {:e}",
+                    unsat.len(),
+                    self.moving_eps * h,
+                    sc.moving.penalty_max
+                ));
+            }
+            self.k_m = (2.0 * self.k_m).min(sc.moving.penalty_max);
+            rep.k_m_doublings += 1;
+        }
+        Ok(())
+    }
+
+    /// Armijo backtracking on E along Δx, from the CCD bound α_C when there is contact (1
+    /// without); the accepted iterate replaces `x` (the old one is left in `w.xtry`). When
+    /// no step decreases E, the bounded step is taken if the energy is flat to round-off
+    /// near the minimum and the step fails otherwise. A bounded step taken whole is checked
+    /// by [`Stepper::check_unbarriered_limit`].
+    fn line_search(
+        &mut self,
+        x: &mut Vec<f64>,
+        step: &NewtonStep,
+        moving: &MovingTargets,
+        w: &mut StepWork,
+        rep: &mut StepReport,
+    ) -> Result<(), String> {
+        let h = self.scene.time_step;
+        let (dx, iter) = (&step.dx, step.iter);
+        let (targets, snapped) = (&moving.shapes, &moving.snapped);
+        let e0 = self.energy(x, &w.xt, targets, snapped);
+        if !e0.is_finite() {
+            // Positions far beyond the scene (a plane offset near 1e300) overflow the
+            // energy; line-searching NaN would "converge" and write NaN results.
+            return Err(format!(
+                "the energy is not finite (E = {e0:e}) at Newton iteration {iter}: the positions or velocities have overflowed"
+            ));
+        }
+        let slope: f64 = w.g.iter().zip(dx).map(|(a, b)| a * b).sum();
+        rep.max_slope = Some(rep.max_slope.map_or(slope, |m| m.max(slope)));
+        if slope.is_nan() || slope >= 0.0 {
+            rep.ascent_directions += 1;
+        }
+        let ccd = self.ccd_bound(x, dx);
+        let alpha_c = ccd.alpha;
+        if alpha_c < 1.0 {
+            rep.ccd_limited += 1;
+        }
+        let xtry = &mut w.xtry;
+        let mut alpha = alpha_c;
+        let mut accepted = false;
+        for _ in 0..MAX_HALVINGS {
+            for i in 0..x.len() {
+                xtry[i] = x[i] + alpha * dx[i];
+            }
+            let e1 = self.energy(xtry, &w.xt, targets, snapped);
+            if e1 <= e0 + ARMIJO * alpha * slope.min(0.0) {
+                accepted = true;
+                break;
+            }
+            alpha *= 0.5;
+        }
+        if !accepted {
+            // Energy flat to round-off near the minimum: take the full (CCD-bounded) step.
+            if step.dmax / h < 1e3 * self.newton_tol {
+                alpha = alpha_c;
+                for i in 0..x.len() {
+                    xtry[i] = x[i] + alpha_c * dx[i];
+                }
+            } else {
+                return Err(format!(
+                    "the line search found no decrease at Newton iteration {iter} (‖Δx‖∞/h = {:e} m/s)",
+                    step.dmax / h
+                ));
+            }
+        }
+        if alpha == alpha_c {
+            self.check_unbarriered_limit(x, &ccd, iter)?;
+        }
+        std::mem::swap(x, xtry);
+        Ok(())
+    }
+
+    /// The CCD bound α_C of the step Δx from x over every node and obstacle (1, bounded by
+    /// nothing, without obstacles).
+    fn ccd_bound(&mut self, x: &[f64], dx: &[f64]) -> Ccd {
+        match &self.contact {
+            Some(c) => {
+                self.ccd_calls += 1;
+                c.barrier.ccd(x, dx, &c.planes, CCD_FRACTION)
+            }
+            None => Ccd {
+                alpha: 1.0,
+                limit: None,
+            },
+        }
+    }
+
+    /// End-of-step recovery of the forces at the converged x. Reactions: the constrained
+    /// components of ∇E / h², per node, in newtons (`w.g` holds ∇E at x). Contact forces:
+    /// c = −∇P_b.
+    fn recover_forces(&mut self, x: &[f64], snapped: &[bool], w: &mut StepWork) {
+        let d = self.scene.dim;
+        let h = self.scene.time_step;
+        let frames = &self.frames[snapped];
+        frames.to_frame(&w.g, &mut w.gy);
         for (i, &m) in frames.mask.iter().enumerate() {
             for a in 0..d {
                 if m & (1 << a) == 0 {
-                    gy[i * d + a] = 0.0;
+                    w.gy[i * d + a] = 0.0;
                 }
             }
         }
-        frames.from_frame(&gy, &mut self.reactions);
+        frames.from_frame(&w.gy, &mut self.reactions);
         for r in self.reactions.iter_mut() {
             *r /= h * h;
         }
-        // Contact forces c = −∇P_b at the same x as the reactions.
         if let Some(c) = &self.contact {
             self.barrier_evals.set(self.barrier_evals.get() + 1);
             self.contact_forces.iter_mut().for_each(|v| *v = 0.0);
             c.barrier
-                .add_gradient(&x, &c.planes, -1.0, &mut self.contact_forces);
+                .add_gradient(x, &c.planes, -1.0, &mut self.contact_forces);
         }
+    }
 
-        // 5. Velocity and state. A kinetic energy that overflows (a static condition whose
-        //    target lies near the end of the f64 range pulls its node there in one step)
-        //    fails the step instead of writing NaN energies.
+    /// End of step: v^{n+1} = (x − xⁿ)/h, x becomes the state at t1 and the work vectors go
+    /// back to the stepper. A kinetic energy that overflows (a static condition whose
+    /// target lies near the end of the f64 range pulls its node there in one step) fails
+    /// the step instead of writing NaN energies.
+    fn finish_step(&mut self, x: Vec<f64>, mut w: StepWork, t1: f64) -> Result<(), String> {
+        let sc = self.scene;
+        let d = sc.dim;
+        let h = sc.time_step;
+        let xn = &w.xn;
         let ke: f64 = (0..x.len())
             .map(|i| {
                 let v = (x[i] - xn[i]) / h;
@@ -675,17 +838,11 @@ impl<'s> Stepper<'s> {
             self.v[i] = (x[i] - xn[i]) / h;
         }
         // The old positions' buffer becomes next step's xⁿ work vector.
-        xn = std::mem::replace(&mut self.x, x);
-        self.work = StepWork {
-            xn,
-            xt,
-            g,
-            xtry,
-            gy,
-        };
+        w.xn = std::mem::replace(&mut self.x, x);
+        self.work = w;
         self.t = t1;
         self.step += 1;
-        Ok(rep)
+        Ok(())
     }
 
     /// Snaps every unsnapped moving node within ε·h of its target.
@@ -767,10 +924,12 @@ impl<'s> Stepper<'s> {
         }
     }
 
-    /// Moves the obstacles to t1 (their position for the whole step). A node that a moving
-    /// half-space would overtake by more than half its gap at tⁿ starts the step at half
-    /// that gap instead (a new initial guess; boundary nodes are left alone and fail the
-    /// distance check that follows when they penetrate).
+    /// Moves the obstacles to t1 (their position for the whole step). A node (interior
+    /// nodes included) that a moving half-space would overtake by more than half its gap at
+    /// tⁿ starts the step at half that gap instead (a new initial guess; the push is monotone
+    /// in the gap, so it keeps the nodes' order along the normal). Nodes with a boundary
+    /// condition are left alone and fail the distance check that follows when they
+    /// penetrate.
     fn advance_obstacles(&mut self, t1: f64, x: &mut [f64]) {
         let sc = self.scene;
         let d = sc.dim;
@@ -788,7 +947,7 @@ impl<'s> Stepper<'s> {
             if o.motion.is_none() {
                 continue;
             }
-            for &i in &c.barrier.surface {
+            for i in 0..sc.model.n_nodes {
                 let p = &mut x[i * d..(i + 1) * d];
                 let (d_old, d_new) = (old.distance(p), new.distance(p));
                 if d_new < 0.5 * d_old && !constrained[i] {

@@ -100,7 +100,9 @@ impl Mesh {
     /// Lower-dimensional meshes are their own boundary: a rod in 2D or a sheet in 3D gives
     /// each element's measure equally to its nodes (both sides of a sheet count once);
     /// a rod in 3D does the same with its length (a unit-width strip, documented in
-    /// `scene/mod.rs`). Interior nodes of a solid get 0 and never feel the barrier.
+    /// `scene/mod.rs`). Interior nodes of a solid get 0: the barrier never acts on them, and
+    /// only the line search's CCD bound, which covers every node, keeps them off an
+    /// obstacle (a step where that bound alone holds one fails: the body has inverted).
     pub fn boundary_measure(&self) -> Vec<f64> {
         let mut w = vec![0.0; self.n_nodes()];
         let solid = matches!(

@@ -10,6 +10,10 @@
 //! - A scene without obstacles runs no contact code (counters stay 0).
 //! - Every linear solver gives the same contact trajectory; slip, sticky and moving
 //!   boundaries combine with a moving obstacle; a penetrating start is an input error.
+//! - A mass-spring square squeezed between a moving and a fixed half-space until it turns
+//!   inside out: every node (interior ones too) stays on the allowed side in every frame
+//!   and iterate, `min_distance` is the minimum over all nodes, and the step where only the
+//!   CCD bound holds an interior node fails with one line naming the node and obstacle.
 
 use stickslip::driver::{run, RunError, RunOptions, RunSummary};
 use stickslip::energy::barrier::{Barrier, HalfSpace};
@@ -487,4 +491,234 @@ fn gmsh_meshes_load_and_run_with_contact() {
         assert!(!err.to_string().contains('\n'));
     }
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A 2D mass-spring square of 5 × 5 nodes squeezed by a ceiling half-space that moves down
+/// onto the ground half-space by 60 % of the square's height (0.5 m/s for 1.24 s from a
+/// 4 cm gap) and then holds. The spring network has no resistance to inversion, so it
+/// turns inside out under the load and its interior nodes (which carry no barrier) head
+/// for the ground.
+const SQUEEZE: &str = "name = \"squeeze\"
+dimension = 2
+time_step = 0.01
+steps = 160
+gravity = [0.0, -9.81]
+
+[output]
+every = 1
+
+[[bodies]]
+mesh = { kind = \"rectangle\", size = [1.0, 1.0], cells = [4, 4], origin = [0.0, 0.02] }
+material = { model = \"mass-spring\", stiffness = 1e3, density = 100.0 }
+
+[[obstacle]]
+kind = \"half-space\"
+point = [0.0, 0.0]
+normal = [0.0, 1.0]
+
+[[obstacle]]
+kind = \"half-space\"
+point = [0.0, 1.04]
+normal = [0.0, -1.0]
+motion = { velocity = [0.0, -0.5], end = 1.24 }
+";
+
+/// Node positions of a legacy VTK frame written by `run` (`{:e}`: exact round trip).
+fn vtk_points(path: &std::path::Path, dim: usize) -> Vec<f64> {
+    let text = std::fs::read_to_string(path).expect("frame");
+    let mut lines = text.lines().skip_while(|l| !l.starts_with("POINTS"));
+    let n: usize = lines
+        .next()
+        .and_then(|l| l.split_whitespace().nth(1))
+        .and_then(|v| v.parse().ok())
+        .expect("POINTS n");
+    let mut x = Vec::with_capacity(n * dim);
+    for l in lines.take(n) {
+        let p: Vec<f64> = l
+            .split_whitespace()
+            .map(|v| v.parse().expect("coordinate"))
+            .collect();
+        x.extend_from_slice(&p[..dim]);
+    }
+    assert_eq!(x.len(), n * dim);
+    x
+}
+
+/// Smallest signed distance of any node (every node, interior ones included) to any
+/// obstacle of `scene` at time t, with the node.
+fn true_min_distance(scene: &stickslip::scene::Scene, x: &[f64], t: f64) -> (f64, usize) {
+    let d = scene.dim;
+    let mut best = (f64::INFINITY, usize::MAX);
+    for o in &scene.obstacles {
+        let plane = o.at(t);
+        for (i, p) in x.chunks_exact(d).enumerate() {
+            let dist = plane.distance(p);
+            assert!(!dist.is_nan(), "node {i}: NaN distance at t = {t}");
+            if dist < best.0 {
+                best = (dist, i);
+            }
+        }
+    }
+    best
+}
+
+/// The failure line of an interior node stopped only by the CCD bound names the node,
+/// the obstacle and the likely cause.
+fn assert_inverted_message(e: &str) {
+    for want in [
+        "interior node ",
+        "obstacle[",
+        "only by the CCD bound",
+        "inverted",
+        "stiffer material",
+        "smaller time step",
+        "finer mesh",
+    ] {
+        assert!(e.contains(want), "missing {want:?} in: {e}");
+    }
+}
+
+/// Through the binary: the squeezed square either keeps every node of every frame on the
+/// allowed side of both half-spaces to the end, or the run stops with exit 1 and one line
+/// naming the step, the node, the obstacle and the cause, with steps.csv holding exactly the
+/// completed steps. Either way every steps.csv `min_distance` (every node, every Newton
+/// iterate) is positive and no larger than the smallest distance over all nodes of the
+/// frame written after that step; at t = 0 it equals it.
+#[test]
+fn squeezed_mass_spring_square_keeps_every_node_out_or_fails_naming_it() {
+    let dir = out_dir("squeeze");
+    std::fs::create_dir_all(&dir).expect("tmp");
+    let path = dir.join("squeeze.toml");
+    std::fs::write(&path, SQUEEZE).expect("write scene");
+    let scene = stickslip::scene::parse(SQUEEZE, "squeeze.toml", 1.0).expect("scene");
+    assert_eq!(scene.model.n_nodes, 25);
+    let out = dir.join("out");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_stickslip"))
+        .args([
+            "run",
+            path.to_str().expect("utf-8 path"),
+            "--quiet",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .expect("run stickslip");
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    eprintln!("squeeze: exit {:?}, stderr {err}", o.status.code());
+    let csv = std::fs::read_to_string(out.join("steps.csv")).expect("steps.csv");
+    let header = csv.lines().next().expect("header");
+    let cols: Vec<&str> = header.split(',').collect();
+    let col = |name: &str| cols.iter().position(|c| *c == name).expect(name);
+    let (c_step, c_time, c_min) = (col("step"), col("time"), col("min_distance"));
+    let rows: Vec<Vec<f64>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| {
+            l.split(',')
+                .map(|v| v.parse().unwrap_or(f64::NAN))
+                .collect()
+        })
+        .collect();
+    let mut smallest = f64::INFINITY;
+    for (k, r) in rows.iter().enumerate() {
+        assert_eq!(r[c_step], k as f64, "steps.csv rows are the steps in order");
+        let (t, dmin) = (r[c_time], r[c_min]);
+        assert!(dmin > 0.0, "step {k}: an iterate reached distance {dmin:e}");
+        let frame = out.join("frames").join(format!("squeeze_{k:05}.vtk"));
+        let x = vtk_points(&frame, 2);
+        let (truth, node) = true_min_distance(&scene, &x, t);
+        // Same positions, same plane, same arithmetic: exact comparisons.
+        assert!(truth > 0.0, "step {k}: node {node} at {truth:e} m");
+        if k == 0 {
+            assert_eq!(
+                dmin, truth,
+                "t = 0: min_distance is the minimum over all nodes"
+            );
+        } else {
+            assert!(
+                dmin <= truth,
+                "step {k}: min_distance {dmin:e} above node {node}'s {truth:e} at the end of the step"
+            );
+        }
+        smallest = smallest.min(truth);
+    }
+    eprintln!(
+        "squeeze: {} steps written, smallest node–obstacle distance over every frame {smallest:.4e} m",
+        rows.len() - 1
+    );
+    match o.status.code() {
+        Some(0) => {
+            assert_eq!(
+                rows.len(),
+                scene.steps + 1,
+                "a complete run writes every step"
+            );
+        }
+        Some(1) => {
+            assert_eq!(err.lines().count(), 1, "not one line: {err:?}");
+            assert_inverted_message(&err);
+            // "step N (t = ...) failed": steps.csv holds rows 0..N−1.
+            let step: usize = err
+                .split("step ")
+                .nth(1)
+                .and_then(|s| s.split_whitespace().next())
+                .and_then(|s| s.parse().ok())
+                .unwrap_or_else(|| panic!("no step number in: {err}"));
+            assert_eq!(
+                rows.len(),
+                step,
+                "steps.csv holds the steps before step {step}"
+            );
+            // The run got well into the squeeze before the network turned inside out.
+            assert!(step > 10, "failed at step {step}");
+            let summary = out.join("summary.json");
+            if summary.exists() {
+                let s: serde_json::Value =
+                    serde_json::from_str(&std::fs::read_to_string(&summary).expect("summary"))
+                        .expect("summary.json parses");
+                assert_eq!(s["status"], "failed", "summary.json: {s}");
+            }
+        }
+        c => panic!("exit {c:?}: {err}"),
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Through the library: after every step of the squeezed square, the stepper's
+/// `min_distance` is the minimum over every node (interior nodes included), and a step's
+/// `min_distance` over its iterates is no larger; a failed step says why in one line.
+#[test]
+fn squeezed_square_min_distance_covers_every_node() {
+    let scene = stickslip::scene::parse(SQUEEZE, "squeeze.toml", 1.0).expect("scene");
+    let mut s = stickslip::integrator::Stepper::new(&scene).expect("stepper");
+    let mut interior_nearest = 0usize;
+    for _ in 0..scene.steps {
+        let rep = match s.step() {
+            Ok(r) => r,
+            Err(e) => {
+                eprintln!("squeeze (library): step {} failed: {e}", s.step + 1);
+                assert!(!e.contains('\n'), "{e:?}");
+                assert_inverted_message(&e);
+                break;
+            }
+        };
+        let (truth, node) = true_min_distance(&scene, &s.x, s.t);
+        let (d, n, j) = s.min_distance(&s.x).expect("scene has obstacles");
+        // Same positions and planes: exact. (Nodes at equal distance may be named either way.)
+        assert_eq!(d, truth, "step {}", s.step);
+        assert_eq!(
+            scene.obstacles[j].at(s.t).distance(&s.x[2 * n..2 * n + 2]),
+            d
+        );
+        assert!(truth > 0.0, "step {}: node {node} at {truth:e}", s.step);
+        let over_iterates = rep.min_distance.expect("min_distance");
+        assert!(over_iterates <= truth, "step {}", s.step);
+        if scene.contact_weight[node] == 0.0 {
+            interior_nearest += 1;
+        }
+    }
+    eprintln!(
+        "squeeze (library): {} steps, {interior_nearest} of them ended with an interior node nearest an obstacle",
+        s.step
+    );
 }

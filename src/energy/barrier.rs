@@ -22,6 +22,11 @@
 //! κ is a pressure (Pa) in 2D and 3D alike (2D energies are per unit thickness).
 //! Only pairs with d < d̂ contribute; d ≤ 0 gives +∞ energy (the CCD filter keeps every
 //! iterate away from it).
+//!
+//! Interior nodes of a solid have w_i = 0: the barrier never acts on them. The CCD bound
+//! and [`Barrier::min_distance`] still cover every node, so no node of any kind crosses a
+//! plane; [`Ccd::limit`] says which node set the bound, so the integrator can tell when
+//! only the bound (no barrier) holds a node off an obstacle.
 
 use crate::sparse::BlockCsr;
 
@@ -66,8 +71,17 @@ pub fn scalar(d: f64, dhat: f64, kappa: f64) -> (f64, f64, f64) {
 pub struct Barrier {
     pub dim: usize,
     pub weight: Vec<f64>,
-    /// Nodes with w_i > 0: the only ones that can touch an obstacle.
+    /// Nodes with w_i > 0: the only ones the barrier energy acts on.
     pub surface: Vec<usize>,
+}
+
+/// The CCD bound of one Newton step, with the node and plane that set it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Ccd {
+    /// The largest admissible step α_C ∈ [0, 1].
+    pub alpha: f64,
+    /// (node, plane) whose distance sets α_C when α_C < 1; None when α_C = 1.
+    pub limit: Option<(usize, usize)>,
 }
 
 impl Barrier {
@@ -94,7 +108,8 @@ impl Barrier {
         }
     }
 
-    /// P_b(x); +∞ when a surface node touches or crosses a plane.
+    /// P_b(x); +∞ when a node with w_i > 0 touches or crosses a plane (a node with w_i = 0
+    /// adds nothing wherever it is).
     pub fn energy(&self, x: &[f64], planes: &[HalfSpace]) -> f64 {
         let mut e = 0.0;
         self.active(x, planes, |i, j, dist| {
@@ -140,13 +155,17 @@ impl Barrier {
         });
     }
 
-    /// Smallest signed distance of any surface node to any plane, with (node, plane).
+    /// Smallest signed distance of any node (interior nodes included) to any plane, with
+    /// (node, plane). A NaN distance is returned as soon as it is met.
     pub fn min_distance(&self, x: &[f64], planes: &[HalfSpace]) -> (f64, usize, usize) {
         let d = self.dim;
         let mut best = (f64::INFINITY, 0, 0);
-        for &i in &self.surface {
+        for (i, p) in x.chunks_exact(d).enumerate() {
             for (j, o) in planes.iter().enumerate() {
-                let dist = o.distance(&x[i * d..(i + 1) * d]);
+                let dist = o.distance(p);
+                if dist.is_nan() {
+                    return (dist, i, j);
+                }
                 if dist < best.0 {
                     best = (dist, i, j);
                 }
@@ -155,24 +174,34 @@ impl Barrier {
         best
     }
 
-    /// CCD for x + αΔx: the largest α ≤ 1 that lets every approaching node cover at most
-    /// `fraction` of its distance to every plane, α_C = min(1, fraction·d_i/(−n·Δx_i))
-    /// (IPC's 1 − s with s = 1 − fraction), so every iterate keeps d > 0. Nodes move
-    /// linearly in α and the planes hold still within a step (a moving plane sits at its
-    /// end-of-step position), so this is exact: no conservative root finding is needed.
-    pub fn ccd(&self, x: &[f64], dx: &[f64], planes: &[HalfSpace], fraction: f64) -> f64 {
+    /// CCD for x + αΔx: the largest α ≤ 1 that lets every approaching node (interior nodes
+    /// included) cover at most `fraction` of its distance to every plane,
+    /// α_C = min(1, fraction·d_i/(−n·Δx_i)) (IPC's 1 − s with s = 1 − fraction), so every
+    /// iterate keeps d > 0. Nodes move linearly in α and the planes hold still within a
+    /// step (a moving plane sits at its end-of-step position), so this is exact: no
+    /// conservative root finding is needed.
+    pub fn ccd(&self, x: &[f64], dx: &[f64], planes: &[HalfSpace], fraction: f64) -> Ccd {
         let d = self.dim;
-        let mut alpha = 1.0f64;
-        for &i in &self.surface {
-            for o in planes {
-                let rate: f64 = (0..d).map(|a| o.normal[a] * dx[i * d + a]).sum();
+        let mut out = Ccd {
+            alpha: 1.0,
+            limit: None,
+        };
+        for (i, (p, v)) in x.chunks_exact(d).zip(dx.chunks_exact(d)).enumerate() {
+            for (j, o) in planes.iter().enumerate() {
+                let rate: f64 = v.iter().zip(&o.normal).map(|(a, b)| a * b).sum();
                 if rate < 0.0 {
-                    let dist = o.distance(&x[i * d..(i + 1) * d]);
-                    alpha = alpha.min(fraction * dist / -rate);
+                    let a = fraction * o.distance(p) / -rate;
+                    if a < out.alpha {
+                        out = Ccd {
+                            alpha: a,
+                            limit: Some((i, j)),
+                        };
+                    }
                 }
             }
         }
-        alpha.max(0.0)
+        out.alpha = out.alpha.max(0.0);
+        out
     }
 }
 
@@ -195,5 +224,49 @@ mod tests {
             assert!(g < 0.0 && h > 0.0);
         }
         assert_eq!(scalar(dhat, dhat, kappa), (0.0, 0.0, 0.0));
+    }
+
+    /// A node without barrier weight is still covered by the CCD bound and by
+    /// `min_distance`, and the bound says which node and plane set it.
+    #[test]
+    fn ccd_and_min_distance_cover_weightless_nodes() {
+        let ground = HalfSpace {
+            normal: [0.0, 1.0, 0.0],
+            offset: 0.0,
+            dhat: 0.01,
+            kappa: 1e5,
+        };
+        let ceiling = HalfSpace {
+            normal: [0.0, -1.0, 0.0],
+            offset: -1.0,
+            dhat: 0.01,
+            kappa: 1e5,
+        };
+        let planes = [ground, ceiling];
+        // Node 1 (weight 0) is nearest the ground and moves towards it fastest.
+        let bar = Barrier::new(2, vec![0.5, 0.0, 0.5]);
+        let x = [0.0, 0.3, 0.5, 0.2, 1.0, 0.6];
+        assert_eq!(bar.min_distance(&x, &planes), (0.2, 1, 0));
+        let dx = [0.0, -0.1, 0.0, -0.4, 0.0, 0.1];
+        let c = bar.ccd(&x, &dx, &planes, 0.9);
+        // Node 1 sets it: 0.9·0.2/0.4 = 0.45 (node 0: 0.9·0.3/0.1, node 2: 0.9·0.4/0.1).
+        assert_eq!(c.limit, Some((1, 0)));
+        assert!((c.alpha - 0.45).abs() <= 1e-15, "{}", c.alpha);
+        for (i, p) in x.chunks_exact(2).enumerate() {
+            let q = [p[0] + c.alpha * dx[2 * i], p[1] + c.alpha * dx[2 * i + 1]];
+            for o in &planes {
+                assert!(o.distance(&q) > 0.0, "node {i}");
+            }
+        }
+        // Moving away from both planes: no bound.
+        let away = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let c = bar.ccd(&x, &away, &planes, 0.9);
+        assert_eq!((c.alpha, c.limit), (1.0, None));
+        // A weightless node adds no energy, even past a plane; a weighted one gives +∞.
+        assert_eq!(bar.energy(&[0.0, 0.3, 0.5, -0.1, 1.0, 0.6], &planes), 0.0);
+        assert_eq!(
+            bar.energy(&[0.0, -0.1, 0.5, 0.2, 1.0, 0.6], &planes),
+            f64::INFINITY
+        );
     }
 }

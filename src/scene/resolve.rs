@@ -4,7 +4,8 @@
 
 use super::mesh_build::{build_mesh, check_planned_nodes};
 use super::spec::{
-    BcKindSpec, MaterialModel, MotionSpec, ObstacleKind, ObstacleSpec, RegionSpec, SceneFile,
+    BcKindSpec, BodySpec, BoundarySpec, MaterialModel, MotionSpec, MovingSpec, ObstacleKind,
+    ObstacleSpec, RegionSpec, SceneFile, SolverSpec,
 };
 use super::{
     check_name, check_solver_size, BcShape, CellBlock, Motion, NodeBc, Obstacle, Scene, MAX_STEPS,
@@ -107,6 +108,68 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
             format!("must be a positive number, got {size}"),
         ));
     }
+    // 1. Time, gravity, output, solver and moving-boundary settings.
+    let (h, steps) = time_steps(&c, &spec)?;
+    let gravity = match &spec.gravity {
+        Some(g) => c.vector("gravity", g, dim)?[..dim].to_vec(),
+        None => vec![0.0; dim],
+    };
+    if spec.output.every == 0 {
+        return Err(c.err("output.every", "must be at least 1"));
+    }
+    check_solver(&c, &spec.solver)?;
+    check_moving(&c, &spec.moving)?;
+    if spec.bodies.is_empty() {
+        return Err(c.err("bodies", "at least one body is needed"));
+    }
+    // 2. Bodies: meshes, materials, masses, element sets.
+    let bodies = build_bodies(&c, &spec, dim, size)?;
+    let char_len = characteristic_length(&c, &spec.solver, &bodies.x0, dim)?;
+    // 3. Boundary conditions and obstacles.
+    let bcs = build_bcs(&c, &spec, dim, &bodies, char_len)?;
+    let obstacles = build_obstacles(
+        &c,
+        &spec.obstacle,
+        dim,
+        &bodies.x0,
+        char_len,
+        bodies.max_young,
+    )?;
+    // 4. The scene.
+    let name = scene_name(&c, spec.name.as_deref(), file)?;
+    let Bodies {
+        x0,
+        v0,
+        mass,
+        sets,
+        cells,
+        contact_weight,
+        ..
+    } = bodies;
+    let model = Model::new(dim, mass, Some(gravity.clone()), sets);
+    Ok(Scene {
+        name,
+        file: file.to_string(),
+        dim,
+        time_step: h,
+        steps,
+        output: spec.output.clone(),
+        solver: spec.solver.clone(),
+        moving: spec.moving.clone(),
+        model,
+        x0,
+        v0,
+        cells,
+        bcs,
+        characteristic_length: char_len,
+        gravity,
+        obstacles,
+        contact_weight,
+    })
+}
+
+/// The time step and the number of steps (given, or end_time / time_step rounded).
+fn time_steps(c: &Ctx, spec: &SceneFile) -> Result<(f64, usize), InputError> {
     let h = c.positive("time_step", spec.time_step)?;
     let steps = match (spec.steps, spec.end_time) {
         (Some(_), Some(_)) => {
@@ -134,14 +197,10 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
         }
         (None, None) => return Err(c.err("steps", "missing: give steps or end_time")),
     };
-    let gravity = match &spec.gravity {
-        Some(g) => c.vector("gravity", g, dim)?[..dim].to_vec(),
-        None => vec![0.0; dim],
-    };
-    if spec.output.every == 0 {
-        return Err(c.err("output.every", "must be at least 1"));
-    }
-    let s = &spec.solver;
+    Ok((h, steps))
+}
+
+fn check_solver(c: &Ctx, s: &SolverSpec) -> Result<(), InputError> {
     if !(s.cg_tolerance > 0.0 && s.cg_tolerance < 1.0) {
         return Err(c.err("solver.cg_tolerance", "must be in (0, 1)"));
     }
@@ -155,7 +214,10 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
     if let Some(l) = s.characteristic_length {
         c.positive("solver.characteristic_length", l)?;
     }
-    let m = &spec.moving;
+    Ok(())
+}
+
+fn check_moving(c: &Ctx, m: &MovingSpec) -> Result<(), InputError> {
     c.positive("moving.penalty_start", m.penalty_start)?;
     if m.penalty_start > 1e6 {
         return Err(c.err(
@@ -170,134 +232,175 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
         ));
     }
     c.positive("moving.tolerance", m.tolerance)?;
-    if spec.bodies.is_empty() {
-        return Err(c.err("bodies", "at least one body is needed"));
-    }
+    Ok(())
+}
 
-    // The node caps, over all generated bodies, before any mesh is allocated.
+/// Every body's nodes, masses and elements, concatenated in body order.
+struct Bodies {
+    x0: Vec<f64>,
+    v0: Vec<f64>,
+    mass: Vec<f64>,
+    sets: Vec<ElementSet>,
+    cells: Vec<CellBlock>,
+    /// Per body, its node range.
+    body_range: Vec<std::ops::Range<usize>>,
+    /// Per node, the barrier's contact measure (empty without obstacles).
+    contact_weight: Vec<f64>,
+    /// The largest Young's modulus (0 for mass-spring bodies only).
+    max_young: f64,
+}
+
+/// Builds every body: mesh, material, lumped masses, contact weights, initial velocity.
+/// The node caps are checked over all generated bodies before any mesh is allocated, and
+/// again once Gmsh bodies have been counted.
+fn build_bodies(c: &Ctx, spec: &SceneFile, dim: usize, size: f64) -> Result<Bodies, InputError> {
+    let s = &spec.solver;
     let meshes: Vec<&super::spec::MeshSpec> = spec.bodies.iter().map(|b| &b.mesh).collect();
-    let planned = check_planned_nodes(&c, &meshes, dim, size)?;
+    let planned = check_planned_nodes(c, &meshes, dim, size)?;
     check_solver_size(dim, planned, s.linear).map_err(|p| c.err("solver.linear", p))?;
 
-    // Bodies: meshes, materials, masses, element sets.
-    let mut x0 = Vec::new();
-    let mut v0 = Vec::new();
-    let mut mass = Vec::new();
-    let mut sets = Vec::new();
-    let mut cells = Vec::new();
-    let mut body_range = Vec::new();
+    let mut out = Bodies {
+        x0: Vec::new(),
+        v0: Vec::new(),
+        mass: Vec::new(),
+        sets: Vec::new(),
+        cells: Vec::new(),
+        body_range: Vec::new(),
+        contact_weight: Vec::new(),
+        max_young: 0.0,
+    };
     let with_contact = !spec.obstacle.is_empty();
-    let mut contact_weight = Vec::new();
-    let mut max_young = 0.0f64;
     for (b, body) in spec.bodies.iter().enumerate() {
         let key = format!("bodies[{b}]");
-        let mut mesh = build_mesh(&c, &key, &body.mesh, dim, size, x0.len() / dim)?;
-        let mat = &body.material;
+        let mut mesh = build_mesh(c, &key, &body.mesh, dim, size, out.x0.len() / dim)?;
         let mk = format!("{key}.material");
-        let density = c.positive(&format!("{mk}.density"), mat.density)?;
-        let offset = x0.len() / dim;
-        let set = match mat.model {
-            MaterialModel::NeoHookean => {
-                for (name, v) in [("stiffness", mat.stiffness.is_some())] {
-                    if v {
-                        return Err(c.err(
-                            format!("{mk}.{name}"),
-                            "is a mass-spring parameter; neo-Hookean takes young and poisson",
-                        ));
-                    }
-                }
-                let young = mat.young.ok_or_else(|| {
-                    c.err(
-                        format!("{mk}.young"),
-                        "missing (neo-Hookean needs young and poisson)",
-                    )
-                })?;
-                let young = c.positive(&format!("{mk}.young"), young)?;
-                max_young = max_young.max(young);
-                let nu = mat.poisson.ok_or_else(|| {
-                    c.err(
-                        format!("{mk}.poisson"),
-                        "missing (neo-Hookean needs young and poisson)",
-                    )
-                })?;
-                if !(nu > 0.0 && nu < 0.5) {
-                    return Err(c.err(
-                        format!("{mk}.poisson"),
-                        format!("must be in (0, 0.5), got {nu}"),
-                    ));
-                }
-                let solid = matches!(
-                    (dim, mesh.kind),
-                    (2, ElementKind::Triangle) | (3, ElementKind::Tetrahedron)
-                );
-                if !solid {
-                    return Err(c.err(
-                        format!("{key}.mesh.kind"),
-                        format!("neo-Hookean needs a solid mesh (rectangle in 2D, box in 3D), got {:?} in {dim}D", body.mesh.kind),
-                    ));
-                }
-                let nh = NeoHookean::new(&mesh, young, nu)
-                    .map_err(|e| c.err(format!("{key}.mesh"), e))?;
-                let mut nh = nh;
-                shift_elements(&mut nh.elements, offset);
-                ElementSet::NeoHookean(nh)
-            }
-            MaterialModel::MassSpring => {
-                for (name, v) in [
-                    ("young", mat.young.is_some()),
-                    ("poisson", mat.poisson.is_some()),
-                ] {
-                    if v {
-                        return Err(c.err(
-                            format!("{mk}.{name}"),
-                            "is a neo-Hookean parameter; mass-spring takes stiffness",
-                        ));
-                    }
-                }
-                let k = mat.stiffness.ok_or_else(|| {
-                    c.err(
-                        format!("{mk}.stiffness"),
-                        "missing (mass-spring needs stiffness)",
-                    )
-                })?;
-                let k = c.positive(&format!("{mk}.stiffness"), k)?;
-                let edges = mesh.edges();
-                let mut sp = Springs::new(dim, &mesh.x, edges, k)
-                    .map_err(|e| c.err(format!("{key}.mesh"), e))?;
-                for e in sp.edges.iter_mut() {
-                    e[0] += offset;
-                    e[1] += offset;
-                }
-                ElementSet::Springs(sp)
-            }
-        };
+        let density = c.positive(&format!("{mk}.density"), body.material.density)?;
+        let offset = out.x0.len() / dim;
+        let (set, young) = build_material(c, &key, body, &mesh, dim, offset)?;
+        out.max_young = out.max_young.max(young);
         let m = mesh.lumped_masses(density);
         if with_contact {
-            contact_weight.extend(mesh.boundary_measure());
+            out.contact_weight.extend(mesh.boundary_measure());
         }
         let vel = match &body.velocity {
             Some(v) => c.vector(&format!("{key}.velocity"), v, dim)?,
             None => [0.0; 3],
         };
         shift_elements(&mut mesh.elements, offset);
-        cells.push(CellBlock {
+        out.cells.push(CellBlock {
             kind: mesh.kind,
             cells: mesh.elements.clone(),
         });
-        for i in 0..mesh.n_nodes() {
-            v0.extend_from_slice(&vel[..dim]);
-            let _ = i;
+        for _ in 0..mesh.n_nodes() {
+            out.v0.extend_from_slice(&vel[..dim]);
         }
-        body_range.push(offset..offset + mesh.n_nodes());
-        x0.extend_from_slice(&mesh.x);
-        mass.extend(m);
-        sets.push(set);
+        out.body_range.push(offset..offset + mesh.n_nodes());
+        out.x0.extend_from_slice(&mesh.x);
+        out.mass.extend(m);
+        out.sets.push(set);
     }
     // Again with gmsh bodies counted.
-    check_solver_size(dim, x0.len() / dim, s.linear).map_err(|p| c.err("solver.linear", p))?;
+    check_solver_size(dim, out.x0.len() / dim, s.linear).map_err(|p| c.err("solver.linear", p))?;
+    Ok(out)
+}
+
+/// The body's element set (node indices shifted by `offset`) and its Young's modulus (0
+/// for mass-spring). Each model refuses the other's parameters.
+fn build_material(
+    c: &Ctx,
+    key: &str,
+    body: &BodySpec,
+    mesh: &Mesh,
+    dim: usize,
+    offset: usize,
+) -> Result<(ElementSet, f64), InputError> {
+    let mat = &body.material;
+    let mk = format!("{key}.material");
+    match mat.model {
+        MaterialModel::NeoHookean => {
+            for (name, v) in [("stiffness", mat.stiffness.is_some())] {
+                if v {
+                    return Err(c.err(
+                        format!("{mk}.{name}"),
+                        "is a mass-spring parameter; neo-Hookean takes young and poisson",
+                    ));
+                }
+            }
+            let young = mat.young.ok_or_else(|| {
+                c.err(
+                    format!("{mk}.young"),
+                    "missing (neo-Hookean needs young and poisson)",
+                )
+            })?;
+            let young = c.positive(&format!("{mk}.young"), young)?;
+            let nu = mat.poisson.ok_or_else(|| {
+                c.err(
+                    format!("{mk}.poisson"),
+                    "missing (neo-Hookean needs young and poisson)",
+                )
+            })?;
+            if !(nu > 0.0 && nu < 0.5) {
+                return Err(c.err(
+                    format!("{mk}.poisson"),
+                    format!("must be in (0, 0.5), got {nu}"),
+                ));
+            }
+            let solid = matches!(
+                (dim, mesh.kind),
+                (2, ElementKind::Triangle) | (3, ElementKind::Tetrahedron)
+            );
+            if !solid {
+                return Err(c.err(
+                    format!("{key}.mesh.kind"),
+                    format!("neo-Hookean needs a solid mesh (rectangle in 2D, box in 3D), got {:?} in {dim}D", body.mesh.kind),
+                ));
+            }
+            let mut nh =
+                NeoHookean::new(mesh, young, nu).map_err(|e| c.err(format!("{key}.mesh"), e))?;
+            shift_elements(&mut nh.elements, offset);
+            Ok((ElementSet::NeoHookean(nh), young))
+        }
+        MaterialModel::MassSpring => {
+            for (name, v) in [
+                ("young", mat.young.is_some()),
+                ("poisson", mat.poisson.is_some()),
+            ] {
+                if v {
+                    return Err(c.err(
+                        format!("{mk}.{name}"),
+                        "is a neo-Hookean parameter; mass-spring takes stiffness",
+                    ));
+                }
+            }
+            let k = mat.stiffness.ok_or_else(|| {
+                c.err(
+                    format!("{mk}.stiffness"),
+                    "missing (mass-spring needs stiffness)",
+                )
+            })?;
+            let k = c.positive(&format!("{mk}.stiffness"), k)?;
+            let edges = mesh.edges();
+            let mut sp = Springs::new(dim, &mesh.x, edges, k)
+                .map_err(|e| c.err(format!("{key}.mesh"), e))?;
+            for e in sp.edges.iter_mut() {
+                e[0] += offset;
+                e[1] += offset;
+            }
+            Ok((ElementSet::Springs(sp), 0.0))
+        }
+    }
+}
+
+/// L: given, or the bounding-box diagonal of every node at t = 0 (which must be positive).
+fn characteristic_length(
+    c: &Ctx,
+    s: &SolverSpec,
+    x0: &[f64],
+    dim: usize,
+) -> Result<f64, InputError> {
     let all_mesh = Mesh {
         dim,
-        x: x0.clone(),
+        x: x0.to_vec(),
         kind: ElementKind::Segment,
         elements: Vec::new(),
     };
@@ -308,25 +411,40 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
     if char_len.is_nan() || char_len <= 0.0 {
         return Err(c.err("bodies", "all nodes coincide (zero characteristic length)"));
     }
+    Ok(char_len)
+}
 
-    // Boundary conditions: regions select nodes; each selected node gets its shape.
+/// Boundary conditions: each `[[boundary]]` region selects nodes and each selected node
+/// gets its shape. A node with a moving condition carries only that one; several static
+/// conditions on one node must agree at the initial configuration.
+fn build_bcs(
+    c: &Ctx,
+    spec: &SceneFile,
+    dim: usize,
+    bodies: &Bodies,
+    char_len: f64,
+) -> Result<Vec<NodeBc>, InputError> {
+    let x0 = &bodies.x0;
     let mut bcs = Vec::new();
     for (k, bc) in spec.boundary.iter().enumerate() {
         let key = format!("boundary[{k}]");
         let range = match bc.body {
-            Some(b) if b >= body_range.len() => {
+            Some(b) if b >= bodies.body_range.len() => {
                 return Err(c.err(
                     format!("{key}.body"),
-                    format!("there are {} bodies (numbered from 0)", body_range.len()),
+                    format!(
+                        "there are {} bodies (numbered from 0)",
+                        bodies.body_range.len()
+                    ),
                 ))
             }
-            Some(b) => body_range[b].clone(),
+            Some(b) => bodies.body_range[b].clone(),
             None => 0..x0.len() / dim,
         };
-        let nodes = select(&c, &key, &bc.region, dim, &x0, range, char_len)?;
+        let nodes = select(c, &key, &bc.region, dim, x0, range, char_len)?;
         let motion = match &bc.motion {
             None => None,
-            Some(m) => Some(build_motion(&c, &format!("{key}.motion"), m, dim, bc.kind)?),
+            Some(m) => Some(build_motion(c, &format!("{key}.motion"), m, dim, bc.kind)?),
         };
         for (name, present, kinds) in [
             ("normal", bc.normal.is_some(), BcKindSpec::Plane),
@@ -341,48 +459,7 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
             }
         }
         for &node in &nodes {
-            let p = point(&x0, dim, node);
-            let shape = match bc.kind {
-                BcKindSpec::Sticky => BcShape::Sticky { anchor: p },
-                BcKindSpec::Plane => {
-                    let raw = bc.normal.as_ref().ok_or_else(|| {
-                        c.err(
-                            format!("{key}.normal"),
-                            "missing (a plane boundary needs a normal)",
-                        )
-                    })?;
-                    let nraw = c.vector(&format!("{key}.normal"), raw, dim)?;
-                    let len = c.length(&format!("{key}.normal"), &nraw[..dim])?;
-                    let n = c.unit(&format!("{key}.normal"), raw, dim)?;
-                    let offset = match bc.offset {
-                        Some(o) => c.along(&format!("{key}.offset"), o, len)?,
-                        None => mesh::dot3(&n, &p),
-                    };
-                    BcShape::Plane { normal: n, offset }
-                }
-                BcKindSpec::Line => {
-                    let raw = bc.direction.as_ref().ok_or_else(|| {
-                        c.err(
-                            format!("{key}.direction"),
-                            "missing (a line boundary needs a direction)",
-                        )
-                    })?;
-                    let t = c.unit(&format!("{key}.direction"), raw, dim)?;
-                    if dim == 2 {
-                        // In 2D a line is a plane with the perpendicular normal.
-                        let n = [-t[1], t[0], 0.0];
-                        BcShape::Plane {
-                            normal: n,
-                            offset: mesh::dot3(&n, &p),
-                        }
-                    } else {
-                        BcShape::Line {
-                            point: p,
-                            direction: t,
-                        }
-                    }
-                }
-            };
+            let shape = node_shape(c, &key, bc, point(x0, dim, node), dim)?;
             bcs.push(NodeBc {
                 node,
                 shape,
@@ -402,43 +479,81 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
     }
     // Several static conditions on one node must agree at the initial configuration
     // (the same test as bc.json; the stepper projects such a node onto their intersection).
-    super::joint_targets(dim, &x0, &bcs, char_len).map_err(|e| c.err(e.label, e.problem))?;
-    let obstacles = build_obstacles(&c, &spec.obstacle, dim, &x0, char_len, max_young)?;
-    let model = Model::new(dim, mass, Some(gravity.clone()), sets);
-    let name = spec.name.clone().unwrap_or_else(|| {
+    super::joint_targets(dim, x0, &bcs, char_len).map_err(|e| c.err(e.label, e.problem))?;
+    Ok(bcs)
+}
+
+/// The constraint set of boundary `key` at a node starting at `p`: sticky at p; a plane
+/// through p (or at the given offset); a line through p (in 2D, the plane whose normal is
+/// perpendicular to it).
+fn node_shape(
+    c: &Ctx,
+    key: &str,
+    bc: &BoundarySpec,
+    p: [f64; 3],
+    dim: usize,
+) -> Result<BcShape, InputError> {
+    Ok(match bc.kind {
+        BcKindSpec::Sticky => BcShape::Sticky { anchor: p },
+        BcKindSpec::Plane => {
+            let raw = bc.normal.as_ref().ok_or_else(|| {
+                c.err(
+                    format!("{key}.normal"),
+                    "missing (a plane boundary needs a normal)",
+                )
+            })?;
+            let nraw = c.vector(&format!("{key}.normal"), raw, dim)?;
+            let len = c.length(&format!("{key}.normal"), &nraw[..dim])?;
+            let n = c.unit(&format!("{key}.normal"), raw, dim)?;
+            let offset = match bc.offset {
+                Some(o) => c.along(&format!("{key}.offset"), o, len)?,
+                None => mesh::dot3(&n, &p),
+            };
+            BcShape::Plane { normal: n, offset }
+        }
+        BcKindSpec::Line => {
+            let raw = bc.direction.as_ref().ok_or_else(|| {
+                c.err(
+                    format!("{key}.direction"),
+                    "missing (a line boundary needs a direction)",
+                )
+            })?;
+            let t = c.unit(&format!("{key}.direction"), raw, dim)?;
+            if dim == 2 {
+                // In 2D a line is a plane with the perpendicular normal.
+                let n = [-t[1], t[0], 0.0];
+                BcShape::Plane {
+                    normal: n,
+                    offset: mesh::dot3(&n, &p),
+                }
+            } else {
+                BcShape::Line {
+                    point: p,
+                    direction: t,
+                }
+            }
+        }
+    })
+}
+
+/// The scene's name: given, or the file's stem. It becomes a folder and file names: no
+/// separators, no `..`.
+fn scene_name(c: &Ctx, given: Option<&str>, file: &str) -> Result<String, InputError> {
+    let name = given.map(str::to_string).unwrap_or_else(|| {
         std::path::Path::new(file)
             .file_stem()
             .map(|s| s.to_string_lossy().into_owned())
             .unwrap_or_else(|| "scene".into())
     });
-    // The name becomes a folder and file names: no separators, no `..`.
     if let Err(problem) = check_name(&name) {
-        let problem = if spec.name.is_some() {
+        let problem = if given.is_some() {
             problem
         } else {
             format!("(taken from the file name) {problem}; give a `name`")
         };
         return Err(c.err("name", problem));
     }
-    Ok(Scene {
-        name,
-        file: file.to_string(),
-        dim,
-        time_step: h,
-        steps,
-        output: spec.output.clone(),
-        solver: spec.solver.clone(),
-        moving: spec.moving.clone(),
-        model,
-        x0,
-        v0,
-        cells,
-        bcs,
-        characteristic_length: char_len,
-        gravity,
-        obstacles,
-        contact_weight,
-    })
+    Ok(name)
 }
 
 /// Resolves `[[obstacle]]` entries and checks that the initial configuration is
