@@ -437,7 +437,7 @@ fn bench_one(
                 };
                 r.setup_seconds = t.elapsed().as_secs_f64();
                 match solver.solve() {
-                    Ok((_, dx, info)) => {
+                    Ok(crate::gpu::SolveOutcome { dx, info, .. }) => {
                         r.converged = true;
                         r.iterations = info.iterations;
                         r.relative_residual = info.relative_residual;

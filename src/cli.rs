@@ -495,7 +495,7 @@ fn solve_gpu(
         ..GpuParams::default()
     };
     let mut solver = GpuSolver::new(&ctx, e, &params).map_err(gpu_err)?;
-    let (y, dx, info) = solver.solve().map_err(gpu_err)?;
+    let crate::gpu::SolveOutcome { y, dx, info } = solver.solve().map_err(gpu_err)?;
     Ok(GpuOutcome {
         iterations: info.iterations,
         relative_residual: info.relative_residual,

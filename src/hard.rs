@@ -731,7 +731,7 @@ pub fn table(
 ) -> Result<Vec<TableRow>, String> {
     use crate::cg::{CgParams, Preconditioner, Scaling};
     use crate::coarse::CoarseSpace;
-    use crate::gpu::{GpuParams, GpuSolver, Precision};
+    use crate::gpu::{GpuParams, GpuSolver, Precision, SolveOutcome};
     use std::time::Instant;
     let mut rows = Vec::new();
     for case in suite(size) {
@@ -882,7 +882,7 @@ pub fn table(
             let t = Instant::now();
             let res = GpuSolver::new(ctx, &e, &params).and_then(|mut s| s.solve());
             match res {
-                Ok((y, _, info)) => rows.push(row(
+                Ok(SolveOutcome { y, info, .. }) => rows.push(row(
                     &name,
                     tol,
                     true,
@@ -973,7 +973,7 @@ pub fn mixed_speed(
     cantilevers_twice: bool,
     progress: &mut dyn FnMut(&SpeedRow),
 ) -> Result<Vec<SpeedRow>, String> {
-    use crate::gpu::{GpuParams, GpuSolver, Precision};
+    use crate::gpu::{GpuParams, GpuSolver, Precision, SolveOutcome};
     // The two cantilever cases have a sixth of the others' DOFs at one grid scale, so they
     // run at twice the scale too: every case then has an instance of 81k–107k DOFs at
     // scale 5 ("the larger cases"), and the smaller ones show where mixed stops paying.
@@ -1016,7 +1016,7 @@ pub fn mixed_speed(
         for rep in 0..=SPEED_REPS {
             for (k, sol) in solvers.iter_mut().enumerate() {
                 let Some(sol) = sol else { continue };
-                if let Ok((y, _, info)) = sol.solve() {
+                if let Ok(SolveOutcome { y, info, .. }) = sol.solve() {
                     if rep > 0 {
                         let best = res[k]
                             .as_ref()

@@ -48,7 +48,7 @@ use crate::constraints::{Constraint, ConstraintKind, Frames};
 use crate::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::energy::barrier::{Barrier, HalfSpace};
 use crate::energy::inertia;
-use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver};
+use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, SolveOutcome};
 use crate::linalg::norm3;
 use crate::oracle::CholeskyOracle;
 use crate::scene::{
@@ -177,7 +177,7 @@ impl LinearSolver {
                 if !fresh {
                     s.update(e).map_err(|err| err.to_string())?;
                 }
-                let (_y, dx, info) = s.solve().map_err(|err| err.to_string())?;
+                let SolveOutcome { dx, info, .. } = s.solve().map_err(|err| err.to_string())?;
                 Ok((
                     dx,
                     LinearStats {

@@ -9,12 +9,10 @@
 /// Shared declarations, prepended to every kernel by [`prelude`].
 pub const COMMON: &str = include_str!("../../shaders/common.wgsl");
 pub const MATVEC: &str = include_str!("../../shaders/matvec.wgsl");
-pub const ROTATE: &str = include_str!("../../shaders/rotate.wgsl");
 pub const ROTATE_BLOCKS: &str = include_str!("../../shaders/rotate_blocks.wgsl");
 pub const PRECOND: &str = include_str!("../../shaders/precond.wgsl");
 pub const CG: &str = include_str!("../../shaders/cg.wgsl");
 pub const COARSE: &str = include_str!("../../shaders/coarse.wgsl");
-pub const RECOVER: &str = include_str!("../../shaders/recover.wgsl");
 pub const REFINE: &str = include_str!("../../shaders/refine.wgsl");
 pub const SPRINGS: &str = include_str!("../../shaders/springs.wgsl");
 

@@ -1,5 +1,5 @@
 //! Kernel-level access for tests and benchmarks: the operator product, per-kernel device
-//! timings, the rotated blocks, the preconditioner data, the recovery and raw iterations.
+//! timings, the rotated blocks, the preconditioner data and raw iterations.
 
 use super::builder::{from_planes, plane_widths, Real};
 use super::host::HostOp;
@@ -180,16 +180,6 @@ impl GpuSolver {
         let enc = self.encoder("download preconditioner");
         let b = self.level.minv.clone();
         self.download(enc, &b, self.level.real, len)
-    }
-
-    /// Δx = Δx_p + V P y through the device's recovery kernels.
-    pub fn recover_on_device(&mut self, y: &[f64]) -> Result<Vec<f64>, GpuError> {
-        let rr = self.recovery.real;
-        match &self.refine {
-            Some(r) => self.ctx.queue.write_buffer(&r.y64, 0, &rr.bytes(y)),
-            None => self.ctx.queue.write_buffer(&self.level.x, 0, &rr.bytes(y)),
-        }
-        Ok(self.download_solution()?.1)
     }
 
     /// Runs `k` PCG iterations from y = 0 (no stopping test) and returns (x, r, p).

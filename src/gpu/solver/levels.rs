@@ -1,7 +1,7 @@
 //! The device-side objects of the solver and their construction: the operator Ĥ in one
 //! scalar type (`Operator`), a CG level (`Level`), mixed precision's f64 outer loop
-//! (`Refine`), the recovery of Δx (`Recovery`), the kernel specialization constants
-//! (`Consts`) and the bytes one CG iteration moves.
+//! (`Refine`), the kernel specialization constants (`Consts`) and the bytes one CG
+//! iteration moves.
 
 use super::builder::{plane_buffers, plane_widths, Bind, Builder, Kernel, Real, Shared, STORAGE};
 use super::host::{Host, HostOp};
@@ -70,8 +70,6 @@ pub(super) struct Refine {
     /// The f64 operator; `None` when its blocks exceed the storage binding limit, and then
     /// the outer residual is computed on the host from the downloaded y.
     pub(super) op: Option<Operator>,
-    /// f64 rotations for the recovery when `op` is `None`.
-    pub(super) rotations64: Option<wgpu::Buffer>,
     pub(super) b64: wgpu::Buffer,
     pub(super) y64: wgpu::Buffer,
     pub(super) partials64: wgpu::Buffer,
@@ -83,14 +81,6 @@ pub(super) struct Refine {
     pub(super) k_accumulate: Kernel,
     pub(super) bg_mv: Option<wgpu::BindGroup>,
     pub(super) bg_refine: wgpu::BindGroup,
-    pub(super) staging: wgpu::Buffer,
-}
-
-pub(super) struct Recovery {
-    pub(super) real: Real,
-    pub(super) dx: wgpu::Buffer,
-    pub(super) recover: Option<(Kernel, wgpu::BindGroup)>,
-    pub(super) rotate: Option<(Kernel, wgpu::BindGroup)>,
     pub(super) staging: wgpu::Buffer,
 }
 
@@ -670,17 +660,8 @@ pub(super) fn build_refine(
             &zero_state,
         )
     });
-    let rotations64 = match (&op, host.frames.has_rotation()) {
-        (None, true) => Some(bld.buffer(
-            "rotations_f64",
-            host.frames.rotations.len() as u64 * 8,
-            STORAGE,
-        )?),
-        _ => None,
-    };
     Ok(Refine {
         op,
-        rotations64,
         b64,
         y64,
         partials64,
@@ -690,71 +671,6 @@ pub(super) fn build_refine(
         k_accumulate,
         bg_mv,
         bg_refine,
-        staging,
-    })
-}
-
-#[allow(clippy::too_many_arguments)]
-pub(super) fn build_recovery(
-    bld: &mut Builder,
-    sh: &Shared,
-    y: &wgpu::Buffer,
-    real: Real,
-    rotations: Option<&wgpu::Buffer>,
-    c: &Consts,
-    nd: usize,
-) -> Result<Recovery, GpuError> {
-    use Bind::*;
-    let dx = bld.buffer(
-        &format!("dx_{}", real.name()),
-        nd as u64 * real.size(),
-        STORAGE,
-    )?;
-    let staging = bld.staging("solution_staging", 2 * nd as u64 * real.size())?;
-    let acc = real;
-    let recover = match &sh.mask {
-        Some(m) => {
-            let k = bld.kernel(
-                "recover",
-                "recover.wgsl",
-                kernels::RECOVER,
-                real,
-                acc,
-                "recover",
-                &[Uniform, Ro, Ro, Rw],
-                &[("D", c.d), ("WG", c.wg)],
-            )?;
-            let bg = bld.bind(&k, "recover bind group", &[&sh.params, m, y, &dx]);
-            Some((k, bg))
-        }
-        None => None,
-    };
-    let rotate = match (rotations, &sh.rot_index, &sh.rot_nodes) {
-        (Some(rot), Some(ri), Some(rn)) => {
-            let k = bld.kernel(
-                "rotate_vectors",
-                "rotate.wgsl",
-                kernels::ROTATE,
-                real,
-                acc,
-                "rotate_vectors",
-                &[Uniform, Ro, Ro, Ro, Rw],
-                &[("D", c.d), ("WG", c.wg), ("TRANSPOSE", 0.0)],
-            )?;
-            let bg = bld.bind(
-                &k,
-                "rotate_vectors bind group",
-                &[&sh.params, ri, rn, rot, &dx],
-            );
-            Some((k, bg))
-        }
-        _ => None,
-    };
-    Ok(Recovery {
-        real,
-        dx,
-        recover,
-        rotate,
         staging,
     })
 }

@@ -5,8 +5,9 @@ use super::builder::{Builder, Real};
 use super::host::HostOp;
 use super::info::BufferRecord;
 use super::levels::{build_level, build_operator};
+use super::policy::{resume_scales, MixedPolicy, Stop};
 use super::run::Outcome;
-use super::{GpuSolver, F32_KAPPA_LIMIT};
+use super::{GpuSolver, Solved};
 use crate::cg::CgError;
 use crate::elimination::{norm2, Eliminated};
 use crate::gpu::GpuError;
@@ -17,15 +18,15 @@ impl GpuSolver {
     /// Mixed precision, in three stages, each entered only when the one before cannot go on:
     /// 1. f32 CG with reliable updates (f64 accumulation of y, f64 true residuals);
     /// 2. f64 CG (GPU, else CPU), warm-started from y, when f32 meets non-positive
-    ///    curvature, breaks down, or a segment reduces the true residual less than 2×;
+    ///    curvature, breaks down, a segment reduces the true residual less than 2×, or
+    ///    the f32 CG's condition estimate is too large for f32 (`policy.rs`);
     /// 3. extended-precision refinement when f64 CG stagnates on its residual's rounding
     ///    floor (and, with `error_tol`, after success, until the error estimate is met).
-    #[allow(clippy::type_complexity)]
     pub(super) fn solve_mixed(
         &mut self,
         bnorm: f64,
         notes: &mut Vec<String>,
-    ) -> Result<(usize, usize, usize, f64, f64, Vec<f64>, Vec<f64>), GpuError> {
+    ) -> Result<Solved, GpuError> {
         let tol = self.params.tol;
         let t0 = Instant::now();
         let mut total = 0usize;
@@ -45,62 +46,61 @@ impl GpuSolver {
             ));
         }
         self.clear_y64();
+        let policy = MixedPolicy::new(&self.params);
         let mut outer = 0usize;
         let mut prev = f64::INFINITY;
         // (ρ_prev, ‖r‖) of a converged f32 segment: the next one resumes from its direction.
         let mut keep: Option<(f64, f64)> = None;
-        // The next segment's length, its first chunk (one status read-back per segment
-        // instead of a doubling series): the shorter of the last segment's length and what
-        // its late rate predicts. Segments shorten as the kept Krylov space grows (dt-1e2),
-        // but a first segment's late rate can be a slow phase after a fast start
-        // (neohookean-nu0.49: 54 iterations, late rate predicting 284).
         let mut seg_hint: Option<usize> = None;
         let reason: String = loop {
             let rel = self.outer_residual()? / bnorm;
-            if rel <= tol {
+            if policy.converged(rel) {
                 let td = Instant::now();
                 let (y, dx) = self.download_solution()?;
                 dl += td.elapsed().as_secs_f64();
                 let true_rel = self.host.relative_residual(&y);
-                if true_rel <= tol {
+                if policy.converged(true_rel) {
                     let (total, y, dx) = self.certify(total, &mut dl, notes, y, dx)?;
-                    let solve = t0.elapsed().as_secs_f64() - dl;
-                    return Ok((total, outer, 0, solve, dl, y, dx));
+                    return Ok(Solved {
+                        iterations: total,
+                        outer,
+                        restarts: 0,
+                        solve_seconds: t0.elapsed().as_secs_f64() - dl,
+                        download_seconds: dl,
+                        y,
+                        dx,
+                    });
                 }
                 notes.push(format!(
                     "device f64 residual {rel:e} but host residual {true_rel:e}; refining further"
                 ));
             }
-            if !rel.is_finite() {
-                self.clear_y64();
-                break format!("the f64 residual is not finite after outer step {outer}");
-            }
-            if outer > 0 && rel > 0.5 * prev {
-                break format!(
-                    "outer step {outer}: the f32 inner solve reduced the f64 residual only from \
-                     {prev:.3e} to {rel:.3e} (less than 2×)"
-                );
-            }
-            if outer >= self.params.max_outer || total >= self.params.max_iters {
-                let td = Instant::now();
-                let (y, _) = self.download_solution()?;
-                dl += td.elapsed().as_secs_f64();
-                let _ = dl;
-                let true_rel = self.host.relative_residual(&y);
-                return Err(if total >= self.params.max_iters {
-                    CgError::MaxIterations {
-                        iterations: total,
-                        relative_residual: true_rel,
-                        tol,
+            match policy.before_segment(outer, total, rel, prev) {
+                None => {}
+                Some(Stop::Fallback(why)) => {
+                    if !rel.is_finite() {
+                        self.clear_y64();
                     }
-                } else {
-                    CgError::Stagnation {
-                        iterations: total,
-                        relative_residual: true_rel,
-                        tol,
-                    }
+                    break why;
                 }
-                .into());
+                Some(stop) => {
+                    let (y, _) = self.download_solution()?;
+                    let true_rel = self.host.relative_residual(&y);
+                    return Err(if stop == Stop::MaxIterations {
+                        CgError::MaxIterations {
+                            iterations: total,
+                            relative_residual: true_rel,
+                            tol,
+                        }
+                    } else {
+                        CgError::Stagnation {
+                            iterations: total,
+                            relative_residual: true_rel,
+                            tol,
+                        }
+                    }
+                    .into());
+                }
             }
             prev = rel;
             // f32 CG on 2^s Ĥ d̃ = r/‖r‖ (unit right-hand side) until its recurrence residual
@@ -110,39 +110,35 @@ impl GpuSolver {
             // after an f32 segment that did not converge (stagnation, budget) does the next
             // segment restart from p = 0.
             let rn = rel * bnorm;
-            let delta = self.params.inner_tol;
-            let thresh = delta * delta;
-            match keep.take() {
-                Some((rho_prev, rn_prev)) if rn > 0.0 => {
-                    let ps = rn_prev / rn;
-                    self.resume(thresh, rho_prev * ps * ps, ps)?;
-                }
-                _ => self.start(false, thresh)?,
+            let thresh = policy.inner_threshold();
+            match keep
+                .take()
+                .and_then(|(rho, rn_prev)| resume_scales(rho, rn_prev, rn))
+            {
+                Some((rho_prev, ps)) => self.resume(thresh, rho_prev, ps)?,
+                None => self.start(false, thresh)?,
             }
             self.chunk_hint = seg_hint;
             self.start_rr = Some(1.0);
-            match self.run_cg(self.params.max_iters - total, total, thresh) {
+            // The condition estimate is watched at every status read of the segment.
+            self.kappa_watch = Some((policy, outer + 1));
+            let run = self.run_cg(self.params.max_iters - total, total, thresh);
+            self.kappa_watch = None;
+            match run {
                 Ok((out, it)) => {
                     total += it;
                     outer += 1;
                     self.accumulate();
-                    if matches!(out, Outcome::Converged) {
-                        keep = Some((self.last_rho_prev, rn));
-                        let by_rate = self
-                            .last_rate
-                            .map_or(usize::MAX, |r| (-thresh.ln() / r).ceil().min(1e6) as usize);
-                        seg_hint = Some(it.min(by_rate).max(1));
-                    }
-                    if let Some(k) = self.kappa_now() {
-                        let ke = k * f64::from(f32::EPSILON);
-                        if ke > F32_KAPPA_LIMIT {
-                            break format!(
-                                "outer step {outer}: κ̃(M⁻¹Ĥ) ≈ {k:.2e} from the f32 CG's \
-                                 Lanczos coefficients; κ̃·ε_f32 = {ke:.2} > {F32_KAPPA_LIMIT}, \
-                                 where f32 CG loses orthogonality and costs more iterations \
-                                 than it saves"
-                            );
+                    match out {
+                        Outcome::Converged => {
+                            keep = Some((self.last_rho_prev, rn));
+                            seg_hint = Some(policy.segment_hint(it, self.last_rate));
                         }
+                        Outcome::LeaveF32(why) => break why,
+                        Outcome::MaxIters | Outcome::Stagnated => {}
+                    }
+                    if let Some(why) = policy.kappa_verdict(outer, self.kappa_now()) {
+                        break why;
                     }
                 }
                 Err(GpuError::Cg(CgError::NonPositiveCurvature {
@@ -220,8 +216,15 @@ impl GpuSolver {
             }
             Err(e) => return Err(e),
         };
-        let solve = t0.elapsed().as_secs_f64() - dl;
-        Ok((all, outer, restarts, solve, dl, y, dx))
+        Ok(Solved {
+            iterations: all,
+            outer,
+            restarts,
+            solve_seconds: t0.elapsed().as_secs_f64() - dl,
+            download_seconds: dl,
+            y,
+            dx,
+        })
     }
 
     /// Mixed with `error_tol`: after the residual criterion is met, extended-precision
@@ -711,20 +714,5 @@ impl GpuSolver {
         self.ctx.queue.submit([enc.finish()]);
         self.record("scale_rhs");
         Ok(rn)
-    }
-}
-
-/// The power of two 2^s that brings H's largest diagonal entry to [1, 2) when it lies
-/// outside [2^-20, 2^20] (else 1): the f32 operator of mixed precision holds 2^s·Ĥ, which
-/// is exact in floating point and keeps f32 far from underflow and overflow.
-pub(super) fn inner_scale(diag_max: f64) -> f64 {
-    if !(diag_max > 0.0 && diag_max.is_finite()) {
-        return 1.0;
-    }
-    let e = diag_max.log2().floor();
-    if e.abs() <= 20.0 {
-        1.0
-    } else {
-        (-e).exp2()
     }
 }

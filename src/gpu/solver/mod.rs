@@ -21,10 +21,13 @@ mod info;
 mod inspect;
 mod levels;
 mod mixed;
+mod policy;
 mod run;
 mod setup;
 
-pub use info::{BufferRecord, GpuSolveInfo, KernelRecord, KernelTime, Resources, StageSeconds};
+pub use info::{
+    BufferRecord, GpuSolveInfo, KernelRecord, KernelTime, Resources, SolveOutcome, StageSeconds,
+};
 
 use super::{DifferenceForm, GpuContext, GpuError, GpuParams, Precision, MAX_WORKGROUPS};
 use crate::cg::{CgError, Preconditioner};
@@ -36,10 +39,10 @@ use crate::springs::MassSpring;
 use builder::{u32s, AggBuffers, Builder, Real, Shared};
 use host::{spring_adjacency, spring_rhs, Host, HostOp};
 use levels::{
-    blocks_fit, build_level, build_operator, build_recovery, build_refine, bytes_per_iteration,
-    Level, Recovery, Refine, Timestamps,
+    blocks_fit, build_level, build_operator, build_refine, bytes_per_iteration, Level, Refine,
+    Timestamps,
 };
-use mixed::inner_scale;
+use policy::{inner_scale, MixedPolicy};
 use run::Outcome;
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -61,13 +64,22 @@ const N_SCAL: usize = 8;
 const LANCZOS_HIST: usize = 1024;
 /// Length of the `scal` array: the scalars, then the coefficient history.
 const SCAL_LEN: usize = N_SCAL + 2 * LANCZOS_HIST;
-/// Mixed: f32 CG is abandoned for f64 once κ̃(M⁻¹Ĥ)·ε_f32 exceeds this. There f32 CG's
-/// loss of orthogonality costs more iterations than f32 saves (kappa-1e6, κ̃ε = 0.09:
-/// 2.3× f64's count; needles, 0.014: 1.6×; see STABILITY.md).
-const F32_KAPPA_LIMIT: f64 = 0.05;
 const N_STATE: usize = 8;
 /// Top three bits of a packed column index hold the column node's mask.
 const MAX_NODES: usize = 1 << 29;
+
+/// What `solve_plain` and `solve_mixed` hand back to `solve`.
+#[derive(Default)]
+struct Solved {
+    iterations: usize,
+    /// Mixed: f32 segments (reliable updates).
+    outer: usize,
+    restarts: usize,
+    solve_seconds: f64,
+    download_seconds: f64,
+    y: Vec<f64>,
+    dx: Vec<f64>,
+}
 
 /// The GPU solver: pipelines, buffers and bind groups built once; `update` uploads new
 /// values for the same pattern and constraint set; `solve` runs device-resident PCG.
@@ -85,7 +97,8 @@ pub struct GpuSolver {
     shared: Shared,
     level: Level,
     refine: Option<Refine>,
-    recovery: Recovery,
+    /// Read-back buffer of the solution y (the f64 iterate of mixed precision, else x).
+    solution_staging: wgpu::Buffer,
     timestamps: Option<Timestamps>,
     buffers: Vec<BufferRecord>,
     kernels: Vec<KernelRecord>,
@@ -106,6 +119,9 @@ pub struct GpuSolver {
     force_cpu_fallback: bool,
     /// Mixed: why and where the last solve fell back to f64.
     last_fallback: Option<String>,
+    /// Mixed, during an f32 segment: the policy and outer step whose condition verdict
+    /// `run_cg` checks at every status read.
+    kappa_watch: Option<(MixedPolicy, usize)>,
     /// The scalars and coefficient history of the last status read.
     last_scal: Vec<f64>,
     /// The Lanczos coefficients of the current uninterrupted CG sequence.
@@ -425,30 +441,12 @@ impl GpuSolver {
         } else {
             None
         };
-        let y_buf = match &refine {
-            Some(r) => &r.y64,
-            None => &level.x,
+        let y_real = if refine.is_some() {
+            Real::F64
+        } else {
+            inner_real
         };
-        let recovery = build_recovery(
-            &mut bld,
-            &shared,
-            y_buf,
-            if refine.is_some() {
-                Real::F64
-            } else {
-                inner_real
-            },
-            if refine.is_some() {
-                refine.as_ref().and_then(|r| {
-                    r.op.as_ref()
-                        .map_or(r.rotations64.as_ref(), |o| o.rotations.as_ref())
-                })
-            } else {
-                level.op.rotations.as_ref()
-            },
-            &consts,
-            n * d,
-        )?;
+        let solution_staging = bld.staging("solution_staging", (n * d) as u64 * y_real.size())?;
         let timestamps = if ctx.has_timestamps() {
             let set = ctx.device.create_query_set(&wgpu::QuerySetDescriptor {
                 label: Some("chunk timestamps"),
@@ -484,7 +482,7 @@ impl GpuSolver {
             shared,
             level,
             refine,
-            recovery,
+            solution_staging,
             timestamps,
             buffers: bld.buffers,
             kernels: bld.kernels,
@@ -504,6 +502,7 @@ impl GpuSolver {
             fallback_level: None,
             force_cpu_fallback: false,
             last_fallback: None,
+            kappa_watch: None,
             last_rho_prev: 1.0,
             chunk_hint: None,
             last_rate: None,
@@ -642,63 +641,29 @@ impl GpuSolver {
         Ok(out)
     }
 
-    /// Recovers dx = V P y on the device and downloads y and dx (dx gets the lift in f64).
+    /// Downloads y (the f64 iterate of mixed precision, else the CG's x) and recovers
+    /// Δx = Δx_p + V P y on the host in f64. Why not on the device: an f32 iterate would be
+    /// rotated by f32 frames there, and V_i's rounding (ε_f32) would leak into the
+    /// constrained directions, breaking BΔx = p by ~1e-8·‖Δx‖; with the f64 frames the
+    /// constrained components are exactly the lift's and the rest miss by f64 rounding.
     fn download_solution(&mut self) -> Result<(Vec<f64>, Vec<f64>), GpuError> {
-        let nd = (self.n_nodes * self.dim) as u64;
-        let rs = self.recovery.real.size();
-        let y_buf = match &self.refine {
-            Some(r) => r.y64.clone(),
-            None => self.level.x.clone(),
+        let nd = self.host.ndof();
+        let (y_buf, real) = match &self.refine {
+            Some(r) => (r.y64.clone(), Real::F64),
+            None => (self.level.x.clone(), self.level.real),
         };
-        let mut enc = self.encoder("recovery");
-        let mut names = Vec::new();
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("recovery pass"),
-                timestamp_writes: None,
-            });
-            let groups = self.node_groups();
-            if let Some((k, bg)) = &self.recovery.recover {
-                pass.set_pipeline(&k.pipeline);
-                pass.set_bind_group(0, bg, &[]);
-                pass.dispatch_workgroups(groups, 1, 1);
-                names.push(k.name);
-            }
-            if let Some((k, bg)) = &self.recovery.rotate {
-                let nr = self.host.frames.rot_nodes.len() as u32;
-                pass.set_pipeline(&k.pipeline);
-                pass.set_bind_group(0, bg, &[]);
-                pass.dispatch_workgroups(nr.div_ceil(self.wg), 1, 1);
-                names.push(k.name);
-            }
-        }
-        if self.recovery.recover.is_none() {
-            // No constraints: dx = y, no masking work.
-            enc.copy_buffer_to_buffer(&y_buf, 0, &self.recovery.dx, 0, nd * rs);
-        }
-        enc.copy_buffer_to_buffer(&y_buf, 0, &self.recovery.staging, 0, nd * rs);
-        enc.copy_buffer_to_buffer(
-            &self.recovery.dx,
-            0,
-            &self.recovery.staging,
-            nd * rs,
-            nd * rs,
-        );
+        let bytes = nd as u64 * real.size();
+        let mut enc = self.encoder("download solution");
+        enc.copy_buffer_to_buffer(&y_buf, 0, &self.solution_staging, 0, bytes);
         self.ctx.queue.submit([enc.finish()]);
-        for n in names {
-            self.record(n);
-        }
-        let staging = self.recovery.staging.clone();
-        let bytes = self.read(&staging, 2 * nd * rs)?;
-        let half = (nd * rs) as usize;
-        let y = self.recovery.real.values(&bytes[..half]);
-        let mut dx = self.recovery.real.values(&bytes[half..]);
-        self.host.add_lift(&mut dx);
+        let staging = self.solution_staging.clone();
+        let y = real.values(&self.read(&staging, bytes)?);
+        let dx = self.host.recover(&y);
         Ok((y, dx))
     }
 
     /// Solves Ĥ y = b̂; returns y (frame coordinates), Δx = Δx_p + V y and the report.
-    pub fn solve(&mut self) -> Result<(Vec<f64>, Vec<f64>, GpuSolveInfo), GpuError> {
+    pub fn solve(&mut self) -> Result<SolveOutcome, GpuError> {
         self.readbacks = 0;
         self.gpu_seconds = 0.0;
         self.recorded = 0;
@@ -715,12 +680,15 @@ impl GpuSolver {
             notes.push("no SHADER_F64: reductions accumulate in f32".to_string());
         }
         let nd = self.host.ndof();
-        let (iterations, outer, restarts, solve_s, dl_s, y, dx) = if bnorm == 0.0 {
+        let solved = if bnorm == 0.0 {
             // Ĥ is SPD: the solution is y = 0 and Δx the lift.
-            let mut dx = vec![0.0; nd];
-            self.host.add_lift(&mut dx);
+            let y = vec![0.0; nd];
             notes.push("b̂ = 0: y = 0 without iterating".into());
-            (0, 0, 0, 0.0, 0.0, vec![0.0; nd], dx)
+            Solved {
+                dx: self.host.recover(&y),
+                y,
+                ..Solved::default()
+            }
         } else if self.refine.is_some() {
             self.solve_mixed(bnorm, &mut notes)?
         } else {
@@ -734,6 +702,15 @@ impl GpuSolver {
         };
         let _ = t0;
         self.lanczos_close();
+        let Solved {
+            iterations,
+            outer,
+            restarts,
+            solve_seconds: solve_s,
+            download_seconds: dl_s,
+            y,
+            dx,
+        } = solved;
         let rel = self.host.relative_residual(&y);
         let bpi = self.bytes_per_iteration;
         let moved = bpi as f64 * iterations as f64;
@@ -778,14 +755,10 @@ impl GpuSolver {
             condition_estimate: self.kappa_est,
             notes,
         };
-        Ok((y, dx, info))
+        Ok(SolveOutcome { y, dx, info })
     }
 
-    #[allow(clippy::type_complexity)]
-    fn solve_plain(
-        &mut self,
-        bnorm: f64,
-    ) -> Result<(usize, usize, usize, f64, f64, Vec<f64>, Vec<f64>), GpuError> {
+    fn solve_plain(&mut self, bnorm: f64) -> Result<Solved, GpuError> {
         let tol = self.params.tol;
         let thresh = (tol * bnorm).powi(2);
         let t0 = Instant::now();
@@ -803,8 +776,15 @@ impl GpuSolver {
             let rel = self.host.relative_residual(&y);
             match out {
                 Outcome::Converged if rel <= tol => {
-                    let solve = t0.elapsed().as_secs_f64() - dl;
-                    return Ok((total, 0, restarts, solve, dl, y, dx));
+                    return Ok(Solved {
+                        iterations: total,
+                        outer: 0,
+                        restarts,
+                        solve_seconds: t0.elapsed().as_secs_f64() - dl,
+                        download_seconds: dl,
+                        y,
+                        dx,
+                    });
                 }
                 Outcome::Converged
                     if restarts < self.params.max_restarts && total < self.params.max_iters =>

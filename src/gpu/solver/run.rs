@@ -10,6 +10,8 @@ pub(super) enum Outcome {
     Converged,
     MaxIters,
     Stagnated,
+    /// Mixed: the condition estimate says f32 CG costs more than it saves (the reason).
+    LeaveF32(String),
 }
 
 impl GpuSolver {
@@ -223,6 +225,39 @@ impl GpuSolver {
         self.lz_betas.clear();
     }
 
+    /// κ̃(M⁻¹Ĥ) during a run, after `iters` iterations: the closed sequences, the open
+    /// one, and this run's coefficients so far (joined to the open one when the run
+    /// resumed it, as `lanczos_collect` will join them).
+    fn kappa_in_run(&self, iters: usize) -> Option<f64> {
+        let n = iters.min(LANCZOS_HIST);
+        let h = &self.last_scal[N_SCAL..];
+        let run_a = (0..n).map(|j| h[2 * j]);
+        let run_b = (0..n.saturating_sub(1)).map(|j| h[2 * j + 1]);
+        let (a, b, earlier): (Vec<f64>, Vec<f64>, Option<f64>) =
+            if self.lz_resumed && !self.lz_alphas.is_empty() {
+                let a = self.lz_alphas.iter().copied().chain(run_a).collect();
+                let b = self
+                    .lz_betas
+                    .iter()
+                    .copied()
+                    .chain(std::iter::once(self.last_scal[7]))
+                    .chain(run_b)
+                    .collect();
+                (a, b, None)
+            } else {
+                let open = crate::cg::lanczos_condition(&self.lz_alphas, &self.lz_betas);
+                (run_a.collect(), run_b.collect(), open)
+            };
+        [
+            crate::cg::lanczos_condition(&a, &b),
+            earlier,
+            self.kappa_est,
+        ]
+        .into_iter()
+        .flatten()
+        .reduce(f64::max)
+    }
+
     /// κ̃(M⁻¹Ĥ) of the current sequence and the earlier ones.
     pub(super) fn kappa_now(&self) -> Option<f64> {
         let cur = crate::cg::lanczos_condition(&self.lz_alphas, &self.lz_betas);
@@ -309,6 +344,11 @@ impl GpuSolver {
                 }
                 self.last_rate = late_rate(&hist);
                 return Ok((Outcome::Converged, iters));
+            }
+            if let Some((policy, outer)) = self.kappa_watch {
+                if let Some(why) = policy.kappa_verdict(outer, self.kappa_in_run(iters)) {
+                    return Ok((Outcome::LeaveF32(why), iters));
+                }
             }
             if st.rr < best {
                 best = st.rr;

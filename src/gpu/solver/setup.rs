@@ -105,17 +105,8 @@ impl GpuSolver {
         }
         match &self.refine {
             Some(rf) => {
-                match &rf.op {
-                    Some(op) => self.write_operator(op, 1.0),
-                    None => {
-                        if let Some(rot) = &rf.rotations64 {
-                            self.ctx.queue.write_buffer(
-                                rot,
-                                0,
-                                &Real::F64.bytes(&self.host.frames.rotations),
-                            );
-                        }
-                    }
+                if let Some(op) = &rf.op {
+                    self.write_operator(op, 1.0);
                 }
                 self.ctx
                     .queue
