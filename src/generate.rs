@@ -112,17 +112,15 @@ pub struct GeneratedSystem {
     pub coords: Vec<[usize; 3]>,
 }
 
-fn node_id(spec: &SystemSpec, x: usize, y: usize, z: usize) -> usize {
-    x + spec.grid[0] * (y + spec.grid[1] * z)
-}
-
-fn offsets(dim: usize, stencil: Stencil) -> Vec<[i64; 3]> {
-    // Half of the neighbourhood (the other half is the mirror image).
+/// Half of a grid node's neighbourhood (the other half is the mirror image), as offsets
+/// in grid coordinates. 3D `Mesh`: the Kuhn (Freudenthal) tetrahedral mesh's 14
+/// neighbours, the main diagonal (1, 1, 1) among them.
+pub(crate) fn stencil_offsets(dim: usize, stencil: Stencil) -> &'static [[i64; 3]] {
     match (dim, stencil) {
-        (2, Stencil::Face) => vec![[1, 0, 0], [0, 1, 0]],
-        (2, Stencil::Mesh) => vec![[1, 0, 0], [0, 1, 0], [1, 1, 0], [1, -1, 0]],
-        (_, Stencil::Face) => vec![[1, 0, 0], [0, 1, 0], [0, 0, 1]],
-        (_, Stencil::Mesh) => vec![
+        (2, Stencil::Face) => &[[1, 0, 0], [0, 1, 0]],
+        (2, Stencil::Mesh) => &[[1, 0, 0], [0, 1, 0], [1, 1, 0], [1, -1, 0]],
+        (_, Stencil::Face) => &[[1, 0, 0], [0, 1, 0], [0, 0, 1]],
+        (_, Stencil::Mesh) => &[
             [1, 0, 0],
             [0, 1, 0],
             [0, 0, 1],
@@ -134,41 +132,51 @@ fn offsets(dim: usize, stencil: Stencil) -> Vec<[i64; 3]> {
     }
 }
 
+/// The nodes of a grid of `grid` nodes per axis (1 along z in 2D) in id order, x fastest:
+/// node (x, y, z) has id x + g₀(y + g₁z).
+pub(crate) fn grid_coords(grid: [usize; 3]) -> Vec<[usize; 3]> {
+    let mut coords = Vec::with_capacity(grid.iter().product());
+    for z in 0..grid[2] {
+        for y in 0..grid[1] {
+            for x in 0..grid[0] {
+                coords.push([x, y, z]);
+            }
+        }
+    }
+    coords
+}
+
+/// The edges of a grid: for each node in id order and each offset in `offs`, the node, the
+/// neighbour at that offset and the offset, where the neighbour is inside the grid.
+pub(crate) fn grid_edges(grid: [usize; 3], offs: &[[i64; 3]]) -> Vec<(usize, usize, [i64; 3])> {
+    let id = |c: [i64; 3]| -> Option<usize> {
+        let inside = (0..3).all(|a| c[a] >= 0 && (c[a] as usize) < grid[a]);
+        inside.then(|| c[0] as usize + grid[0] * (c[1] as usize + grid[1] * c[2] as usize))
+    };
+    let mut edges = Vec::new();
+    for (i, c) in grid_coords(grid).into_iter().enumerate() {
+        for o in offs {
+            let m = [c[0] as i64 + o[0], c[1] as i64 + o[1], c[2] as i64 + o[2]];
+            if let Some(j) = id(m) {
+                edges.push((i, j, *o));
+            }
+        }
+    }
+    edges
+}
+
 /// Builds the system described by `spec`.
 pub fn random_system(spec: &SystemSpec) -> GeneratedSystem {
     let dim = spec.dim;
     let mut rng = StdRng::seed_from_u64(spec.seed);
     let n = spec.n_nodes();
     let gz = if dim == 2 { 1 } else { spec.grid[2] };
-    let mut coords = Vec::with_capacity(n);
-    for z in 0..gz {
-        for y in 0..spec.grid[1] {
-            for x in 0..spec.grid[0] {
-                coords.push([x, y, z]);
-            }
-        }
-    }
-    // Edges.
-    let offs = offsets(dim, spec.stencil);
-    let mut edges = Vec::new();
-    for (i, c) in coords.iter().enumerate() {
-        for o in &offs {
-            let nx = c[0] as i64 + o[0];
-            let ny = c[1] as i64 + o[1];
-            let nz = c[2] as i64 + o[2];
-            if nx < 0
-                || ny < 0
-                || nz < 0
-                || nx >= spec.grid[0] as i64
-                || ny >= spec.grid[1] as i64
-                || nz >= gz as i64
-            {
-                continue;
-            }
-            let j = node_id(spec, nx as usize, ny as usize, nz as usize);
-            edges.push((i.min(j), i.max(j)));
-        }
-    }
+    let grid = [spec.grid[0], spec.grid[1], gz];
+    let coords = grid_coords(grid);
+    let edges: Vec<(usize, usize)> = grid_edges(grid, stencil_offsets(dim, spec.stencil))
+        .into_iter()
+        .map(|(i, j, _)| (i.min(j), i.max(j)))
+        .collect();
     // Pattern.
     let mut rows: Vec<Vec<usize>> = (0..n).map(|i| vec![i]).collect();
     for &(i, j) in &edges {

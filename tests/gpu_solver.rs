@@ -18,10 +18,7 @@ fn norm(v: &[f64]) -> f64 {
     v.iter().map(|x| x * x).sum::<f64>().sqrt()
 }
 
-fn rel_err(a: &[f64], b: &[f64]) -> f64 {
-    let d: Vec<f64> = a.iter().zip(b).map(|(x, y)| x - y).collect();
-    norm(&d) / norm(b).max(1e-300)
-}
+use stickslip::linalg::relative_error as rel_err;
 
 /// Dense Cholesky of the assembled Ĥ: y*, Δx*.
 fn reference(e: &Eliminated) -> (Vec<f64>, Vec<f64>) {
