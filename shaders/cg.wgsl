@@ -64,23 +64,19 @@ fn reduce_slot(slot: u32, lid: u32) -> acc {
     for (var t = lid; t < params.n_partials; t += WG) {
         s += partials[slot * params.n_partials + t];
     }
-    return workgroup_sum_uniform(lid, s);
+    return workgroup_sum_uniform(lid, sum1(s), 1u)[0];
 }
 
 // The partials of C and init: r·z and r·r and, with COARSE, Zᵀr, in one tree.
 fn write_partials(lid: u32, wg: u32, prz: acc, prr: acc, zr: vec3<acc>) {
-    workgroup_sum(lid, vec4<acc>(prz, prr, zr.x, zr.y), zr.z);
+    let n = select(2u, 2u + D, COARSE);
+    workgroup_sum(lid, array<acc, 5>(prz, prr, zr.x, zr.y, zr.z), n);
     if (lid == 0u) {
         let np = params.n_partials;
-        let v = wg_sum4[0];
-        partials[PART_RZ * np + wg] = v.x;
-        partials[PART_RR * np + wg] = v.y;
-        if (COARSE) {
-            partials[PART_ZR * np + wg] = v.z;
-            partials[(PART_ZR + 1u) * np + wg] = v.w;
-            if (D == 3u) {
-                partials[(PART_ZR + 2u) * np + wg] = wg_sum1[0];
-            }
+        partials[PART_RZ * np + wg] = wg_sum[0];
+        partials[PART_RR * np + wg] = wg_sum[WG];
+        for (var a = 0u; a + 2u < n; a++) {
+            partials[(PART_ZR + a) * np + wg] = wg_sum[(2u + a) * WG];
         }
     }
 }
@@ -102,10 +98,7 @@ fn reduce_coarse(lid: u32) -> array<acc, 5> {
             w += partials[(PART_ZR + 2u) * np + t];
         }
     }
-    workgroup_sum(lid, v, w);
-    let a = workgroupUniformLoad(&wg_sum4[0]);
-    let b = workgroupUniformLoad(&wg_sum1[0]);
-    return array<acc, 5>(a.x, a.y, a.z, a.w, b);
+    return workgroup_sum_uniform(lid, array<acc, 5>(v.x, v.y, v.z, v.w, w), 2u + D);
 }
 
 // AGG: w·c = Zᵀr·E⁺Zᵀr from coarse.wgsl's output, identical in every workgroup.
@@ -115,7 +108,7 @@ fn wc_dot(lid: u32) -> acc {
     for (var t = lid; t < kc; t += WG) {
         s += wc[t] * wc[kc + t];
     }
-    return workgroup_sum_uniform(lid, s);
+    return workgroup_sum_uniform(lid, sum1(s), 1u)[0];
 }
 
 // Component a of node i is constrained (bit a of its mask).

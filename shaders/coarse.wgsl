@@ -75,9 +75,9 @@ fn restrict_r(
         for (var t = agg_ptr[a] + lid.x; t < end; t += WG) {
             s += zt(agg_nodes[t]);
         }
-        workgroup_sum(lid.x, vec4<acc>(s, acc(0.0)), acc(0.0));
+        workgroup_sum(lid.x, array<acc, 5>(s.x, s.y, s.z, acc(0.0), acc(0.0)), D);
         if (lid.x < D) {
-            wc[a * D + lid.x] = wg_sum4[0][lid.x];
+            wc[a * D + lid.x] = wg_sum[lid.x * WG];
         }
         // The tree's memory is reused by the next aggregate.
         workgroupBarrier();

@@ -15,30 +15,45 @@ struct Params {
 // Workgroup size: a power of two, at most WG_MAX, set per pipeline.
 override WG: u32 = 64u;
 
-// The workgroup reduction of every kernel. Up to five sums at once (a vec4 and a
-// scalar) share one tree: on CPU adapters each level's barrier costs more than its adds
-// (llvmpipe runs barriers as coroutine switches), so fused sums are cheaper than trees.
-var<workgroup> wg_sum4: array<vec4<acc>, WG>;
-var<workgroup> wg_sum1: array<acc, WG>;
+// The workgroup reduction of every kernel: up to five sums at once share one tree (on CPU
+// adapters each level's barrier costs more than its adds, so fused sums beat separate
+// trees). Sum c of invocation i lives at wg_sum[c * WG + i]: each sum is contiguous.
+override WG_SUM_LEN: u32 = 5u * WG;
+var<workgroup> wg_sum: array<acc, WG_SUM_LEN>;
+var<workgroup> wg_sums: array<acc, 5>;
 
-// Sums every invocation's (v, w) over the workgroup, in a fixed order (deterministic).
-// The sums are left in wg_sum4[0] and wg_sum1[0] for every invocation to read (the tree
-// ends on a barrier). Every invocation calls it, in uniform control flow.
-fn workgroup_sum(lid: u32, v: vec4<acc>, w: acc) {
-    wg_sum4[lid] = v;
-    wg_sum1[lid] = w;
+// Sums the first `n` entries of every invocation's `v` over the workgroup, in a fixed
+// order (deterministic). Sum c is left in wg_sum[c * WG] for every invocation to read
+// (the tree ends on a barrier). Every invocation calls it, in uniform control flow, with
+// the same constant n: the loops over c then unroll to exactly n sums.
+fn workgroup_sum(lid: u32, v: array<acc, 5>, n: u32) {
+    for (var c = 0u; c < n; c++) {
+        wg_sum[c * WG + lid] = v[c];
+    }
     workgroupBarrier();
     for (var h = WG / 2u; h > 0u; h = h >> 1u) {
         if (lid < h) {
-            wg_sum4[lid] += wg_sum4[lid + h];
-            wg_sum1[lid] += wg_sum1[lid + h];
+            for (var c = 0u; c < n; c++) {
+                wg_sum[c * WG + lid] += wg_sum[c * WG + lid + h];
+            }
         }
         workgroupBarrier();
     }
 }
 
-// The workgroup sum of a scalar, as a uniform value (one that later barriers may depend on).
-fn workgroup_sum_uniform(lid: u32, s: acc) -> acc {
-    workgroup_sum(lid, vec4<acc>(acc(0.0)), s);
-    return workgroupUniformLoad(&wg_sum1[0]);
+// workgroup_sum, with the sums returned as uniform values (ones that later barriers may
+// depend on); entries from n on are unspecified.
+fn workgroup_sum_uniform(lid: u32, v: array<acc, 5>, n: u32) -> array<acc, 5> {
+    workgroup_sum(lid, v, n);
+    if (lid == 0u) {
+        for (var c = 0u; c < n; c++) {
+            wg_sums[c] = wg_sum[c * WG];
+        }
+    }
+    return workgroupUniformLoad(&wg_sums);
+}
+
+// One value as the first entry of workgroup_sum's operand.
+fn sum1(s: acc) -> array<acc, 5> {
+    return array<acc, 5>(s, acc(0.0), acc(0.0), acc(0.0), acc(0.0));
 }

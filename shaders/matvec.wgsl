@@ -188,8 +188,8 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
             part += acc(pi.x) * acc(v.x) + acc(pi.y) * acc(v.y);
         }
     }
-    workgroup_sum(lid.x, vec4<acc>(acc(0.0)), part);
+    workgroup_sum(lid.x, sum1(part), 1u);
     if (lid.x == 0u) {
-        partials[PART_PQ * params.n_partials + wid.x] = wg_sum1[0];
+        partials[PART_PQ * params.n_partials + wid.x] = wg_sum[0];
     }
 }

@@ -30,9 +30,9 @@ fn residual(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
     }
     // acc is f64 wherever this kernel is built; the conversions keep the source valid
     // under every prelude.
-    workgroup_sum(lid.x, vec4<acc>(acc(0.0)), acc(s));
+    workgroup_sum(lid.x, sum1(acc(s)), 1u);
     if (lid.x == 0u) {
-        partials64[wid.x] = f64(wg_sum1[0]);
+        partials64[wid.x] = f64(wg_sum[0]);
     }
 }
 

@@ -123,8 +123,8 @@ fn spring_matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgrou
             part += acc(pk) * acc(v);
         }
     }
-    workgroup_sum(lid.x, vec4<acc>(acc(0.0)), part);
+    workgroup_sum(lid.x, sum1(part), 1u);
     if (lid.x == 0u) {
-        partials[PART_PQ * params.n_partials + wid.x] = wg_sum1[0];
+        partials[PART_PQ * params.n_partials + wid.x] = wg_sum[0];
     }
 }

@@ -293,7 +293,6 @@ impl GpuSolver {
         self.tel.start_solve();
         self.mixed.start_solve();
         self.run.start_solve();
-        let t0 = Instant::now();
         let bnorm = norm2(&self.host.rhs);
         let mut notes = Vec::new();
         if !self.ctx.has_f64() {
@@ -320,7 +319,6 @@ impl GpuSolver {
                 other => other,
             })?
         };
-        let _ = t0;
         self.lanczos_close();
         let Solved {
             iterations,
