@@ -37,9 +37,6 @@ fn bench(c: &mut Criterion) {
     g.bench_function("matvec_3d_20k_f32", |b| {
         b.iter(|| sol.apply_operator(&y).map(|v| v.len()))
     });
-    g.bench_function("recover_rotate_3d_20k_f32", |b| {
-        b.iter(|| sol.recover_on_device(&y).map(|v| v.len()))
-    });
     g.bench_function("preconditioner_build_3d_20k_f32", |b| {
         b.iter(|| sol.preconditioner_data().map(|v| v.len()))
     });
@@ -50,7 +47,7 @@ fn bench(c: &mut Criterion) {
         b.iter(|| sol.iterate(16).map(|r| r.0.len()))
     });
     g.bench_function("solve_3d_20k_f32", |b| {
-        b.iter(|| sol.solve().map(|r| r.2.iterations))
+        b.iter(|| sol.solve().map(|r| r.info.iterations))
     });
     g.finish();
 }

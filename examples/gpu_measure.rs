@@ -6,7 +6,7 @@ use stickslip::cg::{self, CgParams, Preconditioner};
 use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::generate::{random_system, SystemSpec};
 use stickslip::gpu::{
-    measure_copy_bandwidth, GpuContext, GpuOptions, GpuParams, GpuSolver, Precision,
+    measure_copy_bandwidth, GpuContext, GpuOptions, GpuParams, GpuSolver, Precision, SolveOutcome,
 };
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -89,7 +89,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     if std::env::var("PROFILE_ONLY").is_ok() {
         return Ok(());
     }
-    let (_, dx, info) = sol.solve()?;
+    let SolveOutcome { dx, info, .. } = sol.solve()?;
     println!(
         "gpu: {} iterations ({} recorded, {:.1}% over), {} dispatches/iteration, {} readbacks, {:.1} MB/iteration, {:.2} GB/s wall ({:.2} of copy), {} GB/s timestamps ({} of copy)",
         info.iterations,

@@ -72,7 +72,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut last = vec![None; configs.len()];
     for rep in 0..=reps {
         for (k, sol) in solvers.iter_mut().enumerate() {
-            let (_, _, info) = sol.solve()?;
+            let info = sol.solve()?.info;
             if rep > 0 {
                 best[k] = best[k].min(info.seconds.solve);
             }

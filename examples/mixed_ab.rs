@@ -34,7 +34,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut best = [f64::INFINITY; 2];
     for rep in 0..reps {
         for (k, sol) in solvers.iter_mut().enumerate() {
-            let (_, _, info) = sol.solve()?;
+            let info = sol.solve()?.info;
             best[k] = best[k].min(info.seconds.solve);
             println!(
                 "rep {rep} {:>5}: {:>5} iterations, {:>3} outer, {:>3} readbacks, residual {:.2e}, solve {:.3} s ({:.2} ms/iteration)",

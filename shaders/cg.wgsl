@@ -8,18 +8,21 @@
 // same fixed order (so all workgroups agree on α, β and the stop decision bit for bit).
 // Scalars never leave the device; the host reads `scal` and `state` once per chunk.
 //
-// Slot discipline (no workgroup reads a slot another workgroup of the same dispatch writes):
-//   scal:  0 ρ (A writes, C reads)  1 ρ_prev (C writes, A reads)  2 p·q (C)  3 α (C)
-//          4 r·r (A)  5 threshold tol²‖b‖² (host)  6 direction scale kept by init (host)
-//          7 β of the first update_p of a run (A, workgroup 0)
-//          8 + 2j: α_j (C)   8 + 2j + 1: β_{j+1} (A), for j < HIST: the Lanczos
-//          coefficients of this run, from which the host estimates κ(M⁻¹Ĥ)
-//   partials: slot 0 p·q (B), 1 r·z, 2 r·r (C or init), 3..3+D Zᵀr (C or init, COARSE)
-//   state: 0 done (A writes, B/C read)  1 halt: non-positive curvature (C writes, A reads)
-//          2 iterations (C, workgroup 0 only)  3 converged (A)  4 breakdown (A)
+// Slot discipline (no workgroup reads a slot another workgroup of the same dispatch writes;
+// the slot names are constants shared with the host, `gpu::kernels::slots`):
+//   scal:  SCAL_RHO ρ (A writes, C reads)  SCAL_RHO_PREV ρ_prev (C writes, A reads)
+//          SCAL_PQ p·q (C)  SCAL_ALPHA α (C)  SCAL_RR r·r (A)
+//          SCAL_THRESH threshold tol²‖b‖² (host)  SCAL_PSCALE direction scale kept by
+//          init (host)  SCAL_BETA0 β of the first update_p of a run (A, workgroup 0)
+//          SCAL_HIST + 2j: α_j (C)   SCAL_HIST + 2j + 1: β_{j+1} (A), for j < HIST: the
+//          Lanczos coefficients of this run, from which the host estimates κ(M⁻¹Ĥ)
+//   partials: PART_PQ p·q (B), PART_RZ r·z, PART_RR r·r (C or init), PART_ZR..+D Zᵀr
+//          (C or init, COARSE)
+//   state: STATE_DONE (A writes, B/C read)  STATE_HALT non-positive curvature (C writes,
+//          A reads)  STATE_ITERS iterations (C, workgroup 0 only)  STATE_CONVERGED (A)
+//          STATE_BREAKDOWN (A)
 
 override D: u32 = 3u;
-override WG: u32 = 64u;
 override PRECOND: u32 = 1u;   // 0 none, 1 Jacobi, 2 block-Jacobi
 override HIST: u32 = 0u;      // Lanczos coefficients recorded per run (0: none)
 // Coarse correction on the rigid translations (src/coarse.rs): z = M⁻¹r + Z E⁺ Zᵀr with
@@ -34,9 +37,6 @@ override AGG: bool = false;
 override N_AGG: u32 = 1u;
 override MASKED: bool = false;
 override ROTATED: bool = false;
-
-// First slot of the coefficient history in `scal` (N_SCAL in src/gpu/solver/mod.rs).
-const SCAL_HIST: u32 = 8u;
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read_write> x: array<real>;
@@ -56,15 +56,6 @@ const SCAL_HIST: u32 = 8u;
 @group(0) @binding(15) var<storage, read> agg_of: array<u32>;
 @group(0) @binding(16) var<storage, read> wc: array<acc>;
 
-const NO_ROTATION: u32 = 0xffffffffu;
-const NO_AGGREGATE: u32 = 0xffffffffu;
-
-var<workgroup> sh: array<acc, WG_MAX>;
-var<workgroup> sh2: array<acc, WG_MAX>;
-var<workgroup> bcast: acc;
-// COARSE: the fused reductions of (r·z, r·r, Zᵀr) in one tree instead of three.
-var<workgroup> sh4: array<vec4<acc>, WG_MAX>;
-var<workgroup> bcast4: vec4<acc>;
 var<workgroup> wg_u: u32;
 
 // Sum of partial slot `slot` in a fixed order, identical in every workgroup.
@@ -73,98 +64,41 @@ fn reduce_slot(slot: u32, lid: u32) -> acc {
     for (var t = lid; t < params.n_partials; t += WG) {
         s += partials[slot * params.n_partials + t];
     }
-    return tree_sum(lid, s);
+    return workgroup_sum_uniform(lid, sum1(s), 1u)[0];
 }
 
-// The workgroup's sum of every invocation's `s`, returned to all of them.
-fn tree_sum(lid: u32, s: acc) -> acc {
-    sh[lid] = s;
-    workgroupBarrier();
-    for (var h = WG / 2u; h > 0u; h = h >> 1u) {
-        if (lid < h) {
-            sh[lid] += sh[lid + h];
-        }
-        workgroupBarrier();
-    }
-    if (lid == 0u) {
-        bcast = sh[0];
-    }
-    return workgroupUniformLoad(&bcast);
-}
-
-// Workgroup tree sums of r·z and r·r into partial slots 1 and 2 of this workgroup.
-fn write_rz_rr(lid: u32, wg: u32, a: acc, b: acc) {
-    sh[lid] = a;
-    sh2[lid] = b;
-    workgroupBarrier();
-    for (var h = WG / 2u; h > 0u; h = h >> 1u) {
-        if (lid < h) {
-            sh[lid] += sh[lid + h];
-            sh2[lid] += sh2[lid + h];
-        }
-        workgroupBarrier();
-    }
-    if (lid == 0u) {
-        partials[params.n_partials + wg] = sh[0];
-        partials[2u * params.n_partials + wg] = sh2[0];
-    }
-}
-
-// COARSE: one workgroup tree over (v, w) per invocation; the sums land in sh4[0], sh[0].
-fn tree4(lid: u32, v: vec4<acc>, w: acc) {
-    sh4[lid] = v;
-    sh[lid] = w;
-    workgroupBarrier();
-    for (var h = WG / 2u; h > 0u; h = h >> 1u) {
-        if (lid < h) {
-            sh4[lid] += sh4[lid + h];
-            sh[lid] += sh[lid + h];
-        }
-        workgroupBarrier();
-    }
-}
-
-// The partials of C and init: r·z and r·r (slots 1, 2) and, with COARSE, Zᵀr (slots
-// 3..3+D) in one tree.
+// The partials of C and init: r·z and r·r and, with COARSE, Zᵀr, in one tree.
 fn write_partials(lid: u32, wg: u32, prz: acc, prr: acc, zr: vec3<acc>) {
-    if (!COARSE) {
-        write_rz_rr(lid, wg, prz, prr);
-        return;
-    }
-    tree4(lid, vec4<acc>(prz, prr, zr.x, zr.y), zr.z);
+    let n = select(2u, 2u + D, COARSE);
+    workgroup_sum(lid, array<acc, 5>(prz, prr, zr.x, zr.y, zr.z), n);
     if (lid == 0u) {
         let np = params.n_partials;
-        let v = sh4[0];
-        partials[np + wg] = v.x;
-        partials[2u * np + wg] = v.y;
-        partials[3u * np + wg] = v.z;
-        partials[4u * np + wg] = v.w;
-        if (D == 3u) {
-            partials[5u * np + wg] = sh[0];
+        partials[PART_RZ * np + wg] = wg_sum[0];
+        partials[PART_RR * np + wg] = wg_sum[WG];
+        for (var a = 0u; a + 2u < n; a++) {
+            partials[(PART_ZR + a) * np + wg] = wg_sum[(2u + a) * WG];
         }
     }
 }
 
-// COARSE: slots 1..3+D summed in one pass and one tree, identical in every workgroup:
+// COARSE: r·z, r·r and Zᵀr summed in one pass and one tree, identical in every workgroup:
 // (r·z, r·r, Zᵀr.x, Zᵀr.y) and Zᵀr.z.
 fn reduce_coarse(lid: u32) -> array<acc, 5> {
     let np = params.n_partials;
     var v = vec4<acc>(acc(0.0));
     var w = acc(0.0);
     for (var t = lid; t < np; t += WG) {
-        v += vec4<acc>(partials[np + t], partials[2u * np + t], partials[3u * np + t], partials[4u * np + t]);
+        v += vec4<acc>(
+            partials[PART_RZ * np + t],
+            partials[PART_RR * np + t],
+            partials[PART_ZR * np + t],
+            partials[(PART_ZR + 1u) * np + t],
+        );
         if (D == 3u) {
-            w += partials[5u * np + t];
+            w += partials[(PART_ZR + 2u) * np + t];
         }
     }
-    tree4(lid, v, w);
-    if (lid == 0u) {
-        bcast4 = sh4[0];
-        bcast = sh[0];
-    }
-    let a = workgroupUniformLoad(&bcast4);
-    let b = workgroupUniformLoad(&bcast);
-    return array<acc, 5>(a.x, a.y, a.z, a.w, b);
+    return workgroup_sum_uniform(lid, array<acc, 5>(v.x, v.y, v.z, v.w, w), 2u + D);
 }
 
 // AGG: w·c = Zᵀr·E⁺Zᵀr from coarse.wgsl's output, identical in every workgroup.
@@ -174,7 +108,7 @@ fn wc_dot(lid: u32) -> acc {
     for (var t = lid; t < kc; t += WG) {
         s += wc[t] * wc[kc + t];
     }
-    return tree_sum(lid, s);
+    return workgroup_sum_uniform(lid, sum1(s), 1u)[0];
 }
 
 // Component a of node i is constrained (bit a of its mask).
@@ -312,11 +246,11 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
     // Coarse coefficients c = E⁺Zᵀr (zero without COARSE).
     var cc = vec3<acc>(acc(0.0));
     if (AGG) {
-        rz = reduce_slot(1u, lid.x) + wc_dot(lid.x);
-        rr = reduce_slot(2u, lid.x);
+        rz = reduce_slot(PART_RZ, lid.x) + wc_dot(lid.x);
+        rr = reduce_slot(PART_RR, lid.x);
     } else if (!COARSE) {
-        rz = reduce_slot(1u, lid.x);
-        rr = reduce_slot(2u, lid.x);
+        rz = reduce_slot(PART_RZ, lid.x);
+        rr = reduce_slot(PART_RR, lid.x);
     } else {
         let red = reduce_coarse(lid.x);
         rz = red[0];
@@ -332,35 +266,35 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
         rz += dot(zr, cc);
     }
     if (lid.x == 0u) {
-        wg_u = state[1];
+        wg_u = state[STATE_HALT];
     }
     let halt = workgroupUniformLoad(&wg_u);
-    let conv = rr <= scal[5];
+    let conv = rr <= scal[SCAL_THRESH];
     // NaN fails every comparison: a non-finite ρ or r·r is a breakdown, never convergence.
     let bad = !(rz >= acc(0.0)) || !(rr >= acc(0.0));
     let stop = halt != 0u || conv || bad;
     if (wid.x == 0u && lid.x == 0u) {
-        scal[0] = rz;
-        scal[4] = rr;
+        scal[SCAL_RHO] = rz;
+        scal[SCAL_RR] = rr;
         if (stop) {
-            state[0] = 1u;
+            state[STATE_DONE] = 1u;
             if (halt == 0u && !bad && conv) {
-                state[3] = 1u;
+                state[STATE_CONVERGED] = 1u;
             }
             if (halt == 0u && bad) {
-                state[4] = 1u;
+                state[STATE_BREAKDOWN] = 1u;
             }
         }
     }
     if (stop) {
         return;
     }
-    let beta_acc = rz / scal[1];
+    let beta_acc = rz / scal[SCAL_RHO_PREV];
     let beta = real(beta_acc);
     if (wid.x == 0u && lid.x == 0u) {
-        let it = state[2];
+        let it = state[STATE_ITERS];
         if (it == 0u) {
-            scal[7] = beta_acc;
+            scal[SCAL_BETA0] = beta_acc;
         } else if (it <= HIST) {
             scal[SCAL_HIST + 2u * (it - 1u) + 1u] = beta_acc;
         }
@@ -416,20 +350,20 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
 @compute @workgroup_size(WG)
 fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
     if (lid.x == 0u) {
-        wg_u = state[0];
+        wg_u = state[STATE_DONE];
     }
     if (workgroupUniformLoad(&wg_u) != 0u) {
         return;
     }
-    let pq = reduce_slot(0u, lid.x);
+    let pq = reduce_slot(PART_PQ, lid.x);
     if (!(pq > acc(0.0))) {
         if (wid.x == 0u && lid.x == 0u) {
-            state[1] = 1u;
-            scal[2] = pq;
+            state[STATE_HALT] = 1u;
+            scal[SCAL_PQ] = pq;
         }
         return;
     }
-    let alpha_acc = scal[0] / pq;
+    let alpha_acc = scal[SCAL_RHO] / pq;
     let alpha = real(alpha_acc);
     var prz = acc(0.0);
     var prr = acc(0.0);
@@ -493,21 +427,21 @@ fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
     }
     write_partials(lid.x, wid.x, prz, prr, zr);
     if (wid.x == 0u && lid.x == 0u) {
-        scal[1] = scal[0];
-        scal[2] = pq;
-        scal[3] = alpha_acc;
-        let it = state[2];
+        scal[SCAL_RHO_PREV] = scal[SCAL_RHO];
+        scal[SCAL_PQ] = pq;
+        scal[SCAL_ALPHA] = alpha_acc;
+        let it = state[STATE_ITERS];
         if (it < HIST) {
             scal[SCAL_HIST + 2u * it] = alpha_acc;
         }
-        state[2] = it + 1u;
+        state[STATE_ITERS] = it + 1u;
     }
 }
 
 // (Re)start from the current x, with q = Ĥx already computed: r = b − q, z = M⁻¹r, the
-// r·z, r·r partials, and p = scal[6]·p. A restart has scal[6] = 0, so p = 0 and the next
+// r·z, r·r partials, and p = s·p with s = scal[SCAL_PSCALE]. A restart has s = 0, so p = 0 and the next
 // update_p sets p = z. Mixed precision's reliable update keeps the search direction
-// instead: b is the new, renormalized true residual, x and q are zero, and scal[6] rescales
+// instead: b is the new, renormalized true residual, x and q are zero, and s rescales
 // p (and the host rescales ρ_prev) to the new normalization, so CG goes on, not over.
 @compute @workgroup_size(WG)
 fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
@@ -515,7 +449,7 @@ fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid
     var prr = acc(0.0);
     let stride = params.n_partials * WG;
     let n = params.n_nodes * D;
-    let keep = real(scal[6]);
+    let keep = real(scal[SCAL_PSCALE]);
     for (var k = wid.x * WG + lid.x; k < n; k += stride) {
         let rk = b[k] - q[k];
         r[k] = rk;

@@ -9,7 +9,6 @@
 // (one aggregate) stay fused into update_xrz's reduction (cg.wgsl, COARSE).
 
 override D: u32 = 3u;
-override WG: u32 = 64u;
 override MASKED: bool = false;
 override ROTATED: bool = false;
 override N_AGG: u32 = 1u;
@@ -26,9 +25,6 @@ override N_AGG: u32 = 1u;
 // w = Zᵀr in [0, K), c = E⁺w in [K, 2K).
 @group(0) @binding(9) var<storage, read_write> wc: array<acc>;
 
-const NO_ROTATION: u32 = 0xffffffffu;
-
-var<workgroup> sh3: array<vec3<acc>, WG_MAX>;
 var<workgroup> wg_u: u32;
 
 // Z_iᵀ r_i = V_i P_i r_i, as three components (the third is zero for D = 2).
@@ -59,7 +55,7 @@ fn zt(i: u32) -> vec3<acc> {
 // A converged (or halted) CG makes every later dispatch of its chunk a no-op.
 fn done(lid: u32) -> bool {
     if (lid == 0u) {
-        wg_u = state[0];
+        wg_u = state[STATE_DONE];
     }
     return workgroupUniformLoad(&wg_u) != 0u;
 }
@@ -79,18 +75,11 @@ fn restrict_r(
         for (var t = agg_ptr[a] + lid.x; t < end; t += WG) {
             s += zt(agg_nodes[t]);
         }
-        sh3[lid.x] = s;
-        workgroupBarrier();
-        for (var h = WG / 2u; h > 0u; h = h >> 1u) {
-            if (lid.x < h) {
-                sh3[lid.x] += sh3[lid.x + h];
-            }
-            workgroupBarrier();
-        }
+        workgroup_sum(lid.x, array<acc, 5>(s.x, s.y, s.z, acc(0.0), acc(0.0)), D);
         if (lid.x < D) {
-            wc[a * D + lid.x] = sh3[0][lid.x];
+            wc[a * D + lid.x] = wg_sum[lid.x * WG];
         }
-        // sh3 is reused by the next aggregate.
+        // The tree's memory is reused by the next aggregate.
         workgroupBarrier();
     }
 }

@@ -1,7 +1,9 @@
-// Declarations every stickslip kernel shares, prepended by `gpu::kernels::prelude`
-// after the scalar-type aliases. WGSL has no include, so this is the one copy.
+// Declarations every stickslip kernel shares, prepended by `gpu::kernels::prelude` after
+// the scalar-type aliases and the shared constants (the slots of `scal`, `state` and the
+// partial sums, COL_BITS, NO_ROTATION, ...: `gpu::kernels::SHARED`). WGSL has no include,
+// so this is the one copy.
 
-// Uniform parameters of every kernel; mirrors `Params` in src/gpu/solver/mod.rs
+// Uniform parameters of every kernel; mirrors `Params` in src/gpu/solver/builder.rs
 // (four u32, 16 bytes, size-asserted there).
 struct Params {
     n_nodes: u32,
@@ -10,5 +12,48 @@ struct Params {
     n_blocks: u32,
 }
 
-// Upper bound of the workgroup size (the `WG` override), for workgroup arrays.
-const WG_MAX: u32 = 256u;
+// Workgroup size: a power of two, at most WG_MAX, set per pipeline.
+override WG: u32 = 64u;
+
+// The workgroup reduction of every kernel: up to five sums at once share one tree (on CPU
+// adapters each level's barrier costs more than its adds, so fused sums beat separate
+// trees). Sum c of invocation i lives at wg_sum[c * WG + i]: each sum is contiguous.
+override WG_SUM_LEN: u32 = 5u * WG;
+var<workgroup> wg_sum: array<acc, WG_SUM_LEN>;
+var<workgroup> wg_sums: array<acc, 5>;
+
+// Sums the first `n` entries of every invocation's `v` over the workgroup, in a fixed
+// order (deterministic). Sum c is left in wg_sum[c * WG] for every invocation to read
+// (the tree ends on a barrier). Every invocation calls it, in uniform control flow, with
+// the same constant n: the loops over c then unroll to exactly n sums.
+fn workgroup_sum(lid: u32, v: array<acc, 5>, n: u32) {
+    for (var c = 0u; c < n; c++) {
+        wg_sum[c * WG + lid] = v[c];
+    }
+    workgroupBarrier();
+    for (var h = WG / 2u; h > 0u; h = h >> 1u) {
+        if (lid < h) {
+            for (var c = 0u; c < n; c++) {
+                wg_sum[c * WG + lid] += wg_sum[c * WG + lid + h];
+            }
+        }
+        workgroupBarrier();
+    }
+}
+
+// workgroup_sum, with the sums returned as uniform values (ones that later barriers may
+// depend on); entries from n on are unspecified.
+fn workgroup_sum_uniform(lid: u32, v: array<acc, 5>, n: u32) -> array<acc, 5> {
+    workgroup_sum(lid, v, n);
+    if (lid == 0u) {
+        for (var c = 0u; c < n; c++) {
+            wg_sums[c] = wg_sum[c * WG];
+        }
+    }
+    return workgroupUniformLoad(&wg_sums);
+}
+
+// One value as the first entry of workgroup_sum's operand.
+fn sum1(s: acc) -> array<acc, 5> {
+    return array<acc, 5>(s, acc(0.0), acc(0.0), acc(0.0), acc(0.0));
+}

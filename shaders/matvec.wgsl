@@ -12,7 +12,6 @@
 // largest plane holds 4 of the 9 values (f64 blocks of a 216k-node mesh fit in 128 MiB).
 
 override D: u32 = 3u;          // block size (2 or 3)
-override WG: u32 = 64u;        // workgroup size (power of two, ≤ WG_MAX)
 override MASKED: bool = true;  // false: the scene has no constraints, no masking work
 // Difference form (f32 operators): Σ_{j≠i} Ĥ_ij (p̄_j − p̄_i) + S_i p̄_i with p̄ = P p and
 // S_i = Σ_j Ĥ_ij summed in f64 on the host (`rowsum`); the diagonal block stays in the
@@ -30,9 +29,8 @@ override MASKED: bool = true;  // false: the scene has no constraints, no maskin
 // those rows keep the plain f32 error.
 override DIFF: bool = false;
 
-// Column indices carry the column node's mask in their top three bits, so P_j costs
-// no extra memory traffic.
-const COL_BITS: u32 = 0x1fffffffu;
+// Column indices carry the column node's mask from bit MASK_SHIFT up (`col & COL_BITS` is
+// the column), so P_j costs no extra memory traffic.
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
@@ -48,7 +46,6 @@ const COL_BITS: u32 = 0x1fffffffu;
 @group(0) @binding(11) var<storage, read> blk_c: array<real>;
 @group(0) @binding(12) var<storage, read> rowsum: array<real>;
 
-var<workgroup> sh: array<acc, WG_MAX>;
 var<workgroup> wg_done: u32;
 
 // Component a of a packed mask is set (constrained).
@@ -86,7 +83,7 @@ fn row3(i: u32) -> vec3<real> {
         let cj = col[k];
         var pj = p3(cj & COL_BITS);
         if (MASKED) {
-            pj = select(pj, vec3<real>(real(0.0)), mbits3(cj >> 29u));
+            pj = select(pj, vec3<real>(real(0.0)), mbits3(cj >> MASK_SHIFT));
         }
         if (DIFF) {
             pj -= pi;
@@ -130,7 +127,7 @@ fn row2(i: u32) -> vec2<real> {
         let cj = col[k];
         var pj = p2(cj & COL_BITS);
         if (MASKED) {
-            pj = select(pj, vec2<real>(real(0.0)), mbits2(cj >> 29u));
+            pj = select(pj, vec2<real>(real(0.0)), mbits2(cj >> MASK_SHIFT));
         }
         if (DIFF) {
             pj -= pi;
@@ -157,7 +154,7 @@ fn row2(i: u32) -> vec2<real> {
 @compute @workgroup_size(WG)
 fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
     if (lid.x == 0u) {
-        wg_done = state[0];
+        wg_done = state[STATE_DONE];
     }
     // A converged (or halted) CG makes every later dispatch of its chunk a no-op.
     if (workgroupUniformLoad(&wg_done) != 0u) {
@@ -191,15 +188,8 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
             part += acc(pi.x) * acc(v.x) + acc(pi.y) * acc(v.y);
         }
     }
-    sh[lid.x] = part;
-    workgroupBarrier();
-    for (var h = WG / 2u; h > 0u; h = h >> 1u) {
-        if (lid.x < h) {
-            sh[lid.x] += sh[lid.x + h];
-        }
-        workgroupBarrier();
-    }
+    workgroup_sum(lid.x, sum1(part), 1u);
     if (lid.x == 0u) {
-        partials[wid.x] = sh[0];
+        partials[PART_PQ * params.n_partials + wid.x] = wg_sum[0];
     }
 }

@@ -4,11 +4,8 @@
 // falls back to the inverse diagonal otherwise, like the CPU reference (cg.rs).
 
 override D: u32 = 3u;
-override WG: u32 = 64u;
 override MASKED: bool = true;
 override PRECOND: u32 = 1u;
-
-const COL_BITS: u32 = 0x1fffffffu;
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> row_ptr: array<u32>;

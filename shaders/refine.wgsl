@@ -8,8 +8,6 @@
 //             scaled back (factors[1] = 2^s·‖r64‖ where the f32 operator is 2^s·Ĥ).
 // Needs SHADER_F64; the scalar types are explicit here.
 
-override WG: u32 = 64u;
-
 override D: u32 = 3u;
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -21,8 +19,6 @@ override D: u32 = 3u;
 @group(0) @binding(6) var<storage, read_write> y64: array<f64>;
 @group(0) @binding(7) var<storage, read> factors: array<f64>;
 
-var<workgroup> sh: array<f64, WG_MAX>;
-
 @compute @workgroup_size(WG)
 fn residual(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
     let n = params.n_nodes * D;
@@ -32,16 +28,11 @@ fn residual(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
         q64[k] = rk;
         s += rk * rk;
     }
-    sh[lid.x] = s;
-    workgroupBarrier();
-    for (var h = WG / 2u; h > 0u; h = h >> 1u) {
-        if (lid.x < h) {
-            sh[lid.x] += sh[lid.x + h];
-        }
-        workgroupBarrier();
-    }
+    // acc is f64 wherever this kernel is built; the conversions keep the source valid
+    // under every prelude.
+    workgroup_sum(lid.x, sum1(acc(s)), 1u);
     if (lid.x == 0u) {
-        partials64[wid.x] = sh[0];
+        partials64[wid.x] = f64(wg_sum[0]);
     }
 }
 

@@ -3,10 +3,6 @@
 // (blk_a[k] = e0..e3, blk_b[k] = e4..e7, blk_c[k] = e8; D = 2 uses blk_a only).
 
 override D: u32 = 3u;
-override WG: u32 = 64u;
-
-const COL_BITS: u32 = 0x1fffffffu;
-const NO_ROTATION: u32 = 0xffffffffu;
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> rot_index: array<u32>;

@@ -9,11 +9,8 @@
 // the p·q partial sums like matvec.wgsl.
 
 override D: u32 = 3u;
-override WG: u32 = 64u;
 override MASKED: bool = true;
 override ROTATE: bool = true;
-
-const NO_ROTATION: u32 = 0xffffffffu;
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> adj_ptr: array<u32>;
@@ -30,7 +27,6 @@ const NO_ROTATION: u32 = 0xffffffffu;
 @group(0) @binding(12) var<storage, read_write> partials: array<acc>;
 @group(0) @binding(13) var<storage, read> state: array<u32>;
 
-var<workgroup> sh: array<acc, WG_MAX>;
 var<workgroup> wg_done: u32;
 
 // w_j = V_j P_j p_j in world coordinates.
@@ -63,7 +59,7 @@ fn world(j: u32) -> array<real, 3> {
 @compute @workgroup_size(WG)
 fn spring_matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
     if (lid.x == 0u) {
-        wg_done = state[0];
+        wg_done = state[STATE_DONE];
     }
     if (workgroupUniformLoad(&wg_done) != 0u) {
         return;
@@ -127,15 +123,8 @@ fn spring_matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgrou
             part += acc(pk) * acc(v);
         }
     }
-    sh[lid.x] = part;
-    workgroupBarrier();
-    for (var h = WG / 2u; h > 0u; h = h >> 1u) {
-        if (lid.x < h) {
-            sh[lid.x] += sh[lid.x + h];
-        }
-        workgroupBarrier();
-    }
+    workgroup_sum(lid.x, sum1(part), 1u);
     if (lid.x == 0u) {
-        partials[wid.x] = sh[0];
+        partials[PART_PQ * params.n_partials + wid.x] = wg_sum[0];
     }
 }

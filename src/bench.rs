@@ -11,9 +11,10 @@
 
 use crate::cg::{self, BuiltPreconditioner, CgParams, Preconditioner};
 use crate::coarse::CoarseSpace;
-use crate::elimination::{norm2, ConstrainedDiagonal, Eliminated};
+use crate::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::generate::{random_system, SystemSpec};
 use crate::gpu::{GpuContext, GpuOptions, GpuParams, Precision};
+use crate::linalg::relative_error;
 use crate::{LayoutKey, SolveDetails, SolveStats, Solver, SolverConfig, Step};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -205,16 +206,6 @@ pub fn cpu_cg_bytes_per_iteration(e: &Eliminated) -> u64 {
     matrix + 18 * h.ndof() as u64 * 8
 }
 
-fn rel_error(dx: &[f64], reference: &[f64]) -> f64 {
-    let d: Vec<f64> = dx.iter().zip(reference).map(|(a, b)| a - b).collect();
-    let r = norm2(reference);
-    if r == 0.0 {
-        norm2(&d)
-    } else {
-        norm2(&d) / r
-    }
-}
-
 /// Runs the whole benchmark; `progress` receives one line per finished run.
 pub fn run(opts: &BenchOptions, command: &str) -> Result<BenchReport, BenchError> {
     let ctx = if opts.no_gpu {
@@ -402,7 +393,7 @@ fn bench_one(
                     r.converged = true;
                     r.iterations = info.iterations;
                     r.relative_residual = info.relative_residual;
-                    r.relative_error = rel_error(&e.recover(&y), &reference);
+                    r.relative_error = relative_error(&e.recover(&y), &reference);
                 }
                 Err(err) => {
                     r.solve_seconds = t.elapsed().as_secs_f64();
@@ -469,7 +460,7 @@ fn bench_one(
                         r.converged = true;
                         r.iterations = info.iterations;
                         r.relative_residual = info.relative_residual;
-                        r.relative_error = rel_error(&dx, &reference);
+                        r.relative_error = relative_error(&dx, &reference);
                         r.solve_seconds = info.seconds.solve;
                         r.total_seconds = r.setup_seconds
                             + info.seconds.upload

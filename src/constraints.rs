@@ -546,73 +546,111 @@ fn check_lift(dim: usize, label: &str, lift: &[f64; 3]) -> Result<(), Constraint
     }
 }
 
+/// The frame, mask and lift of one node from all its constraints: a single sticky,
+/// plane or line constraint takes its exact path; anything else is stacked as unit rows,
+/// reduced to a d×d block, decomposed (SVD: rank and minimum-norm lift), checked for
+/// consistency, and the frame follows from the rank.
 fn node_frame(dim: usize, cs: &[&Constraint], abs_tol: f64) -> Result<NodeFrame, ConstraintError> {
     let label = node_label(cs);
-    // Fast exact paths for the common single constraints (the frame then matches the
-    // seeds' construction to the last bit).
-    if cs.len() == 1 {
-        match &cs[0].kind {
-            ConstraintKind::Sticky { displacement } => {
-                let mut lift = [0.0; 3];
-                if let Some(d) = displacement {
-                    lift[..dim].copy_from_slice(d);
-                }
-                check_lift(dim, &label, &lift)?;
-                return Ok(NodeFrame {
-                    mask: (1u8 << dim) - 1,
-                    rotation: None,
-                    lift,
-                });
-            }
-            ConstraintKind::Plane { normal, offset } => {
-                let len = norm2(normal);
-                let along = offset / len;
-                if !along.is_finite() {
-                    return Err(cerr(
-                        &label,
-                        format!(
-                            "offset / |normal| = {offset:e} / {len:e} overflows f64: the plane is not at a finite distance"
-                        ),
-                    ));
-                }
-                let n = unit(normal);
-                let mut lift = [0.0; 3];
-                for a in 0..dim {
-                    lift[a] = n[a] * along;
-                }
-                check_lift(dim, &label, &lift)?;
-                return Ok(frame_from_constrained(dim, &[n], lift));
-            }
-            ConstraintKind::Line { direction, offset } => {
-                let t = unit(direction);
-                let mut lift = [0.0; 3];
-                if let Some(o) = offset {
-                    // Minimum-norm point of o + span(t): remove the t component.
-                    let ot = dot(o, &t);
-                    for a in 0..dim {
-                        lift[a] = o[a] - ot * t[a];
-                    }
-                }
-                check_lift(dim, &label, &lift)?;
-                let cons = line_constrained_dirs(dim, &t);
-                let mut f = frame_from_constrained(dim, &cons, lift);
-                if dim == 3 && f.rotation.is_some() {
-                    // Keep the seed's line frame exactly: V = [m l t].
-                    let t3 = [t[0], t[1], t[2]];
-                    let (m, l) = tangents(&t3);
-                    f.rotation = Some(columns3(&m, &l, &t3));
-                }
-                return Ok(f);
-            }
-            ConstraintKind::Rows { .. } => {}
+    if let [c] = cs {
+        if let Some(f) = single_frame(dim, c, &label)? {
+            return Ok(f);
         }
     }
-    // General path: stack unit rows, reduce to d×d, SVD, rank, minimum-norm lift,
-    // consistency.
-    let mut rows: Vec<[f64; 3]> = Vec::new();
-    let mut vals: Vec<f64> = Vec::new();
-    // Per row: the index in `cs` of the constraint it comes from (named in messages).
-    let mut owner: Vec<usize> = Vec::new();
+    let stacked = unit_rows(dim, cs, &label)?;
+    let (block, c) = reduce_rows(dim, &stacked.rows, &stacked.vals);
+    let dec = RowDecomposition::new(dim, &block, &c, &label)?;
+    check_lift(dim, &label, &dec.lift)?;
+    check_consistency(dim, cs, &stacked, &dec, abs_tol, &label)?;
+    Ok(dec.frame(dim))
+}
+
+/// The fast exact paths of a single sticky, plane or line constraint (the frame then
+/// matches the seeds' construction to the last bit); None for rows, which take the
+/// general path.
+fn single_frame(
+    dim: usize,
+    c: &Constraint,
+    label: &str,
+) -> Result<Option<NodeFrame>, ConstraintError> {
+    let mut lift = [0.0; 3];
+    let frame = match &c.kind {
+        ConstraintKind::Sticky { displacement } => {
+            if let Some(d) = displacement {
+                lift[..dim].copy_from_slice(d);
+            }
+            check_lift(dim, label, &lift)?;
+            NodeFrame {
+                mask: (1u8 << dim) - 1,
+                rotation: None,
+                lift,
+            }
+        }
+        ConstraintKind::Plane { normal, offset } => {
+            let len = norm2(normal);
+            let along = offset / len;
+            if !along.is_finite() {
+                return Err(cerr(
+                    label,
+                    format!(
+                        "offset / |normal| = {offset:e} / {len:e} overflows f64: the plane is not at a finite distance"
+                    ),
+                ));
+            }
+            let n = unit(normal);
+            for a in 0..dim {
+                lift[a] = n[a] * along;
+            }
+            check_lift(dim, label, &lift)?;
+            frame_from_constrained(dim, &[n], lift)
+        }
+        ConstraintKind::Line { direction, offset } => {
+            let t = unit(direction);
+            if let Some(o) = offset {
+                // Minimum-norm point of o + span(t): remove the t component.
+                let ot = dot(o, &t);
+                for a in 0..dim {
+                    lift[a] = o[a] - ot * t[a];
+                }
+            }
+            check_lift(dim, label, &lift)?;
+            line_frame(dim, &t, lift)
+        }
+        ConstraintKind::Rows { .. } => return Ok(None),
+    };
+    Ok(Some(frame))
+}
+
+/// The frame of a node free only along the unit direction `t`; in 3D with the seed's line
+/// frame V = [m l t] exactly.
+fn line_frame(dim: usize, t: &[f64], lift: [f64; 3]) -> NodeFrame {
+    let cons = line_constrained_dirs(dim, t);
+    let mut f = frame_from_constrained(dim, &cons, lift);
+    if dim == 3 && f.rotation.is_some() {
+        let t3 = [t[0], t[1], t[2]];
+        let (m, l) = tangents(&t3);
+        f.rotation = Some(columns3(&m, &l, &t3));
+    }
+    f
+}
+
+/// A node's constraint rows scaled to unit length, with their values.
+struct UnitRows {
+    rows: Vec<[f64; 3]>,
+    vals: Vec<f64>,
+    /// Per row: the index in the node's constraints of the one it comes from (named in
+    /// messages).
+    owner: Vec<usize>,
+}
+
+/// Stacks every row of `cs` as a unit row with its value divided by the row's length; a
+/// value that overflows there is an error naming the entry.
+fn unit_rows(dim: usize, cs: &[&Constraint], label: &str) -> Result<UnitRows, ConstraintError> {
+    let mut out = UnitRows {
+        rows: Vec::new(),
+        vals: Vec::new(),
+        owner: Vec::new(),
+    };
     for (ci, c) in cs.iter().enumerate() {
         let (r, v) = node_rows(dim, c);
         for (ri, (row, val)) in r.into_iter().zip(v).enumerate() {
@@ -633,7 +671,7 @@ fn node_frame(dim: usize, cs: &[&Constraint], abs_tol: f64) -> Result<NodeFrame,
                     _ => "the prescribed value".to_string(),
                 };
                 return Err(cerr(
-                    &label,
+                    label,
                     format!(
                         "{who}{which} = {val:e} / {len:e} overflows f64: the prescribed displacement is not finite"
                     ),
@@ -643,115 +681,159 @@ fn node_frame(dim: usize, cs: &[&Constraint], abs_tol: f64) -> Result<NodeFrame,
             for a in 0..dim {
                 u[a] = row[a] / len;
             }
-            rows.push(u);
-            vals.push(scaled);
-            owner.push(ci);
+            out.rows.push(u);
+            out.vals.push(scaled);
+            out.owner.push(ci);
         }
     }
+    Ok(out)
+}
+
+/// The d×d block to decompose and the values it carries. Up to d rows: the rows
+/// themselves, zero-padded (V complete). More rows: rank ≤ d, so the Householder QR
+/// [A | vals] = Q [R | c] reduces them to R (d×d) and c = Q₁ᵀvals first; A = Q₁R has
+/// R's singular values and right singular vectors, and U_Aᵀvals = U_Rᵀc. Orthogonal
+/// transformations keep the conditioning of A (forming AᵀA would square it), and the
+/// memory is O(k·d), not the k×k U of a full SVD of A.
+fn reduce_rows(dim: usize, rows: &[[f64; 3]], vals: &[f64]) -> ([[f64; 3]; 3], [f64; 3]) {
     let k = rows.len();
-    // The d×d block to decompose and the values it carries. Up to d rows: the rows
-    // themselves, zero-padded (V complete). More rows: rank ≤ d, so the Householder QR
-    // [A | vals] = Q [R | c] reduces them to R (d×d) and c = Q₁ᵀvals first; A = Q₁R has
-    // R's singular values and right singular vectors, and U_Aᵀvals = U_Rᵀc. Orthogonal
-    // transformations keep the conditioning of A (forming AᵀA would square it), and the
-    // memory is O(k·d), not the k×k U of a full SVD of A.
-    let (block, c) = if k <= dim {
+    if k <= dim {
         let mut b = [[0.0; 3]; 3];
         let mut c = [0.0; 3];
-        b[..k].copy_from_slice(&rows);
-        c[..k].copy_from_slice(&vals);
-        (b, c)
-    } else {
-        // vals scaled to max |value| ≤ 1 for the reduction (c is linear in vals): finite
-        // values near 1e307 must not overflow in the reflections' sums.
-        let vmax = vals.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        let vs = if vmax > 0.0 { vmax } else { 1.0 };
-        let scaled: Vec<f64> = vals.iter().map(|v| v / vs).collect();
-        let (b, mut c) = householder_reduce(dim, &rows, &scaled);
-        c.iter_mut().for_each(|x| *x *= vs);
-        (b, c)
-    };
-    // faer's dense SVD: accurate to round-off on rank-deficient blocks (nalgebra 0.34's
-    // SVD was seen to return a factorization off by 5e-2 on such a 3×3, see tests).
-    let a = faer::Mat::<f64>::from_fn(dim, dim, |i, j| block[i][j]);
-    let svd = a.svd().map_err(|e| {
-        cerr(
-            &label,
-            format!("the singular value decomposition of the rows failed: {e:?}"),
-        )
-    })?;
-    let (u, sv, v) = (svd.U(), svd.S(), svd.V());
-    let sigma: Vec<f64> = (0..dim).map(|j| sv[j]).collect();
-    let mut idx: Vec<usize> = (0..dim).collect();
-    idx.sort_by(|&p, &q| sigma[q].total_cmp(&sigma[p]));
-    let smax = sigma[idx[0]];
-    let r = idx.iter().filter(|&&j| sigma[j] > RANK_RTOL * smax).count();
-    // Minimum-norm lift from the kept singular triplets.
-    let mut lift = [0.0; 3];
-    for &j in idx.iter().take(r) {
-        let ub: f64 = (0..dim).map(|i| u[(i, j)] * c[i]).sum();
-        let coef = ub / sigma[j];
-        for a in 0..dim {
-            lift[a] += coef * v[(a, j)];
+        b[..k].copy_from_slice(rows);
+        c[..k].copy_from_slice(vals);
+        return (b, c);
+    }
+    // vals scaled to max |value| ≤ 1 for the reduction (c is linear in vals): finite
+    // values near 1e307 must not overflow in the reflections' sums.
+    let vmax = vals.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let vs = if vmax > 0.0 { vmax } else { 1.0 };
+    let scaled: Vec<f64> = vals.iter().map(|v| v / vs).collect();
+    let (b, mut c) = householder_reduce(dim, rows, &scaled);
+    c.iter_mut().for_each(|x| *x *= vs);
+    (b, c)
+}
+
+/// The SVD of a node's reduced block: singular values in decreasing order, the rank, the
+/// right singular vectors and the minimum-norm lift of the kept triplets.
+struct RowDecomposition {
+    /// Singular values, largest first.
+    sigma: Vec<f64>,
+    /// Right singular vectors in the order of `sigma`, as columns of d values.
+    dirs: Vec<Vec<f64>>,
+    rank: usize,
+    lift: [f64; 3],
+}
+
+impl RowDecomposition {
+    fn new(
+        dim: usize,
+        block: &[[f64; 3]; 3],
+        c: &[f64; 3],
+        label: &str,
+    ) -> Result<Self, ConstraintError> {
+        // faer's dense SVD: accurate to round-off on rank-deficient blocks (nalgebra 0.34's
+        // SVD was seen to return a factorization off by 5e-2 on such a 3×3, see tests).
+        let a = faer::Mat::<f64>::from_fn(dim, dim, |i, j| block[i][j]);
+        let svd = a.svd().map_err(|e| {
+            cerr(
+                label,
+                format!("the singular value decomposition of the rows failed: {e:?}"),
+            )
+        })?;
+        let (u, sv, v) = (svd.U(), svd.S(), svd.V());
+        let sv: Vec<f64> = (0..dim).map(|j| sv[j]).collect();
+        let mut idx: Vec<usize> = (0..dim).collect();
+        idx.sort_by(|&p, &q| sv[q].total_cmp(&sv[p]));
+        let smax = sv[idx[0]];
+        let rank = idx.iter().filter(|&&j| sv[j] > RANK_RTOL * smax).count();
+        let mut lift = [0.0; 3];
+        for &j in idx.iter().take(rank) {
+            let ub: f64 = (0..dim).map(|i| u[(i, j)] * c[i]).sum();
+            let coef = ub / sv[j];
+            for a in 0..dim {
+                lift[a] += coef * v[(a, j)];
+            }
+        }
+        Ok(RowDecomposition {
+            sigma: idx.iter().map(|&j| sv[j]).collect(),
+            dirs: idx
+                .iter()
+                .map(|&j| (0..dim).map(|a| v[(a, j)]).collect())
+                .collect(),
+            rank,
+            lift,
+        })
+    }
+
+    /// The frame of the rank: free (0), fixed (d), one constrained direction, or (3D,
+    /// rank 2) free along the remaining right singular vector.
+    fn frame(&self, dim: usize) -> NodeFrame {
+        let lift = self.lift;
+        match (dim, self.rank) {
+            (_, 0) => NodeFrame {
+                mask: 0,
+                rotation: None,
+                lift,
+            },
+            (d, r) if r == d => NodeFrame {
+                mask: (1u8 << d) - 1,
+                rotation: None,
+                lift,
+            },
+            (_, 1) => frame_from_constrained(dim, &[unit(&self.dirs[0])], lift),
+            (3, 2) => line_frame(3, &unit(&self.dirs[2]), lift),
+            _ => unreachable!("rank is at most dim"),
         }
     }
-    check_lift(dim, &label, &lift)?;
-    let vmax = vals.iter().fold(0.0f64, |s, v| s.max(v.abs()));
+}
+
+/// Every row must hold at the lift within a tolerance that scales with the values, the
+/// conditioning of the kept rows and the lift's size; the worst row names the
+/// contradiction (a NaN miss, from values that overflow in the product, counts as the
+/// worst).
+fn check_consistency(
+    dim: usize,
+    cs: &[&Constraint],
+    stacked: &UnitRows,
+    dec: &RowDecomposition,
+    abs_tol: f64,
+    label: &str,
+) -> Result<(), ConstraintError> {
+    let lift = &dec.lift;
+    let vmax = stacked.vals.iter().fold(0.0f64, |s, v| s.max(v.abs()));
     let lift_norm = norm2(&lift[..dim]);
-    let smin_kept = if r > 0 { sigma[idx[r - 1]] } else { smax };
+    let smax = dec.sigma[0];
+    let smin_kept = if dec.rank > 0 {
+        dec.sigma[dec.rank - 1]
+    } else {
+        smax
+    };
     let tol = (CONSISTENCY_RTOL * vmax)
         .max(64.0 * f64::EPSILON * (smax / smin_kept) * (lift_norm + vmax))
         .max(abs_tol);
-    // The worst row names the contradiction (a NaN miss, from values that overflow in
-    // the product, counts as the worst).
     let mut worst: Option<(usize, f64)> = None;
-    for (i, row) in rows.iter().enumerate() {
-        let miss = (dot(&row[..dim], &lift[..dim]) - vals[i]).abs();
+    for (i, row) in stacked.rows.iter().enumerate() {
+        let miss = (dot(&row[..dim], &lift[..dim]) - stacked.vals[i]).abs();
         if (miss.is_nan() || miss > tol) && worst.is_none_or(|(_, w)| miss.is_nan() || miss > w) {
             worst = Some((i, miss));
         }
     }
-    if let Some((i, miss)) = worst {
-        let of = if cs.len() > 1 {
-            format!(" of {}", cs[owner[i]].label)
-        } else {
-            String::new()
-        };
-        return Err(cerr(
-            &label,
-            format!(
-                "contradictory constraints on node {}: the rows cannot all hold (a row{of} misses its value by {miss:.3e})",
-                cs[0].node
-            ),
-        ));
-    }
-    let dir = |j: usize| -> Vec<f64> { (0..dim).map(|a| v[(a, idx[j])]).collect() };
-    Ok(match (dim, r) {
-        (_, 0) => NodeFrame {
-            mask: 0,
-            rotation: None,
-            lift,
-        },
-        (d, r) if r == d => NodeFrame {
-            mask: (1u8 << d) - 1,
-            rotation: None,
-            lift,
-        },
-        (_, 1) => frame_from_constrained(dim, &[unit(&dir(0))], lift),
-        (3, 2) => {
-            // The free direction is the remaining right singular vector.
-            let t = unit(&dir(2));
-            let cons = line_constrained_dirs(3, &t);
-            let mut f = frame_from_constrained(3, &cons, lift);
-            if f.rotation.is_some() {
-                let t3 = [t[0], t[1], t[2]];
-                let (m, l) = tangents(&t3);
-                f.rotation = Some(columns3(&m, &l, &t3));
-            }
-            f
-        }
-        _ => unreachable!("rank is at most dim"),
-    })
+    let Some((i, miss)) = worst else {
+        return Ok(());
+    };
+    let of = if cs.len() > 1 {
+        format!(" of {}", cs[stacked.owner[i]].label)
+    } else {
+        String::new()
+    };
+    Err(cerr(
+        label,
+        format!(
+            "contradictory constraints on node {}: the rows cannot all hold (a row{of} misses its value by {miss:.3e})",
+            cs[0].node
+        ),
+    ))
 }
 
 /// Householder QR of the k×d block of unit rows with its values as an extra column,

@@ -112,17 +112,15 @@ pub struct GeneratedSystem {
     pub coords: Vec<[usize; 3]>,
 }
 
-fn node_id(spec: &SystemSpec, x: usize, y: usize, z: usize) -> usize {
-    x + spec.grid[0] * (y + spec.grid[1] * z)
-}
-
-fn offsets(dim: usize, stencil: Stencil) -> Vec<[i64; 3]> {
-    // Half of the neighbourhood (the other half is the mirror image).
+/// Half of a grid node's neighbourhood (the other half is the mirror image), as offsets
+/// in grid coordinates. 3D `Mesh`: the Kuhn (Freudenthal) tetrahedral mesh's 14
+/// neighbours, the main diagonal (1, 1, 1) among them.
+pub(crate) fn stencil_offsets(dim: usize, stencil: Stencil) -> &'static [[i64; 3]] {
     match (dim, stencil) {
-        (2, Stencil::Face) => vec![[1, 0, 0], [0, 1, 0]],
-        (2, Stencil::Mesh) => vec![[1, 0, 0], [0, 1, 0], [1, 1, 0], [1, -1, 0]],
-        (_, Stencil::Face) => vec![[1, 0, 0], [0, 1, 0], [0, 0, 1]],
-        (_, Stencil::Mesh) => vec![
+        (2, Stencil::Face) => &[[1, 0, 0], [0, 1, 0]],
+        (2, Stencil::Mesh) => &[[1, 0, 0], [0, 1, 0], [1, 1, 0], [1, -1, 0]],
+        (_, Stencil::Face) => &[[1, 0, 0], [0, 1, 0], [0, 0, 1]],
+        (_, Stencil::Mesh) => &[
             [1, 0, 0],
             [0, 1, 0],
             [0, 0, 1],
@@ -134,41 +132,51 @@ fn offsets(dim: usize, stencil: Stencil) -> Vec<[i64; 3]> {
     }
 }
 
+/// The nodes of a grid of `grid` nodes per axis (1 along z in 2D) in id order, x fastest:
+/// node (x, y, z) has id x + g₀(y + g₁z).
+pub(crate) fn grid_coords(grid: [usize; 3]) -> Vec<[usize; 3]> {
+    let mut coords = Vec::with_capacity(grid.iter().product());
+    for z in 0..grid[2] {
+        for y in 0..grid[1] {
+            for x in 0..grid[0] {
+                coords.push([x, y, z]);
+            }
+        }
+    }
+    coords
+}
+
+/// The edges of a grid: for each node in id order and each offset in `offs`, the node, the
+/// neighbour at that offset and the offset, where the neighbour is inside the grid.
+pub(crate) fn grid_edges(grid: [usize; 3], offs: &[[i64; 3]]) -> Vec<(usize, usize, [i64; 3])> {
+    let id = |c: [i64; 3]| -> Option<usize> {
+        let inside = (0..3).all(|a| c[a] >= 0 && (c[a] as usize) < grid[a]);
+        inside.then(|| c[0] as usize + grid[0] * (c[1] as usize + grid[1] * c[2] as usize))
+    };
+    let mut edges = Vec::new();
+    for (i, c) in grid_coords(grid).into_iter().enumerate() {
+        for o in offs {
+            let m = [c[0] as i64 + o[0], c[1] as i64 + o[1], c[2] as i64 + o[2]];
+            if let Some(j) = id(m) {
+                edges.push((i, j, *o));
+            }
+        }
+    }
+    edges
+}
+
 /// Builds the system described by `spec`.
 pub fn random_system(spec: &SystemSpec) -> GeneratedSystem {
     let dim = spec.dim;
     let mut rng = StdRng::seed_from_u64(spec.seed);
     let n = spec.n_nodes();
     let gz = if dim == 2 { 1 } else { spec.grid[2] };
-    let mut coords = Vec::with_capacity(n);
-    for z in 0..gz {
-        for y in 0..spec.grid[1] {
-            for x in 0..spec.grid[0] {
-                coords.push([x, y, z]);
-            }
-        }
-    }
-    // Edges.
-    let offs = offsets(dim, spec.stencil);
-    let mut edges = Vec::new();
-    for (i, c) in coords.iter().enumerate() {
-        for o in &offs {
-            let nx = c[0] as i64 + o[0];
-            let ny = c[1] as i64 + o[1];
-            let nz = c[2] as i64 + o[2];
-            if nx < 0
-                || ny < 0
-                || nz < 0
-                || nx >= spec.grid[0] as i64
-                || ny >= spec.grid[1] as i64
-                || nz >= gz as i64
-            {
-                continue;
-            }
-            let j = node_id(spec, nx as usize, ny as usize, nz as usize);
-            edges.push((i.min(j), i.max(j)));
-        }
-    }
+    let grid = [spec.grid[0], spec.grid[1], gz];
+    let coords = grid_coords(grid);
+    let edges: Vec<(usize, usize)> = grid_edges(grid, stencil_offsets(dim, spec.stencil))
+        .into_iter()
+        .map(|(i, j, _)| (i.min(j), i.max(j)))
+        .collect();
     // Pattern.
     let mut rows: Vec<Vec<usize>> = (0..n).map(|i| vec![i]).collect();
     for &(i, j) in &edges {
@@ -219,6 +227,42 @@ pub fn random_system(spec: &SystemSpec) -> GeneratedSystem {
         constraints,
         frames,
         coords,
+    }
+}
+
+/// A small dense SPD system with a prescribed spectrum: H = Q Λ Qᵀ on `nodes` nodes of
+/// dimension `dim` (every block present), Λ log-spaced over [1, κ], Q a seeded random
+/// orthogonal matrix, no constraints. Its eigenvectors are spread over every DOF, so the
+/// Jacobi preconditioner leaves the conditioning about where it is: a test case for what
+/// an iterative solver does at a given κ that no grid structure hides or helps.
+pub fn dense_spd(dim: usize, nodes: usize, kappa: f64, seed: u64) -> GeneratedSystem {
+    let m = dim * nodes;
+    let mut rng = StdRng::seed_from_u64(seed);
+    let a = nalgebra::DMatrix::from_fn(m, m, |_, _| rng.random_range(-1.0..1.0));
+    let q = a.qr().q();
+    let lam = nalgebra::DVector::from_fn(m, |k, _| kappa.powf(k as f64 / (m.max(2) - 1) as f64));
+    let dense = &q * nalgebra::DMatrix::from_diagonal(&lam) * q.transpose();
+    let rows: Vec<Vec<usize>> = (0..nodes).map(|_| (0..nodes).collect()).collect();
+    let mut h = BlockCsr::from_pattern(dim, &rows);
+    for i in 0..nodes {
+        for j in 0..nodes {
+            let kb = h.find(i, j).expect("every block is in the pattern");
+            for r in 0..dim {
+                for c in 0..dim {
+                    let (u, v) = (i * dim + r, j * dim + c);
+                    // The mean of the two rounded triangles: exactly symmetric.
+                    h.values[kb * dim * dim + r * dim + c] = 0.5 * (dense[(u, v)] + dense[(v, u)]);
+                }
+            }
+        }
+    }
+    let g = (0..m).map(|_| rng.random_range(-1.0..1.0)).collect();
+    GeneratedSystem {
+        h,
+        g,
+        constraints: Vec::new(),
+        frames: Frames::unconstrained(dim, nodes),
+        coords: (0..nodes).map(|i| [i, 0, 0]).collect(),
     }
 }
 
@@ -414,5 +458,33 @@ mod tests {
         assert_eq!(a.h, b.h);
         assert!(a.h.check_symmetric().is_ok());
         assert!(!a.constraints.is_empty());
+    }
+
+    #[test]
+    fn dense_spd_has_the_asked_condition_number() {
+        let s = dense_spd(3, 8, 1e8, 1);
+        assert!(s.h.check_symmetric().is_ok());
+        let n = s.h.ndof();
+        let mut a = nalgebra::DMatrix::<f64>::zeros(n, n);
+        for i in 0..s.h.n {
+            for k in s.h.row_ptr[i]..s.h.row_ptr[i + 1] {
+                let j = s.h.col_idx[k];
+                for r in 0..3 {
+                    for c in 0..3 {
+                        a[(3 * i + r, 3 * j + c)] = s.h.values[k * 9 + r * 3 + c];
+                    }
+                }
+            }
+        }
+        let ev = a.symmetric_eigenvalues();
+        let (lo, hi) = ev
+            .iter()
+            .fold((f64::INFINITY, 0.0f64), |(l, h), &v| (l.min(v), h.max(v)));
+        // The smallest eigenvalue, 1, carries the rounding of Q Λ Qᵀ: ε·κ·(a few) = 1e-7
+        // relative; 1e-6 leaves a factor of 10.
+        assert!(
+            (hi / 1e8 - 1.0).abs() <= 1e-12 && (lo - 1.0).abs() <= 1e-6,
+            "{lo} {hi}"
+        );
     }
 }

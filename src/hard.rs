@@ -102,45 +102,22 @@ fn spring_grid(
     stiffness: impl Fn([usize; 3], [usize; 3]) -> f64,
     mass: impl Fn([usize; 3]) -> f64,
 ) -> (BlockCsr, Vec<[usize; 3]>) {
-    let id = |c: [usize; 3]| c[0] + n[0] * (c[1] + n[1] * c[2]);
-    let mut coords = Vec::new();
-    for z in 0..n[2] {
-        for y in 0..n[1] {
-            for x in 0..n[0] {
-                coords.push([x, y, z]);
-            }
-        }
-    }
-    let offs: [[usize; 3]; 7] = [
-        [1, 0, 0],
-        [0, 1, 0],
-        [0, 0, 1],
-        [1, 1, 0],
-        [0, 1, 1],
-        [1, 0, 1],
-        [1, 1, 1],
-    ];
-    let mut edges = Vec::new();
-    for &c in &coords {
-        for o in &offs {
-            let m = [c[0] + o[0], c[1] + o[1], c[2] + o[2]];
-            if m[0] < n[0] && m[1] < n[1] && m[2] < n[2] {
-                edges.push((c, m, *o));
-            }
-        }
-    }
+    let coords = crate::generate::grid_coords(n);
+    let offs = crate::generate::stencil_offsets(3, crate::generate::Stencil::Mesh);
+    let edges = crate::generate::grid_edges(n, offs);
     let nn = coords.len();
     let mut rows: Vec<Vec<usize>> = (0..nn).map(|i| vec![i]).collect();
-    for &(a, b, _) in &edges {
-        rows[id(a)].push(id(b));
-        rows[id(b)].push(id(a));
+    for &(i, j, _) in &edges {
+        rows[i].push(j);
+        rows[j].push(i);
     }
     for r in rows.iter_mut() {
         r.sort_unstable();
     }
     let mut h = BlockCsr::from_pattern(3, &rows);
-    for &(a, b, o) in &edges {
-        let k = stiffness(a, b);
+    for &(i, j, o) in &edges {
+        let k = stiffness(coords[i], coords[j]);
+        // The offsets are 0 or 1 per axis: |o|² = o₀ + o₁ + o₂.
         let len = ((o[0] + o[1] + o[2]) as f64).sqrt();
         let dir = [o[0] as f64 / len, o[1] as f64 / len, o[2] as f64 / len];
         let mut blk = [0.0; 9];
@@ -149,7 +126,6 @@ fn spring_grid(
                 blk[r * 3 + c] = k * (dir[r] * dir[c]) + if r == c { 0.1 * k } else { 0.0 };
             }
         }
-        let (i, j) = (id(a), id(b));
         for (p, q, sign) in [(i, i, 1.0), (j, j, 1.0), (i, j, -1.0), (j, i, -1.0)] {
             let kb = h.find(p, q).expect("pattern holds every edge");
             for (e, v) in blk.iter().enumerate() {
@@ -687,21 +663,7 @@ pub fn reference(e: &Eliminated) -> Result<Reference, crate::error::SolveError> 
     })
 }
 
-/// ‖a − b‖/‖b‖ (0 when both vanish, ∞ when only b does).
-pub fn relative_error(a: &[f64], b: &[f64]) -> f64 {
-    let diff: Vec<f64> = a.iter().zip(b).map(|(x, y)| x - y).collect();
-    let dn = norm2(&diff);
-    let bn = norm2(b);
-    if bn == 0.0 {
-        if dn == 0.0 {
-            0.0
-        } else {
-            f64::INFINITY
-        }
-    } else {
-        dn / bn
-    }
-}
+pub use crate::linalg::relative_error;
 
 /// One row of the `stickslip bench --hard` table.
 #[derive(Debug, Clone, serde::Serialize)]

@@ -80,7 +80,7 @@
 //! feature (on by default) come the simulation driver's modules, and with `cli` the
 //! `stickslip` command line. docs/method.md gives the method.
 
-mod linalg;
+pub mod linalg;
 mod problem;
 mod solver;
 

@@ -23,6 +23,23 @@ pub fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
+/// ‖a − b‖/‖b‖ with the scaled [`norm2`]: 0 when both vanish, ∞ when only b does (no
+/// relative size is small against a zero reference), NaN when either holds a NaN.
+pub fn relative_error(a: &[f64], b: &[f64]) -> f64 {
+    let diff: Vec<f64> = a.iter().zip(b).map(|(x, y)| x - y).collect();
+    let dn = norm2(&diff);
+    let bn = norm2(b);
+    if bn == 0.0 {
+        if dn == 0.0 {
+            0.0
+        } else {
+            f64::INFINITY
+        }
+    } else {
+        dn / bn
+    }
+}
+
 /// a × b.
 pub fn cross3(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
     [
@@ -46,7 +63,20 @@ pub fn unit(a: &[f64]) -> Vec<f64> {
 
 #[cfg(test)]
 mod tests {
-    use super::norm2;
+    use super::{norm2, relative_error};
+
+    #[test]
+    fn relative_error_against_zero_and_nan_references() {
+        assert_eq!(relative_error(&[1.0, 2.0], &[1.0, 2.0]), 0.0);
+        assert_eq!(relative_error(&[0.0; 3], &[0.0; 3]), 0.0);
+        assert_eq!(relative_error(&[1e-300, 0.0], &[0.0, 0.0]), f64::INFINITY);
+        assert!(relative_error(&[f64::NAN], &[1.0]).is_nan());
+        // Entries near 1e200 square past f64's range; the scaled norms do not. The
+        // difference is exact here, so only the two norms and the quotient round.
+        let b = [3e200, 4e200];
+        let a = [3e200 * 1.5, 4e200 * 1.5];
+        assert!((relative_error(&a, &b) - 0.5).abs() <= 4.0 * f64::EPSILON);
+    }
 
     #[test]
     fn norm2_propagates_nan_and_survives_extreme_scales() {

@@ -570,7 +570,7 @@ impl Solver {
         let setup = t.elapsed().as_secs_f64();
         let result = solver.solve();
         self.keep_prepared(layout, Prepared::Gpu(solver));
-        let (y, _dx, info) = result?;
+        let crate::gpu::SolveOutcome { y, info, .. } = result?;
         let mut stats = self.stats(
             Some(info.iterations),
             info.relative_residual,

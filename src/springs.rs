@@ -149,51 +149,18 @@ impl MassSpring {
         assert!(dim == 2 || dim == 3, "dimension must be 2 or 3");
         let mut rng = StdRng::seed_from_u64(seed);
         let gz = if dim == 2 { 1 } else { grid[2] };
-        let id = |x: usize, y: usize, z: usize| x + grid[0] * (y + grid[1] * z);
+        let grid = [grid[0], grid[1], gz];
         let mut positions = Vec::new();
-        for z in 0..gz {
-            for y in 0..grid[1] {
-                for x in 0..grid[0] {
-                    let c = [x as f64, y as f64, z as f64];
-                    for a in 0..dim {
-                        positions.push(c[a] + rng.random_range(-0.1..0.1));
-                    }
-                }
+        for c in crate::generate::grid_coords(grid) {
+            for &v in &c[..dim] {
+                positions.push(v as f64 + rng.random_range(-0.1..0.1));
             }
         }
-        let offs: &[[i64; 3]] = if dim == 2 {
-            &[[1, 0, 0], [0, 1, 0], [1, 1, 0], [1, -1, 0]]
-        } else {
-            &[
-                [1, 0, 0],
-                [0, 1, 0],
-                [0, 0, 1],
-                [1, 1, 0],
-                [0, 1, 1],
-                [1, 0, 1],
-                [1, 1, 1],
-            ]
-        };
-        let mut edges = Vec::new();
-        for z in 0..gz {
-            for y in 0..grid[1] {
-                for x in 0..grid[0] {
-                    for o in offs {
-                        let (nx, ny, nz) = (x as i64 + o[0], y as i64 + o[1], z as i64 + o[2]);
-                        if nx < 0
-                            || ny < 0
-                            || nz < 0
-                            || nx >= grid[0] as i64
-                            || ny >= grid[1] as i64
-                            || nz >= gz as i64
-                        {
-                            continue;
-                        }
-                        edges.push([id(x, y, z), id(nx as usize, ny as usize, nz as usize)]);
-                    }
-                }
-            }
-        }
+        let offs = crate::generate::stencil_offsets(dim, crate::generate::Stencil::Mesh);
+        let edges: Vec<[usize; 2]> = crate::generate::grid_edges(grid, offs)
+            .into_iter()
+            .map(|(i, j, _)| [i, j])
+            .collect();
         let n = positions.len() / dim;
         let mut rest_lengths = Vec::with_capacity(edges.len());
         for &[i, j] in &edges {

@@ -90,12 +90,8 @@ fn matvec_rotation_and_preconditioners_match_cpu() {
                     let cpu = BuiltPreconditioner::new(&e, pc);
                     let err = max_rel(&pre, cpu.data());
                     assert!(err <= 10.0 * tol, "precond {pc:?} {dim}D {prec}: {err:e}");
-                    let dx = sol.recover_on_device(&y).expect("recover");
-                    let err = max_rel(&dx, &e.recover(&y));
-                    assert!(err <= tol, "recover {dim}D {prec}: {err:e}");
                     let r = sol.resources();
                     assert!(r.dispatches_of("rotate_blocks") >= 1);
-                    assert!(r.dispatches_of("rotate_vectors") >= 1);
                 }
             }
         }
@@ -171,7 +167,6 @@ fn unmasked_matvec_matches_cpu() {
             .expect("solver");
         let got = sol.apply_operator(&y).expect("matvec");
         assert!(max_rel(&got, &want) <= 1e-13);
-        assert_eq!(sol.recover_on_device(&y).expect("recover"), y);
     }
 }
 

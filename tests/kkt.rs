@@ -13,7 +13,7 @@
 
 use nalgebra::{DMatrix, DVector};
 use stickslip::cg::{self, CgParams, Preconditioner};
-use stickslip::constraints::{node_rows, Constraint, Frames};
+use stickslip::constraints::Frames;
 use stickslip::elimination::{reactions, ConstrainedDiagonal, Eliminated};
 use stickslip::generate::{random_system, SystemSpec};
 use stickslip::oracle;

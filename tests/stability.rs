@@ -27,7 +27,7 @@ use stickslip::cg::{self, CgError, CgParams, Preconditioner, Scaling};
 use stickslip::coarse::CoarseSpace;
 use stickslip::elimination::Eliminated;
 use stickslip::error::SolveError;
-use stickslip::gpu::{GpuContext, GpuParams, GpuSolver, Precision};
+use stickslip::gpu::{GpuContext, GpuParams, GpuSolver, Precision, SolveOutcome};
 use stickslip::hard::{self, HardCase, Size};
 
 /// The constant c of the rounding term in the promise (see the module docs).
@@ -306,7 +306,7 @@ fn gpu_sweep(ctx: &GpuContext) -> Vec<String> {
                 }
             };
             match solver.solve() {
-                Ok((y, _dx, info)) => {
+                Ok(SolveOutcome { y, info, .. }) => {
                     let err = match info.error_estimate {
                         // Extended-precision refinement claimed an error ≤ error_tol (or,
                         // past the f64 residual floor, ≤ tol).
@@ -581,7 +581,7 @@ fn gpu_condition_estimate_matches_cpu_and_steers_mixed() {
             GpuSolver::new(ctx, &e, &params)
                 .and_then(|mut s| s.solve())
                 .unwrap_or_else(|err| panic!("{name} gpu {precision}: {err}"))
-                .2
+                .info
         };
         let g64 = solve(Precision::F64);
         let (kc, kg) = (

@@ -1,22 +1,253 @@
-//! WGSL sources and the scalar-type prelude.
+//! WGSL sources, their bind-group layouts, the constants Rust and WGSL share, and the
+//! scalar-type prelude.
 //!
 //! WGSL `override` constants specialize values (block size D, workgroup size, masking,
 //! preconditioner kind) but cannot change types, so the scalar types come from a one-line
 //! alias prelude: `real` (vector and matrix storage) and `acc` (reduction accumulators,
-//! f64 wherever the device has SHADER_F64), followed by the declarations every kernel
-//! shares (shaders/common.wgsl: the `Params` uniform and `WG_MAX`).
+//! f64 wherever the device has SHADER_F64), followed by the constants of [`SHARED`] and the
+//! declarations every kernel shares (shaders/common.wgsl: the `Params` uniform, the
+//! workgroup size and the one workgroup reduction).
+//!
+//! Each shader's bind group 0 is described once, by a [`Layout`]: the bind-group layout is
+//! built from it and bind groups name their buffers by it (`solver::builder`), and a test
+//! checks the WGSL declarations against it.
 
 /// Shared declarations, prepended to every kernel by [`prelude`].
 pub const COMMON: &str = include_str!("../../shaders/common.wgsl");
-pub const MATVEC: &str = include_str!("../../shaders/matvec.wgsl");
-pub const ROTATE: &str = include_str!("../../shaders/rotate.wgsl");
-pub const ROTATE_BLOCKS: &str = include_str!("../../shaders/rotate_blocks.wgsl");
-pub const PRECOND: &str = include_str!("../../shaders/precond.wgsl");
-pub const CG: &str = include_str!("../../shaders/cg.wgsl");
-pub const COARSE: &str = include_str!("../../shaders/coarse.wgsl");
-pub const RECOVER: &str = include_str!("../../shaders/recover.wgsl");
-pub const REFINE: &str = include_str!("../../shaders/refine.wgsl");
-pub const SPRINGS: &str = include_str!("../../shaders/springs.wgsl");
+
+/// Slots of the CG's scalar array `scal` (acc), its state array `state` (u32) and its
+/// partial sums (`partials[slot · G + workgroup]`), for the driver (src/gpu/solver/run.rs)
+/// and the kernels (shaders/cg.wgsl, whose header says who writes and reads each): the
+/// prelude declares every one as a WGSL `const` of the same name.
+pub mod slots {
+    /// ρ = r·z (update_p writes, update_xrz reads).
+    pub const SCAL_RHO: u32 = 0;
+    /// ρ of the previous iteration (update_xrz writes, update_p reads; the host sets it).
+    pub const SCAL_RHO_PREV: u32 = 1;
+    /// p·q of the last update_xrz (the curvature reported when it is not positive).
+    pub const SCAL_PQ: u32 = 2;
+    pub const SCAL_ALPHA: u32 = 3;
+    /// r·r of the last update_p.
+    pub const SCAL_RR: u32 = 4;
+    /// The convergence threshold tol²‖b‖² on r·r (host).
+    pub const SCAL_THRESH: u32 = 5;
+    /// The direction scale `init` keeps (host; 0: p = 0).
+    pub const SCAL_PSCALE: u32 = 6;
+    /// β of the first update_p of a run (the link of a resumed Lanczos sequence).
+    pub const SCAL_BETA0: u32 = 7;
+    /// First slot of the Lanczos coefficient history: α_j at SCAL_HIST + 2j, β_{j+1} at
+    /// SCAL_HIST + 2j + 1.
+    pub const SCAL_HIST: u32 = 8;
+    /// A converged or halted CG: every later dispatch of the chunk is a no-op.
+    pub const STATE_DONE: u32 = 0;
+    /// Non-positive curvature met (update_xrz).
+    pub const STATE_HALT: u32 = 1;
+    /// Iterations done (update_xrz, workgroup 0).
+    pub const STATE_ITERS: u32 = 2;
+    pub const STATE_CONVERGED: u32 = 3;
+    /// A non-finite ρ or r·r.
+    pub const STATE_BREAKDOWN: u32 = 4;
+    /// Length of `state`.
+    pub const N_STATE: u32 = 8;
+    /// Partial-sum slots: p·q (matvec), r·z and r·r (update_xrz, init), Zᵀr (D slots from
+    /// PART_ZR, with the coarse correction on the translations).
+    pub const PART_PQ: u32 = 0;
+    pub const PART_RZ: u32 = 1;
+    pub const PART_RR: u32 = 2;
+    pub const PART_ZR: u32 = 3;
+}
+
+/// A packed column index holds the column node's constraint mask in its bits from this
+/// one up (3 bits: d ≤ 3), so the GPU solver takes fewer than 2^29 nodes.
+pub const MASK_SHIFT: u32 = 29;
+
+/// Upper bound of the workgroup size (`GpuParams::workgroup_size`).
+pub const WG_MAX: u32 = 256;
+
+/// The u32 constants every kernel sees under these names (WGSL `const`s in the prelude).
+pub const SHARED: &[(&str, u32)] = &[
+    ("SCAL_RHO", slots::SCAL_RHO),
+    ("SCAL_RHO_PREV", slots::SCAL_RHO_PREV),
+    ("SCAL_PQ", slots::SCAL_PQ),
+    ("SCAL_ALPHA", slots::SCAL_ALPHA),
+    ("SCAL_RR", slots::SCAL_RR),
+    ("SCAL_THRESH", slots::SCAL_THRESH),
+    ("SCAL_PSCALE", slots::SCAL_PSCALE),
+    ("SCAL_BETA0", slots::SCAL_BETA0),
+    ("SCAL_HIST", slots::SCAL_HIST),
+    ("STATE_DONE", slots::STATE_DONE),
+    ("STATE_HALT", slots::STATE_HALT),
+    ("STATE_ITERS", slots::STATE_ITERS),
+    ("STATE_CONVERGED", slots::STATE_CONVERGED),
+    ("STATE_BREAKDOWN", slots::STATE_BREAKDOWN),
+    ("PART_PQ", slots::PART_PQ),
+    ("PART_RZ", slots::PART_RZ),
+    ("PART_RR", slots::PART_RR),
+    ("PART_ZR", slots::PART_ZR),
+    ("MASK_SHIFT", MASK_SHIFT),
+    ("COL_BITS", (1 << MASK_SHIFT) - 1),
+    ("NO_ROTATION", crate::constraints::NO_ROTATION),
+    ("NO_AGGREGATE", crate::coarse::NO_AGGREGATE),
+    ("WG_MAX", WG_MAX),
+];
+
+/// How a kernel uses a binding.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Access {
+    Uniform,
+    Read,
+    ReadWrite,
+}
+
+/// Bind group 0 of one shader file: the bindings in `@binding` order, by their WGSL names.
+#[derive(Debug)]
+pub struct Layout {
+    pub file: &'static str,
+    pub source: &'static str,
+    pub bindings: &'static [(&'static str, Access)],
+}
+
+use Access::{Read as R, ReadWrite as W, Uniform as U};
+
+pub const MATVEC: Layout = Layout {
+    file: "matvec.wgsl",
+    source: include_str!("../../shaders/matvec.wgsl"),
+    bindings: &[
+        ("params", U),
+        ("row_ptr", R),
+        ("col", R),
+        ("blk_a", R),
+        ("mask", R),
+        ("dvals", R),
+        ("p", R),
+        ("q", W),
+        ("partials", W),
+        ("state", R),
+        ("blk_b", R),
+        ("blk_c", R),
+        ("rowsum", R),
+    ],
+};
+
+pub const SPRINGS: Layout = Layout {
+    file: "springs.wgsl",
+    source: include_str!("../../shaders/springs.wgsl"),
+    bindings: &[
+        ("params", U),
+        ("adj_ptr", R),
+        ("adj", R),
+        ("pos", R),
+        ("springs", R),
+        ("mass", R),
+        ("rot_index", R),
+        ("rotations", R),
+        ("mask", R),
+        ("dvals", R),
+        ("p", R),
+        ("q", W),
+        ("partials", W),
+        ("state", R),
+    ],
+};
+
+pub const ROTATE_BLOCKS: Layout = Layout {
+    file: "rotate_blocks.wgsl",
+    source: include_str!("../../shaders/rotate_blocks.wgsl"),
+    bindings: &[
+        ("params", U),
+        ("rot_index", R),
+        ("rot_nodes", R),
+        ("rotations", R),
+        ("row_ptr", R),
+        ("col", R),
+        ("blk_a", W),
+        ("blk_b", W),
+        ("blk_c", W),
+    ],
+};
+
+pub const PRECOND: Layout = Layout {
+    file: "precond.wgsl",
+    source: include_str!("../../shaders/precond.wgsl"),
+    bindings: &[
+        ("params", U),
+        ("row_ptr", R),
+        ("col", R),
+        ("blk_a", R),
+        ("mask", R),
+        ("dvals", R),
+        ("minv", W),
+        ("blk_b", R),
+        ("blk_c", R),
+    ],
+};
+
+pub const CG: Layout = Layout {
+    file: "cg.wgsl",
+    source: include_str!("../../shaders/cg.wgsl"),
+    bindings: &[
+        ("params", U),
+        ("x", W),
+        ("r", W),
+        ("z", W),
+        ("p", W),
+        ("q", R),
+        ("b", R),
+        ("minv", R),
+        ("partials", W),
+        ("scal", W),
+        ("state", W),
+        ("cmask", R),
+        ("rot_index", R),
+        ("rotations", R),
+        ("einv", R),
+        ("agg_of", R),
+        ("wc", R),
+    ],
+};
+
+pub const COARSE: Layout = Layout {
+    file: "coarse.wgsl",
+    source: include_str!("../../shaders/coarse.wgsl"),
+    bindings: &[
+        ("params", U),
+        ("r", R),
+        ("state", R),
+        ("cmask", R),
+        ("rot_index", R),
+        ("rotations", R),
+        ("agg_ptr", R),
+        ("agg_nodes", R),
+        ("einv", R),
+        ("wc", W),
+    ],
+};
+
+pub const REFINE: Layout = Layout {
+    file: "refine.wgsl",
+    source: include_str!("../../shaders/refine.wgsl"),
+    bindings: &[
+        ("params", U),
+        ("b64", R),
+        ("q64", W),
+        ("rhs32", W),
+        ("partials64", W),
+        ("x32", R),
+        ("y64", W),
+        ("factors", R),
+    ],
+};
+
+/// Every shader file's layout.
+pub const LAYOUTS: [&Layout; 7] = [
+    &MATVEC,
+    &SPRINGS,
+    &ROTATE_BLOCKS,
+    &PRECOND,
+    &CG,
+    &COARSE,
+    &REFINE,
+];
 
 /// The (real, acc, packed) triples the solver instantiates; `packed` is f32 blocks read
 /// as u64 pairs (see [`prelude`]).
@@ -29,7 +260,7 @@ pub const PRELUDES: [(&str, &str, bool); 5] = [
 ];
 
 /// The prelude of a kernel instance: the scalar-type aliases, the block-load type
-/// `blk4` with its `unpack4`, and the shared declarations.
+/// `blk4` with its `unpack4`, the shared constants and the shared declarations.
 ///
 /// `packed` (f32 only, needs SHADER_INT64) reads four f32 block entries as two u64:
 /// the bytes are the same as a `vec4<f32>`, so no writer changes. Why: llvmpipe
@@ -47,5 +278,94 @@ pub fn prelude(real: &str, acc: &str, packed: bool) -> String {
     } else {
         format!("alias blk4 = vec4<{real}>;\nfn unpack4(v: vec4<{real}>) -> vec4<{real}> {{ return v; }}\n")
     };
-    format!("alias real = {real};\nalias acc = {acc};\n{blk}{COMMON}\n")
+    let consts: String = SHARED
+        .iter()
+        .map(|(name, v)| format!("const {name}: u32 = {v}u;\n"))
+        .collect();
+    format!("alias real = {real};\nalias acc = {acc};\n{blk}{consts}{COMMON}\n")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use naga::{AddressSpace, StorageAccess};
+
+    fn module(layout: &Layout, real: &str, acc: &str, packed: bool) -> naga::Module {
+        let src = format!("{}{}", prelude(real, acc, packed), layout.source);
+        naga::front::wgsl::parse_str(&src).unwrap_or_else(|e| {
+            panic!("{} ({real}/{acc}): {}", layout.file, e.emit_to_string(&src))
+        })
+    }
+
+    /// The WGSL declarations of bind group 0 are the layout's bindings: same indices,
+    /// names and access, nothing more, nothing less.
+    #[test]
+    fn every_layout_matches_its_wgsl_declarations() {
+        for layout in LAYOUTS {
+            let m = module(layout, "f64", "f64", false);
+            let mut declared: Vec<(u32, String, Access)> = m
+                .global_variables
+                .iter()
+                .filter_map(|(_, g)| {
+                    let b = g.binding.as_ref()?;
+                    assert_eq!(b.group, 0, "{}: {:?}", layout.file, g.name);
+                    let access = match g.space {
+                        AddressSpace::Uniform => Access::Uniform,
+                        AddressSpace::Storage { access }
+                            if access.contains(StorageAccess::STORE) =>
+                        {
+                            Access::ReadWrite
+                        }
+                        AddressSpace::Storage { .. } => Access::Read,
+                        other => panic!("{}: {:?} in {other:?}", layout.file, g.name),
+                    };
+                    Some((b.binding, g.name.clone().unwrap_or_default(), access))
+                })
+                .collect();
+            declared.sort_by_key(|d| d.0);
+            let described: Vec<(u32, String, Access)> = layout
+                .bindings
+                .iter()
+                .enumerate()
+                .map(|(i, (n, a))| (i as u32, n.to_string(), *a))
+                .collect();
+            assert_eq!(declared, described, "{}", layout.file);
+        }
+    }
+
+    /// Every shared constant is declared in the prelude with Rust's value, and no kernel
+    /// indexes `scal`, `state` or the partial slots with a bare number.
+    #[test]
+    fn shared_constants_agree_and_no_kernel_uses_bare_slot_numbers() {
+        for layout in LAYOUTS {
+            let m = module(layout, "f32", "f32", false);
+            for (name, want) in SHARED {
+                let (_, c) = m
+                    .constants
+                    .iter()
+                    .find(|(_, c)| c.name.as_deref() == Some(*name))
+                    .unwrap_or_else(|| panic!("{}: no const {name}", layout.file));
+                match m.global_expressions[c.init] {
+                    naga::Expression::Literal(naga::Literal::U32(v)) => {
+                        assert_eq!(v, *want, "{}: {name}", layout.file)
+                    }
+                    ref e => panic!("{}: {name} = {e:?}", layout.file),
+                }
+            }
+            for (k, line) in layout.source.lines().enumerate() {
+                let code = line.split("//").next().unwrap_or_default();
+                for arr in ["scal[", "state[", "reduce_slot("] {
+                    if let Some(at) = code.find(arr) {
+                        let next = code[at + arr.len()..].chars().next();
+                        assert!(
+                            !next.is_some_and(|c| c.is_ascii_digit()),
+                            "{}:{}: a bare slot number: {line}",
+                            layout.file,
+                            k + 1
+                        );
+                    }
+                }
+            }
+        }
+    }
 }

@@ -10,7 +10,8 @@ pub mod solver;
 
 pub use context::{list_adapters, measure_copy_bandwidth, AdapterReport, GpuContext, GpuOptions};
 pub use solver::{
-    BufferRecord, GpuSolveInfo, GpuSolver, KernelRecord, KernelTime, Resources, StageSeconds,
+    BufferRecord, GpuSolveInfo, GpuSolver, KernelRecord, KernelTime, Resources, SolveOutcome,
+    StageSeconds,
 };
 
 use crate::cg::{CgError, Preconditioner};

@@ -1,10 +1,12 @@
 //! Device allocation and kernel compilation: the scalar type of a kernel instance
 //! (`Real`), the uniform `Params`, the `Builder` (buffers and pipelines with bookkeeping
-//! and limit checks), the type-independent device data (`Shared`) and the block-plane
+//! and limit checks; bind-group layouts and bind groups from the one `kernels::Layout`
+//! of each shader), the type-independent device data (`Shared`) and the block-plane
 //! layout helpers.
 
 use super::info::{BufferRecord, KernelRecord};
-use crate::gpu::{kernels, GpuContext, GpuError};
+use crate::gpu::kernels::{self, Access, Layout};
+use crate::gpu::{GpuContext, GpuError};
 use std::collections::BTreeMap;
 use wgpu::util::DeviceExt;
 
@@ -51,17 +53,30 @@ impl Real {
     }
 }
 
-#[derive(Clone, Copy)]
-pub(super) enum Bind {
-    Uniform,
-    Ro,
-    Rw,
+/// Uniform parameters shared by every kernel (mirrors `struct Params` in
+/// shaders/common.wgsl).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(super) struct Params {
+    pub(super) n_nodes: u32,
+    pub(super) n_rot: u32,
+    pub(super) n_partials: u32,
+    pub(super) n_blocks: u32,
 }
+const _: () = assert!(std::mem::size_of::<Params>() == 16);
 
+/// One compiled entry point with the bind-group layout of its shader.
 pub(super) struct Kernel {
     pub(super) name: &'static str,
     pub(super) pipeline: wgpu::ComputePipeline,
+    desc: &'static Layout,
     layout: wgpu::BindGroupLayout,
+}
+
+/// A kernel and the bind group it is dispatched with.
+pub(super) struct Bound {
+    pub(super) kernel: Kernel,
+    pub(super) group: wgpu::BindGroup,
 }
 
 /// Allocation and compilation with bookkeeping and limit checks.
@@ -177,19 +192,19 @@ impl<'a> Builder<'a> {
         )
     }
 
-    #[allow(clippy::too_many_arguments)]
+    /// Compiles `entry` of the shader `desc` for the scalar types (real, acc) with the
+    /// given override constants; the bind-group layout follows `desc`.
     pub(super) fn kernel(
         &mut self,
         name: &'static str,
-        file: &'static str,
-        src: &'static str,
+        desc: &'static Layout,
         real: Real,
         acc: Real,
         entry: &'static str,
-        binds: &[Bind],
         constants: &[(&str, f64)],
     ) -> Result<Kernel, GpuError> {
         let dev = &self.ctx.device;
+        let (file, src) = (desc.file, desc.source);
         let key = (file.to_string(), real.name(), acc.name());
         let packed = real == Real::F32 && self.ctx.has_int64();
         if !self.modules.contains_key(&key) {
@@ -205,17 +220,18 @@ impl<'a> Builder<'a> {
             self.modules.insert(key.clone(), m);
         }
         let module = &self.modules[&key];
-        let entries: Vec<wgpu::BindGroupLayoutEntry> = binds
+        let entries: Vec<wgpu::BindGroupLayoutEntry> = desc
+            .bindings
             .iter()
             .enumerate()
-            .map(|(i, b)| wgpu::BindGroupLayoutEntry {
+            .map(|(i, (_, access))| wgpu::BindGroupLayoutEntry {
                 binding: i as u32,
                 visibility: wgpu::ShaderStages::COMPUTE,
                 ty: wgpu::BindingType::Buffer {
-                    ty: match b {
-                        Bind::Uniform => wgpu::BufferBindingType::Uniform,
-                        Bind::Ro => wgpu::BufferBindingType::Storage { read_only: true },
-                        Bind::Rw => wgpu::BufferBindingType::Storage { read_only: false },
+                    ty: match access {
+                        Access::Uniform => wgpu::BufferBindingType::Uniform,
+                        Access::Read => wgpu::BufferBindingType::Storage { read_only: true },
+                        Access::ReadWrite => wgpu::BufferBindingType::Storage { read_only: false },
                     },
                     has_dynamic_offset: false,
                     min_binding_size: None,
@@ -255,30 +271,80 @@ impl<'a> Builder<'a> {
         Ok(Kernel {
             name,
             pipeline,
+            desc,
             layout,
         })
     }
 
-    pub(super) fn bind(&self, k: &Kernel, label: &str, bufs: &[&wgpu::Buffer]) -> wgpu::BindGroup {
-        let entries: Vec<wgpu::BindGroupEntry> = bufs
+    /// The bind group of `k` with each binding of its layout given by name, in any
+    /// order; a name the layout lacks, a repeated one or a missing one is an error.
+    pub(super) fn bind(
+        &self,
+        k: &Kernel,
+        label: &str,
+        bufs: &[(&str, &wgpu::Buffer)],
+    ) -> Result<wgpu::BindGroup, GpuError> {
+        let desc = k.desc;
+        let mut slots: Vec<Option<&wgpu::Buffer>> = vec![None; desc.bindings.len()];
+        for &(name, buf) in bufs {
+            let i = desc
+                .bindings
+                .iter()
+                .position(|(n, _)| *n == name)
+                .ok_or_else(|| {
+                    GpuError::Device(format!("{label}: {} has no binding '{name}'", desc.file))
+                })?;
+            if slots[i].replace(buf).is_some() {
+                return Err(GpuError::Device(format!(
+                    "{label}: binding '{name}' given twice"
+                )));
+            }
+        }
+        let entries = slots
             .iter()
+            .zip(desc.bindings)
             .enumerate()
-            .map(|(i, b)| wgpu::BindGroupEntry {
-                binding: i as u32,
-                resource: b.as_entire_binding(),
+            .map(|(i, (b, (name, _)))| {
+                let b = b.ok_or_else(|| {
+                    GpuError::Device(format!(
+                        "{label}: binding '{name}' of {} is missing",
+                        desc.file
+                    ))
+                })?;
+                Ok(wgpu::BindGroupEntry {
+                    binding: i as u32,
+                    resource: b.as_entire_binding(),
+                })
             })
-            .collect();
-        self.ctx
+            .collect::<Result<Vec<_>, GpuError>>()?;
+        Ok(self
+            .ctx
             .device
             .create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some(label),
                 layout: &k.layout,
                 entries: &entries,
-            })
+            }))
+    }
+
+    /// [`Builder::kernel`] and [`Builder::bind`] in one step.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn bound(
+        &mut self,
+        name: &'static str,
+        desc: &'static Layout,
+        real: Real,
+        acc: Real,
+        entry: &'static str,
+        constants: &[(&str, f64)],
+        bufs: &[(&str, &wgpu::Buffer)],
+    ) -> Result<Bound, GpuError> {
+        let kernel = self.kernel(name, desc, real, acc, entry, constants)?;
+        let group = self.bind(&kernel, &format!("{name} bind group"), bufs)?;
+        Ok(Bound { kernel, group })
     }
 }
 
-/// Type-independent data of the system on the device.
 /// The aggregates of the coarse correction (coarse.wgsl): each node's aggregate, and the
 /// nodes of each aggregate as offsets and a list.
 pub(super) struct AggBuffers {
@@ -287,6 +353,7 @@ pub(super) struct AggBuffers {
     pub(super) nodes: wgpu::Buffer,
 }
 
+/// Type-independent data of the system on the device.
 pub(super) struct Shared {
     pub(super) agg: Option<AggBuffers>,
     pub(super) params: wgpu::Buffer,

@@ -1,5 +1,5 @@
 //! The host copy of the system (`Host`): f64 products and residuals, the largest
-//! diagonal entry and the recovery lift, plus the mass-spring helpers that derive the
+//! diagonal entry and the recovery Δx = Δx_p + V P y, plus the mass-spring helpers that derive the
 //! right-hand side, diagonal blocks, adjacency and spring data from a `MassSpring`.
 
 use crate::constraints::Frames;
@@ -7,7 +7,7 @@ use crate::elimination::{apply_eliminated, relative_residual_from, rotate_block}
 use crate::sparse::BlockCsr;
 use crate::springs::MassSpring;
 
-/// The host copy of the system, for the true f64 residual and the recovery lift.
+/// The host copy of the system, for the true f64 residual and the recovery.
 pub(super) enum HostOp {
     Blocks(BlockCsr),
     Springs(MassSpring),
@@ -118,13 +118,19 @@ impl Host {
         relative_residual_from(rhs, hy)
     }
 
-    /// Δx = V P y + Δx_p with dx_free = V P y computed on the device.
-    pub(super) fn add_lift(&self, dx_free: &mut [f64]) {
-        if !self.frames.homogeneous {
-            for (v, l) in dx_free.iter_mut().zip(&self.frames.lift) {
+    /// Δx = Δx_p + V P y in f64 with the f64 frames, whatever precision y was found in:
+    /// the constrained components are then exactly the lift's.
+    pub(super) fn recover(&self, y: &[f64]) -> Vec<f64> {
+        let f = &self.frames;
+        let mut dx = y.to_vec();
+        f.apply_mask(&mut dx);
+        f.from_frame_in_place(&mut dx);
+        if !f.homogeneous {
+            for (v, l) in dx.iter_mut().zip(&f.lift) {
                 *v += l;
             }
         }
+        dx
     }
 }
 

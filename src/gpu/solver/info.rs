@@ -62,6 +62,16 @@ pub struct StageSeconds {
     pub download: f64,
 }
 
+/// What a successful GPU solve returns.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SolveOutcome {
+    /// The solution of Ĥ y = b̂ in frame coordinates.
+    pub y: Vec<f64>,
+    /// Δx = Δx_p + V y, recovered in f64 with the f64 frames in every precision.
+    pub dx: Vec<f64>,
+    pub info: GpuSolveInfo,
+}
+
 /// What a successful GPU solve did.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct GpuSolveInfo {

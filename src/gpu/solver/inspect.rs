@@ -1,12 +1,13 @@
 //! Kernel-level access for tests and benchmarks: the operator product, per-kernel device
-//! timings, the rotated blocks, the preconditioner data, the recovery and raw iterations.
+//! timings, the rotated blocks, the preconditioner data and raw iterations.
 
 use super::builder::{from_planes, plane_widths, Real};
 use super::host::HostOp;
 use super::info::KernelTime;
 use super::levels::OpData;
+use super::levels::N_STATE;
 use super::run::Which;
-use super::{GpuSolver, N_STATE};
+use super::GpuSolver;
 use crate::cg::Preconditioner;
 use crate::gpu::GpuError;
 
@@ -15,11 +16,11 @@ impl GpuSolver {
 
     /// q = Ĥ y with the CG's operator kernel (in the CG's precision).
     pub fn apply_operator(&mut self, y: &[f64]) -> Result<Vec<f64>, GpuError> {
-        let l = &self.level;
-        self.ctx.queue.write_buffer(&l.p, 0, &l.real.bytes(y));
+        let l = &self.dev.level;
+        self.ctx.queue.write_buffer(&l.buf.p, 0, &l.real.bytes(y));
         self.ctx
             .queue
-            .write_buffer(&l.state, 0, &[0u8; 4 * N_STATE]);
+            .write_buffer(&l.buf.state, 0, &[0u8; 4 * N_STATE]);
         let mut enc = self.encoder("apply operator");
         {
             let mut pass = enc
@@ -28,11 +29,11 @@ impl GpuSolver {
                     timestamp_writes: None,
                 })
                 .forget_lifetime();
-            let g = self.n_partials;
+            let g = self.dev.n_partials;
             self.dispatch(&mut pass, Which::MatvecP, g);
         }
-        let q = self.level.q.clone();
-        self.download(enc, &q, self.level.real, y.len())
+        let q = self.dev.level.buf.q.clone();
+        self.download(enc, &q, self.dev.level.real, y.len())
     }
 
     /// Device time per CG kernel in seconds (fastest and mean of `reps` iterations; the
@@ -42,13 +43,13 @@ impl GpuSolver {
     /// for mixed precision the f64 `matvec_f64` and
     /// `residual`. Runs from y = 0 without a stopping test; `None` without TIMESTAMP_QUERY.
     pub fn profile_kernels(&mut self, reps: usize) -> Result<Option<Vec<KernelTime>>, GpuError> {
-        let Some(period) = self.timestamps.as_ref().map(|t| t.period_ns) else {
+        let Some(period) = self.dev.timestamps.as_ref().map(|t| t.period_ns) else {
             return Ok(None);
         };
         let reps = reps.max(1);
-        if self.refine.is_some() {
+        if self.dev.refine.is_some() {
             let rhs = Real::F32.bytes(&self.host.rhs);
-            self.ctx.queue.write_buffer(&self.level.b, 0, &rhs);
+            self.ctx.queue.write_buffer(&self.dev.level.buf.b, 0, &rhs);
         }
         self.start(false, -1.0)?;
         let dev = &self.ctx.device;
@@ -71,22 +72,24 @@ impl GpuSolver {
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let mut names: Vec<String> =
-            vec![self.level.op.matvec.name.to_string(), "update_xrz".into()];
+        let mut names: Vec<String> = vec![
+            self.dev.level.op.matvec.name.to_string(),
+            "update_xrz".into(),
+        ];
         let mut steps = vec![Which::MatvecP, Which::UpdateXrz];
-        if self.level.agg.is_some() {
+        if self.dev.level.k.agg.is_some() {
             names.extend(["coarse_restrict".into(), "coarse_solve".into()]);
             steps.extend([Which::Restrict, Which::CoarseSolve]);
         }
         names.push("update_p".into());
         steps.push(Which::UpdateP);
-        if self.refine.as_ref().is_some_and(|r| r.op.is_some()) {
-            names.push(format!("{}_f64", self.level.op.matvec.name));
+        if self.dev.refine.as_ref().is_some_and(|r| r.op.is_some()) {
+            names.push(format!("{}_f64", self.dev.level.op.matvec.name));
             names.push("residual".into());
         }
         let mut best = vec![f64::INFINITY; names.len()];
         let mut sum = vec![0.0f64; names.len()];
-        let g = self.n_partials;
+        let g = self.dev.n_partials;
         for _ in 0..reps {
             let mut enc = self.encoder("profile");
             let mut slot = 0u32;
@@ -108,6 +111,7 @@ impl GpuSolver {
                 self.dispatch(&mut pass, which, g);
             }
             if let Some((rf, op, bg_mv)) = self
+                .dev
                 .refine
                 .as_ref()
                 .and_then(|rf| Some((rf, rf.op.as_ref()?, rf.bg_mv.as_ref()?)))
@@ -151,10 +155,13 @@ impl GpuSolver {
 
     /// The device's Ĥ blocks after rotation (assembled systems only), unmasked, f64.
     pub fn rotated_blocks(&mut self) -> Result<Option<Vec<f64>>, GpuError> {
-        let (bufs, real, d, nb) = match (&self.level.op.data, &self.host.op) {
-            (OpData::Blocks { blocks, .. }, HostOp::Blocks(h)) => {
-                (blocks.clone(), self.level.op.real, h.dim, h.nnz_blocks())
-            }
+        let (bufs, real, d, nb) = match (&self.dev.level.op.data, &self.host.op) {
+            (OpData::Blocks { blocks, .. }, HostOp::Blocks(h)) => (
+                blocks.clone(),
+                self.dev.level.op.real,
+                h.dim,
+                h.nnz_blocks(),
+            ),
             _ => return Ok(None),
         };
         let w = plane_widths(d);
@@ -171,44 +178,36 @@ impl GpuSolver {
     /// The preconditioner data built on the device: 1/diag (Jacobi, d·n values) or the
     /// inverse diagonal blocks (block-Jacobi, d²·n), like `BuiltPreconditioner::data`.
     pub fn preconditioner_data(&mut self) -> Result<Vec<f64>, GpuError> {
-        let d = self.dim;
+        let d = self.dev.dim;
         let len = match self.params.preconditioner {
             Preconditioner::None => return Ok(Vec::new()),
-            Preconditioner::Jacobi => self.n_nodes * d,
-            Preconditioner::BlockJacobi => self.n_nodes * d * d,
+            Preconditioner::Jacobi => self.dev.n_nodes * d,
+            Preconditioner::BlockJacobi => self.dev.n_nodes * d * d,
+        };
+        let Some(b) = self.dev.level.buf.minv.clone() else {
+            return Ok(Vec::new());
         };
         let enc = self.encoder("download preconditioner");
-        let b = self.level.minv.clone();
-        self.download(enc, &b, self.level.real, len)
-    }
-
-    /// Δx = Δx_p + V P y through the device's recovery kernels.
-    pub fn recover_on_device(&mut self, y: &[f64]) -> Result<Vec<f64>, GpuError> {
-        let rr = self.recovery.real;
-        match &self.refine {
-            Some(r) => self.ctx.queue.write_buffer(&r.y64, 0, &rr.bytes(y)),
-            None => self.ctx.queue.write_buffer(&self.level.x, 0, &rr.bytes(y)),
-        }
-        Ok(self.download_solution()?.1)
+        self.download(enc, &b, self.dev.level.real, len)
     }
 
     /// Runs `k` PCG iterations from y = 0 (no stopping test) and returns (x, r, p).
     #[allow(clippy::type_complexity)]
     pub fn iterate(&mut self, k: usize) -> Result<(Vec<f64>, Vec<f64>, Vec<f64>), GpuError> {
-        if let Some(rf) = &self.refine {
+        if let Some(rf) = &self.dev.refine {
             // Mixed: the inner CG's right-hand side is b̂ rounded to f32.
             let rhs = Real::F32.bytes(&self.host.rhs);
             let _ = rf;
-            self.ctx.queue.write_buffer(&self.level.b, 0, &rhs);
+            self.ctx.queue.write_buffer(&self.dev.level.buf.b, 0, &rhs);
         }
         self.start(false, -1.0)?;
         let _ = self.chunk(k)?;
-        let nd = self.n_nodes * self.dim;
-        let real = self.level.real;
+        let nd = self.dev.n_nodes * self.dev.dim;
+        let real = self.dev.level.real;
         let (x, r, p) = (
-            self.level.x.clone(),
-            self.level.r.clone(),
-            self.level.p.clone(),
+            self.dev.level.buf.x.clone(),
+            self.dev.level.buf.r.clone(),
+            self.dev.level.buf.p.clone(),
         );
         let xs = self.download(self.encoder("x"), &x, real, nd)?;
         let rs = self.download(self.encoder("r"), &r, real, nd)?;

@@ -1,19 +1,46 @@
 //! The device-side objects of the solver and their construction: the operator Ĥ in one
-//! scalar type (`Operator`), a CG level (`Level`), mixed precision's f64 outer loop
-//! (`Refine`), the recovery of Δx (`Recovery`), the kernel specialization constants
-//! (`Consts`) and the bytes one CG iteration moves.
+//! scalar type (`Operator`), a CG level (`Level`: its buffers `CgBuffers` and compiled
+//! kernels `CgKernels`), mixed precision's f64 outer loop (`Refine`), the kernel
+//! specialization constants (`Consts`) and the bytes one CG iteration moves.
 
-use super::builder::{plane_buffers, plane_widths, Bind, Builder, Kernel, Real, Shared, STORAGE};
+use super::builder::{plane_buffers, plane_widths, Bound, Builder, Kernel, Real, Shared, STORAGE};
 use super::host::{Host, HostOp};
-use super::{Consts, LANCZOS_HIST, N_STATE, SCAL_LEN};
 use crate::cg::Preconditioner;
-use crate::gpu::{kernels, GpuContext, GpuError, MAX_WORKGROUPS};
+use crate::gpu::kernels::{self, slots};
+use crate::gpu::{GpuContext, GpuError, MAX_WORKGROUPS};
+
+/// Length of the CG's scalars before the coefficient history (see cg.wgsl).
+pub(super) const N_SCAL: usize = slots::SCAL_HIST as usize;
+/// Length of the CG's state array.
+pub(super) const N_STATE: usize = slots::N_STATE as usize;
+/// Lanczos coefficients (α, β pairs) recorded per CG run after the scalars (cg.wgsl).
+pub(super) const LANCZOS_HIST: usize = 1024;
+/// Length of the `scal` array: the scalars, then the coefficient history.
+pub(super) const SCAL_LEN: usize = N_SCAL + 2 * LANCZOS_HIST;
+
+/// The specialization constants of the kernels (WGSL overrides), fixed per solver.
+#[derive(Clone, Copy)]
+pub(super) struct Consts {
+    pub(super) d: f64,
+    pub(super) wg: f64,
+    pub(super) masked: bool,
+    pub(super) rotated: bool,
+    pub(super) precond: f64,
+    /// Coarse correction on the rigid translations in every CG level (fused into the
+    /// CG reductions).
+    pub(super) coarse: bool,
+    /// Coarse correction on the translations of this many aggregates (coarse.wgsl); 0: off.
+    pub(super) agg: u32,
+    /// Difference form of f32 block operators.
+    pub(super) diff: bool,
+}
 
 pub(super) enum OpData {
     Blocks {
         /// Block planes (see `plane_widths`).
         blocks: [wgpu::Buffer; 3],
-        rotate: Option<(Kernel, wgpu::BindGroup)>,
+        /// Ĥ_ij = V_iᵀ H_ij V_j in place on the planes (slip nodes only).
+        rotate: Option<Bound>,
     },
     Springs {
         pos: wgpu::Buffer,
@@ -35,34 +62,54 @@ pub(super) struct Operator {
     pub(super) matvec: Kernel,
 }
 
+/// The vectors, partial sums and scalars of one CG.
+pub(super) struct CgBuffers {
+    pub(super) x: wgpu::Buffer,
+    pub(super) r: wgpu::Buffer,
+    pub(super) z: wgpu::Buffer,
+    pub(super) p: wgpu::Buffer,
+    pub(super) q: wgpu::Buffer,
+    pub(super) b: wgpu::Buffer,
+    /// The preconditioner's data (none without one).
+    pub(super) minv: Option<wgpu::Buffer>,
+    pub(super) partials: wgpu::Buffer,
+    pub(super) scal: wgpu::Buffer,
+    pub(super) state: wgpu::Buffer,
+    /// Coarse correction: E⁺ (k×k, accumulator type) of this level's operator.
+    pub(super) einv: Option<wgpu::Buffer>,
+    /// Aggregate coarse correction: w = Zᵀr and c = E⁺w.
+    pub(super) wc: Option<wgpu::Buffer>,
+    pub(super) status_staging: wgpu::Buffer,
+}
+
+/// The aggregate coarse correction's kernels (coarse.wgsl) and their bind group.
+pub(super) struct AggKernels {
+    pub(super) restrict: Kernel,
+    pub(super) solve: Kernel,
+    pub(super) group: wgpu::BindGroup,
+}
+
+/// The compiled kernels of one CG with their bind groups, built once per solver.
+pub(super) struct CgKernels {
+    pub(super) update_p: Kernel,
+    pub(super) update_xrz: Kernel,
+    pub(super) init: Kernel,
+    /// The bind group of the three kernels above (cg.wgsl).
+    pub(super) cg_group: wgpu::BindGroup,
+    /// The operator's kernel bound to p → q and to x → q.
+    pub(super) matvec_p: wgpu::BindGroup,
+    pub(super) matvec_x: wgpu::BindGroup,
+    pub(super) agg: Option<AggKernels>,
+    pub(super) precond: Option<Bound>,
+}
+
 /// One CG in one scalar type.
 pub(super) struct Level {
     pub(super) real: Real,
     pub(super) acc: Real,
     pub(super) op: Operator,
-    pub(super) x: wgpu::Buffer,
-    pub(super) r: wgpu::Buffer,
-    #[allow(dead_code)]
-    z: wgpu::Buffer,
-    pub(super) p: wgpu::Buffer,
-    pub(super) q: wgpu::Buffer,
-    pub(super) b: wgpu::Buffer,
-    pub(super) minv: wgpu::Buffer,
-    pub(super) scal: wgpu::Buffer,
-    pub(super) state: wgpu::Buffer,
-    /// Coarse correction: E⁺ (k×k, accumulator type) of this level's operator.
-    pub(super) einv: Option<wgpu::Buffer>,
-    /// Aggregate coarse correction: the restrict and solve kernels (coarse.wgsl), their
-    /// bind group.
-    pub(super) agg: Option<(Kernel, Kernel, wgpu::BindGroup)>,
-    pub(super) k_update_p: Kernel,
-    pub(super) k_update_xrz: Kernel,
-    pub(super) k_init: Kernel,
-    pub(super) bg_cg: wgpu::BindGroup,
-    pub(super) bg_mv_p: wgpu::BindGroup,
-    pub(super) bg_mv_x: wgpu::BindGroup,
-    pub(super) precond: Option<(Kernel, wgpu::BindGroup)>,
-    pub(super) status_staging: wgpu::Buffer,
+    pub(super) buf: CgBuffers,
+    pub(super) k: CgKernels,
 }
 
 /// Mixed precision: the f64 outer loop.
@@ -70,8 +117,6 @@ pub(super) struct Refine {
     /// The f64 operator; `None` when its blocks exceed the storage binding limit, and then
     /// the outer residual is computed on the host from the downloaded y.
     pub(super) op: Option<Operator>,
-    /// f64 rotations for the recovery when `op` is `None`.
-    pub(super) rotations64: Option<wgpu::Buffer>,
     pub(super) b64: wgpu::Buffer,
     pub(super) y64: wgpu::Buffer,
     pub(super) partials64: wgpu::Buffer,
@@ -81,16 +126,9 @@ pub(super) struct Refine {
     pub(super) k_residual: Kernel,
     pub(super) k_scale_rhs: Kernel,
     pub(super) k_accumulate: Kernel,
+    /// The f64 operator bound to y → q.
     pub(super) bg_mv: Option<wgpu::BindGroup>,
     pub(super) bg_refine: wgpu::BindGroup,
-    pub(super) staging: wgpu::Buffer,
-}
-
-pub(super) struct Recovery {
-    pub(super) real: Real,
-    pub(super) dx: wgpu::Buffer,
-    pub(super) recover: Option<(Kernel, wgpu::BindGroup)>,
-    pub(super) rotate: Option<(Kernel, wgpu::BindGroup)>,
     pub(super) staging: wgpu::Buffer,
 }
 
@@ -108,6 +146,8 @@ fn flag(b: bool) -> f64 {
     }
 }
 
+/// Ĥ in `real`: its buffers (values written later by `GpuSolver::write_operator`), the
+/// block rotation of an assembled operator and the matvec kernel.
 pub(super) fn build_operator(
     bld: &mut Builder,
     sh: &Shared,
@@ -116,7 +156,6 @@ pub(super) fn build_operator(
     acc: Real,
     c: &Consts,
 ) -> Result<Operator, GpuError> {
-    use Bind::*;
     let f = &host.frames;
     let nd = host.ndof() as u64;
     let rn = real.name();
@@ -147,45 +186,13 @@ pub(super) fn build_operator(
     let (data, matvec) = match &host.op {
         HostOp::Blocks(h) => {
             let blocks = plane_buffers(bld, &format!("blocks_{rn}"), h.dim, h.nnz_blocks(), real)?;
-            let rotate = match (&rotations, &sh.rot_index, &sh.rot_nodes) {
-                (Some(rot), Some(ri), Some(rnod)) => {
-                    let k = bld.kernel(
-                        "rotate_blocks",
-                        "rotate_blocks.wgsl",
-                        kernels::ROTATE_BLOCKS,
-                        real,
-                        acc,
-                        "rotate_blocks",
-                        &[Uniform, Ro, Ro, Ro, Ro, Ro, Rw, Rw, Rw],
-                        &[("D", c.d), ("WG", c.wg)],
-                    )?;
-                    let bg = bld.bind(
-                        &k,
-                        "rotate_blocks bind group",
-                        &[
-                            &sh.params,
-                            ri,
-                            rnod,
-                            rot,
-                            &sh.row_ptr,
-                            &sh.col,
-                            &blocks[0],
-                            &blocks[1],
-                            &blocks[2],
-                        ],
-                    );
-                    Some((k, bg))
-                }
-                _ => None,
-            };
+            let rotate = block_rotation(bld, sh, rotations.as_ref(), &blocks, real, acc, c)?;
             let mv = bld.kernel(
                 "matvec",
-                "matvec.wgsl",
-                kernels::MATVEC,
+                &kernels::MATVEC,
                 real,
                 acc,
                 "matvec",
-                &[Uniform, Ro, Ro, Ro, Ro, Ro, Ro, Rw, Rw, Ro, Ro, Ro, Ro],
                 &[
                     ("D", c.d),
                     ("WG", c.wg),
@@ -208,12 +215,10 @@ pub(super) fn build_operator(
                 plane_buffers(bld, &format!("diag_blocks_{rn}"), ms.dim, n as usize, real)?;
             let mv = bld.kernel(
                 "spring_matvec",
-                "springs.wgsl",
-                kernels::SPRINGS,
+                &kernels::SPRINGS,
                 real,
                 acc,
                 "spring_matvec",
-                &[Uniform, Ro, Ro, Ro, Ro, Ro, Ro, Ro, Ro, Ro, Ro, Rw, Rw, Ro],
                 &[
                     ("D", c.d),
                     ("WG", c.wg),
@@ -221,15 +226,13 @@ pub(super) fn build_operator(
                     ("ROTATE", flag(c.rotated)),
                 ],
             )?;
-            (
-                OpData::Springs {
-                    pos,
-                    springs,
-                    mass,
-                    diag_blocks,
-                },
-                mv,
-            )
+            let data = OpData::Springs {
+                pos,
+                springs,
+                mass,
+                diag_blocks,
+            };
+            (data, mv)
         }
     };
     Ok(Operator {
@@ -240,6 +243,41 @@ pub(super) fn build_operator(
         rowsum,
         matvec,
     })
+}
+
+/// The setup kernel that rotates the blocks touching a slip node (none without one).
+fn block_rotation(
+    bld: &mut Builder,
+    sh: &Shared,
+    rotations: Option<&wgpu::Buffer>,
+    blocks: &[wgpu::Buffer; 3],
+    real: Real,
+    acc: Real,
+    c: &Consts,
+) -> Result<Option<Bound>, GpuError> {
+    let (Some(rot), Some(ri), Some(rnod)) = (rotations, &sh.rot_index, &sh.rot_nodes) else {
+        return Ok(None);
+    };
+    let bound = bld.bound(
+        "rotate_blocks",
+        &kernels::ROTATE_BLOCKS,
+        real,
+        acc,
+        "rotate_blocks",
+        &[("D", c.d), ("WG", c.wg)],
+        &[
+            ("params", &sh.params),
+            ("rot_index", ri),
+            ("rot_nodes", rnod),
+            ("rotations", rot),
+            ("row_ptr", &sh.row_ptr),
+            ("col", &sh.col),
+            ("blk_a", &blocks[0]),
+            ("blk_b", &blocks[1]),
+            ("blk_c", &blocks[2]),
+        ],
+    )?;
+    Ok(Some(bound))
 }
 
 /// Whether the block planes of an assembled operator in `real` fit the adapter's limits.
@@ -256,65 +294,64 @@ pub(super) fn blocks_fit(ctx: &GpuContext, host: &Host, real: Real) -> bool {
         .all(|&w| (h.nnz_blocks() * w) as u64 * real.size() <= limit)
 }
 
-/// Bind group of the operator kernel with input `p`, output `q`.
-#[allow(clippy::too_many_arguments)]
+/// The vectors an operator's matvec binds: input `p`, output `q`, its partial sums and
+/// the CG state whose done flag makes it a no-op.
+pub(super) struct MatvecIo<'a> {
+    pub(super) p: &'a wgpu::Buffer,
+    pub(super) q: &'a wgpu::Buffer,
+    pub(super) partials: &'a wgpu::Buffer,
+    pub(super) state: &'a wgpu::Buffer,
+}
+
+/// Bind group of the operator kernel.
 fn bind_operator(
     bld: &Builder,
     sh: &Shared,
     op: &Operator,
     label: &str,
-    p: &wgpu::Buffer,
-    q: &wgpu::Buffer,
-    partials: &wgpu::Buffer,
-    state: &wgpu::Buffer,
-) -> wgpu::BindGroup {
+    io: MatvecIo,
+) -> Result<wgpu::BindGroup, GpuError> {
     let ph = &sh.placeholder;
     let dv = op.dvals.as_ref().unwrap_or(ph);
+    let io_binds = [
+        ("p", io.p),
+        ("q", io.q),
+        ("partials", io.partials),
+        ("state", io.state),
+        ("params", &sh.params),
+        ("mask", sh.mask_or()),
+        ("dvals", dv),
+    ];
     match &op.data {
-        OpData::Blocks { blocks, .. } => bld.bind(
-            &op.matvec,
-            label,
-            &[
-                &sh.params,
-                &sh.row_ptr,
-                &sh.col,
-                &blocks[0],
-                sh.mask_or(),
-                dv,
-                p,
-                q,
-                partials,
-                state,
-                &blocks[1],
-                &blocks[2],
-                op.rowsum.as_ref().unwrap_or(ph),
-            ],
-        ),
+        OpData::Blocks { blocks, .. } => {
+            let data = [
+                ("row_ptr", &sh.row_ptr),
+                ("col", &sh.col),
+                ("blk_a", &blocks[0]),
+                ("blk_b", &blocks[1]),
+                ("blk_c", &blocks[2]),
+                ("rowsum", op.rowsum.as_ref().unwrap_or(ph)),
+            ];
+            bld.bind(&op.matvec, label, &[&io_binds[..], &data[..]].concat())
+        }
         OpData::Springs {
             pos, springs, mass, ..
-        } => bld.bind(
-            &op.matvec,
-            label,
-            &[
-                &sh.params,
-                &sh.row_ptr,
-                &sh.col,
-                pos,
-                springs,
-                mass,
-                sh.rot_index.as_ref().unwrap_or(ph),
-                op.rotations.as_ref().unwrap_or(ph),
-                sh.mask_or(),
-                dv,
-                p,
-                q,
-                partials,
-                state,
-            ],
-        ),
+        } => {
+            let data = [
+                ("adj_ptr", &sh.row_ptr),
+                ("adj", &sh.col),
+                ("pos", pos),
+                ("springs", springs),
+                ("mass", mass),
+                ("rot_index", sh.rot_index.as_ref().unwrap_or(ph)),
+                ("rotations", op.rotations.as_ref().unwrap_or(ph)),
+            ];
+            bld.bind(&op.matvec, label, &[&io_binds[..], &data[..]].concat())
+        }
     }
 }
 
+/// A CG level on `op`: its buffers, then its kernels.
 pub(super) fn build_level(
     bld: &mut Builder,
     sh: &Shared,
@@ -324,17 +361,38 @@ pub(super) fn build_level(
     c: &Consts,
     pc: Preconditioner,
 ) -> Result<Level, GpuError> {
-    use Bind::*;
-    let real = op.real;
+    let buf = cg_buffers(bld, host, op.real, acc, c, pc)?;
+    let k = cg_kernels(bld, sh, &op, &buf, acc, c)?;
+    Ok(Level {
+        real: op.real,
+        acc,
+        op,
+        buf,
+        k,
+    })
+}
+
+/// The vectors, the preconditioner's and coarse correction's data, the partial sums and
+/// the scalars of one CG.
+fn cg_buffers(
+    bld: &mut Builder,
+    host: &Host,
+    real: Real,
+    acc: Real,
+    c: &Consts,
+    pc: Preconditioner,
+) -> Result<CgBuffers, GpuError> {
     let rn = real.name();
-    let nd = host.ndof() as u64;
-    let vb = nd * real.size();
-    let x = bld.buffer(&format!("x_{rn}"), vb, STORAGE)?;
-    let r = bld.buffer(&format!("r_{rn}"), vb, STORAGE)?;
-    let z = bld.buffer(&format!("z_{rn}"), vb, STORAGE)?;
-    let p = bld.buffer(&format!("p_{rn}"), vb, STORAGE)?;
-    let q = bld.buffer(&format!("q_{rn}"), vb, STORAGE)?;
-    let b = bld.buffer(&format!("b_{rn}"), vb, STORAGE)?;
+    let vb = host.ndof() as u64 * real.size();
+    let mut vector = |name: &str| bld.buffer(&format!("{name}_{rn}"), vb, STORAGE);
+    let (x, r, z, p, q, b) = (
+        vector("x")?,
+        vector("r")?,
+        vector("z")?,
+        vector("p")?,
+        vector("q")?,
+        vector("b")?,
+    );
     let n = host.frames.n_nodes as u64;
     let d = host.frames.dim as u64;
     let minv = match pc {
@@ -352,7 +410,7 @@ pub(super) fn build_level(
     };
     // One partial per workgroup and slot, sized for the most workgroups. Slots: p·q, r·z,
     // r·r, and with the coarse correction d more for Zᵀr.
-    let slots = if c.coarse { 3 + d } else { 3 };
+    let slots = u64::from(slots::PART_ZR) + if c.coarse { d } else { 0 };
     let g = u64::from(MAX_WORKGROUPS);
     let partials = bld.buffer("partials", slots * g * acc.size(), STORAGE)?;
     let kc = d * u64::from(c.agg.max(1));
@@ -361,7 +419,6 @@ pub(super) fn build_level(
     } else {
         None
     };
-    // Aggregates: w = Zᵀr and c = E⁺w.
     let wc = if c.agg > 0 {
         Some(bld.buffer("coarse_wc", 2 * kc * acc.size(), STORAGE)?)
     } else {
@@ -373,6 +430,34 @@ pub(super) fn build_level(
         "status_staging",
         SCAL_LEN as u64 * acc.size() + 4 * N_STATE as u64 + 16,
     )?;
+    Ok(CgBuffers {
+        x,
+        r,
+        z,
+        p,
+        q,
+        b,
+        minv,
+        partials,
+        scal,
+        state,
+        einv,
+        wc,
+        status_staging,
+    })
+}
+
+/// The kernels of one CG with their bind groups: the three CG updates, the operator bound
+/// to p and to x, the aggregate coarse correction and the preconditioner build.
+fn cg_kernels(
+    bld: &mut Builder,
+    sh: &Shared,
+    op: &Operator,
+    buf: &CgBuffers,
+    acc: Real,
+    c: &Consts,
+) -> Result<CgKernels, GpuError> {
+    let real = op.real;
     let cg_consts = [
         ("D", c.d),
         ("WG", c.wg),
@@ -384,217 +469,165 @@ pub(super) fn build_level(
         ("MASKED", flag(c.masked)),
         ("ROTATED", flag(c.rotated)),
     ];
-    let cg_binds = [
-        Uniform, Rw, Rw, Rw, Rw, Ro, Ro, Ro, Rw, Rw, Rw, Ro, Ro, Ro, Ro, Ro, Ro,
-    ];
-    let k_update_p = bld.kernel(
-        "update_p",
-        "cg.wgsl",
-        kernels::CG,
-        real,
-        acc,
-        "update_p",
-        &cg_binds,
-        &cg_consts,
-    )?;
-    let k_update_xrz = bld.kernel(
-        "update_xrz",
-        "cg.wgsl",
-        kernels::CG,
-        real,
-        acc,
-        "update_xrz",
-        &cg_binds,
-        &cg_consts,
-    )?;
-    let k_init = bld.kernel(
-        "init",
-        "cg.wgsl",
-        kernels::CG,
-        real,
-        acc,
-        "init",
-        &cg_binds,
-        &cg_consts,
-    )?;
-    let minv_b = minv.as_ref().unwrap_or(&sh.placeholder);
-    let bg_cg = bld.bind(
-        &k_update_p,
+    let mut cg =
+        |entry: &'static str| bld.kernel(entry, &kernels::CG, real, acc, entry, &cg_consts);
+    let (update_p, update_xrz, init) = (cg("update_p")?, cg("update_xrz")?, cg("init")?);
+    let ph = &sh.placeholder;
+    let cg_group = bld.bind(
+        &update_p,
         "cg bind group",
         &[
-            &sh.params,
-            &x,
-            &r,
-            &z,
-            &p,
-            &q,
-            &b,
-            minv_b,
-            &partials,
-            &scal,
-            &state,
-            sh.mask_or(),
-            sh.rot_index.as_ref().unwrap_or(&sh.placeholder),
-            op.rotations.as_ref().unwrap_or(&sh.placeholder),
-            einv.as_ref().unwrap_or(&sh.placeholder),
-            sh.agg.as_ref().map_or(&sh.placeholder, |a| &a.of_node),
-            wc.as_ref().unwrap_or(&sh.placeholder),
+            ("params", &sh.params),
+            ("x", &buf.x),
+            ("r", &buf.r),
+            ("z", &buf.z),
+            ("p", &buf.p),
+            ("q", &buf.q),
+            ("b", &buf.b),
+            ("minv", buf.minv.as_ref().unwrap_or(ph)),
+            ("partials", &buf.partials),
+            ("scal", &buf.scal),
+            ("state", &buf.state),
+            ("cmask", sh.mask_or()),
+            ("rot_index", sh.rot_index.as_ref().unwrap_or(ph)),
+            ("rotations", op.rotations.as_ref().unwrap_or(ph)),
+            ("einv", buf.einv.as_ref().unwrap_or(ph)),
+            ("agg_of", sh.agg.as_ref().map_or(ph, |a| &a.of_node)),
+            ("wc", buf.wc.as_ref().unwrap_or(ph)),
         ],
-    );
-    let agg = match (&sh.agg, &wc, &einv) {
-        (Some(ab), Some(wc), Some(einv)) => {
-            let consts = [
-                ("D", c.d),
-                ("WG", c.wg),
-                ("MASKED", flag(c.masked)),
-                ("ROTATED", flag(c.rotated)),
-                ("N_AGG", f64::from(c.agg)),
-            ];
-            let binds = [Uniform, Ro, Ro, Ro, Ro, Ro, Ro, Ro, Ro, Rw];
-            let k_restrict = bld.kernel(
-                "coarse_restrict",
-                "coarse.wgsl",
-                kernels::COARSE,
-                real,
-                acc,
-                "restrict_r",
-                &binds,
-                &consts,
-            )?;
-            let k_solve = bld.kernel(
-                "coarse_solve",
-                "coarse.wgsl",
-                kernels::COARSE,
-                real,
-                acc,
-                "solve",
-                &binds,
-                &consts,
-            )?;
-            let bg = bld.bind(
-                &k_restrict,
-                "coarse bind group",
-                &[
-                    &sh.params,
-                    &r,
-                    &state,
-                    sh.mask_or(),
-                    sh.rot_index.as_ref().unwrap_or(&sh.placeholder),
-                    op.rotations.as_ref().unwrap_or(&sh.placeholder),
-                    &ab.ptr,
-                    &ab.nodes,
-                    einv,
-                    wc,
-                ],
-            );
-            Some((k_restrict, k_solve, bg))
-        }
-        _ => None,
-    };
-    let bg_mv_p = bind_operator(
-        bld,
-        sh,
-        &op,
-        "matvec p->q bind group",
-        &p,
-        &q,
-        &partials,
-        &state,
-    );
-    let bg_mv_x = bind_operator(
-        bld,
-        sh,
-        &op,
-        "matvec x->q bind group",
-        &x,
-        &q,
-        &partials,
-        &state,
-    );
-    let precond = match &minv {
-        None => None,
-        Some(mb) => {
-            let k = bld.kernel(
-                "precond_build",
-                "precond.wgsl",
-                kernels::PRECOND,
-                real,
-                acc,
-                "build",
-                &[Uniform, Ro, Ro, Ro, Ro, Ro, Rw, Ro, Ro],
-                &[
-                    ("D", c.d),
-                    ("WG", c.wg),
-                    ("MASKED", flag(c.masked)),
-                    ("PRECOND", c.precond),
-                ],
-            )?;
-            let dv = op.dvals.as_ref().unwrap_or(&sh.placeholder);
-            let bg = match &op.data {
-                OpData::Blocks { blocks, .. } => bld.bind(
-                    &k,
-                    "precond bind group",
-                    &[
-                        &sh.params,
-                        &sh.row_ptr,
-                        &sh.col,
-                        &blocks[0],
-                        sh.mask_or(),
-                        dv,
-                        mb,
-                        &blocks[1],
-                        &blocks[2],
-                    ],
-                ),
-                OpData::Springs { diag_blocks, .. } => bld.bind(
-                    &k,
-                    "precond bind group",
-                    &[
-                        &sh.params,
-                        sh.diag_row_ptr
-                            .as_ref()
-                            .expect("springs have a diagonal pattern"),
-                        sh.diag_col
-                            .as_ref()
-                            .expect("springs have a diagonal pattern"),
-                        &diag_blocks[0],
-                        sh.mask_or(),
-                        dv,
-                        mb,
-                        &diag_blocks[1],
-                        &diag_blocks[2],
-                    ],
-                ),
-            };
-            Some((k, bg))
-        }
-    };
-    Ok(Level {
-        real,
-        acc,
-        op,
-        x,
-        r,
-        z,
+    )?;
+    let io = |p| MatvecIo {
         p,
-        q,
-        b,
-        minv: minv.unwrap_or_else(|| sh.placeholder.clone()),
-        scal,
-        state,
-        einv,
-        agg,
-        k_update_p,
-        k_update_xrz,
-        k_init,
-        bg_cg,
-        bg_mv_p,
-        bg_mv_x,
-        precond,
-        status_staging,
+        q: &buf.q,
+        partials: &buf.partials,
+        state: &buf.state,
+    };
+    Ok(CgKernels {
+        matvec_p: bind_operator(bld, sh, op, "matvec p->q bind group", io(&buf.p))?,
+        matvec_x: bind_operator(bld, sh, op, "matvec x->q bind group", io(&buf.x))?,
+        agg: aggregate_kernels(bld, sh, op, buf, acc, c)?,
+        precond: precond_kernel(bld, sh, op, buf, acc, c)?,
+        update_p,
+        update_xrz,
+        init,
+        cg_group,
     })
 }
 
+/// The restrict and solve kernels of the aggregate coarse correction (none without it).
+fn aggregate_kernels(
+    bld: &mut Builder,
+    sh: &Shared,
+    op: &Operator,
+    buf: &CgBuffers,
+    acc: Real,
+    c: &Consts,
+) -> Result<Option<AggKernels>, GpuError> {
+    let (Some(ab), Some(wc), Some(einv)) = (&sh.agg, &buf.wc, &buf.einv) else {
+        return Ok(None);
+    };
+    let consts = [
+        ("D", c.d),
+        ("WG", c.wg),
+        ("MASKED", flag(c.masked)),
+        ("ROTATED", flag(c.rotated)),
+        ("N_AGG", f64::from(c.agg)),
+    ];
+    let real = op.real;
+    let restrict = bld.kernel(
+        "coarse_restrict",
+        &kernels::COARSE,
+        real,
+        acc,
+        "restrict_r",
+        &consts,
+    )?;
+    let solve = bld.kernel(
+        "coarse_solve",
+        &kernels::COARSE,
+        real,
+        acc,
+        "solve",
+        &consts,
+    )?;
+    let ph = &sh.placeholder;
+    let group = bld.bind(
+        &restrict,
+        "coarse bind group",
+        &[
+            ("params", &sh.params),
+            ("r", &buf.r),
+            ("state", &buf.state),
+            ("cmask", sh.mask_or()),
+            ("rot_index", sh.rot_index.as_ref().unwrap_or(ph)),
+            ("rotations", op.rotations.as_ref().unwrap_or(ph)),
+            ("agg_ptr", &ab.ptr),
+            ("agg_nodes", &ab.nodes),
+            ("einv", einv),
+            ("wc", wc),
+        ],
+    )?;
+    Ok(Some(AggKernels {
+        restrict,
+        solve,
+        group,
+    }))
+}
+
+/// The setup kernel that builds the preconditioner from the operator's diagonal blocks
+/// (none without a preconditioner).
+fn precond_kernel(
+    bld: &mut Builder,
+    sh: &Shared,
+    op: &Operator,
+    buf: &CgBuffers,
+    acc: Real,
+    c: &Consts,
+) -> Result<Option<Bound>, GpuError> {
+    let Some(minv) = &buf.minv else {
+        return Ok(None);
+    };
+    // Springs: the host-computed diagonal blocks with an identity pattern.
+    let (row_ptr, col, blocks) = match &op.data {
+        OpData::Blocks { blocks, .. } => (&sh.row_ptr, &sh.col, blocks),
+        OpData::Springs { diag_blocks, .. } => match (&sh.diag_row_ptr, &sh.diag_col) {
+            (Some(p), Some(c)) => (p, c, diag_blocks),
+            _ => {
+                return Err(GpuError::Device(
+                    "the spring operator has no diagonal pattern".into(),
+                ))
+            }
+        },
+    };
+    let bound = bld.bound(
+        "precond_build",
+        &kernels::PRECOND,
+        op.real,
+        acc,
+        "build",
+        &[
+            ("D", c.d),
+            ("WG", c.wg),
+            ("MASKED", flag(c.masked)),
+            ("PRECOND", c.precond),
+        ],
+        &[
+            ("params", &sh.params),
+            ("row_ptr", row_ptr),
+            ("col", col),
+            ("blk_a", &blocks[0]),
+            ("mask", sh.mask_or()),
+            ("dvals", op.dvals.as_ref().unwrap_or(&sh.placeholder)),
+            ("minv", minv),
+            ("blk_b", &blocks[1]),
+            ("blk_c", &blocks[2]),
+        ],
+    )?;
+    Ok(Some(bound))
+}
+
+/// Mixed precision's f64 outer loop: the f64 iterate, residual and right-hand side, and
+/// the refine.wgsl kernels over them and the CG level's f32 vectors.
 pub(super) fn build_refine(
     bld: &mut Builder,
     sh: &Shared,
@@ -603,7 +636,6 @@ pub(super) fn build_refine(
     host: &Host,
     c: &Consts,
 ) -> Result<Refine, GpuError> {
-    use Bind::*;
     let nd = host.ndof() as u64;
     let b64 = bld.buffer("b_f64", nd * 8, STORAGE)?;
     let y64 = bld.buffer("y_f64", nd * 8, STORAGE)?;
@@ -613,74 +645,46 @@ pub(super) fn build_refine(
     let staging = bld.staging("refine_staging", u64::from(MAX_WORKGROUPS) * 8)?;
     let factors = bld.buffer("refine_factors_f64", 2 * 8, STORAGE)?;
     let consts = [("D", c.d), ("WG", c.wg)];
-    let binds = [Uniform, Ro, Rw, Rw, Rw, Ro, Rw, Ro];
-    let k_residual = bld.kernel(
-        "residual",
-        "refine.wgsl",
-        kernels::REFINE,
-        Real::F64,
-        Real::F64,
-        "residual",
-        &binds,
-        &consts,
-    )?;
-    let k_scale_rhs = bld.kernel(
-        "scale_rhs",
-        "refine.wgsl",
-        kernels::REFINE,
-        Real::F64,
-        Real::F64,
-        "scale_rhs",
-        &binds,
-        &consts,
-    )?;
-    let k_accumulate = bld.kernel(
-        "accumulate",
-        "refine.wgsl",
-        kernels::REFINE,
-        Real::F64,
-        Real::F64,
-        "accumulate",
-        &binds,
-        &consts,
-    )?;
+    let mut refine = |name: &'static str| {
+        bld.kernel(name, &kernels::REFINE, Real::F64, Real::F64, name, &consts)
+    };
+    let (k_residual, k_scale_rhs, k_accumulate) = (
+        refine("residual")?,
+        refine("scale_rhs")?,
+        refine("accumulate")?,
+    );
     let bg_refine = bld.bind(
         &k_residual,
         "refine bind group",
         &[
-            &sh.params,
-            &b64,
-            &q64,
-            &level.b,
-            &partials64,
-            &level.x,
-            &y64,
-            &factors,
+            ("params", &sh.params),
+            ("b64", &b64),
+            ("q64", &q64),
+            ("rhs32", &level.buf.b),
+            ("partials64", &partials64),
+            ("x32", &level.buf.x),
+            ("y64", &y64),
+            ("factors", &factors),
         ],
-    );
-    let bg_mv = op.as_ref().map(|op| {
-        bind_operator(
+    )?;
+    let io = MatvecIo {
+        p: &y64,
+        q: &q64,
+        partials: &partials64,
+        state: &zero_state,
+    };
+    let bg_mv = match &op {
+        Some(op) => Some(bind_operator(
             bld,
             sh,
             op,
             "matvec f64 y->q bind group",
-            &y64,
-            &q64,
-            &partials64,
-            &zero_state,
-        )
-    });
-    let rotations64 = match (&op, host.frames.has_rotation()) {
-        (None, true) => Some(bld.buffer(
-            "rotations_f64",
-            host.frames.rotations.len() as u64 * 8,
-            STORAGE,
+            io,
         )?),
-        _ => None,
+        None => None,
     };
     Ok(Refine {
         op,
-        rotations64,
         b64,
         y64,
         partials64,
@@ -690,71 +694,6 @@ pub(super) fn build_refine(
         k_accumulate,
         bg_mv,
         bg_refine,
-        staging,
-    })
-}
-
-#[allow(clippy::too_many_arguments)]
-pub(super) fn build_recovery(
-    bld: &mut Builder,
-    sh: &Shared,
-    y: &wgpu::Buffer,
-    real: Real,
-    rotations: Option<&wgpu::Buffer>,
-    c: &Consts,
-    nd: usize,
-) -> Result<Recovery, GpuError> {
-    use Bind::*;
-    let dx = bld.buffer(
-        &format!("dx_{}", real.name()),
-        nd as u64 * real.size(),
-        STORAGE,
-    )?;
-    let staging = bld.staging("solution_staging", 2 * nd as u64 * real.size())?;
-    let acc = real;
-    let recover = match &sh.mask {
-        Some(m) => {
-            let k = bld.kernel(
-                "recover",
-                "recover.wgsl",
-                kernels::RECOVER,
-                real,
-                acc,
-                "recover",
-                &[Uniform, Ro, Ro, Rw],
-                &[("D", c.d), ("WG", c.wg)],
-            )?;
-            let bg = bld.bind(&k, "recover bind group", &[&sh.params, m, y, &dx]);
-            Some((k, bg))
-        }
-        None => None,
-    };
-    let rotate = match (rotations, &sh.rot_index, &sh.rot_nodes) {
-        (Some(rot), Some(ri), Some(rn)) => {
-            let k = bld.kernel(
-                "rotate_vectors",
-                "rotate.wgsl",
-                kernels::ROTATE,
-                real,
-                acc,
-                "rotate_vectors",
-                &[Uniform, Ro, Ro, Ro, Rw],
-                &[("D", c.d), ("WG", c.wg), ("TRANSPOSE", 0.0)],
-            )?;
-            let bg = bld.bind(
-                &k,
-                "rotate_vectors bind group",
-                &[&sh.params, ri, rn, rot, &dx],
-            );
-            Some((k, bg))
-        }
-        _ => None,
-    };
-    Ok(Recovery {
-        real,
-        dx,
-        recover,
-        rotate,
         staging,
     })
 }

@@ -3,104 +3,136 @@
 
 use super::builder::{Builder, Real};
 use super::host::HostOp;
-use super::info::BufferRecord;
 use super::levels::{build_level, build_operator};
+use super::policy::{inner_scale, resume_scales, MixedPolicy, Stop};
 use super::run::Outcome;
-use super::{GpuSolver, F32_KAPPA_LIMIT};
+use super::{GpuSolver, Solved};
 use crate::cg::CgError;
 use crate::elimination::{norm2, Eliminated};
 use crate::gpu::GpuError;
 use crate::sparse::BlockCsr;
 use std::time::Instant;
 
+/// Mixed precision's state across and within solves.
+pub(super) struct MixedState {
+    /// The f32 operator holds 2^s·Ĥ (this factor; 1 unless Ĥ's diagonal is extreme).
+    pub(super) inner_scale: f64,
+    /// Run the fallback on the CPU even where an f64 GPU level could be built.
+    pub(super) force_cpu_fallback: bool,
+    /// Why and where the last solve fell back to f64.
+    pub(super) last_fallback: Option<String>,
+    /// The error estimate of the extended-precision refinement of the last solve.
+    pub(super) last_error_estimate: Option<f64>,
+    /// The assembled Ĥ for the double-double residuals (built on first use).
+    pub(super) assembled: Option<BlockCsr>,
+}
+
+impl MixedState {
+    /// `mixed`: whether the solve is in mixed precision; `diag_max` H's largest diagonal
+    /// entry, which sets the f32 operator's scale.
+    pub(super) fn new(mixed: bool, diag_max: f64) -> Self {
+        MixedState {
+            inner_scale: if mixed { inner_scale(diag_max) } else { 1.0 },
+            force_cpu_fallback: false,
+            last_fallback: None,
+            last_error_estimate: None,
+            assembled: None,
+        }
+    }
+
+    pub(super) fn start_solve(&mut self) {
+        self.last_fallback = None;
+        self.last_error_estimate = None;
+    }
+}
+
 impl GpuSolver {
     /// Mixed precision, in three stages, each entered only when the one before cannot go on:
     /// 1. f32 CG with reliable updates (f64 accumulation of y, f64 true residuals);
     /// 2. f64 CG (GPU, else CPU), warm-started from y, when f32 meets non-positive
-    ///    curvature, breaks down, or a segment reduces the true residual less than 2×;
+    ///    curvature, breaks down, a segment reduces the true residual less than 2×, or
+    ///    the f32 CG's condition estimate is too large for f32 (`policy.rs`);
     /// 3. extended-precision refinement when f64 CG stagnates on its residual's rounding
     ///    floor (and, with `error_tol`, after success, until the error estimate is met).
-    #[allow(clippy::type_complexity)]
     pub(super) fn solve_mixed(
         &mut self,
         bnorm: f64,
         notes: &mut Vec<String>,
-    ) -> Result<(usize, usize, usize, f64, f64, Vec<f64>, Vec<f64>), GpuError> {
+    ) -> Result<Solved, GpuError> {
         let tol = self.params.tol;
         let t0 = Instant::now();
         let mut total = 0usize;
         let mut dl = 0.0;
-        if self.refine.as_ref().is_some_and(|r| r.op.is_none()) {
+        if self.dev.refine.as_ref().is_some_and(|r| r.op.is_none()) {
             notes.push(
                 "mixed: the f64 blocks exceed the adapter's storage binding limit; only the f32 \
                  blocks live on the device and the outer f64 residual is computed on the host"
                     .into(),
             );
         }
-        if self.inner_scale != 1.0 {
+        if self.mixed.inner_scale != 1.0 {
             notes.push(format!(
                 "mixed: Ĥ's diagonal is extreme; the f32 operator holds 2^{} Ĥ (exact) and the \
                  corrections are scaled back in f64",
-                self.inner_scale.log2()
+                self.mixed.inner_scale.log2()
             ));
         }
         self.clear_y64();
+        let policy = MixedPolicy::new(&self.params);
         let mut outer = 0usize;
         let mut prev = f64::INFINITY;
         // (ρ_prev, ‖r‖) of a converged f32 segment: the next one resumes from its direction.
         let mut keep: Option<(f64, f64)> = None;
-        // The next segment's length, its first chunk (one status read-back per segment
-        // instead of a doubling series): the shorter of the last segment's length and what
-        // its late rate predicts. Segments shorten as the kept Krylov space grows (dt-1e2),
-        // but a first segment's late rate can be a slow phase after a fast start
-        // (neohookean-nu0.49: 54 iterations, late rate predicting 284).
         let mut seg_hint: Option<usize> = None;
         let reason: String = loop {
             let rel = self.outer_residual()? / bnorm;
-            if rel <= tol {
+            if policy.converged(rel) {
                 let td = Instant::now();
                 let (y, dx) = self.download_solution()?;
                 dl += td.elapsed().as_secs_f64();
                 let true_rel = self.host.relative_residual(&y);
-                if true_rel <= tol {
+                if policy.converged(true_rel) {
                     let (total, y, dx) = self.certify(total, &mut dl, notes, y, dx)?;
-                    let solve = t0.elapsed().as_secs_f64() - dl;
-                    return Ok((total, outer, 0, solve, dl, y, dx));
+                    return Ok(Solved {
+                        iterations: total,
+                        outer,
+                        restarts: 0,
+                        solve_seconds: t0.elapsed().as_secs_f64() - dl,
+                        download_seconds: dl,
+                        y,
+                        dx,
+                    });
                 }
                 notes.push(format!(
                     "device f64 residual {rel:e} but host residual {true_rel:e}; refining further"
                 ));
             }
-            if !rel.is_finite() {
-                self.clear_y64();
-                break format!("the f64 residual is not finite after outer step {outer}");
-            }
-            if outer > 0 && rel > 0.5 * prev {
-                break format!(
-                    "outer step {outer}: the f32 inner solve reduced the f64 residual only from \
-                     {prev:.3e} to {rel:.3e} (less than 2×)"
-                );
-            }
-            if outer >= self.params.max_outer || total >= self.params.max_iters {
-                let td = Instant::now();
-                let (y, _) = self.download_solution()?;
-                dl += td.elapsed().as_secs_f64();
-                let _ = dl;
-                let true_rel = self.host.relative_residual(&y);
-                return Err(if total >= self.params.max_iters {
-                    CgError::MaxIterations {
-                        iterations: total,
-                        relative_residual: true_rel,
-                        tol,
+            match policy.before_segment(outer, total, rel, prev) {
+                None => {}
+                Some(Stop::Fallback(why)) => {
+                    if !rel.is_finite() {
+                        self.clear_y64();
                     }
-                } else {
-                    CgError::Stagnation {
-                        iterations: total,
-                        relative_residual: true_rel,
-                        tol,
-                    }
+                    break why;
                 }
-                .into());
+                Some(stop) => {
+                    let (y, _) = self.download_solution()?;
+                    let true_rel = self.host.relative_residual(&y);
+                    return Err(if stop == Stop::MaxIterations {
+                        CgError::MaxIterations {
+                            iterations: total,
+                            relative_residual: true_rel,
+                            tol,
+                        }
+                    } else {
+                        CgError::Stagnation {
+                            iterations: total,
+                            relative_residual: true_rel,
+                            tol,
+                        }
+                    }
+                    .into());
+                }
             }
             prev = rel;
             // f32 CG on 2^s Ĥ d̃ = r/‖r‖ (unit right-hand side) until its recurrence residual
@@ -110,39 +142,35 @@ impl GpuSolver {
             // after an f32 segment that did not converge (stagnation, budget) does the next
             // segment restart from p = 0.
             let rn = rel * bnorm;
-            let delta = self.params.inner_tol;
-            let thresh = delta * delta;
-            match keep.take() {
-                Some((rho_prev, rn_prev)) if rn > 0.0 => {
-                    let ps = rn_prev / rn;
-                    self.resume(thresh, rho_prev * ps * ps, ps)?;
-                }
-                _ => self.start(false, thresh)?,
+            let thresh = policy.inner_threshold();
+            match keep
+                .take()
+                .and_then(|(rho, rn_prev)| resume_scales(rho, rn_prev, rn))
+            {
+                Some((rho_prev, ps)) => self.resume(thresh, rho_prev, ps)?,
+                None => self.start(false, thresh)?,
             }
-            self.chunk_hint = seg_hint;
-            self.start_rr = Some(1.0);
-            match self.run_cg(self.params.max_iters - total, total, thresh) {
+            self.run.chunk_hint = seg_hint;
+            self.run.start_rr = Some(1.0);
+            // The condition estimate is watched at every status read of the segment.
+            self.run.kappa_watch = Some((policy, outer + 1));
+            let run = self.run_cg(self.params.max_iters - total, total, thresh);
+            self.run.kappa_watch = None;
+            match run {
                 Ok((out, it)) => {
                     total += it;
                     outer += 1;
                     self.accumulate();
-                    if matches!(out, Outcome::Converged) {
-                        keep = Some((self.last_rho_prev, rn));
-                        let by_rate = self
-                            .last_rate
-                            .map_or(usize::MAX, |r| (-thresh.ln() / r).ceil().min(1e6) as usize);
-                        seg_hint = Some(it.min(by_rate).max(1));
-                    }
-                    if let Some(k) = self.kappa_now() {
-                        let ke = k * f64::from(f32::EPSILON);
-                        if ke > F32_KAPPA_LIMIT {
-                            break format!(
-                                "outer step {outer}: κ̃(M⁻¹Ĥ) ≈ {k:.2e} from the f32 CG's \
-                                 Lanczos coefficients; κ̃·ε_f32 = {ke:.2} > {F32_KAPPA_LIMIT}, \
-                                 where f32 CG loses orthogonality and costs more iterations \
-                                 than it saves"
-                            );
+                    match out {
+                        Outcome::Converged => {
+                            keep = Some((self.run.last_rho_prev, rn));
+                            seg_hint = Some(policy.segment_hint(it, self.run.last_rate));
                         }
+                        Outcome::LeaveF32(why) => break why,
+                        Outcome::MaxIters | Outcome::Stagnated => {}
+                    }
+                    if let Some(why) = policy.kappa_verdict(outer, self.kappa_now()) {
+                        break why;
                     }
                 }
                 Err(GpuError::Cg(CgError::NonPositiveCurvature {
@@ -171,8 +199,8 @@ impl GpuSolver {
             }
         };
         // Fallback: f64 CG for the rest of the solve, warm-started from the f64 iterate.
-        let on_gpu = self.refine.as_ref().is_some_and(|r| r.op.is_some())
-            && !self.force_cpu_fallback
+        let on_gpu = self.dev.refine.as_ref().is_some_and(|r| r.op.is_some())
+            && !self.mixed.force_cpu_fallback
             && match self.ensure_fallback_level() {
                 Ok(()) => true,
                 Err(e @ GpuError::BufferTooLarge { .. }) => {
@@ -188,7 +216,7 @@ impl GpuSolver {
         };
         let msg = format!("{reason}; finished by {place}, warm-started from the f64 iterate");
         notes.push(format!("mixed fell back to f64: {msg}"));
-        self.last_fallback = Some(msg);
+        self.mixed.last_fallback = Some(msg);
         let fb = if on_gpu {
             self.fallback_gpu(total, &mut dl)
         } else {
@@ -220,8 +248,15 @@ impl GpuSolver {
             }
             Err(e) => return Err(e),
         };
-        let solve = t0.elapsed().as_secs_f64() - dl;
-        Ok((all, outer, restarts, solve, dl, y, dx))
+        Ok(Solved {
+            iterations: all,
+            outer,
+            restarts,
+            solve_seconds: t0.elapsed().as_secs_f64() - dl,
+            download_seconds: dl,
+            y,
+            dx,
+        })
     }
 
     /// Mixed with `error_tol`: after the residual criterion is met, extended-precision
@@ -243,7 +278,7 @@ impl GpuSolver {
                 "error_tol needs an assembled Hessian (not a mass-spring operator)".into(),
             ));
         }
-        if self.refine.as_ref().is_some_and(|r| r.op.is_none()) {
+        if self.dev.refine.as_ref().is_some_and(|r| r.op.is_none()) {
             return Err(GpuError::Unsupported(
                 "error_tol needs the f64 operator on the GPU, and its blocks exceed the \
                  adapter's storage binding limit"
@@ -276,7 +311,7 @@ impl GpuSolver {
         let nd = self.host.ndof();
         let y64 = self.y64();
         let mut y = self.download_y64(nd, dl)?;
-        if self.assembled.is_none() {
+        if self.mixed.assembled.is_none() {
             let HostOp::Blocks(h) = &self.host.op else {
                 return Err(GpuError::Unsupported(
                     "extended-precision refinement needs an assembled Hessian".into(),
@@ -288,14 +323,14 @@ impl GpuSolver {
                 rhs: Vec::new(),
                 diag: self.host.diag.clone(),
             };
-            self.assembled = Some(e.assemble());
+            self.mixed.assembled = Some(e.assemble());
         }
-        let a = self.assembled.take().expect("assembled above");
+        let a = self.mixed.assembled.take().expect("assembled above");
         let res =
             self.on_fallback_level(|s| s.refine_extended_run(&a, &mut y, done, notes, target));
-        self.assembled = Some(a);
+        self.mixed.assembled = Some(a);
         let (its, est) = res?;
-        self.last_error_estimate = Some(est);
+        self.mixed.last_error_estimate = Some(est);
         self.ctx.queue.write_buffer(&y64, 0, &Real::F64.bytes(&y));
         let td = Instant::now();
         let (y, dx) = self.download_solution()?;
@@ -336,7 +371,7 @@ impl GpuSolver {
             let scaled: Vec<f64> = r.iter().map(|v| v / rn).collect();
             self.ctx
                 .queue
-                .write_buffer(&self.level.b, 0, &Real::F64.bytes(&scaled));
+                .write_buffer(&self.dev.level.buf.b, 0, &Real::F64.bytes(&scaled));
             self.start(false, INNER_TOL * INNER_TOL)?;
             let budget = self.params.max_iters.saturating_sub(done + its);
             let (out, it) = self.run_cg(budget, done + its, INNER_TOL * INNER_TOL)?;
@@ -352,7 +387,7 @@ impl GpuSolver {
                 }
                 .into());
             }
-            let x_buf = self.level.x.clone();
+            let x_buf = self.dev.level.buf.x.clone();
             let x = self.download(self.encoder("download correction"), &x_buf, Real::F64, nd)?;
             let mut d2 = 0.0f64;
             for (v, xk) in y.iter_mut().zip(&x) {
@@ -405,7 +440,8 @@ impl GpuSolver {
 
     /// The f64 iterate y of mixed precision (a handle to its device buffer).
     fn y64(&self) -> wgpu::Buffer {
-        self.refine
+        self.dev
+            .refine
             .as_ref()
             .expect("mixed has a refinement level")
             .y64
@@ -422,7 +458,11 @@ impl GpuSolver {
     }
 
     fn clear_y64(&mut self) {
-        let rf = self.refine.as_ref().expect("mixed has a refinement level");
+        let rf = self
+            .dev
+            .refine
+            .as_ref()
+            .expect("mixed has a refinement level");
         let mut enc = self.encoder("mixed reset");
         enc.clear_buffer(&rf.y64, 0, None);
         self.ctx.queue.submit([enc.finish()]);
@@ -430,7 +470,11 @@ impl GpuSolver {
 
     /// y64 += 2^s·‖r‖·x32 (the factors written by `outer_residual`).
     fn accumulate(&mut self) {
-        let rf = self.refine.as_ref().expect("mixed has a refinement level");
+        let rf = self
+            .dev
+            .refine
+            .as_ref()
+            .expect("mixed has a refinement level");
         let mut enc = self.encoder("mixed accumulate");
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -439,7 +483,11 @@ impl GpuSolver {
             });
             pass.set_pipeline(&rf.k_accumulate.pipeline);
             pass.set_bind_group(0, &rf.bg_refine, &[]);
-            pass.dispatch_workgroups(((self.n_nodes * self.dim) as u32).div_ceil(self.wg), 1, 1);
+            pass.dispatch_workgroups(
+                ((self.dev.n_nodes * self.dev.dim) as u32).div_ceil(self.dev.wg),
+                1,
+                1,
+            );
         }
         self.ctx.queue.submit([enc.finish()]);
         self.record("accumulate");
@@ -447,38 +495,33 @@ impl GpuSolver {
 
     /// Builds the f64 CG level of the fallback (once; kept across solves and updates).
     fn ensure_fallback_level(&mut self) -> Result<(), GpuError> {
-        if self.fallback_level.is_some() {
+        if self.dev.fallback_level.is_some() {
             return Ok(());
         }
         let ctx = self.ctx.clone();
         let mut bld = Builder::new(&ctx);
-        let acc = self.level.acc;
+        let acc = self.dev.level.acc;
         let op = build_operator(
             &mut bld,
-            &self.shared,
+            &self.dev.shared,
             &self.host,
             Real::F64,
             acc,
-            &self.consts,
+            &self.dev.consts,
         )?;
         let level = build_level(
             &mut bld,
-            &self.shared,
+            &self.dev.shared,
             op,
             &self.host,
             acc,
-            &self.consts,
+            &self.dev.consts,
             self.params.preconditioner,
         )?;
         ctx.check("allocating the f64 fallback level")?;
-        self.buffers
-            .extend(bld.buffers.into_iter().map(|b| BufferRecord {
-                label: format!("fallback_{}", b.label),
-                bytes: b.bytes,
-            }));
-        self.kernels.extend(bld.kernels);
-        self.fallback_level = Some(level);
-        if let Some(fl) = &self.fallback_level {
+        self.tel.extend("fallback_", bld.buffers, bld.kernels);
+        self.dev.fallback_level = Some(level);
+        if let Some(fl) = &self.dev.fallback_level {
             self.write_operator(&fl.op, 1.0);
             self.write_coarse(fl, 1.0);
         }
@@ -490,13 +533,13 @@ impl GpuSolver {
         &mut self,
         f: impl FnOnce(&mut Self) -> Result<T, GpuError>,
     ) -> Result<T, GpuError> {
-        let Some(mut fb) = self.fallback_level.take() else {
+        let Some(mut fb) = self.dev.fallback_level.take() else {
             return Err(GpuError::Device("the f64 fallback level is missing".into()));
         };
-        std::mem::swap(&mut self.level, &mut fb);
+        std::mem::swap(&mut self.dev.level, &mut fb);
         let r = f(self);
-        std::mem::swap(&mut self.level, &mut fb);
-        self.fallback_level = Some(fb);
+        std::mem::swap(&mut self.dev.level, &mut fb);
+        self.dev.fallback_level = Some(fb);
         r
     }
 
@@ -520,9 +563,9 @@ impl GpuSolver {
         let y64 = self.y64();
         self.ctx
             .queue
-            .write_buffer(&self.level.b, 0, &Real::F64.bytes(&self.host.rhs));
+            .write_buffer(&self.dev.level.buf.b, 0, &Real::F64.bytes(&self.host.rhs));
         let mut enc = self.encoder("fallback warm start");
-        enc.copy_buffer_to_buffer(&y64, 0, &self.level.x, 0, nd * 8);
+        enc.copy_buffer_to_buffer(&y64, 0, &self.dev.level.buf.x, 0, nd * 8);
         self.ctx.queue.submit([enc.finish()]);
         let mut total = 0usize;
         let mut restarts = 0usize;
@@ -532,7 +575,7 @@ impl GpuSolver {
             let (out, it) = self.run_cg(budget, done + total, thresh)?;
             total += it;
             let mut enc = self.encoder("fallback result");
-            enc.copy_buffer_to_buffer(&self.level.x, 0, &y64, 0, nd * 8);
+            enc.copy_buffer_to_buffer(&self.dev.level.buf.x, 0, &y64, 0, nd * 8);
             self.ctx.queue.submit([enc.finish()]);
             let td = Instant::now();
             let (y, dx) = self.download_solution()?;
@@ -640,9 +683,9 @@ impl GpuSolver {
     /// also sets the inner CG's right-hand side to r/‖r‖ and the factors
     /// [1/‖r‖, 2^s·‖r‖] of the refinement kernels.
     fn outer_residual(&mut self) -> Result<f64, GpuError> {
-        let g = self.n_partials;
+        let g = self.dev.n_partials;
         let nd = self.host.ndof();
-        let scale = self.inner_scale;
+        let scale = self.mixed.inner_scale;
         let factors = |rn: f64| -> Vec<u8> {
             let inv = if rn > 0.0 && (1.0 / rn).is_finite() {
                 1.0 / rn
@@ -651,7 +694,11 @@ impl GpuSolver {
             };
             Real::F64.bytes(&[inv, scale / inv])
         };
-        let rf = self.refine.as_ref().expect("mixed has a refinement level");
+        let rf = self
+            .dev
+            .refine
+            .as_ref()
+            .expect("mixed has a refinement level");
         let (Some(op), Some(bg_mv)) = (&rf.op, &rf.bg_mv) else {
             // Host path: download y (f64), r = b̂ − Ĥy in f64, upload f32(r/‖r‖).
             let y64 = rf.y64.clone();
@@ -669,7 +716,7 @@ impl GpuSolver {
             r.iter_mut().for_each(|v| *v *= inv);
             self.ctx
                 .queue
-                .write_buffer(&self.level.b, 0, &Real::F32.bytes(&r));
+                .write_buffer(&self.dev.level.buf.b, 0, &Real::F32.bytes(&r));
             self.ctx.queue.write_buffer(&fb, 0, &f);
             return Ok(rn);
         };
@@ -696,7 +743,11 @@ impl GpuSolver {
         // Fixed-order sum of the per-workgroup partials: deterministic.
         let s: f64 = Real::F64.values(&bytes).iter().sum();
         let rn = s.max(0.0).sqrt();
-        let rf = self.refine.as_ref().expect("mixed has a refinement level");
+        let rf = self
+            .dev
+            .refine
+            .as_ref()
+            .expect("mixed has a refinement level");
         self.ctx.queue.write_buffer(&rf.factors, 0, &factors(rn));
         let mut enc = self.encoder("mixed scale rhs");
         {
@@ -706,25 +757,10 @@ impl GpuSolver {
             });
             pass.set_pipeline(&rf.k_scale_rhs.pipeline);
             pass.set_bind_group(0, &rf.bg_refine, &[]);
-            pass.dispatch_workgroups((nd as u32).div_ceil(self.wg), 1, 1);
+            pass.dispatch_workgroups((nd as u32).div_ceil(self.dev.wg), 1, 1);
         }
         self.ctx.queue.submit([enc.finish()]);
         self.record("scale_rhs");
         Ok(rn)
-    }
-}
-
-/// The power of two 2^s that brings H's largest diagonal entry to [1, 2) when it lies
-/// outside [2^-20, 2^20] (else 1): the f32 operator of mixed precision holds 2^s·Ĥ, which
-/// is exact in floating point and keeps f32 far from underflow and overflow.
-pub(super) fn inner_scale(diag_max: f64) -> f64 {
-    if !(diag_max > 0.0 && diag_max.is_finite()) {
-        return 1.0;
-    }
-    let e = diag_max.log2().floor();
-    if e.abs() <= 20.0 {
-        1.0
-    } else {
-        (-e).exp2()
     }
 }

@@ -1,48 +1,109 @@
 //! The device-resident CG driver: starting and resuming a run, recording chunks of
 //! iterations, the status read-back, chunk sizing and the Lanczos condition estimate.
 
-use super::{GpuSolver, LANCZOS_HIST, N_SCAL, N_STATE, SCAL_LEN};
+use super::levels::{LANCZOS_HIST, N_SCAL, N_STATE, SCAL_LEN};
+use super::policy::MixedPolicy;
+use super::GpuSolver;
 use crate::cg::CgError;
+use crate::gpu::kernels::slots;
 use crate::gpu::GpuError;
+
+/// The CG driver's state between status reads and runs.
+pub(super) struct RunState {
+    /// The scalars and coefficient history of the last status read.
+    pub(super) last_scal: Vec<f64>,
+    /// The Lanczos coefficients of the current uninterrupted CG sequence.
+    pub(super) lz_alphas: Vec<f64>,
+    pub(super) lz_betas: Vec<f64>,
+    /// The next run continues the sequence (set by a reliable update).
+    pub(super) lz_resumed: bool,
+    /// Largest κ̃(M⁻¹Ĥ) of the closed sequences of this solve.
+    pub(super) kappa_est: Option<f64>,
+    /// ρ_prev at the last status read: what a reliable update rescales.
+    pub(super) last_rho_prev: f64,
+    /// Size of the first chunk of the next `run_cg` (mixed: the length the previous
+    /// segment's late rate predicts).
+    pub(super) chunk_hint: Option<usize>,
+    /// The fall of ln r·r per iteration over the later half of the last converged run
+    /// (mixed: predicts the next segment's length).
+    pub(super) last_rate: Option<f64>,
+    /// r·r where the next `run_cg` starts, when known (mixed: 1, the unit right-hand side
+    /// with x = 0): the first point of its rate history, so the chunk after the first is
+    /// predicted instead of doubled.
+    pub(super) start_rr: Option<f64>,
+    /// Mixed, during an f32 segment: the policy and outer step whose condition verdict
+    /// `run_cg` checks at every status read.
+    pub(super) kappa_watch: Option<(MixedPolicy, usize)>,
+}
+
+impl RunState {
+    pub(super) fn new() -> Self {
+        RunState {
+            last_scal: vec![0.0; SCAL_LEN],
+            lz_alphas: Vec::new(),
+            lz_betas: Vec::new(),
+            lz_resumed: false,
+            kappa_est: None,
+            last_rho_prev: 1.0,
+            chunk_hint: None,
+            last_rate: None,
+            start_rr: None,
+            kappa_watch: None,
+        }
+    }
+
+    /// Forgets the condition estimate of the previous solve.
+    pub(super) fn start_solve(&mut self) {
+        self.lz_alphas.clear();
+        self.lz_betas.clear();
+        self.lz_resumed = false;
+        self.kappa_est = None;
+    }
+}
 
 /// Result of one CG run (until convergence of the recurrence, the budget or stagnation).
 pub(super) enum Outcome {
     Converged,
     MaxIters,
     Stagnated,
+    /// Mixed: the condition estimate says f32 CG costs more than it saves (the reason).
+    LeaveF32(String),
 }
 
 impl GpuSolver {
     /// Resets the CG scalars: ρ_prev, the convergence threshold, the direction scale kept
     /// by `init` (0: p = 0), flags cleared.
     fn reset_scalars(&self, thresh: f64, rho_prev: f64, pscale: f64) {
-        let l = &self.level;
+        let l = &self.dev.level;
         let mut s = vec![0.0f64; N_SCAL];
-        s[1] = rho_prev;
-        s[5] = thresh;
-        s[6] = pscale;
-        self.ctx.queue.write_buffer(&l.scal, 0, &l.acc.bytes(&s));
+        s[slots::SCAL_RHO_PREV as usize] = rho_prev;
+        s[slots::SCAL_THRESH as usize] = thresh;
+        s[slots::SCAL_PSCALE as usize] = pscale;
         self.ctx
             .queue
-            .write_buffer(&l.state, 0, &[0u8; 4 * N_STATE]);
+            .write_buffer(&l.buf.scal, 0, &l.acc.bytes(&s));
+        self.ctx
+            .queue
+            .write_buffer(&l.buf.state, 0, &[0u8; 4 * N_STATE]);
     }
 
     pub(super) fn dispatch(&mut self, pass: &mut wgpu::ComputePass<'_>, which: Which, groups: u32) {
         let (k, bg) = match which {
-            Which::UpdateP => (&self.level.k_update_p, &self.level.bg_cg),
-            Which::UpdateXrz => (&self.level.k_update_xrz, &self.level.bg_cg),
-            Which::Init => (&self.level.k_init, &self.level.bg_cg),
-            Which::MatvecP => (&self.level.op.matvec, &self.level.bg_mv_p),
-            Which::MatvecX => (&self.level.op.matvec, &self.level.bg_mv_x),
+            Which::UpdateP => (&self.dev.level.k.update_p, &self.dev.level.k.cg_group),
+            Which::UpdateXrz => (&self.dev.level.k.update_xrz, &self.dev.level.k.cg_group),
+            Which::Init => (&self.dev.level.k.init, &self.dev.level.k.cg_group),
+            Which::MatvecP => (&self.dev.level.op.matvec, &self.dev.level.k.matvec_p),
+            Which::MatvecX => (&self.dev.level.op.matvec, &self.dev.level.k.matvec_x),
             Which::Restrict | Which::CoarseSolve => {
-                let Some((kr, ks, bg)) = &self.level.agg else {
+                let Some(agg) = &self.dev.level.k.agg else {
                     return;
                 };
+                let (kr, ks, bg) = (&agg.restrict, &agg.solve, &agg.group);
                 let (k, groups) = if matches!(which, Which::Restrict) {
-                    (kr, groups.min(self.consts.agg))
+                    (kr, groups.min(self.dev.consts.agg))
                 } else {
-                    let rows = self.dim as u32 * self.consts.agg;
-                    (ks, groups.min(rows.div_ceil(self.wg)))
+                    let rows = self.dev.dim as u32 * self.dev.consts.agg;
+                    (ks, groups.min(rows.div_ceil(self.dev.wg)))
                 };
                 pass.set_pipeline(&k.pipeline);
                 pass.set_bind_group(0, bg, &[]);
@@ -90,16 +151,16 @@ impl GpuSolver {
         match how {
             Begin::Restart { keep_x } => {
                 self.reset_scalars(thresh, 1.0, 0.0);
-                self.lz_resumed = false;
+                self.run.lz_resumed = false;
                 if !keep_x {
-                    enc.clear_buffer(&self.level.x, 0, None);
+                    enc.clear_buffer(&self.dev.level.buf.x, 0, None);
                 }
             }
             Begin::Resume { rho_prev, pscale } => {
                 self.reset_scalars(thresh, rho_prev, pscale);
-                self.lz_resumed = true;
-                enc.clear_buffer(&self.level.x, 0, None);
-                enc.clear_buffer(&self.level.q, 0, None);
+                self.run.lz_resumed = true;
+                enc.clear_buffer(&self.dev.level.buf.x, 0, None);
+                enc.clear_buffer(&self.dev.level.buf.q, 0, None);
             }
         }
         {
@@ -109,7 +170,7 @@ impl GpuSolver {
                     timestamp_writes: None,
                 })
                 .forget_lifetime();
-            let g = self.n_partials;
+            let g = self.dev.n_partials;
             if matches!(how, Begin::Restart { .. }) {
                 self.dispatch(&mut pass, Which::MatvecX, g);
             }
@@ -124,10 +185,11 @@ impl GpuSolver {
 
     /// Records `k` iterations in one submit, then reads the status back.
     pub(super) fn chunk(&mut self, k: usize) -> Result<Status, GpuError> {
-        self.recorded += k;
+        self.tel.recorded += k;
         let mut enc = self.encoder("cg chunk");
         {
             let tw = self
+                .dev
                 .timestamps
                 .as_ref()
                 .map(|t| wgpu::ComputePassTimestampWrites {
@@ -141,7 +203,7 @@ impl GpuSolver {
                     timestamp_writes: tw,
                 })
                 .forget_lifetime();
-            let g = self.n_partials;
+            let g = self.dev.n_partials;
             for _ in 0..k {
                 self.dispatch(&mut pass, Which::MatvecP, g);
                 self.dispatch(&mut pass, Which::UpdateXrz, g);
@@ -150,46 +212,54 @@ impl GpuSolver {
                 self.dispatch(&mut pass, Which::UpdateP, g);
             }
         }
-        let l = &self.level;
+        let l = &self.dev.level;
         // The scalars and the coefficient history (16 KiB in f64: no extra read-back).
         let sb = l.acc.size() * SCAL_LEN as u64;
-        enc.copy_buffer_to_buffer(&l.scal, 0, &l.status_staging, 0, sb);
-        enc.copy_buffer_to_buffer(&l.state, 0, &l.status_staging, sb, 4 * N_STATE as u64);
-        if let Some(t) = &self.timestamps {
+        enc.copy_buffer_to_buffer(&l.buf.scal, 0, &l.buf.status_staging, 0, sb);
+        enc.copy_buffer_to_buffer(
+            &l.buf.state,
+            0,
+            &l.buf.status_staging,
+            sb,
+            4 * N_STATE as u64,
+        );
+        if let Some(t) = &self.dev.timestamps {
             enc.resolve_query_set(&t.set, 0..2, &t.resolve, 0);
             enc.copy_buffer_to_buffer(
                 &t.resolve,
                 0,
-                &l.status_staging,
+                &l.buf.status_staging,
                 sb + 4 * N_STATE as u64,
                 16,
             );
         }
         self.ctx.queue.submit([enc.finish()]);
         let total = sb + 4 * N_STATE as u64 + 16;
-        let staging = self.level.status_staging.clone();
+        let staging = self.dev.level.buf.status_staging.clone();
         let bytes = self.read(&staging, total)?;
-        let scal = self.level.acc.values(&bytes[..sb as usize]);
+        let scal = self.dev.level.acc.values(&bytes[..sb as usize]);
         let st: Vec<u32> = bytes[sb as usize..sb as usize + 4 * N_STATE]
             .chunks_exact(4)
             .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
             .collect();
-        if let Some(t) = &self.timestamps {
+        if let Some(t) = &self.dev.timestamps {
             let o = sb as usize + 4 * N_STATE;
             let t0 = u64::from_le_bytes(bytes[o..o + 8].try_into().expect("8 bytes"));
             let t1 = u64::from_le_bytes(bytes[o + 8..o + 16].try_into().expect("8 bytes"));
-            self.gpu_seconds += t1.saturating_sub(t0) as f64 * t.period_ns * 1e-9;
+            self.tel.gpu_seconds += t1.saturating_sub(t0) as f64 * t.period_ns * 1e-9;
         }
-        self.last_rho_prev = scal[1];
+        let at = |k: u32| scal[k as usize];
+        let flag = |k: u32| st[k as usize] != 0;
+        self.run.last_rho_prev = at(slots::SCAL_RHO_PREV);
         let st_out = Status {
-            rr: scal[4],
-            pq: scal[2],
-            iterations: st[2] as usize,
-            converged: st[3] != 0,
-            curvature: st[1] != 0,
-            breakdown: st[4] != 0,
+            rr: at(slots::SCAL_RR),
+            pq: at(slots::SCAL_PQ),
+            iterations: st[slots::STATE_ITERS as usize] as usize,
+            converged: flag(slots::STATE_CONVERGED),
+            curvature: flag(slots::STATE_HALT),
+            breakdown: flag(slots::STATE_BREAKDOWN),
         };
-        self.last_scal = scal;
+        self.run.last_scal = scal;
         Ok(st_out)
     }
 
@@ -197,16 +267,18 @@ impl GpuSolver {
     /// read) to the current sequence: continued across a reliable update (joined by the
     /// β of its first update_p), else after closing the previous sequence.
     fn lanczos_collect(&mut self, iterations: usize) {
-        let resumed = std::mem::take(&mut self.lz_resumed);
-        if !resumed || self.lz_alphas.is_empty() {
+        let resumed = std::mem::take(&mut self.run.lz_resumed);
+        if !resumed || self.run.lz_alphas.is_empty() {
             self.lanczos_close();
         } else {
-            self.lz_betas.push(self.last_scal[7]);
+            let beta0 = self.run.last_scal[slots::SCAL_BETA0 as usize];
+            self.run.lz_betas.push(beta0);
         }
         let n = iterations.min(LANCZOS_HIST);
-        let h = &self.last_scal[N_SCAL..];
-        self.lz_alphas.extend((0..n).map(|j| h[2 * j]));
-        self.lz_betas
+        let h = &self.run.last_scal[N_SCAL..];
+        self.run.lz_alphas.extend((0..n).map(|j| h[2 * j]));
+        self.run
+            .lz_betas
             .extend((0..n.saturating_sub(1)).map(|j| h[2 * j + 1]));
         if iterations > LANCZOS_HIST {
             // Truncated: the next run cannot continue this sequence.
@@ -216,17 +288,53 @@ impl GpuSolver {
 
     /// Ends the current coefficient sequence, keeping the largest estimate so far.
     pub(super) fn lanczos_close(&mut self) {
-        if let Some(k) = crate::cg::lanczos_condition(&self.lz_alphas, &self.lz_betas) {
-            self.kappa_est = Some(self.kappa_est.map_or(k, |c: f64| c.max(k)));
+        if let Some(k) = crate::cg::lanczos_condition(&self.run.lz_alphas, &self.run.lz_betas) {
+            self.run.kappa_est = Some(self.run.kappa_est.map_or(k, |c: f64| c.max(k)));
         }
-        self.lz_alphas.clear();
-        self.lz_betas.clear();
+        self.run.lz_alphas.clear();
+        self.run.lz_betas.clear();
+    }
+
+    /// κ̃(M⁻¹Ĥ) during a run, after `iters` iterations: the closed sequences, the open
+    /// one, and this run's coefficients so far (joined to the open one when the run
+    /// resumed it, as `lanczos_collect` will join them).
+    fn kappa_in_run(&self, iters: usize) -> Option<f64> {
+        let n = iters.min(LANCZOS_HIST);
+        let h = &self.run.last_scal[N_SCAL..];
+        let run_a = (0..n).map(|j| h[2 * j]);
+        let run_b = (0..n.saturating_sub(1)).map(|j| h[2 * j + 1]);
+        let (a, b, earlier): (Vec<f64>, Vec<f64>, Option<f64>) =
+            if self.run.lz_resumed && !self.run.lz_alphas.is_empty() {
+                let a = self.run.lz_alphas.iter().copied().chain(run_a).collect();
+                let b = self
+                    .run
+                    .lz_betas
+                    .iter()
+                    .copied()
+                    .chain(std::iter::once(
+                        self.run.last_scal[slots::SCAL_BETA0 as usize],
+                    ))
+                    .chain(run_b)
+                    .collect();
+                (a, b, None)
+            } else {
+                let open = crate::cg::lanczos_condition(&self.run.lz_alphas, &self.run.lz_betas);
+                (run_a.collect(), run_b.collect(), open)
+            };
+        [
+            crate::cg::lanczos_condition(&a, &b),
+            earlier,
+            self.run.kappa_est,
+        ]
+        .into_iter()
+        .flatten()
+        .reduce(f64::max)
     }
 
     /// κ̃(M⁻¹Ĥ) of the current sequence and the earlier ones.
     pub(super) fn kappa_now(&self) -> Option<f64> {
-        let cur = crate::cg::lanczos_condition(&self.lz_alphas, &self.lz_betas);
-        match (cur, self.kappa_est) {
+        let cur = crate::cg::lanczos_condition(&self.run.lz_alphas, &self.run.lz_betas);
+        match (cur, self.run.kappa_est) {
             (Some(a), Some(b)) => Some(a.max(b)),
             (a, b) => a.or(b),
         }
@@ -252,7 +360,7 @@ impl GpuSolver {
         if let Ok((_, it)) = &res {
             self.lanczos_collect(*it);
         } else {
-            self.lz_resumed = false;
+            self.run.lz_resumed = false;
         }
         res
     }
@@ -271,7 +379,7 @@ impl GpuSolver {
         // and segments shorten as the Krylov space kept across reliable updates grows: the
         // first chunk takes 3/4 of it.
         let floor = self.params.first_chunk.div_ceil(4);
-        let mut k = match self.chunk_hint.take() {
+        let mut k = match self.run.chunk_hint.take() {
             Some(h) => (3 * h).div_ceil(4).clamp(1, cap),
             None => self.params.first_chunk.min(cap),
         };
@@ -280,7 +388,12 @@ impl GpuSolver {
         let mut iters = 0usize;
         // (iterations, ln r·r) at each status read.
         let mut hist: Vec<(usize, f64)> = Vec::new();
-        if let Some(rr0) = self.start_rr.take().filter(|v| *v > 0.0 && v.is_finite()) {
+        if let Some(rr0) = self
+            .run
+            .start_rr
+            .take()
+            .filter(|v| *v > 0.0 && v.is_finite())
+        {
             hist.push((0, rr0.ln()));
         }
         loop {
@@ -307,8 +420,13 @@ impl GpuSolver {
                 if st.rr > 0.0 && st.rr.is_finite() {
                     hist.push((iters, st.rr.ln()));
                 }
-                self.last_rate = late_rate(&hist);
+                self.run.last_rate = late_rate(&hist);
                 return Ok((Outcome::Converged, iters));
+            }
+            if let Some((policy, outer)) = self.run.kappa_watch {
+                if let Some(why) = policy.kappa_verdict(outer, self.kappa_in_run(iters)) {
+                    return Ok((Outcome::LeaveF32(why), iters));
+                }
             }
             if st.rr < best {
                 best = st.rr;

@@ -69,12 +69,12 @@ impl GpuSolver {
     /// E⁺ of the coarse correction for the current values (zeros when every translation
     /// is constrained: the correction then adds nothing).
     pub(super) fn compute_coarse(&mut self) {
-        if !self.consts.coarse && self.consts.agg == 0 {
+        if !self.dev.consts.coarse && self.dev.consts.agg == 0 {
             return;
         }
         let d = self.host.frames.dim;
-        let k = d * self.aggregation.as_ref().map_or(1, |a| a.count);
-        let einv = match (&self.host.op, &self.aggregation) {
+        let k = d * self.coarse.aggregation.as_ref().map_or(1, |a| a.count);
+        let einv = match (&self.host.op, &self.coarse.aggregation) {
             (HostOp::Blocks(h), Some(a)) => aggregates_einv_from_blocks(h, &self.host.frames, a),
             // One pass over the blocks (no basis, no products).
             (HostOp::Blocks(h), None) => translations_einv_from_blocks(h, &self.host.frames),
@@ -84,12 +84,12 @@ impl GpuSolver {
                 Coarse::translations(&frames, None, |v, o| host.apply(v, o)).map(|c| c.einv)
             }
         };
-        self.coarse_einv = Some(einv.unwrap_or_else(|| vec![0.0; k * k]));
+        self.coarse.einv = Some(einv.unwrap_or_else(|| vec![0.0; k * k]));
     }
 
     /// Writes E⁺ into a level whose operator is `scale`·Ĥ (its E⁺ is E⁺/scale).
     pub(super) fn write_coarse(&self, level: &Level, scale: f64) {
-        if let (Some(buf), Some(e)) = (&level.einv, &self.coarse_einv) {
+        if let (Some(buf), Some(e)) = (&level.buf.einv, &self.coarse.einv) {
             let v: Vec<f64> = e.iter().map(|x| x / scale).collect();
             self.ctx.queue.write_buffer(buf, 0, &level.acc.bytes(&v));
         }
@@ -97,35 +97,26 @@ impl GpuSolver {
 
     pub(super) fn upload_values(&mut self) -> Result<(), GpuError> {
         self.compute_coarse();
-        self.write_operator(&self.level.op, self.inner_scale);
-        self.write_coarse(&self.level, self.inner_scale);
-        if let Some(fl) = &self.fallback_level {
+        self.write_operator(&self.dev.level.op, self.mixed.inner_scale);
+        self.write_coarse(&self.dev.level, self.mixed.inner_scale);
+        if let Some(fl) = &self.dev.fallback_level {
             self.write_operator(&fl.op, 1.0);
             self.write_coarse(fl, 1.0);
         }
-        match &self.refine {
+        match &self.dev.refine {
             Some(rf) => {
-                match &rf.op {
-                    Some(op) => self.write_operator(op, 1.0),
-                    None => {
-                        if let Some(rot) = &rf.rotations64 {
-                            self.ctx.queue.write_buffer(
-                                rot,
-                                0,
-                                &Real::F64.bytes(&self.host.frames.rotations),
-                            );
-                        }
-                    }
+                if let Some(op) = &rf.op {
+                    self.write_operator(op, 1.0);
                 }
                 self.ctx
                     .queue
                     .write_buffer(&rf.b64, 0, &Real::F64.bytes(&self.host.rhs));
             }
             None => {
-                let l = &self.level;
+                let l = &self.dev.level;
                 self.ctx
                     .queue
-                    .write_buffer(&l.b, 0, &l.real.bytes(&self.host.rhs));
+                    .write_buffer(&l.buf.b, 0, &l.real.bytes(&self.host.rhs));
             }
         }
         self.ctx.check("uploading the system")
@@ -146,31 +137,32 @@ impl GpuSolver {
                 label: Some("setup pass"),
                 timestamp_writes: None,
             });
-            let groups = self.node_groups();
-            let main_ops = std::iter::once(&self.level.op)
-                .chain(self.refine.as_ref().and_then(|r| r.op.as_ref()))
+            let groups = self.dev.node_groups();
+            let main_ops = std::iter::once(&self.dev.level.op)
+                .chain(self.dev.refine.as_ref().and_then(|r| r.op.as_ref()))
                 .filter(|_| main);
-            let fb = self.fallback_level.as_ref().filter(|_| fallback);
+            let fb = self.dev.fallback_level.as_ref().filter(|_| fallback);
             let ops = main_ops.chain(fb.map(|l| &l.op));
             for op in ops {
                 if let OpData::Blocks {
-                    rotate: Some((k, bg)),
-                    ..
+                    rotate: Some(rot), ..
                 } = &op.data
                 {
+                    let k = &rot.kernel;
                     pass.set_pipeline(&k.pipeline);
-                    pass.set_bind_group(0, bg, &[]);
+                    pass.set_bind_group(0, &rot.group, &[]);
                     pass.dispatch_workgroups(groups, 1, 1);
                     names.push(k.name);
                 }
             }
-            let pre = std::iter::once(&self.level)
+            let pre = std::iter::once(&self.dev.level)
                 .filter(|_| main)
                 .chain(fb)
-                .filter_map(|l| l.precond.as_ref());
-            for (k, bg) in pre {
+                .filter_map(|l| l.k.precond.as_ref());
+            for pre in pre {
+                let k = &pre.kernel;
                 pass.set_pipeline(&k.pipeline);
-                pass.set_bind_group(0, bg, &[]);
+                pass.set_bind_group(0, &pre.group, &[]);
                 pass.dispatch_workgroups(groups, 1, 1);
                 names.push(k.name);
             }
