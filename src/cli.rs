@@ -11,6 +11,7 @@ use crate::constraints::{node_rows, Constraint, Frames};
 use crate::elimination::{reactions, ConstrainedDiagonal, Eliminated};
 use crate::error::{InputError, SolveError};
 use crate::generate::{random_system, ConstraintMix, Stencil, SystemSpec};
+use crate::io::files::{self, Named, OutputDir};
 use crate::io::{bcjson, mtx};
 use crate::oracle;
 use crate::report::{CgReport, CholeskyReport, Files, Report, Seconds};
@@ -102,6 +103,9 @@ pub struct ExportArgs {
     /// Output folder: hhat.petsc(+.info), bhat.petsc, hhat.mtx, bhat.mtx, layout.json.
     #[arg(long, value_name = "DIR")]
     pub out_dir: PathBuf,
+    /// Replace files with export's output names that no previous export there wrote.
+    #[arg(long)]
+    pub overwrite: bool,
 }
 
 #[derive(Debug, Clone, Args)]
@@ -306,6 +310,9 @@ pub struct GenerateArgs {
     pub matrix_form: bool,
     #[arg(long, value_name = "DIR")]
     pub out_dir: PathBuf,
+    /// Replace files with generate's output names that no previous generate there wrote.
+    #[arg(long)]
+    pub overwrite: bool,
 }
 
 #[derive(Debug, Clone, Args)]
@@ -325,6 +332,9 @@ pub struct RunArgs {
     /// Override the number of time steps.
     #[arg(long)]
     pub steps: Option<usize>,
+    /// Replace files with run's output names that no previous run there wrote.
+    #[arg(long)]
+    pub overwrite: bool,
 }
 
 /// Why a command failed; decides the exit code.
@@ -629,9 +639,42 @@ pub fn read_system(sys: &SystemArgs) -> Result<LoadedSystem, CliError> {
     })
 }
 
+/// `solve`'s inputs and outputs, for [`files::check_outputs`].
+fn solve_files(args: &SolveArgs) -> (Vec<Named<'_>>, Vec<Named<'_>>) {
+    (
+        system_inputs(&args.system),
+        [
+            ("--out", Some(&args.out)),
+            ("--reactions", args.reactions.as_ref()),
+            ("--report", args.report.as_ref()),
+        ]
+        .into_iter()
+        .filter_map(|(o, p)| p.map(|p| Named::new(o, p)))
+        .collect(),
+    )
+}
+
+/// The input files of a system (H, g, the constraints).
+fn system_inputs(sys: &SystemArgs) -> Vec<Named<'_>> {
+    [
+        ("--hessian", Some(&sys.hessian)),
+        ("--gradient", Some(&sys.gradient)),
+        ("--constraints", sys.constraints.as_ref()),
+        ("--constraint-matrix", sys.constraint_matrix.as_ref()),
+        ("--constraint-values", sys.constraint_values.as_ref()),
+    ]
+    .into_iter()
+    .filter_map(|(o, p)| p.map(|p| Named::new(o, p)))
+    .collect()
+}
+
 /// `stickslip solve`: read → constraints → frames → eliminate → solve → recover → write.
 pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
     let t_start = Instant::now();
+    // Before any work: no output may destroy an input or another output, and each can be
+    // created.
+    let (inputs, outputs) = solve_files(args);
+    files::check_outputs(&inputs, &outputs)?;
     let precision = args.precision.unwrap_or(PrecisionArg::F64);
     if args.solver != SolverKind::Gpu && precision != PrecisionArg::F64 {
         return Err(InputError::new(
@@ -792,7 +835,7 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
         let mut text =
             serde_json::to_string_pretty(&report).map_err(|e| CliError::Failed(e.to_string()))?;
         text.push('\n');
-        std::fs::write(path, text).map_err(|e| write_failed(path, e))?;
+        files::write_atomic_bytes(path, text.as_bytes()).map_err(|e| write_failed(path, e))?;
     }
     Ok(report)
 }
@@ -839,12 +882,23 @@ fn constraint_violation(dim: usize, cs: &[Constraint], dx: &[f64]) -> f64 {
     worst
 }
 
+/// Every file `generate` may write in its folder.
+pub const GENERATE_OUTPUTS: [&str; 5] = ["H.mtx", "g.mtx", "bc.json", "B.mtx", "p.mtx"];
+
 /// `stickslip generate`: a seeded system as H.mtx, g.mtx, bc.json (and B.mtx, p.mtx).
 pub fn generate(args: &GenerateArgs, quiet: bool) -> Result<(), CliError> {
     let t = Instant::now();
     if args.nodes == 0 {
         return Err(InputError::new("command line", "--nodes", "must be at least 1").into());
     }
+    let mut out = OutputDir::open(
+        &args.out_dir,
+        "--out-dir",
+        "generate",
+        &GENERATE_OUTPUTS,
+        &[],
+        args.overwrite,
+    )?;
     let dim = usize::from(args.dim);
     let mut spec = SystemSpec::with_nodes(dim, args.nodes, args.seed);
     spec.stencil = match args.stencil {
@@ -859,7 +913,7 @@ pub fn generate(args: &GenerateArgs, quiet: bool) -> Result<(), CliError> {
     let s = random_system(&spec);
     let dir = &args.out_dir;
     let shown = dir.display().to_string();
-    std::fs::create_dir_all(dir).map_err(|e| write_failed(&shown, e))?;
+    out.clean().map_err(|e| write_failed(&shown, e))?;
     let comment = format!(
         "stickslip generate --dim {dim} --nodes {} --seed {} --stencil {:?} --mix {:?}: {} nodes on a {}x{}{} grid",
         args.nodes,
@@ -872,6 +926,12 @@ pub fn generate(args: &GenerateArgs, quiet: bool) -> Result<(), CliError> {
         if dim == 3 { format!("x{}", spec.grid[2]) } else { String::new() }
     )
     .to_lowercase();
+    // Recorded before they exist: a killed run's files are cleared by the next one.
+    for name in GENERATE_OUTPUTS {
+        if args.matrix_form || !matches!(name, "B.mtx" | "p.mtx") {
+            out.record(name).map_err(|e| write_failed(&shown, e))?;
+        }
+    }
     let path = |name: &str| dir.join(name);
     let shown = |name: &str| path(name).display().to_string();
     mtx::write_hessian(path("H.mtx"), &s.h, &comment)
@@ -963,13 +1023,39 @@ fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
 
 /// `stickslip export`: read → frames → eliminate → write Ĥ, b̂ and the layout.
 fn export(a: &ExportArgs, quiet: bool) -> Result<(), CliError> {
+    let inputs = system_inputs(&a.system);
+    let names = &crate::export::OUTPUT_NAMES;
+    OutputDir::check(
+        &a.out_dir,
+        "--out-dir",
+        "export",
+        names,
+        &inputs,
+        a.overwrite,
+    )?;
     let sys = read_system(&a.system)?;
+    let mut out = OutputDir::open(
+        &a.out_dir,
+        "--out-dir",
+        "export",
+        names,
+        &inputs,
+        a.overwrite,
+    )?;
     let diag = match a.constrained_diagonal {
         DiagonalArg::Identity => ConstrainedDiagonal::Identity,
         DiagonalArg::Hessian => ConstrainedDiagonal::Hessian,
     };
     let e = Eliminated::new(&sys.h, &sys.g, &sys.frames, diag);
     all_finite("b̂ = −Vᵀ(g + HΔx_p)", &e.rhs)?;
+    let shown = a.out_dir.display().to_string();
+    out.clean().map_err(|e| write_failed(&shown, e))?;
+    for name in crate::export::OUTPUT_NAMES {
+        if a.no_mtx && name.ends_with(".mtx") {
+            continue;
+        }
+        out.record(name).map_err(|e| write_failed(&shown, e))?;
+    }
     let files = crate::export::export(&e, diag, &sys.g, &a.out_dir, !a.no_mtx)
         .map_err(|err| write_failed(&a.out_dir.display().to_string(), err))?;
     if !quiet {
@@ -988,6 +1074,16 @@ fn export(a: &ExportArgs, quiet: bool) -> Result<(), CliError> {
 
 /// `stickslip recover`: y → Δx = Δx_p + V y and f = −(HΔx + g), checked against the layout.
 fn recover(a: &RecoverArgs, quiet: bool) -> Result<(), CliError> {
+    let inputs = [
+        Named::new("--layout", &a.layout),
+        Named::new("--solution", &a.solution),
+        Named::new("--hessian", &a.hessian),
+        Named::new("--gradient", &a.gradient),
+    ];
+    let outputs: Vec<Named> = std::iter::once(Named::new("--out", &a.out))
+        .chain(a.reactions.iter().map(|r| Named::new("--reactions", r)))
+        .collect();
+    files::check_outputs(&inputs, &outputs)?;
     let layout = crate::export::read_layout(std::path::Path::new(&a.layout))?;
     let nd_layout = layout.dim * layout.n_nodes;
     let y = if a.solution.ends_with(".mtx") {
@@ -1065,6 +1161,7 @@ fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
         size: a.size,
         steps: a.steps,
         quiet,
+        overwrite: a.overwrite,
     };
     match crate::driver::run(&opts) {
         Ok(summary) => {

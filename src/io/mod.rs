@@ -1,5 +1,6 @@
 //! File formats of the command line: Matrix Market for H, g, B, p, Δx and reactions
-//! ([`mtx`]), and the per-node constraint JSON ([`bcjson`]). Every fault in a file is an
+//! ([`mtx`]), and the per-node constraint JSON ([`bcjson`]); output safety (same-file
+//! checks, atomic writes, owned output folders) in [`files`]. Every fault in a file is an
 //! [`InputError`](crate::error::InputError) naming the file, the entry and the problem.
 //!
 //! Input files are read through [`read_text`] (or [`read_bytes`] for binary formats),
@@ -11,6 +12,7 @@
 //! byte-order mark is skipped by the parsers.
 
 pub mod bcjson;
+pub mod files;
 pub mod mtx;
 
 use crate::error::InputError;

@@ -705,32 +705,26 @@ pub fn read_matrix(path: &str, name: &str) -> Result<Coo, InputError> {
     })
 }
 
-fn create(path: &std::path::Path) -> std::io::Result<std::io::BufWriter<std::fs::File>> {
-    Ok(std::io::BufWriter::with_capacity(
-        1 << 20,
-        std::fs::File::create(path)?,
-    ))
-}
-
 /// Writes `v` as `array real general` n × 1 with 17 significant digits (exact f64).
 pub fn write_vector(
     path: impl AsRef<std::path::Path>,
     v: &[f64],
     comment: &str,
 ) -> std::io::Result<()> {
-    let mut w = create(path.as_ref())?;
-    writeln!(w, "%%MatrixMarket matrix array real general")?;
-    for c in comment.lines() {
-        writeln!(w, "% {c}")?;
-    }
-    writeln!(w, "{} 1", v.len())?;
-    let mut s = String::with_capacity(32);
-    for x in v {
-        s.clear();
-        let _ = writeln!(s, "{x:.16e}");
-        w.write_all(s.as_bytes())?;
-    }
-    w.flush()
+    super::files::write_atomic(path, |w| {
+        writeln!(w, "%%MatrixMarket matrix array real general")?;
+        for c in comment.lines() {
+            writeln!(w, "% {c}")?;
+        }
+        writeln!(w, "{} 1", v.len())?;
+        let mut s = String::with_capacity(32);
+        for x in v {
+            s.clear();
+            let _ = writeln!(s, "{x:.16e}");
+            w.write_all(s.as_bytes())?;
+        }
+        Ok(())
+    })
 }
 
 /// Writes H as `coordinate real symmetric`: the lower triangle, nonzeros plus the whole
@@ -756,28 +750,29 @@ pub fn write_hessian(
             }
         }
     }
-    let mut w = create(path.as_ref())?;
-    writeln!(w, "%%MatrixMarket matrix coordinate real symmetric")?;
-    for c in comment.lines() {
-        writeln!(w, "% {c}")?;
-    }
-    writeln!(w, "{} {} {count}", h.ndof(), h.ndof())?;
-    let mut s = String::with_capacity(64);
-    for i in 0..h.n {
-        for r in 0..d {
-            // Row-major within a block row so the file is sorted by row.
-            for k in h.row_ptr[i]..h.row_ptr[i + 1] {
-                for c in 0..d {
-                    if let Some((gr, gc, v)) = keep(i, k, r, c) {
-                        s.clear();
-                        let _ = writeln!(s, "{} {} {v:.16e}", gr + 1, gc + 1);
-                        w.write_all(s.as_bytes())?;
+    super::files::write_atomic(path, |w| {
+        writeln!(w, "%%MatrixMarket matrix coordinate real symmetric")?;
+        for c in comment.lines() {
+            writeln!(w, "% {c}")?;
+        }
+        writeln!(w, "{} {} {count}", h.ndof(), h.ndof())?;
+        let mut s = String::with_capacity(64);
+        for i in 0..h.n {
+            for r in 0..d {
+                // Row-major within a block row so the file is sorted by row.
+                for k in h.row_ptr[i]..h.row_ptr[i + 1] {
+                    for c in 0..d {
+                        if let Some((gr, gc, v)) = keep(i, k, r, c) {
+                            s.clear();
+                            let _ = writeln!(s, "{} {} {v:.16e}", gr + 1, gc + 1);
+                            w.write_all(s.as_bytes())?;
+                        }
                     }
                 }
             }
         }
-    }
-    w.flush()
+        Ok(())
+    })
 }
 
 /// Writes a general coordinate matrix (0-based entries; written 1-based).
@@ -788,16 +783,17 @@ pub fn write_coo(
     entries: &[(usize, usize, f64)],
     comment: &str,
 ) -> std::io::Result<()> {
-    let mut w = create(path.as_ref())?;
-    writeln!(w, "%%MatrixMarket matrix coordinate real general")?;
-    for c in comment.lines() {
-        writeln!(w, "% {c}")?;
-    }
-    writeln!(w, "{nrows} {ncols} {}", entries.len())?;
-    for &(r, c, v) in entries {
-        writeln!(w, "{} {} {v:.16e}", r + 1, c + 1)?;
-    }
-    w.flush()
+    super::files::write_atomic(path, |w| {
+        writeln!(w, "%%MatrixMarket matrix coordinate real general")?;
+        for c in comment.lines() {
+            writeln!(w, "% {c}")?;
+        }
+        writeln!(w, "{nrows} {ncols} {}", entries.len())?;
+        for &(r, c, v) in entries {
+            writeln!(w, "{} {} {v:.16e}", r + 1, c + 1)?;
+        }
+        Ok(())
+    })
 }
 
 #[cfg(test)]
