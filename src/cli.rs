@@ -128,6 +128,10 @@ pub struct RecoverArgs {
     /// Reactions f = −(HΔx + g): Matrix Market array dn × 1.
     #[arg(long, value_name = "f.mtx")]
     pub reactions: Option<String>,
+    /// Refuse (exit 1, nothing written) a y whose relative residual ‖b̂ − Ĥy‖/‖b̂‖ in the
+    /// exported system exceeds this.
+    #[arg(long, default_value = "1e-6", value_parser = relative_tol)]
+    pub max_residual: f64,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -414,7 +418,8 @@ pub fn main() -> ExitCode {
     match run(&cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {}", e.to_string().replace('\n', " "));
+            let line = e.to_string().replace('\n', " ");
+            eprintln!("error: {}", crate::io::cut_tokens(&line));
             ExitCode::from(e.exit_code())
         }
     }
@@ -675,6 +680,9 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
     // created.
     let (inputs, outputs) = solve_files(args);
     files::check_outputs(&inputs, &outputs)?;
+    if args.solver == SolverKind::Gpu {
+        check_adapter_name()?;
+    }
     let precision = args.precision.unwrap_or(PrecisionArg::F64);
     if args.solver != SolverKind::Gpu && precision != PrecisionArg::F64 {
         return Err(InputError::new(
@@ -961,8 +969,20 @@ pub fn generate(args: &GenerateArgs, quiet: bool) -> Result<(), CliError> {
     Ok(())
 }
 
+/// `WGPU_ADAPTER_NAME` naming no adapter is a usage error (exit 2, with the adapters
+/// listed), found before any work, not a silent run on another adapter.
+pub fn check_adapter_name() -> Result<(), InputError> {
+    match crate::gpu::adapter_name_mismatch(&crate::gpu::GpuOptions::default()) {
+        Some(problem) => Err(InputError::new("WGPU_ADAPTER_NAME", "", problem)),
+        None => Ok(()),
+    }
+}
+
 /// `stickslip bench`: see [`crate::bench`].
 fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
+    if !a.no_gpu {
+        check_adapter_name()?;
+    }
     // Fail before a long run, not after it, when the output folder cannot be written.
     if let Some(out) = &a.out {
         let shown = out.display().to_string();
@@ -1124,6 +1144,16 @@ fn recover(a: &RecoverArgs, quiet: bool) -> Result<(), CliError> {
         &g,
         [&a.layout, &a.solution, &a.hessian, &a.gradient],
     )?;
+    // A y that does not solve the exported system (another system's, or zero) would give
+    // a Δx that looks like a result: refuse it.
+    if rec.relative_residual.is_nan() || rec.relative_residual > a.max_residual {
+        return Err(SolveError::NotSolved(format!(
+            "{}: y does not solve the exported system: relative residual ‖b̂ − Ĥy‖/‖b̂‖ = \
+             {:.3e} > --max-residual {:.1e}; nothing written",
+            a.solution, rec.relative_residual, a.max_residual
+        ))
+        .into());
+    }
     all_finite("Δx", &rec.dx)?;
     all_finite("the reactions f = −(HΔx + g)", &rec.reactions)?;
     mtx::write_vector(&a.out, &rec.dx, "dx recovered by stickslip recover")

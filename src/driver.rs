@@ -187,6 +187,19 @@ pub struct RunSummary {
 /// Loads a scene by path or built-in name, applying the size option.
 pub fn load_scene(name_or_path: &str, size: f64) -> Result<Scene, InputError> {
     let p = Path::new(name_or_path);
+    // A path that exists is a file to read, never a name to look up: a folder (or a
+    // device) says so instead of "no such scene".
+    if let Ok(m) = std::fs::metadata(p) {
+        if m.is_dir() {
+            return Err(InputError::new(
+                name_or_path,
+                "",
+                "is a folder, not a scene file (TOML)",
+            ));
+        }
+        let text = crate::io::read_text(name_or_path)?;
+        return scene::parse(crate::io::strip_bom(&text), name_or_path, size);
+    }
     if p.is_file() {
         let text = crate::io::read_text(name_or_path)?;
         return scene::parse(crate::io::strip_bom(&text), name_or_path, size);
@@ -203,6 +216,55 @@ pub fn load_scene(name_or_path: &str, size: f64) -> Result<Scene, InputError> {
             names.join(", ")
         ),
     ))
+}
+
+/// The largest entry a Newton system may hold, about √(f64::MAX): the solvers square
+/// entries (dot products, Cholesky pivots), and past it those squares overflow.
+pub const MAX_SYSTEM_ENTRY: f64 = 1.3e154;
+
+/// Magnitudes that each look valid but together overflow the Newton system H = M + h²K
+/// (+ h²·barrier): found here, named on the key that causes them, instead of failing a
+/// step later as "not positive definite" or "overflowed".
+fn check_magnitudes(scene: &Scene) -> Result<(), InputError> {
+    let h = scene.time_step;
+    let h2 = h * h;
+    let mut k = scene.model.zero_matrix();
+    scene
+        .model
+        .add_potential_hessian(&scene.x0, 1.0, true, &mut k);
+    let kmax = k.max_abs();
+    // A non-finite stiffness is the material's fault, reported where it is used.
+    let scaled = h2 * kmax;
+    if kmax.is_finite() && (scaled.is_nan() || scaled > MAX_SYSTEM_ENTRY) {
+        return Err(InputError::new(
+            scene.file.clone(),
+            "time_step",
+            format!(
+                "h = {h:.3e} s scales the stiffness (largest entry {kmax:.3e} at the initial \
+                 state) to h²K = {:.3e}, past the {MAX_SYSTEM_ENTRY:.1e} (≈ √f64::MAX) the \
+                 solvers can square; take a smaller time step",
+                scaled
+            ),
+        ));
+    }
+    for (j, o) in scene.obstacles.iter().enumerate() {
+        let (dhat, kappa) = (o.plane.dhat, o.plane.kappa);
+        let scale = h2 * kappa * dhat * dhat;
+        if scale.is_nan() || scale > MAX_SYSTEM_ENTRY {
+            return Err(InputError::new(
+                scene.file.clone(),
+                format!("obstacle[{j}].dhat"),
+                format!(
+                    "d̂ = {dhat:.3e} m makes the barrier's energy scale h²κd̂² = {scale:.3e} \
+                     overflow the {MAX_SYSTEM_ENTRY:.1e} (≈ √f64::MAX) the solvers can square; \
+                     d̂ is an activation distance, a small fraction of the scene's size \
+                     (L = {:.3e} m)",
+                    scene.characteristic_length
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// What `run` writes in its output folder (what the folder's previous run of `run` wrote
@@ -299,6 +361,13 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
             ),
         )
         .into());
+    }
+    check_magnitudes(&scene)?;
+    if scene.solver.linear == LinearKind::Gpu {
+        if let Some(problem) = crate::gpu::adapter_name_mismatch(&crate::gpu::GpuOptions::default())
+        {
+            return Err(InputError::new("WGPU_ADAPTER_NAME", "", problem).into());
+        }
     }
     let out = opts
         .out

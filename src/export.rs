@@ -44,6 +44,9 @@ pub struct Layout {
     /// Fingerprints of H and g: recovery refuses an H or g from another system.
     pub hessian_fingerprint: String,
     pub gradient_fingerprint: String,
+    /// Fingerprint of the masks, rotations, lift and constrained diagonal above: a layout
+    /// changed after export is refused.
+    pub frames_fingerprint: String,
     /// Bytes of the exported PETSc matrix (memory a PETSc run needs, roughly, for Ĥ).
     pub matrix_bytes: u64,
 }
@@ -245,7 +248,12 @@ pub fn export(
         .to_string(),
         hessian_fingerprint: fingerprint_matrix(e.h),
         gradient_fingerprint: fingerprint_vector(g),
+        frames_fingerprint: String::new(),
         matrix_bytes: 16 + 4 * nd as u64 + 12 * cols.len() as u64,
+    };
+    let layout = Layout {
+        frames_fingerprint: layout.fingerprint_frames(),
+        ..layout
     };
     let layout_path = dir.join("layout.json");
     crate::io::files::write_atomic_bytes(
@@ -439,10 +447,50 @@ pub fn read_layout(path: &Path) -> Result<Layout, InputError> {
             format!("'{}' is not identity or hessian", l.constrained_diagonal),
         );
     }
+    if l.fingerprint_frames() != l.frames_fingerprint {
+        return bad(
+            "frames_fingerprint",
+            "the masks, rotations, lift or constrained diagonal differ from what export \
+             wrote (the file was changed after export)"
+                .to_string(),
+        );
+    }
     Ok(l)
 }
 
 impl Layout {
+    /// FNV-1a over what recovery applies: dimension, node count, masks, rotated nodes,
+    /// the bits of the rotations and of the lift, and the constrained diagonal.
+    pub fn fingerprint_frames(&self) -> String {
+        let mut f = Fnv::new();
+        f.u64(self.dim as u64);
+        f.u64(self.n_nodes as u64);
+        f.u64(self.mask.len() as u64);
+        for &m in &self.mask {
+            f.u64(u64::from(m));
+        }
+        f.u64(self.rot_nodes.len() as u64);
+        for &r in &self.rot_nodes {
+            f.u64(u64::from(r));
+        }
+        for v in &self.rotations {
+            f.u64(v.to_bits());
+        }
+        match &self.lift {
+            None => f.u64(0),
+            Some(l) => {
+                f.u64(1 + l.len() as u64);
+                for v in l {
+                    f.u64(v.to_bits());
+                }
+            }
+        }
+        for b in self.constrained_diagonal.bytes() {
+            f.u64(u64::from(b));
+        }
+        format!("{:016x}", f.0)
+    }
+
     /// The frames this layout describes.
     pub fn frames(&self) -> Frames {
         let d = self.dim;
