@@ -651,9 +651,11 @@ pub fn summary_text(report: &BenchReport) -> String {
 
 fn write_outputs(report: &BenchReport, dir: &Path) -> std::io::Result<()> {
     std::fs::create_dir_all(dir)?;
-    std::fs::write(
+    crate::io::files::write_atomic_bytes(
         dir.join("bench.json"),
-        serde_json::to_string_pretty(report).map_err(std::io::Error::other)?,
+        serde_json::to_string_pretty(report)
+            .map_err(std::io::Error::other)?
+            .as_bytes(),
     )?;
     let mut csv = String::from("dim,nodes,dofs,solver,precision,tol,converged,iterations,recorded_iterations,relative_residual,relative_error,error_reference,setup_seconds,solve_seconds,total_seconds,gpu_seconds,bytes_per_iteration,achieved_gb_per_s,seconds_per_iteration,bandwidth_floor_ratio,peak_rss_bytes\n");
     for r in &report.runs {
@@ -683,7 +685,7 @@ fn write_outputs(report: &BenchReport, dir: &Path) -> std::io::Result<()> {
             r.peak_rss_bytes
         ));
     }
-    std::fs::write(dir.join("bench.csv"), csv)?;
+    crate::io::files::write_atomic_bytes(dir.join("bench.csv"), csv.as_bytes())?;
     crate::plots::time_vs_error(report, dir).map_err(std::io::Error::other)?;
     crate::plots::time_vs_size(report, dir).map_err(std::io::Error::other)?;
     Ok(())
@@ -782,8 +784,13 @@ pub fn run_hard(
         std::fs::create_dir_all(dir)
             .map_err(|e| BenchError::Io(format!("{}: {e}", dir.display())))?;
         let json = serde_json::json!({ "rows": rows, "mixed_speed": speed });
-        std::fs::write(dir.join("hard.md"), &md)
-            .and_then(|_| std::fs::write(dir.join("hard.json"), json.to_string()))
+        crate::io::files::write_atomic_bytes(dir.join("hard.md"), md.as_bytes())
+            .and_then(|_| {
+                crate::io::files::write_atomic_bytes(
+                    dir.join("hard.json"),
+                    json.to_string().as_bytes(),
+                )
+            })
             .map_err(|e| BenchError::Io(format!("{}: {e}", dir.display())))?;
     }
     Ok(md)

@@ -145,6 +145,19 @@ pub enum CgError {
     },
     #[error("CG broke down at iteration {iteration}: a non-finite value appeared")]
     Breakdown { iteration: usize },
+    /// Found before any iteration ([`crate::coarse::unpinned_translation`]): Ĥ is
+    /// singular, so a CG "solution" would carry an arbitrary rigid translation.
+    #[error("the eliminated Hessian is not positive definite on the free subspace: {0}")]
+    Unpinned(crate::coarse::Unpinned),
+}
+
+/// Refuses a system whose Ĥ is singular by a rigid translation that nothing pins (see
+/// [`crate::coarse::unpinned_translation`]); every CG entry point calls it first.
+pub fn check_pinned(e: &Eliminated) -> Result<(), CgError> {
+    match crate::coarse::unpinned_translation(e.h, e.frames) {
+        Some(u) => Err(CgError::Unpinned(u)),
+        None => Ok(()),
+    }
 }
 
 impl CgError {
@@ -330,6 +343,7 @@ fn invert_spd(d: usize, a: &[f64]) -> Option<[f64; 9]> {
 
 /// Solves Ĥ y = b̂ by PCG from y = 0.
 pub fn solve(e: &Eliminated, params: &CgParams) -> Result<(Vec<f64>, CgInfo), CgError> {
+    check_pinned(e)?;
     if params.scaling == Scaling::NodeDiagonal {
         // The equilibrated solve builds its own preconditioner on SĤS.
         return solve_equilibrated(e, None, params);

@@ -11,6 +11,7 @@ use crate::constraints::{node_rows, Constraint, Frames};
 use crate::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::error::{Error, InputError, SolveError};
 use crate::generate::{random_system, ConstraintMix, Stencil, SystemSpec};
+use crate::io::files::{self, Named, OutputDir};
 use crate::io::{bcjson, mtx};
 use crate::report::{CgReport, CholeskyReport, Files, Report, Seconds};
 use crate::{Precision, Problem, SolveDetails, Solver, SolverConfig, SolverKind};
@@ -102,6 +103,9 @@ pub struct ExportArgs {
     /// Output folder: hhat.petsc(+.info), bhat.petsc, hhat.mtx, bhat.mtx, layout.json.
     #[arg(long, value_name = "DIR")]
     pub out_dir: PathBuf,
+    /// Replace files with export's output names that no previous export there wrote.
+    #[arg(long)]
+    pub overwrite: bool,
 }
 
 #[derive(Debug, Clone, Args)]
@@ -124,6 +128,10 @@ pub struct RecoverArgs {
     /// Reactions f = −(HΔx + g): Matrix Market array dn × 1.
     #[arg(long, value_name = "f.mtx")]
     pub reactions: Option<String>,
+    /// Refuse (exit 1, nothing written) a y whose relative residual ‖b̂ − Ĥy‖/‖b̂‖ in the
+    /// exported system exceeds this.
+    #[arg(long, default_value = "1e-6", value_parser = relative_tol)]
+    pub max_residual: f64,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -280,6 +288,9 @@ pub struct GenerateArgs {
     pub matrix_form: bool,
     #[arg(long, value_name = "DIR")]
     pub out_dir: PathBuf,
+    /// Replace files with generate's output names that no previous generate there wrote.
+    #[arg(long)]
+    pub overwrite: bool,
 }
 
 #[derive(Debug, Clone, Args)]
@@ -299,6 +310,9 @@ pub struct RunArgs {
     /// Override the number of time steps.
     #[arg(long)]
     pub steps: Option<usize>,
+    /// Replace files with run's output names that no previous run there wrote.
+    #[arg(long)]
+    pub overwrite: bool,
 }
 
 /// Why a command failed; decides the exit code.
@@ -378,7 +392,8 @@ pub fn main() -> ExitCode {
     match run(&cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {}", e.to_string().replace('\n', " "));
+            let line = e.to_string().replace('\n', " ");
+            eprintln!("error: {}", crate::io::cut_tokens(&line));
             ExitCode::from(e.exit_code())
         }
     }
@@ -547,9 +562,45 @@ pub fn read_system(sys: &SystemArgs) -> Result<LoadedSystem, CliError> {
     })
 }
 
+/// `solve`'s inputs and outputs, for [`files::check_outputs`].
+fn solve_files(args: &SolveArgs) -> (Vec<Named<'_>>, Vec<Named<'_>>) {
+    (
+        system_inputs(&args.system),
+        [
+            ("--out", Some(&args.out)),
+            ("--reactions", args.reactions.as_ref()),
+            ("--report", args.report.as_ref()),
+        ]
+        .into_iter()
+        .filter_map(|(o, p)| p.map(|p| Named::new(o, p)))
+        .collect(),
+    )
+}
+
+/// The input files of a system (H, g, the constraints).
+fn system_inputs(sys: &SystemArgs) -> Vec<Named<'_>> {
+    [
+        ("--hessian", Some(&sys.hessian)),
+        ("--gradient", Some(&sys.gradient)),
+        ("--constraints", sys.constraints.as_ref()),
+        ("--constraint-matrix", sys.constraint_matrix.as_ref()),
+        ("--constraint-values", sys.constraint_values.as_ref()),
+    ]
+    .into_iter()
+    .filter_map(|(o, p)| p.map(|p| Named::new(o, p)))
+    .collect()
+}
+
 /// `stickslip solve`: read → constraints → frames → eliminate → solve → recover → write.
 pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
     let t_start = Instant::now();
+    // Before any work: no output may destroy an input or another output, and each can be
+    // created.
+    let (inputs, outputs) = solve_files(args);
+    files::check_outputs(&inputs, &outputs)?;
+    if args.solver == SolverKind::Gpu {
+        check_adapter_name()?;
+    }
     let precision = args.precision.unwrap_or(Precision::F64);
     let max_iters = args.max_iters.unwrap_or(crate::solver::DEFAULT_MAX_ITERS);
     // The configuration is checked before any file is read (f32 on the CPU, --error-tol
@@ -692,7 +743,7 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
         let mut text =
             serde_json::to_string_pretty(&report).map_err(|e| CliError::Failed(e.to_string()))?;
         text.push('\n');
-        std::fs::write(path, text).map_err(|e| write_failed(path, e))?;
+        files::write_atomic_bytes(path, text.as_bytes()).map_err(|e| write_failed(path, e))?;
     }
     Ok(report)
 }
@@ -740,12 +791,23 @@ fn constraint_violation(dim: usize, cs: &[Constraint], dx: &[f64]) -> f64 {
     worst
 }
 
+/// Every file `generate` may write in its folder.
+pub const GENERATE_OUTPUTS: [&str; 5] = ["H.mtx", "g.mtx", "bc.json", "B.mtx", "p.mtx"];
+
 /// `stickslip generate`: a seeded system as H.mtx, g.mtx, bc.json (and B.mtx, p.mtx).
 pub fn generate(args: &GenerateArgs, quiet: bool) -> Result<(), CliError> {
     let t = Instant::now();
     if args.nodes == 0 {
         return Err(InputError::new("command line", "--nodes", "must be at least 1").into());
     }
+    let mut out = OutputDir::open(
+        &args.out_dir,
+        "--out-dir",
+        "generate",
+        &GENERATE_OUTPUTS,
+        &[],
+        args.overwrite,
+    )?;
     let dim = usize::from(args.dim);
     let mut spec = SystemSpec::with_nodes(dim, args.nodes, args.seed);
     spec.stencil = match args.stencil {
@@ -760,7 +822,7 @@ pub fn generate(args: &GenerateArgs, quiet: bool) -> Result<(), CliError> {
     let s = random_system(&spec);
     let dir = &args.out_dir;
     let shown = dir.display().to_string();
-    std::fs::create_dir_all(dir).map_err(|e| write_failed(&shown, e))?;
+    out.clean().map_err(|e| write_failed(&shown, e))?;
     let comment = format!(
         "stickslip generate --dim {dim} --nodes {} --seed {} --stencil {:?} --mix {:?}: {} nodes on a {}x{}{} grid",
         args.nodes,
@@ -773,6 +835,12 @@ pub fn generate(args: &GenerateArgs, quiet: bool) -> Result<(), CliError> {
         if dim == 3 { format!("x{}", spec.grid[2]) } else { String::new() }
     )
     .to_lowercase();
+    // Recorded before they exist: a killed run's files are cleared by the next one.
+    for name in GENERATE_OUTPUTS {
+        if args.matrix_form || !matches!(name, "B.mtx" | "p.mtx") {
+            out.record(name).map_err(|e| write_failed(&shown, e))?;
+        }
+    }
     let path = |name: &str| dir.join(name);
     let shown = |name: &str| path(name).display().to_string();
     mtx::write_hessian(path("H.mtx"), &s.h, &comment)
@@ -802,8 +870,20 @@ pub fn generate(args: &GenerateArgs, quiet: bool) -> Result<(), CliError> {
     Ok(())
 }
 
+/// `WGPU_ADAPTER_NAME` naming no adapter is a usage error (exit 2, with the adapters
+/// listed), found before any work, not a silent run on another adapter.
+pub fn check_adapter_name() -> Result<(), InputError> {
+    match crate::gpu::adapter_name_mismatch(&crate::gpu::GpuOptions::default()) {
+        Some(problem) => Err(InputError::new("WGPU_ADAPTER_NAME", "", problem)),
+        None => Ok(()),
+    }
+}
+
 /// `stickslip bench`: see [`crate::bench`].
 fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
+    if !a.no_gpu {
+        check_adapter_name()?;
+    }
     // Fail before a long run, not after it, when the output folder cannot be written.
     if let Some(out) = &a.out {
         let shown = out.display().to_string();
@@ -864,10 +944,36 @@ fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
 
 /// `stickslip export`: read → frames → eliminate → write Ĥ, b̂ and the layout.
 fn export(a: &ExportArgs, quiet: bool) -> Result<(), CliError> {
+    let inputs = system_inputs(&a.system);
+    let names = &crate::export::OUTPUT_NAMES;
+    OutputDir::check(
+        &a.out_dir,
+        "--out-dir",
+        "export",
+        names,
+        &inputs,
+        a.overwrite,
+    )?;
     let sys = read_system(&a.system)?;
+    let mut out = OutputDir::open(
+        &a.out_dir,
+        "--out-dir",
+        "export",
+        names,
+        &inputs,
+        a.overwrite,
+    )?;
     let diag = a.constrained_diagonal;
     let e = Eliminated::new(&sys.h, &sys.g, &sys.frames, diag);
     all_finite("b̂ = −Vᵀ(g + HΔx_p)", &e.rhs)?;
+    let shown = a.out_dir.display().to_string();
+    out.clean().map_err(|e| write_failed(&shown, e))?;
+    for name in crate::export::OUTPUT_NAMES {
+        if a.no_mtx && name.ends_with(".mtx") {
+            continue;
+        }
+        out.record(name).map_err(|e| write_failed(&shown, e))?;
+    }
     let files = crate::export::export(&e, diag, &sys.g, &a.out_dir, !a.no_mtx)
         .map_err(|err| write_failed(&a.out_dir.display().to_string(), err))?;
     if !quiet {
@@ -886,6 +992,16 @@ fn export(a: &ExportArgs, quiet: bool) -> Result<(), CliError> {
 
 /// `stickslip recover`: y → Δx = Δx_p + V y and f = −(HΔx + g), checked against the layout.
 fn recover(a: &RecoverArgs, quiet: bool) -> Result<(), CliError> {
+    let inputs = [
+        Named::new("--layout", &a.layout),
+        Named::new("--solution", &a.solution),
+        Named::new("--hessian", &a.hessian),
+        Named::new("--gradient", &a.gradient),
+    ];
+    let outputs: Vec<Named> = std::iter::once(Named::new("--out", &a.out))
+        .chain(a.reactions.iter().map(|r| Named::new("--reactions", r)))
+        .collect();
+    files::check_outputs(&inputs, &outputs)?;
     let layout = crate::export::read_layout(std::path::Path::new(&a.layout))?;
     let nd_layout = layout.dim * layout.n_nodes;
     let y = if a.solution.ends_with(".mtx") {
@@ -926,6 +1042,16 @@ fn recover(a: &RecoverArgs, quiet: bool) -> Result<(), CliError> {
         &g,
         [&a.layout, &a.solution, &a.hessian, &a.gradient],
     )?;
+    // A y that does not solve the exported system (another system's, or zero) would give
+    // a Δx that looks like a result: refuse it.
+    if rec.relative_residual.is_nan() || rec.relative_residual > a.max_residual {
+        return Err(SolveError::NotSolved(format!(
+            "{}: y does not solve the exported system: relative residual ‖b̂ − Ĥy‖/‖b̂‖ = \
+             {:.3e} > --max-residual {:.1e}; nothing written",
+            a.solution, rec.relative_residual, a.max_residual
+        ))
+        .into());
+    }
     all_finite("Δx", &rec.dx)?;
     all_finite("the reactions f = −(HΔx + g)", &rec.reactions)?;
     mtx::write_vector(&a.out, &rec.dx, "dx recovered by stickslip recover")
@@ -956,6 +1082,7 @@ fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
         size: a.size,
         steps: a.steps,
         quiet,
+        overwrite: a.overwrite,
     };
     match crate::driver::run(&opts) {
         Ok(summary) => {

@@ -721,10 +721,360 @@ pub fn pseudo_inverse(k: usize, e: &[f64]) -> Option<Vec<f64>> {
     Some(out)
 }
 
+/// How far below the rows of Ĥ a rigid translation's stiffness may fall before it counts
+/// as pinned by nothing, in units of f64's ε: a translation t of a connected group of free
+/// nodes is unpinned when tᵀĤt/tᵀt ≤ `UNPINNED_EPS` · ε · (mean absolute row sum of Ĥ
+/// over the group's free components). A floating body's translation energy is the
+/// rounding of its row sums: below 1 ε of the rows for a free neo-Hookean box and a free
+/// spring grid. The softest legitimate case of the hard suite (a free grid with
+/// κ(H) = 1e12, its mass term 1e-12 of its rows) sits at 4.5·10³ ε, so 64 leaves a
+/// factor of about 70 on that side and 300 on the other (see the tests).
+pub const UNPINNED_EPS: f64 = 64.0;
+
+/// A rigid translation that no constraint and no mass term pins: Ĥ is singular.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Unpinned {
+    /// The first node of the connected group of free nodes.
+    pub node: usize,
+    /// The group's node count.
+    pub nodes: usize,
+    /// The direction of the translation (unit, world axes).
+    pub direction: Vec<f64>,
+    /// tᵀĤt/tᵀt of the translation.
+    pub stiffness: f64,
+    /// The group's mean absolute row sum of Ĥ (what the stiffness is measured against).
+    pub row_scale: f64,
+}
+
+impl std::fmt::Display for Unpinned {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let dir: Vec<String> = self
+            .direction
+            .iter()
+            .map(|v| format!("{:.3}", if v.abs() < 5e-4 { 0.0 } else { *v }))
+            .collect();
+        write!(
+            f,
+            "the rigid translation along ({}) of the {} free node{} connected to node {} \
+             meets no constraint and no mass term (tᵀĤt/tᵀt = {:.3e}, rows of size {:.3e})",
+            dir.join(", "),
+            self.nodes,
+            if self.nodes == 1 { "" } else { "s" },
+            self.node,
+            self.stiffness,
+            self.row_scale
+        )
+    }
+}
+
+/// The first rigid translation that nothing pins, if any: for each connected group of
+/// free nodes of Ĥ's graph (nodes joined by a nonzero block P_iV_iᵀH_ijV_jP_j), the d
+/// translations restricted to the free components (Z_i = P_iV_iᵀ, as the coarse space
+/// uses), E = ZᵀĤZ and G = ZᵀZ, and the smallest Rayleigh quotient over range(G). One
+/// pass over H's blocks. A group whose softest translation is below [`UNPINNED_EPS`]·ε of
+/// its rows makes Ĥ singular: every solver must refuse it (Cholesky meets a zero pivot;
+/// CG would converge to one solution of a family that differ by the translation).
+///
+/// Rotations are not checked (they need node positions, which a Matrix Market system
+/// does not carry): a body pinned at one node and without a mass term passes here.
+pub fn unpinned_translation(
+    h: &crate::sparse::BlockCsr,
+    frames: &crate::constraints::Frames,
+) -> Option<Unpinned> {
+    softest_translations(h, frames)
+        .into_iter()
+        // Clearly negative is indefinite, not floating: the solvers report that.
+        .find(|t| t.stiffness.abs() <= UNPINNED_EPS * f64::EPSILON * t.row_scale)
+}
+
+/// The softest translation of every connected group of free nodes (see
+/// [`unpinned_translation`]), in the order of the groups' first nodes.
+pub fn softest_translations(
+    h: &crate::sparse::BlockCsr,
+    frames: &crate::constraints::Frames,
+) -> Vec<Unpinned> {
+    let d = h.dim;
+    let dd = d * d;
+    let n = h.n;
+    let full = (1u8 << d) - 1;
+    let q = node_projections(frames);
+    let free = |i: usize| frames.mask[i] & full != full;
+    // Q_i B Q_j of block kb (i's row), into `out`.
+    let project = |i: usize, kb: usize, out: &mut [f64]| {
+        let j = h.col_idx[kb];
+        let b = h.block(kb);
+        let mut t = [0.0; 9];
+        match &q[j] {
+            None => t[..dd].copy_from_slice(b),
+            Some(qj) => mat_mul(d, b, &qj[..dd], &mut t[..dd]),
+        }
+        match &q[i] {
+            None => out.copy_from_slice(&t[..dd]),
+            Some(qi) => mat_mul(d, &qi[..dd], &t[..dd], out),
+        }
+    };
+    let mut group = vec![u32::MAX; n];
+    let mut stack = Vec::new();
+    let mut pb = [0.0; 9];
+    let mut count = 0u32;
+    for seed in 0..n {
+        if group[seed] != u32::MAX || !free(seed) {
+            continue;
+        }
+        group[seed] = count;
+        stack.push(seed);
+        while let Some(i) = stack.pop() {
+            for kb in h.row_ptr[i]..h.row_ptr[i + 1] {
+                let j = h.col_idx[kb];
+                if group[j] != u32::MAX || !free(j) {
+                    continue;
+                }
+                project(i, kb, &mut pb[..dd]);
+                if pb[..dd].iter().any(|v| *v != 0.0) {
+                    group[j] = count;
+                    stack.push(j);
+                }
+            }
+        }
+        count += 1;
+    }
+    let groups = count as usize;
+    let mut e = vec![0.0; groups * dd];
+    let mut g = vec![0.0; groups * dd];
+    let mut abs = vec![0.0; groups];
+    let mut first = vec![usize::MAX; groups];
+    let mut size = vec![0usize; groups];
+    let mut row = [0.0; 9];
+    for i in 0..n {
+        let c = group[i];
+        if c == u32::MAX {
+            continue;
+        }
+        let c = c as usize;
+        first[c] = first[c].min(i);
+        size[c] += 1;
+        let gi = &mut g[c * dd..(c + 1) * dd];
+        match &q[i] {
+            None => (0..d).for_each(|a| gi[a * d + a] += 1.0),
+            Some(qi) => gi.iter_mut().zip(&qi[..dd]).for_each(|(x, y)| *x += y),
+        }
+        // Row i's projected blocks summed first (for a floating body they cancel), then
+        // added to the group's E: rounding stays at the size of a row.
+        row[..dd].iter_mut().for_each(|v| *v = 0.0);
+        for kb in h.row_ptr[i]..h.row_ptr[i + 1] {
+            let j = h.col_idx[kb];
+            if group[j] != c as u32 {
+                continue;
+            }
+            project(i, kb, &mut pb[..dd]);
+            for (r, v) in row[..dd].iter_mut().zip(&pb[..dd]) {
+                *r += v;
+            }
+            abs[c] += pb[..dd].iter().map(|v| v.abs()).sum::<f64>();
+        }
+        for (x, v) in e[c * dd..(c + 1) * dd].iter_mut().zip(&row[..dd]) {
+            *x += v;
+        }
+    }
+    let mut out = Vec::new();
+    for c in 0..groups {
+        let (ec, gc) = (&e[c * dd..(c + 1) * dd], &g[c * dd..(c + 1) * dd]);
+        // Free components of the group: the trace of G (each Q_i is a projection).
+        let free_dofs: f64 = (0..d).map(|a| gc[a * d + a]).sum();
+        let row_scale = abs[c] / free_dofs.max(1.0);
+        // A non-finite E (overflowed data) is left to the solvers' own checks.
+        if let Some((stiffness, direction)) = softest(d, ec, gc) {
+            out.push(Unpinned {
+                node: first[c],
+                nodes: size[c],
+                direction,
+                stiffness,
+                row_scale,
+            });
+        }
+    }
+    out
+}
+
+/// The smallest Rayleigh quotient vᵀEv/vᵀGv over range(G) (d×d symmetric E, G) and its
+/// direction (unit, world axes). `None` when G is zero or anything is not finite.
+fn softest(d: usize, e: &[f64], g: &[f64]) -> Option<(f64, Vec<f64>)> {
+    if e.iter().chain(g).any(|v| !v.is_finite()) {
+        return None;
+    }
+    let mut es = e.to_vec();
+    symmetrize(d, &mut es);
+    let ge = nalgebra::SymmetricEigen::new(nalgebra::DMatrix::from_row_slice(d, d, g));
+    let gmax = ge.eigenvalues.iter().copied().fold(0.0, f64::max);
+    if gmax <= 0.0 {
+        return None;
+    }
+    // W = G^{-1/2} on G's range; λ_min of W E W over that range.
+    let basis: Vec<usize> = (0..d)
+        .filter(|&j| ge.eigenvalues[j] > PINV_RTOL * gmax)
+        .collect();
+    let r = basis.len();
+    let mut u = nalgebra::DMatrix::<f64>::zeros(d, r);
+    for (col, &j) in basis.iter().enumerate() {
+        let s = ge.eigenvalues[j].sqrt();
+        for x in 0..d {
+            u[(x, col)] = ge.eigenvectors[(x, j)] / s;
+        }
+    }
+    let m = u.transpose() * nalgebra::DMatrix::from_row_slice(d, d, &es) * &u;
+    let ev = nalgebra::SymmetricEigen::new(m);
+    let (k, &lmin) = ev
+        .eigenvalues
+        .iter()
+        .enumerate()
+        .min_by(|a, b| a.1.total_cmp(b.1))?;
+    let v = &u * ev.eigenvectors.column(k);
+    let norm = v.norm();
+    let dir = v.iter().map(|x| x / norm).collect();
+    Some((lmin, dir))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::constraints::{Constraint, ConstraintKind, Frames};
+
+    /// tᵀĤt/tᵀt of the softest translation in units of ε·(row size), over all groups.
+    fn margins(h: &crate::sparse::BlockCsr, f: &Frames) -> Vec<f64> {
+        softest_translations(h, f)
+            .iter()
+            .map(|t| t.stiffness / (f64::EPSILON * t.row_scale))
+            .collect()
+    }
+
+    /// A chain of n nodes with unit springs in every axis: Laplacian ⊗ I_d.
+    fn chain(d: usize, n: usize) -> crate::sparse::BlockCsr {
+        let mut t = Vec::new();
+        for i in 0..n - 1 {
+            for a in 0..d {
+                let (p, q) = (i * d + a, (i + 1) * d + a);
+                t.extend([(p, p, 1.0), (q, q, 1.0), (p, q, -1.0), (q, p, -1.0)]);
+            }
+        }
+        crate::sparse::BlockCsr::from_triplets(d, d * n, &t, false)
+    }
+
+    /// Floating bodies (no constraint, no mass term, or one far below rounding) are
+    /// found, and the softest direction is the free one; pinned ones are not.
+    #[test]
+    fn unpinned_translations_are_found() {
+        let h = chain(2, 12);
+        let free = Frames::unconstrained(2, 12);
+        let u = unpinned_translation(&h, &free).expect("a floating chain");
+        assert_eq!((u.node, u.nodes), (0, 12));
+        assert_eq!(u.stiffness, 0.0);
+        let e = crate::elimination::Eliminated::new(
+            &h,
+            &[0.0; 24],
+            &free,
+            crate::elimination::ConstrainedDiagonal::Identity,
+        );
+        let msg = crate::cg::solve(&e, &Default::default())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            msg.starts_with("the eliminated Hessian is not positive definite on the free subspace: the rigid translation along"),
+            "{msg}"
+        );
+        // One sticky node pins it.
+        let sticky = |node: usize| Constraint {
+            node,
+            kind: ConstraintKind::Sticky { displacement: None },
+            label: format!("c{node}"),
+        };
+        let pinned = Frames::build(2, 12, &[sticky(2)]).unwrap();
+        assert!(unpinned_translation(&h, &pinned).is_none());
+        // Two chains, one pinned: the other one is reported, from its first node.
+        let mut t = Vec::new();
+        for (base, n) in [(0usize, 5usize), (5, 7)] {
+            let c = chain(2, n);
+            for i in 0..n {
+                for k in c.row_ptr[i]..c.row_ptr[i + 1] {
+                    let j = c.col_idx[k];
+                    for r in 0..2 {
+                        for q in 0..2 {
+                            let v = c.block(k)[r * 2 + q];
+                            if v != 0.0 {
+                                t.push(((base + i) * 2 + r, (base + j) * 2 + q, v));
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        let two = crate::sparse::BlockCsr::from_triplets(2, 24, &t, false);
+        let u = unpinned_translation(&two, &pinned).expect("the second chain floats");
+        assert_eq!((u.node, u.nodes), (5, 7));
+        // A 3D chain whose every node slides on the plane x + y + z = 0 (rotated frames):
+        // the translations within the plane float, the normal one is constrained.
+        let h3 = chain(3, 10);
+        let n = [1.0, 1.0, 1.0];
+        let cs: Vec<Constraint> = (0..10)
+            .map(|node| Constraint {
+                node,
+                kind: ConstraintKind::Plane {
+                    normal: n.to_vec(),
+                    offset: 0.0,
+                },
+                label: format!("c{node}"),
+            })
+            .collect();
+        let f3 = Frames::build(3, 10, &cs).unwrap();
+        let u = unpinned_translation(&h3, &f3).expect("slides in its plane");
+        let along: f64 = u.direction.iter().zip(n).map(|(a, b)| a * b).sum();
+        assert!(along.abs() < 1e-12, "{:?}", u.direction);
+        // A free neo-Hookean box whose mass term is 1e-60 of its stiffness: the row sums
+        // of K are not exact, and the translation is still found.
+        for c in [
+            crate::hard::time_step(crate::hard::Size::Ci, 1e30),
+            crate::hard::conditioned(crate::hard::Size::Ci, 1e30, false),
+        ] {
+            let m = margins(&c.h, &Frames::unconstrained(3, c.h.n));
+            eprintln!("{}, unconstrained: margins {m:.3?} ε·row", c.name);
+            assert!(m.iter().all(|&v| v < UNPINNED_EPS / 30.0), "{m:?}");
+        }
+    }
+
+    /// No hard case (κ(H) up to 1e12, stiffness contrast 1e8, 90% constrained, scaled by
+    /// 1e±30) and no generated system is taken for a floating one: each group's softest
+    /// translation is at least 30 times above the threshold.
+    #[test]
+    fn pinned_systems_pass_with_margin() {
+        let mut worst = (f64::INFINITY, String::new());
+        for c in crate::hard::suite(crate::hard::Size::Ci) {
+            for m in margins(&c.h, &c.frames) {
+                if m < worst.0 {
+                    worst = (m, c.name.clone());
+                }
+            }
+        }
+        for mix in [
+            crate::generate::ConstraintMix::Realistic,
+            crate::generate::ConstraintMix::Random,
+            crate::generate::ConstraintMix::None,
+        ] {
+            for d in [2, 3] {
+                let mut spec = crate::generate::SystemSpec::with_nodes(d, 500, 3);
+                spec.mix = mix;
+                let s = crate::generate::random_system(&spec);
+                for m in margins(&s.h, &s.frames) {
+                    if m < worst.0 {
+                        worst = (m, format!("generated {d}D {mix:?}"));
+                    }
+                }
+            }
+        }
+        eprintln!(
+            "smallest translation margin: {:.3e} ε·row ({})",
+            worst.0, worst.1
+        );
+        assert!(worst.0 > 30.0 * UNPINNED_EPS, "{worst:?}");
+    }
 
     /// CPU CG iterations to 1e-10 with the coarse space `coarse` (default Jacobi).
     fn cg_iterations(e: &crate::elimination::Eliminated, coarse: CoarseSpace) -> usize {

@@ -7,12 +7,15 @@
 //! 4. time loop: each step projects, then runs Newton with the eliminated solve
 //!    ([`crate::integrator`]);
 //! 5. recover: velocities, reaction forces, momentum, center of mass, energy;
-//! 6. output: frames every k steps, one steps.csv row per step, summary.json at the end.
+//! 6. output: frames every k steps, one steps.csv row per step (written as it happens),
+//!    summary.json at the start (`running`) and at the end (`complete` or `failed`).
 
 use crate::error::InputError;
 use crate::integrator::{ContactCounters, InitError, Stepper};
+use crate::io::files::{Named, OutputDir};
 use crate::output::{write_vtk, StepRecord, StepsCsv};
 use crate::scene::{self, LinearKind, MovingSpec, Scene};
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -31,6 +34,9 @@ pub struct RunOptions {
     pub steps: Option<usize>,
     /// No progress bar.
     pub quiet: bool,
+    /// Replace files in the output folder that look like a run's output but no previous
+    /// run's manifest lists (otherwise such a folder is refused).
+    pub overwrite: bool,
 }
 
 /// Why a run failed.
@@ -125,9 +131,22 @@ pub struct ContactSummary {
     pub final_contact_force: Vec<f64>,
 }
 
+/// How far a run got, as summary.json says it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RunStatus {
+    Running,
+    Complete,
+    Failed,
+}
+
 /// What a run did (summary.json holds everything but the per-step records and state).
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct RunSummary {
+    /// `running` while the run goes (written at its start), then `complete` or `failed`.
+    pub status: RunStatus,
+    /// Why the run failed (the command's error line), for `failed`.
+    pub message: Option<String>,
     pub scene: String,
     pub file: String,
     pub dimension: usize,
@@ -136,7 +155,10 @@ pub struct RunSummary {
     pub total_mass: f64,
     pub time_step: f64,
     pub gravity: Vec<f64>,
+    /// Steps asked for.
     pub steps: usize,
+    /// Steps finished (equal to `steps` when complete).
+    pub steps_completed: usize,
     pub end_time: f64,
     pub wall_seconds: f64,
     pub solver: String,
@@ -165,6 +187,19 @@ pub struct RunSummary {
 /// Loads a scene by path or built-in name, applying the size option.
 pub fn load_scene(name_or_path: &str, size: f64) -> Result<Scene, InputError> {
     let p = Path::new(name_or_path);
+    // A path that exists is a file to read, never a name to look up: a folder (or a
+    // device) says so instead of "no such scene".
+    if let Ok(m) = std::fs::metadata(p) {
+        if m.is_dir() {
+            return Err(InputError::new(
+                name_or_path,
+                "",
+                "is a folder, not a scene file (TOML)",
+            ));
+        }
+        let text = crate::io::read_text(name_or_path)?;
+        return scene::parse(crate::io::strip_bom(&text), name_or_path, size);
+    }
     if p.is_file() {
         let text = crate::io::read_text(name_or_path)?;
         return scene::parse(crate::io::strip_bom(&text), name_or_path, size);
@@ -183,9 +218,108 @@ pub fn load_scene(name_or_path: &str, size: f64) -> Result<Scene, InputError> {
     ))
 }
 
+/// The largest entry a Newton system may hold, about √(f64::MAX): the solvers square
+/// entries (dot products, Cholesky pivots), and past it those squares overflow.
+pub const MAX_SYSTEM_ENTRY: f64 = 1.3e154;
+
+/// Magnitudes that each look valid but together overflow the Newton system H = M + h²K
+/// (+ h²·barrier): found here, named on the key that causes them, instead of failing a
+/// step later as "not positive definite" or "overflowed".
+fn check_magnitudes(scene: &Scene) -> Result<(), InputError> {
+    let h = scene.time_step;
+    let h2 = h * h;
+    let mut k = scene.model.zero_matrix();
+    scene
+        .model
+        .add_potential_hessian(&scene.x0, 1.0, true, &mut k);
+    let kmax = k.max_abs();
+    // A non-finite stiffness is the material's fault, reported where it is used.
+    let scaled = h2 * kmax;
+    if kmax.is_finite() && (scaled.is_nan() || scaled > MAX_SYSTEM_ENTRY) {
+        return Err(InputError::new(
+            scene.file.clone(),
+            "time_step",
+            format!(
+                "h = {h:.3e} s scales the stiffness (largest entry {kmax:.3e} at the initial \
+                 state) to h²K = {:.3e}, past the {MAX_SYSTEM_ENTRY:.1e} (≈ √f64::MAX) the \
+                 solvers can square; take a smaller time step",
+                scaled
+            ),
+        ));
+    }
+    for (j, o) in scene.obstacles.iter().enumerate() {
+        let (dhat, kappa) = (o.plane.dhat, o.plane.kappa);
+        let scale = h2 * kappa * dhat * dhat;
+        if scale.is_nan() || scale > MAX_SYSTEM_ENTRY {
+            return Err(InputError::new(
+                scene.file.clone(),
+                format!("obstacle[{j}].dhat"),
+                format!(
+                    "d̂ = {dhat:.3e} m makes the barrier's energy scale h²κd̂² = {scale:.3e} \
+                     overflow the {MAX_SYSTEM_ENTRY:.1e} (≈ √f64::MAX) the solvers can square; \
+                     d̂ is an activation distance, a small fraction of the scene's size \
+                     (L = {:.3e} m)",
+                    scene.characteristic_length
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// What `run` writes in its output folder (what the folder's previous run of `run` wrote
+/// is removed before a new run writes).
+pub const OUTPUT_NAMES: [&str; 3] = ["steps.csv", "summary.json", "frames/*.vtk"];
+
+/// Takes the output folder for this run (see [`crate::io::files::OutputDir`]); with
+/// `check_only`, checks it without creating or changing anything (and returns None).
+fn open_out(
+    dir: &Path,
+    opts: &RunOptions,
+    check_only: bool,
+) -> Result<Option<OutputDir>, RunError> {
+    let scene_file = opts.scene.as_deref().filter(|s| Path::new(s).is_file());
+    let inputs: Vec<Named> = scene_file
+        .iter()
+        .map(|s| Named::new("scene", Path::new(*s)))
+        .collect();
+    let (opt, names) = ("--out", &OUTPUT_NAMES[..]);
+    if check_only {
+        OutputDir::check(dir, opt, "run", names, &inputs, opts.overwrite)?;
+        return Ok(None);
+    }
+    let d = OutputDir::open(dir, opt, "run", names, &inputs, opts.overwrite)?;
+    Ok(Some(d))
+}
+
+/// Writes summary.json atomically: a reader sees the previous state or the new one.
+fn write_summary(dir: &mut OutputDir, summary: &RunSummary) -> Result<(), RunError> {
+    let path = dir.path().join("summary.json");
+    let json = serde_json::to_string_pretty(summary).map_err(|e| RunError::Output {
+        path: path.display().to_string(),
+        cause: e.to_string(),
+    })?;
+    dir.write("summary.json", |w| w.write_all(json.as_bytes()))
+        .map_err(|e| RunError::Output {
+            path: path.display().to_string(),
+            cause: e.to_string(),
+        })?;
+    Ok(())
+}
+
 /// Runs a scene to the end. One call: parse, simulate, write.
+///
+/// The output folder is checked before the scene is read when `out` is given; it is
+/// created, locked and cleared of what its previous run wrote once the scene has been
+/// read and checked. summary.json is written at the start with `"status": "running"`, and at
+/// the end with `"complete"`, or `"failed"` and the message.
 pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
     let wall = Instant::now();
+    // An output folder that cannot be used fails before the scene is read; it is
+    // created (and taken) once the scene has passed its checks.
+    if let Some(d) = &opts.out {
+        open_out(d, opts, true)?;
+    }
     // 1–3. Scene, boundary conditions and forms.
     // `--size` is checked (once) by the scene parser, which names `--size`.
     let size = opts.size.unwrap_or(1.0);
@@ -228,18 +362,22 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         )
         .into());
     }
+    check_magnitudes(&scene)?;
+    if scene.solver.linear == LinearKind::Gpu {
+        if let Some(problem) = crate::gpu::adapter_name_mismatch(&crate::gpu::GpuOptions::default())
+        {
+            return Err(InputError::new("WGPU_ADAPTER_NAME", "", problem).into());
+        }
+    }
     let out = opts
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from("out").join(&scene.name));
-    let out_err = |path: &Path, e: std::io::Error| RunError::Output {
-        path: path.display().to_string(),
-        cause: e.to_string(),
+    let Some(mut dir) = open_out(&out, opts, false)? else {
+        unreachable!("open_out returns the folder unless check_only")
     };
-    let frames_dir = out.join("frames");
-    std::fs::create_dir_all(&frames_dir).map_err(|e| out_err(&frames_dir, e))?;
 
-    let mut stepper = Stepper::new(&scene).map_err(|e| match e {
+    let stepper = Stepper::new(&scene).map_err(|e| match e {
         InitError::Input { entry, problem } => {
             RunError::Input(InputError::new(scene.file.clone(), entry, problem))
         }
@@ -248,8 +386,118 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
             time: 0.0,
             cause,
         },
+    });
+    // From here on the folder is this run's: the previous run's files go, and
+    // summary.json always says how far this run got.
+    dir.clean().map_err(|e| RunError::Output {
+        path: out.display().to_string(),
+        cause: format!("cannot clear the previous run's files: {e}"),
     })?;
-    let csv_path = out.join("steps.csv");
+    let mut summary = RunSummary {
+        status: RunStatus::Running,
+        message: None,
+        scene: scene.name.clone(),
+        file: scene.file.clone(),
+        dimension: scene.dim,
+        nodes: scene.model.n_nodes,
+        elements: scene.cells.iter().map(|b| b.cells.len()).sum(),
+        total_mass: scene.model.total_mass(),
+        time_step: scene.time_step,
+        gravity: scene.gravity.clone(),
+        steps: scene.steps,
+        steps_completed: 0,
+        end_time: 0.0,
+        wall_seconds: 0.0,
+        solver: scene.solver.linear.to_string(),
+        adapter: None,
+        characteristic_length: scene.characteristic_length,
+        newton_tolerance: 0.0,
+        newton_iterations: 0,
+        linear_iterations: 0,
+        linear_seconds: 0.0,
+        frames: 0,
+        out_dir: out.display().to_string(),
+        moving_boundary: None,
+        contact_counters: ContactCounters::default(),
+        contact: None,
+        records: Vec::new(),
+        final_positions: Vec::new(),
+        final_velocities: Vec::new(),
+    };
+    let result = match stepper {
+        Ok(mut stepper) => {
+            summary.adapter = stepper.linear.adapter.clone();
+            summary.newton_tolerance = stepper.newton_tol;
+            summary.end_time = stepper.t;
+            let r = write_summary(&mut dir, &summary)
+                .and_then(|_| simulate(&scene, opts, &mut stepper, &mut dir, &mut summary));
+            summary.contact_counters = stepper.contact_counters();
+            summary.final_positions = stepper.x.clone();
+            summary.final_velocities = stepper.v.clone();
+            r
+        }
+        Err(e) => Err(e),
+    };
+    summary.wall_seconds = wall.elapsed().as_secs_f64();
+    match result {
+        Ok(()) => {
+            summary.status = RunStatus::Complete;
+            write_summary(&mut dir, &summary)?;
+            Ok(summary)
+        }
+        Err(e) => {
+            summary.status = RunStatus::Failed;
+            summary.message = Some(e.to_string());
+            // The run's own error is the one to report; a failure to record it is not.
+            let _ = write_summary(&mut dir, &summary);
+            Err(e)
+        }
+    }
+}
+
+/// Writes one VTK frame (when the scene asks for frames).
+fn write_frame(
+    scene: &Scene,
+    dir: &mut OutputDir,
+    s: &Stepper,
+    summary: &mut RunSummary,
+) -> Result<(), RunError> {
+    if !scene.output.vtk {
+        return Ok(());
+    }
+    let rel = format!("frames/{}_{:05}.vtk", scene.name, s.step);
+    let path = dir.record(&rel).map_err(|e| RunError::Output {
+        path: dir.path().display().to_string(),
+        cause: e.to_string(),
+    })?;
+    let title = format!("stickslip {} step {} t = {}", scene.name, s.step, s.t);
+    let c = s.has_contact().then_some(&s.contact_forces[..]);
+    write_vtk(&path, scene, &title, &s.x, &s.v, &s.reactions, c).map_err(|e| RunError::Output {
+        path: path.display().to_string(),
+        cause: e.to_string(),
+    })?;
+    summary.frames += 1;
+    Ok(())
+}
+
+/// 4–6: the time loop, writing steps.csv row by row and the frames; `summary` follows
+/// the run (counts, end time, moving and contact histories) whether it ends or fails.
+fn simulate(
+    scene: &Scene,
+    opts: &RunOptions,
+    stepper: &mut Stepper,
+    dir: &mut OutputDir,
+    summary: &mut RunSummary,
+) -> Result<(), RunError> {
+    let out_err = |path: &Path, e: std::io::Error| RunError::Output {
+        path: path.display().to_string(),
+        cause: e.to_string(),
+    };
+    let frames_dir = dir.path().join("frames");
+    std::fs::create_dir_all(&frames_dir).map_err(|e| out_err(&frames_dir, e))?;
+    let csv_path = dir
+        .record("steps.csv")
+        .map_err(|e| out_err(dir.path(), e))?;
     let mut csv = StepsCsv::create(
         &csv_path,
         scene.dim,
@@ -278,22 +526,9 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         max_slope: rep.and_then(|r| r.max_slope),
         ascent_directions: rep.map_or(0, |r| r.ascent_directions),
     };
-    let mut frames = 0usize;
-    let mut write_frame = |s: &Stepper| -> Result<(), RunError> {
-        if !scene.output.vtk {
-            return Ok(());
-        }
-        let path = frames_dir.join(format!("{}_{:05}.vtk", scene.name, s.step));
-        let title = format!("stickslip {} step {} t = {}", scene.name, s.step, s.t);
-        let c = s.has_contact().then_some(&s.contact_forces[..]);
-        write_vtk(&path, &scene, &title, &s.x, &s.v, &s.reactions, c)
-            .map_err(|e| out_err(&path, e))?;
-        frames += 1;
-        Ok(())
-    };
 
-    let first = record(&stepper, None);
-    if let Some(what) = non_finite(&stepper, &first) {
+    let first = record(stepper, None);
+    if let Some(what) = non_finite(stepper, &first) {
         // Finite entries whose products overflow (sizes near 1e300, ...): the scene's fault.
         return Err(InputError::new(
             scene.file.clone(),
@@ -305,9 +540,9 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         )
         .into());
     }
-    let mut records = vec![first];
-    csv.row(&records[0]).map_err(|e| out_err(&csv_path, e))?;
-    write_frame(&stepper)?;
+    csv.row(&first).map_err(|e| out_err(&csv_path, e))?;
+    summary.records.push(first);
+    write_frame(scene, dir, stepper, summary)?;
 
     let bar = if opts.quiet {
         indicatif::ProgressBar::hidden()
@@ -322,8 +557,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         b
     };
 
-    // 4–6. Time loop: step, recover, output.
-    let mut moving = stepper.has_moving().then(|| MovingSummary {
+    summary.moving_boundary = stepper.has_moving().then(|| MovingSummary {
         settings: scene.moving.clone(),
         moving_nodes: scene.bcs.iter().filter(|b| b.motion.is_some()).count(),
         k_m_start: stepper.k_m,
@@ -334,19 +568,34 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         first_step_eliminated_at_start: None,
         all_eliminated_every_step: true,
     });
-    let (mut newton, mut linear, mut linear_s) = (0usize, 0usize, 0.0f64);
     let mut ccd_limited = 0usize;
+    let contact = |stepper: &Stepper, records: &[StepRecord], ccd: usize| {
+        stepper.has_contact().then(|| ContactSummary {
+            obstacles: scene.obstacles.len(),
+            dhat: scene.obstacles.iter().map(|o| o.plane.dhat).collect(),
+            kappa: scene.obstacles.iter().map(|o| o.plane.kappa).collect(),
+            min_distance: records
+                .iter()
+                .filter_map(|r| r.min_distance)
+                .fold(f64::INFINITY, f64::min),
+            ccd_limited_line_searches: ccd,
+            final_contact_force: stepper.total_contact().unwrap_or_default(),
+        })
+    };
+    summary.contact = contact(stepper, &summary.records, 0);
+
+    // 4–6. Time loop: step, recover, output.
     for _ in 0..scene.steps {
         let rep = stepper.step().map_err(|cause| RunError::Solve {
             step: stepper.step + 1,
             time: stepper.t + scene.time_step,
             cause,
         })?;
-        newton += rep.newton_iterations;
-        linear += rep.linear_iterations;
-        linear_s += rep.linear_seconds;
+        summary.newton_iterations += rep.newton_iterations;
+        summary.linear_iterations += rep.linear_iterations;
+        summary.linear_seconds += rep.linear_seconds;
         ccd_limited += rep.ccd_limited;
-        if let Some(m) = moving.as_mut() {
+        if let Some(m) = summary.moving_boundary.as_mut() {
             m.k_m_doublings += rep.k_m_doublings;
             if rep.k_m != m.k_m_final {
                 m.k_m_history.push((rep.step, rep.k_m));
@@ -362,8 +611,8 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
                 None => m.all_eliminated_every_step = false,
             }
         }
-        let r = record(&stepper, Some(&rep));
-        if let Some(what) = non_finite(&stepper, &r) {
+        let r = record(stepper, Some(&rep));
+        if let Some(what) = non_finite(stepper, &r) {
             return Err(RunError::Solve {
                 step: stepper.step,
                 time: stepper.t,
@@ -374,9 +623,12 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
             });
         }
         csv.row(&r).map_err(|e| out_err(&csv_path, e))?;
-        records.push(r);
+        summary.records.push(r);
+        summary.steps_completed = stepper.step;
+        summary.end_time = stepper.t;
+        summary.contact = contact(stepper, &summary.records, ccd_limited);
         if stepper.step % scene.output.every == 0 || stepper.step == scene.steps {
-            write_frame(&stepper)?;
+            write_frame(scene, dir, stepper, summary)?;
         }
         bar.set_message(format!(
             "newton {} linear {}",
@@ -386,51 +638,5 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
     }
     bar.finish_and_clear();
     csv.finish().map_err(|e| out_err(&csv_path, e))?;
-
-    let contact = stepper.has_contact().then(|| ContactSummary {
-        obstacles: scene.obstacles.len(),
-        dhat: scene.obstacles.iter().map(|o| o.plane.dhat).collect(),
-        kappa: scene.obstacles.iter().map(|o| o.plane.kappa).collect(),
-        min_distance: records
-            .iter()
-            .filter_map(|r| r.min_distance)
-            .fold(f64::INFINITY, f64::min),
-        ccd_limited_line_searches: ccd_limited,
-        final_contact_force: stepper.total_contact().unwrap_or_default(),
-    });
-    let summary = RunSummary {
-        scene: scene.name.clone(),
-        file: scene.file.clone(),
-        dimension: scene.dim,
-        nodes: scene.model.n_nodes,
-        elements: scene.cells.iter().map(|b| b.cells.len()).sum(),
-        total_mass: scene.model.total_mass(),
-        time_step: scene.time_step,
-        gravity: scene.gravity.clone(),
-        steps: scene.steps,
-        end_time: stepper.t,
-        wall_seconds: wall.elapsed().as_secs_f64(),
-        solver: scene.solver.linear.to_string(),
-        adapter: stepper.linear.adapter.clone(),
-        characteristic_length: scene.characteristic_length,
-        newton_tolerance: stepper.newton_tol,
-        newton_iterations: newton,
-        linear_iterations: linear,
-        linear_seconds: linear_s,
-        frames,
-        out_dir: out.display().to_string(),
-        moving_boundary: moving,
-        contact_counters: stepper.contact_counters(),
-        contact,
-        records,
-        final_positions: stepper.x.clone(),
-        final_velocities: stepper.v.clone(),
-    };
-    let json_path = out.join("summary.json");
-    let json = serde_json::to_string_pretty(&summary).map_err(|e| RunError::Output {
-        path: json_path.display().to_string(),
-        cause: e.to_string(),
-    })?;
-    std::fs::write(&json_path, json).map_err(|e| out_err(&json_path, e))?;
-    Ok(summary)
+    Ok(())
 }

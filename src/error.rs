@@ -30,12 +30,15 @@ impl InputError {
 
 impl fmt::Display for InputError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        // One line, always: newlines in nested messages are flattened.
+        // One line, always: newlines in nested messages are flattened, and a token echoed
+        // from a file (a 100,000-digit number, a megabyte key) is cut.
         let problem = self.problem.replace('\n', " ");
+        let problem = crate::io::cut_tokens(&problem);
         if self.entry.is_empty() {
             write!(f, "{}: {}", self.file, problem)
         } else {
-            write!(f, "{}: {}: {}", self.file, self.entry, problem)
+            let entry = crate::io::cut_tokens(&self.entry);
+            write!(f, "{}: {}: {}", self.file, entry, problem)
         }
     }
 }
@@ -59,6 +62,9 @@ pub enum SolveError {
     /// Finite data whose solve or recovery overflowed f64; the message says where.
     #[error("{0}")]
     NotFinite(String),
+    /// A given solution does not solve the system it claims to (`recover`).
+    #[error("{0}")]
+    NotSolved(String),
 }
 
 /// The one error of the library facade ([`crate::Problem`], [`crate::Solver`]).

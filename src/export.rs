@@ -11,8 +11,9 @@
 use crate::constraints::{Frames, NO_ROTATION};
 use crate::elimination::{reactions, ConstrainedDiagonal, Eliminated};
 use crate::error::InputError;
+use crate::io::files::write_atomic;
 use crate::sparse::BlockCsr;
-use std::io::{BufWriter, Read, Write};
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 
 pub const MAT_FILE_CLASSID: i32 = 1211216;
@@ -43,6 +44,9 @@ pub struct Layout {
     /// Fingerprints of H and g: recovery refuses an H or g from another system.
     pub hessian_fingerprint: String,
     pub gradient_fingerprint: String,
+    /// Fingerprint of the masks, rotations, lift and constrained diagonal above: a layout
+    /// changed after export is refused.
+    pub frames_fingerprint: String,
     /// Bytes of the exported PETSc matrix (memory a PETSc run needs, roughly, for Ĥ).
     pub matrix_bytes: u64,
 }
@@ -61,6 +65,17 @@ fn petsc_int(v: usize, what: &str) -> std::io::Result<i32> {
         ))
     })
 }
+
+/// Every file `export` may write in its folder (`hhat.mtx`, `bhat.mtx` only with the
+/// Matrix Market copies): what the command line's owned output folder clears.
+pub const OUTPUT_NAMES: [&str; 6] = [
+    "hhat.petsc",
+    "hhat.petsc.info",
+    "bhat.petsc",
+    "hhat.mtx",
+    "bhat.mtx",
+    "layout.json",
+];
 
 /// The files one export wrote.
 #[derive(Debug, Clone)]
@@ -159,8 +174,7 @@ pub fn export(
     }
     let nnz = petsc_int(cols.len(), "the number of stored entries")?;
     let matrix_petsc = dir.join("hhat.petsc");
-    {
-        let mut w = BufWriter::new(std::fs::File::create(&matrix_petsc)?);
+    write_atomic(&matrix_petsc, |w| {
         for v in [MAT_FILE_CLASSID, nd as i32, nd as i32, nnz] {
             w.write_all(&v.to_be_bytes())?;
         }
@@ -173,43 +187,45 @@ pub fn export(
         for v in &vals {
             w.write_all(&v.to_be_bytes())?;
         }
-        w.flush()?;
-    }
-    std::fs::write(
+        Ok(())
+    })?;
+    crate::io::files::write_atomic_bytes(
         dir.join("hhat.petsc.info"),
-        format!("-matload_block_size {d}\n"),
+        format!("-matload_block_size {d}\n").as_bytes(),
     )?;
     let rhs_petsc = dir.join("bhat.petsc");
     write_petsc_vec(&rhs_petsc, &e.rhs)?;
     let (matrix_mtx, rhs_mtx) = if mtx {
         let mp = dir.join("hhat.mtx");
-        let mut w = BufWriter::new(std::fs::File::create(&mp)?);
-        // Symmetric: lower triangle only.
-        writeln!(w, "%%MatrixMarket matrix coordinate real symmetric")?;
-        writeln!(
-            w,
-            "% stickslip eliminated Hessian (node frames), block size {d}"
-        )?;
-        writeln!(w, "{nd} {nd} {lower}")?;
-        let mut k = 0usize;
-        for (r, &len) in row_len.iter().enumerate() {
-            for _ in 0..len {
-                let c = cols[k] as usize;
-                if c <= r {
-                    writeln!(w, "{} {} {:.16e}", r + 1, c + 1, vals[k])?;
+        write_atomic(&mp, |w| {
+            // Symmetric: lower triangle only.
+            writeln!(w, "%%MatrixMarket matrix coordinate real symmetric")?;
+            writeln!(
+                w,
+                "% stickslip eliminated Hessian (node frames), block size {d}"
+            )?;
+            writeln!(w, "{nd} {nd} {lower}")?;
+            let mut k = 0usize;
+            for (r, &len) in row_len.iter().enumerate() {
+                for _ in 0..len {
+                    let c = cols[k] as usize;
+                    if c <= r {
+                        writeln!(w, "{} {} {:.16e}", r + 1, c + 1, vals[k])?;
+                    }
+                    k += 1;
                 }
-                k += 1;
             }
-        }
-        w.flush()?;
+            Ok(())
+        })?;
         let vp = dir.join("bhat.mtx");
-        let mut w = BufWriter::new(std::fs::File::create(&vp)?);
-        writeln!(w, "%%MatrixMarket matrix array real general")?;
-        writeln!(w, "{nd} 1")?;
-        for v in &e.rhs {
-            writeln!(w, "{v:.16e}")?;
-        }
-        w.flush()?;
+        write_atomic(&vp, |w| {
+            writeln!(w, "%%MatrixMarket matrix array real general")?;
+            writeln!(w, "{nd} 1")?;
+            for v in &e.rhs {
+                writeln!(w, "{v:.16e}")?;
+            }
+            Ok(())
+        })?;
         (Some(mp), Some(vp))
     } else {
         (None, None)
@@ -232,12 +248,19 @@ pub fn export(
         .to_string(),
         hessian_fingerprint: fingerprint_matrix(e.h),
         gradient_fingerprint: fingerprint_vector(g),
+        frames_fingerprint: String::new(),
         matrix_bytes: 16 + 4 * nd as u64 + 12 * cols.len() as u64,
     };
+    let layout = Layout {
+        frames_fingerprint: layout.fingerprint_frames(),
+        ..layout
+    };
     let layout_path = dir.join("layout.json");
-    std::fs::write(
+    crate::io::files::write_atomic_bytes(
         &layout_path,
-        serde_json::to_string(&layout).map_err(std::io::Error::other)?,
+        serde_json::to_string(&layout)
+            .map_err(std::io::Error::other)?
+            .as_bytes(),
     )?;
     Ok(ExportFiles {
         matrix_petsc,
@@ -249,13 +272,15 @@ pub fn export(
 }
 
 pub fn write_petsc_vec(path: &Path, v: &[f64]) -> std::io::Result<()> {
-    let mut w = BufWriter::new(std::fs::File::create(path)?);
-    w.write_all(&VEC_FILE_CLASSID.to_be_bytes())?;
-    w.write_all(&petsc_int(v.len(), "the vector length")?.to_be_bytes())?;
-    for x in v {
-        w.write_all(&x.to_be_bytes())?;
-    }
-    w.flush()
+    let n = petsc_int(v.len(), "the vector length")?;
+    write_atomic(path, |w| {
+        w.write_all(&VEC_FILE_CLASSID.to_be_bytes())?;
+        w.write_all(&n.to_be_bytes())?;
+        for x in v {
+            w.write_all(&x.to_be_bytes())?;
+        }
+        Ok(())
+    })
 }
 
 /// Reads a PETSc binary Vec.
@@ -422,10 +447,50 @@ pub fn read_layout(path: &Path) -> Result<Layout, InputError> {
             format!("'{}' is not identity or hessian", l.constrained_diagonal),
         );
     }
+    if l.fingerprint_frames() != l.frames_fingerprint {
+        return bad(
+            "frames_fingerprint",
+            "the masks, rotations, lift or constrained diagonal differ from what export \
+             wrote (the file was changed after export)"
+                .to_string(),
+        );
+    }
     Ok(l)
 }
 
 impl Layout {
+    /// FNV-1a over what recovery applies: dimension, node count, masks, rotated nodes,
+    /// the bits of the rotations and of the lift, and the constrained diagonal.
+    pub fn fingerprint_frames(&self) -> String {
+        let mut f = Fnv::new();
+        f.u64(self.dim as u64);
+        f.u64(self.n_nodes as u64);
+        f.u64(self.mask.len() as u64);
+        for &m in &self.mask {
+            f.u64(u64::from(m));
+        }
+        f.u64(self.rot_nodes.len() as u64);
+        for &r in &self.rot_nodes {
+            f.u64(u64::from(r));
+        }
+        for v in &self.rotations {
+            f.u64(v.to_bits());
+        }
+        match &self.lift {
+            None => f.u64(0),
+            Some(l) => {
+                f.u64(1 + l.len() as u64);
+                for v in l {
+                    f.u64(v.to_bits());
+                }
+            }
+        }
+        for b in self.constrained_diagonal.bytes() {
+            f.u64(u64::from(b));
+        }
+        format!("{:016x}", f.0)
+    }
+
     /// The frames this layout describes.
     pub fn frames(&self) -> Frames {
         let d = self.dim;

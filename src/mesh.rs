@@ -411,28 +411,20 @@ pub fn gmsh(dim: usize, bytes: &[u8]) -> Result<Mesh, String> {
     })?;
     let nodes = f.data.nodes.ok_or("the file has no $Nodes section")?;
     let els = f.data.elements.ok_or("the file has no $Elements section")?;
-    // Node tag → (position). Tags are consecutive from min_node_tag when not sparse.
+    // Node tag → position. The tags are read from the file here: mshio keeps them only
+    // when they are sparse, and otherwise numbers the nodes min_node_tag, +1, ... in file
+    // order, which misplaces every node of a block listed out of order.
+    let counts: Vec<usize> = nodes.node_blocks.iter().map(|b| b.nodes.len()).collect();
+    let tags = msh_node_tags(bytes, &counts)?;
     let mut pos: HashMap<u64, [f64; 3]> = HashMap::new();
-    let mut next = nodes.min_node_tag;
-    for b in &nodes.node_blocks {
-        let mut tags = vec![0u64; b.nodes.len()];
-        match &b.node_tags {
-            Some(m) => {
-                for (&tag, &i) in m {
-                    if i < tags.len() {
-                        tags[i] = tag;
-                    }
-                }
+    for (b, tags) in nodes.node_blocks.iter().zip(&tags) {
+        for (&t, n) in tags.iter().zip(&b.nodes) {
+            if t == 0 {
+                return Err("node tag 0 is reserved and cannot name a node".into());
             }
-            None => {
-                for t in tags.iter_mut() {
-                    *t = next;
-                    next += 1;
-                }
+            if pos.insert(t, [n.x, n.y, n.z]).is_some() {
+                return Err(format!("node tag {t} is given to two nodes in $Nodes"));
             }
-        }
-        for (t, n) in tags.iter().zip(&b.nodes) {
-            pos.insert(*t, [n.x, n.y, n.z]);
         }
     }
     let (want, kind) = if dim == 2 {
@@ -511,6 +503,112 @@ pub fn gmsh(dim: usize, bytes: &[u8]) -> Result<Mesh, String> {
         orient_positive(&mut m);
     }
     Ok(m)
+}
+
+/// The node tags of each block of the $Nodes section of a MSH 4.1 file (ASCII or
+/// binary), read from the bytes; `counts` are the blocks' node counts as mshio parsed
+/// them (each block must list exactly as many tags). Parametric nodes are not supported
+/// (mshio refuses them), so each node has three coordinates.
+fn msh_node_tags(bytes: &[u8], counts: &[usize]) -> Result<Vec<Vec<u64>>, String> {
+    const BAD: &str = "the $Nodes section's node tags cannot be read";
+    // The format line fixes ASCII or binary and, for binary, the size of size_t.
+    let after = |key: &[u8], from: usize| -> Option<usize> {
+        let mut at = from;
+        while at <= bytes.len() {
+            let rest = &bytes[at..];
+            let k = rest.windows(key.len()).position(|w| w == key)?;
+            let start = at + k;
+            let line_start = start == 0 || bytes[start - 1] == b'\n';
+            let mut end = start + key.len();
+            if bytes.get(end) == Some(&b'\r') {
+                end += 1;
+            }
+            if line_start && bytes.get(end) == Some(&b'\n') {
+                return Some(end + 1);
+            }
+            at = start + 1;
+        }
+        None
+    };
+    let fmt = after(b"$MeshFormat", 0).ok_or(BAD)?;
+    let line_end = bytes[fmt..]
+        .iter()
+        .position(|&b| b == b'\n')
+        .map(|k| fmt + k)
+        .ok_or(BAD)?;
+    let fields: Vec<&str> = std::str::from_utf8(&bytes[fmt..line_end])
+        .map_err(|_| BAD)?
+        .split_ascii_whitespace()
+        .collect();
+    let binary = fields.get(1) == Some(&"1");
+    let size_t = match fields.get(2).and_then(|v| v.parse::<usize>().ok()) {
+        Some(s @ (4 | 8)) => s,
+        _ => return Err(BAD.into()),
+    };
+    // Binary: the int 1 after the format line tells the byte order.
+    let little = if binary {
+        let one = bytes.get(line_end + 1..line_end + 5).ok_or(BAD)?;
+        one == 1i32.to_le_bytes()
+    } else {
+        true
+    };
+    let start = after(b"$Nodes", line_end).ok_or(BAD)?;
+    let mut out = Vec::with_capacity(counts.len());
+    if binary {
+        let mut at = start;
+        let mut take = |n: usize| -> Result<&[u8], String> {
+            let s = bytes.get(at..at.checked_add(n).ok_or(BAD)?).ok_or(BAD)?;
+            at += n;
+            Ok(s)
+        };
+        let uint = |b: &[u8]| -> u64 {
+            let mut w = [0u8; 8];
+            if little {
+                w[..b.len()].copy_from_slice(b);
+                u64::from_le_bytes(w)
+            } else {
+                w[8 - b.len()..].copy_from_slice(b);
+                u64::from_be_bytes(w)
+            }
+        };
+        take(4 * size_t)?;
+        for &n in counts {
+            take(3 * 4)?;
+            if uint(take(size_t)?) != n as u64 {
+                return Err(BAD.into());
+            }
+            let raw = take(n.checked_mul(size_t).ok_or(BAD)?)?;
+            out.push(raw.chunks_exact(size_t).map(uint).collect());
+            take(n.checked_mul(24).ok_or(BAD)?)?;
+        }
+    } else {
+        let text = std::str::from_utf8(&bytes[start..]).map_err(|_| BAD)?;
+        let mut tok = text.split_ascii_whitespace();
+        let mut next = || tok.next().ok_or(BAD);
+        for _ in 0..4 {
+            next()?;
+        }
+        for &n in counts {
+            for _ in 0..3 {
+                next()?;
+            }
+            if next()?.parse::<u64>().ok() != Some(n as u64) {
+                return Err(BAD.into());
+            }
+            let mut tags = Vec::with_capacity(n);
+            for _ in 0..n {
+                let t = next()?;
+                tags.push(t.parse::<u64>().map_err(|_| {
+                    format!("node tag '{}' is not a tag", crate::io::one_line(t, 40))
+                })?);
+            }
+            out.push(tags);
+            for _ in 0..3 * n {
+                next()?;
+            }
+        }
+    }
+    Ok(out)
 }
 
 /// Swaps two nodes of every tetrahedron with negative signed volume.

@@ -18,7 +18,7 @@
 use crate::scene::Scene;
 use std::fmt::Write as _;
 use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::Write;
 use std::path::Path;
 
 /// One VTK legacy ASCII unstructured grid: points, cells, point data (velocity,
@@ -83,7 +83,7 @@ pub fn write_vtk(
             vec3(&mut s, c, i);
         }
     }
-    std::fs::write(path, s)
+    crate::io::files::write_atomic_bytes(path, s.as_bytes())
 }
 
 /// One row of steps.csv.
@@ -110,16 +110,17 @@ pub struct StepRecord {
     pub ascent_directions: usize,
 }
 
-/// The steps.csv writer.
+/// The steps.csv writer: unbuffered, one `write` per row, so a killed run leaves every
+/// completed step on disk and no partial row.
 pub struct StepsCsv {
-    w: BufWriter<File>,
+    w: File,
     moving: bool,
     contact: bool,
 }
 
 impl StepsCsv {
     pub fn create(path: &Path, dim: usize, moving: bool, contact: bool) -> std::io::Result<Self> {
-        let mut w = BufWriter::new(File::create(path)?);
+        let mut w = File::create(path)?;
         let axes = &["x", "y", "z"][..dim];
         let mut h =
             String::from("step,time,newton_iterations,linear_iterations,linear_seconds,energy");
@@ -137,7 +138,8 @@ impl StepsCsv {
         if moving {
             h.push_str(",k_m,eliminated_at_iteration");
         }
-        writeln!(w, "{h}")?;
+        h.push('\n');
+        w.write_all(h.as_bytes())?;
         Ok(StepsCsv { w, moving, contact })
     }
 
@@ -161,7 +163,8 @@ impl StepsCsv {
                 let _ = write!(s, "{k}");
             }
         }
-        writeln!(self.w, "{s}")
+        s.push('\n');
+        self.w.write_all(s.as_bytes())
     }
 
     pub fn finish(mut self) -> std::io::Result<()> {

@@ -39,7 +39,21 @@ fn log_log_plot(
     y_desc: &str,
     series: &[(String, Vec<(f64, f64)>)],
 ) -> Result<(), String> {
-    let root = SVGBackend::new(path, (720, 480)).into_drawing_area();
+    // Drawn into memory, then written atomically (no half-written SVG under its name).
+    let mut svg = String::new();
+    draw(&mut svg, caption, x_desc, y_desc, series)?;
+    crate::io::files::write_atomic_bytes(path, svg.as_bytes())
+        .map_err(|e| format!("{}: {e}", path.display()))
+}
+
+fn draw(
+    svg: &mut String,
+    caption: &str,
+    x_desc: &str,
+    y_desc: &str,
+    series: &[(String, Vec<(f64, f64)>)],
+) -> Result<(), String> {
+    let root = SVGBackend::with_string(svg, (720, 480)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| e.to_string())?;
     let (x0, x1) = bounds(series.iter().flat_map(|s| s.1.iter().map(|p| p.0)));
     let (y0, y1) = bounds(series.iter().flat_map(|s| s.1.iter().map(|p| p.1)));

@@ -41,12 +41,28 @@ impl BlockCsr {
         triplets: &[(usize, usize, f64)],
         symmetric_half: bool,
     ) -> Self {
+        match Self::try_from_triplets(dim, ndof, triplets, symmetric_half) {
+            Ok(m) => m,
+            Err(e) => panic!("from_triplets: {e}"),
+        }
+    }
+
+    /// [`BlockCsr::from_triplets`] with every buffer allocated fallibly: a matrix read
+    /// from a file that does not fit in memory (or under `ulimit -v`) is an error for the
+    /// reader to report, not an abort.
+    pub fn try_from_triplets(
+        dim: usize,
+        ndof: usize,
+        triplets: &[(usize, usize, f64)],
+        symmetric_half: bool,
+    ) -> Result<Self, std::collections::TryReserveError> {
         assert!(dim == 2 || dim == 3, "block size must be 2 or 3");
         assert!(ndof % dim == 0, "ndof must be a multiple of dim");
         let n = ndof / dim;
         let bb = dim * dim;
         // Collect block coordinates, then sort and deduplicate per row.
-        let mut coords: Vec<(usize, usize)> = Vec::with_capacity(triplets.len() * 2);
+        let mut coords: Vec<(usize, usize)> = Vec::new();
+        coords.try_reserve_exact(triplets.len() * if symmetric_half { 2 } else { 1 })?;
         for &(r, c, _) in triplets {
             coords.push((r / dim, c / dim));
             if symmetric_half && r != c {
@@ -55,20 +71,28 @@ impl BlockCsr {
         }
         coords.sort_unstable();
         coords.dedup();
-        let mut row_ptr = vec![0usize; n + 1];
+        let mut row_ptr: Vec<usize> = Vec::new();
+        row_ptr.try_reserve_exact(n + 1)?;
+        row_ptr.resize(n + 1, 0);
         for &(i, _) in &coords {
             row_ptr[i + 1] += 1;
         }
         for i in 0..n {
             row_ptr[i + 1] += row_ptr[i];
         }
-        let col_idx: Vec<usize> = coords.iter().map(|&(_, j)| j).collect();
+        let mut col_idx: Vec<usize> = Vec::new();
+        col_idx.try_reserve_exact(coords.len())?;
+        col_idx.extend(coords.iter().map(|&(_, j)| j));
+        let mut values: Vec<f64> = Vec::new();
+        values.try_reserve_exact(coords.len() * bb)?;
+        values.resize(coords.len() * bb, 0.0);
+        drop(coords);
         let mut m = BlockCsr {
             dim,
             n,
             row_ptr,
             col_idx,
-            values: vec![0.0; coords.len() * bb],
+            values,
         };
         for &(r, c, v) in triplets {
             m.add(r, c, v);
@@ -76,7 +100,7 @@ impl BlockCsr {
                 m.add(c, r, v);
             }
         }
-        m
+        Ok(m)
     }
 
     /// Builds a block matrix from a symmetric block pattern given as per-row sorted

@@ -36,6 +36,10 @@ pub fn lame(young: f64, poisson: f64) -> (f64, f64) {
     (mu, lambda)
 }
 
+/// An element whose rest volume is at most this fraction of (longest edge from its first
+/// node)^d is degenerate: 64ε, rounding of the edge vectors' products.
+pub const DEGENERATE_RELATIVE_VOLUME: f64 = 64.0 * f64::EPSILON;
+
 impl NeoHookean {
     /// Builds the elements of `mesh` (its positions are the rest shape). Fails when an
     /// element is degenerate or inverted at rest.
@@ -66,6 +70,17 @@ impl NeoHookean {
             // NaN (a non-finite rest position) is rejected explicitly, like det ≤ 0.
             if det.is_nan() || det <= 0.0 {
                 return Err(format!("element {e} is degenerate or inverted at rest"));
+            }
+            // Flat beyond f64's resolution (a box 1e-300 thick): its volume relative to its
+            // longest edge^d is rounding, and its shape gradients would overflow.
+            let longest = (0..d).map(|c| dm.column(c).norm()).fold(0.0f64, f64::max);
+            let relative = (&dm / longest).determinant();
+            if relative.is_nan() || relative <= DEGENERATE_RELATIVE_VOLUME {
+                return Err(format!(
+                    "element {e} is degenerate at rest: its volume is {relative:.1e} of its \
+                     longest edge to the power {d}, below f64's resolution (a mesh flatter \
+                     than its coordinates can resolve)"
+                ));
             }
             volume.push(det / if d == 2 { 2.0 } else { 6.0 });
             let inv = dm

@@ -93,6 +93,37 @@ pub fn list_adapters() -> Vec<AdapterReport> {
         .collect()
 }
 
+/// When `WGPU_ADAPTER_NAME` (in `opts`) names no adapter wgpu can see: the one-line
+/// problem, listing the adapters there are. None when it is unset or matches one.
+pub fn adapter_name_mismatch(opts: &GpuOptions) -> Option<String> {
+    let name = opts.adapter_name.as_ref()?;
+    let inst = instance(backends(opts));
+    let infos: Vec<wgpu::AdapterInfo> = pollster::block_on(inst.enumerate_adapters(backends(opts)))
+        .iter()
+        .map(|a| a.get_info())
+        .collect();
+    let needle = name.to_lowercase();
+    if infos
+        .iter()
+        .any(|i| i.name.to_lowercase().contains(&needle))
+    {
+        return None;
+    }
+    let names: Vec<String> = infos
+        .iter()
+        .map(|i| format!("{} ({:?})", i.name, i.backend))
+        .collect();
+    Some(format!(
+        "'{}' names no GPU adapter; the adapters are: {}",
+        crate::io::one_line(name, 80),
+        if names.is_empty() {
+            "none (install a Vulkan driver, e.g. mesa-vulkan-drivers)".to_string()
+        } else {
+            names.join(", ")
+        }
+    ))
+}
+
 fn rank(a: &wgpu::Adapter) -> (u32, u32) {
     let info = a.get_info();
     let t = match info.device_type {
@@ -141,16 +172,25 @@ impl GpuContext {
         if opts.backend.is_none() {
             b = wgpu::Backends::PRIMARY;
         }
+        let named = |mut v: Vec<wgpu::Adapter>| {
+            if let Some(name) = &opts.adapter_name {
+                let needle = name.to_lowercase();
+                v.retain(|a| a.get_info().name.to_lowercase().contains(&needle));
+            }
+            v
+        };
         let mut inst = instance(b);
-        let mut adapters = pollster::block_on(inst.enumerate_adapters(b));
+        let mut adapters = named(pollster::block_on(inst.enumerate_adapters(b)));
         if adapters.is_empty() && opts.backend.is_none() {
             b = wgpu::Backends::all();
             inst = instance(b);
-            adapters = pollster::block_on(inst.enumerate_adapters(b));
+            adapters = named(pollster::block_on(inst.enumerate_adapters(b)));
         }
-        if let Some(name) = &opts.adapter_name {
-            let needle = name.to_lowercase();
-            adapters.retain(|a| a.get_info().name.to_lowercase().contains(&needle));
+        // A name that matches nothing is an error, never a silent other adapter.
+        if let (Some(name), true) = (&opts.adapter_name, adapters.is_empty()) {
+            let why = adapter_name_mismatch(opts)
+                .unwrap_or_else(|| format!("'{name}' names no GPU adapter"));
+            return Err(GpuError::NoAdapter(format!("WGPU_ADAPTER_NAME: {why}")));
         }
         adapters.sort_by_key(rank);
         let adapter = match adapters.into_iter().next() {

@@ -8,7 +8,10 @@ pub mod context;
 pub mod kernels;
 pub mod solver;
 
-pub use context::{list_adapters, measure_copy_bandwidth, AdapterReport, GpuContext, GpuOptions};
+pub use context::{
+    adapter_name_mismatch, list_adapters, measure_copy_bandwidth, AdapterReport, GpuContext,
+    GpuOptions,
+};
 pub use solver::{
     BufferRecord, GpuSolveInfo, GpuSolver, KernelRecord, KernelTime, Resources, SolveOutcome,
     StageSeconds,

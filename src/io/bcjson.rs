@@ -703,14 +703,14 @@ pub fn write(
     cs: &[Constraint],
 ) -> std::io::Result<()> {
     use std::io::Write;
-    let mut w = std::io::BufWriter::new(std::fs::File::create(path)?);
-    write!(w, "{{\"dim\": {dim}, \"constraints\": [")?;
-    for (k, c) in cs.iter().enumerate() {
-        let sep = if k + 1 < cs.len() { "," } else { "" };
-        write!(w, "\n  {}{sep}", constraint_to_json(c))?;
-    }
-    writeln!(w, "\n]}}")?;
-    w.flush()
+    super::files::write_atomic(path, |w| {
+        write!(w, "{{\"dim\": {dim}, \"constraints\": [")?;
+        for (k, c) in cs.iter().enumerate() {
+            let sep = if k + 1 < cs.len() { "," } else { "" };
+            write!(w, "\n  {}{sep}", constraint_to_json(c))?;
+        }
+        writeln!(w, "\n]}}")
+    })
 }
 
 /// The constraints as B (entries 0-based, m × dn) and p, one row per constrained

@@ -1,5 +1,6 @@
 //! File formats of the command line: Matrix Market for H, g, B, p, Δx and reactions
-//! ([`mtx`]), and the per-node constraint JSON ([`bcjson`]). Every fault in a file is an
+//! ([`mtx`]), and the per-node constraint JSON ([`bcjson`]); output safety (same-file
+//! checks, atomic writes, owned output folders) in [`files`]. Every fault in a file is an
 //! [`InputError`] naming the file, the entry and the problem.
 //!
 //! Input files are read through [`read_text`] (or [`read_bytes`] for binary formats),
@@ -11,6 +12,7 @@
 //! byte-order mark is skipped by the parsers.
 
 pub mod bcjson;
+pub mod files;
 pub mod mtx;
 
 use crate::error::InputError;
@@ -89,6 +91,48 @@ pub fn one_line(msg: &str, max_chars: usize) -> String {
     out
 }
 
+/// Longest run of non-space characters an error line echoes whole (a number, a key,
+/// a token from a file); longer runs are cut there with `…`.
+pub const MAX_TOKEN_CHARS: usize = 80;
+
+/// A path is kept whole up to this many characters (the longest path Linux resolves).
+const MAX_PATH_CHARS: usize = 4096;
+
+/// `msg` with every run of non-whitespace characters longer than [`MAX_TOKEN_CHARS`] cut
+/// to that many with `…` (a path, a token holding `/`, is kept up to 4096 characters), so
+/// an error line stays readable whatever a file holds.
+pub fn cut_tokens(msg: &str) -> std::borrow::Cow<'_, str> {
+    let long = |t: &str| {
+        let limit = if t.contains('/') {
+            MAX_PATH_CHARS
+        } else {
+            MAX_TOKEN_CHARS
+        };
+        t.chars().nth(limit).is_some().then_some(limit)
+    };
+    if !msg.split_whitespace().any(|t| long(t).is_some()) {
+        return std::borrow::Cow::Borrowed(msg);
+    }
+    let mut out = String::with_capacity(msg.len().min(4096));
+    let mut rest = msg;
+    while !rest.is_empty() {
+        let ws = rest.len() - rest.trim_start().len();
+        out.push_str(&rest[..ws]);
+        rest = &rest[ws..];
+        let end = rest.find(char::is_whitespace).unwrap_or(rest.len());
+        let tok = &rest[..end];
+        match long(tok) {
+            Some(limit) => {
+                out.extend(tok.chars().take(limit));
+                out.push('…');
+            }
+            None => out.push_str(tok),
+        }
+        rest = &rest[end..];
+    }
+    std::borrow::Cow::Owned(out)
+}
+
 /// Text from a file quoted in a message: one line of at most `max_chars` characters
 /// (then `…`), with control characters and every space other than ' ' written as
 /// escapes (`\t`, `\u{a0}`), so an invisible fault stays visible.
@@ -111,6 +155,19 @@ pub fn escaped(text: &str, max_chars: usize) -> String {
         }
     }
     out
+}
+
+/// The input error for an allocation of `bytes` that failed while reading `file`.
+pub fn out_of_memory(file: &str, what: &str, bytes: usize) -> InputError {
+    InputError::new(
+        file,
+        "",
+        format!(
+            "cannot hold {what} in memory ({}): memory allocation failed (an address-space \
+             limit such as `ulimit -v`, or too little memory for this input)",
+            human_bytes(bytes as u64)
+        ),
+    )
 }
 
 /// Reads a file whole, at most `limit` bytes. `text`: refuse the first NUL byte (no text
@@ -161,7 +218,9 @@ pub fn read_limited(
             return Err(too_big(format!("the file is {}", human_bytes(meta.len()))));
         }
         // A regular file can still grow while we read; the loop below bounds it anyway.
-        buf.reserve_exact(meta.len() as usize + 1);
+        let want = meta.len() as usize + 1;
+        buf.try_reserve_exact(want)
+            .map_err(|_| out_of_memory(&shown, "the file", want))?;
     }
     loop {
         let start = buf.len();
@@ -254,6 +313,17 @@ mod tests {
         assert_eq!(one_line("  x  ", 10), "x");
         assert_eq!(escaped("5\u{a0}\t\u{1b}x", 80), "5\\u{a0}\\t\\u{1b}x");
         assert_eq!(escaped("abcdef", 3), "abc…");
+    }
+
+    #[test]
+    fn long_tokens_are_cut() {
+        let n = "9".repeat(100_000);
+        let msg = format!("entry: {n} is too large");
+        let cut = cut_tokens(&msg);
+        assert_eq!(cut, format!("entry: {}… is too large", "9".repeat(80)));
+        assert_eq!(cut_tokens("short words stay"), "short words stay");
+        let path = format!("/tmp/{}", "a".repeat(200));
+        assert_eq!(cut_tokens(&path), path);
     }
 
     #[test]

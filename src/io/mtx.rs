@@ -301,8 +301,25 @@ pub fn parse_checked(
     // A size line can announce more entries than the file holds: reserve no more than
     // the text can hold (a coordinate entry takes at least 6 bytes, an array value 2).
     let fit = text.len() / if coordinate { 6 } else { 2 } + 1;
-    let mut entries = Vec::with_capacity(expected.min(fit));
+    let mut entries: Vec<(usize, usize, f64)> = Vec::new();
+    let want = expected.min(fit);
+    entries
+        .try_reserve_exact(want)
+        .map_err(|_| super::out_of_memory(file, "the entries", want * 24))?;
     let value = |line: usize, tok: &str| -> Result<f64, InputError> {
+        // "4." reads as 4 (in Rust and C alike), but in a data file it is most often a
+        // number cut short by a write that stopped mid-way: refused.
+        if tok.ends_with('.') {
+            return Err(err(
+                file,
+                format!("line {line}"),
+                format!(
+                    "'{}' is not a complete number (no digit after the decimal point; \
+                     was the file cut short?)",
+                    quote(tok)
+                ),
+            ));
+        }
         tok.parse::<f64>().map_err(|_| {
             err(
                 file,
@@ -555,10 +572,17 @@ pub fn hessian_from_coo(file: &str, coo: &Coo, dim: usize) -> Result<BlockCsr, I
 /// The blocks of an H whose size has been checked.
 fn build_hessian(file: &str, coo: &Coo, dim: usize) -> Result<BlockCsr, InputError> {
     let nd = coo.nrows;
-    let mut t = Vec::with_capacity(coo.entries.len() + nd);
+    // Every buffer sized by the input is allocated fallibly: too large for memory (or
+    // for `ulimit -v`) is this file's error, not an abort.
+    let e = coo.entries.len() + nd;
+    let oom = |what: &str, bytes: usize| super::out_of_memory(file, what, bytes);
+    let mut t = Vec::new();
+    t.try_reserve_exact(e)
+        .map_err(|_| oom("the entries", e.saturating_mul(24)))?;
     t.extend_from_slice(&coo.entries);
     t.extend((0..nd).map(|k| (k, k, 0.0)));
-    let h = BlockCsr::from_triplets(dim, nd, &t, coo.symmetric);
+    let h = BlockCsr::try_from_triplets(dim, nd, &t, coo.symmetric)
+        .map_err(|_| oom("the Hessian's blocks", e.saturating_mul(16 + 8 * dim * dim)))?;
     // Finiteness after duplicates are summed (1e308 twice is inf), and symmetry.
     h.validate(file)?;
     Ok(h)
@@ -644,7 +668,10 @@ pub fn vector_from_coo(
         size_line: coo.size_line,
     };
     let (len, column) = vector_shape(file, &h, name, expected)?;
-    let mut v = vec![0.0; len];
+    let mut v: Vec<f64> = Vec::new();
+    v.try_reserve_exact(len)
+        .map_err(|_| super::out_of_memory(file, name, len.saturating_mul(8)))?;
+    v.resize(len, 0.0);
     for &(r, c, x) in &coo.entries {
         v[if column { r } else { c }] += x;
     }
@@ -705,32 +732,26 @@ pub fn read_matrix(path: &str, name: &str) -> Result<Coo, InputError> {
     })
 }
 
-fn create(path: &std::path::Path) -> std::io::Result<std::io::BufWriter<std::fs::File>> {
-    Ok(std::io::BufWriter::with_capacity(
-        1 << 20,
-        std::fs::File::create(path)?,
-    ))
-}
-
 /// Writes `v` as `array real general` n × 1 with 17 significant digits (exact f64).
 pub fn write_vector(
     path: impl AsRef<std::path::Path>,
     v: &[f64],
     comment: &str,
 ) -> std::io::Result<()> {
-    let mut w = create(path.as_ref())?;
-    writeln!(w, "%%MatrixMarket matrix array real general")?;
-    for c in comment.lines() {
-        writeln!(w, "% {c}")?;
-    }
-    writeln!(w, "{} 1", v.len())?;
-    let mut s = String::with_capacity(32);
-    for x in v {
-        s.clear();
-        let _ = writeln!(s, "{x:.16e}");
-        w.write_all(s.as_bytes())?;
-    }
-    w.flush()
+    super::files::write_atomic(path, |w| {
+        writeln!(w, "%%MatrixMarket matrix array real general")?;
+        for c in comment.lines() {
+            writeln!(w, "% {c}")?;
+        }
+        writeln!(w, "{} 1", v.len())?;
+        let mut s = String::with_capacity(32);
+        for x in v {
+            s.clear();
+            let _ = writeln!(s, "{x:.16e}");
+            w.write_all(s.as_bytes())?;
+        }
+        Ok(())
+    })
 }
 
 /// Writes H as `coordinate real symmetric`: the lower triangle, nonzeros plus the whole
@@ -756,28 +777,29 @@ pub fn write_hessian(
             }
         }
     }
-    let mut w = create(path.as_ref())?;
-    writeln!(w, "%%MatrixMarket matrix coordinate real symmetric")?;
-    for c in comment.lines() {
-        writeln!(w, "% {c}")?;
-    }
-    writeln!(w, "{} {} {count}", h.ndof(), h.ndof())?;
-    let mut s = String::with_capacity(64);
-    for i in 0..h.n {
-        for r in 0..d {
-            // Row-major within a block row so the file is sorted by row.
-            for k in h.row_ptr[i]..h.row_ptr[i + 1] {
-                for c in 0..d {
-                    if let Some((gr, gc, v)) = keep(i, k, r, c) {
-                        s.clear();
-                        let _ = writeln!(s, "{} {} {v:.16e}", gr + 1, gc + 1);
-                        w.write_all(s.as_bytes())?;
+    super::files::write_atomic(path, |w| {
+        writeln!(w, "%%MatrixMarket matrix coordinate real symmetric")?;
+        for c in comment.lines() {
+            writeln!(w, "% {c}")?;
+        }
+        writeln!(w, "{} {} {count}", h.ndof(), h.ndof())?;
+        let mut s = String::with_capacity(64);
+        for i in 0..h.n {
+            for r in 0..d {
+                // Row-major within a block row so the file is sorted by row.
+                for k in h.row_ptr[i]..h.row_ptr[i + 1] {
+                    for c in 0..d {
+                        if let Some((gr, gc, v)) = keep(i, k, r, c) {
+                            s.clear();
+                            let _ = writeln!(s, "{} {} {v:.16e}", gr + 1, gc + 1);
+                            w.write_all(s.as_bytes())?;
+                        }
                     }
                 }
             }
         }
-    }
-    w.flush()
+        Ok(())
+    })
 }
 
 /// Writes a general coordinate matrix (0-based entries; written 1-based).
@@ -788,16 +810,17 @@ pub fn write_coo(
     entries: &[(usize, usize, f64)],
     comment: &str,
 ) -> std::io::Result<()> {
-    let mut w = create(path.as_ref())?;
-    writeln!(w, "%%MatrixMarket matrix coordinate real general")?;
-    for c in comment.lines() {
-        writeln!(w, "% {c}")?;
-    }
-    writeln!(w, "{nrows} {ncols} {}", entries.len())?;
-    for &(r, c, v) in entries {
-        writeln!(w, "{} {} {v:.16e}", r + 1, c + 1)?;
-    }
-    w.flush()
+    super::files::write_atomic(path, |w| {
+        writeln!(w, "%%MatrixMarket matrix coordinate real general")?;
+        for c in comment.lines() {
+            writeln!(w, "% {c}")?;
+        }
+        writeln!(w, "{nrows} {ncols} {}", entries.len())?;
+        for &(r, c, v) in entries {
+            writeln!(w, "{} {} {v:.16e}", r + 1, c + 1)?;
+        }
+        Ok(())
+    })
 }
 
 #[cfg(test)]

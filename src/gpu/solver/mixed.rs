@@ -671,6 +671,7 @@ impl GpuSolver {
             CgError::Breakdown { iteration } => CgError::Breakdown {
                 iteration: iteration + done,
             },
+            u @ CgError::Unpinned(_) => u,
         })?;
         self.ctx.queue.write_buffer(&y64, 0, &Real::F64.bytes(&y));
         let td = Instant::now();

@@ -90,6 +90,7 @@ pub struct GpuSolver {
 impl GpuSolver {
     /// Builds the solver for an assembled eliminated system.
     pub fn new(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<Self, GpuError> {
+        crate::cg::check_pinned(e)?;
         let host = Host::new(
             HostOp::Blocks(e.h.clone()),
             e.frames.clone(),
