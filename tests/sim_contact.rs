@@ -672,12 +672,10 @@ fn squeezed_mass_spring_square_keeps_every_node_out_or_fails_naming_it() {
             // The run got well into the squeeze before the network turned inside out.
             assert!(step > 10, "failed at step {step}");
             let summary = out.join("summary.json");
-            if summary.exists() {
-                let s: serde_json::Value =
-                    serde_json::from_str(&std::fs::read_to_string(&summary).expect("summary"))
-                        .expect("summary.json parses");
-                assert_eq!(s["status"], "failed", "summary.json: {s}");
-            }
+            let s: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(&summary).expect("summary.json"))
+                    .expect("summary.json parses");
+            assert_eq!(s["status"], "failed", "summary.json: {s}");
         }
         c => panic!("exit {c:?}: {err}"),
     }
