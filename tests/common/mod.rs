@@ -5,3 +5,5 @@
 pub mod cli;
 #[allow(dead_code)]
 pub mod gpu;
+#[allow(dead_code)]
+pub mod readers;
