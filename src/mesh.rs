@@ -400,6 +400,9 @@ pub fn rod(dim: usize, length: f64, cells: usize) -> Mesh {
 pub fn gmsh(dim: usize, bytes: &[u8]) -> Result<Mesh, String> {
     use mshio::mshfile::ElementType;
     use std::collections::HashMap;
+    // mshio panics on some malformed format lines (a data size that overflows or is not
+    // an integer width it knows): they are refused here first.
+    msh_format(bytes)?;
     let f = mshio::parse_msh_bytes(bytes).map_err(|e| {
         // mshio's messages can carry a hex dump of the file: keep one readable line.
         let e = e.to_string();
@@ -505,54 +508,86 @@ pub fn gmsh(dim: usize, bytes: &[u8]) -> Result<Mesh, String> {
     Ok(m)
 }
 
+/// The position just after a line `key` (alone on its line, `\n` or `\r\n` ended)
+/// at or after `from`, if any.
+fn msh_after(bytes: &[u8], key: &[u8], from: usize) -> Option<usize> {
+    let mut at = from;
+    while at <= bytes.len() {
+        let k = bytes[at..].windows(key.len()).position(|w| w == key)?;
+        let start = at + k;
+        let line_start = start == 0 || bytes[start - 1] == b'\n';
+        let mut end = start + key.len();
+        if bytes.get(end) == Some(&b'\r') {
+            end += 1;
+        }
+        if line_start && bytes.get(end) == Some(&b'\n') {
+            return Some(end + 1);
+        }
+        at = start + 1;
+    }
+    None
+}
+
+/// What the $MeshFormat line says: (binary, size of size_t, little-endian), and where
+/// its line ends. MSH 4.1 only, ASCII (0) or binary (1), size_t of 4 or 8 bytes; a binary
+/// file's byte order from the int 1 that follows the line.
+fn msh_format(bytes: &[u8]) -> Result<(bool, usize, bool, usize), String> {
+    let bad = |what: &str| format!("not a readable Gmsh MSH 4.1 file ({what})");
+    let fmt = msh_after(bytes, b"$MeshFormat", 0).ok_or_else(|| bad("no $MeshFormat line"))?;
+    let line_end = bytes[fmt..]
+        .iter()
+        .position(|&b| b == b'\n')
+        .map(|k| fmt + k)
+        .ok_or_else(|| bad("the format line does not end"))?;
+    let line = std::str::from_utf8(&bytes[fmt..line_end])
+        .map_err(|_| bad("the format line is not text"))?;
+    let fields: Vec<&str> = line.split_ascii_whitespace().collect();
+    let shown = crate::io::one_line(line, 40);
+    if fields.len() != 3 || fields[0].parse::<f64>() != Ok(4.1) {
+        return Err(bad(&format!(
+            "format line '{shown}': expected '4.1 0 8' or '4.1 1 8'"
+        )));
+    }
+    let binary = match fields[1] {
+        "0" => false,
+        "1" => true,
+        _ => {
+            return Err(bad(&format!(
+                "file type '{}' is not 0 (ASCII) or 1 (binary)",
+                crate::io::one_line(fields[1], 20)
+            )))
+        }
+    };
+    let size_t = match fields[2] {
+        "4" => 4,
+        "8" => 8,
+        _ => {
+            return Err(bad(&format!(
+                "data size '{}' is not 4 or 8",
+                crate::io::one_line(fields[2], 20)
+            )))
+        }
+    };
+    let little = if binary {
+        match bytes.get(line_end + 1..line_end + 5) {
+            Some(one) if one == 1i32.to_le_bytes() => true,
+            Some(one) if one == 1i32.to_be_bytes() => false,
+            _ => return Err(bad("no byte-order mark (the int 1) after the format line")),
+        }
+    } else {
+        true
+    };
+    Ok((binary, size_t, little, line_end))
+}
+
 /// The node tags of each block of the $Nodes section of a MSH 4.1 file (ASCII or
 /// binary), read from the bytes; `counts` are the blocks' node counts as mshio parsed
 /// them (each block must list exactly as many tags). Parametric nodes are not supported
 /// (mshio refuses them), so each node has three coordinates.
 fn msh_node_tags(bytes: &[u8], counts: &[usize]) -> Result<Vec<Vec<u64>>, String> {
     const BAD: &str = "the $Nodes section's node tags cannot be read";
-    // The format line fixes ASCII or binary and, for binary, the size of size_t.
-    let after = |key: &[u8], from: usize| -> Option<usize> {
-        let mut at = from;
-        while at <= bytes.len() {
-            let rest = &bytes[at..];
-            let k = rest.windows(key.len()).position(|w| w == key)?;
-            let start = at + k;
-            let line_start = start == 0 || bytes[start - 1] == b'\n';
-            let mut end = start + key.len();
-            if bytes.get(end) == Some(&b'\r') {
-                end += 1;
-            }
-            if line_start && bytes.get(end) == Some(&b'\n') {
-                return Some(end + 1);
-            }
-            at = start + 1;
-        }
-        None
-    };
-    let fmt = after(b"$MeshFormat", 0).ok_or(BAD)?;
-    let line_end = bytes[fmt..]
-        .iter()
-        .position(|&b| b == b'\n')
-        .map(|k| fmt + k)
-        .ok_or(BAD)?;
-    let fields: Vec<&str> = std::str::from_utf8(&bytes[fmt..line_end])
-        .map_err(|_| BAD)?
-        .split_ascii_whitespace()
-        .collect();
-    let binary = fields.get(1) == Some(&"1");
-    let size_t = match fields.get(2).and_then(|v| v.parse::<usize>().ok()) {
-        Some(s @ (4 | 8)) => s,
-        _ => return Err(BAD.into()),
-    };
-    // Binary: the int 1 after the format line tells the byte order.
-    let little = if binary {
-        let one = bytes.get(line_end + 1..line_end + 5).ok_or(BAD)?;
-        one == 1i32.to_le_bytes()
-    } else {
-        true
-    };
-    let start = after(b"$Nodes", line_end).ok_or(BAD)?;
+    let (binary, size_t, little, line_end) = msh_format(bytes)?;
+    let start = msh_after(bytes, b"$Nodes", line_end).ok_or(BAD)?;
     let mut out = Vec::with_capacity(counts.len());
     if binary {
         let mut at = start;

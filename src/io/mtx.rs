@@ -603,9 +603,18 @@ pub fn read_hessian_bounded(
     bounds: &HessianBounds,
 ) -> Result<BlockCsr, InputError> {
     let text = super::read_text(path)?;
-    let coo = parse_checked(path, &text, |h| check_hessian_size(path, h, dim, bounds))?;
-    drop(text);
-    build_hessian(path, &coo, dim)
+    hessian_from_text(path, &text, dim, bounds)
+}
+
+/// [`read_hessian_bounded`] on text already read; `file` names it in errors.
+pub fn hessian_from_text(
+    file: &str,
+    text: &str,
+    dim: usize,
+    bounds: &HessianBounds,
+) -> Result<BlockCsr, InputError> {
+    let coo = parse_checked(file, text, |h| check_hessian_size(file, h, dim, bounds))?;
+    build_hessian(file, &coo, dim)
 }
 
 /// The length of a vector of shape `nrows × ncols`, and whether it is a column; checked
@@ -698,11 +707,20 @@ pub fn read_vector(
     expected: Option<(usize, &str)>,
 ) -> Result<Vec<f64>, InputError> {
     let text = super::read_text(path)?;
-    let coo = parse_checked(path, &text, |h| {
-        vector_shape(path, h, name, expected).map(|_| ())
+    vector_from_text(path, &text, name, expected)
+}
+
+/// [`read_vector`] on text already read; `file` names it in errors.
+pub fn vector_from_text(
+    file: &str,
+    text: &str,
+    name: &str,
+    expected: Option<(usize, &str)>,
+) -> Result<Vec<f64>, InputError> {
+    let coo = parse_checked(file, text, |h| {
+        vector_shape(file, h, name, expected).map(|_| ())
     })?;
-    drop(text);
-    vector_from_coo(path, &coo, name, expected)
+    vector_from_coo(file, &coo, name, expected)
 }
 
 /// Reads a general (non-symmetric) coordinate matrix such as B, where every row holds
@@ -710,7 +728,12 @@ pub fn read_vector(
 /// any entry is read.
 pub fn read_matrix(path: &str, name: &str) -> Result<Coo, InputError> {
     let text = super::read_text(path)?;
-    parse_checked(path, &text, |h| {
+    matrix_from_text(path, &text, name)
+}
+
+/// [`read_matrix`] on text already read; `path` names it in errors.
+pub fn matrix_from_text(path: &str, text: &str, name: &str) -> Result<Coo, InputError> {
+    parse_checked(path, text, |h| {
         if h.symmetric {
             return Err(err(
                 path,

@@ -7,3 +7,5 @@ pub mod cli;
 pub mod gpu;
 #[allow(dead_code)]
 pub mod kkt;
+#[allow(dead_code)]
+pub mod readers;
