@@ -14,24 +14,27 @@ root=$PWD
 venv=${STICKSLIP_PYTHON_VENV:-$root/target/python-venv}
 export CARGO_TARGET_DIR=${STICKSLIP_PYTHON_TARGET:-$root/target/python}
 
-need=()
-command -v python3 > /dev/null || need+=(python3)
-# Debian's python3 ships venv without ensurepip; python3-venv adds it.
-if ! python3 -c 'import ensurepip, venv' > /dev/null 2>&1; then need+=(python3-venv); fi
-if [ ${#need[@]} -gt 0 ]; then
+install() {
     if [ "$(id -u)" = 0 ] && command -v apt-get > /dev/null; then
-        echo "python-tests: installing ${need[*]}"
+        echo "python-tests: installing $*"
         export DEBIAN_FRONTEND=noninteractive
         apt-get update
-        apt-get install -y --no-install-recommends "${need[@]}"
+        apt-get install -y --no-install-recommends "$@"
     else
-        echo "python-tests: missing ${need[*]} (install them, or run as root on Debian)" >&2
+        echo "python-tests: missing $* (install them, or run as root on Debian)" >&2
         exit 1
     fi
-fi
-
+}
+command -v python3 > /dev/null || install python3 python3-venv
+mkdir -p "$root/target"
 rm -rf "$venv"
-python3 -m venv "$venv"
+# Debian's python3 has venv but not the ensurepip it needs: python3-venv adds it.
+if ! python3 -m venv "$venv" > "$root/target/python-venv.log" 2>&1; then
+    cat "$root/target/python-venv.log" >&2
+    rm -rf "$venv"
+    install python3-venv
+    python3 -m venv "$venv"
+fi
 py=$venv/bin/python
 # The maturin build backend runs the maturin executable: the environment's, on PATH.
 export PATH="$venv/bin:$PATH"
