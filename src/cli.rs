@@ -694,10 +694,10 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
     let solver = args.solver.name();
     let note =
         format!("stickslip solve --solver {solver}: relative residual {relative_residual:.3e}");
-    mtx::write_vector(&args.out, &dx, &format!("dx: {note}"))
+    mtx::write_vector(&args.out, dx, &format!("dx: {note}"))
         .map_err(|e| write_failed(&args.out, e))?;
     if let Some(path) = &args.reactions {
-        mtx::write_vector(path, &f, &format!("reactions f = -(H dx + g): {note}"))
+        mtx::write_vector(path, f, &format!("reactions f = -(H dx + g): {note}"))
             .map_err(|e| write_failed(path, e))?;
     }
     seconds.read = t_read;

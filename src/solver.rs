@@ -372,7 +372,7 @@ pub struct Step {
 const KEPT_LAYOUTS: usize = 8;
 
 enum Prepared {
-    Cholesky(CholeskyOracle),
+    Cholesky(Box<CholeskyOracle>),
     Gpu(Box<GpuSolver>),
 }
 
@@ -532,7 +532,7 @@ impl Solver {
         let t = Instant::now();
         let mut oracle = match self.take_prepared(layout) {
             Some(Prepared::Cholesky(o)) => o,
-            _ => CholeskyOracle::analyze(e)?,
+            _ => Box::new(CholeskyOracle::analyze(e)?),
         };
         let analysed = t.elapsed().as_secs_f64();
         // A layout key reused with another pattern re-analyses inside solve.

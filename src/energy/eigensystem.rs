@@ -173,8 +173,8 @@ fn scaling_eigen(d: usize, a: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
         let e = SymmetricEigen::new(Matrix2::new(a[0][0], a[0][1], a[1][0], a[1][1]));
         for k in 0..2 {
             vals[k] = e.eigenvalues[k];
-            for r in 0..2 {
-                vecs[r][k] = e.eigenvectors[(r, k)];
+            for (r, row) in vecs.iter_mut().enumerate().take(2) {
+                row[k] = e.eigenvectors[(r, k)];
             }
         }
     } else {
@@ -182,8 +182,8 @@ fn scaling_eigen(d: usize, a: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
         let e = SymmetricEigen::new(m);
         for k in 0..3 {
             vals[k] = e.eigenvalues[k];
-            for r in 0..3 {
-                vecs[r][k] = e.eigenvectors[(r, k)];
+            for (r, row) in vecs.iter_mut().enumerate() {
+                row[k] = e.eigenvectors[(r, k)];
             }
         }
     }
