@@ -64,7 +64,7 @@ fn reduce_slot(slot: u32, lid: u32) -> acc {
     for (var t = lid; t < params.n_partials; t += WG) {
         s += partials[slot * params.n_partials + t];
     }
-    return workgroup_sum_uniform(lid, sum1(s), 1u)[0];
+    return workgroup_sum_uniform1(lid, s);
 }
 
 // The partials of C and init: r·z and r·r and, with COARSE, Zᵀr, in one tree.
@@ -108,7 +108,7 @@ fn wc_dot(lid: u32) -> acc {
     for (var t = lid; t < kc; t += WG) {
         s += wc[t] * wc[kc + t];
     }
-    return workgroup_sum_uniform(lid, sum1(s), 1u)[0];
+    return workgroup_sum_uniform1(lid, s);
 }
 
 // Component a of node i is constrained (bit a of its mask).

@@ -196,6 +196,7 @@ pub(super) fn build_operator(
                 &[
                     ("D", c.d),
                     ("WG", c.wg),
+                    ("SUM_LANES", 1.0),
                     ("MASKED", flag(c.masked)),
                     ("DIFF", flag(diff)),
                 ],
@@ -222,6 +223,7 @@ pub(super) fn build_operator(
                 &[
                     ("D", c.d),
                     ("WG", c.wg),
+                    ("SUM_LANES", 1.0),
                     ("MASKED", flag(c.masked)),
                     ("ROTATE", flag(c.rotated)),
                 ],
@@ -461,6 +463,8 @@ fn cg_kernels(
     let cg_consts = [
         ("D", c.d),
         ("WG", c.wg),
+        // r·z and r·r, and with COARSE the D entries of Zᵀr (cg.wgsl write_partials).
+        ("SUM_LANES", if c.coarse { 2.0 + c.d } else { 2.0 }),
         ("PRECOND", c.precond),
         ("HIST", LANCZOS_HIST as f64),
         ("COARSE", flag(c.coarse)),
@@ -529,6 +533,8 @@ fn aggregate_kernels(
     let consts = [
         ("D", c.d),
         ("WG", c.wg),
+        // One aggregate's D translations (coarse.wgsl restrict_r).
+        ("SUM_LANES", c.d),
         ("MASKED", flag(c.masked)),
         ("ROTATED", flag(c.rotated)),
         ("N_AGG", f64::from(c.agg)),
@@ -644,7 +650,7 @@ pub(super) fn build_refine(
     let zero_state = bld.buffer("refine_state", 4 * N_STATE as u64, STORAGE)?;
     let staging = bld.staging("refine_staging", u64::from(MAX_WORKGROUPS) * 8)?;
     let factors = bld.buffer("refine_factors_f64", 2 * 8, STORAGE)?;
-    let consts = [("D", c.d), ("WG", c.wg)];
+    let consts = [("D", c.d), ("WG", c.wg), ("SUM_LANES", 1.0)];
     let mut refine = |name: &'static str| {
         bld.kernel(name, &kernels::REFINE, Real::F64, Real::F64, name, &consts)
     };
