@@ -346,6 +346,10 @@ fn write_failed(path: &str, e: std::io::Error) -> CliError {
 pub fn main() -> ExitCode {
     // A panic is a bug, but the one-line contract holds for it too: no backtrace hint.
     std::panic::set_hook(Box::new(|info| {
+        // A panic inside a third-party parser that the reader turns into an input error.
+        if crate::io::panic_is_contained() {
+            return;
+        }
         let msg = info
             .payload()
             .downcast_ref::<&str>()

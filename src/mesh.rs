@@ -400,10 +400,23 @@ pub fn rod(dim: usize, length: f64, cells: usize) -> Mesh {
 pub fn gmsh(dim: usize, bytes: &[u8]) -> Result<Mesh, String> {
     use mshio::mshfile::ElementType;
     use std::collections::HashMap;
-    // mshio panics on some malformed format lines (a data size that overflows or is not
-    // an integer width it knows): they are refused here first.
-    msh_format(bytes)?;
-    let f = mshio::parse_msh_bytes(bytes).map_err(|e| {
+    // mshio panics on some malformed files (a data size that overflows or is not an
+    // integer width it knows; with overflow checks, a section of zero nodes or
+    // elements): they are refused here first.
+    let format = msh_format(bytes)?;
+    for (section, what) in [(&b"$Nodes"[..], "nodes"), (&b"$Elements"[..], "elements")] {
+        if msh_section_count(bytes, section, format) == Some(0) {
+            return Err(format!(
+                "its {} section declares no {what}",
+                String::from_utf8_lossy(section)
+            ));
+        }
+    }
+    // A panic left in mshio for a malformed file we did not foresee is this file's
+    // error, not a crash.
+    let parsed = crate::io::contain_panic(|| mshio::parse_msh_bytes(bytes))
+        .ok_or("not a readable Gmsh MSH 4.1 file (its parser failed on it)")?;
+    let f = parsed.map_err(|e| {
         // mshio's messages can carry a hex dump of the file: keep one readable line.
         let e = e.to_string();
         let e = e.split("Hex dump").next().unwrap_or_default();
@@ -578,6 +591,35 @@ fn msh_format(bytes: &[u8]) -> Result<(bool, usize, bool, usize), String> {
         true
     };
     Ok((binary, size_t, little, line_end))
+}
+
+/// The second number of a section's header (numNodes of $Nodes, numElements of
+/// $Elements), None when the section or the number cannot be found.
+fn msh_section_count(
+    bytes: &[u8],
+    section: &[u8],
+    (binary, size_t, little, line_end): (bool, usize, bool, usize),
+) -> Option<u64> {
+    let start = msh_after(bytes, section, line_end)?;
+    if binary {
+        let raw = bytes.get(start + size_t..start + 2 * size_t)?;
+        let mut w = [0u8; 8];
+        Some(if little {
+            w[..size_t].copy_from_slice(raw);
+            u64::from_le_bytes(w)
+        } else {
+            w[8 - size_t..].copy_from_slice(raw);
+            u64::from_be_bytes(w)
+        })
+    } else {
+        let rest = bytes.get(start..(start + 256).min(bytes.len()))?;
+        let text = std::str::from_utf8(rest).ok().or_else(|| {
+            // A cut inside a multi-byte character at the window's end.
+            let valid = std::str::from_utf8(rest).err()?.valid_up_to();
+            std::str::from_utf8(&rest[..valid]).ok()
+        })?;
+        text.split_ascii_whitespace().nth(1)?.parse().ok()
+    }
 }
 
 /// The node tags of each block of the $Nodes section of a MSH 4.1 file (ASCII or

@@ -279,10 +279,30 @@ fn samples_are_valid() {
     }
 }
 
-/// Inputs the fuzzing found that once panicked (inside mshio's format-line parser):
-/// each is now an error.
+/// Inputs the fuzzing found that once panicked inside mshio (its format-line parser; with
+/// overflow checks, a section declaring zero nodes or elements): each is now an error.
 #[test]
 fn inputs_that_once_panicked_are_errors() {
+    // The binary square with 0 in the node count, then in the element count.
+    let bin = gmsh_samples()[2].clone();
+    for section in [&b"$Nodes\n"[..], &b"$Elements\n"[..]] {
+        let at = bin
+            .windows(section.len())
+            .position(|w| w == section)
+            .unwrap()
+            + section.len();
+        let mut b = bin.clone();
+        b[at + 8..at + 16].copy_from_slice(&0u64.to_le_bytes());
+        let e = stickslip::mesh::gmsh(2, &b).unwrap_err();
+        assert!(e.contains("declares no"), "{e}");
+    }
+    // The fuzzer's crash inputs, kept as seeds: read without a panic (an error or a mesh).
+    let seeds = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds/gmsh");
+    for e in std::fs::read_dir(&seeds).unwrap().flatten() {
+        if e.file_name().to_string_lossy().starts_with("crash-") {
+            readers::gmsh(&std::fs::read(e.path()).unwrap());
+        }
+    }
     let square = String::from_utf8(gmsh_samples()[0].clone()).unwrap();
     for (format, want) in [
         ("4.1 0 99999999999999999999", "data size"),

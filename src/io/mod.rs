@@ -91,6 +91,26 @@ pub fn one_line(msg: &str, max_chars: usize) -> String {
     out
 }
 
+thread_local! {
+    /// Set while [`contain_panic`] runs a third-party parser on this thread.
+    static CONTAINED: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Runs `f` (a third-party parser on user data), turning a panic inside it into `None`.
+/// While it runs, [`panic_is_contained`] is true on this thread, so a panic hook can
+/// stay silent about a panic that becomes an input error.
+pub fn contain_panic<T>(f: impl FnOnce() -> T) -> Option<T> {
+    CONTAINED.with(|c| c.set(true));
+    let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f));
+    CONTAINED.with(|c| c.set(false));
+    r.ok()
+}
+
+/// True inside [`contain_panic`] on this thread.
+pub fn panic_is_contained() -> bool {
+    CONTAINED.with(|c| c.get())
+}
+
 /// Longest run of non-space characters an error line echoes whole (a number, a key,
 /// a token from a file); longer runs are cut there with `…`.
 pub const MAX_TOKEN_CHARS: usize = 80;
