@@ -157,6 +157,13 @@ pub fn check_outputs(inputs: &[Named], outputs: &[Named]) -> Result<(), InputErr
         if meta.as_ref().is_some_and(|m| m.is_dir()) {
             return fail("is a folder, not a file".into());
         }
+        // A rename would replace a read-only file where writing into it was refused.
+        if meta
+            .as_ref()
+            .is_some_and(|m| m.is_file() && m.permissions().readonly())
+        {
+            return fail("is read-only".into());
+        }
         let key = location_key(&resolved);
         let id = file_id(&resolved);
         if let Some((other, _, _)) = seen
@@ -219,6 +226,12 @@ pub fn write_atomic(
     fill: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
 ) -> std::io::Result<()> {
     let target = resolve_links(path.as_ref())?;
+    if std::fs::metadata(&target).is_ok_and(|m| m.is_file() && m.permissions().readonly()) {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::PermissionDenied,
+            "the file is read-only",
+        ));
+    }
     if std::fs::metadata(&target).is_ok_and(|m| !m.is_file() && !m.is_dir()) {
         let mut w = BufWriter::new(OpenOptions::new().write(true).open(&target)?);
         fill(&mut w)?;
@@ -617,6 +630,16 @@ mod tests {
         let e = check_outputs(&inputs, &[Named::new("--out", &d.join("no/dx.mtx"))]).unwrap_err();
         assert!(e.problem.contains("does not exist"), "{e}");
         assert!(check_outputs(&inputs, &[Named::new("--out", &a)]).is_ok());
+        // A read-only file stays (a rename would replace it even where writing is denied).
+        let ro = d.join("ro.mtx");
+        std::fs::write(&ro, "keep").unwrap();
+        let mut perm = std::fs::metadata(&ro).unwrap().permissions();
+        perm.set_readonly(true);
+        std::fs::set_permissions(&ro, perm).unwrap();
+        let e = check_outputs(&inputs, &[Named::new("--out", &ro)]).unwrap_err();
+        assert!(e.problem.contains("read-only"), "{e}");
+        assert!(write_atomic_bytes(&ro, b"new").is_err());
+        assert_eq!(std::fs::read_to_string(&ro).unwrap(), "keep");
         std::fs::remove_dir_all(&d).ok();
     }
 
