@@ -73,10 +73,10 @@ fn write_partials(lid: u32, wg: u32, prz: acc, prr: acc, zr: vec3<acc>) {
     workgroup_sum(lid, array<acc, 5>(prz, prr, zr.x, zr.y, zr.z), n);
     if (lid == 0u) {
         let np = params.n_partials;
-        partials[PART_RZ * np + wg] = wg_sum[0];
-        partials[PART_RR * np + wg] = wg_sum[WG];
+        partials[PART_RZ * np + wg] = summed(0u);
+        partials[PART_RR * np + wg] = summed(1u);
         for (var a = 0u; a + 2u < n; a++) {
-            partials[(PART_ZR + a) * np + wg] = wg_sum[(2u + a) * WG];
+            partials[(PART_ZR + a) * np + wg] = summed(2u + a);
         }
     }
 }

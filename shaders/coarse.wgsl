@@ -77,7 +77,7 @@ fn restrict_r(
         }
         workgroup_sum(lid.x, array<acc, 5>(s.x, s.y, s.z, acc(0.0), acc(0.0)), D);
         if (lid.x < D) {
-            wc[a * D + lid.x] = wg_sum[lid.x * WG];
+            wc[a * D + lid.x] = summed(lid.x);
         }
         // The tree's memory is reused by the next aggregate.
         workgroupBarrier();

@@ -17,61 +17,60 @@ override WG: u32 = 64u;
 
 // The workgroup reduction of every kernel: up to five sums at once share one tree (on CPU
 // adapters each level's barrier costs more than its adds, so fused sums beat separate
-// trees). Sum c of invocation i lives at wg_sum[c * WG + i]: each sum is contiguous.
-// SUM_LANES, set per pipeline, is the most sums one call of the kernel carries: the tree's
-// memory is sized to it, because workgroup memory costs time whether it is used or not
-// (zero-initialized per workgroup; five lanes where two suffice cost lavapipe 20% more
-// instructions per CG iteration).
+// trees). Sums 0..3 of invocation i are the components of wg_sum[i], the fifth (only the
+// coarse correction's fused reduction in 3D has one) is wg_sum5[i]. SUM_LANES, set per
+// pipeline, is the most sums one call in the kernel carries; wg_sum5 has one entry unless
+// it is 5, because workgroup memory costs time whether it is used or not (it is
+// zero-initialized per workgroup).
 override SUM_LANES: u32 = 5u;
-override WG_SUM_LEN: u32 = SUM_LANES * WG;
-var<workgroup> wg_sum: array<acc, WG_SUM_LEN>;
+override WG_SUM5_LEN: u32 = max(1u, SUM_LANES / 5u * WG);
+var<workgroup> wg_sum: array<vec4<acc>, WG>;
+var<workgroup> wg_sum5: array<acc, WG_SUM5_LEN>;
 var<workgroup> wg_sums: array<acc, 5>;
 
 // Sums the first `n` entries of every invocation's `v` over the workgroup, in a fixed
-// order (deterministic). Sum c is left in wg_sum[c * WG] for every invocation to read
-// (the tree ends on a barrier). Every invocation calls it, in uniform control flow, with
-// the same constant n (1 to SUM_LANES). Straight-line code, one guarded statement per sum: the
-// guards fold away on the constant n, with no loop to unroll and no dynamic indexing.
+// order (deterministic); `summed(c)` then reads sum c in every invocation (the tree ends
+// on a barrier). Every invocation calls it, in uniform control flow, with the same
+// constant n (1 to SUM_LANES): the branches on n fold away. One sum moves one component
+// per level, more move the whole vec4 (one address for all of them).
 fn workgroup_sum(lid: u32, v: array<acc, 5>, n: u32) {
-    wg_sum[lid] = v[0];
-    if (n > 1u) {
-        wg_sum[WG + lid] = v[1];
-    }
-    if (n > 2u) {
-        wg_sum[2u * WG + lid] = v[2];
-    }
-    if (n > 3u) {
-        wg_sum[3u * WG + lid] = v[3];
+    if (n == 1u) {
+        wg_sum[lid].x = v[0];
+    } else {
+        wg_sum[lid] = vec4<acc>(v[0], v[1], v[2], v[3]);
     }
     if (n > 4u) {
-        wg_sum[4u * WG + lid] = v[4];
+        wg_sum5[lid] = v[4];
     }
     workgroupBarrier();
     for (var h = WG / 2u; h > 0u; h = h >> 1u) {
         if (lid < h) {
-            wg_sum[lid] += wg_sum[lid + h];
-            if (n > 1u) {
-                wg_sum[WG + lid] += wg_sum[WG + lid + h];
-            }
-            if (n > 2u) {
-                wg_sum[2u * WG + lid] += wg_sum[2u * WG + lid + h];
-            }
-            if (n > 3u) {
-                wg_sum[3u * WG + lid] += wg_sum[3u * WG + lid + h];
+            if (n == 1u) {
+                wg_sum[lid].x += wg_sum[lid + h].x;
+            } else {
+                wg_sum[lid] += wg_sum[lid + h];
             }
             if (n > 4u) {
-                wg_sum[4u * WG + lid] += wg_sum[4u * WG + lid + h];
+                wg_sum5[lid] += wg_sum5[lid + h];
             }
         }
         workgroupBarrier();
     }
 }
 
+// Sum c of the last workgroup_sum.
+fn summed(c: u32) -> acc {
+    if (c < 4u) {
+        return wg_sum[0][c];
+    }
+    return wg_sum5[0];
+}
+
 // workgroup_sum of one value, returned as a uniform value (one that later barriers may
 // depend on).
 fn workgroup_sum_uniform1(lid: u32, s: acc) -> acc {
     workgroup_sum(lid, sum1(s), 1u);
-    return workgroupUniformLoad(&wg_sum[0]);
+    return workgroupUniformLoad(&wg_sum[0]).x;
 }
 
 // workgroup_sum, with the sums returned as uniform values; entries from n on are
@@ -80,7 +79,7 @@ fn workgroup_sum_uniform(lid: u32, v: array<acc, 5>, n: u32) -> array<acc, 5> {
     workgroup_sum(lid, v, n);
     if (lid == 0u) {
         for (var c = 0u; c < n; c++) {
-            wg_sums[c] = wg_sum[c * WG];
+            wg_sums[c] = summed(c);
         }
     }
     return workgroupUniformLoad(&wg_sums);

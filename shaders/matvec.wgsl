@@ -190,6 +190,6 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
     }
     workgroup_sum(lid.x, sum1(part), 1u);
     if (lid.x == 0u) {
-        partials[PART_PQ * params.n_partials + wid.x] = wg_sum[0];
+        partials[PART_PQ * params.n_partials + wid.x] = summed(0u);
     }
 }

@@ -32,7 +32,7 @@ fn residual(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
     // under every prelude.
     workgroup_sum(lid.x, sum1(acc(s)), 1u);
     if (lid.x == 0u) {
-        partials64[wid.x] = f64(wg_sum[0]);
+        partials64[wid.x] = f64(summed(0u));
     }
 }
 

@@ -125,6 +125,6 @@ fn spring_matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgrou
     }
     workgroup_sum(lid.x, sum1(part), 1u);
     if (lid.x == 0u) {
-        partials[PART_PQ * params.n_partials + wid.x] = wg_sum[0];
+        partials[PART_PQ * params.n_partials + wid.x] = summed(0u);
     }
 }
