@@ -1,7 +1,7 @@
 //! Element energies, gradients and Hessians on the GPU (shaders/elements.wgsl through
 //! `gpu::elements`) against the CPU's (src/energy), term by term, in 2D and 3D, in f64
-//! and f32, for well-shaped, nearly flat and inverted elements (and, in f64, slivers that
-//! are flat already at rest).
+//! and f32, for well-shaped, nearly flat and inverted elements, elements with repeated
+//! singular values (and, in f64, slivers that are flat already at rest).
 //!
 //! "Relative" error of an array: max_k |gpu_k − cpu_k| / max_k |cpu_k| over all its entries
 //! (one array per term, category and quantity), so an entry near zero is judged against
@@ -15,7 +15,9 @@
 //! - f32: 1e-5 (≈ 80 ε_f32). Positions, rest data and parameters are rounded to f32
 //!   (2⁻²⁴ relative) before any arithmetic; F = Ds Dm⁻¹ turns that into ~|x|/|Ds|·2⁻²⁴ in F
 //!   (a few ×1e-7 for these elements, whose coordinates reach 5× their size), and the f32
-//!   arithmetic adds tens of ε_f32. Slivers at rest are left out: their F loses
+//!   arithmetic adds tens of ε_f32. The largest errors are the inertia energy's (≈ 5e-6):
+//!   x − x̃ is ~50× smaller than |x| here, so the f32 rounding of x and x̃ alone moves
+//!   (x − x̃)² by 2·50·2⁻²⁴ ≈ 6e-6 relative. Slivers at rest are left out: their F loses
 //!   ‖Dm⁻¹‖·|x|·2⁻²⁴ ≈ 1e-4 to the input rounding alone, whatever the kernel does.
 //!
 //! Every test shares one device (tests/common/gpu.rs); sizes are small for lavapipe.
@@ -24,7 +26,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use stickslip::energy::barrier::{Barrier, HalfSpace};
 use stickslip::energy::{gravity, inertia, ElementSet, Model, NeoHookean, Springs};
-use stickslip::gpu::elements::{GpuElements, TermKind, TermValues};
+use stickslip::gpu::elements::{ElementKernels, GpuElements, TermKind, TermValues};
 use stickslip::gpu::{GpuContext, Precision};
 use stickslip::mesh::{ElementKind, Mesh};
 
@@ -38,6 +40,9 @@ enum Category {
     WellShaped,
     Flat,
     Inverted,
+    /// Ties in |σ|, where an SVD's vectors are not unique: pure rotations, two equal σ,
+    /// and all |σ| equal with the last negative.
+    RepeatedSigma,
     SliverAtRest,
 }
 
@@ -75,6 +80,14 @@ fn deformation(d: usize, cat: Category, rng: &mut StdRng) -> Vec<f64> {
         }
         Category::Flat => s[d - 1] = 1e-6 * rng.random_range(0.5..2.0),
         Category::Inverted => s[d - 1] = -rng.random_range(0.1..0.6),
+        Category::RepeatedSigma => {
+            let ties: [&[f64]; 3] = if d == 2 {
+                [&[1.0, 1.0], &[1.3, 1.3], &[0.8, -0.8]]
+            } else {
+                [&[1.0, 1.0, 1.0], &[1.3, 1.3, 0.7], &[0.8, 0.8, -0.8]]
+            };
+            s.copy_from_slice(ties[rng.random_range(0..3)]);
+        }
     }
     compose(d, &u, &s, &v)
 }
@@ -323,9 +336,9 @@ fn rel(a: &[f64], b: &[f64]) -> f64 {
 
 /// Evaluates the scene on the GPU and returns the worst relative error per term over
 /// energy, gradient and Hessian, checking each against `tol`.
-fn compare(ctx: &GpuContext, s: &Scene, precision: Precision, tol: f64, what: &str) {
-    let dev = GpuElements::new(ctx, &s.model, Some((&s.barrier, &s.planes)), precision)
-        .expect("element kernels");
+fn compare(ctx: &GpuContext, kernels: &ElementKernels, s: &Scene, tol: f64, what: &str) {
+    let dev = GpuElements::with_kernels(ctx, kernels, &s.model, Some((&s.barrier, &s.planes)))
+        .expect("element data");
     assert_eq!(
         dev.kinds(),
         [
@@ -384,7 +397,12 @@ fn compare(ctx: &GpuContext, s: &Scene, precision: Precision, tol: f64, what: &s
 }
 
 fn categories(precision: Precision) -> Vec<Category> {
-    let mut c = vec![Category::WellShaped, Category::Flat, Category::Inverted];
+    let mut c = vec![
+        Category::WellShaped,
+        Category::Flat,
+        Category::Inverted,
+        Category::RepeatedSigma,
+    ];
     if precision == Precision::F64 {
         c.push(Category::SliverAtRest);
     }
@@ -398,15 +416,11 @@ fn run(precision: Precision, tol: f64) {
         return;
     }
     for d in [2, 3] {
+        // Compiled once, shared by every scene of this dimension.
+        let kernels = ElementKernels::new(ctx, d, precision).expect("element kernels");
         for (k, cat) in categories(precision).into_iter().enumerate() {
             let s = scene(d, cat, 100 * d as u64 + k as u64);
-            compare(
-                ctx,
-                &s,
-                precision,
-                tol,
-                &format!("{precision} {d}D {cat:?}"),
-            );
+            compare(ctx, &kernels, &s, tol, &format!("{precision} {d}D {cat:?}"));
         }
     }
 }

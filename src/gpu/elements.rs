@@ -145,7 +145,9 @@ fn from_bytes(f64: bool, b: &[u8]) -> Vec<f64> {
 }
 
 /// The compiled entry points of shaders/elements.wgsl for one dimension and precision,
-/// with their shared bind-group layout; built once, used by every mesh of that kind.
+/// with their shared bind-group layout; built once, used by every mesh of that kind
+/// (cloning shares the compiled pipelines).
+#[derive(Clone)]
 pub struct ElementKernels {
     dim: usize,
     f64: bool,
@@ -368,13 +370,14 @@ impl GpuElements {
         precision: Precision,
     ) -> Result<Self, GpuError> {
         let kernels = ElementKernels::new(ctx, model.dim, precision)?;
-        Self::with_kernels(ctx, kernels, model, barrier)
+        Self::with_kernels(ctx, &kernels, model, barrier)
     }
 
-    /// [`GpuElements::new`] with kernels built before (of the model's dimension).
+    /// [`GpuElements::new`] with kernels built before (of the model's dimension), so that
+    /// several meshes share one compilation.
     pub fn with_kernels(
         ctx: &GpuContext,
-        kernels: ElementKernels,
+        kernels: &ElementKernels,
         model: &Model,
         barrier: Option<(&Barrier, &[HalfSpace])>,
     ) -> Result<Self, GpuError> {
@@ -561,7 +564,7 @@ impl GpuElements {
         ctx.check("uploading the element data")?;
         Ok(GpuElements {
             ctx: ctx.clone(),
-            kernels,
+            kernels: kernels.clone(),
             n_nodes: n,
             n_planes: planes.len(),
             gravity,
