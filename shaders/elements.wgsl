@@ -376,9 +376,10 @@ fn add_mode(h: ptr<function, array<real, 144>>, l: real, q: array<real, 9>, g: a
             z[a * D + c] = s;
         }
     }
+    // Upper triangle only (mirrored when written), so the output is exactly symmetric.
     for (var r = 0u; r < nl; r++) {
         let lr = l * z[r];
-        for (var k = 0u; k < nl; k++) {
+        for (var k = r; k < nl; k++) {
             (*h)[r * nl + k] += lr * z[k];
         }
     }
@@ -523,8 +524,12 @@ fn neohookean_element(e: u32) {
         add_mode(&h, clamp_mode(ss + ts * kk), tw, g);
         add_mode(&h, clamp_mode(ss - ts * kk), fl, g);
     }
-    for (var k = 0u; k < nl * nl; k++) {
-        hessian[e * nl * nl + k] = vol * h[k];
+    for (var r = 0u; r < nl; r++) {
+        for (var k = r; k < nl; k++) {
+            let v = vol * h[r * nl + k];
+            hessian[e * nl * nl + r * nl + k] = v;
+            hessian[e * nl * nl + k * nl + r] = v;
+        }
     }
 }
 
@@ -622,7 +627,7 @@ fn barrier_node(i: u32) {
                 for (var a = 0u; a < D; a++) {
                     gr[a] += gg * consts[o + a];
                     for (var b = 0u; b < D; b++) {
-                        he[a * D + b] += hh * consts[o + a] * consts[o + b];
+                        he[a * D + b] += hh * (consts[o + a] * consts[o + b]);
                     }
                 }
             }

@@ -30,7 +30,7 @@ use rand::{Rng, SeedableRng};
 use stickslip::energy::barrier::{Barrier, HalfSpace};
 use stickslip::energy::{gravity, inertia, ElementSet, Model, NeoHookean, Springs};
 use stickslip::gpu::elements::{ElementKernels, GpuElements, TermKind, TermValues};
-use stickslip::gpu::{GpuContext, Precision};
+use stickslip::gpu::{GpuContext, GpuError, Precision};
 use stickslip::mesh::{ElementKind, Mesh};
 
 mod common;
@@ -373,6 +373,33 @@ fn numeric_projection(s: &Scene, xe: &[f64]) -> Vec<f64> {
     out
 }
 
+/// Every GPU element (or node) Hessian is exactly symmetric, and with `project` PSD: its
+/// smallest eigenvalue is ≥ −tol times the array's largest entry (the comparison's bound:
+/// clamped modes are left out of the sum exactly, so what remains is the rounding of at
+/// most nine PSD rank-one terms, ~12 ε of their scale).
+fn check_symmetric_and_psd(t: &TermValues, d: usize, project: bool, tol: f64, what: &str) {
+    if t.hessian.is_empty() {
+        return;
+    }
+    let n = t.hessian.len() / t.energy.len();
+    let nl = (n as f64).sqrt() as usize;
+    assert_eq!(nl * nl, n);
+    assert_eq!(nl % d, 0);
+    let scale = t.hessian.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    for (e, h) in t.hessian.chunks_exact(n).enumerate() {
+        for r in 0..nl {
+            for c in 0..r {
+                assert_eq!(h[r * nl + c], h[c * nl + r], "{what} {:?} {e}", t.kind);
+            }
+        }
+        if project {
+            let m = nalgebra::DMatrix::from_row_slice(nl, nl, h);
+            let min = nalgebra::SymmetricEigen::new(m).eigenvalues.min();
+            assert!(min >= -tol * scale, "{what} {:?} {e}: {min:e}", t.kind);
+        }
+    }
+}
+
 /// max |a − b| / max |b| (0 when both are empty or both all zero).
 fn rel(a: &[f64], b: &[f64]) -> f64 {
     assert_eq!(a.len(), b.len());
@@ -466,6 +493,7 @@ fn compare(ctx: &GpuContext, kernels: &ElementKernels, s: &Scene, tol: f64, what
                 );
             }
             assert_eq!(g.flags, want.flags, "{what} barrier flags");
+            check_symmetric_and_psd(g, s.model.dim, project, tol, what);
         }
     }
 }
@@ -571,4 +599,44 @@ fn scenes_exercise_projection_barrier_and_crossing() {
         assert_eq!(b.flags, want.flags, "{d}D");
         assert_eq!(b.flags[weighted], 1);
     }
+}
+
+/// Requests the kernels cannot serve are errors, never panics: mixed precision, a
+/// dimension other than 2 or 3, kernels of another dimension than the model's, positions
+/// of the wrong length, more half-spaces than the barrier was built with.
+#[test]
+fn bad_requests_are_errors() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = scene(2, Category::WellShaped, 3);
+    assert!(matches!(
+        ElementKernels::new(ctx, 2, Precision::Mixed),
+        Err(GpuError::Unsupported(_))
+    ));
+    assert!(matches!(
+        ElementKernels::new(ctx, 4, Precision::F32),
+        Err(GpuError::Unsupported(_))
+    ));
+    let k3 = ElementKernels::new(ctx, 3, Precision::F32).expect("3D kernels");
+    assert!(matches!(
+        GpuElements::with_kernels(ctx, &k3, &s.model, None),
+        Err(GpuError::Mismatch(_))
+    ));
+    let dev = GpuElements::new(ctx, &s.model, None, Precision::F32).expect("element data");
+    assert_eq!(
+        dev.kinds(),
+        [
+            TermKind::NeoHookean,
+            TermKind::Springs,
+            TermKind::Inertia,
+            TermKind::Gravity
+        ]
+    );
+    assert!(matches!(
+        dev.set_positions(&s.x[1..]),
+        Err(GpuError::Mismatch(_))
+    ));
+    assert!(matches!(
+        dev.set_planes(&s.planes),
+        Err(GpuError::Mismatch(_))
+    ));
 }

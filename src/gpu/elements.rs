@@ -13,7 +13,7 @@
 //!
 //! - `energy[e]`,
 //! - `gradient[e·nl + a·d + c]` (node a of the element, axis c; nl = nodes·d),
-//! - `hessian[e·nl² + (a·d + c)·nl + b·d + k]` (row-major nl×nl),
+//! - `hessian[e·nl² + (a·d + c)·nl + b·d + k]` (row-major nl×nl, exactly symmetric),
 //!
 //! with a node term (inertia, gravity, barrier) as an element of one node; gravity has no
 //! Hessian, and the barrier adds `flags[i]` = 1 where a weighted node touches or crosses a
