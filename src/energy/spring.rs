@@ -97,3 +97,50 @@ impl Springs {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The closed-form projection (transverse stiffness clamped at zero) is the eigen-clamp
+    /// of the element Hessian: it equals `project_psd` (nalgebra SymmetricEigen, negative
+    /// eigenvalues set to zero) of the unprojected matrix to 1e-12 of its scale (both are
+    /// sums of a few products of O(k/l₀) terms; rounding is ~1e-16), and it is PSD.
+    #[test]
+    fn projection_is_the_numerical_eigen_clamp() {
+        for dim in [2usize, 3] {
+            let x: Vec<f64> = (0..2 * dim)
+                .map(|k| [0.1, -0.2, 0.05, 0.9, 0.3, -0.4][k])
+                .collect();
+            let s = Springs::new(dim, &x, vec![[0, 1]], 50.0).expect("valid spring");
+            let n = 2 * dim;
+            for stretch in [0.3, 0.8, 1.0, 1.4] {
+                let mut y = x.clone();
+                for a in 0..dim {
+                    y[dim + a] = x[a] + stretch * (x[dim + a] - x[a]);
+                }
+                let mut exact = vec![0.0; n * n];
+                s.element_hessian(&y, 0, false, &mut exact);
+                let mut numeric = exact.clone();
+                crate::energy::project_psd(n, &mut numeric);
+                let mut closed = vec![0.0; n * n];
+                s.element_hessian(&y, 0, true, &mut closed);
+                let scale = exact.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                let err = numeric
+                    .iter()
+                    .zip(&closed)
+                    .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+                assert!(err <= 1e-12 * scale, "{dim}D stretch {stretch}: {err:e}");
+                let m = nalgebra::DMatrix::from_row_slice(n, n, &closed);
+                let min = nalgebra::SymmetricEigen::new(m).eigenvalues.min();
+                assert!(min >= -1e-12 * scale, "{dim}D stretch {stretch}: {min:e}");
+                // Compressed springs have a negative transverse eigenvalue to clamp.
+                let changed = numeric
+                    .iter()
+                    .zip(&exact)
+                    .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+                assert_eq!(changed > 1e-3 * scale, stretch < 1.0, "{dim}D {stretch}");
+            }
+        }
+    }
+}

@@ -5,6 +5,8 @@
 //! deterministic two-pass reductions.
 
 pub mod context;
+#[cfg(feature = "sim")]
+pub mod elements;
 pub mod kernels;
 pub mod solver;
 

@@ -1,0 +1,804 @@
+//! Element energies, gradients and PSD-projected Hessians on the device
+//! (shaders/elements.wgsl): the per-element part of a Newton step, for every energy a
+//! [`Model`] can hold (neo-Hookean triangles and tetrahedra, springs), the lumped inertia,
+//! gravity and the half-space barrier.
+//!
+//! Mesh data is uploaded once ([`GpuElements::new`]): per element set the element-to-node
+//! indices (u32, nodes per element each) and the rest data (neo-Hookean: Dm⁻¹, rest
+//! volume, μ, λ; springs: rest length, stiffness), per node the lumped mass and contact
+//! weight, and the gravity and half-spaces. Per evaluation only the positions (and the
+//! inertia target, the half-spaces when they move) are written. Each term leaves its own
+//! per-item arrays on the device, in the layout of the CPU's element buffers
+//! (`energy::Model`), ready for a device assembly:
+//!
+//! - `energy[e]`,
+//! - `gradient[e·nl + a·d + c]` (node a of the element, axis c; nl = nodes·d),
+//! - `hessian[e·nl² + (a·d + c)·nl + b·d + k]` (row-major nl×nl, exactly symmetric),
+//!
+//! with a node term (inertia, gravity, barrier) as an element of one node; gravity has no
+//! Hessian, and the barrier adds `flags[i]` = 1 where a weighted node touches or crosses a
+//! half-space (its energy is +∞ there, which WGSL cannot write portably).
+//!
+//! The neo-Hookean Hessian is (∂F/∂x)ᵀ proj(∂²Ψ/∂F²) (∂F/∂x) with proj the clamp of the
+//! analytic eigensystem (`energy::eigensystem`), computed from a signed one-sided Jacobi
+//! SVD of F in the shader; values are unscaled (no h²).
+//!
+//! f64 needs SHADER_F64; f32 runs the same source with `real = f32`.
+
+use super::kernels::{self, Access, Layout};
+use super::{GpuContext, GpuError, Precision};
+use crate::energy::barrier::{Barrier, HalfSpace};
+use crate::energy::{ElementSet, Model};
+use wgpu::util::DeviceExt;
+
+use Access::{Read as R, ReadWrite as W, Uniform as U};
+
+/// Bind group 0 of shaders/elements.wgsl, shared by all its entry points.
+pub const ELEMENTS: Layout = Layout {
+    file: "elements.wgsl",
+    source: include_str!("../../shaders/elements.wgsl"),
+    bindings: &[
+        ("params", U),
+        ("x", R),
+        ("nodes", R),
+        ("rest", R),
+        ("consts", R),
+        ("x_tilde", R),
+        ("energy", W),
+        ("gradient", W),
+        ("hessian", W),
+        ("flags", W),
+    ],
+};
+
+/// Uniform parameters of one dispatch (mirrors `ElementParams` in shaders/elements.wgsl).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ElementParams {
+    count: u32,
+    project: u32,
+    n_planes: u32,
+    pad: u32,
+}
+const _: () = assert!(std::mem::size_of::<ElementParams>() == 16);
+
+/// Workgroup size of the element kernels.
+pub const WORKGROUP: u32 = 64;
+
+/// Reals per half-space in the constants buffer (normal xyz, offset, d̂, κ), after the
+/// three gravity entries.
+const PLANE_STRIDE: usize = 6;
+const GRAVITY_SLOTS: usize = 3;
+
+/// One energy term of a scene on the device.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TermKind {
+    NeoHookean,
+    Springs,
+    Inertia,
+    Gravity,
+    Barrier,
+}
+
+impl TermKind {
+    const ALL: [TermKind; 5] = [
+        TermKind::NeoHookean,
+        TermKind::Springs,
+        TermKind::Inertia,
+        TermKind::Gravity,
+        TermKind::Barrier,
+    ];
+
+    fn entry(self) -> &'static str {
+        match self {
+            TermKind::NeoHookean => "neohookean_elements",
+            TermKind::Springs => "spring_elements",
+            TermKind::Inertia => "inertia_nodes",
+            TermKind::Gravity => "gravity_nodes",
+            TermKind::Barrier => "barrier_nodes",
+        }
+    }
+
+    fn index(self) -> usize {
+        self as usize
+    }
+}
+
+/// Arithmetic of the element kernels: f64 or f32 (the same WGSL source).
+fn is_f64(precision: Precision) -> Result<bool, GpuError> {
+    match precision {
+        Precision::F64 => Ok(true),
+        Precision::F32 => Ok(false),
+        Precision::Mixed => Err(GpuError::Unsupported(
+            "element kernels run in f32 or f64, not mixed".into(),
+        )),
+    }
+}
+
+fn real_name(f64: bool) -> &'static str {
+    if f64 {
+        "f64"
+    } else {
+        "f32"
+    }
+}
+
+fn to_bytes(f64: bool, v: &[f64]) -> Vec<u8> {
+    if f64 {
+        bytemuck::cast_slice(v).to_vec()
+    } else {
+        let w: Vec<f32> = v.iter().map(|&x| x as f32).collect();
+        bytemuck::cast_slice(&w).to_vec()
+    }
+}
+
+fn from_bytes(f64: bool, b: &[u8]) -> Vec<f64> {
+    if f64 {
+        b.chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
+            .collect()
+    } else {
+        b.chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64)
+            .collect()
+    }
+}
+
+/// The compiled entry points of shaders/elements.wgsl for one dimension and precision,
+/// with their shared bind-group layout; built once, used by every mesh of that kind
+/// (cloning shares the compiled pipelines).
+#[derive(Clone)]
+pub struct ElementKernels {
+    dim: usize,
+    f64: bool,
+    layout: wgpu::BindGroupLayout,
+    /// One per [`TermKind`], in its order.
+    pipelines: Vec<wgpu::ComputePipeline>,
+}
+
+impl ElementKernels {
+    pub fn new(ctx: &GpuContext, dim: usize, precision: Precision) -> Result<Self, GpuError> {
+        let f64 = is_f64(precision)?;
+        if !(dim == 2 || dim == 3) {
+            return Err(GpuError::Unsupported(format!(
+                "element kernels take 2D or 3D, not {dim}D"
+            )));
+        }
+        if f64 && !ctx.has_f64() {
+            return Err(GpuError::NoF64 {
+                adapter: ctx.adapter_name().to_string(),
+                precision,
+            });
+        }
+        let dev = &ctx.device;
+        let real = real_name(f64);
+        let code = format!("{}{}", kernels::prelude(real, real, false), ELEMENTS.source);
+        let module = dev.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some(&format!("elements.wgsl ({real})")),
+            source: wgpu::ShaderSource::Wgsl(code.into()),
+        });
+        let entries: Vec<wgpu::BindGroupLayoutEntry> = ELEMENTS
+            .bindings
+            .iter()
+            .enumerate()
+            .map(|(i, (_, access))| wgpu::BindGroupLayoutEntry {
+                binding: i as u32,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: match access {
+                        Access::Uniform => wgpu::BufferBindingType::Uniform,
+                        Access::Read => wgpu::BufferBindingType::Storage { read_only: true },
+                        Access::ReadWrite => wgpu::BufferBindingType::Storage { read_only: false },
+                    },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            })
+            .collect();
+        let layout = dev.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("elements layout"),
+            entries: &entries,
+        });
+        let pl = dev.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("elements pipeline layout"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        // Unit roundoff of the real type: exact powers of two, so exact as f32 too.
+        let eps = if f64 {
+            f64::EPSILON
+        } else {
+            f32::EPSILON as f64
+        };
+        let constants = [("D", dim as f64), ("WG", WORKGROUP as f64), ("EPS", eps)];
+        let pipelines = TermKind::ALL
+            .iter()
+            .map(|k| {
+                dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                    label: Some(&format!("{} ({dim}D, {real})", k.entry())),
+                    layout: Some(&pl),
+                    module: &module,
+                    entry_point: Some(k.entry()),
+                    compilation_options: wgpu::PipelineCompilationOptions {
+                        constants: &constants,
+                        zero_initialize_workgroup_memory: true,
+                    },
+                    cache: None,
+                })
+            })
+            .collect();
+        ctx.check("building the element kernels")?;
+        Ok(ElementKernels {
+            dim,
+            f64,
+            layout,
+            pipelines,
+        })
+    }
+
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    pub fn is_f64(&self) -> bool {
+        self.f64
+    }
+}
+
+/// One term's device data and outputs.
+struct Term {
+    kind: TermKind,
+    count: usize,
+    /// Gradient and Hessian entries per element (or node).
+    grad_len: usize,
+    hess_len: usize,
+    params: wgpu::Buffer,
+    group: wgpu::BindGroup,
+    energy: wgpu::Buffer,
+    gradient: wgpu::Buffer,
+    hessian: Option<wgpu::Buffer>,
+    flags: Option<wgpu::Buffer>,
+}
+
+/// One term's outputs read back to the host (f64 whatever the device precision).
+#[derive(Debug, Clone, PartialEq)]
+pub struct TermValues {
+    pub kind: TermKind,
+    /// Per element (node terms: per node).
+    pub energy: Vec<f64>,
+    /// Per element nodes·d entries (node terms: d).
+    pub gradient: Vec<f64>,
+    /// Per element (nodes·d)² row-major (node terms: d²); empty for gravity.
+    pub hessian: Vec<f64>,
+    /// Barrier: 1 where a weighted node touches or crosses a half-space; else empty.
+    pub flags: Vec<u32>,
+}
+
+/// The element terms of one scene on the device: mesh data uploaded once, positions per
+/// evaluation, per-element outputs left on the device.
+pub struct GpuElements {
+    ctx: GpuContext,
+    kernels: ElementKernels,
+    n_nodes: usize,
+    n_planes: usize,
+    gravity: [f64; 3],
+    x: wgpu::Buffer,
+    x_tilde: wgpu::Buffer,
+    consts: wgpu::Buffer,
+    terms: Vec<Term>,
+}
+
+fn usage_storage() -> wgpu::BufferUsages {
+    wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::COPY_SRC
+}
+
+/// Buffers with the adapter's limits checked first (a too-large mesh is an error, not a
+/// device fault).
+struct Alloc<'a> {
+    ctx: &'a GpuContext,
+}
+
+impl Alloc<'_> {
+    fn check(&self, label: &str, bytes: u64) -> Result<(), GpuError> {
+        let l = &self.ctx.limits;
+        let too_large = |limit: u64, what: &'static str| GpuError::BufferTooLarge {
+            label: label.to_string(),
+            bytes,
+            limit,
+            what,
+            adapter: self.ctx.adapter_name().to_string(),
+        };
+        if bytes > l.max_buffer_size {
+            return Err(too_large(l.max_buffer_size, "buffer"));
+        }
+        if bytes > l.max_storage_buffer_binding_size {
+            return Err(too_large(
+                l.max_storage_buffer_binding_size,
+                "storage binding",
+            ));
+        }
+        Ok(())
+    }
+
+    /// A storage buffer holding `data` (padded to 16 bytes: bindings must not be empty).
+    fn init(&self, label: &str, data: &[u8]) -> Result<wgpu::Buffer, GpuError> {
+        let mut padded = data.to_vec();
+        padded.resize(data.len().max(16).div_ceil(16) * 16, 0);
+        self.check(label, padded.len() as u64)?;
+        Ok(self
+            .ctx
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: &padded,
+                usage: usage_storage(),
+            }))
+    }
+
+    fn zeroed(&self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
+        let bytes = bytes.max(16).div_ceil(16) * 16;
+        self.check(label, bytes)?;
+        Ok(self.ctx.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: bytes,
+            usage: usage_storage(),
+            mapped_at_creation: false,
+        }))
+    }
+}
+
+/// What one term binds besides the shared positions and constants.
+struct TermData<'a> {
+    kind: TermKind,
+    label: String,
+    count: usize,
+    nodes: Option<&'a wgpu::Buffer>,
+    rest: &'a wgpu::Buffer,
+    grad_len: usize,
+    hess_len: usize,
+}
+
+impl GpuElements {
+    /// Uploads the mesh data of `model` (every element set, the lumped masses and the
+    /// gravity) and, with `barrier`, the contact weights and the half-spaces (their number
+    /// is fixed from here on; [`GpuElements::set_planes`] moves them).
+    pub fn new(
+        ctx: &GpuContext,
+        model: &Model,
+        barrier: Option<(&Barrier, &[HalfSpace])>,
+        precision: Precision,
+    ) -> Result<Self, GpuError> {
+        let kernels = ElementKernels::new(ctx, model.dim, precision)?;
+        Self::with_kernels(ctx, &kernels, model, barrier)
+    }
+
+    /// [`GpuElements::new`] with kernels built before (of the model's dimension), so that
+    /// several meshes share one compilation.
+    pub fn with_kernels(
+        ctx: &GpuContext,
+        kernels: &ElementKernels,
+        model: &Model,
+        barrier: Option<(&Barrier, &[HalfSpace])>,
+    ) -> Result<Self, GpuError> {
+        let d = model.dim;
+        if kernels.dim != d {
+            return Err(GpuError::Mismatch(format!(
+                "element kernels are {}D, the model {d}D",
+                kernels.dim
+            )));
+        }
+        let n = model.n_nodes;
+        // Shader indices are u32: the largest is an entry of a per-element Hessian, which
+        // the buffer limits keep below 2³²/4; node coordinates are checked here.
+        if n.checked_mul(d).is_none_or(|v| v > u32::MAX as usize) {
+            return Err(GpuError::Unsupported(format!(
+                "{n} nodes exceed the element kernels' u32 indices"
+            )));
+        }
+        let f64 = kernels.f64;
+        let rs = if f64 { 8u64 } else { 4 };
+        let a = Alloc { ctx };
+        let x = a.zeroed("elements positions", (n * d) as u64 * rs)?;
+        let x_tilde = a.zeroed("elements inertia target", (n * d) as u64 * rs)?;
+        let mut gravity = [0.0; 3];
+        if let Some(g) = &model.gravity {
+            gravity[..d].copy_from_slice(&g[..d]);
+        }
+        let planes: &[HalfSpace] = barrier.map_or(&[], |b| b.1);
+        let consts = a.init(
+            "elements constants",
+            &to_bytes(f64, &constants(&gravity, planes)),
+        )?;
+        let weight: Vec<f64> = match barrier {
+            Some((b, _)) => {
+                if b.weight.len() != n || b.dim != d {
+                    return Err(GpuError::Mismatch(format!(
+                        "the barrier has {} {}D nodes, the model {n} {d}D",
+                        b.weight.len(),
+                        b.dim
+                    )));
+                }
+                b.weight.clone()
+            }
+            None => vec![0.0; n],
+        };
+        let node_data: Vec<f64> = (0..n).flat_map(|i| [model.mass[i], weight[i]]).collect();
+        let node_data = a.init("elements node data", &to_bytes(f64, &node_data))?;
+        // Element sets: node indices and rest data.
+        let mut uploads = Vec::new();
+        for (k, s) in model.sets.iter().enumerate() {
+            let (kind, stride, rest) = match s {
+                ElementSet::NeoHookean(nh) => {
+                    let stride = d * d + 3;
+                    let mut rest = Vec::with_capacity(nh.elements.len() * stride);
+                    for e in 0..nh.elements.len() {
+                        // Rows 1..=d of the shape gradients are Dm⁻¹.
+                        rest.extend_from_slice(&nh.grads(e)[d..]);
+                        rest.extend_from_slice(&[nh.volume[e], nh.mu, nh.lambda]);
+                    }
+                    (TermKind::NeoHookean, stride, rest)
+                }
+                ElementSet::Springs(sp) => {
+                    let rest: Vec<f64> = sp.rest.iter().flat_map(|&l| [l, sp.stiffness]).collect();
+                    (TermKind::Springs, 2, rest)
+                }
+            };
+            debug_assert_eq!(rest.len(), s.len() * stride);
+            let idx: Vec<u32> = (0..s.len())
+                .flat_map(|e| s.nodes(e).iter().map(|&v| v as u32))
+                .collect();
+            let nodes = a.init(
+                &format!("elements set {k} nodes"),
+                bytemuck::cast_slice(&idx),
+            )?;
+            let rest = a.init(&format!("elements set {k} rest"), &to_bytes(f64, &rest))?;
+            uploads.push((kind, k, s.len(), s.arity(), nodes, rest));
+        }
+        let mut data: Vec<TermData> = uploads
+            .iter()
+            .map(|(kind, k, count, arity, nodes, rest)| {
+                let nl = arity * d;
+                TermData {
+                    kind: *kind,
+                    label: format!("elements set {k}"),
+                    count: *count,
+                    nodes: Some(nodes),
+                    rest,
+                    grad_len: nl,
+                    hess_len: nl * nl,
+                }
+            })
+            .collect();
+        let node_term = |kind: TermKind, label: &str, hess_len: usize| TermData {
+            kind,
+            label: label.to_string(),
+            count: n,
+            nodes: None,
+            rest: &node_data,
+            grad_len: d,
+            hess_len,
+        };
+        data.push(node_term(TermKind::Inertia, "elements inertia", d * d));
+        if model.gravity.is_some() {
+            data.push(node_term(TermKind::Gravity, "elements gravity", 0));
+        }
+        if barrier.is_some() {
+            data.push(node_term(TermKind::Barrier, "elements barrier", d * d));
+        }
+        let mut terms = Vec::with_capacity(data.len());
+        for t in data {
+            let label = &t.label;
+            let params = ElementParams {
+                count: t.count as u32,
+                project: 1,
+                n_planes: planes.len() as u32,
+                pad: 0,
+            };
+            let params = ctx
+                .device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(&format!("{label} params")),
+                    contents: bytemuck::bytes_of(&params),
+                    usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                });
+            let energy = a.zeroed(&format!("{label} energy"), t.count as u64 * rs)?;
+            let gradient = a.zeroed(
+                &format!("{label} gradient"),
+                (t.count * t.grad_len) as u64 * rs,
+            )?;
+            let hessian = (t.hess_len > 0)
+                .then(|| {
+                    a.zeroed(
+                        &format!("{label} hessian"),
+                        (t.count * t.hess_len) as u64 * rs,
+                    )
+                })
+                .transpose()?;
+            let flags = (t.kind == TermKind::Barrier)
+                .then(|| a.zeroed(&format!("{label} flags"), t.count as u64 * 4))
+                .transpose()?;
+            // Bindings the entry point never touches still need a buffer: small ones of
+            // their own, so no buffer is bound both read-only and writable.
+            let unused_read = a.zeroed(&format!("{label} unused input"), 16)?;
+            let unused_hessian = a.zeroed(&format!("{label} unused hessian"), 16)?;
+            let unused_flags = a.zeroed(&format!("{label} unused flags"), 16)?;
+            let bufs: [&wgpu::Buffer; 10] = [
+                &params,
+                &x,
+                t.nodes.unwrap_or(&unused_read),
+                t.rest,
+                &consts,
+                &x_tilde,
+                &energy,
+                &gradient,
+                hessian.as_ref().unwrap_or(&unused_hessian),
+                flags.as_ref().unwrap_or(&unused_flags),
+            ];
+            let entries: Vec<wgpu::BindGroupEntry> = bufs
+                .iter()
+                .enumerate()
+                .map(|(i, b)| wgpu::BindGroupEntry {
+                    binding: i as u32,
+                    resource: b.as_entire_binding(),
+                })
+                .collect();
+            let group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(&format!("{label} bind group")),
+                layout: &kernels.layout,
+                entries: &entries,
+            });
+            terms.push(Term {
+                kind: t.kind,
+                count: t.count,
+                grad_len: t.grad_len,
+                hess_len: t.hess_len,
+                params,
+                group,
+                energy,
+                gradient,
+                hessian,
+                flags,
+            });
+        }
+        ctx.check("uploading the element data")?;
+        Ok(GpuElements {
+            ctx: ctx.clone(),
+            kernels: kernels.clone(),
+            n_nodes: n,
+            n_planes: planes.len(),
+            gravity,
+            x,
+            x_tilde,
+            consts,
+            terms,
+        })
+    }
+
+    /// The terms in evaluation order: the model's element sets, inertia, gravity (when
+    /// the model has it), barrier (when given).
+    pub fn kinds(&self) -> Vec<TermKind> {
+        self.terms.iter().map(|t| t.kind).collect()
+    }
+
+    fn write_nodal(&self, buf: &wgpu::Buffer, v: &[f64], what: &str) -> Result<(), GpuError> {
+        let want = self.n_nodes * self.kernels.dim;
+        if v.len() != want {
+            return Err(GpuError::Mismatch(format!(
+                "{what} has {} entries, the mesh {want}",
+                v.len()
+            )));
+        }
+        self.ctx
+            .queue
+            .write_buffer(buf, 0, &to_bytes(self.kernels.f64, v));
+        Ok(())
+    }
+
+    /// Node positions x (node-major, d per node).
+    pub fn set_positions(&self, x: &[f64]) -> Result<(), GpuError> {
+        self.write_nodal(&self.x, x, "positions")
+    }
+
+    /// The inertia target x̃ (node-major).
+    pub fn set_inertia_target(&self, x_tilde: &[f64]) -> Result<(), GpuError> {
+        self.write_nodal(&self.x_tilde, x_tilde, "inertia target")
+    }
+
+    /// Moves the half-spaces (as many as given to [`GpuElements::new`]).
+    pub fn set_planes(&self, planes: &[HalfSpace]) -> Result<(), GpuError> {
+        if planes.len() != self.n_planes {
+            return Err(GpuError::Mismatch(format!(
+                "{} half-spaces given, the barrier was built with {}",
+                planes.len(),
+                self.n_planes
+            )));
+        }
+        self.ctx.queue.write_buffer(
+            &self.consts,
+            0,
+            &to_bytes(self.kernels.f64, &constants(&self.gravity, planes)),
+        );
+        Ok(())
+    }
+
+    /// Dispatches every term at the current positions; with `project` the element
+    /// Hessians are PSD-projected (the neo-Hookean ∂²Ψ/∂F² eigenvalues and the springs'
+    /// transverse stiffness clamped at zero), else exact.
+    pub fn evaluate(&self, project: bool) -> Result<(), GpuError> {
+        let dev = &self.ctx.device;
+        let max_groups = self.ctx.limits.max_compute_workgroups_per_dimension.max(1);
+        for t in &self.terms {
+            let p = ElementParams {
+                count: t.count as u32,
+                project: project as u32,
+                n_planes: self.n_planes as u32,
+                pad: 0,
+            };
+            self.ctx
+                .queue
+                .write_buffer(&t.params, 0, bytemuck::bytes_of(&p));
+        }
+        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("elements evaluate"),
+        });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("elements pass"),
+                timestamp_writes: None,
+            });
+            for t in self.terms.iter().filter(|t| t.count > 0) {
+                let groups = (t.count as u64)
+                    .div_ceil(WORKGROUP as u64)
+                    .min(max_groups as u64) as u32;
+                pass.set_pipeline(&self.kernels.pipelines[t.kind.index()]);
+                pass.set_bind_group(0, &t.group, &[]);
+                pass.dispatch_workgroups(groups, 1, 1);
+            }
+        }
+        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.check("evaluating the element terms")
+    }
+
+    /// Reads every term's outputs back (for tests and inspection; a device Newton loop
+    /// keeps them on the device).
+    pub fn read(&self) -> Result<Vec<TermValues>, GpuError> {
+        let f64 = self.kernels.f64;
+        let rs = if f64 { 8u64 } else { 4 };
+        let mut out = Vec::with_capacity(self.terms.len());
+        for t in &self.terms {
+            let energy = from_bytes(f64, &self.download(&t.energy, t.count as u64 * rs)?);
+            let gradient = from_bytes(
+                f64,
+                &self.download(&t.gradient, (t.count * t.grad_len) as u64 * rs)?,
+            );
+            let hessian = match &t.hessian {
+                Some(h) => from_bytes(f64, &self.download(h, (t.count * t.hess_len) as u64 * rs)?),
+                None => Vec::new(),
+            };
+            let flags = match &t.flags {
+                Some(fl) => bytemuck::pod_collect_to_vec(&self.download(fl, t.count as u64 * 4)?),
+                None => Vec::new(),
+            };
+            out.push(TermValues {
+                kind: t.kind,
+                energy,
+                gradient,
+                hessian,
+                flags,
+            });
+        }
+        Ok(out)
+    }
+
+    /// Copies the first `bytes` of `buf` to the host.
+    fn download(&self, buf: &wgpu::Buffer, bytes: u64) -> Result<Vec<u8>, GpuError> {
+        if bytes == 0 {
+            return Ok(Vec::new());
+        }
+        let dev = &self.ctx.device;
+        let staging = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("elements read-back"),
+            size: bytes.div_ceil(4) * 4,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("elements read-back"),
+        });
+        enc.copy_buffer_to_buffer(buf, 0, &staging, 0, bytes.div_ceil(4) * 4);
+        self.ctx.queue.submit([enc.finish()]);
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+        dev.poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))?;
+        rx.recv()
+            .map_err(|_| GpuError::Device("buffer mapping was dropped".into()))?
+            .map_err(|e| GpuError::Device(format!("mapping a read-back buffer: {e}")))?;
+        let v = staging
+            .get_mapped_range(..)
+            .map_err(|e| GpuError::Device(format!("reading a mapped buffer: {e}")))?
+            .to_vec();
+        staging.unmap();
+        self.ctx.check("reading back the element terms")?;
+        Ok(v[..bytes as usize].to_vec())
+    }
+}
+
+/// The constants buffer: gravity (three entries), then per half-space its normal, offset,
+/// d̂ and κ.
+fn constants(gravity: &[f64; 3], planes: &[HalfSpace]) -> Vec<f64> {
+    let mut c = Vec::with_capacity(GRAVITY_SLOTS + PLANE_STRIDE * planes.len());
+    c.extend_from_slice(gravity);
+    for p in planes {
+        c.extend_from_slice(&p.normal);
+        c.extend_from_slice(&[p.offset, p.dhat, p.kappa]);
+    }
+    c
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use naga::{AddressSpace, StorageAccess};
+
+    /// The WGSL declarations of bind group 0 are [`ELEMENTS`]' bindings, in order, with
+    /// their access; and `ElementParams` is four u32 in WGSL as in Rust.
+    #[test]
+    fn layout_and_params_match_the_wgsl() {
+        let src = format!(
+            "{}{}",
+            kernels::prelude("f64", "f64", false),
+            ELEMENTS.source
+        );
+        let m = naga::front::wgsl::parse_str(&src)
+            .unwrap_or_else(|e| panic!("elements.wgsl: {}", e.emit_to_string(&src)));
+        let mut declared: Vec<(u32, String, Access)> = m
+            .global_variables
+            .iter()
+            .filter_map(|(_, g)| {
+                let b = g.binding.as_ref()?;
+                assert_eq!(b.group, 0);
+                let access = match g.space {
+                    AddressSpace::Uniform => Access::Uniform,
+                    AddressSpace::Storage { access } if access.contains(StorageAccess::STORE) => {
+                        Access::ReadWrite
+                    }
+                    AddressSpace::Storage { .. } => Access::Read,
+                    other => panic!("{:?} in {other:?}", g.name),
+                };
+                Some((b.binding, g.name.clone().unwrap_or_default(), access))
+            })
+            .collect();
+        declared.sort_by_key(|d| d.0);
+        let described: Vec<(u32, String, Access)> = ELEMENTS
+            .bindings
+            .iter()
+            .enumerate()
+            .map(|(i, (n, a))| (i as u32, n.to_string(), *a))
+            .collect();
+        assert_eq!(declared, described);
+        let (_, ty) = m
+            .types
+            .iter()
+            .find(|(_, t)| t.name.as_deref() == Some("ElementParams"))
+            .expect("struct ElementParams");
+        match &ty.inner {
+            naga::TypeInner::Struct { members, span } => {
+                assert_eq!(*span as usize, std::mem::size_of::<ElementParams>());
+                let names: Vec<_> = members.iter().filter_map(|m| m.name.as_deref()).collect();
+                assert_eq!(names, ["count", "project", "n_planes", "pad"]);
+            }
+            other => panic!("ElementParams is {other:?}"),
+        }
+        for k in TermKind::ALL {
+            assert!(
+                m.entry_points.iter().any(|e| e.name == k.entry()),
+                "no entry point {}",
+                k.entry()
+            );
+        }
+    }
+}
