@@ -404,11 +404,16 @@ pub fn gmsh(dim: usize, bytes: &[u8]) -> Result<Mesh, String> {
     // integer width it knows; with overflow checks, a section of zero nodes or
     // elements): they are refused here first.
     let format = msh_format(bytes)?;
-    for (section, what) in [(&b"$Nodes"[..], "nodes"), (&b"$Elements"[..], "elements")] {
-        if msh_section_count(bytes, section, format) == Some(0) {
+    for (name, start) in msh_sections(bytes) {
+        let what = match name {
+            b"Nodes" => "nodes",
+            b"Elements" => "elements",
+            _ => continue,
+        };
+        if msh_section_count(bytes, start, format) == Some(0) {
             return Err(format!(
-                "its {} section declares no {what}",
-                String::from_utf8_lossy(section)
+                "its ${} section declares no {what}",
+                what_section(name)
             ));
         }
     }
@@ -593,14 +598,84 @@ fn msh_format(bytes: &[u8]) -> Result<(bool, usize, bool, usize), String> {
     Ok((binary, size_t, little, line_end))
 }
 
+/// A section name as text, for messages.
+fn what_section(name: &[u8]) -> String {
+    crate::io::one_line(&String::from_utf8_lossy(name), 40)
+}
+
+/// The sections of a MSH file in the order mshio walks them: (name, where the content
+/// starts) for each `$Name` line after the `$MeshFormat` block, which must open the file.
+/// The walk follows mshio's own rules (whitespace before a section line, a name of ASCII
+/// letters, `\n` or `\r\n` after it, the section ending at the first `$EndName`), so a
+/// section checked here is the one mshio parses; it stops where mshio would fail.
+fn msh_sections(bytes: &[u8]) -> Vec<(&[u8], usize)> {
+    fn after_br(bytes: &[u8], at: usize) -> Option<usize> {
+        match bytes.get(at..)? {
+            [b'\n', ..] => Some(at + 1),
+            [b'\r', b'\n', ..] => Some(at + 2),
+            _ => None,
+        }
+    }
+    fn find(bytes: &[u8], key: &[u8], from: usize) -> Option<usize> {
+        let k = bytes
+            .get(from..)?
+            .windows(key.len())
+            .position(|w| w == key)?;
+        Some(from + k)
+    }
+    let mut out = Vec::new();
+    const OPEN: &[u8] = b"$MeshFormat";
+    const CLOSE: &[u8] = b"$EndMeshFormat";
+    if !bytes.starts_with(OPEN) {
+        return out;
+    }
+    let Some(mut at) = after_br(bytes, OPEN.len()) else {
+        return out;
+    };
+    // The format block ends at the first `$EndMeshFormat` followed by a line break.
+    loop {
+        let Some(k) = find(bytes, CLOSE, at) else {
+            return out;
+        };
+        if let Some(next) = after_br(bytes, k + CLOSE.len()) {
+            at = next;
+            break;
+        }
+        at = k + 1;
+    }
+    loop {
+        while matches!(bytes.get(at), Some(b' ' | b'\t' | b'\r' | b'\n')) {
+            at += 1;
+        }
+        if bytes.get(at) != Some(&b'$') {
+            return out;
+        }
+        let name_start = at + 1;
+        let name_len = bytes[name_start..]
+            .iter()
+            .take_while(|b| b.is_ascii_alphabetic())
+            .count();
+        let name = &bytes[name_start..name_start + name_len];
+        let Some(content) = after_br(bytes, name_start + name_len) else {
+            return out;
+        };
+        out.push((name, content));
+        let mut end = b"$End".to_vec();
+        end.extend_from_slice(name);
+        let Some(k) = find(bytes, &end, content) else {
+            return out;
+        };
+        at = k + end.len();
+    }
+}
+
 /// The second number of a section's header (numNodes of $Nodes, numElements of
-/// $Elements), None when the section or the number cannot be found.
+/// $Elements) for a section whose content starts at `start`; None when it cannot be read.
 fn msh_section_count(
     bytes: &[u8],
-    section: &[u8],
-    (binary, size_t, little, line_end): (bool, usize, bool, usize),
+    start: usize,
+    (binary, size_t, little, _): (bool, usize, bool, usize),
 ) -> Option<u64> {
-    let start = msh_after(bytes, section, line_end)?;
     if binary {
         let raw = bytes.get(start + size_t..start + 2 * size_t)?;
         let mut w = [0u8; 8];
@@ -628,8 +703,12 @@ fn msh_section_count(
 /// (mshio refuses them), so each node has three coordinates.
 fn msh_node_tags(bytes: &[u8], counts: &[usize]) -> Result<Vec<Vec<u64>>, String> {
     const BAD: &str = "the $Nodes section's node tags cannot be read";
-    let (binary, size_t, little, line_end) = msh_format(bytes)?;
-    let start = msh_after(bytes, b"$Nodes", line_end).ok_or(BAD)?;
+    let (binary, size_t, little, _) = msh_format(bytes)?;
+    let start = msh_sections(bytes)
+        .into_iter()
+        .find(|&(name, _)| name == b"Nodes")
+        .map(|(_, start)| start)
+        .ok_or(BAD)?;
     let mut out = Vec::with_capacity(counts.len());
     if binary {
         let mut at = start;
