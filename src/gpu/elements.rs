@@ -581,6 +581,22 @@ impl GpuElements {
         self.terms.iter().map(|t| t.kind).collect()
     }
 
+    /// The device context the terms live on.
+    pub fn context(&self) -> &GpuContext {
+        &self.ctx
+    }
+
+    /// The compiled kernels (dimension, precision) of these terms.
+    pub fn kernels(&self) -> &ElementKernels {
+        &self.kernels
+    }
+
+    /// Term `t`'s (in [`GpuElements::kinds`] order) per-item gradient buffer, and its
+    /// Hessian buffer (None for gravity): the inputs of a device assembly.
+    pub fn term_buffers(&self, t: usize) -> Option<(&wgpu::Buffer, Option<&wgpu::Buffer>)> {
+        self.terms.get(t).map(|t| (&t.gradient, t.hessian.as_ref()))
+    }
+
     fn write_nodal(&self, buf: &wgpu::Buffer, v: &[f64], what: &str) -> Result<(), GpuError> {
         let want = self.n_nodes * self.kernels.dim;
         if v.len() != want {

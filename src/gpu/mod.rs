@@ -4,6 +4,8 @@
 //! Hessian product, Jacobi / block-Jacobi preconditioners and the CG updates with
 //! deterministic two-pass reductions.
 
+#[cfg(feature = "sim")]
+pub mod assembly;
 pub mod context;
 #[cfg(feature = "sim")]
 pub mod elements;

@@ -1,0 +1,234 @@
+// Gather assembly of the Newton system from the per-element arrays of elements.wgsl, and
+// two products with it: the assembled block matrix's and a matrix-free one over the
+// element Hessians. One invocation per output block or node, each summing its own
+// contributions in a fixed order (src/gpu/assembly.rs builds the gather lists on the
+// host): no atomics, the same result on every run and in the CPU's order
+// (src/energy: inertia, then the element sets in order with their elements in order, then
+// the node terms).
+//
+// H = M + s·(Σ_sets K_e + B), g = M(x − x̃) + s·(Σ_sets g_e + g_gravity + g_barrier),
+// s = coef[1] (h²); the inertia terms enter with coef[0] = 1.
+//
+// Block values are row-major D×D at out[k·D² ..], k in the BlockCsr order; element
+// Hessians hessian[e·nl² + (a·D + r)·nl + b·D + c], gradients gradient[e·nl + a·D + c].
+
+override D: u32 = 3u;
+
+// Mirrors `AssemblyParams` in src/gpu/assembly.rs (four u32, 16 bytes, size-asserted there).
+struct AssemblyParams {
+    // Output blocks or nodes of the dispatch.
+    count: u32,
+    // Entries per element gradient (nodes per element · D).
+    nl: u32,
+    // Nodes per element.
+    arity: u32,
+    // Index into `coef` of this term's factor.
+    coef_slot: u32,
+}
+
+const NONE: u32 = 0xffffffffu;
+
+@group(0) @binding(0) var<uniform> params: AssemblyParams;
+// Per output item, its range in `gather` (count + 1 entries); CSR row pointers for the
+// assembled product.
+@group(0) @binding(1) var<storage, read> offsets: array<u32>;
+// Element passes: offsets into `src` (block: e·nl² + a·D·nl + b·D; node: e·nl + a·D).
+// Node passes: per block its node when diagonal, else NONE (block init), or per node its
+// diagonal block (adding a node term). Assembled product: block column indices.
+@group(0) @binding(2) var<storage, read> gather: array<u32>;
+// The term's per-item Hessians or gradients; the block values for the assembled product.
+@group(0) @binding(3) var<storage, read> src: array<real>;
+// Term factors: [1, s].
+@group(0) @binding(4) var<storage, read> coef: array<real>;
+// The vector of a product, node-major.
+@group(0) @binding(5) var<storage, read> x: array<real>;
+// Element-to-node indices of the set (matrix-free product).
+@group(0) @binding(6) var<storage, read> nodes: array<u32>;
+// Block values, gradient or product.
+@group(0) @binding(7) var<storage, read_write> out: array<real>;
+
+// Block k := the inertia block of its node when diagonal, else zero.
+@compute @workgroup_size(WG)
+fn blocks_init(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let dd = D * D;
+    let c = coef[params.coef_slot];
+    for (var k = gid.x; k < params.count; k += nwg.x * WG) {
+        let i = gather[k];
+        for (var t = 0u; t < dd; t++) {
+            var v = real(0.0);
+            if i != NONE {
+                v = c * src[i * dd + t];
+            }
+            out[k * dd + t] = v;
+        }
+    }
+}
+
+// Block k += s·Σ (its element sub-blocks, in gather order).
+@compute @workgroup_size(WG)
+fn blocks_add_elements(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let dd = D * D;
+    let nl = params.nl;
+    let c = coef[params.coef_slot];
+    for (var k = gid.x; k < params.count; k += nwg.x * WG) {
+        var sum: array<real, 9>;
+        for (var t = 0u; t < dd; t++) {
+            sum[t] = out[k * dd + t];
+        }
+        for (var j = offsets[k]; j < offsets[k + 1u]; j++) {
+            let base = gather[j];
+            for (var r = 0u; r < D; r++) {
+                for (var q = 0u; q < D; q++) {
+                    sum[r * D + q] += c * src[base + r * nl + q];
+                }
+            }
+        }
+        for (var t = 0u; t < dd; t++) {
+            out[k * dd + t] = sum[t];
+        }
+    }
+}
+
+// Diagonal block of node i += factor·(its node-term block).
+@compute @workgroup_size(WG)
+fn blocks_add_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let dd = D * D;
+    let c = coef[params.coef_slot];
+    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+        let k = gather[i];
+        for (var t = 0u; t < dd; t++) {
+            out[k * dd + t] += c * src[i * dd + t];
+        }
+    }
+}
+
+// g_i := factor·(node term)_i.
+@compute @workgroup_size(WG)
+fn grad_init(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let c = coef[params.coef_slot];
+    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+        for (var q = 0u; q < D; q++) {
+            out[i * D + q] = c * src[i * D + q];
+        }
+    }
+}
+
+// g_i += s·Σ (the element gradients' entries of node i, in gather order).
+@compute @workgroup_size(WG)
+fn grad_add_elements(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let c = coef[params.coef_slot];
+    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+        var sum: array<real, 3>;
+        for (var q = 0u; q < D; q++) {
+            sum[q] = out[i * D + q];
+        }
+        for (var j = offsets[i]; j < offsets[i + 1u]; j++) {
+            let base = gather[j];
+            for (var q = 0u; q < D; q++) {
+                sum[q] += c * src[base + q];
+            }
+        }
+        for (var q = 0u; q < D; q++) {
+            out[i * D + q] = sum[q];
+        }
+    }
+}
+
+// g_i += factor·(node term)_i.
+@compute @workgroup_size(WG)
+fn grad_add_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let c = coef[params.coef_slot];
+    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+        for (var q = 0u; q < D; q++) {
+            out[i * D + q] += c * src[i * D + q];
+        }
+    }
+}
+
+// y = H x with the assembled blocks (BlockCsr::matvec's order).
+@compute @workgroup_size(WG)
+fn matvec_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let dd = D * D;
+    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+        var sum: array<real, 3>;
+        for (var k = offsets[i]; k < offsets[i + 1u]; k++) {
+            let j = gather[k];
+            for (var r = 0u; r < D; r++) {
+                var s = real(0.0);
+                for (var q = 0u; q < D; q++) {
+                    s += src[k * dd + r * D + q] * x[j * D + q];
+                }
+                sum[r] += s;
+            }
+        }
+        for (var r = 0u; r < D; r++) {
+            out[i * D + r] = sum[r];
+        }
+    }
+}
+
+// y_i := factor·(node-term block)_i x_i (matrix-free product, first term).
+@compute @workgroup_size(WG)
+fn matfree_init(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let dd = D * D;
+    let c = coef[params.coef_slot];
+    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+        for (var r = 0u; r < D; r++) {
+            var s = real(0.0);
+            for (var q = 0u; q < D; q++) {
+                s += src[i * dd + r * D + q] * x[i * D + q];
+            }
+            out[i * D + r] = c * s;
+        }
+    }
+}
+
+// y_i += factor·(node-term block)_i x_i.
+@compute @workgroup_size(WG)
+fn matfree_add_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let dd = D * D;
+    let c = coef[params.coef_slot];
+    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+        for (var r = 0u; r < D; r++) {
+            var s = real(0.0);
+            for (var q = 0u; q < D; q++) {
+                s += src[i * dd + r * D + q] * x[i * D + q];
+            }
+            out[i * D + r] += c * s;
+        }
+    }
+}
+
+// y_i += s·Σ over the elements touching node i (as local node a) of
+// Σ_b H_e[a, b] x_{node(e, b)}: the element Hessians' rows of node i, H never formed.
+@compute @workgroup_size(WG)
+fn matfree_add_elements(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let nl = params.nl;
+    let arity = params.arity;
+    let c = coef[params.coef_slot];
+    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+        var sum: array<real, 3>;
+        for (var q = 0u; q < D; q++) {
+            sum[q] = out[i * D + q];
+        }
+        for (var j = offsets[i]; j < offsets[i + 1u]; j++) {
+            let base = gather[j];
+            let e = base / nl;
+            let a = (base % nl) / D;
+            let row0 = e * nl * nl + a * D * nl;
+            for (var b = 0u; b < arity; b++) {
+                let n = nodes[e * arity + b];
+                for (var r = 0u; r < D; r++) {
+                    var s = real(0.0);
+                    for (var q = 0u; q < D; q++) {
+                        s += src[row0 + r * nl + b * D + q] * x[n * D + q];
+                    }
+                    sum[r] += c * s;
+                }
+            }
+        }
+        for (var q = 0u; q < D; q++) {
+            out[i * D + q] = sum[q];
+        }
+    }
+}

@@ -1,0 +1,946 @@
+//! Assembly of the Newton system on the device (shaders/assemble.wgsl) from the
+//! per-element arrays [`GpuElements`] leaves there, and the two ways to multiply by it:
+//! the assembled block matrix, or matrix-free over the element Hessians.
+//!
+//! H = M + s·(Σ_sets K_e + B) in the block pattern of [`Model::pattern`] (the CPU's
+//! `BlockCsr` order, both triangles), and g = M(x − x̃) + s·(Σ_sets g_e + g_gravity +
+//! g_barrier), s set by [`GpuAssembly::set_scale`] (h² in a time step).
+//!
+//! The host builds, once per mesh, for every block the list of element sub-blocks that add
+//! to it and for every node the list of element gradient entries, CSR-like, in element
+//! order. Every output block or node is then one invocation summing its own list: no
+//! atomics, a fixed summation order, the CPU's (inertia, the sets in order with their
+//! elements in order, then gravity and barrier), so in f64 the result is the CPU
+//! assembly's of the same element arrays up to the contraction of multiply-adds.
+
+use super::elements::{GpuElements, TermKind, WORKGROUP};
+use super::kernels::{self, Access, Layout};
+use super::{GpuContext, GpuError};
+use crate::energy::Model;
+use crate::sparse::BlockCsr;
+use wgpu::util::DeviceExt;
+
+use Access::{Read as R, ReadWrite as W, Uniform as U};
+
+/// Bind group 0 of shaders/assemble.wgsl, shared by all its entry points.
+pub const ASSEMBLE: Layout = Layout {
+    file: "assemble.wgsl",
+    source: include_str!("../../shaders/assemble.wgsl"),
+    bindings: &[
+        ("params", U),
+        ("offsets", R),
+        ("gather", R),
+        ("src", R),
+        ("coef", R),
+        ("x", R),
+        ("nodes", R),
+        ("out", W),
+    ],
+};
+
+/// Uniform parameters of one dispatch (mirrors `AssemblyParams` in shaders/assemble.wgsl).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct AssemblyParams {
+    count: u32,
+    nl: u32,
+    arity: u32,
+    coef_slot: u32,
+}
+const _: () = assert!(std::mem::size_of::<AssemblyParams>() == 16);
+
+/// Marks a block that is not on the diagonal (`NONE` in the shader).
+const NONE: u32 = u32::MAX;
+
+/// Entry points, in the order of [`GpuAssembly`]'s pipelines.
+const ENTRIES: [&str; 10] = [
+    "blocks_init",
+    "blocks_add_elements",
+    "blocks_add_nodes",
+    "grad_init",
+    "grad_add_elements",
+    "grad_add_nodes",
+    "matvec_blocks",
+    "matfree_init",
+    "matfree_add_nodes",
+    "matfree_add_elements",
+];
+
+#[derive(Clone, Copy)]
+enum Entry {
+    BlocksInit,
+    BlocksAddElements,
+    BlocksAddNodes,
+    GradInit,
+    GradAddElements,
+    GradAddNodes,
+    MatvecBlocks,
+    MatfreeInit,
+    MatfreeAddNodes,
+    MatfreeAddElements,
+}
+
+/// One dispatch: its pipeline, bind group (built once) and item count.
+struct Pass {
+    entry: Entry,
+    count: usize,
+    group: wgpu::BindGroup,
+    /// Kept alive with the bind group.
+    _params: wgpu::Buffer,
+}
+
+/// For each output item (block or node), the `src` offsets of its contributions.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Gather {
+    pub offsets: Vec<u32>,
+    pub entries: Vec<u32>,
+}
+
+impl Gather {
+    /// Groups (item, offset) pairs by item, keeping their order within an item.
+    fn from_pairs(items: usize, pairs: &[(usize, u32)]) -> Self {
+        let mut offsets = vec![0u32; items + 1];
+        for &(k, _) in pairs {
+            offsets[k + 1] += 1;
+        }
+        for k in 0..items {
+            offsets[k + 1] += offsets[k];
+        }
+        let mut next: Vec<u32> = offsets[..items].to_vec();
+        let mut entries = vec![0u32; pairs.len()];
+        for &(k, v) in pairs {
+            entries[next[k] as usize] = v;
+            next[k] += 1;
+        }
+        Gather { offsets, entries }
+    }
+}
+
+/// The gather lists of one element set: per block of `pattern` the offsets e·nl² +
+/// a·d·nl + b·d of the element sub-blocks (a, b) adding to it, and per node the offsets
+/// e·nl + a·d of the element gradient entries; both in element order, like the CPU's
+/// scatter (`Model::add_potential_hessian`).
+pub fn set_gathers(
+    pattern: &BlockCsr,
+    dim: usize,
+    nodes: impl Fn(usize) -> Vec<usize>,
+    len: usize,
+    arity: usize,
+) -> Result<(Gather, Gather), GpuError> {
+    let nl = arity * dim;
+    let too_big = || {
+        GpuError::Unsupported(format!(
+            "{len} elements of {arity} nodes exceed the assembly's u32 offsets"
+        ))
+    };
+    if len
+        .checked_mul(nl * nl)
+        .is_none_or(|v| v > u32::MAX as usize)
+    {
+        return Err(too_big());
+    }
+    let mut block_pairs = Vec::with_capacity(len * arity * arity);
+    let mut node_pairs = Vec::with_capacity(len * arity);
+    for e in 0..len {
+        let en = nodes(e);
+        for (a, &na) in en.iter().enumerate() {
+            for (b, &nb) in en.iter().enumerate() {
+                let k = pattern.find(na, nb).ok_or_else(|| {
+                    GpuError::Mismatch(format!(
+                        "element {e} couples nodes {na} and {nb} outside the Hessian pattern"
+                    ))
+                })?;
+                block_pairs.push((k, (e * nl * nl + a * dim * nl + b * dim) as u32));
+            }
+            node_pairs.push((na, (e * nl + a * dim) as u32));
+        }
+    }
+    Ok((
+        Gather::from_pairs(pattern.nnz_blocks(), &block_pairs),
+        Gather::from_pairs(pattern.n, &node_pairs),
+    ))
+}
+
+/// The Newton system's assembly and products on the device for one mesh: pattern, gather
+/// lists and bind groups built once; per Newton iteration [`GpuAssembly::assemble`] after
+/// [`GpuElements::evaluate`].
+pub struct GpuAssembly {
+    ctx: GpuContext,
+    dim: usize,
+    f64: bool,
+    n_nodes: usize,
+    row_ptr: Vec<usize>,
+    col_idx: Vec<usize>,
+    pipelines: Vec<wgpu::ComputePipeline>,
+    coef: wgpu::Buffer,
+    values: wgpu::Buffer,
+    gradient: wgpu::Buffer,
+    x: wgpu::Buffer,
+    y_assembled: wgpu::Buffer,
+    y_matrix_free: wgpu::Buffer,
+    hessian_passes: Vec<Pass>,
+    gradient_passes: Vec<Pass>,
+    matvec_pass: Pass,
+    matfree_passes: Vec<Pass>,
+    /// Bytes the two products read and write per call (see [`ProductBytes`]).
+    bytes: ProductBytes,
+}
+
+/// Device memory traffic of one product y = H x, counted from the data each reads once
+/// (vectors x counted once, as if cached) and the y it writes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProductBytes {
+    pub assembled: u64,
+    pub matrix_free: u64,
+}
+
+fn usage_storage() -> wgpu::BufferUsages {
+    wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::COPY_SRC
+}
+
+fn to_bytes(f64: bool, v: &[f64]) -> Vec<u8> {
+    if f64 {
+        bytemuck::cast_slice(v).to_vec()
+    } else {
+        let w: Vec<f32> = v.iter().map(|&x| x as f32).collect();
+        bytemuck::cast_slice(&w).to_vec()
+    }
+}
+
+fn from_bytes(f64: bool, b: &[u8]) -> Vec<f64> {
+    if f64 {
+        b.chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
+            .collect()
+    } else {
+        b.chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64)
+            .collect()
+    }
+}
+
+impl GpuAssembly {
+    /// Builds the pattern, gather lists, buffers and bind groups for the terms of
+    /// `elements`, which must have been built from `model`.
+    pub fn new(elements: &GpuElements, model: &Model) -> Result<Self, GpuError> {
+        let ctx = elements.context().clone();
+        let dim = elements.kernels().dim();
+        let f64 = elements.kernels().is_f64();
+        if model.dim != dim {
+            return Err(GpuError::Mismatch(format!(
+                "the element terms are {dim}D, the model {}D",
+                model.dim
+            )));
+        }
+        let kinds = elements.kinds();
+        let n_sets = kinds
+            .iter()
+            .filter(|k| matches!(k, TermKind::NeoHookean | TermKind::Springs))
+            .count();
+        if n_sets != model.sets.len() {
+            return Err(GpuError::Mismatch(format!(
+                "{n_sets} element sets on the device, {} in the model",
+                model.sets.len()
+            )));
+        }
+        let pattern = &model.pattern;
+        let n = model.n_nodes;
+        let nb = pattern.nnz_blocks();
+        let dd = dim * dim;
+        let rs = if f64 { 8u64 } else { 4 };
+        let dev = &ctx.device;
+
+        // Pipelines.
+        let real = if f64 { "f64" } else { "f32" };
+        let code = format!("{}{}", kernels::prelude(real, real, false), ASSEMBLE.source);
+        let module = dev.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some(&format!("assemble.wgsl ({real})")),
+            source: wgpu::ShaderSource::Wgsl(code.into()),
+        });
+        let layout_entries: Vec<wgpu::BindGroupLayoutEntry> = ASSEMBLE
+            .bindings
+            .iter()
+            .enumerate()
+            .map(|(i, (_, access))| wgpu::BindGroupLayoutEntry {
+                binding: i as u32,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: match access {
+                        Access::Uniform => wgpu::BufferBindingType::Uniform,
+                        Access::Read => wgpu::BufferBindingType::Storage { read_only: true },
+                        Access::ReadWrite => wgpu::BufferBindingType::Storage { read_only: false },
+                    },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            })
+            .collect();
+        let layout = dev.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("assembly layout"),
+            entries: &layout_entries,
+        });
+        let pl = dev.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("assembly pipeline layout"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let constants = [("D", dim as f64), ("WG", WORKGROUP as f64)];
+        let pipelines: Vec<_> = ENTRIES
+            .iter()
+            .map(|e| {
+                dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                    label: Some(&format!("{e} ({dim}D, {real})")),
+                    layout: Some(&pl),
+                    module: &module,
+                    entry_point: Some(e),
+                    compilation_options: wgpu::PipelineCompilationOptions {
+                        constants: &constants,
+                        zero_initialize_workgroup_memory: true,
+                    },
+                    cache: None,
+                })
+            })
+            .collect();
+
+        // Buffers, limits checked first.
+        let check = |label: &str, bytes: u64| -> Result<u64, GpuError> {
+            let bytes = bytes.max(16).div_ceil(16) * 16;
+            let l = &ctx.limits;
+            let limit = l.max_buffer_size.min(l.max_storage_buffer_binding_size);
+            if bytes > limit {
+                return Err(GpuError::BufferTooLarge {
+                    label: label.to_string(),
+                    bytes,
+                    limit,
+                    what: "storage binding",
+                    adapter: ctx.adapter_name().to_string(),
+                });
+            }
+            Ok(bytes)
+        };
+        let init = |label: &str, data: &[u8]| -> Result<wgpu::Buffer, GpuError> {
+            let size = check(label, data.len() as u64)?;
+            let mut padded = data.to_vec();
+            padded.resize(size as usize, 0);
+            Ok(dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: &padded,
+                usage: usage_storage(),
+            }))
+        };
+        let zeroed = |label: &str, bytes: u64| -> Result<wgpu::Buffer, GpuError> {
+            let size = check(label, bytes)?;
+            Ok(dev.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage: usage_storage(),
+                mapped_at_creation: false,
+            }))
+        };
+        let u32s = |v: &[usize]| -> Result<Vec<u32>, GpuError> {
+            v.iter()
+                .map(|&k| {
+                    u32::try_from(k).map_err(|_| {
+                        GpuError::Unsupported(format!("index {k} exceeds the assembly's u32"))
+                    })
+                })
+                .collect()
+        };
+        let values = zeroed("assembly blocks", (nb * dd) as u64 * rs)?;
+        let gradient = zeroed("assembly gradient", (n * dim) as u64 * rs)?;
+        let x = zeroed("assembly product input", (n * dim) as u64 * rs)?;
+        let y_assembled = zeroed("assembly assembled product", (n * dim) as u64 * rs)?;
+        let y_matrix_free = zeroed("assembly matrix-free product", (n * dim) as u64 * rs)?;
+        let coef = init("assembly factors", &to_bytes(f64, &[1.0, 0.0]))?;
+        let row_ptr = init(
+            "assembly row pointers",
+            bytemuck::cast_slice(&u32s(&pattern.row_ptr)?),
+        )?;
+        let col_idx = init(
+            "assembly column indices",
+            bytemuck::cast_slice(&u32s(&pattern.col_idx)?),
+        )?;
+        let diag: Vec<u32> = (0..n)
+            .map(|i| {
+                pattern
+                    .diag_index(i)
+                    .map(|k| k as u32)
+                    .ok_or_else(|| GpuError::Mismatch(format!("node {i} has no diagonal block")))
+            })
+            .collect::<Result<_, _>>()?;
+        let mut block_node = vec![NONE; nb];
+        for (i, &k) in diag.iter().enumerate() {
+            block_node[k as usize] = i as u32;
+        }
+        let diag = init("assembly diagonal blocks", bytemuck::cast_slice(&diag))?;
+        let block_node = init("assembly block nodes", bytemuck::cast_slice(&block_node))?;
+        let dummy_u32 = zeroed("assembly unused indices", 16)?;
+        let dummy_real = zeroed("assembly unused reals", 16)?;
+
+        // Bind groups: one per pass.
+        struct Binds<'a> {
+            offsets: &'a wgpu::Buffer,
+            gather: &'a wgpu::Buffer,
+            src: &'a wgpu::Buffer,
+            x: &'a wgpu::Buffer,
+            nodes: &'a wgpu::Buffer,
+            out: &'a wgpu::Buffer,
+        }
+        let pass = |entry: Entry,
+                    count: usize,
+                    nl: usize,
+                    arity: usize,
+                    coef_slot: u32,
+                    b: Binds|
+         -> Pass {
+            let p = AssemblyParams {
+                count: count as u32,
+                nl: nl as u32,
+                arity: arity as u32,
+                coef_slot,
+            };
+            let params = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(&format!("{} params", ENTRIES[entry as usize])),
+                contents: bytemuck::bytes_of(&p),
+                usage: wgpu::BufferUsages::UNIFORM,
+            });
+            let bufs: [&wgpu::Buffer; 8] = [
+                &params, b.offsets, b.gather, b.src, &coef, b.x, b.nodes, b.out,
+            ];
+            let entries: Vec<wgpu::BindGroupEntry> = bufs
+                .iter()
+                .enumerate()
+                .map(|(i, b)| wgpu::BindGroupEntry {
+                    binding: i as u32,
+                    resource: b.as_entire_binding(),
+                })
+                .collect();
+            let group = dev.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(&format!("{} bind group", ENTRIES[entry as usize])),
+                layout: &layout,
+                entries: &entries,
+            });
+            Pass {
+                entry,
+                count,
+                group,
+                _params: params,
+            }
+        };
+
+        let mut hessian_passes = Vec::new();
+        let mut gradient_passes = Vec::new();
+        let mut matfree_passes = Vec::new();
+        let mut matfree_nodes = Vec::new();
+        let mut set_passes = Vec::new();
+        let mut mf_bytes = 0u64;
+        let mut set = 0;
+        for (t, kind) in kinds.iter().enumerate() {
+            let (grad, hess) = elements
+                .term_buffers(t)
+                .ok_or_else(|| GpuError::Mismatch(format!("no element term {t}")))?;
+            match kind {
+                TermKind::NeoHookean | TermKind::Springs => {
+                    let s = &model.sets[set];
+                    let arity = s.arity();
+                    let nl = arity * dim;
+                    let (bg, ng) =
+                        set_gathers(pattern, dim, |e| s.nodes(e).to_vec(), s.len(), arity)?;
+                    let idx: Vec<usize> = (0..s.len()).flat_map(|e| s.nodes(e).to_vec()).collect();
+                    let label = format!("assembly set {set}");
+                    let b_off = init(
+                        &format!("{label} block offsets"),
+                        bytemuck::cast_slice(&bg.offsets),
+                    )?;
+                    let b_ent = init(
+                        &format!("{label} block entries"),
+                        bytemuck::cast_slice(&bg.entries),
+                    )?;
+                    let n_off = init(
+                        &format!("{label} node offsets"),
+                        bytemuck::cast_slice(&ng.offsets),
+                    )?;
+                    let n_ent = init(
+                        &format!("{label} node entries"),
+                        bytemuck::cast_slice(&ng.entries),
+                    )?;
+                    let nodes = init(
+                        &format!("{label} element nodes"),
+                        bytemuck::cast_slice(&u32s(&idx)?),
+                    )?;
+                    let hess = hess
+                        .ok_or_else(|| GpuError::Mismatch(format!("set {set} has no Hessian")))?;
+                    // Matrix-free reads per product: every element Hessian entry once, the
+                    // node lists, and each element's node indices once per its node.
+                    mf_bytes += (s.len() * nl * nl) as u64 * rs
+                        + 4 * (ng.offsets.len() + ng.entries.len()) as u64
+                        + 4 * (s.len() * arity * arity) as u64;
+                    set_passes.push((
+                        pass(
+                            Entry::BlocksAddElements,
+                            nb,
+                            nl,
+                            arity,
+                            1,
+                            Binds {
+                                offsets: &b_off,
+                                gather: &b_ent,
+                                src: hess,
+                                x: &dummy_real,
+                                nodes: &dummy_u32,
+                                out: &values,
+                            },
+                        ),
+                        pass(
+                            Entry::GradAddElements,
+                            n,
+                            nl,
+                            arity,
+                            1,
+                            Binds {
+                                offsets: &n_off,
+                                gather: &n_ent,
+                                src: grad,
+                                x: &dummy_real,
+                                nodes: &dummy_u32,
+                                out: &gradient,
+                            },
+                        ),
+                        pass(
+                            Entry::MatfreeAddElements,
+                            n,
+                            nl,
+                            arity,
+                            1,
+                            Binds {
+                                offsets: &n_off,
+                                gather: &n_ent,
+                                src: hess,
+                                x: &x,
+                                nodes: &nodes,
+                                out: &y_matrix_free,
+                            },
+                        ),
+                    ));
+                    set += 1;
+                }
+                TermKind::Inertia => {
+                    let hess =
+                        hess.ok_or_else(|| GpuError::Mismatch("inertia has no Hessian".into()))?;
+                    hessian_passes.push(pass(
+                        Entry::BlocksInit,
+                        nb,
+                        0,
+                        1,
+                        0,
+                        Binds {
+                            offsets: &dummy_u32,
+                            gather: &block_node,
+                            src: hess,
+                            x: &dummy_real,
+                            nodes: &dummy_u32,
+                            out: &values,
+                        },
+                    ));
+                    gradient_passes.push(pass(
+                        Entry::GradInit,
+                        n,
+                        0,
+                        1,
+                        0,
+                        Binds {
+                            offsets: &dummy_u32,
+                            gather: &dummy_u32,
+                            src: grad,
+                            x: &dummy_real,
+                            nodes: &dummy_u32,
+                            out: &gradient,
+                        },
+                    ));
+                    matfree_passes.push(pass(
+                        Entry::MatfreeInit,
+                        n,
+                        0,
+                        1,
+                        0,
+                        Binds {
+                            offsets: &dummy_u32,
+                            gather: &dummy_u32,
+                            src: hess,
+                            x: &x,
+                            nodes: &dummy_u32,
+                            out: &y_matrix_free,
+                        },
+                    ));
+                    mf_bytes += (n * dd) as u64 * rs;
+                }
+                TermKind::Gravity => {
+                    matfree_nodes.push((
+                        None,
+                        pass(
+                            Entry::GradAddNodes,
+                            n,
+                            0,
+                            1,
+                            1,
+                            Binds {
+                                offsets: &dummy_u32,
+                                gather: &dummy_u32,
+                                src: grad,
+                                x: &dummy_real,
+                                nodes: &dummy_u32,
+                                out: &gradient,
+                            },
+                        ),
+                    ));
+                }
+                TermKind::Barrier => {
+                    let hess = hess
+                        .ok_or_else(|| GpuError::Mismatch("the barrier has no Hessian".into()))?;
+                    matfree_nodes.push((
+                        Some((
+                            pass(
+                                Entry::BlocksAddNodes,
+                                n,
+                                0,
+                                1,
+                                1,
+                                Binds {
+                                    offsets: &dummy_u32,
+                                    gather: &diag,
+                                    src: hess,
+                                    x: &dummy_real,
+                                    nodes: &dummy_u32,
+                                    out: &values,
+                                },
+                            ),
+                            pass(
+                                Entry::MatfreeAddNodes,
+                                n,
+                                0,
+                                1,
+                                1,
+                                Binds {
+                                    offsets: &dummy_u32,
+                                    gather: &dummy_u32,
+                                    src: hess,
+                                    x: &x,
+                                    nodes: &dummy_u32,
+                                    out: &y_matrix_free,
+                                },
+                            ),
+                        )),
+                        pass(
+                            Entry::GradAddNodes,
+                            n,
+                            0,
+                            1,
+                            1,
+                            Binds {
+                                offsets: &dummy_u32,
+                                gather: &dummy_u32,
+                                src: grad,
+                                x: &dummy_real,
+                                nodes: &dummy_u32,
+                                out: &gradient,
+                            },
+                        ),
+                    ));
+                    mf_bytes += (n * dd) as u64 * rs;
+                }
+            }
+        }
+        if hessian_passes.is_empty() {
+            return Err(GpuError::Mismatch(
+                "the element terms have no inertia".into(),
+            ));
+        }
+        // Order: inertia, the sets, then gravity and barrier.
+        for (h, g, m) in set_passes {
+            hessian_passes.push(h);
+            gradient_passes.push(g);
+            matfree_passes.push(m);
+        }
+        for (hm, g) in matfree_nodes {
+            if let Some((h, m)) = hm {
+                hessian_passes.push(h);
+                matfree_passes.push(m);
+            }
+            gradient_passes.push(g);
+        }
+        let matvec_pass = pass(
+            Entry::MatvecBlocks,
+            n,
+            0,
+            1,
+            0,
+            Binds {
+                offsets: &row_ptr,
+                gather: &col_idx,
+                src: &values,
+                x: &x,
+                nodes: &dummy_u32,
+                out: &y_assembled,
+            },
+        );
+        let vec_bytes = 2 * (n * dim) as u64 * rs;
+        let bytes = ProductBytes {
+            assembled: (nb * dd) as u64 * rs + 4 * (nb + n + 1) as u64 + vec_bytes,
+            matrix_free: mf_bytes + vec_bytes,
+        };
+        ctx.check("building the device assembly")?;
+        Ok(GpuAssembly {
+            ctx,
+            dim,
+            f64,
+            n_nodes: n,
+            row_ptr: pattern.row_ptr.clone(),
+            col_idx: pattern.col_idx.clone(),
+            pipelines,
+            coef,
+            values,
+            gradient,
+            x,
+            y_assembled,
+            y_matrix_free,
+            hessian_passes,
+            gradient_passes,
+            matvec_pass,
+            matfree_passes,
+            bytes,
+        })
+    }
+
+    /// Sets s, the factor of the potential terms (h² in a time step; inertia has 1).
+    pub fn set_scale(&self, scale: f64) {
+        self.ctx
+            .queue
+            .write_buffer(&self.coef, 0, &to_bytes(self.f64, &[1.0, scale]));
+    }
+
+    /// Bytes one product reads and writes, assembled and matrix-free.
+    pub fn product_bytes(&self) -> ProductBytes {
+        self.bytes
+    }
+
+    fn run(&self, label: &str, passes: &[&Pass]) -> Result<(), GpuError> {
+        let max_groups = self.ctx.limits.max_compute_workgroups_per_dimension.max(1) as u64;
+        let mut enc = self
+            .ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) });
+        {
+            let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(label),
+                timestamp_writes: None,
+            });
+            for p in passes.iter().filter(|p| p.count > 0) {
+                let groups = (p.count as u64).div_ceil(WORKGROUP as u64).min(max_groups) as u32;
+                cp.set_pipeline(&self.pipelines[p.entry as usize]);
+                cp.set_bind_group(0, &p.group, &[]);
+                cp.dispatch_workgroups(groups, 1, 1);
+            }
+        }
+        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.check(label)
+    }
+
+    /// Assembles H and g from the element terms' current outputs (after
+    /// [`GpuElements::evaluate`]).
+    pub fn assemble(&self) -> Result<(), GpuError> {
+        let passes: Vec<&Pass> = self
+            .hessian_passes
+            .iter()
+            .chain(&self.gradient_passes)
+            .collect();
+        self.run("assembly", &passes)
+    }
+
+    /// Writes the vector x of the products.
+    pub fn set_x(&self, x: &[f64]) -> Result<(), GpuError> {
+        if x.len() != self.n_nodes * self.dim {
+            return Err(GpuError::Mismatch(format!(
+                "the product vector has {} entries, the mesh {}",
+                x.len(),
+                self.n_nodes * self.dim
+            )));
+        }
+        self.ctx
+            .queue
+            .write_buffer(&self.x, 0, &to_bytes(self.f64, x));
+        Ok(())
+    }
+
+    /// y = H x with the assembled blocks (after [`GpuAssembly::assemble`]).
+    pub fn matvec_assembled(&self) -> Result<(), GpuError> {
+        self.run("assembled product", &[&self.matvec_pass])
+    }
+
+    /// y = H x from the element Hessians, H never formed.
+    pub fn matvec_matrix_free(&self) -> Result<(), GpuError> {
+        let passes: Vec<&Pass> = self.matfree_passes.iter().collect();
+        self.run("matrix-free product", &passes)
+    }
+
+    /// Waits until the device has finished all submitted work.
+    pub fn wait(&self) -> Result<(), GpuError> {
+        self.ctx
+            .device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))?;
+        self.ctx.check("waiting for the assembly")
+    }
+
+    /// The assembled H, read back (f64 whatever the device precision).
+    pub fn read_matrix(&self) -> Result<BlockCsr, GpuError> {
+        let dd = self.dim * self.dim;
+        let values = self.read_reals(&self.values, self.col_idx.len() * dd)?;
+        Ok(BlockCsr {
+            dim: self.dim,
+            n: self.n_nodes,
+            row_ptr: self.row_ptr.clone(),
+            col_idx: self.col_idx.clone(),
+            values,
+        })
+    }
+
+    /// The assembled gradient, node-major.
+    pub fn read_gradient(&self) -> Result<Vec<f64>, GpuError> {
+        self.read_reals(&self.gradient, self.n_nodes * self.dim)
+    }
+
+    /// The last assembled and matrix-free products.
+    pub fn read_products(&self) -> Result<(Vec<f64>, Vec<f64>), GpuError> {
+        let nd = self.n_nodes * self.dim;
+        Ok((
+            self.read_reals(&self.y_assembled, nd)?,
+            self.read_reals(&self.y_matrix_free, nd)?,
+        ))
+    }
+
+    fn read_reals(&self, buf: &wgpu::Buffer, len: usize) -> Result<Vec<f64>, GpuError> {
+        let bytes = len as u64 * if self.f64 { 8 } else { 4 };
+        if bytes == 0 {
+            return Ok(Vec::new());
+        }
+        let dev = &self.ctx.device;
+        let size = bytes.div_ceil(4) * 4;
+        let staging = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("assembly read-back"),
+            size,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("assembly read-back"),
+        });
+        enc.copy_buffer_to_buffer(buf, 0, &staging, 0, size);
+        self.ctx.queue.submit([enc.finish()]);
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+        dev.poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))?;
+        rx.recv()
+            .map_err(|_| GpuError::Device("buffer mapping was dropped".into()))?
+            .map_err(|e| GpuError::Device(format!("mapping a read-back buffer: {e}")))?;
+        let v = staging
+            .get_mapped_range(..)
+            .map_err(|e| GpuError::Device(format!("reading a mapped buffer: {e}")))?
+            .to_vec();
+        staging.unmap();
+        self.ctx.check("reading back the assembly")?;
+        Ok(from_bytes(self.f64, &v[..bytes as usize]))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use naga::{AddressSpace, StorageAccess};
+
+    /// The WGSL declarations of bind group 0 are [`ASSEMBLE`]'s bindings, in order, with
+    /// their access; `AssemblyParams` is four u32 in WGSL as in Rust; every entry point
+    /// exists.
+    #[test]
+    fn layout_and_params_match_the_wgsl() {
+        let src = format!(
+            "{}{}",
+            kernels::prelude("f64", "f64", false),
+            ASSEMBLE.source
+        );
+        let m = naga::front::wgsl::parse_str(&src)
+            .unwrap_or_else(|e| panic!("assemble.wgsl: {}", e.emit_to_string(&src)));
+        let mut declared: Vec<(u32, String, Access)> = m
+            .global_variables
+            .iter()
+            .filter_map(|(_, g)| {
+                let b = g.binding.as_ref()?;
+                let access = match g.space {
+                    AddressSpace::Uniform => Access::Uniform,
+                    AddressSpace::Storage { access } if access.contains(StorageAccess::STORE) => {
+                        Access::ReadWrite
+                    }
+                    AddressSpace::Storage { .. } => Access::Read,
+                    other => panic!("{:?} in {other:?}", g.name),
+                };
+                Some((b.binding, g.name.clone().unwrap_or_default(), access))
+            })
+            .collect();
+        declared.sort_by_key(|d| d.0);
+        let described: Vec<(u32, String, Access)> = ASSEMBLE
+            .bindings
+            .iter()
+            .enumerate()
+            .map(|(i, (n, a))| (i as u32, n.to_string(), *a))
+            .collect();
+        assert_eq!(declared, described);
+        let (_, ty) = m
+            .types
+            .iter()
+            .find(|(_, t)| t.name.as_deref() == Some("AssemblyParams"))
+            .expect("struct AssemblyParams");
+        match &ty.inner {
+            naga::TypeInner::Struct { span, .. } => {
+                assert_eq!(*span as usize, std::mem::size_of::<AssemblyParams>())
+            }
+            other => panic!("AssemblyParams is {other:?}"),
+        }
+        for e in ENTRIES {
+            assert!(
+                m.entry_points.iter().any(|p| p.name == e),
+                "no entry point {e}"
+            );
+        }
+    }
+
+    /// Gather lists keep element order within a block and cover every (element, a, b)
+    /// exactly once.
+    #[test]
+    fn gathers_cover_every_element_pair_in_order() {
+        // Two triangles sharing the edge (1, 2).
+        let els = [vec![0usize, 1, 2], vec![2, 1, 3]];
+        let mut rows: Vec<Vec<usize>> = (0..4).map(|i| vec![i]).collect();
+        for e in &els {
+            for &a in e {
+                rows[a].extend_from_slice(e);
+            }
+        }
+        for r in rows.iter_mut() {
+            r.sort_unstable();
+            r.dedup();
+        }
+        let pattern = BlockCsr::from_pattern(2, &rows);
+        let (bg, ng) = set_gathers(&pattern, 2, |e| els[e].clone(), 2, 3).expect("gathers");
+        assert_eq!(bg.entries.len(), 18);
+        assert_eq!(ng.entries.len(), 6);
+        let k12 = pattern.find(1, 2).expect("block");
+        let list = &bg.entries[bg.offsets[k12] as usize..bg.offsets[k12 + 1] as usize];
+        // Element 0: (a, b) = (1, 2) → 0·36 + 1·2·6 + 2·2; element 1: (1, 0) → 36 + 12 + 0.
+        assert_eq!(list, [16, 48]);
+        let n2 = &ng.entries[ng.offsets[2] as usize..ng.offsets[3] as usize];
+        assert_eq!(n2, [4, 6]);
+    }
+}
