@@ -174,9 +174,25 @@ pub fn projected_element_hessian(
     scale: f64,
     out: &mut [f64],
 ) {
+    if d == 3 {
+        modes_into::<12, 9>(3, u, v, h, g, scale, out);
+    } else {
+        modes_into::<6, 4>(2, u, v, h, g, scale, out);
+    }
+}
+
+/// [`projected_element_hessian`] with the element size NL = (d+1)d and the mode count
+/// NM = d² fixed, so that the Σ_k over modes is an unrolled fixed-length dot product.
+fn modes_into<const NL: usize, const NM: usize>(
+    d: usize,
+    u: &[f64; 9],
+    v: &[f64; 9],
+    h: &SingularValueHessian,
+    g: &[f64],
+    scale: f64,
+    out: &mut [f64],
+) {
     let nn = d + 1;
-    let nl = nn * d;
-    out[..nl * nl].iter_mut().for_each(|x| *x = 0.0);
     // gv[a][q] = Σ_j G[a][j] V[j][q].
     let mut gv = [[0.0f64; 3]; 4];
     for (a, row) in gv.iter_mut().enumerate().take(nn) {
@@ -184,49 +200,51 @@ pub fn projected_element_hessian(
             *e = (0..d).map(|j| g[a * d + j] * v[j * d + q]).sum();
         }
     }
-    let mut add = |l: f64, w: &[f64; 12]| {
-        if l <= 0.0 {
-            return;
-        }
-        let l = l * scale;
-        for i in 0..nl {
-            let li = l * w[i];
-            for j in i..nl {
-                out[i * nl + j] += li * w[j];
-            }
-        }
-    };
+    // w[i][k]: entry i of w_k; lw[i][k] = max(λ_k, 0)·scale·w[i][k]. A clamped mode has
+    // zero weight (it adds exact zeros).
+    let mut w = [[0.0f64; NM]; NL];
+    let mut lw = [[0.0f64; NM]; NL];
+    let mut lam = [0.0f64; NM];
     // Scaling modes: M = diag(e_k), w[(a, c)] = Σ_p U_cp e_k[p] gv[a][p].
     let (vals, vecs) = scaling_eigen(d, &h.a);
     for k in 0..d {
-        let mut w = [0.0; 12];
+        lam[k] = vals[k].max(0.0) * scale;
         for a in 0..nn {
             for c in 0..d {
-                w[a * d + c] = (0..d).map(|p| u[c * d + p] * vecs[p][k] * gv[a][p]).sum();
+                w[a * d + c][k] = (0..d).map(|p| u[c * d + p] * vecs[p][k] * gv[a][p]).sum();
             }
         }
-        add(vals[k], &w);
     }
     // Twist and flip modes of the pair (i, j): M = (e_i e_jᵀ ∓ e_j e_iᵀ)/√2.
     let r = std::f64::consts::FRAC_1_SQRT_2;
     let pairs = if d == 2 { 1 } else { 3 };
     for (p, &(i, j)) in PAIRS.iter().enumerate().take(pairs) {
-        let mut tw = [0.0; 12];
-        let mut fl = [0.0; 12];
+        let (kt, kf) = (d + 2 * p, d + 2 * p + 1);
+        lam[kt] = h.twist[p].max(0.0) * scale;
+        lam[kf] = h.flip[p].max(0.0) * scale;
         for a in 0..nn {
             for c in 0..d {
                 let x = u[c * d + i] * gv[a][j];
                 let y = u[c * d + j] * gv[a][i];
-                tw[a * d + c] = r * (x - y);
-                fl[a * d + c] = r * (x + y);
+                w[a * d + c][kt] = r * (x - y);
+                w[a * d + c][kf] = r * (x + y);
             }
         }
-        add(h.twist[p], &tw);
-        add(h.flip[p], &fl);
     }
-    for i in 0..nl {
-        for j in 0..i {
-            out[i * nl + j] = out[j * nl + i];
+    for (lrow, wrow) in lw.iter_mut().zip(&w) {
+        for k in 0..NM {
+            lrow[k] = lam[k] * wrow[k];
+        }
+    }
+    let out = &mut out[..NL * NL];
+    for i in 0..NL {
+        for j in i..NL {
+            let mut s = 0.0;
+            for k in 0..NM {
+                s += lw[i][k] * w[j][k];
+            }
+            out[i * NL + j] = s;
+            out[j * NL + i] = s;
         }
     }
 }
