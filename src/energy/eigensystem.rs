@@ -256,20 +256,15 @@ fn modes_into<const NL: usize, const NM: usize>(
 /// general tridiagonal QR for this size, and it is called once or twice per element and
 /// Newton iteration.
 pub fn symmetric_eigen3(m: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
-    let mut a = *m;
-    // Exact symmetry: the rotations below read the upper triangle only.
-    for r in 0..3 {
-        for c in 0..r {
-            a[r][c] = a[c][r];
-        }
-    }
+    // Exact symmetry: the upper triangle mirrored.
+    let mut a: [[f64; 3]; 3] =
+        std::array::from_fn(|r| std::array::from_fn(|c| if c >= r { m[r][c] } else { m[c][r] }));
     let mut v = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
     let norm2: f64 = a.iter().flatten().map(|x| x * x).sum();
     let tiny = 0.25 * f64::EPSILON * f64::EPSILON * norm2;
     for _sweep in 0..32 {
         let off = a[0][1] * a[0][1] + a[0][2] * a[0][2] + a[1][2] * a[1][2];
-        // `!(off > tiny)` also stops on NaN.
-        if !(off > tiny) {
+        if off.is_nan() || off <= tiny {
             break;
         }
         for (p, q) in [(0, 1), (0, 2), (1, 2)] {
