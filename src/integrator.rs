@@ -52,7 +52,7 @@
 use crate::constraints::{Constraint, ConstraintKind, Frames};
 use crate::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::energy::barrier::{Barrier, Ccd, HalfSpace};
-use crate::energy::inertia;
+use crate::energy::{inertia, AssemblyWork};
 use crate::linalg::norm3;
 use crate::scene::{
     check_solver_size, joint_targets, BcShape, JointTarget, LinearKind, Scene, SolverSpec,
@@ -208,6 +208,8 @@ pub struct Stepper<'s> {
     frames: HashMap<Vec<bool>, Frames>,
     pub linear: LinearSolver,
     hmat: BlockCsr,
+    /// Element buffers of the gradient and Hessian assembly, kept across Newton iterations.
+    assembly: AssemblyWork,
     /// Reaction force per DOF at the end of the last step (newtons).
     pub reactions: Vec<f64>,
     /// Newton tolerance on ‖Δx‖∞/h (m/s).
@@ -318,6 +320,7 @@ impl<'s> Stepper<'s> {
             frames: HashMap::new(),
             linear: LinearSolver::new(&scene.solver).map_err(InitError::Solver)?,
             hmat: scene.model.zero_matrix(),
+            assembly: AssemblyWork::default(),
             reactions: vec![0.0; scene.x0.len()],
             newton_tol: scene.solver.newton_tolerance * scene.characteristic_length,
             moving_eps: scene.moving.tolerance * scene.characteristic_length,
@@ -863,7 +866,7 @@ impl<'s> Stepper<'s> {
     }
 
     fn gradient(
-        &self,
+        &mut self,
         x: &[f64],
         xt: &[f64],
         targets: &[BcShape],
@@ -875,7 +878,8 @@ impl<'s> Stepper<'s> {
         let h = sc.time_step;
         g.iter_mut().for_each(|v| *v = 0.0);
         inertia::add_gradient(&sc.model.mass, d, x, xt, g);
-        sc.model.add_potential_gradient(x, h * h, g);
+        sc.model
+            .add_potential_gradient_with(x, h * h, g, &mut self.assembly);
         for (j, &k) in self.moving_bcs.iter().enumerate() {
             if snapped[j] {
                 continue;
@@ -903,7 +907,7 @@ impl<'s> Stepper<'s> {
         self.hmat.values.iter_mut().for_each(|v| *v = 0.0);
         sc.model.add_mass(&mut self.hmat);
         sc.model
-            .add_potential_hessian(x, h * h, true, &mut self.hmat);
+            .add_potential_hessian_with(x, h * h, true, &mut self.hmat, &mut self.assembly);
         for (j, &k) in self.moving_bcs.iter().enumerate() {
             if snapped[j] {
                 continue;

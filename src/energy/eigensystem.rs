@@ -15,7 +15,7 @@
 //! but is not the projection of the element Hessian itself (that would need the
 //! eigendecomposition of the 12×12 matrix; this needs an SVD of F and a d×d eigenproblem).
 
-use nalgebra::{Matrix2, Matrix3, SymmetricEigen};
+use nalgebra::{Matrix2, SymmetricEigen};
 
 /// ∂²ψ/∂σ² and the pair eigenvalues of an isotropic energy at σ. Pairs are ordered
 /// (0, 1), (0, 2), (1, 2); 2D uses the first only.
@@ -35,51 +35,27 @@ pub const PAIRS: [(usize, usize); 3] = [(0, 1), (0, 2), (1, 2)];
 /// F = U diag(σ) Vᵀ with U and V rotations (row-major d×d in the leading entries) and σ
 /// signed: when det F < 0 the smallest singular value is negative.
 pub fn signed_svd(d: usize, f: &[f64]) -> ([f64; 9], [f64; 3], [f64; 9]) {
+    if d == 3 {
+        return signed_svd3(&f[..9]);
+    }
     let mut u = [0.0; 9];
     let mut v = [0.0; 9];
     let mut s = [0.0; 3];
-    if d == 2 {
-        let m = Matrix2::new(f[0], f[1], f[2], f[3]);
-        let svd = m.svd(true, true);
-        let (mut uu, vt) = (svd.u.unwrap_or_default(), svd.v_t.unwrap_or_default());
-        let mut vv = vt.transpose();
-        let mut sv = [svd.singular_values[0], svd.singular_values[1]];
-        let last = if sv[0].abs() < sv[1].abs() { 0 } else { 1 };
-        let (du, dv) = (uu.determinant(), vv.determinant());
-        fix_sign(&mut uu, &mut vv, &mut sv, last, du, dv);
-        for r in 0..2 {
-            for c in 0..2 {
-                u[r * 2 + c] = uu[(r, c)];
-                v[r * 2 + c] = vv[(r, c)];
-            }
+    let m = Matrix2::new(f[0], f[1], f[2], f[3]);
+    let svd = m.svd(true, true);
+    let (mut uu, vt) = (svd.u.unwrap_or_default(), svd.v_t.unwrap_or_default());
+    let mut vv = vt.transpose();
+    let mut sv = [svd.singular_values[0], svd.singular_values[1]];
+    let last = if sv[0].abs() < sv[1].abs() { 0 } else { 1 };
+    let (du, dv) = (uu.determinant(), vv.determinant());
+    fix_sign(&mut uu, &mut vv, &mut sv, last, du, dv);
+    for r in 0..2 {
+        for c in 0..2 {
+            u[r * 2 + c] = uu[(r, c)];
+            v[r * 2 + c] = vv[(r, c)];
         }
-        s[..2].copy_from_slice(&sv);
-    } else {
-        let m = Matrix3::from_row_slice(&f[..9]);
-        let svd = m.svd(true, true);
-        let (mut uu, vt) = (svd.u.unwrap_or_default(), svd.v_t.unwrap_or_default());
-        let mut vv = vt.transpose();
-        let mut sv = [
-            svd.singular_values[0],
-            svd.singular_values[1],
-            svd.singular_values[2],
-        ];
-        let mut last = 0;
-        for k in 1..3 {
-            if sv[k].abs() < sv[last].abs() {
-                last = k;
-            }
-        }
-        let (du, dv) = (uu.determinant(), vv.determinant());
-        fix_sign(&mut uu, &mut vv, &mut sv, last, du, dv);
-        for r in 0..3 {
-            for c in 0..3 {
-                u[r * 3 + c] = uu[(r, c)];
-                v[r * 3 + c] = vv[(r, c)];
-            }
-        }
-        s = sv;
     }
+    s[..2].copy_from_slice(&sv);
     (u, s, v)
 }
 
@@ -167,25 +143,325 @@ pub fn assemble(
 /// Eigenvalues and eigenvectors (columns: vecs[a][k] is component a of vector k) of the
 /// symmetric d×d block.
 fn scaling_eigen(d: usize, a: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
+    if d == 3 {
+        return symmetric_eigen3(a);
+    }
     let mut vals = [0.0; 3];
     let mut vecs = [[0.0; 3]; 3];
-    if d == 2 {
-        let e = SymmetricEigen::new(Matrix2::new(a[0][0], a[0][1], a[1][0], a[1][1]));
-        for k in 0..2 {
-            vals[k] = e.eigenvalues[k];
-            for (r, row) in vecs.iter_mut().enumerate().take(2) {
-                row[k] = e.eigenvectors[(r, k)];
-            }
-        }
-    } else {
-        let m = Matrix3::from_fn(|r, c| a[r][c]);
-        let e = SymmetricEigen::new(m);
-        for k in 0..3 {
-            vals[k] = e.eigenvalues[k];
-            for (r, row) in vecs.iter_mut().enumerate() {
-                row[k] = e.eigenvectors[(r, k)];
-            }
+    let e = SymmetricEigen::new(Matrix2::new(a[0][0], a[0][1], a[1][0], a[1][1]));
+    for k in 0..2 {
+        vals[k] = e.eigenvalues[k];
+        for (r, row) in vecs.iter_mut().enumerate().take(2) {
+            row[k] = e.eigenvectors[(r, k)];
         }
     }
     (vals, vecs)
+}
+
+/// The element Hessian (∂F/∂x)ᵀ proj(∂²Ψ/∂F²) (∂F/∂x) · `scale`, ((d+1)d)² row-major,
+/// straight from the eigensystem: proj(∂²Ψ/∂F²) = Σ_k max(λ_k, 0) q_k q_kᵀ with
+/// q_k = vec(U M_k Vᵀ), so the element Hessian is Σ_k max(λ_k, 0) w_k w_kᵀ with
+/// w_k = (∂F/∂x)ᵀ q_k, w_k[(a, c)] = Σ_pq U_cp (M_k)_pq (G V)_aq. `g` holds the shape
+/// gradients G[a][j] ((d+1)·d, row-major). About a tenth of the arithmetic of forming the
+/// d²×d² projection and contracting it with G twice; only the upper triangle is summed and
+/// mirrored, so the result is exactly symmetric.
+pub fn projected_element_hessian(
+    d: usize,
+    u: &[f64; 9],
+    v: &[f64; 9],
+    h: &SingularValueHessian,
+    g: &[f64],
+    scale: f64,
+    out: &mut [f64],
+) {
+    if d == 3 {
+        modes_into::<12, 9>(3, u, v, h, g, scale, out);
+    } else {
+        modes_into::<6, 4>(2, u, v, h, g, scale, out);
+    }
+}
+
+/// [`projected_element_hessian`] with the element size NL = (d+1)d and the mode count
+/// NM = d² fixed, so that the Σ_k over modes is an unrolled fixed-length dot product.
+fn modes_into<const NL: usize, const NM: usize>(
+    d: usize,
+    u: &[f64; 9],
+    v: &[f64; 9],
+    h: &SingularValueHessian,
+    g: &[f64],
+    scale: f64,
+    out: &mut [f64],
+) {
+    let nn = d + 1;
+    // gv[a][q] = Σ_j G[a][j] V[j][q].
+    let mut gv = [[0.0f64; 3]; 4];
+    for (a, row) in gv.iter_mut().enumerate().take(nn) {
+        for (q, e) in row.iter_mut().enumerate().take(d) {
+            *e = (0..d).map(|j| g[a * d + j] * v[j * d + q]).sum();
+        }
+    }
+    // w[i][k]: entry i of w_k; lw[i][k] = max(λ_k, 0)·scale·w[i][k]. A clamped mode has
+    // zero weight (it adds exact zeros).
+    let mut w = [[0.0f64; NM]; NL];
+    let mut lw = [[0.0f64; NM]; NL];
+    let mut lam = [0.0f64; NM];
+    // Scaling modes: M = diag(e_k), w[(a, c)] = Σ_p U_cp e_k[p] gv[a][p].
+    let (vals, vecs) = scaling_eigen(d, &h.a);
+    for k in 0..d {
+        lam[k] = vals[k].max(0.0) * scale;
+        for a in 0..nn {
+            for c in 0..d {
+                w[a * d + c][k] = (0..d).map(|p| u[c * d + p] * vecs[p][k] * gv[a][p]).sum();
+            }
+        }
+    }
+    // Twist and flip modes of the pair (i, j): M = (e_i e_jᵀ ∓ e_j e_iᵀ)/√2.
+    let r = std::f64::consts::FRAC_1_SQRT_2;
+    let pairs = if d == 2 { 1 } else { 3 };
+    for (p, &(i, j)) in PAIRS.iter().enumerate().take(pairs) {
+        let (kt, kf) = (d + 2 * p, d + 2 * p + 1);
+        lam[kt] = h.twist[p].max(0.0) * scale;
+        lam[kf] = h.flip[p].max(0.0) * scale;
+        for a in 0..nn {
+            for c in 0..d {
+                let x = u[c * d + i] * gv[a][j];
+                let y = u[c * d + j] * gv[a][i];
+                w[a * d + c][kt] = r * (x - y);
+                w[a * d + c][kf] = r * (x + y);
+            }
+        }
+    }
+    for (lrow, wrow) in lw.iter_mut().zip(&w) {
+        for k in 0..NM {
+            lrow[k] = lam[k] * wrow[k];
+        }
+    }
+    let out = &mut out[..NL * NL];
+    for i in 0..NL {
+        for j in i..NL {
+            let mut s = 0.0;
+            for k in 0..NM {
+                s += lw[i][k] * w[j][k];
+            }
+            out[i * NL + j] = s;
+            out[j * NL + i] = s;
+        }
+    }
+}
+
+/// Eigenpairs of a symmetric 3×3 matrix by cyclic Jacobi rotations (Golub and Van Loan,
+/// Algorithm 8.5.2): (λ, V) with A = V diag(λ) Vᵀ, `vecs[r][k]` component r of vector k.
+/// Jacobi converges quadratically and is accurate to rounding; sweeps stop once the
+/// off-diagonal part is below rounding of ‖A‖. An order of magnitude cheaper than the
+/// general tridiagonal QR for this size, and it is called once or twice per element and
+/// Newton iteration.
+pub fn symmetric_eigen3(m: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
+    // Exact symmetry: the upper triangle mirrored.
+    let mut a: [[f64; 3]; 3] =
+        std::array::from_fn(|r| std::array::from_fn(|c| if c >= r { m[r][c] } else { m[c][r] }));
+    let mut v = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    let norm2: f64 = a.iter().flatten().map(|x| x * x).sum();
+    let tiny = 0.25 * f64::EPSILON * f64::EPSILON * norm2;
+    for _sweep in 0..32 {
+        let off = a[0][1] * a[0][1] + a[0][2] * a[0][2] + a[1][2] * a[1][2];
+        if off.is_nan() || off <= tiny {
+            break;
+        }
+        for (p, q) in [(0, 1), (0, 2), (1, 2)] {
+            let apq = a[p][q];
+            if apq == 0.0 {
+                continue;
+            }
+            let tau = (a[q][q] - a[p][p]) / (2.0 * apq);
+            // t = tan θ, the smaller root of t² + 2τt − 1 = 0 (|θ| ≤ π/4).
+            let t = if tau.abs() > 1e150 {
+                0.5 / tau
+            } else if tau >= 0.0 {
+                1.0 / (tau + (1.0 + tau * tau).sqrt())
+            } else {
+                -1.0 / (-tau + (1.0 + tau * tau).sqrt())
+            };
+            let c = 1.0 / (1.0 + t * t).sqrt();
+            let s = t * c;
+            let r = 3 - p - q;
+            a[p][p] -= t * apq;
+            a[q][q] += t * apq;
+            a[p][q] = 0.0;
+            a[q][p] = 0.0;
+            let (arp, arq) = (a[r][p], a[r][q]);
+            a[r][p] = c * arp - s * arq;
+            a[r][q] = s * arp + c * arq;
+            a[p][r] = a[r][p];
+            a[q][r] = a[r][q];
+            for row in v.iter_mut() {
+                let (vp, vq) = (row[p], row[q]);
+                row[p] = c * vp - s * vq;
+                row[q] = s * vp + c * vq;
+            }
+        }
+    }
+    ([a[0][0], a[1][1], a[2][2]], v)
+}
+
+/// 3D [`signed_svd`]: V from the eigenvectors of FᵀF ([`symmetric_eigen3`]), sorted by
+/// decreasing eigenvalue and made a rotation; B = F V; U by Gram–Schmidt on B's columns
+/// (u₃ = u₁ × u₂, so U is a rotation) and σ_k = u_kᵀ b_k, the last one signed. A
+/// vanishing column (a flat or collapsed element) takes any unit vector orthogonal to the
+/// others: its singular value is zero, so F = U diag(σ) Vᵀ holds whatever it is.
+fn signed_svd3(f: &[f64]) -> ([f64; 9], [f64; 3], [f64; 9]) {
+    let mut ata = [[0.0f64; 3]; 3];
+    for (r, row) in ata.iter_mut().enumerate() {
+        for (c, e) in row.iter_mut().enumerate() {
+            *e = (0..3).map(|k| f[k * 3 + r] * f[k * 3 + c]).sum();
+        }
+    }
+    let (lam, ev) = symmetric_eigen3(&ata);
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&i, &j| lam[j].total_cmp(&lam[i]));
+    let mut v = [0.0f64; 9];
+    for r in 0..3 {
+        for k in 0..3 {
+            v[r * 3 + k] = ev[r][order[k]];
+        }
+    }
+    if det3(&v) < 0.0 {
+        for r in 0..3 {
+            v[r * 3 + 2] = -v[r * 3 + 2];
+        }
+    }
+    // Columns of B = F V.
+    let mut b = [[0.0f64; 3]; 3];
+    for (k, col) in b.iter_mut().enumerate() {
+        for (r, e) in col.iter_mut().enumerate() {
+            *e = (0..3).map(|j| f[r * 3 + j] * v[j * 3 + k]).sum();
+        }
+    }
+    let dot = |x: &[f64; 3], y: &[f64; 3]| x[0] * y[0] + x[1] * y[1] + x[2] * y[2];
+    let cross = |x: &[f64; 3], y: &[f64; 3]| {
+        [
+            x[1] * y[2] - x[2] * y[1],
+            x[2] * y[0] - x[0] * y[2],
+            x[0] * y[1] - x[1] * y[0],
+        ]
+    };
+    let normalized = |x: [f64; 3]| -> Option<[f64; 3]> {
+        let n = dot(&x, &x).sqrt();
+        (n > f64::MIN_POSITIVE && n.is_finite()).then(|| [x[0] / n, x[1] / n, x[2] / n])
+    };
+    // Any unit vector orthogonal to the unit vector x: x × (the axis least along x).
+    let orthogonal = |x: &[f64; 3]| -> [f64; 3] {
+        let mut k = 0;
+        for a in 1..3 {
+            if x[a].abs() < x[k].abs() {
+                k = a;
+            }
+        }
+        let mut e = [0.0; 3];
+        e[k] = 1.0;
+        normalized(cross(x, &e)).unwrap_or([0.0, 0.0, 1.0])
+    };
+    let u1 = normalized(b[0]).unwrap_or([1.0, 0.0, 0.0]);
+    let mut w = b[1];
+    // Twice is enough: the second pass removes what rounding left of u₁.
+    for _ in 0..2 {
+        let p = dot(&u1, &w);
+        for a in 0..3 {
+            w[a] -= p * u1[a];
+        }
+    }
+    let u2 = normalized(w).unwrap_or_else(|| orthogonal(&u1));
+    let u3 = cross(&u1, &u2);
+    let sigma = [dot(&u1, &b[0]), dot(&u2, &b[1]), dot(&u3, &b[2])];
+    let mut u = [0.0f64; 9];
+    for r in 0..3 {
+        u[r * 3] = u1[r];
+        u[r * 3 + 1] = u2[r];
+        u[r * 3 + 2] = u3[r];
+    }
+    (u, sigma, v)
+}
+
+fn det3(m: &[f64; 9]) -> f64 {
+    m[0] * (m[4] * m[8] - m[5] * m[7]) - m[1] * (m[3] * m[8] - m[5] * m[6])
+        + m[2] * (m[3] * m[7] - m[4] * m[6])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::rngs::StdRng;
+    use rand::{Rng, SeedableRng};
+
+    fn max_abs(m: &[f64]) -> f64 {
+        m.iter().fold(0.0f64, |a, v| a.max(v.abs()))
+    }
+
+    /// Random, nearly repeated, rank-deficient, diagonal and zero matrices.
+    fn matrices(rng: &mut StdRng) -> Vec<[f64; 9]> {
+        let mut out = Vec::new();
+        for _ in 0..200 {
+            out.push(std::array::from_fn(|_| rng.random_range(-2.0..2.0)));
+        }
+        out.push([1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        out.push([0.0; 9]);
+        out.push([2.0, 0.0, 0.0, 0.0, -3.0, 0.0, 0.0, 0.0, 1e-9]);
+        out.push([1.0, 1e-12, 0.0, 0.0, 1.0, 1e-12, 0.0, 0.0, 1.0]);
+        // Rank 1 and rank 2.
+        out.push([1.0, 2.0, 3.0, 2.0, 4.0, 6.0, -1.0, -2.0, -3.0]);
+        out.push([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 5.0, 7.0, 9.0]);
+        // Inverted (det < 0) and nearly flat.
+        out.push([1.2, 0.1, 0.0, 0.0, 0.9, 0.2, 0.1, 0.0, -0.3]);
+        out.push([1.1, 0.0, 0.0, 0.0, 0.9, 0.0, 0.0, 0.0, 1e-7]);
+        out
+    }
+
+    #[test]
+    fn jacobi_eigenpairs_reassemble_the_matrix_and_are_orthonormal() {
+        let mut rng = StdRng::seed_from_u64(5);
+        for m in matrices(&mut rng) {
+            let a: [[f64; 3]; 3] = std::array::from_fn(|r| {
+                std::array::from_fn(|c| 0.5 * (m[r * 3 + c] + m[c * 3 + r]))
+            });
+            let (l, v) = symmetric_eigen3(&a);
+            let scale = max_abs(&m).max(f64::MIN_POSITIVE);
+            for r in 0..3 {
+                for c in 0..3 {
+                    let back: f64 = (0..3).map(|k| v[r][k] * l[k] * v[c][k]).sum();
+                    let vtv: f64 = (0..3).map(|k| v[k][r] * v[k][c]).sum();
+                    // A few dozen rotations of O(‖A‖) entries: 1e-13 relative is far above
+                    // rounding and far below a wrong rotation.
+                    assert!((back - a[r][c]).abs() <= 1e-13 * scale, "{m:?}: ({r}, {c})");
+                    let id = if r == c { 1.0 } else { 0.0 };
+                    assert!((vtv - id).abs() <= 1e-14, "{m:?}: VᵀV ({r}, {c}) = {vtv}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn signed_svd_reassembles_f_with_rotations_and_the_sign_of_det_f() {
+        let mut rng = StdRng::seed_from_u64(11);
+        for m in matrices(&mut rng) {
+            let (u, s, v) = signed_svd(3, &m);
+            let scale = max_abs(&m).max(f64::MIN_POSITIVE);
+            for r in 0..3 {
+                for c in 0..3 {
+                    let back: f64 = (0..3).map(|k| u[r * 3 + k] * s[k] * v[c * 3 + k]).sum();
+                    // Same reasoning as above; F's entries are O(1).
+                    assert!(
+                        (back - m[r * 3 + c]).abs() <= 1e-13 * scale,
+                        "{m:?}: ({r}, {c})"
+                    );
+                }
+            }
+            assert!((det3(&u) - 1.0).abs() <= 1e-14 && (det3(&v) - 1.0).abs() <= 1e-14);
+            assert!(s[0] >= s[1] && s[1] >= s[2].abs(), "{m:?}: σ = {s:?}");
+            let det = det3(&m);
+            // The sign of det F is carried by σ₃ (a zero determinant may go either way).
+            assert!(
+                det * s[2] >= 0.0 || det.abs() <= 1e-13 * scale.powi(3),
+                "{m:?}: σ = {s:?}"
+            );
+        }
+    }
 }

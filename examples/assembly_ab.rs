@@ -1,0 +1,114 @@
+//! Time of the simulation's element loops outside the linear solver on a built-in scene
+//! (energy, gradient, projected Hessian, each assembled into the model's fixed pattern),
+//! on 1 and 2 threads, and whether the results are bitwise equal across thread counts:
+//! `cargo run --release --example assembly_ab -- [scene] [size] [repeats]`. Wall seconds
+//! are the best of the repeats; CPU seconds (all threads, Unix only) their mean, which a
+//! loaded machine disturbs less.
+
+use std::time::Instant;
+use stickslip::driver::load_scene;
+use stickslip::energy::AssemblyWork;
+
+/// CPU seconds of this process so far (all threads); 0 where unavailable.
+fn cpu_seconds() -> f64 {
+    #[cfg(unix)]
+    {
+        let mut t = libc::timespec {
+            tv_sec: 0,
+            tv_nsec: 0,
+        };
+        // SAFETY: clock_gettime writes one timespec into `t`.
+        if unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut t) } == 0 {
+            return t.tv_sec as f64 + 1e-9 * t.tv_nsec as f64;
+        }
+    }
+    0.0
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let name = args.get(1).map_or("twist", String::as_str);
+    let size: f64 = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(10.0);
+    let reps: usize = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(5);
+    let scene = match load_scene(name, size) {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("{e}");
+            std::process::exit(2);
+        }
+    };
+    let m = &scene.model;
+    let d = m.dim;
+    // A twisted configuration: every element deformed, some strongly (the projection works).
+    let mut x = scene.x0.clone();
+    for i in 0..m.n_nodes {
+        let p = &mut x[i * d..(i + 1) * d];
+        let a = 0.8 * p[0];
+        if d == 3 {
+            let (y, z) = (p[1] - 0.1, p[2] - 0.1);
+            p[1] = 0.1 + y * a.cos() - z * a.sin();
+            p[2] = 0.1 + y * a.sin() + z * a.cos();
+        } else {
+            p[1] *= 1.0 + 0.3 * a;
+        }
+    }
+    let elements: usize = m.sets.iter().map(|s| s.len()).sum();
+    println!(
+        "{name} size {size}: {} nodes, {elements} elements, best of {reps}",
+        m.n_nodes
+    );
+    println!("| threads | energy s | gradient s | Hessian s | energy CPU s | gradient CPU s | Hessian CPU s |");
+    println!("|---|---|---|---|---|---|---|");
+    let mut results = Vec::new();
+    for threads in [1, 2] {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .expect("thread pool");
+        let r = pool.install(|| {
+            let mut work = AssemblyWork::default();
+            let mut h = m.zero_matrix();
+            let mut g = vec![0.0; x.len()];
+            let (mut te, mut tg, mut th) = (f64::MAX, f64::MAX, f64::MAX);
+            let mut cpu = [0.0f64; 3];
+            let mut e = 0.0;
+            for _ in 0..reps {
+                let (t, c) = (Instant::now(), cpu_seconds());
+                e = m.potential(&x);
+                te = te.min(t.elapsed().as_secs_f64());
+                cpu[0] += cpu_seconds() - c;
+                g.iter_mut().for_each(|v| *v = 0.0);
+                let (t, c) = (Instant::now(), cpu_seconds());
+                m.add_potential_gradient_with(&x, 1.0, &mut g, &mut work);
+                tg = tg.min(t.elapsed().as_secs_f64());
+                cpu[1] += cpu_seconds() - c;
+                h.values.iter_mut().for_each(|v| *v = 0.0);
+                let (t, c) = (Instant::now(), cpu_seconds());
+                m.add_potential_hessian_with(&x, 1.0, true, &mut h, &mut work);
+                th = th.min(t.elapsed().as_secs_f64());
+                cpu[2] += cpu_seconds() - c;
+            }
+            let n = reps as f64;
+            println!(
+                "| {threads} | {te:.4} | {tg:.4} | {th:.4} | {:.4} | {:.4} | {:.4} |",
+                cpu[0] / n,
+                cpu[1] / n,
+                cpu[2] / n
+            );
+            (e.to_bits(), g, h.values)
+        });
+        results.push(r);
+    }
+    let same = results[0].0 == results[1].0
+        && results[0]
+            .1
+            .iter()
+            .zip(&results[1].1)
+            .all(|(a, b)| a.to_bits() == b.to_bits())
+        && results[0]
+            .2
+            .iter()
+            .zip(&results[1].2)
+            .all(|(a, b)| a.to_bits() == b.to_bits());
+    println!("bitwise equal on 1 and 2 threads: {same}");
+}
