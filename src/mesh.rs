@@ -687,13 +687,23 @@ fn msh_section_count(
             u64::from_be_bytes(w)
         })
     } else {
-        let rest = bytes.get(start..(start + 256).min(bytes.len()))?;
-        let text = std::str::from_utf8(rest).ok().or_else(|| {
-            // A cut inside a multi-byte character at the window's end.
-            let valid = std::str::from_utf8(rest).err()?.valid_up_to();
-            std::str::from_utf8(&rest[..valid]).ok()
-        })?;
-        text.split_ascii_whitespace().nth(1)?.parse().ok()
+        // As mshio reads ASCII numbers: digits between runs of space, tab, CR and LF
+        // (any length of them).
+        let mut at = start;
+        let mut number = || {
+            while matches!(bytes.get(at), Some(b' ' | b'\t' | b'\r' | b'\n')) {
+                at += 1;
+            }
+            let digits = bytes[at.min(bytes.len())..]
+                .iter()
+                .take_while(|b| b.is_ascii_digit())
+                .count();
+            let text = std::str::from_utf8(&bytes[at..at + digits]).ok()?;
+            at += digits;
+            text.parse::<u64>().ok()
+        };
+        number()?;
+        number()
     }
 }
 

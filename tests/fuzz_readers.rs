@@ -296,6 +296,26 @@ fn inputs_that_once_panicked_are_errors() {
         let e = stickslip::mesh::gmsh(2, &b).unwrap_err();
         assert!(e.contains("declares no"), "{e}");
     }
+    // The ASCII square with 0 in a count, after a long run of blank space (mshio skips
+    // any amount of it).
+    let square = String::from_utf8(gmsh_samples()[0].clone()).unwrap();
+    for section in ["$Nodes\n", "$Elements\n"] {
+        let at = square.find(section).unwrap() + section.len();
+        let line_end = at + square[at..].find('\n').unwrap();
+        let mut header: Vec<&str> = square[at..line_end].split(' ').collect();
+        header[1] = "0";
+        let text = format!(
+            "{}{}{}{}",
+            &square[..at],
+            " \n\t".repeat(200),
+            header.join(" "),
+            &square[line_end..]
+        );
+        for dim in [2, 3] {
+            let e = stickslip::mesh::gmsh(dim, text.as_bytes()).unwrap_err();
+            assert!(e.contains("declares no"), "{section}: {e}");
+        }
+    }
     // The fuzzer's crash inputs, kept as seeds (some hold two $MeshFormat or $Nodes
     // lines, where only mshio's own section walk finds the section it parses): each is
     // refused before mshio runs, never by a panic contained inside it. This test profile
