@@ -169,6 +169,11 @@ pub struct GpuParams {
     /// eigenvalues of the rigid translations that plain f32 rounding perturbs by
     /// ε_f32·‖Ĥ‖. See [`DifferenceForm`]; f64 operators never use it.
     pub f32_difference: DifferenceForm,
+    /// Caps the storage binding size the solver assumes (bytes; None: the adapter's
+    /// `max_storage_buffer_binding_size`). Per-block arrays larger than the limit are bound
+    /// in row-chunk pieces; a lower cap makes small systems take that path (tests).
+    #[doc(hidden)]
+    pub binding_limit: Option<u64>,
 }
 
 impl Default for GpuParams {
@@ -189,6 +194,7 @@ impl Default for GpuParams {
             error_tol: None,
             coarse: CoarseSpace::default(),
             f32_difference: DifferenceForm::default(),
+            binding_limit: None,
         }
     }
 }

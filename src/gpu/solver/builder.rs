@@ -65,6 +65,84 @@ pub(super) struct Params {
 }
 const _: () = assert!(std::mem::size_of::<Params>() == 16);
 
+/// The row range of one dispatch over per-block arrays (mirrors `struct Chunk` in
+/// shaders/common.wgsl).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(super) struct ChunkParams {
+    pub(super) row0: u32,
+    pub(super) row1: u32,
+    pub(super) kbase: u32,
+    pub(super) flags: u32,
+}
+const _: () = assert!(std::mem::size_of::<ChunkParams>() == 16);
+const CHUNK_FIRST: u32 = 1;
+const CHUNK_LAST: u32 = 2;
+
+/// Rows `row0..row1` whose blocks `kbase..kend` are bound as one piece of each per-block
+/// array (`kbase` aligned down so that every piece's offset meets the adapter's offset
+/// alignment), with the chunk's uniform.
+pub(super) struct Chunk {
+    pub(super) row0: u32,
+    pub(super) row1: u32,
+    pub(super) kbase: u64,
+    pub(super) kend: u64,
+    pub(super) uniform: wgpu::Buffer,
+}
+
+/// Row chunks of a block pattern (`row_ptr`, n + 1 entries) such that the blocks of each,
+/// from its aligned base, take at most `limit` bytes in an array of `elem` bytes per block
+/// (the widest per-block array). Blocks from a base that is a multiple of `base_multiple`.
+/// One chunk when the whole array fits. Err: a single row's blocks do not fit (the number).
+pub(super) fn plan_chunks(
+    row_ptr: &[u32],
+    elem: u64,
+    limit: u64,
+    base_multiple: u64,
+) -> Result<Vec<(u32, u32, u64, u64)>, u64> {
+    let n = row_ptr.len().saturating_sub(1);
+    let total = u64::from(row_ptr[n]);
+    if total * elem <= limit {
+        return Ok(vec![(0, n as u32, 0, total)]);
+    }
+    let cap = limit / elem;
+    let mut out = Vec::new();
+    let mut r0 = 0usize;
+    while r0 < n {
+        let kbase = u64::from(row_ptr[r0]) / base_multiple * base_multiple;
+        let mut r1 = r0;
+        while r1 < n && u64::from(row_ptr[r1 + 1]) - kbase <= cap {
+            r1 += 1;
+        }
+        if r1 == r0 {
+            return Err(u64::from(row_ptr[r0 + 1] - row_ptr[r0]));
+        }
+        out.push((r0 as u32, r1 as u32, kbase, u64::from(row_ptr[r1])));
+        r0 = r1;
+    }
+    Ok(out)
+}
+
+/// How a per-block array is bound in one chunk: the whole buffer when there is one chunk
+/// (or the array is an unused plane), else its blocks `kbase..kend` (`elem` bytes each).
+pub(super) fn piece<'b>(
+    buf: &'b wgpu::Buffer,
+    c: &Chunk,
+    elem: u64,
+    whole: bool,
+) -> wgpu::BufferBinding<'b> {
+    if whole || c.kend == c.kbase {
+        return buf.as_entire_buffer_binding();
+    }
+    let offset = c.kbase * elem;
+    let size = ((c.kend - c.kbase) * elem).min(buf.size() - offset);
+    wgpu::BufferBinding {
+        buffer: buf,
+        offset,
+        size: std::num::NonZeroU64::new(size),
+    }
+}
+
 /// One compiled entry point with the bind-group layout of its shader.
 pub(super) struct Kernel {
     pub(super) name: &'static str,
@@ -73,15 +151,18 @@ pub(super) struct Kernel {
     layout: wgpu::BindGroupLayout,
 }
 
-/// A kernel and the bind group it is dispatched with.
-pub(super) struct Bound {
+/// A one-invocation-per-row kernel over per-block arrays: one bind group per row chunk,
+/// with the chunk's row count.
+pub(super) struct Chunked {
     pub(super) kernel: Kernel,
-    pub(super) group: wgpu::BindGroup,
+    pub(super) groups: Vec<(wgpu::BindGroup, u32)>,
 }
 
 /// Allocation and compilation with bookkeeping and limit checks.
 pub(super) struct Builder<'a> {
     ctx: &'a GpuContext,
+    /// The storage binding limit in force: the adapter's, or less (`GpuParams::binding_limit`).
+    pub(super) binding_limit: u64,
     pub(super) buffers: Vec<BufferRecord>,
     pub(super) kernels: Vec<KernelRecord>,
     modules: BTreeMap<(String, &'static str, &'static str), wgpu::ShaderModule>,
@@ -92,9 +173,10 @@ pub(super) const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE
     .union(wgpu::BufferUsages::COPY_SRC);
 
 impl<'a> Builder<'a> {
-    pub(super) fn new(ctx: &'a GpuContext) -> Self {
+    pub(super) fn new(ctx: &'a GpuContext, binding_limit: u64) -> Self {
         Builder {
             ctx,
+            binding_limit,
             buffers: Vec::new(),
             kernels: Vec::new(),
             modules: BTreeMap::new(),
@@ -106,6 +188,7 @@ impl<'a> Builder<'a> {
         label: &str,
         bytes: u64,
         usage: wgpu::BufferUsages,
+        split: bool,
     ) -> Result<(), GpuError> {
         let l = &self.ctx.limits;
         let too_large = |limit: u64, what: &'static str| GpuError::BufferTooLarge {
@@ -118,12 +201,9 @@ impl<'a> Builder<'a> {
         if bytes > l.max_buffer_size {
             return Err(too_large(l.max_buffer_size, "buffer"));
         }
-        if usage.contains(wgpu::BufferUsages::STORAGE) && bytes > l.max_storage_buffer_binding_size
-        {
-            return Err(too_large(
-                l.max_storage_buffer_binding_size,
-                "storage binding",
-            ));
+        // A split array is bound in pieces (row chunks), each within the limit.
+        if usage.contains(wgpu::BufferUsages::STORAGE) && !split && bytes > self.binding_limit {
+            return Err(too_large(self.binding_limit, "storage binding"));
         }
         Ok(())
     }
@@ -134,9 +214,28 @@ impl<'a> Builder<'a> {
         bytes: u64,
         usage: wgpu::BufferUsages,
     ) -> Result<wgpu::Buffer, GpuError> {
+        self.buffer_as(label, bytes, usage, false)
+    }
+
+    /// A per-block storage array bound in row-chunk pieces: only the buffer limit applies.
+    pub(super) fn split_buffer(
+        &mut self,
+        label: &str,
+        bytes: u64,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        self.buffer_as(label, bytes, STORAGE, true)
+    }
+
+    fn buffer_as(
+        &mut self,
+        label: &str,
+        bytes: u64,
+        usage: wgpu::BufferUsages,
+        split: bool,
+    ) -> Result<wgpu::Buffer, GpuError> {
         // Bindings must not be empty; round up to whole 16-byte units.
         let bytes = bytes.max(16).div_ceil(16) * 16;
-        self.check_size(label, bytes, usage)?;
+        self.check_size(label, bytes, usage, split)?;
         let b = self.ctx.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size: bytes,
@@ -156,6 +255,25 @@ impl<'a> Builder<'a> {
         data: &[u8],
         usage: wgpu::BufferUsages,
     ) -> Result<wgpu::Buffer, GpuError> {
+        self.init_as(label, data, usage, false)
+    }
+
+    /// A per-block storage array with contents, bound in row-chunk pieces.
+    pub(super) fn split_storage(
+        &mut self,
+        label: &str,
+        data: &[u8],
+    ) -> Result<wgpu::Buffer, GpuError> {
+        self.init_as(label, data, STORAGE, true)
+    }
+
+    fn init_as(
+        &mut self,
+        label: &str,
+        data: &[u8],
+        usage: wgpu::BufferUsages,
+        split: bool,
+    ) -> Result<wgpu::Buffer, GpuError> {
         let mut padded;
         let contents = if data.len() < 16 || data.len() % 4 != 0 {
             padded = data.to_vec();
@@ -164,7 +282,7 @@ impl<'a> Builder<'a> {
         } else {
             data
         };
-        self.check_size(label, contents.len() as u64, usage)?;
+        self.check_size(label, contents.len() as u64, usage, split)?;
         let b = self
             .ctx
             .device
@@ -190,6 +308,54 @@ impl<'a> Builder<'a> {
             bytes,
             wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
         )
+    }
+
+    /// The row chunks of a block pattern whose per-block arrays are at most `elem` bytes a
+    /// block (see [`plan_chunks`]), each with its uniform `{label}_chunk{c}`.
+    pub(super) fn chunks(
+        &mut self,
+        label: &str,
+        row_ptr: &[u32],
+        elem: u64,
+    ) -> Result<Vec<Chunk>, GpuError> {
+        // Piece offsets k·e (e ≥ 4 bytes) are multiples of the alignment when k is.
+        let align = u64::from(self.ctx.limits.min_storage_buffer_offset_alignment);
+        let plan = plan_chunks(row_ptr, elem, self.binding_limit, align.div_ceil(4).max(1))
+            .map_err(|blocks| {
+                GpuError::Unsupported(format!(
+                    "a row of {blocks} blocks needs {} bytes in '{label}', more than one \
+                     storage binding of adapter '{}' holds ({} bytes)",
+                    blocks * elem,
+                    self.ctx.info.name,
+                    self.binding_limit
+                ))
+            })?;
+        let last = plan.len() - 1;
+        plan.into_iter()
+            .enumerate()
+            .map(|(c, (row0, row1, kbase, kend))| {
+                let flags =
+                    if c == 0 { CHUNK_FIRST } else { 0 } | if c == last { CHUNK_LAST } else { 0 };
+                let prm = ChunkParams {
+                    row0,
+                    row1,
+                    kbase: kbase as u32,
+                    flags,
+                };
+                let uniform = self.init(
+                    &format!("{label}_chunk{c}"),
+                    bytemuck::bytes_of(&prm),
+                    wgpu::BufferUsages::UNIFORM,
+                )?;
+                Ok(Chunk {
+                    row0,
+                    row1,
+                    kbase,
+                    kend,
+                    uniform,
+                })
+            })
+            .collect()
     }
 
     /// Compiles `entry` of the shader `desc` for the scalar types (real, acc) with the
@@ -284,9 +450,23 @@ impl<'a> Builder<'a> {
         label: &str,
         bufs: &[(&str, &wgpu::Buffer)],
     ) -> Result<wgpu::BindGroup, GpuError> {
+        let whole: Vec<(&str, wgpu::BufferBinding)> = bufs
+            .iter()
+            .map(|&(n, b)| (n, b.as_entire_buffer_binding()))
+            .collect();
+        self.bind_ranges(k, label, &whole)
+    }
+
+    /// [`Builder::bind`] with each binding a range of its buffer.
+    pub(super) fn bind_ranges(
+        &self,
+        k: &Kernel,
+        label: &str,
+        bufs: &[(&str, wgpu::BufferBinding)],
+    ) -> Result<wgpu::BindGroup, GpuError> {
         let desc = k.desc;
-        let mut slots: Vec<Option<&wgpu::Buffer>> = vec![None; desc.bindings.len()];
-        for &(name, buf) in bufs {
+        let mut slots: Vec<Option<wgpu::BufferBinding>> = vec![None; desc.bindings.len()];
+        for (name, buf) in bufs.iter().cloned() {
             let i = desc
                 .bindings
                 .iter()
@@ -305,7 +485,7 @@ impl<'a> Builder<'a> {
             .zip(desc.bindings)
             .enumerate()
             .map(|(i, (b, (name, _)))| {
-                let b = b.ok_or_else(|| {
+                let b = b.clone().ok_or_else(|| {
                     GpuError::Device(format!(
                         "{label}: binding '{name}' of {} is missing",
                         desc.file
@@ -313,7 +493,7 @@ impl<'a> Builder<'a> {
                 })?;
                 Ok(wgpu::BindGroupEntry {
                     binding: i as u32,
-                    resource: b.as_entire_binding(),
+                    resource: wgpu::BindingResource::Buffer(b),
                 })
             })
             .collect::<Result<Vec<_>, GpuError>>()?;
@@ -325,23 +505,6 @@ impl<'a> Builder<'a> {
                 layout: &k.layout,
                 entries: &entries,
             }))
-    }
-
-    /// [`Builder::kernel`] and [`Builder::bind`] in one step.
-    #[allow(clippy::too_many_arguments)]
-    pub(super) fn bound(
-        &mut self,
-        name: &'static str,
-        desc: &'static Layout,
-        real: Real,
-        acc: Real,
-        entry: &'static str,
-        constants: &[(&str, f64)],
-        bufs: &[(&str, &wgpu::Buffer)],
-    ) -> Result<Bound, GpuError> {
-        let kernel = self.kernel(name, desc, real, acc, entry, constants)?;
-        let group = self.bind(&kernel, &format!("{name} bind group"), bufs)?;
-        Ok(Bound { kernel, group })
     }
 }
 
@@ -355,15 +518,19 @@ pub(super) struct AggBuffers {
 
 /// Type-independent data of the system on the device.
 pub(super) struct Shared {
+    /// Block size d.
+    pub(super) dim: usize,
     pub(super) agg: Option<AggBuffers>,
     pub(super) params: wgpu::Buffer,
-    /// Block pattern (assembled) or spring adjacency (matrix-free), columns packed with masks.
+    /// Block pattern (assembled) or spring adjacency (matrix-free), columns packed with
+    /// masks; assembled columns are bound per row chunk like the blocks.
     pub(super) row_ptr: wgpu::Buffer,
     pub(super) col: wgpu::Buffer,
     pub(super) mask: Option<wgpu::Buffer>,
     pub(super) rot_index: Option<wgpu::Buffer>,
     pub(super) rot_nodes: Option<wgpu::Buffer>,
-    /// Springs: the identity pattern of the host-computed diagonal blocks.
+    /// Springs: the identity pattern of the host-computed diagonal blocks (columns bound
+    /// per row chunk).
     pub(super) diag_row_ptr: Option<wgpu::Buffer>,
     pub(super) diag_col: Option<wgpu::Buffer>,
     /// Bound where a kernel's specialization never touches the binding.
@@ -418,8 +585,8 @@ pub(super) fn from_planes(d: usize, n_blocks: usize, planes: &[Vec<f64>; 3]) -> 
     out
 }
 
-/// Allocates the three block planes `{label}`, `{label}_b`, `{label}_c` (each checked
-/// against the binding limit on its own; unused planes take 16 bytes).
+/// Allocates the three block planes `{label}`, `{label}_b`, `{label}_c` (bound per row
+/// chunk, so only the buffer limit applies; unused planes take one vec4).
 pub(super) fn plane_buffers(
     bld: &mut Builder,
     label: &str,
@@ -431,9 +598,9 @@ pub(super) fn plane_buffers(
     // An unused plane still binds as one vec4<real> (32 bytes for f64).
     let bytes = |wp: usize| ((n_blocks * wp) as u64 * real.size()).max(4 * real.size());
     Ok([
-        bld.buffer(label, bytes(w[0]), STORAGE)?,
-        bld.buffer(&format!("{label}_b"), bytes(w[1]), STORAGE)?,
-        bld.buffer(&format!("{label}_c"), bytes(w[2]), STORAGE)?,
+        bld.split_buffer(label, bytes(w[0]))?,
+        bld.split_buffer(&format!("{label}_b"), bytes(w[1]))?,
+        bld.split_buffer(&format!("{label}_c"), bytes(w[2]))?,
     ])
 }
 

@@ -2,6 +2,7 @@
 //! fallback (GPU or CPU), extended-precision refinement and the f32 operator's scale.
 
 use super::builder::{Builder, Real};
+use super::device::binding_limit;
 use super::host::HostOp;
 use super::levels::{build_level, build_operator};
 use super::policy::{inner_scale, resume_scales, MixedPolicy, Stop};
@@ -499,7 +500,7 @@ impl GpuSolver {
             return Ok(());
         }
         let ctx = self.ctx.clone();
-        let mut bld = Builder::new(&ctx);
+        let mut bld = Builder::new(&ctx, binding_limit(&ctx, &self.params));
         let acc = self.dev.level.acc;
         let op = build_operator(
             &mut bld,
@@ -727,9 +728,7 @@ impl GpuSolver {
                 label: Some("residual pass"),
                 timestamp_writes: None,
             });
-            pass.set_pipeline(&op.matvec.pipeline);
-            pass.set_bind_group(0, bg_mv, &[]);
-            pass.dispatch_workgroups(g, 1, 1);
+            op.dispatch(&mut pass, bg_mv, g);
             pass.set_pipeline(&rf.k_residual.pipeline);
             pass.set_bind_group(0, &rf.bg_refine, &[]);
             pass.dispatch_workgroups(g, 1, 1);
