@@ -140,3 +140,69 @@ fn a_row_larger_than_one_binding_is_refused() {
         Ok(_) => panic!("a 64-byte binding limit was accepted"),
     }
 }
+
+/// The device memory a solver needs is computed before anything is allocated, and is
+/// exactly what it then allocates: with `memory_limit` one byte below the total the
+/// system is refused with one line naming both numbers; at the total it builds.
+#[test]
+fn a_system_larger_than_device_memory_is_refused_with_the_exact_need() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = random_system(&SystemSpec::with_nodes(3, 1000, 7));
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let n = s.frames.n_nodes as u64;
+    let split = (s.h.nnz_blocks() as u64 * 16 / 3).max(n * 72) / 4 * 4;
+    let precisions: &[Precision] = if ctx.has_f64() {
+        &[Precision::F64, Precision::F32, Precision::Mixed]
+    } else {
+        &[Precision::F32]
+    };
+    for &precision in precisions {
+        for (coarse, pc, limit) in [
+            (CoarseSpace::Aggregates, Preconditioner::BlockJacobi, None),
+            (
+                CoarseSpace::Translations,
+                Preconditioner::Jacobi,
+                Some(split),
+            ),
+            (CoarseSpace::None, Preconditioner::None, None),
+        ] {
+            let p = GpuParams {
+                precision,
+                coarse,
+                preconditioner: pc,
+                binding_limit: limit,
+                ..Default::default()
+            };
+            let what = format!("{precision} {} {pc:?} cap {limit:?}", coarse.name());
+            let total = GpuSolver::new(ctx, &e, &p)
+                .expect("builds")
+                .resources()
+                .total_bytes();
+            let tight = GpuParams {
+                memory_limit: Some(total),
+                ..p.clone()
+            };
+            assert!(GpuSolver::new(ctx, &e, &tight).is_ok(), "{what}");
+            let short = GpuParams {
+                memory_limit: Some(total - 1),
+                ..p.clone()
+            };
+            match GpuSolver::new(ctx, &e, &short) {
+                Err(GpuError::Device(m)) => {
+                    assert!(m.contains(stickslip::gpu::DOES_NOT_FIT), "{what}: {m}");
+                    assert!(m.contains(&format!("needs {total} bytes")), "{what}: {m}");
+                    assert!(
+                        m.contains(&format!("has {} bytes", total - 1)),
+                        "{what}: {m}"
+                    );
+                    assert!(!m.contains('\n'));
+                    // The facade's error: a device error.
+                    let f: stickslip::Error = GpuError::Device(m).into();
+                    assert!(matches!(f, stickslip::Error::Device(_)));
+                }
+                Err(other) => panic!("{what}: {other}"),
+                Ok(_) => panic!("{what}: accepted {total} bytes in {}", total - 1),
+            }
+        }
+    }
+}

@@ -14,7 +14,7 @@ pub use context::{
 };
 pub use solver::{
     BufferRecord, GpuSolveInfo, GpuSolver, KernelRecord, KernelTime, Resources, SolveOutcome,
-    StageSeconds,
+    StageSeconds, DOES_NOT_FIT,
 };
 
 use crate::cg::{CgError, Preconditioner};
@@ -32,7 +32,7 @@ pub enum GpuError {
         adapter: String,
         precision: Precision,
     },
-    #[error("GPU buffer '{label}' needs {bytes} bytes but adapter '{adapter}' allows at most {limit} bytes per {what}")]
+    #[error("GPU buffer '{label}' needs {bytes} bytes but adapter '{adapter}' allows at most {limit} bytes per {what}: the system {}", solver::DOES_NOT_FIT)]
     BufferTooLarge {
         label: String,
         bytes: u64,
@@ -174,6 +174,10 @@ pub struct GpuParams {
     /// in row-chunk pieces; a lower cap makes small systems take that path (tests).
     #[doc(hidden)]
     pub binding_limit: Option<u64>,
+    /// Caps the device memory the solver assumes (bytes; None: the device's). A system
+    /// whose buffers exceed it is refused before anything is allocated (tests).
+    #[doc(hidden)]
+    pub memory_limit: Option<u64>,
 }
 
 impl Default for GpuParams {
@@ -195,6 +199,7 @@ impl Default for GpuParams {
             coarse: CoarseSpace::default(),
             f32_difference: DifferenceForm::default(),
             binding_limit: None,
+            memory_limit: None,
         }
     }
 }

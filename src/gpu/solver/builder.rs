@@ -608,3 +608,42 @@ pub(super) fn u32s(v: impl IntoIterator<Item = u32>) -> Vec<u8> {
     let w: Vec<u32> = v.into_iter().collect();
     bytemuck::cast_slice(&w).to_vec()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::plan_chunks;
+
+    /// Chunks cover the rows in order, each piece (from its aligned base) fits the limit,
+    /// bases are multiples of the alignment, and one chunk is used when all fits.
+    #[test]
+    fn chunks_cover_the_rows_within_the_limit() {
+        // Rows of 1..=20 blocks, 500 rows.
+        let mut rp = vec![0u32];
+        for i in 0..500u32 {
+            rp.push(rp[i as usize] + 1 + (i * 7) % 20);
+        }
+        let total = u64::from(*rp.last().expect("rows"));
+        assert_eq!(
+            plan_chunks(&rp, 32, total * 32, 64),
+            Ok(vec![(0, 500, 0, total)])
+        );
+        for (elem, limit, base) in [(32u64, 4096u64, 64u64), (16, 1000, 1), (4, 300, 8)] {
+            let c = plan_chunks(&rp, elem, limit, base).expect("every row fits");
+            assert!(c.len() > 1);
+            assert_eq!(c[0].0, 0);
+            assert_eq!(c.last().map(|c| c.1), Some(500));
+            for w in c.windows(2) {
+                assert_eq!(w[0].1, w[1].0, "contiguous");
+            }
+            for &(r0, r1, kb, ke) in &c {
+                assert!(r1 > r0);
+                assert_eq!(kb % base, 0);
+                assert!(kb <= u64::from(rp[r0 as usize]));
+                assert_eq!(ke, u64::from(rp[r1 as usize]));
+                assert!((ke - kb) * elem <= limit, "{kb}..{ke} × {elem} > {limit}");
+            }
+        }
+        // A 20-block row cannot fit 19 blocks' bytes.
+        assert!(plan_chunks(&rp, 4, 19 * 4, 1).is_err());
+    }
+}

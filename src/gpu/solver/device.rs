@@ -10,6 +10,7 @@ use super::info::{BufferRecord, KernelRecord};
 use super::levels::{
     blocks_fit, build_level, build_operator, build_refine, Consts, Level, Refine, Timestamps,
 };
+use super::plan;
 use crate::cg::Preconditioner;
 use crate::coarse::{Aggregation, CoarseSpace};
 use crate::gpu::kernels::{MASK_SHIFT, WG_MAX};
@@ -73,7 +74,6 @@ impl Device {
             }
             _ => None,
         };
-        let shared = shared_buffers(&mut bld, host, n_partials, aggregation.as_ref())?;
         let inner_real = match params.precision {
             Precision::F64 => Real::F64,
             _ => Real::F32,
@@ -86,6 +86,22 @@ impl Device {
             inner_real,
             acc,
         );
+        // The outer residual of mixed precision on the device needs the f64 blocks there.
+        let op64 = params.precision == Precision::Mixed
+            && blocks_fit(ctx, host, Real::F64)
+            && std::env::var_os("STICKSLIP_MIXED_HOST_RESIDUAL").is_none();
+        let needed = plan::device_bytes(
+            ctx,
+            host,
+            params,
+            aggregation.as_ref(),
+            &consts,
+            inner_real,
+            acc,
+            op64,
+        )?;
+        plan::check_fits(ctx, needed, memory_limit(ctx, params))?;
+        let shared = shared_buffers(&mut bld, host, n_partials, aggregation.as_ref())?;
         let op = build_operator(&mut bld, &shared, host, inner_real, acc, &consts)?;
         let level = build_level(
             &mut bld,
@@ -97,10 +113,7 @@ impl Device {
             params.preconditioner,
         )?;
         let refine = if params.precision == Precision::Mixed {
-            // The outer residual on the device needs the f64 blocks there too.
-            let op64 = if blocks_fit(ctx, host, Real::F64)
-                && std::env::var_os("STICKSLIP_MIXED_HOST_RESIDUAL").is_none()
-            {
+            let op64 = if op64 {
                 Some(build_operator(
                     &mut bld,
                     &shared,
@@ -154,6 +167,15 @@ impl Device {
 pub(super) fn binding_limit(ctx: &GpuContext, params: &GpuParams) -> u64 {
     let adapter = ctx.limits.max_storage_buffer_binding_size;
     params.binding_limit.map_or(adapter, |l| l.min(adapter))
+}
+
+/// The device memory in force: the device's (where the backend reports it), or
+/// `GpuParams::memory_limit` where that is lower.
+pub(super) fn memory_limit(ctx: &GpuContext, params: &GpuParams) -> Option<u64> {
+    match (ctx.device_memory(), params.memory_limit) {
+        (Some(d), Some(l)) => Some(d.min(l)),
+        (d, l) => d.or(l),
+    }
 }
 
 /// The node count, workgroup size and workgroups of the CG kernels, checked against the
