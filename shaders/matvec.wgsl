@@ -13,7 +13,7 @@
 // per chunk. Each invocation keeps its p·q sum over its rows of every chunk in `carry`
 // between dispatches and the last chunk reduces it: the same rows are summed in the same
 // order whatever the chunking, so a chunked product equals the one-chunk product bit for
-// bit.
+// bit. The row sums of the difference form are bound per chunk too, from its first row.
 
 override D: u32 = 3u;          // block size (2 or 3)
 override MASKED: bool = true;  // false: the scene has no constraints, no masking work
@@ -107,7 +107,8 @@ fn row3(i: u32) -> vec3<real> {
         }
     }
     if (DIFF) {
-        let m = 9u * i;
+        // Row sums are bound per chunk from its first row.
+        let m = 9u * (i - chunk.row0);
         let pa = vec3<acc>(pi);
         sa += vec3<acc>(
             acc(rowsum[m]) * pa.x + acc(rowsum[m + 1u]) * pa.y + acc(rowsum[m + 2u]) * pa.z,
@@ -148,7 +149,8 @@ fn row2(i: u32) -> vec2<real> {
         }
     }
     if (DIFF) {
-        let m = 4u * i;
+        // Row sums are bound per chunk from its first row.
+        let m = 4u * (i - chunk.row0);
         let pa = vec2<acc>(pi);
         sa += vec2<acc>(
             acc(rowsum[m]) * pa.x + acc(rowsum[m + 1u]) * pa.y,

@@ -1117,3 +1117,22 @@ fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
         Err(e) => Err(CliError::Failed(e.to_string())),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A system too large for the device is an input fault (exit 2); other device
+    /// failures exit 1.
+    #[test]
+    fn a_system_too_large_for_the_device_exits_2() {
+        let big = Error::Device(format!(
+            "the GPU solver cannot start: the system {}: it needs 9 bytes of device memory \
+             and adapter 'a' has 8 bytes",
+            crate::gpu::DOES_NOT_FIT
+        ));
+        assert_eq!(solve_error(big).exit_code(), 2);
+        let lost = Error::Device("waiting for the GPU: device lost".into());
+        assert_eq!(solve_error(lost).exit_code(), 1);
+    }
+}

@@ -90,32 +90,72 @@ pub(super) struct Chunk {
     pub(super) uniform: wgpu::Buffer,
 }
 
-/// Row chunks of a block pattern (`row_ptr`, n + 1 entries) such that the blocks of each,
-/// from its aligned base, take at most `limit` bytes in an array of `elem` bytes per block
-/// (the widest per-block array). Blocks from a base that is a multiple of `base_multiple`.
-/// One chunk when the whole array fits. Err: a single row's blocks do not fit (the number).
+/// What the row chunks of a pattern must respect: per-block arrays of at most `elem`
+/// bytes a block, bound from a block that is a multiple of `base_multiple`; and per-row
+/// arrays (the difference form's row sums) of `row_elem` bytes a row (0: none), bound
+/// from the chunk's first row, a multiple of `row_multiple`. The multiples make every
+/// piece's offset a multiple of the adapter's storage offset alignment.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) struct ChunkShape {
+    pub(super) elem: u64,
+    pub(super) base_multiple: u64,
+    pub(super) row_elem: u64,
+    pub(super) row_multiple: u64,
+}
+
+fn gcd(a: u64, b: u64) -> u64 {
+    if b == 0 {
+        a
+    } else {
+        gcd(b, a % b)
+    }
+}
+
+impl ChunkShape {
+    pub(super) fn new(align: u64, elem: u64, row_elem: u64) -> Self {
+        let align = align.max(1);
+        // Offsets k·e with e a multiple of 4: k a multiple of align/4 suffices.
+        let multiple = |e: u64| if e == 0 { 1 } else { align / gcd(align, e) };
+        ChunkShape {
+            elem,
+            base_multiple: multiple(4),
+            row_elem,
+            row_multiple: multiple(row_elem),
+        }
+    }
+}
+
+/// Row chunks of a block pattern (`row_ptr`, n + 1 entries) whose pieces each take at most
+/// `limit` bytes (see [`ChunkShape`]): (first row, end row, first bound block, end
+/// block). One chunk when every array fits whole. Err: the blocks of the rows up to the
+/// next allowed boundary do not fit (their number).
 pub(super) fn plan_chunks(
     row_ptr: &[u32],
-    elem: u64,
+    shape: &ChunkShape,
     limit: u64,
-    base_multiple: u64,
 ) -> Result<Vec<(u32, u32, u64, u64)>, u64> {
     let n = row_ptr.len().saturating_sub(1);
     let total = u64::from(row_ptr[n]);
-    if total * elem <= limit {
+    if total * shape.elem <= limit && n as u64 * shape.row_elem <= limit {
         return Ok(vec![(0, n as u32, 0, total)]);
     }
-    let cap = limit / elem;
+    let cap = limit / shape.elem.max(1);
+    let row_cap = limit.checked_div(shape.row_elem).unwrap_or(u64::MAX);
+    let step = shape.row_multiple as usize;
     let mut out = Vec::new();
     let mut r0 = 0usize;
     while r0 < n {
-        let kbase = u64::from(row_ptr[r0]) / base_multiple * base_multiple;
+        let kbase = u64::from(row_ptr[r0]) / shape.base_multiple * shape.base_multiple;
+        let fits = |r: usize| u64::from(row_ptr[r]) - kbase <= cap && (r - r0) as u64 <= row_cap;
+        // Chunk ends on multiples of the row step (or at n).
+        let next = |r: usize| ((r / step + 1) * step).min(n);
         let mut r1 = r0;
-        while r1 < n && u64::from(row_ptr[r1 + 1]) - kbase <= cap {
-            r1 += 1;
+        while r1 < n && fits(next(r1)) {
+            r1 = next(r1);
         }
         if r1 == r0 {
-            return Err(u64::from(row_ptr[r0 + 1] - row_ptr[r0]));
+            let r = next(r0);
+            return Err(u64::from(row_ptr[r] - row_ptr[r0]));
         }
         out.push((r0 as u32, r1 as u32, kbase, u64::from(row_ptr[r1])));
         r0 = r1;
@@ -310,26 +350,32 @@ impl<'a> Builder<'a> {
         )
     }
 
-    /// The row chunks of a block pattern whose per-block arrays are at most `elem` bytes a
-    /// block (see [`plan_chunks`]), each with its uniform `{label}_chunk{c}`.
+    /// The shape of the chunks of per-block arrays of `elem` bytes a block and per-row
+    /// arrays of `row_elem` bytes a row on this adapter.
+    pub(super) fn chunk_shape(ctx: &GpuContext, elem: u64, row_elem: u64) -> ChunkShape {
+        let align = u64::from(ctx.limits.min_storage_buffer_offset_alignment);
+        ChunkShape::new(align, elem, row_elem)
+    }
+
+    /// The row chunks of a block pattern (see [`plan_chunks`]), each with its uniform
+    /// `{label}_chunk{c}`.
     pub(super) fn chunks(
         &mut self,
         label: &str,
         row_ptr: &[u32],
         elem: u64,
+        row_elem: u64,
     ) -> Result<Vec<Chunk>, GpuError> {
-        // Piece offsets k·e (e ≥ 4 bytes) are multiples of the alignment when k is.
-        let align = u64::from(self.ctx.limits.min_storage_buffer_offset_alignment);
-        let plan = plan_chunks(row_ptr, elem, self.binding_limit, align.div_ceil(4).max(1))
-            .map_err(|blocks| {
-                GpuError::Unsupported(format!(
-                    "a row of {blocks} blocks needs {} bytes in '{label}', more than one \
-                     storage binding of adapter '{}' holds ({} bytes)",
-                    blocks * elem,
-                    self.ctx.info.name,
-                    self.binding_limit
-                ))
-            })?;
+        let shape = Self::chunk_shape(self.ctx, elem, row_elem);
+        let plan = plan_chunks(row_ptr, &shape, self.binding_limit).map_err(|blocks| {
+            GpuError::Unsupported(format!(
+                "{blocks} blocks of consecutive rows need {} bytes in '{label}', more \
+                     than one storage binding of adapter '{}' holds ({} bytes)",
+                blocks * elem,
+                self.ctx.info.name,
+                self.binding_limit
+            ))
+        })?;
         let last = plan.len() - 1;
         plan.into_iter()
             .enumerate()
@@ -611,7 +657,7 @@ pub(super) fn u32s(v: impl IntoIterator<Item = u32>) -> Vec<u8> {
 
 #[cfg(test)]
 mod tests {
-    use super::plan_chunks;
+    use super::{plan_chunks, ChunkShape};
 
     /// Chunks cover the rows in order, each piece (from its aligned base) fits the limit,
     /// bases are multiples of the alignment, and one chunk is used when all fits.
@@ -623,12 +669,25 @@ mod tests {
             rp.push(rp[i as usize] + 1 + (i * 7) % 20);
         }
         let total = u64::from(*rp.last().expect("rows"));
+        let sh = |elem, base, row_elem, row_multiple| ChunkShape {
+            elem,
+            base_multiple: base,
+            row_elem,
+            row_multiple,
+        };
         assert_eq!(
-            plan_chunks(&rp, 32, total * 32, 64),
+            plan_chunks(&rp, &sh(32, 64, 0, 1), total * 32),
             Ok(vec![(0, 500, 0, total)])
         );
-        for (elem, limit, base) in [(32u64, 4096u64, 64u64), (16, 1000, 1), (4, 300, 8)] {
-            let c = plan_chunks(&rp, elem, limit, base).expect("every row fits");
+        for (elem, limit, base, row_elem, step) in [
+            (32u64, 4096u64, 64u64, 0u64, 1usize),
+            (16, 1000, 1, 0, 1),
+            (4, 300, 8, 0, 1),
+            (16, 16384, 16, 36, 64),
+            (16, 4096, 16, 36, 16),
+        ] {
+            let c = plan_chunks(&rp, &sh(elem, base, row_elem, step as u64), limit)
+                .expect("every row fits");
             assert!(c.len() > 1);
             assert_eq!(c[0].0, 0);
             assert_eq!(c.last().map(|c| c.1), Some(500));
@@ -641,9 +700,15 @@ mod tests {
                 assert!(kb <= u64::from(rp[r0 as usize]));
                 assert_eq!(ke, u64::from(rp[r1 as usize]));
                 assert!((ke - kb) * elem <= limit, "{kb}..{ke} × {elem} > {limit}");
+                assert!(u64::from(r1 - r0) * row_elem <= limit);
+                assert!(r0 as usize % step == 0, "row {r0} off the step {step}");
             }
         }
         // A 20-block row cannot fit 19 blocks' bytes.
-        assert!(plan_chunks(&rp, 4, 19 * 4, 1).is_err());
+        assert!(plan_chunks(&rp, &sh(4, 1, 0, 1), 19 * 4).is_err());
+        // Offsets of 36-byte rows meet a 256-byte alignment every 64 rows.
+        assert_eq!(ChunkShape::new(256, 32, 36).row_multiple, 64);
+        assert_eq!(ChunkShape::new(256, 32, 36).base_multiple, 64);
+        assert_eq!(ChunkShape::new(16, 16, 0).base_multiple, 4);
     }
 }

@@ -100,9 +100,19 @@ impl Chunked {
     }
 }
 
+/// Bytes per row of the per-row arrays bound per chunk: the difference form's row sums
+/// (d² values a node), else none.
+pub(super) fn row_elem(host: &Host, real: Real, diff: bool) -> u64 {
+    if diff {
+        (host.frames.dim * host.frames.dim) as u64 * real.size()
+    } else {
+        0
+    }
+}
+
 /// Bytes per block of the widest per-block array of an operator in `real`: plane a
 /// (4 values; the columns take 4 bytes, plane c one value).
-fn block_elem(real: Real) -> u64 {
+pub(super) fn block_elem(real: Real) -> u64 {
     4 * real.size()
 }
 
@@ -232,7 +242,12 @@ pub(super) fn build_operator(
         HostOp::Blocks(h) => {
             let blocks = plane_buffers(bld, &format!("blocks_{rn}"), h.dim, h.nnz_blocks(), real)?;
             let rp: Vec<u32> = h.row_ptr.iter().map(|&v| v as u32).collect();
-            let chunks = bld.chunks(&format!("blocks_{rn}"), &rp, block_elem(real))?;
+            let chunks = bld.chunks(
+                &format!("blocks_{rn}"),
+                &rp,
+                block_elem(real),
+                row_elem(host, real, diff),
+            )?;
             let rotate = block_rotation(
                 bld,
                 sh,
@@ -280,7 +295,7 @@ pub(super) fn build_operator(
                 plane_buffers(bld, &format!("diag_blocks_{rn}"), ms.dim, n as usize, real)?;
             let identity: Vec<u32> = (0..=n as u32).collect();
             let diag_chunks =
-                bld.chunks(&format!("diag_blocks_{rn}"), &identity, block_elem(real))?;
+                bld.chunks(&format!("diag_blocks_{rn}"), &identity, block_elem(real), 0)?;
             let mv = bld.kernel(
                 "spring_matvec",
                 &kernels::SPRINGS,
@@ -450,7 +465,6 @@ fn bind_operator(
                 .iter()
                 .chain(&[
                     ("row_ptr", &sh.row_ptr),
-                    ("rowsum", op.rowsum.as_ref().unwrap_or(ph)),
                     ("carry", op.carry.as_ref().unwrap_or(ph)),
                 ])
                 .map(|&(n, b)| (n, b.as_entire_buffer_binding()))
@@ -460,6 +474,19 @@ fn bind_operator(
                 .enumerate()
                 .map(|(i, ch)| {
                     let pieces = block_pieces(&sh.col, blocks, chunks, ch, sh.dim, op.real);
+                    let rowsum = match &op.rowsum {
+                        Some(rs) if chunks.len() > 1 => {
+                            let e = (sh.dim * sh.dim) as u64 * op.real.size();
+                            wgpu::BufferBinding {
+                                buffer: rs,
+                                offset: u64::from(ch.row0) * e,
+                                size: std::num::NonZeroU64::new(u64::from(ch.row1 - ch.row0) * e),
+                            }
+                        }
+                        Some(rs) => rs.as_entire_buffer_binding(),
+                        None => ph.as_entire_buffer_binding(),
+                    };
+                    let pieces = [&pieces[..], &[("rowsum", rowsum)]].concat();
                     let lbl = if chunks.len() == 1 {
                         label.to_string()
                     } else {

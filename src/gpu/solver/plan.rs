@@ -3,10 +3,10 @@
 //! the device has) instead of failing part-way. Mirrors every allocation of
 //! `Device::build` (a test holds the two equal).
 
-use super::builder::{plan_chunks, plane_widths, Real};
+use super::builder::{plan_chunks, plane_widths, Builder, Real};
 use super::device::binding_limit;
 use super::host::{Host, HostOp};
-use super::levels::{Consts, LANCZOS_HIST, N_SCAL, N_STATE};
+use super::levels::{block_elem, row_elem, Consts, LANCZOS_HIST, N_SCAL, N_STATE};
 use crate::cg::Preconditioner;
 use crate::coarse::Aggregation;
 use crate::gpu::kernels::slots;
@@ -47,24 +47,40 @@ fn operator(
         t += buf(f.rotations.len() as u64 * s);
     }
     let limit = binding_limit(ctx, params);
-    let base = u64::from(ctx.limits.min_storage_buffer_offset_alignment)
-        .div_ceil(4)
-        .max(1);
+    let diff = c.diff && real == Real::F32 && matches!(host.op, HostOp::Blocks(_));
     let planes = |blocks: u64| -> u64 {
         plane_widths(f.dim)
             .iter()
             .map(|&w| buf((blocks * w as u64 * s).max(4 * s)))
             .sum()
     };
-    let chunks = |rp: &[u32]| plan_chunks(rp, 4 * s, limit, base).map_or(1, |v| v.len() as u64);
+    let chunks = |rp: &[u32], re: u64| {
+        let shape = Builder::chunk_shape(ctx, block_elem(real), re);
+        plan_chunks(rp, &shape, limit).map_or(1, |v| v.len() as u64)
+    };
+    // A split array is bound in pieces but must still be one buffer.
+    let max = ctx.limits.max_buffer_size;
+    let widest = match &host.op {
+        HostOp::Blocks(h) => h.nnz_blocks() as u64 * block_elem(real),
+        HostOp::Springs(_) => n * block_elem(real),
+    };
+    if buf(widest) > max {
+        return Err(GpuError::BufferTooLarge {
+            label: format!("blocks_{}", real.name()),
+            bytes: buf(widest),
+            limit: max,
+            what: "buffer",
+            adapter: ctx.info.name.clone(),
+        });
+    }
     match &host.op {
         HostOp::Blocks(h) => {
-            if c.diff && real == Real::F32 {
+            if diff {
                 t += buf(nd * f.dim as u64 * s);
             }
             t += planes(h.nnz_blocks() as u64);
             let rp: Vec<u32> = h.row_ptr.iter().map(|&v| v as u32).collect();
-            let k = chunks(&rp);
+            let k = chunks(&rp, row_elem(host, real, diff));
             t += 16 * k;
             t += if k > 1 {
                 buf(u64::from(c.n_partials) * c.wg as u64 * acc.size())
@@ -76,7 +92,7 @@ fn operator(
             t += buf(nd * s) + buf(2 * ms.edges.len() as u64 * s) + buf(n * s);
             t += planes(n);
             let identity: Vec<u32> = (0..=n as u32).collect();
-            t += 16 * chunks(&identity);
+            t += 16 * chunks(&identity, 0);
         }
     }
     Ok(t)
@@ -106,6 +122,19 @@ fn level(host: &Host, real: Real, acc: Real, c: &Consts, pc: Preconditioner) -> 
     let scal = (N_SCAL + 2 * LANCZOS_HIST) as u64 * acc.size();
     t += buf(scal) + buf(4 * N_STATE as u64) + buf(scal + 4 * N_STATE as u64 + 16);
     t
+}
+
+/// Bytes of a CG level with its own operator in `real` (mixed precision's f64 fallback).
+pub(super) fn level_bytes(
+    ctx: &GpuContext,
+    host: &Host,
+    params: &GpuParams,
+    c: &Consts,
+    real: Real,
+    acc: Real,
+) -> Result<u64, GpuError> {
+    Ok(operator(ctx, params, host, real, acc, c)?
+        + level(host, real, acc, c, params.preconditioner))
 }
 
 /// Every byte `Device::build` allocates for this system: the shared data, the CG level,
