@@ -12,6 +12,21 @@ struct Params {
     n_blocks: u32,
 }
 
+// The row range of one dispatch of a kernel that reads per-block arrays (matvec.wgsl,
+// precond.wgsl, rotate_blocks.wgsl); mirrors `ChunkParams` in src/gpu/solver/builder.rs.
+// Why: an array larger than the adapter's storage binding limit is bound in pieces, one
+// per row chunk, each at an offset of the whole buffer: block k of rows row0..row1 is
+// entry k − kbase of the bound piece. A system within the limit is one chunk (0, n, 0).
+// flags: CHUNK_FIRST (no earlier chunk in this product), CHUNK_LAST (no later one).
+struct Chunk {
+    row0: u32,
+    row1: u32,
+    kbase: u32,
+    flags: u32,
+}
+const CHUNK_FIRST: u32 = 1u;
+const CHUNK_LAST: u32 = 2u;
+
 // Workgroup size: a power of two, at most WG_MAX, set per pipeline.
 override WG: u32 = 64u;
 

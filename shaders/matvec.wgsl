@@ -8,8 +8,12 @@
 // entries e0..e8, is split over three arrays so that a row reads with three loads:
 //   D = 3: blk_a[k] = (e0, e1, e2, e3), blk_b[k] = (e4, e5, e6, e7), blk_c[k] = e8
 //   D = 2: blk_a[k] = (e0, e1, e2, e3); blk_b, blk_c unused.
-// The planes also keep each binding below the adapter's storage binding limit: the
-// largest plane holds 4 of the 9 values (f64 blocks of a 216k-node mesh fit in 128 MiB).
+// Row chunks (`Chunk`, common.wgsl): the per-block arrays (planes and columns) are bound
+// per chunk of rows whose blocks fit one storage binding, and the product is one dispatch
+// per chunk. Each invocation keeps its p·q sum over its rows of every chunk in `carry`
+// between dispatches and the last chunk reduces it: the same rows are summed in the same
+// order whatever the chunking, so a chunked product equals the one-chunk product bit for
+// bit. The row sums of the difference form are bound per chunk too, from its first row.
 
 override D: u32 = 3u;          // block size (2 or 3)
 override MASKED: bool = true;  // false: the scene has no constraints, no masking work
@@ -45,6 +49,8 @@ override DIFF: bool = false;
 @group(0) @binding(10) var<storage, read> blk_b: array<blk4>;
 @group(0) @binding(11) var<storage, read> blk_c: array<real>;
 @group(0) @binding(12) var<storage, read> rowsum: array<real>;
+@group(0) @binding(13) var<uniform> chunk: Chunk;
+@group(0) @binding(14) var<storage, read_write> carry: array<acc>;
 
 var<workgroup> wg_done: u32;
 
@@ -78,8 +84,9 @@ fn row3(i: u32) -> vec3<real> {
             pi = select(pi, vec3<real>(real(0.0)), mbits3(mask[i]));
         }
     }
-    let k1 = row_ptr[i + 1u];
-    for (var k = row_ptr[i]; k < k1; k++) {
+    // Blocks of the row, as entries of this chunk's bound pieces.
+    let k1 = row_ptr[i + 1u] - chunk.kbase;
+    for (var k = row_ptr[i] - chunk.kbase; k < k1; k++) {
         let cj = col[k];
         var pj = p3(cj & COL_BITS);
         if (MASKED) {
@@ -100,7 +107,8 @@ fn row3(i: u32) -> vec3<real> {
         }
     }
     if (DIFF) {
-        let m = 9u * i;
+        // Row sums are bound per chunk from its first row.
+        let m = 9u * (i - chunk.row0);
         let pa = vec3<acc>(pi);
         sa += vec3<acc>(
             acc(rowsum[m]) * pa.x + acc(rowsum[m + 1u]) * pa.y + acc(rowsum[m + 2u]) * pa.z,
@@ -122,8 +130,9 @@ fn row2(i: u32) -> vec2<real> {
             pi = select(pi, vec2<real>(real(0.0)), mbits2(mask[i]));
         }
     }
-    let k1 = row_ptr[i + 1u];
-    for (var k = row_ptr[i]; k < k1; k++) {
+    // Blocks of the row, as entries of this chunk's bound pieces.
+    let k1 = row_ptr[i + 1u] - chunk.kbase;
+    for (var k = row_ptr[i] - chunk.kbase; k < k1; k++) {
         let cj = col[k];
         var pj = p2(cj & COL_BITS);
         if (MASKED) {
@@ -140,7 +149,8 @@ fn row2(i: u32) -> vec2<real> {
         }
     }
     if (DIFF) {
-        let m = 4u * i;
+        // Row sums are bound per chunk from its first row.
+        let m = 4u * (i - chunk.row0);
         let pa = vec2<acc>(pi);
         sa += vec2<acc>(
             acc(rowsum[m]) * pa.x + acc(rowsum[m + 1u]) * pa.y,
@@ -161,8 +171,17 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
         return;
     }
     let stride = params.n_partials * WG;
+    let t = wid.x * WG + lid.x;
     var part = acc(0.0);
-    for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
+    if ((chunk.flags & CHUNK_FIRST) == 0u) {
+        part = carry[t];
+    }
+    // This invocation's rows are t, t + stride, ...: the first of them in this chunk.
+    var i0 = t;
+    if (chunk.row0 > t) {
+        i0 = t + (chunk.row0 - t + stride - 1u) / stride * stride;
+    }
+    for (var i = i0; i < chunk.row1; i += stride) {
         // Explicit 3- and 2-component paths: the override D removes the dead one, and
         // the straight-line vector code avoids dynamically indexed private arrays.
         if (D == 3u) {
@@ -187,6 +206,10 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
             q[2u * i + 1u] = v.y;
             part += acc(pi.x) * acc(v.x) + acc(pi.y) * acc(v.y);
         }
+    }
+    if ((chunk.flags & CHUNK_LAST) == 0u) {
+        carry[t] = part;
+        return;
     }
     workgroup_sum(lid.x, sum1(part), 1u);
     if (lid.x == 0u) {

@@ -10,13 +10,15 @@ override PRECOND: u32 = 1u;
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> row_ptr: array<u32>;
 @group(0) @binding(2) var<storage, read> col: array<u32>;
-// Block planes as in matvec.wgsl: blk_a[k] = e0..e3, blk_b[k] = e4..e7, blk_c[k] = e8.
+// Block planes as in matvec.wgsl: blk_a[k] = e0..e3, blk_b[k] = e4..e7, blk_c[k] = e8,
+// bound per row chunk with `col` (see `Chunk`).
 @group(0) @binding(3) var<storage, read> blk_a: array<vec4<real>>;
 @group(0) @binding(4) var<storage, read> mask: array<u32>;
 @group(0) @binding(5) var<storage, read> dvals: array<real>;
 @group(0) @binding(6) var<storage, read_write> minv: array<real>;
 @group(0) @binding(7) var<storage, read> blk_b: array<vec4<real>>;
 @group(0) @binding(8) var<storage, read> blk_c: array<real>;
+@group(0) @binding(9) var<uniform> chunk: Chunk;
 
 // Block k as row-major d×d values (the first D·D entries are meaningful).
 fn load_block(k: u32) -> array<real, 9> {
@@ -38,15 +40,17 @@ fn inv_or_one(v: real) -> real {
 
 @compute @workgroup_size(WG)
 fn build(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if (i >= params.n_nodes) {
+    // One invocation per row of this dispatch's chunk (`Chunk`, common.wgsl).
+    let i = chunk.row0 + gid.x;
+    if (i >= chunk.row1) {
         return;
     }
     var b: array<real, 9>;
     for (var e = 0u; e < 9u; e++) {
         b[e] = real(0.0);
     }
-    for (var k = row_ptr[i]; k < row_ptr[i + 1u]; k++) {
+    // Blocks of the row, as entries of this chunk's bound pieces.
+    for (var k = row_ptr[i] - chunk.kbase; k < row_ptr[i + 1u] - chunk.kbase; k++) {
         if ((col[k] & COL_BITS) == i) {
             b = load_block(k);
         }

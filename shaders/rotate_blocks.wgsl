@@ -13,6 +13,8 @@ override D: u32 = 3u;
 @group(0) @binding(6) var<storage, read_write> blk_a: array<vec4<real>>;
 @group(0) @binding(7) var<storage, read_write> blk_b: array<vec4<real>>;
 @group(0) @binding(8) var<storage, read_write> blk_c: array<real>;
+// The planes and `col` are bound per row chunk (see `Chunk`).
+@group(0) @binding(9) var<uniform> chunk: Chunk;
 
 // V_r[a][b], row-major: its columns are the frame basis.
 fn v(r: u32, a: u32, b: u32) -> real {
@@ -21,12 +23,14 @@ fn v(r: u32, a: u32, b: u32) -> real {
 
 @compute @workgroup_size(WG)
 fn rotate_blocks(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if (i >= params.n_nodes) {
+    // One invocation per row of this dispatch's chunk (`Chunk`, common.wgsl).
+    let i = chunk.row0 + gid.x;
+    if (i >= chunk.row1) {
         return;
     }
     let ri = rot_index[i];
-    for (var k = row_ptr[i]; k < row_ptr[i + 1u]; k++) {
+    // Blocks of the row, as entries of this chunk's bound pieces.
+    for (var k = row_ptr[i] - chunk.kbase; k < row_ptr[i + 1u] - chunk.kbase; k++) {
         let rj = rot_index[col[k] & COL_BITS];
         if (ri == NO_ROTATION && rj == NO_ROTATION) {
             continue;

@@ -433,7 +433,7 @@ fn info() -> Result<(), CliError> {
     }
     for (k, a) in adapters.iter().enumerate() {
         println!(
-            "adapter {k}: {} ({}, {}; driver {} {}); shader_f64 {}, shader_int64 {}, subgroup {} ({}..{}), timestamp_query {}, max storage binding {} MiB",
+            "adapter {k}: {} ({}, {}; driver {} {}); shader_f64 {}, shader_int64 {}, subgroup {} ({}..{}), timestamp_query {}, max storage binding {} MiB (larger per-block arrays are bound in pieces), max buffer {} MiB, device memory {}",
             a.name,
             a.backend,
             a.device_type,
@@ -445,7 +445,10 @@ fn info() -> Result<(), CliError> {
             a.subgroup_min_size,
             a.subgroup_max_size,
             a.timestamp_query,
-            a.max_storage_buffer_binding_size >> 20
+            a.max_storage_buffer_binding_size >> 20,
+            a.max_buffer_size >> 20,
+            a.device_memory
+                .map_or("not reported".to_string(), |m| format!("{} MiB", m >> 20))
         );
     }
     Ok(())
@@ -763,6 +766,10 @@ fn solve_error(e: Error) -> CliError {
     match e {
         Error::Input(e) => CliError::Input(e),
         Error::Solve(e) => CliError::Solve(e),
+        // A system too large for the device: the input must change, not the device.
+        Error::Device(msg) if msg.contains(crate::gpu::DOES_NOT_FIT) => {
+            CliError::Input(InputError::new("--solver gpu", "", msg))
+        }
         Error::Device(msg) => CliError::Solve(SolveError::Gpu(msg)),
     }
 }
@@ -1108,5 +1115,24 @@ fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
         }
         Err(crate::driver::RunError::Input(e)) => Err(CliError::Input(e)),
         Err(e) => Err(CliError::Failed(e.to_string())),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A system too large for the device is an input fault (exit 2); other device
+    /// failures exit 1.
+    #[test]
+    fn a_system_too_large_for_the_device_exits_2() {
+        let big = Error::Device(format!(
+            "the GPU solver cannot start: the system {}: it needs 9 bytes of device memory \
+             and adapter 'a' has 8 bytes",
+            crate::gpu::DOES_NOT_FIT
+        ));
+        assert_eq!(solve_error(big).exit_code(), 2);
+        let lost = Error::Device("waiting for the GPU: device lost".into());
+        assert_eq!(solve_error(lost).exit_code(), 1);
     }
 }

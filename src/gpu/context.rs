@@ -43,6 +43,11 @@ pub struct AdapterReport {
     pub max_compute_workgroup_size_x: u32,
     pub max_compute_invocations_per_workgroup: u32,
     pub max_compute_workgroups_per_dimension: u32,
+    /// The minimum offset alignment of a storage binding (the pieces of a split array).
+    pub min_storage_buffer_offset_alignment: u32,
+    /// Size of the largest device-local memory heap (Vulkan); None where the backend does
+    /// not say.
+    pub device_memory: Option<u64>,
 }
 
 fn report(a: &wgpu::Adapter) -> AdapterReport {
@@ -67,7 +72,32 @@ fn report(a: &wgpu::Adapter) -> AdapterReport {
         max_compute_workgroup_size_x: l.max_compute_workgroup_size_x,
         max_compute_invocations_per_workgroup: l.max_compute_invocations_per_workgroup,
         max_compute_workgroups_per_dimension: l.max_compute_workgroups_per_dimension,
+        min_storage_buffer_offset_alignment: l.min_storage_buffer_offset_alignment,
+        device_memory: device_memory(a),
     }
+}
+
+/// The largest device-local heap of a Vulkan adapter, in bytes: the memory a solver's
+/// buffers must fit in. None on other backends (wgpu does not report memory).
+#[cfg(any(target_os = "linux", target_os = "windows", target_os = "android"))]
+fn device_memory(a: &wgpu::Adapter) -> Option<u64> {
+    // SAFETY: reads the physical device's memory properties only; the handles are the
+    // adapter's own and outlive the call.
+    let hal = unsafe { a.as_hal::<wgpu::hal::api::Vulkan>() }?;
+    let inst = hal.shared_instance().raw_instance();
+    let props = unsafe { inst.get_physical_device_memory_properties(hal.raw_physical_device()) };
+    // VK_MEMORY_HEAP_DEVICE_LOCAL_BIT = 1.
+    props
+        .memory_heaps_as_slice()
+        .iter()
+        .filter(|h| h.flags.as_raw() & 1 != 0)
+        .map(|h| h.size)
+        .max()
+}
+
+#[cfg(not(any(target_os = "linux", target_os = "windows", target_os = "android")))]
+fn device_memory(_: &wgpu::Adapter) -> Option<u64> {
+    None
 }
 
 fn backends(opts: &GpuOptions) -> wgpu::Backends {
@@ -254,6 +284,11 @@ impl GpuContext {
 
     pub fn report(&self) -> &AdapterReport {
         &self.report
+    }
+
+    /// The device's memory in bytes where the backend reports it (Vulkan).
+    pub fn device_memory(&self) -> Option<u64> {
+        self.report.device_memory
     }
 
     pub fn has_f64(&self) -> bool {

@@ -126,6 +126,8 @@ pub const MATVEC: Layout = Layout {
         ("blk_b", R),
         ("blk_c", R),
         ("rowsum", R),
+        ("chunk", U),
+        ("carry", W),
     ],
 };
 
@@ -163,6 +165,7 @@ pub const ROTATE_BLOCKS: Layout = Layout {
         ("blk_a", W),
         ("blk_b", W),
         ("blk_c", W),
+        ("chunk", U),
     ],
 };
 
@@ -179,6 +182,7 @@ pub const PRECOND: Layout = Layout {
         ("minv", W),
         ("blk_b", R),
         ("blk_c", R),
+        ("chunk", U),
     ],
 };
 

@@ -18,7 +18,7 @@ pub use context::{
 };
 pub use solver::{
     BufferRecord, GpuSolveInfo, GpuSolver, KernelRecord, KernelTime, Resources, SolveOutcome,
-    StageSeconds,
+    StageSeconds, DOES_NOT_FIT,
 };
 
 use crate::cg::{CgError, Preconditioner};
@@ -36,7 +36,7 @@ pub enum GpuError {
         adapter: String,
         precision: Precision,
     },
-    #[error("GPU buffer '{label}' needs {bytes} bytes but adapter '{adapter}' allows at most {limit} bytes per {what}")]
+    #[error("GPU buffer '{label}' needs {bytes} bytes but adapter '{adapter}' allows at most {limit} bytes per {what}: the system {}", solver::DOES_NOT_FIT)]
     BufferTooLarge {
         label: String,
         bytes: u64,
@@ -173,6 +173,15 @@ pub struct GpuParams {
     /// eigenvalues of the rigid translations that plain f32 rounding perturbs by
     /// ε_f32·‖Ĥ‖. See [`DifferenceForm`]; f64 operators never use it.
     pub f32_difference: DifferenceForm,
+    /// Caps the storage binding size the solver assumes (bytes; None: the adapter's
+    /// `max_storage_buffer_binding_size`). Per-block arrays larger than the limit are bound
+    /// in row-chunk pieces; a lower cap makes small systems take that path (tests).
+    #[doc(hidden)]
+    pub binding_limit: Option<u64>,
+    /// Caps the device memory the solver assumes (bytes; None: the device's). A system
+    /// whose buffers exceed it is refused before anything is allocated (tests).
+    #[doc(hidden)]
+    pub memory_limit: Option<u64>,
 }
 
 impl Default for GpuParams {
@@ -193,6 +202,8 @@ impl Default for GpuParams {
             error_tol: None,
             coarse: CoarseSpace::default(),
             f32_difference: DifferenceForm::default(),
+            binding_limit: None,
+            memory_limit: None,
         }
     }
 }

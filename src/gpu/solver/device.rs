@@ -10,6 +10,7 @@ use super::info::{BufferRecord, KernelRecord};
 use super::levels::{
     blocks_fit, build_level, build_operator, build_refine, Consts, Level, Refine, Timestamps,
 };
+use super::plan;
 use crate::cg::Preconditioner;
 use crate::coarse::{Aggregation, CoarseSpace};
 use crate::gpu::kernels::{MASK_SHIFT, WG_MAX};
@@ -64,7 +65,7 @@ impl Device {
         check_params(ctx, params)?;
         let (n, wg, n_partials) = geometry(ctx, host, params)?;
         let acc = if ctx.has_f64() { Real::F64 } else { Real::F32 };
-        let mut bld = Builder::new(ctx);
+        let mut bld = Builder::new(ctx, binding_limit(ctx, params));
         // Aggregates need H's blocks (E from one pass over them): matrix-free springs keep
         // the rigid translations. No aggregate (every node fixed): no correction.
         let aggregation = match (&host.op, params.coarse) {
@@ -73,12 +74,34 @@ impl Device {
             }
             _ => None,
         };
-        let shared = shared_buffers(&mut bld, host, n_partials, aggregation.as_ref())?;
         let inner_real = match params.precision {
             Precision::F64 => Real::F64,
             _ => Real::F32,
         };
-        let consts = specialization(host, params, wg, aggregation.as_ref(), inner_real, acc);
+        let consts = specialization(
+            host,
+            params,
+            (wg, n_partials),
+            aggregation.as_ref(),
+            inner_real,
+            acc,
+        );
+        // The outer residual of mixed precision on the device needs the f64 blocks there.
+        let op64 = params.precision == Precision::Mixed
+            && blocks_fit(ctx, host, Real::F64)
+            && std::env::var_os("STICKSLIP_MIXED_HOST_RESIDUAL").is_none();
+        let needed = plan::device_bytes(
+            ctx,
+            host,
+            params,
+            aggregation.as_ref(),
+            &consts,
+            inner_real,
+            acc,
+            op64,
+        )?;
+        plan::check_fits(ctx, needed, memory_limit(ctx, params))?;
+        let shared = shared_buffers(&mut bld, host, n_partials, aggregation.as_ref())?;
         let op = build_operator(&mut bld, &shared, host, inner_real, acc, &consts)?;
         let level = build_level(
             &mut bld,
@@ -90,10 +113,7 @@ impl Device {
             params.preconditioner,
         )?;
         let refine = if params.precision == Precision::Mixed {
-            // The outer residual on the device needs the f64 blocks there too.
-            let op64 = if blocks_fit(ctx, host, Real::F64)
-                && std::env::var_os("STICKSLIP_MIXED_HOST_RESIDUAL").is_none()
-            {
+            let op64 = if op64 {
                 Some(build_operator(
                     &mut bld,
                     &shared,
@@ -140,10 +160,21 @@ impl Device {
             kernels: bld.kernels,
         })
     }
+}
 
-    /// Workgroups of a one-thread-per-node dispatch.
-    pub(super) fn node_groups(&self) -> u32 {
-        (self.n_nodes as u32).div_ceil(self.wg)
+/// The storage binding limit in force: the adapter's, or `GpuParams::binding_limit` where
+/// that is lower.
+pub(super) fn binding_limit(ctx: &GpuContext, params: &GpuParams) -> u64 {
+    let adapter = ctx.limits.max_storage_buffer_binding_size;
+    params.binding_limit.map_or(adapter, |l| l.min(adapter))
+}
+
+/// The device memory in force: the device's (where the backend reports it), or
+/// `GpuParams::memory_limit` where that is lower.
+pub(super) fn memory_limit(ctx: &GpuContext, params: &GpuParams) -> Option<u64> {
+    match (ctx.device_memory(), params.memory_limit) {
+        (Some(d), Some(l)) => Some(d.min(l)),
+        (d, l) => d.or(l),
     }
 }
 
@@ -209,7 +240,7 @@ fn shared_buffers(
     let (row_ptr, col, diag_row_ptr, diag_col) = match &host.op {
         HostOp::Blocks(h) => (
             bld.storage("row_ptr", &u32s(h.row_ptr.iter().map(|&v| v as u32)))?,
-            bld.storage("col_idx", &u32s(h.col_idx.iter().map(|&j| mask_packed(j))))?,
+            bld.split_storage("col_idx", &u32s(h.col_idx.iter().map(|&j| mask_packed(j))))?,
             None,
             None,
         ),
@@ -219,7 +250,7 @@ fn shared_buffers(
                 bld.storage("spring_adj_ptr", &u32s(ptr))?,
                 bld.storage("spring_adj", &u32s(adj))?,
                 Some(bld.storage("diag_row_ptr", &u32s(0..=n as u32))?),
-                Some(bld.storage("diag_col", &u32s((0..n).map(mask_packed)))?),
+                Some(bld.split_storage("diag_col", &u32s((0..n).map(mask_packed)))?),
             )
         }
     };
@@ -248,6 +279,7 @@ fn shared_buffers(
         (None, None)
     };
     Ok(Shared {
+        dim: f.dim,
         agg,
         params,
         row_ptr,
@@ -265,7 +297,7 @@ fn shared_buffers(
 fn specialization(
     host: &Host,
     params: &GpuParams,
-    wg: u32,
+    (wg, n_partials): (u32, u32),
     aggregation: Option<&Aggregation>,
     inner_real: Real,
     acc: Real,
@@ -274,6 +306,7 @@ fn specialization(
     Consts {
         d: f.dim as f64,
         wg: f64::from(wg),
+        n_partials,
         masked: f.has_constraints(),
         rotated: f.has_rotation(),
         precond: match params.preconditioner {

@@ -117,9 +117,7 @@ impl GpuSolver {
                 .and_then(|rf| Some((rf, rf.op.as_ref()?, rf.bg_mv.as_ref()?)))
             {
                 let mut pass = pass_for(&mut enc, &mut slot);
-                pass.set_pipeline(&op.matvec.pipeline);
-                pass.set_bind_group(0, bg_mv, &[]);
-                pass.dispatch_workgroups(g, 1, 1);
+                op.dispatch(&mut pass, bg_mv, g);
                 drop(pass);
                 let mut pass = pass_for(&mut enc, &mut slot);
                 pass.set_pipeline(&rf.k_residual.pipeline);

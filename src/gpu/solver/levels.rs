@@ -3,7 +3,9 @@
 //! kernels `CgKernels`), mixed precision's f64 outer loop (`Refine`), the kernel
 //! specialization constants (`Consts`) and the bytes one CG iteration moves.
 
-use super::builder::{plane_buffers, plane_widths, Bound, Builder, Kernel, Real, Shared, STORAGE};
+use super::builder::{
+    piece, plane_buffers, plane_widths, Builder, Chunk, Chunked, Kernel, Real, Shared, STORAGE,
+};
 use super::host::{Host, HostOp};
 use crate::cg::Preconditioner;
 use crate::gpu::kernels::{self, slots};
@@ -23,6 +25,8 @@ pub(super) const SCAL_LEN: usize = N_SCAL + 2 * LANCZOS_HIST;
 pub(super) struct Consts {
     pub(super) d: f64,
     pub(super) wg: f64,
+    /// Workgroups of the grid-stride kernels (`Device::n_partials`).
+    pub(super) n_partials: u32,
     pub(super) masked: bool,
     pub(super) rotated: bool,
     pub(super) precond: f64,
@@ -39,8 +43,10 @@ pub(super) enum OpData {
     Blocks {
         /// Block planes (see `plane_widths`).
         blocks: [wgpu::Buffer; 3],
+        /// Row chunks whose pieces of the planes and columns fit one storage binding each.
+        chunks: Vec<Chunk>,
         /// Ĥ_ij = V_iᵀ H_ij V_j in place on the planes (slip nodes only).
-        rotate: Option<Bound>,
+        rotate: Option<Chunked>,
     },
     Springs {
         pos: wgpu::Buffer,
@@ -48,6 +54,8 @@ pub(super) enum OpData {
         mass: wgpu::Buffer,
         /// Host-rotated diagonal blocks of VᵀHV (as planes), for the preconditioner build.
         diag_blocks: [wgpu::Buffer; 3],
+        /// Row chunks of the diagonal pattern (as for `OpData::Blocks`).
+        diag_chunks: Vec<Chunk>,
     },
 }
 
@@ -60,6 +68,52 @@ pub(super) struct Operator {
     /// Difference form (f32 blocks): S_i = Σ_j Ĥ_ij per node, d·d row-major.
     pub(super) rowsum: Option<wgpu::Buffer>,
     pub(super) matvec: Kernel,
+    /// Chunked products: each invocation's p·q sum between the chunks' dispatches.
+    pub(super) carry: Option<wgpu::Buffer>,
+}
+
+impl Operator {
+    /// Records q = Ĥp with the operator bound by `groups` (one bind group per row chunk):
+    /// one dispatch of `g` workgroups per chunk, in row order.
+    pub(super) fn dispatch(
+        &self,
+        pass: &mut wgpu::ComputePass<'_>,
+        groups: &[wgpu::BindGroup],
+        g: u32,
+    ) {
+        pass.set_pipeline(&self.matvec.pipeline);
+        for bg in groups {
+            pass.set_bind_group(0, bg, &[]);
+            pass.dispatch_workgroups(g, 1, 1);
+        }
+    }
+}
+
+impl Chunked {
+    /// One dispatch per row chunk, one invocation per row.
+    pub(super) fn dispatch(&self, pass: &mut wgpu::ComputePass<'_>, wg: u32) {
+        pass.set_pipeline(&self.kernel.pipeline);
+        for (bg, rows) in &self.groups {
+            pass.set_bind_group(0, bg, &[]);
+            pass.dispatch_workgroups(rows.div_ceil(wg).max(1), 1, 1);
+        }
+    }
+}
+
+/// Bytes per row of the per-row arrays bound per chunk: the difference form's row sums
+/// (d² values a node), else none.
+pub(super) fn row_elem(host: &Host, real: Real, diff: bool) -> u64 {
+    if diff {
+        (host.frames.dim * host.frames.dim) as u64 * real.size()
+    } else {
+        0
+    }
+}
+
+/// Bytes per block of the widest per-block array of an operator in `real`: plane a
+/// (4 values; the columns take 4 bytes, plane c one value).
+pub(super) fn block_elem(real: Real) -> u64 {
+    4 * real.size()
 }
 
 /// The vectors, partial sums and scalars of one CG.
@@ -96,11 +150,11 @@ pub(super) struct CgKernels {
     pub(super) init: Kernel,
     /// The bind group of the three kernels above (cg.wgsl).
     pub(super) cg_group: wgpu::BindGroup,
-    /// The operator's kernel bound to p → q and to x → q.
-    pub(super) matvec_p: wgpu::BindGroup,
-    pub(super) matvec_x: wgpu::BindGroup,
+    /// The operator's kernel bound to p → q and to x → q (one group per row chunk).
+    pub(super) matvec_p: Vec<wgpu::BindGroup>,
+    pub(super) matvec_x: Vec<wgpu::BindGroup>,
     pub(super) agg: Option<AggKernels>,
-    pub(super) precond: Option<Bound>,
+    pub(super) precond: Option<Chunked>,
 }
 
 /// One CG in one scalar type.
@@ -114,8 +168,9 @@ pub(super) struct Level {
 
 /// Mixed precision: the f64 outer loop.
 pub(super) struct Refine {
-    /// The f64 operator; `None` when its blocks exceed the storage binding limit, and then
-    /// the outer residual is computed on the host from the downloaded y.
+    /// The f64 operator; `None` when its blocks exceed the adapter's buffer size limit (or
+    /// the host residual is asked for), and then the outer residual is computed on the
+    /// host from the downloaded y.
     pub(super) op: Option<Operator>,
     pub(super) b64: wgpu::Buffer,
     pub(super) y64: wgpu::Buffer,
@@ -126,8 +181,8 @@ pub(super) struct Refine {
     pub(super) k_residual: Kernel,
     pub(super) k_scale_rhs: Kernel,
     pub(super) k_accumulate: Kernel,
-    /// The f64 operator bound to y → q.
-    pub(super) bg_mv: Option<wgpu::BindGroup>,
+    /// The f64 operator bound to y → q (one group per row chunk).
+    pub(super) bg_mv: Option<Vec<wgpu::BindGroup>>,
     pub(super) bg_refine: wgpu::BindGroup,
     pub(super) staging: wgpu::Buffer,
 }
@@ -186,7 +241,24 @@ pub(super) fn build_operator(
     let (data, matvec) = match &host.op {
         HostOp::Blocks(h) => {
             let blocks = plane_buffers(bld, &format!("blocks_{rn}"), h.dim, h.nnz_blocks(), real)?;
-            let rotate = block_rotation(bld, sh, rotations.as_ref(), &blocks, real, acc, c)?;
+            let rp: Vec<u32> = h.row_ptr.iter().map(|&v| v as u32).collect();
+            let chunks = bld.chunks(
+                &format!("blocks_{rn}"),
+                &rp,
+                block_elem(real),
+                row_elem(host, real, diff),
+            )?;
+            let rotate = block_rotation(
+                bld,
+                sh,
+                rotations.as_ref(),
+                &blocks,
+                &chunks,
+                h.dim,
+                real,
+                acc,
+                c,
+            )?;
             let mv = bld.kernel(
                 "matvec",
                 &kernels::MATVEC,
@@ -201,7 +273,14 @@ pub(super) fn build_operator(
                     ("DIFF", flag(diff)),
                 ],
             )?;
-            (OpData::Blocks { blocks, rotate }, mv)
+            (
+                OpData::Blocks {
+                    blocks,
+                    chunks,
+                    rotate,
+                },
+                mv,
+            )
         }
         HostOp::Springs(ms) => {
             let n = ms.n_nodes() as u64;
@@ -214,6 +293,9 @@ pub(super) fn build_operator(
             let mass = bld.buffer(&format!("masses_{rn}"), n * real.size(), STORAGE)?;
             let diag_blocks =
                 plane_buffers(bld, &format!("diag_blocks_{rn}"), ms.dim, n as usize, real)?;
+            let identity: Vec<u32> = (0..=n as u32).collect();
+            let diag_chunks =
+                bld.chunks(&format!("diag_blocks_{rn}"), &identity, block_elem(real), 0)?;
             let mv = bld.kernel(
                 "spring_matvec",
                 &kernels::SPRINGS,
@@ -233,9 +315,23 @@ pub(super) fn build_operator(
                 springs,
                 mass,
                 diag_blocks,
+                diag_chunks,
             };
             (data, mv)
         }
+    };
+    // One value per invocation of a product; one chunk never touches it, but a read-write
+    // binding cannot share the read-only placeholder.
+    let carry = match &data {
+        OpData::Blocks { chunks, .. } => {
+            let bytes = if chunks.len() > 1 {
+                u64::from(c.n_partials) * c.wg as u64 * acc.size()
+            } else {
+                16
+            };
+            Some(bld.buffer(&format!("matvec_carry_{rn}"), bytes, STORAGE)?)
+        }
+        OpData::Springs { .. } => None,
     };
     Ok(Operator {
         real,
@@ -244,53 +340,92 @@ pub(super) fn build_operator(
         rotations,
         rowsum,
         matvec,
+        carry,
     })
 }
 
+/// The bindings of the per-block arrays in chunk `ch`: the columns and the three planes
+/// (an unused plane whole), with the chunk's uniform.
+fn block_pieces<'b>(
+    col: &'b wgpu::Buffer,
+    blocks: &'b [wgpu::Buffer; 3],
+    chunks: &[Chunk],
+    ch: &'b Chunk,
+    d: usize,
+    real: Real,
+) -> [(&'static str, wgpu::BufferBinding<'b>); 5] {
+    let one = chunks.len() == 1;
+    let w = plane_widths(d);
+    let s = real.size();
+    [
+        ("col", piece(col, ch, 4, one)),
+        (
+            "blk_a",
+            piece(&blocks[0], ch, w[0] as u64 * s, one || w[0] == 0),
+        ),
+        (
+            "blk_b",
+            piece(&blocks[1], ch, w[1] as u64 * s, one || w[1] == 0),
+        ),
+        (
+            "blk_c",
+            piece(&blocks[2], ch, w[2] as u64 * s, one || w[2] == 0),
+        ),
+        ("chunk", ch.uniform.as_entire_buffer_binding()),
+    ]
+}
+
 /// The setup kernel that rotates the blocks touching a slip node (none without one).
+#[allow(clippy::too_many_arguments)]
 fn block_rotation(
     bld: &mut Builder,
     sh: &Shared,
     rotations: Option<&wgpu::Buffer>,
     blocks: &[wgpu::Buffer; 3],
+    chunks: &[Chunk],
+    d: usize,
     real: Real,
     acc: Real,
     c: &Consts,
-) -> Result<Option<Bound>, GpuError> {
+) -> Result<Option<Chunked>, GpuError> {
     let (Some(rot), Some(ri), Some(rnod)) = (rotations, &sh.rot_index, &sh.rot_nodes) else {
         return Ok(None);
     };
-    let bound = bld.bound(
+    let kernel = bld.kernel(
         "rotate_blocks",
         &kernels::ROTATE_BLOCKS,
         real,
         acc,
         "rotate_blocks",
         &[("D", c.d), ("WG", c.wg)],
-        &[
-            ("params", &sh.params),
-            ("rot_index", ri),
-            ("rot_nodes", rnod),
-            ("rotations", rot),
-            ("row_ptr", &sh.row_ptr),
-            ("col", &sh.col),
-            ("blk_a", &blocks[0]),
-            ("blk_b", &blocks[1]),
-            ("blk_c", &blocks[2]),
-        ],
     )?;
-    Ok(Some(bound))
+    let mut groups = Vec::with_capacity(chunks.len());
+    for (i, ch) in chunks.iter().enumerate() {
+        let whole = [
+            ("params", sh.params.as_entire_buffer_binding()),
+            ("rot_index", ri.as_entire_buffer_binding()),
+            ("rot_nodes", rnod.as_entire_buffer_binding()),
+            ("rotations", rot.as_entire_buffer_binding()),
+            ("row_ptr", sh.row_ptr.as_entire_buffer_binding()),
+        ];
+        let pieces = block_pieces(&sh.col, blocks, chunks, ch, d, real);
+        let bg = bld.bind_ranges(
+            &kernel,
+            &format!("rotate_blocks bind group (chunk {i})"),
+            &[&whole[..], &pieces[..]].concat(),
+        )?;
+        groups.push((bg, ch.row1 - ch.row0));
+    }
+    Ok(Some(Chunked { kernel, groups }))
 }
 
-/// Whether the block planes of an assembled operator in `real` fit the adapter's limits.
+/// Whether the block planes of an assembled operator in `real` fit the adapter's buffer
+/// size limit (they are bound in row-chunk pieces, so the binding limit does not apply).
 pub(super) fn blocks_fit(ctx: &GpuContext, host: &Host, real: Real) -> bool {
     let HostOp::Blocks(h) = &host.op else {
         return true;
     };
-    let limit = ctx
-        .limits
-        .max_storage_buffer_binding_size
-        .min(ctx.limits.max_buffer_size);
+    let limit = ctx.limits.max_buffer_size;
     plane_widths(h.dim)
         .iter()
         .all(|&w| (h.nnz_blocks() * w) as u64 * real.size() <= limit)
@@ -305,14 +440,14 @@ pub(super) struct MatvecIo<'a> {
     pub(super) state: &'a wgpu::Buffer,
 }
 
-/// Bind group of the operator kernel.
+/// Bind groups of the operator kernel, one per row chunk.
 fn bind_operator(
     bld: &Builder,
     sh: &Shared,
     op: &Operator,
     label: &str,
     io: MatvecIo,
-) -> Result<wgpu::BindGroup, GpuError> {
+) -> Result<Vec<wgpu::BindGroup>, GpuError> {
     let ph = &sh.placeholder;
     let dv = op.dvals.as_ref().unwrap_or(ph);
     let io_binds = [
@@ -325,16 +460,41 @@ fn bind_operator(
         ("dvals", dv),
     ];
     match &op.data {
-        OpData::Blocks { blocks, .. } => {
-            let data = [
-                ("row_ptr", &sh.row_ptr),
-                ("col", &sh.col),
-                ("blk_a", &blocks[0]),
-                ("blk_b", &blocks[1]),
-                ("blk_c", &blocks[2]),
-                ("rowsum", op.rowsum.as_ref().unwrap_or(ph)),
-            ];
-            bld.bind(&op.matvec, label, &[&io_binds[..], &data[..]].concat())
+        OpData::Blocks { blocks, chunks, .. } => {
+            let whole: Vec<(&str, wgpu::BufferBinding)> = io_binds
+                .iter()
+                .chain(&[
+                    ("row_ptr", &sh.row_ptr),
+                    ("carry", op.carry.as_ref().unwrap_or(ph)),
+                ])
+                .map(|&(n, b)| (n, b.as_entire_buffer_binding()))
+                .collect();
+            chunks
+                .iter()
+                .enumerate()
+                .map(|(i, ch)| {
+                    let pieces = block_pieces(&sh.col, blocks, chunks, ch, sh.dim, op.real);
+                    let rowsum = match &op.rowsum {
+                        Some(rs) if chunks.len() > 1 => {
+                            let e = (sh.dim * sh.dim) as u64 * op.real.size();
+                            wgpu::BufferBinding {
+                                buffer: rs,
+                                offset: u64::from(ch.row0) * e,
+                                size: std::num::NonZeroU64::new(u64::from(ch.row1 - ch.row0) * e),
+                            }
+                        }
+                        Some(rs) => rs.as_entire_buffer_binding(),
+                        None => ph.as_entire_buffer_binding(),
+                    };
+                    let pieces = [&pieces[..], &[("rowsum", rowsum)]].concat();
+                    let lbl = if chunks.len() == 1 {
+                        label.to_string()
+                    } else {
+                        format!("{label} (chunk {i})")
+                    };
+                    bld.bind_ranges(&op.matvec, &lbl, &[&whole[..], &pieces[..]].concat())
+                })
+                .collect()
         }
         OpData::Springs {
             pos, springs, mass, ..
@@ -348,7 +508,11 @@ fn bind_operator(
                 ("rot_index", sh.rot_index.as_ref().unwrap_or(ph)),
                 ("rotations", op.rotations.as_ref().unwrap_or(ph)),
             ];
-            bld.bind(&op.matvec, label, &[&io_binds[..], &data[..]].concat())
+            Ok(vec![bld.bind(
+                &op.matvec,
+                label,
+                &[&io_binds[..], &data[..]].concat(),
+            )?])
         }
     }
 }
@@ -589,15 +753,19 @@ fn precond_kernel(
     buf: &CgBuffers,
     acc: Real,
     c: &Consts,
-) -> Result<Option<Bound>, GpuError> {
+) -> Result<Option<Chunked>, GpuError> {
     let Some(minv) = &buf.minv else {
         return Ok(None);
     };
     // Springs: the host-computed diagonal blocks with an identity pattern.
-    let (row_ptr, col, blocks) = match &op.data {
-        OpData::Blocks { blocks, .. } => (&sh.row_ptr, &sh.col, blocks),
-        OpData::Springs { diag_blocks, .. } => match (&sh.diag_row_ptr, &sh.diag_col) {
-            (Some(p), Some(c)) => (p, c, diag_blocks),
+    let (row_ptr, col, blocks, chunks) = match &op.data {
+        OpData::Blocks { blocks, chunks, .. } => (&sh.row_ptr, &sh.col, blocks, chunks),
+        OpData::Springs {
+            diag_blocks,
+            diag_chunks,
+            ..
+        } => match (&sh.diag_row_ptr, &sh.diag_col) {
+            (Some(p), Some(c)) => (p, c, diag_blocks, diag_chunks),
             _ => {
                 return Err(GpuError::Device(
                     "the spring operator has no diagonal pattern".into(),
@@ -605,7 +773,7 @@ fn precond_kernel(
             }
         },
     };
-    let bound = bld.bound(
+    let kernel = bld.kernel(
         "precond_build",
         &kernels::PRECOND,
         op.real,
@@ -617,19 +785,31 @@ fn precond_kernel(
             ("MASKED", flag(c.masked)),
             ("PRECOND", c.precond),
         ],
-        &[
-            ("params", &sh.params),
-            ("row_ptr", row_ptr),
-            ("col", col),
-            ("blk_a", &blocks[0]),
-            ("mask", sh.mask_or()),
-            ("dvals", op.dvals.as_ref().unwrap_or(&sh.placeholder)),
-            ("minv", minv),
-            ("blk_b", &blocks[1]),
-            ("blk_c", &blocks[2]),
-        ],
     )?;
-    Ok(Some(bound))
+    let mut groups = Vec::with_capacity(chunks.len());
+    for (i, ch) in chunks.iter().enumerate() {
+        let whole = [
+            ("params", sh.params.as_entire_buffer_binding()),
+            ("row_ptr", row_ptr.as_entire_buffer_binding()),
+            ("mask", sh.mask_or().as_entire_buffer_binding()),
+            (
+                "dvals",
+                op.dvals
+                    .as_ref()
+                    .unwrap_or(&sh.placeholder)
+                    .as_entire_buffer_binding(),
+            ),
+            ("minv", minv.as_entire_buffer_binding()),
+        ];
+        let pieces = block_pieces(col, blocks, chunks, ch, sh.dim, op.real);
+        let bg = bld.bind_ranges(
+            &kernel,
+            &format!("precond_build bind group (chunk {i})"),
+            &[&whole[..], &pieces[..]].concat(),
+        )?;
+        groups.push((bg, ch.row1 - ch.row0));
+    }
+    Ok(Some(Chunked { kernel, groups }))
 }
 
 /// Mixed precision's f64 outer loop: the f64 iterate, residual and right-hand side, and

@@ -2,8 +2,10 @@
 //! fallback (GPU or CPU), extended-precision refinement and the f32 operator's scale.
 
 use super::builder::{Builder, Real};
+use super::device::{binding_limit, memory_limit};
 use super::host::HostOp;
 use super::levels::{build_level, build_operator};
+use super::plan::{self, DOES_NOT_FIT};
 use super::policy::{inner_scale, resume_scales, MixedPolicy, Stop};
 use super::run::Outcome;
 use super::{GpuSolver, Solved};
@@ -65,7 +67,7 @@ impl GpuSolver {
         let mut dl = 0.0;
         if self.dev.refine.as_ref().is_some_and(|r| r.op.is_none()) {
             notes.push(
-                "mixed: the f64 blocks exceed the adapter's storage binding limit; only the f32 \
+                "mixed: the f64 blocks exceed the adapter's buffer size limit; only the f32 \
                  blocks live on the device and the outer f64 residual is computed on the host"
                     .into(),
             );
@@ -207,6 +209,10 @@ impl GpuSolver {
                     notes.push(format!("f64 fallback level does not fit on the GPU: {e}"));
                     false
                 }
+                Err(GpuError::Device(m)) if m.contains(DOES_NOT_FIT) => {
+                    notes.push(format!("f64 fallback level: {m}"));
+                    false
+                }
                 Err(e) => return Err(e),
             };
         let place = if on_gpu {
@@ -281,7 +287,7 @@ impl GpuSolver {
         if self.dev.refine.as_ref().is_some_and(|r| r.op.is_none()) {
             return Err(GpuError::Unsupported(
                 "error_tol needs the f64 operator on the GPU, and its blocks exceed the \
-                 adapter's storage binding limit"
+                 adapter's buffer size limit"
                     .into(),
             ));
         }
@@ -499,8 +505,14 @@ impl GpuSolver {
             return Ok(());
         }
         let ctx = self.ctx.clone();
-        let mut bld = Builder::new(&ctx);
         let acc = self.dev.level.acc;
+        if let Some(mem) = memory_limit(&ctx, &self.params) {
+            let c = &self.dev.consts;
+            let need = plan::level_bytes(&ctx, &self.host, &self.params, c, Real::F64, acc)?;
+            let used = self.tel.resources().total_bytes();
+            plan::check_fits(&ctx, used + need, Some(mem))?;
+        }
+        let mut bld = Builder::new(&ctx, binding_limit(&ctx, &self.params));
         let op = build_operator(
             &mut bld,
             &self.dev.shared,
@@ -727,9 +739,7 @@ impl GpuSolver {
                 label: Some("residual pass"),
                 timestamp_writes: None,
             });
-            pass.set_pipeline(&op.matvec.pipeline);
-            pass.set_bind_group(0, bg_mv, &[]);
-            pass.dispatch_workgroups(g, 1, 1);
+            op.dispatch(&mut pass, bg_mv, g);
             pass.set_pipeline(&rf.k_residual.pipeline);
             pass.set_bind_group(0, &rf.bg_refine, &[]);
             pass.dispatch_workgroups(g, 1, 1);

@@ -3,6 +3,8 @@
 //! Per iteration three dispatches: `matvec` (q = Ĥp fused with p·q partials), `update_xrz`
 //! (α reduced redundantly per workgroup; x, r, z updated; r·z and r·r partials) and
 //! `update_p` (ρ, β and the stop decision reduced redundantly per workgroup; p = z + βp).
+//! An operator whose per-block arrays exceed the storage binding limit runs its matvec as
+//! one dispatch per row chunk (`builder::plan_chunks`), the same product bit for bit.
 //! Scalars stay on the device; one submit records a chunk of iterations and one small
 //! status read-back follows it; chunk sizes follow the predicted iterations left
 //! (see `run_cg`). Success is declared only after
@@ -24,6 +26,7 @@ mod info;
 mod inspect;
 mod levels;
 mod mixed;
+mod plan;
 mod policy;
 mod run;
 mod setup;
@@ -44,6 +47,7 @@ use device::{Built, Device};
 use host::{spring_rhs, Host, HostOp};
 use levels::bytes_per_iteration;
 use mixed::MixedState;
+pub use plan::DOES_NOT_FIT;
 use run::{Outcome, RunState};
 use std::time::Instant;
 use telemetry::Telemetry;
@@ -366,7 +370,8 @@ impl GpuSolver {
                 0.0
             },
             achieved_gb_per_s_gpu: gpu_seconds.filter(|&s| s > 0.0).map(|s| moved / s / 1e9),
-            dispatches_per_iteration: 3,
+            // matvec once per row chunk of the operator's blocks.
+            dispatches_per_iteration: 2 + self.dev.level.k.matvec_p.len(),
             workgroups: self.dev.n_partials,
             readbacks: self.tel.readbacks,
             fallback: self.mixed.last_fallback.clone(),

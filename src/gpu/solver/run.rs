@@ -92,8 +92,18 @@ impl GpuSolver {
             Which::UpdateP => (&self.dev.level.k.update_p, &self.dev.level.k.cg_group),
             Which::UpdateXrz => (&self.dev.level.k.update_xrz, &self.dev.level.k.cg_group),
             Which::Init => (&self.dev.level.k.init, &self.dev.level.k.cg_group),
-            Which::MatvecP => (&self.dev.level.op.matvec, &self.dev.level.k.matvec_p),
-            Which::MatvecX => (&self.dev.level.op.matvec, &self.dev.level.k.matvec_x),
+            Which::MatvecP | Which::MatvecX => {
+                let l = &self.dev.level;
+                let bgs = if matches!(which, Which::MatvecP) {
+                    &l.k.matvec_p
+                } else {
+                    &l.k.matvec_x
+                };
+                l.op.dispatch(pass, bgs, groups);
+                let name = l.op.matvec.name;
+                self.record(name);
+                return;
+            }
             Which::Restrict | Which::CoarseSolve => {
                 let Some(agg) = &self.dev.level.k.agg else {
                     return;

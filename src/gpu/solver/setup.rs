@@ -39,6 +39,7 @@ impl GpuSolver {
                     springs,
                     mass,
                     diag_blocks,
+                    ..
                 },
                 HostOp::Springs(ms),
             ) => {
@@ -137,7 +138,7 @@ impl GpuSolver {
                 label: Some("setup pass"),
                 timestamp_writes: None,
             });
-            let groups = self.dev.node_groups();
+            let wg = self.dev.wg;
             let main_ops = std::iter::once(&self.dev.level.op)
                 .chain(self.dev.refine.as_ref().and_then(|r| r.op.as_ref()))
                 .filter(|_| main);
@@ -148,11 +149,8 @@ impl GpuSolver {
                     rotate: Some(rot), ..
                 } = &op.data
                 {
-                    let k = &rot.kernel;
-                    pass.set_pipeline(&k.pipeline);
-                    pass.set_bind_group(0, &rot.group, &[]);
-                    pass.dispatch_workgroups(groups, 1, 1);
-                    names.push(k.name);
+                    rot.dispatch(&mut pass, wg);
+                    names.push(rot.kernel.name);
                 }
             }
             let pre = std::iter::once(&self.dev.level)
@@ -160,11 +158,8 @@ impl GpuSolver {
                 .chain(fb)
                 .filter_map(|l| l.k.precond.as_ref());
             for pre in pre {
-                let k = &pre.kernel;
-                pass.set_pipeline(&k.pipeline);
-                pass.set_bind_group(0, &pre.group, &[]);
-                pass.dispatch_workgroups(groups, 1, 1);
-                names.push(k.name);
+                pre.dispatch(&mut pass, wg);
+                names.push(pre.kernel.name);
             }
         }
         self.ctx.queue.submit([enc.finish()]);

@@ -1,0 +1,212 @@
+//! Per-block arrays larger than the storage binding limit are bound in row-chunk pieces
+//! and every kernel over them runs once per chunk. `GpuParams::binding_limit` lowers the
+//! limit so that ~1,000-node systems take that path on any adapter; the chunked solve must
+//! equal the one-chunk solve bit for bit: every row is computed by the same operations on
+//! the same values, and each invocation's p·q sum runs over the same rows in the same
+//! order (carried between the chunk dispatches), so the two differ in addresses only.
+
+use stickslip::cg::Preconditioner;
+use stickslip::coarse::CoarseSpace;
+use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
+use stickslip::generate::{random_system, SystemSpec};
+use stickslip::gpu::{GpuError, GpuParams, GpuSolver, Precision, Resources, SolveOutcome};
+
+mod common;
+use common::gpu::gpu;
+
+/// Chunks of the operator whose block planes are labelled `blocks_{real}`.
+fn chunks(r: &Resources, real: &str) -> usize {
+    let prefix = format!("blocks_{real}_chunk");
+    r.buffers
+        .iter()
+        .filter(|b| b.label.starts_with(&prefix))
+        .count()
+}
+
+fn solve(
+    ctx: &stickslip::gpu::GpuContext,
+    e: &Eliminated,
+    p: &GpuParams,
+) -> (SolveOutcome, Resources) {
+    let mut s = GpuSolver::new(ctx, e, p).expect("solver builds");
+    let out = s.solve().expect("solve converges");
+    (out, s.resources())
+}
+
+fn bits(v: &[f64]) -> Vec<u64> {
+    v.iter().map(|x| x.to_bits()).collect()
+}
+
+#[test]
+fn chunked_operators_give_the_one_chunk_solution_bit_for_bit() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let mut cases = 0;
+    for dim in [3usize, 2] {
+        // The realistic mix has sticky, moved and tilted-plane slip nodes: masking, the
+        // block rotation and the preconditioner build all run per chunk.
+        let s = random_system(&SystemSpec::with_nodes(dim, 1000, 7));
+        let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+        assert!(s.frames.has_rotation() && s.frames.has_constraints());
+        // f32 plane a (16 bytes a block) in at least three pieces, f64 in more; the
+        // per-node arrays (here at most the f64 block-Jacobi inverse, d² values a node)
+        // stay whole and must fit.
+        let n = s.frames.n_nodes as u64;
+        let limit = (s.h.nnz_blocks() as u64 * 16 / 3).max(n * (dim * dim) as u64 * 8) / 4 * 4;
+        let precisions: &[Precision] = if ctx.has_f64() {
+            &[Precision::F64, Precision::F32, Precision::Mixed]
+        } else {
+            &[Precision::F32]
+        };
+        for &precision in precisions {
+            for (k, coarse) in [CoarseSpace::None, CoarseSpace::Aggregates]
+                .into_iter()
+                .enumerate()
+            {
+                // f32 arithmetic stagnates near 1e-7 on these systems.
+                let tol = if precision == Precision::F32 {
+                    1e-5
+                } else {
+                    1e-8
+                };
+                let base = GpuParams {
+                    precision,
+                    tol,
+                    max_iters: 5_000,
+                    coarse,
+                    preconditioner: if k == 0 {
+                        Preconditioner::BlockJacobi
+                    } else {
+                        Preconditioner::Jacobi
+                    },
+                    ..Default::default()
+                };
+                let split = GpuParams {
+                    binding_limit: Some(limit),
+                    ..base.clone()
+                };
+                let (a, ra) = solve(ctx, &e, &base);
+                let (b, rb) = solve(ctx, &e, &split);
+                let what = format!("{dim}D {precision} coarse {}", coarse.name());
+                let real = if precision == Precision::F64 {
+                    "f64"
+                } else {
+                    "f32"
+                };
+                assert_eq!(chunks(&ra, real), 1, "{what}: one chunk without the cap");
+                assert!(
+                    chunks(&rb, real) >= 3,
+                    "{what}: {} chunks under the cap",
+                    chunks(&rb, real)
+                );
+                if precision == Precision::Mixed {
+                    // The f64 operator of the outer residual is chunked too.
+                    assert!(chunks(&rb, "f64") >= 3, "{what}: f64 outer operator");
+                }
+                assert!(a.info.relative_residual <= tol, "{what}: {a:?}");
+                assert_eq!(a.info.iterations, b.info.iterations, "{what}");
+                assert_eq!(a.info.outer_refinements, b.info.outer_refinements, "{what}");
+                assert!(bits(&a.y) == bits(&b.y), "{what}: y differs");
+                assert!(bits(&a.dx) == bits(&b.dx), "{what}: Δx differs");
+                eprintln!(
+                    "{what}: {} iterations, rel. residual {:.3e}, {} chunks, bitwise equal",
+                    a.info.iterations,
+                    a.info.relative_residual,
+                    chunks(&rb, real)
+                );
+                cases += 1;
+            }
+        }
+    }
+    assert!(cases >= 4);
+}
+
+/// Arrays per node stay one binding each: under a cap below them the solver is refused
+/// before any work with the array's name and sizes, not a device failure.
+#[test]
+fn a_binding_limit_below_the_per_node_arrays_is_refused() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = random_system(&SystemSpec::with_nodes(3, 1000, 7));
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let p = GpuParams {
+        precision: Precision::F32,
+        binding_limit: Some(1024),
+        ..Default::default()
+    };
+    match GpuSolver::new(ctx, &e, &p) {
+        Err(err @ GpuError::BufferTooLarge { .. }) => {
+            let m = err.to_string();
+            assert!(
+                m.contains(stickslip::gpu::DOES_NOT_FIT) && m.contains("1024"),
+                "{m}"
+            );
+        }
+        Err(other) => panic!("unexpected error {other}"),
+        Ok(_) => panic!("a 1024-byte binding limit was accepted"),
+    }
+}
+
+/// The device memory a solver needs is computed before anything is allocated, and is
+/// exactly what it then allocates: with `memory_limit` one byte below the total the
+/// system is refused with one line naming both numbers; at the total it builds.
+#[test]
+fn a_system_larger_than_device_memory_is_refused_with_the_exact_need() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = random_system(&SystemSpec::with_nodes(3, 1000, 7));
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let n = s.frames.n_nodes as u64;
+    let split = (s.h.nnz_blocks() as u64 * 16 / 3).max(n * 72) / 4 * 4;
+    let precisions: &[Precision] = if ctx.has_f64() {
+        &[Precision::F64, Precision::F32, Precision::Mixed]
+    } else {
+        &[Precision::F32]
+    };
+    for &precision in precisions {
+        for (coarse, pc, limit) in [
+            (CoarseSpace::Aggregates, Preconditioner::BlockJacobi, None),
+            (
+                CoarseSpace::Translations,
+                Preconditioner::Jacobi,
+                Some(split),
+            ),
+            (CoarseSpace::None, Preconditioner::None, None),
+        ] {
+            let p = GpuParams {
+                precision,
+                coarse,
+                preconditioner: pc,
+                binding_limit: limit,
+                ..Default::default()
+            };
+            let what = format!("{precision} {} {pc:?} cap {limit:?}", coarse.name());
+            let total = GpuSolver::new(ctx, &e, &p)
+                .expect("builds")
+                .resources()
+                .total_bytes();
+            let tight = GpuParams {
+                memory_limit: Some(total),
+                ..p.clone()
+            };
+            assert!(GpuSolver::new(ctx, &e, &tight).is_ok(), "{what}");
+            let short = GpuParams {
+                memory_limit: Some(total - 1),
+                ..p.clone()
+            };
+            match GpuSolver::new(ctx, &e, &short) {
+                Err(GpuError::Device(m)) => {
+                    assert!(m.contains(stickslip::gpu::DOES_NOT_FIT), "{what}: {m}");
+                    assert!(m.contains(&format!("needs {total} bytes")), "{what}: {m}");
+                    assert!(
+                        m.contains(&format!("has {} bytes", total - 1)),
+                        "{what}: {m}"
+                    );
+                    assert!(!m.contains('\n'));
+                    // The facade's error: a device error.
+                    let f: stickslip::Error = GpuError::Device(m).into();
+                    assert!(matches!(f, stickslip::Error::Device(_)));
+                }
+                Err(other) => panic!("{what}: {other}"),
+                Ok(_) => panic!("{what}: accepted {total} bytes in {}", total - 1),
+            }
+        }
+    }
+}
