@@ -404,13 +404,10 @@ pub fn gmsh(dim: usize, bytes: &[u8]) -> Result<Mesh, String> {
     // integer width it knows; with overflow checks, a section of zero nodes or
     // elements): they are refused here first.
     let format = msh_format(bytes)?;
-    for (name, start) in msh_sections(bytes) {
-        let what = match name {
-            b"Nodes" => "nodes",
-            b"Elements" => "elements",
-            _ => continue,
-        };
-        if msh_section_count(bytes, start, format) == Some(0) {
+    for (name, what) in [(&b"Nodes"[..], "nodes"), (&b"Elements"[..], "elements")] {
+        if msh_section_starts(bytes, name)
+            .any(|start| msh_section_count(bytes, start, format) == Some(0))
+        {
             return Err(format!(
                 "its ${} section declares no {what}",
                 what_section(name)
@@ -603,70 +600,23 @@ fn what_section(name: &[u8]) -> String {
     crate::io::one_line(&String::from_utf8_lossy(name), 40)
 }
 
-/// The sections of a MSH file in the order mshio walks them: (name, where the content
-/// starts) for each `$Name` line after the `$MeshFormat` block, which must open the file.
-/// The walk follows mshio's own rules (whitespace before a section line, a name of ASCII
-/// letters, `\n` or `\r\n` after it, the section ending at the first `$EndName`), so a
-/// section checked here is the one mshio parses; it stops where mshio would fail.
-fn msh_sections(bytes: &[u8]) -> Vec<(&[u8], usize)> {
-    fn after_br(bytes: &[u8], at: usize) -> Option<usize> {
-        match bytes.get(at..)? {
-            [b'\n', ..] => Some(at + 1),
-            [b'\r', b'\n', ..] => Some(at + 2),
+/// Every place where mshio could start parsing a section `$name`: the content after
+/// each `$name` followed by `\n` or `\r\n`, anywhere in the file. mshio finds a section
+/// where the previous one's parser stopped, which in a malformed binary file can be inside
+/// another section's data, so every such place is checked, not only the ones at a line start.
+fn msh_section_starts<'a>(bytes: &'a [u8], name: &'a [u8]) -> impl Iterator<Item = usize> + 'a {
+    let mut tag = b"$".to_vec();
+    tag.extend_from_slice(name);
+    let n = tag.len();
+    bytes
+        .windows(n)
+        .enumerate()
+        .filter(move |(_, w)| *w == &tag[..])
+        .filter_map(move |(k, _)| match bytes.get(k + n..) {
+            Some([b'\n', ..]) => Some(k + n + 1),
+            Some([b'\r', b'\n', ..]) => Some(k + n + 2),
             _ => None,
-        }
-    }
-    fn find(bytes: &[u8], key: &[u8], from: usize) -> Option<usize> {
-        let k = bytes
-            .get(from..)?
-            .windows(key.len())
-            .position(|w| w == key)?;
-        Some(from + k)
-    }
-    let mut out = Vec::new();
-    const OPEN: &[u8] = b"$MeshFormat";
-    const CLOSE: &[u8] = b"$EndMeshFormat";
-    if !bytes.starts_with(OPEN) {
-        return out;
-    }
-    let Some(mut at) = after_br(bytes, OPEN.len()) else {
-        return out;
-    };
-    // The format block ends at the first `$EndMeshFormat` followed by a line break.
-    loop {
-        let Some(k) = find(bytes, CLOSE, at) else {
-            return out;
-        };
-        if let Some(next) = after_br(bytes, k + CLOSE.len()) {
-            at = next;
-            break;
-        }
-        at = k + 1;
-    }
-    loop {
-        while matches!(bytes.get(at), Some(b' ' | b'\t' | b'\r' | b'\n')) {
-            at += 1;
-        }
-        if bytes.get(at) != Some(&b'$') {
-            return out;
-        }
-        let name_start = at + 1;
-        let name_len = bytes[name_start..]
-            .iter()
-            .take_while(|b| b.is_ascii_alphabetic())
-            .count();
-        let name = &bytes[name_start..name_start + name_len];
-        let Some(content) = after_br(bytes, name_start + name_len) else {
-            return out;
-        };
-        out.push((name, content));
-        let mut end = b"$End".to_vec();
-        end.extend_from_slice(name);
-        let Some(k) = find(bytes, &end, content) else {
-            return out;
-        };
-        at = k + end.len();
-    }
+        })
 }
 
 /// The second number of a section's header (numNodes of $Nodes, numElements of
@@ -713,12 +663,8 @@ fn msh_section_count(
 /// (mshio refuses them), so each node has three coordinates.
 fn msh_node_tags(bytes: &[u8], counts: &[usize]) -> Result<Vec<Vec<u64>>, String> {
     const BAD: &str = "the $Nodes section's node tags cannot be read";
-    let (binary, size_t, little, _) = msh_format(bytes)?;
-    let start = msh_sections(bytes)
-        .into_iter()
-        .find(|&(name, _)| name == b"Nodes")
-        .map(|(_, start)| start)
-        .ok_or(BAD)?;
+    let (binary, size_t, little, line_end) = msh_format(bytes)?;
+    let start = msh_after(bytes, b"$Nodes", line_end).ok_or(BAD)?;
     let mut out = Vec::with_capacity(counts.len());
     if binary {
         let mut at = start;
