@@ -5,14 +5,20 @@
 //! diagonal) and its symbolic factorization; [`CholeskyOracle::solve`] factors numerically
 //! and solves, reusing the analysis while the block pattern and the masks are unchanged
 //! (and re-analysing by itself when they change).
+//!
+//! The fill-reducing ordering is faer's AMD or nested dissection of the node graph
+//! ([`crate::ordering`]), chosen by [`CholeskyOrdering`] and passed to faer as a custom
+//! symmetric ordering.
 
 use crate::elimination::Eliminated;
 use crate::error::SolveError;
+use crate::ordering::{self, CholeskyOrdering, NodeGraph};
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::LltError as PivotError;
 use faer::linalg::cholesky::llt::factor::LltRegularization;
+use faer::perm::PermRef;
 use faer::sparse::linalg::cholesky::{
-    factorize_symbolic_cholesky, CholeskySymbolicParams, LltRef, SymbolicCholesky,
+    factorize_symbolic_cholesky, simplicial, CholeskySymbolicParams, LltRef, SymbolicCholesky,
     SymmetricOrdering,
 };
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
@@ -28,9 +34,18 @@ pub struct OracleInfo {
     pub solve_seconds: f64,
     /// True when this solve reused an earlier analysis.
     pub reused_symbolic: bool,
-    /// Stored entries of the lower triangle of Ĥ and of the factor L.
+    /// The ordering the analysis used: "amd" or "nested-dissection" (never "auto").
+    pub ordering: CholeskyOrdering,
+    /// Seconds computing that ordering (part of `symbolic_seconds`; 0 when reused).
+    pub ordering_seconds: f64,
+    /// Stored entries of the lower triangle of Ĥ and of the factor L. faer's supernodal
+    /// storage holds each supernode's diagonal block in full and the zeros that merging
+    /// supernodes adds, so `factor_nnz` exceeds the structural count below.
     pub matrix_nnz: usize,
     pub factor_nnz: usize,
+    /// Structural nonzeros of L (on and below the diagonal) for the ordering used: the
+    /// elimination tree's column counts, comparable with other solvers' nnz(L).
+    pub factor_nnz_exact: usize,
     /// ‖b̂ − Ĥy‖/‖b̂‖ recomputed in f64 (matrix-free).
     pub relative_residual: f64,
 }
@@ -113,12 +128,23 @@ pub struct CholeskyOracle {
     structure: Structure,
     symbolic: SymbolicCholesky<usize>,
     symbolic_seconds: f64,
+    /// What was asked for (a re-analysis asks again) and what ran.
+    requested: CholeskyOrdering,
+    ordering: CholeskyOrdering,
+    ordering_seconds: f64,
+    factor_nnz_exact: usize,
     used: bool,
 }
 
 impl CholeskyOracle {
-    /// Analyses the pattern of Ĥ (AMD ordering, elimination tree, supernodes).
+    /// Analyses the pattern of Ĥ (ordering, elimination tree, supernodes) with the
+    /// [`CholeskyOrdering::Auto`] choice of ordering.
     pub fn analyze(e: &Eliminated) -> Result<Self, SolveError> {
+        Self::analyze_with(e, CholeskyOrdering::Auto)
+    }
+
+    /// Analyses the pattern of Ĥ with the given ordering.
+    pub fn analyze_with(e: &Eliminated, requested: CholeskyOrdering) -> Result<Self, SolveError> {
         let t = Instant::now();
         let structure = Structure::new(e);
         let nd = e.h.ndof();
@@ -129,19 +155,72 @@ impl CholeskyOracle {
             None,
             &structure.row_idx,
         );
+        let t_order = Instant::now();
+        let nd_perm = match requested {
+            CholeskyOrdering::Amd => None,
+            CholeskyOrdering::Auto | CholeskyOrdering::NestedDissection => {
+                let graph = NodeGraph::new(e.h.dim, &e.h.row_ptr, &e.h.col_idx, &e.frames.mask);
+                match graph {
+                    Ok(g)
+                        if requested == CholeskyOrdering::NestedDissection
+                            || ordering::auto_uses_nested_dissection(&g) =>
+                    {
+                        let fwd = ordering::nested_dissection(&g, e.h.dim, e.h.n)
+                            .map_err(SolveError::Factorization)?;
+                        let inv = ordering::inverse(&fwd).ok_or_else(|| {
+                            SolveError::Factorization("nested dissection: not a permutation".into())
+                        })?;
+                        Some((fwd, inv))
+                    }
+                    // Auto on a graph METIS cannot index falls back to AMD.
+                    Err(_) if requested == CholeskyOrdering::Auto => None,
+                    Err(err) => return Err(SolveError::Factorization(err)),
+                    Ok(_) => None,
+                }
+            }
+        };
+        // AMD runs inside faer's analysis and is not timed apart.
+        let ordering_seconds = if nd_perm.is_some() {
+            t_order.elapsed().as_secs_f64()
+        } else {
+            0.0
+        };
+        let (ordering, symmetric_ordering) = match &nd_perm {
+            Some((fwd, inv)) => (
+                CholeskyOrdering::NestedDissection,
+                SymmetricOrdering::Custom(PermRef::new_checked(fwd, inv, nd)),
+            ),
+            None => (CholeskyOrdering::Amd, SymmetricOrdering::Amd),
+        };
         let symbolic = factorize_symbolic_cholesky(
             sym,
             Side::Lower,
-            SymmetricOrdering::Amd,
+            symmetric_ordering,
             CholeskySymbolicParams::default(),
         )
         .map_err(|err| SolveError::Factorization(format!("{err:?}")))?;
+        let factor_nnz_exact = exact_factor_nnz(&structure, symbolic.perm().map(|p| p.arrays().1));
         Ok(CholeskyOracle {
+            factor_nnz_exact,
             structure,
             symbolic,
             symbolic_seconds: t.elapsed().as_secs_f64(),
+            requested,
+            ordering,
+            ordering_seconds,
             used: false,
         })
+    }
+
+    /// The ordering the analysis used ([`CholeskyOrdering::Amd`] or
+    /// [`CholeskyOrdering::NestedDissection`]).
+    pub fn ordering(&self) -> CholeskyOrdering {
+        self.ordering
+    }
+
+    /// Stored entries of the factor L.
+    pub fn factor_nnz(&self) -> usize {
+        self.symbolic.len_val()
     }
 
     /// Whether the stored analysis fits `e` (same block pattern and masks).
@@ -153,7 +232,7 @@ impl CholeskyOracle {
     pub fn solve(&mut self, e: &Eliminated) -> Result<(Vec<f64>, OracleInfo), SolveError> {
         let mut reused = self.used;
         if !self.fits(e) {
-            *self = CholeskyOracle::analyze(e)?;
+            *self = CholeskyOracle::analyze_with(e, self.requested)?;
             reused = false;
         }
         let symbolic_seconds = if reused { 0.0 } else { self.symbolic_seconds };
@@ -223,12 +302,58 @@ impl CholeskyOracle {
                 numeric_seconds,
                 solve_seconds,
                 reused_symbolic: reused,
+                ordering: self.ordering,
+                ordering_seconds: if reused { 0.0 } else { self.ordering_seconds },
                 matrix_nnz: values.len(),
                 factor_nnz: self.symbolic.len_val(),
+                factor_nnz_exact: self.factor_nnz_exact,
                 relative_residual,
             },
         ))
     }
+}
+
+/// Structural nonzeros of the Cholesky factor of the lower-triangle pattern in `s`
+/// permuted by `inv` (`inv[old] = new`; None: unpermuted): the sum of the column counts
+/// of faer's elimination-tree pass, O(nnz(L)).
+fn exact_factor_nnz(s: &Structure, inv: Option<&[usize]>) -> usize {
+    let nd = s.col_ptr.len() - 1;
+    let new = |i: usize| inv.map_or(i, |p| p[i]);
+    // Upper triangle of P Ĥ Pᵀ in CSC (faer's pass reads the upper part).
+    let mut count = vec![0usize; nd + 1];
+    for c in 0..nd {
+        for &r in &s.row_idx[s.col_ptr[c]..s.col_ptr[c + 1]] {
+            count[new(r).max(new(c)) + 1] += 1;
+        }
+    }
+    for k in 0..nd {
+        count[k + 1] += count[k];
+    }
+    let col_ptr = count.clone();
+    let mut next = count;
+    let mut row_idx = vec![0usize; s.row_idx.len()];
+    for c in 0..nd {
+        for &r in &s.row_idx[s.col_ptr[c]..s.col_ptr[c + 1]] {
+            let (a, b) = (new(r), new(c));
+            let col = a.max(b);
+            row_idx[next[col]] = a.min(b);
+            next[col] += 1;
+        }
+    }
+    let upper = SymbolicSparseColMatRef::new_checked(nd, nd, &col_ptr, None, &row_idx);
+    let mut etree = vec![0isize; nd];
+    let mut col_counts = vec![0usize; nd];
+    let mut mem = MemBuffer::new(simplicial::prefactorize_symbolic_cholesky_scratch::<usize>(
+        nd,
+        row_idx.len(),
+    ));
+    simplicial::prefactorize_symbolic_cholesky(
+        &mut etree,
+        &mut col_counts,
+        upper,
+        MemStack::new(&mut mem),
+    );
+    col_counts.iter().sum()
 }
 
 /// One-shot: analyse, factor and solve.
