@@ -17,9 +17,10 @@ use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::LltError as PivotError;
 use faer::linalg::cholesky::llt::factor::LltRegularization;
 use faer::perm::PermRef;
+use faer::sparse::linalg::amd;
 use faer::sparse::linalg::cholesky::{
     factorize_symbolic_cholesky, simplicial, CholeskySymbolicParams, LltRef, SymbolicCholesky,
-    SymmetricOrdering,
+    SymbolicCholeskyRaw, SymmetricOrdering,
 };
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::{Conj, MatMut, Side};
@@ -156,58 +157,45 @@ impl CholeskyOracle {
             &structure.row_idx,
         );
         let t_order = Instant::now();
-        let nd_perm = match requested {
-            CholeskyOrdering::Amd => None,
-            CholeskyOrdering::Auto | CholeskyOrdering::NestedDissection => {
-                let graph = NodeGraph::new(e.h.dim, &e.h.row_ptr, &e.h.col_idx, &e.frames.mask);
-                match graph {
-                    Ok(g)
-                        if requested == CholeskyOrdering::NestedDissection
-                            || ordering::auto_uses_nested_dissection(&g) =>
-                    {
-                        let fwd = ordering::nested_dissection(&g, e.h.dim, e.h.n)
-                            .map_err(SolveError::Factorization)?;
-                        let inv = ordering::inverse(&fwd).ok_or_else(|| {
-                            SolveError::Factorization("nested dissection: not a permutation".into())
-                        })?;
-                        Some((fwd, inv))
+        let graph = || NodeGraph::new(e.h.dim, &e.h.row_ptr, &e.h.col_idx, &e.frames.mask);
+        let chosen = match requested {
+            CholeskyOrdering::Amd => Candidate::amd(&structure, sym)?,
+            CholeskyOrdering::NestedDissection => {
+                let g = graph().map_err(SolveError::Factorization)?;
+                Candidate::nested_dissection(&structure, &g, e)?
+            }
+            CholeskyOrdering::Auto => {
+                let amd = Candidate::amd(&structure, sym)?;
+                // A graph METIS cannot index keeps AMD.
+                match graph() {
+                    Ok(g) if ordering::auto_tries_nested_dissection(&g) => {
+                        let nest = Candidate::nested_dissection(&structure, &g, e)?;
+                        if nest.flops < amd.flops {
+                            nest
+                        } else {
+                            amd
+                        }
                     }
-                    // Auto on a graph METIS cannot index falls back to AMD.
-                    Err(_) if requested == CholeskyOrdering::Auto => None,
-                    Err(err) => return Err(SolveError::Factorization(err)),
-                    Ok(_) => None,
+                    _ => amd,
                 }
             }
         };
-        // AMD runs inside faer's analysis and is not timed apart.
-        let ordering_seconds = if nd_perm.is_some() {
-            t_order.elapsed().as_secs_f64()
-        } else {
-            0.0
-        };
-        let (ordering, symmetric_ordering) = match &nd_perm {
-            Some((fwd, inv)) => (
-                CholeskyOrdering::NestedDissection,
-                SymmetricOrdering::Custom(PermRef::new_checked(fwd, inv, nd)),
-            ),
-            None => (CholeskyOrdering::Amd, SymmetricOrdering::Amd),
-        };
+        let ordering_seconds = t_order.elapsed().as_secs_f64();
         let symbolic = factorize_symbolic_cholesky(
             sym,
             Side::Lower,
-            symmetric_ordering,
+            SymmetricOrdering::Custom(PermRef::new_checked(&chosen.fwd, &chosen.inv, nd)),
             CholeskySymbolicParams::default(),
         )
         .map_err(|err| SolveError::Factorization(format!("{err:?}")))?;
-        let factor_nnz_exact = exact_factor_nnz(&structure, symbolic.perm().map(|p| p.arrays().1));
         Ok(CholeskyOracle {
-            factor_nnz_exact,
             structure,
             symbolic,
             symbolic_seconds: t.elapsed().as_secs_f64(),
             requested,
-            ordering,
+            ordering: chosen.ordering,
             ordering_seconds,
+            factor_nnz_exact: chosen.nnz,
             used: false,
         })
     }
@@ -218,9 +206,27 @@ impl CholeskyOracle {
         self.ordering
     }
 
-    /// Stored entries of the factor L.
+    /// Stored entries of the factor L (faer's supernodal storage).
     pub fn factor_nnz(&self) -> usize {
         self.symbolic.len_val()
+    }
+
+    /// Supernodes of the factor (None when faer chose the simplicial factorization).
+    pub fn supernodes(&self) -> Option<usize> {
+        match self.symbolic.raw() {
+            SymbolicCholeskyRaw::Supernodal(s) => Some(s.n_supernodes()),
+            SymbolicCholeskyRaw::Simplicial(_) => None,
+        }
+    }
+
+    /// Structural nonzeros of L for the ordering used.
+    pub fn factor_nnz_exact(&self) -> usize {
+        self.factor_nnz_exact
+    }
+
+    /// Seconds of the analysis, and of the ordering within it.
+    pub fn analysis_seconds(&self) -> (f64, f64) {
+        (self.symbolic_seconds, self.ordering_seconds)
     }
 
     /// Whether the stored analysis fits `e` (same block pattern and masks).
@@ -313,47 +319,150 @@ impl CholeskyOracle {
     }
 }
 
-/// Structural nonzeros of the Cholesky factor of the lower-triangle pattern in `s`
-/// permuted by `inv` (`inv[old] = new`; None: unpermuted): the sum of the column counts
-/// of faer's elimination-tree pass, O(nnz(L)).
-fn exact_factor_nnz(s: &Structure, inv: Option<&[usize]>) -> usize {
+/// One fill-reducing permutation with its factor's size.
+struct Candidate {
+    ordering: CholeskyOrdering,
+    /// `fwd[new] = old` DOF, `inv[old] = new`.
+    fwd: Vec<usize>,
+    inv: Vec<usize>,
+    /// Structural nnz(L) and Σ_j nnz(L_{:,j})², the factorization's multiply-adds.
+    nnz: usize,
+    flops: f64,
+}
+
+impl Candidate {
+    fn amd(s: &Structure, sym: SymbolicSparseColMatRef<'_, usize>) -> Result<Self, SolveError> {
+        let nd = sym.nrows();
+        let mut fwd = vec![0usize; nd];
+        let mut inv = vec![0usize; nd];
+        let mut mem = MemBuffer::try_new(amd::order_maybe_unsorted_scratch::<usize>(
+            nd,
+            sym.compute_nnz(),
+        ))
+        .map_err(|err| SolveError::Factorization(format!("out of memory: {err:?}")))?;
+        amd::order_maybe_unsorted(
+            &mut fwd,
+            &mut inv,
+            sym,
+            amd::Control::default(),
+            MemStack::new(&mut mem),
+        )
+        .map_err(|err| SolveError::Factorization(format!("AMD: {err:?}")))?;
+        Self::counted(CholeskyOrdering::Amd, s, fwd, inv)
+    }
+
+    fn nested_dissection(s: &Structure, g: &NodeGraph, e: &Eliminated) -> Result<Self, SolveError> {
+        let fwd =
+            ordering::nested_dissection(g, e.h.dim, e.h.n).map_err(SolveError::Factorization)?;
+        let inv = ordering::inverse(&fwd).ok_or_else(|| {
+            SolveError::Factorization("nested dissection: not a permutation".into())
+        })?;
+        Self::counted(CholeskyOrdering::NestedDissection, s, fwd, inv)
+    }
+
+    fn counted(
+        ordering: CholeskyOrdering,
+        s: &Structure,
+        fwd: Vec<usize>,
+        inv: Vec<usize>,
+    ) -> Result<Self, SolveError> {
+        let (counts, etree) = column_counts(s, &inv)?;
+        // Postorder the elimination tree (fill unchanged): each subtree's columns become
+        // consecutive, so faer finds whole supernodes. AMD's order already is one;
+        // METIS's is not.
+        let post = postorder(&etree);
+        let fwd: Vec<usize> = post.iter().map(|&k| fwd[k]).collect();
+        let inv = ordering::inverse(&fwd)
+            .ok_or_else(|| SolveError::Factorization("postorder: not a permutation".into()))?;
+        Ok(Candidate {
+            ordering,
+            nnz: counts.iter().sum(),
+            flops: counts.iter().map(|&c| (c as f64) * (c as f64)).sum(),
+            fwd,
+            inv,
+        })
+    }
+}
+
+/// Column counts (diagonal included) of the Cholesky factor of the lower-triangle
+/// pattern in `s` permuted by `inv` (`inv[old] = new`): faer's elimination-tree pass,
+/// O(nnz(L)). Their sum is the structural nnz(L). Also the elimination tree (parent of
+/// each column, negative at a root).
+fn column_counts(s: &Structure, inv: &[usize]) -> Result<(Vec<usize>, Vec<isize>), SolveError> {
     let nd = s.col_ptr.len() - 1;
-    let new = |i: usize| inv.map_or(i, |p| p[i]);
-    // Upper triangle of P Ĥ Pᵀ in CSC (faer's pass reads the upper part).
-    let mut count = vec![0usize; nd + 1];
+    // Upper triangle of P Ĥ Pᵀ in CSC (faer's pass reads the upper part; it needs no
+    // order within a column).
+    let mut col_ptr = vec![0usize; nd + 1];
     for c in 0..nd {
         for &r in &s.row_idx[s.col_ptr[c]..s.col_ptr[c + 1]] {
-            count[new(r).max(new(c)) + 1] += 1;
+            col_ptr[inv[r].max(inv[c]) + 1] += 1;
         }
     }
     for k in 0..nd {
-        count[k + 1] += count[k];
+        col_ptr[k + 1] += col_ptr[k];
     }
-    let col_ptr = count.clone();
-    let mut next = count;
+    let mut next = col_ptr.clone();
     let mut row_idx = vec![0usize; s.row_idx.len()];
     for c in 0..nd {
         for &r in &s.row_idx[s.col_ptr[c]..s.col_ptr[c + 1]] {
-            let (a, b) = (new(r), new(c));
+            let (a, b) = (inv[r], inv[c]);
             let col = a.max(b);
             row_idx[next[col]] = a.min(b);
             next[col] += 1;
         }
     }
-    let upper = SymbolicSparseColMatRef::new_checked(nd, nd, &col_ptr, None, &row_idx);
+    let upper = SymbolicSparseColMatRef::new_unsorted_checked(nd, nd, &col_ptr, None, &row_idx);
     let mut etree = vec![0isize; nd];
-    let mut col_counts = vec![0usize; nd];
-    let mut mem = MemBuffer::new(simplicial::prefactorize_symbolic_cholesky_scratch::<usize>(
+    let mut counts = vec![0usize; nd];
+    let mut mem = MemBuffer::try_new(simplicial::prefactorize_symbolic_cholesky_scratch::<usize>(
         nd,
         row_idx.len(),
-    ));
+    ))
+    .map_err(|err| SolveError::Factorization(format!("out of memory: {err:?}")))?;
     simplicial::prefactorize_symbolic_cholesky(
         &mut etree,
-        &mut col_counts,
+        &mut counts,
         upper,
         MemStack::new(&mut mem),
     );
-    col_counts.iter().sum()
+    Ok((counts, etree))
+}
+
+/// A postorder of the forest `parent` (negative: a root): `post[k]` is the k-th column
+/// visited, children in increasing order, every subtree consecutive.
+fn postorder(parent: &[isize]) -> Vec<usize> {
+    let n = parent.len();
+    // Children lists in increasing order (built backwards, so pushes come out ascending).
+    let mut head = vec![usize::MAX; n];
+    let mut next = vec![usize::MAX; n];
+    let mut roots = Vec::new();
+    for j in (0..n).rev() {
+        match usize::try_from(parent[j]) {
+            Ok(p) if p < n => {
+                next[j] = head[p];
+                head[p] = j;
+            }
+            _ => roots.push(j),
+        }
+    }
+    let mut post = Vec::with_capacity(n);
+    let mut stack: Vec<usize> = Vec::new();
+    // Roots were collected backwards; take them ascending.
+    for &r in roots.iter().rev() {
+        stack.push(r);
+        while let Some(&j) = stack.last() {
+            let c = head[j];
+            if c == usize::MAX {
+                post.push(j);
+                stack.pop();
+            } else {
+                // Detach the first child and descend into it.
+                head[j] = next[c];
+                stack.push(c);
+            }
+        }
+    }
+    post
 }
 
 /// One-shot: analyse, factor and solve.

@@ -8,7 +8,8 @@
 //! and a third of its flops (BENCHMARKS.md, "Cholesky orderings"); on 2D and small
 //! systems AMD is as good or better and cheaper to compute.
 //!
-//! [`CholeskyOrdering::Auto`] picks by a rule on the node graph ([`auto_uses_nested_dissection`]).
+//! [`CholeskyOrdering::Auto`] computes both on graphs of [`AUTO_MIN_NODES`] nodes or more
+//! and keeps the one whose factor takes fewer flops ([`auto_tries_nested_dissection`]).
 
 use std::sync::Mutex;
 
@@ -19,8 +20,8 @@ use std::sync::Mutex;
 #[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum CholeskyOrdering {
-    /// Nested dissection for 3D-like graphs of at least [`AUTO_MIN_NODES`] nodes, AMD
-    /// otherwise (see [`auto_uses_nested_dissection`]).
+    /// From [`AUTO_MIN_NODES`] nodes on, both orderings, keeping the one whose factor
+    /// needs fewer flops; AMD below (see [`auto_tries_nested_dissection`]).
     #[default]
     Auto,
     /// Approximate minimum degree (faer) on the scalar pattern of Ĥ.
@@ -60,25 +61,16 @@ impl std::str::FromStr for CholeskyOrdering {
     }
 }
 
-/// `Auto` uses nested dissection from this many nodes with a free component on.
-pub const AUTO_MIN_NODES: usize = 20_000;
+/// `Auto` computes nested dissection too from this many nodes with a free component on.
+pub const AUTO_MIN_NODES: usize = 2_000;
 
-/// `Auto` uses nested dissection when the mean number of neighbours per node of the
-/// node graph is at least this: 3D meshes have 12–26, 2D meshes 4–8.
-pub const AUTO_MIN_MEAN_DEGREE: f64 = 10.0;
-
-/// The `Auto` rule: nested dissection when the node graph has at least
-/// [`AUTO_MIN_NODES`] nodes with a free component and a mean degree of at least
-/// [`AUTO_MIN_MEAN_DEGREE`] (a 3D mesh); AMD otherwise. Below that size both orderings
-/// factor in well under a second, and on 2D meshes AMD's fill is within a few percent
-/// of nested dissection's.
-pub fn auto_uses_nested_dissection(g: &NodeGraph) -> bool {
-    let nodes = g.free_nodes.len();
-    if nodes < AUTO_MIN_NODES {
-        return false;
-    }
-    let mean_degree = g.adjncy.len() as f64 / nodes as f64;
-    mean_degree >= AUTO_MIN_MEAN_DEGREE
+/// The `Auto` rule, part one: whether to compute nested dissection besides AMD (a graph
+/// of at least [`AUTO_MIN_NODES`] nodes with a free component). Part two, in the oracle:
+/// of the orderings computed, keep the one whose factor needs fewer multiply-adds
+/// (Σ_j nnz(L_{:,j})², from the exact column counts), AMD on a tie. Below the size,
+/// both orderings factor in milliseconds and AMD alone is cheaper to compute.
+pub fn auto_tries_nested_dissection(g: &NodeGraph) -> bool {
+    g.free_nodes.len() >= AUTO_MIN_NODES
 }
 
 /// The graph of the nodes with at least one free component: an edge where H has a block
