@@ -262,8 +262,8 @@ pub struct SolveArgs {
     /// The diagonal D on constrained components of Ĥ.
     #[arg(long, value_enum, default_value_t = ConstrainedDiagonal::Identity)]
     pub constrained_diagonal: ConstrainedDiagonal,
-    /// Cholesky: fill-reducing ordering. auto: nested dissection on 3D meshes of at least
-    /// 20,000 nodes, AMD otherwise (README "Solver options").
+    /// Cholesky: fill-reducing ordering. auto: AMD below 2,000 nodes; from there AMD and
+    /// nested dissection both, keeping the one whose factor needs fewer flops.
     #[arg(long, value_enum, default_value_t = CholeskyOrdering::Auto)]
     pub ordering: CholeskyOrdering,
     /// Δx: Matrix Market array dn × 1, 17 significant digits.

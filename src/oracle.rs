@@ -528,3 +528,188 @@ mod tests {
         }
     }
 }
+
+#[cfg(test)]
+mod ordering_tests {
+    use super::*;
+    use crate::elimination::ConstrainedDiagonal;
+    use crate::generate::{random_system, ConstraintMix, GeneratedSystem, SystemSpec};
+
+    /// A seeded system of about `nodes` nodes with every kind of constraint mixed in
+    /// (rotated slip nodes, sticky nodes, lines, prescribed values).
+    fn mixed(dim: usize, nodes: usize, seed: u64) -> GeneratedSystem {
+        let mut spec = SystemSpec::with_nodes(dim, nodes, seed);
+        spec.mix = ConstraintMix::Random;
+        let s = random_system(&spec);
+        assert!(!s.frames.rot_nodes.is_empty(), "no rotated slip nodes");
+        s
+    }
+
+    fn rel_diff(a: &[f64], b: &[f64]) -> f64 {
+        let num: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum();
+        let den: f64 = b.iter().map(|y| y * y).sum();
+        (num / den).sqrt()
+    }
+
+    /// AMD and nested dissection factor the same SPD matrix in different orders; each
+    /// solve is backward stable, so the two solutions differ by at most about κ·ε. The
+    /// generated systems have κ below 1e5 (mass 0.01 against unit springs), so 1e-9 —
+    /// the oracle's accuracy bound against a dense KKT solve (tests/kkt.rs) — leaves
+    /// room; a misapplied permutation gives O(1) differences.
+    #[test]
+    fn nested_dissection_and_amd_agree_on_random_systems() {
+        for (dim, nodes, seed) in [(2, 900, 1), (2, 2500, 2), (3, 512, 3), (3, 2744, 4)] {
+            let s = mixed(dim, nodes, seed);
+            let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+            let mut amd = CholeskyOracle::analyze_with(&e, CholeskyOrdering::Amd).unwrap();
+            let mut nd =
+                CholeskyOracle::analyze_with(&e, CholeskyOrdering::NestedDissection).unwrap();
+            assert_eq!(amd.ordering(), CholeskyOrdering::Amd);
+            assert_eq!(nd.ordering(), CholeskyOrdering::NestedDissection);
+            let (ya, ia) = amd.solve(&e).unwrap();
+            let (yn, i_n) = nd.solve(&e).unwrap();
+            assert_eq!(ia.ordering, CholeskyOrdering::Amd);
+            assert_eq!(i_n.ordering, CholeskyOrdering::NestedDissection);
+            assert!(ia.relative_residual < 1e-12 && i_n.relative_residual < 1e-12);
+            let d = rel_diff(&yn, &ya);
+            assert!(d <= 1e-9, "{dim}D {nodes}: ‖y_nd − y_amd‖/‖y_amd‖ = {d:e}");
+        }
+    }
+
+    /// The analysis with nested dissection is reused across new values of the same
+    /// pattern, and a changed constraint set re-analyses with the ordering asked for.
+    #[test]
+    fn nested_dissection_analysis_is_reused() {
+        let mut s = mixed(3, 343, 7);
+        let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+        let mut oracle =
+            CholeskyOracle::analyze_with(&e, CholeskyOrdering::NestedDissection).unwrap();
+        let (_, i1) = oracle.solve(&e).unwrap();
+        assert!(!i1.reused_symbolic);
+        for v in s.h.values.iter_mut() {
+            *v *= 1.5;
+        }
+        let e2 = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+        let (y2, i2) = oracle.solve(&e2).unwrap();
+        assert!(i2.reused_symbolic);
+        assert_eq!(i2.ordering, CholeskyOrdering::NestedDissection);
+        assert_eq!(i2.ordering_seconds, 0.0);
+        let (y3, _) = CholeskyOracle::analyze_with(&e2, CholeskyOrdering::Amd)
+            .unwrap()
+            .solve(&e2)
+            .unwrap();
+        assert!(rel_diff(&y2, &y3) <= 1e-9);
+        // Free one constrained node: another mask, so a new analysis.
+        let k = s.frames.mask.iter().position(|&m| m != 0).unwrap();
+        s.frames.mask[k] = 0;
+        let e3 = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+        let (_, i3) = oracle.solve(&e3).unwrap();
+        assert!(!i3.reused_symbolic);
+        assert_eq!(i3.ordering, CholeskyOrdering::NestedDissection);
+    }
+
+    /// nnz(L) from the column counts equals a dense symbolic elimination of the permuted
+    /// pattern, for both orderings.
+    #[test]
+    fn exact_factor_nnz_matches_a_dense_count() {
+        for (dim, seed) in [(2, 11), (3, 12)] {
+            let s = mixed(dim, 125, seed);
+            let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+            for ord in [CholeskyOrdering::Amd, CholeskyOrdering::NestedDissection] {
+                let oracle = CholeskyOracle::analyze_with(&e, ord).unwrap();
+                let st = &oracle.structure;
+                let nd = st.col_ptr.len() - 1;
+                let perm = oracle.symbolic.perm().unwrap();
+                let inv = perm.arrays().1;
+                let mut l = vec![false; nd * nd];
+                for c in 0..nd {
+                    for &r in &st.row_idx[st.col_ptr[c]..st.col_ptr[c + 1]] {
+                        let (a, b) = (inv[r], inv[c]);
+                        l[a.max(b) * nd + a.min(b)] = true;
+                    }
+                }
+                for k in 0..nd {
+                    let rows: Vec<usize> = (k + 1..nd).filter(|&i| l[i * nd + k]).collect();
+                    for (x, &i) in rows.iter().enumerate() {
+                        for &j in &rows[..=x] {
+                            l[i * nd + j] = true;
+                        }
+                    }
+                }
+                let dense = l.iter().filter(|&&b| b).count();
+                assert_eq!(oracle.factor_nnz_exact(), dense, "{dim}D {ord}");
+                assert!(oracle.factor_nnz() >= dense);
+            }
+        }
+    }
+
+    /// Auto: AMD alone below the size; above it, the ordering with fewer flops.
+    #[test]
+    fn auto_keeps_the_cheaper_ordering() {
+        let small = mixed(3, 216, 5);
+        let e = Eliminated::new(
+            &small.h,
+            &small.g,
+            &small.frames,
+            ConstrainedDiagonal::Identity,
+        );
+        assert_eq!(
+            CholeskyOracle::analyze(&e).unwrap().ordering(),
+            CholeskyOrdering::Amd
+        );
+        for (dim, nodes) in [(2, 4900), (3, 3375)] {
+            let s = mixed(dim, nodes, 6);
+            assert!(s.h.n >= ordering::AUTO_MIN_NODES);
+            let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+            let st = Structure::new(&e);
+            let sym = SymbolicSparseColMatRef::new_checked(
+                st.col_ptr.len() - 1,
+                st.col_ptr.len() - 1,
+                &st.col_ptr,
+                None,
+                &st.row_idx,
+            );
+            let amd = Candidate::amd(&st, sym).unwrap();
+            let g = NodeGraph::new(dim, &s.h.row_ptr, &s.h.col_idx, &s.frames.mask).unwrap();
+            let nest = Candidate::nested_dissection(&st, &g, &e).unwrap();
+            let auto = CholeskyOracle::analyze(&e).unwrap();
+            let want = if nest.flops < amd.flops { &nest } else { &amd };
+            assert_eq!(auto.ordering(), want.ordering, "{dim}D");
+            assert_eq!(auto.factor_nnz_exact(), want.nnz, "{dim}D");
+        }
+    }
+
+    /// A postorder lists every column once, each after all of its descendants, and each
+    /// subtree as one consecutive run.
+    #[test]
+    fn postorder_keeps_subtrees_together() {
+        // Two trees: 5 ← {0, 3}, 3 ← {1, 2}; 6 ← {4}.
+        let parent = [5, 3, 3, 5, 6, -1, -1];
+        let post = postorder(&parent);
+        assert_eq!(post, vec![0, 1, 2, 3, 5, 4, 6]);
+        let s = mixed(3, 343, 8);
+        let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+        let oracle = CholeskyOracle::analyze_with(&e, CholeskyOrdering::NestedDissection).unwrap();
+        let inv = oracle.symbolic.perm().unwrap().arrays().1.to_vec();
+        let (_, etree) = column_counts(&oracle.structure, &inv).unwrap();
+        // Postordered: the subtree of column j (size[j] columns, all ≤ j) is exactly the
+        // run [j + 1 − size[j], j], i.e. its smallest column is j + 1 − size[j].
+        let n = etree.len();
+        let mut size = vec![1usize; n];
+        let mut first: Vec<usize> = (0..n).collect();
+        for j in 0..n {
+            if let Ok(p) = usize::try_from(etree[j]) {
+                assert!(p > j, "parent {p} before child {j}");
+                size[p] += size[j];
+                first[p] = first[p].min(first[j]);
+            }
+        }
+        for j in 0..n {
+            assert_eq!(
+                first[j] + size[j],
+                j + 1,
+                "subtree of column {j} is not one run"
+            );
+        }
+    }
+}

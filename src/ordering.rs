@@ -208,3 +208,78 @@ pub fn inverse(perm: &[usize]) -> Option<Vec<usize>> {
     }
     Some(inv)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::generate::{random_system, ConstraintMix, SystemSpec};
+
+    /// The expanded nested-dissection order is a permutation of the DOFs: each once, a
+    /// node's components consecutive and in order, fully constrained nodes first.
+    #[test]
+    fn nested_dissection_is_a_valid_permutation() {
+        for (dim, nodes, seed) in [(2, 400, 1), (3, 343, 2), (3, 1000, 3), (2, 9, 4)] {
+            let mut spec = SystemSpec::with_nodes(dim, nodes, seed);
+            spec.mix = ConstraintMix::Random;
+            let s = random_system(&spec);
+            let f = &s.frames;
+            let g = NodeGraph::new(dim, &s.h.row_ptr, &s.h.col_idx, &f.mask).unwrap();
+            let full = (1u8 << dim) - 1;
+            let fixed = f.mask.iter().filter(|&&m| m == full).count();
+            assert!(fixed > 0, "{dim}D {nodes}: no fully constrained node");
+            assert_eq!(g.free_nodes.len() + fixed, s.h.n);
+            let perm = nested_dissection(&g, dim, s.h.n).unwrap();
+            assert_eq!(perm.len(), dim * s.h.n);
+            assert!(
+                inverse(&perm).is_some(),
+                "{dim}D {nodes}: not a permutation"
+            );
+            for (k, node) in perm.chunks(dim).enumerate() {
+                let i = node[0] / dim;
+                assert_eq!(node[0], i * dim, "a node's components start at component 0");
+                for (a, &dof) in node.iter().enumerate() {
+                    assert_eq!(dof, i * dim + a, "components of node {i} not consecutive");
+                }
+                assert_eq!(
+                    f.mask[i] == full,
+                    k < fixed,
+                    "fully constrained nodes first"
+                );
+            }
+        }
+    }
+
+    /// No node free: only the constrained diagonal, in node order.
+    #[test]
+    fn nested_dissection_of_an_all_constrained_system() {
+        let dim = 3;
+        let mask = vec![0b111u8; 4];
+        let row_ptr = vec![0, 2, 4, 6, 8];
+        let col_idx = vec![0, 1, 0, 1, 2, 3, 2, 3];
+        let g = NodeGraph::new(dim, &row_ptr, &col_idx, &mask).unwrap();
+        assert!(g.free_nodes.is_empty());
+        let perm = nested_dissection(&g, dim, 4).unwrap();
+        assert_eq!(perm, (0..12).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn inverse_refuses_a_non_permutation() {
+        assert_eq!(inverse(&[2, 0, 1]), Some(vec![1, 2, 0]));
+        assert_eq!(inverse(&[0, 0, 1]), None);
+        assert_eq!(inverse(&[0, 3, 1]), None);
+    }
+
+    #[test]
+    fn names_round_trip() {
+        for o in [
+            CholeskyOrdering::Auto,
+            CholeskyOrdering::Amd,
+            CholeskyOrdering::NestedDissection,
+        ] {
+            assert_eq!(o.name().parse::<CholeskyOrdering>(), Ok(o));
+            let json = serde_json::to_string(&o).unwrap();
+            assert_eq!(json, format!("\"{}\"", o.name()));
+        }
+        assert!("metis".parse::<CholeskyOrdering>().is_err());
+    }
+}
