@@ -4,9 +4,10 @@
 //! nested dissection (METIS's `METIS_NodeND`, built from the vendored METIS source) on the
 //! NODE graph of H, expanded to DOFs node by node. The node graph is d times smaller
 //! than the scalar one, and ordering a node's components together keeps the d×d blocks
-//! inside one supernode. On 3D meshes nested dissection gives about half of AMD's fill
-//! and a third of its flops (BENCHMARKS.md, "Cholesky orderings"); on 2D and small
-//! systems AMD is as good or better and cheaper to compute.
+//! inside one supernode. On the generated 3D meshes nested dissection gives about half of
+//! AMD's nnz(L) and a third to a half of its numeric time, on 2D meshes from a few thousand
+//! nodes 15–25% less nnz(L) (BENCHMARKS.md, "Cholesky orderings"); below that AMD is as
+//! good and cheaper to compute.
 //!
 //! [`CholeskyOrdering::Auto`] computes both on graphs of [`AUTO_MIN_NODES`] nodes or more
 //! and keeps the one whose factor takes fewer flops ([`auto_tries_nested_dissection`]).
@@ -66,9 +67,10 @@ pub const AUTO_MIN_NODES: usize = 2_000;
 
 /// The `Auto` rule, part one: whether to compute nested dissection besides AMD (a graph
 /// of at least [`AUTO_MIN_NODES`] nodes with a free component). Part two, in the oracle:
-/// of the orderings computed, keep the one whose factor needs fewer multiply-adds
-/// (Σ_j nnz(L_{:,j})², from the exact column counts), AMD on a tie. Below the size,
-/// both orderings factor in milliseconds and AMD alone is cheaper to compute.
+/// of the orderings computed, keep the one whose factor needs fewer flops, counted as AMD
+/// counts them (d + d(d + 1)/2 for a column with d off-diagonal entries; AMD's from its
+/// own estimate, nested dissection's from exact column counts), AMD on a tie. Below the
+/// size both orderings factor in milliseconds and AMD alone is cheaper to compute.
 pub fn auto_tries_nested_dissection(g: &NodeGraph) -> bool {
     g.free_nodes.len() >= AUTO_MIN_NODES
 }
