@@ -38,6 +38,8 @@ pub struct BenchOptions {
     pub seed: u64,
     /// Coarse correction of every CG (CPU and GPU alike).
     pub coarse: CoarseSpace,
+    /// Fill-reducing ordering of the Cholesky oracle.
+    pub ordering: crate::CholeskyOrdering,
 }
 
 impl Default for BenchOptions {
@@ -52,6 +54,7 @@ impl Default for BenchOptions {
             quiet: false,
             seed: 1,
             coarse: CoarseSpace::default(),
+            ordering: crate::CholeskyOrdering::Auto,
         }
     }
 }
@@ -101,6 +104,10 @@ pub struct CholeskyRecord {
     /// Numeric factorization + triangular solves again, with the analysis reused.
     pub reused_numeric_seconds: f64,
     pub factor_nnz: usize,
+    /// Structural nonzeros of L (faer's `factor_nnz` adds supernode padding).
+    pub factor_nnz_exact: usize,
+    /// The ordering that ran: "amd" or "nested-dissection".
+    pub ordering: String,
 }
 
 /// Which solver reaches a target error first at one size.
@@ -307,7 +314,7 @@ fn bench_one(
     let (reference, ref_name) = if n <= opts.oracle_max_nodes {
         let t = Instant::now();
         let layout = LayoutKey::fresh();
-        let mut oracle = Solver::new(SolverConfig::cholesky())
+        let mut oracle = Solver::new(SolverConfig::cholesky().ordering(opts.ordering))
             .map_err(|err| BenchError::Solve(err.to_string()))?;
         let mut factor = || match oracle.solve_eliminated(layout, &e) {
             Ok(Step {
@@ -336,6 +343,8 @@ fn bench_one(
             solve_seconds: info.solve_seconds,
             reused_numeric_seconds: reused,
             factor_nnz: info.factor_nnz,
+            factor_nnz_exact: info.factor_nnz_exact,
+            ordering: info.ordering.name().into(),
         });
         let dx = e.recover(&y);
         let mut r = base("cholesky", "f64");
@@ -622,14 +631,15 @@ pub fn summary_text(report: &BenchReport) -> String {
     s.push_str("\nCholesky (faer): symbolic / numeric / solve / refactor with reused analysis\n");
     for c in &report.cholesky {
         s.push_str(&format!(
-            "  {}D {:>8} nodes  {:>8.3} s  {:>8.3} s  {:>8.3} s  {:>8.3} s  nnz(L) {}\n",
+            "  {}D {:>8} nodes  {:>8.3} s  {:>8.3} s  {:>8.3} s  {:>8.3} s  nnz(L) {} ({})\n",
             c.dim,
             c.nodes,
             c.symbolic_seconds,
             c.numeric_seconds,
             c.solve_seconds,
             c.reused_numeric_seconds,
-            c.factor_nnz
+            c.factor_nnz,
+            c.ordering
         ));
     }
     s.push_str("\nFirst to reach a relative error (total seconds)\n");

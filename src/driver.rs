@@ -37,6 +37,8 @@ pub struct RunOptions {
     /// Replace files in the output folder that look like a run's output but no previous
     /// run's manifest lists (otherwise such a folder is refused).
     pub overwrite: bool,
+    /// Overrides the scene's Cholesky ordering.
+    pub ordering: Option<crate::CholeskyOrdering>,
 }
 
 /// Why a run failed.
@@ -328,6 +330,9 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         scene.solver.linear = s
             .parse::<LinearKind>()
             .map_err(|e| InputError::new("--solver", "", e))?;
+    }
+    if let Some(o) = opts.ordering {
+        scene.solver.ordering = o;
     }
     if let Some(n) = opts.steps {
         if n == 0 {

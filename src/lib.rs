@@ -74,9 +74,10 @@
 //! The facade is built from modules that stay public for users who need the pieces:
 //! [`constraints`] (constraints → per-node frames V_i, masks and the lift Δx_p),
 //! [`elimination`] (the eliminated system Ĥ y = b̂, matrix-free or assembled),
-//! [`oracle`] (faer sparse Cholesky), [`cg`] (f64 PCG), [`coarse`] (the coarse
-//! correction), [`gpu`] (the wgpu solver), [`sparse`] (block-sparse H), [`io`] (Matrix
-//! Market and bc.json readers) and [`generate`] (seeded random systems). With the `sim`
+//! [`oracle`] (faer sparse Cholesky) with [`ordering`] (its fill-reducing orderings),
+//! [`cg`] (f64 PCG), [`coarse`] (the coarse correction), [`gpu`] (the wgpu solver),
+//! [`sparse`] (block-sparse H), [`io`] (Matrix Market and bc.json readers) and
+//! [`generate`] (seeded random systems). With the `sim`
 //! feature (on by default) come the simulation driver's modules, and with `cli` the
 //! `stickslip` command line. docs/method.md gives the method.
 
@@ -93,6 +94,7 @@ pub mod generate;
 pub mod gpu;
 pub mod io;
 pub mod oracle;
+pub mod ordering;
 pub mod sparse;
 pub mod springs;
 
@@ -102,6 +104,7 @@ pub use constraints::Constraint;
 pub use elimination::ConstrainedDiagonal;
 pub use error::{Error, InputError, SolveError};
 pub use gpu::Precision;
+pub use ordering::CholeskyOrdering;
 pub use problem::Problem;
 pub use solver::{
     LayoutKey, Solution, SolveDetails, SolveSeconds, SolveStats, Solver, SolverConfig, SolverKind,

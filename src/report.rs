@@ -33,6 +33,14 @@ pub struct CholeskyReport {
     pub factor_nnz: usize,
     /// Whether the symbolic analysis was reused (always false for a one-shot solve).
     pub reused_symbolic: bool,
+    /// Structural nonzeros of L for the ordering that ran (`factor_nnz` is faer's
+    /// storage, which adds supernode padding).
+    pub factor_nnz_exact: usize,
+    /// The fill-reducing ordering that ran: "amd" or "nested-dissection".
+    pub ordering: String,
+    /// Seconds computing a nested-dissection ordering (0 for AMD, which faer's analysis
+    /// runs inside `seconds.symbolic`).
+    pub ordering_seconds: f64,
 }
 
 /// CG details.

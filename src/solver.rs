@@ -8,6 +8,7 @@ use crate::elimination::{reactions, ConstrainedDiagonal, Eliminated};
 use crate::error::{Error, InputError, SolveError};
 use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolveInfo, GpuSolver, Precision};
 use crate::oracle::{CholeskyOracle, OracleInfo};
+use crate::ordering::CholeskyOrdering;
 use crate::problem::Problem;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
@@ -69,6 +70,7 @@ impl std::str::FromStr for SolverKind {
 /// | `coarse` | aggregates | cg, gpu | coarse correction added to the preconditioner (docs/coarse.md) |
 /// | `error_tol` | none | gpu mixed | after `tol`, refine until the estimated relative error ≤ this |
 /// | `constrained_diagonal` | identity | all | D on constrained components: identity or diag(VᵀHV) |
+/// | `ordering` | auto | cholesky | fill-reducing ordering: auto, amd or nested-dissection ([`CholeskyOrdering`]) |
 /// | `cg_params` | none | cg | every CPU CG parameter ([`CgParams`]), replacing the fields above |
 /// | `gpu_params` | none | gpu | every GPU parameter ([`GpuParams`]), replacing the fields above |
 /// | `gpu_context` | none | gpu | a device to share (tests, several solvers); none: the default adapter (`WGPU_ADAPTER_NAME`, `WGPU_BACKEND` choose) |
@@ -90,6 +92,8 @@ pub struct SolverConfig {
     pub error_tol: Option<f64>,
     /// D on constrained components of Ĥ.
     pub constrained_diagonal: ConstrainedDiagonal,
+    /// Fill-reducing ordering of the Cholesky analysis.
+    pub ordering: CholeskyOrdering,
     /// Every CPU CG parameter, replacing the common fields above when set.
     pub cg_params: Option<CgParams>,
     /// Every GPU parameter, replacing the common fields above when set.
@@ -109,6 +113,7 @@ impl std::fmt::Debug for SolverConfig {
             .field("coarse", &self.coarse)
             .field("error_tol", &self.error_tol)
             .field("constrained_diagonal", &self.constrained_diagonal)
+            .field("ordering", &self.ordering)
             .field("cg_params", &self.cg_params)
             .field("gpu_params", &self.gpu_params)
             .field(
@@ -138,6 +143,7 @@ impl SolverConfig {
             coarse: CoarseSpace::default(),
             error_tol: None,
             constrained_diagonal: ConstrainedDiagonal::Identity,
+            ordering: CholeskyOrdering::Auto,
             cg_params: None,
             gpu_params: None,
             gpu_context: None,
@@ -193,6 +199,12 @@ impl SolverConfig {
     /// Sets D on constrained components.
     pub fn constrained_diagonal(mut self, d: ConstrainedDiagonal) -> Self {
         self.constrained_diagonal = d;
+        self
+    }
+
+    /// Sets the Cholesky analysis' fill-reducing ordering.
+    pub fn ordering(mut self, o: CholeskyOrdering) -> Self {
+        self.ordering = o;
         self
     }
 
@@ -532,7 +544,7 @@ impl Solver {
         let t = Instant::now();
         let mut oracle = match self.take_prepared(layout) {
             Some(Prepared::Cholesky(o)) => o,
-            _ => Box::new(CholeskyOracle::analyze(e)?),
+            _ => Box::new(CholeskyOracle::analyze_with(e, self.config.ordering)?),
         };
         let analysed = t.elapsed().as_secs_f64();
         // A layout key reused with another pattern re-analyses inside solve.

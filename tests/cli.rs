@@ -1133,3 +1133,80 @@ fn run_step_that_overflows_fails_cleanly() {
     assert_eq!(e.lines().count(), 1, "{e:?}");
     assert!(e.contains("step 1") && e.contains("overflow"), "{e}");
 }
+
+/// `solve --ordering`: each ordering is reported as the one that ran, with the factor's
+/// structural nnz; AMD and nested dissection give the same Δx to 1e-9 relative (both
+/// backward-stable factorizations of one SPD system); an unknown name exits 2.
+#[test]
+fn cholesky_ordering_option() {
+    let dir = tmpdir("ordering");
+    generate(&dir, "3", "2744", "random");
+    let s = |n: &str| dir.join(n).to_str().unwrap().to_string();
+    let (h, g, bc) = (s("H.mtx"), s("g.mtx"), s("bc.json"));
+    let mut results = Vec::new();
+    for ordering in ["amd", "nested-dissection", "auto"] {
+        let (out, rep) = (
+            s(&format!("dx-{ordering}.mtx")),
+            s(&format!("r-{ordering}.json")),
+        );
+        let o = run(&[
+            "solve",
+            "--hessian",
+            &h,
+            "--gradient",
+            &g,
+            "--constraints",
+            &bc,
+            "--ordering",
+            ordering,
+            "--out",
+            &out,
+            "--report",
+            &rep,
+            "--quiet",
+        ]);
+        assert_eq!(o.status.code(), Some(0), "{ordering}: {}", stderr(&o));
+        let r: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&rep).unwrap()).unwrap();
+        let c = &r["cholesky"];
+        let ran = c["ordering"].as_str().unwrap().to_string();
+        if ordering == "auto" {
+            assert!(ran == "amd" || ran == "nested-dissection", "{r}");
+        } else {
+            assert_eq!(ran, ordering, "{r}");
+        }
+        let exact = c["factor_nnz_exact"].as_u64().unwrap();
+        assert!(
+            exact > 0 && exact <= c["factor_nnz"].as_u64().unwrap(),
+            "{r}"
+        );
+        assert!(c["ordering_seconds"].as_f64().unwrap() >= 0.0);
+        assert!(r["relative_residual"].as_f64().unwrap() < 1e-12);
+        results.push(read_vec(&out));
+    }
+    let scale = results[0].iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    for v in &results[1..] {
+        let diff = v
+            .iter()
+            .zip(&results[0])
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(diff <= 1e-9 * scale, "differs from amd by {diff:e}");
+    }
+    let o = run(&[
+        "solve",
+        "--hessian",
+        &h,
+        "--gradient",
+        &g,
+        "--constraints",
+        &bc,
+        "--ordering",
+        "metis",
+        "--out",
+        &s("dx-bad.mtx"),
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    assert_eq!(stderr(&o).trim().lines().count(), 1, "{}", stderr(&o));
+    assert!(stderr(&o).contains("--ordering"), "{}", stderr(&o));
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -494,6 +494,9 @@ impl Engine {
                     "matrix_nnz": o.matrix_nnz,
                     "factor_nnz": o.factor_nnz,
                     "reused_symbolic": o.reused_symbolic,
+                    "factor_nnz_exact": o.factor_nnz_exact,
+                    "ordering": o.ordering.name(),
+                    "ordering_seconds": o.ordering_seconds,
                 });
             }
             SolveDetails::Cg(c) => {

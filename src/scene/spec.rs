@@ -110,6 +110,9 @@ pub struct SolverSpec {
     #[serde(default = "default_newton_iters")]
     pub max_newton_iterations: usize,
     pub characteristic_length: Option<f64>,
+    /// Cholesky: fill-reducing ordering ("auto", the default, "amd" or "nested-dissection").
+    #[serde(default)]
+    pub ordering: crate::CholeskyOrdering,
 }
 
 impl SolverSpec {
@@ -124,6 +127,7 @@ impl SolverSpec {
         .max_iters(self.cg_max_iterations)
         .preconditioner(self.preconditioner)
         .coarse(self.coarse)
+        .ordering(self.ordering)
     }
 }
 
@@ -158,6 +162,7 @@ impl Default for SolverSpec {
             newton_tolerance: default_newton_tol(),
             max_newton_iterations: default_newton_iters(),
             characteristic_length: None,
+            ordering: crate::CholeskyOrdering::Auto,
         }
     }
 }
