@@ -15,7 +15,7 @@
 
 use crate::cg::{BuiltPreconditioner, Preconditioner};
 use crate::coarse::Coarse;
-use crate::constraints::NO_ROTATION;
+use crate::constraints::{Frames, NO_ROTATION};
 use crate::elimination::Eliminated;
 use rayon::prelude::*;
 
@@ -57,6 +57,9 @@ struct CoarseChunks<'a> {
     zr: Vec<f64>,
     c: Vec<f64>,
 }
+
+/// One CG step for [`Fused::update`]: (α, y, p, q = Ĥp).
+pub(crate) type Step<'s> = (f64, &'s mut [f64], &'s [f64], &'s [f64]);
 
 /// The fused passes of one solve.
 pub(crate) struct Fused<'a> {
@@ -109,7 +112,9 @@ fn map_chunks<I: Send, T: Send>(
     f: impl Fn(I) -> T + Sync + Send,
 ) -> Vec<T> {
     if parallel {
-        items.into_par_iter().map(f).collect()
+        // One task per chunk: a thread that the OS preempts holds back at most the chunk
+        // it is in, the others take the rest.
+        items.into_par_iter().with_max_len(1).map(f).collect()
     } else {
         items.into_iter().map(f).collect()
     }
@@ -189,8 +194,10 @@ impl<'a> Fused<'a> {
             .collect();
         map_chunks(self.parallel, items, |(wc, b)| {
             let lo = b[0];
-            for (i, wi) in (lo..b[1]).zip(wc.chunks_exact_mut(d)) {
-                world_node(f, d, i, &v[i * d..i * d + d], wi);
+            let vc = &v[lo * d..b[1] * d];
+            match d {
+                2 => world_chunk::<2>(f, lo, vc, wc),
+                _ => world_chunk::<3>(f, lo, vc, wc),
             }
         });
     }
@@ -227,11 +234,14 @@ impl<'a> Fused<'a> {
             let (mut vq, mut pq) = (0.0f64, 0.0f64);
             for (i, qi) in (lo..b[1]).zip(qc.chunks_exact_mut(D)) {
                 // The block row, as BlockCsr::matvec sums it.
+                let (rs, re) = (h.row_ptr[i], h.row_ptr[i + 1]);
                 let mut acc = [0.0f64; D];
-                for k in h.row_ptr[i]..h.row_ptr[i + 1] {
-                    let j = cols[k].ix();
-                    let bk = &h.values[k * D * D..(k + 1) * D * D];
-                    let xj = &w[j * D..j * D + D];
+                for (bk, j) in h.values[rs * D * D..re * D * D]
+                    .chunks_exact(D * D)
+                    .zip(&cols[rs..re])
+                {
+                    let j = j.ix() * D;
+                    let xj: &[f64; D] = w[j..j + D].try_into().expect("D values");
                     for r in 0..D {
                         let mut s = 0.0;
                         for c in 0..D {
@@ -279,21 +289,17 @@ impl<'a> Fused<'a> {
 
     /// With `step` = Some(α): y += αp, r −= αq. Then u = M_J r (point-wise part) gives
     /// (rᵀu, rᵀr), and Zᵀr is restricted into the coarse buffers. Returns (rᵀu, rᵀr).
-    pub fn update(
-        &mut self,
-        step: Option<(f64, &mut [f64], &[f64], &[f64])>,
-        r: &mut [f64],
-    ) -> (f64, f64) {
+    pub fn update(&mut self, step: Option<Step<'_>>, r: &mut [f64]) -> (f64, f64) {
         let d = self.d;
-        let pre = self.pre;
-        let coarse = self.coarse.as_mut();
+        let point = Point::of(self.pre);
         let (ys, alpha, p, q) = match step {
             Some((a, y, p, q)) => (Some(split(y, &self.bounds, d)), a, p, q),
             None => (None, 0.0, &[][..], &[][..]),
         };
         let mut ys = ys.map(|v| v.into_iter());
-        // Per-chunk coarse buffers (empty slices without a coarse space).
-        let (cc, mut bufs): (Option<&Coarse>, Vec<(&mut [f64], usize)>) = match coarse {
+        // Per-chunk coarse buffers, with the first coarse index each holds.
+        let (cc, mut bufs): (Option<&Coarse>, Vec<(&mut [f64], usize)>) = match self.coarse.as_mut()
+        {
             Some(c) => {
                 let mut out = Vec::with_capacity(c.range.len());
                 let mut rest: &mut [f64] = &mut c.buf;
@@ -314,22 +320,28 @@ impl<'a> Fused<'a> {
             .collect();
         let parts = map_chunks(self.parallel, items, |(rc, b, yc, buf)| {
             let lo = b[0];
+            let off = lo * d;
+            let m = rc.len();
             if let Some(yc) = yc {
-                let off = lo * d;
-                for (k, (yk, rk)) in yc.iter_mut().zip(rc.iter_mut()).enumerate() {
-                    *yk += alpha * p[off + k];
-                    *rk -= alpha * q[off + k];
+                let (pc, qc) = (&p[off..off + m], &q[off..off + m]);
+                for k in 0..m {
+                    yc[k] += alpha * pc[k];
+                    rc[k] -= alpha * qc[k];
                 }
             }
-            let (mut ru, mut rr) = (0.0f64, 0.0f64);
-            let mut u = [0.0f64; 3];
-            for (i, ri) in (lo..b[1]).zip(rc.chunks_exact(d)) {
-                pre.pointwise_node(i, ri, &mut u[..d]);
-                for a in 0..d {
-                    ru += ri[a] * u[a];
-                    rr += ri[a] * ri[a];
+            let rc: &[f64] = rc;
+            let rr = sum_lanes(m, |k| rc[k] * rc[k]);
+            let ru = match point {
+                Point::Identity => rr,
+                Point::Diagonal(dg) => {
+                    let dg = &dg[off..off + m];
+                    sum_lanes(m, |k| rc[k] * (rc[k] * dg[k]))
                 }
-            }
+                Point::Blocks(mb) => match d {
+                    2 => block_dot::<2>(&mb[lo * 4..], rc),
+                    _ => block_dot::<3>(&mb[lo * 9..], rc),
+                },
+            };
             if let (Some(c), Some((buf, base))) = (cc, buf) {
                 buf.iter_mut().for_each(|v| *v = 0.0);
                 c.restrict_nodes(rc, lo, base, buf);
@@ -392,7 +404,7 @@ impl Fused<'_> {
         w: Option<&mut [f64]>,
     ) {
         let d = self.d;
-        let pre = self.pre;
+        let point = Point::of(self.pre);
         let f = self.e.frames;
         let coarse = self.coarse.as_ref().map(|c| (c.coarse, &c.c[..]));
         let mut ws = w.map(|w| split(w, &self.bounds, d).into_iter());
@@ -403,76 +415,152 @@ impl Fused<'_> {
             .collect();
         map_chunks(self.parallel, items, |(pc, b, wc)| {
             let lo = b[0];
-            for (i, pi) in (lo..b[1]).zip(pc.chunks_exact_mut(d)) {
-                pre.pointwise_node(i, &r[i * d..i * d + d], pi);
-            }
-            if let Some((cs, c)) = coarse {
-                cs.prolong_nodes(c, lo, pc);
-            }
-            if let Some(beta) = beta {
-                let off = lo * d;
-                for (k, v) in pc.iter_mut().enumerate() {
-                    *v += beta * p_old[off + k];
+            let off = lo * d;
+            let m = pc.len();
+            let rc = &r[off..off + m];
+            match (point, coarse, beta) {
+                // The common case in one loop: (r·d) + βp rounds as the steps below do.
+                (Point::Diagonal(dg), None, Some(beta)) => {
+                    let (dg, po) = (&dg[off..off + m], &p_old[off..off + m]);
+                    for k in 0..m {
+                        pc[k] = rc[k] * dg[k] + beta * po[k];
+                    }
+                }
+                _ => {
+                    match point {
+                        Point::Identity => pc.copy_from_slice(rc),
+                        Point::Diagonal(dg) => {
+                            for (v, (x, g)) in pc.iter_mut().zip(rc.iter().zip(&dg[off..off + m])) {
+                                *v = x * g;
+                            }
+                        }
+                        Point::Blocks(mb) => match d {
+                            2 => block_apply::<2>(&mb[lo * 4..], rc, pc),
+                            _ => block_apply::<3>(&mb[lo * 9..], rc, pc),
+                        },
+                    }
+                    if let Some((cs, c)) = coarse {
+                        cs.prolong_nodes(c, lo, pc);
+                    }
+                    if let Some(beta) = beta {
+                        for (v, po) in pc.iter_mut().zip(&p_old[off..off + m]) {
+                            *v += beta * po;
+                        }
+                    }
                 }
             }
             if let Some(wc) = wc {
-                for ((i, pi), wi) in (lo..b[1])
-                    .zip(pc.chunks_exact(d))
-                    .zip(wc.chunks_exact_mut(d))
-                {
-                    world_node(f, d, i, pi, wi);
+                match d {
+                    2 => world_chunk::<2>(f, lo, pc, wc),
+                    _ => world_chunk::<3>(f, lo, pc, wc),
                 }
             }
         });
     }
 }
 
-/// w_i = V_i P_i v_i.
+/// w = V P v over a chunk's nodes lo.. (`v`, `w` hold their components): a copy at
+/// free unrotated nodes, masked and rotated where the node is constrained.
 #[inline]
-fn world_node(f: &crate::constraints::Frames, d: usize, i: usize, vi: &[f64], wi: &mut [f64]) {
-    let m = f.mask[i];
-    let mut t = [0.0f64; 3];
-    t[..d].copy_from_slice(vi);
-    for (a, ta) in t[..d].iter_mut().enumerate() {
-        if m & (1 << a) != 0 {
-            *ta = 0.0;
+fn world_chunk<const D: usize>(f: &Frames, lo: usize, v: &[f64], w: &mut [f64]) {
+    let hi = lo + v.len() / D;
+    let (mask, rot) = (&f.mask[lo..hi], &f.rot_index[lo..hi]);
+    for (((vi, wi), &m), &ri) in v
+        .chunks_exact(D)
+        .zip(w.chunks_exact_mut(D))
+        .zip(mask)
+        .zip(rot)
+    {
+        if m == 0 && ri == NO_ROTATION {
+            wi.copy_from_slice(vi);
+            continue;
         }
-    }
-    match f.rotation(i) {
-        Some(v) => {
-            for k in 0..d {
-                wi[k] = (0..d).map(|c| v[k * d + c] * t[c]).sum();
+        let mut t = [0.0f64; D];
+        for a in 0..D {
+            t[a] = if m & (1 << a) != 0 { 0.0 } else { vi[a] };
+        }
+        if ri == NO_ROTATION {
+            wi.copy_from_slice(&t);
+        } else {
+            let v = &f.rotations[ri as usize * D * D..(ri as usize + 1) * D * D];
+            for k in 0..D {
+                wi[k] = (0..D).map(|c| v[k * D + c] * t[c]).sum();
             }
         }
-        None => wi.copy_from_slice(&t[..d]),
     }
 }
 
-impl BuiltPreconditioner {
-    /// u = M_J r_i at node i (the point-wise part, without the coarse correction).
-    #[inline]
-    pub(crate) fn pointwise_node(&self, i: usize, ri: &[f64], u: &mut [f64]) {
-        let d = ri.len();
-        match self.kind() {
-            Preconditioner::None => u.copy_from_slice(ri),
-            Preconditioner::Jacobi => {
-                let di = &self.data()[i * d..i * d + d];
-                for a in 0..d {
-                    u[a] = ri[a] * di[a];
-                }
-            }
-            Preconditioner::BlockJacobi => {
-                let m = &self.data()[i * d * d..(i + 1) * d * d];
-                for a in 0..d {
-                    let mut s = 0.0;
-                    for b in 0..d {
-                        s += m[a * d + b] * ri[b];
-                    }
-                    u[a] = s;
-                }
-            }
+/// The point-wise part of the preconditioner, matched once per pass.
+#[derive(Clone, Copy)]
+enum Point<'p> {
+    Identity,
+    /// 1/diag, per component.
+    Diagonal(&'p [f64]),
+    /// D×D inverse blocks, per node.
+    Blocks(&'p [f64]),
+}
+
+impl<'p> Point<'p> {
+    fn of(pre: &'p BuiltPreconditioner) -> Self {
+        match pre.kind() {
+            Preconditioner::None => Point::Identity,
+            Preconditioner::Jacobi => Point::Diagonal(pre.data()),
+            Preconditioner::BlockJacobi => Point::Blocks(pre.data()),
         }
     }
+}
+
+/// u = M r node by node, M the D×D blocks from the chunk's first node on.
+#[inline]
+fn block_apply<const D: usize>(m: &[f64], r: &[f64], u: &mut [f64]) {
+    for ((mi, ri), ui) in m
+        .chunks_exact(D * D)
+        .zip(r.chunks_exact(D))
+        .zip(u.chunks_exact_mut(D))
+    {
+        for a in 0..D {
+            let mut s = 0.0;
+            for b in 0..D {
+                s += mi[a * D + b] * ri[b];
+            }
+            ui[a] = s;
+        }
+    }
+}
+
+/// rᵀM r over a chunk, M the D×D blocks from the chunk's first node on.
+#[inline]
+fn block_dot<const D: usize>(m: &[f64], r: &[f64]) -> f64 {
+    let mut t = 0.0;
+    let mut u = [0.0f64; D];
+    for (mi, ri) in m.chunks_exact(D * D).zip(r.chunks_exact(D)) {
+        block_apply::<D>(mi, ri, &mut u);
+        for a in 0..D {
+            t += ri[a] * u[a];
+        }
+    }
+    t
+}
+
+/// Σ f(k) for k < n in four interleaved partial sums (a fixed order, so the same bits
+/// every time; the four chains hide the latency of the additions).
+#[inline(always)]
+fn sum_lanes(n: usize, f: impl Fn(usize) -> f64) -> f64 {
+    let mut l = [0.0f64; 4];
+    let m = n / 4 * 4;
+    let mut k = 0;
+    while k < m {
+        l[0] += f(k);
+        l[1] += f(k + 1);
+        l[2] += f(k + 2);
+        l[3] += f(k + 3);
+        k += 4;
+    }
+    let mut t = (l[0] + l[1]) + (l[2] + l[3]);
+    for k in m..n {
+        t += f(k);
+    }
+    t
 }
 
 #[cfg(test)]
