@@ -206,14 +206,14 @@ impl<'a> Fused<'a> {
     /// (vᵀq, prevᵀq) when `prev` is given ((vᵀq, 0) otherwise).
     pub fn product(&self, v: &[f64], w: &[f64], prev: Option<&[f64]>, q: &mut [f64]) -> (f64, f64) {
         match (&self.cols, self.d) {
-            (Cols::Narrow(c), 2) => self.product_d::<2, u32>(c, v, w, prev, q),
-            (Cols::Narrow(c), _) => self.product_d::<3, u32>(c, v, w, prev, q),
-            (Cols::Wide(c), 2) => self.product_d::<2, usize>(c, v, w, prev, q),
-            (Cols::Wide(c), _) => self.product_d::<3, usize>(c, v, w, prev, q),
+            (Cols::Narrow(c), 2) => self.product_d::<2, 4, u32>(c, v, w, prev, q),
+            (Cols::Narrow(c), _) => self.product_d::<3, 9, u32>(c, v, w, prev, q),
+            (Cols::Wide(c), 2) => self.product_d::<2, 4, usize>(c, v, w, prev, q),
+            (Cols::Wide(c), _) => self.product_d::<3, 9, usize>(c, v, w, prev, q),
         }
     }
 
-    fn product_d<const D: usize, C: Col>(
+    fn product_d<const D: usize, const DD: usize, C: Col>(
         &self,
         cols: &[C],
         v: &[f64],
@@ -237,14 +237,18 @@ impl<'a> Fused<'a> {
                 let (rs, re) = (h.row_ptr[i], h.row_ptr[i + 1]);
                 let mut acc = [0.0f64; D];
                 for (bk, j) in h.values[rs * D * D..re * D * D]
-                    .chunks_exact(D * D)
+                    .chunks_exact(DD)
                     .zip(&cols[rs..re])
                 {
                     let j = j.ix() * D;
                     let xj: &[f64; D] = w[j..j + D].try_into().expect("D values");
+                    let bk: &[f64; DD] = bk.try_into().expect("D·D values");
                     for r in 0..D {
-                        let mut s = 0.0;
-                        for c in 0..D {
+                        // BlockCsr::matvec starts s at 0.0: 0.0 + b·x differs from b·x
+                        // only in the sign of a zero, which acc[r] += s (acc never −0)
+                        // cannot see, so the bits stay those of Eliminated::apply.
+                        let mut s = bk[r * D] * xj[0];
+                        for c in 1..D {
                             s += bk[r * D + c] * xj[c];
                         }
                         acc[r] += s;
