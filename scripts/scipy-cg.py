@@ -2,7 +2,7 @@
 """Time per iteration of SciPy's Jacobi CG against stickslip's CPU CG on one system.
 
     python scripts/scipy-cg.py SYSTEM_DIR EXPORT_DIR [--stickslip BIN] [--rounds 3]
-        [--tol 1e-8] [--coarse none,aggregates] [--threads N] [--json out.json]
+        [--tol 1e-8] [--coarse none,aggregates] [--threads N,N] [--json out.json]
 
 SYSTEM_DIR holds H.mtx, g.mtx and bc.json (`stickslip generate`); EXPORT_DIR is what
 `stickslip export` wrote from them: the eliminated system Ĥ y = b̂ in the node frames,
@@ -11,8 +11,8 @@ D = 1 and b̂ = 0 there). SciPy reads Ĥ from hhat.petsc (PETSc binary, the same
 values as hhat.mtx; hhat.mtx through scipy.io.mmread when the binary is absent), builds
 CSR and runs scipy.sparse.linalg.cg with M = diag(Ĥ)⁻¹ to ‖r‖ ≤ tol·‖b̂‖.
 
-Each round runs, alternating, `stickslip solve --solver cg` once per coarse space and
-SciPy's CG once, so load on the machine falls on both alike. stickslip's time is the
+Each round runs, alternating, `stickslip solve --solver cg` once per coarse space (and
+per `--threads` count given) and SciPy's CG once, so load on the machine falls on both alike. stickslip's time is the
 report's `seconds.solve` (CG with its setup: preconditioner and coarse space), SciPy's
 the cg() call alone. Prints one line per run and a summary table (medians and minima).
 BLAS runs on one thread (OPENBLAS_NUM_THREADS=1 unless set: see below).
@@ -120,7 +120,7 @@ def main():
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--tol", type=float, default=1e-8)
     ap.add_argument("--coarse", default="none,aggregates")
-    ap.add_argument("--threads", type=int, default=0, help="stickslip --threads (0: default)")
+    ap.add_argument("--threads", default="0", help="stickslip --threads, comma-separated (0: its default)")
     ap.add_argument("--json", help="write every run here")
     args = ap.parse_args()
 
@@ -133,21 +133,28 @@ def main():
         flush=True,
     )
     coarses = [c for c in args.coarse.split(",") if c]
+    counts = [int(t) for t in args.threads.split(",") if t]
+    # One stickslip configuration per (coarse space, thread count).
+    configs = [(c, t) for c in coarses for t in counts]
+
+    def label(c, t):
+        return f"stickslip --coarse {c}" + (f" --threads {t}" if t else "")
+
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(args.rounds):
-            for c in coarses:
-                sec, it, rel, th = stickslip_cg(args.stickslip, args.system_dir, c, args.tol, args.threads, tmp)
-                runs.append(dict(round=k, solver=f"stickslip --coarse {c}", seconds=sec, iterations=it, residual=rel, threads=th))
-                print(f"round {k}: stickslip --coarse {c:<10} {sec:8.3f} s  {it:5d} it  {1e3 * sec / it:7.2f} ms/it  residual {rel:.2e}  threads {th}", flush=True)
+            for c, t in configs:
+                sec, it, rel, th = stickslip_cg(args.stickslip, args.system_dir, c, args.tol, t, tmp)
+                runs.append(dict(round=k, solver=label(c, t), seconds=sec, iterations=it, residual=rel, threads=th))
+                print(f"round {k}: {label(c, t):<40} {sec:8.3f} s  {it:5d} it  {1e3 * sec / it:7.2f} ms/it  residual {rel:.2e}  threads {th}", flush=True)
             sec, it, rel = scipy_cg(a, b, m, args.tol)
             runs.append(dict(round=k, solver="scipy cg (Jacobi)", seconds=sec, iterations=it, residual=rel, threads=1))
-            print(f"round {k}: scipy cg (Jacobi)          {sec:8.3f} s  {it:5d} it  {1e3 * sec / it:7.2f} ms/it  residual {rel:.2e}", flush=True)
+            print(f"round {k}: {'scipy cg (Jacobi)':<40} {sec:8.3f} s  {it:5d} it  {1e3 * sec / it:7.2f} ms/it  residual {rel:.2e}", flush=True)
 
     print()
     print("| solver | iterations | solve s (median, min) | ms per iteration (median, min) | relative residual |")
     print("|---|---:|---:|---:|---:|")
-    names = [f"stickslip --coarse {c}" for c in coarses] + ["scipy cg (Jacobi)"]
+    names = [label(c, t) for c, t in configs] + ["scipy cg (Jacobi)"]
     med = {}
     for name in names:
         rs = [r for r in runs if r["solver"] == name]
