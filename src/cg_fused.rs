@@ -1,11 +1,13 @@
 //! The CPU CG's passes over the eliminated system, fused and run on rayon's threads.
 //!
 //! One CG iteration is three passes over the node rows: the product q = Ĥp with pᵀq
-//! (the only pass that reads H), the x and r updates with the point-wise preconditioner,
+//! (the only pass that reads H), the y and r updates with the point-wise preconditioner,
 //! rᵀM⁻¹r, rᵀr and the coarse restriction Zᵀr, and the new direction p with its world
 //! copy w = VPp (what the next product gathers, so no node is rotated twice). The
 //! product is the matrix-free one of [`crate::elimination::apply_eliminated`], operation
-//! for operation, so it equals [`Eliminated::apply`] to the bit.
+//! for operation, so it equals [`Eliminated::apply`] to the bit. H is read as given: an
+//! assembled copy of Ĥ in the node frames costs more to build per solve than its product
+//! saves (BENCHMARKS.md, "CPU CG against SciPy's Jacobi CG").
 //!
 //! The rows are split once per solve into chunks of about [`CHUNK_BLOCKS`] stored blocks
 //! (balanced by nonzeros, from the pattern alone). Every reduction is summed within a
@@ -20,7 +22,7 @@ use crate::elimination::Eliminated;
 use rayon::prelude::*;
 
 /// Stored blocks per chunk: a few hundred nodes, small enough for every thread to get
-/// many chunks (rayon balances them), large enough that scheduling costs nothing.
+/// many chunks (rayon balances them), large enough that scheduling them costs little.
 pub const CHUNK_BLOCKS: usize = 4096;
 
 /// Column indices in 32 bits where the node count allows (halving their bytes), else
