@@ -233,7 +233,8 @@ impl<'a> Fused<'a> {
             .collect();
         let parts = map_chunks(self.parallel, items, |(qc, b)| {
             let lo = b[0];
-            let (mut vq, mut pq) = (0.0f64, 0.0f64);
+            // One partial sum per component: D short chains instead of one long one.
+            let (mut vq, mut pq) = ([0.0f64; D], [0.0f64; D]);
             for (i, qi) in (lo..b[1]).zip(qc.chunks_exact_mut(D)) {
                 // The block row, as BlockCsr::matvec sums it.
                 let (rs, re) = (h.row_ptr[i], h.row_ptr[i + 1]);
@@ -277,15 +278,16 @@ impl<'a> Fused<'a> {
                 }
                 qi.copy_from_slice(&acc);
                 for a in 0..D {
-                    vq += vi[a] * acc[a];
+                    vq[a] += vi[a] * acc[a];
                 }
                 if let Some(p) = prev {
+                    let pi = &p[i * D..i * D + D];
                     for a in 0..D {
-                        pq += p[i * D + a] * acc[a];
+                        pq[a] += pi[a] * acc[a];
                     }
                 }
             }
-            (vq, pq)
+            (ordered_sum(vq), ordered_sum(pq))
         });
         (
             ordered_sum(parts.iter().map(|p| p.0)),
