@@ -134,6 +134,9 @@ pub struct ScalingFit {
 pub struct BenchReport {
     pub command: String,
     pub cpu_threads: usize,
+    /// Worker threads the CPU solvers ran on (`--threads`, else RAYON_NUM_THREADS, else
+    /// every core).
+    pub threads: usize,
     pub adapter: Option<String>,
     /// Host memcpy bandwidth (read + write bytes per second), GB/s.
     pub cpu_copy_gb_per_s: f64,
@@ -231,6 +234,7 @@ pub fn run(opts: &BenchOptions, command: &str) -> Result<BenchReport, BenchError
     let mut report = BenchReport {
         command: command.to_string(),
         cpu_threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+        threads: rayon::current_num_threads(),
         adapter: ctx.as_ref().map(|c| c.adapter_name().to_string()),
         cpu_copy_gb_per_s: cpu_copy_bandwidth(),
         gpu_copy_gb_per_s: ctx

@@ -14,10 +14,11 @@
 //! residual while restarts are left, and is reported with the residual reached otherwise.
 //! Every error carries the true residual of the iterate reached.
 
+use crate::cg_fused::Fused;
 use crate::coarse::{Coarse, CoarseSpace};
 use crate::constraints::Frames;
 use crate::elimination::{rotate_block, Eliminated};
-use crate::linalg::{dot, norm2};
+use crate::linalg::norm2;
 use crate::sparse::BlockCsr;
 
 /// Preconditioner built on the free components of Ĥ (constrained components get 1/D).
@@ -636,20 +637,38 @@ fn pcg_core(
         // Ĥ is SPD, so the solution is exactly zero.
         return (vec![0.0; n], Ok(info));
     }
-    let mut work = vec![0.0; 2 * n];
+    // The fused passes (src/cg_fused.rs): Ĥp with its dot products in one pass over H,
+    // then the updates with the preconditioner, then the new direction and its world copy.
+    let mut fz = Fused::new(e, pre);
+    let world = fz.needs_world();
     let mut r = vec![0.0; n];
     let mut rt = vec![0.0; n];
-    let mut z = vec![0.0; n];
     let mut p = vec![0.0; n];
     let mut p_prev = vec![0.0; n];
     let mut q = vec![0.0; n];
+    // w = V P p (what the product gathers); also scratch for the true residual's V P y.
+    let mut w = vec![0.0; if world { n } else { 0 }];
     let mut iterations = 0usize;
-    let true_residual = |y: &[f64], r: &mut [f64], work: &mut [f64]| -> f64 {
-        e.apply(y, r, work);
+    // ‖b − Ĥy‖/‖b‖ with Ĥy bitwise equal to Eliminated::apply; leaves the residual in r.
+    let true_residual = |fz: &Fused, y: &[f64], r: &mut [f64], w: &mut [f64]| -> f64 {
+        if world {
+            fz.world(y, w);
+            fz.product(y, w, None, r);
+        } else {
+            fz.product(y, y, None, r);
+        }
         for (ri, bi) in r.iter_mut().zip(b) {
             *ri = bi - *ri;
         }
         norm2(r) / bnorm
+    };
+    // ‖r‖/‖b‖ from rᵀr where the sum of squares neither overflows nor underflows.
+    let recurrence = |rr: f64, r: &[f64]| -> f64 {
+        if rr.is_finite() && rr > 1e-200 {
+            rr.sqrt() / bnorm
+        } else {
+            norm2(r) / bnorm
+        }
     };
     // Lanczos coefficients of the current cycle (for the condition estimate).
     let mut alphas: Vec<f64> = Vec::new();
@@ -658,7 +677,7 @@ fn pcg_core(
     let mut best_true = f64::INFINITY;
     loop {
         // (Re)start: r = b − Ĥy, z = M⁻¹r, p = z.
-        let mut rel = true_residual(&y, &mut r, &mut work);
+        let mut rel = true_residual(&fz, &y, &mut r, &mut w);
         best_true = best_true.min(rel);
         if rel <= params.tol {
             info.iterations = iterations;
@@ -670,17 +689,16 @@ fn pcg_core(
         }
         alphas.clear();
         betas.clear();
-        pre.apply(&r, &mut z);
-        p.copy_from_slice(&z);
-        p_prev.iter_mut().for_each(|v| *v = 0.0);
+        let (ru, _) = fz.update(None, &mut r);
+        let mut rz = ru + fz.coarse_solve();
+        fz.direction(None, &r, &p_prev, &mut p, world.then_some(&mut w[..]));
         let mut pq_prev = 0.0f64;
-        let mut rz = dot(&r, &z);
         let mut best = rel;
         let mut best_at = iterations;
         let mut since_check = 0usize;
         loop {
             if iterations >= params.max_iters {
-                let rel = true_residual(&y, &mut r, &mut work);
+                let rel = true_residual(&fz, &y, &mut r, &mut w);
                 return (
                     y,
                     Err(CgError::MaxIterations {
@@ -690,8 +708,10 @@ fn pcg_core(
                     }),
                 );
             }
-            e.apply(&p, &mut q, &mut work);
-            let pq = dot(&p, &q);
+            let src: &[f64] = if world { &w } else { &p };
+            // p_{k−1}ᵀĤp_k (local conjugacy, zero in exact arithmetic) once there is a p_{k−1}.
+            let prev = (pq_prev > 0.0).then_some(&p_prev[..]);
+            let (pq, ppq) = fz.product(&p, src, prev, &mut q);
             iterations += 1;
             if !pq.is_finite() || !rz.is_finite() {
                 return (
@@ -711,23 +731,19 @@ fn pcg_core(
                 );
             }
             if pq_prev > 0.0 {
-                // Local conjugacy p_{k−1}ᵀ Ĥ p_k: zero in exact arithmetic.
-                let c = dot(&p_prev, &q).abs() / (pq * pq_prev).sqrt();
+                let c = ppq.abs() / (pq * pq_prev).sqrt();
                 if c.is_finite() {
                     info.conjugacy_loss = info.conjugacy_loss.max(c);
                 }
             }
             let alpha = rz / pq;
             alphas.push(alpha);
-            for k in 0..n {
-                y[k] += alpha * p[k];
-                r[k] -= alpha * q[k];
-            }
-            rel = norm2(&r) / bnorm;
+            let (mut ru, rr) = fz.update(Some((alpha, &mut y, &p, &q)), &mut r);
+            rel = recurrence(rr, &r);
             since_check += 1;
             if params.check_every > 0 && since_check >= params.check_every && rel > params.tol {
                 since_check = 0;
-                let rel_t = true_residual(&y, &mut rt, &mut work);
+                let rel_t = true_residual(&fz, &y, &mut rt, &mut w);
                 best_true = best_true.min(rel_t);
                 if rel_t <= params.tol {
                     break;
@@ -738,6 +754,7 @@ fn pcg_core(
                     r.copy_from_slice(&rt);
                     rel = rel_t;
                     info.residual_replacements += 1;
+                    ru = fz.update(None, &mut r).0;
                 }
             }
             if rel <= params.tol {
@@ -751,16 +768,16 @@ fn pcg_core(
                 // are left, else report it.
                 break;
             }
-            pre.apply(&r, &mut z);
-            let rz_new = dot(&r, &z);
+            // rᵀM⁻¹r = rᵀM_J⁻¹r + (Zᵀr)ᵀE⁺(Zᵀr).
+            let rz_new = ru + fz.coarse_solve();
             let beta = rz_new / rz;
             betas.push(beta);
             rz = rz_new;
-            p_prev.copy_from_slice(&p);
             pq_prev = pq;
-            for k in 0..n {
-                p[k] = z[k] + beta * p[k];
-            }
+            // The new direction goes into p_prev's storage; the swap makes the old p
+            // the previous one.
+            fz.direction(Some(beta), &r, &p, &mut p_prev, world.then_some(&mut w[..]));
+            std::mem::swap(&mut p, &mut p_prev);
         }
         if let Some(k) = estimate(
             &alphas,
@@ -769,7 +786,7 @@ fn pcg_core(
             info.condition_estimate = Some(info.condition_estimate.map_or(k, |c: f64| c.max(k)));
         }
         // The recurrence says converged (or stagnated): check the truth.
-        let rel_true = true_residual(&y, &mut r, &mut work);
+        let rel_true = true_residual(&fz, &y, &mut r, &mut w);
         if rel_true <= params.tol {
             info.iterations = iterations;
             info.relative_residual = rel_true;

@@ -91,6 +91,10 @@ pub struct BenchArgs {
     /// Fill-reducing ordering of the Cholesky oracle (see `solve --ordering`).
     #[arg(long, value_enum, default_value_t = CholeskyOrdering::Auto)]
     pub ordering: CholeskyOrdering,
+    /// Worker threads of the CPU solvers, at least 1 [default: RAYON_NUM_THREADS, else
+    /// every core]. CPU CG gives the same bits on any count.
+    #[arg(long, value_parser = positive_usize)]
+    pub threads: Option<usize>,
 }
 
 #[derive(Debug, Clone, Args)]
@@ -275,6 +279,10 @@ pub struct SolveArgs {
     /// Timings, sizes and solver details as JSON.
     #[arg(long, value_name = "report.json")]
     pub report: Option<String>,
+    /// Worker threads of the CPU solvers, at least 1 [default: RAYON_NUM_THREADS, else
+    /// every core]. CPU CG gives the same bits on any count.
+    #[arg(long, value_parser = positive_usize)]
+    pub threads: Option<usize>,
 }
 
 #[derive(Debug, Clone, Args)]
@@ -323,6 +331,10 @@ pub struct RunArgs {
     /// Replace files with run's output names that no previous run there wrote.
     #[arg(long)]
     pub overwrite: bool,
+    /// Worker threads of the CPU solvers, at least 1 [default: RAYON_NUM_THREADS, else
+    /// every core]. CPU CG gives the same bits on any count.
+    #[arg(long, value_parser = positive_usize)]
+    pub threads: Option<usize>,
 }
 
 /// Why a command failed; decides the exit code.
@@ -413,8 +425,29 @@ pub fn main() -> ExitCode {
     }
 }
 
-/// Runs a parsed command line.
+/// Runs a parsed command line (on a pool of `--threads` workers where given).
 pub fn run(cli: &Cli) -> Result<(), CliError> {
+    let threads = match &cli.command {
+        Command::Solve(a) => a.threads,
+        Command::Run(a) => a.threads,
+        Command::Bench(a) => a.threads,
+        _ => None,
+    };
+    match threads {
+        None => dispatch(cli),
+        Some(t) => {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(t)
+                .build()
+                .map_err(|e| CliError::Failed(format!("--threads {t}: {e}")))?;
+            // faer (the Cholesky) takes its thread count from its own global setting.
+            faer::set_global_parallelism(faer::Par::rayon(t));
+            pool.install(|| dispatch(cli))
+        }
+    }
+}
+
+fn dispatch(cli: &Cli) -> Result<(), CliError> {
     match &cli.command {
         Command::Solve(a) => {
             let r = solve(a)?;
@@ -728,6 +761,7 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
     seconds.write = t.elapsed().as_secs_f64();
     seconds.total = t_start.elapsed().as_secs_f64();
     let report = Report {
+        threads: rayon::current_num_threads(),
         solver: solver.into(),
         precision: precision.to_string(),
         adapter: st.adapter.clone(),

@@ -376,6 +376,85 @@ impl Coarse {
         out
     }
 
+    /// The coarse indices that nodes `lo..hi` touch (empty when all are fully
+    /// constrained): the span a chunk of CG's row partition restricts into.
+    pub(crate) fn index_range(&self, lo: usize, hi: usize) -> std::ops::Range<usize> {
+        let mut first = usize::MAX;
+        let mut last = 0;
+        for o in (lo..hi).filter_map(|i| self.offset(i)) {
+            first = first.min(o);
+            last = last.max(o + self.dim);
+        }
+        if first == usize::MAX {
+            0..0
+        } else {
+            first..last
+        }
+    }
+
+    /// Zᵀr over the nodes lo..lo + r.len()/d (`r` holds their components), added into
+    /// `out`, which holds coarse indices `base..base + out.len()` (from [`Self::index_range`]).
+    pub(crate) fn restrict_nodes(&self, r: &[f64], lo: usize, base: usize, out: &mut [f64]) {
+        let d = self.dim;
+        let hi = lo + r.len() / d;
+        let mut sp = self.special.partition_point(|(i, _)| *i < lo);
+        for (i, ri) in (lo..hi).zip(r.chunks_exact(d)) {
+            let special = match self.special.get(sp) {
+                Some((j, m)) if *j == i => {
+                    sp += 1;
+                    Some(m)
+                }
+                _ => None,
+            };
+            let Some(o) = self.offset(i) else { continue };
+            let s = self.scale(i);
+            let acc = &mut out[o - base..o - base + d];
+            match special {
+                None => {
+                    for (a, v) in acc.iter_mut().zip(ri) {
+                        *a += s * v;
+                    }
+                }
+                Some(m) => {
+                    for (a, v) in acc.iter_mut().enumerate() {
+                        *v += s * (0..d).map(|c| m[c * d + a] * ri[c]).sum::<f64>();
+                    }
+                }
+            }
+        }
+    }
+
+    /// z += Z c over the nodes lo..lo + z.len()/d (`z` holds their components).
+    pub(crate) fn prolong_nodes(&self, c: &[f64], lo: usize, z: &mut [f64]) {
+        let d = self.dim;
+        let hi = lo + z.len() / d;
+        let mut sp = self.special.partition_point(|(i, _)| *i < lo);
+        for (i, zi) in (lo..hi).zip(z.chunks_exact_mut(d)) {
+            let special = match self.special.get(sp) {
+                Some((j, m)) if *j == i => {
+                    sp += 1;
+                    Some(m)
+                }
+                _ => None,
+            };
+            let Some(o) = self.offset(i) else { continue };
+            let s = self.scale(i);
+            let ca = &c[o..o + d];
+            match special {
+                None => {
+                    for (v, x) in zi.iter_mut().zip(ca) {
+                        *v += s * x;
+                    }
+                }
+                Some(m) => {
+                    for (ci, v) in zi.iter_mut().enumerate() {
+                        *v += s * (0..d).map(|a| m[ci * d + a] * ca[a]).sum::<f64>();
+                    }
+                }
+            }
+        }
+    }
+
     /// z += Z E⁺ Zᵀ r.
     pub fn add_correction(&self, r: &[f64], z: &mut [f64]) {
         let d = self.dim;

@@ -86,6 +86,7 @@ mod problem;
 mod solver;
 
 pub mod cg;
+mod cg_fused;
 pub mod coarse;
 pub mod constraints;
 pub mod elimination;

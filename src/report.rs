@@ -61,6 +61,9 @@ pub struct Report {
     pub precision: String,
     /// The GPU adapter (null for the CPU solvers).
     pub adapter: Option<String>,
+    /// Worker threads of the CPU solvers (`--threads`, else RAYON_NUM_THREADS, else every
+    /// core).
+    pub threads: usize,
     /// Solver iterations (null for cholesky, a direct method).
     pub iterations: Option<usize>,
     /// ‖b̂ − Ĥy‖/‖b̂‖ recomputed in f64.
