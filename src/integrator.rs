@@ -641,6 +641,16 @@ impl<'s> Stepper<'s> {
         self.frames_for(snapped)?;
         self.gradient(x, &w.xt, &moving.shapes, snapped, &mut w.g);
         self.hessian(x, &moving.shapes, snapped);
+        // Positions far beyond the scene (a plane offset near 1e300) overflow the element
+        // terms; say so here rather than as a failed factorization of a non-finite H.
+        for (what, v) in [("gradient", &w.g[..]), ("Hessian", &self.hmat.values[..])] {
+            if let Some(bad) = v.iter().find(|v| !v.is_finite()) {
+                return Err(format!(
+                    "the {what} holds {bad} at Newton iteration {iter}: the positions or \
+                     velocities have overflowed f64"
+                ));
+            }
+        }
         let frames = &self.frames[snapped];
         let e = Eliminated::new(&self.hmat, &w.g, frames, ConstrainedDiagonal::Identity);
         let (dx, stats) = self
