@@ -257,34 +257,7 @@ impl GpuAssembly {
             label: Some(&format!("assemble.wgsl ({real})")),
             source: wgpu::ShaderSource::Wgsl(code.into()),
         });
-        let layout_entries: Vec<wgpu::BindGroupLayoutEntry> = ASSEMBLE
-            .bindings
-            .iter()
-            .enumerate()
-            .map(|(i, (_, access))| wgpu::BindGroupLayoutEntry {
-                binding: i as u32,
-                visibility: wgpu::ShaderStages::COMPUTE,
-                ty: wgpu::BindingType::Buffer {
-                    ty: match access {
-                        Access::Uniform => wgpu::BufferBindingType::Uniform,
-                        Access::Read => wgpu::BufferBindingType::Storage { read_only: true },
-                        Access::ReadWrite => wgpu::BufferBindingType::Storage { read_only: false },
-                    },
-                    has_dynamic_offset: false,
-                    min_binding_size: None,
-                },
-                count: None,
-            })
-            .collect();
-        let layout = dev.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("assembly layout"),
-            entries: &layout_entries,
-        });
-        let pl = dev.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("assembly pipeline layout"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
+        let (layout, pl) = ASSEMBLE.layouts(dev, "assembly");
         let constants = [("D", dim as f64), ("WG", WORKGROUP as f64)];
         let pipelines: Vec<_> = ENTRIES
             .iter()

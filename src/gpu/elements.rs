@@ -177,34 +177,7 @@ impl ElementKernels {
             label: Some(&format!("elements.wgsl ({real})")),
             source: wgpu::ShaderSource::Wgsl(code.into()),
         });
-        let entries: Vec<wgpu::BindGroupLayoutEntry> = ELEMENTS
-            .bindings
-            .iter()
-            .enumerate()
-            .map(|(i, (_, access))| wgpu::BindGroupLayoutEntry {
-                binding: i as u32,
-                visibility: wgpu::ShaderStages::COMPUTE,
-                ty: wgpu::BindingType::Buffer {
-                    ty: match access {
-                        Access::Uniform => wgpu::BufferBindingType::Uniform,
-                        Access::Read => wgpu::BufferBindingType::Storage { read_only: true },
-                        Access::ReadWrite => wgpu::BufferBindingType::Storage { read_only: false },
-                    },
-                    has_dynamic_offset: false,
-                    min_binding_size: None,
-                },
-                count: None,
-            })
-            .collect();
-        let layout = dev.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("elements layout"),
-            entries: &entries,
-        });
-        let pl = dev.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("elements pipeline layout"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
+        let (layout, pl) = ELEMENTS.layouts(dev, "elements");
         // Unit roundoff of the real type: exact powers of two, so exact as f32 too.
         let eps = if f64 {
             f64::EPSILON

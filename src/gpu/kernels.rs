@@ -109,6 +109,46 @@ pub struct Layout {
 
 use Access::{Read as R, ReadWrite as W, Uniform as U};
 
+impl Layout {
+    /// The bind group layout of this shader's bindings (in order, compute stage) and a
+    /// pipeline layout holding it, labelled "`name` layout" and "`name` pipeline layout".
+    pub fn layouts(
+        &self,
+        dev: &wgpu::Device,
+        name: &str,
+    ) -> (wgpu::BindGroupLayout, wgpu::PipelineLayout) {
+        let entries: Vec<wgpu::BindGroupLayoutEntry> = self
+            .bindings
+            .iter()
+            .enumerate()
+            .map(|(i, (_, access))| wgpu::BindGroupLayoutEntry {
+                binding: i as u32,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: match access {
+                        Access::Uniform => wgpu::BufferBindingType::Uniform,
+                        Access::Read => wgpu::BufferBindingType::Storage { read_only: true },
+                        Access::ReadWrite => wgpu::BufferBindingType::Storage { read_only: false },
+                    },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            })
+            .collect();
+        let layout = dev.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some(&format!("{name} layout")),
+            entries: &entries,
+        });
+        let pl = dev.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some(&format!("{name} pipeline layout")),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        (layout, pl)
+    }
+}
+
 pub const MATVEC: Layout = Layout {
     file: "matvec.wgsl",
     source: include_str!("../../shaders/matvec.wgsl"),

@@ -5,7 +5,7 @@
 //! layout helpers.
 
 use super::info::{BufferRecord, KernelRecord};
-use crate::gpu::kernels::{self, Access, Layout};
+use crate::gpu::kernels::{self, Layout};
 use crate::gpu::{GpuContext, GpuError};
 use std::collections::BTreeMap;
 use wgpu::util::DeviceExt;
@@ -432,34 +432,7 @@ impl<'a> Builder<'a> {
             self.modules.insert(key.clone(), m);
         }
         let module = &self.modules[&key];
-        let entries: Vec<wgpu::BindGroupLayoutEntry> = desc
-            .bindings
-            .iter()
-            .enumerate()
-            .map(|(i, (_, access))| wgpu::BindGroupLayoutEntry {
-                binding: i as u32,
-                visibility: wgpu::ShaderStages::COMPUTE,
-                ty: wgpu::BindingType::Buffer {
-                    ty: match access {
-                        Access::Uniform => wgpu::BufferBindingType::Uniform,
-                        Access::Read => wgpu::BufferBindingType::Storage { read_only: true },
-                        Access::ReadWrite => wgpu::BufferBindingType::Storage { read_only: false },
-                    },
-                    has_dynamic_offset: false,
-                    min_binding_size: None,
-                },
-                count: None,
-            })
-            .collect();
-        let layout = dev.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some(&format!("{name} layout")),
-            entries: &entries,
-        });
-        let pl = dev.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some(&format!("{name} pipeline layout")),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
+        let (layout, pl) = desc.layouts(dev, name);
         let pipeline = dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some(&format!("{name} ({})", real.name())),
             layout: Some(&pl),
