@@ -13,6 +13,7 @@
 //! elements in order, then gravity and barrier), so in f64 the result is the CPU
 //! assembly's of the same element arrays up to the contraction of multiply-adds.
 
+use super::elements::{from_bytes, to_bytes, usage_storage};
 use super::elements::{GpuElements, TermKind, WORKGROUP};
 use super::kernels::{self, Access, Layout};
 use super::{GpuContext, GpuError};
@@ -192,31 +193,6 @@ pub struct GpuAssembly {
 pub struct ProductBytes {
     pub assembled: u64,
     pub matrix_free: u64,
-}
-
-fn usage_storage() -> wgpu::BufferUsages {
-    wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::COPY_SRC
-}
-
-fn to_bytes(f64: bool, v: &[f64]) -> Vec<u8> {
-    if f64 {
-        bytemuck::cast_slice(v).to_vec()
-    } else {
-        let w: Vec<f32> = v.iter().map(|&x| x as f32).collect();
-        bytemuck::cast_slice(&w).to_vec()
-    }
-}
-
-fn from_bytes(f64: bool, b: &[u8]) -> Vec<f64> {
-    if f64 {
-        b.chunks_exact(8)
-            .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
-            .collect()
-    } else {
-        b.chunks_exact(4)
-            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64)
-            .collect()
-    }
 }
 
 impl GpuAssembly {

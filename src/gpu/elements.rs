@@ -123,7 +123,7 @@ fn real_name(f64: bool) -> &'static str {
     }
 }
 
-fn to_bytes(f64: bool, v: &[f64]) -> Vec<u8> {
+pub(super) fn to_bytes(f64: bool, v: &[f64]) -> Vec<u8> {
     if f64 {
         bytemuck::cast_slice(v).to_vec()
     } else {
@@ -132,7 +132,7 @@ fn to_bytes(f64: bool, v: &[f64]) -> Vec<u8> {
     }
 }
 
-fn from_bytes(f64: bool, b: &[u8]) -> Vec<f64> {
+pub(super) fn from_bytes(f64: bool, b: &[u8]) -> Vec<f64> {
     if f64 {
         b.chunks_exact(8)
             .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
@@ -262,7 +262,7 @@ pub struct GpuElements {
     terms: Vec<Term>,
 }
 
-fn usage_storage() -> wgpu::BufferUsages {
+pub(super) fn usage_storage() -> wgpu::BufferUsages {
     wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::COPY_SRC
 }
 
