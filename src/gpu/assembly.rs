@@ -19,7 +19,6 @@ use super::kernels::{self, Access, Layout};
 use super::{GpuContext, GpuError};
 use crate::energy::Model;
 use crate::sparse::BlockCsr;
-use wgpu::util::DeviceExt;
 
 use Access::{Read as R, ReadWrite as W, Uniform as U};
 
@@ -272,7 +271,7 @@ impl GpuAssembly {
             let size = check(label, data.len() as u64)?;
             let mut padded = data.to_vec();
             padded.resize(size as usize, 0);
-            Ok(dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            Ok(ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),
                 contents: &padded,
                 usage: usage_storage(),
@@ -349,7 +348,7 @@ impl GpuAssembly {
                 arity: arity as u32,
                 coef_slot,
             };
-            let params = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(&format!("{} params", ENTRIES[entry as usize])),
                 contents: bytemuck::bytes_of(&p),
                 usage: wgpu::BufferUsages::UNIFORM,
@@ -664,8 +663,22 @@ impl GpuAssembly {
     /// Sets s, the factor of the potential terms (h² in a time step; inertia has 1).
     pub fn set_scale(&self, scale: f64) {
         self.ctx
-            .queue
             .write_buffer(&self.coef, 0, &to_bytes(self.f64, &[1.0, scale]));
+    }
+
+    /// The assembled H's values (the pattern's blocks in order, row-major d×d each, `real`).
+    pub fn values_buffer(&self) -> &wgpu::Buffer {
+        &self.values
+    }
+
+    /// The assembled gradient (node-major, `real`).
+    pub fn gradient_buffer(&self) -> &wgpu::Buffer {
+        &self.gradient
+    }
+
+    /// The block pattern: row pointers and column indices (the CPU's `BlockCsr` order).
+    pub fn pattern(&self) -> (&[usize], &[usize]) {
+        (&self.row_ptr, &self.col_idx)
     }
 
     /// Bytes one product reads and writes, assembled and matrix-free.
@@ -715,9 +728,7 @@ impl GpuAssembly {
                 self.n_nodes * self.dim
             )));
         }
-        self.ctx
-            .queue
-            .write_buffer(&self.x, 0, &to_bytes(self.f64, x));
+        self.ctx.write_buffer(&self.x, 0, &to_bytes(self.f64, x));
         Ok(())
     }
 
@@ -770,38 +781,10 @@ impl GpuAssembly {
 
     fn read_reals(&self, buf: &wgpu::Buffer, len: usize) -> Result<Vec<f64>, GpuError> {
         let bytes = len as u64 * if self.f64 { 8 } else { 4 };
-        if bytes == 0 {
-            return Ok(Vec::new());
-        }
-        let dev = &self.ctx.device;
-        let size = bytes.div_ceil(4) * 4;
-        let staging = dev.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("assembly read-back"),
-            size,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("assembly read-back"),
-        });
-        enc.copy_buffer_to_buffer(buf, 0, &staging, 0, size);
-        self.ctx.queue.submit([enc.finish()]);
-        let (tx, rx) = std::sync::mpsc::channel();
-        staging.map_async(wgpu::MapMode::Read, .., move |r| {
-            let _ = tx.send(r);
-        });
-        dev.poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))?;
-        rx.recv()
-            .map_err(|_| GpuError::Device("buffer mapping was dropped".into()))?
-            .map_err(|e| GpuError::Device(format!("mapping a read-back buffer: {e}")))?;
-        let v = staging
-            .get_mapped_range(..)
-            .map_err(|e| GpuError::Device(format!("reading a mapped buffer: {e}")))?
-            .to_vec();
-        staging.unmap();
-        self.ctx.check("reading back the assembly")?;
-        Ok(from_bytes(self.f64, &v[..bytes as usize]))
+        let v = self
+            .ctx
+            .download(buf, 0, bytes, "reading back the assembly")?;
+        Ok(from_bytes(self.f64, &v))
     }
 }
 

@@ -2,6 +2,7 @@
 //! command line share one device.
 
 use super::GpuError;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 /// How to pick the adapter. `Default` reads `WGPU_ADAPTER_NAME` (a case-insensitive
@@ -185,6 +186,22 @@ pub struct GpuContext {
     /// Errors wgpu reports outside an error scope; checked after each batch of work so
     /// that a device error becomes a GpuError instead of a panic.
     errors: Arc<Mutex<Vec<String>>>,
+    /// Bytes moved between host and device through this context (shared by its clones).
+    traffic: Arc<Traffic>,
+}
+
+#[derive(Default)]
+struct Traffic {
+    h2d: AtomicU64,
+    d2h: AtomicU64,
+}
+
+/// Bytes moved between host and device since the context was created: every buffer
+/// write and initialized buffer (host to device) and every read-back (device to host).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct TrafficCount {
+    pub host_to_device_bytes: u64,
+    pub device_to_host_bytes: u64,
 }
 
 impl std::fmt::Debug for GpuContext {
@@ -275,7 +292,83 @@ impl GpuContext {
             features,
             limits,
             errors,
+            traffic: Arc::default(),
         })
+    }
+
+    /// Bytes moved between host and device so far, by this context and its clones.
+    pub fn traffic(&self) -> TrafficCount {
+        TrafficCount {
+            host_to_device_bytes: self.traffic.h2d.load(Ordering::Relaxed),
+            device_to_host_bytes: self.traffic.d2h.load(Ordering::Relaxed),
+        }
+    }
+
+    /// `queue.write_buffer`, counted as host-to-device traffic.
+    pub(crate) fn write_buffer(&self, buf: &wgpu::Buffer, offset: u64, data: &[u8]) {
+        self.traffic
+            .h2d
+            .fetch_add(data.len() as u64, Ordering::Relaxed);
+        self.queue.write_buffer(buf, offset, data);
+    }
+
+    /// `device.create_buffer_init`, counted as host-to-device traffic.
+    pub(crate) fn buffer_init(&self, desc: &wgpu::util::BufferInitDescriptor) -> wgpu::Buffer {
+        use wgpu::util::DeviceExt;
+        self.traffic
+            .h2d
+            .fetch_add(desc.contents.len() as u64, Ordering::Relaxed);
+        self.device.create_buffer_init(desc)
+    }
+
+    /// Counts `bytes` read back to the host.
+    pub(crate) fn note_download(&self, bytes: u64) {
+        self.traffic.d2h.fetch_add(bytes, Ordering::Relaxed);
+    }
+
+    /// Copies `bytes` of `buf` from `offset` to the host (through a staging buffer), waits
+    /// and counts the read-back. `offset` and `bytes` are rounded to whole 4-byte words
+    /// for the copy; exactly `bytes` come back.
+    pub(crate) fn download(
+        &self,
+        buf: &wgpu::Buffer,
+        offset: u64,
+        bytes: u64,
+        what: &str,
+    ) -> Result<Vec<u8>, GpuError> {
+        if bytes == 0 {
+            return Ok(Vec::new());
+        }
+        let size = bytes.div_ceil(4) * 4;
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(what),
+            size,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(what) });
+        enc.copy_buffer_to_buffer(buf, offset, &staging, 0, size);
+        self.queue.submit([enc.finish()]);
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))?;
+        rx.recv()
+            .map_err(|_| GpuError::Device("buffer mapping was dropped".into()))?
+            .map_err(|e| GpuError::Device(format!("mapping a read-back buffer: {e}")))?;
+        let v = staging
+            .get_mapped_range(..)
+            .map_err(|e| GpuError::Device(format!("reading a mapped buffer: {e}")))?
+            .to_vec();
+        staging.unmap();
+        self.note_download(size);
+        self.check(what)?;
+        Ok(v[..bytes as usize].to_vec())
     }
 
     pub fn adapter_name(&self) -> &str {

@@ -29,7 +29,6 @@ use super::kernels::{self, Access, Layout};
 use super::{GpuContext, GpuError, Precision};
 use crate::energy::barrier::{Barrier, HalfSpace};
 use crate::energy::{ElementSet, Model};
-use wgpu::util::DeviceExt;
 
 use Access::{Read as R, ReadWrite as W, Uniform as U};
 
@@ -299,14 +298,11 @@ impl Alloc<'_> {
         let mut padded = data.to_vec();
         padded.resize(data.len().max(16).div_ceil(16) * 16, 0);
         self.check(label, padded.len() as u64)?;
-        Ok(self
-            .ctx
-            .device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: &padded,
-                usage: usage_storage(),
-            }))
+        Ok(self.ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents: &padded,
+            usage: usage_storage(),
+        }))
     }
 
     fn zeroed(&self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
@@ -468,13 +464,11 @@ impl GpuElements {
                 n_planes: planes.len() as u32,
                 pad: 0,
             };
-            let params = ctx
-                .device
-                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some(&format!("{label} params")),
-                    contents: bytemuck::bytes_of(&params),
-                    usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                });
+            let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(&format!("{label} params")),
+                contents: bytemuck::bytes_of(&params),
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            });
             let energy = a.zeroed(&format!("{label} energy"), t.count as u64 * rs)?;
             let gradient = a.zeroed(
                 &format!("{label} gradient"),
@@ -570,6 +564,35 @@ impl GpuElements {
         self.terms.get(t).map(|t| (&t.gradient, t.hessian.as_ref()))
     }
 
+    /// The positions buffer every term reads (node-major, `real`): a device Newton loop
+    /// writes its iterates here.
+    pub fn positions_buffer(&self) -> &wgpu::Buffer {
+        &self.x
+    }
+
+    /// The inertia target buffer (node-major, `real`).
+    pub fn inertia_target_buffer(&self) -> &wgpu::Buffer {
+        &self.x_tilde
+    }
+
+    /// Term `t`'s per-item energy buffer with its item count, and its flags buffer (the
+    /// barrier's contact flags; None for other terms).
+    pub fn term_energy(&self, t: usize) -> Option<(&wgpu::Buffer, usize, Option<&wgpu::Buffer>)> {
+        self.terms
+            .get(t)
+            .map(|t| (&t.energy, t.count, t.flags.as_ref()))
+    }
+
+    /// Nodes of the mesh.
+    pub fn n_nodes(&self) -> usize {
+        self.n_nodes
+    }
+
+    /// Half-spaces of the barrier (0 without one).
+    pub fn n_planes(&self) -> usize {
+        self.n_planes
+    }
+
     fn write_nodal(&self, buf: &wgpu::Buffer, v: &[f64], what: &str) -> Result<(), GpuError> {
         let want = self.n_nodes * self.kernels.dim;
         if v.len() != want {
@@ -579,7 +602,6 @@ impl GpuElements {
             )));
         }
         self.ctx
-            .queue
             .write_buffer(buf, 0, &to_bytes(self.kernels.f64, v));
         Ok(())
     }
@@ -603,7 +625,7 @@ impl GpuElements {
                 self.n_planes
             )));
         }
-        self.ctx.queue.write_buffer(
+        self.ctx.write_buffer(
             &self.consts,
             0,
             &to_bytes(self.kernels.f64, &constants(&self.gravity, planes)),
@@ -624,9 +646,7 @@ impl GpuElements {
                 n_planes: self.n_planes as u32,
                 pad: 0,
             };
-            self.ctx
-                .queue
-                .write_buffer(&t.params, 0, bytemuck::bytes_of(&p));
+            self.ctx.write_buffer(&t.params, 0, bytemuck::bytes_of(&p));
         }
         let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("elements evaluate"),
@@ -682,37 +702,8 @@ impl GpuElements {
 
     /// Copies the first `bytes` of `buf` to the host.
     fn download(&self, buf: &wgpu::Buffer, bytes: u64) -> Result<Vec<u8>, GpuError> {
-        if bytes == 0 {
-            return Ok(Vec::new());
-        }
-        let dev = &self.ctx.device;
-        let staging = dev.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("elements read-back"),
-            size: bytes.div_ceil(4) * 4,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("elements read-back"),
-        });
-        enc.copy_buffer_to_buffer(buf, 0, &staging, 0, bytes.div_ceil(4) * 4);
-        self.ctx.queue.submit([enc.finish()]);
-        let (tx, rx) = std::sync::mpsc::channel();
-        staging.map_async(wgpu::MapMode::Read, .., move |r| {
-            let _ = tx.send(r);
-        });
-        dev.poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))?;
-        rx.recv()
-            .map_err(|_| GpuError::Device("buffer mapping was dropped".into()))?
-            .map_err(|e| GpuError::Device(format!("mapping a read-back buffer: {e}")))?;
-        let v = staging
-            .get_mapped_range(..)
-            .map_err(|e| GpuError::Device(format!("reading a mapped buffer: {e}")))?
-            .to_vec();
-        staging.unmap();
-        self.ctx.check("reading back the element terms")?;
-        Ok(v[..bytes as usize].to_vec())
+        self.ctx
+            .download(buf, 0, bytes, "reading back the element terms")
     }
 }
 

@@ -14,7 +14,7 @@ pub mod solver;
 
 pub use context::{
     adapter_name_mismatch, list_adapters, measure_copy_bandwidth, AdapterReport, GpuContext,
-    GpuOptions,
+    GpuOptions, TrafficCount,
 };
 pub use solver::{
     BufferRecord, GpuSolveInfo, GpuSolver, KernelRecord, KernelTime, Resources, SolveOutcome,

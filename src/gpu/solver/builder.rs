@@ -8,7 +8,6 @@ use super::info::{BufferRecord, KernelRecord};
 use crate::gpu::kernels::{self, Layout};
 use crate::gpu::{GpuContext, GpuError};
 use std::collections::BTreeMap;
-use wgpu::util::DeviceExt;
 
 /// Scalar type of a kernel instance.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -323,14 +322,11 @@ impl<'a> Builder<'a> {
             data
         };
         self.check_size(label, contents.len() as u64, usage, split)?;
-        let b = self
-            .ctx
-            .device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents,
-                usage,
-            });
+        let b = self.ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents,
+            usage,
+        });
         self.buffers.push(BufferRecord {
             label: label.to_string(),
             bytes: contents.len() as u64,

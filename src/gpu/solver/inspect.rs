@@ -17,10 +17,8 @@ impl GpuSolver {
     /// q = Ĥ y with the CG's operator kernel (in the CG's precision).
     pub fn apply_operator(&mut self, y: &[f64]) -> Result<Vec<f64>, GpuError> {
         let l = &self.dev.level;
-        self.ctx.queue.write_buffer(&l.buf.p, 0, &l.real.bytes(y));
-        self.ctx
-            .queue
-            .write_buffer(&l.buf.state, 0, &[0u8; 4 * N_STATE]);
+        self.ctx.write_buffer(&l.buf.p, 0, &l.real.bytes(y));
+        self.ctx.write_buffer(&l.buf.state, 0, &[0u8; 4 * N_STATE]);
         let mut enc = self.encoder("apply operator");
         {
             let mut pass = enc
@@ -49,7 +47,7 @@ impl GpuSolver {
         let reps = reps.max(1);
         if self.dev.refine.is_some() {
             let rhs = Real::F32.bytes(&self.host.rhs);
-            self.ctx.queue.write_buffer(&self.dev.level.buf.b, 0, &rhs);
+            self.ctx.write_buffer(&self.dev.level.buf.b, 0, &rhs);
         }
         self.start(false, -1.0)?;
         let dev = &self.ctx.device;
@@ -196,7 +194,7 @@ impl GpuSolver {
             // Mixed: the inner CG's right-hand side is b̂ rounded to f32.
             let rhs = Real::F32.bytes(&self.host.rhs);
             let _ = rf;
-            self.ctx.queue.write_buffer(&self.dev.level.buf.b, 0, &rhs);
+            self.ctx.write_buffer(&self.dev.level.buf.b, 0, &rhs);
         }
         self.start(false, -1.0)?;
         let _ = self.chunk(k)?;

@@ -337,7 +337,7 @@ impl GpuSolver {
         self.mixed.assembled = Some(a);
         let (its, est) = res?;
         self.mixed.last_error_estimate = Some(est);
-        self.ctx.queue.write_buffer(&y64, 0, &Real::F64.bytes(&y));
+        self.ctx.write_buffer(&y64, 0, &Real::F64.bytes(&y));
         let td = Instant::now();
         let (y, dx) = self.download_solution()?;
         *dl += td.elapsed().as_secs_f64();
@@ -376,7 +376,6 @@ impl GpuSolver {
             }
             let scaled: Vec<f64> = r.iter().map(|v| v / rn).collect();
             self.ctx
-                .queue
                 .write_buffer(&self.dev.level.buf.b, 0, &Real::F64.bytes(&scaled));
             self.start(false, INNER_TOL * INNER_TOL)?;
             let budget = self.params.max_iters.saturating_sub(done + its);
@@ -574,7 +573,6 @@ impl GpuSolver {
         let nd = self.host.ndof() as u64;
         let y64 = self.y64();
         self.ctx
-            .queue
             .write_buffer(&self.dev.level.buf.b, 0, &Real::F64.bytes(&self.host.rhs));
         let mut enc = self.encoder("fallback warm start");
         enc.copy_buffer_to_buffer(&y64, 0, &self.dev.level.buf.x, 0, nd * 8);
@@ -685,7 +683,7 @@ impl GpuSolver {
             },
             u @ CgError::Unpinned(_) => u,
         })?;
-        self.ctx.queue.write_buffer(&y64, 0, &Real::F64.bytes(&y));
+        self.ctx.write_buffer(&y64, 0, &Real::F64.bytes(&y));
         let td = Instant::now();
         let (_, dx) = self.download_solution()?;
         *dl += td.elapsed().as_secs_f64();
@@ -728,9 +726,8 @@ impl GpuSolver {
             let inv = Real::F64.values(&f)[0];
             r.iter_mut().for_each(|v| *v *= inv);
             self.ctx
-                .queue
                 .write_buffer(&self.dev.level.buf.b, 0, &Real::F32.bytes(&r));
-            self.ctx.queue.write_buffer(&fb, 0, &f);
+            self.ctx.write_buffer(&fb, 0, &f);
             return Ok(rn);
         };
         let mut enc = self.encoder("mixed residual");
@@ -759,7 +756,7 @@ impl GpuSolver {
             .refine
             .as_ref()
             .expect("mixed has a refinement level");
-        self.ctx.queue.write_buffer(&rf.factors, 0, &factors(rn));
+        self.ctx.write_buffer(&rf.factors, 0, &factors(rn));
         let mut enc = self.encoder("mixed scale rhs");
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {

@@ -267,6 +267,7 @@ impl GpuSolver {
             view.to_vec()
         };
         staging.unmap();
+        self.ctx.note_download(bytes);
         self.tel.readbacks += 1;
         self.ctx.check("reading back")?;
         Ok(out)

@@ -79,12 +79,8 @@ impl GpuSolver {
         s[slots::SCAL_RHO_PREV as usize] = rho_prev;
         s[slots::SCAL_THRESH as usize] = thresh;
         s[slots::SCAL_PSCALE as usize] = pscale;
-        self.ctx
-            .queue
-            .write_buffer(&l.buf.scal, 0, &l.acc.bytes(&s));
-        self.ctx
-            .queue
-            .write_buffer(&l.buf.state, 0, &[0u8; 4 * N_STATE]);
+        self.ctx.write_buffer(&l.buf.scal, 0, &l.acc.bytes(&s));
+        self.ctx.write_buffer(&l.buf.state, 0, &[0u8; 4 * N_STATE]);
     }
 
     pub(super) fn dispatch(&mut self, pass: &mut wgpu::ComputePass<'_>, which: Which, groups: u32) {

@@ -13,7 +13,7 @@ impl GpuSolver {
     /// Writes Ĥ's values into `op`, multiplied by `scale` (a power of two: exact) except
     /// for the geometry (positions, rest lengths, rotations).
     pub(super) fn write_operator(&self, op: &Operator, scale: f64) {
-        let q = &self.ctx.queue;
+        let q = &self.ctx;
         let host = &self.host;
         let sc = |v: &[f64]| -> Vec<f64> {
             if scale == 1.0 {
@@ -92,7 +92,7 @@ impl GpuSolver {
     pub(super) fn write_coarse(&self, level: &Level, scale: f64) {
         if let (Some(buf), Some(e)) = (&level.buf.einv, &self.coarse.einv) {
             let v: Vec<f64> = e.iter().map(|x| x / scale).collect();
-            self.ctx.queue.write_buffer(buf, 0, &level.acc.bytes(&v));
+            self.ctx.write_buffer(buf, 0, &level.acc.bytes(&v));
         }
     }
 
@@ -110,13 +110,11 @@ impl GpuSolver {
                     self.write_operator(op, 1.0);
                 }
                 self.ctx
-                    .queue
                     .write_buffer(&rf.b64, 0, &Real::F64.bytes(&self.host.rhs));
             }
             None => {
                 let l = &self.dev.level;
                 self.ctx
-                    .queue
                     .write_buffer(&l.buf.b, 0, &l.real.bytes(&self.host.rhs));
             }
         }
