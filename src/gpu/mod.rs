@@ -10,6 +10,7 @@ pub mod context;
 #[cfg(feature = "sim")]
 pub mod elements;
 pub mod kernels;
+pub mod newton;
 pub mod solver;
 
 pub use context::{

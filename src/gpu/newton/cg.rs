@@ -1,0 +1,1 @@
+//! The eliminated CG on the device-assembled Newton system.

@@ -1,0 +1,1 @@
+//! The device Newton loop's vector operations, reductions and per-node updates.
