@@ -95,6 +95,16 @@ pub struct BenchArgs {
     /// every core]. CPU CG gives the same bits on any count.
     #[arg(long, value_parser = positive_usize)]
     pub threads: Option<usize>,
+    /// Time one Newton iteration of a 3D neo-Hookean box, phase by phase (assembly,
+    /// elimination and preconditioner, CG to 1e-8, line search), CPU against GPU f64, over
+    /// a ladder of 2,673 to 1,036,288 nodes (--quick: 425 and 2,673; --sizes: the nearest
+    /// grids to those node counts).
+    #[arg(long, conflicts_with_all = ["hard", "dims", "oracle_max_nodes", "coarse", "ordering", "seed"])]
+    pub newton: bool,
+    /// With --newton: timed repetitions of every phase after one warm-up (the median is
+    /// reported), at least 1 [default: 5; with --quick 2].
+    #[arg(long, requires = "newton", value_parser = positive_usize)]
+    pub reps: Option<usize>,
 }
 
 #[derive(Debug, Clone, Args)]
@@ -951,6 +961,9 @@ fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
         std::fs::write(&probe, b"").map_err(|e| write_failed(&shown, e))?;
         let _ = std::fs::remove_file(&probe);
     }
+    if a.newton {
+        return bench_newton(a, quiet);
+    }
     if a.hard {
         let coarse = match a.coarse {
             Some(c) => vec![c],
@@ -998,6 +1011,28 @@ fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
     })?;
     if !quiet {
         println!("{}", crate::bench::summary_text(&report));
+    }
+    Ok(())
+}
+
+/// `stickslip bench --newton`: see [`crate::bench_newton`].
+fn bench_newton(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
+    let opts = crate::bench_newton::NewtonOptions {
+        quick: a.quick,
+        sizes: a.sizes.clone(),
+        no_gpu: a.no_gpu,
+        reps: a.reps,
+        out: a.out.clone(),
+        quiet,
+    };
+    crate::bench_newton::plan(&opts)?;
+    let command: Vec<String> = std::env::args().collect();
+    let report = crate::bench_newton::run(&opts, &command.join(" ")).map_err(|e| match e {
+        crate::bench_newton::NewtonBenchError::Gpu(m) => CliError::Failed(m),
+        crate::bench_newton::NewtonBenchError::Io(m) => CliError::Failed(m),
+    })?;
+    if !quiet {
+        print!("{}", crate::bench_newton::summary_text(&report));
     }
     Ok(())
 }

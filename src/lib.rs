@@ -135,6 +135,9 @@ pub mod scene;
 pub mod bench;
 #[cfg(feature = "cli")]
 #[doc(hidden)]
+pub mod bench_newton;
+#[cfg(feature = "cli")]
+#[doc(hidden)]
 pub mod cli;
 #[cfg(feature = "cli")]
 #[doc(hidden)]

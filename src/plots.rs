@@ -32,7 +32,7 @@ fn bounds(vals: impl Iterator<Item = f64>) -> (f64, f64) {
 }
 
 /// One log-log plot with a line and markers per series, legend in a box.
-fn log_log_plot(
+pub(crate) fn log_log_plot(
     path: &Path,
     caption: &str,
     x_desc: &str,
