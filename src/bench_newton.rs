@@ -19,7 +19,7 @@
 //! and `BuiltPreconditioner`, the fused CPU CG, the model's energy. GPU (f64): phase 1 is
 //! `GpuElements::evaluate` + `GpuAssembly::assemble`, waited for. Phases 2–4 on the GPU
 //! belong to the device Newton loop (`gpu::newton`: a device CG and the loop's vector
-//! operations); [`GpuSide::eliminate`], [`GpuSide::solve`] and [`GpuSide::line_search`]
+//! operations); `GpuSide::eliminate`, `GpuSide::solve` and `GpuSide::line_search`
 //! are where they go, and until they exist they report the phase absent, which the
 //! outputs write as null (JSON), an empty cell (CSV) and "n/a" (table).
 //!
@@ -479,8 +479,8 @@ fn run_cpu(side: &mut CpuSide, reps: usize) -> Result<(Phases, CpuCheck), String
 }
 
 /// The device side at one size: the element terms and the assembly (phase 1) now; the
-/// device CG and the loop's operations (phases 2–4) plug in at [`GpuSide::eliminate`],
-/// [`GpuSide::solve`] and [`GpuSide::line_search`].
+/// device CG and the loop's operations (phases 2–4) plug in at `GpuSide::eliminate`,
+/// `GpuSide::solve` and `GpuSide::line_search`.
 struct GpuSide {
     elements: GpuElements,
     assembly: GpuAssembly,
