@@ -681,6 +681,21 @@ impl GpuAssembly {
         (&self.row_ptr, &self.col_idx)
     }
 
+    /// The device context the assembly runs on.
+    pub fn context(&self) -> &GpuContext {
+        &self.ctx
+    }
+
+    /// The dimension d of the blocks and nodes.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    /// Whether the blocks and gradient are f64 (else f32).
+    pub fn is_f64(&self) -> bool {
+        self.f64
+    }
+
     /// Bytes one product reads and writes, assembled and matrix-free.
     pub fn product_bytes(&self) -> ProductBytes {
         self.bytes

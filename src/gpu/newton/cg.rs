@@ -1,1 +1,939 @@
-//! The eliminated CG on the device-assembled Newton system.
+//! The eliminated CG on the device-assembled Newton system (shaders/newton_cg.wgsl).
+//!
+//! After [`GpuAssembly::assemble`], H (block CSR, both triangles) and g are on the device;
+//! [`DeviceCg`] solves the eliminated system of [`crate::elimination`] there,
+//!
+//! ```text
+//! Ĥ y = b̂,   Ĥ = P VᵀHV P + (I − P),   b̂ = −P Vᵀ g,   Δx = V P y
+//! ```
+//!
+//! (a Newton step has no prescribed part, and the constrained diagonal is the identity),
+//! and leaves Δx in a device buffer for the rest of the loop. H is read where the assembly
+//! put it: the product q = Ĥp is one invocation per block row over the assembly's blocks,
+//! rotating only at rotated nodes. CG scalars stay on the device: per iteration five
+//! dispatches (product with p·q partials, a one-workgroup α kernel, the y/r/z update with
+//! r·z and r·r partials, a one-workgroup β kernel, the p update), many iterations per
+//! submit, and one small status read-back (the scalars and flags, 96 bytes) per chunk.
+//! Every reduction has a fixed number of workgroups and a fixed order: the same inputs
+//! give the same Δx bit for bit.
+#![cfg(feature = "sim")]
+
+use crate::cg::{CgError, Preconditioner};
+use crate::constraints::{Frames, NO_ROTATION};
+use crate::gpu::assembly::GpuAssembly;
+use crate::gpu::kernels::{self, Access, Layout};
+use crate::gpu::{GpuContext, GpuError};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use Access::{Read as R, ReadWrite as W, Uniform as U};
+
+/// Bind group 0 of shaders/newton_cg.wgsl, shared by all its entry points.
+pub const NEWTON_CG: Layout = Layout {
+    file: "newton_cg.wgsl",
+    source: include_str!("../../../shaders/newton_cg.wgsl"),
+    bindings: &[
+        ("params", U),
+        ("pattern", R),
+        ("hvals", R),
+        ("grad", R),
+        ("frame", R),
+        ("rotations", R),
+        ("y", W),
+        ("r", W),
+        ("z", W),
+        ("p", W),
+        ("q", W),
+        ("b", W),
+        ("minv", W),
+        ("dx", W),
+        ("partials", W),
+        ("scal", W),
+        ("state", W),
+    ],
+};
+
+/// Slots of the kernels' `scal` (f64), `state` (u32) and partial sums; the WGSL declares
+/// each as `NCG_<name>` with the same value (checked by a unit test).
+// Some slots are used by the kernels alone; they are listed so that the test covers all.
+#[allow(dead_code)]
+mod slot {
+    pub const RHO: u32 = 0;
+    pub const PQ: u32 = 1;
+    pub const ALPHA: u32 = 2;
+    pub const BETA: u32 = 3;
+    pub const RR: u32 = 4;
+    pub const TOL2: u32 = 5;
+    pub const BB: u32 = 6;
+    /// Length of `scal`.
+    pub const SCAL_LEN: usize = 8;
+    pub const DONE: u32 = 0;
+    pub const CONVERGED: u32 = 1;
+    pub const HALT: u32 = 2;
+    pub const BREAKDOWN: u32 = 3;
+    pub const ITERS: u32 = 4;
+    /// Length of `state`; the flags are its first four entries.
+    pub const STATE_LEN: usize = 8;
+    pub const PART_PQ: u32 = 0;
+    pub const PART_RZ: u32 = 1;
+    pub const PART_RR: u32 = 2;
+    pub const PART_BB: u32 = 3;
+    /// Partial-sum slots.
+    pub const N_PART: usize = 4;
+    /// Every slot with its WGSL name.
+    #[cfg(test)]
+    pub const ALL: [(&str, u32); 16] = [
+        ("NCG_RHO", RHO),
+        ("NCG_PQ", PQ),
+        ("NCG_ALPHA", ALPHA),
+        ("NCG_BETA", BETA),
+        ("NCG_RR", RR),
+        ("NCG_TOL2", TOL2),
+        ("NCG_BB", BB),
+        ("NCG_DONE", DONE),
+        ("NCG_CONVERGED", CONVERGED),
+        ("NCG_HALT", HALT),
+        ("NCG_BREAKDOWN", BREAKDOWN),
+        ("NCG_ITERS", ITERS),
+        ("NCG_PART_PQ", PART_PQ),
+        ("NCG_PART_RZ", PART_RZ),
+        ("NCG_PART_RR", PART_RR),
+        ("NCG_PART_BB", PART_BB),
+    ];
+}
+
+/// Uniform parameters of every kernel (mirrors `NewtonCgParams` in the WGSL).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct NewtonCgParams {
+    n_nodes: u32,
+    n_partials: u32,
+    col_at: u32,
+    diag_at: u32,
+}
+const _: () = assert!(std::mem::size_of::<NewtonCgParams>() == 16);
+
+/// Workgroup size of every kernel.
+const WORKGROUP: u32 = 64;
+
+/// Upper bound of the workgroups of the grid-stride kernels (and so of the partials per
+/// reduction): enough to fill a GPU, few enough for one workgroup to sum them quickly.
+const MAX_GROUPS: u32 = 256;
+
+/// Bytes of the status read back per chunk: `scal` then `state`.
+const STATUS_BYTES: u64 = 8 * slot::SCAL_LEN as u64 + 4 * slot::STATE_LEN as u64;
+
+/// Iterations of the first chunk, and the longest chunk.
+const FIRST_CHUNK: usize = 8;
+const MAX_CHUNK: usize = 256;
+
+/// Identities of every [`DeviceCg`] and [`DeviceFrames`]: frames built for one CG are
+/// refused by another, and `iterate` refuses frames `prepare` did not see.
+static NEXT_ID: AtomicU64 = AtomicU64::new(0);
+
+/// Parameters of one [`DeviceCg::solve`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DeviceCgParams {
+    /// Success when the true relative residual ‖b̂ − Ĥy‖/‖b̂‖ (f64, on the device) ≤ tol.
+    pub tol: f64,
+    /// Limit on CG iterations, restarts included.
+    pub max_iterations: usize,
+    /// Jacobi or block Jacobi (or none); no coarse space.
+    pub preconditioner: Preconditioner,
+}
+
+/// What a successful solve reports.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DeviceCgInfo {
+    /// CG iterations, restarts included (0 when b̂ = 0).
+    pub iterations: usize,
+    /// The true relative residual ‖b̂ − Ĥy‖/‖b̂‖ at the returned y (0 when b̂ = 0).
+    pub relative_residual: f64,
+    /// ‖b̂‖.
+    pub rhs_norm: f64,
+}
+
+/// One constraint set on the device (mask and rotation per node) with the bind group that
+/// uses it; built by [`DeviceCg::frames`], valid only with the [`DeviceCg`] that built it.
+pub struct DeviceFrames {
+    owner: u64,
+    /// Its own identity: `iterate` needs the frames `prepare` used.
+    id: u64,
+    group: wgpu::BindGroup,
+    /// Kept alive with the bind group.
+    _frame: wgpu::Buffer,
+    _rotations: wgpu::Buffer,
+}
+
+/// The pipelines of shaders/newton_cg.wgsl; `init` and `update_yr` once per
+/// preconditioner (none, Jacobi, block Jacobi: a WGSL override).
+struct Pipelines {
+    rhs: wgpu::ComputePipeline,
+    precond: wgpu::ComputePipeline,
+    matvec: wgpu::ComputePipeline,
+    scalar_alpha: wgpu::ComputePipeline,
+    update_yr: [wgpu::ComputePipeline; 3],
+    scalar_beta: wgpu::ComputePipeline,
+    update_p: wgpu::ComputePipeline,
+    init: [wgpu::ComputePipeline; 3],
+    scalar_start: wgpu::ComputePipeline,
+    recover: wgpu::ComputePipeline,
+}
+
+/// The device buffers of the CG (all f64 vectors are n·d, node-major).
+struct Buffers {
+    params: wgpu::Buffer,
+    pattern: wgpu::Buffer,
+    hvals: wgpu::Buffer,
+    grad: wgpu::Buffer,
+    y: wgpu::Buffer,
+    r: wgpu::Buffer,
+    z: wgpu::Buffer,
+    p: wgpu::Buffer,
+    q: wgpu::Buffer,
+    b: wgpu::Buffer,
+    minv: wgpu::Buffer,
+    dx: wgpu::Buffer,
+    partials: wgpu::Buffer,
+    scal: wgpu::Buffer,
+    state: wgpu::Buffer,
+    /// `scal` and `state` gathered for one read-back.
+    status: wgpu::Buffer,
+}
+
+/// The eliminated PCG on a [`GpuAssembly`]'s H and g, built once per mesh (f64 only).
+/// Per Newton iteration: [`DeviceCg::solve`] (or [`DeviceCg::prepare`] then
+/// [`DeviceCg::iterate`]) after every `assemble`; Δx is then in [`DeviceCg::dx_buffer`].
+pub struct DeviceCg {
+    ctx: GpuContext,
+    id: u64,
+    dim: usize,
+    n_nodes: usize,
+    /// Workgroups of the grid-stride kernels (= partials per reduction).
+    groups: u32,
+    layout: wgpu::BindGroupLayout,
+    pipes: Pipelines,
+    buf: Buffers,
+    /// The frames `prepare` last built b̂ and the preconditioner for.
+    prepared: Option<u64>,
+}
+
+/// One status read: the scalars and flags after a submit.
+struct Status {
+    rr: f64,
+    pq: f64,
+    bb: f64,
+    iterations: usize,
+    converged: bool,
+    halt: bool,
+    breakdown: bool,
+}
+
+impl DeviceCg {
+    /// Pipelines and buffers for `asm`'s mesh; refuses an f32 assembly.
+    pub fn new(asm: &GpuAssembly) -> Result<Self, GpuError> {
+        if !asm.is_f64() {
+            return Err(GpuError::Unsupported(
+                "the device Newton CG needs an f64 assembly, not f32".into(),
+            ));
+        }
+        let ctx = asm.context().clone();
+        let dim = asm.dim();
+        let (row_ptr, col_idx) = asm.pattern();
+        let n = row_ptr.len().saturating_sub(1);
+        let nnz = col_idx.len();
+        let dev = &ctx.device;
+
+        // The pattern as u32: row pointers, column indices, per node its diagonal block.
+        let too_big = |what: &str| {
+            GpuError::Unsupported(format!("the {what} exceed the device CG's u32 indices"))
+        };
+        let mut pattern: Vec<u32> = Vec::with_capacity(2 * n + 1 + nnz);
+        for &v in row_ptr.iter().chain(col_idx) {
+            pattern.push(u32::try_from(v).map_err(|_| too_big("block indices"))?);
+        }
+        for i in 0..n {
+            let row = &col_idx[row_ptr[i]..row_ptr[i + 1]];
+            let k = row
+                .iter()
+                .position(|&j| j == i)
+                .ok_or_else(|| GpuError::Mismatch(format!("node {i} has no diagonal block")))?;
+            pattern.push(u32::try_from(row_ptr[i] + k).map_err(|_| too_big("block indices"))?);
+        }
+        let col_at = u32::try_from(n + 1).map_err(|_| too_big("nodes"))?;
+        let diag_at = u32::try_from(n + 1 + nnz).map_err(|_| too_big("blocks"))?;
+        let groups = (n as u64)
+            .div_ceil(WORKGROUP as u64)
+            .clamp(1, MAX_GROUPS as u64) as u32;
+
+        // Pipelines.
+        let code = format!(
+            "{}{}",
+            kernels::prelude("f64", "f64", false),
+            NEWTON_CG.source
+        );
+        let module = dev.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("newton_cg.wgsl (f64)"),
+            source: wgpu::ShaderSource::Wgsl(code.into()),
+        });
+        let (layout, pl) = NEWTON_CG.layouts(dev, "newton cg");
+        let pipe = |entry: &str, precond: u32| {
+            // SUM_LANES: scalar_start sums three values in one tree, no kernel more.
+            let constants = [
+                ("D", dim as f64),
+                ("WG", WORKGROUP as f64),
+                ("SUM_LANES", 3.0),
+                ("PRECOND", precond as f64),
+            ];
+            dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(&format!(
+                    "newton cg {entry} ({dim}D, preconditioner {precond})"
+                )),
+                layout: Some(&pl),
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &constants,
+                    zero_initialize_workgroup_memory: true,
+                },
+                cache: None,
+            })
+        };
+        let pipes = Pipelines {
+            rhs: pipe("rhs", 0),
+            precond: pipe("precond", 0),
+            matvec: pipe("matvec", 0),
+            scalar_alpha: pipe("scalar_alpha", 0),
+            update_yr: [0, 1, 2].map(|k| pipe("update_yr", k)),
+            scalar_beta: pipe("scalar_beta", 0),
+            update_p: pipe("update_p", 0),
+            init: [0, 1, 2].map(|k| pipe("init", k)),
+            scalar_start: pipe("scalar_start", 0),
+            recover: pipe("recover", 0),
+        };
+
+        // Buffers, limits checked first.
+        let nd = (n * dim) as u64;
+        let check = |label: &str, bytes: u64| -> Result<u64, GpuError> {
+            let bytes = bytes.max(16).div_ceil(16) * 16;
+            let l = &ctx.limits;
+            let limit = l.max_buffer_size.min(l.max_storage_buffer_binding_size);
+            if bytes > limit {
+                return Err(GpuError::BufferTooLarge {
+                    label: label.to_string(),
+                    bytes,
+                    limit,
+                    what: "storage binding",
+                    adapter: ctx.adapter_name().to_string(),
+                });
+            }
+            Ok(bytes)
+        };
+        let usage = wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_DST
+            | wgpu::BufferUsages::COPY_SRC;
+        let zeroed = |label: &str, bytes: u64| -> Result<wgpu::Buffer, GpuError> {
+            let size = check(label, bytes)?;
+            Ok(dev.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: false,
+            }))
+        };
+        let vector = |label: &str| zeroed(label, 8 * nd);
+        let pattern_buf = {
+            let mut bytes: Vec<u8> = bytemuck::cast_slice(&pattern).to_vec();
+            let size = check("newton cg pattern", bytes.len() as u64)?;
+            bytes.resize(size as usize, 0);
+            ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("newton cg pattern"),
+                contents: &bytes,
+                usage,
+            })
+        };
+        let p = NewtonCgParams {
+            n_nodes: u32::try_from(n).map_err(|_| too_big("nodes"))?,
+            n_partials: groups,
+            col_at,
+            diag_at,
+        };
+        let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("newton cg params"),
+            contents: bytemuck::bytes_of(&p),
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
+        let buf = Buffers {
+            params,
+            pattern: pattern_buf,
+            hvals: asm.values_buffer().clone(),
+            grad: asm.gradient_buffer().clone(),
+            y: vector("newton cg y")?,
+            r: vector("newton cg r")?,
+            z: vector("newton cg z")?,
+            p: vector("newton cg p")?,
+            q: vector("newton cg q")?,
+            b: vector("newton cg rhs")?,
+            minv: zeroed(
+                "newton cg preconditioner",
+                8 * (n * dim * dim) as u64 + 8 * nd,
+            )?,
+            dx: vector("newton cg dx")?,
+            partials: zeroed(
+                "newton cg partial sums",
+                8 * (slot::N_PART as u64) * groups as u64,
+            )?,
+            scal: zeroed("newton cg scalars", 8 * slot::SCAL_LEN as u64)?,
+            state: zeroed("newton cg state", 4 * slot::STATE_LEN as u64)?,
+            status: zeroed("newton cg status", STATUS_BYTES)?,
+        };
+        ctx.check("building the device Newton CG")?;
+        Ok(DeviceCg {
+            id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
+            ctx,
+            dim,
+            n_nodes: n,
+            groups,
+            layout,
+            pipes,
+            buf,
+            prepared: None,
+        })
+    }
+
+    /// The world-frame Δx of the last successful solve (n·d f64, node-major).
+    pub fn dx_buffer(&self) -> &wgpu::Buffer {
+        &self.buf.dx
+    }
+
+    /// Δx read back to the host (a full read-back: for tests and diagnostics, not the loop).
+    pub fn read_dx(&self) -> Result<Vec<f64>, GpuError> {
+        let nd = self.n_nodes * self.dim;
+        let bytes = self.ctx.download(
+            &self.buf.dx,
+            0,
+            8 * nd as u64,
+            "reading back the Newton step",
+        )?;
+        Ok(bytes
+            .chunks_exact(8)
+            .map(|c| {
+                let mut w = [0u8; 8];
+                w.copy_from_slice(c);
+                f64::from_le_bytes(w)
+            })
+            .collect())
+    }
+
+    /// Uploads one constraint set (mask per node, rotation per rotated node) and builds
+    /// its bind group, once: callers keep it for as long as the constraints hold.
+    /// Refuses frames of another mesh and prescribed (non-zero) constraint values, which
+    /// a Newton step never has.
+    pub fn frames(&self, f: &Frames) -> Result<DeviceFrames, GpuError> {
+        let (n, d) = (self.n_nodes, self.dim);
+        if f.dim != d || f.n_nodes != n {
+            return Err(GpuError::Mismatch(format!(
+                "the constraints are for {} nodes in {}D, the mesh has {n} in {d}D",
+                f.n_nodes, f.dim
+            )));
+        }
+        if !f.homogeneous {
+            return Err(GpuError::Unsupported(
+                "the device Newton CG takes homogeneous constraints only (a Newton step \
+                 prescribes no displacement)"
+                    .into(),
+            ));
+        }
+        if f.mask.len() != n
+            || f.rot_index.len() != n
+            || f.rotations.len() != d * d * f.rot_nodes.len()
+        {
+            return Err(GpuError::Mismatch(
+                "the constraint frames' arrays disagree with their node count".into(),
+            ));
+        }
+        let mut frame = Vec::with_capacity(2 * n);
+        for i in 0..n {
+            let ri = f.rot_index[i];
+            if ri != NO_ROTATION && ri as usize >= f.rot_nodes.len() {
+                return Err(GpuError::Mismatch(format!(
+                    "node {i} names rotation {ri} of {}",
+                    f.rot_nodes.len()
+                )));
+            }
+            frame.push(f.mask[i] as u32);
+            frame.push(ri);
+        }
+        let init = |label: &str, mut bytes: Vec<u8>| {
+            bytes.resize(bytes.len().max(16).div_ceil(16) * 16, 0);
+            self.ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: &bytes,
+                usage: wgpu::BufferUsages::STORAGE,
+            })
+        };
+        let frame_buf = init("newton cg frames", bytemuck::cast_slice(&frame).to_vec());
+        let rot_buf = init(
+            "newton cg rotations",
+            bytemuck::cast_slice(&f.rotations).to_vec(),
+        );
+        let b = &self.buf;
+        let bufs: [&wgpu::Buffer; 17] = [
+            &b.params,
+            &b.pattern,
+            &b.hvals,
+            &b.grad,
+            &frame_buf,
+            &rot_buf,
+            &b.y,
+            &b.r,
+            &b.z,
+            &b.p,
+            &b.q,
+            &b.b,
+            &b.minv,
+            &b.dx,
+            &b.partials,
+            &b.scal,
+            &b.state,
+        ];
+        let entries: Vec<wgpu::BindGroupEntry> = bufs
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        let group = self
+            .ctx
+            .device
+            .create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("newton cg bind group"),
+                layout: &self.layout,
+                entries: &entries,
+            });
+        self.ctx.check("uploading the constraint frames")?;
+        Ok(DeviceFrames {
+            owner: self.id,
+            id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
+            group,
+            _frame: frame_buf,
+            _rotations: rot_buf,
+        })
+    }
+
+    fn own(&self, frames: &DeviceFrames) -> Result<(), GpuError> {
+        if frames.owner != self.id {
+            return Err(GpuError::Mismatch(
+                "these device frames were built by another device CG".into(),
+            ));
+        }
+        Ok(())
+    }
+
+    fn encoder(&self, label: &str) -> wgpu::CommandEncoder {
+        self.ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
+    }
+
+    /// Records `kernels` (pipeline, workgroups) in one compute pass.
+    fn pass(
+        enc: &mut wgpu::CommandEncoder,
+        label: &str,
+        group: &wgpu::BindGroup,
+        kernels: &[(&wgpu::ComputePipeline, u32)],
+    ) {
+        let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(label),
+            timestamp_writes: None,
+        });
+        cp.set_bind_group(0, group, &[]);
+        for (pipe, groups) in kernels {
+            cp.set_pipeline(pipe);
+            cp.dispatch_workgroups(*groups, 1, 1);
+        }
+    }
+
+    /// b̂ = −P Vᵀ g and the preconditioners (Jacobi and block Jacobi both) from the
+    /// current assembly; call after every `assemble` (or constraint change). No read-back.
+    pub fn prepare(&mut self, frames: &DeviceFrames) -> Result<(), GpuError> {
+        self.own(frames)?;
+        let mut enc = self.encoder("newton cg prepare");
+        let g = self.groups;
+        Self::pass(
+            &mut enc,
+            "newton cg prepare",
+            &frames.group,
+            &[(&self.pipes.rhs, g), (&self.pipes.precond, g)],
+        );
+        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.check("preparing the device Newton CG")?;
+        self.prepared = Some(frames.id);
+        Ok(())
+    }
+
+    /// Records the status copies (`scal`, `state` into `status`) after the work of `enc`,
+    /// submits, and reads the 96 status bytes back (one wait).
+    fn submit_and_read(
+        &self,
+        mut enc: wgpu::CommandEncoder,
+        what: &str,
+    ) -> Result<Status, GpuError> {
+        let sb = 8 * slot::SCAL_LEN as u64;
+        enc.copy_buffer_to_buffer(&self.buf.scal, 0, &self.buf.status, 0, sb);
+        enc.copy_buffer_to_buffer(
+            &self.buf.state,
+            0,
+            &self.buf.status,
+            sb,
+            4 * slot::STATE_LEN as u64,
+        );
+        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.check(what)?;
+        let bytes = self.ctx.download(&self.buf.status, 0, STATUS_BYTES, what)?;
+        let f = |k: u32| {
+            let o = 8 * k as usize;
+            let mut w = [0u8; 8];
+            w.copy_from_slice(&bytes[o..o + 8]);
+            f64::from_le_bytes(w)
+        };
+        let u = |k: u32| {
+            let o = sb as usize + 4 * k as usize;
+            let mut w = [0u8; 4];
+            w.copy_from_slice(&bytes[o..o + 4]);
+            u32::from_le_bytes(w)
+        };
+        Ok(Status {
+            rr: f(slot::RR),
+            pq: f(slot::PQ),
+            bb: f(slot::BB),
+            iterations: u(slot::ITERS) as usize,
+            converged: u(slot::CONVERGED) != 0,
+            halt: u(slot::HALT) != 0,
+            breakdown: u(slot::BREAKDOWN) != 0,
+        })
+    }
+
+    /// Clears the four stop flags (the iteration count stays): the next CG dispatches run.
+    fn clear_flags(&self) {
+        self.ctx.write_buffer(&self.buf.state, 0, &[0u8; 16]);
+    }
+
+    /// The errors a status can carry: a non-finite value, or non-positive curvature
+    /// (met in the α of the iteration after the ones counted).
+    fn status_error(st: &Status) -> Result<(), GpuError> {
+        if st.breakdown {
+            return Err(CgError::Breakdown {
+                iteration: st.iterations,
+            }
+            .into());
+        }
+        if st.halt {
+            return Err(CgError::NonPositiveCurvature {
+                iteration: st.iterations + 1,
+                curvature: st.pq,
+            }
+            .into());
+        }
+        Ok(())
+    }
+
+    /// CG from y = 0 on the b̂ and preconditioner of the last [`DeviceCg::prepare`] with
+    /// these frames, until the true residual ‖b̂ − Ĥy‖/‖b̂‖ ≤ tol, then Δx = V P y into
+    /// [`DeviceCg::dx_buffer`].
+    ///
+    /// The recurrence residual decides when to look: once it meets the tolerance, the true
+    /// residual is computed in f64 on the device (q = Ĥy, r = b̂ − q); if it misses, CG
+    /// restarts from y with that residual. Iterations are recorded in chunks, one status
+    /// read-back each (the first chunk 8 iterations, then as many as the residual's rate of
+    /// fall predicts, at most double the last and 256).
+    pub fn iterate(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+    ) -> Result<DeviceCgInfo, GpuError> {
+        self.own(frames)?;
+        if self.prepared != Some(frames.id) {
+            return Err(GpuError::Mismatch(
+                "the device CG was not prepared with these frames (call prepare first)".into(),
+            ));
+        }
+        let tol = params.tol;
+        // Written to reject NaN too.
+        if !(tol > 0.0 && tol.is_finite()) {
+            return Err(GpuError::Unsupported(format!(
+                "the CG tolerance must be positive and finite, not {tol}"
+            )));
+        }
+        let max = params.max_iterations;
+        let pre = match params.preconditioner {
+            Preconditioner::None => 0,
+            Preconditioner::Jacobi => 1,
+            Preconditioner::BlockJacobi => 2,
+        };
+        let g = self.groups;
+        let tol2 = tol * tol;
+        let mut scal = [0.0f64; slot::SCAL_LEN];
+        scal[slot::TOL2 as usize] = tol2;
+        self.ctx
+            .write_buffer(&self.buf.scal, 0, bytemuck::cast_slice(&scal));
+        self.ctx
+            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slot::STATE_LEN]);
+
+        // Start: y = 0, so q = Ĥy = 0 without a product.
+        let mut enc = self.encoder("newton cg start");
+        enc.clear_buffer(&self.buf.y, 0, None);
+        enc.clear_buffer(&self.buf.q, 0, None);
+        Self::pass(
+            &mut enc,
+            "newton cg start",
+            &frames.group,
+            &[(&self.pipes.init[pre], g), (&self.pipes.scalar_start, 1)],
+        );
+        let mut st = self.submit_and_read(enc, "starting the device Newton CG")?;
+        Self::status_error(&st)?;
+        let bb = st.bb;
+        let rhs_norm = bb.sqrt();
+        let relative = |rr: f64| {
+            if bb == 0.0 {
+                if rr == 0.0 {
+                    0.0
+                } else {
+                    1.0
+                }
+            } else {
+                rr.sqrt() / rhs_norm
+            }
+        };
+        // Each pass of this loop starts from a status whose r·r is the true residual.
+        loop {
+            let rel = relative(st.rr);
+            if rel <= tol {
+                break;
+            }
+            if st.iterations >= max {
+                return Err(CgError::MaxIterations {
+                    iterations: st.iterations,
+                    relative_residual: rel,
+                    tol,
+                }
+                .into());
+            }
+            if st.converged {
+                // The device's r·r ≤ tol²‖b̂‖² held where the host's quotient missed tol
+                // by rounding: go on iterating.
+                self.clear_flags();
+            }
+            self.chunks(frames, pre, max, tol2 * bb, &mut st)?;
+            // The true residual at y: q = Ĥy (y copied into p), r = b̂ − q, p = z.
+            self.clear_flags();
+            let mut enc = self.encoder("newton cg true residual");
+            enc.copy_buffer_to_buffer(&self.buf.y, 0, &self.buf.p, 0, None);
+            Self::pass(
+                &mut enc,
+                "newton cg true residual",
+                &frames.group,
+                &[
+                    (&self.pipes.matvec, g),
+                    (&self.pipes.init[pre], g),
+                    (&self.pipes.scalar_start, 1),
+                ],
+            );
+            st = self.submit_and_read(enc, "the device Newton CG's true residual")?;
+            Self::status_error(&st)?;
+        }
+        let mut enc = self.encoder("newton cg recovery");
+        Self::pass(
+            &mut enc,
+            "newton cg recovery",
+            &frames.group,
+            &[(&self.pipes.recover, g)],
+        );
+        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.check("recovering the device Newton step")?;
+        Ok(DeviceCgInfo {
+            iterations: st.iterations,
+            relative_residual: relative(st.rr),
+            rhs_norm,
+        })
+    }
+
+    /// CG iterations in chunks from the current state until the recurrence residual meets
+    /// `thresh` (on r·r) or `max` iterations are done in all; `st` is the last status.
+    fn chunks(
+        &self,
+        frames: &DeviceFrames,
+        pre: usize,
+        max: usize,
+        thresh: f64,
+        st: &mut Status,
+    ) -> Result<(), GpuError> {
+        let g = self.groups;
+        let mut k = FIRST_CHUNK;
+        // (iterations, ln r·r) at each status read of this run.
+        let mut hist: Vec<(usize, f64)> = Vec::new();
+        if st.rr > 0.0 && st.rr.is_finite() {
+            hist.push((st.iterations, st.rr.ln()));
+        }
+        loop {
+            let kk = k.min(max.saturating_sub(st.iterations));
+            if kk == 0 {
+                return Ok(());
+            }
+            let p = &self.pipes;
+            let one: [(&wgpu::ComputePipeline, u32); 5] = [
+                (&p.matvec, g),
+                (&p.scalar_alpha, 1),
+                (&p.update_yr[pre], g),
+                (&p.scalar_beta, 1),
+                (&p.update_p, g),
+            ];
+            let kernels: Vec<(&wgpu::ComputePipeline, u32)> =
+                (0..kk).flat_map(|_| one.iter().copied()).collect();
+            let mut enc = self.encoder("newton cg chunk");
+            Self::pass(&mut enc, "newton cg chunk", &frames.group, &kernels);
+            *st = self.submit_and_read(enc, "a device Newton CG chunk")?;
+            Self::status_error(st)?;
+            if st.converged {
+                return Ok(());
+            }
+            if st.rr > 0.0 && st.rr.is_finite() {
+                hist.push((st.iterations, st.rr.ln()));
+            }
+            k = next_chunk(&hist, thresh, kk);
+        }
+    }
+
+    /// [`DeviceCg::prepare`] then [`DeviceCg::iterate`]: Δx of the current assembly.
+    pub fn solve(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+    ) -> Result<DeviceCgInfo, GpuError> {
+        self.prepare(frames)?;
+        self.iterate(frames, params)
+    }
+}
+
+/// The next chunk: the iterations the fall of ln r·r since the run's first status read
+/// predicts to reach `thresh`, within [2, min(2·prev, MAX_CHUNK)]; doubling without a fall.
+fn next_chunk(hist: &[(usize, f64)], thresh: f64, prev: usize) -> usize {
+    let grow = (2 * prev).clamp(2, MAX_CHUNK);
+    let (Some(&(i0, l0)), Some(&(i1, l1))) = (hist.first(), hist.last()) else {
+        return grow;
+    };
+    let rate = if i1 > i0 {
+        (l0 - l1) / (i1 - i0) as f64
+    } else {
+        0.0
+    };
+    // Written to reject NaN too.
+    if !(rate > 0.0 && thresh > 0.0) {
+        return grow;
+    }
+    let need = ((l1 - thresh.ln()) / rate).ceil();
+    if !need.is_finite() {
+        return grow;
+    }
+    (need.max(0.0) as usize).clamp(2, grow)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn module() -> naga::Module {
+        let src = format!(
+            "{}{}",
+            kernels::prelude("f64", "f64", false),
+            NEWTON_CG.source
+        );
+        naga::front::wgsl::parse_str(&src)
+            .unwrap_or_else(|e| panic!("newton_cg.wgsl: {}", e.emit_to_string(&src)))
+    }
+
+    /// Bind group 0 is [`NEWTON_CG`]'s bindings in order with their access, the params
+    /// struct has Rust's size, and every slot constant has Rust's value.
+    #[test]
+    fn layout_params_and_slots_match_the_wgsl() {
+        use naga::{AddressSpace, StorageAccess};
+        let m = module();
+        let mut declared: Vec<(u32, String, Access)> = m
+            .global_variables
+            .iter()
+            .filter_map(|(_, g)| {
+                let b = g.binding.as_ref()?;
+                let access = match g.space {
+                    AddressSpace::Uniform => Access::Uniform,
+                    AddressSpace::Storage { access } if access.contains(StorageAccess::STORE) => {
+                        Access::ReadWrite
+                    }
+                    AddressSpace::Storage { .. } => Access::Read,
+                    other => panic!("{:?} in {other:?}", g.name),
+                };
+                Some((b.binding, g.name.clone().unwrap_or_default(), access))
+            })
+            .collect();
+        declared.sort_by_key(|d| d.0);
+        let described: Vec<(u32, String, Access)> = NEWTON_CG
+            .bindings
+            .iter()
+            .enumerate()
+            .map(|(i, (n, a))| (i as u32, n.to_string(), *a))
+            .collect();
+        assert_eq!(declared, described);
+        let (_, ty) = m
+            .types
+            .iter()
+            .find(|(_, t)| t.name.as_deref() == Some("NewtonCgParams"))
+            .expect("struct NewtonCgParams");
+        match &ty.inner {
+            naga::TypeInner::Struct { span, .. } => {
+                assert_eq!(*span as usize, std::mem::size_of::<NewtonCgParams>())
+            }
+            other => panic!("NewtonCgParams is {other:?}"),
+        }
+        for (name, want) in slot::ALL {
+            let (_, c) = m
+                .constants
+                .iter()
+                .find(|(_, c)| c.name.as_deref() == Some(name))
+                .unwrap_or_else(|| panic!("no const {name}"));
+            match m.global_expressions[c.init] {
+                naga::Expression::Literal(naga::Literal::U32(v)) => assert_eq!(v, want, "{name}"),
+                ref e => panic!("{name} = {e:?}"),
+            }
+        }
+        for e in [
+            "rhs",
+            "precond",
+            "matvec",
+            "scalar_alpha",
+            "update_yr",
+            "scalar_beta",
+            "update_p",
+            "init",
+            "scalar_start",
+            "recover",
+        ] {
+            assert!(
+                m.entry_points.iter().any(|p| p.name == e),
+                "no entry point {e}"
+            );
+        }
+    }
+
+    /// Chunks follow the predicted remaining iterations, within [2, 2·prev].
+    #[test]
+    fn chunks_follow_the_rate_of_fall() {
+        assert_eq!(next_chunk(&[], 1e-20, 8), 16);
+        // ln r·r falls by 0.5 per iteration from 0 at 0 to −4 at 8: 12 more to −10.
+        let h = [(0, 0.0), (8, -4.0)];
+        assert_eq!(next_chunk(&h, (-10.0f64).exp(), 8), 12);
+        assert_eq!(next_chunk(&h, (-100.0f64).exp(), 8), 16);
+        assert_eq!(next_chunk(&h, (-4.1f64).exp(), 8), 2);
+        // No fall: doubling.
+        assert_eq!(next_chunk(&[(0, 0.0), (8, 0.0)], 1e-20, 8), 16);
+    }
+}

@@ -1,0 +1,321 @@
+//! The eliminated CG on the device-assembled Newton system (`gpu::newton::cg::DeviceCg`)
+//! against the CPU Cholesky solution of the same eliminated system.
+//!
+//! Systems: a box of tetrahedra (3D) and a rectangle of triangles (2D), deformed at random,
+//! with neo-Hookean elements, inertia and gravity, assembled on the device in f64; sticky
+//! nodes on one side, slip nodes on a slanted plane (rotated frames) on the bottom, and
+//! slip nodes on an axis-aligned plane (masked, no rotation) on the other side. H and g
+//! are read back from the device and eliminated on the CPU (`Eliminated`), so both sides
+//! solve the very same system.
+//!
+//! Bounds: CG stops on the true residual ‖b̂ − Ĥy‖ ≤ tol‖b̂‖ with tol = 1e-10, so the
+//! error of y is at most κ(Ĥ)·tol relative; the tests print the difference from the
+//! Cholesky Δx and require ≤ 1e-8 of ‖Δx‖, which these systems meet with room to spare
+//! (the printed figures). Constrained components of Δx in the node frames are V_iᵀV_i P y
+//! with V_i orthonormal to rounding: ≤ 1e-14·‖Δx‖.
+//!
+//! Every test shares one device (tests/common/gpu.rs); sizes are small for lavapipe.
+
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use stickslip::cg::{CgError, Preconditioner};
+use stickslip::constraints::{Constraint, Frames};
+use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
+use stickslip::energy::{ElementSet, Model, NeoHookean};
+use stickslip::gpu::assembly::GpuAssembly;
+use stickslip::gpu::elements::GpuElements;
+use stickslip::gpu::newton::cg::{DeviceCg, DeviceCgParams};
+use stickslip::gpu::{GpuContext, GpuError, Precision};
+use stickslip::mesh;
+
+mod common;
+use common::gpu::gpu;
+
+/// h² of the step (h = 0.05).
+const SCALE: f64 = 0.05 * 0.05;
+const TOL: f64 = 1e-10;
+
+struct Scene {
+    model: Model,
+    x: Vec<f64>,
+    x_tilde: Vec<f64>,
+    frames: Frames,
+}
+
+/// A 3D box (6×4×3 cells, 140 nodes) or a 2D rectangle (14×9 cells, 150 nodes), deformed
+/// at random; sticky at x = 0, slip on a slanted plane at the bottom (y = 0, x > 0), slip
+/// on the plane x = const at the far side. `gravity` off and `x_tilde` = x make the
+/// gradient vanish when the potential's scale is 0.
+fn scene(d: usize, seed: u64, gravity: bool) -> Scene {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let (m, len) = if d == 2 {
+        (mesh::rectangle(2, [1.4, 0.9], [14, 9]), 1.4)
+    } else {
+        (mesh::cuboid([1.2, 0.8, 0.6], [6, 4, 3]), 1.2)
+    };
+    let n = m.n_nodes();
+    let x: Vec<f64> =
+        m.x.iter()
+            .map(|v| v + rng.random_range(-0.01..0.01))
+            .collect();
+    let nh = NeoHookean::new(&m, 1e5, 0.35).expect("valid rest elements");
+    let mass: Vec<f64> = (0..n).map(|_| rng.random_range(0.5..2.0)).collect();
+    let g = [0.0, -9.81, 1.5];
+    let model = Model::new(
+        d,
+        mass,
+        gravity.then(|| g[..d].to_vec()),
+        vec![ElementSet::NeoHookean(nh)],
+    );
+    let x_tilde: Vec<f64> = x
+        .iter()
+        .map(|v| v + rng.random_range(-0.05..0.05))
+        .collect();
+    let slanted: Vec<f64> = if d == 2 {
+        vec![0.35, 1.0]
+    } else {
+        vec![0.3, 1.0, -0.25]
+    };
+    let axis: Vec<f64> = (0..d).map(|a| if a == 0 { 1.0 } else { 0.0 }).collect();
+    let mut cs = Vec::new();
+    for i in 0..n {
+        let p = &m.x[i * d..(i + 1) * d];
+        if p[0] < 1e-9 {
+            cs.push(Constraint::sticky(i));
+        } else if p[1] < 1e-9 {
+            cs.push(Constraint::plane(i, &slanted));
+        } else if p[0] > len - 1e-9 {
+            cs.push(Constraint::plane(i, &axis));
+        }
+    }
+    let frames = Frames::build(d, n, &cs).expect("valid constraints");
+    assert!(frames.has_rotation(), "some nodes carry a rotation");
+    assert!(
+        frames.mask.iter().enumerate().any(|(i, &mk)| mk != 0
+            && frames.rot_index[i] == stickslip::constraints::NO_ROTATION
+            && mk.count_ones() < d as u32),
+        "some slip nodes are masked without a rotation"
+    );
+    Scene {
+        model,
+        x,
+        x_tilde,
+        frames,
+    }
+}
+
+fn assembled(ctx: &GpuContext, s: &Scene, precision: Precision) -> (GpuElements, GpuAssembly) {
+    let el = GpuElements::new(ctx, &s.model, None, precision).expect("element terms");
+    el.set_positions(&s.x).expect("positions");
+    el.set_inertia_target(&s.x_tilde).expect("target");
+    el.evaluate(true).expect("evaluate");
+    let asm = GpuAssembly::new(&el, &s.model).expect("assembly");
+    asm.set_scale(SCALE);
+    asm.assemble().expect("assemble");
+    (el, asm)
+}
+
+fn norm(v: &[f64]) -> f64 {
+    v.iter().map(|x| x * x).sum::<f64>().sqrt()
+}
+
+/// DeviceCg's Δx against the Cholesky Δx of the same H and g, for both preconditioners.
+fn compare(ctx: &GpuContext, d: usize, seed: u64) {
+    let s = scene(d, seed, true);
+    let (_el, asm) = assembled(ctx, &s, Precision::F64);
+    let h = asm.read_matrix().expect("read H");
+    let g = asm.read_gradient().expect("read g");
+    let e = Eliminated::new(&h, &g, &s.frames, ConstrainedDiagonal::Identity);
+    let (y_ref, _) = stickslip::oracle::solve(&e).expect("Cholesky");
+    let dx_ref = e.recover(&y_ref);
+    let ref_norm = norm(&dx_ref);
+    assert!(ref_norm > 0.0, "a non-trivial step");
+
+    let mut cg = DeviceCg::new(&asm).expect("device CG");
+    let frames = cg.frames(&s.frames).expect("device frames");
+    let n = s.model.n_nodes;
+    eprintln!(
+        "{d}D: {n} nodes, {} constrained components, {} rotated nodes",
+        s.frames.constrained_dofs(),
+        s.frames.rot_nodes.len()
+    );
+    for pre in [Preconditioner::Jacobi, Preconditioner::BlockJacobi] {
+        let before = ctx.traffic();
+        let info = cg
+            .solve(
+                &frames,
+                &DeviceCgParams {
+                    tol: TOL,
+                    max_iterations: 10_000,
+                    preconditioner: pre,
+                },
+            )
+            .expect("device CG converges");
+        let after = ctx.traffic();
+        let dx = cg.read_dx().expect("read dx");
+        let diff: Vec<f64> = dx.iter().zip(&dx_ref).map(|(a, b)| a - b).collect();
+        let rel = norm(&diff) / ref_norm;
+        // Constrained components in the node frames.
+        let mut yf = vec![0.0; dx.len()];
+        s.frames.to_frame(&dx, &mut yf);
+        let mut worst_fixed = 0.0f64;
+        for i in 0..n {
+            for a in 0..d {
+                if !s.frames.is_free(i, a) {
+                    worst_fixed = worst_fixed.max(yf[i * d + a].abs());
+                }
+            }
+        }
+        // The CPU's residual of the device's y (its free components).
+        let mut y = yf.clone();
+        s.frames.apply_mask(&mut y);
+        let cpu_res = e.relative_residual(&y);
+        let b_norm = norm(&e.rhs);
+        eprintln!(
+            "{d}D {pre:?}: {} iterations, device true residual {:.3e}, CPU residual of the \
+             device y {:.3e}, ‖b̂‖ {:.6e} (CPU {:.6e}), ‖Δx − Δx_chol‖/‖Δx‖ {:.3e}, \
+             constrained |Δx| {:.3e}·‖Δx‖; device→host {} B, host→device {} B",
+            info.iterations,
+            info.relative_residual,
+            cpu_res,
+            info.rhs_norm,
+            b_norm,
+            rel,
+            worst_fixed / ref_norm,
+            after.device_to_host_bytes - before.device_to_host_bytes,
+            after.host_to_device_bytes - before.host_to_device_bytes,
+        );
+        assert!(info.iterations > 0);
+        assert!(
+            info.relative_residual <= TOL,
+            "reported residual {:e}",
+            info.relative_residual
+        );
+        // ‖b̂‖ is the same f64 sum of squares in another order: a few ulps.
+        assert!(
+            (info.rhs_norm - b_norm).abs() <= 1e-13 * b_norm,
+            "‖b̂‖ {} vs {}",
+            info.rhs_norm,
+            b_norm
+        );
+        assert!(rel <= 1e-8, "{d}D {pre:?}: relative difference {rel:e}");
+        assert!(
+            worst_fixed <= 1e-14 * ref_norm,
+            "{d}D {pre:?}: constrained component {worst_fixed:e}"
+        );
+    }
+}
+
+#[test]
+fn matches_cholesky_3d() {
+    let Some((ctx, _g)) = gpu() else { return };
+    compare(ctx, 3, 11);
+}
+
+#[test]
+fn matches_cholesky_2d() {
+    let Some((ctx, _g)) = gpu() else { return };
+    compare(ctx, 2, 12);
+}
+
+/// A vanishing gradient gives Δx = 0 in 0 iterations, even after a non-zero step left
+/// something in the Δx buffer.
+#[test]
+fn zero_gradient_gives_zero_step() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let mut s = scene(3, 13, false);
+    let (el, asm) = assembled(ctx, &s, Precision::F64);
+    let mut cg = DeviceCg::new(&asm).expect("device CG");
+    let frames = cg.frames(&s.frames).expect("device frames");
+    let params = DeviceCgParams {
+        tol: TOL,
+        max_iterations: 1000,
+        preconditioner: Preconditioner::BlockJacobi,
+    };
+    let first = cg.solve(&frames, &params).expect("non-zero step");
+    assert!(first.iterations > 0 && first.rhs_norm > 0.0);
+    assert!(cg.read_dx().expect("dx").iter().any(|&v| v != 0.0));
+    // x̃ = x and the potential scaled by 0: g = M(x − x̃) + 0·(…) = 0 exactly.
+    s.x_tilde = s.x.clone();
+    el.set_inertia_target(&s.x_tilde).expect("target");
+    el.evaluate(true).expect("evaluate");
+    asm.set_scale(0.0);
+    asm.assemble().expect("assemble");
+    assert!(asm.read_gradient().expect("g").iter().all(|&v| v == 0.0));
+    let info = cg.solve(&frames, &params).expect("zero step");
+    eprintln!("zero gradient: {info:?}");
+    assert_eq!(info.iterations, 0);
+    assert_eq!(info.rhs_norm, 0.0);
+    assert_eq!(info.relative_residual, 0.0);
+    assert!(cg.read_dx().expect("dx").iter().all(|&v| v == 0.0));
+}
+
+/// Too few iterations allowed: an error naming the iterations and the residual.
+#[test]
+fn iteration_limit_is_an_error() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = scene(3, 14, true);
+    let (_el, asm) = assembled(ctx, &s, Precision::F64);
+    let mut cg = DeviceCg::new(&asm).expect("device CG");
+    let frames = cg.frames(&s.frames).expect("device frames");
+    for max in [0, 3] {
+        let r = cg.solve(
+            &frames,
+            &DeviceCgParams {
+                tol: TOL,
+                max_iterations: max,
+                preconditioner: Preconditioner::Jacobi,
+            },
+        );
+        match r {
+            Err(GpuError::Cg(CgError::MaxIterations {
+                iterations,
+                relative_residual,
+                tol,
+            })) => {
+                let msg = r.unwrap_err().to_string();
+                eprintln!("max_iterations {max}: {msg}");
+                assert_eq!(iterations, max);
+                assert!(relative_residual > TOL && relative_residual.is_finite());
+                assert_eq!(tol, TOL);
+                assert!(msg.contains(&max.to_string()), "{msg}");
+            }
+            other => panic!("max_iterations {max}: {other:?}"),
+        }
+    }
+}
+
+/// An f32 assembly, another mesh's frames and iterating before `prepare` are refused with
+/// one-line errors.
+#[test]
+fn f32_and_foreign_frames_are_refused() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = scene(2, 15, true);
+    let (_el, asm) = assembled(ctx, &s, Precision::F32);
+    match DeviceCg::new(&asm) {
+        Err(GpuError::Unsupported(m)) => {
+            assert!(m.contains("f64") && !m.contains('\n'), "{m}")
+        }
+        Err(e) => panic!("unexpected error {e}"),
+        Ok(_) => panic!("an f32 assembly was accepted"),
+    }
+    let (_el64, asm64) = assembled(ctx, &s, Precision::F64);
+    let mut cg = DeviceCg::new(&asm64).expect("device CG");
+    // Iterating before b̂ and the preconditioner exist for these frames.
+    let frames = cg.frames(&s.frames).expect("device frames");
+    let params = DeviceCgParams {
+        tol: TOL,
+        max_iterations: 100,
+        preconditioner: Preconditioner::Jacobi,
+    };
+    match cg.iterate(&frames, &params) {
+        Err(GpuError::Mismatch(m)) => assert!(m.contains("prepare"), "{m}"),
+        other => panic!("iterate before prepare: {other:?}"),
+    }
+    let other = scene(3, 16, true);
+    match cg.frames(&other.frames) {
+        Err(GpuError::Mismatch(m)) => assert!(m.contains("3D"), "{m}"),
+        Err(e) => panic!("unexpected error {e}"),
+        Ok(_) => panic!("3D frames were accepted for a 2D mesh"),
+    }
+}
