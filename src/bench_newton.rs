@@ -34,6 +34,7 @@ use crate::energy::{inertia, AssemblyWork};
 use crate::error::InputError;
 use crate::gpu::assembly::GpuAssembly;
 use crate::gpu::elements::GpuElements;
+use crate::gpu::newton::cg::{DeviceCg, DeviceCgParams, DeviceFrames};
 use crate::gpu::{GpuContext, GpuOptions, Precision};
 use crate::scene::{BcShape, Scene};
 use crate::sparse::BlockCsr;
@@ -484,18 +485,33 @@ fn run_cpu(side: &mut CpuSide, reps: usize) -> Result<(Phases, CpuCheck), String
 struct GpuSide {
     elements: GpuElements,
     assembly: GpuAssembly,
+    cg: DeviceCg,
+    frames: DeviceFrames,
 }
 
 impl GpuSide {
     /// Uploads the mesh, the iterate x, x̃ and the scale h² (f64 throughout).
-    fn new(ctx: &GpuContext, scene: &Scene, x: &[f64], xt: &[f64]) -> Result<Self, String> {
+    fn new(
+        ctx: &GpuContext,
+        scene: &Scene,
+        x: &[f64],
+        xt: &[f64],
+        frames: &Frames,
+    ) -> Result<Self, String> {
         let elements =
             GpuElements::new(ctx, &scene.model, None, Precision::F64).map_err(|e| e.to_string())?;
         elements.set_positions(x).map_err(|e| e.to_string())?;
         elements.set_inertia_target(xt).map_err(|e| e.to_string())?;
         let assembly = GpuAssembly::new(&elements, &scene.model).map_err(|e| e.to_string())?;
         assembly.set_scale(scene.time_step * scene.time_step);
-        Ok(GpuSide { elements, assembly })
+        let cg = DeviceCg::new(&assembly).map_err(|e| e.to_string())?;
+        let frames = cg.frames(frames).map_err(|e| e.to_string())?;
+        Ok(GpuSide {
+            elements,
+            assembly,
+            cg,
+            frames,
+        })
     }
 
     /// Phase 1: the element terms (PSD-projected) and the assembly of H and g, waited for.
@@ -506,17 +522,27 @@ impl GpuSide {
         Ok(Some(()))
     }
 
-    /// Phase 2: b̂ and the block-Jacobi preconditioner on the device, from the assembled
-    /// H and g and the node frames. Absent: it needs the device loop's operations
-    /// (`gpu::newton::ops::NewtonOps`), which this build does not have.
-    fn eliminate(&mut self, _frames: &Frames) -> Result<Option<()>, String> {
-        Ok(None)
+    /// Phase 2: b̂ and the preconditioners on the device, from the assembled H and g
+    /// and the node frames (uploaded once, as the loop keeps them per constraint set),
+    /// waited for.
+    fn eliminate(&mut self) -> Result<Option<()>, String> {
+        self.cg.prepare(&self.frames).map_err(|e| e.to_string())?;
+        self.assembly.wait().map_err(|e| e.to_string())?;
+        Ok(Some(()))
     }
 
-    /// Phase 3: the device CG to [`CG_TOL`] (block-Jacobi), then Δx = V y. Absent: it
-    /// needs the device CG (`gpu::newton::cg::DeviceCg`), which this build does not have.
+    /// Phase 3: the device CG to [`CG_TOL`] (block-Jacobi), the true residual and
+    /// Δx = V P y (its last status read waits for the device).
     fn solve(&mut self) -> Result<Option<()>, String> {
-        Ok(None)
+        let params = DeviceCgParams {
+            tol: CG_TOL,
+            max_iterations: 100_000,
+            preconditioner: Preconditioner::BlockJacobi,
+        };
+        self.cg
+            .iterate(&self.frames, &params)
+            .map_err(|e| e.to_string())?;
+        Ok(Some(()))
     }
 
     /// Phase 4: E(x + Δx) and gᵀΔx on the device. Absent: it needs the device loop's
@@ -548,7 +574,7 @@ impl GpuSide {
 }
 
 /// Runs the GPU side: a warm-up and `reps` timed repetitions of each phase that exists.
-fn run_gpu(side: &mut GpuSide, frames: &Frames, reps: usize) -> Result<Phases, String> {
+fn run_gpu(side: &mut GpuSide, reps: usize) -> Result<Phases, String> {
     let mut s = Samples::default();
     for rep in 0..=reps {
         let mut time =
@@ -562,7 +588,7 @@ fn run_gpu(side: &mut GpuSide, frames: &Frames, reps: usize) -> Result<Phases, S
         let t = Instant::now();
         time(0, side.assemble(), t)?;
         let t = Instant::now();
-        time(1, side.eliminate(frames), t)?;
+        time(1, side.eliminate(), t)?;
         let t = Instant::now();
         time(2, side.solve(), t)?;
         let t = Instant::now();
@@ -745,8 +771,8 @@ fn bench_size(
         None => rec.gpu.note = "not run: --no-gpu".into(),
         Some(ctx) => {
             bar.set_message(format!("{nodes} nodes: GPU"));
-            let run = GpuSide::new(ctx, &scene, &x, &xt).and_then(|mut side| {
-                let phases = run_gpu(&mut side, &frames, reps)?;
+            let run = GpuSide::new(ctx, &scene, &x, &xt, &frames).and_then(|mut side| {
+                let phases = run_gpu(&mut side, reps)?;
                 let diff = match &cpu_system {
                     Some((h, g)) => Some(side.difference(h, g)?),
                     None => None,
