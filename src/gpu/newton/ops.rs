@@ -1083,3 +1083,92 @@ impl NewtonOps {
         &self.term_counts
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use naga::{AddressSpace, StorageAccess};
+
+    /// The WGSL declarations of bind group 0 are [`NEWTON_OPS`]' bindings, in order, with
+    /// their access; `OpsParams` is four u32 in WGSL as in Rust; every entry point exists.
+    #[test]
+    fn layout_and_params_match_the_wgsl() {
+        let src = format!(
+            "{}{}",
+            kernels::prelude("f64", "f64", false),
+            NEWTON_OPS.source
+        );
+        let m = naga::front::wgsl::parse_str(&src)
+            .unwrap_or_else(|e| panic!("newton_ops.wgsl: {}", e.emit_to_string(&src)));
+        let mut declared: Vec<(u32, String, Access)> = m
+            .global_variables
+            .iter()
+            .filter_map(|(_, g)| {
+                let b = g.binding.as_ref()?;
+                let access = match g.space {
+                    AddressSpace::Uniform => Access::Uniform,
+                    AddressSpace::Storage { access } if access.contains(StorageAccess::STORE) => {
+                        Access::ReadWrite
+                    }
+                    AddressSpace::Storage { .. } => Access::Read,
+                    other => panic!("{:?} in {other:?}", g.name),
+                };
+                Some((b.binding, g.name.clone().unwrap_or_default(), access))
+            })
+            .collect();
+        declared.sort_by_key(|d| d.0);
+        let described: Vec<(u32, String, Access)> = NEWTON_OPS
+            .bindings
+            .iter()
+            .enumerate()
+            .map(|(i, (n, a))| (i as u32, n.to_string(), *a))
+            .collect();
+        assert_eq!(declared, described);
+        let (_, ty) = m
+            .types
+            .iter()
+            .find(|(_, t)| t.name.as_deref() == Some("OpsParams"))
+            .expect("struct OpsParams");
+        match &ty.inner {
+            naga::TypeInner::Struct { members, span } => {
+                assert_eq!(*span as usize, std::mem::size_of::<OpsParams>());
+                let names: Vec<_> = members.iter().filter_map(|m| m.name.as_deref()).collect();
+                assert_eq!(names, ["count", "mode", "slot", "aux"]);
+            }
+            other => panic!("OpsParams is {other:?}"),
+        }
+        for e in ENTRIES {
+            assert!(
+                m.entry_points.iter().any(|p| p.name == e),
+                "no entry point {e}"
+            );
+        }
+        // The shader's constants are the host's.
+        for (name, want) in [
+            ("MODE_ENERGY", MODE_ENERGY),
+            ("MODE_DOT", MODE_DOT),
+            ("MODE_MAX_ABS", MODE_MAX_ABS),
+            ("MODE_CCD", MODE_CCD),
+            ("MODE_MIN_DISTANCE", MODE_MIN_DISTANCE),
+            ("MODE_MOVING_ENERGY", MODE_MOVING_ENERGY),
+            ("S_H", S_H as u32),
+            ("S_ALPHA", S_ALPHA as u32),
+            ("S_FRACTION", S_FRACTION as u32),
+            ("S_INF", S_INF as u32),
+            ("S_PLANES", S_PLANES as u32),
+            ("PROJ_STRIDE", PROJ_STRIDE as u32),
+            ("MOVING_STRIDE", MOVING_STRIDE as u32),
+            ("MOVING_INDEX_STRIDE", MOVING_INDEX_STRIDE as u32),
+        ] {
+            let (_, c) = m
+                .constants
+                .iter()
+                .find(|(_, c)| c.name.as_deref() == Some(name))
+                .unwrap_or_else(|| panic!("no const {name}"));
+            match m.global_expressions[c.init] {
+                naga::Expression::Literal(naga::Literal::U32(v)) => assert_eq!(v, want, "{name}"),
+                ref e => panic!("{name} = {e:?}"),
+            }
+        }
+    }
+}
