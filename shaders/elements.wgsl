@@ -25,7 +25,8 @@ struct ElementParams {
     project: u32,
     // Half-spaces in `consts` (barrier only).
     n_planes: u32,
-    pad: u32,
+    // Nonzero: energies (and barrier flags) only, gradients and Hessians left unwritten.
+    energy_only: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: ElementParams;
@@ -435,6 +436,9 @@ fn neohookean_element(e: u32) {
     let psi = real(0.5) * mu * u - real(0.5) * mu * ln1p(u / (dr + real(1.0)))
         + real(0.5) * lam * (jac - real(1.0)) * (jac + real(1.0) - real(2.0) * alpha);
     energy[e] = vol * psi;
+    if (params.energy_only != 0u) {
+        return;
+    }
     // P = s F + t cof(F).
     let cof = cofactor(f);
     let s = mu - mu / (ic + real(1.0));
@@ -546,6 +550,9 @@ fn spring_element(e: u32) {
     }
     let l = sqrt(l2);
     energy[e] = real(0.5) * kk * (l - l0) * (l - l0);
+    if (params.energy_only != 0u) {
+        return;
+    }
     var c = real(0.0);
     var tr = real(0.0);
     if (l > real(0.0)) {
@@ -580,9 +587,11 @@ fn inertia_node(i: u32) {
     for (var a = 0u; a < D; a++) {
         let d = x[i * D + a] - x_tilde[i * D + a];
         en += real(0.5) * m * d * d;
-        gradient[i * D + a] = m * d;
-        for (var b = 0u; b < D; b++) {
-            hessian[(i * D + a) * D + b] = select(real(0.0), m, a == b);
+        if (params.energy_only == 0u) {
+            gradient[i * D + a] = m * d;
+            for (var b = 0u; b < D; b++) {
+                hessian[(i * D + a) * D + b] = select(real(0.0), m, a == b);
+            }
         }
     }
     energy[i] = en;
@@ -593,7 +602,9 @@ fn gravity_node(i: u32) {
     var en = real(0.0);
     for (var a = 0u; a < D; a++) {
         en += m * consts[a] * x[i * D + a];
-        gradient[i * D + a] = -m * consts[a];
+        if (params.energy_only == 0u) {
+            gradient[i * D + a] = -m * consts[a];
+        }
     }
     energy[i] = -en;
 }
@@ -635,6 +646,9 @@ fn barrier_node(i: u32) {
     }
     energy[i] = en;
     flags[i] = flag;
+    if (params.energy_only != 0u) {
+        return;
+    }
     for (var a = 0u; a < D; a++) {
         gradient[i * D + a] = gr[a];
         for (var b = 0u; b < D; b++) {

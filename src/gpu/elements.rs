@@ -57,7 +57,7 @@ struct ElementParams {
     count: u32,
     project: u32,
     n_planes: u32,
-    pad: u32,
+    energy_only: u32,
 }
 const _: () = assert!(std::mem::size_of::<ElementParams>() == 16);
 
@@ -462,7 +462,7 @@ impl GpuElements {
                 count: t.count as u32,
                 project: 1,
                 n_planes: planes.len() as u32,
-                pad: 0,
+                energy_only: 0,
             };
             let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(&format!("{label} params")),
@@ -637,6 +637,16 @@ impl GpuElements {
     /// Hessians are PSD-projected (the neo-Hookean ∂²Ψ/∂F² eigenvalues and the springs'
     /// transverse stiffness clamped at zero), else exact.
     pub fn evaluate(&self, project: bool) -> Result<(), GpuError> {
+        self.dispatch(project, false)
+    }
+
+    /// Dispatches every term for its per-item energies (and the barrier's flags) only, the
+    /// gradients and Hessians left as they were: what a line search needs.
+    pub fn evaluate_energy(&self) -> Result<(), GpuError> {
+        self.dispatch(true, true)
+    }
+
+    fn dispatch(&self, project: bool, energy_only: bool) -> Result<(), GpuError> {
         let dev = &self.ctx.device;
         let max_groups = self.ctx.limits.max_compute_workgroups_per_dimension.max(1);
         for t in &self.terms {
@@ -644,7 +654,7 @@ impl GpuElements {
                 count: t.count as u32,
                 project: project as u32,
                 n_planes: self.n_planes as u32,
-                pad: 0,
+                energy_only: energy_only as u32,
             };
             self.ctx.write_buffer(&t.params, 0, bytemuck::bytes_of(&p));
         }
@@ -769,7 +779,7 @@ mod tests {
             naga::TypeInner::Struct { members, span } => {
                 assert_eq!(*span as usize, std::mem::size_of::<ElementParams>());
                 let names: Vec<_> = members.iter().filter_map(|m| m.name.as_deref()).collect();
-                assert_eq!(names, ["count", "project", "n_planes", "pad"]);
+                assert_eq!(names, ["count", "project", "n_planes", "energy_only"]);
             }
             other => panic!("ElementParams is {other:?}"),
         }
