@@ -338,6 +338,10 @@ pub struct RunArgs {
     /// Override the scene's Cholesky ordering (auto, amd or nested-dissection).
     #[arg(long, value_enum)]
     pub ordering: Option<CholeskyOrdering>,
+    /// Where the Newton loop runs: cpu, or gpu (the whole step on the device in f64)
+    /// [default: the scene's `[solver] newton`, else cpu].
+    #[arg(long, value_enum)]
+    pub newton: Option<crate::scene::NewtonLoop>,
     /// Replace files with run's output names that no previous run there wrote.
     #[arg(long)]
     pub overwrite: bool,
@@ -1179,6 +1183,7 @@ fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
         quiet,
         overwrite: a.overwrite,
         ordering: a.ordering,
+        newton: a.newton,
     };
     match crate::driver::run(&opts) {
         Ok(summary) => {

@@ -39,6 +39,8 @@ pub struct RunOptions {
     pub overwrite: bool,
     /// Overrides the scene's Cholesky ordering.
     pub ordering: Option<crate::CholeskyOrdering>,
+    /// Overrides where the Newton loop runs (`[solver] newton`).
+    pub newton: Option<crate::scene::NewtonLoop>,
 }
 
 /// Why a run failed.
@@ -178,6 +180,10 @@ pub struct RunSummary {
     pub contact_counters: ContactCounters,
     /// Contact history; None for a scene without obstacles.
     pub contact: Option<ContactSummary>,
+    /// The GPU Newton loop's adapter, precision and host↔device traffic (totals over the
+    /// run); absent for a run with the CPU loop.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gpu: Option<crate::integrator::GpuRunReport>,
     #[serde(skip)]
     pub records: Vec<StepRecord>,
     #[serde(skip)]
@@ -334,6 +340,9 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
     if let Some(o) = opts.ordering {
         scene.solver.ordering = o;
     }
+    if let Some(n) = opts.newton {
+        scene.solver.newton = n;
+    }
     if let Some(n) = opts.steps {
         if n == 0 {
             return Err(InputError::new("--steps", "", "must be at least 1").into());
@@ -413,7 +422,10 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         steps_completed: 0,
         end_time: 0.0,
         wall_seconds: 0.0,
-        solver: scene.solver.linear.to_string(),
+        solver: match scene.solver.newton {
+            crate::scene::NewtonLoop::Gpu => "newton-gpu".to_string(),
+            crate::scene::NewtonLoop::Cpu => scene.solver.linear.to_string(),
+        },
         adapter: None,
         characteristic_length: scene.characteristic_length,
         newton_tolerance: 0.0,
@@ -425,6 +437,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         moving_boundary: None,
         contact_counters: ContactCounters::default(),
         contact: None,
+        gpu: None,
         records: Vec::new(),
         final_positions: Vec::new(),
         final_velocities: Vec::new(),
@@ -437,6 +450,10 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
             let r = write_summary(&mut dir, &summary)
                 .and_then(|_| simulate(&scene, opts, &mut stepper, &mut dir, &mut summary));
             summary.contact_counters = stepper.contact_counters();
+            summary.gpu = stepper.gpu_report().map(|mut g| {
+                g.newton_iterations = summary.newton_iterations;
+                g
+            });
             summary.final_positions = stepper.x.clone();
             summary.final_velocities = stepper.v.clone();
             r

@@ -441,6 +441,12 @@ impl Solver {
         self.gpu.as_ref().map(|c| c.adapter_name())
     }
 
+    /// Bytes moved between host and device by the GPU solver so far (None for the CPU
+    /// solvers).
+    pub fn gpu_traffic(&self) -> Option<crate::gpu::TrafficCount> {
+        self.gpu.as_ref().map(GpuContext::traffic)
+    }
+
     /// Solves the problem: Δx meeting every constraint, and the reactions.
     pub fn solve(&mut self, problem: &Problem) -> Result<Solution, Error> {
         let t = Instant::now();

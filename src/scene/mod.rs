@@ -54,7 +54,7 @@ mod spec;
 
 pub use spec::{
     BcKindSpec, BodySpec, BoundarySpec, BoxRegion, LinearKind, MaterialModel, MaterialSpec,
-    MeshKind, MeshSpec, MotionSpec, MovingSpec, ObstacleKind, ObstacleSpec, OutputSpec,
+    MeshKind, MeshSpec, MotionSpec, MovingSpec, NewtonLoop, ObstacleKind, ObstacleSpec, OutputSpec,
     PlaneRegion, RegionSpec, SceneFile, SolverSpec,
 };
 

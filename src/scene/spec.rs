@@ -113,6 +113,32 @@ pub struct SolverSpec {
     /// Cholesky: fill-reducing ordering ("auto", the default, "amd" or "nested-dissection").
     #[serde(default)]
     pub ordering: crate::CholeskyOrdering,
+    /// Where the Newton loop runs: "cpu" (the default; `linear` picks the linear solver)
+    /// or "gpu" (element terms, assembly, elimination, CG and line search on the device,
+    /// f64; `linear` is not used).
+    #[serde(default)]
+    pub newton: NewtonLoop,
+}
+
+/// Where the Newton loop of a time step runs (`[solver] newton`, `run --newton`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, serde::Serialize)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+#[serde(rename_all = "lowercase")]
+pub enum NewtonLoop {
+    /// Element terms, assembly and line search on the CPU; the linear solve by `linear`.
+    #[default]
+    Cpu,
+    /// The whole Newton step on the GPU in f64: only scalars cross the bus per iteration.
+    Gpu,
+}
+
+impl NewtonLoop {
+    pub fn name(self) -> &'static str {
+        match self {
+            NewtonLoop::Cpu => "cpu",
+            NewtonLoop::Gpu => "gpu",
+        }
+    }
 }
 
 impl SolverSpec {
@@ -163,6 +189,7 @@ impl Default for SolverSpec {
             max_newton_iterations: default_newton_iters(),
             characteristic_length: None,
             ordering: crate::CholeskyOrdering::Auto,
+            newton: NewtonLoop::Cpu,
         }
     }
 }

@@ -49,13 +49,18 @@
 //! Σ m (v^{n+1} − vⁿ) = h (M g + Σ f + Σ c). On a constrained node within d̂, the reaction
 //! is taken net of the barrier (f = constrained part of ∇E/h², which includes h²∇P_b).
 
+mod device;
+
+pub use device::{device_bytes_needed, GpuRunReport};
+
 use crate::constraints::{Constraint, ConstraintKind, Frames};
 use crate::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::energy::barrier::{Barrier, Ccd, HalfSpace};
 use crate::energy::{inertia, AssemblyWork};
 use crate::linalg::norm3;
 use crate::scene::{
-    check_solver_size, joint_targets, BcShape, JointTarget, LinearKind, Scene, SolverSpec,
+    check_solver_size, joint_targets, BcShape, JointTarget, LinearKind, NewtonLoop, Scene,
+    SolverSpec,
 };
 use crate::sparse::BlockCsr;
 use crate::{LayoutKey, Solver};
@@ -225,6 +230,9 @@ pub struct Stepper<'s> {
     pub contact_forces: Vec<f64>,
     /// Reused work vectors of [`Stepper::step`] (no allocation per Newton iteration).
     work: StepWork,
+    /// The device side of the GPU Newton loop (`[solver] newton = "gpu"`); None: the CPU
+    /// loop.
+    device: Option<device::DeviceLoop>,
 }
 
 /// Work vectors of one step, kept between steps so the Newton loop does not allocate them.
@@ -268,8 +276,15 @@ impl<'s> Stepper<'s> {
     /// overridden after parsing), and [`InitError::Solver`] when the linear solver cannot
     /// start (no GPU adapter).
     pub fn new(scene: &'s Scene) -> Result<Self, InitError> {
+        let on_device = scene.solver.newton == NewtonLoop::Gpu;
+        // The GPU loop has its own CG; the CPU one is never called (a CG costs nothing to
+        // build, a second GPU device would).
+        let mut linear = scene.solver.clone();
+        if on_device {
+            linear.linear = LinearKind::Cg;
+        }
         // The solver may have been overridden after the scene was parsed (`--solver`).
-        check_solver_size(scene.dim, scene.model.n_nodes, scene.solver.linear).map_err(|p| {
+        check_solver_size(scene.dim, scene.model.n_nodes, linear.linear).map_err(|p| {
             InitError::Input {
                 entry: "solver.linear".into(),
                 problem: format!("{p} (or --solver)"),
@@ -318,7 +333,7 @@ impl<'s> Stepper<'s> {
             joint,
             moving_bcs,
             frames: HashMap::new(),
-            linear: LinearSolver::new(&scene.solver).map_err(InitError::Solver)?,
+            linear: LinearSolver::new(&linear).map_err(InitError::Solver)?,
             hmat: scene.model.zero_matrix(),
             assembly: AssemblyWork::default(),
             reactions: vec![0.0; scene.x0.len()],
@@ -337,6 +352,7 @@ impl<'s> Stepper<'s> {
                 Vec::new()
             },
             work: StepWork::default(),
+            device: None,
         };
         // Build (and validate) the static constraint set up front: bad conditions fail
         // before the first step.
@@ -354,6 +370,9 @@ impl<'s> Stepper<'s> {
                 entry: e.label,
                 problem: e.problem,
             });
+        }
+        if on_device {
+            s.start_device()?;
         }
         Ok(s)
     }
@@ -489,6 +508,9 @@ impl<'s> Stepper<'s> {
     /// updates and the CCD-bounded line search), then the end-of-step recovery of forces,
     /// velocities and state.
     pub fn step(&mut self) -> Result<StepReport, String> {
+        if self.device.is_some() {
+            return self.step_device();
+        }
         let t1 = self.t + self.scene.time_step;
         let mut rep = StepReport {
             step: self.step + 1,
