@@ -21,7 +21,7 @@ use crate::energy::barrier::Ccd;
 use crate::gpu::assembly::GpuAssembly;
 use crate::gpu::elements::{GpuElements, TermKind};
 use crate::gpu::newton::cg::{DeviceCg, DeviceCgParams, DeviceFrames};
-use crate::gpu::newton::ops::{MovingTerm, NewtonOps};
+use crate::gpu::newton::ops::{static_projections, MovingTerm, NewtonOps};
 use crate::gpu::{GpuContext, GpuError, GpuOptions, Precision};
 use crate::scene::{BcShape, Scene};
 use std::collections::HashMap;
@@ -208,41 +208,15 @@ fn gpu_msg(e: GpuError) -> String {
     format!("GPU Newton loop: {e}")
 }
 
-/// The affine map x ← P x + c of a projection onto an affine set (sticky point, plane,
-/// line or an intersection), read off the projection itself: c = proj(0),
-/// P e_a = proj(e_a) − c.
-fn affine_of(d: usize, proj: impl Fn(&mut [f64])) -> ([f64; 9], [f64; 3]) {
-    let mut c = [0.0; 3];
-    proj(&mut c[..d]);
-    let mut p = [0.0; 9];
-    for a in 0..d {
-        let mut e = [0.0; 3];
-        e[a] = 1.0;
-        proj(&mut e[..d]);
-        for b in 0..d {
-            // Column a of P.
-            p[b * 3 + a] = e[b] - c[b];
-        }
-    }
-    (p, c)
-}
-
 impl Stepper<'_> {
     /// Builds the device loop (after the constraint sets have been validated).
     pub(super) fn start_device(&mut self) -> Result<(), InitError> {
         let sc = self.scene;
-        let d = sc.dim;
-        let dl = DeviceLoop::new(sc, self.contact.as_ref())?;
-        let mut projections = Vec::new();
-        for &k in &self.single_static_bcs {
-            let b = &sc.bcs[k];
-            let (p, c) = affine_of(d, |x| super::project(d, &b.shape, x));
-            projections.push((b.node, p, c));
-        }
-        for j in &self.joint {
-            let (p, c) = affine_of(d, |x| j.project(d, x));
-            projections.push((j.node, p, c));
-        }
+        let mut dl = DeviceLoop::new(sc, self.contact.as_ref())?;
+        let projections = static_projections(sc).map_err(|problem| InitError::Input {
+            entry: "boundary".into(),
+            problem,
+        })?;
         let init = |e: GpuError| InitError::Solver(format!("the GPU Newton loop: {e}"));
         dl.ops.set_static_projections(&projections).map_err(init)?;
         dl.ops.set_state(&self.x, &self.v).map_err(init)?;
@@ -331,9 +305,8 @@ impl Stepper<'_> {
             let pushed = self.pushed_nodes;
             self.advance_obstacles(t1, &mut x);
             if self.pushed_nodes != pushed {
-                dl.ops.set_positions(&x).map_err(gpu_msg)?;
+                dl.ops.set_state(&x, &v).map_err(gpu_msg)?;
             }
-            drop(v);
         } else {
             let mut none = [];
             self.advance_obstacles(t1, &mut none);
@@ -400,7 +373,6 @@ impl Stepper<'_> {
     /// The penalty terms of the unsnapped moving nodes, for the device.
     fn moving_terms(&self, targets: &[BcShape], snapped: &[bool]) -> Vec<MovingTerm> {
         let sc = self.scene;
-        let d = sc.dim;
         let mut out = Vec::new();
         for (j, &k) in self.moving_bcs.iter().enumerate() {
             if snapped[j] {
@@ -408,13 +380,12 @@ impl Stepper<'_> {
             }
             let node = sc.bcs[k].node;
             let m = sc.model.mass[node];
-            out.push(MovingTerm::new(
+            out.push(MovingTerm {
                 node,
-                &targets[j],
-                d,
-                self.k_m * m,
-                self.lambda[j].map(|l| m.sqrt() * l),
-            ));
+                shape: targets[j].clone(),
+                coef: self.k_m * m,
+                sqrt_m_lambda: self.lambda[j].map(|l| m.sqrt() * l),
+            });
         }
         out
     }
@@ -671,34 +642,5 @@ mod tests {
         );
         assert!(check_capacity(&scene, "Test GPU", true, Some(need)).is_ok());
         assert!(check_capacity(&scene, "Test GPU", true, None).is_ok());
-    }
-
-    /// The affine map read off a projection reproduces it: a plane through (0, 0.5, 0)
-    /// with normal (0, 0.6, 0.8) and a line along x through (0, 1, 2).
-    #[test]
-    fn affine_maps_reproduce_their_projections() {
-        let plane = |x: &mut [f64]| {
-            let n = [0.0, 0.6, 0.8];
-            let dist: f64 = (0..3).map(|a| n[a] * x[a]).sum::<f64>() - 0.3;
-            for a in 0..3 {
-                x[a] -= dist * n[a];
-            }
-        };
-        let line = |x: &mut [f64]| {
-            x[1] = 1.0;
-            x[2] = 2.0;
-        };
-        for proj in [&plane as &dyn Fn(&mut [f64]), &line] {
-            let (p, c) = affine_of(3, proj);
-            for x0 in [[0.3, -1.0, 2.5], [10.0, 0.1, -0.7]] {
-                let mut want = x0;
-                proj(&mut want);
-                for b in 0..3 {
-                    let got: f64 = (0..3).map(|a| p[b * 3 + a] * x0[a]).sum::<f64>() + c[b];
-                    // Two roundings of values of size ≤ 10: 1e-14 absolute.
-                    assert!((got - want[b]).abs() <= 1e-14, "{got} vs {}", want[b]);
-                }
-            }
-        }
     }
 }
