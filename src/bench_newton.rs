@@ -17,11 +17,11 @@
 //!
 //! CPU: f64 on every rayon worker (`--threads`): `Model`'s parallel assembly, `Eliminated`
 //! and `BuiltPreconditioner`, the fused CPU CG, the model's energy. GPU (f64): phase 1 is
-//! `GpuElements::evaluate` + `GpuAssembly::assemble`, waited for. Phases 2–4 on the GPU
-//! belong to the device Newton loop (`gpu::newton`: a device CG and the loop's vector
-//! operations); `GpuSide::eliminate`, `GpuSide::solve` and `GpuSide::line_search`
-//! are where they go, and until they exist they report the phase absent, which the
-//! outputs write as null (JSON), an empty cell (CSV) and "n/a" (table).
+//! `GpuElements::evaluate` + `GpuAssembly::assemble`, waited for; phases 2–4 are the
+//! device Newton loop's (`gpu::newton`): `DeviceCg::prepare` (b̂ and the preconditioners
+//! from the assembled blocks), `DeviceCg::iterate` (PCG, true residual, Δx = V P y) and
+//! `NewtonOps` (the trial point, an energy-only pass reduced per term, gᵀΔx). A phase that
+//! fails to run is absent: null (JSON), an empty cell (CSV) and "n/a" (table).
 //!
 //! Every phase runs once as a warm-up, then `reps` times; a phase's time is the median of
 //! those. A side's total is the sum of its four medians, absent when a phase is.
@@ -35,6 +35,7 @@ use crate::error::InputError;
 use crate::gpu::assembly::GpuAssembly;
 use crate::gpu::elements::GpuElements;
 use crate::gpu::newton::cg::{DeviceCg, DeviceCgParams, DeviceFrames};
+use crate::gpu::newton::ops::NewtonOps;
 use crate::gpu::{GpuContext, GpuOptions, Precision};
 use crate::scene::{BcShape, Scene};
 use crate::sparse::BlockCsr;
@@ -487,6 +488,9 @@ struct GpuSide {
     assembly: GpuAssembly,
     cg: DeviceCg,
     frames: DeviceFrames,
+    ops: NewtonOps,
+    /// h², the factor of the potential terms in E.
+    h2: f64,
 }
 
 impl GpuSide {
@@ -506,11 +510,17 @@ impl GpuSide {
         assembly.set_scale(scene.time_step * scene.time_step);
         let cg = DeviceCg::new(&assembly).map_err(|e| e.to_string())?;
         let frames = cg.frames(frames).map_err(|e| e.to_string())?;
+        let ops =
+            NewtonOps::new(&elements, &assembly, cg.dx_buffer()).map_err(|e| e.to_string())?;
+        ops.set_state(x, &vec![0.0; x.len()])
+            .map_err(|e| e.to_string())?;
         Ok(GpuSide {
             elements,
             assembly,
             cg,
             frames,
+            ops,
+            h2: scene.time_step * scene.time_step,
         })
     }
 
@@ -545,10 +555,30 @@ impl GpuSide {
         Ok(Some(()))
     }
 
-    /// Phase 4: E(x + Δx) and gᵀΔx on the device. Absent: it needs the device loop's
-    /// operations (`gpu::newton::ops::NewtonOps`), which this build does not have.
+    /// Phase 4: the trial x + Δx, E there (an energy-only pass, one sum per term) and
+    /// gᵀΔx on the device, then the evaluation positions back to x (as the loop's accept
+    /// copies them the other way), so that the next repetition assembles at x again.
     fn line_search(&mut self) -> Result<Option<()>, String> {
-        Ok(None)
+        let err = |e: crate::gpu::GpuError| e.to_string();
+        self.ops.set_trial(1.0).map_err(err)?;
+        self.elements.evaluate_energy().map_err(err)?;
+        let terms = self.ops.energy_terms().map_err(err)?;
+        let slope = self.ops.dot_gradient_dx().map_err(err)?;
+        self.ops.set_trial(0.0).map_err(err)?;
+        let (mut inertia, mut rest) = (0.0, 0.0);
+        for (k, e) in self.ops.kinds().iter().zip(&terms) {
+            match k {
+                crate::gpu::elements::TermKind::Inertia => inertia += e,
+                _ => rest += e,
+            }
+        }
+        let e = inertia + self.h2 * rest;
+        if !e.is_finite() || !slope.is_finite() {
+            return Err(format!(
+                "the device line search gave E = {e:e}, gᵀΔx = {slope:e}"
+            ));
+        }
+        Ok(Some(()))
     }
 
     /// The assembled H and g, read back, against the CPU's.
@@ -792,10 +822,7 @@ fn bench_size(
                         .map(|(n, _)| *n)
                         .collect();
                     if !absent.is_empty() {
-                        rec.gpu.note = format!(
-                            "absent: {} (the device Newton loop is not in this build)",
-                            absent.join(", ")
-                        );
+                        rec.gpu.note = format!("absent: {}", absent.join(", "));
                     }
                 }
                 Err(e) => {
