@@ -9,8 +9,11 @@
 #      `bench --quick` at GPU_EVAL_SIZES                  -> OUTDIR/ladder/
 #   3. `bench --newton` at GPU_EVAL_NEWTON_SIZES, when the binary has it
 #                                                         -> OUTDIR/newton/
-#   4. the hard-case speed table, `bench --hard`          -> OUTDIR/hard/
-#   5. where CuPy imports: the same generated systems solved by CuPy's Jacobi CG
+#   4. `run twist --steps 1` at GPU_EVAL_TWIST_SIZE with the GPU Newton loop and with the
+#      CPU loop (CPU CG, every core): wall and linear-solve seconds, bytes moved
+#                                                         -> OUTDIR/twist/
+#   5. the hard-case speed table, `bench --hard`          -> OUTDIR/hard/
+#   6. where CuPy imports: the same generated systems solved by CuPy's Jacobi CG
 #      (scripts/cupy_cg.py) beside `stickslip solve --solver gpu` -> OUTDIR/cupy/
 # and OUTDIR/summary.md with each step's exit status and seconds. A step that fails or
 # runs out of time is recorded there and the script goes on; it exits 1 when any did.
@@ -19,10 +22,12 @@
 #   STICKSLIP_BIN          the binary [target/release/stickslip]
 #   GPU_EVAL_SIZES         ladder node counts [100000,1000000,3000000]
 #   GPU_EVAL_NEWTON_SIZES  bench --newton node counts [10000,100000,1000000]
+#   GPU_EVAL_TWIST_SIZE    run twist --size [10]
 #   GPU_EVAL_HARD_SCALE    bench --hard-scale [5]
 #   GPU_EVAL_CUPY_SIZES    node counts solved by CuPy and stickslip [100000,1000000]
 #   GPU_EVAL_PYTHON        the Python with CuPy [python3]
-#   GPU_EVAL_LIMITS        seconds per step: ladder,newton,hard,cupy [300,120,90,150]
+#   GPU_EVAL_LIMITS        seconds per step: ladder,newton,twist,hard,cupy
+#                          [180,100,60,60,90]: with `info` (30) at most 520 s in all
 set -uo pipefail
 
 if [ $# -ne 1 ]; then
@@ -34,10 +39,11 @@ here=$(cd "$(dirname "$0")" && pwd)
 bin=${STICKSLIP_BIN:-target/release/stickslip}
 sizes=${GPU_EVAL_SIZES:-100000,1000000,3000000}
 newton_sizes=${GPU_EVAL_NEWTON_SIZES:-10000,100000,1000000}
+twist_size=${GPU_EVAL_TWIST_SIZE:-10}
 hard_scale=${GPU_EVAL_HARD_SCALE:-5}
 cupy_sizes=${GPU_EVAL_CUPY_SIZES:-100000,1000000}
 py=${GPU_EVAL_PYTHON:-python3}
-IFS=, read -r t_ladder t_newton t_hard t_cupy <<< "${GPU_EVAL_LIMITS:-300,120,90,150}"
+IFS=, read -r t_ladder t_newton t_twist t_hard t_cupy <<< "${GPU_EVAL_LIMITS:-180,100,60,60,90}"
 
 if [ ! -x "$bin" ]; then
     echo "gpu-eval: no stickslip binary at $bin (build with cargo build --release, or set STICKSLIP_BIN)" >&2
@@ -79,7 +85,7 @@ step() {
 }
 
 # 1. The adapter, its features and limits.
-step info 60 info.txt sh -c "\"$bin\" info > \"$out/info.txt\" 2>&1"
+step info 30 info.txt sh -c "\"$bin\" info > \"$out/info.txt\" 2>&1"
 
 # 2. The solver ladder, 3D.
 step ladder "$t_ladder" ladder/ "$bin" bench --quick --sizes "$sizes" --dims 3 \
@@ -93,11 +99,27 @@ else
     echo "| newton | not in this build | | |" >> "$summary"
 fi
 
-# 4. The hard cases: f64 against mixed at a larger scale.
+# 4. One step of a large twist, the whole Newton step on the GPU against the CPU loop.
+if "$bin" run --help 2>/dev/null | grep -q -- '--newton'; then
+    twist_both() {
+        "$bin" run twist --size "$twist_size" --steps 1 --newton gpu --quiet --overwrite \
+            --out "$out/twist/gpu" || return 1
+        "$bin" run twist --size "$twist_size" --steps 1 --solver cg --quiet --overwrite \
+            --out "$out/twist/cpu" || return 1
+    }
+    mkdir -p "$out/twist"
+    export out bin twist_size
+    export -f twist_both
+    step twist "$t_twist" twist/ bash -c twist_both 2> "$out/twist.log"
+else
+    echo "| twist | not in this build | | |" >> "$summary"
+fi
+
+# 5. The hard cases: f64 against mixed at a larger scale.
 step hard "$t_hard" hard/ "$bin" bench --hard --hard-scale "$hard_scale" \
     --out "$out/hard" 2> "$out/hard.log"
 
-# 5. CuPy's CG on the same systems, beside stickslip's GPU CG (f64, Jacobi, 1e-8).
+# 6. CuPy's CG on the same systems, beside stickslip's GPU CG (f64, Jacobi, 1e-8).
 if "$py" -c "import cupy, cupyx.scipy.sparse.linalg" 2>/dev/null; then
     cupy_all() {
         local n dir

@@ -155,3 +155,36 @@ fn twist_size_4_moves_scalars_not_matrices() {
         "host→device per Newton iteration is {ratio} of the matrix"
     );
 }
+
+/// The device loop runs in f64 only: a scene asking for it in f32 is refused before any
+/// device work, as an input error on `solver.newton` (exit 2), in one line. Needs no GPU.
+#[test]
+fn f32_device_loop_is_refused_in_one_line() {
+    let dir = std::env::temp_dir().join(format!("stickslip-gpu-newton-f32-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp folder");
+    let scene = dir.join("f32.toml");
+    let twist = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/twist.toml"),
+    )
+    .expect("scenes/twist.toml");
+    std::fs::write(
+        &scene,
+        format!("{twist}\n[solver]\nnewton = \"gpu\"\nprecision = \"f32\"\n"),
+    )
+    .expect("scene file");
+    let opts = RunOptions {
+        scene: Some(scene.display().to_string()),
+        out: Some(dir.join("out")),
+        steps: Some(1),
+        quiet: true,
+        ..RunOptions::default()
+    };
+    let e = run(&opts).expect_err("f32 device loop must be refused");
+    let msg = e.to_string();
+    assert_eq!(e.exit_code(), 2, "{msg}");
+    assert!(
+        msg.contains("solver.newton") && msg.contains("f64") && !msg.contains('\n'),
+        "{msg}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
