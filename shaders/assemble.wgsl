@@ -9,12 +9,17 @@
 // H = M + s·(Σ_sets K_e + B), g = M(x − x̃) + s·(Σ_sets g_e + g_gravity + g_barrier),
 // s = coef[1] (h²); the inertia terms enter with coef[0] = 1.
 //
+// An element set or node term too large for one storage binding comes as several chunk
+// terms of consecutive items, each with its own arrays and gather lists (offsets local to
+// the chunk). A chunk's pass reads `out` and adds its own list in element order, so an
+// entry receives the unsplit additions in the unsplit order: the same bits.
+//
 // Block values are row-major D×D at out[k·D² ..], k in the BlockCsr order; element
 // Hessians hessian[e·nl² + (a·D + r)·nl + b·D + c], gradients gradient[e·nl + a·D + c].
 
 override D: u32 = 3u;
 
-// Mirrors `AssemblyParams` in src/gpu/assembly.rs (four u32, 16 bytes, size-asserted there).
+// Mirrors `AssemblyParams` in src/gpu/assembly.rs (eight u32, 32 bytes, size-asserted there).
 struct AssemblyParams {
     // Output blocks or nodes of the dispatch.
     count: u32,
@@ -24,6 +29,13 @@ struct AssemblyParams {
     arity: u32,
     // Index into `coef` of this term's factor.
     coef_slot: u32,
+    // Node passes: the mesh node of the term's item 0. A node term too large for one
+    // storage binding comes in chunks of consecutive nodes, each with its own `src` from
+    // index 0; `out` and `x` are the whole mesh's.
+    first: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 const NONE: u32 = 0xffffffffu;
@@ -47,7 +59,8 @@ const NONE: u32 = 0xffffffffu;
 // Block values, gradient or product.
 @group(0) @binding(7) var<storage, read_write> out: array<real>;
 
-// Block k := the inertia block of its node when diagonal, else zero.
+// Block k := the inertia block gather[k] of the first inertia chunk (its diagonal blocks),
+// else zero (NONE: off-diagonal, or a node of a later chunk, set by blocks_set_nodes).
 @compute @workgroup_size(WG)
 fn blocks_init(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
@@ -89,7 +102,21 @@ fn blocks_add_elements(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     }
 }
 
-// Diagonal block of node i += factor·(its node-term block).
+// Diagonal block of the chunk's node i := factor·(its node-term block): the inertia of
+// the chunks after the first (the first's blocks_init zeroes every other block).
+@compute @workgroup_size(WG)
+fn blocks_set_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let dd = D * D;
+    let c = coef[params.coef_slot];
+    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+        let k = gather[i];
+        for (var t = 0u; t < dd; t++) {
+            out[k * dd + t] = c * src[i * dd + t];
+        }
+    }
+}
+
+// Diagonal block of the chunk's node i += factor·(its node-term block).
 @compute @workgroup_size(WG)
 fn blocks_add_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
@@ -102,13 +129,14 @@ fn blocks_add_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     }
 }
 
-// g_i := factor·(node term)_i.
+// g_{first+i} := factor·(node term)_i.
 @compute @workgroup_size(WG)
 fn grad_init(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let c = coef[params.coef_slot];
     for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+        let g = params.first + i;
         for (var q = 0u; q < D; q++) {
-            out[i * D + q] = c * src[i * D + q];
+            out[g * D + q] = c * src[i * D + q];
         }
     }
 }
@@ -134,13 +162,14 @@ fn grad_add_elements(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num
     }
 }
 
-// g_i += factor·(node term)_i.
+// g_{first+i} += factor·(node term)_i.
 @compute @workgroup_size(WG)
 fn grad_add_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let c = coef[params.coef_slot];
     for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+        let g = params.first + i;
         for (var q = 0u; q < D; q++) {
-            out[i * D + q] += c * src[i * D + q];
+            out[g * D + q] += c * src[i * D + q];
         }
     }
 }
@@ -167,34 +196,36 @@ fn matvec_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
     }
 }
 
-// y_i := factor·(node-term block)_i x_i (matrix-free product, first term).
+// y_{first+i} := factor·(node-term block)_i x_{first+i} (matrix-free product, first term).
 @compute @workgroup_size(WG)
 fn matfree_init(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
     let c = coef[params.coef_slot];
     for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+        let g = params.first + i;
         for (var r = 0u; r < D; r++) {
             var s = real(0.0);
             for (var q = 0u; q < D; q++) {
-                s += src[i * dd + r * D + q] * x[i * D + q];
+                s += src[i * dd + r * D + q] * x[g * D + q];
             }
-            out[i * D + r] = c * s;
+            out[g * D + r] = c * s;
         }
     }
 }
 
-// y_i += factor·(node-term block)_i x_i.
+// y_{first+i} += factor·(node-term block)_i x_{first+i}.
 @compute @workgroup_size(WG)
 fn matfree_add_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
     let c = coef[params.coef_slot];
     for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+        let g = params.first + i;
         for (var r = 0u; r < D; r++) {
             var s = real(0.0);
             for (var q = 0u; q < D; q++) {
-                s += src[i * dd + r * D + q] * x[i * D + q];
+                s += src[i * dd + r * D + q] * x[g * D + q];
             }
-            out[i * D + r] += c * s;
+            out[g * D + r] += c * s;
         }
     }
 }

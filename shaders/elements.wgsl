@@ -17,7 +17,7 @@ override D: u32 = 3u;
 // pipeline: the Jacobi sweeps stop at it.
 override EPS: f32 = 2.220446049250313e-16;
 
-// Mirrors `ElementParams` in src/gpu/elements.rs (four u32, 16 bytes, size-asserted there).
+// Mirrors `ElementParams` in src/gpu/elements.rs (eight u32, 32 bytes, size-asserted there).
 struct ElementParams {
     // Elements or nodes of the dispatch.
     count: u32,
@@ -27,6 +27,14 @@ struct ElementParams {
     n_planes: u32,
     // Nonzero: energies (and barrier flags) only, gradients and Hessians left unwritten.
     energy_only: u32,
+    // Node kernels: the mesh node of item 0. A node term too large for one storage binding
+    // runs in chunks of consecutive nodes, each writing its own outputs from index 0 while
+    // reading the positions and node data of the whole mesh. Element kernels: unused (their
+    // chunks carry their own node indices and rest data).
+    first: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: ElementParams;
@@ -35,7 +43,7 @@ struct ElementParams {
 // Element-to-node indices, nodes per element each.
 @group(0) @binding(2) var<storage, read> nodes: array<u32>;
 // Per element: neo-Hookean (Dm⁻¹ row-major D×D, rest volume, μ, λ), springs (l₀, k).
-// Per node (node kernels): (lumped mass, contact weight).
+// Per node (node kernels): (lumped mass, contact weight), for every node of the mesh.
 @group(0) @binding(3) var<storage, read> rest: array<real>;
 // Gravity (3 entries), then per half-space (normal xyz, offset, d̂, κ).
 @group(0) @binding(4) var<storage, read> consts: array<real>;
@@ -581,11 +589,14 @@ fn spring_element(e: u32) {
     }
 }
 
+// Node kernels: item i of the dispatch is mesh node g = first + i; inputs are indexed by
+// g, outputs by i.
 fn inertia_node(i: u32) {
-    let m = rest[2u * i];
+    let g = params.first + i;
+    let m = rest[2u * g];
     var en = real(0.0);
     for (var a = 0u; a < D; a++) {
-        let d = x[i * D + a] - x_tilde[i * D + a];
+        let d = x[g * D + a] - x_tilde[g * D + a];
         en += real(0.5) * m * d * d;
         if (params.energy_only == 0u) {
             gradient[i * D + a] = m * d;
@@ -598,10 +609,11 @@ fn inertia_node(i: u32) {
 }
 
 fn gravity_node(i: u32) {
-    let m = rest[2u * i];
+    let g = params.first + i;
+    let m = rest[2u * g];
     var en = real(0.0);
     for (var a = 0u; a < D; a++) {
-        en += m * consts[a] * x[i * D + a];
+        en += m * consts[a] * x[g * D + a];
         if (params.energy_only == 0u) {
             gradient[i * D + a] = -m * consts[a];
         }
@@ -610,7 +622,8 @@ fn gravity_node(i: u32) {
 }
 
 fn barrier_node(i: u32) {
-    let w = rest[2u * i + 1u];
+    let g = params.first + i;
+    let w = rest[2u * g + 1u];
     var en = real(0.0);
     var gr = array<real, 3>();
     var he = array<real, 9>();
@@ -620,7 +633,7 @@ fn barrier_node(i: u32) {
             let o = 3u + 6u * j;
             var dist = real(0.0);
             for (var a = 0u; a < D; a++) {
-                dist += x[i * D + a] * consts[o + a];
+                dist += x[g * D + a] * consts[o + a];
             }
             dist -= consts[o + 3u];
             let dhat = consts[o + 4u];

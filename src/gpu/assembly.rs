@@ -12,6 +12,13 @@
 //! atomics, a fixed summation order, the CPU's (inertia, the sets in order with their
 //! elements in order, then gravity and barrier), so in f64 the result is the CPU
 //! assembly's of the same element arrays up to the contraction of multiply-adds.
+//!
+//! A term [`GpuElements`] split into chunks (consecutive elements or nodes, each its own
+//! buffers) gets gather lists and passes per chunk, offsets relative to the chunk's own
+//! arrays; each chunk's pass continues the sums of the chunk before, so H and g are the
+//! same bits as without the split. The assembled matrix itself is not split: the device CG
+//! reads its values whole, so a pattern whose values (nnz blocks·d²·8 bytes) exceed one
+//! storage binding is refused with [`GpuError::BufferTooLarge`] naming that buffer.
 
 use super::elements::{from_bytes, to_bytes, usage_storage};
 use super::elements::{GpuElements, TermKind, WORKGROUP};
@@ -46,15 +53,19 @@ struct AssemblyParams {
     nl: u32,
     arity: u32,
     coef_slot: u32,
+    /// Node passes: the mesh node of the chunk's item 0.
+    first: u32,
+    pad: [u32; 3],
 }
-const _: () = assert!(std::mem::size_of::<AssemblyParams>() == 16);
+const _: () = assert!(std::mem::size_of::<AssemblyParams>() == 32);
 
 /// Marks a block that is not on the diagonal (`NONE` in the shader).
 const NONE: u32 = u32::MAX;
 
 /// Entry points, in the order of [`GpuAssembly`]'s pipelines.
-const ENTRIES: [&str; 10] = [
+const ENTRIES: [&str; 11] = [
     "blocks_init",
+    "blocks_set_nodes",
     "blocks_add_elements",
     "blocks_add_nodes",
     "grad_init",
@@ -69,6 +80,7 @@ const ENTRIES: [&str; 10] = [
 #[derive(Clone, Copy)]
 enum Entry {
     BlocksInit,
+    BlocksSetNodes,
     BlocksAddElements,
     BlocksAddNodes,
     GradInit,
@@ -208,9 +220,19 @@ impl GpuAssembly {
             )));
         }
         let kinds = elements.kinds();
+        let mut ranges = Vec::with_capacity(kinds.len());
+        for t in 0..kinds.len() {
+            ranges.push(
+                elements
+                    .term_range(t)
+                    .ok_or_else(|| GpuError::Mismatch(format!("no element term {t}")))?,
+            );
+        }
+        // A set's first chunk starts at element 0; its other chunks follow it.
         let n_sets = kinds
             .iter()
-            .filter(|k| matches!(k, TermKind::NeoHookean | TermKind::Springs))
+            .zip(&ranges)
+            .filter(|(k, r)| matches!(k, TermKind::NeoHookean | TermKind::Springs) && r.start == 0)
             .count();
         if n_sets != model.sets.len() {
             return Err(GpuError::Mismatch(format!(
@@ -295,6 +317,9 @@ impl GpuAssembly {
                 })
                 .collect()
         };
+        // The assembled values are one buffer whatever the element chunks: the device CG
+        // binds them whole (splitting it is not supported), so a pattern too large for one
+        // binding stops here with BufferTooLarge naming "assembly blocks".
         let values = zeroed("assembly blocks", (nb * dd) as u64 * rs)?;
         let gradient = zeroed("assembly gradient", (n * dim) as u64 * rs)?;
         let x = zeroed("assembly product input", (n * dim) as u64 * rs)?;
@@ -309,7 +334,7 @@ impl GpuAssembly {
             "assembly column indices",
             bytemuck::cast_slice(&u32s(&pattern.col_idx)?),
         )?;
-        let diag: Vec<u32> = (0..n)
+        let diag_list: Vec<u32> = (0..n)
             .map(|i| {
                 pattern
                     .diag_index(i)
@@ -317,12 +342,7 @@ impl GpuAssembly {
                     .ok_or_else(|| GpuError::Mismatch(format!("node {i} has no diagonal block")))
             })
             .collect::<Result<_, _>>()?;
-        let mut block_node = vec![NONE; nb];
-        for (i, &k) in diag.iter().enumerate() {
-            block_node[k as usize] = i as u32;
-        }
-        let diag = init("assembly diagonal blocks", bytemuck::cast_slice(&diag))?;
-        let block_node = init("assembly block nodes", bytemuck::cast_slice(&block_node))?;
+        let diag = init("assembly diagonal blocks", bytemuck::cast_slice(&diag_list))?;
         let dummy_u32 = zeroed("assembly unused indices", 16)?;
         let dummy_real = zeroed("assembly unused reals", 16)?;
 
@@ -337,6 +357,7 @@ impl GpuAssembly {
         }
         let pass = |entry: Entry,
                     count: usize,
+                    first: usize,
                     nl: usize,
                     arity: usize,
                     coef_slot: u32,
@@ -347,6 +368,8 @@ impl GpuAssembly {
                 nl: nl as u32,
                 arity: arity as u32,
                 coef_slot,
+                first: first as u32,
+                pad: [0; 3],
             };
             let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(&format!("{} params", ENTRIES[entry as usize])),
@@ -383,20 +406,56 @@ impl GpuAssembly {
         let mut matfree_nodes = Vec::new();
         let mut set_passes = Vec::new();
         let mut mf_bytes = 0u64;
-        let mut set = 0;
-        for (t, kind) in kinds.iter().enumerate() {
+        // Index into model.sets of the current element term (advanced by each first chunk).
+        let mut set: Option<usize> = None;
+        // Diagonal blocks of a node chunk (the whole mesh's list when not split).
+        let chunk_diag =
+            |label: &str, r: &std::ops::Range<usize>| -> Result<Option<wgpu::Buffer>, GpuError> {
+                if *r == (0..n) {
+                    return Ok(None);
+                }
+                let list = diag_list.get(r.clone()).ok_or_else(|| {
+                    GpuError::Mismatch(format!("{label} covers nodes {r:?} of {n}"))
+                })?;
+                init(label, bytemuck::cast_slice(list)).map(Some)
+            };
+        for (t, (kind, r)) in kinds.iter().zip(&ranges).enumerate() {
             let (grad, hess) = elements
                 .term_buffers(t)
                 .ok_or_else(|| GpuError::Mismatch(format!("no element term {t}")))?;
+            let len = r.len();
             match kind {
                 TermKind::NeoHookean | TermKind::Springs => {
-                    let s = &model.sets[set];
+                    if r.start == 0 {
+                        set = Some(set.map_or(0, |k| k + 1));
+                    }
+                    let k = set.ok_or_else(|| {
+                        GpuError::Mismatch(format!(
+                            "element term {t} starts at element {}",
+                            r.start
+                        ))
+                    })?;
+                    let s = model
+                        .sets
+                        .get(k)
+                        .ok_or_else(|| GpuError::Mismatch(format!("no element set {k}")))?;
+                    if r.end > s.len() {
+                        return Err(GpuError::Mismatch(format!(
+                            "element term {t} covers elements {r:?} of set {k}'s {}",
+                            s.len()
+                        )));
+                    }
                     let arity = s.arity();
                     let nl = arity * dim;
+                    // Offsets relative to the chunk's own arrays, elements in order.
                     let (bg, ng) =
-                        set_gathers(pattern, dim, |e| s.nodes(e).to_vec(), s.len(), arity)?;
-                    let idx: Vec<usize> = (0..s.len()).flat_map(|e| s.nodes(e).to_vec()).collect();
-                    let label = format!("assembly set {set}");
+                        set_gathers(pattern, dim, |e| s.nodes(r.start + e).to_vec(), len, arity)?;
+                    let idx: Vec<usize> = r.clone().flat_map(|e| s.nodes(e).to_vec()).collect();
+                    let label = if r.start == 0 && r.end == s.len() {
+                        format!("assembly set {k}")
+                    } else {
+                        format!("assembly set {k} elements {}..{}", r.start, r.end)
+                    };
                     let b_off = init(
                         &format!("{label} block offsets"),
                         bytemuck::cast_slice(&bg.offsets),
@@ -417,17 +476,18 @@ impl GpuAssembly {
                         &format!("{label} element nodes"),
                         bytemuck::cast_slice(&u32s(&idx)?),
                     )?;
-                    let hess = hess
-                        .ok_or_else(|| GpuError::Mismatch(format!("set {set} has no Hessian")))?;
+                    let hess =
+                        hess.ok_or_else(|| GpuError::Mismatch(format!("set {k} has no Hessian")))?;
                     // Matrix-free reads per product: every element Hessian entry once, the
                     // node lists, and each element's node indices once per its node.
-                    mf_bytes += (s.len() * nl * nl) as u64 * rs
+                    mf_bytes += (len * nl * nl) as u64 * rs
                         + 4 * (ng.offsets.len() + ng.entries.len()) as u64
-                        + 4 * (s.len() * arity * arity) as u64;
+                        + 4 * (len * arity * arity) as u64;
                     set_passes.push((
                         pass(
                             Entry::BlocksAddElements,
                             nb,
+                            0,
                             nl,
                             arity,
                             1,
@@ -443,6 +503,7 @@ impl GpuAssembly {
                         pass(
                             Entry::GradAddElements,
                             n,
+                            0,
                             nl,
                             arity,
                             1,
@@ -458,6 +519,7 @@ impl GpuAssembly {
                         pass(
                             Entry::MatfreeAddElements,
                             n,
+                            0,
                             nl,
                             arity,
                             1,
@@ -471,29 +533,60 @@ impl GpuAssembly {
                             },
                         ),
                     ));
-                    set += 1;
                 }
                 TermKind::Inertia => {
                     let hess =
                         hess.ok_or_else(|| GpuError::Mismatch("inertia has no Hessian".into()))?;
-                    hessian_passes.push(pass(
-                        Entry::BlocksInit,
-                        nb,
-                        0,
-                        1,
-                        0,
-                        Binds {
-                            offsets: &dummy_u32,
-                            gather: &block_node,
-                            src: hess,
-                            x: &dummy_real,
-                            nodes: &dummy_u32,
-                            out: &values,
-                        },
-                    ));
+                    if r.start == 0 {
+                        // The first chunk initializes every block: its nodes' diagonal
+                        // blocks to their inertia, all others (including later chunks'
+                        // nodes, set below) to zero.
+                        let mut block_node = vec![NONE; nb];
+                        for (i, &k) in diag_list[..r.end.min(n)].iter().enumerate() {
+                            block_node[k as usize] = i as u32;
+                        }
+                        let block_node =
+                            init("assembly block nodes", bytemuck::cast_slice(&block_node))?;
+                        hessian_passes.push(pass(
+                            Entry::BlocksInit,
+                            nb,
+                            0,
+                            0,
+                            1,
+                            0,
+                            Binds {
+                                offsets: &dummy_u32,
+                                gather: &block_node,
+                                src: hess,
+                                x: &dummy_real,
+                                nodes: &dummy_u32,
+                                out: &values,
+                            },
+                        ));
+                    } else {
+                        let d = chunk_diag("assembly inertia chunk diagonal blocks", r)?
+                            .ok_or_else(|| GpuError::Mismatch("inertia chunk".into()))?;
+                        hessian_passes.push(pass(
+                            Entry::BlocksSetNodes,
+                            len,
+                            r.start,
+                            0,
+                            1,
+                            0,
+                            Binds {
+                                offsets: &dummy_u32,
+                                gather: &d,
+                                src: hess,
+                                x: &dummy_real,
+                                nodes: &dummy_u32,
+                                out: &values,
+                            },
+                        ));
+                    }
                     gradient_passes.push(pass(
                         Entry::GradInit,
-                        n,
+                        len,
+                        r.start,
                         0,
                         1,
                         0,
@@ -508,7 +601,8 @@ impl GpuAssembly {
                     ));
                     matfree_passes.push(pass(
                         Entry::MatfreeInit,
-                        n,
+                        len,
+                        r.start,
                         0,
                         1,
                         0,
@@ -521,14 +615,15 @@ impl GpuAssembly {
                             out: &y_matrix_free,
                         },
                     ));
-                    mf_bytes += (n * dd) as u64 * rs;
+                    mf_bytes += (len * dd) as u64 * rs;
                 }
                 TermKind::Gravity => {
                     matfree_nodes.push((
                         None,
                         pass(
                             Entry::GradAddNodes,
-                            n,
+                            len,
+                            r.start,
                             0,
                             1,
                             1,
@@ -546,17 +641,20 @@ impl GpuAssembly {
                 TermKind::Barrier => {
                     let hess = hess
                         .ok_or_else(|| GpuError::Mismatch("the barrier has no Hessian".into()))?;
+                    let own = chunk_diag("assembly barrier chunk diagonal blocks", r)?;
+                    let d = own.as_ref().unwrap_or(&diag);
                     matfree_nodes.push((
                         Some((
                             pass(
                                 Entry::BlocksAddNodes,
-                                n,
+                                len,
+                                r.start,
                                 0,
                                 1,
                                 1,
                                 Binds {
                                     offsets: &dummy_u32,
-                                    gather: &diag,
+                                    gather: d,
                                     src: hess,
                                     x: &dummy_real,
                                     nodes: &dummy_u32,
@@ -565,7 +663,8 @@ impl GpuAssembly {
                             ),
                             pass(
                                 Entry::MatfreeAddNodes,
-                                n,
+                                len,
+                                r.start,
                                 0,
                                 1,
                                 1,
@@ -581,7 +680,8 @@ impl GpuAssembly {
                         )),
                         pass(
                             Entry::GradAddNodes,
-                            n,
+                            len,
+                            r.start,
                             0,
                             1,
                             1,
@@ -595,7 +695,7 @@ impl GpuAssembly {
                             },
                         ),
                     ));
-                    mf_bytes += (n * dd) as u64 * rs;
+                    mf_bytes += (len * dd) as u64 * rs;
                 }
             }
         }
@@ -620,6 +720,7 @@ impl GpuAssembly {
         let matvec_pass = pass(
             Entry::MatvecBlocks,
             n,
+            0,
             0,
             1,
             0,

@@ -19,6 +19,14 @@
 //! Hessian, and the barrier adds `flags[i]` = 1 where a weighted node touches or crosses a
 //! half-space (its energy is +∞ there, which WGSL cannot write portably).
 //!
+//! One storage binding is capped (`max_storage_buffer_binding_size`: 128 MiB on lavapipe,
+//! about 4 GiB on NVIDIA), and a tetrahedron's Hessian alone is 1152 B. A term whose
+//! largest per-item array would exceed the cap is split into chunks of consecutive items
+//! (elements of its set, or nodes), each a term of its own with its own buffers, bind group
+//! and dispatch: [`GpuElements::kinds`] lists one entry per chunk, in item order, and
+//! [`GpuElements::term_range`] says which items a chunk holds. Every chunk reads the
+//! positions of the whole mesh, so only the per-item arrays are split.
+//!
 //! The neo-Hookean Hessian is (∂F/∂x)ᵀ proj(∂²Ψ/∂F²) (∂F/∂x) with proj the clamp of the
 //! analytic eigensystem (`energy::eigensystem`), computed from a signed one-sided Jacobi
 //! SVD of F in the shader; values are unscaled (no h²).
@@ -58,8 +66,11 @@ struct ElementParams {
     project: u32,
     n_planes: u32,
     energy_only: u32,
+    /// Node terms: the mesh node of the chunk's item 0.
+    first: u32,
+    pad: [u32; 3],
 }
-const _: () = assert!(std::mem::size_of::<ElementParams>() == 16);
+const _: () = assert!(std::mem::size_of::<ElementParams>() == 32);
 
 /// Workgroup size of the element kernels.
 pub const WORKGROUP: u32 = 64;
@@ -218,9 +229,11 @@ impl ElementKernels {
     }
 }
 
-/// One term's device data and outputs.
+/// One term's (or chunk's) device data and outputs.
 struct Term {
     kind: TermKind,
+    /// First item (element of its set, or node) of the chunk.
+    first: usize,
     count: usize,
     /// Gradient and Hessian entries per element (or node).
     grad_len: usize,
@@ -317,15 +330,41 @@ impl Alloc<'_> {
     }
 }
 
-/// What one term binds besides the shared positions and constants.
+/// What one term (or chunk) binds besides the shared positions and constants.
 struct TermData<'a> {
     kind: TermKind,
     label: String,
+    first: usize,
     count: usize,
-    nodes: Option<&'a wgpu::Buffer>,
-    rest: &'a wgpu::Buffer,
+    /// Element chunks: their own node indices and rest data; node chunks: none, and the
+    /// node data of the whole mesh.
+    nodes: Option<wgpu::Buffer>,
+    rest: Option<wgpu::Buffer>,
+    shared_rest: Option<&'a wgpu::Buffer>,
     grad_len: usize,
     hess_len: usize,
+}
+
+/// Splits `len` items whose largest per-item array takes `item_bytes` into consecutive
+/// chunks whose arrays each fit in `limit` bytes (every buffer is padded to 16 bytes): as
+/// few chunks as fit, of nearly equal length; one empty chunk when `len` is 0. None when a
+/// single item does not fit.
+fn plan_chunks(len: usize, item_bytes: u64, limit: u64) -> Option<Vec<std::ops::Range<usize>>> {
+    let per = (limit / 16 * 16) / item_bytes.max(1);
+    if len == 0 {
+        return Some(std::iter::once(0..0).collect());
+    }
+    if per == 0 {
+        return None;
+    }
+    let chunks = (len as u64).div_ceil(per);
+    let size = (len as u64).div_ceil(chunks) as usize;
+    Some(
+        (0..len)
+            .step_by(size)
+            .map(|a| a..(a + size).min(len))
+            .collect(),
+    )
 }
 
 impl GpuElements {
@@ -350,6 +389,31 @@ impl GpuElements {
         model: &Model,
         barrier: Option<(&Barrier, &[HalfSpace])>,
     ) -> Result<Self, GpuError> {
+        Self::build(ctx, kernels, model, barrier, None)
+    }
+
+    /// [`GpuElements::with_kernels`] with the per-item arrays of every term capped at
+    /// `binding_limit` bytes (the adapter's limits still apply), so that small meshes take
+    /// the chunked path of large ones (tests). Shared buffers (positions, node data) are
+    /// not capped.
+    #[doc(hidden)]
+    pub fn with_binding_limit(
+        ctx: &GpuContext,
+        kernels: &ElementKernels,
+        model: &Model,
+        barrier: Option<(&Barrier, &[HalfSpace])>,
+        binding_limit: u64,
+    ) -> Result<Self, GpuError> {
+        Self::build(ctx, kernels, model, barrier, Some(binding_limit))
+    }
+
+    fn build(
+        ctx: &GpuContext,
+        kernels: &ElementKernels,
+        model: &Model,
+        barrier: Option<(&Barrier, &[HalfSpace])>,
+        binding_limit: Option<u64>,
+    ) -> Result<Self, GpuError> {
         let d = model.dim;
         if kernels.dim != d {
             return Err(GpuError::Mismatch(format!(
@@ -358,8 +422,8 @@ impl GpuElements {
             )));
         }
         let n = model.n_nodes;
-        // Shader indices are u32: the largest is an entry of a per-element Hessian, which
-        // the buffer limits keep below 2³²/4; node coordinates are checked here.
+        // Shader indices are u32: the largest is an entry of a chunk's per-element Hessian,
+        // which the binding limit keeps below 2³²/4; node coordinates are checked here.
         if n.checked_mul(d).is_none_or(|v| v > u32::MAX as usize) {
             return Err(GpuError::Unsupported(format!(
                 "{n} nodes exceed the element kernels' u32 indices"
@@ -394,66 +458,106 @@ impl GpuElements {
         };
         let node_data: Vec<f64> = (0..n).flat_map(|i| [model.mass[i], weight[i]]).collect();
         let node_data = a.init("elements node data", &to_bytes(f64, &node_data))?;
-        // Element sets: node indices and rest data.
-        let mut uploads = Vec::new();
+        // The cap on one chunk's arrays: the adapter's binding and buffer limits, or less.
+        let l = &ctx.limits;
+        let limit = l
+            .max_storage_buffer_binding_size
+            .min(l.max_buffer_size)
+            .min(binding_limit.unwrap_or(u64::MAX));
+        let chunks_of = |label: &str, len: usize, item_bytes: u64| {
+            plan_chunks(len, item_bytes, limit).ok_or_else(|| GpuError::BufferTooLarge {
+                label: format!("{label} (one item)"),
+                bytes: item_bytes,
+                limit,
+                what: "storage binding",
+                adapter: ctx.adapter_name().to_string(),
+            })
+        };
+        let chunk_label = |base: &str, c: usize, chunks: usize| {
+            if chunks == 1 {
+                base.to_string()
+            } else {
+                format!("{base} chunk {c}")
+            }
+        };
+        // Element sets: per chunk its node indices and rest data.
+        let mut data: Vec<TermData> = Vec::new();
         for (k, s) in model.sets.iter().enumerate() {
-            let (kind, stride, rest) = match s {
-                ElementSet::NeoHookean(nh) => {
-                    let stride = d * d + 3;
-                    let mut rest = Vec::with_capacity(nh.elements.len() * stride);
-                    for e in 0..nh.elements.len() {
-                        // Rows 1..=d of the shape gradients are Dm⁻¹.
-                        rest.extend_from_slice(&nh.grads(e)[d..]);
-                        rest.extend_from_slice(&[nh.volume[e], nh.mu, nh.lambda]);
-                    }
-                    (TermKind::NeoHookean, stride, rest)
-                }
-                ElementSet::Springs(sp) => {
-                    let rest: Vec<f64> = sp.rest.iter().flat_map(|&l| [l, sp.stiffness]).collect();
-                    (TermKind::Springs, 2, rest)
-                }
+            let (kind, stride) = match s {
+                ElementSet::NeoHookean(_) => (TermKind::NeoHookean, d * d + 3),
+                ElementSet::Springs(_) => (TermKind::Springs, 2),
             };
-            debug_assert_eq!(rest.len(), s.len() * stride);
-            let idx: Vec<u32> = (0..s.len())
-                .flat_map(|e| s.nodes(e).iter().map(|&v| v as u32))
-                .collect();
-            let nodes = a.init(
-                &format!("elements set {k} nodes"),
-                bytemuck::cast_slice(&idx),
-            )?;
-            let rest = a.init(&format!("elements set {k} rest"), &to_bytes(f64, &rest))?;
-            uploads.push((kind, k, s.len(), s.arity(), nodes, rest));
-        }
-        let mut data: Vec<TermData> = uploads
-            .iter()
-            .map(|(kind, k, count, arity, nodes, rest)| {
-                let nl = arity * d;
-                TermData {
-                    kind: *kind,
-                    label: format!("elements set {k}"),
-                    count: *count,
+            let arity = s.arity();
+            let nl = arity * d;
+            // The largest per-element array: the Hessian, unless a tiny element has more
+            // rest data or node indices than Hessian entries.
+            let item_bytes = [nl * nl, nl, stride, 1]
+                .iter()
+                .map(|&v| v as u64 * rs)
+                .chain([arity as u64 * 4])
+                .max()
+                .unwrap_or(0);
+            let base = format!("elements set {k}");
+            let ranges = chunks_of(&base, s.len(), item_bytes)?;
+            for (c, r) in ranges.iter().enumerate() {
+                let mut rest = Vec::with_capacity(r.len() * stride);
+                match s {
+                    ElementSet::NeoHookean(nh) => {
+                        for e in r.clone() {
+                            // Rows 1..=d of the shape gradients are Dm⁻¹.
+                            rest.extend_from_slice(&nh.grads(e)[d..]);
+                            rest.extend_from_slice(&[nh.volume[e], nh.mu, nh.lambda]);
+                        }
+                    }
+                    ElementSet::Springs(sp) => {
+                        rest.extend(sp.rest[r.clone()].iter().flat_map(|&l| [l, sp.stiffness]))
+                    }
+                }
+                debug_assert_eq!(rest.len(), r.len() * stride);
+                let idx: Vec<u32> = r
+                    .clone()
+                    .flat_map(|e| s.nodes(e).iter().map(|&v| v as u32))
+                    .collect();
+                let label = chunk_label(&base, c, ranges.len());
+                let nodes = a.init(&format!("{label} nodes"), bytemuck::cast_slice(&idx))?;
+                let rest = a.init(&format!("{label} rest"), &to_bytes(f64, &rest))?;
+                data.push(TermData {
+                    kind,
+                    label,
+                    first: r.start,
+                    count: r.len(),
                     nodes: Some(nodes),
-                    rest,
+                    rest: Some(rest),
+                    shared_rest: None,
                     grad_len: nl,
                     hess_len: nl * nl,
-                }
-            })
-            .collect();
-        let node_term = |kind: TermKind, label: &str, hess_len: usize| TermData {
-            kind,
-            label: label.to_string(),
-            count: n,
-            nodes: None,
-            rest: &node_data,
-            grad_len: d,
-            hess_len,
-        };
-        data.push(node_term(TermKind::Inertia, "elements inertia", d * d));
+                });
+            }
+        }
+        // Node terms: chunks of consecutive nodes, all reading the whole mesh's node data.
+        let mut node_terms = vec![(TermKind::Inertia, "elements inertia", d * d)];
         if model.gravity.is_some() {
-            data.push(node_term(TermKind::Gravity, "elements gravity", 0));
+            node_terms.push((TermKind::Gravity, "elements gravity", 0));
         }
         if barrier.is_some() {
-            data.push(node_term(TermKind::Barrier, "elements barrier", d * d));
+            node_terms.push((TermKind::Barrier, "elements barrier", d * d));
+        }
+        for (kind, base, hess_len) in node_terms {
+            let item_bytes = (hess_len.max(d) as u64 * rs).max(4);
+            let ranges = chunks_of(base, n, item_bytes)?;
+            for (c, r) in ranges.iter().enumerate() {
+                data.push(TermData {
+                    kind,
+                    label: chunk_label(base, c, ranges.len()),
+                    first: r.start,
+                    count: r.len(),
+                    nodes: None,
+                    rest: None,
+                    shared_rest: Some(&node_data),
+                    grad_len: d,
+                    hess_len,
+                });
+            }
         }
         let mut terms = Vec::with_capacity(data.len());
         for t in data {
@@ -463,6 +567,8 @@ impl GpuElements {
                 project: 1,
                 n_planes: planes.len() as u32,
                 energy_only: 0,
+                first: t.first as u32,
+                pad: [0; 3],
             };
             let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(&format!("{label} params")),
@@ -490,11 +596,16 @@ impl GpuElements {
             let unused_read = a.zeroed(&format!("{label} unused input"), 16)?;
             let unused_hessian = a.zeroed(&format!("{label} unused hessian"), 16)?;
             let unused_flags = a.zeroed(&format!("{label} unused flags"), 16)?;
+            let rest = t
+                .rest
+                .as_ref()
+                .or(t.shared_rest)
+                .ok_or_else(|| GpuError::Mismatch(format!("{label} has no rest data")))?;
             let bufs: [&wgpu::Buffer; 10] = [
                 &params,
                 &x,
-                t.nodes.unwrap_or(&unused_read),
-                t.rest,
+                t.nodes.as_ref().unwrap_or(&unused_read),
+                rest,
                 &consts,
                 &x_tilde,
                 &energy,
@@ -517,6 +628,7 @@ impl GpuElements {
             });
             terms.push(Term {
                 kind: t.kind,
+                first: t.first,
                 count: t.count,
                 grad_len: t.grad_len,
                 hess_len: t.hess_len,
@@ -543,9 +655,17 @@ impl GpuElements {
     }
 
     /// The terms in evaluation order: the model's element sets, inertia, gravity (when
-    /// the model has it), barrier (when given).
+    /// the model has it), barrier (when given); a term split into chunks (see the module
+    /// documentation) has one entry per chunk, in item order.
     pub fn kinds(&self) -> Vec<TermKind> {
         self.terms.iter().map(|t| t.kind).collect()
+    }
+
+    /// The items term `t` (in [`GpuElements::kinds`] order) holds: elements of its set, or
+    /// nodes. A range starting at 0 begins a new element set or node term; the chunks of
+    /// one follow it in order.
+    pub fn term_range(&self, t: usize) -> Option<std::ops::Range<usize>> {
+        self.terms.get(t).map(|t| t.first..t.first + t.count)
     }
 
     /// The device context the terms live on.
@@ -655,6 +775,8 @@ impl GpuElements {
                 project: project as u32,
                 n_planes: self.n_planes as u32,
                 energy_only: energy_only as u32,
+                first: t.first as u32,
+                pad: [0; 3],
             };
             self.ctx.write_buffer(&t.params, 0, bytemuck::bytes_of(&p));
         }
@@ -779,7 +901,19 @@ mod tests {
             naga::TypeInner::Struct { members, span } => {
                 assert_eq!(*span as usize, std::mem::size_of::<ElementParams>());
                 let names: Vec<_> = members.iter().filter_map(|m| m.name.as_deref()).collect();
-                assert_eq!(names, ["count", "project", "n_planes", "energy_only"]);
+                assert_eq!(
+                    names,
+                    [
+                        "count",
+                        "project",
+                        "n_planes",
+                        "energy_only",
+                        "first",
+                        "_pad0",
+                        "_pad1",
+                        "_pad2"
+                    ]
+                );
             }
             other => panic!("ElementParams is {other:?}"),
         }
@@ -790,5 +924,37 @@ mod tests {
                 k.entry()
             );
         }
+    }
+
+    /// Chunks cover the items in order, each within the limit after padding, as few as
+    /// fit; a single item over the limit is refused.
+    #[test]
+    fn chunks_cover_the_items_within_the_limit() {
+        for (len, item, limit) in [
+            (10usize, 100u64, 400u64),
+            (7, 48, 160),
+            (1000, 1152, 1 << 17),
+            (5, 8, 1 << 20),
+        ] {
+            let r = plan_chunks(len, item, limit).expect("fits");
+            let fit = (limit / 16 * 16) / item;
+            assert_eq!(
+                r.len() as u64,
+                (len as u64).div_ceil(fit),
+                "{len} items of {item} B in {limit} B"
+            );
+            assert_eq!(r[0].start, 0);
+            assert_eq!(r.last().map(|c| c.end), Some(len));
+            for w in r.windows(2) {
+                assert_eq!(w[0].end, w[1].start);
+            }
+            for c in &r {
+                assert!(!c.is_empty());
+                assert!((c.len() as u64 * item).div_ceil(16) * 16 <= limit);
+            }
+        }
+        let empty = plan_chunks(0, 1152, 1024).expect("no items fit");
+        assert_eq!((empty.len(), empty[0].clone()), (1, 0..0));
+        assert_eq!(plan_chunks(3, 1152, 1151), None);
     }
 }
