@@ -26,10 +26,12 @@ fn run_scene(
     steps: usize,
     size: Option<f64>,
 ) -> Result<RunSummary, RunError> {
+    // One folder per run: tests of the same scene run at the same time.
     let out = std::env::temp_dir().join(format!(
-        "stickslip-gpu-newton-{}-{name}-{}",
+        "stickslip-gpu-newton-{}-{name}-{}-{steps}-{}",
         std::process::id(),
-        newton.name()
+        newton.name(),
+        size.unwrap_or(1.0)
     ));
     let opts = RunOptions {
         scene: Some(name.into()),
