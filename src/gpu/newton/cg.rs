@@ -25,7 +25,7 @@
 //! blocks (D² sums); the first `iterate` with the correction reads those D² values back,
 //! pseudo-inverts E on the host as the CPU does ([`crate::coarse::pseudo_inverse`]) and
 //! writes E⁺ back. In the iteration Zᵀr rides in the tree of r·z and r·r, and Z E⁺ Zᵀr is
-//! added where p is updated: no dispatch more.
+//! added where p is updated: no extra dispatch per iteration (one per CG start).
 #![cfg(feature = "sim")]
 
 use crate::cg::{CgError, Preconditioner};
