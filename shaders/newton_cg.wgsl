@@ -12,7 +12,8 @@
 //   scalar_beta  one workgroup: ρ' = r·z, r·r, stop flags, β = ρ'/ρ, iteration count
 //   update_p     p = z + βp
 // A (re)start is `init` (r = b̂ − q with q = Ĥy, z = M⁻¹r, p = z, partials) and
-// `scalar_start`, whose r·r is the true residual. Reductions are deterministic: a fixed
+// `scalar_start` (then `update_p` with β = 0 under COARSE), whose r·r is the true residual.
+// `prepare` adds `coarse_e` and `coarse_e_sum` (E = ZᵀĤZ, below) to `rhs` and `precond`. Reductions are deterministic: a fixed
 // number of workgroups each writes one partial from a grid-stride loop in a fixed order,
 // and the one-workgroup scalar kernels sum the partials in a fixed order too.
 // Once a stop flag is set, every later CG dispatch of the submit is a no-op.
@@ -20,6 +21,14 @@
 override D: u32 = 3u;
 // 0: none, 1: Jacobi, 2: block Jacobi (the preconditioner applied by init and update_yr).
 override PRECOND: u32 = 1u;
+// The coarse correction on the rigid translations (src/coarse.rs, docs/coarse.md):
+// M⁻¹r = M_J⁻¹r + Z E⁺ Zᵀr with Z_i = P_i V_iᵀ from the frames (no basis stored) and
+// E⁺ (D×D, from the host) in `scal`. Why: a body that can translate or slide has Ĥ's
+// smallest eigenvalues on its translations (the mass term), which M_J cannot see.
+// update_yr and init sum Zᵀr in the tree of r·M_J⁻¹r and r·r; scalar_beta and
+// scalar_start form c = E⁺Zᵀr and ρ = r·M_J⁻¹r + Zᵀr·c; update_p adds Z_i c to p.
+// z holds M_J⁻¹r only, so the correction costs no dispatch in the iteration.
+override COARSE: bool = false;
 
 // Mirrors `NewtonCgParams` in src/gpu/newton/cg.rs (four u32, 16 bytes, size-asserted
 // there).
@@ -36,7 +45,9 @@ struct NewtonCgParams {
 // Slots of `scal`, `state` and the partial sums, mirrored by `slot` in
 // src/gpu/newton/cg.rs (a unit test there checks every value).
 // scal: ρ = r·z (scalar_start, scalar_beta), p·q (scalar_alpha), α (scalar_alpha),
-// β (scalar_beta), r·r of the last reduction, tol² (host), ‖b̂‖² (scalar_start).
+// β (scalar_beta), r·r of the last reduction, tol² (host), ‖b̂‖² (scalar_start); then
+// (COARSE) c = E⁺Zᵀr, D values (scalar_beta, scalar_start), E⁺, D² row-major (host), and
+// E = ZᵀĤZ unsymmetrized, D² row-major (coarse_e_sum, read back by the host).
 const NCG_RHO: u32 = 0u;
 const NCG_PQ: u32 = 1u;
 const NCG_ALPHA: u32 = 2u;
@@ -44,6 +55,9 @@ const NCG_BETA: u32 = 3u;
 const NCG_RR: u32 = 4u;
 const NCG_TOL2: u32 = 5u;
 const NCG_BB: u32 = 6u;
+const NCG_C: u32 = 8u;
+const NCG_EINV: u32 = 11u;
+const NCG_E: u32 = 20u;
 // state: stop (any reason), converged, non-positive curvature, non-finite value,
 // iterations done (all u32; the host clears the four flags before a restart).
 const NCG_DONE: u32 = 0u;
@@ -51,11 +65,14 @@ const NCG_CONVERGED: u32 = 1u;
 const NCG_HALT: u32 = 2u;
 const NCG_BREAKDOWN: u32 = 3u;
 const NCG_ITERS: u32 = 4u;
-// Partial-sum slots, each n_partials long.
+// Partial-sum slots, each n_partials long: p·q, r·z, r·r, ‖b̂‖², then D slots of Zᵀr
+// (COARSE) and D² of E (coarse_e).
 const NCG_PART_PQ: u32 = 0u;
 const NCG_PART_RZ: u32 = 1u;
 const NCG_PART_RR: u32 = 2u;
 const NCG_PART_BB: u32 = 3u;
+const NCG_PART_ZR: u32 = 4u;
+const NCG_PART_E: u32 = 7u;
 
 @group(0) @binding(0) var<uniform> params: NewtonCgParams;
 // Row pointers, column indices and per node its diagonal block (see NewtonCgParams).
@@ -152,6 +169,39 @@ fn apply_precond(i: u32, rv: array<real, 3>) -> array<real, 3> {
         }
     }
     return o;
+}
+
+// Z_iᵀ r_i = V_i P_i r_i: node i's share of Zᵀr.
+fn zt(i: u32, rv: array<real, 3>) -> array<real, 3> {
+    var w: array<real, 3>;
+    for (var a = 0u; a < D; a++) {
+        w[a] = select(rv[a], real(0.0), fixed(i, a));
+    }
+    return from_frame(i, w);
+}
+
+// Z_i c = P_i V_iᵀ c.
+fn zc(i: u32, c: array<real, 3>) -> array<real, 3> {
+    var w = to_frame(i, c);
+    for (var a = 0u; a < D; a++) {
+        w[a] = select(w[a], real(0.0), fixed(i, a));
+    }
+    return w;
+}
+
+// c = E⁺ Zᵀr into scal (lane 0 of a one-workgroup kernel); returns Zᵀr·c, the coarse
+// share of ρ = r·M⁻¹r.
+fn coarse_c(zr: array<acc, 3>) -> acc {
+    var wc = acc(0.0);
+    for (var a = 0u; a < D; a++) {
+        var s = acc(0.0);
+        for (var b = 0u; b < D; b++) {
+            s += scal[NCG_EINV + a * D + b] * zr[b];
+        }
+        scal[NCG_C + a] = s;
+        wc += zr[a] * s;
+    }
+    return wc;
 }
 
 // Sum of partial slot `slot`, in a fixed order, in one workgroup.
@@ -352,12 +402,17 @@ fn scalar_alpha(@builtin(local_invocation_id) lid: vec3<u32>) {
     }
 }
 
-// The r·z and r·r partials of one workgroup.
-fn write_rz_rr(lid: u32, wg: u32, rz: acc, rr: acc) {
-    workgroup_sum(lid, array<acc, 5>(rz, rr, acc(0.0), acc(0.0), acc(0.0)), 2u);
+// The r·z and r·r partials of one workgroup and, with COARSE, those of Zᵀr (one tree).
+fn write_rz_rr(lid: u32, wg: u32, rz: acc, rr: acc, zr: array<acc, 3>) {
+    let n = select(2u, 2u + D, COARSE);
+    workgroup_sum(lid, array<acc, 5>(rz, rr, zr[0], zr[1], zr[2]), n);
     if (lid == 0u) {
-        partials[NCG_PART_RZ * params.n_partials + wg] = summed(0u);
-        partials[NCG_PART_RR * params.n_partials + wg] = summed(1u);
+        let np = params.n_partials;
+        partials[NCG_PART_RZ * np + wg] = summed(0u);
+        partials[NCG_PART_RR * np + wg] = summed(1u);
+        for (var a = 0u; a + 2u < n; a++) {
+            partials[(NCG_PART_ZR + a) * np + wg] = summed(2u + a);
+        }
     }
 }
 
@@ -370,6 +425,7 @@ fn update_yr(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id
     let alpha = real(scal[NCG_ALPHA]);
     var rz = acc(0.0);
     var rr = acc(0.0);
+    var zr: array<acc, 3>;
     for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += nwg.x * WG) {
         var rv: array<real, 3>;
         for (var a = 0u; a < D; a++) {
@@ -384,12 +440,19 @@ fn update_yr(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id
             rz += acc(rv[a]) * acc(zv[a]);
             rr += acc(rv[a]) * acc(rv[a]);
         }
+        if (COARSE) {
+            let w = zt(i, rv);
+            for (var a = 0u; a < D; a++) {
+                zr[a] += acc(w[a]);
+            }
+        }
     }
-    write_rz_rr(lid.x, wid.x, rz, rr);
+    write_rz_rr(lid.x, wid.x, rz, rr, zr);
 }
 
-// ρ' = r·z and r·r (one workgroup); stops on r·r ≤ tol²‖b̂‖² (the recurrence residual)
-// or a non-finite value, else β = ρ'/ρ. Counts the iteration.
+// ρ' = r·z (with COARSE r·M_J⁻¹r + Zᵀr·c, and c = E⁺Zᵀr) and r·r (one workgroup); stops
+// on r·r ≤ tol²‖b̂‖² (the recurrence residual) or a non-finite value, else β = ρ'/ρ.
+// Counts the iteration.
 @compute @workgroup_size(WG)
 fn scalar_beta(@builtin(local_invocation_id) lid: vec3<u32>) {
     if (stopped(lid.x)) {
@@ -397,14 +460,21 @@ fn scalar_beta(@builtin(local_invocation_id) lid: vec3<u32>) {
     }
     var v = array<acc, 5>(acc(0.0), acc(0.0), acc(0.0), acc(0.0), acc(0.0));
     let np = params.n_partials;
+    let n = select(2u, 2u + D, COARSE);
     for (var t = lid.x; t < np; t += WG) {
         v[0] += partials[NCG_PART_RZ * np + t];
         v[1] += partials[NCG_PART_RR * np + t];
+        for (var a = 0u; a + 2u < n; a++) {
+            v[2u + a] += partials[(NCG_PART_ZR + a) * np + t];
+        }
     }
-    let s = workgroup_sum_uniform(lid.x, v, 2u);
+    let s = workgroup_sum_uniform(lid.x, v, n);
     if (lid.x == 0u) {
-        let rz = s[0];
+        var rz = s[0];
         let rr = s[1];
+        if (COARSE) {
+            rz += coarse_c(array<acc, 3>(s[2], s[3], s[4]));
+        }
         state[NCG_ITERS] += 1u;
         scal[NCG_RR] = rr;
         // NaN fails every comparison: a non-finite ρ or r·r is a breakdown.
@@ -421,27 +491,43 @@ fn scalar_beta(@builtin(local_invocation_id) lid: vec3<u32>) {
     }
 }
 
-// p = z + βp.
+// p = z + βp; with COARSE p = (z + Zc) + βp, the preconditioned residual completed.
 @compute @workgroup_size(WG)
 fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     if (stopped(lid.x)) {
         return;
     }
     let beta = real(scal[NCG_BETA]);
+    if (!COARSE) {
+        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += nwg.x * WG) {
+            for (var a = 0u; a < D; a++) {
+                let k = i * D + a;
+                p[k] = z[k] + beta * p[k];
+            }
+        }
+        return;
+    }
+    var c: array<real, 3>;
+    for (var a = 0u; a < D; a++) {
+        c[a] = real(scal[NCG_C + a]);
+    }
     for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += nwg.x * WG) {
+        let w = zc(i, c);
         for (var a = 0u; a < D; a++) {
             let k = i * D + a;
-            p[k] = z[k] + beta * p[k];
+            p[k] = (z[k] + w[a]) + beta * p[k];
         }
     }
 }
 
 // A (re)start from y, with q = Ĥy already in q: r = b̂ − q, z = M⁻¹r, p = z, and the r·z
-// and r·r partials (r·r of the true residual).
+// and r·r partials (r·r of the true residual); with COARSE z = M_J⁻¹r and the Zᵀr
+// partials too, and update_p (β = 0) then adds Zc to p.
 @compute @workgroup_size(WG)
 fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     var rz = acc(0.0);
     var rr = acc(0.0);
+    var zr: array<acc, 3>;
     for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += nwg.x * WG) {
         var rv: array<real, 3>;
         for (var a = 0u; a < D; a++) {
@@ -456,26 +542,48 @@ fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid
             rz += acc(rv[a]) * acc(zv[a]);
             rr += acc(rv[a]) * acc(rv[a]);
         }
+        if (COARSE) {
+            let w = zt(i, rv);
+            for (var a = 0u; a < D; a++) {
+                zr[a] += acc(w[a]);
+            }
+        }
     }
-    write_rz_rr(lid.x, wid.x, rz, rr);
+    write_rz_rr(lid.x, wid.x, rz, rr, zr);
 }
 
 // After init (one workgroup): ρ, the true r·r and ‖b̂‖²; stops when the true residual
-// meets the tolerance (always when b̂ = 0 and y = 0).
+// meets the tolerance (always when b̂ = 0 and y = 0). With COARSE also c = E⁺Zᵀr (Zᵀr in
+// a second tree), ρ += Zᵀr·c, and β = 0 for the update_p that completes p = z + Zc.
 @compute @workgroup_size(WG)
 fn scalar_start(@builtin(local_invocation_id) lid: vec3<u32>) {
     var v = array<acc, 5>(acc(0.0), acc(0.0), acc(0.0), acc(0.0), acc(0.0));
+    var w = array<acc, 5>(acc(0.0), acc(0.0), acc(0.0), acc(0.0), acc(0.0));
     let np = params.n_partials;
     for (var t = lid.x; t < np; t += WG) {
         v[0] += partials[NCG_PART_RZ * np + t];
         v[1] += partials[NCG_PART_RR * np + t];
         v[2] += partials[NCG_PART_BB * np + t];
+        if (COARSE) {
+            for (var a = 0u; a < D; a++) {
+                w[a] += partials[(NCG_PART_ZR + a) * np + t];
+            }
+        }
     }
     let s = workgroup_sum_uniform(lid.x, v, 3u);
+    var zr: array<acc, 3>;
+    if (COARSE) {
+        let sw = workgroup_sum_uniform(lid.x, w, D);
+        zr = array<acc, 3>(sw[0], sw[1], sw[2]);
+    }
     if (lid.x == 0u) {
-        let rz = s[0];
+        var rz = s[0];
         let rr = s[1];
         let bb = s[2];
+        if (COARSE) {
+            rz += coarse_c(zr);
+            scal[NCG_BETA] = acc(0.0);
+        }
         scal[NCG_RHO] = rz;
         scal[NCG_RR] = rr;
         scal[NCG_BB] = bb;
@@ -485,6 +593,146 @@ fn scalar_start(@builtin(local_invocation_id) lid: vec3<u32>) {
         } else if (rr <= scal[NCG_TOL2] * bb) {
             state[NCG_DONE] = 1u;
             state[NCG_CONVERGED] = 1u;
+        }
+    }
+}
+
+// Node i has no constrained component and no rotation: Z_i = Q_i = I.
+fn plain(i: u32) -> bool {
+    return frame[2u * i] == 0u && rot_of(i) == NO_ROTATION;
+}
+
+// Every component of node i is constrained: Z_i = 0.
+fn all_fixed(i: u32) -> bool {
+    let full = (1u << D) - 1u;
+    return (frame[2u * i] & full) == full;
+}
+
+// Q_i = Z_iᵀZ_i = V_i P_i V_iᵀ, row-major: Q_ab = Σ_c over the free frame components of
+// V_ac V_bc (V = I at unrotated nodes), in the order src/coarse.rs sums it.
+fn proj(i: u32) -> array<real, 9> {
+    let ri = rot_of(i);
+    var o: array<real, 9>;
+    for (var a = 0u; a < D; a++) {
+        for (var b = 0u; b < D; b++) {
+            var s = real(0.0);
+            for (var c = 0u; c < D; c++) {
+                if (!fixed(i, c)) {
+                    var va = select(real(0.0), real(1.0), a == c);
+                    var vb = select(real(0.0), real(1.0), b == c);
+                    if (ri != NO_ROTATION) {
+                        va = rotations[ri * D * D + a * D + c];
+                        vb = rotations[ri * D * D + b * D + c];
+                    }
+                    s += va * vb;
+                }
+            }
+            o[a * D + b] = s;
+        }
+    }
+    return o;
+}
+
+// x y for row-major D×D x and y.
+fn mat_mul(x: array<real, 9>, y: array<real, 9>) -> array<real, 9> {
+    var o: array<real, 9>;
+    for (var a = 0u; a < D; a++) {
+        for (var c = 0u; c < D; c++) {
+            var s = real(0.0);
+            for (var m = 0u; m < D; m++) {
+                s += x[a * D + m] * y[m * D + c];
+            }
+            o[a * D + c] = s;
+        }
+    }
+    return o;
+}
+
+// The partials of E = ZᵀĤZ = Σ_i Q_i (Σ_j H_ij Q_j), D² slots (Ĥ's identity on the
+// constrained components never meets Z). Row i's blocks are summed before Q_i is applied,
+// as src/coarse.rs does: for a nearly free body they cancel to the mass term, and summing
+// every block into E would carry the rounding of the stiffness into the small E.
+@compute @workgroup_size(WG)
+fn coarse_e(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let dd = D * D;
+    var e: array<acc, 9>;
+    for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += nwg.x * WG) {
+        if (all_fixed(i)) {
+            continue;
+        }
+        var part: array<real, 9>;
+        for (var k = pattern[i]; k < pattern[i + 1u]; k++) {
+            let j = pattern[params.col_at + k];
+            if (all_fixed(j)) {
+                continue;
+            }
+            var t: array<real, 9>;
+            for (var m = 0u; m < dd; m++) {
+                t[m] = hvals[k * dd + m];
+            }
+            if (!plain(j)) {
+                t = mat_mul(t, proj(j));
+            }
+            for (var m = 0u; m < dd; m++) {
+                part[m] += t[m];
+            }
+        }
+        if (!plain(i)) {
+            part = mat_mul(proj(i), part);
+        }
+        for (var m = 0u; m < dd; m++) {
+            e[m] += acc(part[m]);
+        }
+    }
+    // D² sums in trees of at most five.
+    let np = params.n_partials;
+    let n0 = min(dd, 5u);
+    workgroup_sum(lid.x, array<acc, 5>(e[0], e[1], e[2], e[3], e[4]), n0);
+    if (lid.x == 0u) {
+        for (var m = 0u; m < n0; m++) {
+            partials[(NCG_PART_E + m) * np + wid.x] = summed(m);
+        }
+    }
+    if (dd > 5u) {
+        workgroup_sum(lid.x, array<acc, 5>(e[5], e[6], e[7], e[8], acc(0.0)), dd - 5u);
+        if (lid.x == 0u) {
+            for (var m = 5u; m < dd; m++) {
+                partials[(NCG_PART_E + m) * np + wid.x] = summed(m - 5u);
+            }
+        }
+    }
+}
+
+// E from coarse_e's partials (one workgroup, fixed order) into scal, for the host, which
+// symmetrizes and pseudo-inverts it as the CPU does (src/coarse.rs).
+@compute @workgroup_size(WG)
+fn coarse_e_sum(@builtin(local_invocation_id) lid: vec3<u32>) {
+    let dd = D * D;
+    let np = params.n_partials;
+    var v = array<acc, 5>(acc(0.0), acc(0.0), acc(0.0), acc(0.0), acc(0.0));
+    var w = array<acc, 5>(acc(0.0), acc(0.0), acc(0.0), acc(0.0), acc(0.0));
+    for (var t = lid.x; t < np; t += WG) {
+        for (var m = 0u; m < dd; m++) {
+            let x = partials[(NCG_PART_E + m) * np + t];
+            if (m < 5u) {
+                v[m] += x;
+            } else {
+                w[m - 5u] += x;
+            }
+        }
+    }
+    let s = workgroup_sum_uniform(lid.x, v, min(dd, 5u));
+    var s2 = array<acc, 5>(acc(0.0), acc(0.0), acc(0.0), acc(0.0), acc(0.0));
+    if (dd > 5u) {
+        s2 = workgroup_sum_uniform(lid.x, w, dd - 5u);
+    }
+    if (lid.x == 0u) {
+        for (var m = 0u; m < dd; m++) {
+            if (m < 5u) {
+                scal[NCG_E + m] = s[m];
+            } else {
+                scal[NCG_E + m] = s2[m - 5u];
+            }
         }
     }
 }

@@ -548,6 +548,7 @@ impl GpuSide {
             tol: CG_TOL,
             max_iterations: 100_000,
             preconditioner: Preconditioner::BlockJacobi,
+            coarse: crate::coarse::CoarseSpace::None,
         };
         self.cg
             .iterate(&self.frames, &params)

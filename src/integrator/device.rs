@@ -169,6 +169,12 @@ impl DeviceLoop {
                 tol: scene.solver.cg_tolerance,
                 max_iterations: scene.solver.cg_max_iterations,
                 preconditioner: scene.solver.preconditioner,
+                // The device CG's coarse space is the rigid translations: `aggregates`
+                // (the default) has no device path, and gets the translations.
+                coarse: match scene.solver.coarse {
+                    crate::coarse::CoarseSpace::None => crate::coarse::CoarseSpace::None,
+                    _ => crate::coarse::CoarseSpace::Translations,
+                },
             },
             matrix_bytes,
             moving: None,

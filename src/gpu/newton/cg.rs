@@ -16,9 +16,20 @@
 //! submit, and one small status read-back (the scalars and flags, 96 bytes) per chunk.
 //! Every reduction has a fixed number of workgroups and a fixed order: the same inputs
 //! give the same Δx bit for bit.
+//!
+//! The preconditioner is Jacobi or block Jacobi, plus (with [`CoarseSpace::Translations`])
+//! the coarse correction on the rigid translations of [`crate::coarse`]:
+//! M⁻¹r = M_J⁻¹r + Z E⁺ Zᵀr, Z_i = P_i V_iᵀ. Why: a body that can translate or slide has
+//! Ĥ's smallest eigenvalues on its translations (the mass term), which a point-wise
+//! preconditioner cannot see. `prepare` reduces E = ZᵀĤZ on the device from the assembled
+//! blocks (D² sums); the first `iterate` with the correction reads those D² values back,
+//! pseudo-inverts E on the host as the CPU does ([`crate::coarse::pseudo_inverse`]) and
+//! writes E⁺ back. In the iteration Zᵀr rides in the tree of r·z and r·r, and Z E⁺ Zᵀr is
+//! added where p is updated: no extra dispatch per iteration (one per CG start).
 #![cfg(feature = "sim")]
 
 use crate::cg::{CgError, Preconditioner};
+use crate::coarse::CoarseSpace;
 use crate::constraints::{Frames, NO_ROTATION};
 use crate::gpu::assembly::GpuAssembly;
 use crate::gpu::kernels::{self, Access, Layout};
@@ -64,8 +75,14 @@ mod slot {
     pub const RR: u32 = 4;
     pub const TOL2: u32 = 5;
     pub const BB: u32 = 6;
+    /// c = E⁺Zᵀr (D values), E⁺ (D², from the host), E (D², for the host).
+    pub const C: u32 = 8;
+    pub const EINV: u32 = 11;
+    pub const E: u32 = 20;
     /// Length of `scal`.
-    pub const SCAL_LEN: usize = 8;
+    pub const SCAL_LEN: usize = 32;
+    /// The leading slots of `scal` read back with every status (the CG's scalars).
+    pub const STATUS_SCAL: usize = 8;
     pub const DONE: u32 = 0;
     pub const CONVERGED: u32 = 1;
     pub const HALT: u32 = 2;
@@ -77,11 +94,14 @@ mod slot {
     pub const PART_RZ: u32 = 1;
     pub const PART_RR: u32 = 2;
     pub const PART_BB: u32 = 3;
+    /// Zᵀr (D slots), E (D² slots).
+    pub const PART_ZR: u32 = 4;
+    pub const PART_E: u32 = 7;
     /// Partial-sum slots.
-    pub const N_PART: usize = 4;
+    pub const N_PART: usize = 16;
     /// Every slot with its WGSL name.
     #[cfg(test)]
-    pub const ALL: [(&str, u32); 16] = [
+    pub const ALL: [(&str, u32); 21] = [
         ("NCG_RHO", RHO),
         ("NCG_PQ", PQ),
         ("NCG_ALPHA", ALPHA),
@@ -89,6 +109,9 @@ mod slot {
         ("NCG_RR", RR),
         ("NCG_TOL2", TOL2),
         ("NCG_BB", BB),
+        ("NCG_C", C),
+        ("NCG_EINV", EINV),
+        ("NCG_E", E),
         ("NCG_DONE", DONE),
         ("NCG_CONVERGED", CONVERGED),
         ("NCG_HALT", HALT),
@@ -98,7 +121,13 @@ mod slot {
         ("NCG_PART_RZ", PART_RZ),
         ("NCG_PART_RR", PART_RR),
         ("NCG_PART_BB", PART_BB),
+        ("NCG_PART_ZR", PART_ZR),
+        ("NCG_PART_E", PART_E),
     ];
+    // The slot ranges do not overlap (D ≤ 3).
+    const _: () = assert!(C + 3 <= EINV && EINV + 9 <= E && E as usize + 9 <= SCAL_LEN);
+    const _: () = assert!(STATUS_SCAL <= C as usize);
+    const _: () = assert!(PART_ZR + 3 <= PART_E && PART_E as usize + 9 <= N_PART);
 }
 
 /// Uniform parameters of every kernel (mirrors `NewtonCgParams` in the WGSL).
@@ -119,8 +148,8 @@ const WORKGROUP: u32 = 64;
 /// reduction): enough to fill a GPU, few enough for one workgroup to sum them quickly.
 const MAX_GROUPS: u32 = 256;
 
-/// Bytes of the status read back per chunk: `scal` then `state`.
-const STATUS_BYTES: u64 = 8 * slot::SCAL_LEN as u64 + 4 * slot::STATE_LEN as u64;
+/// Bytes of the status read back per chunk: the leading `scal` slots then `state`.
+const STATUS_BYTES: u64 = 8 * slot::STATUS_SCAL as u64 + 4 * slot::STATE_LEN as u64;
 
 /// Iterations of the first chunk, and the longest chunk.
 const FIRST_CHUNK: usize = 8;
@@ -137,8 +166,12 @@ pub struct DeviceCgParams {
     pub tol: f64,
     /// Limit on CG iterations, restarts included.
     pub max_iterations: usize,
-    /// Jacobi or block Jacobi (or none); no coarse space.
+    /// Jacobi or block Jacobi (or none).
     pub preconditioner: Preconditioner,
+    /// `None` or `Translations` (added to the preconditioner; see the module docs).
+    /// `Aggregates` is refused: E⁺ of the aggregates is dense, (D·aggregates)², and has
+    /// no device path here.
+    pub coarse: CoarseSpace,
 }
 
 /// What a successful solve reports.
@@ -164,19 +197,33 @@ pub struct DeviceFrames {
     _rotations: wgpu::Buffer,
 }
 
-/// The pipelines of shaders/newton_cg.wgsl; `init` and `update_yr` once per
-/// preconditioner (none, Jacobi, block Jacobi: a WGSL override).
+/// The pipelines of shaders/newton_cg.wgsl; those the coarse correction changes once
+/// without and once with it (`[0]`, `[1]`: the COARSE override), `init` and `update_yr`
+/// once per preconditioner too (none, Jacobi, block Jacobi: the PRECOND override).
 struct Pipelines {
     rhs: wgpu::ComputePipeline,
     precond: wgpu::ComputePipeline,
+    coarse_e: wgpu::ComputePipeline,
+    coarse_e_sum: wgpu::ComputePipeline,
     matvec: wgpu::ComputePipeline,
     scalar_alpha: wgpu::ComputePipeline,
-    update_yr: [wgpu::ComputePipeline; 3],
-    scalar_beta: wgpu::ComputePipeline,
-    update_p: wgpu::ComputePipeline,
-    init: [wgpu::ComputePipeline; 3],
-    scalar_start: wgpu::ComputePipeline,
+    update_yr: [[wgpu::ComputePipeline; 3]; 2],
+    scalar_beta: [wgpu::ComputePipeline; 2],
+    update_p: [wgpu::ComputePipeline; 2],
+    init: [[wgpu::ComputePipeline; 3]; 2],
+    scalar_start: [wgpu::ComputePipeline; 2],
     recover: wgpu::ComputePipeline,
+}
+
+/// E of the translations for the last `prepare`.
+#[derive(Debug, Clone)]
+enum Galerkin {
+    /// Reduced on the device (in `scal`), not read back yet.
+    OnDevice,
+    /// Read back and symmetrized (D², row-major) with its pseudo-inverse, `None` when
+    /// every translation is constrained or E is not finite (no correction then, as on
+    /// the CPU).
+    Read { e: Vec<f64>, einv: Option<Vec<f64>> },
 }
 
 /// The device buffers of the CG (all f64 vectors are n·d, node-major).
@@ -215,6 +262,8 @@ pub struct DeviceCg {
     buf: Buffers,
     /// The frames `prepare` last built b̂ and the preconditioner for.
     prepared: Option<u64>,
+    /// E of that `prepare`.
+    galerkin: Galerkin,
 }
 
 /// One status read: the scalars and flags after a submit.
@@ -276,17 +325,26 @@ impl DeviceCg {
             source: wgpu::ShaderSource::Wgsl(code.into()),
         });
         let (layout, pl) = NEWTON_CG.layouts(dev, "newton cg");
-        let pipe = |entry: &str, precond: u32| {
-            // SUM_LANES: scalar_start sums three values in one tree, no kernel more.
+        let pipe = |entry: &str, precond: u32, coarse: bool| {
+            // SUM_LANES: scalar_start sums three values in one tree, no kernel more; the
+            // coarse correction sums r·z, r·r and Zᵀr (2 + D) in one, coarse_e E's D² in
+            // trees of five.
+            let wide = coarse || entry.starts_with("coarse_e");
+            let lanes = match (wide, dim) {
+                (false, _) => 3.0,
+                (true, 3) => 5.0,
+                (true, _) => 4.0,
+            };
             let constants = [
                 ("D", dim as f64),
                 ("WG", WORKGROUP as f64),
-                ("SUM_LANES", 3.0),
+                ("SUM_LANES", lanes),
                 ("PRECOND", precond as f64),
+                ("COARSE", coarse as u8 as f64),
             ];
             dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some(&format!(
-                    "newton cg {entry} ({dim}D, preconditioner {precond})"
+                    "newton cg {entry} ({dim}D, preconditioner {precond}, coarse {coarse})"
                 )),
                 layout: Some(&pl),
                 module: &module,
@@ -298,17 +356,21 @@ impl DeviceCg {
                 cache: None,
             })
         };
+        let both = |entry: &str| [false, true].map(|c| pipe(entry, 0, c));
+        let each = |entry: &str| [false, true].map(|c| [0, 1, 2].map(|k| pipe(entry, k, c)));
         let pipes = Pipelines {
-            rhs: pipe("rhs", 0),
-            precond: pipe("precond", 0),
-            matvec: pipe("matvec", 0),
-            scalar_alpha: pipe("scalar_alpha", 0),
-            update_yr: [0, 1, 2].map(|k| pipe("update_yr", k)),
-            scalar_beta: pipe("scalar_beta", 0),
-            update_p: pipe("update_p", 0),
-            init: [0, 1, 2].map(|k| pipe("init", k)),
-            scalar_start: pipe("scalar_start", 0),
-            recover: pipe("recover", 0),
+            rhs: pipe("rhs", 0, false),
+            precond: pipe("precond", 0, false),
+            coarse_e: pipe("coarse_e", 0, false),
+            coarse_e_sum: pipe("coarse_e_sum", 0, false),
+            matvec: pipe("matvec", 0, false),
+            scalar_alpha: pipe("scalar_alpha", 0, false),
+            update_yr: each("update_yr"),
+            scalar_beta: both("scalar_beta"),
+            update_p: both("update_p"),
+            init: each("init"),
+            scalar_start: both("scalar_start"),
+            recover: pipe("recover", 0, false),
         };
 
         // Buffers, limits checked first.
@@ -397,6 +459,7 @@ impl DeviceCg {
             pipes,
             buf,
             prepared: None,
+            galerkin: Galerkin::OnDevice,
         })
     }
 
@@ -555,22 +618,72 @@ impl DeviceCg {
         }
     }
 
-    /// b̂ = −P Vᵀ g and the preconditioners (Jacobi and block Jacobi both) from the
-    /// current assembly; call after every `assemble` (or constraint change). No read-back.
+    /// b̂ = −P Vᵀ g, the preconditioners (Jacobi and block Jacobi both) and E = ZᵀĤZ of
+    /// the translations from the current assembly; call after every `assemble` (or
+    /// constraint change). No read-back: E (D² values) is read by the first `iterate`
+    /// that uses the coarse correction.
     pub fn prepare(&mut self, frames: &DeviceFrames) -> Result<(), GpuError> {
         self.own(frames)?;
         let mut enc = self.encoder("newton cg prepare");
         let g = self.groups;
+        let p = &self.pipes;
         Self::pass(
             &mut enc,
             "newton cg prepare",
             &frames.group,
-            &[(&self.pipes.rhs, g), (&self.pipes.precond, g)],
+            &[
+                (&p.rhs, g),
+                (&p.precond, g),
+                (&p.coarse_e, g),
+                (&p.coarse_e_sum, 1),
+            ],
         );
         self.ctx.queue.submit([enc.finish()]);
         self.ctx.check("preparing the device Newton CG")?;
         self.prepared = Some(frames.id);
+        self.galerkin = Galerkin::OnDevice;
         Ok(())
+    }
+
+    /// E of the last `prepare` read back and pseudo-inverted (once per `prepare`).
+    fn read_galerkin(&mut self) -> Result<(), GpuError> {
+        if let Galerkin::Read { .. } = self.galerkin {
+            return Ok(());
+        }
+        let d = self.dim;
+        let what = "reading back the coarse matrix E = ZᵀĤZ";
+        let bytes =
+            self.ctx
+                .download(&self.buf.scal, 8 * slot::E as u64, 8 * (d * d) as u64, what)?;
+        let mut e: Vec<f64> = bytes
+            .chunks_exact(8)
+            .map(|c| {
+                let mut w = [0u8; 8];
+                w.copy_from_slice(c);
+                f64::from_le_bytes(w)
+            })
+            .collect();
+        // As src/coarse.rs: the mean of E and Eᵀ, then the pseudo-inverse.
+        for a in 0..d {
+            for b in 0..a {
+                let m = 0.5 * (e[a * d + b] + e[b * d + a]);
+                e[a * d + b] = m;
+                e[b * d + a] = m;
+            }
+        }
+        let einv = crate::coarse::pseudo_inverse(d, &e);
+        self.galerkin = Galerkin::Read { e, einv };
+        Ok(())
+    }
+
+    /// E = ZᵀĤZ of the translations (D², row-major, symmetrized) and its pseudo-inverse
+    /// (`None`: no correction) as the last `iterate` with the coarse correction read them;
+    /// `None` before one. For tests and diagnostics.
+    pub fn coarse_matrix(&self) -> Option<(&[f64], Option<&[f64]>)> {
+        match &self.galerkin {
+            Galerkin::Read { e, einv } => Some((e, einv.as_deref())),
+            Galerkin::OnDevice => None,
+        }
     }
 
     /// Records the status copies (`scal`, `state` into `status`) after the work of `enc`,
@@ -580,7 +693,7 @@ impl DeviceCg {
         mut enc: wgpu::CommandEncoder,
         what: &str,
     ) -> Result<Status, GpuError> {
-        let sb = 8 * slot::SCAL_LEN as u64;
+        let sb = 8 * slot::STATUS_SCAL as u64;
         enc.copy_buffer_to_buffer(&self.buf.scal, 0, &self.buf.status, 0, sb);
         enc.copy_buffer_to_buffer(
             &self.buf.state,
@@ -672,10 +785,33 @@ impl DeviceCg {
             Preconditioner::Jacobi => 1,
             Preconditioner::BlockJacobi => 2,
         };
+        let co = match params.coarse {
+            CoarseSpace::None => 0,
+            CoarseSpace::Translations => 1,
+            CoarseSpace::Aggregates => {
+                return Err(GpuError::Unsupported(
+                    "the device Newton CG's coarse space is none or translations, not \
+                     aggregates"
+                        .into(),
+                ))
+            }
+        };
         let g = self.groups;
         let tol2 = tol * tol;
-        let mut scal = [0.0f64; slot::SCAL_LEN];
+        // Every slot before E: the scalars, c and E⁺ (zero without the correction, or
+        // when every translation is constrained: then c = 0 and so is the correction).
+        let mut scal = [0.0f64; slot::E as usize];
         scal[slot::TOL2 as usize] = tol2;
+        if co == 1 {
+            self.read_galerkin()?;
+            if let Galerkin::Read {
+                einv: Some(einv), ..
+            } = &self.galerkin
+            {
+                let at = slot::EINV as usize;
+                scal[at..at + einv.len()].copy_from_slice(einv);
+            }
+        }
         self.ctx
             .write_buffer(&self.buf.scal, 0, bytemuck::cast_slice(&scal));
         self.ctx
@@ -689,7 +825,7 @@ impl DeviceCg {
             &mut enc,
             "newton cg start",
             &frames.group,
-            &[(&self.pipes.init[pre], g), (&self.pipes.scalar_start, 1)],
+            &self.start(pre, co),
         );
         let mut st = self.submit_and_read(enc, "starting the device Newton CG")?;
         Self::status_error(&st)?;
@@ -725,21 +861,14 @@ impl DeviceCg {
                 // by rounding: go on iterating.
                 self.clear_flags();
             }
-            self.chunks(frames, pre, max, tol2 * bb, &mut st)?;
+            self.chunks(frames, pre, co, max, tol2 * bb, &mut st)?;
             // The true residual at y: q = Ĥy (y copied into p), r = b̂ − q, p = z.
             self.clear_flags();
             let mut enc = self.encoder("newton cg true residual");
             enc.copy_buffer_to_buffer(&self.buf.y, 0, &self.buf.p, 0, None);
-            Self::pass(
-                &mut enc,
-                "newton cg true residual",
-                &frames.group,
-                &[
-                    (&self.pipes.matvec, g),
-                    (&self.pipes.init[pre], g),
-                    (&self.pipes.scalar_start, 1),
-                ],
-            );
+            let mut kernels = vec![(&self.pipes.matvec, g)];
+            kernels.extend(self.start(pre, co));
+            Self::pass(&mut enc, "newton cg true residual", &frames.group, &kernels);
             st = self.submit_and_read(enc, "the device Newton CG's true residual")?;
             Self::status_error(&st)?;
         }
@@ -759,12 +888,24 @@ impl DeviceCg {
         })
     }
 
+    /// The kernels of a (re)start from the q = Ĥy in `q`: r, z, p, ρ and the true r·r; with
+    /// the coarse correction `update_p` (β = 0) then completes p = z + Z E⁺Zᵀr.
+    fn start(&self, pre: usize, co: usize) -> Vec<(&wgpu::ComputePipeline, u32)> {
+        let p = &self.pipes;
+        let mut k = vec![(&p.init[co][pre], self.groups), (&p.scalar_start[co], 1)];
+        if co == 1 {
+            k.push((&p.update_p[co], self.groups));
+        }
+        k
+    }
+
     /// CG iterations in chunks from the current state until the recurrence residual meets
     /// `thresh` (on r·r) or `max` iterations are done in all; `st` is the last status.
     fn chunks(
         &self,
         frames: &DeviceFrames,
         pre: usize,
+        co: usize,
         max: usize,
         thresh: f64,
         st: &mut Status,
@@ -785,9 +926,9 @@ impl DeviceCg {
             let one: [(&wgpu::ComputePipeline, u32); 5] = [
                 (&p.matvec, g),
                 (&p.scalar_alpha, 1),
-                (&p.update_yr[pre], g),
-                (&p.scalar_beta, 1),
-                (&p.update_p, g),
+                (&p.update_yr[co][pre], g),
+                (&p.scalar_beta[co], 1),
+                (&p.update_p[co], g),
             ];
             let kernels: Vec<(&wgpu::ComputePipeline, u32)> =
                 (0..kk).flat_map(|_| one.iter().copied()).collect();
@@ -916,6 +1057,8 @@ mod tests {
             "init",
             "scalar_start",
             "recover",
+            "coarse_e",
+            "coarse_e_sum",
         ] {
             assert!(
                 m.entry_points.iter().any(|p| p.name == e),
