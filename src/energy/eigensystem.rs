@@ -162,7 +162,7 @@ fn scaling_eigen(d: usize, a: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
 /// straight from the eigensystem: proj(∂²Ψ/∂F²) = Σ_k max(λ_k, 0) q_k q_kᵀ with
 /// q_k = vec(U M_k Vᵀ), so the element Hessian is Σ_k max(λ_k, 0) w_k w_kᵀ with
 /// w_k = (∂F/∂x)ᵀ q_k, w_k[(a, c)] = Σ_pq U_cp (M_k)_pq (G V)_aq. `g` holds the shape
-/// gradients G[a][j] ((d+1)·d, row-major). About a tenth of the arithmetic of forming the
+/// gradients `G[a][j]` ((d+1)·d, row-major). About a tenth of the arithmetic of forming the
 /// d²×d² projection and contracting it with G twice; only the upper triangle is summed and
 /// mirrored, so the result is exactly symmetric.
 pub fn projected_element_hessian(

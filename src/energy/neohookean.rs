@@ -117,7 +117,7 @@ impl NeoHookean {
         Ok(s)
     }
 
-    /// Shape-function gradients of element e in the rest shape, G[a][j] flattened
+    /// Shape-function gradients of element e in the rest shape, `G[a][j]` flattened
     /// (d+1)·d: rows 1..=d are Dm⁻¹, row 0 minus their sum.
     pub fn grads(&self, e: usize) -> &[f64] {
         let k = (self.dim + 1) * self.dim;
