@@ -27,7 +27,7 @@ use stickslip::constraints::{Constraint, Frames};
 use stickslip::energy::barrier::{Barrier, HalfSpace};
 use stickslip::energy::{ElementSet, Model, NeoHookean};
 use stickslip::gpu::assembly::GpuAssembly;
-use stickslip::gpu::elements::{ElementKernels, GpuElements};
+use stickslip::gpu::elements::{ElementKernels, GpuElements, TermKind};
 use stickslip::gpu::newton::cg::{DeviceCg, DeviceCgParams};
 use stickslip::gpu::newton::ops::{MovingTerm, NewtonOps};
 use stickslip::gpu::{GpuContext, GpuError, Precision};
@@ -51,14 +51,16 @@ struct Case {
     moving: Vec<MovingTerm>,
 }
 
-/// A 3D box (4×4×3 cells, 100 nodes) or a 2D rectangle (8×6 cells, 63 nodes) deformed at
-/// random; sticky at x = 0, slip on a slanted plane at the bottom, slip on the plane
+/// A 3D box (4×4×3 cells, 100 nodes) or a 2D rectangle (8×6 cells, 63 nodes; `large`:
+/// 130×128 cells, 16,899 nodes, more than the CG's 256 workgroups of 64 threads, so that
+/// threads sum rows of several chunks) deformed at random; sticky at x = 0, slip on a slanted plane at the bottom, slip on the plane
 /// x = const at the far side; a half-space near the bottom; moving penalties (a sticky
 /// anchor and a plane) on two free nodes.
-fn case(d: usize, seed: u64) -> Case {
+fn case(d: usize, seed: u64, large: bool) -> Case {
     let mut rng = StdRng::seed_from_u64(seed);
     let (m, len) = if d == 2 {
-        (mesh::rectangle(2, [1.0, 0.7], [8, 6]), 1.0)
+        let cells = if large { [130, 128] } else { [8, 6] };
+        (mesh::rectangle(2, [1.0, 0.7], cells), 1.0)
     } else {
         (mesh::cuboid([1.0, 0.8, 0.6], [4, 4, 3]), 1.0)
     };
@@ -180,7 +182,7 @@ fn evaluate(
     c: &Case,
     element_limit: Option<u64>,
     values_limit: Option<u64>,
-) -> Result<(Outcome, usize), GpuError> {
+) -> Result<(Outcome, usize, usize), GpuError> {
     let m = &c.model;
     let kernels = ElementKernels::new(ctx, m.dim, Precision::F64)?;
     let barrier = Some((&c.barrier, c.planes.as_slice()));
@@ -242,7 +244,12 @@ fn evaluate(
         g_moving,
         solves,
     };
-    Ok((outcome, asm.values_chunks().len()))
+    let node_chunks = el
+        .kinds()
+        .iter()
+        .filter(|k| matches!(k, TermKind::Inertia | TermKind::Barrier))
+        .count();
+    Ok((outcome, asm.values_chunks().len(), node_chunks))
 }
 
 /// Bits of a vector, so that equality is bitwise (−0 ≠ 0, NaN = NaN of the same bits).
@@ -260,12 +267,14 @@ fn same(what: &str, a: &[f64], b: &[f64]) {
     assert_eq!(differ, 0, "{what}: {differ} of {} entries differ", a.len());
 }
 
-fn run(d: usize, seed: u64) {
+/// The unsplit build against the values split (and, unless `large`, the values and the
+/// element terms split).
+fn run(d: usize, seed: u64, large: bool) {
     let Some((ctx, _guard)) = gpu() else {
         return;
     };
-    let c = case(d, seed);
-    let (whole, chunks) = evaluate(ctx, &c, None, None).expect("unsplit build");
+    let c = case(d, seed, large);
+    let (whole, chunks, terms) = evaluate(ctx, &c, None, None).expect("unsplit build");
     assert_eq!(chunks, 1, "{d}D: the values fit one binding unforced");
     let nnz = whole.h.len() / (d * d);
     let bytes = (whole.h.len() * 8) as u64;
@@ -273,18 +282,27 @@ fn run(d: usize, seed: u64) {
     let limit = (bytes / 4).div_ceil(16) * 16;
     // Element arrays capped so that the node terms split into about three chunks too.
     let element_limit = (c.model.n_nodes as u64 * (d * d) as u64 * 8 / 3).div_ceil(16) * 16;
-    for (label, el_limit) in [
+    let builds = [
         ("values split", None),
         ("values and elements split", Some(element_limit)),
-    ] {
-        let (split, chunks) = evaluate(ctx, &c, el_limit, Some(limit)).expect("split build");
+    ];
+    for &(label, el_limit) in &builds[..if large { 1 } else { 2 }] {
+        let (split, chunks, split_terms) =
+            evaluate(ctx, &c, el_limit, Some(limit)).expect("split build");
         eprintln!(
-            "{d}D {label}: {} nodes, {nnz} blocks, limit {limit} B → {chunks} values chunks; \
-             iterations {:?}",
+            "{d}D {label}: {} nodes, {nnz} blocks, limit {limit} B → {chunks} values chunks, \
+             {split_terms} inertia and barrier chunks ({terms} unsplit); iterations {:?}",
             c.model.n_nodes,
             split.solves.iter().map(|s| s.0).collect::<Vec<_>>()
         );
         assert!(chunks >= 3, "{d}D {label}: {chunks} chunks");
+        // The node terms in three or more chunks each.
+        if el_limit.is_some() {
+            assert!(
+                split_terms >= 6,
+                "{d}D {label}: {split_terms} node-term chunks"
+            );
+        }
         same(&format!("{d}D {label}: H"), &split.h, &whole.h);
         same(&format!("{d}D {label}: g"), &split.g, &whole.g);
         same(
@@ -318,12 +336,19 @@ fn run(d: usize, seed: u64) {
 
 #[test]
 fn split_matrix_3d_is_bitwise_the_unsplit() {
-    run(3, 11);
+    run(3, 11, false);
 }
 
 #[test]
 fn split_matrix_2d_is_bitwise_the_unsplit() {
-    run(2, 12);
+    run(2, 12, false);
+}
+
+/// More rows than CG threads: a thread's rows lie in several chunks, and its running sums
+/// carry from one chunk's dispatch to the next.
+#[test]
+fn split_matrix_2d_with_several_rows_per_thread_is_bitwise_the_unsplit() {
+    run(2, 14, true);
 }
 
 /// A limit below one row's blocks is refused, naming the row.
@@ -332,7 +357,7 @@ fn a_row_larger_than_the_limit_is_refused() {
     let Some((ctx, _guard)) = gpu() else {
         return;
     };
-    let c = case(2, 13);
+    let c = case(2, 13, false);
     let el = GpuElements::new(ctx, &c.model, None, Precision::F64).expect("element terms");
     match GpuAssembly::with_binding_limit(&el, &c.model, 64) {
         Err(GpuError::BufferTooLarge { label, .. }) => {

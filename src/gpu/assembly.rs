@@ -122,6 +122,9 @@ pub struct ValuesChunk {
     pub buffer: wgpu::Buffer,
 }
 
+/// A run of consecutive block rows and the (global) blocks they hold.
+pub type RowRun = (std::ops::Range<usize>, std::ops::Range<usize>);
+
 /// Splits the block rows of `row_ptr` into runs of consecutive rows whose blocks
 /// (`block_bytes` each) fit `limit` bytes once padded to 16: (rows, blocks) per run. A
 /// row whose blocks alone exceed the limit is [`GpuError::BufferTooLarge`].
@@ -130,7 +133,7 @@ pub fn plan_rows(
     block_bytes: u64,
     limit: u64,
     adapter: &str,
-) -> Result<Vec<(std::ops::Range<usize>, std::ops::Range<usize>)>, GpuError> {
+) -> Result<Vec<RowRun>, GpuError> {
     let n = row_ptr.len().saturating_sub(1);
     let padded = |blocks: usize| (blocks as u64 * block_bytes).max(16).div_ceil(16) * 16;
     let mut out = Vec::new();
