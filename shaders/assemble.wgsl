@@ -14,6 +14,11 @@
 // the chunk). A chunk's pass reads `out` and adds its own list in element order, so an
 // entry receives the unsplit additions in the unsplit order: the same bits.
 //
+// The block values come in chunks of consecutive block rows, each its own buffer (one
+// storage binding caps its size); a block pass runs once per chunk with `out` that chunk
+// and its items local to it (global block block_first + k at out[k·D² ..]), so every
+// block still receives its additions in the unsplit order.
+//
 // Block values are row-major D×D at out[k·D² ..], k in the BlockCsr order; element
 // Hessians hessian[e·nl² + (a·D + r)·nl + b·D + c], gradients gradient[e·nl + a·D + c].
 
@@ -33,9 +38,13 @@ struct AssemblyParams {
     // storage binding comes in chunks of consecutive nodes, each with its own `src` from
     // index 0; `out` and `x` are the whole mesh's.
     first: u32,
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
+    // Block passes: the global block of the values chunk's block 0 (`out` holds that
+    // chunk only; items are local to it).
+    block_first: u32,
+    // Node-block passes: the term chunk's item of the dispatch's item 0 (a term chunk's
+    // nodes may lie in several values chunks).
+    src_first: u32,
+    _pad: u32,
 }
 
 const NONE: u32 = 0xffffffffu;
@@ -61,12 +70,13 @@ const NONE: u32 = 0xffffffffu;
 
 // Block k := the inertia block gather[k] of the first inertia chunk (its diagonal blocks),
 // else zero (NONE: off-diagonal, or a node of a later chunk, set by blocks_set_nodes).
+// gather is indexed by global block.
 @compute @workgroup_size(WG)
 fn blocks_init(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
     let c = coef[params.coef_slot];
     for (var k = gid.x; k < params.count; k += nwg.x * WG) {
-        let i = gather[k];
+        let i = gather[params.block_first + k];
         for (var t = 0u; t < dd; t++) {
             var v = real(0.0);
             if i != NONE {
@@ -88,7 +98,8 @@ fn blocks_add_elements(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
         for (var t = 0u; t < dd; t++) {
             sum[t] = out[k * dd + t];
         }
-        for (var j = offsets[k]; j < offsets[k + 1u]; j++) {
+        let kg = params.block_first + k;
+        for (var j = offsets[kg]; j < offsets[kg + 1u]; j++) {
             let base = gather[j];
             for (var r = 0u; r < D; r++) {
                 for (var q = 0u; q < D; q++) {
@@ -102,29 +113,32 @@ fn blocks_add_elements(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     }
 }
 
-// Diagonal block of the chunk's node i := factor·(its node-term block): the inertia of
-// the chunks after the first (the first's blocks_init zeroes every other block).
+// Diagonal block of the dispatch's node i := factor·(its node-term block): the inertia of
+// the chunks after the first (the first's blocks_init zeroes every other block). gather:
+// per node of the dispatch its diagonal block, local to the values chunk.
 @compute @workgroup_size(WG)
 fn blocks_set_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
     let c = coef[params.coef_slot];
     for (var i = gid.x; i < params.count; i += nwg.x * WG) {
         let k = gather[i];
+        let s = params.src_first + i;
         for (var t = 0u; t < dd; t++) {
-            out[k * dd + t] = c * src[i * dd + t];
+            out[k * dd + t] = c * src[s * dd + t];
         }
     }
 }
 
-// Diagonal block of the chunk's node i += factor·(its node-term block).
+// Diagonal block of the dispatch's node i += factor·(its node-term block).
 @compute @workgroup_size(WG)
 fn blocks_add_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
     let c = coef[params.coef_slot];
     for (var i = gid.x; i < params.count; i += nwg.x * WG) {
         let k = gather[i];
+        let s = params.src_first + i;
         for (var t = 0u; t < dd; t++) {
-            out[k * dd + t] += c * src[i * dd + t];
+            out[k * dd + t] += c * src[s * dd + t];
         }
     }
 }
@@ -174,18 +188,21 @@ fn grad_add_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     }
 }
 
-// y = H x with the assembled blocks (BlockCsr::matvec's order).
+// y = H x with the assembled blocks (BlockCsr::matvec's order), over the values chunk's
+// rows first .. first + count.
 @compute @workgroup_size(WG)
 fn matvec_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
-    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+    for (var li = gid.x; li < params.count; li += nwg.x * WG) {
+        let i = params.first + li;
         var sum: array<real, 3>;
         for (var k = offsets[i]; k < offsets[i + 1u]; k++) {
             let j = gather[k];
+            let kl = k - params.block_first;
             for (var r = 0u; r < D; r++) {
                 var s = real(0.0);
                 for (var q = 0u; q < D; q++) {
-                    s += src[k * dd + r * D + q] * x[j * D + q];
+                    s += src[kl * dd + r * D + q] * x[j * D + q];
                 }
                 sum[r] += s;
             }

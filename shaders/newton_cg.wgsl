@@ -17,6 +17,14 @@
 // number of workgroups each writes one partial from a grid-stride loop in a fixed order,
 // and the one-workgroup scalar kernels sum the partials in a fixed order too.
 // Once a stop flag is set, every later CG dispatch of the submit is a no-op.
+//
+// H's values come in chunks of consecutive block rows, one buffer each (one storage
+// binding caps its size). The kernels that read them (matvec, precond, coarse_e) run once
+// per chunk, each over its rows with `hvals` that chunk's buffer. A thread visits its rows
+// in the order of the unsplit grid-stride loop; the reductions carry each thread's running
+// sum from one chunk's dispatch to the next (the CARRY slots of `partials`), and only the
+// last chunk's dispatch sums the workgroup: the same additions in the same order, so the
+// results are those of one chunk, bit for bit.
 
 override D: u32 = 3u;
 // 0: none, 1: Jacobi, 2: block Jacobi (the preconditioner applied by init and update_yr).
@@ -40,7 +48,16 @@ struct NewtonCgParams {
     // n + 1 row pointers start at 0).
     col_at: u32,
     diag_at: u32,
+    // The values chunk bound as `hvals`: its rows, its first (global) block, and whether
+    // it is the first (bit 0) and the last (bit 1) chunk.
+    row_begin: u32,
+    row_end: u32,
+    block_first: u32,
+    chunk: u32,
 }
+
+const H_FIRST_CHUNK: u32 = 1u;
+const H_LAST_CHUNK: u32 = 2u;
 
 // Slots of `scal`, `state` and the partial sums, mirrored by `slot` in
 // src/gpu/newton/cg.rs (a unit test there checks every value).
@@ -73,11 +90,15 @@ const NCG_PART_RR: u32 = 2u;
 const NCG_PART_BB: u32 = 3u;
 const NCG_PART_ZR: u32 = 4u;
 const NCG_PART_E: u32 = 7u;
+// After the partial-sum slots (NCG_CARRY · n_partials): per thread of the grid-stride
+// kernels, 9 running sums carried between the dispatches of H's chunks.
+const NCG_CARRY: u32 = 16u;
 
 @group(0) @binding(0) var<uniform> params: NewtonCgParams;
 // Row pointers, column indices and per node its diagonal block (see NewtonCgParams).
 @group(0) @binding(1) var<storage, read> pattern: array<u32>;
 // The assembly's blocks and gradient.
+// (hvals: the values chunk of this dispatch, block block_first at 0.)
 @group(0) @binding(2) var<storage, read> hvals: array<real>;
 @group(0) @binding(3) var<storage, read> grad: array<real>;
 // Per node: its constraint mask (bit a: component a of the frame is constrained) and its
@@ -204,6 +225,19 @@ fn coarse_c(zr: array<acc, 3>) -> acc {
     return wc;
 }
 
+// Index of thread t's carried sum m (see NCG_CARRY).
+fn carry(t: u32, m: u32) -> u32 {
+    return NCG_CARRY * params.n_partials + t * 9u + m;
+}
+
+// Thread t's first row of the chunk in the unsplit grid-stride order (t, t + stride, …).
+fn chunk_start(t: u32, stride: u32) -> u32 {
+    if (t >= params.row_begin) {
+        return t;
+    }
+    return t + (params.row_begin - t + stride - 1u) / stride * stride;
+}
+
 // Sum of partial slot `slot`, in a fixed order, in one workgroup.
 fn reduce_slot(slot: u32, lid: u32) -> acc {
     var s = acc(0.0);
@@ -249,8 +283,8 @@ fn positive_finite(v: real) -> bool {
 @compute @workgroup_size(WG)
 fn precond(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
-    for (var i = gid.x; i < params.n_nodes; i += nwg.x * WG) {
-        let k = pattern[params.diag_at + i];
+    for (var i = params.row_begin + gid.x; i < params.row_end; i += nwg.x * WG) {
+        let k = pattern[params.diag_at + i] - params.block_first;
         var h: array<real, 9>;
         for (var t = 0u; t < dd; t++) {
             h[t] = hvals[k * dd + t];
@@ -348,11 +382,17 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
         return;
     }
     let dd = D * D;
+    let th = wid.x * WG + lid.x;
+    let stride = nwg.x * WG;
     var pq = acc(0.0);
-    for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += nwg.x * WG) {
+    if ((params.chunk & H_FIRST_CHUNK) == 0u) {
+        pq = partials[carry(th, 0u)];
+    }
+    for (var i = chunk_start(th, stride); i < params.row_end; i += stride) {
         var s: array<real, 3>;
         for (var k = pattern[i]; k < pattern[i + 1u]; k++) {
             let j = pattern[params.col_at + k];
+            let kl = k - params.block_first;
             var w: array<real, 3>;
             for (var c = 0u; c < D; c++) {
                 w[c] = select(p[j * D + c], real(0.0), fixed(j, c));
@@ -361,7 +401,7 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
             for (var a = 0u; a < D; a++) {
                 var t = s[a];
                 for (var c = 0u; c < D; c++) {
-                    t += hvals[k * dd + a * D + c] * w[c];
+                    t += hvals[kl * dd + a * D + c] * w[c];
                 }
                 s[a] = t;
             }
@@ -373,6 +413,10 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
             q[i * D + a] = qa;
             pq += acc(pa) * acc(qa);
         }
+    }
+    if ((params.chunk & H_LAST_CHUNK) == 0u) {
+        partials[carry(th, 0u)] = pq;
+        return;
     }
     workgroup_sum(lid.x, sum1(pq), 1u);
     if (lid.x == 0u) {
@@ -655,8 +699,15 @@ fn mat_mul(x: array<real, 9>, y: array<real, 9>) -> array<real, 9> {
 @compute @workgroup_size(WG)
 fn coarse_e(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
+    let th = wid.x * WG + lid.x;
+    let stride = nwg.x * WG;
     var e: array<acc, 9>;
-    for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += nwg.x * WG) {
+    if ((params.chunk & H_FIRST_CHUNK) == 0u) {
+        for (var m = 0u; m < dd; m++) {
+            e[m] = partials[carry(th, m)];
+        }
+    }
+    for (var i = chunk_start(th, stride); i < params.row_end; i += stride) {
         if (all_fixed(i)) {
             continue;
         }
@@ -668,7 +719,7 @@ fn coarse_e(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
             }
             var t: array<real, 9>;
             for (var m = 0u; m < dd; m++) {
-                t[m] = hvals[k * dd + m];
+                t[m] = hvals[(k - params.block_first) * dd + m];
             }
             if (!plain(j)) {
                 t = mat_mul(t, proj(j));
@@ -683,6 +734,12 @@ fn coarse_e(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
         for (var m = 0u; m < dd; m++) {
             e[m] += acc(part[m]);
         }
+    }
+    if ((params.chunk & H_LAST_CHUNK) == 0u) {
+        for (var m = 0u; m < dd; m++) {
+            partials[carry(th, m)] = e[m];
+        }
+        return;
     }
     // D² sums in trees of at most five.
     let np = params.n_partials;

@@ -195,7 +195,10 @@ fn moving_term(k: u32) -> Moving {
 fn add_moving(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     for (var k = gid.x; k < params.count; k += nwg.x * WG) {
         let node = index[k * MOVING_INDEX_STRIDE];
+        // The diagonal block within its values chunk, and that chunk: this dispatch
+        // (aux: its chunk) writes the blocks of its chunk, the first the gradient.
         let blk = index[k * MOVING_INDEX_STRIDE + 2u];
+        let chunk = index[k * MOVING_INDEX_STRIDE + 3u];
         let o = k * MOVING_STRIDE;
         let coef = table[o + 7u];
         let m = moving_term(k);
@@ -204,9 +207,13 @@ fn add_moving(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
             for (var c = 0u; c < D; c++) {
                 pl += m.p[a * 3u + c] * table[o + 8u + c];
             }
-            grad[node * D + a] += coef * m.r[a] - pl;
-            for (var c = 0u; c < D; c++) {
-                hvals[blk * D * D + a * D + c] += coef * m.p[a * 3u + c];
+            if (params.aux == 0u) {
+                grad[node * D + a] += coef * m.r[a] - pl;
+            }
+            if (chunk == params.aux) {
+                for (var c = 0u; c < D; c++) {
+                    hvals[blk * D * D + a * D + c] += coef * m.p[a * 3u + c];
+                }
             }
         }
     }

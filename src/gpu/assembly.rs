@@ -16,9 +16,14 @@
 //! A term [`GpuElements`] split into chunks (consecutive elements or nodes, each its own
 //! buffers) gets gather lists and passes per chunk, offsets relative to the chunk's own
 //! arrays; each chunk's pass continues the sums of the chunk before, so H and g are the
-//! same bits as without the split. The assembled matrix itself is not split: the device CG
-//! reads its values whole, so a pattern whose values (nnz blocks·d²·8 bytes) exceed one
-//! storage binding is refused with [`GpuError::BufferTooLarge`] naming that buffer.
+//! same bits as without the split. The assembled values are split too, by rows
+//! ([`ValuesChunk`]): consecutive block rows whose blocks fit one storage binding, one
+//! buffer each. Every pass that writes blocks runs once per values chunk with the same
+//! gather lists, so every block receives the same additions in the same order: the values
+//! are those of one buffer, bit for bit. Only a single row whose blocks exceed one binding
+//! is refused ([`GpuError::BufferTooLarge`] naming it); the column indices, row pointers
+//! and per-block gather lists (4 bytes per block or entry) stay whole and are refused by
+//! name when they exceed a binding.
 
 use super::elements::{from_bytes, to_bytes, usage_storage};
 use super::elements::{GpuElements, TermKind, WORKGROUP};
@@ -53,9 +58,13 @@ struct AssemblyParams {
     nl: u32,
     arity: u32,
     coef_slot: u32,
-    /// Node passes: the mesh node of the chunk's item 0.
+    /// Node passes and the assembled product: the mesh node of the dispatch's item 0.
     first: u32,
-    pad: [u32; 3],
+    /// Block passes: the global index of the values chunk's block 0 (items are local).
+    block_first: u32,
+    /// Node-block passes: the term chunk's item of the dispatch's item 0.
+    src_first: u32,
+    pad: u32,
 }
 const _: () = assert!(std::mem::size_of::<AssemblyParams>() == 32);
 
@@ -99,6 +108,55 @@ struct Pass {
     group: wgpu::BindGroup,
     /// Kept alive with the bind group.
     _params: wgpu::Buffer,
+}
+
+/// One buffer of the assembled values: the blocks of consecutive block rows.
+#[derive(Debug)]
+pub struct ValuesChunk {
+    /// Block rows (mesh nodes) whose blocks this buffer holds.
+    pub rows: std::ops::Range<usize>,
+    /// Global block indices (the pattern's order) of its blocks; block k is at
+    /// (k − blocks.start)·d² in the buffer.
+    pub blocks: std::ops::Range<usize>,
+    /// The values, row-major d×d per block (`real`).
+    pub buffer: wgpu::Buffer,
+}
+
+/// A run of consecutive block rows and the (global) blocks they hold.
+pub type RowRun = (std::ops::Range<usize>, std::ops::Range<usize>);
+
+/// Splits the block rows of `row_ptr` into runs of consecutive rows whose blocks
+/// (`block_bytes` each) fit `limit` bytes once padded to 16: (rows, blocks) per run. A
+/// row whose blocks alone exceed the limit is [`GpuError::BufferTooLarge`].
+pub fn plan_rows(
+    row_ptr: &[usize],
+    block_bytes: u64,
+    limit: u64,
+    adapter: &str,
+) -> Result<Vec<RowRun>, GpuError> {
+    let n = row_ptr.len().saturating_sub(1);
+    let padded = |blocks: usize| (blocks as u64 * block_bytes).max(16).div_ceil(16) * 16;
+    let mut out = Vec::new();
+    let mut start = 0;
+    for i in 0..n {
+        if padded(row_ptr[i + 1] - row_ptr[i]) > limit {
+            return Err(GpuError::BufferTooLarge {
+                label: format!("assembly blocks of row {i}"),
+                bytes: padded(row_ptr[i + 1] - row_ptr[i]),
+                limit,
+                what: "storage binding",
+                adapter: adapter.to_string(),
+            });
+        }
+        if padded(row_ptr[i + 1] - row_ptr[start]) > limit {
+            out.push((start..i, row_ptr[start]..row_ptr[i]));
+            start = i;
+        }
+    }
+    if start < n || out.is_empty() {
+        out.push((start..n, row_ptr[start]..row_ptr[n]));
+    }
+    Ok(out)
 }
 
 /// For each output item (block or node), the `src` offsets of its contributions.
@@ -185,14 +243,14 @@ pub struct GpuAssembly {
     col_idx: Vec<usize>,
     pipelines: Vec<wgpu::ComputePipeline>,
     coef: wgpu::Buffer,
-    values: wgpu::Buffer,
+    values: Vec<ValuesChunk>,
     gradient: wgpu::Buffer,
     x: wgpu::Buffer,
     y_assembled: wgpu::Buffer,
     y_matrix_free: wgpu::Buffer,
     hessian_passes: Vec<Pass>,
     gradient_passes: Vec<Pass>,
-    matvec_pass: Pass,
+    matvec_passes: Vec<Pass>,
     matfree_passes: Vec<Pass>,
     /// Bytes the two products read and write per call (see [`ProductBytes`]).
     bytes: ProductBytes,
@@ -210,6 +268,26 @@ impl GpuAssembly {
     /// Builds the pattern, gather lists, buffers and bind groups for the terms of
     /// `elements`, which must have been built from `model`.
     pub fn new(elements: &GpuElements, model: &Model) -> Result<Self, GpuError> {
+        Self::build(elements, model, None)
+    }
+
+    /// [`GpuAssembly::new`] with the assembled values' chunks capped at `binding_limit`
+    /// bytes (the adapter's limits still apply), so that small meshes take the split path
+    /// of large ones (tests).
+    #[doc(hidden)]
+    pub fn with_binding_limit(
+        elements: &GpuElements,
+        model: &Model,
+        binding_limit: u64,
+    ) -> Result<Self, GpuError> {
+        Self::build(elements, model, Some(binding_limit))
+    }
+
+    fn build(
+        elements: &GpuElements,
+        model: &Model,
+        binding_limit: Option<u64>,
+    ) -> Result<Self, GpuError> {
         let ctx = elements.context().clone();
         let dim = elements.kernels().dim();
         let f64 = elements.kernels().is_f64();
@@ -317,10 +395,34 @@ impl GpuAssembly {
                 })
                 .collect()
         };
-        // The assembled values are one buffer whatever the element chunks: the device CG
-        // binds them whole (splitting it is not supported), so a pattern too large for one
-        // binding stops here with BufferTooLarge naming "assembly blocks".
-        let values = zeroed("assembly blocks", (nb * dd) as u64 * rs)?;
+        // The assembled values: one buffer per run of rows that fits one binding.
+        let values_limit = {
+            let l = &ctx.limits;
+            let limit = l.max_buffer_size.min(l.max_storage_buffer_binding_size);
+            binding_limit.map_or(limit, |c| c.min(limit))
+        };
+        let plan = plan_rows(
+            &pattern.row_ptr,
+            dd as u64 * rs,
+            values_limit,
+            ctx.adapter_name(),
+        )?;
+        let single = plan.len() == 1;
+        let values: Vec<ValuesChunk> = plan
+            .into_iter()
+            .map(|(rows, blocks)| {
+                let label = if single {
+                    "assembly blocks".to_string()
+                } else {
+                    format!("assembly blocks of rows {}..{}", rows.start, rows.end)
+                };
+                Ok(ValuesChunk {
+                    buffer: zeroed(&label, (blocks.len() * dd) as u64 * rs)?,
+                    rows,
+                    blocks,
+                })
+            })
+            .collect::<Result<_, GpuError>>()?;
         let gradient = zeroed("assembly gradient", (n * dim) as u64 * rs)?;
         let x = zeroed("assembly product input", (n * dim) as u64 * rs)?;
         let y_assembled = zeroed("assembly assembled product", (n * dim) as u64 * rs)?;
@@ -355,13 +457,15 @@ impl GpuAssembly {
             nodes: &'a wgpu::Buffer,
             out: &'a wgpu::Buffer,
         }
-        let pass = |entry: Entry,
-                    count: usize,
-                    first: usize,
-                    nl: usize,
-                    arity: usize,
-                    coef_slot: u32,
-                    b: Binds|
+        // `at`: (block_first, src_first) of a values chunk's pass.
+        let pass_at = |entry: Entry,
+                       count: usize,
+                       first: usize,
+                       at: (usize, usize),
+                       nl: usize,
+                       arity: usize,
+                       coef_slot: u32,
+                       b: Binds|
          -> Pass {
             let p = AssemblyParams {
                 count: count as u32,
@@ -369,7 +473,9 @@ impl GpuAssembly {
                 arity: arity as u32,
                 coef_slot,
                 first: first as u32,
-                pad: [0; 3],
+                block_first: at.0 as u32,
+                src_first: at.1 as u32,
+                pad: 0,
             };
             let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(&format!("{} params", ENTRIES[entry as usize])),
@@ -399,6 +505,68 @@ impl GpuAssembly {
                 _params: params,
             }
         };
+        let pass =
+            |entry: Entry,
+             count: usize,
+             first: usize,
+             nl: usize,
+             arity: usize,
+             coef_slot: u32,
+             b: Binds|
+             -> Pass { pass_at(entry, count, first, (0, 0), nl, arity, coef_slot, b) };
+        // A node term's pass on the diagonal blocks of nodes `r` (the term chunk's items
+        // from 0), once per values chunk holding some of them, each with its nodes'
+        // diagonal blocks relative to the chunk.
+        let node_block_passes = |entry: Entry,
+                                 label: &str,
+                                 r: &std::ops::Range<usize>,
+                                 coef_slot: u32,
+                                 src: &wgpu::Buffer|
+         -> Result<Vec<Pass>, GpuError> {
+            let mut out = Vec::new();
+            for c in &values {
+                let (s, e) = (r.start.max(c.rows.start), r.end.min(c.rows.end));
+                if s >= e {
+                    continue;
+                }
+                let list: Vec<u32> = diag_list
+                    .get(s..e)
+                    .ok_or_else(|| {
+                        GpuError::Mismatch(format!("{label} covers nodes {r:?} of {n}"))
+                    })?
+                    .iter()
+                    .map(|&k| k - c.blocks.start as u32)
+                    .collect();
+                let own;
+                let d = if single && (s, e) == (0, n) {
+                    &diag
+                } else {
+                    own = init(
+                        &format!("{label} diagonal blocks of nodes {s}..{e}"),
+                        bytemuck::cast_slice(&list),
+                    )?;
+                    &own
+                };
+                out.push(pass_at(
+                    entry,
+                    e - s,
+                    s,
+                    (c.blocks.start, s - r.start),
+                    0,
+                    1,
+                    coef_slot,
+                    Binds {
+                        offsets: &dummy_u32,
+                        gather: d,
+                        src,
+                        x: &dummy_real,
+                        nodes: &dummy_u32,
+                        out: &c.buffer,
+                    },
+                ));
+            }
+            Ok(out)
+        };
 
         let mut hessian_passes = Vec::new();
         let mut gradient_passes = Vec::new();
@@ -408,17 +576,6 @@ impl GpuAssembly {
         let mut mf_bytes = 0u64;
         // Index into model.sets of the current element term (advanced by each first chunk).
         let mut set: Option<usize> = None;
-        // Diagonal blocks of a node chunk (the whole mesh's list when not split).
-        let chunk_diag =
-            |label: &str, r: &std::ops::Range<usize>| -> Result<Option<wgpu::Buffer>, GpuError> {
-                if *r == (0..n) {
-                    return Ok(None);
-                }
-                let list = diag_list.get(r.clone()).ok_or_else(|| {
-                    GpuError::Mismatch(format!("{label} covers nodes {r:?} of {n}"))
-                })?;
-                init(label, bytemuck::cast_slice(list)).map(Some)
-            };
         for (t, (kind, r)) in kinds.iter().zip(&ranges).enumerate() {
             let (grad, hess) = elements
                 .term_buffers(t)
@@ -484,22 +641,28 @@ impl GpuAssembly {
                         + 4 * (ng.offsets.len() + ng.entries.len()) as u64
                         + 4 * (len * arity * arity) as u64;
                     set_passes.push((
-                        pass(
-                            Entry::BlocksAddElements,
-                            nb,
-                            0,
-                            nl,
-                            arity,
-                            1,
-                            Binds {
-                                offsets: &b_off,
-                                gather: &b_ent,
-                                src: hess,
-                                x: &dummy_real,
-                                nodes: &dummy_u32,
-                                out: &values,
-                            },
-                        ),
+                        values
+                            .iter()
+                            .map(|c| {
+                                pass_at(
+                                    Entry::BlocksAddElements,
+                                    c.blocks.len(),
+                                    0,
+                                    (c.blocks.start, 0),
+                                    nl,
+                                    arity,
+                                    1,
+                                    Binds {
+                                        offsets: &b_off,
+                                        gather: &b_ent,
+                                        src: hess,
+                                        x: &dummy_real,
+                                        nodes: &dummy_u32,
+                                        out: &c.buffer,
+                                    },
+                                )
+                            })
+                            .collect::<Vec<_>>(),
                         pass(
                             Entry::GradAddElements,
                             n,
@@ -547,41 +710,33 @@ impl GpuAssembly {
                         }
                         let block_node =
                             init("assembly block nodes", bytemuck::cast_slice(&block_node))?;
-                        hessian_passes.push(pass(
-                            Entry::BlocksInit,
-                            nb,
-                            0,
-                            0,
-                            1,
-                            0,
-                            Binds {
-                                offsets: &dummy_u32,
-                                gather: &block_node,
-                                src: hess,
-                                x: &dummy_real,
-                                nodes: &dummy_u32,
-                                out: &values,
-                            },
-                        ));
+                        for c in &values {
+                            hessian_passes.push(pass_at(
+                                Entry::BlocksInit,
+                                c.blocks.len(),
+                                0,
+                                (c.blocks.start, 0),
+                                0,
+                                1,
+                                0,
+                                Binds {
+                                    offsets: &dummy_u32,
+                                    gather: &block_node,
+                                    src: hess,
+                                    x: &dummy_real,
+                                    nodes: &dummy_u32,
+                                    out: &c.buffer,
+                                },
+                            ));
+                        }
                     } else {
-                        let d = chunk_diag("assembly inertia chunk diagonal blocks", r)?
-                            .ok_or_else(|| GpuError::Mismatch("inertia chunk".into()))?;
-                        hessian_passes.push(pass(
+                        hessian_passes.extend(node_block_passes(
                             Entry::BlocksSetNodes,
-                            len,
-                            r.start,
+                            "assembly inertia chunk",
+                            r,
                             0,
-                            1,
-                            0,
-                            Binds {
-                                offsets: &dummy_u32,
-                                gather: &d,
-                                src: hess,
-                                x: &dummy_real,
-                                nodes: &dummy_u32,
-                                out: &values,
-                            },
-                        ));
+                            hess,
+                        )?);
                     }
                     gradient_passes.push(pass(
                         Entry::GradInit,
@@ -641,26 +796,15 @@ impl GpuAssembly {
                 TermKind::Barrier => {
                     let hess = hess
                         .ok_or_else(|| GpuError::Mismatch("the barrier has no Hessian".into()))?;
-                    let own = chunk_diag("assembly barrier chunk diagonal blocks", r)?;
-                    let d = own.as_ref().unwrap_or(&diag);
                     matfree_nodes.push((
                         Some((
-                            pass(
+                            node_block_passes(
                                 Entry::BlocksAddNodes,
-                                len,
-                                r.start,
-                                0,
+                                "assembly barrier chunk",
+                                r,
                                 1,
-                                1,
-                                Binds {
-                                    offsets: &dummy_u32,
-                                    gather: d,
-                                    src: hess,
-                                    x: &dummy_real,
-                                    nodes: &dummy_u32,
-                                    out: &values,
-                                },
-                            ),
+                                hess,
+                            )?,
                             pass(
                                 Entry::MatfreeAddNodes,
                                 len,
@@ -706,33 +850,40 @@ impl GpuAssembly {
         }
         // Order: inertia, the sets, then gravity and barrier.
         for (h, g, m) in set_passes {
-            hessian_passes.push(h);
+            hessian_passes.extend(h);
             gradient_passes.push(g);
             matfree_passes.push(m);
         }
         for (hm, g) in matfree_nodes {
             if let Some((h, m)) = hm {
-                hessian_passes.push(h);
+                hessian_passes.extend(h);
                 matfree_passes.push(m);
             }
             gradient_passes.push(g);
         }
-        let matvec_pass = pass(
-            Entry::MatvecBlocks,
-            n,
-            0,
-            0,
-            1,
-            0,
-            Binds {
-                offsets: &row_ptr,
-                gather: &col_idx,
-                src: &values,
-                x: &x,
-                nodes: &dummy_u32,
-                out: &y_assembled,
-            },
-        );
+        // One product pass per values chunk, over its rows (no sum crosses a row).
+        let matvec_passes: Vec<Pass> = values
+            .iter()
+            .map(|c| {
+                pass_at(
+                    Entry::MatvecBlocks,
+                    c.rows.len(),
+                    c.rows.start,
+                    (c.blocks.start, 0),
+                    0,
+                    1,
+                    0,
+                    Binds {
+                        offsets: &row_ptr,
+                        gather: &col_idx,
+                        src: &c.buffer,
+                        x: &x,
+                        nodes: &dummy_u32,
+                        out: &y_assembled,
+                    },
+                )
+            })
+            .collect();
         let vec_bytes = 2 * (n * dim) as u64 * rs;
         let bytes = ProductBytes {
             assembled: (nb * dd) as u64 * rs + 4 * (nb + n + 1) as u64 + vec_bytes,
@@ -755,7 +906,7 @@ impl GpuAssembly {
             y_matrix_free,
             hessian_passes,
             gradient_passes,
-            matvec_pass,
+            matvec_passes,
             matfree_passes,
             bytes,
         })
@@ -767,8 +918,10 @@ impl GpuAssembly {
             .write_buffer(&self.coef, 0, &to_bytes(self.f64, &[1.0, scale]));
     }
 
-    /// The assembled H's values (the pattern's blocks in order, row-major d×d each, `real`).
-    pub fn values_buffer(&self) -> &wgpu::Buffer {
+    /// The assembled H's values: per chunk of consecutive block rows, its blocks in the
+    /// pattern's order, row-major d×d each (`real`). One chunk unless the values exceed
+    /// one storage binding (or the limit of [`GpuAssembly::with_binding_limit`]).
+    pub fn values_chunks(&self) -> &[ValuesChunk] {
         &self.values
     }
 
@@ -850,7 +1003,8 @@ impl GpuAssembly {
 
     /// y = H x with the assembled blocks (after [`GpuAssembly::assemble`]).
     pub fn matvec_assembled(&self) -> Result<(), GpuError> {
-        self.run("assembled product", &[&self.matvec_pass])
+        let passes: Vec<&Pass> = self.matvec_passes.iter().collect();
+        self.run("assembled product", &passes)
     }
 
     /// y = H x from the element Hessians, H never formed.
@@ -871,7 +1025,10 @@ impl GpuAssembly {
     /// The assembled H, read back (f64 whatever the device precision).
     pub fn read_matrix(&self) -> Result<BlockCsr, GpuError> {
         let dd = self.dim * self.dim;
-        let values = self.read_reals(&self.values, self.col_idx.len() * dd)?;
+        let mut values = Vec::with_capacity(self.col_idx.len() * dd);
+        for c in &self.values {
+            values.extend(self.read_reals(&c.buffer, c.blocks.len() * dd)?);
+        }
         Ok(BlockCsr {
             dim: self.dim,
             n: self.n_nodes,

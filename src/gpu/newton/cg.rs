@@ -26,6 +26,12 @@
 //! pseudo-inverts E on the host as the CPU does ([`crate::coarse::pseudo_inverse`]) and
 //! writes E⁺ back. In the iteration Zᵀr rides in the tree of r·z and r·r, and Z E⁺ Zᵀr is
 //! added where p is updated: no extra dispatch per iteration (one per CG start).
+//!
+//! H's values may come in several buffers of consecutive block rows
+//! ([`GpuAssembly::values_chunks`]; one storage binding caps each). The kernels that read
+//! them run once per chunk with a bind group built once per chunk and constraint set; the
+//! reductions carry each thread's running sum across those dispatches, so Δx and the
+//! iteration count are the same bits however H is split.
 #![cfg(feature = "sim")]
 
 use crate::cg::{CgError, Preconditioner};
@@ -99,9 +105,13 @@ mod slot {
     pub const PART_E: u32 = 7;
     /// Partial-sum slots.
     pub const N_PART: usize = 16;
+    /// Where the per-thread sums carried between H's chunks start (× partials per slot).
+    pub const CARRY: u32 = N_PART as u32;
+    /// Carried sums per thread.
+    pub const CARRY_LEN: usize = 9;
     /// Every slot with its WGSL name.
     #[cfg(test)]
-    pub const ALL: [(&str, u32); 21] = [
+    pub const ALL: [(&str, u32); 22] = [
         ("NCG_RHO", RHO),
         ("NCG_PQ", PQ),
         ("NCG_ALPHA", ALPHA),
@@ -123,6 +133,7 @@ mod slot {
         ("NCG_PART_BB", PART_BB),
         ("NCG_PART_ZR", PART_ZR),
         ("NCG_PART_E", PART_E),
+        ("NCG_CARRY", CARRY),
     ];
     // The slot ranges do not overlap (D ≤ 3).
     const _: () = assert!(C + 3 <= EINV && EINV + 9 <= E && E as usize + 9 <= SCAL_LEN);
@@ -138,8 +149,13 @@ struct NewtonCgParams {
     n_partials: u32,
     col_at: u32,
     diag_at: u32,
+    /// The values chunk of the dispatch: rows, first block, first/last bits.
+    row_begin: u32,
+    row_end: u32,
+    block_first: u32,
+    chunk: u32,
 }
-const _: () = assert!(std::mem::size_of::<NewtonCgParams>() == 16);
+const _: () = assert!(std::mem::size_of::<NewtonCgParams>() == 32);
 
 /// Workgroup size of every kernel.
 const WORKGROUP: u32 = 64;
@@ -158,6 +174,9 @@ const MAX_CHUNK: usize = 256;
 /// Identities of every [`DeviceCg`] and [`DeviceFrames`]: frames built for one CG are
 /// refused by another, and `iterate` refuses frames `prepare` did not see.
 static NEXT_ID: AtomicU64 = AtomicU64::new(0);
+
+/// One dispatch: pipeline, workgroups, bind group.
+type Kernel<'a> = (&'a wgpu::ComputePipeline, u32, &'a wgpu::BindGroup);
 
 /// Parameters of one [`DeviceCg::solve`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -191,8 +210,10 @@ pub struct DeviceFrames {
     owner: u64,
     /// Its own identity: `iterate` needs the frames `prepare` used.
     id: u64,
-    group: wgpu::BindGroup,
-    /// Kept alive with the bind group.
+    /// One bind group per values chunk of H (the kernels that do not read H use the
+    /// first).
+    groups: Vec<wgpu::BindGroup>,
+    /// Kept alive with the bind groups.
     _frame: wgpu::Buffer,
     _rotations: wgpu::Buffer,
 }
@@ -228,9 +249,10 @@ enum Galerkin {
 
 /// The device buffers of the CG (all f64 vectors are n·d, node-major).
 struct Buffers {
-    params: wgpu::Buffer,
+    /// Per values chunk of H: its parameters and its values.
+    params: Vec<wgpu::Buffer>,
     pattern: wgpu::Buffer,
-    hvals: wgpu::Buffer,
+    hvals: Vec<wgpu::Buffer>,
     grad: wgpu::Buffer,
     y: wgpu::Buffer,
     r: wgpu::Buffer,
@@ -413,21 +435,30 @@ impl DeviceCg {
                 usage,
             })
         };
-        let p = NewtonCgParams {
-            n_nodes: u32::try_from(n).map_err(|_| too_big("nodes"))?,
-            n_partials: groups,
-            col_at,
-            diag_at,
-        };
-        let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("newton cg params"),
-            contents: bytemuck::bytes_of(&p),
-            usage: wgpu::BufferUsages::UNIFORM,
-        });
+        let chunks = asm.values_chunks();
+        let last = chunks.len().saturating_sub(1);
+        let mut params = Vec::with_capacity(chunks.len());
+        for (c, ch) in chunks.iter().enumerate() {
+            let p = NewtonCgParams {
+                n_nodes: u32::try_from(n).map_err(|_| too_big("nodes"))?,
+                n_partials: groups,
+                col_at,
+                diag_at,
+                row_begin: ch.rows.start as u32,
+                row_end: ch.rows.end as u32,
+                block_first: ch.blocks.start as u32,
+                chunk: (c == 0) as u32 | (((c == last) as u32) << 1),
+            };
+            params.push(ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(&format!("newton cg params of values chunk {c}")),
+                contents: bytemuck::bytes_of(&p),
+                usage: wgpu::BufferUsages::UNIFORM,
+            }));
+        }
         let buf = Buffers {
             params,
             pattern: pattern_buf,
-            hvals: asm.values_buffer().clone(),
+            hvals: chunks.iter().map(|c| c.buffer.clone()).collect(),
             grad: asm.gradient_buffer().clone(),
             y: vector("newton cg y")?,
             r: vector("newton cg r")?,
@@ -440,9 +471,10 @@ impl DeviceCg {
                 8 * (n * dim * dim) as u64 + 8 * nd,
             )?,
             dx: vector("newton cg dx")?,
+            // The partial sums, then the sums carried between H's chunks (per thread).
             partials: zeroed(
                 "newton cg partial sums",
-                8 * (slot::N_PART as u64) * groups as u64,
+                8 * (slot::N_PART + slot::CARRY_LEN * WORKGROUP as usize) as u64 * groups as u64,
             )?,
             scal: zeroed("newton cg scalars", 8 * slot::SCAL_LEN as u64)?,
             state: zeroed("newton cg state", 4 * slot::STATE_LEN as u64)?,
@@ -540,46 +572,50 @@ impl DeviceCg {
             bytemuck::cast_slice(&f.rotations).to_vec(),
         );
         let b = &self.buf;
-        let bufs: [&wgpu::Buffer; 17] = [
-            &b.params,
-            &b.pattern,
-            &b.hvals,
-            &b.grad,
-            &frame_buf,
-            &rot_buf,
-            &b.y,
-            &b.r,
-            &b.z,
-            &b.p,
-            &b.q,
-            &b.b,
-            &b.minv,
-            &b.dx,
-            &b.partials,
-            &b.scal,
-            &b.state,
-        ];
-        let entries: Vec<wgpu::BindGroupEntry> = bufs
-            .iter()
-            .enumerate()
-            .map(|(i, b)| wgpu::BindGroupEntry {
-                binding: i as u32,
-                resource: b.as_entire_binding(),
-            })
-            .collect();
-        let group = self
-            .ctx
-            .device
-            .create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("newton cg bind group"),
-                layout: &self.layout,
-                entries: &entries,
-            });
+        let mut groups = Vec::with_capacity(b.hvals.len());
+        for (params, hvals) in b.params.iter().zip(&b.hvals) {
+            let bufs: [&wgpu::Buffer; 17] = [
+                params,
+                &b.pattern,
+                hvals,
+                &b.grad,
+                &frame_buf,
+                &rot_buf,
+                &b.y,
+                &b.r,
+                &b.z,
+                &b.p,
+                &b.q,
+                &b.b,
+                &b.minv,
+                &b.dx,
+                &b.partials,
+                &b.scal,
+                &b.state,
+            ];
+            let entries: Vec<wgpu::BindGroupEntry> = bufs
+                .iter()
+                .enumerate()
+                .map(|(i, b)| wgpu::BindGroupEntry {
+                    binding: i as u32,
+                    resource: b.as_entire_binding(),
+                })
+                .collect();
+            groups.push(
+                self.ctx
+                    .device
+                    .create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: Some("newton cg bind group"),
+                        layout: &self.layout,
+                        entries: &entries,
+                    }),
+            );
+        }
         self.ctx.check("uploading the constraint frames")?;
         Ok(DeviceFrames {
             owner: self.id,
             id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
-            group,
+            groups,
             _frame: frame_buf,
             _rotations: rot_buf,
         })
@@ -600,22 +636,30 @@ impl DeviceCg {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
     }
 
-    /// Records `kernels` (pipeline, workgroups) in one compute pass.
-    fn pass(
-        enc: &mut wgpu::CommandEncoder,
-        label: &str,
-        group: &wgpu::BindGroup,
-        kernels: &[(&wgpu::ComputePipeline, u32)],
-    ) {
+    /// Records `kernels` (pipeline, workgroups, bind group) in one compute pass.
+    fn pass(enc: &mut wgpu::CommandEncoder, label: &str, kernels: &[Kernel]) {
         let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some(label),
             timestamp_writes: None,
         });
-        cp.set_bind_group(0, group, &[]);
-        for (pipe, groups) in kernels {
+        let mut bound: Option<&wgpu::BindGroup> = None;
+        for &(pipe, groups, group) in kernels {
+            if bound.is_none_or(|b| !std::ptr::eq(b, group)) {
+                cp.set_bind_group(0, group, &[]);
+                bound = Some(group);
+            }
             cp.set_pipeline(pipe);
-            cp.dispatch_workgroups(*groups, 1, 1);
+            cp.dispatch_workgroups(groups, 1, 1);
         }
+    }
+
+    /// `pipe` once per values chunk of H, in row order, each with its chunk's bind group.
+    fn per_chunk<'a>(
+        pipe: &'a wgpu::ComputePipeline,
+        groups: u32,
+        frames: &'a DeviceFrames,
+    ) -> impl Iterator<Item = Kernel<'a>> {
+        frames.groups.iter().map(move |g| (pipe, groups, g))
     }
 
     /// b̂ = −P Vᵀ g, the preconditioners (Jacobi and block Jacobi both) and E = ZᵀĤZ of
@@ -627,17 +671,12 @@ impl DeviceCg {
         let mut enc = self.encoder("newton cg prepare");
         let g = self.groups;
         let p = &self.pipes;
-        Self::pass(
-            &mut enc,
-            "newton cg prepare",
-            &frames.group,
-            &[
-                (&p.rhs, g),
-                (&p.precond, g),
-                (&p.coarse_e, g),
-                (&p.coarse_e_sum, 1),
-            ],
-        );
+        let g0 = &frames.groups[0];
+        let mut kernels: Vec<Kernel> = vec![(&p.rhs, g, g0)];
+        kernels.extend(Self::per_chunk(&p.precond, g, frames));
+        kernels.extend(Self::per_chunk(&p.coarse_e, g, frames));
+        kernels.push((&p.coarse_e_sum, 1, g0));
+        Self::pass(&mut enc, "newton cg prepare", &kernels);
         self.ctx.queue.submit([enc.finish()]);
         self.ctx.check("preparing the device Newton CG")?;
         self.prepared = Some(frames.id);
@@ -821,12 +860,7 @@ impl DeviceCg {
         let mut enc = self.encoder("newton cg start");
         enc.clear_buffer(&self.buf.y, 0, None);
         enc.clear_buffer(&self.buf.q, 0, None);
-        Self::pass(
-            &mut enc,
-            "newton cg start",
-            &frames.group,
-            &self.start(pre, co),
-        );
+        Self::pass(&mut enc, "newton cg start", &self.start(frames, pre, co));
         let mut st = self.submit_and_read(enc, "starting the device Newton CG")?;
         Self::status_error(&st)?;
         let bb = st.bb;
@@ -866,9 +900,9 @@ impl DeviceCg {
             self.clear_flags();
             let mut enc = self.encoder("newton cg true residual");
             enc.copy_buffer_to_buffer(&self.buf.y, 0, &self.buf.p, 0, None);
-            let mut kernels = vec![(&self.pipes.matvec, g)];
-            kernels.extend(self.start(pre, co));
-            Self::pass(&mut enc, "newton cg true residual", &frames.group, &kernels);
+            let mut kernels: Vec<Kernel> = Self::per_chunk(&self.pipes.matvec, g, frames).collect();
+            kernels.extend(self.start(frames, pre, co));
+            Self::pass(&mut enc, "newton cg true residual", &kernels);
             st = self.submit_and_read(enc, "the device Newton CG's true residual")?;
             Self::status_error(&st)?;
         }
@@ -876,8 +910,7 @@ impl DeviceCg {
         Self::pass(
             &mut enc,
             "newton cg recovery",
-            &frames.group,
-            &[(&self.pipes.recover, g)],
+            &[(&self.pipes.recover, g, &frames.groups[0])],
         );
         self.ctx.queue.submit([enc.finish()]);
         self.ctx.check("recovering the device Newton step")?;
@@ -890,11 +923,15 @@ impl DeviceCg {
 
     /// The kernels of a (re)start from the q = Ĥy in `q`: r, z, p, ρ and the true r·r; with
     /// the coarse correction `update_p` (β = 0) then completes p = z + Z E⁺Zᵀr.
-    fn start(&self, pre: usize, co: usize) -> Vec<(&wgpu::ComputePipeline, u32)> {
+    fn start<'a>(&'a self, frames: &'a DeviceFrames, pre: usize, co: usize) -> Vec<Kernel<'a>> {
         let p = &self.pipes;
-        let mut k = vec![(&p.init[co][pre], self.groups), (&p.scalar_start[co], 1)];
+        let g0 = &frames.groups[0];
+        let mut k = vec![
+            (&p.init[co][pre], self.groups, g0),
+            (&p.scalar_start[co], 1, g0),
+        ];
         if co == 1 {
-            k.push((&p.update_p[co], self.groups));
+            k.push((&p.update_p[co], self.groups, g0));
         }
         k
     }
@@ -923,17 +960,17 @@ impl DeviceCg {
                 return Ok(());
             }
             let p = &self.pipes;
-            let one: [(&wgpu::ComputePipeline, u32); 5] = [
-                (&p.matvec, g),
-                (&p.scalar_alpha, 1),
-                (&p.update_yr[co][pre], g),
-                (&p.scalar_beta[co], 1),
-                (&p.update_p[co], g),
-            ];
-            let kernels: Vec<(&wgpu::ComputePipeline, u32)> =
-                (0..kk).flat_map(|_| one.iter().copied()).collect();
+            let g0 = &frames.groups[0];
+            let mut one: Vec<Kernel> = Self::per_chunk(&p.matvec, g, frames).collect();
+            one.extend([
+                (&p.scalar_alpha, 1, g0),
+                (&p.update_yr[co][pre], g, g0),
+                (&p.scalar_beta[co], 1, g0),
+                (&p.update_p[co], g, g0),
+            ]);
+            let kernels: Vec<Kernel> = (0..kk).flat_map(|_| one.iter().copied()).collect();
             let mut enc = self.encoder("newton cg chunk");
-            Self::pass(&mut enc, "newton cg chunk", &frames.group, &kernels);
+            Self::pass(&mut enc, "newton cg chunk", &kernels);
             *st = self.submit_and_read(enc, "a device Newton CG chunk")?;
             Self::status_error(st)?;
             if st.converged {

@@ -212,7 +212,8 @@ pub struct NewtonOps {
     /// Per element term: item count.
     term_counts: Vec<usize>,
     /// Diagonal block of every node in the assembled pattern.
-    diag: Vec<u32>,
+    /// Per node: its diagonal block as (values chunk, block within the chunk).
+    diag: Vec<(u32, u32)>,
     pipelines: Vec<wgpu::ComputePipeline>,
     /// Reduction workgroups (fixed: the sums' order depends on it).
     groups: usize,
@@ -231,7 +232,8 @@ pub struct NewtonOps {
     /// Static projections (entries, their op); moving terms (terms, ops: add, reduce,
     /// finish); node lists (capacity in nodes, table, op).
     proj: Option<(usize, Table, Table, Op)>,
-    moving: Option<(usize, Table, Table, Op, Op, Op)>,
+    /// Moving terms: count, tables, the H/g update per values chunk, energy ops.
+    moving: Option<(usize, Table, Table, Vec<Op>, Op, Op)>,
     nodes: Option<(usize, Table, Table, Op)>,
 }
 
@@ -248,7 +250,9 @@ struct Binder {
     xt: wgpu::Buffer,
     dx: wgpu::Buffer,
     grad: wgpu::Buffer,
-    hvals: wgpu::Buffer,
+    /// H's values chunks ([`GpuAssembly::values_chunks`]); ops bind the first unless
+    /// they name another.
+    hvals: Vec<wgpu::Buffer>,
     partials: wgpu::Buffer,
     result: wgpu::Buffer,
     dummies: Dummies,
@@ -272,7 +276,7 @@ impl Binder {
             &self.xt,
             &self.dx,
             &self.grad,
-            &self.hvals,
+            var.hvals.unwrap_or(&self.hvals[0]),
             var.src.unwrap_or(&dm.src),
             var.flags.unwrap_or(&dm.flags),
             var.table.unwrap_or(&dm.table),
@@ -323,6 +327,7 @@ struct Varying<'a> {
     table: Option<&'a wgpu::Buffer>,
     index: Option<&'a wgpu::Buffer>,
     node_vals: Option<&'a wgpu::Buffer>,
+    hvals: Option<&'a wgpu::Buffer>,
 }
 
 fn slot_count(terms: usize) -> usize {
@@ -360,12 +365,23 @@ impl NewtonOps {
                 row_ptr.len().saturating_sub(1)
             )));
         }
-        let diag: Vec<u32> = (0..n)
+        let diag: Vec<usize> = (0..n)
             .map(|i| {
                 (row_ptr[i]..row_ptr[i + 1])
                     .find(|&k| col_idx[k] == i)
-                    .map(|k| k as u32)
                     .ok_or_else(|| GpuError::Mismatch(format!("node {i} has no diagonal block")))
+            })
+            .collect::<Result<_, _>>()?;
+        // Each node's diagonal block as (values chunk, block within it): the moving
+        // penalty writes it in its chunk's buffer.
+        let diag: Vec<(u32, u32)> = diag
+            .iter()
+            .map(|&k| {
+                asm.values_chunks()
+                    .iter()
+                    .position(|c| c.blocks.contains(&k))
+                    .map(|c| (c as u32, (k - asm.values_chunks()[c].blocks.start) as u32))
+                    .ok_or_else(|| GpuError::Mismatch(format!("block {k} in no values chunk")))
             })
             .collect::<Result<_, _>>()?;
         let dev = &ctx.device;
@@ -455,7 +471,11 @@ impl NewtonOps {
             xt: elements.inertia_target_buffer().clone(),
             dx: dx.clone(),
             grad: asm.gradient_buffer().clone(),
-            hvals: asm.values_buffer().clone(),
+            hvals: asm
+                .values_chunks()
+                .iter()
+                .map(|c| c.buffer.clone())
+                .collect(),
             partials,
             result,
             dummies,
@@ -902,7 +922,8 @@ impl NewtonOps {
             table.push(t.coef);
             table.extend_from_slice(&t.sqrt_m_lambda);
             table.push(0.0);
-            index.extend_from_slice(&[node, kind, self.diag[node as usize], 0]);
+            let (chunk, blk) = self.diag[node as usize];
+            index.extend_from_slice(&[node, kind, blk, chunk]);
         }
         let count = terms.len();
         let slot = slot_count(self.energy.len()) - 1;
@@ -914,7 +935,7 @@ impl NewtonOps {
         };
         // Reuse the buffers (and bind groups) while the new data fits.
         let groups = self.groups;
-        if let Some((c, values, idx, add, red, fin)) = &mut self.moving {
+        if let Some((c, values, idx, adds, red, fin)) = &mut self.moving {
             let vb = to_bytes(true, &table);
             let ib: &[u8] = bytemuck::cast_slice(&index);
             if vb.len() as u64 <= values.bytes && ib.len() as u64 <= idx.bytes {
@@ -922,8 +943,14 @@ impl NewtonOps {
                 ctx.write_buffer(&values.buf, 0, &vb);
                 ctx.write_buffer(&idx.buf, 0, ib);
                 *c = count;
+                for (ch, add) in adds.iter().enumerate() {
+                    let q = OpsParams {
+                        aux: ch as u32,
+                        ..p(0, count)
+                    };
+                    ctx.write_buffer(&add.params, 0, bytemuck::bytes_of(&q));
+                }
                 for (op, q) in [
-                    (&*add, p(0, count)),
                     (&*red, p(MODE_MOVING_ENERGY, count)),
                     (&*fin, p(MODE_MOVING_ENERGY, groups)),
                 ] {
@@ -939,7 +966,28 @@ impl NewtonOps {
             index: Some(&idx.buf),
             ..Varying::default()
         };
-        let add = self.op("add moving", Entry::AddMoving, p(0, count), var);
+        // One update per values chunk (aux: its index): each writes the blocks in its
+        // chunk, the first the gradient too.
+        let adds: Vec<Op> = self
+            .binder
+            .hvals
+            .iter()
+            .enumerate()
+            .map(|(ch, h)| {
+                self.op(
+                    "add moving",
+                    Entry::AddMoving,
+                    OpsParams {
+                        aux: ch as u32,
+                        ..p(0, count)
+                    },
+                    Varying {
+                        hvals: Some(h),
+                        ..var
+                    },
+                )
+            })
+            .collect();
         let red = self.op(
             "moving energy",
             Entry::Reduce,
@@ -952,7 +1000,7 @@ impl NewtonOps {
             p(MODE_MOVING_ENERGY, self.groups),
             var,
         );
-        self.moving = Some((count, values, idx, add, red, fin));
+        self.moving = Some((count, values, idx, adds, red, fin));
         Ok(())
     }
 
@@ -960,8 +1008,10 @@ impl NewtonOps {
     /// nodes' diagonal blocks of H (k m P), at the evaluation positions; after
     /// [`GpuAssembly::assemble`].
     pub fn add_moving(&self) -> Result<(), GpuError> {
-        if let Some((count, _, _, add, _, _)) = &self.moving {
-            self.run("newton add moving", &[(add, Self::grid(*count))], |_| {})?;
+        if let Some((count, _, _, adds, _, _)) = &self.moving {
+            let grid = Self::grid(*count);
+            let ops: Vec<_> = adds.iter().map(|a| (a, grid)).collect();
+            self.run("newton add moving", &ops, |_| {})?;
         }
         Ok(())
     }
