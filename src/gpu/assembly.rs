@@ -1064,44 +1064,14 @@ impl GpuAssembly {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use naga::{AddressSpace, StorageAccess};
 
     /// The WGSL declarations of bind group 0 are [`ASSEMBLE`]'s bindings, in order, with
     /// their access; `AssemblyParams` is four u32 in WGSL as in Rust; every entry point
     /// exists.
     #[test]
     fn layout_and_params_match_the_wgsl() {
-        let src = format!(
-            "{}{}",
-            kernels::prelude("f64", "f64", false),
-            ASSEMBLE.source
-        );
-        let m = naga::front::wgsl::parse_str(&src)
-            .unwrap_or_else(|e| panic!("assemble.wgsl: {}", e.emit_to_string(&src)));
-        let mut declared: Vec<(u32, String, Access)> = m
-            .global_variables
-            .iter()
-            .filter_map(|(_, g)| {
-                let b = g.binding.as_ref()?;
-                let access = match g.space {
-                    AddressSpace::Uniform => Access::Uniform,
-                    AddressSpace::Storage { access } if access.contains(StorageAccess::STORE) => {
-                        Access::ReadWrite
-                    }
-                    AddressSpace::Storage { .. } => Access::Read,
-                    other => panic!("{:?} in {other:?}", g.name),
-                };
-                Some((b.binding, g.name.clone().unwrap_or_default(), access))
-            })
-            .collect();
-        declared.sort_by_key(|d| d.0);
-        let described: Vec<(u32, String, Access)> = ASSEMBLE
-            .bindings
-            .iter()
-            .enumerate()
-            .map(|(i, (n, a))| (i as u32, n.to_string(), *a))
-            .collect();
-        assert_eq!(declared, described);
+        let m = kernels::check::module(&ASSEMBLE, "f64", "f64", false);
+        kernels::check::bindings_match(&ASSEMBLE, &m);
         let (_, ty) = m
             .types
             .iter()

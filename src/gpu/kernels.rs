@@ -329,51 +329,63 @@ pub fn prelude(real: &str, acc: &str, packed: bool) -> String {
     format!("alias real = {real};\nalias acc = {acc};\n{blk}{consts}{COMMON}\n")
 }
 
+/// Test helpers shared by every kernel module's layout test: a layout's WGSL parsed with a
+/// prelude, and its bind group 0 as declared there checked against the layout's list.
 #[cfg(test)]
-mod tests {
-    use super::*;
+pub(crate) mod check {
+    use super::{prelude, Access, Layout};
     use naga::{AddressSpace, StorageAccess};
 
-    fn module(layout: &Layout, real: &str, acc: &str, packed: bool) -> naga::Module {
+    /// `layout`'s source after the prelude for `real`/`acc`, parsed (panics naming the file).
+    pub(crate) fn module(layout: &Layout, real: &str, acc: &str, packed: bool) -> naga::Module {
         let src = format!("{}{}", prelude(real, acc, packed), layout.source);
         naga::front::wgsl::parse_str(&src).unwrap_or_else(|e| {
             panic!("{} ({real}/{acc}): {}", layout.file, e.emit_to_string(&src))
         })
     }
 
+    /// Panics unless the WGSL declarations of `m` are `layout.bindings`: all in group 0,
+    /// same indices, names and access, nothing more, nothing less.
+    pub(crate) fn bindings_match(layout: &Layout, m: &naga::Module) {
+        let mut declared: Vec<(u32, String, Access)> = m
+            .global_variables
+            .iter()
+            .filter_map(|(_, g)| {
+                let b = g.binding.as_ref()?;
+                assert_eq!(b.group, 0, "{}: {:?}", layout.file, g.name);
+                let access = match g.space {
+                    AddressSpace::Uniform => Access::Uniform,
+                    AddressSpace::Storage { access } if access.contains(StorageAccess::STORE) => {
+                        Access::ReadWrite
+                    }
+                    AddressSpace::Storage { .. } => Access::Read,
+                    other => panic!("{}: {:?} in {other:?}", layout.file, g.name),
+                };
+                Some((b.binding, g.name.clone().unwrap_or_default(), access))
+            })
+            .collect();
+        declared.sort_by_key(|d| d.0);
+        let described: Vec<(u32, String, Access)> = layout
+            .bindings
+            .iter()
+            .enumerate()
+            .map(|(i, (n, a))| (i as u32, n.to_string(), *a))
+            .collect();
+        assert_eq!(declared, described, "{}", layout.file);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::check::{bindings_match, module};
+    use super::*;
+
     /// The WGSL declarations of bind group 0 are the layout's bindings: same indices,
     /// names and access, nothing more, nothing less.
     #[test]
     fn every_layout_matches_its_wgsl_declarations() {
         for layout in LAYOUTS {
-            let m = module(layout, "f64", "f64", false);
-            let mut declared: Vec<(u32, String, Access)> = m
-                .global_variables
-                .iter()
-                .filter_map(|(_, g)| {
-                    let b = g.binding.as_ref()?;
-                    assert_eq!(b.group, 0, "{}: {:?}", layout.file, g.name);
-                    let access = match g.space {
-                        AddressSpace::Uniform => Access::Uniform,
-                        AddressSpace::Storage { access }
-                            if access.contains(StorageAccess::STORE) =>
-                        {
-                            Access::ReadWrite
-                        }
-                        AddressSpace::Storage { .. } => Access::Read,
-                        other => panic!("{}: {:?} in {other:?}", layout.file, g.name),
-                    };
-                    Some((b.binding, g.name.clone().unwrap_or_default(), access))
-                })
-                .collect();
-            declared.sort_by_key(|d| d.0);
-            let described: Vec<(u32, String, Access)> = layout
-                .bindings
-                .iter()
-                .enumerate()
-                .map(|(i, (n, a))| (i as u32, n.to_string(), *a))
-                .collect();
-            assert_eq!(declared, described, "{}", layout.file);
+            bindings_match(layout, &module(layout, "f64", "f64", false));
         }
     }
 

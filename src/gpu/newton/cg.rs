@@ -1035,32 +1035,8 @@ mod tests {
     /// struct has Rust's size, and every slot constant has Rust's value.
     #[test]
     fn layout_params_and_slots_match_the_wgsl() {
-        use naga::{AddressSpace, StorageAccess};
         let m = module();
-        let mut declared: Vec<(u32, String, Access)> = m
-            .global_variables
-            .iter()
-            .filter_map(|(_, g)| {
-                let b = g.binding.as_ref()?;
-                let access = match g.space {
-                    AddressSpace::Uniform => Access::Uniform,
-                    AddressSpace::Storage { access } if access.contains(StorageAccess::STORE) => {
-                        Access::ReadWrite
-                    }
-                    AddressSpace::Storage { .. } => Access::Read,
-                    other => panic!("{:?} in {other:?}", g.name),
-                };
-                Some((b.binding, g.name.clone().unwrap_or_default(), access))
-            })
-            .collect();
-        declared.sort_by_key(|d| d.0);
-        let described: Vec<(u32, String, Access)> = NEWTON_CG
-            .bindings
-            .iter()
-            .enumerate()
-            .map(|(i, (n, a))| (i as u32, n.to_string(), *a))
-            .collect();
-        assert_eq!(declared, described);
+        kernels::check::bindings_match(&NEWTON_CG, &m);
         let (_, ty) = m
             .types
             .iter()
