@@ -11,8 +11,9 @@
 //! and the gradient come back for the output (steps.csv, frames, reactions).
 //!
 //! The decisions are the CPU loop's; the arithmetic differs in summation order and in the
-//! CG (block-Jacobi on the device against the scene's CPU solver), so trajectories agree
-//! to the solvers' tolerances, not bit for bit (tests/sim_gpu_newton.rs).
+//! CG (the scene's Jacobi or block-Jacobi preconditioner with the translations as coarse
+//! space on the device, against the scene's CPU solver), so trajectories agree to the
+//! solvers' tolerances, not bit for bit (tests/sim_gpu_newton.rs).
 
 use super::{
     Contact, InitError, MovingTargets, StepReport, Stepper, ARMIJO, CCD_FRACTION, MAX_HALVINGS,
@@ -441,7 +442,7 @@ impl Stepper<'_> {
                 self.update_moving_penalty(&x, moving, &mut residual_at_update, rep)?;
                 continue;
             }
-            self.line_search_device(dl, dmax, iter, moving, rep)?;
+            self.line_search_device(dl, dmax, iter, rep)?;
             self.snap_device(dl, moving)?;
             if self.contact.is_some() {
                 let when = format!("after Newton iteration {iter}");
@@ -529,7 +530,6 @@ impl Stepper<'_> {
         dl: &mut DeviceLoop,
         dmax: f64,
         iter: usize,
-        _moving: &MovingTargets,
         rep: &mut StepReport,
     ) -> Result<(), String> {
         let h = self.scene.time_step;
