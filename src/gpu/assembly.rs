@@ -327,27 +327,14 @@ impl GpuAssembly {
 
         // Pipelines.
         let real = if f64 { "f64" } else { "f32" };
-        let code = format!("{}{}", kernels::prelude(real, real, false), ASSEMBLE.source);
-        let module = dev.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some(&format!("assemble.wgsl ({real})")),
-            source: wgpu::ShaderSource::Wgsl(code.into()),
-        });
+        let module = ASSEMBLE.module(dev, real, real, false);
         let (layout, pl) = ASSEMBLE.layouts(dev, "assembly");
         let constants = [("D", dim as f64), ("WG", WORKGROUP as f64)];
         let pipelines: Vec<_> = ENTRIES
             .iter()
             .map(|e| {
-                dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(&format!("{e} ({dim}D, {real})")),
-                    layout: Some(&pl),
-                    module: &module,
-                    entry_point: Some(e),
-                    compilation_options: wgpu::PipelineCompilationOptions {
-                        constants: &constants,
-                        zero_initialize_workgroup_memory: true,
-                    },
-                    cache: None,
-                })
+                let label = format!("{e} ({dim}D, {real})");
+                kernels::pipeline(dev, &pl, &module, e, &label, &constants)
             })
             .collect();
 

@@ -182,11 +182,7 @@ impl ElementKernels {
         }
         let dev = &ctx.device;
         let real = real_name(f64);
-        let code = format!("{}{}", kernels::prelude(real, real, false), ELEMENTS.source);
-        let module = dev.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some(&format!("elements.wgsl ({real})")),
-            source: wgpu::ShaderSource::Wgsl(code.into()),
-        });
+        let module = ELEMENTS.module(dev, real, real, false);
         let (layout, pl) = ELEMENTS.layouts(dev, "elements");
         // Unit roundoff of the real type: exact powers of two, so exact as f32 too.
         let eps = if f64 {
@@ -198,17 +194,8 @@ impl ElementKernels {
         let pipelines = TermKind::ALL
             .iter()
             .map(|k| {
-                dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(&format!("{} ({dim}D, {real})", k.entry())),
-                    layout: Some(&pl),
-                    module: &module,
-                    entry_point: Some(k.entry()),
-                    compilation_options: wgpu::PipelineCompilationOptions {
-                        constants: &constants,
-                        zero_initialize_workgroup_memory: true,
-                    },
-                    cache: None,
-                })
+                let label = format!("{} ({dim}D, {real})", k.entry());
+                kernels::pipeline(dev, &pl, &module, k.entry(), &label, &constants)
             })
             .collect();
         ctx.check("building the element kernels")?;

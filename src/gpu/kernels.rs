@@ -147,6 +147,45 @@ impl Layout {
         });
         (layout, pl)
     }
+
+    /// This shader's source after the prelude for `real`/`acc`, compiled; labelled
+    /// "`file` (`real`/`acc`)".
+    pub fn module(
+        &self,
+        dev: &wgpu::Device,
+        real: &str,
+        acc: &str,
+        packed: bool,
+    ) -> wgpu::ShaderModule {
+        let code = format!("{}{}", prelude(real, acc, packed), self.source);
+        dev.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some(&format!("{} ({real}/{acc})", self.file)),
+            source: wgpu::ShaderSource::Wgsl(code.into()),
+        })
+    }
+}
+
+/// The compute pipeline of `module` at `entry` with pipeline layout `pl` and the given
+/// override constants, workgroup memory zeroed.
+pub fn pipeline(
+    dev: &wgpu::Device,
+    pl: &wgpu::PipelineLayout,
+    module: &wgpu::ShaderModule,
+    entry: &str,
+    label: &str,
+    constants: &[(&str, f64)],
+) -> wgpu::ComputePipeline {
+    dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some(label),
+        layout: Some(pl),
+        module,
+        entry_point: Some(entry),
+        compilation_options: wgpu::PipelineCompilationOptions {
+            constants,
+            zero_initialize_workgroup_memory: true,
+        },
+        cache: None,
+    })
 }
 
 pub const MATVEC: Layout = Layout {

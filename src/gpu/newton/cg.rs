@@ -337,15 +337,7 @@ impl DeviceCg {
             .clamp(1, MAX_GROUPS as u64) as u32;
 
         // Pipelines.
-        let code = format!(
-            "{}{}",
-            kernels::prelude("f64", "f64", false),
-            NEWTON_CG.source
-        );
-        let module = dev.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("newton_cg.wgsl (f64)"),
-            source: wgpu::ShaderSource::Wgsl(code.into()),
-        });
+        let module = NEWTON_CG.module(dev, "f64", "f64", false);
         let (layout, pl) = NEWTON_CG.layouts(dev, "newton cg");
         let pipe = |entry: &str, precond: u32, coarse: bool| {
             // SUM_LANES: scalar_start sums three values in one tree, no kernel more; the
@@ -364,19 +356,9 @@ impl DeviceCg {
                 ("PRECOND", precond as f64),
                 ("COARSE", coarse as u8 as f64),
             ];
-            dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(&format!(
-                    "newton cg {entry} ({dim}D, preconditioner {precond}, coarse {coarse})"
-                )),
-                layout: Some(&pl),
-                module: &module,
-                entry_point: Some(entry),
-                compilation_options: wgpu::PipelineCompilationOptions {
-                    constants: &constants,
-                    zero_initialize_workgroup_memory: true,
-                },
-                cache: None,
-            })
+            let label =
+                format!("newton cg {entry} ({dim}D, preconditioner {precond}, coarse {coarse})");
+            kernels::pipeline(dev, &pl, &module, entry, &label, &constants)
         };
         let both = |entry: &str| [false, true].map(|c| pipe(entry, 0, c));
         let each = |entry: &str| [false, true].map(|c| [0, 1, 2].map(|k| pipe(entry, k, c)));

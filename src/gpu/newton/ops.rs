@@ -385,31 +385,14 @@ impl NewtonOps {
             })
             .collect::<Result<_, _>>()?;
         let dev = &ctx.device;
-        let code = format!(
-            "{}{}",
-            kernels::prelude("f64", "f64", false),
-            NEWTON_OPS.source
-        );
-        let module = dev.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("newton_ops.wgsl (f64)"),
-            source: wgpu::ShaderSource::Wgsl(code.into()),
-        });
+        let module = NEWTON_OPS.module(dev, "f64", "f64", false);
         let (layout, pl) = NEWTON_OPS.layouts(dev, "newton ops");
         let constants = [("D", d as f64), ("WG", WG as f64)];
         let pipelines: Vec<_> = ENTRIES
             .iter()
             .map(|e| {
-                dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(&format!("newton ops {e} ({d}D)")),
-                    layout: Some(&pl),
-                    module: &module,
-                    entry_point: Some(e),
-                    compilation_options: wgpu::PipelineCompilationOptions {
-                        constants: &constants,
-                        zero_initialize_workgroup_memory: true,
-                    },
-                    cache: None,
-                })
+                let label = format!("newton ops {e} ({d}D)");
+                kernels::pipeline(dev, &pl, &module, e, &label, &constants)
             })
             .collect();
         let kinds = elements.kinds();

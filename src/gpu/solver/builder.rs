@@ -429,17 +429,8 @@ impl<'a> Builder<'a> {
         }
         let module = &self.modules[&key];
         let (layout, pl) = desc.layouts(dev, name);
-        let pipeline = dev.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some(&format!("{name} ({})", real.name())),
-            layout: Some(&pl),
-            module,
-            entry_point: Some(entry),
-            compilation_options: wgpu::PipelineCompilationOptions {
-                constants,
-                zero_initialize_workgroup_memory: true,
-            },
-            cache: None,
-        });
+        let label = format!("{name} ({})", real.name());
+        let pipeline = kernels::pipeline(dev, &pl, module, entry, &label, constants);
         self.ctx.check(&format!("building kernel {name}"))?;
         self.kernels.push(KernelRecord {
             name: name.to_string(),
