@@ -361,7 +361,7 @@ impl Stepper<'_> {
         if !newly.is_empty() {
             let vals: Vec<f64> = newly
                 .iter()
-                .flat_map(|&i| dl.scratch[i * d..(i + 1) * d].to_vec())
+                .flat_map(|&i| dl.scratch[i * d..(i + 1) * d].iter().copied())
                 .collect();
             dl.ops.write_nodes(&newly, &vals).map_err(gpu_msg)?;
         }
@@ -438,8 +438,8 @@ impl Stepper<'_> {
                     break;
                 }
                 let nodes = self.unsnapped_nodes(&moving.snapped);
-                let x = dl.read_nodes(&nodes, d)?.to_vec();
-                self.update_moving_penalty(&x, moving, &mut residual_at_update, rep)?;
+                let x = dl.read_nodes(&nodes, d)?;
+                self.update_moving_penalty(x, moving, &mut residual_at_update, rep)?;
                 continue;
             }
             self.line_search_device(dl, dmax, iter, rep)?;
@@ -583,8 +583,8 @@ impl Stepper<'_> {
         }
         if alpha == alpha_c {
             if let Some((node, _)) = ccd.limit {
-                let x = dl.read_nodes(&[node], d)?.to_vec();
-                self.check_unbarriered_limit(&x, &ccd, iter)?;
+                let x = dl.read_nodes(&[node], d)?;
+                self.check_unbarriered_limit(x, &ccd, iter)?;
             }
         }
         dl.ops.accept().map_err(gpu_msg)?;
