@@ -5,10 +5,10 @@
 //! are summed per fixed chunk). `cargo bench --bench cg_threads`.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
-use stickslip::cg::{self, BuiltPreconditioner, CgParams, Preconditioner};
-use stickslip::coarse::CoarseSpace;
-use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::generate::{random_system, Stencil, SystemSpec};
+use stickslip::cases::generate::{random_system, Stencil, SystemSpec};
+use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
+use stickslip::solve::cg::{self, BuiltPreconditioner, CgParams, Preconditioner};
+use stickslip::solve::coarse::CoarseSpace;
 
 fn thread_counts() -> Vec<usize> {
     let all = std::thread::available_parallelism().map_or(1, |n| n.get());

@@ -3,12 +3,12 @@
 //! without symbolic reuse. `cargo bench --bench cpu`.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
-use stickslip::cg::{self, BuiltPreconditioner, CgParams, Preconditioner};
-use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::generate::{random_system, SystemSpec};
-use stickslip::oracle::CholeskyOracle;
+use stickslip::cases::generate::{random_system, SystemSpec};
+use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
+use stickslip::solve::cg::{self, BuiltPreconditioner, CgParams, Preconditioner};
+use stickslip::solve::oracle::CholeskyOracle;
 
-fn systems() -> Vec<(String, stickslip::generate::GeneratedSystem)> {
+fn systems() -> Vec<(String, stickslip::cases::generate::GeneratedSystem)> {
     [(2usize, 10_000usize), (3, 10_000), (3, 64_000)]
         .iter()
         .map(|&(d, n)| {
@@ -72,7 +72,7 @@ fn bench_cholesky(c: &mut Criterion) {
         let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
         g.bench_function(BenchmarkId::new("analyze+factor+solve", &name), |b| {
             b.iter(|| {
-                stickslip::oracle::solve(&e)
+                stickslip::solve::oracle::solve(&e)
                     .map(|r| r.1.relative_residual)
                     .ok()
             })

@@ -6,10 +6,10 @@
 //! gpu_measure.rs, `stickslip bench`). Skips (with a message) when no adapter exists.
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use stickslip::cg::Preconditioner;
-use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::generate::{random_system, SystemSpec};
+use stickslip::cases::generate::{random_system, SystemSpec};
+use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
+use stickslip::solve::cg::Preconditioner;
 
 fn bench(c: &mut Criterion) {
     let ctx = match GpuContext::new(&GpuOptions::default()) {

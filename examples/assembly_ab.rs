@@ -6,8 +6,8 @@
 //! loaded machine disturbs less.
 
 use std::time::Instant;
-use stickslip::driver::load_scene;
-use stickslip::energy::AssemblyWork;
+use stickslip::sim::driver::load_scene;
+use stickslip::sim::energy::AssemblyWork;
 
 /// CPU seconds of this process so far (all threads); 0 where unavailable.
 fn cpu_seconds() -> f64 {

@@ -7,11 +7,11 @@
 //! (cells per side k: (k+1)³ nodes, 6k³ tetrahedra.) Numbers for BENCHMARKS.md.
 
 use std::time::Instant;
-use stickslip::energy::{ElementSet, Model, NeoHookean};
-use stickslip::gpu::assembly::GpuAssembly;
-use stickslip::gpu::elements::GpuElements;
 use stickslip::gpu::{GpuContext, GpuOptions, Precision};
-use stickslip::mesh;
+use stickslip::sim::device::assembly::GpuAssembly;
+use stickslip::sim::device::elements::GpuElements;
+use stickslip::sim::energy::{ElementSet, Model, NeoHookean};
+use stickslip::sim::mesh;
 
 /// Best wall time of `reps` runs of `f` (each waited for).
 fn best(

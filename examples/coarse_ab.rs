@@ -2,9 +2,9 @@
 //! `cargo run --release --example coarse_ab -- [scale] [case ...]`. Used in docs/coarse.md.
 
 use std::time::Instant;
-use stickslip::cg::{self, CgParams, Preconditioner};
-use stickslip::coarse::{Aggregation, CoarseSpace};
-use stickslip::hard::{self, Size};
+use stickslip::app::hard::{self, Size};
+use stickslip::solve::cg::{self, CgParams, Preconditioner};
+use stickslip::solve::coarse::{Aggregation, CoarseSpace};
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();

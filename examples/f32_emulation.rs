@@ -10,8 +10,8 @@
 //! f32 matrix + f64 vectors, f64 matrix + f32 vectors, and f32 off-diagonal blocks with f64
 //! diagonal blocks + f32 vectors. Used in docs/precision.md.
 
-use stickslip::hard::{self, Size};
-use stickslip::sparse::BlockCsr;
+use stickslip::app::hard::{self, Size};
+use stickslip::core::sparse::BlockCsr;
 
 const TOL: f64 = 1e-10;
 const DELTA: f64 = 0.1;

@@ -2,12 +2,12 @@
 //! `cargo run --release --example gpu_measure -- [nodes] [precision] [tol]`.
 
 use std::time::Instant;
-use stickslip::cg::{self, CgParams, Preconditioner};
-use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::generate::{random_system, SystemSpec};
+use stickslip::cases::generate::{random_system, SystemSpec};
+use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::gpu::{
     measure_copy_bandwidth, GpuContext, GpuOptions, GpuParams, GpuSolver, Precision, SolveOutcome,
 };
+use stickslip::solve::cg::{self, CgParams, Preconditioner};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
@@ -25,7 +25,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let t = Instant::now();
     let mut s = random_system(&SystemSpec::with_nodes(3, nodes, 1));
     if std::env::var("UNCONSTRAINED").is_ok() {
-        s.frames = stickslip::constraints::Frames::unconstrained(3, s.h.n);
+        s.frames = stickslip::core::constraints::Frames::unconstrained(3, s.h.n);
     }
     let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
     println!(
@@ -135,7 +135,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .sqrt();
     let nrm: f64 = dx_cpu.iter().map(|a| a * a).sum::<f64>().sqrt();
     // f64 blocks, usize indices and ~18 vector passes per CPU iteration.
-    let cpu_bytes = stickslip::bench::cpu_cg_bytes_per_iteration(&e) as f64;
+    let cpu_bytes = stickslip::app::bench::cpu_cg_bytes_per_iteration(&e) as f64;
     println!(
         "cpu cg (f64, 1 thread): {} iterations, {:.3} s, {:.2} ms/iteration, {:.1} MB/iteration, ~{:.2} GB/s, residual {:.2e}",
         cinfo.iterations,

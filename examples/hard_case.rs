@@ -1,4 +1,4 @@
-//! Runs one hard case (src/hard.rs) at a grid scale on the GPU: f64 CG and mixed precision,
+//! Runs one hard case (src/app/hard.rs) at a grid scale on the GPU: f64 CG and mixed precision,
 //! each without and with the coarse correction on the translations, solved alternately
 //! (best of `reps` after a warm-up, so machine noise hits every configuration alike):
 //! `cargo run --release --example hard_case -- NAME [scale] [tol] [reps]`.
@@ -9,9 +9,9 @@
 //! `STICKSLIP_COARSE=aggregates` the coarse space of the second pair (default translations),
 //! `STICKSLIP_ONLY_COARSE=1` runs that pair only.
 
-use stickslip::coarse::CoarseSpace;
+use stickslip::app::hard::{self, Size};
 use stickslip::gpu::{DifferenceForm, GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
-use stickslip::hard::{self, Size};
+use stickslip::solve::coarse::CoarseSpace;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();

@@ -3,14 +3,14 @@
 //! each option costs per iteration on this adapter.
 //! `cargo run --release --example kernel_ab -- [nodes] [reps] [realistic|none]` (the
 //! constraint mix: slip nodes with rotations, or no constraints at all), or
-//! `kernel_ab -- NAME:SCALE [reps]` for a hard case of src/hard.rs at a grid scale.
+//! `kernel_ab -- NAME:SCALE [reps]` for a hard case of src/app/hard.rs at a grid scale.
 //! `STICKSLIP_WORKGROUPS=n` sets the workgroups of the CG kernels (`GpuParams::workgroups`).
 
-use stickslip::coarse::CoarseSpace;
-use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::generate::{random_system, ConstraintMix, SystemSpec};
+use stickslip::app::hard::{self, Size};
+use stickslip::cases::generate::{random_system, ConstraintMix, SystemSpec};
+use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::gpu::{DifferenceForm, GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
-use stickslip::hard::{self, Size};
+use stickslip::solve::coarse::CoarseSpace;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();

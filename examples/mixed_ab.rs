@@ -2,8 +2,8 @@
 //! runs in one process (this machine is noisy):
 //! `cargo run --release --example mixed_ab -- [nodes] [tol] [reps]`.
 
-use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::generate::{random_system, SystemSpec};
+use stickslip::cases::generate::{random_system, SystemSpec};
+use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {

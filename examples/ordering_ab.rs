@@ -6,9 +6,9 @@
 //! e.g. `-- --numeric 2:10000 3:8000 3:27000`. Systems come from `random_system` with
 //! `SystemSpec::with_nodes(dim, nodes, 1)` (as `stickslip generate --seed 1`).
 
-use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::generate::{random_system, SystemSpec};
-use stickslip::oracle::CholeskyOracle;
+use stickslip::cases::generate::{random_system, SystemSpec};
+use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
+use stickslip::solve::oracle::CholeskyOracle;
 use stickslip::CholeskyOrdering;
 
 fn main() {

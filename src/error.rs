@@ -33,11 +33,11 @@ impl fmt::Display for InputError {
         // One line, always: newlines in nested messages are flattened, and a token echoed
         // from a file (a 100,000-digit number, a megabyte key) is cut.
         let problem = self.problem.replace('\n', " ");
-        let problem = crate::io::cut_tokens(&problem);
+        let problem = cut_tokens(&problem);
         if self.entry.is_empty() {
             write!(f, "{}: {}", self.file, problem)
         } else {
-            let entry = crate::io::cut_tokens(&self.entry);
+            let entry = cut_tokens(&self.entry);
             write!(f, "{}: {}: {}", self.file, entry, problem)
         }
     }
@@ -52,7 +52,7 @@ pub enum SolveError {
     NotPositiveDefinite { node: usize, component: usize },
     /// A CG solver failed; the message says how.
     #[error("{0}")]
-    Cg(#[from] crate::cg::CgError),
+    Cg(#[from] CgError),
     /// A GPU failure (no adapter, out of memory, a device error).
     #[error("{0}")]
     Gpu(String),
@@ -84,20 +84,166 @@ pub enum Error {
     Device(String),
 }
 
-impl From<crate::gpu::GpuError> for Error {
-    fn from(e: crate::gpu::GpuError) -> Self {
-        use crate::gpu::GpuError as G;
-        match e {
-            // CG ran and did not converge: the system, not the device, is at fault.
-            G::Cg(_) | G::InF32(_) => Error::Solve(SolveError::Gpu(e.to_string())),
-            G::Mismatch(_) => Error::Input(InputError::new("problem", "", e.to_string())),
-            _ => Error::Device(e.to_string()),
+impl From<CgError> for Error {
+    fn from(e: CgError) -> Self {
+        Error::Solve(SolveError::Cg(e))
+    }
+}
+
+// Why CG stopped: an error of every CG, on the CPU and on the GPU.
+
+/// Why CG stopped without reaching its tolerance.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CgError {
+    #[error("CG met non-positive curvature pᵀĤp = {curvature:e} at iteration {iteration}: the Hessian is not positive definite on the free subspace")]
+    NonPositiveCurvature { iteration: usize, curvature: f64 },
+    #[error("CG stagnated at iteration {iterations} with relative residual {relative_residual:e} (tolerance {tol:e})")]
+    Stagnation {
+        iterations: usize,
+        relative_residual: f64,
+        tol: f64,
+    },
+    #[error("CG reached the iteration limit {iterations} with relative residual {relative_residual:e} (tolerance {tol:e})")]
+    MaxIterations {
+        iterations: usize,
+        relative_residual: f64,
+        tol: f64,
+    },
+    #[error("CG broke down at iteration {iteration}: a non-finite value appeared")]
+    Breakdown { iteration: usize },
+    /// Found before any iteration (`solve::coarse::unpinned_translation`): Ĥ is
+    /// singular, so a CG "solution" would carry an arbitrary rigid translation.
+    #[error("the eliminated Hessian is not positive definite on the free subspace: {0}")]
+    Unpinned(Unpinned),
+}
+
+impl CgError {
+    /// The residual reached when the solver gave up (None for breakdowns).
+    pub fn reached_residual(&self) -> Option<f64> {
+        match self {
+            CgError::Stagnation {
+                relative_residual, ..
+            }
+            | CgError::MaxIterations {
+                relative_residual, ..
+            } => Some(*relative_residual),
+            _ => None,
         }
     }
 }
 
-impl From<crate::cg::CgError> for Error {
-    fn from(e: crate::cg::CgError) -> Self {
-        Error::Solve(SolveError::Cg(e))
+/// A rigid translation that no constraint and no mass term pins: Ĥ is singular.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Unpinned {
+    /// The first node of the connected group of free nodes.
+    pub node: usize,
+    /// The group's node count.
+    pub nodes: usize,
+    /// The direction of the translation (unit, world axes).
+    pub direction: Vec<f64>,
+    /// tᵀĤt/tᵀt of the translation.
+    pub stiffness: f64,
+    /// The group's mean absolute row sum of Ĥ (what the stiffness is measured against).
+    pub row_scale: f64,
+}
+
+impl std::fmt::Display for Unpinned {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let dir: Vec<String> = self
+            .direction
+            .iter()
+            .map(|v| format!("{:.3}", if v.abs() < 5e-4 { 0.0 } else { *v }))
+            .collect();
+        write!(
+            f,
+            "the rigid translation along ({}) of the {} free node{} connected to node {} \
+             meets no constraint and no mass term (tᵀĤt/tᵀt = {:.3e}, rows of size {:.3e})",
+            dir.join(", "),
+            self.nodes,
+            if self.nodes == 1 { "" } else { "s" },
+            self.node,
+            self.stiffness,
+            self.row_scale
+        )
     }
+}
+
+// One-line messages: what every error line is made of, whatever text it echoes.
+
+/// The byte-order mark some editors put at the start of a UTF-8 file.
+pub const BOM: char = '\u{feff}';
+
+/// A message from another library (or text from a file) made fit for our one-line
+/// errors: control characters (tabs, newlines, escapes) become spaces, runs of spaces
+/// collapse, and the result is cut at `max_chars` characters with `…`.
+pub fn one_line(msg: &str, max_chars: usize) -> String {
+    let mut out = String::with_capacity(msg.len().min(max_chars * 4 + 4));
+    let mut chars = 0usize;
+    let mut space = false;
+    for ch in msg.trim().chars() {
+        let ch = if ch.is_control() || ch.is_whitespace() || ch == BOM {
+            ' '
+        } else {
+            ch
+        };
+        if ch == ' ' {
+            if space {
+                continue;
+            }
+            space = true;
+        } else {
+            space = false;
+        }
+        if chars == max_chars {
+            out.truncate(out.trim_end().len());
+            out.push('…');
+            return out;
+        }
+        out.push(ch);
+        chars += 1;
+    }
+    out.truncate(out.trim_end().len());
+    out
+}
+
+/// Longest run of non-space characters an error line echoes whole (a number, a key,
+/// a token from a file); longer runs are cut there with `…`.
+pub const MAX_TOKEN_CHARS: usize = 80;
+
+/// A path is kept whole up to this many characters (the longest path Linux resolves).
+const MAX_PATH_CHARS: usize = 4096;
+
+/// `msg` with every run of non-whitespace characters longer than [`MAX_TOKEN_CHARS`] cut
+/// to that many with `…` (a path, a token holding `/`, is kept up to 4096 characters), so
+/// an error line stays readable whatever a file holds.
+pub fn cut_tokens(msg: &str) -> std::borrow::Cow<'_, str> {
+    let long = |t: &str| {
+        let limit = if t.contains('/') {
+            MAX_PATH_CHARS
+        } else {
+            MAX_TOKEN_CHARS
+        };
+        t.chars().nth(limit).is_some().then_some(limit)
+    };
+    if !msg.split_whitespace().any(|t| long(t).is_some()) {
+        return std::borrow::Cow::Borrowed(msg);
+    }
+    let mut out = String::with_capacity(msg.len().min(4096));
+    let mut rest = msg;
+    while !rest.is_empty() {
+        let ws = rest.len() - rest.trim_start().len();
+        out.push_str(&rest[..ws]);
+        rest = &rest[ws..];
+        let end = rest.find(char::is_whitespace).unwrap_or(rest.len());
+        let tok = &rest[..end];
+        match long(tok) {
+            Some(limit) => {
+                out.extend(tok.chars().take(limit));
+                out.push('…');
+            }
+            None => out.push_str(tok),
+        }
+        rest = &rest[end..];
+    }
+    std::borrow::Cow::Owned(out)
 }

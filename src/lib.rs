@@ -71,78 +71,48 @@
 //!
 //! # Layers
 //!
-//! The facade is built from modules that stay public for users who need the pieces:
-//! [`constraints`] (constraints → per-node frames V_i, masks and the lift Δx_p),
-//! [`elimination`] (the eliminated system Ĥ y = b̂, matrix-free or assembled),
-//! [`oracle`] (faer sparse Cholesky) with [`ordering`] (its fill-reducing orderings),
-//! [`cg`] (f64 PCG), [`coarse`] (the coarse correction), [`gpu`] (the wgpu solver),
-//! [`sparse`] (block-sparse H), [`io`] (Matrix Market and bc.json readers) and
-//! [`generate`] (seeded random systems). With the `sim`
-//! feature (on by default) come the simulation driver's modules, and with `cli` the
-//! `stickslip` command line. docs/method.md gives the method.
+//! The facade is built from folders by layer, each importing only from the layers below
+//! it (`tests/layers.rs` checks this, and that no two modules import each other):
+//!
+//! | layer | folder | what it holds |
+//! |---|---|---|
+//! | 0 | [`error`] | the error types (a leaf) |
+//! | 1 | [`core`] | constraints → per-node frames V_i, masks and the lift Δx_p; the eliminated system Ĥ y = b̂; block-sparse H; the constrained [`Problem`] |
+//! | 1 | [`io`], [`cases`] | Matrix Market and bc.json readers and writers; seeded random systems and mass-spring operators |
+//! | 2 | [`solve`] | the sparse Cholesky oracle and its orderings, f64 PCG, coarse spaces, every option enum, and the [`Solver`] behind this facade |
+//! | 3 | [`gpu`] | device plumbing and the device PCG (no simulation types) |
+//! | 4 | `sim` | meshes, energies, scenes, the Newton loop and its device operators (feature `sim`, on by default) |
+//! | 5 | `app` | the `stickslip` command line, benchmarks, hard cases, plots, reports (feature `cli`) |
+//!
+//! docs/method.md gives the method.
 
-pub mod linalg;
-mod problem;
-mod solver;
-
-pub mod cg;
-mod cg_fused;
-pub mod coarse;
-pub mod constraints;
-pub mod elimination;
 pub mod error;
-pub mod generate;
-pub mod gpu;
+
+pub mod cases;
+pub mod core;
 pub mod io;
-pub mod oracle;
-pub mod ordering;
-pub mod sparse;
-pub mod springs;
 
-pub use cg::Preconditioner;
-pub use coarse::CoarseSpace;
-pub use constraints::Constraint;
-pub use elimination::ConstrainedDiagonal;
-pub use error::{Error, InputError, SolveError};
-pub use gpu::Precision;
-pub use ordering::CholeskyOrdering;
-pub use problem::Problem;
-pub use solver::{
-    LayoutKey, Solution, SolveDetails, SolveSeconds, SolveStats, Solver, SolverConfig, SolverKind,
-    Step,
-};
+pub mod solve;
 
-// The simulation driver: scenes, meshes, energies, the time stepper.
+pub mod gpu;
+
+pub mod engine;
+
+// Scenes, meshes, energies and the time stepper.
 #[cfg(feature = "sim")]
-pub mod driver;
-#[cfg(feature = "sim")]
-pub mod energy;
-#[cfg(feature = "sim")]
-pub mod hard;
-#[cfg(feature = "sim")]
-pub mod integrator;
-#[cfg(feature = "sim")]
-pub mod mesh;
-#[cfg(feature = "sim")]
-mod output;
-#[cfg(feature = "sim")]
-pub mod scene;
+pub mod sim;
 
 // The command line and what only it uses. Public for the binary and its tests, not an
 // API: embed the solver through the names at the crate root.
 #[cfg(feature = "cli")]
 #[doc(hidden)]
-pub mod bench;
-#[cfg(feature = "cli")]
-#[doc(hidden)]
-pub mod bench_newton;
-#[cfg(feature = "cli")]
-#[doc(hidden)]
-pub mod cli;
-#[cfg(feature = "cli")]
-#[doc(hidden)]
-pub mod export;
-#[cfg(feature = "cli")]
-mod plots;
-#[cfg(feature = "cli")]
-mod report;
+pub mod app;
+
+pub use crate::core::constraints::Constraint;
+pub use crate::core::elimination::ConstrainedDiagonal;
+pub use crate::core::problem::Problem;
+pub use engine::solver::{
+    LayoutKey, Solution, SolveDetails, SolveSeconds, SolveStats, Solver, SolverConfig, Step,
+};
+pub use error::{Error, InputError, SolveError};
+pub use solve::options::{CholeskyOrdering, CoarseSpace, Precision, Preconditioner, SolverKind};

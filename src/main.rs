@@ -1,5 +1,5 @@
-//! The `stickslip` binary: everything lives in [`stickslip::cli`].
+//! The `stickslip` binary: everything lives in [`stickslip::app::cli`].
 
 fn main() -> std::process::ExitCode {
-    stickslip::cli::main()
+    stickslip::app::cli::main()
 }

@@ -287,7 +287,7 @@ fn result_files_are_replaced_by_rename() {
 
 /// The `hanging` scene with a frame every step (and `extra` TOML appended).
 fn scene(dir: &Path, cells: &str, extra: &str) -> String {
-    let text = stickslip::scene::builtin("hanging")
+    let text = stickslip::sim::scene::builtin("hanging")
         .unwrap()
         .replace("every = 5", "every = 1")
         .replace("cells = [10, 5]", cells);

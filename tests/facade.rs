@@ -12,13 +12,13 @@ mod common;
 
 use common::kkt::{dense_kkt, global_b};
 use nalgebra::DVector;
-use stickslip::generate::{random_system, SystemSpec};
+use stickslip::cases::generate::{random_system, SystemSpec};
 use stickslip::{
     Constraint, Error, Precision, Problem, SolveDetails, Solver, SolverConfig, SolverKind,
 };
 
 /// H's stored entries as triplets (both triangles).
-fn triplets(h: &stickslip::sparse::BlockCsr) -> Vec<(usize, usize, f64)> {
+fn triplets(h: &stickslip::core::sparse::BlockCsr) -> Vec<(usize, usize, f64)> {
     let d = h.dim;
     let mut t = Vec::new();
     for i in 0..h.n {

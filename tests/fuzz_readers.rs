@@ -199,7 +199,7 @@ fn constraint_json_reader() {
 
 #[test]
 fn scene_toml_reader() {
-    let mut samples: Vec<Vec<u8>> = stickslip::scene::BUILTIN
+    let mut samples: Vec<Vec<u8>> = stickslip::sim::scene::BUILTIN
         .iter()
         .map(|(_, t)| t.as_bytes().to_vec())
         .collect();
@@ -270,12 +270,12 @@ fn gmsh_reader() {
 /// readers accept).
 #[test]
 fn samples_are_valid() {
-    let m = stickslip::mesh::gmsh(2, &gmsh_samples()[0]).expect("square");
+    let m = stickslip::sim::mesh::gmsh(2, &gmsh_samples()[0]).expect("square");
     assert_eq!(m.n_nodes(), 5);
-    assert!(stickslip::mesh::gmsh(3, &gmsh_samples()[1]).is_ok());
-    assert!(stickslip::mesh::gmsh(2, &gmsh_samples()[2]).is_ok());
-    for (name, t) in stickslip::scene::BUILTIN {
-        assert!(stickslip::scene::parse(t, name, 1.0).is_ok(), "{name}");
+    assert!(stickslip::sim::mesh::gmsh(3, &gmsh_samples()[1]).is_ok());
+    assert!(stickslip::sim::mesh::gmsh(2, &gmsh_samples()[2]).is_ok());
+    for (name, t) in stickslip::sim::scene::BUILTIN {
+        assert!(stickslip::sim::scene::parse(t, name, 1.0).is_ok(), "{name}");
     }
 }
 
@@ -293,7 +293,7 @@ fn inputs_that_once_panicked_are_errors() {
             + section.len();
         let mut b = bin.clone();
         b[at + 8..at + 16].copy_from_slice(&0u64.to_le_bytes());
-        let e = stickslip::mesh::gmsh(2, &b).unwrap_err();
+        let e = stickslip::sim::mesh::gmsh(2, &b).unwrap_err();
         assert!(e.contains("declares no"), "{e}");
     }
     // The ASCII square with 0 in a count, after a long run of blank space (mshio skips
@@ -312,7 +312,7 @@ fn inputs_that_once_panicked_are_errors() {
             &square[line_end..]
         );
         for dim in [2, 3] {
-            let e = stickslip::mesh::gmsh(dim, text.as_bytes()).unwrap_err();
+            let e = stickslip::sim::mesh::gmsh(dim, text.as_bytes()).unwrap_err();
             assert!(e.contains("declares no"), "{section}: {e}");
         }
     }
@@ -327,7 +327,7 @@ fn inputs_that_once_panicked_are_errors() {
             for dim in [2, 3] {
                 // Each declares zero nodes or elements in a section mshio reaches, where
                 // its tag arithmetic underflows.
-                let msg = stickslip::mesh::gmsh(dim, &bytes).unwrap_err();
+                let msg = stickslip::sim::mesh::gmsh(dim, &bytes).unwrap_err();
                 assert!(
                     msg.contains("declares no"),
                     "{}: {msg}",
@@ -353,7 +353,7 @@ fn inputs_that_once_panicked_are_errors() {
     ] {
         let text = square.replace("4.1 0 8", format);
         for dim in [2, 3] {
-            let e = stickslip::mesh::gmsh(dim, text.as_bytes()).unwrap_err();
+            let e = stickslip::sim::mesh::gmsh(dim, text.as_bytes()).unwrap_err();
             assert!(e.contains(want), "{format}: {e}");
         }
     }

@@ -27,11 +27,11 @@
 
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-use stickslip::energy::barrier::{Barrier, HalfSpace};
-use stickslip::energy::{gravity, inertia, ElementSet, Model, NeoHookean, Springs};
-use stickslip::gpu::elements::{ElementKernels, GpuElements, TermKind, TermValues};
 use stickslip::gpu::{GpuContext, GpuError, Precision};
-use stickslip::mesh::{ElementKind, Mesh};
+use stickslip::sim::device::elements::{ElementKernels, GpuElements, TermKind, TermValues};
+use stickslip::sim::energy::barrier::{Barrier, HalfSpace};
+use stickslip::sim::energy::{gravity, inertia, ElementSet, Model, NeoHookean, Springs};
+use stickslip::sim::mesh::{ElementKind, Mesh};
 
 mod common;
 use common::gpu::gpu;
@@ -351,7 +351,7 @@ fn numeric_projection(s: &Scene, xe: &[f64]) -> Vec<f64> {
         nh.deformation_gradient(xe, e, &mut f);
         let mut h = vec![0.0; dd * dd];
         nh.stress_derivative(&f, &mut h);
-        stickslip::energy::project_psd(dd, &mut h);
+        stickslip::sim::energy::project_psd(dd, &mut h);
         let g = nh.grads(e);
         for a in 0..=d {
             for c in 0..d {

@@ -22,13 +22,13 @@
 
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-use stickslip::energy::barrier::{Barrier, HalfSpace};
-use stickslip::energy::{ElementSet, Model, NeoHookean, Springs};
-use stickslip::gpu::assembly::GpuAssembly;
-use stickslip::gpu::elements::{ElementKernels, GpuElements, TermKind};
-use stickslip::gpu::newton::ops::NewtonOps;
 use stickslip::gpu::{GpuContext, GpuError, Precision};
-use stickslip::mesh;
+use stickslip::sim::device::assembly::GpuAssembly;
+use stickslip::sim::device::elements::{ElementKernels, GpuElements, TermKind};
+use stickslip::sim::device::newton_ops::NewtonOps;
+use stickslip::sim::energy::barrier::{Barrier, HalfSpace};
+use stickslip::sim::energy::{ElementSet, Model, NeoHookean, Springs};
+use stickslip::sim::mesh;
 
 mod common;
 use common::gpu::gpu;

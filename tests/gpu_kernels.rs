@@ -2,13 +2,13 @@
 //! tests are serialized (lavapipe is slow). Without an adapter they print a loud SKIP
 //! line and return, unless STICKSLIP_REQUIRE_GPU=1 (CI), where a missing adapter fails.
 
-use stickslip::cg::{BuiltPreconditioner, Preconditioner};
-use stickslip::coarse::CoarseSpace;
-use stickslip::constraints::{Constraint, ConstraintKind, Frames};
-use stickslip::elimination::{rotate_blocks, ConstrainedDiagonal, Eliminated};
-use stickslip::generate::{random_system, SystemSpec};
+use stickslip::cases::generate::{random_system, SystemSpec};
+use stickslip::cases::springs::MassSpring;
+use stickslip::core::constraints::{Constraint, ConstraintKind, Frames};
+use stickslip::core::elimination::{rotate_blocks, ConstrainedDiagonal, Eliminated};
 use stickslip::gpu::{DifferenceForm, GpuParams, GpuSolver, Precision};
-use stickslip::springs::MassSpring;
+use stickslip::solve::cg::{BuiltPreconditioner, Preconditioner};
+use stickslip::solve::coarse::CoarseSpace;
 
 mod common;
 use common::gpu::gpu;
@@ -105,7 +105,7 @@ fn matvec_rotation_and_preconditioners_match_cpu() {
 #[test]
 fn f32_difference_form_keeps_the_translations() {
     let Some((ctx, _g)) = gpu() else { return };
-    let case = stickslip::hard::conditioned(stickslip::hard::Size::Ci, 1e6, false);
+    let case = stickslip::app::hard::conditioned(stickslip::app::hard::Size::Ci, 1e6, false);
     let e = case.eliminated();
     let n = e.ndof();
     for axis in 0..3 {
@@ -149,7 +149,7 @@ fn f32_difference_form_keeps_the_translations() {
         sol.resources().has_buffer("rowsum_f32")
     };
     assert!(uses(&e));
-    let pinned = stickslip::hard::stiffness_contrast(stickslip::hard::Size::Ci, 1e4);
+    let pinned = stickslip::app::hard::stiffness_contrast(stickslip::app::hard::Size::Ci, 1e4);
     assert_eq!(uses(&pinned.eliminated()), ctx.has_f64());
 }
 

@@ -21,18 +21,18 @@
 
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-use stickslip::cg::Preconditioner;
-use stickslip::coarse::CoarseSpace;
-use stickslip::constraints::{Constraint, Frames};
-use stickslip::energy::barrier::{Barrier, HalfSpace};
-use stickslip::energy::{ElementSet, Model, NeoHookean};
-use stickslip::gpu::assembly::GpuAssembly;
-use stickslip::gpu::elements::{ElementKernels, GpuElements, TermKind};
-use stickslip::gpu::newton::cg::{DeviceCg, DeviceCgParams};
-use stickslip::gpu::newton::ops::{MovingTerm, NewtonOps};
+use stickslip::core::constraints::{Constraint, Frames};
 use stickslip::gpu::{GpuContext, GpuError, Precision};
-use stickslip::mesh;
-use stickslip::scene::BcShape;
+use stickslip::sim::device::assembly::GpuAssembly;
+use stickslip::sim::device::elements::{ElementKernels, GpuElements, TermKind};
+use stickslip::sim::device::newton_cg::{DeviceCg, DeviceCgParams};
+use stickslip::sim::device::newton_ops::{MovingTerm, NewtonOps};
+use stickslip::sim::energy::barrier::{Barrier, HalfSpace};
+use stickslip::sim::energy::{ElementSet, Model, NeoHookean};
+use stickslip::sim::mesh;
+use stickslip::sim::scene::BcShape;
+use stickslip::solve::cg::Preconditioner;
+use stickslip::solve::coarse::CoarseSpace;
 
 mod common;
 use common::gpu::gpu;

@@ -27,16 +27,16 @@
 
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-use stickslip::cg::{CgError, Preconditioner};
-use stickslip::coarse::{translations_einv_from_blocks, CoarseSpace};
-use stickslip::constraints::{Constraint, Frames};
-use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::energy::{ElementSet, Model, NeoHookean};
-use stickslip::gpu::assembly::GpuAssembly;
-use stickslip::gpu::elements::GpuElements;
-use stickslip::gpu::newton::cg::{DeviceCg, DeviceCgParams};
+use stickslip::core::constraints::{Constraint, Frames};
+use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::gpu::{GpuContext, GpuError, Precision};
-use stickslip::mesh;
+use stickslip::sim::device::assembly::GpuAssembly;
+use stickslip::sim::device::elements::GpuElements;
+use stickslip::sim::device::newton_cg::{DeviceCg, DeviceCgParams};
+use stickslip::sim::energy::{ElementSet, Model, NeoHookean};
+use stickslip::sim::mesh;
+use stickslip::solve::cg::{CgError, Preconditioner};
+use stickslip::solve::coarse::{translations_einv_from_blocks, CoarseSpace};
 
 mod common;
 use common::gpu::gpu;
@@ -123,7 +123,7 @@ fn body(d: usize, seed: u64, gravity: bool, free: bool) -> Scene {
     assert!(frames.has_rotation(), "some nodes carry a rotation");
     assert!(
         frames.mask.iter().enumerate().any(|(i, &mk)| mk != 0
-            && frames.rot_index[i] == stickslip::constraints::NO_ROTATION
+            && frames.rot_index[i] == stickslip::core::constraints::NO_ROTATION
             && mk.count_ones() < d as u32),
         "some slip nodes are masked without a rotation"
     );
@@ -195,7 +195,7 @@ fn compare(ctx: &GpuContext, s: &Scene, bound: Bound) -> Vec<(Preconditioner, Co
     let h = asm.read_matrix().expect("read H");
     let g = asm.read_gradient().expect("read g");
     let e = Eliminated::new(&h, &g, &s.frames, ConstrainedDiagonal::Identity);
-    let (y_ref, _) = stickslip::oracle::solve(&e).expect("Cholesky");
+    let (y_ref, _) = stickslip::solve::oracle::solve(&e).expect("Cholesky");
     let dx_ref = e.recover(&y_ref);
     let ref_norm = norm(&dx_ref);
     assert!(ref_norm > 0.0, "a non-trivial step");

@@ -20,13 +20,13 @@
 
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-use stickslip::energy::barrier::{Barrier, HalfSpace};
-use stickslip::energy::{gravity, inertia, Model};
-use stickslip::gpu::assembly::GpuAssembly;
-use stickslip::gpu::elements::{GpuElements, TermKind};
-use stickslip::gpu::newton::ops::{static_projections, MovingTerm, NewtonOps};
 use stickslip::gpu::{GpuContext, GpuError, Precision};
-use stickslip::scene::{self, BcShape, Scene};
+use stickslip::sim::device::assembly::GpuAssembly;
+use stickslip::sim::device::elements::{GpuElements, TermKind};
+use stickslip::sim::device::newton_ops::{static_projections, MovingTerm, NewtonOps};
+use stickslip::sim::energy::barrier::{Barrier, HalfSpace};
+use stickslip::sim::energy::{gravity, inertia, Model};
+use stickslip::sim::scene::{self, BcShape, Scene};
 
 mod common;
 use common::gpu::gpu;
@@ -64,7 +64,7 @@ fn check_sum(what: &str, gpu: f64, cpu: f64, abs_sum: f64) {
     assert!(r <= SUM_TOL, "{what}: {gpu} vs {cpu}: {r:e} of Σ|·|");
 }
 
-/// The CPU's `offset` (src/integrator.rs, private there): r of a node from its target.
+/// The CPU's `offset` (src/sim/integrator/mod.rs, private there): r of a node from its target.
 fn offset(d: usize, s: &BcShape, xi: &[f64]) -> [f64; 3] {
     let mut p = [0.0; 3];
     p[..d].copy_from_slice(&xi[..d]);
@@ -86,7 +86,7 @@ fn offset(d: usize, s: &BcShape, xi: &[f64]) -> [f64; 3] {
     }
 }
 
-/// The CPU's `projector` (src/integrator.rs, private there).
+/// The CPU's `projector` (src/sim/integrator/mod.rs, private there).
 fn projector(d: usize, s: &BcShape) -> [f64; 9] {
     let mut p = [0.0; 9];
     match s {

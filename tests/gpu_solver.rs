@@ -3,13 +3,13 @@
 //! honest failures and the matrix-free spring operator. One shared device per binary,
 //! tests serialized; without an adapter a loud SKIP (a failure with STICKSLIP_REQUIRE_GPU=1).
 
-use stickslip::cg::{CgError, Preconditioner};
-use stickslip::coarse::CoarseSpace;
-use stickslip::constraints::{Constraint, ConstraintKind, Frames};
-use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::generate::{random_system, ConstraintMix, SystemSpec};
+use stickslip::cases::generate::{random_system, ConstraintMix, SystemSpec};
+use stickslip::cases::springs::MassSpring;
+use stickslip::core::constraints::{Constraint, ConstraintKind, Frames};
+use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::gpu::{DifferenceForm, GpuError, GpuParams, GpuSolver, Precision, SolveOutcome};
-use stickslip::springs::MassSpring;
+use stickslip::solve::cg::{CgError, Preconditioner};
+use stickslip::solve::coarse::CoarseSpace;
 
 mod common;
 use common::gpu::gpu;
@@ -18,7 +18,7 @@ fn norm(v: &[f64]) -> f64 {
     v.iter().map(|x| x * x).sum::<f64>().sqrt()
 }
 
-use stickslip::linalg::relative_error as rel_err;
+use stickslip::core::linalg::relative_error as rel_err;
 
 /// Dense Cholesky of the assembled Ĥ: y*, Δx*.
 fn reference(e: &Eliminated) -> (Vec<f64>, Vec<f64>) {
@@ -161,7 +161,7 @@ fn constraints_hold_to_f64_rounding_in_every_precision() {
                     let xi = &dx[i * dim..(i + 1) * dim];
                     let li = &s.frames.lift[i * dim..(i + 1) * dim];
                     let size = norm(xi) + norm(li);
-                    let (a_rows, vals) = stickslip::constraints::node_rows(dim, c);
+                    let (a_rows, vals) = stickslip::core::constraints::node_rows(dim, c);
                     for (a, p) in a_rows.iter().zip(vals) {
                         let ax: f64 = a.iter().zip(xi).map(|(u, v)| u * v).sum();
                         let miss = (ax - p).abs() / norm(a);
@@ -646,7 +646,7 @@ fn mixed_with_the_outer_residual_on_the_host_matches_the_reference() {
 /// extreme Ĥ scale (the solution ~1e-60 underflows f32) needs no fallback at all.
 #[test]
 fn mixed_falls_back_to_f64_and_says_so() {
-    use stickslip::hard::{self, Size};
+    use stickslip::app::hard::{self, Size};
     let Some((ctx, _g)) = gpu() else { return };
     let case = hard::conditioned(Size::Ci, 1e8, true);
     let e = case.eliminated();
@@ -752,7 +752,7 @@ fn mixed_falls_back_to_f64_and_says_so() {
 fn mixed_gives_up_f32_within_a_few_chunks_when_kappa_is_beyond_f32() {
     let Some((ctx, _g)) = gpu() else { return };
     for seed in 1..=3u64 {
-        let s = stickslip::generate::dense_spd(3, 8, 1e8, seed);
+        let s = stickslip::cases::generate::dense_spd(3, 8, 1e8, seed);
         let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
         let solve = |precision| {
             let prm = GpuParams {
@@ -883,7 +883,7 @@ fn error_tol_after_update_uses_the_new_hessian() {
 /// correction itself saves f64 CG ≥ 20% of its iterations (measured 34% and 27%).
 #[test]
 fn coarse_correction_keeps_mixed_in_f32_on_free_bodies() {
-    use stickslip::hard::{self, Size};
+    use stickslip::app::hard::{self, Size};
     let Some((ctx, _g)) = gpu() else { return };
     let tol = 1e-10;
     for (kappa, balanced) in [(1e6, false), (1e8, true)] {
@@ -944,8 +944,8 @@ fn coarse_correction_keeps_mixed_in_f32_on_free_bodies() {
 /// blocks).
 #[test]
 fn aggregate_coarse_correction_matches_the_cpu_and_keeps_mixed_near_f64() {
-    use stickslip::cg::{self, CgParams};
-    use stickslip::hard::{self, Size};
+    use stickslip::app::hard::{self, Size};
+    use stickslip::solve::cg::{self, CgParams};
     let Some((ctx, _g)) = gpu() else { return };
     let tol = 1e-10;
     let dt = hard::time_step(Size::Scale(3), 1e2);

@@ -5,11 +5,11 @@
 //! the same values, and each invocation's p·q sum runs over the same rows in the same
 //! order (carried between the chunk dispatches), so the two differ in addresses only.
 
-use stickslip::cg::Preconditioner;
-use stickslip::coarse::CoarseSpace;
-use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::generate::{random_system, SystemSpec};
+use stickslip::cases::generate::{random_system, SystemSpec};
+use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::gpu::{GpuError, GpuParams, GpuSolver, Precision, Resources, SolveOutcome};
+use stickslip::solve::cg::Preconditioner;
+use stickslip::solve::coarse::CoarseSpace;
 
 mod common;
 use common::gpu::gpu;

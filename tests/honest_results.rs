@@ -240,7 +240,7 @@ fn gmsh_node_tags_out_of_file_order_keep_the_geometry() {
             ("binary", square_binary(blocks)),
         ] {
             let what = format!("{kind} {blocks:?}");
-            let m = stickslip::mesh::gmsh(2, &bytes).unwrap_or_else(|e| panic!("{what}: {e}"));
+            let m = stickslip::sim::mesh::gmsh(2, &bytes).unwrap_or_else(|e| panic!("{what}: {e}"));
             assert_eq!(m.n_nodes(), 5, "{what}");
             // Exact: each triangle's area is 1/4 in binary fractions.
             let area: f64 = (0..4).map(|e| m.measure(e)).sum();
@@ -273,7 +273,7 @@ fn gmsh_node_tags_out_of_file_order_keep_the_geometry() {
         }
     }
     // A tag given twice is an error that says so.
-    let e = stickslip::mesh::gmsh(2, &square_ascii(&[&[1, 2, 3, 3, 5]])).unwrap_err();
+    let e = stickslip::sim::mesh::gmsh(2, &square_ascii(&[&[1, 2, 3, 3, 5]])).unwrap_err();
     assert!(e.contains("node tag 3 is given to two nodes"), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -358,7 +358,7 @@ fn an_adapter_name_that_matches_nothing_is_refused() {
 /// lift, masks or rotations were changed after export is refused (exit 2).
 #[test]
 fn recover_checks_the_solution_and_the_layout() {
-    use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
+    use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
     let dir = tmpdir("recover");
     let (h, g, bc) = system(&dir, "1");
     let ex = dir.join("ex");
@@ -380,9 +380,9 @@ fn recover_checks_the_solution_and_the_layout() {
     let hm = stickslip::io::mtx::read_hessian(&h, 2).unwrap();
     let gv = stickslip::io::mtx::read_vector(&g, "g", None).unwrap();
     let cs = stickslip::io::bcjson::read(&bc, Some(2)).unwrap();
-    let frames = stickslip::constraints::Frames::build(2, hm.n, &cs.constraints).unwrap();
+    let frames = stickslip::core::constraints::Frames::build(2, hm.n, &cs.constraints).unwrap();
     let e = Eliminated::new(&hm, &gv, &frames, ConstrainedDiagonal::Identity);
-    let (y, _) = stickslip::oracle::solve(&e).unwrap();
+    let (y, _) = stickslip::solve::oracle::solve(&e).unwrap();
     let write_y = |name: &str, v: &[f64]| {
         let p = dir.join(name);
         stickslip::io::mtx::write_vector(&p, v, "y").unwrap();
@@ -395,9 +395,9 @@ fn recover_checks_the_solution_and_the_layout() {
     let hm2 = stickslip::io::mtx::read_hessian(&h2, 2).unwrap();
     let gv2 = stickslip::io::mtx::read_vector(&g2, "g", None).unwrap();
     let cs2 = stickslip::io::bcjson::read(&bc2, Some(2)).unwrap();
-    let f2 = stickslip::constraints::Frames::build(2, hm2.n, &cs2.constraints).unwrap();
+    let f2 = stickslip::core::constraints::Frames::build(2, hm2.n, &cs2.constraints).unwrap();
     let e2 = Eliminated::new(&hm2, &gv2, &f2, ConstrainedDiagonal::Identity);
-    let (y2, _) = stickslip::oracle::solve(&e2).unwrap();
+    let (y2, _) = stickslip::solve::oracle::solve(&e2).unwrap();
     let other = write_y("y2.mtx", &y2);
     let dx = dir.join("dx.mtx");
     let recover = |layout: &str, y: &str, extra: &[&str]| {
@@ -511,7 +511,7 @@ fn scene_faults_name_the_real_cause() {
         std::fs::write(&p, text).unwrap();
         s(&p)
     };
-    let builtin = |n: &str| stickslip::scene::builtin(n).unwrap().to_string();
+    let builtin = |n: &str| stickslip::sim::scene::builtin(n).unwrap().to_string();
     let cases = [
         (
             scene(

@@ -11,8 +11,8 @@ use std::process::Output;
 mod common;
 use common::cli::{assert_input_error, run, stderr, tmpdir, write};
 
-use stickslip::constraints::{Constraint, ConstraintKind, Frames};
-use stickslip::integrator::Stepper;
+use stickslip::core::constraints::{Constraint, ConstraintKind, Frames};
+use stickslip::sim::integrator::Stepper;
 
 /// A 3D system of `n` nodes: H = tridiagonal-ish SPD (4 on the diagonal, −1 between
 /// neighbours' matching components), g = a fixed pattern. Returns (H path, g path).
@@ -420,7 +420,7 @@ region = {{ nodes = [0] }}
         &["node 0 (boundary[0], boundary[1])", "contradictory"],
     );
     // The parser says it too (library users get the same error).
-    let e = stickslip::scene::parse(&text, "s.toml", 1.0).expect_err("contradictory");
+    let e = stickslip::sim::scene::parse(&text, "s.toml", 1.0).expect_err("contradictory");
     assert_eq!(e.entry, "node 0 (boundary[0], boundary[1])");
 }
 
@@ -484,7 +484,7 @@ kind = "sticky"
 region = {{ box = {{ min = [0.999, -1.0], max = [1.001, 1.0] }} }}
 "#
     );
-    let scene = stickslip::scene::parse(&text, "s.toml", 1.0).expect("consistent");
+    let scene = stickslip::sim::scene::parse(&text, "s.toml", 1.0).expect("consistent");
     let mut st = Stepper::new(&scene).expect("stepper");
     st.step().expect("step");
     st.step().expect("step");
@@ -554,7 +554,7 @@ fn overlong_scene_names_are_input_errors() {
 
 #[test]
 fn scenes_over_the_node_caps_are_input_errors() {
-    use stickslip::mesh::{MAX_CHOLESKY_NODES_3D, MAX_SCENE_NODES_2D, MAX_SCENE_NODES_3D};
+    use stickslip::sim::mesh::{MAX_CHOLESKY_NODES_3D, MAX_SCENE_NODES_2D, MAX_SCENE_NODES_3D};
     let dir = tmpdir("caps");
     let big = SCENE_2D.replace("cells = [4, 2]", "cells = [7000, 7000]");
     let (path, o) = run_scene(&dir, "rect", &big);

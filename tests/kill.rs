@@ -195,7 +195,7 @@ fn results(dir: &Path) -> Vec<PathBuf> {
 #[test]
 fn killed_runs_leave_complete_files_and_say_so() {
     let dir = tmpdir("kill-run");
-    let text = stickslip::scene::builtin("hanging")
+    let text = stickslip::sim::scene::builtin("hanging")
         .unwrap()
         .replace("every = 5", "every = 1")
         .replace("cells = [10, 5]", "cells = [24, 12]");

@@ -12,11 +12,11 @@
 //! 1e2–1e3, so a backward-stable solve loses about 3 digits of the 16 available.
 
 use nalgebra::{DMatrix, DVector};
-use stickslip::cg::{self, CgParams, Preconditioner};
-use stickslip::constraints::Frames;
-use stickslip::elimination::{reactions, ConstrainedDiagonal, Eliminated};
-use stickslip::generate::{random_system, SystemSpec};
-use stickslip::oracle;
+use stickslip::cases::generate::{random_system, SystemSpec};
+use stickslip::core::constraints::Frames;
+use stickslip::core::elimination::{reactions, ConstrainedDiagonal, Eliminated};
+use stickslip::solve::cg::{self, CgParams, Preconditioner};
+use stickslip::solve::oracle;
 
 mod common;
 use common::kkt::{dense_kkt, global_b};
@@ -110,7 +110,7 @@ fn reduced_system_equals_in_place_masked_system() {
 
         // Reduced system in frame coordinates: H̃ = VᵀHV, x̃_B = VᵀΔx_p.
         let nd = s.h.ndof();
-        let vthv = stickslip::elimination::rotate_blocks(&s.h, &s.frames).to_dense();
+        let vthv = stickslip::core::elimination::rotate_blocks(&s.h, &s.frames).to_dense();
         let mut gt = vec![0.0; nd];
         s.frames.to_frame(&s.g, &mut gt);
         let mut lift_t = vec![0.0; nd];
@@ -172,7 +172,7 @@ fn constrained_components_are_exact() {
 #[test]
 fn frames_of_a_generated_system_need_no_rotation_without_slip() {
     let mut spec = SystemSpec::with_nodes(3, 1000, 3);
-    spec.mix = stickslip::generate::ConstraintMix::None;
+    spec.mix = stickslip::cases::generate::ConstraintMix::None;
     let s = random_system(&spec);
     assert!(!s.frames.has_rotation());
     assert!(!s.frames.has_constraints());

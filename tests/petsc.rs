@@ -14,11 +14,11 @@
 use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
-use stickslip::cg::{self, CgParams, Preconditioner};
-use stickslip::constraints::node_rows;
-use stickslip::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::export;
-use stickslip::generate::{random_system, SystemSpec};
+use stickslip::app::export;
+use stickslip::cases::generate::{random_system, SystemSpec};
+use stickslip::core::constraints::node_rows;
+use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
+use stickslip::solve::cg::{self, CgParams, Preconditioner};
 
 fn petsc_available() -> bool {
     let mpi = Command::new("mpiexec").arg("--version").output().is_ok();
@@ -42,10 +42,10 @@ fn petsc_two_ranks_matches_the_oracle() {
     }
     let s = random_system(&SystemSpec::with_nodes(3, 50_000, 7));
     assert!(s.h.n >= 50_000);
-    let kinds = |pred: fn(&stickslip::constraints::ConstraintKind) -> bool| {
+    let kinds = |pred: fn(&stickslip::core::constraints::ConstraintKind) -> bool| {
         s.constraints.iter().filter(|c| pred(&c.kind)).count()
     };
-    use stickslip::constraints::ConstraintKind as K;
+    use stickslip::core::constraints::ConstraintKind as K;
     let (ns, np, nl) = (
         kinds(|k| matches!(k, K::Sticky { .. })),
         kinds(|k| matches!(k, K::Plane { .. })),
@@ -58,7 +58,7 @@ fn petsc_two_ranks_matches_the_oracle() {
     let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
 
     let t = Instant::now();
-    let (y_ref, _) = stickslip::oracle::solve(&e).expect("oracle");
+    let (y_ref, _) = stickslip::solve::oracle::solve(&e).expect("oracle");
     let t_oracle = t.elapsed().as_secs_f64();
     let dx_ref = e.recover(&y_ref);
 

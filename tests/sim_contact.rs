@@ -15,9 +15,9 @@
 //!   and iterate, `min_distance` is the minimum over all nodes, and the step where only the
 //!   CCD bound holds an interior node fails with one line naming the node and obstacle.
 
-use stickslip::driver::{run, RunError, RunOptions, RunSummary};
-use stickslip::energy::barrier::{Barrier, HalfSpace};
-use stickslip::sparse::BlockCsr;
+use stickslip::core::sparse::BlockCsr;
+use stickslip::sim::driver::{run, RunError, RunOptions, RunSummary};
+use stickslip::sim::energy::barrier::{Barrier, HalfSpace};
 
 fn out_dir(name: &str) -> std::path::PathBuf {
     std::env::temp_dir().join(format!(
@@ -358,7 +358,7 @@ fn variant(tag: &str, text: &str) -> std::path::PathBuf {
 /// wall x = 0 and the top is a moving sticky boundary: all three together with contact.
 #[test]
 fn moving_obstacle_with_slip_and_moving_sticky_boundaries() {
-    let text = stickslip::scene::builtin("squash")
+    let text = stickslip::sim::scene::builtin("squash")
         .expect("builtin")
         .replace(
             "normal = [0.0, 1.0]\n",
@@ -388,24 +388,28 @@ fn moving_obstacle_with_slip_and_moving_sticky_boundaries() {
 
 #[test]
 fn penetrating_start_names_the_node_and_the_obstacle() {
-    let text = stickslip::scene::builtin("squash")
+    let text = stickslip::sim::scene::builtin("squash")
         .expect("builtin")
         .replace("point = [0.0, 0.0]", "point = [0.0, 0.5]");
-    let err = stickslip::scene::parse(&text, "pen.toml", 1.0).expect_err("must fail");
+    let err = stickslip::sim::scene::parse(&text, "pen.toml", 1.0).expect_err("must fail");
     eprintln!("{err}");
     assert_eq!(err.entry, "obstacle[0]");
     assert!(err.problem.contains("node 0 ") && err.problem.contains("penetration-free"));
-    let bad = stickslip::scene::builtin("drop").expect("builtin").replace(
-        "normal = [0.0, 1.0, 0.0]",
-        "normal = [0.0, 1.0, 0.0]\ndhatt = 1.0",
-    );
-    let err = stickslip::scene::parse(&bad, "typo.toml", 1.0).expect_err("must fail");
+    let bad = stickslip::sim::scene::builtin("drop")
+        .expect("builtin")
+        .replace(
+            "normal = [0.0, 1.0, 0.0]",
+            "normal = [0.0, 1.0, 0.0]\ndhatt = 1.0",
+        );
+    let err = stickslip::sim::scene::parse(&bad, "typo.toml", 1.0).expect_err("must fail");
     assert!(err.entry.starts_with("obstacle[0]"), "{err}");
-    let bad = stickslip::scene::builtin("drop").expect("builtin").replace(
-        "normal = [0.0, 1.0, 0.0]",
-        "normal = [0.0, 1.0, 0.0]\ndhat = -1.0",
-    );
-    let err = stickslip::scene::parse(&bad, "neg.toml", 1.0).expect_err("must fail");
+    let bad = stickslip::sim::scene::builtin("drop")
+        .expect("builtin")
+        .replace(
+            "normal = [0.0, 1.0, 0.0]",
+            "normal = [0.0, 1.0, 0.0]\ndhat = -1.0",
+        );
+    let err = stickslip::sim::scene::parse(&bad, "neg.toml", 1.0).expect_err("must fail");
     assert_eq!(err.entry, "obstacle[0].dhat");
 }
 
@@ -444,7 +448,7 @@ $EndElements
 
 #[test]
 fn gmsh_meshes_load_and_run_with_contact() {
-    let m = stickslip::mesh::gmsh(2, SQUARE_MSH.as_bytes()).expect("2D msh");
+    let m = stickslip::sim::mesh::gmsh(2, SQUARE_MSH.as_bytes()).expect("2D msh");
     assert_eq!(m.n_nodes(), 5, "the unused node is dropped");
     assert_eq!(m.elements.len(), 4);
     let area: f64 = (0..4).map(|e| m.measure(e)).sum();
@@ -456,7 +460,7 @@ fn gmsh_meshes_load_and_run_with_contact() {
     }
     // 3D: one tetrahedron given with negative orientation.
     let tet = "$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\n1 4 1 4\n3 1 0 4\n1\n2\n3\n4\n0 0 0\n0 1 0\n1 0 0\n0 0 1\n$EndNodes\n$Elements\n1 1 1 1\n3 1 4 1\n1 1 2 3 4\n$EndElements\n";
-    let m3 = stickslip::mesh::gmsh(3, tet.as_bytes()).expect("3D msh");
+    let m3 = stickslip::sim::mesh::gmsh(3, tet.as_bytes()).expect("3D msh");
     assert_eq!(m3.elements.len(), 1);
     assert!((m3.measure(0) - 1.0 / 6.0).abs() < 1e-12);
 
@@ -480,8 +484,8 @@ fn gmsh_meshes_load_and_run_with_contact() {
         let text = scene.replace("square.msh", file);
         let p = dir.join(format!("{file}.toml"));
         std::fs::write(&p, &text).expect("write");
-        let err =
-            stickslip::driver::load_scene(&p.display().to_string(), 1.0).expect_err("must fail");
+        let err = stickslip::sim::driver::load_scene(&p.display().to_string(), 1.0)
+            .expect_err("must fail");
         eprintln!("{err}");
         assert_eq!(err.entry, "bodies[0].mesh.file");
         assert!(
@@ -546,7 +550,7 @@ fn vtk_points(path: &std::path::Path, dim: usize) -> Vec<f64> {
 
 /// Smallest signed distance of any node (every node, interior ones included) to any
 /// obstacle of `scene` at time t, with the node.
-fn true_min_distance(scene: &stickslip::scene::Scene, x: &[f64], t: f64) -> (f64, usize) {
+fn true_min_distance(scene: &stickslip::sim::scene::Scene, x: &[f64], t: f64) -> (f64, usize) {
     let d = scene.dim;
     let mut best = (f64::INFINITY, usize::MAX);
     for o in &scene.obstacles {
@@ -590,7 +594,7 @@ fn squeezed_mass_spring_square_keeps_every_node_out_or_fails_naming_it() {
     std::fs::create_dir_all(&dir).expect("tmp");
     let path = dir.join("squeeze.toml");
     std::fs::write(&path, SQUEEZE).expect("write scene");
-    let scene = stickslip::scene::parse(SQUEEZE, "squeeze.toml", 1.0).expect("scene");
+    let scene = stickslip::sim::scene::parse(SQUEEZE, "squeeze.toml", 1.0).expect("scene");
     assert_eq!(scene.model.n_nodes, 25);
     let out = dir.join("out");
     let o = std::process::Command::new(env!("CARGO_BIN_EXE_stickslip"))
@@ -687,8 +691,8 @@ fn squeezed_mass_spring_square_keeps_every_node_out_or_fails_naming_it() {
 /// `min_distance` over its iterates is no larger; a failed step says why in one line.
 #[test]
 fn squeezed_square_min_distance_covers_every_node() {
-    let scene = stickslip::scene::parse(SQUEEZE, "squeeze.toml", 1.0).expect("scene");
-    let mut s = stickslip::integrator::Stepper::new(&scene).expect("stepper");
+    let scene = stickslip::sim::scene::parse(SQUEEZE, "squeeze.toml", 1.0).expect("scene");
+    let mut s = stickslip::sim::integrator::Stepper::new(&scene).expect("stepper");
     let mut interior_nearest = 0usize;
     for _ in 0..scene.steps {
         let rep = match s.step() {

@@ -1,7 +1,7 @@
 //! Finite-difference checks of the energies' gradients and Hessians, and PSD projection.
 
-use stickslip::energy::{ElementSet, Model, NeoHookean, Springs};
-use stickslip::mesh;
+use stickslip::sim::energy::{ElementSet, Model, NeoHookean, Springs};
+use stickslip::sim::mesh;
 
 /// Deterministic pseudo-random perturbation in [-amp, amp].
 fn perturb(x: &mut [f64], amp: f64, seed: u64) {
@@ -162,7 +162,7 @@ fn small_strain_matches_linear_elasticity() {
     // Uniaxial stretch ε with lateral faces free is not a homogeneous state we can impose
     // on the energy directly; instead check the Lamé remap: Ψ(I + εS) ≈ μ_L ε²|S|² + λ_L/2 ε² tr(S)².
     let (e, nu) = (2e5, 0.3);
-    let (mu_l, la_l) = stickslip::energy::neohookean::lame(e, nu);
+    let (mu_l, la_l) = stickslip::sim::energy::neohookean::lame(e, nu);
     let t = mesh::cuboid([1.0, 1.0, 1.0], [1, 1, 1]);
     let nh = NeoHookean::new(&t, e, nu).expect("valid mesh");
     let eps = 1e-5;

@@ -17,8 +17,8 @@
 //! Also: `twist --size 4` moves less than 1 % of one assembled Hessian's bytes from host
 //! to device per Newton iteration, and the bad-input cases of the loop.
 
-use stickslip::driver::{run, RunError, RunOptions, RunSummary};
-use stickslip::scene::NewtonLoop;
+use stickslip::sim::driver::{run, RunError, RunOptions, RunSummary};
+use stickslip::sim::scene::NewtonLoop;
 
 fn run_scene(
     name: &str,

@@ -2,9 +2,9 @@
 //! errors (exit code 2) raised before anything is written; other failures exit with 1.
 
 use std::path::PathBuf;
-use stickslip::driver::{run, RunError, RunOptions};
 use stickslip::error::InputError;
-use stickslip::scene::MAX_STEPS;
+use stickslip::sim::driver::{run, RunError, RunOptions};
+use stickslip::sim::scene::MAX_STEPS;
 
 fn tmp(tag: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("stickslip-sim-limits-{tag}-{}", std::process::id()));
@@ -64,7 +64,7 @@ fn step_counts_are_capped() {
     assert_eq!(e.file, "--steps", "{e}");
     let dir = tmp("steps");
     let path = dir.join("long.toml");
-    let text = stickslip::scene::builtin("hanging").expect("built-in");
+    let text = stickslip::sim::scene::builtin("hanging").expect("built-in");
     let steps_line = text
         .lines()
         .find(|l| l.starts_with("steps"))
@@ -83,7 +83,7 @@ fn step_counts_are_capped() {
 #[test]
 fn scene_names_cannot_escape_the_output_folder() {
     let dir = tmp("name");
-    let text = stickslip::scene::builtin("hanging").expect("built-in");
+    let text = stickslip::sim::scene::builtin("hanging").expect("built-in");
     let name_line = text
         .lines()
         .find(|l| l.starts_with("name"))

@@ -3,7 +3,7 @@
 //! honest"). Incline: the reaction has no component along the slope and the center of
 //! mass gains h·g·sin 30° of speed along it.
 
-use stickslip::driver::{run, RunOptions, RunSummary};
+use stickslip::sim::driver::{run, RunOptions, RunSummary};
 
 fn out_dir(name: &str) -> std::path::PathBuf {
     std::env::temp_dir().join(format!(

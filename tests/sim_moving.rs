@@ -3,8 +3,8 @@
 //! every step; k_M history and the Newton iteration at which elimination took over are
 //! recorded.
 
-use stickslip::driver::{load_scene, run, RunOptions, RunSummary};
-use stickslip::scene::BcShape;
+use stickslip::sim::driver::{load_scene, run, RunOptions, RunSummary};
+use stickslip::sim::scene::BcShape;
 
 fn run_scene(name: &str) -> RunSummary {
     let out = std::env::temp_dir().join(format!(
@@ -84,7 +84,7 @@ fn compress_ceiling_reaches_target_then_is_eliminated() {
 
 #[test]
 fn augmented_lagrangian_variant_reaches_targets_too() {
-    let text = stickslip::scene::builtin("twist")
+    let text = stickslip::sim::scene::builtin("twist")
         .expect("builtin")
         .replace(
             "tolerance = 1e-3",

@@ -3,7 +3,7 @@
 //! counts and that every number is finite). Also: input errors name their key.
 
 use std::path::Path;
-use stickslip::driver::{run, RunError, RunOptions};
+use stickslip::sim::driver::{run, RunError, RunOptions};
 
 /// Parses a legacy ASCII unstructured grid; returns (points, cells, point-data vectors).
 fn parse_vtk(path: &Path) -> (usize, usize, Vec<String>) {
@@ -116,7 +116,7 @@ fn default_scene_runs_and_writes_frames_that_parse() {
 fn bad_scene_files_are_input_errors_naming_the_key() {
     let dir = std::env::temp_dir().join(format!("stickslip-sim-bad-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("tmp");
-    let base = stickslip::scene::builtin("compress").expect("builtin");
+    let base = stickslip::sim::scene::builtin("compress").expect("builtin");
     let cases = [
         (
             base.replace("poisson = 0.4", "poisson = 0.6"),

@@ -3,7 +3,7 @@
 //! agree to 1e-6 · L (L the characteristic length). Newton stops at ‖Δx‖∞/h < 1e-6·L/s and
 //! CG at relative residual 1e-10, so the solvers' Newton iterates differ by far less.
 
-use stickslip::driver::{run, RunError, RunOptions, RunSummary};
+use stickslip::sim::driver::{run, RunError, RunOptions, RunSummary};
 
 fn run_with(name: &str, solver: &str, steps: usize) -> Result<RunSummary, RunError> {
     let out = std::env::temp_dir().join(format!(

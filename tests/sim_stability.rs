@@ -6,7 +6,7 @@
 //! `RunError::Solve` whose text names the step and the cause. A panic, a NaN in the final
 //! state or a silent early stop is a failure of this test.
 
-use stickslip::driver::{run, RunError, RunOptions, RunSummary};
+use stickslip::sim::driver::{run, RunError, RunOptions, RunSummary};
 
 /// Writes a modified copy of a built-in scene and runs it with the given solver.
 fn run_modified(
@@ -16,7 +16,7 @@ fn run_modified(
     solver: &str,
     steps: usize,
 ) -> Result<RunSummary, RunError> {
-    let mut text = stickslip::scene::builtin(name)
+    let mut text = stickslip::sim::scene::builtin(name)
         .unwrap_or_else(|| panic!("no built-in scene {name}"))
         .to_string();
     for (from, to) in edits {

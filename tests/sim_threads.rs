@@ -4,7 +4,7 @@
 //! chunks of elements: a twisted 3D bar (moving conditions, neo-Hookean tetrahedra) and a
 //! 2D one (the default scene, triangles), both with the CPU CG.
 
-use stickslip::driver::{run, RunOptions};
+use stickslip::sim::driver::{run, RunOptions};
 
 /// steps.csv without its linear_seconds column, plus the final state's bits.
 fn run_on(threads: usize, scene: &str, size: f64, steps: usize) -> (Vec<String>, Vec<u64>) {

@@ -1,4 +1,4 @@
-//! Numerical stability over the hard-case suite (src/hard.rs, STABILITY.md).
+//! Numerical stability over the hard-case suite (src/app/hard.rs, STABILITY.md).
 //!
 //! # What a solver promises
 //!
@@ -23,12 +23,12 @@
 //! must really be ≤ τ).
 
 use std::sync::LazyLock;
-use stickslip::cg::{self, CgError, CgParams, Preconditioner, Scaling};
-use stickslip::coarse::CoarseSpace;
-use stickslip::elimination::Eliminated;
+use stickslip::app::hard::{self, HardCase, Size};
+use stickslip::core::elimination::Eliminated;
 use stickslip::error::SolveError;
 use stickslip::gpu::{GpuContext, GpuParams, GpuSolver, Precision, SolveOutcome};
-use stickslip::hard::{self, HardCase, Size};
+use stickslip::solve::cg::{self, CgError, CgParams, Preconditioner, Scaling};
+use stickslip::solve::coarse::CoarseSpace;
 
 /// The constant c of the rounding term in the promise (see the module docs).
 const C_ROUNDING: f64 = 64.0;
@@ -111,8 +111,11 @@ fn references_and_oracle_keep_backward_stability() {
     for p in SUITE.iter() {
         let e = p.case.eliminated();
         for (who, r) in [
-            ("oracle", stickslip::oracle::solve(&e)),
-            ("oracle+scaling", stickslip::oracle::solve_equilibrated(&e)),
+            ("oracle", stickslip::solve::oracle::solve(&e)),
+            (
+                "oracle+scaling",
+                stickslip::solve::oracle::solve_equilibrated(&e),
+            ),
         ] {
             let (y, info) = r.unwrap_or_else(|err| panic!("{} {who}: {err}", p.case.name));
             let err = hard::relative_error(&y, &p.y_ref);
@@ -395,9 +398,9 @@ fn cholesky_names_the_indefinite_node() {
             &h,
             &p.case.g,
             &p.case.frames,
-            stickslip::elimination::ConstrainedDiagonal::Identity,
+            stickslip::core::elimination::ConstrainedDiagonal::Identity,
         );
-        match stickslip::oracle::solve(&e) {
+        match stickslip::solve::oracle::solve(&e) {
             Err(SolveError::NotPositiveDefinite { node: got, .. }) => {
                 assert_eq!(
                     got, node,
@@ -434,8 +437,8 @@ fn eig_range(n: usize, m: &[f64]) -> (f64, f64) {
 /// M + h²K with such elements is SPD, so the simulation never hands CG an indefinite H.
 #[test]
 fn projected_element_hessians_are_psd_on_inverted_and_degenerate_elements() {
-    use stickslip::energy::{ElementSet, Model, NeoHookean};
-    use stickslip::mesh::{ElementKind, Mesh};
+    use stickslip::sim::energy::{ElementSet, Model, NeoHookean};
+    use stickslip::sim::mesh::{ElementKind, Mesh};
     let tet = Mesh {
         dim: 3,
         x: vec![0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
@@ -492,7 +495,7 @@ fn projected_element_hessians_are_psd_on_inverted_and_degenerate_elements() {
         }
     }
     // Assembled: a tet box with several inverted and flattened elements, H = M + h²K.
-    let m = stickslip::mesh::cuboid([1.0, 0.25, 0.25], [4, 1, 1]);
+    let m = stickslip::sim::mesh::cuboid([1.0, 0.25, 0.25], [4, 1, 1]);
     let nh = NeoHookean::new(&m, 1e9, 0.499).expect("valid rest shape");
     let mass = m.lumped_masses(1000.0);
     let model = Model::new(3, mass, None, vec![ElementSet::NeoHookean(nh)]);

@@ -2,11 +2,11 @@
 //! out by hand in the comments. Two nodes in 2D starting at the origin, so the
 //! constraints on positions become constraints on Δx.
 
-use stickslip::cg::{self, CgParams};
-use stickslip::constraints::{Constraint, ConstraintKind, Frames};
-use stickslip::elimination::{reactions, ConstrainedDiagonal, Eliminated};
-use stickslip::oracle;
-use stickslip::sparse::BlockCsr;
+use stickslip::core::constraints::{Constraint, ConstraintKind, Frames};
+use stickslip::core::elimination::{reactions, ConstrainedDiagonal, Eliminated};
+use stickslip::core::sparse::BlockCsr;
+use stickslip::solve::cg::{self, CgParams};
+use stickslip::solve::oracle;
 
 fn h_from_dense(d: &[[f64; 4]; 4]) -> BlockCsr {
     let mut t = Vec::new();

@@ -9,10 +9,10 @@ use pyo3::prelude::*;
 use serde_json::{json, Value};
 use std::sync::Mutex;
 use std::time::Instant;
-use stickslip::constraints::node_rows;
+use stickslip::core::constraints::node_rows;
 use stickslip::gpu::{GpuContext, GpuOptions};
 use stickslip::io::{bcjson, mtx, one_line};
-use stickslip::sparse::BlockCsr;
+use stickslip::core::sparse::BlockCsr;
 use stickslip::{
     CoarseSpace, ConstrainedDiagonal, Constraint, Error, InputError, Precision, Preconditioner,
     Problem, SolveDetails, Solver, SolverConfig, SolverKind,

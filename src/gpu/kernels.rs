@@ -13,7 +13,7 @@
 //! checks the WGSL declarations against it.
 
 /// Shared declarations, prepended to every kernel by [`prelude`].
-pub const COMMON: &str = include_str!("../../shaders/common.wgsl");
+pub const COMMON: &str = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/common.wgsl"));
 
 /// Slots of the CG's scalar array `scal` (acc), its state array `state` (u32) and its
 /// partial sums (`partials[slot · G + workgroup]`), for the driver (src/gpu/solver/run.rs)
@@ -86,8 +86,8 @@ pub const SHARED: &[(&str, u32)] = &[
     ("PART_ZR", slots::PART_ZR),
     ("MASK_SHIFT", MASK_SHIFT),
     ("COL_BITS", (1 << MASK_SHIFT) - 1),
-    ("NO_ROTATION", crate::constraints::NO_ROTATION),
-    ("NO_AGGREGATE", crate::coarse::NO_AGGREGATE),
+    ("NO_ROTATION", crate::core::constraints::NO_ROTATION),
+    ("NO_AGGREGATE", crate::solve::coarse::NO_AGGREGATE),
     ("WG_MAX", WG_MAX),
 ];
 
@@ -190,7 +190,7 @@ pub fn pipeline(
 
 pub const MATVEC: Layout = Layout {
     file: "matvec.wgsl",
-    source: include_str!("../../shaders/matvec.wgsl"),
+    source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/matvec.wgsl")),
     bindings: &[
         ("params", U),
         ("row_ptr", R),
@@ -212,7 +212,7 @@ pub const MATVEC: Layout = Layout {
 
 pub const SPRINGS: Layout = Layout {
     file: "springs.wgsl",
-    source: include_str!("../../shaders/springs.wgsl"),
+    source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/springs.wgsl")),
     bindings: &[
         ("params", U),
         ("adj_ptr", R),
@@ -233,7 +233,10 @@ pub const SPRINGS: Layout = Layout {
 
 pub const ROTATE_BLOCKS: Layout = Layout {
     file: "rotate_blocks.wgsl",
-    source: include_str!("../../shaders/rotate_blocks.wgsl"),
+    source: include_str!(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/shaders/rotate_blocks.wgsl"
+    )),
     bindings: &[
         ("params", U),
         ("rot_index", R),
@@ -250,7 +253,7 @@ pub const ROTATE_BLOCKS: Layout = Layout {
 
 pub const PRECOND: Layout = Layout {
     file: "precond.wgsl",
-    source: include_str!("../../shaders/precond.wgsl"),
+    source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/precond.wgsl")),
     bindings: &[
         ("params", U),
         ("row_ptr", R),
@@ -267,7 +270,7 @@ pub const PRECOND: Layout = Layout {
 
 pub const CG: Layout = Layout {
     file: "cg.wgsl",
-    source: include_str!("../../shaders/cg.wgsl"),
+    source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/cg.wgsl")),
     bindings: &[
         ("params", U),
         ("x", W),
@@ -291,7 +294,7 @@ pub const CG: Layout = Layout {
 
 pub const COARSE: Layout = Layout {
     file: "coarse.wgsl",
-    source: include_str!("../../shaders/coarse.wgsl"),
+    source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/coarse.wgsl")),
     bindings: &[
         ("params", U),
         ("r", R),
@@ -308,7 +311,7 @@ pub const COARSE: Layout = Layout {
 
 pub const REFINE: Layout = Layout {
     file: "refine.wgsl",
-    source: include_str!("../../shaders/refine.wgsl"),
+    source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/refine.wgsl")),
     bindings: &[
         ("params", U),
         ("b64", R),

@@ -6,7 +6,7 @@
 //! every fault names its JSON path, e.g. `constraints[3].normal[1]`.
 
 use super::mtx;
-use crate::constraints::{node_rows, Constraint, ConstraintKind};
+use crate::core::constraints::{node_rows, Constraint, ConstraintKind};
 use crate::error::InputError;
 use serde_json::{Map, Value};
 use std::fmt::Write as _;

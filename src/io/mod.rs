@@ -16,13 +16,11 @@ pub mod files;
 pub mod mtx;
 
 use crate::error::InputError;
+pub use crate::error::{cut_tokens, one_line, BOM, MAX_TOKEN_CHARS};
 use std::io::Read;
 
 /// Largest input file read, whatever the machine (16 GiB). See [`input_limit`].
 pub const MAX_INPUT_BYTES: u64 = 16 << 30;
-
-/// The byte-order mark some editors put at the start of a UTF-8 file.
-pub const BOM: char = '\u{feff}';
 
 /// Chunk size of [`read_limited`] for streams: how far a device is read before a check.
 const CHUNK: u64 = 1 << 20;
@@ -58,39 +56,6 @@ pub fn human_bytes(b: u64) -> String {
     }
 }
 
-/// A message from another library (or text from a file) made fit for our one-line
-/// errors: control characters (tabs, newlines, escapes) become spaces, runs of spaces
-/// collapse, and the result is cut at `max_chars` characters with `…`.
-pub fn one_line(msg: &str, max_chars: usize) -> String {
-    let mut out = String::with_capacity(msg.len().min(max_chars * 4 + 4));
-    let mut chars = 0usize;
-    let mut space = false;
-    for ch in msg.trim().chars() {
-        let ch = if ch.is_control() || ch.is_whitespace() || ch == BOM {
-            ' '
-        } else {
-            ch
-        };
-        if ch == ' ' {
-            if space {
-                continue;
-            }
-            space = true;
-        } else {
-            space = false;
-        }
-        if chars == max_chars {
-            out.truncate(out.trim_end().len());
-            out.push('…');
-            return out;
-        }
-        out.push(ch);
-        chars += 1;
-    }
-    out.truncate(out.trim_end().len());
-    out
-}
-
 thread_local! {
     /// Set while [`contain_panic`] runs a third-party parser on this thread.
     static CONTAINED: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
@@ -109,48 +74,6 @@ pub fn contain_panic<T>(f: impl FnOnce() -> T) -> Option<T> {
 /// True inside [`contain_panic`] on this thread.
 pub fn panic_is_contained() -> bool {
     CONTAINED.with(|c| c.get())
-}
-
-/// Longest run of non-space characters an error line echoes whole (a number, a key,
-/// a token from a file); longer runs are cut there with `…`.
-pub const MAX_TOKEN_CHARS: usize = 80;
-
-/// A path is kept whole up to this many characters (the longest path Linux resolves).
-const MAX_PATH_CHARS: usize = 4096;
-
-/// `msg` with every run of non-whitespace characters longer than [`MAX_TOKEN_CHARS`] cut
-/// to that many with `…` (a path, a token holding `/`, is kept up to 4096 characters), so
-/// an error line stays readable whatever a file holds.
-pub fn cut_tokens(msg: &str) -> std::borrow::Cow<'_, str> {
-    let long = |t: &str| {
-        let limit = if t.contains('/') {
-            MAX_PATH_CHARS
-        } else {
-            MAX_TOKEN_CHARS
-        };
-        t.chars().nth(limit).is_some().then_some(limit)
-    };
-    if !msg.split_whitespace().any(|t| long(t).is_some()) {
-        return std::borrow::Cow::Borrowed(msg);
-    }
-    let mut out = String::with_capacity(msg.len().min(4096));
-    let mut rest = msg;
-    while !rest.is_empty() {
-        let ws = rest.len() - rest.trim_start().len();
-        out.push_str(&rest[..ws]);
-        rest = &rest[ws..];
-        let end = rest.find(char::is_whitespace).unwrap_or(rest.len());
-        let tok = &rest[..end];
-        match long(tok) {
-            Some(limit) => {
-                out.extend(tok.chars().take(limit));
-                out.push('…');
-            }
-            None => out.push_str(tok),
-        }
-        rest = &rest[end..];
-    }
-    std::borrow::Cow::Owned(out)
 }
 
 /// Text from a file quoted in a message: one line of at most `max_chars` characters

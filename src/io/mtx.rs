@@ -21,8 +21,8 @@
 //! for finiteness where they are formed (vectors here, H in `BlockCsr::validate`, B in
 //! `bcjson::constraints_from_matrix`).
 
+use crate::core::sparse::BlockCsr;
 use crate::error::InputError;
-use crate::sparse::BlockCsr;
 use std::fmt::Write as _;
 use std::io::Write as _;
 
@@ -889,7 +889,8 @@ mod tests {
 
     #[test]
     fn written_files_read_back_exactly() {
-        let s = crate::generate::random_system(&crate::generate::SystemSpec::small(3, 5));
+        let s =
+            crate::cases::generate::random_system(&crate::cases::generate::SystemSpec::small(3, 5));
         let dir = std::env::temp_dir().join(format!("stickslip-mtx-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let hp = dir.join("H.mtx");

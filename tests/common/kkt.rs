@@ -3,7 +3,7 @@
 //! redundant; Δx and Bᵀλ are still unique), the reference the elimination is checked with.
 
 use nalgebra::{DMatrix, DVector};
-use stickslip::constraints::{node_rows, Constraint};
+use stickslip::core::constraints::{node_rows, Constraint};
 
 /// The global B (rows as given, not normalized) and p.
 pub fn global_b(dim: usize, n: usize, cs: &[Constraint]) -> (DMatrix<f64>, DVector<f64>) {

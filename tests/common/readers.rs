@@ -60,8 +60,8 @@ pub fn matrix_market(bytes: &[u8]) {
 
 /// Per-node frames of parsed constraints (the rank and consistency checks): Ok or an
 /// error naming the constraint.
-fn frames(dim: usize, n: usize, cs: &[stickslip::constraints::Constraint]) {
-    if let Err(e) = stickslip::constraints::Frames::build(dim, n, cs) {
+fn frames(dim: usize, n: usize, cs: &[stickslip::core::constraints::Constraint]) {
+    if let Err(e) = stickslip::core::constraints::Frames::build(dim, n, cs) {
         let line = e.to_string();
         assert!(!line.contains('\n'), "{line:?}");
     }
@@ -94,13 +94,13 @@ pub fn scene_toml(bytes: &[u8]) {
     if big || t.len() > 16_384 {
         return;
     }
-    one_line(stickslip::scene::parse(t, "scene.toml", 1.0));
+    one_line(stickslip::sim::scene::parse(t, "scene.toml", 1.0));
 }
 
 /// A Gmsh MSH 4.1 file (ASCII or binary) read as a 2D and as a 3D mesh.
 pub fn gmsh(bytes: &[u8]) {
     for dim in [2, 3] {
-        if let Ok(m) = stickslip::mesh::gmsh(dim, bytes) {
+        if let Ok(m) = stickslip::sim::mesh::gmsh(dim, bytes) {
             // What was read is a usable mesh: every element's nodes exist.
             let n = m.n_nodes();
             assert!(m.elements.iter().flatten().all(|&i| i < n));

@@ -11,10 +11,10 @@ use super::levels::{
     blocks_fit, build_level, build_operator, build_refine, Consts, Level, Refine, Timestamps,
 };
 use super::plan;
-use crate::cg::Preconditioner;
-use crate::coarse::{Aggregation, CoarseSpace};
 use crate::gpu::kernels::{MASK_SHIFT, WG_MAX};
 use crate::gpu::{DifferenceForm, GpuContext, GpuError, GpuParams, Precision, MAX_WORKGROUPS};
+use crate::solve::cg::Preconditioner;
+use crate::solve::coarse::{Aggregation, CoarseSpace};
 
 /// A packed column index holds the column node's mask above bit MASK_SHIFT.
 const MAX_NODES: usize = 1 << MASK_SHIFT;
@@ -352,7 +352,7 @@ fn wants_difference_form(host: &Host, choice: DifferenceForm, acc: Real) -> bool
         DifferenceForm::Off => false,
         DifferenceForm::On => true,
         DifferenceForm::Auto if acc == Real::F64 => true,
-        DifferenceForm::Auto => crate::coarse::softest_translation(h, &host.frames)
+        DifferenceForm::Auto => crate::solve::coarse::softest_translation(h, &host.frames)
             .is_some_and(|lz| f64::from(f32::EPSILON) * host.diag_max() > DIFF_AUTO_THRESHOLD * lz),
     }
 }

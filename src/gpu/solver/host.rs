@@ -2,10 +2,10 @@
 //! diagonal entry and the recovery Δx = Δx_p + V P y, plus the mass-spring helpers that derive the
 //! right-hand side, diagonal blocks, adjacency and spring data from a `MassSpring`.
 
-use crate::constraints::Frames;
-use crate::elimination::{apply_eliminated, relative_residual_from, rotate_block};
-use crate::sparse::BlockCsr;
-use crate::springs::MassSpring;
+use crate::cases::springs::MassSpring;
+use crate::core::constraints::Frames;
+use crate::core::elimination::{apply_eliminated, relative_residual_from, rotate_block};
+use crate::core::sparse::BlockCsr;
 
 /// The host copy of the system, for the true f64 residual and the recovery.
 pub(super) enum HostOp {
@@ -136,7 +136,7 @@ impl Host {
 
 /// b̂ = −P Vᵀ(g + H Δx_p) for the matrix-free system.
 pub(super) fn spring_rhs(ms: &MassSpring, g: &[f64], frames: &Frames) -> Vec<f64> {
-    crate::elimination::eliminated_rhs(g, frames, |x, y| ms.apply(x, y))
+    crate::core::elimination::eliminated_rhs(g, frames, |x, y| ms.apply(x, y))
 }
 
 /// Diagonal blocks V_iᵀ H_ii V_i of the spring Hessian, computed on the host (O(springs)).

@@ -8,8 +8,8 @@ use super::levels::OpData;
 use super::levels::N_STATE;
 use super::run::Which;
 use super::GpuSolver;
-use crate::cg::Preconditioner;
 use crate::gpu::GpuError;
+use crate::solve::cg::Preconditioner;
 
 impl GpuSolver {
     // ---- Kernel-level access for tests (each kernel against its CPU reference). ----

@@ -7,9 +7,9 @@ use super::builder::{
     piece, plane_buffers, plane_widths, Builder, Chunk, Chunked, Kernel, Real, Shared, STORAGE,
 };
 use super::host::{Host, HostOp};
-use crate::cg::Preconditioner;
 use crate::gpu::kernels::{self, slots};
 use crate::gpu::{GpuContext, GpuError, MAX_WORKGROUPS};
+use crate::solve::cg::Preconditioner;
 
 /// Length of the CG's scalars before the coefficient history (see cg.wgsl).
 pub(super) const N_SCAL: usize = slots::SCAL_HIST as usize;

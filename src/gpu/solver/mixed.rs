@@ -9,10 +9,10 @@ use super::plan::{self, DOES_NOT_FIT};
 use super::policy::{inner_scale, resume_scales, MixedPolicy, Stop};
 use super::run::Outcome;
 use super::{GpuSolver, Solved};
-use crate::cg::CgError;
-use crate::elimination::{norm2, Eliminated};
+use crate::core::elimination::{norm2, Eliminated};
+use crate::core::sparse::BlockCsr;
 use crate::gpu::GpuError;
-use crate::sparse::BlockCsr;
+use crate::solve::cg::CgError;
 use std::time::Instant;
 
 /// Mixed precision's state across and within solves.
@@ -218,7 +218,7 @@ impl GpuSolver {
         let place = if on_gpu {
             "f64 CG on the GPU"
         } else {
-            "f64 CG on the CPU (src/cg.rs)"
+            "f64 CG on the CPU (src/solve/cg.rs)"
         };
         let msg = format!("{reason}; finished by {place}, warm-started from the f64 iterate");
         notes.push(format!("mixed fell back to f64: {msg}"));
@@ -640,9 +640,12 @@ impl GpuSolver {
             diag: self.host.diag.clone(),
         };
         let pc = self.params.preconditioner;
-        let pre =
-            crate::cg::BuiltPreconditioner::new(&e, pc).with_coarse(&e, self.params.coarse, None);
-        let cp = crate::cg::CgParams {
+        let pre = crate::solve::cg::BuiltPreconditioner::new(&e, pc).with_coarse(
+            &e,
+            self.params.coarse,
+            None,
+        );
+        let cp = crate::solve::cg::CgParams {
             tol: self.params.tol,
             max_iters: self.params.max_iters.saturating_sub(done),
             preconditioner: pc,
@@ -652,37 +655,38 @@ impl GpuSolver {
             ..Default::default()
         };
         let warm = y0.iter().all(|v| v.is_finite()).then_some(&y0[..]);
-        let (y, info) = crate::cg::solve_with(&e, &pre, warm, &cp).map_err(|err| match err {
-            CgError::NonPositiveCurvature {
-                iteration,
-                curvature,
-            } => CgError::NonPositiveCurvature {
-                iteration: iteration + done,
-                curvature,
-            },
-            CgError::Stagnation {
-                iterations,
-                relative_residual,
-                tol,
-            } => CgError::Stagnation {
-                iterations: iterations + done,
-                relative_residual,
-                tol,
-            },
-            CgError::MaxIterations {
-                iterations,
-                relative_residual,
-                tol,
-            } => CgError::MaxIterations {
-                iterations: iterations + done,
-                relative_residual,
-                tol,
-            },
-            CgError::Breakdown { iteration } => CgError::Breakdown {
-                iteration: iteration + done,
-            },
-            u @ CgError::Unpinned(_) => u,
-        })?;
+        let (y, info) =
+            crate::solve::cg::solve_with(&e, &pre, warm, &cp).map_err(|err| match err {
+                CgError::NonPositiveCurvature {
+                    iteration,
+                    curvature,
+                } => CgError::NonPositiveCurvature {
+                    iteration: iteration + done,
+                    curvature,
+                },
+                CgError::Stagnation {
+                    iterations,
+                    relative_residual,
+                    tol,
+                } => CgError::Stagnation {
+                    iterations: iterations + done,
+                    relative_residual,
+                    tol,
+                },
+                CgError::MaxIterations {
+                    iterations,
+                    relative_residual,
+                    tol,
+                } => CgError::MaxIterations {
+                    iterations: iterations + done,
+                    relative_residual,
+                    tol,
+                },
+                CgError::Breakdown { iteration } => CgError::Breakdown {
+                    iteration: iteration + done,
+                },
+                u @ CgError::Unpinned(_) => u,
+            })?;
         self.ctx.write_buffer(&y64, 0, &Real::F64.bytes(&y));
         let td = Instant::now();
         let (_, dx) = self.download_solution()?;

@@ -37,11 +37,11 @@ pub use info::{
 };
 
 use super::{GpuContext, GpuError, GpuParams, Precision};
-use crate::cg::CgError;
-use crate::coarse::Aggregation;
-use crate::constraints::Frames;
-use crate::elimination::{norm2, Eliminated};
-use crate::springs::MassSpring;
+use crate::cases::springs::MassSpring;
+use crate::core::constraints::Frames;
+use crate::core::elimination::{norm2, Eliminated};
+use crate::solve::cg::CgError;
+use crate::solve::coarse::Aggregation;
 use builder::Real;
 use device::{Built, Device};
 use host::{spring_rhs, Host, HostOp};
@@ -94,7 +94,7 @@ pub struct GpuSolver {
 impl GpuSolver {
     /// Builds the solver for an assembled eliminated system.
     pub fn new(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<Self, GpuError> {
-        crate::cg::check_pinned(e)?;
+        crate::solve::cg::check_pinned(e)?;
         let host = Host::new(
             HostOp::Blocks(e.h.clone()),
             e.frames.clone(),

@@ -7,10 +7,10 @@ use super::builder::{plan_chunks, plane_widths, Builder, Real};
 use super::device::binding_limit;
 use super::host::{Host, HostOp};
 use super::levels::{block_elem, row_elem, Consts, LANCZOS_HIST, N_SCAL, N_STATE};
-use crate::cg::Preconditioner;
-use crate::coarse::Aggregation;
 use crate::gpu::kernels::slots;
 use crate::gpu::{GpuContext, GpuError, GpuParams, Precision, MAX_WORKGROUPS};
+use crate::solve::cg::Preconditioner;
+use crate::solve::coarse::Aggregation;
 
 /// Marks the refusal of a system too large for the device (the command line exits 2 on
 /// it: the input, not the device, is what must change).
@@ -168,7 +168,7 @@ pub(super) fn device_bytes(
         let members = a
             .of_node
             .iter()
-            .filter(|&&g| g != crate::coarse::NO_AGGREGATE)
+            .filter(|&&g| g != crate::solve::coarse::NO_AGGREGATE)
             .count() as u64;
         t += init(n * 4) + init((a.count as u64 + 1) * 4) + init(members * 4);
     }

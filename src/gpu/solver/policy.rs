@@ -207,7 +207,7 @@ mod tests {
             .iter()
             .map(|&k| {
                 let (a, b) = cg_coefficients(&lam, k);
-                let kappa = crate::cg::lanczos_condition(&a, &b);
+                let kappa = crate::solve::cg::lanczos_condition(&a, &b);
                 let est = kappa.expect("an estimate");
                 assert!(est <= 1e8 * (1.0 + 1e-6), "never above κ: {est:e}");
                 policy().kappa_verdict(1, kappa)
@@ -222,7 +222,7 @@ mod tests {
         let lam: Vec<f64> = (0..24).map(|k| 1e4f64.powf(k as f64 / 23.0)).collect();
         let (a, b) = cg_coefficients(&lam, 24);
         assert_eq!(
-            policy().kappa_verdict(1, crate::cg::lanczos_condition(&a, &b)),
+            policy().kappa_verdict(1, crate::solve::cg::lanczos_condition(&a, &b)),
             None
         );
     }

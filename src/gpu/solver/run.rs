@@ -4,9 +4,9 @@
 use super::levels::{LANCZOS_HIST, N_SCAL, N_STATE, SCAL_LEN};
 use super::policy::MixedPolicy;
 use super::GpuSolver;
-use crate::cg::CgError;
 use crate::gpu::kernels::slots;
 use crate::gpu::GpuError;
+use crate::solve::cg::CgError;
 
 /// The CG driver's state between status reads and runs.
 pub(super) struct RunState {
@@ -294,7 +294,9 @@ impl GpuSolver {
 
     /// Ends the current coefficient sequence, keeping the largest estimate so far.
     pub(super) fn lanczos_close(&mut self) {
-        if let Some(k) = crate::cg::lanczos_condition(&self.run.lz_alphas, &self.run.lz_betas) {
+        if let Some(k) =
+            crate::solve::cg::lanczos_condition(&self.run.lz_alphas, &self.run.lz_betas)
+        {
             self.run.kappa_est = Some(self.run.kappa_est.map_or(k, |c: f64| c.max(k)));
         }
         self.run.lz_alphas.clear();
@@ -309,26 +311,27 @@ impl GpuSolver {
         let h = &self.run.last_scal[N_SCAL..];
         let run_a = (0..n).map(|j| h[2 * j]);
         let run_b = (0..n.saturating_sub(1)).map(|j| h[2 * j + 1]);
-        let (a, b, earlier): (Vec<f64>, Vec<f64>, Option<f64>) =
-            if self.run.lz_resumed && !self.run.lz_alphas.is_empty() {
-                let a = self.run.lz_alphas.iter().copied().chain(run_a).collect();
-                let b = self
-                    .run
-                    .lz_betas
-                    .iter()
-                    .copied()
-                    .chain(std::iter::once(
-                        self.run.last_scal[slots::SCAL_BETA0 as usize],
-                    ))
-                    .chain(run_b)
-                    .collect();
-                (a, b, None)
-            } else {
-                let open = crate::cg::lanczos_condition(&self.run.lz_alphas, &self.run.lz_betas);
-                (run_a.collect(), run_b.collect(), open)
-            };
+        let (a, b, earlier): (Vec<f64>, Vec<f64>, Option<f64>) = if self.run.lz_resumed
+            && !self.run.lz_alphas.is_empty()
+        {
+            let a = self.run.lz_alphas.iter().copied().chain(run_a).collect();
+            let b = self
+                .run
+                .lz_betas
+                .iter()
+                .copied()
+                .chain(std::iter::once(
+                    self.run.last_scal[slots::SCAL_BETA0 as usize],
+                ))
+                .chain(run_b)
+                .collect();
+            (a, b, None)
+        } else {
+            let open = crate::solve::cg::lanczos_condition(&self.run.lz_alphas, &self.run.lz_betas);
+            (run_a.collect(), run_b.collect(), open)
+        };
         [
-            crate::cg::lanczos_condition(&a, &b),
+            crate::solve::cg::lanczos_condition(&a, &b),
             earlier,
             self.run.kappa_est,
         ]
@@ -339,7 +342,7 @@ impl GpuSolver {
 
     /// κ̃(M⁻¹Ĥ) of the current sequence and the earlier ones.
     pub(super) fn kappa_now(&self) -> Option<f64> {
-        let cur = crate::cg::lanczos_condition(&self.run.lz_alphas, &self.run.lz_betas);
+        let cur = crate::solve::cg::lanczos_condition(&self.run.lz_alphas, &self.run.lz_betas);
         match (cur, self.run.kappa_est) {
             (Some(a), Some(b)) => Some(a.max(b)),
             (a, b) => a.or(b),

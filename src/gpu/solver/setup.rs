@@ -6,8 +6,8 @@ use super::builder::{to_planes, Real};
 use super::host::{row_sums, spring_data, spring_diag_blocks, HostOp};
 use super::levels::{Level, OpData, Operator};
 use super::GpuSolver;
-use crate::coarse::{aggregates_einv_from_blocks, translations_einv_from_blocks, Coarse};
 use crate::gpu::GpuError;
+use crate::solve::coarse::{aggregates_einv_from_blocks, translations_einv_from_blocks, Coarse};
 
 impl GpuSolver {
     /// Writes Ĥ's values into `op`, multiplied by `scale` (a power of two: exact) except

@@ -1,0 +1,572 @@
+//! [`Solver`]: one entry point to the three solvers of the eliminated system (sparse
+//! Cholesky, CPU CG, GPU CG), configured by [`SolverConfig`], returning a [`Solution`].
+#![deny(missing_docs)]
+
+use crate::core::elimination::{reactions, ConstrainedDiagonal, Eliminated};
+use crate::core::problem::Problem;
+use crate::error::{Error, InputError, SolveError};
+use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolveInfo, GpuSolver, Precision};
+use crate::solve::cg::{CgInfo, CgParams, Preconditioner};
+use crate::solve::coarse::CoarseSpace;
+pub use crate::solve::options::SolverKind;
+use crate::solve::oracle::{CholeskyOracle, OracleInfo};
+use crate::solve::ordering::CholeskyOrdering;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
+
+/// How a [`Solver`] solves. Build it with [`SolverConfig::cholesky`],
+/// [`SolverConfig::cg`] or [`SolverConfig::gpu`] and adjust it with the builder methods.
+///
+/// | field | default | used by | meaning |
+/// |---|---|---|---|
+/// | `kind` | (constructor) | all | which solver |
+/// | `precision` | f64; the argument of `gpu(..)` | gpu | arithmetic of the GPU CG: f32, f64 (needs SHADER_F64) or mixed (f32 CG with f64 reliable updates; needs SHADER_F64) |
+/// | `tol` | 1e-8 | cg, gpu | stop at ‖b̂ − Ĥy‖/‖b̂‖ ≤ tol, the true residual recomputed in f64; in (0, 1) |
+/// | `max_iters` | 10 000 | cg, gpu | CG iteration limit (all restarts together); ≥ 1 |
+/// | `preconditioner` | Jacobi | cg, gpu | Jacobi, block-Jacobi (d×d node blocks) or none |
+/// | `coarse` | aggregates | cg, gpu | coarse correction added to the preconditioner (docs/coarse.md) |
+/// | `error_tol` | none | gpu mixed | after `tol`, refine until the estimated relative error ≤ this |
+/// | `constrained_diagonal` | identity | all | D on constrained components: identity or diag(VᵀHV) |
+/// | `ordering` | auto | cholesky | fill-reducing ordering: auto, amd or nested-dissection ([`CholeskyOrdering`]) |
+/// | `cg_params` | none | cg | every CPU CG parameter ([`CgParams`]), replacing the fields above |
+/// | `gpu_params` | none | gpu | every GPU parameter ([`GpuParams`]), replacing the fields above |
+/// | `gpu_context` | none | gpu | a device to share (tests, several solvers); none: the default adapter (`WGPU_ADAPTER_NAME`, `WGPU_BACKEND` choose) |
+#[derive(Clone)]
+pub struct SolverConfig {
+    /// Which solver runs.
+    pub kind: SolverKind,
+    /// Arithmetic of the GPU CG (the CPU solvers compute in f64).
+    pub precision: Precision,
+    /// Relative residual tolerance of the iterative solvers.
+    pub tol: f64,
+    /// Iteration limit of the iterative solvers.
+    pub max_iters: usize,
+    /// Point-wise preconditioner of the iterative solvers.
+    pub preconditioner: Preconditioner,
+    /// Coarse correction of the iterative solvers.
+    pub coarse: CoarseSpace,
+    /// Mixed precision only: target of the estimated relative error.
+    pub error_tol: Option<f64>,
+    /// D on constrained components of Ĥ.
+    pub constrained_diagonal: ConstrainedDiagonal,
+    /// Fill-reducing ordering of the Cholesky analysis.
+    pub ordering: CholeskyOrdering,
+    /// Every CPU CG parameter, replacing the common fields above when set.
+    pub cg_params: Option<CgParams>,
+    /// Every GPU parameter, replacing the common fields above when set.
+    pub gpu_params: Option<GpuParams>,
+    /// The GPU device to use; none: the default adapter.
+    pub gpu_context: Option<GpuContext>,
+}
+
+impl std::fmt::Debug for SolverConfig {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SolverConfig")
+            .field("kind", &self.kind)
+            .field("precision", &self.precision)
+            .field("tol", &self.tol)
+            .field("max_iters", &self.max_iters)
+            .field("preconditioner", &self.preconditioner)
+            .field("coarse", &self.coarse)
+            .field("error_tol", &self.error_tol)
+            .field("constrained_diagonal", &self.constrained_diagonal)
+            .field("ordering", &self.ordering)
+            .field("cg_params", &self.cg_params)
+            .field("gpu_params", &self.gpu_params)
+            .field(
+                "gpu_context",
+                &self
+                    .gpu_context
+                    .as_ref()
+                    .map(|c| c.adapter_name().to_string()),
+            )
+            .finish()
+    }
+}
+
+/// Default relative residual tolerance of the iterative solvers.
+pub const DEFAULT_TOL: f64 = 1e-8;
+/// Default CG iteration limit.
+pub const DEFAULT_MAX_ITERS: usize = 10_000;
+
+impl SolverConfig {
+    fn with_kind(kind: SolverKind, precision: Precision) -> Self {
+        SolverConfig {
+            kind,
+            precision,
+            tol: DEFAULT_TOL,
+            max_iters: DEFAULT_MAX_ITERS,
+            preconditioner: Preconditioner::Jacobi,
+            coarse: CoarseSpace::default(),
+            error_tol: None,
+            constrained_diagonal: ConstrainedDiagonal::Identity,
+            ordering: CholeskyOrdering::Auto,
+            cg_params: None,
+            gpu_params: None,
+            gpu_context: None,
+        }
+    }
+
+    /// Sparse Cholesky of the assembled Ĥ (f64). The symbolic analysis is reused while the
+    /// pattern and the constraints stay.
+    pub fn cholesky() -> Self {
+        Self::with_kind(SolverKind::Cholesky, Precision::F64)
+    }
+
+    /// Preconditioned CG on the CPU (f64).
+    pub fn cg() -> Self {
+        Self::with_kind(SolverKind::Cg, Precision::F64)
+    }
+
+    /// Preconditioned CG on the GPU in the given precision.
+    pub fn gpu(precision: Precision) -> Self {
+        Self::with_kind(SolverKind::Gpu, precision)
+    }
+
+    /// Sets the relative residual tolerance.
+    pub fn tol(mut self, tol: f64) -> Self {
+        self.tol = tol;
+        self
+    }
+
+    /// Sets the iteration limit.
+    pub fn max_iters(mut self, n: usize) -> Self {
+        self.max_iters = n;
+        self
+    }
+
+    /// Sets the point-wise preconditioner.
+    pub fn preconditioner(mut self, p: Preconditioner) -> Self {
+        self.preconditioner = p;
+        self
+    }
+
+    /// Sets the coarse correction.
+    pub fn coarse(mut self, c: CoarseSpace) -> Self {
+        self.coarse = c;
+        self
+    }
+
+    /// Mixed precision: refine until the estimated relative error is ≤ `e`.
+    pub fn error_tol(mut self, e: f64) -> Self {
+        self.error_tol = Some(e);
+        self
+    }
+
+    /// Sets D on constrained components.
+    pub fn constrained_diagonal(mut self, d: ConstrainedDiagonal) -> Self {
+        self.constrained_diagonal = d;
+        self
+    }
+
+    /// Sets the Cholesky analysis' fill-reducing ordering.
+    pub fn ordering(mut self, o: CholeskyOrdering) -> Self {
+        self.ordering = o;
+        self
+    }
+
+    /// Every CPU CG parameter (replaces tol, max_iters, preconditioner and coarse).
+    pub fn cg_params(mut self, p: CgParams) -> Self {
+        self.cg_params = Some(p);
+        self
+    }
+
+    /// Every GPU parameter (replaces precision, tol, max_iters, preconditioner, coarse and
+    /// error_tol).
+    pub fn gpu_params(mut self, p: GpuParams) -> Self {
+        self.precision = p.precision;
+        self.gpu_params = Some(p);
+        self
+    }
+
+    /// Runs on this device instead of opening the default adapter.
+    pub fn gpu_context(mut self, ctx: GpuContext) -> Self {
+        self.gpu_context = Some(ctx);
+        self
+    }
+
+    /// The CPU CG parameters this configuration runs with.
+    pub fn resolved_cg_params(&self) -> CgParams {
+        self.cg_params.clone().unwrap_or(CgParams {
+            tol: self.tol,
+            max_iters: self.max_iters,
+            preconditioner: self.preconditioner,
+            coarse: self.coarse,
+            ..CgParams::default()
+        })
+    }
+
+    /// The GPU parameters this configuration runs with.
+    pub fn resolved_gpu_params(&self) -> GpuParams {
+        self.gpu_params.clone().unwrap_or(GpuParams {
+            precision: self.precision,
+            tol: self.tol,
+            max_iters: self.max_iters,
+            preconditioner: self.preconditioner,
+            coarse: self.coarse,
+            error_tol: self.error_tol,
+            ..GpuParams::default()
+        })
+    }
+
+    /// Checks the fields the chosen solver uses.
+    fn validate(&self) -> Result<(), Error> {
+        let bad = |entry: &str, problem: String| {
+            Err(InputError::new("solver config", entry, problem).into())
+        };
+        if self.kind != SolverKind::Gpu && self.precision != Precision::F64 {
+            return bad(
+                "precision",
+                format!(
+                    "{} needs the gpu solver (cholesky and cg compute in f64)",
+                    self.precision
+                ),
+            );
+        }
+        if self.kind == SolverKind::Cholesky {
+            return Ok(());
+        }
+        let (tol, max_iters, error_tol) = match self.kind {
+            SolverKind::Gpu => {
+                let p = self.resolved_gpu_params();
+                (p.tol, p.max_iters, p.error_tol)
+            }
+            _ => {
+                let p = self.resolved_cg_params();
+                (p.tol, p.max_iters, self.error_tol)
+            }
+        };
+        if !(tol > 0.0 && tol < 1.0) {
+            return bad("tol", format!("must lie in (0, 1), got {tol}"));
+        }
+        if max_iters == 0 {
+            return bad("max_iters", "must be at least 1".into());
+        }
+        if let Some(e) = error_tol {
+            if self.kind != SolverKind::Gpu || self.precision != Precision::Mixed {
+                return bad(
+                    "error_tol",
+                    "needs the gpu solver in mixed precision".into(),
+                );
+            }
+            if !(e > 0.0 && e < 1.0) {
+                return bad("error_tol", format!("must lie in (0, 1), got {e}"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The identity of a sparsity pattern and constraint set: a [`Solver`] keeps the analysis
+/// and device buffers of the last few layouts it solved, keyed by this.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct LayoutKey(u64);
+
+impl LayoutKey {
+    /// A key no other layout has.
+    pub fn fresh() -> Self {
+        static NEXT: AtomicU64 = AtomicU64::new(1);
+        LayoutKey(NEXT.fetch_add(1, Ordering::Relaxed))
+    }
+}
+
+/// Wall time of one solve, in seconds.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct SolveSeconds {
+    /// Forming b̂ and D, plus the analysis or device upload of a new layout.
+    pub setup: f64,
+    /// The solve proper (factorization and triangular solves, or CG).
+    pub solve: f64,
+    /// Recovering Δx = Δx_p + V y (and the reactions, for [`Solver::solve`]).
+    pub recover: f64,
+}
+
+/// What each solver reports of its own.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SolveDetails {
+    /// Sparse Cholesky: timings of its phases, nonzeros of Ĥ and of the factor.
+    Cholesky(OracleInfo),
+    /// CPU CG: restarts, condition estimate, residual replacements.
+    Cg(CgInfo),
+    /// GPU CG: adapter, precision path, bytes per iteration, kernel times, fallbacks.
+    Gpu(Box<GpuSolveInfo>),
+}
+
+/// What a solve did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SolveStats {
+    /// The solver that ran.
+    pub solver: SolverKind,
+    /// Its arithmetic (f64 for the CPU solvers).
+    pub precision: Precision,
+    /// CG iterations (all restarts and inner solves); None for Cholesky.
+    pub iterations: Option<usize>,
+    /// ‖b̂ − Ĥy‖/‖b̂‖ recomputed in f64 at the end.
+    pub relative_residual: f64,
+    /// True when the solve reused the analysis or device buffers of an earlier solve.
+    pub reused: bool,
+    /// The GPU adapter, for the GPU solver.
+    pub adapter: Option<String>,
+    /// Wall time by stage.
+    pub seconds: SolveSeconds,
+    /// The solver's own report.
+    pub details: SolveDetails,
+}
+
+/// The answer of [`Solver::solve`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct Solution {
+    /// The step Δx (length d·n): it meets every constraint to f64 rounding.
+    pub dx: Vec<f64>,
+    /// The reactions f = −(HΔx + g): the forces the constraints exert (zero on free
+    /// components up to the solver's residual).
+    pub reactions: Vec<f64>,
+    /// What the solve did.
+    pub stats: SolveStats,
+}
+
+/// The answer of [`Solver::solve_eliminated`]: the eliminated solution and the step.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Step {
+    /// y, the solution of Ĥ y = b̂ in the nodes' frames.
+    pub y: Vec<f64>,
+    /// Δx = Δx_p + V y.
+    pub dx: Vec<f64>,
+    /// What the solve did.
+    pub stats: SolveStats,
+}
+
+/// Layouts whose analysis or device buffers a solver keeps (a simulation alternates
+/// between a few constraint sets, for example while moving boundaries are eliminated).
+const KEPT_LAYOUTS: usize = 8;
+
+enum Prepared {
+    Cholesky(Box<CholeskyOracle>),
+    Gpu(Box<GpuSolver>),
+}
+
+/// Solves [`Problem`]s with one configured solver, keeping what can be reused between
+/// solves of the same layout (Cholesky analysis, GPU buffers and pipelines).
+pub struct Solver {
+    config: SolverConfig,
+    cg: CgParams,
+    gpu_params: GpuParams,
+    gpu: Option<GpuContext>,
+    /// Most recently used last.
+    prepared: Vec<(LayoutKey, Prepared)>,
+}
+
+impl Solver {
+    /// Checks the configuration and, for the GPU solver, opens the device (or takes the
+    /// configured one). Fails with [`Error::Input`] for a bad configuration and
+    /// [`Error::Device`] when no suitable GPU is there.
+    pub fn new(config: SolverConfig) -> Result<Self, Error> {
+        config.validate()?;
+        let gpu = match (config.kind, &config.gpu_context) {
+            (SolverKind::Gpu, Some(ctx)) => Some(ctx.clone()),
+            (SolverKind::Gpu, None) => Some(
+                GpuContext::new(&GpuOptions::default())
+                    .map_err(|e| Error::Device(format!("the GPU solver cannot start: {e}")))?,
+            ),
+            _ => None,
+        };
+        if let Some(ctx) = &gpu {
+            if config.precision != Precision::F32 && !ctx.has_f64() {
+                return Err(crate::gpu::GpuError::NoF64 {
+                    adapter: ctx.adapter_name().to_string(),
+                    precision: config.precision,
+                }
+                .into());
+            }
+        }
+        Ok(Solver {
+            cg: config.resolved_cg_params(),
+            gpu_params: config.resolved_gpu_params(),
+            config,
+            gpu,
+            prepared: Vec::new(),
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &SolverConfig {
+        &self.config
+    }
+
+    /// The GPU adapter's name, for the GPU solver.
+    pub fn adapter(&self) -> Option<&str> {
+        self.gpu.as_ref().map(|c| c.adapter_name())
+    }
+
+    /// Bytes moved between host and device by the GPU solver so far (None for the CPU
+    /// solvers).
+    pub fn gpu_traffic(&self) -> Option<crate::gpu::TrafficCount> {
+        self.gpu.as_ref().map(GpuContext::traffic)
+    }
+
+    /// Solves the problem: Δx meeting every constraint, and the reactions.
+    pub fn solve(&mut self, problem: &Problem) -> Result<Solution, Error> {
+        let t = Instant::now();
+        let e = Eliminated::new(
+            problem.hessian(),
+            problem.gradient(),
+            problem.frames(),
+            self.config.constrained_diagonal,
+        );
+        let form = t.elapsed().as_secs_f64();
+        let Step { dx, mut stats, .. } = self.solve_formed(problem.layout(), &e)?;
+        stats.seconds.setup += form;
+        let t = Instant::now();
+        let f = reactions(problem.hessian(), problem.gradient(), &dx);
+        all_finite("the reactions f = −(HΔx + g)", &f)?;
+        stats.seconds.recover += t.elapsed().as_secs_f64();
+        Ok(Solution {
+            dx,
+            reactions: f,
+            stats,
+        })
+    }
+
+    /// Solves an eliminated system the caller formed (a simulation that assembles H into
+    /// its own [`crate::core::sparse::BlockCsr`]); `layout` identifies its pattern and
+    /// constraint set for reuse ([`LayoutKey::fresh`] once per layout).
+    pub fn solve_eliminated(&mut self, layout: LayoutKey, e: &Eliminated) -> Result<Step, Error> {
+        if e.h.dim != e.frames.dim || e.h.n != e.frames.n_nodes || e.rhs.len() != e.h.ndof() {
+            return Err(
+                InputError::new("problem", "", "H, the frames and b̂ disagree in size").into(),
+            );
+        }
+        self.solve_formed(layout, e)
+    }
+
+    fn solve_formed(&mut self, layout: LayoutKey, e: &Eliminated) -> Result<Step, Error> {
+        let t = Instant::now();
+        let (y, mut stats) = match self.config.kind {
+            SolverKind::Cholesky => self.cholesky(layout, e)?,
+            SolverKind::Cg => {
+                let (y, info) = crate::solve::cg::solve(e, &self.cg)?;
+                let stats = self.stats(
+                    Some(info.iterations),
+                    info.relative_residual,
+                    false,
+                    SolveDetails::Cg(info),
+                );
+                (y, stats)
+            }
+            SolverKind::Gpu => self.gpu(layout, e)?,
+        };
+        all_finite("the solution y", &y)?;
+        let total = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        // Δx from the f64 frames in every precision: the constraints then hold to f64
+        // rounding whatever arithmetic produced y.
+        let dx = e.recover(&y);
+        all_finite("Δx", &dx)?;
+        stats.seconds.recover = t.elapsed().as_secs_f64();
+        stats.seconds.solve = (total - stats.seconds.setup).max(0.0);
+        Ok(Step { y, dx, stats })
+    }
+
+    fn stats(
+        &self,
+        iterations: Option<usize>,
+        relative_residual: f64,
+        reused: bool,
+        details: SolveDetails,
+    ) -> SolveStats {
+        SolveStats {
+            solver: self.config.kind,
+            precision: self.config.precision,
+            iterations,
+            relative_residual,
+            reused,
+            adapter: self.adapter().map(str::to_string),
+            seconds: SolveSeconds::default(),
+            details,
+        }
+    }
+
+    /// The prepared state of `layout`, moved to the back (most recent); evicts the oldest.
+    fn take_prepared(&mut self, layout: LayoutKey) -> Option<Prepared> {
+        let k = self.prepared.iter().position(|(l, _)| *l == layout)?;
+        Some(self.prepared.remove(k).1)
+    }
+
+    fn keep_prepared(&mut self, layout: LayoutKey, p: Prepared) {
+        if self.prepared.len() >= KEPT_LAYOUTS {
+            self.prepared.remove(0);
+        }
+        self.prepared.push((layout, p));
+    }
+
+    fn cholesky(
+        &mut self,
+        layout: LayoutKey,
+        e: &Eliminated,
+    ) -> Result<(Vec<f64>, SolveStats), Error> {
+        let t = Instant::now();
+        let mut oracle = match self.take_prepared(layout) {
+            Some(Prepared::Cholesky(o)) => o,
+            _ => Box::new(CholeskyOracle::analyze_with(e, self.config.ordering)?),
+        };
+        let analysed = t.elapsed().as_secs_f64();
+        // A layout key reused with another pattern re-analyses inside solve.
+        let result = oracle.solve(e);
+        self.keep_prepared(layout, Prepared::Cholesky(oracle));
+        let (y, info) = result?;
+        let mut stats = self.stats(
+            None,
+            info.relative_residual,
+            info.reused_symbolic,
+            SolveDetails::Cholesky(info),
+        );
+        stats.seconds.setup = analysed;
+        Ok((y, stats))
+    }
+
+    fn gpu(&mut self, layout: LayoutKey, e: &Eliminated) -> Result<(Vec<f64>, SolveStats), Error> {
+        let t = Instant::now();
+        let prepared = self.take_prepared(layout);
+        let ctx = self
+            .gpu
+            .as_ref()
+            .ok_or_else(|| Error::Device("the GPU solver has no device".into()))?;
+        let (mut solver, reused) = match prepared {
+            Some(Prepared::Gpu(mut s)) => match s.update(e) {
+                Ok(()) => (s, true),
+                // Another pattern under the same key: build afresh.
+                Err(crate::gpu::GpuError::Mismatch(_)) => {
+                    (Box::new(GpuSolver::new(ctx, e, &self.gpu_params)?), false)
+                }
+                Err(err) => return Err(err.into()),
+            },
+            _ => (Box::new(GpuSolver::new(ctx, e, &self.gpu_params)?), false),
+        };
+        let setup = t.elapsed().as_secs_f64();
+        let result = solver.solve();
+        self.keep_prepared(layout, Prepared::Gpu(solver));
+        let crate::gpu::SolveOutcome { y, info, .. } = result?;
+        let mut stats = self.stats(
+            Some(info.iterations),
+            info.relative_residual,
+            reused,
+            SolveDetails::Gpu(Box::new(info)),
+        );
+        stats.seconds.setup = setup;
+        Ok((y, stats))
+    }
+}
+
+/// A solve error when `v` holds a NaN or an infinity: the inputs were finite (checked when
+/// the problem was built), so f64 overflowed on the way.
+pub(crate) fn all_finite(what: &str, v: &[f64]) -> Result<(), Error> {
+    match v.iter().position(|x| !x.is_finite()) {
+        None => Ok(()),
+        Some(k) => Err(SolveError::NotFinite(format!(
+            "{what} has a non-finite entry ({} at index {k}): the data's magnitudes overflow \
+             f64 on the way (H·Δx_p, g, or the lift); scale the system",
+            v[k]
+        ))
+        .into()),
+    }
+}

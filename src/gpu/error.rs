@@ -1,0 +1,49 @@
+//! Why a GPU solve could not run or did not converge ([`GpuError`]), and how that
+//! becomes the facade's [`crate::Error`].
+
+use crate::error::{CgError, Error, InputError, SolveError};
+use crate::solve::options::Precision;
+
+/// Why the GPU solver could not run or did not converge.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GpuError {
+    #[error("{0}")]
+    NoAdapter(String),
+    #[error("GPU device error: {0}")]
+    Device(String),
+    #[error("precision {precision} needs SHADER_F64, which adapter '{adapter}' does not offer (use --precision f32)")]
+    NoF64 {
+        adapter: String,
+        precision: Precision,
+    },
+    #[error("GPU buffer '{label}' needs {bytes} bytes but adapter '{adapter}' allows at most {limit} bytes per {what}: the system {}", crate::gpu::solver::DOES_NOT_FIT)]
+    BufferTooLarge {
+        label: String,
+        bytes: u64,
+        limit: u64,
+        what: &'static str,
+        adapter: String,
+    },
+    #[error("the GPU solver does not support this system: {0}")]
+    Unsupported(String),
+    #[error("update does not match the solver's system: {0}")]
+    Mismatch(String),
+    #[error(transparent)]
+    Cg(#[from] CgError),
+    /// A CG failure in f32 arithmetic: on an ill-conditioned system rounding alone can
+    /// produce non-positive curvature or stagnation, so the message says so.
+    #[error("{0} — in f32 arithmetic, where rounding on an ill-conditioned system can cause this; --precision mixed or f64 tells the two apart")]
+    InF32(CgError),
+}
+
+impl From<GpuError> for Error {
+    fn from(e: GpuError) -> Self {
+        use GpuError as G;
+        match e {
+            // CG ran and did not converge: the system, not the device, is at fault.
+            G::Cg(_) | G::InF32(_) => Error::Solve(SolveError::Gpu(e.to_string())),
+            G::Mismatch(_) => Error::Input(InputError::new("problem", "", e.to_string())),
+            _ => Error::Device(e.to_string()),
+        }
+    }
+}

@@ -1,0 +1,117 @@
+//! The GPU CG's parameters ([`GpuParams`]) and the kernel-size bounds they refer to.
+
+use crate::solve::options::{CoarseSpace, Precision, Preconditioner};
+
+/// The f32 difference form of the operator (`GpuParams::f32_difference`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum DifferenceForm {
+    Off,
+    /// On wherever the device has SHADER_F64, where the form sums each row in f64 (the
+    /// products of two f32 are exact there), so it keeps every smooth mode, not only the
+    /// translations, and costs the f32 matvec about 5% on lavapipe: on dt-1e2 with the
+    /// aggregate coarse space mixed needs 273 iterations with it against f64's 265, and
+    /// 331 without it (STABILITY.md). On an f32-only device, whose form sums in f32 and
+    /// keeps only the translations, it is on where plain f32 blocks would move the softest
+    /// rigid translation's eigenvalue by more than 0.1%: ε_f32·max diag(Ĥ) > 1e-3·λ_Z,
+    /// λ_Z its Rayleigh quotient (`coarse::softest_translation`).
+    #[default]
+    Auto,
+    On,
+}
+
+/// Upper bound of the workgroups of the grid-stride CG kernels (`GpuParams::workgroups`),
+/// and so of the partial sums one reduction leaves: the partial-sum buffers hold this many.
+pub const MAX_WORKGROUPS: u32 = 256;
+
+/// Parameters of a GPU solve.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GpuParams {
+    pub precision: Precision,
+    /// Stop when the true f64 relative residual ‖b̂ − Ĥy‖/‖b̂‖ ≤ tol.
+    pub tol: f64,
+    /// Limit on CG iterations (all restarts and, for mixed, all inner solves together).
+    pub max_iters: usize,
+    pub preconditioner: Preconditioner,
+    /// Stagnation: the recurrence residual has not improved for this many iterations.
+    pub stagnation_window: usize,
+    /// Restarts from the current iterate when the true residual misses the tolerance.
+    pub max_restarts: usize,
+    /// Iterations recorded in the first submit; later chunks follow the predicted
+    /// iterations left to the tolerance (at most doubling each time, at least
+    /// `first_chunk / 4`, rounded up).
+    pub first_chunk: usize,
+    /// Cap of the iterations per submit (and per status read-back).
+    pub max_chunk: usize,
+    /// Workgroup size (power of two, 32..=256).
+    pub workgroup_size: u32,
+    /// Workgroups of the grid-stride CG kernels (matvec, update_xrz, update_p), which is
+    /// also the number of partial sums each reduction leaves; fewer when the system has
+    /// fewer workgroups' worth of nodes; 1..=[`MAX_WORKGROUPS`]. None: 256 on a GPU; on a
+    /// CPU adapter (lavapipe)
+    /// 8 per hardware thread. Why fewer there: every workgroup of the update
+    /// kernels re-reduces all partials through barrier trees, and llvmpipe runs barriers
+    /// as coroutine switches, about 4 µs per workgroup and kernel; with 256 workgroups
+    /// that was 40% of an f64 CG iteration at 27k nodes on a 2-core machine.
+    pub workgroups: Option<u32>,
+    /// Mixed: reliable-update factor δ. The f32 CG's recurrence residual is replaced by
+    /// the true residual, recomputed in f64, each time it has dropped by δ (CG then goes on
+    /// with its search direction kept). Smaller δ means fewer f64 products but more drift
+    /// between the f32 recurrence and the truth: before the difference form and the
+    /// coarse correction, δ = 1e-3 cost 5–30× more iterations on the sliver and κ = 1e6
+    /// hard cases. With them, δ = 1e-2 (the default) takes as few iterations as δ = 0.1 or
+    /// fewer on every timed hard case (dt-1e2 at 107k DOFs: 469 against 515; f64 CG 462)
+    /// with half the reliable updates; slivers +3% (STABILITY.md).
+    pub inner_tol: f64,
+    /// Mixed: limit on outer steps (reliable updates).
+    pub max_outer: usize,
+    /// Mixed: once the residual criterion is met, go on with extended-precision refinement
+    /// (double-double residuals on the host, f64 CG corrections on the GPU) until the
+    /// estimated relative error ‖y − y*‖/‖y*‖ is ≤ error_tol (y* the exact solution of the
+    /// f64 Ĥ; the estimate comes from the contraction of consecutive corrections). A small
+    /// residual bounds the error only by κ·tol; this targets the error directly. The
+    /// estimate is in `GpuSolveInfo::error_estimate`. Needs an assembled Hessian and the
+    /// f64 operator on the device. None: residual criterion only.
+    pub error_tol: Option<f64>,
+    /// Coarse correction added to the preconditioner, in every level (see
+    /// [`crate::solve::coarse`]); the same choice as [`crate::solve::cg::CgParams::coarse`].
+    pub coarse: CoarseSpace,
+    /// Whether f32 operators of an assembled Ĥ use the difference form
+    /// (`shaders/matvec.wgsl` `DIFF`: node row sums summed in f64), which keeps the
+    /// eigenvalues of the rigid translations that plain f32 rounding perturbs by
+    /// ε_f32·‖Ĥ‖. See [`DifferenceForm`]; f64 operators never use it.
+    pub f32_difference: DifferenceForm,
+    /// Caps the storage binding size the solver assumes (bytes; None: the adapter's
+    /// `max_storage_buffer_binding_size`). Per-block arrays larger than the limit are bound
+    /// in row-chunk pieces; a lower cap makes small systems take that path (tests).
+    #[doc(hidden)]
+    pub binding_limit: Option<u64>,
+    /// Caps the device memory the solver assumes (bytes; None: the device's). A system
+    /// whose buffers exceed it is refused before anything is allocated (tests).
+    #[doc(hidden)]
+    pub memory_limit: Option<u64>,
+}
+
+impl Default for GpuParams {
+    fn default() -> Self {
+        GpuParams {
+            precision: Precision::F32,
+            tol: 1e-6,
+            max_iters: 10_000,
+            preconditioner: Preconditioner::Jacobi,
+            stagnation_window: 1_000,
+            max_restarts: 3,
+            first_chunk: 8,
+            max_chunk: 256,
+            workgroup_size: 64,
+            workgroups: None,
+            inner_tol: 0.01,
+            max_outer: 200,
+            error_tol: None,
+            coarse: CoarseSpace::default(),
+            f32_difference: DifferenceForm::default(),
+            binding_limit: None,
+            memory_limit: None,
+        }
+    }
+}

@@ -1,0 +1,1080 @@
+//! The eliminated CG on the device-assembled Newton system (shaders/newton_cg.wgsl).
+//!
+//! After [`GpuAssembly::assemble`], H (block CSR, both triangles) and g are on the device;
+//! [`DeviceCg`] solves the eliminated system of [`crate::core::elimination`] there,
+//!
+//! ```text
+//! Ĥ y = b̂,   Ĥ = P VᵀHV P + (I − P),   b̂ = −P Vᵀ g,   Δx = V P y
+//! ```
+//!
+//! (a Newton step has no prescribed part, and the constrained diagonal is the identity),
+//! and leaves Δx in a device buffer for the rest of the loop. H is read where the assembly
+//! put it: the product q = Ĥp is one invocation per block row over the assembly's blocks,
+//! rotating only at rotated nodes. CG scalars stay on the device: per iteration five
+//! dispatches (product with p·q partials, a one-workgroup α kernel, the y/r/z update with
+//! r·z and r·r partials, a one-workgroup β kernel, the p update), many iterations per
+//! submit, and one small status read-back (the scalars and flags, 96 bytes) per chunk.
+//! Every reduction has a fixed number of workgroups and a fixed order: the same inputs
+//! give the same Δx bit for bit.
+//!
+//! The preconditioner is Jacobi or block Jacobi, plus (with [`CoarseSpace::Translations`])
+//! the coarse correction on the rigid translations of [`crate::solve::coarse`]:
+//! M⁻¹r = M_J⁻¹r + Z E⁺ Zᵀr, Z_i = P_i V_iᵀ. Why: a body that can translate or slide has
+//! Ĥ's smallest eigenvalues on its translations (the mass term), which a point-wise
+//! preconditioner cannot see. `prepare` reduces E = ZᵀĤZ on the device from the assembled
+//! blocks (D² sums); the first `iterate` with the correction reads those D² values back,
+//! pseudo-inverts E on the host as the CPU does ([`crate::solve::coarse::pseudo_inverse`]) and
+//! writes E⁺ back. In the iteration Zᵀr rides in the tree of r·z and r·r, and Z E⁺ Zᵀr is
+//! added where p is updated: no extra dispatch per iteration (one per CG start).
+//!
+//! H's values may come in several buffers of consecutive block rows
+//! ([`GpuAssembly::values_chunks`]; one storage binding caps each). The kernels that read
+//! them run once per chunk with a bind group built once per chunk and constraint set; the
+//! reductions carry each thread's running sum across those dispatches, so Δx and the
+//! iteration count are the same bits however H is split.
+#![cfg(feature = "sim")]
+
+use crate::core::constraints::{Frames, NO_ROTATION};
+use crate::gpu::kernels::{self, Access, Layout};
+use crate::gpu::{GpuContext, GpuError};
+use crate::sim::device::assembly::GpuAssembly;
+use crate::solve::cg::{CgError, Preconditioner};
+use crate::solve::coarse::CoarseSpace;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use Access::{Read as R, ReadWrite as W, Uniform as U};
+
+/// Bind group 0 of shaders/newton_cg.wgsl, shared by all its entry points.
+pub const NEWTON_CG: Layout = Layout {
+    file: "newton_cg.wgsl",
+    source: include_str!(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/shaders/newton_cg.wgsl"
+    )),
+    bindings: &[
+        ("params", U),
+        ("pattern", R),
+        ("hvals", R),
+        ("grad", R),
+        ("frame", R),
+        ("rotations", R),
+        ("y", W),
+        ("r", W),
+        ("z", W),
+        ("p", W),
+        ("q", W),
+        ("b", W),
+        ("minv", W),
+        ("dx", W),
+        ("partials", W),
+        ("scal", W),
+        ("state", W),
+    ],
+};
+
+/// Slots of the kernels' `scal` (f64), `state` (u32) and partial sums; the WGSL declares
+/// each as `NCG_<name>` with the same value (checked by a unit test).
+// Some slots are used by the kernels alone; they are listed so that the test covers all.
+#[allow(dead_code)]
+mod slot {
+    pub const RHO: u32 = 0;
+    pub const PQ: u32 = 1;
+    pub const ALPHA: u32 = 2;
+    pub const BETA: u32 = 3;
+    pub const RR: u32 = 4;
+    pub const TOL2: u32 = 5;
+    pub const BB: u32 = 6;
+    /// c = E⁺Zᵀr (D values), E⁺ (D², from the host), E (D², for the host).
+    pub const C: u32 = 8;
+    pub const EINV: u32 = 11;
+    pub const E: u32 = 20;
+    /// Length of `scal`.
+    pub const SCAL_LEN: usize = 32;
+    /// The leading slots of `scal` read back with every status (the CG's scalars).
+    pub const STATUS_SCAL: usize = 8;
+    pub const DONE: u32 = 0;
+    pub const CONVERGED: u32 = 1;
+    pub const HALT: u32 = 2;
+    pub const BREAKDOWN: u32 = 3;
+    pub const ITERS: u32 = 4;
+    /// Length of `state`; the flags are its first four entries.
+    pub const STATE_LEN: usize = 8;
+    pub const PART_PQ: u32 = 0;
+    pub const PART_RZ: u32 = 1;
+    pub const PART_RR: u32 = 2;
+    pub const PART_BB: u32 = 3;
+    /// Zᵀr (D slots), E (D² slots).
+    pub const PART_ZR: u32 = 4;
+    pub const PART_E: u32 = 7;
+    /// Partial-sum slots.
+    pub const N_PART: usize = 16;
+    /// Where the per-thread sums carried between H's chunks start (× partials per slot).
+    pub const CARRY: u32 = N_PART as u32;
+    /// Carried sums per thread.
+    pub const CARRY_LEN: usize = 9;
+    /// Every slot with its WGSL name.
+    #[cfg(test)]
+    pub const ALL: [(&str, u32); 22] = [
+        ("NCG_RHO", RHO),
+        ("NCG_PQ", PQ),
+        ("NCG_ALPHA", ALPHA),
+        ("NCG_BETA", BETA),
+        ("NCG_RR", RR),
+        ("NCG_TOL2", TOL2),
+        ("NCG_BB", BB),
+        ("NCG_C", C),
+        ("NCG_EINV", EINV),
+        ("NCG_E", E),
+        ("NCG_DONE", DONE),
+        ("NCG_CONVERGED", CONVERGED),
+        ("NCG_HALT", HALT),
+        ("NCG_BREAKDOWN", BREAKDOWN),
+        ("NCG_ITERS", ITERS),
+        ("NCG_PART_PQ", PART_PQ),
+        ("NCG_PART_RZ", PART_RZ),
+        ("NCG_PART_RR", PART_RR),
+        ("NCG_PART_BB", PART_BB),
+        ("NCG_PART_ZR", PART_ZR),
+        ("NCG_PART_E", PART_E),
+        ("NCG_CARRY", CARRY),
+    ];
+    // The slot ranges do not overlap (D ≤ 3).
+    const _: () = assert!(C + 3 <= EINV && EINV + 9 <= E && E as usize + 9 <= SCAL_LEN);
+    const _: () = assert!(STATUS_SCAL <= C as usize);
+    const _: () = assert!(PART_ZR + 3 <= PART_E && PART_E as usize + 9 <= N_PART);
+}
+
+/// Uniform parameters of every kernel (mirrors `NewtonCgParams` in the WGSL).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct NewtonCgParams {
+    n_nodes: u32,
+    n_partials: u32,
+    col_at: u32,
+    diag_at: u32,
+    /// The values chunk of the dispatch: rows, first block, first/last bits.
+    row_begin: u32,
+    row_end: u32,
+    block_first: u32,
+    chunk: u32,
+}
+const _: () = assert!(std::mem::size_of::<NewtonCgParams>() == 32);
+
+/// Workgroup size of every kernel.
+const WORKGROUP: u32 = 64;
+
+/// Upper bound of the workgroups of the grid-stride kernels (and so of the partials per
+/// reduction): enough to fill a GPU, few enough for one workgroup to sum them quickly.
+const MAX_GROUPS: u32 = 256;
+
+/// Bytes of the status read back per chunk: the leading `scal` slots then `state`.
+const STATUS_BYTES: u64 = 8 * slot::STATUS_SCAL as u64 + 4 * slot::STATE_LEN as u64;
+
+/// Iterations of the first chunk, and the longest chunk.
+const FIRST_CHUNK: usize = 8;
+const MAX_CHUNK: usize = 256;
+
+/// Identities of every [`DeviceCg`] and [`DeviceFrames`]: frames built for one CG are
+/// refused by another, and `iterate` refuses frames `prepare` did not see.
+static NEXT_ID: AtomicU64 = AtomicU64::new(0);
+
+/// One dispatch: pipeline, workgroups, bind group.
+type Kernel<'a> = (&'a wgpu::ComputePipeline, u32, &'a wgpu::BindGroup);
+
+/// Parameters of one [`DeviceCg::solve`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DeviceCgParams {
+    /// Success when the true relative residual ‖b̂ − Ĥy‖/‖b̂‖ (f64, on the device) ≤ tol.
+    pub tol: f64,
+    /// Limit on CG iterations, restarts included.
+    pub max_iterations: usize,
+    /// Jacobi or block Jacobi (or none).
+    pub preconditioner: Preconditioner,
+    /// `None` or `Translations` (added to the preconditioner; see the module docs).
+    /// `Aggregates` is refused: E⁺ of the aggregates is dense, (D·aggregates)², and has
+    /// no device path here.
+    pub coarse: CoarseSpace,
+}
+
+/// What a successful solve reports.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DeviceCgInfo {
+    /// CG iterations, restarts included (0 when b̂ = 0).
+    pub iterations: usize,
+    /// The true relative residual ‖b̂ − Ĥy‖/‖b̂‖ at the returned y (0 when b̂ = 0).
+    pub relative_residual: f64,
+    /// ‖b̂‖.
+    pub rhs_norm: f64,
+}
+
+/// One constraint set on the device (mask and rotation per node) with the bind group that
+/// uses it; built by [`DeviceCg::frames`], valid only with the [`DeviceCg`] that built it.
+pub struct DeviceFrames {
+    owner: u64,
+    /// Its own identity: `iterate` needs the frames `prepare` used.
+    id: u64,
+    /// One bind group per values chunk of H (the kernels that do not read H use the
+    /// first).
+    groups: Vec<wgpu::BindGroup>,
+    /// Kept alive with the bind groups.
+    _frame: wgpu::Buffer,
+    _rotations: wgpu::Buffer,
+}
+
+/// The pipelines of shaders/newton_cg.wgsl; those the coarse correction changes once
+/// without and once with it (`[0]`, `[1]`: the COARSE override), `init` and `update_yr`
+/// once per preconditioner too (none, Jacobi, block Jacobi: the PRECOND override).
+struct Pipelines {
+    rhs: wgpu::ComputePipeline,
+    precond: wgpu::ComputePipeline,
+    coarse_e: wgpu::ComputePipeline,
+    coarse_e_sum: wgpu::ComputePipeline,
+    matvec: wgpu::ComputePipeline,
+    scalar_alpha: wgpu::ComputePipeline,
+    update_yr: [[wgpu::ComputePipeline; 3]; 2],
+    scalar_beta: [wgpu::ComputePipeline; 2],
+    update_p: [wgpu::ComputePipeline; 2],
+    init: [[wgpu::ComputePipeline; 3]; 2],
+    scalar_start: [wgpu::ComputePipeline; 2],
+    recover: wgpu::ComputePipeline,
+}
+
+/// E of the translations for the last `prepare`.
+#[derive(Debug, Clone)]
+enum Galerkin {
+    /// Reduced on the device (in `scal`), not read back yet.
+    OnDevice,
+    /// Read back and symmetrized (D², row-major) with its pseudo-inverse, `None` when
+    /// every translation is constrained or E is not finite (no correction then, as on
+    /// the CPU).
+    Read { e: Vec<f64>, einv: Option<Vec<f64>> },
+}
+
+/// The device buffers of the CG (all f64 vectors are n·d, node-major).
+struct Buffers {
+    /// Per values chunk of H: its parameters and its values.
+    params: Vec<wgpu::Buffer>,
+    pattern: wgpu::Buffer,
+    hvals: Vec<wgpu::Buffer>,
+    grad: wgpu::Buffer,
+    y: wgpu::Buffer,
+    r: wgpu::Buffer,
+    z: wgpu::Buffer,
+    p: wgpu::Buffer,
+    q: wgpu::Buffer,
+    b: wgpu::Buffer,
+    minv: wgpu::Buffer,
+    dx: wgpu::Buffer,
+    partials: wgpu::Buffer,
+    scal: wgpu::Buffer,
+    state: wgpu::Buffer,
+    /// `scal` and `state` gathered for one read-back.
+    status: wgpu::Buffer,
+}
+
+/// The eliminated PCG on a [`GpuAssembly`]'s H and g, built once per mesh (f64 only).
+/// Per Newton iteration: [`DeviceCg::solve`] (or [`DeviceCg::prepare`] then
+/// [`DeviceCg::iterate`]) after every `assemble`; Δx is then in [`DeviceCg::dx_buffer`].
+pub struct DeviceCg {
+    ctx: GpuContext,
+    id: u64,
+    dim: usize,
+    n_nodes: usize,
+    /// Workgroups of the grid-stride kernels (= partials per reduction).
+    groups: u32,
+    layout: wgpu::BindGroupLayout,
+    pipes: Pipelines,
+    buf: Buffers,
+    /// The frames `prepare` last built b̂ and the preconditioner for.
+    prepared: Option<u64>,
+    /// E of that `prepare`.
+    galerkin: Galerkin,
+}
+
+/// One status read: the scalars and flags after a submit.
+struct Status {
+    rr: f64,
+    pq: f64,
+    bb: f64,
+    iterations: usize,
+    converged: bool,
+    halt: bool,
+    breakdown: bool,
+}
+
+impl DeviceCg {
+    /// Pipelines and buffers for `asm`'s mesh; refuses an f32 assembly.
+    pub fn new(asm: &GpuAssembly) -> Result<Self, GpuError> {
+        if !asm.is_f64() {
+            return Err(GpuError::Unsupported(
+                "the device Newton CG needs an f64 assembly, not f32".into(),
+            ));
+        }
+        let ctx = asm.context().clone();
+        let dim = asm.dim();
+        let (row_ptr, col_idx) = asm.pattern();
+        let n = row_ptr.len().saturating_sub(1);
+        let nnz = col_idx.len();
+        let dev = &ctx.device;
+
+        // The pattern as u32: row pointers, column indices, per node its diagonal block.
+        let too_big = |what: &str| {
+            GpuError::Unsupported(format!("the {what} exceed the device CG's u32 indices"))
+        };
+        let mut pattern: Vec<u32> = Vec::with_capacity(2 * n + 1 + nnz);
+        for &v in row_ptr.iter().chain(col_idx) {
+            pattern.push(u32::try_from(v).map_err(|_| too_big("block indices"))?);
+        }
+        for i in 0..n {
+            let row = &col_idx[row_ptr[i]..row_ptr[i + 1]];
+            let k = row
+                .iter()
+                .position(|&j| j == i)
+                .ok_or_else(|| GpuError::Mismatch(format!("node {i} has no diagonal block")))?;
+            pattern.push(u32::try_from(row_ptr[i] + k).map_err(|_| too_big("block indices"))?);
+        }
+        let col_at = u32::try_from(n + 1).map_err(|_| too_big("nodes"))?;
+        let diag_at = u32::try_from(n + 1 + nnz).map_err(|_| too_big("blocks"))?;
+        let groups = (n as u64)
+            .div_ceil(WORKGROUP as u64)
+            .clamp(1, MAX_GROUPS as u64) as u32;
+
+        // Pipelines.
+        let module = NEWTON_CG.module(dev, "f64", "f64", false);
+        let (layout, pl) = NEWTON_CG.layouts(dev, "newton cg");
+        let pipe = |entry: &str, precond: u32, coarse: bool| {
+            // SUM_LANES: scalar_start sums three values in one tree, no kernel more; the
+            // coarse correction sums r·z, r·r and Zᵀr (2 + D) in one, coarse_e E's D² in
+            // trees of five.
+            let wide = coarse || entry.starts_with("coarse_e");
+            let lanes = match (wide, dim) {
+                (false, _) => 3.0,
+                (true, 3) => 5.0,
+                (true, _) => 4.0,
+            };
+            let constants = [
+                ("D", dim as f64),
+                ("WG", WORKGROUP as f64),
+                ("SUM_LANES", lanes),
+                ("PRECOND", precond as f64),
+                ("COARSE", coarse as u8 as f64),
+            ];
+            let label =
+                format!("newton cg {entry} ({dim}D, preconditioner {precond}, coarse {coarse})");
+            kernels::pipeline(dev, &pl, &module, entry, &label, &constants)
+        };
+        let both = |entry: &str| [false, true].map(|c| pipe(entry, 0, c));
+        let each = |entry: &str| [false, true].map(|c| [0, 1, 2].map(|k| pipe(entry, k, c)));
+        let pipes = Pipelines {
+            rhs: pipe("rhs", 0, false),
+            precond: pipe("precond", 0, false),
+            coarse_e: pipe("coarse_e", 0, false),
+            coarse_e_sum: pipe("coarse_e_sum", 0, false),
+            matvec: pipe("matvec", 0, false),
+            scalar_alpha: pipe("scalar_alpha", 0, false),
+            update_yr: each("update_yr"),
+            scalar_beta: both("scalar_beta"),
+            update_p: both("update_p"),
+            init: each("init"),
+            scalar_start: both("scalar_start"),
+            recover: pipe("recover", 0, false),
+        };
+
+        // Buffers, limits checked first.
+        let nd = (n * dim) as u64;
+        let check = |label: &str, bytes: u64| -> Result<u64, GpuError> {
+            let bytes = bytes.max(16).div_ceil(16) * 16;
+            let l = &ctx.limits;
+            let limit = l.max_buffer_size.min(l.max_storage_buffer_binding_size);
+            if bytes > limit {
+                return Err(GpuError::BufferTooLarge {
+                    label: label.to_string(),
+                    bytes,
+                    limit,
+                    what: "storage binding",
+                    adapter: ctx.adapter_name().to_string(),
+                });
+            }
+            Ok(bytes)
+        };
+        let usage = wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_DST
+            | wgpu::BufferUsages::COPY_SRC;
+        let zeroed = |label: &str, bytes: u64| -> Result<wgpu::Buffer, GpuError> {
+            let size = check(label, bytes)?;
+            Ok(dev.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: false,
+            }))
+        };
+        let vector = |label: &str| zeroed(label, 8 * nd);
+        let pattern_buf = {
+            let mut bytes: Vec<u8> = bytemuck::cast_slice(&pattern).to_vec();
+            let size = check("newton cg pattern", bytes.len() as u64)?;
+            bytes.resize(size as usize, 0);
+            ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("newton cg pattern"),
+                contents: &bytes,
+                usage,
+            })
+        };
+        let chunks = asm.values_chunks();
+        let last = chunks.len().saturating_sub(1);
+        let mut params = Vec::with_capacity(chunks.len());
+        for (c, ch) in chunks.iter().enumerate() {
+            let p = NewtonCgParams {
+                n_nodes: u32::try_from(n).map_err(|_| too_big("nodes"))?,
+                n_partials: groups,
+                col_at,
+                diag_at,
+                row_begin: ch.rows.start as u32,
+                row_end: ch.rows.end as u32,
+                block_first: ch.blocks.start as u32,
+                chunk: (c == 0) as u32 | (((c == last) as u32) << 1),
+            };
+            params.push(ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(&format!("newton cg params of values chunk {c}")),
+                contents: bytemuck::bytes_of(&p),
+                usage: wgpu::BufferUsages::UNIFORM,
+            }));
+        }
+        let buf = Buffers {
+            params,
+            pattern: pattern_buf,
+            hvals: chunks.iter().map(|c| c.buffer.clone()).collect(),
+            grad: asm.gradient_buffer().clone(),
+            y: vector("newton cg y")?,
+            r: vector("newton cg r")?,
+            z: vector("newton cg z")?,
+            p: vector("newton cg p")?,
+            q: vector("newton cg q")?,
+            b: vector("newton cg rhs")?,
+            minv: zeroed(
+                "newton cg preconditioner",
+                8 * (n * dim * dim) as u64 + 8 * nd,
+            )?,
+            dx: vector("newton cg dx")?,
+            // The partial sums, then the sums carried between H's chunks (per thread).
+            partials: zeroed(
+                "newton cg partial sums",
+                8 * (slot::N_PART + slot::CARRY_LEN * WORKGROUP as usize) as u64 * groups as u64,
+            )?,
+            scal: zeroed("newton cg scalars", 8 * slot::SCAL_LEN as u64)?,
+            state: zeroed("newton cg state", 4 * slot::STATE_LEN as u64)?,
+            status: zeroed("newton cg status", STATUS_BYTES)?,
+        };
+        ctx.check("building the device Newton CG")?;
+        Ok(DeviceCg {
+            id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
+            ctx,
+            dim,
+            n_nodes: n,
+            groups,
+            layout,
+            pipes,
+            buf,
+            prepared: None,
+            galerkin: Galerkin::OnDevice,
+        })
+    }
+
+    /// The world-frame Δx of the last successful solve (n·d f64, node-major).
+    pub fn dx_buffer(&self) -> &wgpu::Buffer {
+        &self.buf.dx
+    }
+
+    /// Δx read back to the host (a full read-back: for tests and diagnostics, not the loop).
+    pub fn read_dx(&self) -> Result<Vec<f64>, GpuError> {
+        let nd = self.n_nodes * self.dim;
+        let bytes = self.ctx.download(
+            &self.buf.dx,
+            0,
+            8 * nd as u64,
+            "reading back the Newton step",
+        )?;
+        Ok(bytes
+            .chunks_exact(8)
+            .map(|c| {
+                let mut w = [0u8; 8];
+                w.copy_from_slice(c);
+                f64::from_le_bytes(w)
+            })
+            .collect())
+    }
+
+    /// Uploads one constraint set (mask per node, rotation per rotated node) and builds
+    /// its bind group, once: callers keep it for as long as the constraints hold.
+    /// Refuses frames of another mesh and prescribed (non-zero) constraint values, which
+    /// a Newton step never has.
+    pub fn frames(&self, f: &Frames) -> Result<DeviceFrames, GpuError> {
+        let (n, d) = (self.n_nodes, self.dim);
+        if f.dim != d || f.n_nodes != n {
+            return Err(GpuError::Mismatch(format!(
+                "the constraints are for {} nodes in {}D, the mesh has {n} in {d}D",
+                f.n_nodes, f.dim
+            )));
+        }
+        if !f.homogeneous {
+            return Err(GpuError::Unsupported(
+                "the device Newton CG takes homogeneous constraints only (a Newton step \
+                 prescribes no displacement)"
+                    .into(),
+            ));
+        }
+        if f.mask.len() != n
+            || f.rot_index.len() != n
+            || f.rotations.len() != d * d * f.rot_nodes.len()
+        {
+            return Err(GpuError::Mismatch(
+                "the constraint frames' arrays disagree with their node count".into(),
+            ));
+        }
+        let mut frame = Vec::with_capacity(2 * n);
+        for i in 0..n {
+            let ri = f.rot_index[i];
+            if ri != NO_ROTATION && ri as usize >= f.rot_nodes.len() {
+                return Err(GpuError::Mismatch(format!(
+                    "node {i} names rotation {ri} of {}",
+                    f.rot_nodes.len()
+                )));
+            }
+            frame.push(f.mask[i] as u32);
+            frame.push(ri);
+        }
+        let init = |label: &str, mut bytes: Vec<u8>| {
+            bytes.resize(bytes.len().max(16).div_ceil(16) * 16, 0);
+            self.ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: &bytes,
+                usage: wgpu::BufferUsages::STORAGE,
+            })
+        };
+        let frame_buf = init("newton cg frames", bytemuck::cast_slice(&frame).to_vec());
+        let rot_buf = init(
+            "newton cg rotations",
+            bytemuck::cast_slice(&f.rotations).to_vec(),
+        );
+        let b = &self.buf;
+        let mut groups = Vec::with_capacity(b.hvals.len());
+        for (params, hvals) in b.params.iter().zip(&b.hvals) {
+            let bufs: [&wgpu::Buffer; 17] = [
+                params,
+                &b.pattern,
+                hvals,
+                &b.grad,
+                &frame_buf,
+                &rot_buf,
+                &b.y,
+                &b.r,
+                &b.z,
+                &b.p,
+                &b.q,
+                &b.b,
+                &b.minv,
+                &b.dx,
+                &b.partials,
+                &b.scal,
+                &b.state,
+            ];
+            let entries: Vec<wgpu::BindGroupEntry> = bufs
+                .iter()
+                .enumerate()
+                .map(|(i, b)| wgpu::BindGroupEntry {
+                    binding: i as u32,
+                    resource: b.as_entire_binding(),
+                })
+                .collect();
+            groups.push(
+                self.ctx
+                    .device
+                    .create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: Some("newton cg bind group"),
+                        layout: &self.layout,
+                        entries: &entries,
+                    }),
+            );
+        }
+        self.ctx.check("uploading the constraint frames")?;
+        Ok(DeviceFrames {
+            owner: self.id,
+            id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
+            groups,
+            _frame: frame_buf,
+            _rotations: rot_buf,
+        })
+    }
+
+    fn own(&self, frames: &DeviceFrames) -> Result<(), GpuError> {
+        if frames.owner != self.id {
+            return Err(GpuError::Mismatch(
+                "these device frames were built by another device CG".into(),
+            ));
+        }
+        Ok(())
+    }
+
+    fn encoder(&self, label: &str) -> wgpu::CommandEncoder {
+        self.ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
+    }
+
+    /// Records `kernels` (pipeline, workgroups, bind group) in one compute pass.
+    fn pass(enc: &mut wgpu::CommandEncoder, label: &str, kernels: &[Kernel]) {
+        let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(label),
+            timestamp_writes: None,
+        });
+        let mut bound: Option<&wgpu::BindGroup> = None;
+        for &(pipe, groups, group) in kernels {
+            if bound.is_none_or(|b| !std::ptr::eq(b, group)) {
+                cp.set_bind_group(0, group, &[]);
+                bound = Some(group);
+            }
+            cp.set_pipeline(pipe);
+            cp.dispatch_workgroups(groups, 1, 1);
+        }
+    }
+
+    /// `pipe` once per values chunk of H, in row order, each with its chunk's bind group.
+    fn per_chunk<'a>(
+        pipe: &'a wgpu::ComputePipeline,
+        groups: u32,
+        frames: &'a DeviceFrames,
+    ) -> impl Iterator<Item = Kernel<'a>> {
+        frames.groups.iter().map(move |g| (pipe, groups, g))
+    }
+
+    /// b̂ = −P Vᵀ g, the preconditioners (Jacobi and block Jacobi both) and E = ZᵀĤZ of
+    /// the translations from the current assembly; call after every `assemble` (or
+    /// constraint change). No read-back: E (D² values) is read by the first `iterate`
+    /// that uses the coarse correction.
+    pub fn prepare(&mut self, frames: &DeviceFrames) -> Result<(), GpuError> {
+        self.own(frames)?;
+        let mut enc = self.encoder("newton cg prepare");
+        let g = self.groups;
+        let p = &self.pipes;
+        let g0 = &frames.groups[0];
+        let mut kernels: Vec<Kernel> = vec![(&p.rhs, g, g0)];
+        kernels.extend(Self::per_chunk(&p.precond, g, frames));
+        kernels.extend(Self::per_chunk(&p.coarse_e, g, frames));
+        kernels.push((&p.coarse_e_sum, 1, g0));
+        Self::pass(&mut enc, "newton cg prepare", &kernels);
+        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.check("preparing the device Newton CG")?;
+        self.prepared = Some(frames.id);
+        self.galerkin = Galerkin::OnDevice;
+        Ok(())
+    }
+
+    /// E of the last `prepare` read back and pseudo-inverted (once per `prepare`).
+    fn read_galerkin(&mut self) -> Result<(), GpuError> {
+        if let Galerkin::Read { .. } = self.galerkin {
+            return Ok(());
+        }
+        let d = self.dim;
+        let what = "reading back the coarse matrix E = ZᵀĤZ";
+        let bytes =
+            self.ctx
+                .download(&self.buf.scal, 8 * slot::E as u64, 8 * (d * d) as u64, what)?;
+        let mut e: Vec<f64> = bytes
+            .chunks_exact(8)
+            .map(|c| {
+                let mut w = [0u8; 8];
+                w.copy_from_slice(c);
+                f64::from_le_bytes(w)
+            })
+            .collect();
+        // As src/solve/coarse.rs: the mean of E and Eᵀ, then the pseudo-inverse.
+        for a in 0..d {
+            for b in 0..a {
+                let m = 0.5 * (e[a * d + b] + e[b * d + a]);
+                e[a * d + b] = m;
+                e[b * d + a] = m;
+            }
+        }
+        let einv = crate::solve::coarse::pseudo_inverse(d, &e);
+        self.galerkin = Galerkin::Read { e, einv };
+        Ok(())
+    }
+
+    /// E = ZᵀĤZ of the translations (D², row-major, symmetrized) and its pseudo-inverse
+    /// (`None`: no correction) as the last `iterate` with the coarse correction read them;
+    /// `None` before one. For tests and diagnostics.
+    pub fn coarse_matrix(&self) -> Option<(&[f64], Option<&[f64]>)> {
+        match &self.galerkin {
+            Galerkin::Read { e, einv } => Some((e, einv.as_deref())),
+            Galerkin::OnDevice => None,
+        }
+    }
+
+    /// Records the status copies (`scal`, `state` into `status`) after the work of `enc`,
+    /// submits, and reads the 96 status bytes back (one wait).
+    fn submit_and_read(
+        &self,
+        mut enc: wgpu::CommandEncoder,
+        what: &str,
+    ) -> Result<Status, GpuError> {
+        let sb = 8 * slot::STATUS_SCAL as u64;
+        enc.copy_buffer_to_buffer(&self.buf.scal, 0, &self.buf.status, 0, sb);
+        enc.copy_buffer_to_buffer(
+            &self.buf.state,
+            0,
+            &self.buf.status,
+            sb,
+            4 * slot::STATE_LEN as u64,
+        );
+        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.check(what)?;
+        let bytes = self.ctx.download(&self.buf.status, 0, STATUS_BYTES, what)?;
+        let f = |k: u32| {
+            let o = 8 * k as usize;
+            let mut w = [0u8; 8];
+            w.copy_from_slice(&bytes[o..o + 8]);
+            f64::from_le_bytes(w)
+        };
+        let u = |k: u32| {
+            let o = sb as usize + 4 * k as usize;
+            let mut w = [0u8; 4];
+            w.copy_from_slice(&bytes[o..o + 4]);
+            u32::from_le_bytes(w)
+        };
+        Ok(Status {
+            rr: f(slot::RR),
+            pq: f(slot::PQ),
+            bb: f(slot::BB),
+            iterations: u(slot::ITERS) as usize,
+            converged: u(slot::CONVERGED) != 0,
+            halt: u(slot::HALT) != 0,
+            breakdown: u(slot::BREAKDOWN) != 0,
+        })
+    }
+
+    /// Clears the four stop flags (the iteration count stays): the next CG dispatches run.
+    fn clear_flags(&self) {
+        self.ctx.write_buffer(&self.buf.state, 0, &[0u8; 16]);
+    }
+
+    /// The errors a status can carry: a non-finite value, or non-positive curvature
+    /// (met in the α of the iteration after the ones counted).
+    fn status_error(st: &Status) -> Result<(), GpuError> {
+        if st.breakdown {
+            return Err(CgError::Breakdown {
+                iteration: st.iterations,
+            }
+            .into());
+        }
+        if st.halt {
+            return Err(CgError::NonPositiveCurvature {
+                iteration: st.iterations + 1,
+                curvature: st.pq,
+            }
+            .into());
+        }
+        Ok(())
+    }
+
+    /// CG from y = 0 on the b̂ and preconditioner of the last [`DeviceCg::prepare`] with
+    /// these frames, until the true residual ‖b̂ − Ĥy‖/‖b̂‖ ≤ tol, then Δx = V P y into
+    /// [`DeviceCg::dx_buffer`].
+    ///
+    /// The recurrence residual decides when to look: once it meets the tolerance, the true
+    /// residual is computed in f64 on the device (q = Ĥy, r = b̂ − q); if it misses, CG
+    /// restarts from y with that residual. Iterations are recorded in chunks, one status
+    /// read-back each (the first chunk 8 iterations, then as many as the residual's rate of
+    /// fall predicts, at most double the last and 256).
+    pub fn iterate(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+    ) -> Result<DeviceCgInfo, GpuError> {
+        self.own(frames)?;
+        if self.prepared != Some(frames.id) {
+            return Err(GpuError::Mismatch(
+                "the device CG was not prepared with these frames (call prepare first)".into(),
+            ));
+        }
+        let tol = params.tol;
+        // Written to reject NaN too.
+        if !(tol > 0.0 && tol.is_finite()) {
+            return Err(GpuError::Unsupported(format!(
+                "the CG tolerance must be positive and finite, not {tol}"
+            )));
+        }
+        let max = params.max_iterations;
+        let pre = match params.preconditioner {
+            Preconditioner::None => 0,
+            Preconditioner::Jacobi => 1,
+            Preconditioner::BlockJacobi => 2,
+        };
+        let co = match params.coarse {
+            CoarseSpace::None => 0,
+            CoarseSpace::Translations => 1,
+            CoarseSpace::Aggregates => {
+                return Err(GpuError::Unsupported(
+                    "the device Newton CG's coarse space is none or translations, not \
+                     aggregates"
+                        .into(),
+                ))
+            }
+        };
+        let g = self.groups;
+        let tol2 = tol * tol;
+        // Every slot before E: the scalars, c and E⁺ (zero without the correction, or
+        // when every translation is constrained: then c = 0 and so is the correction).
+        let mut scal = [0.0f64; slot::E as usize];
+        scal[slot::TOL2 as usize] = tol2;
+        if co == 1 {
+            self.read_galerkin()?;
+            if let Galerkin::Read {
+                einv: Some(einv), ..
+            } = &self.galerkin
+            {
+                let at = slot::EINV as usize;
+                scal[at..at + einv.len()].copy_from_slice(einv);
+            }
+        }
+        self.ctx
+            .write_buffer(&self.buf.scal, 0, bytemuck::cast_slice(&scal));
+        self.ctx
+            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slot::STATE_LEN]);
+
+        // Start: y = 0, so q = Ĥy = 0 without a product.
+        let mut enc = self.encoder("newton cg start");
+        enc.clear_buffer(&self.buf.y, 0, None);
+        enc.clear_buffer(&self.buf.q, 0, None);
+        Self::pass(&mut enc, "newton cg start", &self.start(frames, pre, co));
+        let mut st = self.submit_and_read(enc, "starting the device Newton CG")?;
+        Self::status_error(&st)?;
+        let bb = st.bb;
+        let rhs_norm = bb.sqrt();
+        let relative = |rr: f64| {
+            if bb == 0.0 {
+                if rr == 0.0 {
+                    0.0
+                } else {
+                    1.0
+                }
+            } else {
+                rr.sqrt() / rhs_norm
+            }
+        };
+        // Each pass of this loop starts from a status whose r·r is the true residual.
+        loop {
+            let rel = relative(st.rr);
+            if rel <= tol {
+                break;
+            }
+            if st.iterations >= max {
+                return Err(CgError::MaxIterations {
+                    iterations: st.iterations,
+                    relative_residual: rel,
+                    tol,
+                }
+                .into());
+            }
+            if st.converged {
+                // The device's r·r ≤ tol²‖b̂‖² held where the host's quotient missed tol
+                // by rounding: go on iterating.
+                self.clear_flags();
+            }
+            self.chunks(frames, pre, co, max, tol2 * bb, &mut st)?;
+            // The true residual at y: q = Ĥy (y copied into p), r = b̂ − q, p = z.
+            self.clear_flags();
+            let mut enc = self.encoder("newton cg true residual");
+            enc.copy_buffer_to_buffer(&self.buf.y, 0, &self.buf.p, 0, None);
+            let mut kernels: Vec<Kernel> = Self::per_chunk(&self.pipes.matvec, g, frames).collect();
+            kernels.extend(self.start(frames, pre, co));
+            Self::pass(&mut enc, "newton cg true residual", &kernels);
+            st = self.submit_and_read(enc, "the device Newton CG's true residual")?;
+            Self::status_error(&st)?;
+        }
+        let mut enc = self.encoder("newton cg recovery");
+        Self::pass(
+            &mut enc,
+            "newton cg recovery",
+            &[(&self.pipes.recover, g, &frames.groups[0])],
+        );
+        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.check("recovering the device Newton step")?;
+        Ok(DeviceCgInfo {
+            iterations: st.iterations,
+            relative_residual: relative(st.rr),
+            rhs_norm,
+        })
+    }
+
+    /// The kernels of a (re)start from the q = Ĥy in `q`: r, z, p, ρ and the true r·r; with
+    /// the coarse correction `update_p` (β = 0) then completes p = z + Z E⁺Zᵀr.
+    fn start<'a>(&'a self, frames: &'a DeviceFrames, pre: usize, co: usize) -> Vec<Kernel<'a>> {
+        let p = &self.pipes;
+        let g0 = &frames.groups[0];
+        let mut k = vec![
+            (&p.init[co][pre], self.groups, g0),
+            (&p.scalar_start[co], 1, g0),
+        ];
+        if co == 1 {
+            k.push((&p.update_p[co], self.groups, g0));
+        }
+        k
+    }
+
+    /// CG iterations in chunks from the current state until the recurrence residual meets
+    /// `thresh` (on r·r) or `max` iterations are done in all; `st` is the last status.
+    fn chunks(
+        &self,
+        frames: &DeviceFrames,
+        pre: usize,
+        co: usize,
+        max: usize,
+        thresh: f64,
+        st: &mut Status,
+    ) -> Result<(), GpuError> {
+        let g = self.groups;
+        let mut k = FIRST_CHUNK;
+        // (iterations, ln r·r) at each status read of this run.
+        let mut hist: Vec<(usize, f64)> = Vec::new();
+        if st.rr > 0.0 && st.rr.is_finite() {
+            hist.push((st.iterations, st.rr.ln()));
+        }
+        loop {
+            let kk = k.min(max.saturating_sub(st.iterations));
+            if kk == 0 {
+                return Ok(());
+            }
+            let p = &self.pipes;
+            let g0 = &frames.groups[0];
+            let mut one: Vec<Kernel> = Self::per_chunk(&p.matvec, g, frames).collect();
+            one.extend([
+                (&p.scalar_alpha, 1, g0),
+                (&p.update_yr[co][pre], g, g0),
+                (&p.scalar_beta[co], 1, g0),
+                (&p.update_p[co], g, g0),
+            ]);
+            let kernels: Vec<Kernel> = (0..kk).flat_map(|_| one.iter().copied()).collect();
+            let mut enc = self.encoder("newton cg chunk");
+            Self::pass(&mut enc, "newton cg chunk", &kernels);
+            *st = self.submit_and_read(enc, "a device Newton CG chunk")?;
+            Self::status_error(st)?;
+            if st.converged {
+                return Ok(());
+            }
+            if st.rr > 0.0 && st.rr.is_finite() {
+                hist.push((st.iterations, st.rr.ln()));
+            }
+            k = next_chunk(&hist, thresh, kk);
+        }
+    }
+
+    /// [`DeviceCg::prepare`] then [`DeviceCg::iterate`]: Δx of the current assembly.
+    pub fn solve(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+    ) -> Result<DeviceCgInfo, GpuError> {
+        self.prepare(frames)?;
+        self.iterate(frames, params)
+    }
+}
+
+/// The next chunk: the iterations the fall of ln r·r since the run's first status read
+/// predicts to reach `thresh`, within [2, min(2·prev, MAX_CHUNK)]; doubling without a fall.
+fn next_chunk(hist: &[(usize, f64)], thresh: f64, prev: usize) -> usize {
+    let grow = (2 * prev).clamp(2, MAX_CHUNK);
+    let (Some(&(i0, l0)), Some(&(i1, l1))) = (hist.first(), hist.last()) else {
+        return grow;
+    };
+    let rate = if i1 > i0 {
+        (l0 - l1) / (i1 - i0) as f64
+    } else {
+        0.0
+    };
+    // Written to reject NaN too.
+    if !(rate > 0.0 && thresh > 0.0) {
+        return grow;
+    }
+    let need = ((l1 - thresh.ln()) / rate).ceil();
+    if !need.is_finite() {
+        return grow;
+    }
+    (need.max(0.0) as usize).clamp(2, grow)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn module() -> naga::Module {
+        let src = format!(
+            "{}{}",
+            kernels::prelude("f64", "f64", false),
+            NEWTON_CG.source
+        );
+        naga::front::wgsl::parse_str(&src)
+            .unwrap_or_else(|e| panic!("newton_cg.wgsl: {}", e.emit_to_string(&src)))
+    }
+
+    /// Bind group 0 is [`NEWTON_CG`]'s bindings in order with their access, the params
+    /// struct has Rust's size, and every slot constant has Rust's value.
+    #[test]
+    fn layout_params_and_slots_match_the_wgsl() {
+        let m = module();
+        kernels::check::bindings_match(&NEWTON_CG, &m);
+        let (_, ty) = m
+            .types
+            .iter()
+            .find(|(_, t)| t.name.as_deref() == Some("NewtonCgParams"))
+            .expect("struct NewtonCgParams");
+        match &ty.inner {
+            naga::TypeInner::Struct { span, .. } => {
+                assert_eq!(*span as usize, std::mem::size_of::<NewtonCgParams>())
+            }
+            other => panic!("NewtonCgParams is {other:?}"),
+        }
+        for (name, want) in slot::ALL {
+            let (_, c) = m
+                .constants
+                .iter()
+                .find(|(_, c)| c.name.as_deref() == Some(name))
+                .unwrap_or_else(|| panic!("no const {name}"));
+            match m.global_expressions[c.init] {
+                naga::Expression::Literal(naga::Literal::U32(v)) => assert_eq!(v, want, "{name}"),
+                ref e => panic!("{name} = {e:?}"),
+            }
+        }
+        for e in [
+            "rhs",
+            "precond",
+            "matvec",
+            "scalar_alpha",
+            "update_yr",
+            "scalar_beta",
+            "update_p",
+            "init",
+            "scalar_start",
+            "recover",
+            "coarse_e",
+            "coarse_e_sum",
+        ] {
+            assert!(
+                m.entry_points.iter().any(|p| p.name == e),
+                "no entry point {e}"
+            );
+        }
+    }
+
+    /// Chunks follow the predicted remaining iterations, within [2, 2·prev].
+    #[test]
+    fn chunks_follow_the_rate_of_fall() {
+        assert_eq!(next_chunk(&[], 1e-20, 8), 16);
+        // ln r·r falls by 0.5 per iteration from 0 at 0 to −4 at 8: 12 more to −10.
+        let h = [(0, 0.0), (8, -4.0)];
+        assert_eq!(next_chunk(&h, (-10.0f64).exp(), 8), 12);
+        assert_eq!(next_chunk(&h, (-100.0f64).exp(), 8), 16);
+        assert_eq!(next_chunk(&h, (-4.1f64).exp(), 8), 2);
+        // No fall: doubling.
+        assert_eq!(next_chunk(&[(0, 0.0), (8, 0.0)], 1e-20, 8), 16);
+    }
+}

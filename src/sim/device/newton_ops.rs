@@ -1,0 +1,1180 @@
+//! The device Newton loop's vector operations, reductions and per-node updates
+//! (shaders/newton_ops.wgsl): the device side of the CPU's `Stepper` (src/integrator.rs)
+//! around the element terms ([`GpuElements`]), their assembly ([`GpuAssembly`]) and the
+//! linear solve's Δx.
+//!
+//! [`NewtonOps`] owns the accepted iterate x, the start of step xⁿ and the velocity v;
+//! [`GpuElements::positions_buffer`] holds the point being evaluated (the iterate or a line
+//! search trial). Every method is a few dispatches; a scalar result comes back as a handful
+//! of bytes. Reductions are two-pass with a fixed number of workgroups and a fixed tree, so
+//! a result does not depend on timing: sums are the same bits on every run, and arg-mins
+//! break ties as the CPU's first strict minimum does (smallest node, then plane).
+//!
+//! f64 only: the loop compares energies to the Armijo condition, which f32 cannot resolve.
+
+#![cfg(feature = "sim")]
+
+use crate::gpu::kernels::{self, Access, Layout};
+use crate::gpu::{GpuContext, GpuError};
+use crate::sim::device::assembly::GpuAssembly;
+use crate::sim::device::elements::{from_bytes, to_bytes, usage_storage, GpuElements, TermKind};
+use crate::sim::energy::barrier::{Ccd, HalfSpace};
+use crate::sim::scene::{joint_targets, BcShape, Scene};
+
+use Access::{Read as R, ReadWrite as W, Uniform as U};
+
+/// Bind group 0 of shaders/newton_ops.wgsl, shared by all its entry points.
+pub const NEWTON_OPS: Layout = Layout {
+    file: "newton_ops.wgsl",
+    source: include_str!(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/shaders/newton_ops.wgsl"
+    )),
+    bindings: &[
+        ("params", U),
+        ("scal", R),
+        ("x", W),
+        ("xn", W),
+        ("v", W),
+        ("pos", W),
+        ("xt", W),
+        ("dx", R),
+        ("grad", W),
+        ("hvals", W),
+        ("src", R),
+        ("flags", R),
+        ("table", R),
+        ("index", R),
+        ("partials", W),
+        ("result", W),
+        ("node_vals", W),
+    ],
+};
+
+/// Uniform parameters of one dispatch (mirrors `OpsParams` in shaders/newton_ops.wgsl).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct OpsParams {
+    count: u32,
+    mode: u32,
+    slot: u32,
+    aux: u32,
+}
+const _: () = assert!(std::mem::size_of::<OpsParams>() == 16);
+
+/// Reduction modes (`MODE_*` in the shader).
+const MODE_ENERGY: u32 = 0;
+const MODE_DOT: u32 = 1;
+const MODE_MAX_ABS: u32 = 2;
+const MODE_CCD: u32 = 3;
+const MODE_MIN_DISTANCE: u32 = 4;
+const MODE_MOVING_ENERGY: u32 = 5;
+
+/// Slots of the scalar buffer (`S_*` in the shader); half-space j at S_PLANES + 4j.
+const S_H: usize = 0;
+const S_ALPHA: usize = 1;
+const S_FRACTION: usize = 2;
+const S_INF: usize = 3;
+const S_PLANES: usize = 4;
+
+/// Reals per static projection and per moving term, u32 per moving term (shader).
+const PROJ_STRIDE: usize = 12;
+const MOVING_STRIDE: usize = 12;
+const MOVING_INDEX_STRIDE: usize = 4;
+
+/// "No index" of an arg-min (`NO_INDEX` in the shader).
+const NO_INDEX: f64 = 4503599627370496.0;
+
+/// Workgroup size of every kernel here.
+const WG: u32 = 64;
+
+/// Upper bound of the reduction workgroups.
+const MAX_REDUCE_GROUPS: usize = 64;
+
+/// Entry points, in the order of [`Entry`].
+const ENTRIES: [&str; 8] = [
+    "begin_step",
+    "project_static",
+    "trial",
+    "end_step",
+    "gather_nodes",
+    "add_moving",
+    "reduce",
+    "finish",
+];
+
+#[derive(Clone, Copy)]
+enum Entry {
+    BeginStep = 0,
+    ProjectStatic = 1,
+    Trial = 2,
+    EndStep = 3,
+    GatherNodes = 4,
+    AddMoving = 5,
+    Reduce = 6,
+    Finish = 7,
+}
+
+/// One unsnapped moving node's penalty: ½ k_M m ‖r‖² − √m λ·r with r the node's offset
+/// from `shape` (the target set at the end of the step; slip: along the normal
+/// directions only), as the CPU's `Stepper` (integrator `offset`, `projector`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct MovingTerm {
+    pub node: usize,
+    pub shape: BcShape,
+    /// k_M · m of the node.
+    pub coef: f64,
+    /// √m · λ, the node's augmented-Lagrangian multiplier scaled by √m.
+    pub sqrt_m_lambda: [f64; 3],
+}
+
+/// A node's static projection x_i ↦ P x_i + c (P row-major 3×3, its d×d corner used).
+pub type StaticProjection = (usize, [f64; 9], [f64; 3]);
+
+/// The static projections of a scene's start of step, as `Stepper` applies them: a node
+/// with one static condition onto its set (sticky: P = 0, c = anchor; plane: P = I − nnᵀ,
+/// c = (offset) n; line: P = ttᵀ, c = p − ttᵀp), a node with several onto their
+/// intersection (`JointTarget`: P = Σ f fᵀ over its free directions, c = point − P point).
+pub fn static_projections(scene: &Scene) -> Result<Vec<StaticProjection>, String> {
+    let d = scene.dim;
+    let joint = joint_targets(d, &scene.x0, &scene.bcs, scene.characteristic_length)
+        .map_err(|e| format!("{}: {}", e.label, e.problem))?;
+    let mut is_joint = vec![false; scene.model.n_nodes];
+    for j in &joint {
+        is_joint[j.node] = true;
+    }
+    let mut out = Vec::new();
+    for b in scene
+        .bcs
+        .iter()
+        .filter(|b| b.motion.is_none() && !is_joint[b.node])
+    {
+        let (mut p, mut c) = ([0.0; 9], [0.0; 3]);
+        match &b.shape {
+            BcShape::Sticky { anchor } => c = *anchor,
+            BcShape::Plane { normal, offset } => {
+                for a in 0..3 {
+                    for k in 0..3 {
+                        p[a * 3 + k] = if a == k { 1.0 } else { 0.0 } - normal[a] * normal[k];
+                    }
+                    c[a] = offset * normal[a];
+                }
+            }
+            BcShape::Line { point, direction } => {
+                for a in 0..3 {
+                    for k in 0..3 {
+                        p[a * 3 + k] = direction[a] * direction[k];
+                    }
+                }
+                for a in 0..3 {
+                    c[a] = point[a] - (0..3).map(|k| p[a * 3 + k] * point[k]).sum::<f64>();
+                }
+            }
+        }
+        out.push((b.node, p, c));
+    }
+    for j in &joint {
+        let mut p = [0.0; 9];
+        for f in &j.free {
+            for a in 0..3 {
+                for k in 0..3 {
+                    p[a * 3 + k] += f[a] * f[k];
+                }
+            }
+        }
+        let mut c = [0.0; 3];
+        for a in 0..3 {
+            c[a] = j.point[a] - (0..3).map(|k| p[a * 3 + k] * j.point[k]).sum::<f64>();
+        }
+        out.push((j.node, p, c));
+    }
+    Ok(out)
+}
+
+/// One dispatch built once: pipeline, params and bind group.
+struct Op {
+    entry: Entry,
+    params: wgpu::Buffer,
+    group: wgpu::BindGroup,
+}
+
+/// A storage buffer that grows (and makes its users' bind groups be rebuilt) on demand.
+struct Table {
+    buf: wgpu::Buffer,
+    bytes: u64,
+}
+
+/// The device Newton loop's state vectors and operations for one scene (see the module
+/// documentation).
+pub struct NewtonOps {
+    ctx: GpuContext,
+    dim: usize,
+    n_nodes: usize,
+    n_planes: usize,
+    kinds: Vec<TermKind>,
+    /// Per element term: item count.
+    term_counts: Vec<usize>,
+    /// Diagonal block of every node in the assembled pattern.
+    /// Per node: its diagonal block as (values chunk, block within the chunk).
+    diag: Vec<(u32, u32)>,
+    pipelines: Vec<wgpu::ComputePipeline>,
+    /// Reduction workgroups (fixed: the sums' order depends on it).
+    groups: usize,
+    /// The bind group layout and the buffers every op binds.
+    binder: Binder,
+    begin: Op,
+    trial: Op,
+    end: Op,
+    /// Per term: its energy reduction; then the finish of them all.
+    energy: Vec<Op>,
+    energy_finish: Op,
+    dot: (Op, Op),
+    max_abs: (Op, Op),
+    ccd: (Op, Op),
+    min_distance: (Op, Op),
+    /// Static projections (entries, their op); moving terms (terms, ops: add, reduce,
+    /// finish); node lists (capacity in nodes, table, op).
+    proj: Option<(usize, Table, Table, Op)>,
+    /// Moving terms: count, tables, the H/g update per values chunk, energy ops.
+    moving: Option<(usize, Table, Table, Vec<Op>, Op, Op)>,
+    nodes: Option<(usize, Table, Table, Op)>,
+}
+
+/// Builds ops: the layout and the buffers every bind group shares (own state, the
+/// element terms' positions and target, Δx, the assembly's gradient and blocks).
+struct Binder {
+    ctx: GpuContext,
+    layout: wgpu::BindGroupLayout,
+    scal: wgpu::Buffer,
+    x: wgpu::Buffer,
+    xn: wgpu::Buffer,
+    v: wgpu::Buffer,
+    pos: wgpu::Buffer,
+    xt: wgpu::Buffer,
+    dx: wgpu::Buffer,
+    grad: wgpu::Buffer,
+    /// H's values chunks ([`GpuAssembly::values_chunks`]); ops bind the first unless
+    /// they name another.
+    hvals: Vec<wgpu::Buffer>,
+    partials: wgpu::Buffer,
+    result: wgpu::Buffer,
+    dummies: Dummies,
+}
+
+impl Binder {
+    fn op(&self, label: &str, entry: Entry, p: OpsParams, var: Varying) -> Op {
+        let params = self.ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(&format!("newton {label} params")),
+            contents: bytemuck::bytes_of(&p),
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        });
+        let dm = &self.dummies;
+        let bufs: [&wgpu::Buffer; 17] = [
+            &params,
+            &self.scal,
+            &self.x,
+            &self.xn,
+            &self.v,
+            &self.pos,
+            &self.xt,
+            &self.dx,
+            &self.grad,
+            var.hvals.unwrap_or(&self.hvals[0]),
+            var.src.unwrap_or(&dm.src),
+            var.flags.unwrap_or(&dm.flags),
+            var.table.unwrap_or(&dm.table),
+            var.index.unwrap_or(&dm.index),
+            &self.partials,
+            &self.result,
+            var.node_vals.unwrap_or(&dm.node_vals),
+        ];
+        let entries: Vec<wgpu::BindGroupEntry> = bufs
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        let group = self
+            .ctx
+            .device
+            .create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(&format!("newton {label} bind group")),
+                layout: &self.layout,
+                entries: &entries,
+            });
+        Op {
+            entry,
+            params,
+            group,
+        }
+    }
+}
+
+/// Stand-ins for the bindings an op does not use (one each, so that no buffer is bound
+/// both read-only and writable).
+struct Dummies {
+    src: wgpu::Buffer,
+    flags: wgpu::Buffer,
+    table: wgpu::Buffer,
+    index: wgpu::Buffer,
+    node_vals: wgpu::Buffer,
+}
+
+/// What an op binds besides the shared buffers.
+#[derive(Default, Clone, Copy)]
+struct Varying<'a> {
+    src: Option<&'a wgpu::Buffer>,
+    flags: Option<&'a wgpu::Buffer>,
+    table: Option<&'a wgpu::Buffer>,
+    index: Option<&'a wgpu::Buffer>,
+    node_vals: Option<&'a wgpu::Buffer>,
+    hvals: Option<&'a wgpu::Buffer>,
+}
+
+fn slot_count(terms: usize) -> usize {
+    terms + 5
+}
+
+impl NewtonOps {
+    /// Builds the pipelines, state buffers and bind groups for the terms of `elements`,
+    /// their assembly `asm` and the direction buffer `dx` (n·d f64, world frame).
+    pub fn new(
+        elements: &GpuElements,
+        asm: &GpuAssembly,
+        dx: &wgpu::Buffer,
+    ) -> Result<Self, GpuError> {
+        let ctx = elements.context().clone();
+        if !elements.kernels().is_f64() {
+            return Err(GpuError::Unsupported(
+                "the device Newton loop runs in f64 only (its line search compares energies that f32 cannot resolve)".into(),
+            ));
+        }
+        let d = elements.kernels().dim();
+        let n = elements.n_nodes();
+        let nd = (n * d) as u64;
+        if dx.size() < nd * 8 {
+            return Err(GpuError::Mismatch(format!(
+                "the direction buffer has {} bytes, the mesh needs {}",
+                dx.size(),
+                nd * 8
+            )));
+        }
+        let (row_ptr, col_idx) = asm.pattern();
+        if row_ptr.len() != n + 1 {
+            return Err(GpuError::Mismatch(format!(
+                "the assembly has {} nodes, the element terms {n}",
+                row_ptr.len().saturating_sub(1)
+            )));
+        }
+        let diag: Vec<usize> = (0..n)
+            .map(|i| {
+                (row_ptr[i]..row_ptr[i + 1])
+                    .find(|&k| col_idx[k] == i)
+                    .ok_or_else(|| GpuError::Mismatch(format!("node {i} has no diagonal block")))
+            })
+            .collect::<Result<_, _>>()?;
+        // Each node's diagonal block as (values chunk, block within it): the moving
+        // penalty writes it in its chunk's buffer.
+        let diag: Vec<(u32, u32)> = diag
+            .iter()
+            .map(|&k| {
+                asm.values_chunks()
+                    .iter()
+                    .position(|c| c.blocks.contains(&k))
+                    .map(|c| (c as u32, (k - asm.values_chunks()[c].blocks.start) as u32))
+                    .ok_or_else(|| GpuError::Mismatch(format!("block {k} in no values chunk")))
+            })
+            .collect::<Result<_, _>>()?;
+        let dev = &ctx.device;
+        let module = NEWTON_OPS.module(dev, "f64", "f64", false);
+        let (layout, pl) = NEWTON_OPS.layouts(dev, "newton ops");
+        let constants = [("D", d as f64), ("WG", WG as f64)];
+        let pipelines: Vec<_> = ENTRIES
+            .iter()
+            .map(|e| {
+                let label = format!("newton ops {e} ({d}D)");
+                kernels::pipeline(dev, &pl, &module, e, &label, &constants)
+            })
+            .collect();
+        let kinds = elements.kinds();
+        let t = kinds.len();
+        let groups = ctx
+            .workgroups(None)
+            .min(MAX_REDUCE_GROUPS)
+            .min(n.max(1).div_ceil(WG as usize))
+            .max(1);
+        let zeroed = |label: &str, bytes: u64| -> Result<wgpu::Buffer, GpuError> {
+            let bytes = bytes.max(16).div_ceil(16) * 16;
+            let l = &ctx.limits;
+            let limit = l.max_buffer_size.min(l.max_storage_buffer_binding_size);
+            if bytes > limit {
+                return Err(GpuError::BufferTooLarge {
+                    label: label.to_string(),
+                    bytes,
+                    limit,
+                    what: "storage binding",
+                    adapter: ctx.adapter_name().to_string(),
+                });
+            }
+            Ok(dev.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: bytes,
+                usage: usage_storage(),
+                mapped_at_creation: false,
+            }))
+        };
+        let x = zeroed("newton x", nd * 8)?;
+        let xn = zeroed("newton xn", nd * 8)?;
+        let v = zeroed("newton v", nd * 8)?;
+        let n_planes = elements.n_planes();
+        let mut scal_init = vec![0.0; S_PLANES + 4 * n_planes.max(1)];
+        scal_init[S_INF] = f64::INFINITY;
+        let scal = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("newton scalars"),
+            contents: &to_bytes(true, &scal_init),
+            usage: usage_storage(),
+        });
+        let slots = slot_count(t) as u64;
+        let partials = zeroed("newton partial reductions", slots * groups as u64 * 32)?;
+        let result = zeroed("newton reductions", slots * 32)?;
+        let dummies = Dummies {
+            src: zeroed("newton unused energies", 16)?,
+            flags: zeroed("newton unused flags", 16)?,
+            table: zeroed("newton unused table", 16)?,
+            index: zeroed("newton unused index", 16)?,
+            node_vals: zeroed("newton unused node values", 16)?,
+        };
+        let binder = Binder {
+            ctx: ctx.clone(),
+            layout,
+            scal,
+            x,
+            xn,
+            v,
+            pos: elements.positions_buffer().clone(),
+            xt: elements.inertia_target_buffer().clone(),
+            dx: dx.clone(),
+            grad: asm.gradient_buffer().clone(),
+            hvals: asm
+                .values_chunks()
+                .iter()
+                .map(|c| c.buffer.clone())
+                .collect(),
+            partials,
+            result,
+            dummies,
+        };
+        let ndof = n * d;
+        let p = |count: usize, mode: u32, slot: usize, aux: u32| OpsParams {
+            count: count as u32,
+            mode,
+            slot: slot as u32,
+            aux,
+        };
+        let b = &binder;
+        let none = Varying::default();
+        let begin = b.op("begin step", Entry::BeginStep, p(ndof, 0, 0, 0), none);
+        let trial = b.op("trial", Entry::Trial, p(ndof, 0, 0, 0), none);
+        let end = b.op("end step", Entry::EndStep, p(ndof, 0, 0, 0), none);
+        let mut energy = Vec::with_capacity(t);
+        let mut term_counts = Vec::with_capacity(t);
+        for k in 0..t {
+            let (buf, count, flags) = elements
+                .term_energy(k)
+                .ok_or_else(|| GpuError::Mismatch(format!("no element term {k}")))?;
+            term_counts.push(count);
+            energy.push(b.op(
+                &format!("energy of term {k}"),
+                Entry::Reduce,
+                p(count, MODE_ENERGY, k, flags.is_some() as u32),
+                Varying {
+                    src: Some(buf),
+                    flags,
+                    ..none
+                },
+            ));
+        }
+        let energy_finish = b.op(
+            "energy finish",
+            Entry::Finish,
+            p(groups, MODE_ENERGY, 0, 0),
+            none,
+        );
+        let pair = |name: &str, count: usize, mode: u32, slot: usize, aux: u32| {
+            (
+                b.op(name, Entry::Reduce, p(count, mode, slot, aux), none),
+                b.op(
+                    &format!("{name} finish"),
+                    Entry::Finish,
+                    p(groups, mode, slot, 0),
+                    none,
+                ),
+            )
+        };
+        let dot = pair("g·dx", ndof, MODE_DOT, t, 0);
+        let max_abs = pair("max |dx|", ndof, MODE_MAX_ABS, t + 1, 0);
+        let ccd = pair("ccd", n, MODE_CCD, t + 2, n_planes as u32);
+        let min_distance = pair("min distance", n, MODE_MIN_DISTANCE, t + 3, n_planes as u32);
+        ctx.check("building the Newton operations")?;
+        Ok(NewtonOps {
+            ctx,
+            dim: d,
+            n_nodes: n,
+            n_planes,
+            kinds,
+            term_counts,
+            diag,
+            pipelines,
+            groups,
+            binder,
+            begin,
+            trial,
+            end,
+            energy,
+            energy_finish,
+            dot,
+            max_abs,
+            ccd,
+            min_distance,
+            proj: None,
+            moving: None,
+            nodes: None,
+        })
+    }
+
+    fn op(&self, label: &str, entry: Entry, p: OpsParams, var: Varying) -> Op {
+        self.binder.op(label, entry, p, var)
+    }
+
+    fn set_params(&self, op: &Op, p: OpsParams) {
+        self.ctx.write_buffer(&op.params, 0, bytemuck::bytes_of(&p));
+    }
+
+    /// Records `ops` (with their workgroup counts) in one compute pass, then `after`
+    /// (copies), and submits.
+    fn run(
+        &self,
+        label: &str,
+        ops: &[(&Op, usize)],
+        after: impl FnOnce(&mut wgpu::CommandEncoder),
+    ) -> Result<(), GpuError> {
+        let max_groups = self.ctx.limits.max_compute_workgroups_per_dimension.max(1) as usize;
+        let mut enc = self
+            .ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) });
+        {
+            let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(label),
+                timestamp_writes: None,
+            });
+            for (op, groups) in ops.iter().filter(|(_, g)| *g > 0) {
+                cp.set_pipeline(&self.pipelines[op.entry as usize]);
+                cp.set_bind_group(0, &op.group, &[]);
+                cp.dispatch_workgroups((*groups).min(max_groups) as u32, 1, 1);
+            }
+        }
+        after(&mut enc);
+        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.check(label)
+    }
+
+    /// Workgroups of a grid-stride kernel over `count` items.
+    fn grid(count: usize) -> usize {
+        count.div_ceil(WG as usize)
+    }
+
+    fn nd_bytes(&self) -> u64 {
+        (self.n_nodes * self.dim) as u64 * 8
+    }
+
+    fn check_len(&self, what: &str, v: &[f64]) -> Result<(), GpuError> {
+        let want = self.n_nodes * self.dim;
+        if v.len() != want {
+            return Err(GpuError::Mismatch(format!(
+                "{what} has {} entries, the mesh {want}",
+                v.len()
+            )));
+        }
+        Ok(())
+    }
+
+    fn write_scalars(&self, slot: usize, v: &[f64]) {
+        self.ctx
+            .write_buffer(&self.binder.scal, slot as u64 * 8, &to_bytes(true, v));
+    }
+
+    fn read_result(&self, slot: usize, lanes: usize) -> Result<Vec<f64>, GpuError> {
+        let b = self.ctx.download(
+            &self.binder.result,
+            slot as u64 * 32,
+            lanes as u64 * 8,
+            "reading a Newton reduction",
+        )?;
+        Ok(from_bytes(true, &b))
+    }
+
+    /// The state x, v (node-major; full upload at the start of a run); the evaluation
+    /// positions become x.
+    pub fn set_state(&self, x: &[f64], v: &[f64]) -> Result<(), GpuError> {
+        self.check_len("the positions", x)?;
+        self.check_len("the velocities", v)?;
+        self.ctx.write_buffer(&self.binder.x, 0, &to_bytes(true, x));
+        self.ctx.write_buffer(&self.binder.v, 0, &to_bytes(true, v));
+        let nb = self.nd_bytes();
+        self.run("newton set state", &[], |enc| {
+            enc.copy_buffer_to_buffer(&self.binder.x, 0, &self.binder.pos, 0, nb)
+        })
+    }
+
+    /// The state x, v (full download, for output).
+    pub fn read_state(&self) -> Result<(Vec<f64>, Vec<f64>), GpuError> {
+        let nb = self.nd_bytes();
+        let x = self
+            .ctx
+            .download(&self.binder.x, 0, nb, "reading the positions")?;
+        let v = self
+            .ctx
+            .download(&self.binder.v, 0, nb, "reading the velocities")?;
+        Ok((from_bytes(true, &x), from_bytes(true, &v)))
+    }
+
+    /// The static projections applied by [`NewtonOps::begin_step`] (uploaded once; each
+    /// node at most once).
+    pub fn set_static_projections(&mut self, proj: &[StaticProjection]) -> Result<(), GpuError> {
+        let nodes = self.node_indices(proj.iter().map(|p| p.0), "static projection")?;
+        let mut table = Vec::with_capacity(proj.len() * PROJ_STRIDE);
+        for (_, p, c) in proj {
+            table.extend_from_slice(p);
+            table.extend_from_slice(c);
+        }
+        let values = self.table("newton static projections", &to_bytes(true, &table))?;
+        let index = self.table(
+            "newton static projection nodes",
+            bytemuck::cast_slice(&nodes),
+        )?;
+        let op = self.op(
+            "static projection",
+            Entry::ProjectStatic,
+            OpsParams {
+                count: proj.len() as u32,
+                ..OpsParams::default()
+            },
+            Varying {
+                table: Some(&values.buf),
+                index: Some(&index.buf),
+                ..Varying::default()
+            },
+        );
+        self.proj = Some((proj.len(), values, index, op));
+        Ok(())
+    }
+
+    /// Node indices as u32, each in range and listed once.
+    fn node_indices(
+        &self,
+        nodes: impl Iterator<Item = usize>,
+        what: &str,
+    ) -> Result<Vec<u32>, GpuError> {
+        let mut seen = vec![false; self.n_nodes];
+        nodes
+            .map(|i| {
+                if i >= self.n_nodes {
+                    return Err(GpuError::Mismatch(format!(
+                        "{what} of node {i}, the mesh has {}",
+                        self.n_nodes
+                    )));
+                }
+                if std::mem::replace(&mut seen[i], true) {
+                    return Err(GpuError::Mismatch(format!("{what}: node {i} listed twice")));
+                }
+                Ok(i as u32)
+            })
+            .collect()
+    }
+
+    /// A storage buffer holding `data` (padded to 16 bytes).
+    fn table(&self, label: &str, data: &[u8]) -> Result<Table, GpuError> {
+        let mut padded = data.to_vec();
+        padded.resize(data.len().max(16).div_ceil(16) * 16, 0);
+        let limit = self
+            .ctx
+            .limits
+            .max_buffer_size
+            .min(self.ctx.limits.max_storage_buffer_binding_size);
+        if padded.len() as u64 > limit {
+            return Err(GpuError::BufferTooLarge {
+                label: label.to_string(),
+                bytes: padded.len() as u64,
+                limit,
+                what: "storage binding",
+                adapter: self.ctx.adapter_name().to_string(),
+            });
+        }
+        let buf = self.ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents: &padded,
+            usage: usage_storage(),
+        });
+        Ok(Table {
+            bytes: padded.len() as u64,
+            buf,
+        })
+    }
+
+    /// Start of step: x̃ = x + h v and xⁿ = x from the unprojected x (the CPU's
+    /// `start_of_step`), then the static projections on x, then the evaluation positions
+    /// = x.
+    pub fn begin_step(&self, h: f64) -> Result<(), GpuError> {
+        self.write_scalars(S_H, &[h]);
+        let nd = self.n_nodes * self.dim;
+        let mut ops = vec![(&self.begin, Self::grid(nd))];
+        if let Some((count, _, _, op)) = &self.proj {
+            ops.push((op, Self::grid(*count)));
+        }
+        let nb = self.nd_bytes();
+        self.run("newton begin step", &ops, |enc| {
+            enc.copy_buffer_to_buffer(&self.binder.x, 0, &self.binder.pos, 0, nb)
+        })
+    }
+
+    /// Per element term (in [`GpuElements::kinds`] order), the sum of its per-item
+    /// energies at the evaluation positions after [`GpuElements::evaluate_energy`] (or
+    /// `evaluate`); +∞ for the barrier when a weighted node touches or crosses a plane.
+    /// Unscaled: the caller applies h².
+    pub fn energy_terms(&self) -> Result<Vec<f64>, GpuError> {
+        let t = self.energy.len();
+        let mut ops: Vec<(&Op, usize)> = self.energy.iter().map(|o| (o, self.groups)).collect();
+        ops.push((&self.energy_finish, t));
+        self.run("newton energy terms", &ops, |_| {})?;
+        let r = self.read_result(0, 4 * t)?;
+        Ok((0..t)
+            .map(|k| {
+                if r[4 * k + 1] > 0.0 {
+                    f64::INFINITY
+                } else {
+                    r[4 * k]
+                }
+            })
+            .collect())
+    }
+
+    /// The element terms, as [`GpuElements::kinds`].
+    pub fn kinds(&self) -> &[TermKind] {
+        &self.kinds
+    }
+
+    fn reduce_pair(&self, label: &str, pair: &(Op, Op)) -> Result<(), GpuError> {
+        self.run(label, &[(&pair.0, self.groups), (&pair.1, 1)], |_| {})
+    }
+
+    /// g·Δx with g the assembled gradient.
+    pub fn dot_gradient_dx(&self) -> Result<f64, GpuError> {
+        self.reduce_pair("newton g·dx", &self.dot)?;
+        Ok(self.read_result(slot_count(self.energy.len()) - 5, 1)?[0])
+    }
+
+    /// ‖Δx‖∞; NaN when an entry is NaN (where the CPU's `f64::max` fold would skip it,
+    /// a device loop must not).
+    pub fn max_abs_dx(&self) -> Result<f64, GpuError> {
+        self.reduce_pair("newton max |dx|", &self.max_abs)?;
+        let r = self.read_result(slot_count(self.energy.len()) - 4, 2)?;
+        Ok(if r[1] > 0.0 { f64::NAN } else { r[0] })
+    }
+
+    /// Evaluation positions = x + α Δx.
+    pub fn set_trial(&self, alpha: f64) -> Result<(), GpuError> {
+        self.write_scalars(S_ALPHA, &[alpha]);
+        let nd = self.n_nodes * self.dim;
+        self.run("newton trial", &[(&self.trial, Self::grid(nd))], |_| {})
+    }
+
+    /// x = the evaluation positions.
+    pub fn accept(&self) -> Result<(), GpuError> {
+        let nb = self.nd_bytes();
+        self.run("newton accept", &[], |enc| {
+            enc.copy_buffer_to_buffer(&self.binder.pos, 0, &self.binder.x, 0, nb)
+        })
+    }
+
+    /// End of step: v = (x − xⁿ)/h.
+    pub fn end_step(&self, h: f64) -> Result<(), GpuError> {
+        self.write_scalars(S_H, &[h]);
+        let nd = self.n_nodes * self.dim;
+        self.run("newton end step", &[(&self.end, Self::grid(nd))], |_| {})
+    }
+
+    /// The assembled gradient (full download, for the reactions at the end of a step).
+    pub fn read_gradient(&self) -> Result<Vec<f64>, GpuError> {
+        let b = self.ctx.download(
+            &self.binder.grad,
+            0,
+            self.nd_bytes(),
+            "reading the gradient",
+        )?;
+        Ok(from_bytes(true, &b))
+    }
+
+    fn write_planes(
+        &self,
+        planes: &[HalfSpace],
+        op: &Op,
+        mode: u32,
+        slot: usize,
+    ) -> Result<(), GpuError> {
+        if planes.len() > self.n_planes.max(1) || (self.n_planes == 0 && !planes.is_empty()) {
+            return Err(GpuError::Mismatch(format!(
+                "{} half-spaces given, the element terms were built with {}",
+                planes.len(),
+                self.n_planes
+            )));
+        }
+        let v: Vec<f64> = planes
+            .iter()
+            .flat_map(|p| [p.normal[0], p.normal[1], p.normal[2], p.offset])
+            .collect();
+        self.write_scalars(S_PLANES, &v);
+        self.set_params(
+            op,
+            OpsParams {
+                count: self.n_nodes as u32,
+                mode,
+                slot: slot as u32,
+                aux: planes.len() as u32,
+            },
+        );
+        Ok(())
+    }
+
+    /// The CCD bound of the step Δx from x against `planes`, as `Barrier::ccd` (every
+    /// node, weighted or not; the limiting (node, plane) is the first strict minimum in
+    /// node-then-plane order).
+    pub fn ccd(&self, planes: &[HalfSpace], fraction: f64) -> Result<Ccd, GpuError> {
+        let slot = slot_count(self.energy.len()) - 3;
+        self.write_planes(planes, &self.ccd.0, MODE_CCD, slot)?;
+        self.write_scalars(S_FRACTION, &[fraction]);
+        self.reduce_pair("newton ccd", &self.ccd)?;
+        let r = self.read_result(slot, 2)?;
+        let limit = (r[1] < NO_INDEX).then(|| {
+            let k = r[1] as usize;
+            (k / planes.len(), k % planes.len())
+        });
+        Ok(Ccd {
+            alpha: r[0].max(0.0),
+            limit,
+        })
+    }
+
+    /// The smallest signed distance of any node to any plane at x, with (node, plane), as
+    /// `Barrier::min_distance`: the first NaN distance (in node-then-plane order) when
+    /// there is one, (+∞, 0, 0) when there is no finite one.
+    pub fn min_distance(&self, planes: &[HalfSpace]) -> Result<(f64, usize, usize), GpuError> {
+        let slot = slot_count(self.energy.len()) - 2;
+        self.write_planes(planes, &self.min_distance.0, MODE_MIN_DISTANCE, slot)?;
+        self.reduce_pair("newton min distance", &self.min_distance)?;
+        let r = self.read_result(slot, 3)?;
+        let split = |k: f64| {
+            let k = k as usize;
+            (k / planes.len(), k % planes.len())
+        };
+        Ok(if r[2] < NO_INDEX {
+            let (i, j) = split(r[2]);
+            (f64::NAN, i, j)
+        } else if r[1] < NO_INDEX {
+            let (i, j) = split(r[1]);
+            (r[0], i, j)
+        } else {
+            (f64::INFINITY, 0, 0)
+        })
+    }
+
+    /// The unsnapped moving nodes' penalty terms (each node at most once); an empty list
+    /// removes them.
+    pub fn set_moving(&mut self, terms: &[MovingTerm]) -> Result<(), GpuError> {
+        let nodes = self.node_indices(terms.iter().map(|t| t.node), "moving term")?;
+        let mut table = Vec::with_capacity(terms.len() * MOVING_STRIDE);
+        let mut index = Vec::with_capacity(terms.len() * MOVING_INDEX_STRIDE);
+        for (t, &node) in terms.iter().zip(&nodes) {
+            let (kind, a, off, dir) = match &t.shape {
+                BcShape::Sticky { anchor } => (0u32, *anchor, 0.0, [0.0; 3]),
+                BcShape::Plane { normal, offset } => (1, *normal, *offset, [0.0; 3]),
+                BcShape::Line { point, direction } => (2, *point, 0.0, *direction),
+            };
+            table.extend_from_slice(&a);
+            table.push(off);
+            table.extend_from_slice(&dir);
+            table.push(t.coef);
+            table.extend_from_slice(&t.sqrt_m_lambda);
+            table.push(0.0);
+            let (chunk, blk) = self.diag[node as usize];
+            index.extend_from_slice(&[node, kind, blk, chunk]);
+        }
+        let count = terms.len();
+        let slot = slot_count(self.energy.len()) - 1;
+        let p = |mode: u32, c: usize| OpsParams {
+            count: c as u32,
+            mode,
+            slot: slot as u32,
+            aux: 0,
+        };
+        // Reuse the buffers (and bind groups) while the new data fits.
+        let groups = self.groups;
+        if let Some((c, values, idx, adds, red, fin)) = &mut self.moving {
+            let vb = to_bytes(true, &table);
+            let ib: &[u8] = bytemuck::cast_slice(&index);
+            if vb.len() as u64 <= values.bytes && ib.len() as u64 <= idx.bytes {
+                let ctx = &self.binder.ctx;
+                ctx.write_buffer(&values.buf, 0, &vb);
+                ctx.write_buffer(&idx.buf, 0, ib);
+                *c = count;
+                for (ch, add) in adds.iter().enumerate() {
+                    let q = OpsParams {
+                        aux: ch as u32,
+                        ..p(0, count)
+                    };
+                    ctx.write_buffer(&add.params, 0, bytemuck::bytes_of(&q));
+                }
+                for (op, q) in [
+                    (&*red, p(MODE_MOVING_ENERGY, count)),
+                    (&*fin, p(MODE_MOVING_ENERGY, groups)),
+                ] {
+                    ctx.write_buffer(&op.params, 0, bytemuck::bytes_of(&q));
+                }
+                return Ok(());
+            }
+        }
+        let values = self.table("newton moving terms", &to_bytes(true, &table))?;
+        let idx = self.table("newton moving nodes", bytemuck::cast_slice(&index))?;
+        let var = Varying {
+            table: Some(&values.buf),
+            index: Some(&idx.buf),
+            ..Varying::default()
+        };
+        // One update per values chunk (aux: its index): each writes the blocks in its
+        // chunk, the first the gradient too.
+        let adds: Vec<Op> = self
+            .binder
+            .hvals
+            .iter()
+            .enumerate()
+            .map(|(ch, h)| {
+                self.op(
+                    "add moving",
+                    Entry::AddMoving,
+                    OpsParams {
+                        aux: ch as u32,
+                        ..p(0, count)
+                    },
+                    Varying {
+                        hvals: Some(h),
+                        ..var
+                    },
+                )
+            })
+            .collect();
+        let red = self.op(
+            "moving energy",
+            Entry::Reduce,
+            p(MODE_MOVING_ENERGY, count),
+            var,
+        );
+        let fin = self.op(
+            "moving energy finish",
+            Entry::Finish,
+            p(MODE_MOVING_ENERGY, self.groups),
+            var,
+        );
+        self.moving = Some((count, values, idx, adds, red, fin));
+        Ok(())
+    }
+
+    /// Adds the moving terms to the assembled gradient (k m r − P √m λ) and to their
+    /// nodes' diagonal blocks of H (k m P), at the evaluation positions; after
+    /// [`GpuAssembly::assemble`].
+    pub fn add_moving(&self) -> Result<(), GpuError> {
+        if let Some((count, _, _, adds, _, _)) = &self.moving {
+            let grid = Self::grid(*count);
+            let ops: Vec<_> = adds.iter().map(|a| (a, grid)).collect();
+            self.run("newton add moving", &ops, |_| {})?;
+        }
+        Ok(())
+    }
+
+    /// Σ ½ k m ‖r‖² − √m λ·r over the moving terms at the evaluation positions (0 without
+    /// any).
+    pub fn moving_energy(&self) -> Result<f64, GpuError> {
+        let Some((count, _, _, _, red, fin)) = &self.moving else {
+            return Ok(0.0);
+        };
+        if *count == 0 {
+            return Ok(0.0);
+        }
+        self.run(
+            "newton moving energy",
+            &[(red, self.groups), (fin, 1)],
+            |_| {},
+        )?;
+        Ok(self.read_result(slot_count(self.energy.len()) - 1, 1)?[0])
+    }
+
+    /// x of the listed nodes (node after node, d each).
+    pub fn read_nodes(&mut self, nodes: &[usize]) -> Result<Vec<f64>, GpuError> {
+        if nodes.is_empty() {
+            return Ok(Vec::new());
+        }
+        let idx: Vec<u32> = nodes
+            .iter()
+            .map(|&i| {
+                if i < self.n_nodes {
+                    Ok(i as u32)
+                } else {
+                    Err(GpuError::Mismatch(format!(
+                        "node {i} read, the mesh has {}",
+                        self.n_nodes
+                    )))
+                }
+            })
+            .collect::<Result<_, _>>()?;
+        let fits = self
+            .nodes
+            .as_ref()
+            .is_some_and(|(cap, ..)| *cap >= nodes.len());
+        if !fits {
+            let cap = nodes.len().next_power_of_two();
+            let index = self.table("newton node list", &vec![0u8; cap * 4])?;
+            let vals = self.table("newton node values", &vec![0u8; cap * self.dim * 8])?;
+            let op = self.op(
+                "gather nodes",
+                Entry::GatherNodes,
+                OpsParams::default(),
+                Varying {
+                    index: Some(&index.buf),
+                    node_vals: Some(&vals.buf),
+                    ..Varying::default()
+                },
+            );
+            self.nodes = Some((cap, index, vals, op));
+        }
+        let Some((_, index, vals, op)) = &self.nodes else {
+            return Err(GpuError::Device("node list buffers missing".into()));
+        };
+        self.ctx
+            .write_buffer(&index.buf, 0, bytemuck::cast_slice(&idx));
+        self.set_params(
+            op,
+            OpsParams {
+                count: nodes.len() as u32,
+                ..OpsParams::default()
+            },
+        );
+        self.run(
+            "newton read nodes",
+            &[(op, Self::grid(nodes.len()))],
+            |_| {},
+        )?;
+        let b = self.ctx.download(
+            &vals.buf,
+            0,
+            (nodes.len() * self.dim * 8) as u64,
+            "reading node positions",
+        )?;
+        Ok(from_bytes(true, &b))
+    }
+
+    /// Writes x of the listed nodes (node after node, d each), into the accepted iterate
+    /// and the evaluation positions.
+    pub fn write_nodes(&self, nodes: &[usize], values: &[f64]) -> Result<(), GpuError> {
+        let d = self.dim;
+        if values.len() != nodes.len() * d {
+            return Err(GpuError::Mismatch(format!(
+                "{} values for {} nodes of {d} coordinates",
+                values.len(),
+                nodes.len()
+            )));
+        }
+        for (k, &i) in nodes.iter().enumerate() {
+            if i >= self.n_nodes {
+                return Err(GpuError::Mismatch(format!(
+                    "node {i} written, the mesh has {}",
+                    self.n_nodes
+                )));
+            }
+            let b = to_bytes(true, &values[k * d..(k + 1) * d]);
+            let off = (i * d * 8) as u64;
+            self.ctx.write_buffer(&self.binder.x, off, &b);
+            self.ctx.write_buffer(&self.binder.pos, off, &b);
+        }
+        Ok(())
+    }
+
+    /// The context the operations run on.
+    pub fn context(&self) -> &GpuContext {
+        &self.ctx
+    }
+
+    /// Items per element term (as [`GpuElements::term_energy`]).
+    pub fn term_counts(&self) -> &[usize] {
+        &self.term_counts
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The WGSL declarations of bind group 0 are [`NEWTON_OPS`]' bindings, in order, with
+    /// their access; `OpsParams` is four u32 in WGSL as in Rust; every entry point exists.
+    #[test]
+    fn layout_and_params_match_the_wgsl() {
+        let m = kernels::check::module(&NEWTON_OPS, "f64", "f64", false);
+        kernels::check::bindings_match(&NEWTON_OPS, &m);
+        let (_, ty) = m
+            .types
+            .iter()
+            .find(|(_, t)| t.name.as_deref() == Some("OpsParams"))
+            .expect("struct OpsParams");
+        match &ty.inner {
+            naga::TypeInner::Struct { members, span } => {
+                assert_eq!(*span as usize, std::mem::size_of::<OpsParams>());
+                let names: Vec<_> = members.iter().filter_map(|m| m.name.as_deref()).collect();
+                assert_eq!(names, ["count", "mode", "slot", "aux"]);
+            }
+            other => panic!("OpsParams is {other:?}"),
+        }
+        for e in ENTRIES {
+            assert!(
+                m.entry_points.iter().any(|p| p.name == e),
+                "no entry point {e}"
+            );
+        }
+        // The shader's constants are the host's.
+        for (name, want) in [
+            ("MODE_ENERGY", MODE_ENERGY),
+            ("MODE_DOT", MODE_DOT),
+            ("MODE_MAX_ABS", MODE_MAX_ABS),
+            ("MODE_CCD", MODE_CCD),
+            ("MODE_MIN_DISTANCE", MODE_MIN_DISTANCE),
+            ("MODE_MOVING_ENERGY", MODE_MOVING_ENERGY),
+            ("S_H", S_H as u32),
+            ("S_ALPHA", S_ALPHA as u32),
+            ("S_FRACTION", S_FRACTION as u32),
+            ("S_INF", S_INF as u32),
+            ("S_PLANES", S_PLANES as u32),
+            ("PROJ_STRIDE", PROJ_STRIDE as u32),
+            ("MOVING_STRIDE", MOVING_STRIDE as u32),
+            ("MOVING_INDEX_STRIDE", MOVING_INDEX_STRIDE as u32),
+        ] {
+            let (_, c) = m
+                .constants
+                .iter()
+                .find(|(_, c)| c.name.as_deref() == Some(name))
+                .unwrap_or_else(|| panic!("no const {name}"));
+            match m.global_expressions[c.init] {
+                naga::Expression::Literal(naga::Literal::U32(v)) => assert_eq!(v, want, "{name}"),
+                ref e => panic!("{name} = {e:?}"),
+            }
+        }
+    }
+}

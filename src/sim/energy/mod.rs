@@ -1,0 +1,447 @@
+//! Energies of the incremental potential and their assembly.
+//!
+//! E(x) = ½ (x − x̃)ᵀ M (x − x̃) + h² Ψ(x), Ψ = elastic + gravity. Only the terms a scene
+//! uses exist in a [`Model`]: no gravity term when g = 0, one element set per body.
+//! Element gradients and (PSD-projected) Hessians are computed in parallel with rayon into
+//! flat per-element buffers that persist between calls ([`AssemblyWork`]); each block of
+//! the Hessian (each node of the gradient) then gathers its elements' entries through a map
+//! built once with the model, in parallel over blocks and in element order within one. No
+//! locking, no sorting, and a sum order that does not depend on the thread count.
+
+pub mod barrier;
+pub mod eigensystem;
+pub mod gravity;
+pub mod inertia;
+pub mod neohookean;
+pub mod spring;
+
+use crate::core::sparse::BlockCsr;
+use rayon::prelude::*;
+
+pub use neohookean::NeoHookean;
+pub use spring::Springs;
+
+/// One body's elastic elements.
+#[derive(Debug, Clone)]
+pub enum ElementSet {
+    Springs(Springs),
+    NeoHookean(NeoHookean),
+}
+
+impl ElementSet {
+    pub fn len(&self) -> usize {
+        match self {
+            ElementSet::Springs(s) => s.edges.len(),
+            ElementSet::NeoHookean(s) => s.elements.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    pub fn nodes(&self, e: usize) -> &[usize] {
+        match self {
+            ElementSet::Springs(s) => &s.edges[e],
+            ElementSet::NeoHookean(s) => &s.elements[e],
+        }
+    }
+
+    /// Nodes per element.
+    pub fn arity(&self) -> usize {
+        match self {
+            ElementSet::Springs(_) => 2,
+            ElementSet::NeoHookean(s) => s.dim + 1,
+        }
+    }
+
+    pub fn energy(&self, x: &[f64], e: usize) -> f64 {
+        match self {
+            ElementSet::Springs(s) => s.element_energy(x, e),
+            ElementSet::NeoHookean(s) => s.element_energy(x, e),
+        }
+    }
+
+    pub fn gradient(&self, x: &[f64], e: usize, out: &mut [f64]) {
+        match self {
+            ElementSet::Springs(s) => s.element_gradient(x, e, out),
+            ElementSet::NeoHookean(s) => s.element_gradient(x, e, out),
+        }
+    }
+
+    pub fn hessian(&self, x: &[f64], e: usize, project: bool, out: &mut [f64]) {
+        match self {
+            ElementSet::Springs(s) => s.element_hessian(x, e, project, out),
+            ElementSet::NeoHookean(s) => s.element_hessian(x, e, project, out),
+        }
+    }
+}
+
+/// Elements per task of the parallel element loops. The chunks are fixed (they do not
+/// depend on the thread count) and each one is reduced in element order, so energies,
+/// gradients and Hessians come out bitwise the same on any number of threads.
+const CHUNK: usize = 1024;
+
+/// Blocks (of the Hessian) or nodes (of the gradient) per task of the parallel gathers.
+const GATHER_CHUNK: usize = 4096;
+
+/// Where every element's contributions go, built once per model: per block of the
+/// Hessian's pattern (and per node of the gradient) the element slots that add into it,
+/// in the order a sequential loop over sets and elements would add them.
+#[derive(Debug, Clone)]
+struct Gather {
+    /// Per set: its first slot in the element Hessian buffer (upper node pairs a ≤ b,
+    /// one d×d block each) and in the element gradient buffer (one d-vector per node).
+    hess_base: Vec<usize>,
+    grad_base: Vec<usize>,
+    /// Hessian: block k of the pattern sums the slots `hess_src[hess_ptr[k]..hess_ptr[k+1]]`;
+    /// a slot is stored as 2·slot + t, t = 1 when it is read transposed (a > b).
+    hess_ptr: Vec<usize>,
+    hess_src: Vec<usize>,
+    /// Gradient: node i sums the slots `grad_src[grad_ptr[i]..grad_ptr[i+1]]`.
+    grad_ptr: Vec<usize>,
+    grad_src: Vec<usize>,
+}
+
+/// Upper node pairs (a, b), a ≤ b, of an element with `ar` nodes, in slot order.
+fn upper_pairs(ar: usize) -> impl Iterator<Item = (usize, usize)> {
+    (0..ar).flat_map(move |a| (a..ar).map(move |b| (a, b)))
+}
+
+impl Gather {
+    fn new(n: usize, sets: &[ElementSet], pattern: &BlockCsr) -> Self {
+        let nb = pattern.nnz_blocks();
+        let (mut hess_base, mut grad_base) = (Vec::new(), Vec::new());
+        let (mut hs, mut gs) = (0usize, 0usize);
+        let mut hess_count = vec![0usize; nb + 1];
+        let mut grad_count = vec![0usize; n + 1];
+        for s in sets {
+            let ar = s.arity();
+            hess_base.push(hs);
+            grad_base.push(gs);
+            hs += s.len() * ar * (ar + 1) / 2;
+            gs += s.len() * ar;
+            for e in 0..s.len() {
+                let nodes = s.nodes(e);
+                for &a in nodes {
+                    grad_count[a + 1] += 1;
+                    for &b in nodes {
+                        let k = pattern
+                            .find(a, b)
+                            .expect("pattern holds every element pair");
+                        hess_count[k + 1] += 1;
+                    }
+                }
+            }
+        }
+        for k in 0..nb {
+            hess_count[k + 1] += hess_count[k];
+        }
+        for i in 0..n {
+            grad_count[i + 1] += grad_count[i];
+        }
+        let hess_ptr = hess_count.clone();
+        let grad_ptr = grad_count.clone();
+        let mut hess_src = vec![0usize; hess_ptr[nb]];
+        let mut grad_src = vec![0usize; grad_ptr[n]];
+        // Filled in set and element order: each block's (node's) list is in the order of
+        // the sequential loop.
+        let (mut hnext, mut gnext) = (hess_count, grad_count);
+        for (si, s) in sets.iter().enumerate() {
+            let ar = s.arity();
+            let np = ar * (ar + 1) / 2;
+            for e in 0..s.len() {
+                let nodes = s.nodes(e);
+                for (p, (a, b)) in upper_pairs(ar).enumerate() {
+                    let slot = hess_base[si] + e * np + p;
+                    let k = pattern.find(nodes[a], nodes[b]).expect("pattern pair");
+                    hess_src[hnext[k]] = 2 * slot;
+                    hnext[k] += 1;
+                    if a != b {
+                        let k = pattern.find(nodes[b], nodes[a]).expect("pattern pair");
+                        hess_src[hnext[k]] = 2 * slot + 1;
+                        hnext[k] += 1;
+                    }
+                }
+                for (a, &node) in nodes.iter().enumerate() {
+                    grad_src[gnext[node]] = grad_base[si] + e * ar + a;
+                    gnext[node] += 1;
+                }
+            }
+        }
+        Gather {
+            hess_base,
+            grad_base,
+            hess_ptr,
+            hess_src,
+            grad_ptr,
+            grad_src,
+        }
+    }
+}
+
+/// Element buffers of [`Model`]'s assembly, kept between calls so that a Newton loop
+/// neither allocates nor touches fresh pages per iteration. Every entry is overwritten
+/// before it is read.
+#[derive(Debug, Clone, Default)]
+pub struct AssemblyWork {
+    hess: Vec<f64>,
+    grad: Vec<f64>,
+}
+
+/// Mass, gravity and elastic elements of a whole scene, with the Hessian's block pattern.
+#[derive(Debug, Clone)]
+pub struct Model {
+    pub dim: usize,
+    pub n_nodes: usize,
+    /// Lumped mass per node.
+    pub mass: Vec<f64>,
+    /// Gravity, present only when nonzero.
+    pub gravity: Option<Vec<f64>>,
+    pub sets: Vec<ElementSet>,
+    /// Element-to-block and element-to-node maps of the assembly.
+    gather: Gather,
+    /// The Hessian's block pattern (diagonal of every node plus element couplings).
+    pub pattern: BlockCsr,
+}
+
+impl Model {
+    pub fn new(
+        dim: usize,
+        mass: Vec<f64>,
+        gravity: Option<Vec<f64>>,
+        sets: Vec<ElementSet>,
+    ) -> Self {
+        let n = mass.len();
+        let mut rows: Vec<Vec<usize>> = (0..n).map(|i| vec![i]).collect();
+        for s in &sets {
+            for e in 0..s.len() {
+                let nodes = s.nodes(e);
+                for &a in nodes {
+                    for &b in nodes {
+                        rows[a].push(b);
+                    }
+                }
+            }
+        }
+        for r in rows.iter_mut() {
+            r.sort_unstable();
+            r.dedup();
+        }
+        let pattern = BlockCsr::from_pattern(dim, &rows);
+        drop(rows);
+        let gather = Gather::new(n, &sets, &pattern);
+        let gravity = gravity.filter(|g| g.iter().any(|&v| v != 0.0));
+        Model {
+            dim,
+            n_nodes: n,
+            mass,
+            gravity,
+            sets,
+            gather,
+            pattern,
+        }
+    }
+
+    pub fn ndof(&self) -> usize {
+        self.dim * self.n_nodes
+    }
+
+    pub fn total_mass(&self) -> f64 {
+        self.mass.iter().sum()
+    }
+
+    /// Elastic energy Σ_sets Σ_e Ψ_e(x), summed in fixed chunks of elements (the same
+    /// bits on any number of threads).
+    pub fn elastic_energy(&self, x: &[f64]) -> f64 {
+        let mut total = 0.0;
+        for s in &self.sets {
+            let chunks: Vec<f64> = (0..s.len().div_ceil(CHUNK))
+                .into_par_iter()
+                .map(|c| {
+                    (c * CHUNK..((c + 1) * CHUNK).min(s.len()))
+                        .map(|e| s.energy(x, e))
+                        .sum::<f64>()
+                })
+                .collect();
+            total += chunks.iter().sum::<f64>();
+        }
+        total
+    }
+
+    /// Ψ(x): elastic plus gravitational potential.
+    pub fn potential(&self, x: &[f64]) -> f64 {
+        let mut e = self.elastic_energy(x);
+        if let Some(g) = &self.gravity {
+            e += gravity::energy(&self.mass, self.dim, g, x);
+        }
+        e
+    }
+
+    /// out += scale·∇Ψ(x).
+    pub fn add_potential_gradient(&self, x: &[f64], scale: f64, out: &mut [f64]) {
+        self.add_potential_gradient_with(x, scale, out, &mut AssemblyWork::default());
+    }
+
+    /// [`Model::add_potential_gradient`] with the element buffer kept in `work`: element
+    /// gradients in parallel, then each node gathers its elements' entries in element
+    /// order.
+    pub fn add_potential_gradient_with(
+        &self,
+        x: &[f64],
+        scale: f64,
+        out: &mut [f64],
+        work: &mut AssemblyWork,
+    ) {
+        let d = self.dim;
+        let gt = &self.gather;
+        let total = gt.grad_ptr[self.n_nodes];
+        work.grad.resize(total * d, 0.0);
+        for (s, &base) in self.sets.iter().zip(&gt.grad_base) {
+            let nl = s.arity() * d;
+            work.grad[base * d..(base + s.len() * s.arity()) * d]
+                .par_chunks_mut(CHUNK * nl)
+                .enumerate()
+                .for_each(|(c, buf)| {
+                    for (k, b) in buf.chunks_exact_mut(nl).enumerate() {
+                        s.gradient(x, c * CHUNK + k, b);
+                    }
+                });
+        }
+        let buf = &work.grad;
+        out[..self.n_nodes * d]
+            .par_chunks_mut(d)
+            .enumerate()
+            .with_min_len(GATHER_CHUNK)
+            .for_each(|(i, o)| {
+                for &slot in &gt.grad_src[gt.grad_ptr[i]..gt.grad_ptr[i + 1]] {
+                    for c in 0..d {
+                        o[c] += scale * buf[slot * d + c];
+                    }
+                }
+            });
+        if let Some(g) = &self.gravity {
+            gravity::add_gradient(&self.mass, d, g, scale, out);
+        }
+    }
+
+    /// h += scale·∇²Ψ(x) on the model's pattern (`h` must have it); element matrices are
+    /// projected to PSD when `project`.
+    pub fn add_potential_hessian(&self, x: &[f64], scale: f64, project: bool, h: &mut BlockCsr) {
+        self.add_potential_hessian_with(x, scale, project, h, &mut AssemblyWork::default());
+    }
+
+    /// [`Model::add_potential_hessian`] with the element buffer kept in `work`: element
+    /// matrices in parallel (their upper node blocks), then each block of `h` gathers its
+    /// elements' blocks in element order, through the map built with the model. No
+    /// sorting, searching or allocation once `work` has its size.
+    pub fn add_potential_hessian_with(
+        &self,
+        x: &[f64],
+        scale: f64,
+        project: bool,
+        h: &mut BlockCsr,
+        work: &mut AssemblyWork,
+    ) {
+        let d = self.dim;
+        let dd = d * d;
+        let gt = &self.gather;
+        assert_eq!(
+            h.nnz_blocks(),
+            self.pattern.nnz_blocks(),
+            "h must have the model's pattern"
+        );
+        let slots: usize = self
+            .sets
+            .iter()
+            .map(|s| s.len() * s.arity() * (s.arity() + 1) / 2)
+            .sum();
+        work.hess.resize(slots * dd, 0.0);
+        for (s, &base) in self.sets.iter().zip(&gt.hess_base) {
+            let ar = s.arity();
+            let nl = ar * d;
+            let np = ar * (ar + 1) / 2;
+            work.hess[base * dd..(base + s.len() * np) * dd]
+                .par_chunks_mut(CHUNK * np * dd)
+                .enumerate()
+                .for_each(|(c, buf)| {
+                    let mut m = [0.0f64; 144];
+                    for (k, b) in buf.chunks_exact_mut(np * dd).enumerate() {
+                        s.hessian(x, c * CHUNK + k, project, &mut m[..nl * nl]);
+                        for (p, (a, bb)) in upper_pairs(ar).enumerate() {
+                            let blk = &mut b[p * dd..(p + 1) * dd];
+                            for r in 0..d {
+                                for cc in 0..d {
+                                    blk[r * d + cc] = m[(a * d + r) * nl + bb * d + cc];
+                                }
+                            }
+                        }
+                    }
+                });
+        }
+        let buf = &work.hess;
+        h.values
+            .par_chunks_mut(dd)
+            .enumerate()
+            .with_min_len(GATHER_CHUNK)
+            .for_each(|(k, blk)| {
+                for &src in &gt.hess_src[gt.hess_ptr[k]..gt.hess_ptr[k + 1]] {
+                    let m = &buf[(src >> 1) * dd..((src >> 1) + 1) * dd];
+                    if src & 1 == 0 {
+                        for (v, mv) in blk.iter_mut().zip(m) {
+                            *v += scale * mv;
+                        }
+                    } else {
+                        for r in 0..d {
+                            for c in 0..d {
+                                blk[r * d + c] += scale * m[c * d + r];
+                            }
+                        }
+                    }
+                }
+            });
+    }
+
+    /// h += M (the lumped mass on the diagonal blocks).
+    pub fn add_mass(&self, h: &mut BlockCsr) {
+        let d = self.dim;
+        for i in 0..self.n_nodes {
+            let k = h.diag_index(i).expect("every node has a diagonal block");
+            for a in 0..d {
+                h.values[k * d * d + a * d + a] += self.mass[i];
+            }
+        }
+    }
+
+    /// A zero matrix on the Hessian's pattern.
+    pub fn zero_matrix(&self) -> BlockCsr {
+        self.pattern.clone()
+    }
+}
+
+/// Projects a symmetric n×n row-major matrix to the nearest PSD one (eigenvalues clamped
+/// at zero). Exact symmetry is restored first, so round-off cannot leak in.
+pub fn project_psd(n: usize, m: &mut [f64]) {
+    let mut a = nalgebra::DMatrix::<f64>::zeros(n, n);
+    for r in 0..n {
+        for c in 0..n {
+            a[(r, c)] = 0.5 * (m[r * n + c] + m[c * n + r]);
+        }
+    }
+    let eig = nalgebra::SymmetricEigen::new(a);
+    if eig.eigenvalues.iter().all(|&l| l >= 0.0) {
+        return;
+    }
+    let mut out = nalgebra::DMatrix::<f64>::zeros(n, n);
+    for (k, &l) in eig.eigenvalues.iter().enumerate() {
+        if l > 0.0 {
+            let v = eig.eigenvectors.column(k);
+            out += l * v * v.transpose();
+        }
+    }
+    for r in 0..n {
+        for c in 0..n {
+            m[r * n + c] = out[(r, c)];
+        }
+    }
+}

@@ -1,0 +1,12 @@
+//! Simulation: meshes ([`mesh`]), the energies of the incremental potential ([`energy`]),
+//! scene files ([`scene`]), the implicit time stepper and its Newton loop
+//! ([`integrator`]), the Newton loop's device operators ([`device`]), and the `run`
+//! driver with its output files ([`driver`]).
+
+pub mod device;
+pub mod driver;
+pub mod energy;
+pub mod integrator;
+pub mod mesh;
+mod output;
+pub mod scene;

@@ -1,0 +1,365 @@
+//! The scene file's schema: the serde structs and enums a TOML scene deserializes into,
+//! with their defaults. [`super::parse`] reads a file into [`SceneFile`] and resolves it.
+
+use crate::gpu::Precision;
+use crate::solve::cg::Preconditioner;
+use crate::solve::coarse::CoarseSpace;
+use serde::Deserialize;
+
+// File format (serde). Flat structs with optional fields keep every error's key path exact.
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneFile {
+    pub name: Option<String>,
+    pub dimension: usize,
+    pub time_step: f64,
+    pub steps: Option<usize>,
+    pub end_time: Option<f64>,
+    pub gravity: Option<Vec<f64>>,
+    #[serde(default)]
+    pub output: OutputSpec,
+    #[serde(default)]
+    pub solver: SolverSpec,
+    #[serde(default)]
+    pub moving: MovingSpec,
+    pub bodies: Vec<BodySpec>,
+    #[serde(default)]
+    pub boundary: Vec<BoundarySpec>,
+    /// Analytic obstacles for the distance barrier (none: no contact code runs).
+    #[serde(default)]
+    pub obstacle: Vec<ObstacleSpec>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ObstacleKind {
+    /// n·(x − point) ≥ 0.
+    HalfSpace,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ObstacleSpec {
+    pub kind: ObstacleKind,
+    /// A point on the boundary plane.
+    pub point: Vec<f64>,
+    /// Outward normal (into the allowed side); need not be unit length.
+    pub normal: Vec<f64>,
+    /// Activation distance d̂ (m); default 1e-2 · L.
+    pub dhat: Option<f64>,
+    /// Barrier stiffness κ (Pa); default: the largest neo-Hookean Young's modulus, else 1e5.
+    pub kappa: Option<f64>,
+    /// Translation (velocity, start, end) like a moving boundary; no rotation.
+    pub motion: Option<MotionSpec>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OutputSpec {
+    /// Write a VTK frame every this many steps (frame 0 is the initial state).
+    #[serde(default = "one")]
+    pub every: usize,
+    /// Write VTK frames at all.
+    #[serde(default = "yes")]
+    pub vtk: bool,
+}
+
+impl Default for OutputSpec {
+    fn default() -> Self {
+        OutputSpec {
+            every: 1,
+            vtk: true,
+        }
+    }
+}
+
+fn one() -> usize {
+    1
+}
+fn yes() -> bool {
+    true
+}
+
+/// Which linear solver runs the eliminated Newton systems: the library's
+/// [`crate::SolverKind`] under the scene file's name for it (`[solver] linear`).
+pub use crate::engine::solver::SolverKind as LinearKind;
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SolverSpec {
+    #[serde(default = "default_linear")]
+    pub linear: LinearKind,
+    /// CG and GPU: relative residual ‖b̂ − Ĥy‖/‖b̂‖.
+    #[serde(default = "default_cg_tol")]
+    pub cg_tolerance: f64,
+    #[serde(default = "default_cg_iters")]
+    pub cg_max_iterations: usize,
+    #[serde(default)]
+    pub preconditioner: Preconditioner,
+    /// CG and GPU: coarse correction added to the preconditioner ("aggregates", the
+    /// default, "translations" or "none").
+    #[serde(default)]
+    pub coarse: CoarseSpace,
+    /// GPU arithmetic.
+    #[serde(default = "default_precision")]
+    pub precision: Precision,
+    /// Newton stops when ‖Δx‖∞/h < newton_tolerance · L (per second).
+    #[serde(default = "default_newton_tol")]
+    pub newton_tolerance: f64,
+    #[serde(default = "default_newton_iters")]
+    pub max_newton_iterations: usize,
+    pub characteristic_length: Option<f64>,
+    /// Cholesky: fill-reducing ordering ("auto", the default, "amd" or "nested-dissection").
+    #[serde(default)]
+    pub ordering: crate::CholeskyOrdering,
+    /// Where the Newton loop runs: "cpu" (the default; `linear` picks the linear solver)
+    /// or "gpu" (element terms, assembly, elimination, CG and line search on the device,
+    /// f64; `linear` is not used).
+    #[serde(default)]
+    pub newton: NewtonLoop,
+}
+
+/// Where the Newton loop of a time step runs (`[solver] newton`, `run --newton`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, serde::Serialize)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+#[serde(rename_all = "lowercase")]
+pub enum NewtonLoop {
+    /// Element terms, assembly and line search on the CPU; the linear solve by `linear`.
+    #[default]
+    Cpu,
+    /// The whole Newton step on the GPU in f64: only scalars cross the bus per iteration.
+    Gpu,
+}
+
+impl NewtonLoop {
+    pub fn name(self) -> &'static str {
+        match self {
+            NewtonLoop::Cpu => "cpu",
+            NewtonLoop::Gpu => "gpu",
+        }
+    }
+}
+
+impl SolverSpec {
+    /// The library solver configuration this scene's solver settings ask for.
+    pub fn config(&self) -> crate::SolverConfig {
+        match self.linear {
+            LinearKind::Cholesky => crate::SolverConfig::cholesky(),
+            LinearKind::Cg => crate::SolverConfig::cg(),
+            LinearKind::Gpu => crate::SolverConfig::gpu(self.precision),
+        }
+        .tol(self.cg_tolerance)
+        .max_iters(self.cg_max_iterations)
+        .preconditioner(self.preconditioner)
+        .coarse(self.coarse)
+        .ordering(self.ordering)
+    }
+}
+
+fn default_linear() -> LinearKind {
+    LinearKind::Cholesky
+}
+fn default_cg_tol() -> f64 {
+    1e-10
+}
+fn default_cg_iters() -> usize {
+    20_000
+}
+fn default_precision() -> Precision {
+    Precision::Mixed
+}
+fn default_newton_tol() -> f64 {
+    1e-6
+}
+fn default_newton_iters() -> usize {
+    400
+}
+
+impl Default for SolverSpec {
+    fn default() -> Self {
+        SolverSpec {
+            linear: default_linear(),
+            cg_tolerance: default_cg_tol(),
+            cg_max_iterations: default_cg_iters(),
+            preconditioner: Preconditioner::default(),
+            coarse: CoarseSpace::default(),
+            precision: default_precision(),
+            newton_tolerance: default_newton_tol(),
+            max_newton_iterations: default_newton_iters(),
+            characteristic_length: None,
+            ordering: crate::CholeskyOrdering::Auto,
+            newton: NewtonLoop::Cpu,
+        }
+    }
+}
+
+/// Moving boundary conditions (docs/method.md, "Moving boundary conditions").
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct MovingSpec {
+    /// Initial penalty stiffness k_M (dimensionless: relative to the mass term).
+    #[serde(default = "default_km")]
+    pub penalty_start: f64,
+    /// Cap of k_M; a step fails if nodes are still unsatisfied at the cap.
+    #[serde(default = "default_km_max")]
+    pub penalty_max: f64,
+    /// ε: a node is satisfied when ‖x_k − x̂_k‖/h < ε · L (per second).
+    #[serde(default = "default_eps")]
+    pub tolerance: f64,
+    /// Augmented Lagrangian: adds −√m_k λ_kᵀ r_k and updates λ on convergence.
+    #[serde(default)]
+    pub augmented_lagrangian: bool,
+}
+
+fn default_km() -> f64 {
+    1e3
+}
+fn default_km_max() -> f64 {
+    1e12
+}
+fn default_eps() -> f64 {
+    1e-3
+}
+
+impl Default for MovingSpec {
+    fn default() -> Self {
+        MovingSpec {
+            penalty_start: default_km(),
+            penalty_max: default_km_max(),
+            tolerance: default_eps(),
+            augmented_lagrangian: false,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BodySpec {
+    pub mesh: MeshSpec,
+    pub material: MaterialSpec,
+    /// Initial velocity of every node.
+    pub velocity: Option<Vec<f64>>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MeshKind {
+    /// 2D: `[0,w]×[0,h]` of triangles.
+    Rectangle,
+    /// 3D: `[0,lx]×[0,ly]×[0,lz]` of tetrahedra.
+    Box,
+    /// A chain of springs along x.
+    Rod,
+    /// Triangulated rectangle (in 3D in the plane z = 0): springs on its edges.
+    Sheet,
+    /// A Gmsh MSH 4.1 file (`file`): triangles in 2D, tetrahedra in 3D. The file fixes
+    /// the resolution (the run's size option does not apply); no `cells` or `size`.
+    Gmsh,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MeshSpec {
+    pub kind: MeshKind,
+    /// Rectangle/sheet: [w, h]; box: [lx, ly, lz].
+    pub size: Option<Vec<f64>>,
+    /// Rod length.
+    pub length: Option<f64>,
+    /// Cells per axis (rod: one number), multiplied by the run's size option.
+    #[serde(default)]
+    pub cells: Vec<usize>,
+    /// Gmsh: the .msh file, relative to the scene file's folder unless absolute.
+    pub file: Option<String>,
+    /// Translation applied after the rotation.
+    pub origin: Option<Vec<f64>>,
+    /// Rotation about the z axis (2D: in-plane), degrees.
+    pub rotate_degrees: Option<f64>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MaterialModel {
+    NeoHookean,
+    MassSpring,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MaterialSpec {
+    pub model: MaterialModel,
+    /// Mass per unit length, area or volume of the mesh's elements.
+    pub density: f64,
+    /// Neo-Hookean: Young's modulus (Pa).
+    pub young: Option<f64>,
+    /// Neo-Hookean: Poisson ratio in (0, 0.5).
+    pub poisson: Option<f64>,
+    /// Mass-spring: k in newtons (a strain ε stores ½ k l₀ ε²).
+    pub stiffness: Option<f64>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BcKindSpec {
+    Sticky,
+    Plane,
+    Line,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BoundarySpec {
+    pub kind: BcKindSpec,
+    pub region: RegionSpec,
+    /// Restrict the region to one body (default: all bodies).
+    pub body: Option<usize>,
+    /// Plane: normal (need not be unit length).
+    pub normal: Option<Vec<f64>>,
+    /// Plane: nᵀx = offset with n as given. Default: the plane through each node.
+    pub offset: Option<f64>,
+    /// Line: direction (need not be unit length); the line passes through each node.
+    pub direction: Option<Vec<f64>>,
+    pub motion: Option<MotionSpec>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RegionSpec {
+    #[serde(rename = "box")]
+    pub bbox: Option<BoxRegion>,
+    pub plane: Option<PlaneRegion>,
+    pub nodes: Option<Vec<usize>>,
+    pub all: Option<bool>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BoxRegion {
+    pub min: Vec<f64>,
+    pub max: Vec<f64>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlaneRegion {
+    pub normal: Vec<f64>,
+    /// nᵀx = offset with n as given (default 0).
+    #[serde(default)]
+    pub offset: f64,
+    /// Distance tolerance (default 1e-9 · L).
+    pub tolerance: Option<f64>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MotionSpec {
+    pub velocity: Option<Vec<f64>>,
+    /// Radians per second about `axis` (3D) through `center`.
+    pub angular_velocity: Option<f64>,
+    pub axis: Option<Vec<f64>>,
+    pub center: Option<Vec<f64>>,
+    /// Active time range [start, end] (seconds); outside it the target holds still.
+    #[serde(default)]
+    pub start: f64,
+    pub end: Option<f64>,
+}

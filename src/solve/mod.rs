@@ -1,0 +1,11 @@
+//! The CPU solvers of the eliminated system and the engine behind the crate's facade:
+//! the faer sparse Cholesky oracle ([`oracle`]) with its fill-reducing orderings
+//! ([`ordering`]), f64 PCG ([`cg`], its fused threaded passes in `cg_fused`), the coarse
+//! corrections ([`coarse`]), and [`solver`] (the [`crate::Solver`] facade).
+
+pub mod cg;
+mod cg_fused;
+pub mod coarse;
+pub mod options;
+pub mod oracle;
+pub mod ordering;
