@@ -653,30 +653,65 @@ fn check(sources: &[(String, String)]) -> Vec<String> {
     }
     for comp in strongly_connected(&adj) {
         if comp.len() > 1 {
-            let members: BTreeSet<usize> = comp.iter().copied().collect();
-            let mut listed: Vec<String> = Vec::new();
-            for &a in &comp {
-                for &b in &adj[a] {
-                    if members.contains(&b) {
-                        let ex = &edges[&(nodes[a].clone(), nodes[b].clone())];
-                        listed.push(format!(
-                            "{} -> {} (`{}`)",
-                            name(&nodes[a]),
-                            name(&nodes[b]),
-                            ex
-                        ));
-                    }
-                }
-            }
-            listed.sort();
+            let cycle = shortest_cycle(&adj, &comp);
+            let steps: Vec<String> = cycle
+                .windows(2)
+                .map(|w| {
+                    let ex = &edges[&(nodes[w[0]].clone(), nodes[w[1]].clone())];
+                    format!("{} -> {} (`{}`)", name(&nodes[w[0]]), name(&nodes[w[1]]), ex)
+                })
+                .collect();
+            let mut members: Vec<String> = comp.iter().map(|&i| name(&nodes[i])).collect();
+            members.sort();
             problems.push(format!(
-                "import cycle among {} modules: {}",
+                "import cycle: {} [{} modules import each other: {}]",
+                steps.join(", "),
                 comp.len(),
-                listed.join("; ")
+                members.join(", ")
             ));
         }
     }
     problems
+}
+
+/// The shortest cycle inside one strongly connected component, as a closed node list.
+fn shortest_cycle(adj: &[Vec<usize>], comp: &[usize]) -> Vec<usize> {
+    let members: BTreeSet<usize> = comp.iter().copied().collect();
+    let mut best: Option<Vec<usize>> = None;
+    for &start in comp {
+        // Breadth-first from `start` back to `start`, inside the component.
+        let mut prev: BTreeMap<usize, usize> = BTreeMap::new();
+        let mut queue = std::collections::VecDeque::from([start]);
+        let mut found = None;
+        'bfs: while let Some(v) = queue.pop_front() {
+            for &w in &adj[v] {
+                if !members.contains(&w) {
+                    continue;
+                }
+                if w == start {
+                    found = Some(v);
+                    break 'bfs;
+                }
+                if let std::collections::btree_map::Entry::Vacant(e) = prev.entry(w) {
+                    e.insert(v);
+                    queue.push_back(w);
+                }
+            }
+        }
+        if let Some(last) = found {
+            let mut path = vec![start, last];
+            let mut v = last;
+            while v != start {
+                v = prev[&v];
+                path.push(v);
+            }
+            path.reverse();
+            if best.as_ref().is_none_or(|b| path.len() < b.len()) {
+                best = Some(path);
+            }
+        }
+    }
+    best.unwrap_or_default()
 }
 
 /// Tarjan's strongly connected components (iterative).

@@ -4,7 +4,6 @@
 
 use crate::core::constraints::{Constraint, Frames};
 use crate::core::sparse::{BlockCsr, SYMMETRY_RTOL};
-use crate::engine::solver::LayoutKey;
 use crate::error::{Error, InputError};
 
 /// A constrained Newton system: H (dn × dn, symmetric, node-major DOFs), g (length dn)
@@ -685,3 +684,17 @@ mod tests {
         assert_eq!(p.hessian(), &before);
     }
 }
+
+/// The identity of a sparsity pattern and constraint set: a [`crate::Solver`] keeps the analysis
+/// and device buffers of the last few layouts it solved, keyed by this.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct LayoutKey(u64);
+
+impl LayoutKey {
+    /// A key no other layout has.
+    pub fn fresh() -> Self {
+        static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+        LayoutKey(NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed))
+    }
+}
+

@@ -8,10 +8,10 @@ use crate::error::{Error, InputError, SolveError};
 use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolveInfo, GpuSolver, Precision};
 use crate::solve::cg::{CgInfo, CgParams, Preconditioner};
 use crate::solve::coarse::CoarseSpace;
+pub use crate::core::problem::LayoutKey;
 pub use crate::solve::options::SolverKind;
 use crate::solve::oracle::{CholeskyOracle, OracleInfo};
 use crate::solve::ordering::CholeskyOrdering;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 /// How a [`Solver`] solves. Build it with [`SolverConfig::cholesky`],
@@ -254,19 +254,6 @@ impl SolverConfig {
             }
         }
         Ok(())
-    }
-}
-
-/// The identity of a sparsity pattern and constraint set: a [`Solver`] keeps the analysis
-/// and device buffers of the last few layouts it solved, keyed by this.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub struct LayoutKey(u64);
-
-impl LayoutKey {
-    /// A key no other layout has.
-    pub fn fresh() -> Self {
-        static NEXT: AtomicU64 = AtomicU64::new(1);
-        LayoutKey(NEXT.fetch_add(1, Ordering::Relaxed))
     }
 }
 

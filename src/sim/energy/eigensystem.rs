@@ -386,6 +386,33 @@ fn det3(m: &[f64; 9]) -> f64 {
         + m[2] * (m[3] * m[7] - m[4] * m[6])
 }
 
+/// Projects a symmetric n×n row-major matrix to the nearest PSD one (eigenvalues clamped
+/// at zero). Exact symmetry is restored first, so round-off cannot leak in.
+pub fn project_psd(n: usize, m: &mut [f64]) {
+    let mut a = nalgebra::DMatrix::<f64>::zeros(n, n);
+    for r in 0..n {
+        for c in 0..n {
+            a[(r, c)] = 0.5 * (m[r * n + c] + m[c * n + r]);
+        }
+    }
+    let eig = nalgebra::SymmetricEigen::new(a);
+    if eig.eigenvalues.iter().all(|&l| l >= 0.0) {
+        return;
+    }
+    let mut out = nalgebra::DMatrix::<f64>::zeros(n, n);
+    for (k, &l) in eig.eigenvalues.iter().enumerate() {
+        if l > 0.0 {
+            let v = eig.eigenvectors.column(k);
+            out += l * v * v.transpose();
+        }
+    }
+    for r in 0..n {
+        for c in 0..n {
+            m[r * n + c] = out[(r, c)];
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -18,6 +18,7 @@ pub mod spring;
 use crate::core::sparse::BlockCsr;
 use rayon::prelude::*;
 
+pub use eigensystem::project_psd;
 pub use neohookean::NeoHookean;
 pub use spring::Springs;
 
@@ -419,29 +420,3 @@ impl Model {
     }
 }
 
-/// Projects a symmetric n×n row-major matrix to the nearest PSD one (eigenvalues clamped
-/// at zero). Exact symmetry is restored first, so round-off cannot leak in.
-pub fn project_psd(n: usize, m: &mut [f64]) {
-    let mut a = nalgebra::DMatrix::<f64>::zeros(n, n);
-    for r in 0..n {
-        for c in 0..n {
-            a[(r, c)] = 0.5 * (m[r * n + c] + m[c * n + r]);
-        }
-    }
-    let eig = nalgebra::SymmetricEigen::new(a);
-    if eig.eigenvalues.iter().all(|&l| l >= 0.0) {
-        return;
-    }
-    let mut out = nalgebra::DMatrix::<f64>::zeros(n, n);
-    for (k, &l) in eig.eigenvalues.iter().enumerate() {
-        if l > 0.0 {
-            let v = eig.eigenvectors.column(k);
-            out += l * v * v.transpose();
-        }
-    }
-    for r in 0..n {
-        for c in 0..n {
-            m[r * n + c] = out[(r, c)];
-        }
-    }
-}
