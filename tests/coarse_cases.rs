@@ -208,4 +208,3 @@ fn aggregates_cut_the_iterations_of_stiffness_dominated_and_free_bodies() {
         assert!((a as f64) <= 0.8 * t as f64, "{}: {a} vs {t}", case.name);
     }
 }
-

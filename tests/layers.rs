@@ -658,7 +658,12 @@ fn check(sources: &[(String, String)]) -> Vec<String> {
                 .windows(2)
                 .map(|w| {
                     let ex = &edges[&(nodes[w[0]].clone(), nodes[w[1]].clone())];
-                    format!("{} -> {} (`{}`)", name(&nodes[w[0]]), name(&nodes[w[1]]), ex)
+                    format!(
+                        "{} -> {} (`{}`)",
+                        name(&nodes[w[0]]),
+                        name(&nodes[w[1]]),
+                        ex
+                    )
                 })
                 .collect();
             let mut members: Vec<String> = comp.iter().map(|&i| name(&nodes[i])).collect();

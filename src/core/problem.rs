@@ -697,4 +697,3 @@ impl LayoutKey {
         LayoutKey(NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed))
     }
 }
-

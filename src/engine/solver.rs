@@ -3,12 +3,12 @@
 #![deny(missing_docs)]
 
 use crate::core::elimination::{reactions, ConstrainedDiagonal, Eliminated};
+pub use crate::core::problem::LayoutKey;
 use crate::core::problem::Problem;
 use crate::error::{Error, InputError, SolveError};
 use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolveInfo, GpuSolver, Precision};
 use crate::solve::cg::{CgInfo, CgParams, Preconditioner};
 use crate::solve::coarse::CoarseSpace;
-pub use crate::core::problem::LayoutKey;
 pub use crate::solve::options::SolverKind;
 use crate::solve::oracle::{CholeskyOracle, OracleInfo};
 use crate::solve::ordering::CholeskyOrdering;

@@ -15,12 +15,13 @@
 //! Every error carries the true residual of the iterate reached.
 
 use crate::core::constraints::Frames;
-use crate::core::elimination::{rotate_block, Eliminated};
+use crate::core::elimination::Eliminated;
 use crate::core::linalg::norm2;
 use crate::core::sparse::BlockCsr;
 use crate::solve::cg_fused::Fused;
-use crate::solve::coarse::{Coarse, CoarseSpace};
+use crate::solve::coarse::CoarseSpace;
 pub use crate::solve::options::Preconditioner;
+pub use crate::solve::precond::{diagonal_blocks, BuiltPreconditioner};
 
 /// Symmetric diagonal equilibration of Ĥ before CG: solve (SĤS) z = S b̂, y = S z.
 ///
@@ -110,172 +111,6 @@ pub fn check_pinned(e: &Eliminated) -> Result<(), CgError> {
         Some(u) => Err(CgError::Unpinned(u)),
         None => Ok(()),
     }
-}
-
-/// A preconditioner applied as z = M⁻¹ r.
-#[derive(Debug, Clone)]
-pub struct BuiltPreconditioner {
-    kind: Preconditioner,
-    dim: usize,
-    /// Jacobi: 1/diag (length dn). BlockJacobi: d·d inverse blocks per node.
-    data: Vec<f64>,
-    /// The coarse correction added to M⁻¹ (see [`crate::solve::coarse`]).
-    coarse: Option<Coarse>,
-}
-
-impl BuiltPreconditioner {
-    /// Builds the preconditioner from the diagonal blocks of Ĥ.
-    pub fn new(e: &Eliminated, kind: Preconditioner) -> Self {
-        let d = e.h.dim;
-        let n = e.h.n;
-        let blocks = diagonal_blocks(e);
-        let data = match kind {
-            Preconditioner::None => Vec::new(),
-            Preconditioner::Jacobi => (0..n * d)
-                .map(|k| {
-                    let (i, a) = (k / d, k % d);
-                    let v = blocks[i * d * d + a * d + a];
-                    if v > 0.0 && v.is_finite() {
-                        1.0 / v
-                    } else {
-                        1.0
-                    }
-                })
-                .collect(),
-            Preconditioner::BlockJacobi => {
-                let mut out = vec![0.0; n * d * d];
-                for i in 0..n {
-                    let b = &blocks[i * d * d..(i + 1) * d * d];
-                    let inv = invert_spd(d, b).unwrap_or_else(|| {
-                        // Not SPD (H indefinite there): fall back to the diagonal so CG
-                        // can still detect the negative curvature itself.
-                        let mut m = [0.0; 9];
-                        for a in 0..d {
-                            let v = b[a * d + a];
-                            m[a * d + a] = if v > 0.0 { 1.0 / v } else { 1.0 };
-                        }
-                        m
-                    });
-                    out[i * d * d..(i + 1) * d * d].copy_from_slice(&inv[..d * d]);
-                }
-                out
-            }
-        };
-        BuiltPreconditioner {
-            kind,
-            dim: d,
-            data,
-            coarse: None,
-        }
-    }
-
-    /// Adds the coarse correction of `space` on `e` (nothing for [`CoarseSpace::None`], or
-    /// when every translation is constrained). `node_scale`: e is an equilibrated SĤS.
-    pub fn with_coarse(
-        mut self,
-        e: &Eliminated,
-        space: CoarseSpace,
-        node_scale: Option<&[f64]>,
-    ) -> Self {
-        self.coarse = match space {
-            CoarseSpace::None => None,
-            CoarseSpace::Translations => {
-                let mut work = vec![0.0; 2 * e.ndof()];
-                Coarse::translations(e.frames, node_scale, |v, out| e.apply(v, out, &mut work))
-            }
-            CoarseSpace::Aggregates => Coarse::aggregates(e.h, e.frames, node_scale),
-        };
-        self
-    }
-
-    /// The coarse correction, when there is one.
-    pub fn coarse(&self) -> Option<&Coarse> {
-        self.coarse.as_ref()
-    }
-
-    pub fn kind(&self) -> Preconditioner {
-        self.kind
-    }
-
-    /// z = M⁻¹ r.
-    pub fn apply(&self, r: &[f64], z: &mut [f64]) {
-        self.apply_pointwise(r, z);
-        if let Some(c) = &self.coarse {
-            c.add_correction(r, z);
-        }
-    }
-
-    fn apply_pointwise(&self, r: &[f64], z: &mut [f64]) {
-        match self.kind {
-            Preconditioner::None => z.copy_from_slice(r),
-            Preconditioner::Jacobi => {
-                for ((zi, ri), di) in z.iter_mut().zip(r).zip(&self.data) {
-                    *zi = ri * di;
-                }
-            }
-            Preconditioner::BlockJacobi => {
-                let d = self.dim;
-                for i in 0..r.len() / d {
-                    let m = &self.data[i * d * d..(i + 1) * d * d];
-                    for a in 0..d {
-                        let mut s = 0.0;
-                        for b in 0..d {
-                            s += m[a * d + b] * r[i * d + b];
-                        }
-                        z[i * d + a] = s;
-                    }
-                }
-            }
-        }
-    }
-
-    /// The raw data (1/diag, or inverse blocks), for the GPU upload.
-    pub fn data(&self) -> &[f64] {
-        &self.data
-    }
-}
-
-/// The d×d diagonal blocks of Ĥ, row-major, n·d·d values.
-pub fn diagonal_blocks(e: &Eliminated) -> Vec<f64> {
-    let d = e.h.dim;
-    let n = e.h.n;
-    let f = e.frames;
-    let mut out = vec![0.0; n * d * d];
-    for i in 0..n {
-        let b = &mut out[i * d * d..(i + 1) * d * d];
-        if let Some(k) = e.h.diag_index(i) {
-            let v = f.rotation(i);
-            rotate_block(d, e.h.block(k), v, v, b);
-        }
-        let m = f.mask[i];
-        if m != 0 {
-            for r in 0..d {
-                for c in 0..d {
-                    if m & (1 << r) != 0 || m & (1 << c) != 0 {
-                        b[r * d + c] = 0.0;
-                    }
-                }
-                if m & (1 << r) != 0 {
-                    b[r * d + r] = e.diag[i * d + r];
-                }
-            }
-        }
-    }
-    out
-}
-
-/// Inverse of a small SPD matrix through its Cholesky factor; None if not SPD.
-fn invert_spd(d: usize, a: &[f64]) -> Option<[f64; 9]> {
-    let m = nalgebra::DMatrix::from_row_slice(d, d, a);
-    let chol = nalgebra::Cholesky::new(m)?;
-    let inv = chol.inverse();
-    let mut out = [0.0; 9];
-    for r in 0..d {
-        for c in 0..d {
-            out[r * d + c] = inv[(r, c)];
-        }
-    }
-    Some(out)
 }
 
 /// Solves Ĥ y = b̂ by PCG from y = 0.
@@ -802,5 +637,102 @@ mod tests {
             solve(&e, &params),
             Err(CgError::NonPositiveCurvature { .. })
         ));
+    }
+
+    /// CG refuses a floating body (a chain with no constraint and no mass term) before
+    /// iterating, naming the rigid translation that nothing pins.
+    #[test]
+    fn a_floating_body_is_refused_before_iterating() {
+        let n = 12;
+        let mut t = Vec::new();
+        for i in 0..n - 1 {
+            for a in 0..2 {
+                let (p, q) = (i * 2 + a, (i + 1) * 2 + a);
+                t.extend([(p, p, 1.0), (q, q, 1.0), (p, q, -1.0), (q, p, -1.0)]);
+            }
+        }
+        let h = BlockCsr::from_triplets(2, 2 * n, &t, false);
+        let free = Frames::unconstrained(2, n);
+        let e = Eliminated::new(&h, &[0.0; 24], &free, ConstrainedDiagonal::Identity);
+        let msg = solve(&e, &Default::default()).unwrap_err().to_string();
+        assert!(
+            msg.starts_with("the eliminated Hessian is not positive definite on the free subspace: the rigid translation along"),
+            "{msg}"
+        );
+    }
+
+    /// Δx of a solve on 1, 2 and 3 threads: bitwise equal, rotated slip nodes and the
+    /// coarse spaces included.
+    #[test]
+    fn solutions_are_bitwise_equal_on_any_thread_count() {
+        let pools: Vec<rayon::ThreadPool> = [1, 2, 3]
+            .iter()
+            .map(|&t| {
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(t)
+                    .build()
+                    .expect("thread pool")
+            })
+            .collect();
+        let cases = [
+            (
+                3,
+                8000,
+                11u64,
+                Preconditioner::Jacobi,
+                CoarseSpace::Aggregates,
+                Scaling::None,
+            ),
+            (
+                3,
+                5000,
+                12,
+                Preconditioner::BlockJacobi,
+                CoarseSpace::Translations,
+                Scaling::None,
+            ),
+            (
+                2,
+                9000,
+                13,
+                Preconditioner::Jacobi,
+                CoarseSpace::None,
+                Scaling::NodeDiagonal,
+            ),
+        ];
+        for (dim, nodes, seed, pc, coarse, scaling) in cases {
+            let s = random_system(&SystemSpec::with_nodes(dim, nodes, seed));
+            assert!(s.frames.has_rotation(), "the system has rotated slip nodes");
+            let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+            assert!(
+                crate::solve::cg_fused::partition(&s.h.row_ptr).len() > 8,
+                "many chunks"
+            );
+            let params = CgParams {
+                tol: 1e-10,
+                preconditioner: pc,
+                coarse,
+                scaling,
+                check_every: 16,
+                ..Default::default()
+            };
+            let runs: Vec<_> = pools
+                .iter()
+                .map(|pool| {
+                    pool.install(|| {
+                        let (y, info) = solve(&e, &params).expect("converges");
+                        (e.recover(&y), info)
+                    })
+                })
+                .collect();
+            let (dx1, info1) = &runs[0];
+            assert!(info1.relative_residual <= 1e-10);
+            assert!(info1.iterations > 10);
+            for (dx, info) in &runs[1..] {
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<u64>>();
+                assert_eq!(bits(dx), bits(dx1), "{dim}D {pc:?} {coarse:?}");
+                assert_eq!(info, info1);
+            }
+        }
     }
 }

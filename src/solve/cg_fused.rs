@@ -17,8 +17,9 @@
 
 use crate::core::constraints::{Frames, NO_ROTATION};
 use crate::core::elimination::Eliminated;
-use crate::solve::cg::{BuiltPreconditioner, Preconditioner};
 use crate::solve::coarse::Coarse;
+use crate::solve::options::Preconditioner;
+use crate::solve::precond::BuiltPreconditioner;
 use rayon::prelude::*;
 
 /// Stored blocks per chunk: a few hundred nodes, small enough for every thread to get
@@ -576,8 +577,6 @@ mod tests {
     use super::*;
     use crate::cases::generate::{random_system, SystemSpec};
     use crate::core::elimination::ConstrainedDiagonal;
-    use crate::solve::cg::{solve, CgParams, Scaling};
-    use crate::solve::coarse::CoarseSpace;
 
     fn bits(v: &[f64]) -> Vec<u64> {
         v.iter().map(|x| x.to_bits()).collect()
@@ -621,77 +620,6 @@ mod tests {
             let mut work = vec![0.0; 2 * n];
             e.apply(&v, &mut reference, &mut work);
             assert_eq!(bits(&q), bits(&reference));
-        }
-    }
-
-    /// Δx of a solve on 1, 2 and 3 threads: bitwise equal, rotated slip nodes and the
-    /// coarse spaces included.
-    #[test]
-    fn solutions_are_bitwise_equal_on_any_thread_count() {
-        let pools: Vec<rayon::ThreadPool> = [1, 2, 3]
-            .iter()
-            .map(|&t| {
-                rayon::ThreadPoolBuilder::new()
-                    .num_threads(t)
-                    .build()
-                    .expect("thread pool")
-            })
-            .collect();
-        let cases = [
-            (
-                3,
-                8000,
-                11u64,
-                Preconditioner::Jacobi,
-                CoarseSpace::Aggregates,
-                Scaling::None,
-            ),
-            (
-                3,
-                5000,
-                12,
-                Preconditioner::BlockJacobi,
-                CoarseSpace::Translations,
-                Scaling::None,
-            ),
-            (
-                2,
-                9000,
-                13,
-                Preconditioner::Jacobi,
-                CoarseSpace::None,
-                Scaling::NodeDiagonal,
-            ),
-        ];
-        for (dim, nodes, seed, pc, coarse, scaling) in cases {
-            let s = random_system(&SystemSpec::with_nodes(dim, nodes, seed));
-            assert!(s.frames.has_rotation(), "the system has rotated slip nodes");
-            let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
-            assert!(partition(&s.h.row_ptr).len() > 8, "many chunks");
-            let params = CgParams {
-                tol: 1e-10,
-                preconditioner: pc,
-                coarse,
-                scaling,
-                check_every: 16,
-                ..Default::default()
-            };
-            let runs: Vec<_> = pools
-                .iter()
-                .map(|pool| {
-                    pool.install(|| {
-                        let (y, info) = solve(&e, &params).expect("converges");
-                        (e.recover(&y), info)
-                    })
-                })
-                .collect();
-            let (dx1, info1) = &runs[0];
-            assert!(info1.relative_residual <= 1e-10);
-            assert!(info1.iterations > 10);
-            for (dx, info) in &runs[1..] {
-                assert_eq!(bits(dx), bits(dx1), "{dim}D {pc:?} {coarse:?}");
-                assert_eq!(info, info1);
-            }
         }
     }
 }

@@ -9,3 +9,4 @@ pub mod coarse;
 pub mod options;
 pub mod oracle;
 pub mod ordering;
+pub mod precond;

@@ -10,7 +10,7 @@ use super::info::{BufferRecord, KernelRecord};
 use super::levels::{
     blocks_fit, build_level, build_operator, build_refine, Consts, Level, Refine, Timestamps,
 };
-use super::plan;
+use super::plan::{self, binding_limit, memory_limit};
 use crate::gpu::kernels::{MASK_SHIFT, WG_MAX};
 use crate::gpu::{DifferenceForm, GpuContext, GpuError, GpuParams, Precision, MAX_WORKGROUPS};
 use crate::solve::cg::Preconditioner;
@@ -159,22 +159,6 @@ impl Device {
             buffers: bld.buffers,
             kernels: bld.kernels,
         })
-    }
-}
-
-/// The storage binding limit in force: the adapter's, or `GpuParams::binding_limit` where
-/// that is lower.
-pub(super) fn binding_limit(ctx: &GpuContext, params: &GpuParams) -> u64 {
-    let adapter = ctx.limits.max_storage_buffer_binding_size;
-    params.binding_limit.map_or(adapter, |l| l.min(adapter))
-}
-
-/// The device memory in force: the device's (where the backend reports it), or
-/// `GpuParams::memory_limit` where that is lower.
-pub(super) fn memory_limit(ctx: &GpuContext, params: &GpuParams) -> Option<u64> {
-    match (ctx.device_memory(), params.memory_limit) {
-        (Some(d), Some(l)) => Some(d.min(l)),
-        (d, l) => d.or(l),
     }
 }
 

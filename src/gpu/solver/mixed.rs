@@ -2,51 +2,17 @@
 //! fallback (GPU or CPU), extended-precision refinement and the f32 operator's scale.
 
 use super::builder::{Builder, Real};
-use super::device::{binding_limit, memory_limit};
 use super::host::HostOp;
 use super::levels::{build_level, build_operator};
-use super::plan::{self, DOES_NOT_FIT};
-use super::policy::{inner_scale, resume_scales, MixedPolicy, Stop};
-use super::run::Outcome;
+use super::plan::{self, binding_limit, memory_limit, DOES_NOT_FIT};
+use super::policy::{resume_scales, MixedPolicy, Stop};
+use super::state::Outcome;
 use super::{GpuSolver, Solved};
 use crate::core::elimination::{norm2, Eliminated};
 use crate::core::sparse::BlockCsr;
 use crate::gpu::GpuError;
 use crate::solve::cg::CgError;
 use std::time::Instant;
-
-/// Mixed precision's state across and within solves.
-pub(super) struct MixedState {
-    /// The f32 operator holds 2^s·Ĥ (this factor; 1 unless Ĥ's diagonal is extreme).
-    pub(super) inner_scale: f64,
-    /// Run the fallback on the CPU even where an f64 GPU level could be built.
-    pub(super) force_cpu_fallback: bool,
-    /// Why and where the last solve fell back to f64.
-    pub(super) last_fallback: Option<String>,
-    /// The error estimate of the extended-precision refinement of the last solve.
-    pub(super) last_error_estimate: Option<f64>,
-    /// The assembled Ĥ for the double-double residuals (built on first use).
-    pub(super) assembled: Option<BlockCsr>,
-}
-
-impl MixedState {
-    /// `mixed`: whether the solve is in mixed precision; `diag_max` H's largest diagonal
-    /// entry, which sets the f32 operator's scale.
-    pub(super) fn new(mixed: bool, diag_max: f64) -> Self {
-        MixedState {
-            inner_scale: if mixed { inner_scale(diag_max) } else { 1.0 },
-            force_cpu_fallback: false,
-            last_fallback: None,
-            last_error_estimate: None,
-            assembled: None,
-        }
-    }
-
-    pub(super) fn start_solve(&mut self) {
-        self.last_fallback = None;
-        self.last_error_estimate = None;
-    }
-}
 
 impl GpuSolver {
     /// Mixed precision, in three stages, each entered only when the one before cannot go on:

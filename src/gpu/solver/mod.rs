@@ -30,6 +30,7 @@ mod plan;
 mod policy;
 mod run;
 mod setup;
+mod state;
 mod telemetry;
 
 pub use info::{
@@ -46,9 +47,8 @@ use builder::Real;
 use device::{Built, Device};
 use host::{spring_rhs, Host, HostOp};
 use levels::bytes_per_iteration;
-use mixed::MixedState;
 pub use plan::DOES_NOT_FIT;
-use run::{Outcome, RunState};
+use state::{MixedState, Outcome, RunState};
 use std::time::Instant;
 use telemetry::Telemetry;
 

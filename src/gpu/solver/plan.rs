@@ -4,7 +4,6 @@
 //! `Device::build` (a test holds the two equal).
 
 use super::builder::{plan_chunks, plane_widths, Builder, Real};
-use super::device::binding_limit;
 use super::host::{Host, HostOp};
 use super::levels::{block_elem, row_elem, Consts, LANCZOS_HIST, N_SCAL, N_STATE};
 use crate::gpu::kernels::slots;
@@ -210,5 +209,21 @@ pub(super) fn check_fits(
             ctx.info.name
         ))),
         _ => Ok(()),
+    }
+}
+
+/// The storage binding limit in force: the adapter's, or `GpuParams::binding_limit` where
+/// that is lower.
+pub(super) fn binding_limit(ctx: &GpuContext, params: &GpuParams) -> u64 {
+    let adapter = ctx.limits.max_storage_buffer_binding_size;
+    params.binding_limit.map_or(adapter, |l| l.min(adapter))
+}
+
+/// The device memory in force: the device's (where the backend reports it), or
+/// `GpuParams::memory_limit` where that is lower.
+pub(super) fn memory_limit(ctx: &GpuContext, params: &GpuParams) -> Option<u64> {
+    match (ctx.device_memory(), params.memory_limit) {
+        (Some(d), Some(l)) => Some(d.min(l)),
+        (d, l) => d.or(l),
     }
 }

@@ -2,73 +2,11 @@
 //! iterations, the status read-back, chunk sizing and the Lanczos condition estimate.
 
 use super::levels::{LANCZOS_HIST, N_SCAL, N_STATE, SCAL_LEN};
-use super::policy::MixedPolicy;
+use super::state::Outcome;
 use super::GpuSolver;
 use crate::gpu::kernels::slots;
 use crate::gpu::GpuError;
 use crate::solve::cg::CgError;
-
-/// The CG driver's state between status reads and runs.
-pub(super) struct RunState {
-    /// The scalars and coefficient history of the last status read.
-    pub(super) last_scal: Vec<f64>,
-    /// The Lanczos coefficients of the current uninterrupted CG sequence.
-    pub(super) lz_alphas: Vec<f64>,
-    pub(super) lz_betas: Vec<f64>,
-    /// The next run continues the sequence (set by a reliable update).
-    pub(super) lz_resumed: bool,
-    /// Largest κ̃(M⁻¹Ĥ) of the closed sequences of this solve.
-    pub(super) kappa_est: Option<f64>,
-    /// ρ_prev at the last status read: what a reliable update rescales.
-    pub(super) last_rho_prev: f64,
-    /// Size of the first chunk of the next `run_cg` (mixed: the length the previous
-    /// segment's late rate predicts).
-    pub(super) chunk_hint: Option<usize>,
-    /// The fall of ln r·r per iteration over the later half of the last converged run
-    /// (mixed: predicts the next segment's length).
-    pub(super) last_rate: Option<f64>,
-    /// r·r where the next `run_cg` starts, when known (mixed: 1, the unit right-hand side
-    /// with x = 0): the first point of its rate history, so the chunk after the first is
-    /// predicted instead of doubled.
-    pub(super) start_rr: Option<f64>,
-    /// Mixed, during an f32 segment: the policy and outer step whose condition verdict
-    /// `run_cg` checks at every status read.
-    pub(super) kappa_watch: Option<(MixedPolicy, usize)>,
-}
-
-impl RunState {
-    pub(super) fn new() -> Self {
-        RunState {
-            last_scal: vec![0.0; SCAL_LEN],
-            lz_alphas: Vec::new(),
-            lz_betas: Vec::new(),
-            lz_resumed: false,
-            kappa_est: None,
-            last_rho_prev: 1.0,
-            chunk_hint: None,
-            last_rate: None,
-            start_rr: None,
-            kappa_watch: None,
-        }
-    }
-
-    /// Forgets the condition estimate of the previous solve.
-    pub(super) fn start_solve(&mut self) {
-        self.lz_alphas.clear();
-        self.lz_betas.clear();
-        self.lz_resumed = false;
-        self.kappa_est = None;
-    }
-}
-
-/// Result of one CG run (until convergence of the recurrence, the budget or stagnation).
-pub(super) enum Outcome {
-    Converged,
-    MaxIters,
-    Stagnated,
-    /// Mixed: the condition estimate says f32 CG costs more than it saves (the reason).
-    LeaveF32(String),
-}
 
 impl GpuSolver {
     /// Resets the CG scalars: ρ_prev, the convergence threshold, the direction scale kept

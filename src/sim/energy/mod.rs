@@ -419,4 +419,3 @@ impl Model {
         self.pattern.clone()
     }
 }
-

@@ -1,0 +1,173 @@
+//! The point-wise preconditioners of the CPU CG, built once per system: Jacobi (1/diag Ĥ)
+//! and block Jacobi (each node's d×d diagonal block of Ĥ, in its frame, inverted), with
+//! the coarse correction of [`crate::solve::coarse`] added when asked.
+
+use crate::core::elimination::{rotate_block, Eliminated};
+use crate::solve::coarse::{Coarse, CoarseSpace};
+use crate::solve::options::Preconditioner;
+
+/// A preconditioner applied as z = M⁻¹ r.
+#[derive(Debug, Clone)]
+pub struct BuiltPreconditioner {
+    kind: Preconditioner,
+    dim: usize,
+    /// Jacobi: 1/diag (length dn). BlockJacobi: d·d inverse blocks per node.
+    data: Vec<f64>,
+    /// The coarse correction added to M⁻¹ (see [`crate::solve::coarse`]).
+    coarse: Option<Coarse>,
+}
+
+impl BuiltPreconditioner {
+    /// Builds the preconditioner from the diagonal blocks of Ĥ.
+    pub fn new(e: &Eliminated, kind: Preconditioner) -> Self {
+        let d = e.h.dim;
+        let n = e.h.n;
+        let blocks = diagonal_blocks(e);
+        let data = match kind {
+            Preconditioner::None => Vec::new(),
+            Preconditioner::Jacobi => (0..n * d)
+                .map(|k| {
+                    let (i, a) = (k / d, k % d);
+                    let v = blocks[i * d * d + a * d + a];
+                    if v > 0.0 && v.is_finite() {
+                        1.0 / v
+                    } else {
+                        1.0
+                    }
+                })
+                .collect(),
+            Preconditioner::BlockJacobi => {
+                let mut out = vec![0.0; n * d * d];
+                for i in 0..n {
+                    let b = &blocks[i * d * d..(i + 1) * d * d];
+                    let inv = invert_spd(d, b).unwrap_or_else(|| {
+                        // Not SPD (H indefinite there): fall back to the diagonal so CG
+                        // can still detect the negative curvature itself.
+                        let mut m = [0.0; 9];
+                        for a in 0..d {
+                            let v = b[a * d + a];
+                            m[a * d + a] = if v > 0.0 { 1.0 / v } else { 1.0 };
+                        }
+                        m
+                    });
+                    out[i * d * d..(i + 1) * d * d].copy_from_slice(&inv[..d * d]);
+                }
+                out
+            }
+        };
+        BuiltPreconditioner {
+            kind,
+            dim: d,
+            data,
+            coarse: None,
+        }
+    }
+
+    /// Adds the coarse correction of `space` on `e` (nothing for [`CoarseSpace::None`], or
+    /// when every translation is constrained). `node_scale`: e is an equilibrated SĤS.
+    pub fn with_coarse(
+        mut self,
+        e: &Eliminated,
+        space: CoarseSpace,
+        node_scale: Option<&[f64]>,
+    ) -> Self {
+        self.coarse = match space {
+            CoarseSpace::None => None,
+            CoarseSpace::Translations => {
+                let mut work = vec![0.0; 2 * e.ndof()];
+                Coarse::translations(e.frames, node_scale, |v, out| e.apply(v, out, &mut work))
+            }
+            CoarseSpace::Aggregates => Coarse::aggregates(e.h, e.frames, node_scale),
+        };
+        self
+    }
+
+    /// The coarse correction, when there is one.
+    pub fn coarse(&self) -> Option<&Coarse> {
+        self.coarse.as_ref()
+    }
+
+    pub fn kind(&self) -> Preconditioner {
+        self.kind
+    }
+
+    /// z = M⁻¹ r.
+    pub fn apply(&self, r: &[f64], z: &mut [f64]) {
+        self.apply_pointwise(r, z);
+        if let Some(c) = &self.coarse {
+            c.add_correction(r, z);
+        }
+    }
+
+    fn apply_pointwise(&self, r: &[f64], z: &mut [f64]) {
+        match self.kind {
+            Preconditioner::None => z.copy_from_slice(r),
+            Preconditioner::Jacobi => {
+                for ((zi, ri), di) in z.iter_mut().zip(r).zip(&self.data) {
+                    *zi = ri * di;
+                }
+            }
+            Preconditioner::BlockJacobi => {
+                let d = self.dim;
+                for i in 0..r.len() / d {
+                    let m = &self.data[i * d * d..(i + 1) * d * d];
+                    for a in 0..d {
+                        let mut s = 0.0;
+                        for b in 0..d {
+                            s += m[a * d + b] * r[i * d + b];
+                        }
+                        z[i * d + a] = s;
+                    }
+                }
+            }
+        }
+    }
+
+    /// The raw data (1/diag, or inverse blocks), for the GPU upload.
+    pub fn data(&self) -> &[f64] {
+        &self.data
+    }
+}
+
+/// The d×d diagonal blocks of Ĥ, row-major, n·d·d values.
+pub fn diagonal_blocks(e: &Eliminated) -> Vec<f64> {
+    let d = e.h.dim;
+    let n = e.h.n;
+    let f = e.frames;
+    let mut out = vec![0.0; n * d * d];
+    for i in 0..n {
+        let b = &mut out[i * d * d..(i + 1) * d * d];
+        if let Some(k) = e.h.diag_index(i) {
+            let v = f.rotation(i);
+            rotate_block(d, e.h.block(k), v, v, b);
+        }
+        let m = f.mask[i];
+        if m != 0 {
+            for r in 0..d {
+                for c in 0..d {
+                    if m & (1 << r) != 0 || m & (1 << c) != 0 {
+                        b[r * d + c] = 0.0;
+                    }
+                }
+                if m & (1 << r) != 0 {
+                    b[r * d + r] = e.diag[i * d + r];
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Inverse of a small SPD matrix through its Cholesky factor; None if not SPD.
+fn invert_spd(d: usize, a: &[f64]) -> Option<[f64; 9]> {
+    let m = nalgebra::DMatrix::from_row_slice(d, d, a);
+    let chol = nalgebra::Cholesky::new(m)?;
+    let inv = chol.inverse();
+    let mut out = [0.0; 9];
+    for r in 0..d {
+        for c in 0..d {
+            out[r * d + c] = inv[(r, c)];
+        }
+    }
+    Some(out)
+}
