@@ -887,7 +887,7 @@ fn detects_a_cycle_through_a_reexport_and_inside_a_test_module() {
     let problems = check(&sources);
     assert_eq!(problems.len(), 1, "{problems:?}");
     assert!(
-        problems[0].contains("import cycle among 2 modules"),
+        problems[0].contains("2 modules import each other"),
         "{problems:?}"
     );
     assert!(

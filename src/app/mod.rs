@@ -4,6 +4,7 @@
 
 pub mod bench;
 pub mod bench_newton;
+pub mod bench_report;
 pub mod cli;
 pub mod export;
 pub mod hard;

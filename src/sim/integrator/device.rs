@@ -633,7 +633,8 @@ mod tests {
     /// line naming what is missing; with enough, none.
     #[test]
     fn capacity_refusals_name_what_is_missing() {
-        let scene = crate::sim::driver::load_scene("twist", 1.0).expect("built-in scene");
+        let text = crate::sim::scene::builtin("twist").expect("built-in scene");
+        let scene = crate::sim::scene::parse(text, "twist", 1.0).expect("built-in scene");
         let need = device_bytes_needed(&scene);
         assert!(need > 0);
         let e = check_capacity(&scene, "Test GPU", false, None).expect_err("no f64");

@@ -1,7 +1,7 @@
 //! Body meshes for a scene: the generated ones (rectangle, box, rod, sheet) scaled by the
 //! run's size option, and Gmsh files, each then rotated and translated.
 
-use super::resolve::Ctx;
+use super::check::Ctx;
 use super::spec::{MeshKind, MeshSpec};
 use crate::error::InputError;
 use crate::sim::mesh::{self, Mesh};
