@@ -697,7 +697,15 @@ fn squeezed_square_min_distance_covers_every_node() {
     for _ in 0..scene.steps {
         let rep = match s.step() {
             Ok(r) => r,
-            Err(e) => {
+            Err(err) => {
+                assert!(
+                    matches!(
+                        err,
+                        stickslip::sim::integrator::StepError::Unbarriered { .. }
+                    ),
+                    "{err:?}"
+                );
+                let e = err.to_string();
                 eprintln!("squeeze (library): step {} failed: {e}", s.step + 1);
                 assert!(!e.contains('\n'), "{e:?}");
                 assert_inverted_message(&e);

@@ -444,7 +444,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
     };
     let result = match stepper {
         Ok(mut stepper) => {
-            summary.adapter = stepper.linear.adapter.clone();
+            summary.adapter = stepper.adapter().map(str::to_string);
             summary.newton_tolerance = stepper.newton_tol;
             summary.end_time = stepper.t;
             let r = write_summary(&mut dir, &summary)
@@ -611,7 +611,7 @@ fn simulate(
         let rep = stepper.step().map_err(|cause| RunError::Solve {
             step: stepper.step + 1,
             time: stepper.t + scene.time_step,
-            cause,
+            cause: cause.to_string(),
         })?;
         summary.newton_iterations += rep.newton_iterations;
         summary.linear_iterations += rep.linear_iterations;

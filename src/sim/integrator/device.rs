@@ -1,13 +1,13 @@
-//! The Newton loop of [`Stepper`] on the device (`[solver] newton = "gpu"`).
+//! The device backend of the Newton loop (`[solver] newton = "gpu"`).
 //!
-//! Same algorithm as the CPU loop (module docs of [`crate::sim::integrator`]), with the state on
+//! The loop is the host's (module docs of [`crate::sim::integrator`]), with the state on
 //! the device: positions, velocities, xⁿ, x̃, the element terms ([`GpuElements`]), the
 //! assembled H and g ([`GpuAssembly`]), the constraint frames of every constraint set met
 //! so far and the CG ([`DeviceCg`]), the loop's vector operations ([`NewtonOps`]). Per
 //! Newton iteration only scalars cross the bus (energies, g·Δx, ‖Δx‖∞, the CCD bound and
 //! the smallest distance, the CG's status) plus the positions of the moving nodes that
 //! are still off their targets (their snapping and penalty decisions run on the host, with
-//! the CPU loop's own code, on those few entries). Once per step the positions, velocities
+//! the loop's own code, on those few entries). Once per step the positions, velocities
 //! and the gradient come back for the output (steps.csv, frames, reactions).
 //!
 //! The decisions are the CPU loop's; the arithmetic differs in summation order and in the
@@ -15,33 +15,21 @@
 //! space on the device, against the scene's CPU solver), so trajectories agree to the
 //! solvers' tolerances, not bit for bit (tests/sim_gpu_newton.rs).
 
-use super::{
-    Contact, InitError, MovingTargets, StepReport, Stepper, ARMIJO, CCD_FRACTION, MAX_HALVINGS,
-};
+use super::backend::{Backend, EndState};
+use super::error::{InitError, StepError};
+use super::linear::LinearStats;
+use super::report::GpuRunReport;
+use super::state::{Contact, State, CCD_FRACTION};
+use super::targets::MovingTargets;
 use crate::gpu::{GpuContext, GpuError, GpuOptions, Precision};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::elements::{GpuElements, TermKind};
 use crate::sim::device::newton_cg::{DeviceCg, DeviceCgParams, DeviceFrames};
 use crate::sim::device::newton_ops::{static_projections, MovingTerm, NewtonOps};
-use crate::sim::energy::barrier::Ccd;
-use crate::sim::scene::{BcShape, Scene};
+use crate::sim::energy::barrier::{Ccd, HalfSpace};
+use crate::sim::scene::Scene;
 use std::collections::HashMap;
 use std::time::Instant;
-
-/// What a run with the GPU Newton loop moved and stored (summary.json `"gpu"`).
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct GpuRunReport {
-    pub adapter: String,
-    /// Arithmetic of every device computation.
-    pub precision: String,
-    /// Totals over the run, set-up included.
-    pub host_to_device_bytes: u64,
-    pub device_to_host_bytes: u64,
-    /// Bytes of one assembled Hessian as stored on the device.
-    pub matrix_bytes: u64,
-    /// Newton iterations of the run (filled in by the driver, which counts them).
-    pub newton_iterations: usize,
-}
 
 /// The device side of a scene: built once per run.
 pub(super) struct DeviceLoop {
@@ -59,6 +47,9 @@ pub(super) struct DeviceLoop {
     moving: Option<Vec<MovingTerm>>,
     /// Host scratch of length n·d: only the entries of the nodes read back are meaningful.
     scratch: Vec<f64>,
+    /// The velocities read with every position (kept to write the state back whole).
+    scratch_v: Vec<f64>,
+    dim: usize,
 }
 
 /// A one-line reason the device cannot hold the scene, as an input error on `newton`.
@@ -182,6 +173,8 @@ impl DeviceLoop {
             matrix_bytes,
             moving: None,
             scratch: vec![0.0; scene.model.n_nodes * d],
+            scratch_v: Vec::new(),
+            dim: d,
         })
     }
 
@@ -204,8 +197,8 @@ impl DeviceLoop {
 
     /// Reads the positions of `nodes` into the host scratch (entries of other nodes are
     /// stale) and returns it.
-    fn read_nodes(&mut self, nodes: &[usize], d: usize) -> Result<&mut [f64], String> {
-        let v = self.ops.read_nodes(nodes).map_err(gpu_msg)?;
+    fn read_nodes(&mut self, nodes: &[usize], d: usize) -> Result<&mut [f64], StepError> {
+        let v = self.ops.read_nodes(nodes)?;
         for (k, &i) in nodes.iter().enumerate() {
             self.scratch[i * d..(i + 1) * d].copy_from_slice(&v[k * d..(k + 1) * d]);
         }
@@ -213,302 +206,150 @@ impl DeviceLoop {
     }
 }
 
-fn gpu_msg(e: GpuError) -> String {
-    format!("GPU Newton loop: {e}")
-}
-
-impl Stepper<'_> {
-    /// Builds the device loop (after the constraint sets have been validated).
-    pub(super) fn start_device(&mut self) -> Result<(), InitError> {
-        let sc = self.scene;
-        let mut dl = DeviceLoop::new(sc, self.contact.as_ref())?;
+impl DeviceLoop {
+    /// Builds the device loop for `state`'s scene and uploads its static projections and
+    /// its state (after the constraint sets have been validated).
+    pub(super) fn start(state: &State) -> Result<Self, InitError> {
+        let sc = state.scene;
+        let mut dl = DeviceLoop::new(sc, state.contact.as_ref())?;
         let projections = static_projections(sc).map_err(|problem| InitError::Input {
             entry: "boundary".into(),
             problem,
         })?;
         let init = |e: GpuError| InitError::Solver(format!("the GPU Newton loop: {e}"));
         dl.ops.set_static_projections(&projections).map_err(init)?;
-        dl.ops.set_state(&self.x, &self.v).map_err(init)?;
-        self.linear.adapter = Some(dl.adapter_name().to_string());
-        self.device = Some(dl);
-        Ok(())
-    }
-
-    /// What the GPU did so far: the device loop's report, or for the CPU loop with
-    /// `linear = "gpu"` the linear solver's traffic and operator size; None for a run
-    /// without a GPU. `newton_iterations` is left for the caller, who counts them.
-    pub fn gpu_report(&self) -> Option<GpuRunReport> {
-        if let Some(dl) = &self.device {
-            return Some(dl.report());
-        }
-        let t = self.linear.solver.gpu_traffic()?;
-        let sc = self.scene;
-        let precision = sc.solver.precision;
-        // The CG's operator: f64 blocks for f64, f32 blocks for f32 and mixed.
-        let real = if precision == Precision::F64 { 8 } else { 4 };
-        Some(GpuRunReport {
-            adapter: self.linear.adapter.clone().unwrap_or_default(),
-            precision: precision.to_string(),
-            host_to_device_bytes: t.host_to_device_bytes,
-            device_to_host_bytes: t.device_to_host_bytes,
-            matrix_bytes: (sc.model.pattern.nnz_blocks() * sc.dim * sc.dim * real) as u64,
-            newton_iterations: 0,
-        })
-    }
-
-    /// [`Stepper::step`] with the device loop.
-    pub(super) fn step_device(&mut self) -> Result<StepReport, String> {
-        let Some(mut dl) = self.device.take() else {
-            return Err("the GPU Newton loop was not started".into());
-        };
-        let r = self.step_on(&mut dl);
-        self.device = Some(dl);
-        r
-    }
-
-    fn step_on(&mut self, dl: &mut DeviceLoop) -> Result<StepReport, String> {
-        let sc = self.scene;
-        let h = sc.time_step;
-        let t1 = self.t + h;
-        let mut rep = StepReport {
-            step: self.step + 1,
-            time: t1,
-            k_m: self.k_m,
-            ..StepReport::default()
-        };
-        // 1. Static projection, xⁿ and x̃ on the device; obstacles at t^{n+1}.
-        dl.ops.begin_step(h).map_err(gpu_msg)?;
-        if self.contact.is_some() {
-            self.advance_obstacles_device(dl, t1)?;
-            rep.min_distance = self.check_distance_device(dl, "at the start of the step")?;
-        }
-        // 2. Moving targets at t^{n+1}; nodes already within ε are snapped now.
-        let mut moving = MovingTargets {
-            shapes: self
-                .moving_bcs
-                .iter()
-                .map(|&k| sc.bcs[k].shape_at(t1))
-                .collect(),
-            snapped: vec![false; self.moving_bcs.len()],
-        };
-        self.snap_device(dl, &mut moving)?;
-        // 3. Newton.
-        self.newton_device(dl, &mut moving, &mut rep)?;
-        // 4–5. Velocity, state and forces at the converged iterate.
-        dl.ops.end_step(h).map_err(gpu_msg)?;
-        let (x, v) = dl.ops.read_state().map_err(gpu_msg)?;
-        let g = dl.ops.read_gradient().map_err(gpu_msg)?;
-        let mut w = self.take_work();
-        w.g.copy_from_slice(&g);
-        self.recover_forces(&x, &moving.snapped, &mut w);
-        self.finish_device_step(x, v, w, t1)?;
-        Ok(rep)
-    }
-
-    /// Moves the obstacles to t1 on the host and on the device. A moving obstacle may push
-    /// starting guesses ahead of it: the positions then make a round trip.
-    fn advance_obstacles_device(&mut self, dl: &mut DeviceLoop, t1: f64) -> Result<(), String> {
-        let moves = self.scene.obstacles.iter().any(|o| o.motion.is_some());
-        if moves {
-            let (mut x, v) = dl.ops.read_state().map_err(gpu_msg)?;
-            let pushed = self.pushed_nodes;
-            self.advance_obstacles(t1, &mut x);
-            if self.pushed_nodes != pushed {
-                dl.ops.set_state(&x, &v).map_err(gpu_msg)?;
-            }
-        } else {
-            let mut none = [];
-            self.advance_obstacles(t1, &mut none);
-        }
-        if let Some(c) = &self.contact {
-            dl.elements.set_planes(&c.planes).map_err(gpu_msg)?;
-        }
-        Ok(())
-    }
-
-    /// [`Stepper::check_distance`] with the smallest distance taken on the device.
-    fn check_distance_device(
-        &self,
-        dl: &mut DeviceLoop,
-        when: &str,
-    ) -> Result<Option<f64>, String> {
-        let Some(c) = &self.contact else {
-            return Ok(None);
-        };
-        let (dist, node, j) = dl.ops.min_distance(&c.planes).map_err(gpu_msg)?;
-        if dist.is_nan() || dist <= 0.0 {
-            return Err(format!(
-                "node {node} is at signed distance {dist:e} m from {} {when}: the configuration must stay penetration-free",
-                self.scene.obstacles[j].label
-            ));
-        }
-        Ok(Some(dist))
-    }
-
-    /// [`Stepper::snap_satisfied`] on the moving nodes still off target, read from the
-    /// device; the snapped ones are written back.
-    fn snap_device(&self, dl: &mut DeviceLoop, moving: &mut MovingTargets) -> Result<(), String> {
-        let d = self.scene.dim;
-        let nodes = self.unsnapped_nodes(&moving.snapped);
-        if nodes.is_empty() {
-            return Ok(());
-        }
-        let before = moving.snapped.clone();
-        let x = dl.read_nodes(&nodes, d)?;
-        self.snap_satisfied(x, &moving.shapes, &mut moving.snapped);
-        let newly: Vec<usize> = (0..before.len())
-            .filter(|&j| moving.snapped[j] && !before[j])
-            .map(|j| self.scene.bcs[self.moving_bcs[j]].node)
-            .collect();
-        if !newly.is_empty() {
-            let vals: Vec<f64> = newly
-                .iter()
-                .flat_map(|&i| dl.scratch[i * d..(i + 1) * d].iter().copied())
-                .collect();
-            dl.ops.write_nodes(&newly, &vals).map_err(gpu_msg)?;
-        }
-        Ok(())
-    }
-
-    fn unsnapped_nodes(&self, snapped: &[bool]) -> Vec<usize> {
-        self.moving_bcs
-            .iter()
-            .zip(snapped)
-            .filter(|(_, &s)| !s)
-            .map(|(&k, _)| self.scene.bcs[k].node)
-            .collect()
+        dl.ops.set_state(&state.x, &state.v).map_err(init)?;
+        Ok(dl)
     }
 
     /// The penalty terms of the unsnapped moving nodes, for the device.
-    fn moving_terms(&self, targets: &[BcShape], snapped: &[bool]) -> Vec<MovingTerm> {
-        let sc = self.scene;
+    fn moving_terms(state: &State, moving: &MovingTargets) -> Vec<MovingTerm> {
+        let sc = state.scene;
         let mut out = Vec::new();
-        for (j, &k) in self.moving_bcs.iter().enumerate() {
-            if snapped[j] {
+        for (j, &k) in state.moving_bcs.iter().enumerate() {
+            if moving.snapped[j] {
                 continue;
             }
             let node = sc.bcs[k].node;
             let m = sc.model.mass[node];
             out.push(MovingTerm {
                 node,
-                shape: targets[j].clone(),
-                coef: self.k_m * m,
-                sqrt_m_lambda: self.lambda[j].map(|l| m.sqrt() * l),
+                shape: moving.shapes[j].clone(),
+                coef: state.k_m * m,
+                sqrt_m_lambda: state.lambda[j].map(|l| m.sqrt() * l),
             });
         }
         out
     }
+}
 
-    /// Newton on the device (see [`Stepper::newton`]).
-    fn newton_device(
-        &mut self,
-        dl: &mut DeviceLoop,
-        moving: &mut MovingTargets,
-        rep: &mut StepReport,
-    ) -> Result<(), String> {
-        let sc = self.scene;
-        let h = sc.time_step;
-        let d = sc.dim;
-        let mut all_snapped_at = None;
-        let mut residual_at_update = f64::INFINITY;
-        let mut iter = 0usize;
-        loop {
-            if iter >= sc.solver.max_newton_iterations {
-                return Err(format!(
-                    "Newton did not converge in {} iterations (k_M = {:e}, unsatisfied moving nodes: {})",
-                    iter,
-                    self.k_m,
-                    moving.snapped.iter().filter(|s| !**s).count()
-                ));
+impl Backend for DeviceLoop {
+    fn begin_step(&mut self, state: &State) -> Result<(), StepError> {
+        self.ops.begin_step(state.scene.time_step)?;
+        Ok(())
+    }
+
+    fn positions(&mut self, nodes: Option<&[usize]>) -> Result<&mut [f64], StepError> {
+        match nodes {
+            Some(nodes) => {
+                let d = self.dim;
+                self.read_nodes(nodes, d)
             }
-            if !moving.snapped.is_empty()
-                && moving.snapped.iter().all(|&s| s)
-                && all_snapped_at.is_none()
-            {
-                all_snapped_at = Some(iter);
-            }
-            self.direction_device(dl, moving, iter, rep)?;
-            iter += 1;
-            let dmax = dl.ops.max_abs_dx().map_err(gpu_msg)?;
-            if !dmax.is_finite() {
-                return Err(format!(
-                    "the Newton direction is not finite at iteration {iter}"
-                ));
-            }
-            if dmax / h < self.newton_tol {
-                if moving.snapped.iter().all(|&s| s) {
-                    break;
-                }
-                let nodes = self.unsnapped_nodes(&moving.snapped);
-                let x = dl.read_nodes(&nodes, d)?;
-                self.update_moving_penalty(x, moving, &mut residual_at_update, rep)?;
-                continue;
-            }
-            self.line_search_device(dl, dmax, iter, rep)?;
-            self.snap_device(dl, moving)?;
-            if self.contact.is_some() {
-                let when = format!("after Newton iteration {iter}");
-                let dist = self.check_distance_device(dl, &when)?;
-                rep.min_distance = match (rep.min_distance, dist) {
-                    (Some(a), Some(b)) => Some(a.min(b)),
-                    (a, b) => a.or(b),
-                };
+            None => {
+                let (x, v) = self.ops.read_state()?;
+                self.scratch = x;
+                self.scratch_v = v;
+                Ok(&mut self.scratch)
             }
         }
-        rep.newton_iterations = iter;
-        rep.eliminated_at_iteration = all_snapped_at;
-        rep.k_m = self.k_m;
+    }
+
+    fn write_positions(&mut self, nodes: Option<&[usize]>) -> Result<(), StepError> {
+        match nodes {
+            Some(nodes) => {
+                let d = self.dim;
+                let vals: Vec<f64> = nodes
+                    .iter()
+                    .flat_map(|&i| self.scratch[i * d..(i + 1) * d].iter().copied())
+                    .collect();
+                self.ops.write_nodes(nodes, &vals)?;
+            }
+            None => self.ops.set_state(&self.scratch, &self.scratch_v)?,
+        }
         Ok(())
+    }
+
+    fn set_planes(&mut self, planes: &[HalfSpace]) -> Result<(), StepError> {
+        self.elements.set_planes(planes)?;
+        Ok(())
+    }
+
+    fn min_distance(&mut self, state: &State) -> Result<(f64, usize, usize), StepError> {
+        let c = state
+            .contact
+            .as_ref()
+            .expect("min_distance is asked only with obstacles");
+        Ok(self.ops.min_distance(&c.planes)?)
     }
 
     /// Element terms, assembly, the moving penalty and the eliminated CG at the current
     /// iterate (the evaluation positions hold it); Δx is left on the device.
-    fn direction_device(
+    fn direction(
         &mut self,
-        dl: &mut DeviceLoop,
+        state: &State,
         moving: &MovingTargets,
-        iter: usize,
-        rep: &mut StepReport,
-    ) -> Result<(), String> {
+        iteration: usize,
+    ) -> Result<LinearStats, StepError> {
         let t = Instant::now();
         let snapped = &moving.snapped;
-        self.frames_for(snapped)?;
-        dl.elements.evaluate(true).map_err(gpu_msg)?;
-        dl.asm.assemble().map_err(gpu_msg)?;
-        let terms = self.moving_terms(&moving.shapes, snapped);
-        if dl.moving.as_ref() != Some(&terms) {
-            dl.ops.set_moving(&terms).map_err(gpu_msg)?;
-            dl.moving = Some(terms);
+        self.elements.evaluate(true)?;
+        self.asm.assemble()?;
+        let terms = Self::moving_terms(state, moving);
+        if self.moving.as_ref() != Some(&terms) {
+            self.ops.set_moving(&terms)?;
+            self.moving = Some(terms);
         }
-        dl.ops.add_moving().map_err(gpu_msg)?;
-        if self.contact.is_some() {
-            // Gradient and Hessian, as the CPU loop counts them.
-            self.barrier_evals.set(self.barrier_evals.get() + 2);
+        self.ops.add_moving()?;
+        // Gradient and Hessian, as the host loop counts them.
+        state.count_barrier(2);
+        if !self.frames.contains_key(snapped) {
+            let f = self.cg.frames(&state.frames[snapped])?;
+            self.frames.insert(snapped.to_vec(), f);
         }
-        if !dl.frames.contains_key(snapped) {
-            let f = dl.cg.frames(&self.frames[snapped]).map_err(gpu_msg)?;
-            dl.frames.insert(snapped.to_vec(), f);
-        }
-        let frames = &dl.frames[snapped];
-        let info = dl
+        let frames = &self.frames[snapped];
+        let info = self
             .cg
-            .solve(frames, &dl.params)
-            .map_err(|e| format!("linear solve failed at Newton iteration {}: {e}", iter + 1))?;
-        rep.linear_iterations += info.iterations;
-        rep.linear_seconds += t.elapsed().as_secs_f64();
-        Ok(())
+            .solve(frames, &self.params)
+            .map_err(|e| StepError::LinearSolve {
+                iteration,
+                cause: e.to_string(),
+            })?;
+        Ok(LinearStats {
+            iterations: info.iterations,
+            seconds: t.elapsed().as_secs_f64(),
+        })
     }
 
-    /// E at the evaluation positions, from the per-term sums on the device, combined as
-    /// the CPU's [`Stepper::energy`] combines its terms.
-    fn energy_device(&self, dl: &mut DeviceLoop) -> Result<f64, String> {
-        let h2 = self.scene.time_step * self.scene.time_step;
-        dl.elements.evaluate_energy().map_err(gpu_msg)?;
-        let terms = dl.ops.energy_terms().map_err(gpu_msg)?;
+    fn max_abs_dx(&mut self) -> Result<f64, StepError> {
+        Ok(self.ops.max_abs_dx()?)
+    }
+
+    /// E at the evaluation positions (the current iterate, or the trial one after
+    /// [`Backend::set_trial`]), from the per-term sums on the device, combined as the host
+    /// backend combines its terms.
+    fn energy(
+        &mut self,
+        state: &State,
+        _moving: &MovingTargets,
+        _trial: bool,
+    ) -> Result<f64, StepError> {
+        let h2 = state.scene.time_step * state.scene.time_step;
+        self.elements.evaluate_energy()?;
+        let terms = self.ops.energy_terms()?;
         let mut inertia = 0.0;
         let mut potential = 0.0;
         let mut barrier = 0.0;
-        for (kind, e) in dl.kinds.iter().zip(&terms) {
+        for (kind, e) in self.kinds.iter().zip(&terms) {
             match kind {
                 TermKind::Inertia => inertia += e,
                 TermKind::Barrier => barrier += e,
@@ -516,112 +357,51 @@ impl Stepper<'_> {
             }
         }
         let mut e = inertia + h2 * potential;
-        if dl.moving.as_ref().is_some_and(|m| !m.is_empty()) {
-            e += dl.ops.moving_energy().map_err(gpu_msg)?;
+        if self.moving.as_ref().is_some_and(|m| !m.is_empty()) {
+            e += self.ops.moving_energy()?;
         }
-        if self.contact.is_some() {
-            self.barrier_evals.set(self.barrier_evals.get() + 1);
+        if state.contact.is_some() {
+            state.count_barrier(1);
             e += h2 * barrier;
         }
         Ok(e)
     }
 
-    /// Armijo backtracking on the device (see [`Stepper::line_search`]).
-    fn line_search_device(
-        &mut self,
-        dl: &mut DeviceLoop,
-        dmax: f64,
-        iter: usize,
-        rep: &mut StepReport,
-    ) -> Result<(), String> {
-        let h = self.scene.time_step;
-        let d = self.scene.dim;
-        let e0 = self.energy_device(dl)?;
-        if !e0.is_finite() {
-            return Err(format!(
-                "the energy is not finite (E = {e0:e}) at Newton iteration {iter}: the positions or velocities have overflowed"
-            ));
-        }
-        let slope = dl.ops.dot_gradient_dx().map_err(gpu_msg)?;
-        rep.max_slope = Some(rep.max_slope.map_or(slope, |m| m.max(slope)));
-        if slope.is_nan() || slope >= 0.0 {
-            rep.ascent_directions += 1;
-        }
-        let ccd = match &self.contact {
-            Some(c) => {
-                self.ccd_calls += 1;
-                dl.ops.ccd(&c.planes, CCD_FRACTION).map_err(gpu_msg)?
-            }
-            None => Ccd {
-                alpha: 1.0,
-                limit: None,
-            },
-        };
-        let alpha_c = ccd.alpha;
-        if alpha_c < 1.0 {
-            rep.ccd_limited += 1;
-        }
-        let mut alpha = alpha_c;
-        let mut accepted = false;
-        for _ in 0..MAX_HALVINGS {
-            dl.ops.set_trial(alpha).map_err(gpu_msg)?;
-            let e1 = self.energy_device(dl)?;
-            if e1 <= e0 + ARMIJO * alpha * slope.min(0.0) {
-                accepted = true;
-                break;
-            }
-            alpha *= 0.5;
-        }
-        if !accepted {
-            if dmax / h < 1e3 * self.newton_tol {
-                alpha = alpha_c;
-                dl.ops.set_trial(alpha_c).map_err(gpu_msg)?;
-            } else {
-                return Err(format!(
-                    "the line search found no decrease at Newton iteration {iter} (‖Δx‖∞/h = {:e} m/s)",
-                    dmax / h
-                ));
-            }
-        }
-        if alpha == alpha_c {
-            if let Some((node, _)) = ccd.limit {
-                let x = dl.read_nodes(&[node], d)?;
-                self.check_unbarriered_limit(x, &ccd, iter)?;
-            }
-        }
-        dl.ops.accept().map_err(gpu_msg)?;
+    fn slope(&mut self) -> Result<f64, StepError> {
+        Ok(self.ops.dot_gradient_dx()?)
+    }
+
+    fn ccd(&mut self, state: &State) -> Result<Ccd, StepError> {
+        let c = state
+            .contact
+            .as_ref()
+            .expect("the CCD bound is asked only with obstacles");
+        Ok(self.ops.ccd(&c.planes, CCD_FRACTION)?)
+    }
+
+    fn set_trial(&mut self, alpha: f64) -> Result<(), StepError> {
+        self.ops.set_trial(alpha)?;
         Ok(())
     }
 
-    /// [`Stepper::finish_step`] for the state read back from the device.
-    fn finish_device_step(
-        &mut self,
-        x: Vec<f64>,
-        v: Vec<f64>,
-        w: super::StepWork,
-        t1: f64,
-    ) -> Result<(), String> {
-        let sc = self.scene;
-        let d = sc.dim;
-        let ke: f64 = v
-            .iter()
-            .enumerate()
-            .map(|(i, vi)| sc.model.mass[i / d] * vi * vi)
-            .sum();
-        if !ke.is_finite() {
-            return Err(format!(
-                "the velocities overflow (2·kinetic energy = {ke:e}): a node was moved by about {:e} m in one step",
-                (0..x.len())
-                    .map(|i| (x[i] - self.x[i]).abs())
-                    .fold(0.0f64, f64::max)
-            ));
-        }
-        self.v = v;
-        self.x = x;
-        self.work = w;
-        self.t = t1;
-        self.step += 1;
+    fn accept(&mut self) -> Result<(), StepError> {
+        self.ops.accept()?;
         Ok(())
+    }
+
+    fn end_step(&mut self, state: &State) -> Result<EndState, StepError> {
+        self.ops.end_step(state.scene.time_step)?;
+        let (x, v) = self.ops.read_state()?;
+        let g = self.ops.read_gradient()?;
+        Ok(EndState { x, v, g })
+    }
+
+    fn adapter(&self) -> Option<&str> {
+        Some(self.adapter_name())
+    }
+
+    fn gpu_report(&self, _state: &State) -> Option<GpuRunReport> {
+        Some(self.report())
     }
 }
 

@@ -1,0 +1,89 @@
+//! Where a step's iterate lives: [`Backend`] is what the one Newton loop
+//! (`stepper.rs`) asks of it. The host backend keeps x, xⁿ, x̃, ∇E and Δx in arrays and
+//! solves with the library's [`crate::Solver`]; the device backend keeps them in device
+//! buffers and reads back only scalars and the few node positions the loop's decisions
+//! need. Both evaluate the same energy, so the loop's decisions (Armijo, snapping, the
+//! penalty update, the CCD bound, convergence) are made once, here, for both.
+
+use super::error::StepError;
+use super::linear::LinearStats;
+use super::report::GpuRunReport;
+use super::state::State;
+use super::targets::MovingTargets;
+use crate::sim::energy::barrier::{Ccd, HalfSpace};
+
+/// The state at the end of a step, read back from wherever it lived.
+pub(super) struct EndState {
+    /// Positions x^{n+1}.
+    pub(super) x: Vec<f64>,
+    /// Velocities v^{n+1} = (x^{n+1} − xⁿ)/h.
+    pub(super) v: Vec<f64>,
+    /// ∇E at x^{n+1} (for the reactions).
+    pub(super) g: Vec<f64>,
+}
+
+/// The operations of one step on the iterate, wherever it lives.
+pub(super) trait Backend {
+    /// Start of step: xⁿ from the state, x̃ = xⁿ + h vⁿ, and the starting iterate: xⁿ
+    /// projected onto the static constraint sets.
+    fn begin_step(&mut self, state: &State) -> Result<(), StepError>;
+
+    /// The current iterate's positions, node-major, as a whole-length array of which at
+    /// least `nodes` (every node for None) are current; changes are kept only where
+    /// [`Backend::write_positions`] follows.
+    fn positions(&mut self, nodes: Option<&[usize]>) -> Result<&mut [f64], StepError>;
+
+    /// Stores the positions of `nodes` (every node for None) from the array
+    /// [`Backend::positions`] handed out.
+    fn write_positions(&mut self, nodes: Option<&[usize]>) -> Result<(), StepError>;
+
+    /// The obstacles' half-spaces for this step changed.
+    fn set_planes(&mut self, planes: &[HalfSpace]) -> Result<(), StepError>;
+
+    /// The smallest signed distance of any node of the current iterate to any obstacle,
+    /// with the node and the obstacle (call only with obstacles).
+    fn min_distance(&mut self, state: &State) -> Result<(f64, usize, usize), StepError>;
+
+    /// ∇E, ∇²E and the eliminated solve for the constraint set of `moving` (its frames
+    /// are built) at the current iterate: Δx is kept for the line search. `iteration`
+    /// (from 1) names it in errors.
+    fn direction(
+        &mut self,
+        state: &State,
+        moving: &MovingTargets,
+        iteration: usize,
+    ) -> Result<LinearStats, StepError>;
+
+    /// ‖Δx‖∞.
+    fn max_abs_dx(&mut self) -> Result<f64, StepError>;
+
+    /// E at the current iterate (`trial` false) or at the trial iterate of the last
+    /// [`Backend::set_trial`].
+    fn energy(
+        &mut self,
+        state: &State,
+        moving: &MovingTargets,
+        trial: bool,
+    ) -> Result<f64, StepError>;
+
+    /// The directional derivative ∇E·Δx at the current iterate.
+    fn slope(&mut self) -> Result<f64, StepError>;
+
+    /// The CCD bound α_C of Δx from the current iterate (call only with obstacles).
+    fn ccd(&mut self, state: &State) -> Result<Ccd, StepError>;
+
+    /// The trial iterate x + α Δx.
+    fn set_trial(&mut self, alpha: f64) -> Result<(), StepError>;
+
+    /// The trial iterate becomes the current one.
+    fn accept(&mut self) -> Result<(), StepError>;
+
+    /// End of step: x^{n+1}, v^{n+1} and ∇E there.
+    fn end_step(&mut self, state: &State) -> Result<EndState, StepError>;
+
+    /// The GPU adapter this loop uses, if any.
+    fn adapter(&self) -> Option<&str>;
+
+    /// What the GPU moved and stored so far; None without a GPU.
+    fn gpu_report(&self, state: &State) -> Option<GpuRunReport>;
+}

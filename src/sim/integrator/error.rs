@@ -1,0 +1,67 @@
+//! Why a stepper could not start ([`InitError`]) and why a step failed ([`StepError`]).
+//! Both loops, on the host and on the device, fail with the same errors.
+
+use crate::core::constraints::ConstraintError;
+use crate::gpu::GpuError;
+
+/// Why a stepper could not start.
+#[derive(Debug, Clone, PartialEq)]
+pub enum InitError {
+    /// The scene's conditions are inconsistent; `entry` names the scene entry.
+    Input { entry: String, problem: String },
+    /// The linear solver cannot start.
+    Solver(String),
+}
+
+/// Why a step failed. Iterations count from 1, on both loops.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StepError {
+    #[error("Newton did not converge in {iterations} iterations (k_M = {k_m:e}, unsatisfied moving nodes: {unsatisfied})")]
+    NewtonLimit {
+        iterations: usize,
+        k_m: f64,
+        unsatisfied: usize,
+    },
+    #[error("the Newton direction is not finite at iteration {iteration}")]
+    DirectionNotFinite { iteration: usize },
+    #[error("the {what} holds {value} at Newton iteration {iteration}: the positions or velocities have overflowed f64")]
+    SystemNotFinite {
+        what: &'static str,
+        value: f64,
+        iteration: usize,
+    },
+    #[error("the energy is not finite (E = {energy:e}) at Newton iteration {iteration}: the positions or velocities have overflowed")]
+    EnergyNotFinite { energy: f64, iteration: usize },
+    #[error("linear solve failed at Newton iteration {iteration}: {cause}")]
+    LinearSolve { iteration: usize, cause: String },
+    #[error("the line search found no decrease at Newton iteration {iteration} (‖Δx‖∞/h = {rate:e} m/s)")]
+    NoDecrease { iteration: usize, rate: f64 },
+    #[error("node {node} is at signed distance {distance:e} m from {obstacle} {when}: the configuration must stay penetration-free")]
+    Penetration {
+        node: usize,
+        distance: f64,
+        obstacle: String,
+        when: String,
+    },
+    #[error("interior node {node} (no contact barrier) is held off {obstacle} only by the CCD bound at Newton iteration {iteration} (it was {gap:e} m away, the step covers {fraction} of that): the body has likely inverted; use a stiffer material, a smaller time step or a finer mesh")]
+    Unbarriered {
+        node: usize,
+        obstacle: String,
+        iteration: usize,
+        gap: f64,
+        fraction: f64,
+    },
+    #[error("{unsatisfied} moving node(s) did not reach their targets (largest offset {worst:e} m, ε·h = {eps_h:e} m) with k_M at its cap {cap:e}")]
+    PenaltyCap {
+        unsatisfied: usize,
+        worst: f64,
+        eps_h: f64,
+        cap: f64,
+    },
+    #[error("the velocities overflow (2·kinetic energy = {kinetic:e}): a node was moved by about {moved:e} m in one step")]
+    VelocityOverflow { kinetic: f64, moved: f64 },
+    #[error("{0}")]
+    Constraints(#[from] ConstraintError),
+    #[error("GPU Newton loop: {0}")]
+    Device(#[from] GpuError),
+}

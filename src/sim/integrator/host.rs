@@ -1,0 +1,287 @@
+//! The host backend: the iterate in arrays, ∇E and ∇²E assembled on the CPU, the
+//! eliminated system solved by the library's [`crate::Solver`] (Cholesky, CPU CG or the
+//! GPU CG, as the scene's `linear` says).
+
+use super::backend::{Backend, EndState};
+use super::error::StepError;
+use super::linear::{LinearSolver, LinearStats};
+use super::report::GpuRunReport;
+use super::state::{State, CCD_FRACTION};
+use super::targets::{offset, projector, MovingTargets};
+use crate::core::elimination::{ConstrainedDiagonal, Eliminated};
+use crate::core::sparse::BlockCsr;
+use crate::sim::energy::barrier::{Ccd, HalfSpace};
+use crate::sim::energy::{inertia, AssemblyWork};
+use crate::sim::scene::{BcShape, SolverSpec};
+use crate::Precision;
+
+pub(super) struct HostBackend {
+    pub(super) linear: LinearSolver,
+    hmat: BlockCsr,
+    /// Element buffers of the gradient and Hessian assembly, kept across Newton iterations.
+    assembly: AssemblyWork,
+    /// The current iterate.
+    x: Vec<f64>,
+    /// xⁿ, the positions at the start of the step.
+    xn: Vec<f64>,
+    /// x̃ = xⁿ + h vⁿ.
+    xt: Vec<f64>,
+    /// ∇E at the current iterate.
+    g: Vec<f64>,
+    /// The line search's trial iterate (swapped with x when accepted).
+    xtry: Vec<f64>,
+    /// The last Newton direction.
+    dx: Vec<f64>,
+}
+
+impl HostBackend {
+    pub(super) fn new(state: &State, linear: &SolverSpec) -> Result<Self, String> {
+        let n = state.x.len();
+        Ok(HostBackend {
+            linear: LinearSolver::new(linear)?,
+            hmat: state.scene.model.zero_matrix(),
+            assembly: AssemblyWork::default(),
+            x: vec![0.0; n],
+            xn: vec![0.0; n],
+            xt: vec![0.0; n],
+            g: vec![0.0; n],
+            xtry: vec![0.0; n],
+            dx: vec![0.0; n],
+        })
+    }
+}
+
+impl Backend for HostBackend {
+    fn begin_step(&mut self, state: &State) -> Result<(), StepError> {
+        let h = state.scene.time_step;
+        self.xn.clone_from(&state.x);
+        self.x.clone_from(&state.x);
+        state.project_static(&mut self.x);
+        for i in 0..self.x.len() {
+            self.xt[i] = self.xn[i] + h * state.v[i];
+        }
+        Ok(())
+    }
+
+    fn positions(&mut self, _nodes: Option<&[usize]>) -> Result<&mut [f64], StepError> {
+        Ok(&mut self.x)
+    }
+
+    fn write_positions(&mut self, _nodes: Option<&[usize]>) -> Result<(), StepError> {
+        Ok(())
+    }
+
+    fn set_planes(&mut self, _planes: &[HalfSpace]) -> Result<(), StepError> {
+        Ok(())
+    }
+
+    fn min_distance(&mut self, state: &State) -> Result<(f64, usize, usize), StepError> {
+        Ok(state
+            .min_distance(&self.x)
+            .expect("min_distance is asked only with obstacles"))
+    }
+
+    fn direction(
+        &mut self,
+        state: &State,
+        moving: &MovingTargets,
+        iteration: usize,
+    ) -> Result<LinearStats, StepError> {
+        let snapped = &moving.snapped;
+        gradient(
+            state,
+            &self.x,
+            &self.xt,
+            moving,
+            &mut self.g,
+            &mut self.assembly,
+        );
+        hessian(state, &self.x, moving, &mut self.hmat, &mut self.assembly);
+        // Positions far beyond the scene (a plane offset near 1e300) overflow the element
+        // terms; say so here rather than as a failed factorization of a non-finite H.
+        for (what, v) in [
+            ("gradient", &self.g[..]),
+            ("Hessian", &self.hmat.values[..]),
+        ] {
+            if let Some(&value) = v.iter().find(|v| !v.is_finite()) {
+                return Err(StepError::SystemNotFinite {
+                    what,
+                    value,
+                    iteration,
+                });
+            }
+        }
+        let frames = &state.frames[snapped];
+        let e = Eliminated::new(&self.hmat, &self.g, frames, ConstrainedDiagonal::Identity);
+        let (dx, stats) = self
+            .linear
+            .solve(snapped, &e)
+            .map_err(|cause| StepError::LinearSolve { iteration, cause })?;
+        self.dx = dx;
+        Ok(stats)
+    }
+
+    fn max_abs_dx(&mut self) -> Result<f64, StepError> {
+        Ok(self.dx.iter().fold(0.0f64, |m, v| m.max(v.abs())))
+    }
+
+    fn energy(
+        &mut self,
+        state: &State,
+        moving: &MovingTargets,
+        trial: bool,
+    ) -> Result<f64, StepError> {
+        let x = if trial { &self.xtry } else { &self.x };
+        Ok(energy(state, x, &self.xt, &moving.shapes, &moving.snapped))
+    }
+
+    fn slope(&mut self) -> Result<f64, StepError> {
+        Ok(self.g.iter().zip(&self.dx).map(|(a, b)| a * b).sum())
+    }
+
+    fn ccd(&mut self, state: &State) -> Result<Ccd, StepError> {
+        let c = state
+            .contact
+            .as_ref()
+            .expect("the CCD bound is asked only with obstacles");
+        Ok(c.barrier.ccd(&self.x, &self.dx, &c.planes, CCD_FRACTION))
+    }
+
+    fn set_trial(&mut self, alpha: f64) -> Result<(), StepError> {
+        for i in 0..self.x.len() {
+            self.xtry[i] = self.x[i] + alpha * self.dx[i];
+        }
+        Ok(())
+    }
+
+    fn accept(&mut self) -> Result<(), StepError> {
+        std::mem::swap(&mut self.x, &mut self.xtry);
+        Ok(())
+    }
+
+    fn end_step(&mut self, state: &State) -> Result<EndState, StepError> {
+        let h = state.scene.time_step;
+        let v = (0..self.x.len())
+            .map(|i| (self.x[i] - self.xn[i]) / h)
+            .collect();
+        Ok(EndState {
+            x: self.x.clone(),
+            v,
+            g: self.g.clone(),
+        })
+    }
+
+    fn adapter(&self) -> Option<&str> {
+        self.linear.adapter.as_deref()
+    }
+
+    fn gpu_report(&self, state: &State) -> Option<GpuRunReport> {
+        let t = self.linear.solver.gpu_traffic()?;
+        let sc = state.scene;
+        let precision = sc.solver.precision;
+        // The CG's operator: f64 blocks for f64, f32 blocks for f32 and mixed.
+        let real = if precision == Precision::F64 { 8 } else { 4 };
+        Some(GpuRunReport {
+            adapter: self.linear.adapter.clone().unwrap_or_default(),
+            precision: precision.to_string(),
+            host_to_device_bytes: t.host_to_device_bytes,
+            device_to_host_bytes: t.device_to_host_bytes,
+            matrix_bytes: (sc.model.pattern.nnz_blocks() * sc.dim * sc.dim * real) as u64,
+            newton_iterations: 0,
+        })
+    }
+}
+
+/// E(x) for the current step.
+fn energy(state: &State, x: &[f64], xt: &[f64], targets: &[BcShape], snapped: &[bool]) -> f64 {
+    let sc = state.scene;
+    let h = sc.time_step;
+    let d = sc.dim;
+    let mut e = inertia::energy(&sc.model.mass, d, x, xt) + h * h * sc.model.potential(x);
+    for (j, &k) in state.moving_bcs.iter().enumerate() {
+        if snapped[j] {
+            continue;
+        }
+        let b = &sc.bcs[k];
+        let m = sc.model.mass[b.node];
+        let r = offset(d, &targets[j], &x[b.node * d..(b.node + 1) * d]);
+        let rr: f64 = r.iter().map(|v| v * v).sum();
+        let lr: f64 = (0..3).map(|a| state.lambda[j][a] * r[a]).sum();
+        e += 0.5 * state.k_m * m * rr - m.sqrt() * lr;
+    }
+    if let Some(c) = &state.contact {
+        state.count_barrier(1);
+        e += h * h * c.barrier.energy(x, &c.planes);
+    }
+    e
+}
+
+/// ∇E at x into `g`.
+fn gradient(
+    state: &State,
+    x: &[f64],
+    xt: &[f64],
+    moving: &MovingTargets,
+    g: &mut [f64],
+    assembly: &mut AssemblyWork,
+) {
+    let sc = state.scene;
+    let d = sc.dim;
+    let h = sc.time_step;
+    g.iter_mut().for_each(|v| *v = 0.0);
+    inertia::add_gradient(&sc.model.mass, d, x, xt, g);
+    sc.model.add_potential_gradient_with(x, h * h, g, assembly);
+    for (j, &k) in state.moving_bcs.iter().enumerate() {
+        if moving.snapped[j] {
+            continue;
+        }
+        let node = sc.bcs[k].node;
+        let m = sc.model.mass[node];
+        let r = offset(d, &moving.shapes[j], &x[node * d..(node + 1) * d]);
+        let p = projector(d, &moving.shapes[j]);
+        for a in 0..d {
+            // ∇[½ k m ‖r‖² − √m λᵀr] = k m r − √m P λ (P the projector with r = P(x − ·)).
+            let pl: f64 = (0..d).map(|c| p[a * 3 + c] * state.lambda[j][c]).sum();
+            g[node * d + a] += state.k_m * m * r[a] - m.sqrt() * pl;
+        }
+    }
+    if let Some(c) = &state.contact {
+        state.count_barrier(1);
+        c.barrier.add_gradient(x, &c.planes, h * h, g);
+    }
+}
+
+/// ∇²E at x into `hmat` (the element terms PSD-projected).
+fn hessian(
+    state: &State,
+    x: &[f64],
+    moving: &MovingTargets,
+    hmat: &mut BlockCsr,
+    assembly: &mut AssemblyWork,
+) {
+    let sc = state.scene;
+    let d = sc.dim;
+    let h = sc.time_step;
+    hmat.values.iter_mut().for_each(|v| *v = 0.0);
+    sc.model.add_mass(hmat);
+    sc.model
+        .add_potential_hessian_with(x, h * h, true, hmat, assembly);
+    for (j, &k) in state.moving_bcs.iter().enumerate() {
+        if moving.snapped[j] {
+            continue;
+        }
+        let node = sc.bcs[k].node;
+        let m = sc.model.mass[node];
+        let p = projector(d, &moving.shapes[j]);
+        let kb = hmat.diag_index(node).expect("diagonal block");
+        for a in 0..d {
+            for c in 0..d {
+                hmat.values[kb * d * d + a * d + c] += state.k_m * m * p[a * 3 + c];
+            }
+        }
+    }
+    if let Some(c) = &state.contact {
+        state.count_barrier(1);
+        c.barrier.add_hessian(x, &c.planes, h * h, hmat);
+    }
+}

@@ -1,0 +1,57 @@
+//! What a step did ([`StepReport`]), what the contact code did over a run
+//! ([`ContactCounters`]) and what the GPU moved and stored ([`GpuRunReport`]).
+
+/// What one step did.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct StepReport {
+    pub step: usize,
+    pub time: f64,
+    pub newton_iterations: usize,
+    pub linear_iterations: usize,
+    pub linear_seconds: f64,
+    /// k_M at the end of the step (meaningful when the scene has moving conditions).
+    pub k_m: f64,
+    /// k_M doublings in this step.
+    pub k_m_doublings: usize,
+    /// Newton iteration at which the last moving node was snapped and eliminated
+    /// (0: all were satisfied at the start of the step); None without moving conditions.
+    pub eliminated_at_iteration: Option<usize>,
+    /// Largest ‖x_k − x̂_k‖ of a moving node at the end of the step (0 once snapped).
+    pub moving_max_error: f64,
+    /// Contact only: the smallest signed distance of any node to any obstacle over every
+    /// Newton iterate of the step (including its starting iterate).
+    pub min_distance: Option<f64>,
+    /// Largest directional derivative gᵀΔx over the step's line-searched Newton iterates
+    /// (negative: every Newton step was a descent direction); None when no line search ran.
+    pub max_slope: Option<f64>,
+    /// Line-searched iterates whose Newton step was not a descent direction (gᵀΔx ≥ 0).
+    pub ascent_directions: usize,
+    /// Line searches whose CCD bound α_C was below 1.
+    pub ccd_limited: usize,
+}
+
+/// What the contact code did (all zero for a scene without obstacles).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct ContactCounters {
+    /// Barrier energy, gradient or Hessian evaluations.
+    pub barrier_evaluations: u64,
+    /// CCD (α_C) computations.
+    pub ccd_calls: u64,
+    /// Initial guesses pushed ahead of a moving obstacle.
+    pub pushed_nodes: u64,
+}
+
+/// What a run with the GPU Newton loop moved and stored (summary.json `"gpu"`).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct GpuRunReport {
+    pub adapter: String,
+    /// Arithmetic of every device computation.
+    pub precision: String,
+    /// Totals over the run, set-up included.
+    pub host_to_device_bytes: u64,
+    pub device_to_host_bytes: u64,
+    /// Bytes of one assembled Hessian as stored on the device.
+    pub matrix_bytes: u64,
+    /// Newton iterations of the run (filled in by the driver, which counts them).
+    pub newton_iterations: usize,
+}

@@ -1,0 +1,350 @@
+//! [`Stepper`]: the time step and its Newton loop, written once over a [`Backend`] that
+//! holds the iterate (host arrays, or device buffers with scalars read back).
+
+use super::backend::Backend;
+use super::device::DeviceLoop;
+use super::error::{InitError, StepError};
+use super::host::HostBackend;
+use super::report::{GpuRunReport, StepReport};
+use super::state::{State, ARMIJO, MAX_HALVINGS};
+use super::targets::MovingTargets;
+use crate::sim::energy::barrier::Ccd;
+use crate::sim::scene::{check_solver_size, joint_targets, LinearKind, NewtonLoop, Scene};
+
+/// Time stepper: the [`State`] (read through this type) and the backend its Newton loop
+/// runs on.
+pub struct Stepper<'s> {
+    state: State<'s>,
+    backend: Box<dyn Backend + 's>,
+}
+
+impl<'s> std::ops::Deref for Stepper<'s> {
+    type Target = State<'s>;
+    fn deref(&self) -> &State<'s> {
+        &self.state
+    }
+}
+
+impl<'s> std::ops::DerefMut for Stepper<'s> {
+    fn deref_mut(&mut self) -> &mut State<'s> {
+        &mut self.state
+    }
+}
+
+impl<'s> Stepper<'s> {
+    /// Fails with [`InitError::Input`] when the scene's conditions are inconsistent (for
+    /// example contradictory conditions on one node, see [`joint_targets`]) or the scene
+    /// is too big for its linear solver ([`check_solver_size`]: the solver may have been
+    /// overridden after parsing), and [`InitError::Solver`] when the linear solver cannot
+    /// start (no GPU adapter).
+    pub fn new(scene: &'s Scene) -> Result<Self, InitError> {
+        let on_device = scene.solver.newton == NewtonLoop::Gpu;
+        // The device loop has its own CG: the size limit of the scene's linear solver does
+        // not apply to it.
+        let mut linear = scene.solver.clone();
+        if on_device {
+            linear.linear = LinearKind::Cg;
+        }
+        // The solver may have been overridden after the scene was parsed (`--solver`).
+        check_solver_size(scene.dim, scene.model.n_nodes, linear.linear).map_err(|p| {
+            InitError::Input {
+                entry: "solver.linear".into(),
+                problem: format!("{p} (or --solver)"),
+            }
+        })?;
+        let mut static_bcs = Vec::new();
+        let mut moving_bcs = Vec::new();
+        for (k, b) in scene.bcs.iter().enumerate() {
+            if b.motion.is_some() {
+                moving_bcs.push(k);
+            } else {
+                static_bcs.push(k);
+            }
+        }
+        // Nodes with several static conditions: they must agree (checked again here for
+        // scenes built without the parser) and are projected onto their intersection.
+        let joint = joint_targets(
+            scene.dim,
+            &scene.x0,
+            &scene.bcs,
+            scene.characteristic_length,
+        )
+        .map_err(|e| InitError::Input {
+            entry: e.label,
+            problem: e.problem,
+        })?;
+        let mut is_joint = vec![false; scene.model.n_nodes];
+        for j in &joint {
+            is_joint[j.node] = true;
+        }
+        let single_static_bcs = static_bcs
+            .iter()
+            .copied()
+            .filter(|&k| !is_joint[scene.bcs[k].node])
+            .collect();
+        let mut state = State::new(scene, static_bcs, single_static_bcs, joint, moving_bcs);
+        // The host loop's linear solver starts first (a missing GPU adapter for `linear =
+        // "gpu"` is said before anything else).
+        let host = if on_device {
+            None
+        } else {
+            Some(HostBackend::new(&state, &linear).map_err(InitError::Solver)?)
+        };
+        // Build (and validate) the static constraint set up front: bad conditions fail
+        // before the first step; then every moving node eliminated at once, the largest
+        // set a step can reach.
+        let n_moving = state.moving_bcs.len();
+        for key in [vec![false; n_moving], vec![true; n_moving]] {
+            if let Err(e) = state.build_frames(&key) {
+                return Err(InitError::Input {
+                    entry: e.label,
+                    problem: e.problem,
+                });
+            }
+        }
+        let backend: Box<dyn Backend + 's> = match host {
+            Some(h) => Box::new(h),
+            None => Box::new(DeviceLoop::start(&state)?),
+        };
+        Ok(Stepper { state, backend })
+    }
+
+    /// The GPU adapter the run uses (the device loop's, or the GPU linear solver's).
+    pub fn adapter(&self) -> Option<&str> {
+        self.backend.adapter()
+    }
+
+    /// What the GPU did so far: the device loop's report, or for the host loop with
+    /// `linear = "gpu"` the linear solver's traffic and operator size; None for a run
+    /// without a GPU. `newton_iterations` is left for the caller, who counts them.
+    pub fn gpu_report(&self) -> Option<GpuRunReport> {
+        self.backend.gpu_report(&self.state)
+    }
+
+    /// Advances one step: the start-of-step projection, Newton (with the moving-boundary
+    /// updates and the CCD-bounded line search), then the end-of-step recovery of forces,
+    /// velocities and state.
+    pub fn step(&mut self) -> Result<StepReport, StepError> {
+        let sc = self.state.scene;
+        let t1 = self.state.t + sc.time_step;
+        let mut rep = StepReport {
+            step: self.state.step + 1,
+            time: t1,
+            k_m: self.state.k_m,
+            ..StepReport::default()
+        };
+        // 1. Static projection, xⁿ and x̃; obstacles at t^{n+1}.
+        self.backend.begin_step(&self.state)?;
+        if self.state.contact.is_some() {
+            self.advance_obstacles(t1)?;
+            rep.min_distance = Some(self.check_distance("at the start of the step")?);
+        }
+        // 2. Moving targets at t^{n+1}; nodes already within ε are snapped now.
+        let mut moving = MovingTargets {
+            shapes: self
+                .state
+                .moving_bcs
+                .iter()
+                .map(|&k| sc.bcs[k].shape_at(t1))
+                .collect(),
+            snapped: vec![false; self.state.moving_bcs.len()],
+        };
+        self.snap(&mut moving)?;
+        // 3. Newton.
+        self.newton(&mut moving, &mut rep)?;
+        // 4. Reactions and contact forces at the converged iterate.
+        let end = self.backend.end_step(&self.state)?;
+        self.state.recover_forces(&end.x, &end.g, &moving.snapped);
+        // 5. Velocity and state.
+        self.state.finish_step(end.x, end.v, t1)?;
+        Ok(rep)
+    }
+
+    /// Moves the obstacles to t1 on the host (and the backend's planes); a moving obstacle
+    /// may push starting guesses ahead of it, which the backend then stores.
+    fn advance_obstacles(&mut self, t1: f64) -> Result<(), StepError> {
+        let moves = self
+            .state
+            .scene
+            .obstacles
+            .iter()
+            .any(|o| o.motion.is_some());
+        if moves {
+            let x = self.backend.positions(None)?;
+            if self.state.advance_obstacles(t1, x) {
+                self.backend.write_positions(None)?;
+            }
+        } else {
+            self.state.advance_obstacles(t1, &mut []);
+        }
+        if let Some(c) = &self.state.contact {
+            self.backend.set_planes(&c.planes)?;
+        }
+        Ok(())
+    }
+
+    /// The smallest distance of the current iterate to the obstacles, or the error naming
+    /// the node when it touches or crosses one (call only with obstacles).
+    fn check_distance(&mut self, when: &str) -> Result<f64, StepError> {
+        let nearest = self.backend.min_distance(&self.state)?;
+        self.state.check_distance(nearest, when)
+    }
+
+    /// Snaps the unsnapped moving nodes within ε·h of their targets, on the backend's
+    /// positions.
+    fn snap(&mut self, moving: &mut MovingTargets) -> Result<(), StepError> {
+        let nodes = self.state.unsnapped_nodes(&moving.snapped);
+        if nodes.is_empty() {
+            return Ok(());
+        }
+        let before = moving.snapped.clone();
+        let x = self.backend.positions(Some(&nodes))?;
+        self.state
+            .snap_satisfied(x, &moving.shapes, &mut moving.snapped);
+        let newly: Vec<usize> = (0..before.len())
+            .filter(|&j| moving.snapped[j] && !before[j])
+            .map(|j| self.state.scene.bcs[self.state.moving_bcs[j]].node)
+            .collect();
+        if !newly.is_empty() {
+            self.backend.write_positions(Some(&newly))?;
+        }
+        Ok(())
+    }
+
+    /// Newton on E from the starting iterate: per iteration the eliminated solve; when it
+    /// has converged with moving nodes still off target, the moving-boundary update;
+    /// otherwise the CCD-bounded line search. The step is done when ‖Δx‖∞/h < tol with
+    /// every moving node snapped and eliminated.
+    fn newton(
+        &mut self,
+        moving: &mut MovingTargets,
+        rep: &mut StepReport,
+    ) -> Result<(), StepError> {
+        let sc = self.state.scene;
+        let h = sc.time_step;
+        let mut all_snapped_at = None;
+        let mut residual_at_update = f64::INFINITY;
+        let mut iter = 0usize;
+        loop {
+            if iter >= sc.solver.max_newton_iterations {
+                return Err(StepError::NewtonLimit {
+                    iterations: iter,
+                    k_m: self.state.k_m,
+                    unsatisfied: moving.snapped.iter().filter(|s| !**s).count(),
+                });
+            }
+            if !moving.snapped.is_empty()
+                && moving.snapped.iter().all(|&s| s)
+                && all_snapped_at.is_none()
+            {
+                all_snapped_at = Some(iter);
+            }
+            iter += 1;
+            self.state.build_frames(&moving.snapped)?;
+            let stats = self.backend.direction(&self.state, moving, iter)?;
+            rep.linear_iterations += stats.iterations;
+            rep.linear_seconds += stats.seconds;
+            let dmax = self.backend.max_abs_dx()?;
+            if !dmax.is_finite() {
+                return Err(StepError::DirectionNotFinite { iteration: iter });
+            }
+            if dmax / h < self.state.newton_tol {
+                if moving.snapped.iter().all(|&s| s) {
+                    break;
+                }
+                // Converged with the penalty but nodes still off target.
+                let nodes = self.state.unsnapped_nodes(&moving.snapped);
+                let x = self.backend.positions(Some(&nodes))?;
+                if self
+                    .state
+                    .update_moving_penalty(x, moving, &mut residual_at_update)?
+                {
+                    rep.k_m_doublings += 1;
+                }
+                continue;
+            }
+            self.line_search(moving, dmax, iter, rep)?;
+            self.snap(moving)?;
+            if self.state.contact.is_some() {
+                let d = self.check_distance(&format!("after Newton iteration {iter}"))?;
+                rep.min_distance = Some(rep.min_distance.map_or(d, |m| m.min(d)));
+            }
+        }
+        rep.newton_iterations = iter;
+        rep.eliminated_at_iteration = all_snapped_at;
+        rep.k_m = self.state.k_m;
+        Ok(())
+    }
+
+    /// Armijo backtracking on E along Δx, from the CCD bound α_C when there is contact (1
+    /// without); the accepted iterate becomes the current one. When no step decreases E,
+    /// the bounded step is taken if the energy is flat to round-off near the minimum and
+    /// the step fails otherwise. A bounded step taken whole is checked by
+    /// [`State::check_unbarriered_limit`].
+    fn line_search(
+        &mut self,
+        moving: &MovingTargets,
+        dmax: f64,
+        iter: usize,
+        rep: &mut StepReport,
+    ) -> Result<(), StepError> {
+        let h = self.state.scene.time_step;
+        let e0 = self.backend.energy(&self.state, moving, false)?;
+        if !e0.is_finite() {
+            // Positions far beyond the scene (a plane offset near 1e300) overflow the
+            // energy; line-searching NaN would "converge" and write NaN results.
+            return Err(StepError::EnergyNotFinite {
+                energy: e0,
+                iteration: iter,
+            });
+        }
+        let slope = self.backend.slope()?;
+        rep.max_slope = Some(rep.max_slope.map_or(slope, |m| m.max(slope)));
+        if slope.is_nan() || slope >= 0.0 {
+            rep.ascent_directions += 1;
+        }
+        let ccd = if self.state.contact.is_some() {
+            self.state.ccd_calls += 1;
+            self.backend.ccd(&self.state)?
+        } else {
+            Ccd {
+                alpha: 1.0,
+                limit: None,
+            }
+        };
+        let alpha_c = ccd.alpha;
+        if alpha_c < 1.0 {
+            rep.ccd_limited += 1;
+        }
+        let mut alpha = alpha_c;
+        let mut accepted = false;
+        for _ in 0..MAX_HALVINGS {
+            self.backend.set_trial(alpha)?;
+            let e1 = self.backend.energy(&self.state, moving, true)?;
+            if e1 <= e0 + ARMIJO * alpha * slope.min(0.0) {
+                accepted = true;
+                break;
+            }
+            alpha *= 0.5;
+        }
+        if !accepted {
+            // Energy flat to round-off near the minimum: take the full (CCD-bounded) step.
+            if dmax / h < 1e3 * self.state.newton_tol {
+                alpha = alpha_c;
+                self.backend.set_trial(alpha_c)?;
+            } else {
+                return Err(StepError::NoDecrease {
+                    iteration: iter,
+                    rate: dmax / h,
+                });
+            }
+        }
+        if alpha == alpha_c {
+            if let Some((node, _)) = ccd.limit {
+                let x = self.backend.positions(Some(&[node]))?;
+                self.state.check_unbarriered_limit(x, &ccd, iter)?;
+            }
+        }
+        self.backend.accept()
+    }
+}
