@@ -349,6 +349,15 @@ pub struct RunArgs {
     /// every core]. CPU CG gives the same bits on any count.
     #[arg(long, value_parser = positive_usize)]
     pub threads: Option<usize>,
+    /// Override the number of steps by an end time T (s): round(T / time_step) steps.
+    #[arg(long, value_name = "T", conflicts_with = "steps")]
+    pub end_time: Option<f64>,
+    /// Continue the run in DIR from its last checkpoint (checkpoint.bin): steps.csv rows
+    /// and frames after it are removed, then the run goes on, appending, with the same
+    /// bits as a run that was never stopped. The scene and its options come from the
+    /// checkpoint; only --steps or --end-time (to go further) may be given.
+    #[arg(long, value_name = "DIR")]
+    pub resume: Option<PathBuf>,
 }
 
 /// Why a command failed; decides the exit code.
@@ -363,12 +372,16 @@ pub enum CliError {
     /// Anything else (unwritable output, a feature not in this build): exit 1.
     #[error("{0}")]
     Failed(String),
+    /// A run stopped by SIGINT or SIGTERM after a completed step: exit 128 + the signal.
+    #[error("{message}")]
+    Interrupted { message: String, code: u8 },
 }
 
 impl CliError {
     pub fn exit_code(&self) -> u8 {
         match self {
             CliError::Input(_) => 2,
+            CliError::Interrupted { code, .. } => *code,
             _ => 1,
         }
     }
@@ -1187,7 +1200,10 @@ fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
         overwrite: a.overwrite,
         ordering: a.ordering,
         newton: a.newton,
+        end_time: a.end_time,
+        resume: a.resume.clone(),
     };
+    stop_after_the_step_on_signals();
     match crate::sim::driver::run(&opts) {
         Ok(summary) => {
             if !quiet {
@@ -1207,7 +1223,32 @@ fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
             Ok(())
         }
         Err(crate::sim::driver::RunError::Input(e)) => Err(CliError::Input(e)),
+        Err(e @ crate::sim::driver::RunError::Interrupted { .. }) => Err(CliError::Interrupted {
+            code: u8::try_from(e.exit_code()).unwrap_or(1),
+            message: e.to_string(),
+        }),
         Err(e) => Err(CliError::Failed(e.to_string())),
+    }
+}
+
+/// SIGINT and SIGTERM end a run after the step it is in, with a checkpoint there; a second
+/// one ends it at once (the handler restores the default action).
+fn stop_after_the_step_on_signals() {
+    #[cfg(unix)]
+    {
+        extern "C" fn on_signal(sig: libc::c_int) {
+            crate::sim::driver::request_interrupt(sig);
+            // SAFETY: signal(2) is async-signal-safe; it restores the default action.
+            unsafe {
+                libc::signal(sig, libc::SIG_DFL);
+            }
+        }
+        let handler = on_signal as extern "C" fn(libc::c_int) as libc::sighandler_t;
+        // SAFETY: installs a handler that only stores an atomic and calls signal(2).
+        unsafe {
+            libc::signal(libc::SIGINT, handler);
+            libc::signal(libc::SIGTERM, handler);
+        }
     }
 }
 

@@ -427,6 +427,17 @@ impl OutputDir {
         Ok(())
     }
 
+    /// Continues the previous run's manifest instead of [`OutputDir::clean`] (a resumed
+    /// run): nothing is removed, what it lists stays this run's, and new names are added.
+    pub fn resume(&mut self) -> std::io::Result<()> {
+        let mpath = self.dir.join(manifest_name(&self.command));
+        let m = OpenOptions::new().append(true).open(&mpath)?;
+        self.recorded.extend(self.previous.drain(..));
+        self.strays.clear();
+        self.manifest = Some(m);
+        Ok(())
+    }
+
     /// Records `rel` in the manifest (before the file exists, so a killed run's files are
     /// still cleaned up next time) and returns its full path.
     pub fn record(&mut self, rel: impl AsRef<Path>) -> std::io::Result<PathBuf> {

@@ -8,15 +8,19 @@
 //!    ([`crate::sim::integrator`]);
 //! 5. recover: velocities, reaction forces, momentum, center of mass, energy;
 //! 6. output: frames every k steps, one steps.csv row per step (written as it happens),
-//!    summary.json at the start (`running`) and at the end (`complete` or `failed`).
+//!    summary.json after every step (`running`), and at the end (`complete`, `failed`
+//!    or `interrupted`), a checkpoint every `[output] checkpoint_every` steps and at the
+//!    end ([`crate::sim::checkpoint`]): `run --resume DIR` continues from it.
 
 use crate::error::InputError;
 use crate::io::files::{Named, OutputDir};
+use crate::sim::checkpoint::{self, Checkpoint, StartOptions, Tallies};
 use crate::sim::integrator::{ContactCounters, InitError, Stepper};
 use crate::sim::output::{write_vtk, StepRecord, StepsCsv};
 use crate::sim::scene::{self, LinearKind, MovingSpec, Scene};
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicI32, Ordering};
 use std::time::Instant;
 
 /// What `stickslip run` was asked.
@@ -41,6 +45,11 @@ pub struct RunOptions {
     pub ordering: Option<crate::CholeskyOrdering>,
     /// Overrides where the Newton loop runs (`[solver] newton`).
     pub newton: Option<crate::sim::scene::NewtonLoop>,
+    /// Overrides the number of steps by the end time: round(T / h) steps.
+    pub end_time: Option<f64>,
+    /// Continue the run in this folder from its checkpoint (the scene and its options
+    /// come from the checkpoint; `steps` or `end_time` may extend it).
+    pub resume: Option<PathBuf>,
 }
 
 /// Why a run failed.
@@ -59,6 +68,14 @@ pub enum RunError {
     /// Output could not be written (exit code 1).
     #[error("cannot write {path}: {cause}")]
     Output { path: String, cause: String },
+    /// SIGINT or SIGTERM: the run stopped after a completed step and wrote its checkpoint
+    /// (exit code 128 + the signal).
+    #[error("interrupted by signal {signal} after step {step}; `stickslip run --resume {dir}` continues the run")]
+    Interrupted {
+        signal: i32,
+        step: usize,
+        dir: String,
+    },
 }
 
 /// A time for a message: fixed-point when it reads well, else scientific (a time step of
@@ -96,6 +113,7 @@ impl RunError {
     pub fn exit_code(&self) -> i32 {
         match self {
             RunError::Input(_) => 2,
+            RunError::Interrupted { signal, .. } => 128 + signal,
             _ => 1,
         }
     }
@@ -142,12 +160,15 @@ pub enum RunStatus {
     Running,
     Complete,
     Failed,
+    /// Stopped by SIGINT or SIGTERM after a completed step, with a checkpoint there.
+    Interrupted,
 }
 
 /// What a run did (summary.json holds everything but the per-step records and state).
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct RunSummary {
-    /// `running` while the run goes (written at its start), then `complete` or `failed`.
+    /// `running` while the run goes (rewritten after every step), then `complete`,
+    /// `failed` or `interrupted`.
     pub status: RunStatus,
     /// Why the run failed (the command's error line), for `failed`.
     pub message: Option<String>,
@@ -175,6 +196,13 @@ pub struct RunSummary {
     pub linear_seconds: f64,
     pub frames: usize,
     pub out_dir: String,
+    /// The step this invocation resumed from (`run --resume`); None for a run started
+    /// from step 0.
+    pub resumed_from_step: Option<usize>,
+    /// Checkpoints are written every this many steps (and at the last step).
+    pub checkpoint_every: usize,
+    /// Wall time spent writing checkpoints, over every invocation of the run.
+    pub checkpoint_seconds: f64,
     pub moving_boundary: Option<MovingSummary>,
     /// What the contact code did: all zero for a scene without obstacles.
     pub contact_counters: ContactCounters,
@@ -277,26 +305,43 @@ fn check_magnitudes(scene: &Scene) -> Result<(), InputError> {
 
 /// What `run` writes in its output folder (what the folder's previous run of `run` wrote
 /// is removed before a new run writes).
-pub const OUTPUT_NAMES: [&str; 3] = ["steps.csv", "summary.json", "frames/*.vtk"];
+pub const OUTPUT_NAMES: [&str; 4] = [
+    "steps.csv",
+    "summary.json",
+    checkpoint::FILE_NAME,
+    "frames/*.vtk",
+];
+
+/// The signal that asked the run to stop (0: none). Set by the command line's SIGINT and
+/// SIGTERM handlers ([`request_interrupt`]); the time loop stops after the step it is in.
+static INTERRUPT: AtomicI32 = AtomicI32::new(0);
+
+/// Asks a running [`run`] to stop after its current step, writing a checkpoint there
+/// (async-signal-safe: one atomic store).
+pub fn request_interrupt(signal: i32) {
+    INTERRUPT.store(signal, Ordering::SeqCst);
+}
 
 /// Takes the output folder for this run (see [`crate::io::files::OutputDir`]); with
 /// `check_only`, checks it without creating or changing anything (and returns None).
 fn open_out(
     dir: &Path,
-    opts: &RunOptions,
+    scene: Option<&str>,
+    option: &str,
+    overwrite: bool,
     check_only: bool,
 ) -> Result<Option<OutputDir>, RunError> {
-    let scene_file = opts.scene.as_deref().filter(|s| Path::new(s).is_file());
+    let scene_file = scene.filter(|s| Path::new(s).is_file());
     let inputs: Vec<Named> = scene_file
         .iter()
         .map(|s| Named::new("scene", Path::new(*s)))
         .collect();
-    let (opt, names) = ("--out", &OUTPUT_NAMES[..]);
+    let names = &OUTPUT_NAMES[..];
     if check_only {
-        OutputDir::check(dir, opt, "run", names, &inputs, opts.overwrite)?;
+        OutputDir::check(dir, option, "run", names, &inputs, overwrite)?;
         return Ok(None);
     }
-    let d = OutputDir::open(dir, opt, "run", names, &inputs, opts.overwrite)?;
+    let d = OutputDir::open(dir, option, "run", names, &inputs, overwrite)?;
     Ok(Some(d))
 }
 
@@ -315,35 +360,45 @@ fn write_summary(dir: &mut OutputDir, summary: &RunSummary) -> Result<(), RunErr
     Ok(())
 }
 
-/// Runs a scene to the end. One call: parse, simulate, write.
-///
-/// The output folder is checked before the scene is read when `out` is given; it is
-/// created, locked and cleared of what its previous run wrote once the scene has been
-/// read and checked. summary.json is written at the start with `"status": "running"`, and at
-/// the end with `"complete"`, or `"failed"` and the message.
-pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
-    let wall = Instant::now();
-    // An output folder that cannot be used fails before the scene is read; it is
-    // created (and taken) once the scene has passed its checks.
-    if let Some(d) = &opts.out {
-        open_out(d, opts, true)?;
-    }
-    // 1–3. Scene, boundary conditions and forms.
+/// 1–3: the scene of `start` with the run's overrides, checked.
+fn build_scene(
+    start: &StartOptions,
+    steps: Option<usize>,
+    end_time: Option<f64>,
+) -> Result<Scene, RunError> {
     // `--size` is checked (once) by the scene parser, which names `--size`.
-    let size = opts.size.unwrap_or(1.0);
-    let mut scene = load_scene(opts.scene.as_deref().unwrap_or("default"), size)?;
-    if let Some(s) = &opts.solver {
+    let mut scene = load_scene(&start.scene, start.size)?;
+    if let Some(s) = &start.solver {
         scene.solver.linear = s
             .parse::<LinearKind>()
             .map_err(|e| InputError::new("--solver", "", e))?;
     }
-    if let Some(o) = opts.ordering {
+    if let Some(o) = start.ordering {
         scene.solver.ordering = o;
     }
-    if let Some(n) = opts.newton {
+    if let Some(n) = start.newton {
         scene.solver.newton = n;
     }
-    if let Some(n) = opts.steps {
+    if steps.is_some() && end_time.is_some() {
+        return Err(InputError::new("--end-time", "", "give either --steps or --end-time").into());
+    }
+    if let Some(t) = end_time {
+        let n = t / scene.time_step;
+        if !(t.is_finite() && t > 0.0) || n.round() > scene::MAX_STEPS as f64 {
+            return Err(InputError::new(
+                "--end-time",
+                "",
+                format!(
+                    "must be positive and reach at most {} steps of {} s, got {t}",
+                    scene::MAX_STEPS,
+                    scene.time_step
+                ),
+            )
+            .into());
+        }
+        scene.steps = (n.round() as usize).max(1);
+    }
+    if let Some(n) = steps {
         if n == 0 {
             return Err(InputError::new("--steps", "", "must be at least 1").into());
         }
@@ -383,11 +438,122 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
             return Err(InputError::new("WGPU_ADAPTER_NAME", "", problem).into());
         }
     }
-    let out = opts
-        .out
-        .clone()
-        .unwrap_or_else(|| PathBuf::from("out").join(&scene.name));
-    let Some(mut dir) = open_out(&out, opts, false)? else {
+    Ok(scene)
+}
+
+/// The options that cannot change on a resume (the checkpoint holds them).
+fn refuse_with_resume(opts: &RunOptions) -> Result<(), RunError> {
+    let fixed = [
+        ("a scene", opts.scene.is_some()),
+        ("--out", opts.out.is_some()),
+        ("--solver", opts.solver.is_some()),
+        ("--size", opts.size.is_some()),
+        ("--ordering", opts.ordering.is_some()),
+        ("--newton", opts.newton.is_some()),
+        ("--overwrite", opts.overwrite),
+    ];
+    for (what, given) in fixed {
+        if given {
+            return Err(InputError::new(
+                "--resume",
+                "",
+                format!(
+                    "takes its scene and options from the checkpoint: {what} cannot be given \
+                     with it (only --steps or --end-time)"
+                ),
+            )
+            .into());
+        }
+    }
+    Ok(())
+}
+
+/// Checks a checkpoint against the scene rebuilt from it, before anything in the folder
+/// changes: the same fingerprint, and steps beyond the checkpoint's.
+fn check_resume(ck: &Checkpoint, scene: &Scene, dir: &Path) -> Result<(), RunError> {
+    let file = dir.join(checkpoint::FILE_NAME).display().to_string();
+    let fp = checkpoint::fingerprint(scene);
+    if fp != ck.fingerprint {
+        return Err(InputError::new(
+            &file,
+            "",
+            format!(
+                "was written for another scene (fingerprint {} here, {fp} for {} now): the \
+                 scene file or what it reads changed since the run started",
+                ck.fingerprint, ck.options.scene
+            ),
+        )
+        .into());
+    }
+    if scene.steps <= ck.snapshot.step {
+        return Err(InputError::new(
+            &file,
+            "",
+            format!(
+                "the run has done {} of {} steps; give --steps or --end-time beyond step {}",
+                ck.snapshot.step, scene.steps, ck.snapshot.step
+            ),
+        )
+        .into());
+    }
+    Ok(())
+}
+
+/// Runs a scene to the end, or resumes one. One call: parse, simulate, write.
+///
+/// The output folder is checked before the scene is read when `out` is given; it is
+/// created, locked and cleared of what its previous run wrote once the scene has been
+/// read and checked. summary.json is written at the start and after every step with
+/// `"status": "running"`, and at the end with `"complete"`, `"interrupted"`, or
+/// `"failed"` and the message. With `resume`, every refusal (no checkpoint, another
+/// scene, a corrupt file, a folder another process holds) comes before anything in the
+/// folder changes; then steps.csv rows and frames after the checkpoint are removed and
+/// the run goes on, appending.
+pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
+    let wall = Instant::now();
+    let resumed = match &opts.resume {
+        Some(dir) => {
+            refuse_with_resume(opts)?;
+            Some(checkpoint::read(dir)?)
+        }
+        None => None,
+    };
+    let start = match &resumed {
+        Some(ck) => ck.options.clone(),
+        None => StartOptions {
+            scene: opts.scene.clone().unwrap_or_else(|| "default".into()),
+            size: opts.size.unwrap_or(1.0),
+            solver: opts.solver.clone(),
+            ordering: opts.ordering,
+            newton: opts.newton,
+        },
+    };
+    // An output folder that cannot be used fails before the scene is read; it is
+    // created (and taken) once the scene has passed its checks.
+    if let (Some(d), None) = (&opts.out, &resumed) {
+        open_out(d, Some(&start.scene), "--out", opts.overwrite, true)?;
+    }
+    // 1–3. Scene, boundary conditions and forms.
+    let steps = opts.steps.or(resumed.as_ref().map(|c| c.steps));
+    let steps = if opts.end_time.is_some() {
+        opts.steps
+    } else {
+        steps
+    };
+    let scene = build_scene(&start, steps, opts.end_time)?;
+    if let (Some(ck), Some(dir)) = (&resumed, &opts.resume) {
+        check_resume(ck, &scene, dir)?;
+    }
+    let (out, option) = match &opts.resume {
+        Some(d) => (d.clone(), "--resume"),
+        None => (
+            opts.out
+                .clone()
+                .unwrap_or_else(|| PathBuf::from("out").join(&scene.name)),
+            "--out",
+        ),
+    };
+    let Some(mut dir) = open_out(&out, Some(&start.scene), option, opts.overwrite, false)? else {
         unreachable!("open_out returns the folder unless check_only")
     };
 
@@ -401,12 +567,23 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
             cause,
         },
     });
-    // From here on the folder is this run's: the previous run's files go, and
-    // summary.json always says how far this run got.
-    dir.clean().map_err(|e| RunError::Output {
-        path: out.display().to_string(),
-        cause: format!("cannot clear the previous run's files: {e}"),
-    })?;
+    // From here on the folder is this run's: the previous run's files go (or, resuming,
+    // what came after the checkpoint), and summary.json always says how far the run got.
+    let prepared = match &resumed {
+        Some(ck) => prepare_resume(&mut dir, &scene, ck),
+        None => dir.clean().map_err(|e| RunError::Output {
+            path: out.display().to_string(),
+            cause: format!("cannot clear the previous run's files: {e}"),
+        }),
+    };
+    prepared?;
+    let tallies = resumed
+        .as_ref()
+        .map(|c| c.tallies.clone())
+        .unwrap_or(Tallies {
+            all_eliminated_every_step: true,
+            ..Tallies::default()
+        });
     let mut summary = RunSummary {
         status: RunStatus::Running,
         message: None,
@@ -434,6 +611,9 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         linear_seconds: 0.0,
         frames: 0,
         out_dir: out.display().to_string(),
+        resumed_from_step: resumed.as_ref().map(|c| c.snapshot.step),
+        checkpoint_every: scene.output.checkpoint_every.unwrap_or(scene.output.every),
+        checkpoint_seconds: 0.0,
         moving_boundary: None,
         contact_counters: ContactCounters::default(),
         contact: None,
@@ -442,13 +622,30 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         final_positions: Vec::new(),
         final_velocities: Vec::new(),
     };
+    let mut run = Run {
+        scene: &scene,
+        fingerprint: checkpoint::fingerprint(&scene),
+        start,
+        tallies,
+        wall,
+    };
     let result = match stepper {
         Ok(mut stepper) => {
             summary.adapter = stepper.adapter().map(str::to_string);
             summary.newton_tolerance = stepper.newton_tol;
+            let r = match &resumed {
+                Some(ck) => stepper.restore(&ck.snapshot).map_err(|e| RunError::Solve {
+                    step: ck.snapshot.step,
+                    time: ck.snapshot.t,
+                    cause: e.to_string(),
+                }),
+                None => Ok(()),
+            };
             summary.end_time = stepper.t;
-            let r = write_summary(&mut dir, &summary)
-                .and_then(|_| simulate(&scene, opts, &mut stepper, &mut dir, &mut summary));
+            summary.steps_completed = stepper.step;
+            let r = r
+                .and_then(|_| write_summary(&mut dir, &summary))
+                .and_then(|_| simulate(&mut run, opts, &mut stepper, &mut dir, &mut summary));
             summary.contact_counters = stepper.contact_counters();
             summary.gpu = stepper.gpu_report().map(|mut g| {
                 g.newton_iterations = summary.newton_iterations;
@@ -460,7 +657,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         }
         Err(e) => Err(e),
     };
-    summary.wall_seconds = wall.elapsed().as_secs_f64();
+    summary.wall_seconds = run.tallies.wall_seconds + wall.elapsed().as_secs_f64();
     match result {
         Ok(()) => {
             summary.status = RunStatus::Complete;
@@ -468,7 +665,10 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
             Ok(summary)
         }
         Err(e) => {
-            summary.status = RunStatus::Failed;
+            summary.status = match e {
+                RunError::Interrupted { .. } => RunStatus::Interrupted,
+                _ => RunStatus::Failed,
+            };
             summary.message = Some(e.to_string());
             // The run's own error is the one to report; a failure to record it is not.
             let _ = write_summary(&mut dir, &summary);
@@ -477,12 +677,104 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
     }
 }
 
+/// A resumed run's folder: the manifest continues, steps.csv keeps its header and the
+/// rows up to the checkpoint's step (a partial last row is dropped), and the frames after
+/// it go, with the checkpoint step's own frame when it was written only because that step
+/// was the last one.
+fn prepare_resume(dir: &mut OutputDir, scene: &Scene, ck: &Checkpoint) -> Result<(), RunError> {
+    let step = ck.snapshot.step;
+    let out_err = |path: &Path, cause: String| RunError::Output {
+        path: path.display().to_string(),
+        cause,
+    };
+    dir.resume()
+        .map_err(|e| out_err(dir.path(), e.to_string()))?;
+    let csv = dir.path().join("steps.csv");
+    let text = std::fs::read_to_string(&csv).map_err(|e| out_err(&csv, e.to_string()))?;
+    let kept = crate::sim::output::rows_up_to(&text, step).ok_or_else(|| {
+        out_err(
+            &csv,
+            format!("holds fewer rows than the checkpoint's {step} steps"),
+        )
+    })?;
+    crate::io::files::write_atomic_bytes(&csv, kept.as_bytes())
+        .map_err(|e| out_err(&csv, e.to_string()))?;
+    let frames = dir.path().join("frames");
+    let every = scene.output.every;
+    let prefix = format!("{}_", scene.name);
+    if let Ok(entries) = std::fs::read_dir(&frames) {
+        for e in entries.flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let Some(n) = name
+                .strip_prefix(&prefix)
+                .and_then(|r| r.strip_suffix(".vtk"))
+                .and_then(|r| r.parse::<usize>().ok())
+            else {
+                continue;
+            };
+            let last_only = n == step && n % every != 0 && n != 0;
+            if n > step || last_only {
+                std::fs::remove_file(e.path())
+                    .map_err(|err| out_err(&e.path(), err.to_string()))?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// What the time loop carries besides the stepper: the run's identity for its
+/// checkpoints, and its tallies.
+struct Run<'a> {
+    scene: &'a Scene,
+    fingerprint: String,
+    start: StartOptions,
+    tallies: Tallies,
+    /// Start of this invocation.
+    wall: Instant,
+}
+
+impl Run<'_> {
+    /// Writes the checkpoint of the stepper's last completed step.
+    fn checkpoint(
+        &mut self,
+        dir: &mut OutputDir,
+        stepper: &Stepper,
+        summary: &mut RunSummary,
+    ) -> Result<(), RunError> {
+        let t = Instant::now();
+        let path = dir
+            .record(checkpoint::FILE_NAME)
+            .map_err(|e| RunError::Output {
+                path: dir.path().display().to_string(),
+                cause: e.to_string(),
+            })?;
+        let mut tallies = self.tallies.clone();
+        tallies.wall_seconds += self.wall.elapsed().as_secs_f64();
+        checkpoint::write(
+            dir.path(),
+            &self.fingerprint,
+            &self.start,
+            self.scene.steps,
+            &stepper.snapshot(),
+            &tallies,
+        )
+        .map_err(|e| RunError::Output {
+            path: path.display().to_string(),
+            cause: e.to_string(),
+        })?;
+        let spent = t.elapsed().as_secs_f64();
+        self.tallies.checkpoint_seconds += spent;
+        summary.checkpoint_seconds = self.tallies.checkpoint_seconds;
+        Ok(())
+    }
+}
+
 /// Writes one VTK frame (when the scene asks for frames).
 fn write_frame(
     scene: &Scene,
     dir: &mut OutputDir,
     s: &Stepper,
-    summary: &mut RunSummary,
+    tallies: &mut Tallies,
 ) -> Result<(), RunError> {
     if !scene.output.vtk {
         return Ok(());
@@ -498,19 +790,52 @@ fn write_frame(
         path: path.display().to_string(),
         cause: e.to_string(),
     })?;
-    summary.frames += 1;
+    tallies.frames += 1;
     Ok(())
 }
 
-/// 4–6: the time loop, writing steps.csv row by row and the frames; `summary` follows
-/// the run (counts, end time, moving and contact histories) whether it ends or fails.
+/// The summary's counts and histories from the tallies.
+fn fill_summary(run: &Run, stepper: &Stepper, summary: &mut RunSummary) {
+    let (scene, t) = (run.scene, &run.tallies);
+    summary.newton_iterations = t.newton_iterations;
+    summary.linear_iterations = t.linear_iterations;
+    summary.linear_seconds = t.linear_seconds;
+    summary.frames = t.frames;
+    summary.steps_completed = stepper.step;
+    summary.end_time = stepper.t;
+    summary.checkpoint_seconds = t.checkpoint_seconds;
+    summary.moving_boundary = stepper.has_moving().then(|| MovingSummary {
+        settings: scene.moving.clone(),
+        moving_nodes: scene.bcs.iter().filter(|b| b.motion.is_some()).count(),
+        k_m_start: scene.moving.penalty_start,
+        k_m_final: stepper.k_m,
+        k_m_doublings: t.k_m_doublings,
+        k_m_history: t.k_m_history.clone(),
+        eliminated_at_iteration: t.eliminated_at_iteration.clone(),
+        first_step_eliminated_at_start: t.first_step_eliminated_at_start,
+        all_eliminated_every_step: t.all_eliminated_every_step,
+    });
+    summary.contact = stepper.has_contact().then(|| ContactSummary {
+        obstacles: scene.obstacles.len(),
+        dhat: scene.obstacles.iter().map(|o| o.plane.dhat).collect(),
+        kappa: scene.obstacles.iter().map(|o| o.plane.kappa).collect(),
+        min_distance: t.min_distance.unwrap_or(f64::INFINITY),
+        ccd_limited_line_searches: t.ccd_limited,
+        final_contact_force: stepper.total_contact().unwrap_or_default(),
+    });
+}
+
+/// 4–6: the time loop, writing steps.csv row by row, the frames and the checkpoints;
+/// `summary` follows the run (counts, end time, moving and contact histories) whether it
+/// ends or fails.
 fn simulate(
-    scene: &Scene,
+    run: &mut Run,
     opts: &RunOptions,
     stepper: &mut Stepper,
     dir: &mut OutputDir,
     summary: &mut RunSummary,
 ) -> Result<(), RunError> {
+    let scene = run.scene;
     let out_err = |path: &Path, e: std::io::Error| RunError::Output {
         path: path.display().to_string(),
         cause: e.to_string(),
@@ -520,12 +845,13 @@ fn simulate(
     let csv_path = dir
         .record("steps.csv")
         .map_err(|e| out_err(dir.path(), e))?;
-    let mut csv = StepsCsv::create(
-        &csv_path,
-        scene.dim,
-        stepper.has_moving(),
-        stepper.has_contact(),
-    )
+    let resuming = summary.resumed_from_step.is_some();
+    let (dim, moving, contact) = (scene.dim, stepper.has_moving(), stepper.has_contact());
+    let mut csv = if resuming {
+        StepsCsv::append(&csv_path, moving, contact)
+    } else {
+        StepsCsv::create(&csv_path, dim, moving, contact)
+    }
     .map_err(|e| out_err(&csv_path, e))?;
 
     let record = |s: &Stepper, rep: Option<&crate::sim::integrator::StepReport>| StepRecord {
@@ -548,23 +874,38 @@ fn simulate(
         max_slope: rep.and_then(|r| r.max_slope),
         ascent_directions: rep.map_or(0, |r| r.ascent_directions),
     };
+    let fold_min = |t: &mut Tallies, r: &StepRecord| {
+        if let Some(d) = r.min_distance {
+            t.min_distance = Some(t.min_distance.map_or(d, |m: f64| m.min(d)));
+        }
+    };
+    let checkpoint_every = summary.checkpoint_every;
 
-    let first = record(stepper, None);
-    if let Some(what) = non_finite(stepper, &first) {
-        // Finite entries whose products overflow (sizes near 1e300, ...): the scene's fault.
-        return Err(InputError::new(
-            scene.file.clone(),
-            "scene",
-            format!(
-                "the initial state is not finite: {what}; the scene's magnitudes (mesh size, \
-                 density, offsets, time step) overflow f64"
-            ),
-        )
-        .into());
+    if !resuming {
+        let first = record(stepper, None);
+        if let Some(what) = non_finite(stepper, &first) {
+            // Finite entries whose products overflow (sizes near 1e300, ...): the scene's
+            // fault.
+            return Err(InputError::new(
+                scene.file.clone(),
+                "scene",
+                format!(
+                    "the initial state is not finite: {what}; the scene's magnitudes (mesh \
+                     size, density, offsets, time step) overflow f64"
+                ),
+            )
+            .into());
+        }
+        csv.row(&first).map_err(|e| out_err(&csv_path, e))?;
+        fold_min(&mut run.tallies, &first);
+        summary.records.push(first);
+        write_frame(scene, dir, stepper, &mut run.tallies)?;
+        run.tallies.k_m_history = vec![(0, stepper.k_m)];
+        fill_summary(run, stepper, summary);
+        // A run killed before its first periodic checkpoint resumes from step 0.
+        run.checkpoint(dir, stepper, summary)?;
     }
-    csv.row(&first).map_err(|e| out_err(&csv_path, e))?;
-    summary.records.push(first);
-    write_frame(scene, dir, stepper, summary)?;
+    fill_summary(run, stepper, summary);
 
     let bar = if opts.quiet {
         indicatif::ProgressBar::hidden()
@@ -576,61 +917,35 @@ fn simulate(
             b.set_style(style.progress_chars("=> "));
         }
         b.set_prefix(scene.name.clone());
+        b.set_position(stepper.step as u64);
         b
     };
 
-    summary.moving_boundary = stepper.has_moving().then(|| MovingSummary {
-        settings: scene.moving.clone(),
-        moving_nodes: scene.bcs.iter().filter(|b| b.motion.is_some()).count(),
-        k_m_start: stepper.k_m,
-        k_m_final: stepper.k_m,
-        k_m_doublings: 0,
-        k_m_history: vec![(0, stepper.k_m)],
-        eliminated_at_iteration: Vec::new(),
-        first_step_eliminated_at_start: None,
-        all_eliminated_every_step: true,
-    });
-    let mut ccd_limited = 0usize;
-    let contact = |stepper: &Stepper, records: &[StepRecord], ccd: usize| {
-        stepper.has_contact().then(|| ContactSummary {
-            obstacles: scene.obstacles.len(),
-            dhat: scene.obstacles.iter().map(|o| o.plane.dhat).collect(),
-            kappa: scene.obstacles.iter().map(|o| o.plane.kappa).collect(),
-            min_distance: records
-                .iter()
-                .filter_map(|r| r.min_distance)
-                .fold(f64::INFINITY, f64::min),
-            ccd_limited_line_searches: ccd,
-            final_contact_force: stepper.total_contact().unwrap_or_default(),
-        })
-    };
-    summary.contact = contact(stepper, &summary.records, 0);
-
     // 4–6. Time loop: step, recover, output.
-    for _ in 0..scene.steps {
+    while stepper.step < scene.steps {
         let rep = stepper.step().map_err(|cause| RunError::Solve {
             step: stepper.step + 1,
             time: stepper.t + scene.time_step,
             cause: cause.to_string(),
         })?;
-        summary.newton_iterations += rep.newton_iterations;
-        summary.linear_iterations += rep.linear_iterations;
-        summary.linear_seconds += rep.linear_seconds;
-        ccd_limited += rep.ccd_limited;
-        if let Some(m) = summary.moving_boundary.as_mut() {
-            m.k_m_doublings += rep.k_m_doublings;
-            if rep.k_m != m.k_m_final {
-                m.k_m_history.push((rep.step, rep.k_m));
+        let t = &mut run.tallies;
+        t.newton_iterations += rep.newton_iterations;
+        t.linear_iterations += rep.linear_iterations;
+        t.linear_seconds += rep.linear_seconds;
+        t.ccd_limited += rep.ccd_limited;
+        if stepper.has_moving() {
+            t.k_m_doublings += rep.k_m_doublings;
+            if t.k_m_history.last().is_none_or(|&(_, k)| k != rep.k_m) {
+                t.k_m_history.push((rep.step, rep.k_m));
             }
-            m.k_m_final = rep.k_m;
             match rep.eliminated_at_iteration {
                 Some(k) => {
-                    m.eliminated_at_iteration.push(k);
-                    if k == 0 && m.first_step_eliminated_at_start.is_none() {
-                        m.first_step_eliminated_at_start = Some(rep.step);
+                    t.eliminated_at_iteration.push(k);
+                    if k == 0 && t.first_step_eliminated_at_start.is_none() {
+                        t.first_step_eliminated_at_start = Some(rep.step);
                     }
                 }
-                None => m.all_eliminated_every_step = false,
+                None => t.all_eliminated_every_step = false,
             }
         }
         let r = record(stepper, Some(&rep));
@@ -645,12 +960,25 @@ fn simulate(
             });
         }
         csv.row(&r).map_err(|e| out_err(&csv_path, e))?;
+        fold_min(t, &r);
         summary.records.push(r);
-        summary.steps_completed = stepper.step;
-        summary.end_time = stepper.t;
-        summary.contact = contact(stepper, &summary.records, ccd_limited);
         if stepper.step % scene.output.every == 0 || stepper.step == scene.steps {
-            write_frame(scene, dir, stepper, summary)?;
+            write_frame(scene, dir, stepper, &mut run.tallies)?;
+        }
+        let signal = INTERRUPT.load(Ordering::SeqCst);
+        if stepper.step % checkpoint_every == 0 || stepper.step == scene.steps || signal != 0 {
+            run.checkpoint(dir, stepper, summary)?;
+        }
+        fill_summary(run, stepper, summary);
+        summary.wall_seconds = run.tallies.wall_seconds + run.wall.elapsed().as_secs_f64();
+        write_summary(dir, summary)?;
+        if signal != 0 {
+            bar.abandon();
+            return Err(RunError::Interrupted {
+                signal,
+                step: stepper.step,
+                dir: dir.path().display().to_string(),
+            });
         }
         bar.set_message(format!(
             "newton {} linear {}",

@@ -3,6 +3,7 @@
 //! ([`integrator`]), the Newton loop's device operators ([`device`]), and the `run`
 //! driver with its output files ([`driver`]).
 
+pub mod checkpoint;
 pub mod device;
 pub mod driver;
 pub mod energy;

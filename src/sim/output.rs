@@ -143,6 +143,12 @@ impl StepsCsv {
         Ok(StepsCsv { w, moving, contact })
     }
 
+    /// Continues a steps.csv that holds the header and the rows so far (a resumed run).
+    pub fn append(path: &Path, moving: bool, contact: bool) -> std::io::Result<Self> {
+        let w = std::fs::OpenOptions::new().append(true).open(path)?;
+        Ok(StepsCsv { w, moving, contact })
+    }
+
     pub fn row(&mut self, r: &StepRecord) -> std::io::Result<()> {
         let mut s = format!(
             "{},{:.17e},{},{},{:.6e},{:.17e}",
@@ -170,4 +176,27 @@ impl StepsCsv {
     pub fn finish(mut self) -> std::io::Result<()> {
         self.w.flush()
     }
+}
+
+/// The header and the whole rows of a steps.csv up to step `last` (rows after it, and a
+/// partial row that a killed run or a full disk left, are dropped); None when the row of
+/// step `last` is missing.
+pub fn rows_up_to(text: &str, last: usize) -> Option<String> {
+    let mut lines = text.split_inclusive('\n');
+    let header = lines.next().filter(|h| h.ends_with('\n'))?;
+    let columns = header.split(',').count();
+    let mut out = String::from(header);
+    let mut reached = false;
+    for line in lines {
+        if !line.ends_with('\n') || line.split(',').count() != columns {
+            break;
+        }
+        let step: usize = line.split(',').next()?.parse().ok()?;
+        if step > last {
+            break;
+        }
+        reached |= step == last;
+        out.push_str(line);
+    }
+    reached.then_some(out)
 }

@@ -81,6 +81,9 @@ pub(super) trait Backend {
     /// End of step: x^{n+1}, v^{n+1} and ∇E there.
     fn end_step(&mut self, state: &State) -> Result<EndState, StepError>;
 
+    /// The state was restored from a snapshot: take its positions and velocities.
+    fn restore(&mut self, state: &State) -> Result<(), StepError>;
+
     /// The GPU adapter this loop uses, if any.
     fn adapter(&self) -> Option<&str>;
 

@@ -396,6 +396,11 @@ impl Backend for DeviceLoop {
         Ok(EndState { x, v, g })
     }
 
+    fn restore(&mut self, state: &State) -> Result<(), StepError> {
+        self.ops.set_state(&state.x, &state.v)?;
+        Ok(())
+    }
+
     fn adapter(&self) -> Option<&str> {
         Some(self.adapter_name())
     }

@@ -62,6 +62,8 @@ pub enum StepError {
     VelocityOverflow { kinetic: f64, moved: f64 },
     #[error("{0}")]
     Constraints(#[from] ConstraintError),
+    #[error("cannot restore the stepper: {0}")]
+    Snapshot(String),
     #[error("GPU Newton loop: {0}")]
     Device(#[from] GpuError),
 }

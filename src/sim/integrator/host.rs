@@ -171,6 +171,11 @@ impl Backend for HostBackend {
         })
     }
 
+    fn restore(&mut self, _state: &State) -> Result<(), StepError> {
+        // The host loop reads xⁿ and vⁿ from the state at the start of every step.
+        Ok(())
+    }
+
     fn adapter(&self) -> Option<&str> {
         self.linear.adapter.as_deref()
     }

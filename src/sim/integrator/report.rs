@@ -31,7 +31,7 @@ pub struct StepReport {
 }
 
 /// What the contact code did (all zero for a scene without obstacles).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct ContactCounters {
     /// Barrier energy, gradient or Hessian evaluations.
     pub barrier_evaluations: u64,

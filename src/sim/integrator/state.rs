@@ -28,6 +28,27 @@ pub(super) struct Contact {
     pub(super) planes: Vec<HalfSpace>,
 }
 
+/// Everything the next step depends on, taken after a completed step
+/// ([`crate::sim::integrator::Stepper::snapshot`]) and given back to a stepper of the same
+/// scene ([`crate::sim::integrator::Stepper::restore`]): the stepper then continues with
+/// the same bits as one that was never stopped. The frames of the constraint sets, the
+/// linear solver's analysis and the device buffers are rebuilt from the scene; the
+/// obstacles' positions follow from `t`.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Snapshot {
+    pub step: usize,
+    pub t: f64,
+    pub x: Vec<f64>,
+    pub v: Vec<f64>,
+    /// k_M of the moving conditions (it persists across steps).
+    pub k_m: f64,
+    /// Per moving condition, the augmented-Lagrangian multiplier.
+    pub lambda: Vec<[f64; 3]>,
+    pub reactions: Vec<f64>,
+    pub contact_forces: Vec<f64>,
+    pub counters: ContactCounters,
+}
+
 /// The stepper's state and the step logic shared by both loops.
 pub struct State<'s> {
     pub scene: &'s Scene,
@@ -104,6 +125,62 @@ impl<'s> State<'s> {
             },
             gy: vec![0.0; scene.x0.len()],
         }
+    }
+
+    /// The state after the last completed step.
+    pub fn snapshot(&self) -> Snapshot {
+        Snapshot {
+            step: self.step,
+            t: self.t,
+            x: self.x.clone(),
+            v: self.v.clone(),
+            k_m: self.k_m,
+            lambda: self.lambda.clone(),
+            reactions: self.reactions.clone(),
+            contact_forces: self.contact_forces.clone(),
+            counters: self.contact_counters(),
+        }
+    }
+
+    /// Takes the state of `snap` (checked against this scene's sizes); the obstacles move
+    /// to their position at `snap.t`.
+    pub(super) fn restore(&mut self, snap: &Snapshot) -> Result<(), String> {
+        let n = self.x.len();
+        let sizes = [
+            ("x", snap.x.len(), n),
+            ("v", snap.v.len(), n),
+            ("reactions", snap.reactions.len(), n),
+            (
+                "contact_forces",
+                snap.contact_forces.len(),
+                self.contact_forces.len(),
+            ),
+            ("lambda", snap.lambda.len(), self.lambda.len()),
+        ];
+        for (what, got, want) in sizes {
+            if got != want {
+                return Err(format!(
+                    "the snapshot's {what} has {got} entries, this scene needs {want}"
+                ));
+            }
+        }
+        self.step = snap.step;
+        self.t = snap.t;
+        self.x.clone_from(&snap.x);
+        self.v.clone_from(&snap.v);
+        self.k_m = snap.k_m;
+        self.lambda.clone_from(&snap.lambda);
+        self.reactions.clone_from(&snap.reactions);
+        self.contact_forces.clone_from(&snap.contact_forces);
+        self.barrier_evals.set(snap.counters.barrier_evaluations);
+        self.ccd_calls = snap.counters.ccd_calls;
+        self.pushed_nodes = snap.counters.pushed_nodes;
+        if let Some(c) = self.contact.as_mut() {
+            for (p, o) in c.planes.iter_mut().zip(&self.scene.obstacles) {
+                *p = o.at(snap.t);
+            }
+        }
+        Ok(())
     }
 
     pub fn has_moving(&self) -> bool {

@@ -6,7 +6,7 @@ use super::device::DeviceLoop;
 use super::error::{InitError, StepError};
 use super::host::HostBackend;
 use super::report::{GpuRunReport, StepReport};
-use super::state::{State, ARMIJO, MAX_HALVINGS};
+use super::state::{Snapshot, State, ARMIJO, MAX_HALVINGS};
 use super::targets::MovingTargets;
 use crate::sim::energy::barrier::Ccd;
 use crate::sim::scene::{check_solver_size, joint_targets, LinearKind, NewtonLoop, Scene};
@@ -107,6 +107,19 @@ impl<'s> Stepper<'s> {
             None => Box::new(DeviceLoop::start(&state)?),
         };
         Ok(Stepper { state, backend })
+    }
+
+    /// Everything the next step depends on (see [`Snapshot`]).
+    pub fn snapshot(&self) -> Snapshot {
+        self.state.snapshot()
+    }
+
+    /// Continues from `snap`, taken from a stepper of the same scene: the next
+    /// [`Stepper::step`] gives the same bits as the stepper it was taken from would have.
+    /// Fails (and changes nothing) when the snapshot's sizes do not fit this scene.
+    pub fn restore(&mut self, snap: &Snapshot) -> Result<(), StepError> {
+        self.state.restore(snap).map_err(StepError::Snapshot)?;
+        self.backend.restore(&self.state)
     }
 
     /// The GPU adapter the run uses (the device loop's, or the GPU linear solver's).

@@ -36,6 +36,9 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
         Some(g) => c.vector("gravity", g, dim)?[..dim].to_vec(),
         None => vec![0.0; dim],
     };
+    if spec.output.checkpoint_every == Some(0) {
+        return Err(c.err("output.checkpoint_every", "must be at least 1"));
+    }
     if spec.output.every == 0 {
         return Err(c.err("output.every", "must be at least 1"));
     }

@@ -63,6 +63,10 @@ pub struct OutputSpec {
     /// Write VTK frames at all.
     #[serde(default = "yes")]
     pub vtk: bool,
+    /// Write a checkpoint every this many steps (and always at the last completed step);
+    /// absent: every frame (`every`). `run --resume` continues from the last one.
+    #[serde(default)]
+    pub checkpoint_every: Option<usize>,
 }
 
 impl Default for OutputSpec {
@@ -70,6 +74,7 @@ impl Default for OutputSpec {
         OutputSpec {
             every: 1,
             vtk: true,
+            checkpoint_every: None,
         }
     }
 }

@@ -1,0 +1,386 @@
+//! Checkpoints of a run: everything the next step depends on, written atomically, so a
+//! killed or interrupted `run` continues (`run --resume DIR`) with the same bits as a run
+//! that was never stopped.
+//!
+//! One file, `checkpoint.bin` in the run's folder, replaced atomically (written to a
+//! temporary name, then renamed over the previous one, which stays whole until then):
+//!
+//! ```text
+//! magic "stickslip-checkpoint\n" | u64 LE: header length | header (JSON)
+//! | the arrays named in the header, f64 little-endian, in order | u64 LE: FNV-1a of all before
+//! ```
+//!
+//! The header holds the format version, the stickslip version, the fingerprint of the
+//! resolved scene (every resolved value but the number of steps), the options the run was
+//! started with (so a resume rebuilds the same scene), the stepper's scalars and the
+//! run's tallies. f64 values in the JSON header round-trip exactly.
+
+use crate::error::InputError;
+use crate::sim::integrator::{ContactCounters, Snapshot};
+use crate::sim::scene::Scene;
+use std::path::Path;
+
+/// The file name of a run's checkpoint, in its output folder.
+pub const FILE_NAME: &str = "checkpoint.bin";
+
+/// The format this build writes and reads.
+pub const FORMAT_VERSION: u32 = 1;
+
+const MAGIC: &[u8] = b"stickslip-checkpoint\n";
+
+/// Largest header accepted (a corrupt length must not make us allocate terabytes).
+const MAX_HEADER_BYTES: u64 = 1 << 30;
+
+/// The options a run was started with that shape its scene (what `--resume` reuses).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct StartOptions {
+    /// The scene file or built-in name.
+    pub scene: String,
+    pub size: f64,
+    pub solver: Option<String>,
+    pub ordering: Option<crate::CholeskyOrdering>,
+    pub newton: Option<crate::sim::scene::NewtonLoop>,
+}
+
+/// The run's tallies at the checkpoint (what summary.json adds up over the steps).
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Tallies {
+    pub newton_iterations: usize,
+    pub linear_iterations: usize,
+    pub linear_seconds: f64,
+    pub frames: usize,
+    pub ccd_limited: usize,
+    /// Smallest node–obstacle distance over the steps so far (contact scenes).
+    pub min_distance: Option<f64>,
+    /// (step, k_M) at every step where k_M changed, and the doublings.
+    pub k_m_history: Vec<(usize, f64)>,
+    pub k_m_doublings: usize,
+    pub eliminated_at_iteration: Vec<usize>,
+    pub first_step_eliminated_at_start: Option<usize>,
+    pub all_eliminated_every_step: bool,
+    /// Wall time of the run's invocations so far, and of their checkpoint writes.
+    pub wall_seconds: f64,
+    pub checkpoint_seconds: f64,
+}
+
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+struct Header {
+    format: u32,
+    stickslip: String,
+    fingerprint: String,
+    options: StartOptions,
+    /// Steps the run was asked for.
+    steps: usize,
+    step: usize,
+    t: f64,
+    k_m: f64,
+    lambda: Vec<[f64; 3]>,
+    counters: ContactCounters,
+    tallies: Tallies,
+    /// (name, length) of the arrays after the header, in order.
+    arrays: Vec<(String, usize)>,
+}
+
+/// A checkpoint read back.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Checkpoint {
+    pub fingerprint: String,
+    pub options: StartOptions,
+    pub steps: usize,
+    pub snapshot: Snapshot,
+    pub tallies: Tallies,
+}
+
+/// FNV-1a, 64 bits: the checksum of the file and the scene's fingerprint.
+#[derive(Clone, Copy)]
+struct Fnv(u64);
+
+impl Fnv {
+    fn new() -> Self {
+        Fnv(0xcbf2_9ce4_8422_2325)
+    }
+    fn update(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 ^= b as u64;
+            self.0 = self.0.wrapping_mul(0x0000_0100_0000_01b3);
+        }
+    }
+}
+
+impl std::fmt::Write for Fnv {
+    fn write_str(&mut self, s: &str) -> std::fmt::Result {
+        self.update(s.as_bytes());
+        Ok(())
+    }
+}
+
+/// The fingerprint of a resolved scene: every value the run depends on except the number
+/// of steps (a resume may go further than the run was first asked to).
+pub fn fingerprint(scene: &Scene) -> String {
+    use std::fmt::Write as _;
+    let mut h = Fnv::new();
+    let s = scene;
+    // Debug prints every f64 in its shortest round-trip form: equal values, equal text.
+    let _ = write!(
+        h,
+        "{:?}|{}|{:?}|{:?}|{:?}|{:?}|{:?}",
+        s.name, s.dim, s.time_step, s.output, s.solver, s.moving, s.model
+    );
+    let _ = write!(
+        h,
+        "|{:?}|{:?}|{:?}|{:?}|{:?}|{:?}|{:?}|{:?}",
+        s.x0,
+        s.v0,
+        s.cells,
+        s.bcs,
+        s.characteristic_length,
+        s.gravity,
+        s.obstacles,
+        s.contact_weight
+    );
+    format!("{:016x}", h.0)
+}
+
+/// Writes the checkpoint of `snap` into `dir` atomically.
+pub fn write(
+    dir: &Path,
+    fingerprint: &str,
+    options: &StartOptions,
+    steps: usize,
+    snap: &Snapshot,
+    tallies: &Tallies,
+) -> std::io::Result<()> {
+    let arrays: [(&str, &[f64]); 4] = [
+        ("x", &snap.x),
+        ("v", &snap.v),
+        ("reactions", &snap.reactions),
+        ("contact_forces", &snap.contact_forces),
+    ];
+    let header = Header {
+        format: FORMAT_VERSION,
+        stickslip: env!("CARGO_PKG_VERSION").to_string(),
+        fingerprint: fingerprint.to_string(),
+        options: options.clone(),
+        steps,
+        step: snap.step,
+        t: snap.t,
+        k_m: snap.k_m,
+        lambda: snap.lambda.clone(),
+        counters: snap.counters,
+        tallies: tallies.clone(),
+        arrays: arrays
+            .iter()
+            .map(|(n, a)| (n.to_string(), a.len()))
+            .collect(),
+    };
+    let json = serde_json::to_vec(&header).map_err(std::io::Error::other)?;
+    let len: usize = arrays.iter().map(|(_, a)| a.len()).sum();
+    let mut bytes = Vec::with_capacity(MAGIC.len() + 16 + json.len() + 8 * len);
+    bytes.extend_from_slice(MAGIC);
+    bytes.extend_from_slice(&(json.len() as u64).to_le_bytes());
+    bytes.extend_from_slice(&json);
+    for (_, a) in arrays {
+        for v in a {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    let mut sum = Fnv::new();
+    sum.update(&bytes);
+    bytes.extend_from_slice(&sum.0.to_le_bytes());
+    crate::io::files::write_atomic_bytes(dir.join(FILE_NAME), &bytes)
+}
+
+/// Reads the checkpoint in `dir`. Every fault is one line naming the file: no
+/// checkpoint, not a checkpoint, truncated or corrupt (checksum), another format version.
+pub fn read(dir: &Path) -> Result<Checkpoint, InputError> {
+    let path = dir.join(FILE_NAME);
+    let shown = path.display().to_string();
+    let fail = |problem: String| InputError::new(&shown, "", problem);
+    let bytes = match std::fs::read(&path) {
+        Ok(b) => b,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Err(fail(
+                "no checkpoint here: this folder holds no run that can be resumed".into(),
+            ))
+        }
+        Err(e) => return Err(fail(format!("cannot be read: {e}"))),
+    };
+    if !bytes.starts_with(MAGIC) {
+        return Err(fail("is not a stickslip checkpoint".into()));
+    }
+    let corrupt = || fail("is truncated or corrupt (its checksum does not match)".into());
+    if bytes.len() < MAGIC.len() + 16 {
+        return Err(corrupt());
+    }
+    let (body, tail) = bytes.split_at(bytes.len() - 8);
+    let mut sum = Fnv::new();
+    sum.update(body);
+    if sum.0.to_le_bytes() != tail {
+        return Err(corrupt());
+    }
+    let mut at = MAGIC.len();
+    let hlen = u64::from_le_bytes(body[at..at + 8].try_into().map_err(|_| corrupt())?);
+    at += 8;
+    if hlen > MAX_HEADER_BYTES || at as u64 + hlen > body.len() as u64 {
+        return Err(corrupt());
+    }
+    let hjson = &body[at..at + hlen as usize];
+    at += hlen as usize;
+    // The format version first, so that a future header still says which version it is.
+    let version: serde_json::Value = serde_json::from_slice(hjson).map_err(|_| corrupt())?;
+    let format = version.get("format").and_then(|f| f.as_u64());
+    if format != Some(FORMAT_VERSION as u64) {
+        return Err(fail(format!(
+            "was written in checkpoint format {}, this stickslip ({}) reads format {FORMAT_VERSION}",
+            format.map_or("unknown".to_string(), |f| f.to_string()),
+            env!("CARGO_PKG_VERSION")
+        )));
+    }
+    let header: Header = serde_json::from_value(version)
+        .map_err(|e| fail(format!("has a header this stickslip cannot read: {e}")))?;
+    let mut arrays = Vec::new();
+    for (name, len) in &header.arrays {
+        let end = len
+            .checked_mul(8)
+            .and_then(|b| b.checked_add(at))
+            .filter(|&e| e <= body.len())
+            .ok_or_else(corrupt)?;
+        let a: Vec<f64> = body[at..end]
+            .chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
+            .collect();
+        at = end;
+        arrays.push((name.as_str(), a));
+    }
+    if at != body.len() {
+        return Err(corrupt());
+    }
+    let mut take = |name: &str| -> Result<Vec<f64>, InputError> {
+        let k = arrays
+            .iter()
+            .position(|(n, _)| *n == name)
+            .ok_or_else(|| fail(format!("holds no array '{name}'")))?;
+        Ok(std::mem::take(&mut arrays[k].1))
+    };
+    let snapshot = Snapshot {
+        step: header.step,
+        t: header.t,
+        x: take("x")?,
+        v: take("v")?,
+        k_m: header.k_m,
+        lambda: header.lambda,
+        reactions: take("reactions")?,
+        contact_forces: take("contact_forces")?,
+        counters: header.counters,
+    };
+    Ok(Checkpoint {
+        fingerprint: header.fingerprint,
+        options: header.options,
+        steps: header.steps,
+        snapshot,
+        tallies: header.tallies,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn snap() -> Snapshot {
+        Snapshot {
+            step: 7,
+            t: 0.1 + 0.2,
+            x: vec![1.0, -0.0, f64::MIN_POSITIVE, 1e300],
+            v: vec![0.1, 0.2, 0.3, 1.0 / 3.0],
+            k_m: 1e3,
+            lambda: vec![[0.5, -1e-300, 3.0]],
+            reactions: vec![0.0; 4],
+            contact_forces: Vec::new(),
+            counters: ContactCounters {
+                barrier_evaluations: 3,
+                ccd_calls: 2,
+                pushed_nodes: 1,
+            },
+        }
+    }
+
+    fn options() -> StartOptions {
+        StartOptions {
+            scene: "twist".into(),
+            size: 1.0,
+            solver: Some("cg".into()),
+            ordering: None,
+            newton: None,
+        }
+    }
+
+    fn tmp(name: &str) -> std::path::PathBuf {
+        let d = std::env::temp_dir().join(format!("stickslip-ckpt-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).expect("temp dir");
+        d
+    }
+
+    #[test]
+    fn a_checkpoint_reads_back_to_the_bit() {
+        let d = tmp("roundtrip");
+        let tallies = Tallies {
+            linear_seconds: 0.1 + 0.7,
+            min_distance: Some(1e-9 / 3.0),
+            ..Tallies::default()
+        };
+        write(&d, "abc", &options(), 20, &snap(), &tallies).expect("write");
+        let c = read(&d).expect("read");
+        assert_eq!(c.snapshot, snap());
+        assert_eq!(c.tallies, tallies);
+        assert_eq!((c.fingerprint.as_str(), c.steps), ("abc", 20));
+        assert_eq!(c.options, options());
+        // Bitwise, -0.0 included (PartialEq would take 0.0 for it).
+        assert_eq!(c.snapshot.x[1].to_bits(), (-0.0f64).to_bits());
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn truncated_corrupt_foreign_and_missing_checkpoints_are_one_line_errors() {
+        let d = tmp("faults");
+        let e = read(&d).expect_err("none");
+        assert!(e.to_string().contains("no checkpoint here"), "{e}");
+        write(&d, "abc", &options(), 20, &snap(), &Tallies::default()).expect("write");
+        let p = d.join(FILE_NAME);
+        let good = std::fs::read(&p).expect("bytes");
+        for (what, bytes) in [
+            ("truncated", good[..good.len() / 2].to_vec()),
+            ("one bit", {
+                let mut b = good.clone();
+                let k = b.len() - 20;
+                b[k] ^= 1;
+                b
+            }),
+            ("empty", Vec::new()),
+        ] {
+            std::fs::write(&p, &bytes).expect("write");
+            let e = read(&d).expect_err(what).to_string();
+            assert!(!e.contains('\n'), "{e}");
+            assert!(
+                e.contains("truncated or corrupt") || e.contains("not a stickslip checkpoint"),
+                "{what}: {e}"
+            );
+        }
+        // Another format version, with a valid checksum.
+        let mut b = good.clone();
+        let key = b"\"format\":1";
+        let k = b
+            .windows(key.len())
+            .position(|w| w == key)
+            .expect("the header names its format");
+        b[k + key.len() - 1] = b'9';
+        b.truncate(b.len() - 8);
+        let mut sum = Fnv::new();
+        sum.update(&b);
+        b.extend_from_slice(&sum.0.to_le_bytes());
+        std::fs::write(&p, &b).expect("write");
+        let e = read(&d).expect_err("version").to_string();
+        assert!(e.contains("checkpoint format 9"), "{e}");
+        let _ = std::fs::remove_dir_all(&d);
+    }
+}
