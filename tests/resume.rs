@@ -1,0 +1,361 @@
+//! Long runs survive: a `run` killed (SIGKILL) at seeded points, or stopped by SIGINT or
+//! SIGTERM, resumes with `run --resume` to the bits of a run that was never stopped
+//! (every non-timing column of steps.csv and every frame file, byte for byte), on the CPU
+//! loop and on the device loop; and a checkpoint that does not fit is refused in one line
+//! with exit 2 and the folder unchanged.
+
+#![cfg(unix)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant, SystemTime};
+
+mod common;
+use common::cli::{assert_input_error, run, stderr, tmpdir, BIN};
+
+fn s(p: &Path) -> String {
+    p.to_str().expect("utf-8 path").to_string()
+}
+
+/// A small deterministic generator for kill delays (xorshift64*).
+struct Rng(u64);
+impl Rng {
+    fn below(&mut self, n: u64) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        (self.0.wrapping_mul(0x2545F4914F6CDD1D) >> 11) % n.max(1)
+    }
+}
+
+fn spawn(args: &[&str]) -> Child {
+    Command::new(BIN)
+        .args(args)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn stickslip")
+}
+
+fn ok(o: &Output, what: &str) {
+    assert!(o.status.success(), "{what}: {}", stderr(o));
+}
+
+/// steps.csv without its timing column (linear_seconds, the fifth).
+fn steps_without_timing(dir: &Path) -> Vec<String> {
+    std::fs::read_to_string(dir.join("steps.csv"))
+        .expect("steps.csv")
+        .lines()
+        .map(|l| {
+            let mut f: Vec<&str> = l.split(',').collect();
+            f.remove(4);
+            f.join(",")
+        })
+        .collect()
+}
+
+/// Every frame, by name.
+fn frames(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut v: Vec<(String, Vec<u8>)> = std::fs::read_dir(dir.join("frames"))
+        .map(|rd| {
+            rd.flatten()
+                .map(|e| {
+                    (
+                        e.file_name().to_string_lossy().into_owned(),
+                        std::fs::read(e.path()).expect("frame"),
+                    )
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    v.sort();
+    v
+}
+
+fn assert_same_run(reference: &Path, resumed: &Path, what: &str) {
+    let (a, b) = (steps_without_timing(reference), steps_without_timing(resumed));
+    assert_eq!(a.len(), b.len(), "{what}: steps.csv rows");
+    for (k, (x, y)) in a.iter().zip(&b).enumerate() {
+        assert_eq!(x, y, "{what}: steps.csv line {k}");
+    }
+    let (fa, fb) = (frames(reference), frames(resumed));
+    let names = |f: &[(String, Vec<u8>)]| f.iter().map(|x| x.0.clone()).collect::<Vec<_>>();
+    assert_eq!(names(&fa), names(&fb), "{what}: frame files");
+    for ((n, x), (_, y)) in fa.iter().zip(&fb) {
+        assert!(x == y, "{what}: frame {n} differs");
+    }
+}
+
+fn summary(dir: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).expect("summary"))
+        .expect("summary.json parses")
+}
+
+/// Waits until the run has written its first checkpoint (or has ended).
+fn wait_for_checkpoint(c: &mut Child, dir: &Path) {
+    let t = Instant::now();
+    while !dir.join("checkpoint.bin").exists() && c.try_wait().expect("wait").is_none() {
+        assert!(t.elapsed() < Duration::from_secs(120), "no checkpoint after 2 min");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+/// Kills `args` (writing to `dir`) with SIGKILL after a seeded delay past its first
+/// checkpoint, resumes it until it completes, and compares it with `reference`.
+fn kill_and_resume(args: &[&str], dir: &Path, reference: &Path, delay_ms: u64, what: &str) {
+    let mut a: Vec<&str> = args.to_vec();
+    let d = s(dir);
+    a.extend(["--out", &d, "-q"]);
+    let mut c = spawn(&a);
+    wait_for_checkpoint(&mut c, dir);
+    std::thread::sleep(Duration::from_millis(delay_ms));
+    let _ = c.kill();
+    let _ = c.wait();
+    let o = run(&["run", "--resume", &d, "-q"]);
+    if o.status.code() == Some(2) && stderr(&o).contains("give --steps or --end-time") {
+        // Killed after its last checkpoint: nothing is left to resume.
+        eprintln!("{what}: killed after the last step");
+    } else {
+        ok(&o, what);
+        let sm = summary(dir);
+        assert_eq!(sm["status"], "complete", "{what}");
+        assert!(sm["resumed_from_step"].as_u64().is_some(), "{what}: {sm}");
+    }
+    assert_same_run(reference, dir, what);
+}
+
+fn reference_run(args: &[&str], name: &str) -> (PathBuf, f64) {
+    let dir = tmpdir(name).join("reference");
+    let mut a: Vec<&str> = args.to_vec();
+    let d = s(&dir);
+    a.extend(["--out", &d, "-q"]);
+    let t = Instant::now();
+    ok(&run(&a), name);
+    (dir, t.elapsed().as_secs_f64())
+}
+
+/// The CPU loop killed at seeded points, on 1 and 2 threads (the CPU solvers give the
+/// same bits on any count).
+#[test]
+fn killed_cpu_runs_resume_to_the_same_bits() {
+    let args = ["run", "twist", "--size", "2", "--steps", "24", "--solver", "cg"];
+    let (reference, secs) = reference_run(&args, "twist-ref");
+    let mut rng = Rng(0x5eed_0001);
+    for k in 0..3 {
+        let dir = tmpdir("twist-kill").join("run");
+        let delay = rng.below((secs * 1000.0) as u64);
+        let threads = if k % 2 == 0 { "1" } else { "2" };
+        let mut a = args.to_vec();
+        a.extend(["--threads", threads]);
+        eprintln!("twist --size 2: SIGKILL {delay} ms after the first checkpoint ({threads} threads)");
+        kill_and_resume(&a, &dir, &reference, delay, &format!("twist kill {k}"));
+    }
+}
+
+/// The device loop (f64 on the GPU) killed at seeded points.
+#[test]
+fn killed_device_loop_runs_resume_to_the_same_bits() {
+    let args = ["run", "drop", "--steps", "12", "--newton", "gpu"];
+    let dir = tmpdir("drop-ref").join("reference");
+    let d = s(&dir);
+    let mut a = args.to_vec();
+    a.extend(["--out", &d, "-q"]);
+    let t = Instant::now();
+    let o = run(&a);
+    if !o.status.success() {
+        let e = stderr(&o);
+        if e.contains("cannot start") && std::env::var_os("STICKSLIP_REQUIRE_GPU").is_none() {
+            eprintln!("SKIP killed_device_loop_runs_resume_to_the_same_bits: GPU Newton loop NOT RUN (no adapter): {e}");
+            return;
+        }
+        panic!("drop with the device loop: {e}");
+    }
+    let secs = t.elapsed().as_secs_f64();
+    let mut rng = Rng(0x5eed_0002);
+    for k in 0..2 {
+        let run_dir = tmpdir("drop-kill").join("run");
+        let delay = rng.below((secs * 1000.0) as u64);
+        eprintln!("drop --newton gpu: SIGKILL {delay} ms after the first checkpoint");
+        kill_and_resume(&args, &run_dir, &dir, delay, &format!("drop kill {k}"));
+    }
+}
+
+/// A run resumed from its last step with a larger --steps equals the longer run.
+#[test]
+fn a_finished_run_goes_further_with_more_steps() {
+    let (reference, _) = reference_run(&["run", "twist", "--steps", "9"], "longer-ref");
+    let dir = tmpdir("longer").join("run");
+    let d = s(&dir);
+    ok(&run(&["run", "twist", "--steps", "6", "--out", &d, "-q"]), "6 steps");
+    let o = run(&["run", "--resume", &d, "--steps", "9", "-q"]);
+    ok(&o, "resume to 9");
+    assert_eq!(summary(&dir)["resumed_from_step"], 6);
+    assert_same_run(&reference, &dir, "6 then 9 steps");
+    // --end-time: 12 steps of 0.01 s.
+    let (reference, _) = reference_run(&["run", "twist", "--steps", "12"], "end-time-ref");
+    let o = run(&["run", "--resume", &d, "--end-time", "0.12", "-q"]);
+    ok(&o, "resume to t = 0.12");
+    assert_same_run(&reference, &dir, "9 then 12 steps");
+}
+
+/// SIGINT and SIGTERM end the run after the step it is in: summary.json says
+/// "interrupted" with the steps steps.csv holds, and the run resumes to the same bits.
+#[test]
+fn interrupted_runs_say_so_and_resume() {
+    let args = ["run", "twist", "--size", "2", "--steps", "24", "--solver", "cg"];
+    let (reference, _) = reference_run(&args, "signal-ref");
+    for (sig, name) in [(libc::SIGINT, "SIGINT"), (libc::SIGTERM, "SIGTERM")] {
+        let dir = tmpdir("signal").join("run");
+        let d = s(&dir);
+        let mut a = args.to_vec();
+        a.extend(["--out", &d, "-q"]);
+        let mut c = spawn(&a);
+        wait_for_checkpoint(&mut c, &dir);
+        std::thread::sleep(Duration::from_millis(300));
+        // SAFETY: sends a signal to the child this test spawned.
+        unsafe {
+            libc::kill(c.id() as libc::pid_t, sig);
+        }
+        let o = c.wait_with_output().expect("wait");
+        let sm = summary(&dir);
+        if sm["status"] == "complete" {
+            eprintln!("{name}: the run ended before the signal arrived");
+            assert!(o.status.success());
+        } else {
+            assert_eq!(o.status.code(), Some(128 + sig), "{name}: {}", stderr(&o));
+            let e = stderr(&o);
+            assert_eq!(e.lines().count(), 1, "{e}");
+            assert!(e.contains("interrupted") && e.contains("--resume"), "{e}");
+            assert_eq!(sm["status"], "interrupted", "{name}");
+            let rows = steps_without_timing(&dir).len() as u64 - 2;
+            assert_eq!(sm["steps_completed"].as_u64(), Some(rows), "{name}: {sm}");
+            ok(&run(&["run", "--resume", &d, "-q"]), name);
+        }
+        assert_same_run(&reference, &dir, name);
+    }
+}
+
+/// Every file under `dir` with its size and modification time.
+fn listing(dir: &Path) -> Vec<(String, u64, SystemTime)> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).expect("dir").flatten() {
+            let m = e.metadata().expect("metadata");
+            if m.is_dir() {
+                stack.push(e.path());
+            } else {
+                out.push((
+                    s(&e.path()),
+                    m.len(),
+                    m.modified().expect("modification time"),
+                ));
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+fn fnv(bytes: &[u8]) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for &b in bytes {
+        h ^= b as u64;
+        h = h.wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    h
+}
+
+/// Refusals: one line, exit 2, and nothing in the folder changed.
+#[test]
+fn checkpoints_that_do_not_fit_are_refused_and_change_nothing() {
+    let root = tmpdir("refusals");
+    // A scene file of our own, so that it can change under the run.
+    let scene = root.join("bar.toml");
+    let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/twist.toml"))
+        .expect("twist.toml");
+    std::fs::write(&scene, &text).expect("scene");
+    let dir = root.join("run");
+    let d = s(&dir);
+    ok(
+        &run(&["run", &s(&scene), "--steps", "4", "--out", &d, "-q"]),
+        "the run",
+    );
+    let ckpt = dir.join("checkpoint.bin");
+    let ckpt_s = s(&ckpt);
+    let refuse = |want: &[&str], blamed: &str| {
+        let before = listing(&dir);
+        let o = run(&["run", "--resume", &d, "--steps", "8", "-q"]);
+        assert_input_error(&o, blamed, want);
+        assert_eq!(listing(&dir), before, "the folder changed");
+    };
+    // Another scene: the material changed since the run started.
+    let changed = text.replacen("young = 1e5", "young = 2e5", 1);
+    assert_ne!(changed, text);
+    std::fs::write(&scene, &changed).expect("scene");
+    refuse(&["written for another scene"], &ckpt_s);
+    std::fs::write(&scene, &text).expect("scene");
+    let good = std::fs::read(&ckpt).expect("checkpoint");
+    // Truncated, and one flipped bit.
+    std::fs::write(&ckpt, &good[..good.len() / 3]).expect("write");
+    refuse(&["truncated or corrupt"], &ckpt_s);
+    let mut flipped = good.clone();
+    let k = flipped.len() - 40;
+    flipped[k] ^= 0x10;
+    std::fs::write(&ckpt, &flipped).expect("write");
+    refuse(&["truncated or corrupt"], &ckpt_s);
+    // Another format version, its checksum valid.
+    let mut other = good.clone();
+    let key = b"\"format\":1";
+    let at = other
+        .windows(key.len())
+        .position(|w| w == key)
+        .expect("format in the header");
+    other[at + key.len() - 1] = b'7';
+    let n = other.len() - 8;
+    let sum = fnv(&other[..n]).to_le_bytes();
+    other[n..].copy_from_slice(&sum);
+    std::fs::write(&ckpt, &other).expect("write");
+    refuse(&["checkpoint format 7"], &ckpt_s);
+    // No checkpoint at all.
+    std::fs::remove_file(&ckpt).expect("remove");
+    refuse(&["no checkpoint here"], &ckpt_s);
+    // Options that the checkpoint fixes.
+    std::fs::write(&ckpt, &good).expect("write");
+    let o = run(&["run", "--resume", &d, "--solver", "cholesky"]);
+    assert_input_error(&o, "--resume", &["--solver cannot be given"]);
+    // Nothing left to do.
+    let o = run(&["run", "--resume", &d, "-q"]);
+    assert_input_error(&o, &ckpt_s, &["give --steps or --end-time"]);
+}
+
+/// Two resumes of one folder at once: the second refuses (the folder's lock).
+#[test]
+fn a_second_resume_of_a_running_folder_is_refused() {
+    let dir = tmpdir("two-resumes").join("run");
+    let d = s(&dir);
+    ok(
+        &run(&["run", "twist", "--size", "2", "--steps", "2", "--out", &d, "-q"]),
+        "start",
+    );
+    let mut first = spawn(&["run", "--resume", &d, "--steps", "400", "-q"]);
+    // The first resume holds the lock once it has rewritten steps.csv.
+    let t = Instant::now();
+    while summary(&dir)["steps"] != 400 {
+        assert!(first.try_wait().expect("wait").is_none(), "the first resume ended");
+        assert!(t.elapsed() < Duration::from_secs(60));
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let before = listing(&dir)
+        .into_iter()
+        .filter(|(p, ..)| p.ends_with("checkpoint.bin"))
+        .collect::<Vec<_>>();
+    let o = run(&["run", "--resume", &d, "--steps", "400", "-q"]);
+    let e = stderr(&o);
+    let _ = first.kill();
+    let _ = first.wait();
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert_eq!(e.lines().count(), 1, "{e}");
+    assert!(e.contains("another stickslip process"), "{e}");
+    assert!(!before.is_empty());
+}
