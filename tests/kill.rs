@@ -6,34 +6,18 @@
 #![cfg(unix)]
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Child;
 use std::time::{Duration, Instant};
 
 mod common;
-use common::cli::{run, stderr, tmpdir, BIN};
+use common::cli::{run, stderr, tmpdir, Rng};
 
 fn s(p: &Path) -> String {
     p.to_str().unwrap().to_string()
 }
 
-/// A small deterministic generator for kill delays (xorshift64*).
-struct Rng(u64);
-impl Rng {
-    fn below(&mut self, n: u64) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        (self.0.wrapping_mul(0x2545F4914F6CDD1D) >> 11) % n.max(1)
-    }
-}
-
 fn spawn(args: &[&str]) -> Child {
-    Command::new(BIN)
-        .args(args)
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("spawn stickslip")
+    common::cli::spawn(args, false)
 }
 
 /// SIGKILL (Child::kill on Unix) and reap.

@@ -7,34 +7,18 @@
 #![cfg(unix)]
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Child, Output};
 use std::time::{Duration, Instant, SystemTime};
 
 mod common;
-use common::cli::{assert_input_error, run, stderr, tmpdir, BIN};
+use common::cli::{assert_input_error, run, stderr, tmpdir, Rng};
 
 fn s(p: &Path) -> String {
     p.to_str().expect("utf-8 path").to_string()
 }
 
-/// A small deterministic generator for kill delays (xorshift64*).
-struct Rng(u64);
-impl Rng {
-    fn below(&mut self, n: u64) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        (self.0.wrapping_mul(0x2545F4914F6CDD1D) >> 11) % n.max(1)
-    }
-}
-
 fn spawn(args: &[&str]) -> Child {
-    Command::new(BIN)
-        .args(args)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn stickslip")
+    common::cli::spawn(args, true)
 }
 
 fn ok(o: &Output, what: &str) {
@@ -73,7 +57,10 @@ fn frames(dir: &Path) -> Vec<(String, Vec<u8>)> {
 }
 
 fn assert_same_run(reference: &Path, resumed: &Path, what: &str) {
-    let (a, b) = (steps_without_timing(reference), steps_without_timing(resumed));
+    let (a, b) = (
+        steps_without_timing(reference),
+        steps_without_timing(resumed),
+    );
     assert_eq!(a.len(), b.len(), "{what}: steps.csv rows");
     for (k, (x, y)) in a.iter().zip(&b).enumerate() {
         assert_eq!(x, y, "{what}: steps.csv line {k}");
@@ -95,14 +82,24 @@ fn summary(dir: &Path) -> serde_json::Value {
 fn wait_for_checkpoint(c: &mut Child, dir: &Path) {
     let t = Instant::now();
     while !dir.join("checkpoint.bin").exists() && c.try_wait().expect("wait").is_none() {
-        assert!(t.elapsed() < Duration::from_secs(120), "no checkpoint after 2 min");
+        assert!(
+            t.elapsed() < Duration::from_secs(120),
+            "no checkpoint after 2 min"
+        );
         std::thread::sleep(Duration::from_millis(5));
     }
 }
 
 /// Kills `args` (writing to `dir`) with SIGKILL after a seeded delay past its first
-/// checkpoint, resumes it until it completes, and compares it with `reference`.
-fn kill_and_resume(args: &[&str], dir: &Path, reference: &Path, delay_ms: u64, what: &str) {
+/// checkpoint, resumes it until it completes, and compares it with `reference`. Returns
+/// the step the resume started from (None: the run had ended before the kill).
+fn kill_and_resume(
+    args: &[&str],
+    dir: &Path,
+    reference: &Path,
+    delay_ms: u64,
+    what: &str,
+) -> Option<u64> {
     let mut a: Vec<&str> = args.to_vec();
     let d = s(dir);
     a.extend(["--out", &d, "-q"]);
@@ -112,16 +109,21 @@ fn kill_and_resume(args: &[&str], dir: &Path, reference: &Path, delay_ms: u64, w
     let _ = c.kill();
     let _ = c.wait();
     let o = run(&["run", "--resume", &d, "-q"]);
-    if o.status.code() == Some(2) && stderr(&o).contains("give --steps or --end-time") {
+    let from = if o.status.code() == Some(2) && stderr(&o).contains("give --steps or --end-time") {
         // Killed after its last checkpoint: nothing is left to resume.
         eprintln!("{what}: killed after the last step");
+        None
     } else {
         ok(&o, what);
         let sm = summary(dir);
         assert_eq!(sm["status"], "complete", "{what}");
-        assert!(sm["resumed_from_step"].as_u64().is_some(), "{what}: {sm}");
-    }
+        let from = sm["resumed_from_step"].as_u64();
+        assert!(from.is_some(), "{what}: {sm}");
+        eprintln!("{what}: resumed from step {from:?}");
+        from
+    };
     assert_same_run(reference, dir, what);
+    from
 }
 
 fn reference_run(args: &[&str], name: &str) -> (PathBuf, f64) {
@@ -138,18 +140,25 @@ fn reference_run(args: &[&str], name: &str) -> (PathBuf, f64) {
 /// same bits on any count).
 #[test]
 fn killed_cpu_runs_resume_to_the_same_bits() {
-    let args = ["run", "twist", "--size", "2", "--steps", "24", "--solver", "cg"];
+    let args = [
+        "run", "twist", "--size", "2", "--steps", "24", "--solver", "cg",
+    ];
     let (reference, secs) = reference_run(&args, "twist-ref");
     let mut rng = Rng(0x5eed_0001);
+    let mut resumed = 0;
     for k in 0..3 {
         let dir = tmpdir("twist-kill").join("run");
-        let delay = rng.below((secs * 1000.0) as u64);
+        let delay = rng.below((secs * 700.0) as u64);
         let threads = if k % 2 == 0 { "1" } else { "2" };
         let mut a = args.to_vec();
         a.extend(["--threads", threads]);
-        eprintln!("twist --size 2: SIGKILL {delay} ms after the first checkpoint ({threads} threads)");
-        kill_and_resume(&a, &dir, &reference, delay, &format!("twist kill {k}"));
+        eprintln!(
+            "twist --size 2: SIGKILL {delay} ms after the first checkpoint ({threads} threads)"
+        );
+        let from = kill_and_resume(&a, &dir, &reference, delay, &format!("twist kill {k}"));
+        resumed += from.is_some_and(|s| s < 24) as usize;
     }
+    assert!(resumed >= 1, "no kill landed inside the run");
 }
 
 /// The device loop (f64 on the GPU) killed at seeded points.
@@ -172,12 +181,15 @@ fn killed_device_loop_runs_resume_to_the_same_bits() {
     }
     let secs = t.elapsed().as_secs_f64();
     let mut rng = Rng(0x5eed_0002);
+    let mut resumed = 0;
     for k in 0..2 {
         let run_dir = tmpdir("drop-kill").join("run");
-        let delay = rng.below((secs * 1000.0) as u64);
+        let delay = rng.below((secs * 700.0) as u64);
         eprintln!("drop --newton gpu: SIGKILL {delay} ms after the first checkpoint");
-        kill_and_resume(&args, &run_dir, &dir, delay, &format!("drop kill {k}"));
+        let from = kill_and_resume(&args, &run_dir, &dir, delay, &format!("drop kill {k}"));
+        resumed += from.is_some_and(|s| s < 12) as usize;
     }
+    assert!(resumed >= 1, "no kill landed inside the run");
 }
 
 /// A run resumed from its last step with a larger --steps equals the longer run.
@@ -186,7 +198,10 @@ fn a_finished_run_goes_further_with_more_steps() {
     let (reference, _) = reference_run(&["run", "twist", "--steps", "9"], "longer-ref");
     let dir = tmpdir("longer").join("run");
     let d = s(&dir);
-    ok(&run(&["run", "twist", "--steps", "6", "--out", &d, "-q"]), "6 steps");
+    ok(
+        &run(&["run", "twist", "--steps", "6", "--out", &d, "-q"]),
+        "6 steps",
+    );
     let o = run(&["run", "--resume", &d, "--steps", "9", "-q"]);
     ok(&o, "resume to 9");
     assert_eq!(summary(&dir)["resumed_from_step"], 6);
@@ -202,7 +217,9 @@ fn a_finished_run_goes_further_with_more_steps() {
 /// "interrupted" with the steps steps.csv holds, and the run resumes to the same bits.
 #[test]
 fn interrupted_runs_say_so_and_resume() {
-    let args = ["run", "twist", "--size", "2", "--steps", "24", "--solver", "cg"];
+    let args = [
+        "run", "twist", "--size", "2", "--steps", "24", "--solver", "cg",
+    ];
     let (reference, _) = reference_run(&args, "signal-ref");
     for (sig, name) in [(libc::SIGINT, "SIGINT"), (libc::SIGTERM, "SIGTERM")] {
         let dir = tmpdir("signal").join("run");
@@ -335,14 +352,19 @@ fn a_second_resume_of_a_running_folder_is_refused() {
     let dir = tmpdir("two-resumes").join("run");
     let d = s(&dir);
     ok(
-        &run(&["run", "twist", "--size", "2", "--steps", "2", "--out", &d, "-q"]),
+        &run(&[
+            "run", "twist", "--size", "2", "--steps", "2", "--out", &d, "-q",
+        ]),
         "start",
     );
     let mut first = spawn(&["run", "--resume", &d, "--steps", "400", "-q"]);
     // The first resume holds the lock once it has rewritten steps.csv.
     let t = Instant::now();
     while summary(&dir)["steps"] != 400 {
-        assert!(first.try_wait().expect("wait").is_none(), "the first resume ended");
+        assert!(
+            first.try_wait().expect("wait").is_none(),
+            "the first resume ended"
+        );
         assert!(t.elapsed() < Duration::from_secs(60));
         std::thread::sleep(Duration::from_millis(10));
     }

@@ -54,3 +54,31 @@ pub fn assert_input_error(o: &Output, file: &str, want: &[&str]) -> String {
     assert!(!e.contains("panicked") && !e.contains("backtrace"), "{e}");
     e
 }
+
+/// A small deterministic generator (xorshift64*), for seeded kill delays.
+pub struct Rng(pub u64);
+
+impl Rng {
+    /// The next value in 0..n (0 for n = 0).
+    pub fn below(&mut self, n: u64) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        (self.0.wrapping_mul(0x2545F4914F6CDD1D) >> 11) % n.max(1)
+    }
+}
+
+/// Starts the binary with `args`, stdout discarded and stderr kept (or discarded).
+pub fn spawn(args: &[&str], keep_stderr: bool) -> std::process::Child {
+    use std::process::Stdio;
+    Command::new(BIN)
+        .args(args)
+        .stdout(Stdio::null())
+        .stderr(if keep_stderr {
+            Stdio::piped()
+        } else {
+            Stdio::null()
+        })
+        .spawn()
+        .expect("spawn stickslip")
+}
