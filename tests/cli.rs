@@ -1210,3 +1210,19 @@ fn cholesky_ordering_option() {
     assert!(stderr(&o).contains("--ordering"), "{}", stderr(&o));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Help texts are written for the terminal: no rustdoc link syntax in any command's help.
+#[test]
+fn help_texts_carry_no_rustdoc_links() {
+    for cmd in [
+        "solve", "generate", "info", "run", "bench", "export", "recover",
+    ] {
+        let o = run(&[cmd, "--help"]);
+        assert_eq!(o.status.code(), Some(0), "{cmd} --help");
+        let text = String::from_utf8_lossy(&o.stdout);
+        assert!(
+            !text.contains("[`") && !text.contains("`]"),
+            "{cmd} --help shows link syntax:\n{text}"
+        );
+    }
+}

@@ -74,3 +74,20 @@ fn cg_on_one_and_two_threads_writes_the_same_bits() {
     assert_eq!(e.trim().lines().count(), 1, "{e}");
     assert!(e.contains("--threads"), "{e}");
 }
+
+/// A thread count past the stated limit (1024) is a usage error on every command that
+/// takes one, before any work: one line naming `--threads`, exit 2.
+#[test]
+fn thread_counts_past_the_limit_are_refused() {
+    for args in [
+        &["run", "hanging", "--steps", "1", "--threads", "4000", "-q"][..],
+        &["solve", "--threads", "100000", "--hessian", "H.mtx"][..],
+        &["bench", "--quick", "--threads", "1025"][..],
+    ] {
+        let o = run(args);
+        let e = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {e}");
+        assert_eq!(e.lines().count(), 1, "{e}");
+        assert!(e.contains("--threads") && e.contains("1024"), "{e}");
+    }
+}

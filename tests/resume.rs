@@ -381,3 +381,43 @@ fn a_second_resume_of_a_running_folder_is_refused() {
     assert!(e.contains("another stickslip process"), "{e}");
     assert!(!before.is_empty());
 }
+
+/// The library side: a stepper restored from another's snapshot continues with the same
+/// bits, moving boundaries (k_M, snapping) included; a snapshot of another scene is
+/// refused and changes nothing.
+#[test]
+fn a_restored_stepper_continues_with_the_same_bits() {
+    use stickslip::sim::integrator::Stepper;
+    let text = stickslip::sim::scene::builtin("twist").expect("twist");
+    let scene = stickslip::sim::scene::parse(text, "twist", 1.0).expect("scene");
+    let mut a = Stepper::new(&scene).expect("stepper");
+    for _ in 0..3 {
+        a.step().expect("step");
+    }
+    let snap = a.snapshot();
+    let mut b = Stepper::new(&scene).expect("stepper");
+    b.restore(&snap).expect("restore");
+    assert_eq!(b.snapshot(), snap);
+    for _ in 0..4 {
+        let (ra, rb) = (a.step().expect("a"), b.step().expect("b"));
+        assert_eq!(ra.newton_iterations, rb.newton_iterations);
+        assert_eq!(ra.linear_iterations, rb.linear_iterations);
+    }
+    let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&a.x), bits(&b.x));
+    assert_eq!(bits(&a.v), bits(&b.v));
+    assert_eq!(bits(&a.reactions), bits(&b.reactions));
+    assert_eq!(a.k_m.to_bits(), b.k_m.to_bits());
+    // Another scene's snapshot: refused, and the stepper is unchanged.
+    let other = stickslip::sim::scene::parse(
+        stickslip::sim::scene::builtin("drop").expect("drop"),
+        "drop",
+        1.0,
+    )
+    .expect("scene");
+    let mut c = Stepper::new(&other).expect("stepper");
+    let before = c.snapshot();
+    let e = c.restore(&snap).expect_err("another scene");
+    assert!(e.to_string().contains("entries"), "{e}");
+    assert_eq!(c.snapshot(), before);
+}

@@ -121,3 +121,47 @@ fn exit_codes() {
     };
     assert_eq!(output.exit_code(), 1);
 }
+
+/// A scene without moving boundaries that runs out of Newton iterations says so without
+/// a k_M or a count of moving nodes it does not have; with moving boundaries it names both.
+#[test]
+fn newton_limit_messages_name_only_what_the_scene_has() {
+    let hanging = stickslip::sim::scene::builtin("hanging").expect("hanging");
+    let capped = format!("{hanging}\n[solver]\nmax_newton_iterations = 1\n");
+    let dir = tmp("newton-limit");
+    let file = dir.join("hanging.toml");
+    std::fs::write(&file, &capped).expect("scene");
+    let opts = RunOptions {
+        scene: Some(file.to_str().expect("utf-8").to_string()),
+        out: Some(dir.join("out")),
+        quiet: true,
+        ..RunOptions::default()
+    };
+    let e = stickslip::sim::driver::run(&opts).expect_err("one Newton iteration is too few");
+    let msg = e.to_string();
+    assert!(
+        msg.contains("Newton did not converge in 1 iterations"),
+        "{msg}"
+    );
+    assert!(!msg.contains("k_M") && !msg.contains("moving"), "{msg}");
+    let twist = stickslip::sim::scene::builtin("twist").expect("twist");
+    let capped = twist.replace(
+        "[moving]",
+        "[solver]\nmax_newton_iterations = 1\n\n[moving]",
+    );
+    let file = dir.join("twist.toml");
+    std::fs::write(&file, &capped).expect("scene");
+    let opts = RunOptions {
+        scene: Some(file.to_str().expect("utf-8").to_string()),
+        out: Some(dir.join("out2")),
+        quiet: true,
+        ..RunOptions::default()
+    };
+    let msg = stickslip::sim::driver::run(&opts)
+        .expect_err("one Newton iteration is too few")
+        .to_string();
+    assert!(
+        msg.contains("k_M = ") && msg.contains("unsatisfied moving nodes"),
+        "{msg}"
+    );
+}

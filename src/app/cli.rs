@@ -91,9 +91,9 @@ pub struct BenchArgs {
     /// Fill-reducing ordering of the Cholesky oracle (see `solve --ordering`).
     #[arg(long, value_enum, default_value_t = CholeskyOrdering::Auto)]
     pub ordering: CholeskyOrdering,
-    /// Worker threads of the CPU solvers, at least 1 [default: RAYON_NUM_THREADS, else
+    /// Worker threads of the CPU solvers, 1 to 1024 [default: RAYON_NUM_THREADS, else
     /// every core]. CPU CG gives the same bits on any count.
-    #[arg(long, value_parser = positive_usize)]
+    #[arg(long, value_parser = thread_count)]
     pub threads: Option<usize>,
     /// Time one Newton iteration of a 3D neo-Hookean box, phase by phase (assembly,
     /// elimination and preconditioner, CG to 1e-8, line search), CPU against GPU f64, over
@@ -195,6 +195,21 @@ fn positive_usize(s: &str) -> Result<usize, String> {
     }
 }
 
+/// Most worker threads `--threads` takes: far past any machine's cores, short of the
+/// thousands of threads that only cost start-up time (and memory for their stacks).
+pub const MAX_THREADS: usize = 1024;
+
+fn thread_count(s: &str) -> Result<usize, String> {
+    let n = positive_usize(s)?;
+    if n > MAX_THREADS {
+        return Err(format!(
+            "{n} is more than the limit of {MAX_THREADS} threads (this machine has {} cores)",
+            std::thread::available_parallelism().map_or(1, |c| c.get())
+        ));
+    }
+    Ok(n)
+}
+
 /// Largest generated system (`generate --nodes`, `bench --sizes`): about 2 KiB per node
 /// for a 3D mesh-stencil H (27 blocks of 9 f64) and its copies, so 20M nodes is ~40 GiB of
 /// Hessian before any solver state.
@@ -289,9 +304,9 @@ pub struct SolveArgs {
     /// Timings, sizes and solver details as JSON.
     #[arg(long, value_name = "report.json")]
     pub report: Option<String>,
-    /// Worker threads of the CPU solvers, at least 1 [default: RAYON_NUM_THREADS, else
+    /// Worker threads of the CPU solvers, 1 to 1024 [default: RAYON_NUM_THREADS, else
     /// every core]. CPU CG gives the same bits on any count.
-    #[arg(long, value_parser = positive_usize)]
+    #[arg(long, value_parser = thread_count)]
     pub threads: Option<usize>,
 }
 
@@ -345,9 +360,9 @@ pub struct RunArgs {
     /// Replace files with run's output names that no previous run there wrote.
     #[arg(long)]
     pub overwrite: bool,
-    /// Worker threads of the CPU solvers, at least 1 [default: RAYON_NUM_THREADS, else
+    /// Worker threads of the CPU solvers, 1 to 1024 [default: RAYON_NUM_THREADS, else
     /// every core]. CPU CG gives the same bits on any count.
-    #[arg(long, value_parser = positive_usize)]
+    #[arg(long, value_parser = thread_count)]
     pub threads: Option<usize>,
     /// Override the number of steps by an end time T (s): round(T / time_step) steps.
     #[arg(long, value_name = "T", conflicts_with = "steps")]

@@ -200,3 +200,26 @@ pub fn rows_up_to(text: &str, last: usize) -> Option<String> {
     }
     reached.then_some(out)
 }
+
+#[cfg(test)]
+mod resume_tests {
+    use super::rows_up_to;
+
+    /// Rows after the checkpoint's step and a partial last row go; a missing row of the
+    /// checkpoint's step is None.
+    #[test]
+    fn rows_up_to_keeps_whole_rows_to_the_step() {
+        let csv = "step,time\n0,0.0\n1,0.1\n2,0.2\n3,0.";
+        assert_eq!(
+            rows_up_to(csv, 1).as_deref(),
+            Some("step,time\n0,0.0\n1,0.1\n")
+        );
+        assert_eq!(
+            rows_up_to(csv, 2).as_deref(),
+            Some("step,time\n0,0.0\n1,0.1\n2,0.2\n")
+        );
+        assert_eq!(rows_up_to(csv, 3), None, "step 3's row is partial");
+        assert_eq!(rows_up_to("step,time\n0,0.0\n2,0.", 1), None);
+        assert_eq!(rows_up_to("step,ti", 0), None);
+    }
+}

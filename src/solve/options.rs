@@ -78,9 +78,9 @@ pub enum CoarseSpace {
     /// Add the coarse correction on the d rigid translations (see the module docs).
     Translations,
     /// Add the coarse correction on the d translations of each aggregate: the nodes are
-    /// grouped into connected aggregates of about [`crate::solve::coarse::AGGREGATE_NODES`] nodes (at most
-    /// [`crate::solve::coarse::MAX_AGGREGATES`]) from Ĥ's graph, so a stiffness-dominated body's smooth modes
-    /// (bending, not only rigid motion) are solved on the coarse space too. The default:
+    /// grouped into connected aggregates of about 64 nodes (at most 128 aggregates) from
+    /// Ĥ's graph, so a stiffness-dominated body's smooth modes (bending, not only rigid
+    /// motion) are solved on the coarse space too. The default:
     /// on the hard cases at 15k–81k DOFs f64 CG needs 2–5× fewer iterations than with
     /// the translations alone; `slivers` is the exception (STABILITY.md).
     #[default]
@@ -118,8 +118,12 @@ impl std::str::FromStr for CoarseSpace {
 #[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum CholeskyOrdering {
-    /// From [`crate::solve::ordering::AUTO_MIN_NODES`] nodes on, both orderings, keeping the one whose factor
-    /// needs fewer flops; AMD below (see [`crate::solve::ordering::auto_tries_nested_dissection`]).
+    /// From 2,000 nodes on, both orderings, keeping the one whose factor needs fewer
+    /// flops; AMD below.
+    //
+    // (The count is `solve::ordering::AUTO_MIN_NODES`; the choice is
+    // `solve::ordering::auto_tries_nested_dissection`. Help texts are read on a terminal:
+    // no links here.)
     #[default]
     Auto,
     /// Approximate minimum degree (faer) on the scalar pattern of Ĥ.
@@ -200,5 +204,16 @@ impl std::str::FromStr for SolverKind {
                 "unknown solver '{s}' (expected cholesky, cg or gpu)"
             )),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    /// The help texts above state these numbers in words (a terminal shows no links).
+    #[test]
+    fn help_texts_state_the_current_numbers() {
+        assert_eq!(crate::solve::ordering::AUTO_MIN_NODES, 2_000);
+        assert_eq!(crate::solve::coarse::AGGREGATE_NODES, 64);
+        assert_eq!(crate::solve::coarse::MAX_AGGREGATES, 128);
     }
 }

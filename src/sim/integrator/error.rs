@@ -16,11 +16,12 @@ pub enum InitError {
 /// Why a step failed. Iterations count from 1, on both loops.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum StepError {
-    #[error("Newton did not converge in {iterations} iterations (k_M = {k_m:e}, unsatisfied moving nodes: {unsatisfied})")]
+    #[error("Newton did not converge in {iterations} iterations{}", moving_state(.moving))]
     NewtonLimit {
         iterations: usize,
-        k_m: f64,
-        unsatisfied: usize,
+        /// k_M and the moving nodes still off target; None for a scene without moving
+        /// boundaries.
+        moving: Option<(f64, usize)>,
     },
     #[error("the Newton direction is not finite at iteration {iteration}")]
     DirectionNotFinite { iteration: usize },
@@ -66,4 +67,13 @@ pub enum StepError {
     Snapshot(String),
     #[error("GPU Newton loop: {0}")]
     Device(#[from] GpuError),
+}
+
+fn moving_state(moving: &Option<(f64, usize)>) -> String {
+    match moving {
+        Some((k_m, unsatisfied)) => {
+            format!(" (k_M = {k_m:e}, unsatisfied moving nodes: {unsatisfied})")
+        }
+        None => String::new(),
+    }
 }

@@ -242,8 +242,12 @@ impl<'s> Stepper<'s> {
             if iter >= sc.solver.max_newton_iterations {
                 return Err(StepError::NewtonLimit {
                     iterations: iter,
-                    k_m: self.state.k_m,
-                    unsatisfied: moving.snapped.iter().filter(|s| !**s).count(),
+                    moving: self.state.has_moving().then(|| {
+                        (
+                            self.state.k_m,
+                            moving.snapped.iter().filter(|s| !**s).count(),
+                        )
+                    }),
                 });
             }
             if !moving.snapped.is_empty()
