@@ -758,7 +758,7 @@ impl GpuElements {
 
     fn dispatch(&self, project: bool, energy_only: bool) -> Result<(), GpuError> {
         let dev = &self.ctx.device;
-        let max_groups = self.ctx.limits.max_compute_workgroups_per_dimension.max(1);
+        let launch = self.ctx.launch();
         for t in &self.terms {
             let p = ElementParams {
                 count: t.count as u32,
@@ -779,12 +779,10 @@ impl GpuElements {
                 timestamp_writes: None,
             });
             for t in self.terms.iter().filter(|t| t.count > 0) {
-                let groups = (t.count as u64)
-                    .div_ceil(WORKGROUP as u64)
-                    .min(max_groups as u64) as u32;
                 pass.set_pipeline(&self.kernels.pipelines[t.kind.index()]);
                 pass.set_bind_group(0, &t.group, &[]);
-                pass.dispatch_workgroups(groups, 1, 1);
+                // Grid-stride kernels: one invocation per element or node up to the limits.
+                launch.grid(t.count as u64, WORKGROUP).dispatch(&mut pass);
             }
         }
         self.ctx.queue.submit([enc.finish()]);
