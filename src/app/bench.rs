@@ -132,15 +132,11 @@ pub fn run(opts: &BenchOptions, command: &str) -> Result<BenchReport, BenchError
     let ctx = if opts.no_gpu {
         None
     } else {
-        match GpuContext::new(&GpuOptions::default()) {
-            Ok(c) => Some(c),
-            Err(e) => {
-                if !opts.quiet {
-                    eprintln!("bench: no GPU ({e}); running the CPU solvers only");
-                }
-                None
-            }
-        }
+        // No silent CPU-only run: without an adapter the GPU benchmark fails (--no-gpu
+        // asks for the CPU solvers only).
+        Some(GpuContext::new(&GpuOptions::default()).map_err(|e| {
+            BenchError::Solve(format!("bench: {e} (--no-gpu runs the CPU solvers only)"))
+        })?)
     };
     let mut report = BenchReport {
         command: command.to_string(),
@@ -628,7 +624,11 @@ pub fn run_hard(
     let ctx = if no_gpu {
         None
     } else {
-        GpuContext::new(&GpuOptions::default()).ok()
+        Some(GpuContext::new(&GpuOptions::default()).map_err(|e| {
+            BenchError::Solve(format!(
+                "bench --hard: {e} (--no-gpu runs the CPU solvers only)"
+            ))
+        })?)
     };
     // A line per stage and per timed case: the whole run takes minutes (16 at scale 5).
     let say = |text: &str| {
