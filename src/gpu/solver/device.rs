@@ -63,6 +63,9 @@ impl Device {
         params: &GpuParams,
     ) -> Result<Built, GpuError> {
         check_params(ctx, params)?;
+        for layout in crate::gpu::kernels::LAYOUTS {
+            layout.check_adapter(ctx)?;
+        }
         let (n, wg, n_partials) = geometry(ctx, host, params)?;
         let acc = if ctx.has_f64() { Real::F64 } else { Real::F32 };
         let mut bld = Builder::new(ctx, binding_limit(ctx, params));

@@ -330,6 +330,7 @@ impl GpuAssembly {
 
         // Pipelines.
         let real = if f64 { "f64" } else { "f32" };
+        ASSEMBLE.check_adapter(&ctx)?;
         let module = ASSEMBLE.module(dev, real, real, false);
         let (layout, pl) = ASSEMBLE.layouts(dev, "assembly");
         let constants = [("D", dim as f64), ("WG", WORKGROUP as f64)];

@@ -185,6 +185,7 @@ impl ElementKernels {
         }
         let dev = &ctx.device;
         let real = real_name(f64);
+        ELEMENTS.check_adapter(ctx)?;
         let module = ELEMENTS.module(dev, real, real, false);
         let (layout, pl) = ELEMENTS.layouts(dev, "elements");
         // Unit roundoff of the real type: exact powers of two, so exact as f32 too.

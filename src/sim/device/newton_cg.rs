@@ -345,6 +345,7 @@ impl DeviceCg {
             .require_exact(groups, "the device CG's reductions")?;
 
         // Pipelines.
+        NEWTON_CG.check_adapter(&ctx)?;
         let module = NEWTON_CG.module(dev, "f64", "f64", false);
         let (layout, pl) = NEWTON_CG.layouts(dev, "newton cg");
         let pipe = |entry: &str, precond: u32, coarse: bool| {

@@ -388,6 +388,7 @@ impl NewtonOps {
             })
             .collect::<Result<_, _>>()?;
         let dev = &ctx.device;
+        NEWTON_OPS.check_adapter(&ctx)?;
         let module = NEWTON_OPS.module(dev, "f64", "f64", false);
         let (layout, pl) = NEWTON_OPS.layouts(dev, "newton ops");
         let constants = [("D", d as f64), ("WG", WG as f64)];
