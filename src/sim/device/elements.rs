@@ -20,7 +20,7 @@
 //! half-space (its energy is +∞ there, which WGSL cannot write portably).
 //!
 //! One storage binding is capped (`max_storage_buffer_binding_size`: 128 MiB on lavapipe,
-//! about 4 GiB on NVIDIA), and a tetrahedron's Hessian alone is 1152 B. A term whose
+//! 2³¹ − 1 bytes at most under wgpu), and a tetrahedron's Hessian alone is 1152 B. A term whose
 //! largest per-item array would exceed the cap is split into chunks of consecutive items
 //! (elements of its set, or nodes), each a term of its own with its own buffers, bind group
 //! and dispatch: [`GpuElements::kinds`] lists one entry per chunk, in item order, and
