@@ -1,155 +1,242 @@
 #!/usr/bin/env bash
-# One-command evaluation on a machine with a real GPU and the Vulkan loader:
+# Evaluation on a machine with a real GPU, sized for one device call (10 minutes a
+# command; at most 8 files of 16 MiB come back, no deeper than two folders):
 #
-#   scripts/gpu-eval.sh OUTDIR
+#   scripts/gpu-eval.sh OUTDIR            the default evaluation, under 9 minutes
+#   scripts/gpu-eval.sh --large OUTDIR    the 3M-node ladder, the 1M-node Newton step and
+#                                         CuPy at 1M nodes (a second call)
 #
-# Runs, each step under its own time limit so the whole stays within about 10 minutes:
-#   1. `stickslip info`                                   -> OUTDIR/info.txt
-#   2. the solver ladder in 3D (f32, f64, mixed against CPU CG and a 1e-12 reference),
-#      `bench --quick` at GPU_EVAL_SIZES                  -> OUTDIR/ladder/
-#   3. `bench --newton` at GPU_EVAL_NEWTON_SIZES, when the binary has it
-#                                                         -> OUTDIR/newton/
-#   4. `run twist --steps 1` at GPU_EVAL_TWIST_SIZE with the GPU Newton loop and with the
-#      CPU loop (CPU CG, every core): wall and linear-solve seconds, bytes moved
-#                                                         -> OUTDIR/twist/
-#   5. the hard-case speed table, `bench --hard`          -> OUTDIR/hard/
-#   6. where CuPy imports: the same generated systems solved by CuPy's Jacobi CG
-#      (scripts/cupy_cg.py) beside `stickslip solve --solver gpu` -> OUTDIR/cupy/
-# and OUTDIR/summary.md with each step's exit status and seconds. A step that fails or
-# runs out of time is recorded there and the script goes on; it exits 1 when any did.
+# 0. `stickslip info` must show a discrete GPU on Vulkan with SHADER_F64, else exit 3
+#    (seconds, nothing else run).
+# 1. The GPU correctness tests that compare split and unsplit results bit for bit
+#    (tests/gpu_split.rs, tests/gpu_launch.rs), when a test binary is given in
+#    GPU_EVAL_TEST_BINS (cargo test --no-run builds them; carry them with the binary).
+# 2. The benchmarks, each under a step limit its sizes can meet. Every benchmark appends
+#    a record per finished size to records.jsonl, so a step stopped at its limit keeps
+#    what it finished. A limit of 0 skips the step.
 #
-# Environment (defaults in brackets):
+# OUTDIR then holds at most 8 files, none in a folder: summary.md (each step's exit status
+# and seconds, the tables), info.txt, tests.log, ladder.jsonl, newton.jsonl, hard.md,
+# cupy.jsonl and eval.tar.gz (every step's full output and log, frames left out).
+# Exit: 0 all steps passed, 1 a step failed or ran out of time, 2 usage, 3 no usable GPU.
+#
+# Environment (defaults in brackets; the --large defaults after the slash):
 #   STICKSLIP_BIN          the binary [target/release/stickslip]
-#   GPU_EVAL_SIZES         ladder node counts [100000,1000000,3000000]
-#   GPU_EVAL_NEWTON_SIZES  bench --newton node counts [10000,100000,1000000]
-#   GPU_EVAL_TWIST_SIZE    run twist --size [10]
-#   GPU_EVAL_HARD_SCALE    bench --hard-scale [5]
-#   GPU_EVAL_CUPY_SIZES    node counts solved by CuPy and stickslip [100000,1000000]
+#   GPU_EVAL_TEST_BINS     test binaries for step 1, space separated [none: step skipped]
+#   GPU_EVAL_SIZES         ladder node counts, 3D [100000,1000000 / 3000000]
+#   GPU_EVAL_NEWTON_SIZES  bench --newton node counts [10000,100000 / 1000000]
+#   GPU_EVAL_TWIST_SIZE    run twist --size [6 / 10]
+#   GPU_EVAL_HARD_SCALE    bench --hard-scale [2 / 5]
+#   GPU_EVAL_CUPY_SIZES    node counts solved by CuPy and stickslip [100000 / 1000000]
 #   GPU_EVAL_PYTHON        the Python with CuPy [python3]
-#   GPU_EVAL_LIMITS        seconds per step: ladder,newton,twist,hard,cupy
-#                          [180,120,60,60,90]: with `info` (30) at most 540 s in all
+#   GPU_EVAL_ALLOW_CPU     1: accept a CPU adapter on Vulkan (a rehearsal on lavapipe)
+#   GPU_EVAL_LIMITS        seconds per step: tests,ladder,newton,twist,hard,cupy; 0 skips
+#                          [60,150,90,40,60,60 / 0,300,200,0,0,60]
+# Estimates behind the default limits (H100, from the lavapipe figures of BENCHMARKS.md
+# scaled by memory bandwidth, with 2x margin; the CPU sides on 16 cores): the ladder to
+# 1M nodes 3D is ~60 s (generation and the CPU CG dominate), 3M ~200 s; bench --newton to
+# 100k ~40 s, 1M ~150 s; twist at size 6 one step ~20 s; bench --hard at scale 2 ~40 s;
+# CuPy at 100k ~30 s (export included), 1M ~50 s. Default total: 460 s + info.
 set -uo pipefail
 
+large=0
+if [ "${1:-}" = "--large" ]; then
+    large=1
+    shift
+fi
 if [ $# -ne 1 ]; then
-    echo "usage: scripts/gpu-eval.sh OUTDIR" >&2
+    echo "usage: scripts/gpu-eval.sh [--large] OUTDIR" >&2
     exit 2
 fi
 out=$1
 here=$(cd "$(dirname "$0")" && pwd)
 bin=${STICKSLIP_BIN:-target/release/stickslip}
-sizes=${GPU_EVAL_SIZES:-100000,1000000,3000000}
-newton_sizes=${GPU_EVAL_NEWTON_SIZES:-10000,100000,1000000}
-twist_size=${GPU_EVAL_TWIST_SIZE:-10}
-hard_scale=${GPU_EVAL_HARD_SCALE:-5}
-cupy_sizes=${GPU_EVAL_CUPY_SIZES:-100000,1000000}
 py=${GPU_EVAL_PYTHON:-python3}
-IFS=, read -r t_ladder t_newton t_twist t_hard t_cupy <<< "${GPU_EVAL_LIMITS:-180,120,60,60,90}"
+test_bins=${GPU_EVAL_TEST_BINS:-}
+if [ $large = 1 ]; then
+    sizes=${GPU_EVAL_SIZES:-3000000}
+    newton_sizes=${GPU_EVAL_NEWTON_SIZES:-1000000}
+    twist_size=${GPU_EVAL_TWIST_SIZE:-10}
+    hard_scale=${GPU_EVAL_HARD_SCALE:-5}
+    cupy_sizes=${GPU_EVAL_CUPY_SIZES:-1000000}
+    limits=${GPU_EVAL_LIMITS:-0,300,200,0,0,60}
+else
+    sizes=${GPU_EVAL_SIZES:-100000,1000000}
+    newton_sizes=${GPU_EVAL_NEWTON_SIZES:-10000,100000}
+    twist_size=${GPU_EVAL_TWIST_SIZE:-6}
+    hard_scale=${GPU_EVAL_HARD_SCALE:-2}
+    cupy_sizes=${GPU_EVAL_CUPY_SIZES:-100000}
+    limits=${GPU_EVAL_LIMITS:-60,150,90,40,60,60}
+fi
+IFS=, read -r t_tests t_ladder t_newton t_twist t_hard t_cupy <<< "$limits"
+for t in "$t_tests" "$t_ladder" "$t_newton" "$t_twist" "$t_hard" "$t_cupy"; do
+    case $t in
+        '' | *[!0-9]*)
+            echo "gpu-eval: GPU_EVAL_LIMITS='$limits': expected six whole numbers of seconds" >&2
+            exit 2
+            ;;
+    esac
+done
 
 if [ ! -x "$bin" ]; then
     echo "gpu-eval: no stickslip binary at $bin (build with cargo build --release, or set STICKSLIP_BIN)" >&2
     exit 2
 fi
 mkdir -p "$out" || exit 2
+# Every step's files go to a work folder; OUTDIR gets the few files listed above.
+work=$(mktemp -d "${TMPDIR:-/tmp}/gpu-eval.XXXXXX") || exit 2
+trap 'rm -rf "$work"' EXIT
+
+# 0. A discrete GPU on Vulkan with SHADER_F64, or nothing else runs.
+timeout --kill-after=2 20 "$bin" info > "$out/info.txt" 2>&1
+rc=$?
+want='(Vulkan, DiscreteGpu;.*shader_f64 true'
+# A rehearsal on a CPU adapter (lavapipe) sets GPU_EVAL_ALLOW_CPU=1.
+[ "${GPU_EVAL_ALLOW_CPU:-}" = 1 ] && want='(Vulkan, \(DiscreteGpu\|Cpu\);.*shader_f64 true'
+if [ $rc -ne 0 ] || ! grep -q "$want" "$out/info.txt"; then
+    echo "gpu-eval: no discrete GPU on Vulkan with SHADER_F64 (stickslip info exited $rc):" >&2
+    head -c 2000 "$out/info.txt" >&2
+    exit 3
+fi
+
 summary=$out/summary.md
 failed=0
 {
-    echo "# stickslip GPU evaluation"
+    echo "# stickslip GPU evaluation$([ $large = 1 ] && echo ' (--large)')"
     echo
     echo "- date: $(date -u +%Y-%m-%dT%H:%M:%SZ)"
     echo "- host: $(uname -n), $(nproc) cores, $(awk '/MemTotal/ {printf "%.0f GiB", $2/1048576}' /proc/meminfo)"
     echo "- binary: $bin ($("$bin" --version 2>/dev/null || echo unknown))"
+    echo "- adapter: $(grep -m1 '^adapter 0:' "$out/info.txt" | cut -c1-200)"
     echo
-    echo "| step | exit | seconds | output |"
-    echo "|---|---|---|---|"
+    echo "| step | limit s | exit | seconds | records kept |"
+    echo "|---|---|---|---|---|"
 } > "$summary"
 
-# step NAME LIMIT_S OUTPUT COMMAND...: runs COMMAND under `timeout`, appends a row.
+# step NAME LIMIT_S COMMAND...: runs COMMAND under `timeout` (LIMIT_S 0: skipped) and
+# appends a row with the records its records.jsonl kept.
 step() {
-    local name=$1 limit=$2 dest=$3
-    shift 3
+    local name=$1 limit=$2
+    shift 2
+    if [ "$limit" -eq 0 ]; then
+        echo "| $name | 0 | skipped | | |" >> "$summary"
+        return 0
+    fi
     echo "gpu-eval: $name (limit ${limit} s): $*" >&2
-    local t0 rc
+    local t0 rc secs kept what
     t0=$(date +%s.%N)
-    timeout --signal=TERM --kill-after=10 "$limit" "$@"
+    timeout --signal=TERM --kill-after=5 "$limit" "$@"
     rc=$?
-    local secs
     secs=$(awk -v a="$t0" -v b="$(date +%s.%N)" 'BEGIN {printf "%.1f", b - a}')
-    local what=$rc
-    [ $rc -eq 124 ] && what="124 (over ${limit} s)"
-    echo "| $name | $what | $secs | $dest |" >> "$summary"
+    kept=$(cat "$work/$name"/records.jsonl 2>/dev/null | wc -l)
+    what=$rc
+    { [ $rc -eq 124 ] || [ $rc -eq 137 ]; } && what="$rc (over ${limit} s)"
+    echo "| $name | $limit | $what | $secs | $kept |" >> "$summary"
     if [ $rc -ne 0 ]; then
         failed=1
         echo "gpu-eval: $name exited $what" >&2
     fi
-    return $rc
+    return 0
 }
+mkdir -p "$work/tests" "$work/ladder" "$work/newton" "$work/twist" "$work/hard" "$work/cupy"
 
-# 1. The adapter, its features and limits.
-step info 30 info.txt sh -c "\"$bin\" info > \"$out/info.txt\" 2>&1"
+# 1. Split against unsplit, bit for bit.
+if [ -n "$test_bins" ]; then
+    tests_all() {
+        local b rc=0
+        for b in $test_bins; do
+            STICKSLIP_REQUIRE_GPU=1 "$b" --test-threads 1 || rc=1
+        done
+        return $rc
+    }
+    export test_bins
+    export -f tests_all
+    step tests "$t_tests" bash -c tests_all > "$work/tests/tests.log" 2>&1
+else
+    echo "| tests | | not given (GPU_EVAL_TEST_BINS) | | |" >> "$summary"
+fi
 
 # 2. The solver ladder, 3D.
-step ladder "$t_ladder" ladder/ "$bin" bench --quick --sizes "$sizes" --dims 3 \
-    --oracle-max-nodes 100000 --out "$out/ladder" 2> "$out/ladder.log"
+step ladder "$t_ladder" "$bin" bench --quick --sizes "$sizes" --dims 3 \
+    --oracle-max-nodes 100000 --out "$work/ladder" 2> "$work/ladder/log.txt"
 
-# 3. The Newton step, where this build has it.
-if "$bin" bench --help 2>/dev/null | grep -q -- '--newton'; then
-    # One timed repetition after the warm-up: at 1M nodes the CPU side alone takes tens
-    # of seconds a phase.
-    step newton "$t_newton" newton/ "$bin" bench --newton --sizes "$newton_sizes" --reps 1 \
-        --out "$out/newton" 2> "$out/newton.log"
-else
-    echo "| newton | not in this build | | |" >> "$summary"
-fi
+# 3. The Newton step.
+step newton "$t_newton" "$bin" bench --newton --sizes "$newton_sizes" --reps 1 \
+    --out "$work/newton" 2> "$work/newton/log.txt"
 
-# 4. One step of a large twist, the whole Newton step on the GPU against the CPU loop.
-if "$bin" run --help 2>/dev/null | grep -q -- '--newton'; then
-    twist_both() {
-        "$bin" run twist --size "$twist_size" --steps 1 --newton gpu --quiet --overwrite \
-            --out "$out/twist/gpu" || return 1
-        "$bin" run twist --size "$twist_size" --steps 1 --solver cg --quiet --overwrite \
-            --out "$out/twist/cpu" || return 1
-    }
-    mkdir -p "$out/twist"
-    export out bin twist_size
-    export -f twist_both
-    step twist "$t_twist" twist/ bash -c twist_both 2> "$out/twist.log"
-else
-    echo "| twist | not in this build | | |" >> "$summary"
-fi
+# 4. One step of a twist, the whole Newton step on the GPU against the CPU loop.
+twist_both() {
+    "$bin" run twist --size "$twist_size" --steps 1 --newton gpu --quiet --overwrite \
+        --out "$work/twist/gpu" || return 1
+    "$bin" run twist --size "$twist_size" --steps 1 --solver cg --quiet --overwrite \
+        --out "$work/twist/cpu" || return 1
+}
+export work bin twist_size
+export -f twist_both
+step twist "$t_twist" bash -c twist_both 2> "$work/twist/log.txt"
 
-# 5. The hard cases: f64 against mixed at a larger scale.
-step hard "$t_hard" hard/ "$bin" bench --hard --hard-scale "$hard_scale" \
-    --out "$out/hard" 2> "$out/hard.log"
+# 5. The hard cases: f64 against mixed.
+step hard "$t_hard" "$bin" bench --hard --hard-scale "$hard_scale" \
+    --out "$work/hard" 2> "$work/hard/log.txt"
 
-# 6. CuPy's CG on the same systems, beside stickslip's GPU CG (f64, Jacobi, 1e-8).
-if "$py" -c "import cupy, cupyx.scipy.sparse.linalg" 2>/dev/null; then
+# 6. CuPy's CG beside stickslip's GPU CG (f64, Jacobi, 1e-8) on the same systems.
+if [ "$t_cupy" -gt 0 ] && "$py" -c "import cupy, cupyx.scipy.sparse.linalg" 2>/dev/null; then
     cupy_all() {
-        local n dir
+        local n dir p tol
         for n in ${cupy_sizes//,/ }; do
-            dir=$out/cupy/n$n
+            dir=$work/cupy/n$n
             "$bin" generate --quiet --dim 3 --nodes "$n" --out-dir "$dir/sys" || return 1
             "$bin" export --quiet --hessian "$dir/sys/H.mtx" --gradient "$dir/sys/g.mtx" \
                 --constraints "$dir/sys/bc.json" --no-mtx --out-dir "$dir/export" || return 1
-            "$py" "$here/cupy_cg.py" "$dir/export" --tol 1e-8 > "$out/cupy/cupy-n$n.json" || return 1
+            "$py" "$here/cupy_cg.py" "$dir/export" --tol 1e-8 > "$work/cupy/cupy-n$n.json" || return 1
+            printf '{"tool":"cupy","nodes":%s,"report":%s}\n' "$n" \
+                "$(tr -d '\n' < "$work/cupy/cupy-n$n.json")" >> "$work/cupy/records.jsonl"
             for p in f64 mixed f32; do
-                local tol=1e-8
+                tol=1e-8
                 [ $p = f32 ] && tol=1e-6
                 "$bin" solve --quiet --hessian "$dir/sys/H.mtx" --gradient "$dir/sys/g.mtx" \
                     --constraints "$dir/sys/bc.json" --solver gpu --precision $p \
                     --preconditioner jacobi --coarse none --tol $tol --out "$dir/dx-$p.mtx" \
-                    --report "$out/cupy/stickslip-$p-n$n.json" || return 1
+                    --report "$work/cupy/stickslip-$p-n$n.json" || return 1
+                printf '{"tool":"stickslip-%s","nodes":%s,"report":%s}\n' "$p" "$n" \
+                    "$(tr -d '\n' < "$work/cupy/stickslip-$p-n$n.json")" >> "$work/cupy/records.jsonl"
             done
             # The systems are large; keep the results, not the inputs.
             rm -rf "$dir"
         done
     }
-    mkdir -p "$out/cupy"
-    export out bin py here cupy_sizes
+    export work bin py here cupy_sizes
     export -f cupy_all
-    step cupy "$t_cupy" cupy/ bash -c cupy_all
+    step cupy "$t_cupy" bash -c cupy_all 2> "$work/cupy/log.txt"
+elif [ "$t_cupy" -eq 0 ]; then
+    echo "| cupy | 0 | skipped | | |" >> "$summary"
 else
-    echo "| cupy | CuPy not importable by $py | | |" >> "$summary"
+    echo "| cupy | $t_cupy | CuPy not importable by $py | | |" >> "$summary"
 fi
 
+# The few files that come back: the records, the tables and one tarball without frames.
+cp "$work/tests/tests.log" "$out/tests.log" 2>/dev/null
+for s in ladder newton cupy; do
+    [ -s "$work/$s/records.jsonl" ] && cp "$work/$s/records.jsonl" "$out/$s.jsonl"
+done
+[ -s "$work/hard/hard.md" ] && cp "$work/hard/hard.md" "$out/hard.md"
+{
+    for f in "$work"/ladder/*.md "$work"/newton/*.md; do
+        [ -s "$f" ] || continue
+        echo
+        echo "## ${f#"$work"/}"
+        echo
+        head -c 200000 "$f"
+    done
+} >> "$summary"
+tar -C "$work" --exclude=frames --exclude='*.mtx' -czf "$out/eval.tar.gz" . 2>/dev/null
+# Over 16 MiB (a runaway log): cut to the summaries and records.
+if [ "$(stat -c %s "$out/eval.tar.gz")" -gt $((16 << 20)) ]; then
+    tar -C "$work" --exclude=frames --exclude='*.mtx' --exclude='*.vtk' \
+        --exclude='log.txt' -czf "$out/eval.tar.gz" .
+fi
+for f in "$out"/*; do
+    [ -f "$f" ] && [ "$(stat -c %s "$f")" -gt $((16 << 20)) ] && truncate -s 16M "$f"
+done
 cat "$summary"
 exit $failed

@@ -75,7 +75,7 @@ const NONE: u32 = 0xffffffffu;
 fn blocks_init(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
     let c = coef[params.coef_slot];
-    for (var k = gid.x; k < params.count; k += nwg.x * WG) {
+    for (var k = grid_index(gid, nwg); k < params.count; k += grid_stride(nwg)) {
         let i = gather[params.block_first + k];
         for (var t = 0u; t < dd; t++) {
             var v = real(0.0);
@@ -93,7 +93,7 @@ fn blocks_add_elements(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let dd = D * D;
     let nl = params.nl;
     let c = coef[params.coef_slot];
-    for (var k = gid.x; k < params.count; k += nwg.x * WG) {
+    for (var k = grid_index(gid, nwg); k < params.count; k += grid_stride(nwg)) {
         var sum: array<real, 9>;
         for (var t = 0u; t < dd; t++) {
             sum[t] = out[k * dd + t];
@@ -120,7 +120,7 @@ fn blocks_add_elements(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
 fn blocks_set_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
     let c = coef[params.coef_slot];
-    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+    for (var i = grid_index(gid, nwg); i < params.count; i += grid_stride(nwg)) {
         let k = gather[i];
         let s = params.src_first + i;
         for (var t = 0u; t < dd; t++) {
@@ -134,7 +134,7 @@ fn blocks_set_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
 fn blocks_add_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
     let c = coef[params.coef_slot];
-    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+    for (var i = grid_index(gid, nwg); i < params.count; i += grid_stride(nwg)) {
         let k = gather[i];
         let s = params.src_first + i;
         for (var t = 0u; t < dd; t++) {
@@ -147,7 +147,7 @@ fn blocks_add_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
 @compute @workgroup_size(WG)
 fn grad_init(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let c = coef[params.coef_slot];
-    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+    for (var i = grid_index(gid, nwg); i < params.count; i += grid_stride(nwg)) {
         let g = params.first + i;
         for (var q = 0u; q < D; q++) {
             out[g * D + q] = c * src[i * D + q];
@@ -159,7 +159,7 @@ fn grad_init(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
 @compute @workgroup_size(WG)
 fn grad_add_elements(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let c = coef[params.coef_slot];
-    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+    for (var i = grid_index(gid, nwg); i < params.count; i += grid_stride(nwg)) {
         var sum: array<real, 3>;
         for (var q = 0u; q < D; q++) {
             sum[q] = out[i * D + q];
@@ -180,7 +180,7 @@ fn grad_add_elements(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num
 @compute @workgroup_size(WG)
 fn grad_add_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let c = coef[params.coef_slot];
-    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+    for (var i = grid_index(gid, nwg); i < params.count; i += grid_stride(nwg)) {
         let g = params.first + i;
         for (var q = 0u; q < D; q++) {
             out[g * D + q] += c * src[i * D + q];
@@ -193,7 +193,7 @@ fn grad_add_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
 @compute @workgroup_size(WG)
 fn matvec_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
-    for (var li = gid.x; li < params.count; li += nwg.x * WG) {
+    for (var li = grid_index(gid, nwg); li < params.count; li += grid_stride(nwg)) {
         let i = params.first + li;
         var sum: array<real, 3>;
         for (var k = offsets[i]; k < offsets[i + 1u]; k++) {
@@ -218,7 +218,7 @@ fn matvec_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
 fn matfree_init(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
     let c = coef[params.coef_slot];
-    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+    for (var i = grid_index(gid, nwg); i < params.count; i += grid_stride(nwg)) {
         let g = params.first + i;
         for (var r = 0u; r < D; r++) {
             var s = real(0.0);
@@ -235,7 +235,7 @@ fn matfree_init(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
 fn matfree_add_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
     let c = coef[params.coef_slot];
-    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+    for (var i = grid_index(gid, nwg); i < params.count; i += grid_stride(nwg)) {
         let g = params.first + i;
         for (var r = 0u; r < D; r++) {
             var s = real(0.0);
@@ -254,7 +254,7 @@ fn matfree_add_elements(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(
     let nl = params.nl;
     let arity = params.arity;
     let c = coef[params.coef_slot];
-    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+    for (var i = grid_index(gid, nwg); i < params.count; i += grid_stride(nwg)) {
         var sum: array<real, 3>;
         for (var q = 0u; q < D; q++) {
             sum[q] = out[i * D + q];

@@ -240,7 +240,7 @@ fn diag_z(k: u32, rk: real) -> real {
 }
 
 @compute @workgroup_size(WG)
-fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
+fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     var rz: acc;
     var rr: acc;
     // Coarse coefficients c = E⁺Zᵀr (zero without COARSE).
@@ -273,7 +273,7 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
     // NaN fails every comparison: a non-finite ρ or r·r is a breakdown, never convergence.
     let bad = !(rz >= acc(0.0)) || !(rr >= acc(0.0));
     let stop = halt != 0u || conv || bad;
-    if (wid.x == 0u && lid.x == 0u) {
+    if (group_index(wid, nwg) == 0u && lid.x == 0u) {
         scal[SCAL_RHO] = rz;
         scal[SCAL_RR] = rr;
         if (stop) {
@@ -291,7 +291,7 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
     }
     let beta_acc = rz / scal[SCAL_RHO_PREV];
     let beta = real(beta_acc);
-    if (wid.x == 0u && lid.x == 0u) {
+    if (group_index(wid, nwg) == 0u && lid.x == 0u) {
         let it = state[STATE_ITERS];
         if (it == 0u) {
             scal[SCAL_BETA0] = beta_acc;
@@ -302,7 +302,7 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
     let stride = params.n_partials * WG;
     if (AGG) {
         let kc = D * N_AGG;
-        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
+        for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += stride) {
             let g = agg_of[i];
             var c = vec3<real>(real(0.0));
             if (g != NO_AGGREGATE) {
@@ -324,12 +324,12 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
         }
     } else if (!COARSE) {
         let n = params.n_nodes * D;
-        for (var k = wid.x * WG + lid.x; k < n; k += stride) {
+        for (var k = group_index(wid, nwg) * WG + lid.x; k < n; k += stride) {
             p[k] = z[k] + beta * p[k];
         }
     } else if (D == 3u) {
         let c = vec3<real>(cc);
-        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
+        for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += stride) {
             let k = 3u * i;
             let zv = vec3<real>(z[k], z[k + 1u], z[k + 2u]) + zc3(i, c);
             p[k] = zv.x + beta * p[k];
@@ -338,7 +338,7 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
         }
     } else {
         let c = vec2<real>(real(cc.x), real(cc.y));
-        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
+        for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += stride) {
             let k = 2u * i;
             let zv = vec2<real>(z[k], z[k + 1u]) + zc2(i, c);
             p[k] = zv.x + beta * p[k];
@@ -348,7 +348,7 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
 }
 
 @compute @workgroup_size(WG)
-fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
+fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     if (lid.x == 0u) {
         wg_u = state[STATE_DONE];
     }
@@ -357,7 +357,7 @@ fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
     }
     let pq = reduce_slot(PART_PQ, lid.x);
     if (!(pq > acc(0.0))) {
-        if (wid.x == 0u && lid.x == 0u) {
+        if (group_index(wid, nwg) == 0u && lid.x == 0u) {
             state[STATE_HALT] = 1u;
             scal[SCAL_PQ] = pq;
         }
@@ -372,7 +372,7 @@ fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
     if (PRECOND != 2u && !COARSE) {
         // Diagonal preconditioners: element-wise over the d·n components.
         let n = params.n_nodes * D;
-        for (var k = wid.x * WG + lid.x; k < n; k += stride) {
+        for (var k = group_index(wid, nwg) * WG + lid.x; k < n; k += stride) {
             x[k] += alpha * p[k];
             let rk = r[k] - alpha * q[k];
             r[k] = rk;
@@ -382,7 +382,7 @@ fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
             prr += acc(rk) * acc(rk);
         }
     } else if (D == 3u) {
-        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
+        for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += stride) {
             let k = 3u * i;
             let pv = vec3<real>(p[k], p[k + 1u], p[k + 2u]);
             let xv = vec3<real>(x[k], x[k + 1u], x[k + 2u]) + alpha * pv;
@@ -405,7 +405,7 @@ fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
             prr += acc(rv.x) * acc(rv.x) + acc(rv.y) * acc(rv.y) + acc(rv.z) * acc(rv.z);
         }
     } else {
-        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
+        for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += stride) {
             let k = 2u * i;
             let pv = vec2<real>(p[k], p[k + 1u]);
             let xv = vec2<real>(x[k], x[k + 1u]) + alpha * pv;
@@ -425,8 +425,8 @@ fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
             prr += acc(rv.x) * acc(rv.x) + acc(rv.y) * acc(rv.y);
         }
     }
-    write_partials(lid.x, wid.x, prz, prr, zr);
-    if (wid.x == 0u && lid.x == 0u) {
+    write_partials(lid.x, group_index(wid, nwg), prz, prr, zr);
+    if (group_index(wid, nwg) == 0u && lid.x == 0u) {
         scal[SCAL_RHO_PREV] = scal[SCAL_RHO];
         scal[SCAL_PQ] = pq;
         scal[SCAL_ALPHA] = alpha_acc;
@@ -444,13 +444,13 @@ fn update_xrz(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
 // instead: b is the new, renormalized true residual, x and q are zero, and s rescales
 // p (and the host rescales ρ_prev) to the new normalization, so CG goes on, not over.
 @compute @workgroup_size(WG)
-fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
+fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     var prz = acc(0.0);
     var prr = acc(0.0);
     let stride = params.n_partials * WG;
     let n = params.n_nodes * D;
     let keep = real(scal[SCAL_PSCALE]);
-    for (var k = wid.x * WG + lid.x; k < n; k += stride) {
+    for (var k = group_index(wid, nwg) * WG + lid.x; k < n; k += stride) {
         let rk = b[k] - q[k];
         r[k] = rk;
         // select, not 0·p: p may hold non-finite values after a breakdown.
@@ -458,7 +458,7 @@ fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid
     }
     var zr = vec3<acc>(acc(0.0));
     if (PRECOND != 2u && !COARSE) {
-        for (var k = wid.x * WG + lid.x; k < n; k += stride) {
+        for (var k = group_index(wid, nwg) * WG + lid.x; k < n; k += stride) {
             let rk = b[k] - q[k];
             let zk = diag_z(k, rk);
             z[k] = zk;
@@ -466,7 +466,7 @@ fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid
             prr += acc(rk) * acc(rk);
         }
     } else if (D == 3u) {
-        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
+        for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += stride) {
             let k = 3u * i;
             // Recomputed rather than read back: r[k] may come from another workgroup.
             let rv = vec3<real>(b[k], b[k + 1u], b[k + 2u]) - vec3<real>(q[k], q[k + 1u], q[k + 2u]);
@@ -481,7 +481,7 @@ fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid
             prr += acc(rv.x) * acc(rv.x) + acc(rv.y) * acc(rv.y) + acc(rv.z) * acc(rv.z);
         }
     } else {
-        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += stride) {
+        for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += stride) {
             let k = 2u * i;
             let rv = vec2<real>(b[k], b[k + 1u]) - vec2<real>(q[k], q[k + 1u]);
             let zv = pz2(i, rv);
@@ -494,5 +494,5 @@ fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid
             prr += acc(rv.x) * acc(rv.x) + acc(rv.y) * acc(rv.y);
         }
     }
-    write_partials(lid.x, wid.x, prz, prr, zr);
+    write_partials(lid.x, group_index(wid, nwg), prz, prr, zr);
 }

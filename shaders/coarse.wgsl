@@ -69,7 +69,7 @@ fn restrict_r(
     if (done(lid.x)) {
         return;
     }
-    for (var a = wid.x; a < N_AGG; a += nwg.x) {
+    for (var a = group_index(wid, nwg); a < N_AGG; a += group_count(nwg)) {
         var s = vec3<acc>(acc(0.0));
         let end = agg_ptr[a + 1u];
         for (var t = agg_ptr[a] + lid.x; t < end; t += WG) {
@@ -96,7 +96,7 @@ fn solve(
     let k = D * N_AGG;
     // E⁺ is symmetric: row `row` is read as column `row`, so neighbouring threads read
     // neighbouring addresses.
-    for (var row = wid.x * WG + lid.x; row < k; row += nwg.x * WG) {
+    for (var row = group_index(wid, nwg) * WG + lid.x; row < k; row += grid_stride(nwg)) {
         var s = acc(0.0);
         for (var col = 0u; col < k; col++) {
             s += einv[col * k + row] * wc[col];

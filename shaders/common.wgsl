@@ -104,3 +104,20 @@ fn workgroup_sum_uniform(lid: u32, v: array<acc, 5>, n: u32) -> array<acc, 5> {
 fn sum1(s: acc) -> array<acc, 5> {
     return array<acc, 5>(s, acc(0.0), acc(0.0), acc(0.0), acc(0.0));
 }
+
+// Launch geometry (src/gpu/launch.rs): a dispatch is (x, y, 1) workgroups, x and y each
+// within the adapter's per-dimension limit. An invocation's linear index and the
+// grid-stride step of per-item loops; a workgroup's linear index and the workgroup count
+// (reductions: one partial per workgroup, dispatched with exactly that many).
+fn grid_index(gid: vec3<u32>, nwg: vec3<u32>) -> u32 {
+    return gid.x + gid.y * (nwg.x * WG);
+}
+fn grid_stride(nwg: vec3<u32>) -> u32 {
+    return nwg.x * nwg.y * WG;
+}
+fn group_index(wid: vec3<u32>, nwg: vec3<u32>) -> u32 {
+    return wid.x + wid.y * nwg.x;
+}
+fn group_count(nwg: vec3<u32>) -> u32 {
+    return nwg.x * nwg.y;
+}

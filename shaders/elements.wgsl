@@ -673,35 +673,35 @@ fn barrier_node(i: u32) {
 // Grid-stride loops: the host caps the workgroups at the device's per-dimension limit.
 @compute @workgroup_size(WG)
 fn neohookean_elements(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    for (var e = gid.x; e < params.count; e += nwg.x * WG) {
+    for (var e = grid_index(gid, nwg); e < params.count; e += grid_stride(nwg)) {
         neohookean_element(e);
     }
 }
 
 @compute @workgroup_size(WG)
 fn spring_elements(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    for (var e = gid.x; e < params.count; e += nwg.x * WG) {
+    for (var e = grid_index(gid, nwg); e < params.count; e += grid_stride(nwg)) {
         spring_element(e);
     }
 }
 
 @compute @workgroup_size(WG)
 fn inertia_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+    for (var i = grid_index(gid, nwg); i < params.count; i += grid_stride(nwg)) {
         inertia_node(i);
     }
 }
 
 @compute @workgroup_size(WG)
 fn gravity_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+    for (var i = grid_index(gid, nwg); i < params.count; i += grid_stride(nwg)) {
         gravity_node(i);
     }
 }
 
 @compute @workgroup_size(WG)
 fn barrier_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    for (var i = gid.x; i < params.count; i += nwg.x * WG) {
+    for (var i = grid_index(gid, nwg); i < params.count; i += grid_stride(nwg)) {
         barrier_node(i);
     }
 }

@@ -162,7 +162,7 @@ fn row2(i: u32) -> vec2<real> {
 }
 
 @compute @workgroup_size(WG)
-fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
+fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     if (lid.x == 0u) {
         wg_done = state[STATE_DONE];
     }
@@ -171,7 +171,7 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
         return;
     }
     let stride = params.n_partials * WG;
-    let t = wid.x * WG + lid.x;
+    let t = group_index(wid, nwg) * WG + lid.x;
     var part = acc(0.0);
     if ((chunk.flags & CHUNK_FIRST) == 0u) {
         part = carry[t];
@@ -213,6 +213,6 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
     }
     workgroup_sum(lid.x, sum1(part), 1u);
     if (lid.x == 0u) {
-        partials[PART_PQ * params.n_partials + wid.x] = summed(0u);
+        partials[PART_PQ * params.n_partials + group_index(wid, nwg)] = summed(0u);
     }
 }

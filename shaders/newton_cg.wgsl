@@ -251,7 +251,7 @@ fn reduce_slot(slot: u32, lid: u32) -> acc {
 @compute @workgroup_size(WG)
 fn rhs(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     var bb = acc(0.0);
-    for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += nwg.x * WG) {
+    for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += grid_stride(nwg)) {
         var g: array<real, 3>;
         for (var a = 0u; a < D; a++) {
             g[a] = grad[i * D + a];
@@ -268,7 +268,7 @@ fn rhs(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid:
     }
     workgroup_sum(lid.x, sum1(bb), 1u);
     if (lid.x == 0u) {
-        partials[NCG_PART_BB * params.n_partials + wid.x] = summed(0u);
+        partials[NCG_PART_BB * params.n_partials + group_index(wid, nwg)] = summed(0u);
     }
 }
 
@@ -283,7 +283,7 @@ fn positive_finite(v: real) -> bool {
 @compute @workgroup_size(WG)
 fn precond(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
-    for (var i = params.row_begin + gid.x; i < params.row_end; i += nwg.x * WG) {
+    for (var i = params.row_begin + grid_index(gid, nwg); i < params.row_end; i += grid_stride(nwg)) {
         let k = pattern[params.diag_at + i] - params.block_first;
         var h: array<real, 9>;
         for (var t = 0u; t < dd; t++) {
@@ -382,8 +382,8 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
         return;
     }
     let dd = D * D;
-    let th = wid.x * WG + lid.x;
-    let stride = nwg.x * WG;
+    let th = group_index(wid, nwg) * WG + lid.x;
+    let stride = grid_stride(nwg);
     var pq = acc(0.0);
     if ((params.chunk & H_FIRST_CHUNK) == 0u) {
         pq = partials[carry(th, 0u)];
@@ -420,7 +420,7 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
     }
     workgroup_sum(lid.x, sum1(pq), 1u);
     if (lid.x == 0u) {
-        partials[NCG_PART_PQ * params.n_partials + wid.x] = summed(0u);
+        partials[NCG_PART_PQ * params.n_partials + group_index(wid, nwg)] = summed(0u);
     }
 }
 
@@ -470,7 +470,7 @@ fn update_yr(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id
     var rz = acc(0.0);
     var rr = acc(0.0);
     var zr: array<acc, 3>;
-    for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += nwg.x * WG) {
+    for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += grid_stride(nwg)) {
         var rv: array<real, 3>;
         for (var a = 0u; a < D; a++) {
             let k = i * D + a;
@@ -491,7 +491,7 @@ fn update_yr(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id
             }
         }
     }
-    write_rz_rr(lid.x, wid.x, rz, rr, zr);
+    write_rz_rr(lid.x, group_index(wid, nwg), rz, rr, zr);
 }
 
 // ρ' = r·z (with COARSE r·M_J⁻¹r + Zᵀr·c, and c = E⁺Zᵀr) and r·r (one workgroup); stops
@@ -543,7 +543,7 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
     }
     let beta = real(scal[NCG_BETA]);
     if (!COARSE) {
-        for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += nwg.x * WG) {
+        for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += grid_stride(nwg)) {
             for (var a = 0u; a < D; a++) {
                 let k = i * D + a;
                 p[k] = z[k] + beta * p[k];
@@ -555,7 +555,7 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
     for (var a = 0u; a < D; a++) {
         c[a] = real(scal[NCG_C + a]);
     }
-    for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += nwg.x * WG) {
+    for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += grid_stride(nwg)) {
         let w = zc(i, c);
         for (var a = 0u; a < D; a++) {
             let k = i * D + a;
@@ -572,7 +572,7 @@ fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid
     var rz = acc(0.0);
     var rr = acc(0.0);
     var zr: array<acc, 3>;
-    for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += nwg.x * WG) {
+    for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += grid_stride(nwg)) {
         var rv: array<real, 3>;
         for (var a = 0u; a < D; a++) {
             let k = i * D + a;
@@ -593,7 +593,7 @@ fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid
             }
         }
     }
-    write_rz_rr(lid.x, wid.x, rz, rr, zr);
+    write_rz_rr(lid.x, group_index(wid, nwg), rz, rr, zr);
 }
 
 // After init (one workgroup): ρ, the true r·r and ‖b̂‖²; stops when the true residual
@@ -699,8 +699,8 @@ fn mat_mul(x: array<real, 9>, y: array<real, 9>) -> array<real, 9> {
 @compute @workgroup_size(WG)
 fn coarse_e(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
-    let th = wid.x * WG + lid.x;
-    let stride = nwg.x * WG;
+    let th = group_index(wid, nwg) * WG + lid.x;
+    let stride = grid_stride(nwg);
     var e: array<acc, 9>;
     if ((params.chunk & H_FIRST_CHUNK) == 0u) {
         for (var m = 0u; m < dd; m++) {
@@ -747,14 +747,14 @@ fn coarse_e(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
     workgroup_sum(lid.x, array<acc, 5>(e[0], e[1], e[2], e[3], e[4]), n0);
     if (lid.x == 0u) {
         for (var m = 0u; m < n0; m++) {
-            partials[(NCG_PART_E + m) * np + wid.x] = summed(m);
+            partials[(NCG_PART_E + m) * np + group_index(wid, nwg)] = summed(m);
         }
     }
     if (dd > 5u) {
         workgroup_sum(lid.x, array<acc, 5>(e[5], e[6], e[7], e[8], acc(0.0)), dd - 5u);
         if (lid.x == 0u) {
             for (var m = 5u; m < dd; m++) {
-                partials[(NCG_PART_E + m) * np + wid.x] = summed(m - 5u);
+                partials[(NCG_PART_E + m) * np + group_index(wid, nwg)] = summed(m - 5u);
             }
         }
     }
@@ -797,7 +797,7 @@ fn coarse_e_sum(@builtin(local_invocation_id) lid: vec3<u32>) {
 // Δx = V P y (the prescribed part is zero in a Newton step).
 @compute @workgroup_size(WG)
 fn recover(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    for (var i = gid.x; i < params.n_nodes; i += nwg.x * WG) {
+    for (var i = grid_index(gid, nwg); i < params.n_nodes; i += grid_stride(nwg)) {
         var w: array<real, 3>;
         for (var a = 0u; a < D; a++) {
             w[a] = select(y[i * D + a], real(0.0), fixed(i, a));

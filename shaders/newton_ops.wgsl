@@ -86,7 +86,7 @@ var<workgroup> wg_red: array<vec4<real>, WG>;
 @compute @workgroup_size(WG)
 fn begin_step(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let h = scal[S_H];
-    for (var k = gid.x; k < params.count; k += nwg.x * WG) {
+    for (var k = grid_index(gid, nwg); k < params.count; k += grid_stride(nwg)) {
         xn[k] = x[k];
         xt[k] = x[k] + h * v[k];
     }
@@ -94,7 +94,7 @@ fn begin_step(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
 
 @compute @workgroup_size(WG)
 fn project_static(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    for (var e = gid.x; e < params.count; e += nwg.x * WG) {
+    for (var e = grid_index(gid, nwg); e < params.count; e += grid_stride(nwg)) {
         let node = index[e];
         let o = e * PROJ_STRIDE;
         var y = array<real, 3>();
@@ -114,7 +114,7 @@ fn project_static(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
 @compute @workgroup_size(WG)
 fn trial(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let alpha = scal[S_ALPHA];
-    for (var k = gid.x; k < params.count; k += nwg.x * WG) {
+    for (var k = grid_index(gid, nwg); k < params.count; k += grid_stride(nwg)) {
         pos[k] = x[k] + alpha * dx[k];
     }
 }
@@ -122,14 +122,14 @@ fn trial(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups)
 @compute @workgroup_size(WG)
 fn end_step(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let h = scal[S_H];
-    for (var k = gid.x; k < params.count; k += nwg.x * WG) {
+    for (var k = grid_index(gid, nwg); k < params.count; k += grid_stride(nwg)) {
         v[k] = (x[k] - xn[k]) / h;
     }
 }
 
 @compute @workgroup_size(WG)
 fn gather_nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    for (var k = gid.x; k < params.count; k += nwg.x * WG) {
+    for (var k = grid_index(gid, nwg); k < params.count; k += grid_stride(nwg)) {
         let node = index[k];
         for (var a = 0u; a < D; a++) {
             node_vals[k * D + a] = x[node * D + a];
@@ -193,7 +193,7 @@ fn moving_term(k: u32) -> Moving {
 // Each moving node appears once (the host checks), so no two invocations write one node.
 @compute @workgroup_size(WG)
 fn add_moving(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    for (var k = gid.x; k < params.count; k += nwg.x * WG) {
+    for (var k = grid_index(gid, nwg); k < params.count; k += grid_stride(nwg)) {
         let node = index[k * MOVING_INDEX_STRIDE];
         // The diagonal block within its values chunk, and that chunk: this dispatch
         // (aux: its chunk) writes the blocks of its chunk, the first the gradient.
@@ -354,19 +354,19 @@ fn reduce(
     @builtin(num_workgroups) nwg: vec3<u32>,
 ) {
     var acc = identity();
-    for (var i = wid.x * WG + lid.x; i < params.count; i += nwg.x * WG) {
+    for (var i = group_index(wid, nwg) * WG + lid.x; i < params.count; i += grid_stride(nwg)) {
         acc = combine(acc, item(i));
     }
     workgroup_combine(lid.x, acc);
     if (lid.x == 0u) {
-        partials[params.slot * nwg.x + wid.x] = wg_red[0];
+        partials[params.slot * group_count(nwg) + group_index(wid, nwg)] = wg_red[0];
     }
 }
 
 // One workgroup per slot, from params.slot on; params.count partials per slot.
 @compute @workgroup_size(WG)
-fn finish(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
-    let slot = params.slot + wid.x;
+fn finish(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let slot = params.slot + group_index(wid, nwg);
     var acc = identity();
     for (var k = lid.x; k < params.count; k += WG) {
         acc = combine(acc, partials[slot * params.count + k]);

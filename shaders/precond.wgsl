@@ -38,13 +38,7 @@ fn inv_or_one(v: real) -> real {
     return real(1.0);
 }
 
-@compute @workgroup_size(WG)
-fn build(@builtin(global_invocation_id) gid: vec3<u32>) {
-    // One invocation per row of this dispatch's chunk (`Chunk`, common.wgsl).
-    let i = chunk.row0 + gid.x;
-    if (i >= chunk.row1) {
-        return;
-    }
+fn build_row(i: u32) {
     var b: array<real, 9>;
     for (var e = 0u; e < 9u; e++) {
         b[e] = real(0.0);
@@ -114,5 +108,13 @@ fn build(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     for (var e = 0u; e < D * D; e++) {
         minv[i * D * D + e] = out[e];
+    }
+}
+
+// The rows of this dispatch's chunk (`Chunk`, common.wgsl), grid-stride.
+@compute @workgroup_size(WG)
+fn build(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    for (var i = chunk.row0 + grid_index(gid, nwg); i < chunk.row1; i += grid_stride(nwg)) {
+        build_row(i);
     }
 }

@@ -20,10 +20,10 @@ override D: u32 = 3u;
 @group(0) @binding(7) var<storage, read> factors: array<f64>;
 
 @compute @workgroup_size(WG)
-fn residual(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
+fn residual(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let n = params.n_nodes * D;
     var s = f64(0.0);
-    for (var k = wid.x * WG + lid.x; k < n; k += params.n_partials * WG) {
+    for (var k = group_index(wid, nwg) * WG + lid.x; k < n; k += params.n_partials * WG) {
         let rk = b64[k] - q64[k];
         q64[k] = rk;
         s += rk * rk;
@@ -32,22 +32,22 @@ fn residual(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
     // under every prelude.
     workgroup_sum(lid.x, sum1(acc(s)), 1u);
     if (lid.x == 0u) {
-        partials64[wid.x] = f64(summed(0u));
+        partials64[group_index(wid, nwg)] = f64(summed(0u));
     }
 }
 
 @compute @workgroup_size(WG)
-fn scale_rhs(@builtin(global_invocation_id) gid: vec3<u32>) {
+fn scale_rhs(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let n = params.n_nodes * D;
-    if (gid.x < n) {
-        rhs32[gid.x] = f32(q64[gid.x] * factors[0]);
+    for (var k = grid_index(gid, nwg); k < n; k += grid_stride(nwg)) {
+        rhs32[k] = f32(q64[k] * factors[0]);
     }
 }
 
 @compute @workgroup_size(WG)
-fn accumulate(@builtin(global_invocation_id) gid: vec3<u32>) {
+fn accumulate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let n = params.n_nodes * D;
-    if (gid.x < n) {
-        y64[gid.x] += factors[1] * f64(x32[gid.x]);
+    for (var k = grid_index(gid, nwg); k < n; k += grid_stride(nwg)) {
+        y64[k] += factors[1] * f64(x32[k]);
     }
 }

@@ -21,13 +21,7 @@ fn v(r: u32, a: u32, b: u32) -> real {
     return rotations[r * D * D + a * D + b];
 }
 
-@compute @workgroup_size(WG)
-fn rotate_blocks(@builtin(global_invocation_id) gid: vec3<u32>) {
-    // One invocation per row of this dispatch's chunk (`Chunk`, common.wgsl).
-    let i = chunk.row0 + gid.x;
-    if (i >= chunk.row1) {
-        return;
-    }
+fn rotate_blocks_row(i: u32) {
     let ri = rot_index[i];
     // Blocks of the row, as entries of this chunk's bound pieces.
     for (var k = row_ptr[i] - chunk.kbase; k < row_ptr[i + 1u] - chunk.kbase; k++) {
@@ -87,3 +81,10 @@ fn rotate_blocks(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
 }
 
+// The rows of this dispatch's chunk (`Chunk`, common.wgsl), grid-stride.
+@compute @workgroup_size(WG)
+fn rotate_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    for (var i = chunk.row0 + grid_index(gid, nwg); i < chunk.row1; i += grid_stride(nwg)) {
+        rotate_blocks_row(i);
+    }
+}

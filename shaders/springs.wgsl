@@ -57,7 +57,7 @@ fn world(j: u32) -> array<real, 3> {
 }
 
 @compute @workgroup_size(WG)
-fn spring_matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
+fn spring_matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     if (lid.x == 0u) {
         wg_done = state[STATE_DONE];
     }
@@ -65,7 +65,7 @@ fn spring_matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgrou
         return;
     }
     var part = acc(0.0);
-    for (var i = wid.x * WG + lid.x; i < params.n_nodes; i += params.n_partials * WG) {
+    for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += params.n_partials * WG) {
         let wi = world(i);
         var s = array<real, 3>(real(0.0), real(0.0), real(0.0));
         let mi = mass[i];
@@ -125,6 +125,6 @@ fn spring_matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgrou
     }
     workgroup_sum(lid.x, sum1(part), 1u);
     if (lid.x == 0u) {
-        partials[PART_PQ * params.n_partials + wid.x] = summed(0u);
+        partials[PART_PQ * params.n_partials + group_index(wid, nwg)] = summed(0u);
     }
 }

@@ -129,19 +129,16 @@ pub fn cpu_cg_bytes_per_iteration(e: &Eliminated) -> u64 {
 
 /// Runs the whole benchmark; `progress` receives one line per finished run.
 pub fn run(opts: &BenchOptions, command: &str) -> Result<BenchReport, BenchError> {
-    let ctx = if opts.no_gpu {
-        None
-    } else {
-        match GpuContext::new(&GpuOptions::default()) {
-            Ok(c) => Some(c),
-            Err(e) => {
-                if !opts.quiet {
-                    eprintln!("bench: no GPU ({e}); running the CPU solvers only");
-                }
-                None
-            }
-        }
-    };
+    let ctx =
+        if opts.no_gpu {
+            None
+        } else {
+            // No silent CPU-only run: without an adapter the GPU benchmark fails (--no-gpu
+            // asks for the CPU solvers only).
+            Some(GpuContext::new(&GpuOptions::default()).map_err(|e| {
+                BenchError::Solve(format!("{e} (--no-gpu runs the CPU solvers only)"))
+            })?)
+        };
     let mut report = BenchReport {
         command: command.to_string(),
         cpu_threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
@@ -273,6 +270,7 @@ fn bench_one(
         r.peak_rss_bytes = peak_rss_bytes();
         r.note = format!("refactor with reused analysis: {reused:.3} s");
         say(bar, opts.quiet, &line(&r));
+        crate::app::bench_report::append_record(opts.out.as_deref(), "records.jsonl", &r);
         report.runs.push(r);
         (dx, "oracle".to_string())
     } else {
@@ -327,6 +325,7 @@ fn bench_one(
             }
             finish_record(&mut r, cpu_bytes, report.cpu_copy_gb_per_s);
             say(bar, opts.quiet, &line(&r));
+            crate::app::bench_report::append_record(opts.out.as_deref(), "records.jsonl", &r);
             report.runs.push(r);
         }
     }
@@ -374,6 +373,11 @@ fn bench_one(
                     Err(crate::Error::Device(err)) => {
                         r.note = format!("not run: {err}");
                         say(bar, opts.quiet, &line(&r));
+                        crate::app::bench_report::append_record(
+                            opts.out.as_deref(),
+                            "records.jsonl",
+                            &r,
+                        );
                         report.runs.push(r);
                         break;
                     }
@@ -402,6 +406,7 @@ fn bench_one(
                 let bytes = r.bytes_per_iteration;
                 finish_record(&mut r, bytes, report.gpu_copy_gb_per_s.unwrap_or(f64::NAN));
                 say(bar, opts.quiet, &line(&r));
+                crate::app::bench_report::append_record(opts.out.as_deref(), "records.jsonl", &r);
                 report.runs.push(r);
             }
         }
@@ -625,11 +630,14 @@ pub fn run_hard(
     coarse: &[CoarseSpace],
     quiet: bool,
 ) -> Result<String, BenchError> {
-    let ctx = if no_gpu {
-        None
-    } else {
-        GpuContext::new(&GpuOptions::default()).ok()
-    };
+    let ctx =
+        if no_gpu {
+            None
+        } else {
+            Some(GpuContext::new(&GpuOptions::default()).map_err(|e| {
+                BenchError::Solve(format!("{e} (--no-gpu runs the CPU solvers only)"))
+            })?)
+        };
     // A line per stage and per timed case: the whole run takes minutes (16 at scale 5).
     let say = |text: &str| {
         if !quiet {

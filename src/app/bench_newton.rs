@@ -685,6 +685,7 @@ pub fn run(opts: &NewtonOptions, command: &str) -> Result<NewtonReport, NewtonBe
         bar.set_message(format!("{} nodes", box_nodes(k)));
         let rec = bench_size(k, reps, ctx.as_ref(), &bar, opts.quiet);
         say(&bar, opts.quiet, &size_line(&rec));
+        crate::app::bench_report::append_record(opts.out.as_deref(), "records.jsonl", &rec);
         report.sizes.push(rec);
         bar.inc(1);
     }

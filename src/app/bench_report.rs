@@ -92,3 +92,23 @@ pub struct BenchReport {
     pub winners: Vec<Winner>,
     pub scaling: Vec<ScalingFit>,
 }
+
+/// Appends `record` as one JSON line to `OUT/records.jsonl` (`name`), so that a run
+/// stopped at its time limit keeps every record finished before (bench.json and the
+/// tables are written only at the end). Best effort: a failed write is reported by the
+/// final write of the same folder.
+pub fn append_record<T: Serialize>(out: Option<&std::path::Path>, name: &str, record: &T) {
+    use std::io::Write;
+    let Some(dir) = out else { return };
+    let Ok(line) = serde_json::to_string(record) else {
+        return;
+    };
+    let _ = std::fs::create_dir_all(dir);
+    if let Ok(mut f) = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(dir.join(name))
+    {
+        let _ = writeln!(f, "{line}");
+    }
+}

@@ -512,9 +512,9 @@ fn info() -> Result<(), CliError> {
     println!("stickslip {}", env!("CARGO_PKG_VERSION"));
     let adapters = crate::gpu::list_adapters();
     if adapters.is_empty() {
-        println!(
-            "no GPU adapters (install a Vulkan driver, e.g. mesa-vulkan-drivers for lavapipe)"
-        );
+        return Err(CliError::Failed(crate::gpu::no_adapter_message(
+            &crate::gpu::GpuOptions::default(),
+        )));
     }
     for (k, a) in adapters.iter().enumerate() {
         println!(

@@ -101,11 +101,49 @@ fn device_memory(_: &wgpu::Adapter) -> Option<u64> {
     None
 }
 
+/// The backends tried: `WGPU_BACKEND`'s, else the primary ones (Vulkan, Metal, DX12).
+/// GL is tried only when named: it has no f64 and too few storage buffers per kernel.
 fn backends(opts: &GpuOptions) -> wgpu::Backends {
     match &opts.backend {
         Some(b) => wgpu::Backends::from_comma_list(b),
-        None => wgpu::Backends::all(),
+        None => wgpu::Backends::PRIMARY,
     }
+}
+
+/// The environment variables the adapter choice reads, as `NAME=value` (or `NAME unset`).
+fn environment_read() -> String {
+    [
+        "WGPU_BACKEND",
+        "WGPU_ADAPTER_NAME",
+        "VK_ICD_FILENAMES",
+        "VK_DRIVER_FILES",
+    ]
+    .iter()
+    .map(|v| match std::env::var(v) {
+        Ok(s) if !s.is_empty() => format!("{v}={}", crate::io::one_line(&s, 80)),
+        _ => format!("{v} unset"),
+    })
+    .collect::<Vec<_>>()
+    .join(", ")
+}
+
+/// Why no adapter was found, in one line: the backends tried and the environment read.
+pub fn no_adapter_message(opts: &GpuOptions) -> String {
+    let b = backends(opts);
+    let tried = if b.is_empty() {
+        format!(
+            "WGPU_BACKEND='{}' names no backend (vulkan, metal, dx12, gl)",
+            crate::io::one_line(opts.backend.as_deref().unwrap_or(""), 40)
+        )
+    } else {
+        format!("backends tried: {b:?}")
+    };
+    format!(
+        "no GPU adapter found ({tried}; {}); install a Vulkan driver and its loader \
+         (libvulkan1; NVIDIA's driver, or Mesa lavapipe: mesa-vulkan-drivers) or point \
+         VK_ICD_FILENAMES at its ICD json",
+        environment_read()
+    )
 }
 
 fn instance(b: wgpu::Backends) -> wgpu::Instance {
@@ -114,7 +152,8 @@ fn instance(b: wgpu::Backends) -> wgpu::Instance {
     wgpu::Instance::new(desc)
 }
 
-/// Every adapter wgpu can see (all backends unless `WGPU_BACKEND` narrows them).
+/// Every adapter wgpu can see on the backends tried (`WGPU_BACKEND`, else the primary
+/// ones).
 pub fn list_adapters() -> Vec<AdapterReport> {
     let opts = GpuOptions::default();
     let inst = instance(backends(&opts));
@@ -155,6 +194,28 @@ pub fn adapter_name_mismatch(opts: &GpuOptions) -> Option<String> {
     ))
 }
 
+/// The per-dimension workgroup limit of `STICKSLIP_MAX_WORKGROUPS_PER_DIM` (hidden: tests
+/// and rehearsals), None when unset.
+fn forced_dispatch_limit() -> Result<Option<u32>, GpuError> {
+    let var = super::launch::DISPATCH_LIMIT_ENV;
+    match std::env::var(var) {
+        Ok(v) if !v.trim().is_empty() => v
+            .trim()
+            .parse::<u32>()
+            .ok()
+            .filter(|&n| n >= super::launch::MIN_DISPATCH_LIMIT)
+            .map(Some)
+            .ok_or_else(|| {
+                GpuError::Device(format!(
+                    "{var}={}: expected a whole number of at least {}",
+                    crate::io::one_line(&v, 40),
+                    super::launch::MIN_DISPATCH_LIMIT
+                ))
+            }),
+        _ => Ok(None),
+    }
+}
+
 fn rank(a: &wgpu::Adapter) -> (u32, u32) {
     let info = a.get_info();
     let t = match info.device_type {
@@ -188,6 +249,8 @@ pub struct GpuContext {
     errors: Arc<Mutex<Vec<String>>>,
     /// Bytes moved between host and device through this context (shared by its clones).
     traffic: Arc<Traffic>,
+    /// A per-dimension workgroup limit below the adapter's (`with_dispatch_limit`).
+    dispatch_limit: Option<u32>,
 }
 
 #[derive(Default)]
@@ -214,10 +277,11 @@ impl std::fmt::Debug for GpuContext {
 
 impl GpuContext {
     pub fn new(opts: &GpuOptions) -> Result<Self, GpuError> {
-        // Primary backends (Vulkan, Metal, DX12) first; GL only when they offer nothing.
-        let mut b = backends(opts);
-        if opts.backend.is_none() {
-            b = wgpu::Backends::PRIMARY;
+        // Primary backends (Vulkan, Metal, DX12) unless WGPU_BACKEND names others; never a
+        // silent other backend.
+        let b = backends(opts);
+        if b.is_empty() {
+            return Err(GpuError::NoAdapter(no_adapter_message(opts)));
         }
         let named = |mut v: Vec<wgpu::Adapter>| {
             if let Some(name) = &opts.adapter_name {
@@ -226,13 +290,8 @@ impl GpuContext {
             }
             v
         };
-        let mut inst = instance(b);
+        let inst = instance(b);
         let mut adapters = named(pollster::block_on(inst.enumerate_adapters(b)));
-        if adapters.is_empty() && opts.backend.is_none() {
-            b = wgpu::Backends::all();
-            inst = instance(b);
-            adapters = named(pollster::block_on(inst.enumerate_adapters(b)));
-        }
         // A name that matches nothing is an error, never a silent other adapter.
         if let (Some(name), true) = (&opts.adapter_name, adapters.is_empty()) {
             let why = adapter_name_mismatch(opts)
@@ -240,28 +299,10 @@ impl GpuContext {
             return Err(GpuError::NoAdapter(format!("WGPU_ADAPTER_NAME: {why}")));
         }
         adapters.sort_by_key(rank);
-        let adapter = match adapters.into_iter().next() {
-            Some(a) => a,
-            None => {
-                // Last resort: whatever software adapter wgpu offers.
-                pollster::block_on(inst.request_adapter(&wgpu::RequestAdapterOptions {
-                    power_preference: wgpu::PowerPreference::HighPerformance,
-                    force_fallback_adapter: true,
-                    compatible_surface: None,
-                    apply_limit_buckets: false,
-                }))
-                .map_err(|e| {
-                    GpuError::NoAdapter(format!(
-                        "no GPU adapter found (backends {b:?}{}): {e}; install a Vulkan driver \
-                         (e.g. Mesa lavapipe: mesa-vulkan-drivers) or set WGPU_BACKEND",
-                        opts.adapter_name
-                            .as_ref()
-                            .map(|n| format!(", name containing '{n}'"))
-                            .unwrap_or_default()
-                    ))
-                })?
-            }
-        };
+        let adapter = adapters
+            .into_iter()
+            .next()
+            .ok_or_else(|| GpuError::NoAdapter(no_adapter_message(opts)))?;
         let wanted = wgpu::Features::SHADER_F64
             | wgpu::Features::SHADER_INT64
             | wgpu::Features::SUBGROUP
@@ -293,7 +334,26 @@ impl GpuContext {
             limits,
             errors,
             traffic: Arc::default(),
+            dispatch_limit: forced_dispatch_limit()?,
         })
+    }
+
+    /// The limits every dispatch of this context is sized by (`gpu::launch`).
+    pub fn launch(&self) -> super::LaunchLimits {
+        super::LaunchLimits::new(
+            self.limits.max_compute_workgroups_per_dimension,
+            self.dispatch_limit,
+        )
+    }
+
+    /// The same device with at most `limit` workgroups per dispatch dimension (None: the
+    /// adapter's limit), so that small systems take the two-dimensional and grid-stride
+    /// launches of large ones (tests).
+    #[doc(hidden)]
+    pub fn with_dispatch_limit(&self, limit: Option<u32>) -> GpuContext {
+        let mut c = self.clone();
+        c.dispatch_limit = limit;
+        c
     }
 
     /// Bytes moved between host and device so far, by this context and its clones.

@@ -110,6 +110,29 @@ pub struct Layout {
 use Access::{Read as R, ReadWrite as W, Uniform as U};
 
 impl Layout {
+    /// Storage buffers bound by this shader's kernels.
+    pub fn storage_bindings(&self) -> u32 {
+        self.bindings
+            .iter()
+            .filter(|(_, a)| *a != Access::Uniform)
+            .count() as u32
+    }
+
+    /// Fails, naming the adapter, where it allows fewer storage buffers per kernel than
+    /// this shader binds (GL adapters allow 8).
+    pub fn check_adapter(&self, ctx: &super::GpuContext) -> Result<(), super::GpuError> {
+        let need = self.storage_bindings();
+        let have = ctx.limits.max_storage_buffers_per_shader_stage;
+        if have < need {
+            return Err(super::GpuError::Unsupported(format!(
+                "adapter '{}' ({:?}) allows {have} storage buffers per kernel; {} binds {need} \
+                 (use a Vulkan, Metal or DX12 adapter)",
+                ctx.info.name, ctx.info.backend, self.file
+            )));
+        }
+        Ok(())
+    }
+
     /// The bind group layout of this shader's bindings (in order, compute stage) and a
     /// pipeline layout holding it, labelled "`name` layout" and "`name` pipeline layout".
     pub fn layouts(

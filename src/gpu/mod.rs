@@ -7,12 +7,13 @@
 pub mod context;
 pub mod error;
 pub mod kernels;
+pub mod launch;
 pub mod params;
 pub mod solver;
 
 pub use context::{
-    adapter_name_mismatch, list_adapters, measure_copy_bandwidth, AdapterReport, GpuContext,
-    GpuOptions, TrafficCount,
+    adapter_name_mismatch, list_adapters, measure_copy_bandwidth, no_adapter_message,
+    AdapterReport, GpuContext, GpuOptions, TrafficCount,
 };
 pub use solver::{
     BufferRecord, GpuSolveInfo, GpuSolver, KernelRecord, KernelTime, Resources, SolveOutcome,
@@ -20,6 +21,7 @@ pub use solver::{
 };
 
 pub use error::GpuError;
+pub use launch::{Launch, LaunchLimits};
 pub use params::{DifferenceForm, GpuParams, MAX_WORKGROUPS};
 
 pub use crate::solve::options::{CoarseSpace, Precision, Preconditioner};

@@ -63,6 +63,9 @@ impl Device {
         params: &GpuParams,
     ) -> Result<Built, GpuError> {
         check_params(ctx, params)?;
+        for layout in crate::gpu::kernels::LAYOUTS {
+            layout.check_adapter(ctx)?;
+        }
         let (n, wg, n_partials) = geometry(ctx, host, params)?;
         let acc = if ctx.has_f64() { Real::F64 } else { Real::F32 };
         let mut bld = Builder::new(ctx, binding_limit(ctx, params));
@@ -163,7 +166,7 @@ impl Device {
 }
 
 /// The node count, workgroup size and workgroups of the CG kernels, checked against the
-/// packed column indices and the adapter's dispatch limit.
+/// packed column indices and the dispatch limits.
 fn geometry(
     ctx: &GpuContext,
     host: &Host,
@@ -177,13 +180,11 @@ fn geometry(
         )));
     }
     let wg = params.workgroup_size;
-    let max_groups = ctx.limits.max_compute_workgroups_per_dimension as usize;
-    if n.div_ceil(wg as usize) > max_groups {
-        return Err(GpuError::Unsupported(format!(
-            "{n} nodes need more than {max_groups} workgroups of {wg}"
-        )));
-    }
+    // The grid-stride CG kernels cover any n; their reductions need exactly n_partials
+    // workgroups (`gpu::launch`).
     let n_partials = (n.div_ceil(wg as usize)).clamp(1, ctx.workgroups(params.workgroups)) as u32;
+    ctx.launch()
+        .require_exact(n_partials, "the CG reductions")?;
     Ok((n, wg, n_partials))
 }
 

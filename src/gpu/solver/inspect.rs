@@ -115,12 +115,15 @@ impl GpuSolver {
                 .and_then(|rf| Some((rf, rf.op.as_ref()?, rf.bg_mv.as_ref()?)))
             {
                 let mut pass = pass_for(&mut enc, &mut slot);
-                op.dispatch(&mut pass, bg_mv, g);
+                op.dispatch(&mut pass, bg_mv, g, &self.ctx.launch(), self.dev.wg);
                 drop(pass);
                 let mut pass = pass_for(&mut enc, &mut slot);
                 pass.set_pipeline(&rf.k_residual.pipeline);
                 pass.set_bind_group(0, &rf.bg_refine, &[]);
-                pass.dispatch_workgroups(g, 1, 1);
+                self.ctx
+                    .launch()
+                    .reduction(g, self.dev.wg)
+                    .dispatch(&mut pass);
             }
             enc.resolve_query_set(&set, 0..slot, &resolve, 0);
             enc.copy_buffer_to_buffer(&resolve, 0, &staging, 0, 8 * slot as u64);

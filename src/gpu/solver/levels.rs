@@ -8,7 +8,7 @@ use super::builder::{
 };
 use super::host::{Host, HostOp};
 use crate::gpu::kernels::{self, slots};
-use crate::gpu::{GpuContext, GpuError, MAX_WORKGROUPS};
+use crate::gpu::{GpuContext, GpuError, LaunchLimits, MAX_WORKGROUPS};
 use crate::solve::cg::Preconditioner;
 
 /// Length of the CG's scalars before the coefficient history (see cg.wgsl).
@@ -74,28 +74,37 @@ pub(super) struct Operator {
 
 impl Operator {
     /// Records q = Ĥp with the operator bound by `groups` (one bind group per row chunk):
-    /// one dispatch of `g` workgroups per chunk, in row order.
+    /// one dispatch of exactly `g` workgroups (its partial sums) per chunk, in row order.
     pub(super) fn dispatch(
         &self,
         pass: &mut wgpu::ComputePass<'_>,
         groups: &[wgpu::BindGroup],
         g: u32,
+        launch: &LaunchLimits,
+        wg: u32,
     ) {
         pass.set_pipeline(&self.matvec.pipeline);
+        let d = launch.reduction(g, wg);
         for bg in groups {
             pass.set_bind_group(0, bg, &[]);
-            pass.dispatch_workgroups(g, 1, 1);
+            d.dispatch(pass);
         }
     }
 }
 
 impl Chunked {
-    /// One dispatch per row chunk, one invocation per row.
-    pub(super) fn dispatch(&self, pass: &mut wgpu::ComputePass<'_>, wg: u32) {
+    /// One dispatch per row chunk, one invocation per row up to the dispatch limits
+    /// (grid-stride beyond).
+    pub(super) fn dispatch(
+        &self,
+        pass: &mut wgpu::ComputePass<'_>,
+        wg: u32,
+        launch: &LaunchLimits,
+    ) {
         pass.set_pipeline(&self.kernel.pipeline);
         for (bg, rows) in &self.groups {
             pass.set_bind_group(0, bg, &[]);
-            pass.dispatch_workgroups(rows.div_ceil(wg).max(1), 1, 1);
+            launch.grid(*rows as u64, wg).dispatch(pass);
         }
     }
 }

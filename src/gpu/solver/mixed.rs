@@ -454,11 +454,10 @@ impl GpuSolver {
             });
             pass.set_pipeline(&rf.k_accumulate.pipeline);
             pass.set_bind_group(0, &rf.bg_refine, &[]);
-            pass.dispatch_workgroups(
-                ((self.dev.n_nodes * self.dev.dim) as u32).div_ceil(self.dev.wg),
-                1,
-                1,
-            );
+            self.ctx
+                .launch()
+                .grid((self.dev.n_nodes * self.dev.dim) as u64, self.dev.wg)
+                .dispatch(&mut pass);
         }
         self.ctx.queue.submit([enc.finish()]);
         self.record("accumulate");
@@ -706,10 +705,11 @@ impl GpuSolver {
                 label: Some("residual pass"),
                 timestamp_writes: None,
             });
-            op.dispatch(&mut pass, bg_mv, g);
+            let launch = self.ctx.launch();
+            op.dispatch(&mut pass, bg_mv, g, &launch, self.dev.wg);
             pass.set_pipeline(&rf.k_residual.pipeline);
             pass.set_bind_group(0, &rf.bg_refine, &[]);
-            pass.dispatch_workgroups(g, 1, 1);
+            launch.reduction(g, self.dev.wg).dispatch(&mut pass);
         }
         enc.copy_buffer_to_buffer(&rf.partials64, 0, &rf.staging, 0, 8 * g as u64);
         self.ctx.queue.submit([enc.finish()]);
@@ -735,7 +735,10 @@ impl GpuSolver {
             });
             pass.set_pipeline(&rf.k_scale_rhs.pipeline);
             pass.set_bind_group(0, &rf.bg_refine, &[]);
-            pass.dispatch_workgroups((nd as u32).div_ceil(self.dev.wg), 1, 1);
+            self.ctx
+                .launch()
+                .grid(nd as u64, self.dev.wg)
+                .dispatch(&mut pass);
         }
         self.ctx.queue.submit([enc.finish()]);
         self.record("scale_rhs");

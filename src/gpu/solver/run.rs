@@ -33,7 +33,7 @@ impl GpuSolver {
                 } else {
                     &l.k.matvec_x
                 };
-                l.op.dispatch(pass, bgs, groups);
+                l.op.dispatch(pass, bgs, groups, &self.ctx.launch(), self.dev.wg);
                 let name = l.op.matvec.name;
                 self.record(name);
                 return;
@@ -51,7 +51,11 @@ impl GpuSolver {
                 };
                 pass.set_pipeline(&k.pipeline);
                 pass.set_bind_group(0, bg, &[]);
-                pass.dispatch_workgroups(groups.max(1), 1, 1);
+                // One aggregate (restrict) or row (solve) per item: any layout.
+                self.ctx
+                    .launch()
+                    .groups(groups.max(1) as u64, self.dev.wg)
+                    .dispatch(pass);
                 let name = k.name;
                 self.record(name);
                 return;
@@ -59,7 +63,11 @@ impl GpuSolver {
         };
         pass.set_pipeline(&k.pipeline);
         pass.set_bind_group(0, bg, &[]);
-        pass.dispatch_workgroups(groups, 1, 1);
+        // Reductions: exactly `groups` workgroups, one partial each.
+        self.ctx
+            .launch()
+            .reduction(groups, self.dev.wg)
+            .dispatch(pass);
         let name = k.name;
         self.record(name);
     }

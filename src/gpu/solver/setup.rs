@@ -137,6 +137,7 @@ impl GpuSolver {
                 timestamp_writes: None,
             });
             let wg = self.dev.wg;
+            let launch = self.ctx.launch();
             let main_ops = std::iter::once(&self.dev.level.op)
                 .chain(self.dev.refine.as_ref().and_then(|r| r.op.as_ref()))
                 .filter(|_| main);
@@ -147,7 +148,7 @@ impl GpuSolver {
                     rotate: Some(rot), ..
                 } = &op.data
                 {
-                    rot.dispatch(&mut pass, wg);
+                    rot.dispatch(&mut pass, wg, &launch);
                     names.push(rot.kernel.name);
                 }
             }
@@ -156,7 +157,7 @@ impl GpuSolver {
                 .chain(fb)
                 .filter_map(|l| l.k.precond.as_ref());
             for pre in pre {
-                pre.dispatch(&mut pass, wg);
+                pre.dispatch(&mut pass, wg, &launch);
                 names.push(pre.kernel.name);
             }
         }

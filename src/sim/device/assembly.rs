@@ -330,6 +330,7 @@ impl GpuAssembly {
 
         // Pipelines.
         let real = if f64 { "f64" } else { "f32" };
+        ASSEMBLE.check_adapter(&ctx)?;
         let module = ASSEMBLE.module(dev, real, real, false);
         let (layout, pl) = ASSEMBLE.layouts(dev, "assembly");
         let constants = [("D", dim as f64), ("WG", WORKGROUP as f64)];
@@ -946,7 +947,7 @@ impl GpuAssembly {
     }
 
     fn run(&self, label: &str, passes: &[&Pass]) -> Result<(), GpuError> {
-        let max_groups = self.ctx.limits.max_compute_workgroups_per_dimension.max(1) as u64;
+        let launch = self.ctx.launch();
         let mut enc = self
             .ctx
             .device
@@ -957,10 +958,10 @@ impl GpuAssembly {
                 timestamp_writes: None,
             });
             for p in passes.iter().filter(|p| p.count > 0) {
-                let groups = (p.count as u64).div_ceil(WORKGROUP as u64).min(max_groups) as u32;
                 cp.set_pipeline(&self.pipelines[p.entry as usize]);
                 cp.set_bind_group(0, &p.group, &[]);
-                cp.dispatch_workgroups(groups, 1, 1);
+                // Grid-stride kernels: one invocation per item up to the limits.
+                launch.grid(p.count as u64, WORKGROUP).dispatch(&mut cp);
             }
         }
         self.ctx.queue.submit([enc.finish()]);

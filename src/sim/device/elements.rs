@@ -20,7 +20,7 @@
 //! half-space (its energy is +∞ there, which WGSL cannot write portably).
 //!
 //! One storage binding is capped (`max_storage_buffer_binding_size`: 128 MiB on lavapipe,
-//! about 4 GiB on NVIDIA), and a tetrahedron's Hessian alone is 1152 B. A term whose
+//! 2³¹ − 1 bytes at most under wgpu), and a tetrahedron's Hessian alone is 1152 B. A term whose
 //! largest per-item array would exceed the cap is split into chunks of consecutive items
 //! (elements of its set, or nodes), each a term of its own with its own buffers, bind group
 //! and dispatch: [`GpuElements::kinds`] lists one entry per chunk, in item order, and
@@ -185,6 +185,7 @@ impl ElementKernels {
         }
         let dev = &ctx.device;
         let real = real_name(f64);
+        ELEMENTS.check_adapter(ctx)?;
         let module = ELEMENTS.module(dev, real, real, false);
         let (layout, pl) = ELEMENTS.layouts(dev, "elements");
         // Unit roundoff of the real type: exact powers of two, so exact as f32 too.
@@ -758,7 +759,7 @@ impl GpuElements {
 
     fn dispatch(&self, project: bool, energy_only: bool) -> Result<(), GpuError> {
         let dev = &self.ctx.device;
-        let max_groups = self.ctx.limits.max_compute_workgroups_per_dimension.max(1);
+        let launch = self.ctx.launch();
         for t in &self.terms {
             let p = ElementParams {
                 count: t.count as u32,
@@ -779,12 +780,10 @@ impl GpuElements {
                 timestamp_writes: None,
             });
             for t in self.terms.iter().filter(|t| t.count > 0) {
-                let groups = (t.count as u64)
-                    .div_ceil(WORKGROUP as u64)
-                    .min(max_groups as u64) as u32;
                 pass.set_pipeline(&self.kernels.pipelines[t.kind.index()]);
                 pass.set_bind_group(0, &t.group, &[]);
-                pass.dispatch_workgroups(groups, 1, 1);
+                // Grid-stride kernels: one invocation per element or node up to the limits.
+                launch.grid(t.count as u64, WORKGROUP).dispatch(&mut pass);
             }
         }
         self.ctx.queue.submit([enc.finish()]);

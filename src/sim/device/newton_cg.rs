@@ -36,7 +36,7 @@
 
 use crate::core::constraints::{Frames, NO_ROTATION};
 use crate::gpu::kernels::{self, Access, Layout};
-use crate::gpu::{GpuContext, GpuError};
+use crate::gpu::{GpuContext, GpuError, LaunchLimits};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::solve::cg::{CgError, Preconditioner};
 use crate::solve::coarse::CoarseSpace;
@@ -335,11 +335,17 @@ impl DeviceCg {
         }
         let col_at = u32::try_from(n + 1).map_err(|_| too_big("nodes"))?;
         let diag_at = u32::try_from(n + 1 + nnz).map_err(|_| too_big("blocks"))?;
+        // A power of two: under a forced per-dimension limit L the reductions still split
+        // exactly into two dimensions up to L² workgroups (`gpu::launch`).
         let groups = (n as u64)
             .div_ceil(WORKGROUP as u64)
+            .next_power_of_two()
             .clamp(1, MAX_GROUPS as u64) as u32;
+        ctx.launch()
+            .require_exact(groups, "the device CG's reductions")?;
 
         // Pipelines.
+        NEWTON_CG.check_adapter(&ctx)?;
         let module = NEWTON_CG.module(dev, "f64", "f64", false);
         let (layout, pl) = NEWTON_CG.layouts(dev, "newton cg");
         let pipe = |entry: &str, precond: u32, coarse: bool| {
@@ -622,7 +628,12 @@ impl DeviceCg {
     }
 
     /// Records `kernels` (pipeline, workgroups, bind group) in one compute pass.
-    fn pass(enc: &mut wgpu::CommandEncoder, label: &str, kernels: &[Kernel]) {
+    fn pass(
+        launch: &LaunchLimits,
+        enc: &mut wgpu::CommandEncoder,
+        label: &str,
+        kernels: &[Kernel],
+    ) {
         let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some(label),
             timestamp_writes: None,
@@ -634,7 +645,8 @@ impl DeviceCg {
                 bound = Some(group);
             }
             cp.set_pipeline(pipe);
-            cp.dispatch_workgroups(groups, 1, 1);
+            // Exactly `groups` workgroups (checked when built): the reductions' partials.
+            launch.reduction(groups, WORKGROUP).dispatch(&mut cp);
         }
     }
 
@@ -661,7 +673,7 @@ impl DeviceCg {
         kernels.extend(Self::per_chunk(&p.precond, g, frames));
         kernels.extend(Self::per_chunk(&p.coarse_e, g, frames));
         kernels.push((&p.coarse_e_sum, 1, g0));
-        Self::pass(&mut enc, "newton cg prepare", &kernels);
+        Self::pass(&self.ctx.launch(), &mut enc, "newton cg prepare", &kernels);
         self.ctx.queue.submit([enc.finish()]);
         self.ctx.check("preparing the device Newton CG")?;
         self.prepared = Some(frames.id);
@@ -845,7 +857,12 @@ impl DeviceCg {
         let mut enc = self.encoder("newton cg start");
         enc.clear_buffer(&self.buf.y, 0, None);
         enc.clear_buffer(&self.buf.q, 0, None);
-        Self::pass(&mut enc, "newton cg start", &self.start(frames, pre, co));
+        Self::pass(
+            &self.ctx.launch(),
+            &mut enc,
+            "newton cg start",
+            &self.start(frames, pre, co),
+        );
         let mut st = self.submit_and_read(enc, "starting the device Newton CG")?;
         Self::status_error(&st)?;
         let bb = st.bb;
@@ -887,12 +904,18 @@ impl DeviceCg {
             enc.copy_buffer_to_buffer(&self.buf.y, 0, &self.buf.p, 0, None);
             let mut kernels: Vec<Kernel> = Self::per_chunk(&self.pipes.matvec, g, frames).collect();
             kernels.extend(self.start(frames, pre, co));
-            Self::pass(&mut enc, "newton cg true residual", &kernels);
+            Self::pass(
+                &self.ctx.launch(),
+                &mut enc,
+                "newton cg true residual",
+                &kernels,
+            );
             st = self.submit_and_read(enc, "the device Newton CG's true residual")?;
             Self::status_error(&st)?;
         }
         let mut enc = self.encoder("newton cg recovery");
         Self::pass(
+            &self.ctx.launch(),
             &mut enc,
             "newton cg recovery",
             &[(&self.pipes.recover, g, &frames.groups[0])],
@@ -955,7 +978,7 @@ impl DeviceCg {
             ]);
             let kernels: Vec<Kernel> = (0..kk).flat_map(|_| one.iter().copied()).collect();
             let mut enc = self.encoder("newton cg chunk");
-            Self::pass(&mut enc, "newton cg chunk", &kernels);
+            Self::pass(&self.ctx.launch(), &mut enc, "newton cg chunk", &kernels);
             *st = self.submit_and_read(enc, "a device Newton CG chunk")?;
             Self::status_error(st)?;
             if st.converged {

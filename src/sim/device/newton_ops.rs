@@ -388,6 +388,7 @@ impl NewtonOps {
             })
             .collect::<Result<_, _>>()?;
         let dev = &ctx.device;
+        NEWTON_OPS.check_adapter(&ctx)?;
         let module = NEWTON_OPS.module(dev, "f64", "f64", false);
         let (layout, pl) = NEWTON_OPS.layouts(dev, "newton ops");
         let constants = [("D", d as f64), ("WG", WG as f64)];
@@ -403,8 +404,10 @@ impl NewtonOps {
         let groups = ctx
             .workgroups(None)
             .min(MAX_REDUCE_GROUPS)
-            .min(n.max(1).div_ceil(WG as usize))
+            .min(n.max(1).div_ceil(WG as usize).next_power_of_two())
             .max(1);
+        ctx.launch()
+            .require_exact(groups as u32, "the Newton loop's reductions")?;
         let zeroed = |label: &str, bytes: u64| -> Result<wgpu::Buffer, GpuError> {
             let bytes = bytes.max(16).div_ceil(16) * 16;
             let l = &ctx.limits;
@@ -560,7 +563,7 @@ impl NewtonOps {
         ops: &[(&Op, usize)],
         after: impl FnOnce(&mut wgpu::CommandEncoder),
     ) -> Result<(), GpuError> {
-        let max_groups = self.ctx.limits.max_compute_workgroups_per_dimension.max(1) as usize;
+        let launch = self.ctx.launch();
         let mut enc = self
             .ctx
             .device
@@ -573,7 +576,9 @@ impl NewtonOps {
             for (op, groups) in ops.iter().filter(|(_, g)| *g > 0) {
                 cp.set_pipeline(&self.pipelines[op.entry as usize]);
                 cp.set_bind_group(0, &op.group, &[]);
-                cp.dispatch_workgroups((*groups).min(max_groups) as u32, 1, 1);
+                // Reductions get exactly their workgroups (checked when built); the
+                // grid-stride kernels any layout of about as many.
+                launch.reduction(*groups as u32, WG).dispatch(&mut cp);
             }
         }
         after(&mut enc);
