@@ -1218,9 +1218,13 @@ fn cholesky_ordering_option() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// Help texts are written for the terminal: no rustdoc link syntax in any command's help.
+/// Help texts are written for the terminal: no rustdoc link syntax in any command's help;
+/// the numbers they state in words are the current ones.
 #[test]
 fn help_texts_carry_no_rustdoc_links() {
+    assert_eq!(stickslip::solve::ordering::AUTO_MIN_NODES, 2_000);
+    assert_eq!(stickslip::solve::coarse::AGGREGATE_NODES, 64);
+    assert_eq!(stickslip::solve::coarse::MAX_AGGREGATES, 128);
     for cmd in [
         "solve", "generate", "info", "run", "bench", "export", "recover",
     ] {

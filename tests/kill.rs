@@ -259,7 +259,10 @@ fn killed_runs_leave_complete_files_and_say_so() {
                 // Replaced by rename: whole, its header first (tests/resume.rs resumes
                 // from such files).
                 let b = std::fs::read(&f).expect("checkpoint");
-                assert!(b.starts_with(b"stickslip-checkpoint\n"), "kill {k}: checkpoint");
+                assert!(
+                    b.starts_with(b"stickslip-checkpoint\n"),
+                    "kill {k}: checkpoint"
+                );
             } else {
                 assert!(
                     name == "steps.csv" || name == "summary.json",

@@ -206,14 +206,3 @@ impl std::str::FromStr for SolverKind {
         }
     }
 }
-
-#[cfg(test)]
-mod tests {
-    /// The help texts above state these numbers in words (a terminal shows no links).
-    #[test]
-    fn help_texts_state_the_current_numbers() {
-        assert_eq!(crate::solve::ordering::AUTO_MIN_NODES, 2_000);
-        assert_eq!(crate::solve::coarse::AGGREGATE_NODES, 64);
-        assert_eq!(crate::solve::coarse::MAX_AGGREGATES, 128);
-    }
-}
