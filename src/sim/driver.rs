@@ -622,7 +622,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         final_positions: Vec::new(),
         final_velocities: Vec::new(),
     };
-    let mut run = Run {
+    let mut this_run = Run {
         scene: &scene,
         fingerprint: checkpoint::fingerprint(&scene),
         start,
@@ -645,7 +645,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
             summary.steps_completed = stepper.step;
             let r = r
                 .and_then(|_| write_summary(&mut dir, &summary))
-                .and_then(|_| simulate(&mut run, opts, &mut stepper, &mut dir, &mut summary));
+                .and_then(|_| simulate(&mut this_run, opts, &mut stepper, &mut dir, &mut summary));
             summary.contact_counters = stepper.contact_counters();
             summary.gpu = stepper.gpu_report().map(|mut g| {
                 g.newton_iterations = summary.newton_iterations;
@@ -657,7 +657,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         }
         Err(e) => Err(e),
     };
-    summary.wall_seconds = run.tallies.wall_seconds + wall.elapsed().as_secs_f64();
+    summary.wall_seconds = this_run.tallies.wall_seconds + wall.elapsed().as_secs_f64();
     match result {
         Ok(()) => {
             summary.status = RunStatus::Complete;
