@@ -1279,3 +1279,18 @@ fn no_adapter_is_one_line_and_a_failure() {
     );
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// `bench --out` naming an existing file is bad input (exit 2, one line naming the file),
+/// checked before any benchmark runs.
+#[test]
+fn bench_out_naming_a_file_is_an_input_error() {
+    let dir = tmpdir("bench-out-file");
+    let file = write(&dir, "taken.txt", "not a folder\n");
+    let o = run(&["bench", "--quick", "--no-gpu", "--out", &file]);
+    common::cli::assert_input_error(&o, &file, &["--out", "is a file, not a folder"]);
+    assert_eq!(
+        std::fs::read_to_string(&file).expect("file"),
+        "not a folder\n",
+        "the file is untouched"
+    );
+}

@@ -990,6 +990,9 @@ fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
     // Fail before a long run, not after it, when the output folder cannot be written.
     if let Some(out) = &a.out {
         let shown = out.display().to_string();
+        if std::fs::metadata(out).is_ok_and(|m| !m.is_dir()) {
+            return Err(InputError::new(&shown, "--out", "is a file, not a folder").into());
+        }
         std::fs::create_dir_all(out).map_err(|e| write_failed(&shown, e))?;
         let probe = out.join(".stickslip-write-probe");
         std::fs::write(&probe, b"").map_err(|e| write_failed(&shown, e))?;
