@@ -1,6 +1,8 @@
 //! `stickslip bench --quick --out DIR` end to end (BENCHMARKS.md): runs the CI-sized ladder
 //! on whatever adapter exists (lavapipe in CI) and checks the files and the JSON fields.
 
+mod common;
+
 use std::process::Command;
 
 #[test]
@@ -103,9 +105,7 @@ fn bench_newton_quick_writes_the_phase_breakdown() {
             std::env::var_os("STICKSLIP_REQUIRE_GPU").is_none(),
             "STICKSLIP_REQUIRE_GPU is set but there is no GPU adapter with SHADER_F64"
         );
-        eprintln!(
-            "!!!!!!!! SKIP: no GPU adapter with SHADER_F64; bench --newton checked on the CPU side only !!!!!!!!"
-        );
+        common::skip("!!!!!!!! SKIP: no GPU adapter with SHADER_F64; bench --newton checked on the CPU side only !!!!!!!!");
     }
     let dir = std::env::temp_dir().join(format!("stickslip-bench-newton-{}", std::process::id()));
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_stickslip"));

@@ -650,7 +650,7 @@ fn gpu_solver_through_the_cli() {
             std::env::var("STICKSLIP_REQUIRE_GPU").map_or(true, |v| v != "1"),
             "STICKSLIP_REQUIRE_GPU=1 but `stickslip info` lists no adapter"
         );
-        eprintln!("SKIP gpu_solver_through_the_cli: no GPU adapter");
+        common::skip("SKIP gpu_solver_through_the_cli: no GPU adapter");
         return;
     }
     let dir = tmpdir("gpu");
@@ -1293,4 +1293,29 @@ fn bench_out_naming_a_file_is_an_input_error() {
         "not a folder\n",
         "the file is untouched"
     );
+}
+
+/// A skipped test says so past the test harness's capture: this test runs itself in a
+/// child (without --nocapture) as the probe, and the child's SKIP line must be in what it
+/// printed (an `eprintln!` there would be captured and lost for a passing test).
+#[test]
+fn skip_lines_are_visible_without_nocapture() {
+    if std::env::var_os("STICKSLIP_SKIP_PROBE").is_some() {
+        common::skip("SKIP probe: shown past the capture");
+        return;
+    }
+    let exe = std::env::current_exe().expect("this test binary");
+    let o = std::process::Command::new(exe)
+        .args(["--exact", "skip_lines_are_visible_without_nocapture"])
+        .env("STICKSLIP_SKIP_PROBE", "1")
+        .output()
+        .expect("run the probe");
+    let all = format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(o.status.success(), "{all}");
+    assert!(all.contains("1 passed"), "{all}");
+    assert!(all.contains("SKIP probe: shown past the capture"), "{all}");
 }

@@ -515,7 +515,10 @@ fn categories(precision: Precision) -> Vec<Category> {
 fn run(precision: Precision, tol: f64) {
     let Some((ctx, _g)) = gpu() else { return };
     if precision == Precision::F64 && !ctx.has_f64() {
-        eprintln!("SKIP: adapter '{}' has no SHADER_F64", ctx.adapter_name());
+        common::skip(&format!(
+            "SKIP: adapter '{}' has no SHADER_F64",
+            ctx.adapter_name()
+        ));
         return;
     }
     for d in [2, 3] {

@@ -544,7 +544,7 @@ fn blocks_over_the_binding_limit_are_bound_in_pieces_and_per_node_arrays_over_it
     // plane of f64 blocks of a 3D mesh takes about 15·32 bytes per node.
     let nodes = (limit / (15 * 32)) as usize * 6 / 5;
     if nodes > 400_000 {
-        eprintln!("SKIP oversized-buffer test: binding limit {limit} bytes is too large to exceed cheaply");
+        common::skip(&format!("SKIP oversized-buffer test: binding limit {limit} bytes is too large to exceed cheaply"));
         return;
     }
     let s = random_system(&SystemSpec::with_nodes(3, nodes, 1));

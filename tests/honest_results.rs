@@ -21,7 +21,7 @@ fn have_gpu(test: &str) -> bool {
         std::env::var("STICKSLIP_REQUIRE_GPU").map_or(true, |v| v != "1"),
         "STICKSLIP_REQUIRE_GPU=1 but `stickslip info` lists no adapter"
     );
-    eprintln!("SKIP the GPU part of {test}: no GPU adapter");
+    common::skip(&format!("SKIP the GPU part of {test}: no GPU adapter"));
     false
 }
 

@@ -351,7 +351,7 @@ fn oversized_files_are_refused_unread() {
     // A sparse file: its size costs no disk. Skip where the file system cannot.
     let f = std::fs::File::create(&p).unwrap();
     if f.set_len(17 << 30).is_err() {
-        eprintln!("SKIP: cannot create a sparse 17 GiB file here");
+        common::skip("SKIP: cannot create a sparse 17 GiB file here");
         return;
     }
     drop(f);
@@ -448,7 +448,7 @@ fn gradient_through_a_named_pipe() {
     let fifo = c.dir.join("g.fifo");
     let made = Command::new("mkfifo").arg(&fifo).status();
     if !made.is_ok_and(|s| s.success()) {
-        eprintln!("SKIP: mkfifo is not available");
+        common::skip("SKIP: mkfifo is not available");
         return;
     }
     let fifo_s = fifo.to_str().unwrap().to_string();

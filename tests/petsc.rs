@@ -11,6 +11,8 @@
 //! constraints hold to round-off because recovery puts exactly zero on constrained
 //! components and V_i is orthonormal to 1e-16: |a·Δx − c| ≤ 1e-12·‖Δx‖∞.
 
+mod common;
+
 use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
@@ -35,8 +37,8 @@ fn petsc_two_ranks_matches_the_oracle() {
         if std::env::var_os("STICKSLIP_REQUIRE_PETSC").is_some() {
             panic!("STICKSLIP_REQUIRE_PETSC is set but mpiexec or python3-petsc4py is missing");
         }
-        eprintln!(
-            "SKIP petsc_two_ranks_matches_the_oracle: mpiexec or python3-petsc4py not installed"
+        common::skip(
+            "SKIP petsc_two_ranks_matches_the_oracle: mpiexec or python3-petsc4py not installed",
         );
         return;
     }

@@ -174,7 +174,7 @@ fn killed_device_loop_runs_resume_to_the_same_bits() {
     if !o.status.success() {
         let e = stderr(&o);
         if e.contains("cannot start") && std::env::var_os("STICKSLIP_REQUIRE_GPU").is_none() {
-            eprintln!("SKIP killed_device_loop_runs_resume_to_the_same_bits: GPU Newton loop NOT RUN (no adapter): {e}");
+            common::skip(&format!("SKIP killed_device_loop_runs_resume_to_the_same_bits: GPU Newton loop NOT RUN (no adapter): {e}"));
             return;
         }
         panic!("drop with the device loop: {e}");

@@ -15,6 +15,8 @@
 //!   and iterate, `min_distance` is the minimum over all nodes, and the step where only the
 //!   CCD bound holds an interior node fails with one line naming the node and obstacle.
 
+mod common;
+
 use stickslip::core::sparse::BlockCsr;
 use stickslip::sim::driver::{run, RunError, RunOptions, RunSummary};
 use stickslip::sim::energy::barrier::{Barrier, HalfSpace};
@@ -339,7 +341,9 @@ fn drop_same_trajectory_with_every_linear_solver() {
             if std::env::var_os("STICKSLIP_REQUIRE_GPU").is_some() {
                 panic!("STICKSLIP_REQUIRE_GPU is set but the GPU solver cannot start: {cause}");
             }
-            eprintln!("SKIP drop: GPU comparison NOT RUN (no adapter): {cause}");
+            common::skip(&format!(
+                "SKIP drop: GPU comparison NOT RUN (no adapter): {cause}"
+            ));
         }
         (Err(e), _) => panic!("drop gpu: {e}"),
     }

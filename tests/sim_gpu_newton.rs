@@ -17,6 +17,8 @@
 //! Also: `twist --size 4` moves less than 1 % of one assembled Hessian's bytes from host
 //! to device per Newton iteration, and the bad-input cases of the loop.
 
+mod common;
+
 use stickslip::sim::driver::{run, RunError, RunOptions, RunSummary};
 use stickslip::sim::scene::NewtonLoop;
 
@@ -56,7 +58,9 @@ fn gpu_run(name: &str, steps: usize, size: Option<f64>) -> Option<RunSummary> {
             if std::env::var_os("STICKSLIP_REQUIRE_GPU").is_some() {
                 panic!("{name}: STICKSLIP_REQUIRE_GPU is set but the GPU Newton loop cannot start: {cause}");
             }
-            eprintln!("SKIP {name}: GPU Newton loop NOT RUN (no adapter): {cause}");
+            common::skip(&format!(
+                "SKIP {name}: GPU Newton loop NOT RUN (no adapter): {cause}"
+            ));
             None
         }
         Err(e) => panic!("{name} with the GPU Newton loop: {e}"),

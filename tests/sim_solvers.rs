@@ -3,6 +3,8 @@
 //! agree to 1e-6 · L (L the characteristic length). Newton stops at ‖Δx‖∞/h < 1e-6·L/s and
 //! CG at relative residual 1e-10, so the solvers' Newton iterates differ by far less.
 
+mod common;
+
 use stickslip::sim::driver::{run, RunError, RunOptions, RunSummary};
 
 fn run_with(name: &str, solver: &str, steps: usize) -> Result<RunSummary, RunError> {
@@ -69,7 +71,9 @@ fn compare(name: &str, steps: usize) {
                     "{name}: STICKSLIP_REQUIRE_GPU is set but the GPU solver cannot start: {cause}"
                 );
             }
-            eprintln!("SKIP {name}: GPU comparison NOT RUN (no adapter): {cause}");
+            common::skip(&format!(
+                "SKIP {name}: GPU comparison NOT RUN (no adapter): {cause}"
+            ));
         }
         Err(e) => panic!("{name} gpu: {e}"),
     }

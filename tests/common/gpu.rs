@@ -16,9 +16,9 @@ static CTX: LazyLock<Option<GpuContext>> = LazyLock::new(|| {
             if std::env::var("STICKSLIP_REQUIRE_GPU").is_ok_and(|v| v == "1") {
                 panic!("STICKSLIP_REQUIRE_GPU=1 but no GPU adapter: {e}");
             }
-            eprintln!(
+            super::skip(&format!(
                 "!!!!!!!! SKIP: no GPU adapter ({e}); the GPU tests of this binary did not run !!!!!!!!"
-            );
+            ));
             None
         }
     }
