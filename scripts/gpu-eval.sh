@@ -12,8 +12,9 @@
 #    (tests/gpu_split.rs, tests/gpu_launch.rs), when a test binary is given in
 #    GPU_EVAL_TEST_BINS (cargo test --no-run builds them; carry them with the binary).
 # 2. The benchmarks, each under a step limit its sizes can meet. Every benchmark appends
-#    a record per finished size to records.jsonl, so a step stopped at its limit keeps
-#    what it finished. A limit of 0 skips the step.
+#    a record per finished solve (bench --hard: per finished case) to records.jsonl, so a
+#    step stopped at its limit keeps what it finished (the hard step's records travel in
+#    eval.tar.gz). A limit of 0 skips the step.
 #
 # OUTDIR then holds at most 8 files, none in a folder: summary.md (each step's exit status
 # and seconds, the tables), info.txt, tests.log, ladder.jsonl, newton.jsonl, hard.md,

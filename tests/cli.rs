@@ -1319,3 +1319,31 @@ fn skip_lines_are_visible_without_nocapture() {
     assert!(all.contains("1 passed"), "{all}");
     assert!(all.contains("SKIP probe: shown past the capture"), "{all}");
 }
+
+/// bench appends a record per finished solve to OUT/records.jsonl as it goes; a second
+/// bench into the same folder starts the file anew instead of adding to the first's.
+#[test]
+fn bench_records_are_this_runs_own() {
+    let dir = tmpdir("bench-records");
+    let out = dir.join("b");
+    let o_s = out.to_str().expect("utf-8");
+    let args = [
+        "bench", "--quick", "--no-gpu", "--sizes", "64", "--dims", "2", "--out", o_s, "-q",
+    ];
+    let lines = || {
+        std::fs::read_to_string(out.join("records.jsonl"))
+            .expect("records.jsonl")
+            .lines()
+            .inspect(|l| {
+                serde_json::from_str::<serde_json::Value>(l).expect("a JSON record per line");
+            })
+            .count()
+    };
+    let o = run(&args);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let first = lines();
+    assert!(first >= 2, "{first} records");
+    let o = run(&args);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert_eq!(lines(), first);
+}

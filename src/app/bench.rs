@@ -647,6 +647,9 @@ pub fn run_hard(
     say("the CI-size table, every case, solver and precision");
     let rows = crate::app::hard::table(crate::app::hard::Size::Ci, ctx.as_ref(), 3000)
         .map_err(BenchError::Solve)?;
+    for r in &rows {
+        crate::app::bench_report::append_record(out, "records.jsonl", r);
+    }
     let mut md = format!(
         "adapter: {}\n\n{}",
         ctx.as_ref()
@@ -666,6 +669,8 @@ pub fn run_hard(
                 cs.name()
             ));
             let mut done = |r: &crate::app::hard::SpeedRow| {
+                // Kept as each case finishes: a run stopped at its time limit keeps them.
+                crate::app::bench_report::append_record(out, "records.jsonl", r);
                 let s = |v: Option<f64>| v.map_or("failed".to_string(), |x| format!("{x:.3} s"));
                 say(&format!(
                     "  {} ({} DOFs): f64 {}, mixed {}",

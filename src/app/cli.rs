@@ -997,6 +997,14 @@ fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
         let probe = out.join(".stickslip-write-probe");
         std::fs::write(&probe, b"").map_err(|e| write_failed(&shown, e))?;
         let _ = std::fs::remove_file(&probe);
+        // records.jsonl holds this run's records (appended as each one finishes): an
+        // earlier run's go first.
+        match std::fs::remove_file(out.join("records.jsonl")) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                return Err(write_failed(&shown, e));
+            }
+            _ => {}
+        }
     }
     if a.newton {
         return bench_newton(a, quiet);
