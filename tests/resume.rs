@@ -90,14 +90,15 @@ fn wait_for_checkpoint(c: &mut Child, dir: &Path) {
     }
 }
 
-/// Kills `args` (writing to `dir`) with SIGKILL after a seeded delay past its first
-/// checkpoint, resumes it until it completes, and compares it with `reference`. Returns
+/// Kills `args` (writing to `dir`) with SIGKILL once steps.csv holds `rows` steps, plus
+/// `extra_ms`, resumes it until it completes, and compares it with `reference`. Returns
 /// the step the resume started from (None: the run had ended before the kill).
 fn kill_and_resume(
     args: &[&str],
     dir: &Path,
     reference: &Path,
-    delay_ms: u64,
+    rows: usize,
+    extra_ms: u64,
     what: &str,
 ) -> Option<u64> {
     let mut a: Vec<&str> = args.to_vec();
@@ -105,7 +106,21 @@ fn kill_and_resume(
     a.extend(["--out", &d, "-q"]);
     let mut c = spawn(&a);
     wait_for_checkpoint(&mut c, dir);
-    std::thread::sleep(Duration::from_millis(delay_ms));
+    let t = Instant::now();
+    loop {
+        let done = std::fs::read_to_string(dir.join("steps.csv"))
+            .map(|text| text.lines().count().saturating_sub(2))
+            .unwrap_or(0);
+        if done >= rows || c.try_wait().expect("wait").is_some() {
+            break;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(120),
+            "{what}: no progress"
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    std::thread::sleep(Duration::from_millis(extra_ms));
     let _ = c.kill();
     let _ = c.wait();
     let o = run(&["run", "--resume", &d, "-q"]);
@@ -143,19 +158,18 @@ fn killed_cpu_runs_resume_to_the_same_bits() {
     let args = [
         "run", "twist", "--size", "2", "--steps", "24", "--solver", "cg",
     ];
-    let (reference, secs) = reference_run(&args, "twist-ref");
+    let (reference, _) = reference_run(&args, "twist-ref");
     let mut rng = Rng(0x5eed_0001);
     let mut resumed = 0;
     for k in 0..3 {
         let dir = tmpdir("twist-kill").join("run");
-        let delay = rng.below((secs * 700.0) as u64);
+        let (rows, extra) = (1 + rng.below(21) as usize, rng.below(20));
         let threads = if k % 2 == 0 { "1" } else { "2" };
         let mut a = args.to_vec();
         a.extend(["--threads", threads]);
-        eprintln!(
-            "twist --size 2: SIGKILL {delay} ms after the first checkpoint ({threads} threads)"
-        );
-        let from = kill_and_resume(&a, &dir, &reference, delay, &format!("twist kill {k}"));
+        eprintln!("twist --size 2: SIGKILL after {rows} steps and {extra} ms ({threads} threads)");
+        let what = format!("twist kill {k}");
+        let from = kill_and_resume(&a, &dir, &reference, rows, extra, &what);
         resumed += from.is_some_and(|s| s < 24) as usize;
     }
     assert!(resumed >= 1, "no kill landed inside the run");
@@ -179,14 +193,24 @@ fn killed_device_loop_runs_resume_to_the_same_bits() {
         }
         panic!("drop with the device loop: {e}");
     }
-    let secs = t.elapsed().as_secs_f64();
+    eprintln!(
+        "drop --newton gpu: reference in {:.1} s",
+        t.elapsed().as_secs_f64()
+    );
     let mut rng = Rng(0x5eed_0002);
     let mut resumed = 0;
     for k in 0..2 {
         let run_dir = tmpdir("drop-kill").join("run");
-        let delay = rng.below((secs * 700.0) as u64);
-        eprintln!("drop --newton gpu: SIGKILL {delay} ms after the first checkpoint");
-        let from = kill_and_resume(&args, &run_dir, &dir, delay, &format!("drop kill {k}"));
+        let (rows, extra) = (1 + rng.below(9) as usize, rng.below(20));
+        eprintln!("drop --newton gpu: SIGKILL after {rows} steps and {extra} ms");
+        let from = kill_and_resume(
+            &args,
+            &run_dir,
+            &dir,
+            rows,
+            extra,
+            &format!("drop kill {k}"),
+        );
         resumed += from.is_some_and(|s| s < 12) as usize;
     }
     assert!(resumed >= 1, "no kill landed inside the run");
