@@ -26,6 +26,7 @@ use stickslip::sim::device::elements::{GpuElements, TermKind};
 use stickslip::sim::device::newton_ops::{static_projections, MovingTerm, NewtonOps};
 use stickslip::sim::energy::barrier::{Barrier, HalfSpace};
 use stickslip::sim::energy::{gravity, inertia, Model};
+use stickslip::sim::integrator::{offset, projector};
 use stickslip::sim::scene::{self, BcShape, Scene};
 
 mod common;
@@ -62,51 +63,6 @@ fn check_sum(what: &str, gpu: f64, cpu: f64, abs_sum: f64) {
     };
     eprintln!("{what}: device {gpu:e} CPU {cpu:e}, error {r:.2e} of Σ|·|");
     assert!(r <= SUM_TOL, "{what}: {gpu} vs {cpu}: {r:e} of Σ|·|");
-}
-
-/// The CPU's `offset` (src/sim/integrator/mod.rs, private there): r of a node from its target.
-fn offset(d: usize, s: &BcShape, xi: &[f64]) -> [f64; 3] {
-    let mut p = [0.0; 3];
-    p[..d].copy_from_slice(&xi[..d]);
-    match s {
-        BcShape::Sticky { anchor } => [p[0] - anchor[0], p[1] - anchor[1], p[2] - anchor[2]],
-        BcShape::Plane { normal, offset } => {
-            let dist = (0..3).map(|a| normal[a] * p[a]).sum::<f64>() - offset;
-            [dist * normal[0], dist * normal[1], dist * normal[2]]
-        }
-        BcShape::Line { point, direction } => {
-            let q = [p[0] - point[0], p[1] - point[1], p[2] - point[2]];
-            let s: f64 = (0..3).map(|a| q[a] * direction[a]).sum();
-            [
-                q[0] - s * direction[0],
-                q[1] - s * direction[1],
-                q[2] - s * direction[2],
-            ]
-        }
-    }
-}
-
-/// The CPU's `projector` (src/sim/integrator/mod.rs, private there).
-fn projector(d: usize, s: &BcShape) -> [f64; 9] {
-    let mut p = [0.0; 9];
-    match s {
-        BcShape::Sticky { .. } => (0..d).for_each(|a| p[a * 3 + a] = 1.0),
-        BcShape::Plane { normal, .. } => {
-            for a in 0..3 {
-                for c in 0..3 {
-                    p[a * 3 + c] = normal[a] * normal[c];
-                }
-            }
-        }
-        BcShape::Line { direction, .. } => {
-            for a in 0..3 {
-                for c in 0..3 {
-                    p[a * 3 + c] = if a == c { 1.0 } else { 0.0 } - direction[a] * direction[c];
-                }
-            }
-        }
-    }
-    p
 }
 
 /// The CPU's start-of-step projection (`Stepper::start_of_step`): single static

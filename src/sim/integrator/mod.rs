@@ -70,3 +70,4 @@ pub use linear::{LinearSolver, LinearStats, CHOLESKY_MAX_RESIDUAL};
 pub use report::{ContactCounters, GpuRunReport, StepReport};
 pub use state::{Snapshot, State, CCD_FRACTION};
 pub use stepper::Stepper;
+pub use targets::{offset, projector};

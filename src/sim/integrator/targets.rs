@@ -14,7 +14,7 @@ pub(super) struct MovingTargets {
 }
 
 /// r: the node's offset from its target set (slip: along the normal directions only).
-pub(super) fn offset(d: usize, s: &BcShape, xi: &[f64]) -> [f64; 3] {
+pub fn offset(d: usize, s: &BcShape, xi: &[f64]) -> [f64; 3] {
     let mut p = [0.0; 3];
     p[..d].copy_from_slice(&xi[..d]);
     match s {
@@ -36,7 +36,7 @@ pub(super) fn offset(d: usize, s: &BcShape, xi: &[f64]) -> [f64; 3] {
 }
 
 /// The projector P onto the constrained directions (row-major 3×3): I, nnᵀ or I − ttᵀ.
-pub(super) fn projector(d: usize, s: &BcShape) -> [f64; 9] {
+pub fn projector(d: usize, s: &BcShape) -> [f64; 9] {
     let mut p = [0.0; 9];
     match s {
         BcShape::Sticky { .. } => {
