@@ -1,7 +1,10 @@
 //! The same scene with the Cholesky oracle, CPU CG and (where an adapter exists) the GPU
 //! solver gives the same trajectory: every recorded center of mass and the final positions
-//! agree to 1e-6 · L (L the characteristic length). Newton stops at ‖Δx‖∞/h < 1e-6·L/s and
-//! CG at relative residual 1e-10, so the solvers' Newton iterates differ by far less.
+//! agree to 1e-7 · L (L the characteristic length), and Newton takes within 10 % of
+//! Cholesky's iterations. The iterative solvers run with the default adaptive tolerance
+//! (inexact Newton: each system to between 1e-2 and 1e-6); every step ends on a direction
+//! solved to 1e-6 that passes the same Newton test ‖Δx‖∞/h < 1e-6·L/s, so the end-of-step
+//! states differ by a small fraction of that test's step.
 
 mod common;
 
@@ -40,6 +43,17 @@ fn max_diff(a: &RunSummary, b: &RunSummary) -> f64 {
     worst / a.characteristic_length
 }
 
+/// The inexact run's Newton iterations are within 10 % of the exact run's.
+fn newton_within(name: &str, inexact: &RunSummary, exact: &RunSummary) {
+    let ratio = inexact.newton_iterations as f64 / exact.newton_iterations as f64;
+    assert!(
+        (ratio - 1.0).abs() <= 0.1,
+        "{name}: {} Newton iterations against Cholesky's {}",
+        inexact.newton_iterations,
+        exact.newton_iterations
+    );
+}
+
 fn compare(name: &str, steps: usize) {
     let chol = run_with(name, "cholesky", steps).unwrap_or_else(|e| panic!("{name} cholesky: {e}"));
     let cg = run_with(name, "cg", steps).unwrap_or_else(|e| panic!("{name} cg: {e}"));
@@ -49,9 +63,10 @@ fn compare(name: &str, steps: usize) {
         chol.newton_iterations, cg.newton_iterations, cg.linear_iterations
     );
     assert!(
-        d <= 1e-6,
+        d <= 1e-7,
         "{name}: cholesky and cg trajectories differ by {d:e} L"
     );
+    newton_within(name, &cg, &chol);
     match run_with(name, "gpu", steps) {
         Ok(gpu) => {
             let d = max_diff(&chol, &gpu);
@@ -60,9 +75,10 @@ fn compare(name: &str, steps: usize) {
                 gpu.adapter, gpu.linear_iterations
             );
             assert!(
-                d <= 1e-6,
+                d <= 1e-7,
                 "{name}: cholesky and gpu trajectories differ by {d:e} L"
             );
+            newton_within(name, &gpu, &chol);
         }
         Err(RunError::Solve { step: 0, cause, .. }) if cause.contains("cannot start") => {
             // No adapter: skip loudly, unless CI demands a GPU (lavapipe there).

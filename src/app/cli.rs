@@ -357,6 +357,11 @@ pub struct RunArgs {
     /// [default: the scene's `[solver] newton`, else cpu].
     #[arg(long, value_enum)]
     pub newton: Option<crate::sim::scene::NewtonLoop>,
+    /// The CG tolerance of the Newton systems: adaptive (inexact Newton) or a relative
+    /// residual in (0, 1) for every system [default: the scene's `[solver] cg_tolerance`,
+    /// else adaptive].
+    #[arg(long, value_name = "adaptive|TOL", value_parser = str::parse::<crate::sim::scene::CgTolerance>)]
+    pub cg_tolerance: Option<crate::sim::scene::CgTolerance>,
     /// Replace files with run's output names that no previous run there wrote.
     #[arg(long)]
     pub overwrite: bool,
@@ -1226,6 +1231,7 @@ fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
         overwrite: a.overwrite,
         ordering: a.ordering,
         newton: a.newton,
+        cg_tolerance: a.cg_tolerance,
         end_time: a.end_time,
         resume: a.resume.clone(),
     };

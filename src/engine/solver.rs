@@ -380,6 +380,24 @@ impl Solver {
         &self.config
     }
 
+    /// Sets the relative residual tolerance of the iterative solvers for the next solves
+    /// (an inexact Newton loop changes it per system; Cholesky ignores it). Refuses a
+    /// value outside (0, 1) and leaves the solver as it was.
+    pub fn set_tol(&mut self, tol: f64) -> Result<(), Error> {
+        if !(tol > 0.0 && tol < 1.0) {
+            return Err(InputError::new(
+                "solver config",
+                "tol",
+                format!("must lie in (0, 1), got {tol}"),
+            )
+            .into());
+        }
+        self.config.tol = tol;
+        self.cg.tol = tol;
+        self.gpu_params.tol = tol;
+        Ok(())
+    }
+
     /// The GPU adapter's name, for the GPU solver.
     pub fn adapter(&self) -> Option<&str> {
         self.gpu.as_ref().map(|c| c.adapter_name())
@@ -519,7 +537,7 @@ impl Solver {
             .as_ref()
             .ok_or_else(|| Error::Device("the GPU solver has no device".into()))?;
         let (mut solver, reused) = match prepared {
-            Some(Prepared::Gpu(mut s)) => match s.update(e) {
+            Some(Prepared::Gpu(mut s)) => match s.update(e).and_then(|()| s.set_tol(self.gpu_params.tol)) {
                 Ok(()) => (s, true),
                 // Another pattern under the same key: build afresh.
                 Err(crate::gpu::GpuError::Mismatch(_)) => {

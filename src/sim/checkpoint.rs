@@ -40,6 +40,8 @@ pub struct StartOptions {
     pub solver: Option<String>,
     pub ordering: Option<crate::CholeskyOrdering>,
     pub newton: Option<crate::sim::scene::NewtonLoop>,
+    #[serde(default)]
+    pub cg_tolerance: Option<crate::sim::scene::CgTolerance>,
 }
 
 /// The run's tallies at the checkpoint (what summary.json adds up over the steps).
@@ -48,6 +50,9 @@ pub struct Tallies {
     pub newton_iterations: usize,
     pub linear_iterations: usize,
     pub linear_seconds: f64,
+    /// Systems solved again to the convergence tolerance (inexact Newton).
+    #[serde(default)]
+    pub linear_resolves: usize,
     pub frames: usize,
     pub ccd_limited: usize,
     /// Smallest node–obstacle distance over the steps so far (contact scenes).
@@ -311,6 +316,7 @@ mod tests {
             solver: Some("cg".into()),
             ordering: None,
             newton: None,
+            cg_tolerance: None,
         }
     }
 

@@ -45,6 +45,8 @@ pub struct RunOptions {
     pub ordering: Option<crate::CholeskyOrdering>,
     /// Overrides where the Newton loop runs (`[solver] newton`).
     pub newton: Option<crate::sim::scene::NewtonLoop>,
+    /// Overrides the CG tolerance policy of the Newton systems (`[solver] cg_tolerance`).
+    pub cg_tolerance: Option<crate::sim::scene::CgTolerance>,
     /// Overrides the number of steps by the end time: round(T / h) steps.
     pub end_time: Option<f64>,
     /// Continue the run in this folder from its checkpoint (the scene and its options
@@ -194,6 +196,11 @@ pub struct RunSummary {
     pub newton_iterations: usize,
     pub linear_iterations: usize,
     pub linear_seconds: f64,
+    /// The CG tolerance policy of the Newton systems: "adaptive" or the fixed number.
+    pub cg_tolerance: crate::sim::scene::CgTolerance,
+    /// Systems solved again to the convergence tolerance because their loosely solved
+    /// direction passed the Newton test (adaptive tolerance only).
+    pub linear_resolves: usize,
     pub frames: usize,
     pub out_dir: String,
     /// The step this invocation resumed from (`run --resume`); None for a run started
@@ -379,6 +386,9 @@ fn build_scene(
     if let Some(n) = start.newton {
         scene.solver.newton = n;
     }
+    if let Some(t) = start.cg_tolerance {
+        scene.solver.cg_tolerance = t;
+    }
     if steps.is_some() && end_time.is_some() {
         return Err(InputError::new("--end-time", "", "give either --steps or --end-time").into());
     }
@@ -450,6 +460,7 @@ fn refuse_with_resume(opts: &RunOptions) -> Result<(), RunError> {
         ("--size", opts.size.is_some()),
         ("--ordering", opts.ordering.is_some()),
         ("--newton", opts.newton.is_some()),
+        ("--cg-tolerance", opts.cg_tolerance.is_some()),
         ("--overwrite", opts.overwrite),
     ];
     for (what, given) in fixed {
@@ -526,6 +537,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
             solver: opts.solver.clone(),
             ordering: opts.ordering,
             newton: opts.newton,
+            cg_tolerance: opts.cg_tolerance,
         },
     };
     // An output folder that cannot be used fails before the scene is read; it is
@@ -609,6 +621,8 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         newton_iterations: 0,
         linear_iterations: 0,
         linear_seconds: 0.0,
+        cg_tolerance: scene.solver.cg_tolerance,
+        linear_resolves: 0,
         frames: 0,
         out_dir: out.display().to_string(),
         resumed_from_step: resumed.as_ref().map(|c| c.snapshot.step),
@@ -800,6 +814,7 @@ fn fill_summary(run: &Run, stepper: &Stepper, summary: &mut RunSummary) {
     summary.newton_iterations = t.newton_iterations;
     summary.linear_iterations = t.linear_iterations;
     summary.linear_seconds = t.linear_seconds;
+    summary.linear_resolves = t.linear_resolves;
     summary.frames = t.frames;
     summary.steps_completed = stepper.step;
     summary.end_time = stepper.t;
@@ -860,6 +875,9 @@ fn simulate(
         newton_iterations: rep.map_or(0, |r| r.newton_iterations),
         linear_iterations: rep.map_or(0, |r| r.linear_iterations),
         linear_seconds: rep.map_or(0.0, |r| r.linear_seconds),
+        cg_tol_loosest: rep.and_then(|r| r.cg_tol_loosest),
+        cg_tol_tightest: rep.and_then(|r| r.cg_tol_tightest),
+        linear_resolves: rep.map_or(0, |r| r.linear_resolves),
         energy: s.mechanical_energy(),
         com: s.center_of_mass(),
         momentum: s.momentum(),
@@ -932,6 +950,7 @@ fn simulate(
         t.newton_iterations += rep.newton_iterations;
         t.linear_iterations += rep.linear_iterations;
         t.linear_seconds += rep.linear_seconds;
+        t.linear_resolves += rep.linear_resolves;
         t.ccd_limited += rep.ccd_limited;
         if stepper.has_moving() {
             t.k_m_doublings += rep.k_m_doublings;

@@ -4,7 +4,10 @@
 //! zero reaction):
 //! `step,time,newton_iterations,linear_iterations,linear_seconds,energy,com_x,com_y[,com_z],
 //! p_x,p_y[,p_z],f_x,f_y[,f_z]`; for scenes with obstacles `,min_distance,c_x,c_y[,c_z]`;
-//! and, for scenes with moving conditions, `,k_m,eliminated_at_iteration`.
+//! and, for scenes with moving conditions, `,k_m,eliminated_at_iteration`; then, always,
+//! `,cg_tol_loosest,cg_tol_tightest,linear_resolves`: the loosest and tightest relative
+//! residual tolerance of the step's iterative solves (empty for direct solves; see
+//! `[solver] cg_tolerance`) and the systems solved again to the convergence tolerance.
 //! `min_distance` is the smallest signed distance of any node to any obstacle over every
 //! Newton iterate of the step (row 0: at t = 0) and `c` the summed contact force (newtons,
 //! −∇P_b, an external force apart from the reactions `f`). `energy` is the mechanical energy (kinetic + elastic +
@@ -94,6 +97,11 @@ pub struct StepRecord {
     pub newton_iterations: usize,
     pub linear_iterations: usize,
     pub linear_seconds: f64,
+    /// The loosest and tightest CG tolerance of the step's solves (None: direct only).
+    pub cg_tol_loosest: Option<f64>,
+    pub cg_tol_tightest: Option<f64>,
+    /// Systems solved again to the convergence tolerance in the step.
+    pub linear_resolves: usize,
     pub energy: f64,
     pub com: Vec<f64>,
     pub momentum: Vec<f64>,
@@ -138,6 +146,7 @@ impl StepsCsv {
         if moving {
             h.push_str(",k_m,eliminated_at_iteration");
         }
+        h.push_str(",cg_tol_loosest,cg_tol_tightest,linear_resolves");
         h.push('\n');
         w.write_all(h.as_bytes())?;
         Ok(StepsCsv { w, moving, contact })
@@ -169,6 +178,14 @@ impl StepsCsv {
                 let _ = write!(s, "{k}");
             }
         }
+        // Empty where the step made no iterative solve (row 0, a direct solver).
+        for t in [r.cg_tol_loosest, r.cg_tol_tightest] {
+            s.push(',');
+            if let Some(t) = t {
+                let _ = write!(s, "{t:.6e}");
+            }
+        }
+        let _ = write!(s, ",{}", r.linear_resolves);
         s.push('\n');
         self.w.write_all(s.as_bytes())
     }

@@ -162,6 +162,18 @@ impl GpuSolver {
         Ok(s)
     }
 
+    /// Sets the relative residual tolerance of the next solves (an inexact Newton loop
+    /// tightens or loosens it per system); refuses a value outside (0, 1).
+    pub fn set_tol(&mut self, tol: f64) -> Result<(), GpuError> {
+        if !(tol > 0.0 && tol < 1.0) {
+            return Err(GpuError::Unsupported(format!(
+                "the CG tolerance must lie in (0, 1), not {tol}"
+            )));
+        }
+        self.params.tol = tol;
+        Ok(())
+    }
+
     /// New values for the same pattern and constraint set (a later Newton iteration):
     /// uploads H, b̂ and D only, then rotates and rebuilds the preconditioner on the device.
     pub fn update(&mut self, e: &Eliminated) -> Result<(), GpuError> {

@@ -205,6 +205,8 @@ pub struct DeviceCgInfo {
     pub relative_residual: f64,
     /// ‖b̂‖.
     pub rhs_norm: f64,
+    /// The relative residual tolerance the solve met.
+    pub tolerance: f64,
 }
 
 /// One constraint set on the device (mask and rotation per node) with the bind group that
@@ -802,19 +804,34 @@ impl DeviceCg {
         frames: &DeviceFrames,
         params: &DeviceCgParams,
     ) -> Result<DeviceCgInfo, GpuError> {
+        self.iterate_to(frames, params, &mut |_| params.tol)
+    }
+
+    /// [`DeviceCg::iterate`] with the tolerance chosen from ‖b̂‖ once it is known (read
+    /// back with the start's status): `tolerance(‖b̂‖)` replaces `params.tol`.
+    pub fn iterate_to(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+        tolerance: &mut dyn FnMut(f64) -> f64,
+    ) -> Result<DeviceCgInfo, GpuError> {
         self.own(frames)?;
         if self.prepared != Some(frames.id) {
             return Err(GpuError::Mismatch(
                 "the device CG was not prepared with these frames (call prepare first)".into(),
             ));
         }
-        let tol = params.tol;
         // Written to reject NaN too.
-        if !(tol > 0.0 && tol.is_finite()) {
-            return Err(GpuError::Unsupported(format!(
-                "the CG tolerance must be positive and finite, not {tol}"
-            )));
-        }
+        let check_tol = |tol: f64| {
+            if tol > 0.0 && tol.is_finite() {
+                Ok(tol)
+            } else {
+                Err(GpuError::Unsupported(format!(
+                    "the CG tolerance must be positive and finite, not {tol}"
+                )))
+            }
+        };
+        let tol = check_tol(params.tol)?;
         let max = params.max_iterations;
         let pre = match params.preconditioner {
             Preconditioner::None => 0,
@@ -867,6 +884,13 @@ impl DeviceCg {
         Self::status_error(&st)?;
         let bb = st.bb;
         let rhs_norm = bb.sqrt();
+        let tol = check_tol(tolerance(rhs_norm))?;
+        let tol2 = tol * tol;
+        self.ctx.write_buffer(
+            &self.buf.scal,
+            8 * slot::TOL2 as u64,
+            bytemuck::bytes_of(&tol2),
+        );
         let relative = |rr: f64| {
             if bb == 0.0 {
                 if rr == 0.0 {
@@ -926,6 +950,7 @@ impl DeviceCg {
             iterations: st.iterations,
             relative_residual: relative(st.rr),
             rhs_norm,
+            tolerance: tol,
         })
     }
 

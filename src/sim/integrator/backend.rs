@@ -46,12 +46,24 @@ pub(super) trait Backend {
 
     /// ∇E, ∇²E and the eliminated solve for the constraint set of `moving` (its frames
     /// are built) at the current iterate: Δx is kept for the line search. `iteration`
-    /// (from 1) names it in errors.
+    /// (from 1) names it in errors; `tolerance` maps ‖b̂‖ to the iterative solver's
+    /// relative residual tolerance (the forcing sequence).
     fn direction(
         &mut self,
         state: &State,
         moving: &MovingTargets,
         iteration: usize,
+        tolerance: &mut dyn FnMut(f64) -> f64,
+    ) -> Result<LinearStats, StepError>;
+
+    /// Solves the system of the last [`Backend::direction`] again to the relative
+    /// residual `tol` (the same ∇E and ∇²E): Δx is replaced.
+    fn resolve(
+        &mut self,
+        state: &State,
+        moving: &MovingTargets,
+        iteration: usize,
+        tol: f64,
     ) -> Result<LinearStats, StepError>;
 
     /// ‖Δx‖∞.

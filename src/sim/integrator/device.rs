@@ -158,7 +158,7 @@ impl DeviceLoop {
             ops,
             frames: HashMap::new(),
             params: DeviceCgParams {
-                tol: scene.solver.cg_tolerance,
+                tol: scene.solver.cg_tolerance.loosest(),
                 max_iterations: scene.solver.cg_max_iterations,
                 preconditioner: scene.solver.preconditioner,
                 // The device CG's coarse space is the rigid translations: `aggregates`
@@ -207,6 +207,16 @@ impl DeviceLoop {
 }
 
 impl DeviceLoop {
+    /// What a device CG solve cost, as the host loop reports its solves.
+    fn stats(info: &crate::sim::device::newton_cg::DeviceCgInfo, t: Instant) -> LinearStats {
+        LinearStats {
+            iterations: info.iterations,
+            seconds: t.elapsed().as_secs_f64(),
+            rhs_norm: info.rhs_norm,
+            tolerance: Some(info.tolerance),
+        }
+    }
+
     /// Builds the device loop for `state`'s scene and uploads its static projections and
     /// its state (after the constraint sets have been validated).
     pub(super) fn start(state: &State) -> Result<Self, InitError> {
@@ -299,6 +309,7 @@ impl Backend for DeviceLoop {
         state: &State,
         moving: &MovingTargets,
         iteration: usize,
+        tolerance: &mut dyn FnMut(f64) -> f64,
     ) -> Result<LinearStats, StepError> {
         let t = Instant::now();
         let snapped = &moving.snapped;
@@ -317,17 +328,37 @@ impl Backend for DeviceLoop {
             self.frames.insert(snapped.to_vec(), f);
         }
         let frames = &self.frames[snapped];
+        let cg_error = |e: GpuError| StepError::LinearSolve {
+            iteration,
+            cause: e.to_string(),
+        };
+        self.cg.prepare(frames).map_err(cg_error)?;
         let info = self
             .cg
-            .solve(frames, &self.params)
+            .iterate_to(frames, &self.params, tolerance)
+            .map_err(cg_error)?;
+        Ok(Self::stats(&info, t))
+    }
+
+    /// The CG again on the assembly and preconditioner of the last `direction`.
+    fn resolve(
+        &mut self,
+        _state: &State,
+        moving: &MovingTargets,
+        iteration: usize,
+        tol: f64,
+    ) -> Result<LinearStats, StepError> {
+        let t = Instant::now();
+        let frames = &self.frames[&moving.snapped];
+        let params = DeviceCgParams { tol, ..self.params };
+        let info = self
+            .cg
+            .iterate(frames, &params)
             .map_err(|e| StepError::LinearSolve {
                 iteration,
                 cause: e.to_string(),
             })?;
-        Ok(LinearStats {
-            iterations: info.iterations,
-            seconds: t.elapsed().as_secs_f64(),
-        })
+        Ok(Self::stats(&info, t))
     }
 
     fn max_abs_dx(&mut self) -> Result<f64, StepError> {

@@ -49,6 +49,26 @@ impl HostBackend {
             dx: vec![0.0; n],
         })
     }
+
+    /// The eliminated solve of the assembled ∇E and ∇²E for the constraint set of
+    /// `moving`: Δx.
+    fn solve(
+        &mut self,
+        state: &State,
+        moving: &MovingTargets,
+        iteration: usize,
+        tolerance: &mut dyn FnMut(f64) -> f64,
+    ) -> Result<LinearStats, StepError> {
+        let snapped = &moving.snapped;
+        let frames = &state.frames[snapped];
+        let e = Eliminated::new(&self.hmat, &self.g, frames, ConstrainedDiagonal::Identity);
+        let (dx, stats) = self
+            .linear
+            .solve(snapped, &e, tolerance)
+            .map_err(|cause| StepError::LinearSolve { iteration, cause })?;
+        self.dx = dx;
+        Ok(stats)
+    }
 }
 
 impl Backend for HostBackend {
@@ -86,8 +106,8 @@ impl Backend for HostBackend {
         state: &State,
         moving: &MovingTargets,
         iteration: usize,
+        tolerance: &mut dyn FnMut(f64) -> f64,
     ) -> Result<LinearStats, StepError> {
-        let snapped = &moving.snapped;
         gradient(
             state,
             &self.x,
@@ -111,14 +131,17 @@ impl Backend for HostBackend {
                 });
             }
         }
-        let frames = &state.frames[snapped];
-        let e = Eliminated::new(&self.hmat, &self.g, frames, ConstrainedDiagonal::Identity);
-        let (dx, stats) = self
-            .linear
-            .solve(snapped, &e)
-            .map_err(|cause| StepError::LinearSolve { iteration, cause })?;
-        self.dx = dx;
-        Ok(stats)
+        self.solve(state, moving, iteration, tolerance)
+    }
+
+    fn resolve(
+        &mut self,
+        state: &State,
+        moving: &MovingTargets,
+        iteration: usize,
+        tol: f64,
+    ) -> Result<LinearStats, StepError> {
+        self.solve(state, moving, iteration, &mut |_| tol)
     }
 
     fn max_abs_dx(&mut self) -> Result<f64, StepError> {

@@ -19,6 +19,10 @@ pub struct LinearStats {
     /// CG iterations; a direct (Cholesky) solve counts as one.
     pub iterations: usize,
     pub seconds: f64,
+    /// ‖b̂‖ of the system (the eliminated gradient's norm).
+    pub rhs_norm: f64,
+    /// The relative residual tolerance the solve was asked for; None for a direct solve.
+    pub tolerance: Option<f64>,
 }
 
 /// The linear solver behind every Newton step: the library [`Solver`], with one
@@ -42,13 +46,24 @@ impl LinearSolver {
         })
     }
 
-    /// Solves the eliminated system and recovers Δx. `key` names the constraint set.
+    /// Solves the eliminated system and recovers Δx. `key` names the constraint set;
+    /// `tolerance` maps ‖b̂‖ to the iterative solvers' relative residual tolerance.
     pub fn solve(
         &mut self,
         key: &[bool],
         e: &Eliminated,
+        tolerance: &mut dyn FnMut(f64) -> f64,
     ) -> Result<(Vec<f64>, LinearStats), String> {
         let t = Instant::now();
+        let rhs_norm = crate::core::linalg::norm2(&e.rhs);
+        let tol = match self.kind {
+            LinearKind::Cholesky => None,
+            LinearKind::Cg | LinearKind::Gpu => {
+                let tol = tolerance(rhs_norm);
+                self.solver.set_tol(tol).map_err(|err| err.to_string())?;
+                Some(tol)
+            }
+        };
         let layout = *self
             .layouts
             .entry(key.to_vec())
@@ -66,6 +81,8 @@ impl LinearSolver {
                 // A direct (Cholesky) solve counts as one.
                 iterations: step.stats.iterations.unwrap_or(1),
                 seconds: t.elapsed().as_secs_f64(),
+                rhs_norm,
+                tolerance: tol,
             },
         ))
     }

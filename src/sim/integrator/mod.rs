@@ -57,6 +57,7 @@
 mod backend;
 mod device;
 mod error;
+mod forcing;
 mod host;
 mod linear;
 mod report;

@@ -9,6 +9,13 @@ pub struct StepReport {
     pub newton_iterations: usize,
     pub linear_iterations: usize,
     pub linear_seconds: f64,
+    /// The loosest and the tightest relative residual tolerance the step's iterative
+    /// solves were given (None: direct solves only).
+    pub cg_tol_loosest: Option<f64>,
+    pub cg_tol_tightest: Option<f64>,
+    /// Systems solved again to the convergence tolerance because their loosely solved
+    /// direction passed the Newton test (inexact Newton).
+    pub linear_resolves: usize,
     /// k_M at the end of the step (meaningful when the scene has moving conditions).
     pub k_m: f64,
     /// k_M doublings in this step.
@@ -28,6 +35,18 @@ pub struct StepReport {
     pub ascent_directions: usize,
     /// Line searches whose CCD bound α_C was below 1.
     pub ccd_limited: usize,
+}
+
+impl StepReport {
+    /// Counts one linear solve.
+    pub(super) fn add_solve(&mut self, stats: &super::linear::LinearStats) {
+        self.linear_iterations += stats.iterations;
+        self.linear_seconds += stats.seconds;
+        if let Some(t) = stats.tolerance {
+            self.cg_tol_loosest = Some(self.cg_tol_loosest.map_or(t, |m| m.max(t)));
+            self.cg_tol_tightest = Some(self.cg_tol_tightest.map_or(t, |m| m.min(t)));
+        }
+    }
 }
 
 /// What the contact code did (all zero for a scene without obstacles).

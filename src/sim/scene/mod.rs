@@ -55,7 +55,7 @@ mod resolve;
 mod spec;
 
 pub use spec::{
-    BcKindSpec, BodySpec, BoundarySpec, BoxRegion, LinearKind, MaterialModel, MaterialSpec,
+    BcKindSpec, BodySpec, BoundarySpec, BoxRegion, CgTolerance, LinearKind, MaterialModel, MaterialSpec,
     MeshKind, MeshSpec, MotionSpec, MovingSpec, NewtonLoop, ObstacleKind, ObstacleSpec, OutputSpec,
     PlaneRegion, RegionSpec, SceneFile, SolverSpec,
 };

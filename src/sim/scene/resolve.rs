@@ -8,7 +8,7 @@ use super::model::{
     check_name, check_solver_size, BcShape, CellBlock, Motion, NodeBc, Obstacle, Scene, MAX_STEPS,
 };
 use super::spec::{
-    BcKindSpec, BodySpec, BoundarySpec, MaterialModel, MotionSpec, MovingSpec, ObstacleKind,
+    BcKindSpec, BodySpec, BoundarySpec, CgTolerance, MaterialModel, MotionSpec, MovingSpec, ObstacleKind,
     ObstacleSpec, RegionSpec, SceneFile, SolverSpec,
 };
 use crate::error::InputError;
@@ -126,8 +126,13 @@ fn time_steps(c: &Ctx, spec: &SceneFile) -> Result<(f64, usize), InputError> {
 }
 
 fn check_solver(c: &Ctx, s: &SolverSpec) -> Result<(), InputError> {
-    if !(s.cg_tolerance > 0.0 && s.cg_tolerance < 1.0) {
-        return Err(c.err("solver.cg_tolerance", "must be in (0, 1)"));
+    if let CgTolerance::Fixed(t) = s.cg_tolerance {
+        if !(t > 0.0 && t < 1.0) {
+            return Err(c.err(
+                "solver.cg_tolerance",
+                "must be \"adaptive\" or a number in (0, 1)",
+            ));
+        }
     }
     if s.cg_max_iterations == 0 {
         return Err(c.err("solver.cg_max_iterations", "must be at least 1"));

@@ -95,9 +95,10 @@ pub use crate::engine::solver::SolverKind as LinearKind;
 pub struct SolverSpec {
     #[serde(default = "default_linear")]
     pub linear: LinearKind,
-    /// CG and GPU: relative residual ‖b̂ − Ĥy‖/‖b̂‖.
-    #[serde(default = "default_cg_tol")]
-    pub cg_tolerance: f64,
+    /// CG and GPU: the relative residual ‖b̂ − Ĥy‖/‖b̂‖ each Newton system is solved to:
+    /// "adaptive" (the default, inexact Newton) or a number (every system to it).
+    #[serde(default)]
+    pub cg_tolerance: CgTolerance,
     #[serde(default = "default_cg_iters")]
     pub cg_max_iterations: usize,
     #[serde(default)]
@@ -123,6 +124,102 @@ pub struct SolverSpec {
     /// f64; `linear` is not used).
     #[serde(default)]
     pub newton: NewtonLoop,
+}
+
+/// The CG tolerance of the Newton systems (`[solver] cg_tolerance`).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum CgTolerance {
+    /// Inexact Newton: each system's tolerance follows the Eisenstat–Walker forcing
+    /// sequence of `sim::integrator::forcing`, between
+    /// [`CgTolerance::ADAPTIVE_LOOSEST`] and [`CgTolerance::ADAPTIVE_TIGHTEST`]; a step
+    /// converges only on a direction solved to the tightest.
+    #[default]
+    Adaptive,
+    /// Every system to this relative residual, in (0, 1).
+    Fixed(f64),
+}
+
+impl CgTolerance {
+    /// The loosest tolerance of the adaptive policy (the first Newton iteration of a step).
+    pub const ADAPTIVE_LOOSEST: f64 = 1e-4;
+    /// The tightest tolerance of the adaptive policy: its floor, and the tolerance of the
+    /// direction on which a step is declared converged.
+    pub const ADAPTIVE_TIGHTEST: f64 = 1e-6;
+
+    /// The loosest tolerance this policy asks for.
+    pub fn loosest(self) -> f64 {
+        match self {
+            CgTolerance::Adaptive => Self::ADAPTIVE_LOOSEST,
+            CgTolerance::Fixed(t) => t,
+        }
+    }
+
+    /// The tolerance of the direction on which a step may be declared converged.
+    pub fn tightest(self) -> f64 {
+        match self {
+            CgTolerance::Adaptive => Self::ADAPTIVE_TIGHTEST,
+            CgTolerance::Fixed(t) => t,
+        }
+    }
+
+    /// "adaptive", or the number.
+    pub fn name(self) -> String {
+        match self {
+            CgTolerance::Adaptive => "adaptive".into(),
+            CgTolerance::Fixed(t) => format!("{t:e}"),
+        }
+    }
+}
+
+impl std::str::FromStr for CgTolerance {
+    type Err = String;
+    /// "adaptive" or a number in (0, 1).
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s == "adaptive" {
+            return Ok(CgTolerance::Adaptive);
+        }
+        match s.parse::<f64>() {
+            Ok(t) if t > 0.0 && t < 1.0 => Ok(CgTolerance::Fixed(t)),
+            _ => Err(format!("expected \"adaptive\" or a number in (0, 1), got \"{s}\"")),
+        }
+    }
+}
+
+impl serde::Serialize for CgTolerance {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self {
+            CgTolerance::Adaptive => s.serialize_str("adaptive"),
+            CgTolerance::Fixed(t) => s.serialize_f64(*t),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for CgTolerance {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct Visitor;
+        impl serde::de::Visitor<'_> for Visitor {
+            type Value = CgTolerance;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("\"adaptive\" or a number in (0, 1)")
+            }
+            fn visit_f64<E: serde::de::Error>(self, v: f64) -> Result<CgTolerance, E> {
+                Ok(CgTolerance::Fixed(v))
+            }
+            fn visit_i64<E: serde::de::Error>(self, v: i64) -> Result<CgTolerance, E> {
+                Ok(CgTolerance::Fixed(v as f64))
+            }
+            fn visit_u64<E: serde::de::Error>(self, v: u64) -> Result<CgTolerance, E> {
+                Ok(CgTolerance::Fixed(v as f64))
+            }
+            fn visit_str<E: serde::de::Error>(self, v: &str) -> Result<CgTolerance, E> {
+                match v {
+                    "adaptive" => Ok(CgTolerance::Adaptive),
+                    _ => Err(E::invalid_value(serde::de::Unexpected::Str(v), &self)),
+                }
+            }
+        }
+        d.deserialize_any(Visitor)
+    }
 }
 
 /// Where the Newton loop of a time step runs (`[solver] newton`, `run --newton`).
@@ -154,7 +251,7 @@ impl SolverSpec {
             LinearKind::Cg => crate::SolverConfig::cg(),
             LinearKind::Gpu => crate::SolverConfig::gpu(self.precision),
         }
-        .tol(self.cg_tolerance)
+        .tol(self.cg_tolerance.loosest())
         .max_iters(self.cg_max_iterations)
         .preconditioner(self.preconditioner)
         .coarse(self.coarse)
@@ -164,9 +261,6 @@ impl SolverSpec {
 
 fn default_linear() -> LinearKind {
     LinearKind::Cholesky
-}
-fn default_cg_tol() -> f64 {
-    1e-10
 }
 fn default_cg_iters() -> usize {
     20_000
@@ -185,7 +279,7 @@ impl Default for SolverSpec {
     fn default() -> Self {
         SolverSpec {
             linear: default_linear(),
-            cg_tolerance: default_cg_tol(),
+            cg_tolerance: CgTolerance::Adaptive,
             cg_max_iterations: default_cg_iters(),
             preconditioner: Preconditioner::default(),
             coarse: CoarseSpace::default(),
