@@ -195,7 +195,10 @@ fn adaptive_against_cholesky(name: &str, steps: usize, bound: f64) {
         "{name}: {steps} steps, device loop (adaptive CG tolerance, {} CG iterations, {} re-solves) vs Cholesky: centre of mass max |Δ|/L = {worst:.3e}; Newton {} vs {} ({ratio:.3})",
         gpu.linear_iterations, gpu.linear_resolves, gpu.newton_iterations, chol.newton_iterations
     );
-    assert!(worst <= bound, "{name}: centre of mass differs by {worst:e}·L");
+    assert!(
+        worst <= bound,
+        "{name}: centre of mass differs by {worst:e}·L"
+    );
     assert!(
         (ratio - 1.0).abs() <= 0.1,
         "{name}: {} Newton iterations against Cholesky's {}",

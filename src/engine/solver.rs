@@ -537,14 +537,16 @@ impl Solver {
             .as_ref()
             .ok_or_else(|| Error::Device("the GPU solver has no device".into()))?;
         let (mut solver, reused) = match prepared {
-            Some(Prepared::Gpu(mut s)) => match s.update(e).and_then(|()| s.set_tol(self.gpu_params.tol)) {
-                Ok(()) => (s, true),
-                // Another pattern under the same key: build afresh.
-                Err(crate::gpu::GpuError::Mismatch(_)) => {
-                    (Box::new(GpuSolver::new(ctx, e, &self.gpu_params)?), false)
+            Some(Prepared::Gpu(mut s)) => {
+                match s.update(e).and_then(|()| s.set_tol(self.gpu_params.tol)) {
+                    Ok(()) => (s, true),
+                    // Another pattern under the same key: build afresh.
+                    Err(crate::gpu::GpuError::Mismatch(_)) => {
+                        (Box::new(GpuSolver::new(ctx, e, &self.gpu_params)?), false)
+                    }
+                    Err(err) => return Err(err.into()),
                 }
-                Err(err) => return Err(err.into()),
-            },
+            }
             _ => (Box::new(GpuSolver::new(ctx, e, &self.gpu_params)?), false),
         };
         let setup = t.elapsed().as_secs_f64();

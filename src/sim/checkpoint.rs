@@ -81,6 +81,9 @@ struct Header {
     k_m: f64,
     lambda: Vec<[f64; 3]>,
     counters: ContactCounters,
+    /// The inexact Newton sequence's memory across steps.
+    #[serde(default)]
+    forcing_first_step: Option<f64>,
     tallies: Tallies,
     /// (name, length) of the arrays after the header, in order.
     arrays: Vec<(String, usize)>,
@@ -172,6 +175,7 @@ pub fn write(
         k_m: snap.k_m,
         lambda: snap.lambda.clone(),
         counters: snap.counters,
+        forcing_first_step: snap.forcing_first_step,
         tallies: tallies.clone(),
         arrays: arrays
             .iter()
@@ -277,6 +281,7 @@ pub fn read(dir: &Path) -> Result<Checkpoint, InputError> {
         reactions: take("reactions")?,
         contact_forces: take("contact_forces")?,
         counters: header.counters,
+        forcing_first_step: header.forcing_first_step,
     };
     Ok(Checkpoint {
         fingerprint: header.fingerprint,
@@ -306,6 +311,7 @@ mod tests {
                 ccd_calls: 2,
                 pushed_nodes: 1,
             },
+            forcing_first_step: Some(1.0 / 7.0),
         }
     }
 

@@ -70,6 +70,18 @@ impl Forcing {
         }
     }
 
+    /// What the next step's sequence starts from (a checkpoint keeps it).
+    pub fn carried(&self) -> Option<f64> {
+        self.first_step.or(self.last_first_step)
+    }
+
+    /// Continues from what [`Forcing::carried`] returned: the state between two steps.
+    pub fn resume(&mut self, carried: Option<f64>) {
+        self.previous = None;
+        self.first_step = None;
+        self.last_first_step = carried;
+    }
+
     /// ‖Δx‖∞ of the direction of the last system.
     pub fn step_taken(&mut self, dmax: f64) {
         if self.first_step.is_none() && dmax.is_finite() {

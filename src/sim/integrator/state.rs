@@ -47,6 +47,10 @@ pub struct Snapshot {
     pub reactions: Vec<f64>,
     pub contact_forces: Vec<f64>,
     pub counters: ContactCounters,
+    /// The inexact Newton sequence's memory across steps: ‖Δx‖∞ of the last sequence's
+    /// first direction (see `forcing.rs`).
+    #[serde(default)]
+    pub forcing_first_step: Option<f64>,
 }
 
 /// The stepper's state and the step logic shared by both loops.
@@ -139,6 +143,8 @@ impl<'s> State<'s> {
             reactions: self.reactions.clone(),
             contact_forces: self.contact_forces.clone(),
             counters: self.contact_counters(),
+            // Filled in by the stepper, which holds the forcing sequence.
+            forcing_first_step: None,
         }
     }
 

@@ -122,7 +122,10 @@ impl<'s> Stepper<'s> {
 
     /// Everything the next step depends on (see [`Snapshot`]).
     pub fn snapshot(&self) -> Snapshot {
-        self.state.snapshot()
+        Snapshot {
+            forcing_first_step: self.forcing.carried(),
+            ..self.state.snapshot()
+        }
     }
 
     /// Continues from `snap`, taken from a stepper of the same scene: the next
@@ -130,6 +133,7 @@ impl<'s> Stepper<'s> {
     /// Fails (and changes nothing) when the snapshot's sizes do not fit this scene.
     pub fn restore(&mut self, snap: &Snapshot) -> Result<(), StepError> {
         self.state.restore(snap).map_err(StepError::Snapshot)?;
+        self.forcing.resume(snap.forcing_first_step);
         self.backend.restore(&self.state)
     }
 
@@ -278,9 +282,9 @@ impl<'s> Stepper<'s> {
                 sequence_of.clone_from(&moving.snapped);
             }
             self.state.build_frames(&moving.snapped)?;
-            let stats =
-                self.backend
-                    .direction(&self.state, moving, iter, &mut |n| forcing.tolerance(n))?;
+            let stats = self
+                .backend
+                .direction(&self.state, moving, iter, &mut |n| forcing.tolerance(n))?;
             rep.add_solve(&stats);
             let mut dmax = self.max_abs_dx(iter)?;
             let tight = forcing.converged_tolerance();

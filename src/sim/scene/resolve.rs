@@ -8,8 +8,8 @@ use super::model::{
     check_name, check_solver_size, BcShape, CellBlock, Motion, NodeBc, Obstacle, Scene, MAX_STEPS,
 };
 use super::spec::{
-    BcKindSpec, BodySpec, BoundarySpec, CgTolerance, MaterialModel, MotionSpec, MovingSpec, ObstacleKind,
-    ObstacleSpec, RegionSpec, SceneFile, SolverSpec,
+    BcKindSpec, BodySpec, BoundarySpec, CgTolerance, MaterialModel, MotionSpec, MovingSpec,
+    ObstacleKind, ObstacleSpec, RegionSpec, SceneFile, SolverSpec,
 };
 use crate::error::InputError;
 use crate::sim::energy::barrier::HalfSpace;

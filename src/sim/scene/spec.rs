@@ -180,7 +180,9 @@ impl std::str::FromStr for CgTolerance {
         }
         match s.parse::<f64>() {
             Ok(t) if t > 0.0 && t < 1.0 => Ok(CgTolerance::Fixed(t)),
-            _ => Err(format!("expected \"adaptive\" or a number in (0, 1), got \"{s}\"")),
+            _ => Err(format!(
+                "expected \"adaptive\" or a number in (0, 1), got \"{s}\""
+            )),
         }
     }
 }
