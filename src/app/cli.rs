@@ -362,6 +362,11 @@ pub struct RunArgs {
     /// else adaptive].
     #[arg(long, value_name = "adaptive|TOL", value_parser = str::parse::<crate::sim::scene::CgTolerance>)]
     pub cg_tolerance: Option<crate::sim::scene::CgTolerance>,
+    /// Write every Newton system of these steps (all, or step numbers from 1: 1,10) under
+    /// DIR/systems/step_S/iter_K/: H.mtx, g.mtx, bc.json (the input of `solve` and
+    /// `export`), x.mtx (the iterate), dx.mtx (the direction the run used), system.json.
+    #[arg(long, value_name = "STEPS", value_parser = str::parse::<crate::sim::integrator::StepSelection>)]
+    pub dump_systems: Option<crate::sim::integrator::StepSelection>,
     /// Replace files with run's output names that no previous run there wrote.
     #[arg(long)]
     pub overwrite: bool,
@@ -1232,6 +1237,7 @@ fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
         ordering: a.ordering,
         newton: a.newton,
         cg_tolerance: a.cg_tolerance,
+        dump_systems: a.dump_systems.clone(),
         end_time: a.end_time,
         resume: a.resume.clone(),
     };

@@ -15,7 +15,7 @@
 use crate::error::InputError;
 use crate::io::files::{Named, OutputDir};
 use crate::sim::checkpoint::{self, Checkpoint, StartOptions, Tallies};
-use crate::sim::integrator::{ContactCounters, InitError, Stepper};
+use crate::sim::integrator::{ContactCounters, InitError, NewtonSystem, Stepper, SystemSink};
 use crate::sim::output::{write_vtk, StepRecord, StepsCsv};
 use crate::sim::scene::{self, LinearKind, MovingSpec, Scene};
 use std::io::Write as _;
@@ -49,6 +49,9 @@ pub struct RunOptions {
     pub cg_tolerance: Option<crate::sim::scene::CgTolerance>,
     /// Overrides the number of steps by the end time: round(T / h) steps.
     pub end_time: Option<f64>,
+    /// Write every Newton system of these steps under `systems/step_S/iter_K/` in the
+    /// output folder (`run --dump-systems`).
+    pub dump_systems: Option<crate::sim::integrator::StepSelection>,
     /// Continue the run in this folder from its checkpoint (the scene and its options
     /// come from the checkpoint; `steps` or `end_time` may extend it).
     pub resume: Option<PathBuf>,
@@ -553,6 +556,10 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         steps
     };
     let scene = build_scene(&start, steps, opts.end_time)?;
+    if let Some(sel) = &opts.dump_systems {
+        sel.check(scene.steps)
+            .map_err(|p| InputError::new("--dump-systems", "", p))?;
+    }
     if let (Some(ck), Some(dir)) = (&resumed, &opts.resume) {
         check_resume(ck, &scene, dir)?;
     }
@@ -808,6 +815,61 @@ fn write_frame(
     Ok(())
 }
 
+/// Files of one dumped Newton system, in `systems/step_S/iter_K/`.
+pub const SYSTEM_FILES: [&str; 6] = [
+    "H.mtx",
+    "g.mtx",
+    "bc.json",
+    "x.mtx",
+    "dx.mtx",
+    "system.json",
+];
+
+/// Writes one Newton system as `solve`'s input files (H.mtx, g.mtx, bc.json) with the
+/// iterate (x.mtx), the direction the run used (dx.mtx) and how it was solved
+/// (system.json), into `systems/step_S/iter_K/`: written in a temporary folder beside it
+/// and renamed, so the folder is whole or absent.
+fn write_system(dir: &mut OutputDir, sys: &NewtonSystem) -> Result<(), String> {
+    let rel = PathBuf::from("systems")
+        .join(format!("step_{}", sys.step))
+        .join(format!("iter_{}", sys.iteration));
+    let fail = |e: std::io::Error| format!("{}: {e}", rel.display());
+    let final_dir = dir.path().join(&rel);
+    let tmp = dir
+        .path()
+        .join(rel.with_file_name(format!(".iter_{}.partial", sys.iteration)));
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp).map_err(fail)?;
+    }
+    std::fs::create_dir_all(&tmp).map_err(fail)?;
+    for f in SYSTEM_FILES {
+        dir.record(rel.join(f)).map_err(fail)?;
+    }
+    let comment = format!(
+        "stickslip run --dump-systems: step {}, Newton iteration {}",
+        sys.step, sys.iteration
+    );
+    crate::io::mtx::write_hessian(tmp.join("H.mtx"), &sys.h, &comment).map_err(fail)?;
+    crate::io::mtx::write_vector(tmp.join("g.mtx"), &sys.g, &comment).map_err(fail)?;
+    crate::io::bcjson::write(tmp.join("bc.json"), sys.dim, &sys.constraints).map_err(fail)?;
+    crate::io::mtx::write_vector(tmp.join("x.mtx"), &sys.x, &comment).map_err(fail)?;
+    crate::io::mtx::write_vector(tmp.join("dx.mtx"), &sys.dx, &comment).map_err(fail)?;
+    let info = serde_json::json!({
+        "step": sys.step,
+        "iteration": sys.iteration,
+        "dim": sys.dim,
+        "nodes": sys.h.n,
+        "tolerance": sys.tolerance,
+        "linear_iterations": sys.iterations,
+    });
+    crate::io::files::write_atomic_bytes(tmp.join("system.json"), info.to_string().as_bytes())
+        .map_err(fail)?;
+    if final_dir.exists() {
+        std::fs::remove_dir_all(&final_dir).map_err(fail)?;
+    }
+    std::fs::rename(&tmp, &final_dir).map_err(fail)
+}
+
 /// The summary's counts and histories from the tallies.
 fn fill_summary(run: &Run, stepper: &Stepper, summary: &mut RunSummary) {
     let (scene, t) = (run.scene, &run.tallies);
@@ -941,7 +1003,14 @@ fn simulate(
 
     // 4–6. Time loop: step, recover, output.
     while stepper.step < scene.steps {
-        let rep = stepper.step().map_err(|cause| RunError::Solve {
+        let next = stepper.step + 1;
+        let mut sink = |sys: NewtonSystem| write_system(dir, &sys);
+        let dump: Option<SystemSink> = opts
+            .dump_systems
+            .as_ref()
+            .filter(|sel| sel.contains(next))
+            .map(|_| &mut sink as SystemSink);
+        let rep = stepper.step_with(dump).map_err(|cause| RunError::Solve {
             step: stepper.step + 1,
             time: stepper.t + scene.time_step,
             cause: cause.to_string(),

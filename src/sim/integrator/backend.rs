@@ -22,6 +22,14 @@ pub(super) struct EndState {
     pub(super) g: Vec<f64>,
 }
 
+/// A Newton system as [`Backend::system`] reads it back.
+pub(super) struct SystemArrays {
+    pub(super) h: crate::core::sparse::BlockCsr,
+    pub(super) g: Vec<f64>,
+    pub(super) x: Vec<f64>,
+    pub(super) dx: Vec<f64>,
+}
+
 /// The operations of one step on the iterate, wherever it lives.
 pub(super) trait Backend {
     /// Start of step: xⁿ from the state, x̃ = xⁿ + h vⁿ, and the starting iterate: xⁿ
@@ -65,6 +73,10 @@ pub(super) trait Backend {
         iteration: usize,
         tol: f64,
     ) -> Result<LinearStats, StepError>;
+
+    /// The system of the last [`Backend::direction`] (or [`Backend::resolve`]): ∇²E, ∇E,
+    /// the iterate it was taken at and the Δx it gave, read back for `run --dump-systems`.
+    fn system(&mut self) -> Result<SystemArrays, StepError>;
 
     /// ‖Δx‖∞.
     fn max_abs_dx(&mut self) -> Result<f64, StepError>;

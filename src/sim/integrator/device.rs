@@ -15,7 +15,7 @@
 //! space on the device, against the scene's CPU solver), so trajectories agree to the
 //! solvers' tolerances, not bit for bit (tests/sim_gpu_newton.rs).
 
-use super::backend::{Backend, EndState};
+use super::backend::{Backend, EndState, SystemArrays};
 use super::error::{InitError, StepError};
 use super::linear::LinearStats;
 use super::report::GpuRunReport;
@@ -359,6 +359,15 @@ impl Backend for DeviceLoop {
                 cause: e.to_string(),
             })?;
         Ok(Self::stats(&info, t))
+    }
+
+    /// Read back whole: for `run --dump-systems`, not the loop.
+    fn system(&mut self) -> Result<SystemArrays, StepError> {
+        let h = self.asm.read_matrix()?;
+        let g = self.asm.read_gradient()?;
+        let dx = self.cg.read_dx()?;
+        let x = self.positions(None)?.to_vec();
+        Ok(SystemArrays { h, g, x, dx })
     }
 
     fn max_abs_dx(&mut self) -> Result<f64, StepError> {

@@ -67,6 +67,8 @@ pub enum StepError {
     Snapshot(String),
     #[error("GPU Newton loop: {0}")]
     Device(#[from] GpuError),
+    #[error("cannot write the Newton system of iteration {iteration}: {cause}")]
+    Dump { iteration: usize, cause: String },
 }
 
 fn moving_state(moving: &Option<(f64, usize)>) -> String {

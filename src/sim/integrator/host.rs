@@ -2,7 +2,7 @@
 //! eliminated system solved by the library's [`crate::Solver`] (Cholesky, CPU CG or the
 //! GPU CG, as the scene's `linear` says).
 
-use super::backend::{Backend, EndState};
+use super::backend::{Backend, EndState, SystemArrays};
 use super::error::StepError;
 use super::linear::{LinearSolver, LinearStats};
 use super::report::GpuRunReport;
@@ -142,6 +142,15 @@ impl Backend for HostBackend {
         tol: f64,
     ) -> Result<LinearStats, StepError> {
         self.solve(state, moving, iteration, &mut |_| tol)
+    }
+
+    fn system(&mut self) -> Result<SystemArrays, StepError> {
+        Ok(SystemArrays {
+            h: self.hmat.clone(),
+            g: self.g.clone(),
+            x: self.x.clone(),
+            dx: self.dx.clone(),
+        })
     }
 
     fn max_abs_dx(&mut self) -> Result<f64, StepError> {

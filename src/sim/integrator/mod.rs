@@ -56,6 +56,7 @@
 
 mod backend;
 mod device;
+mod dump;
 mod error;
 mod forcing;
 mod host;
@@ -66,6 +67,7 @@ mod stepper;
 mod targets;
 
 pub use device::{check_capacity, device_bytes_needed};
+pub use dump::{NewtonSystem, StepSelection, SystemSink};
 pub use error::{InitError, StepError};
 pub use linear::{LinearSolver, LinearStats, CHOLESKY_MAX_RESIDUAL};
 pub use report::{ContactCounters, GpuRunReport, StepReport};

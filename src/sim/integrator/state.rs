@@ -283,6 +283,19 @@ impl<'s> State<'s> {
 
     fn frames_of(&self, key: &[bool]) -> Result<Frames, ConstraintError> {
         let d = self.scene.dim;
+        let cs = self.constraints_of(key);
+        if cs.is_empty() {
+            Ok(Frames::unconstrained(d, self.scene.model.n_nodes))
+        } else {
+            Frames::build(d, self.scene.model.n_nodes, &cs)
+        }
+    }
+
+    /// The homogeneous constraints of a Newton step for the constraint set `key` (which
+    /// moving conditions are snapped and eliminated): every static condition and the
+    /// snapped moving ones, with zero prescribed displacement.
+    pub(super) fn constraints_of(&self, key: &[bool]) -> Vec<Constraint> {
+        let d = self.scene.dim;
         let mut cs = Vec::new();
         let active = self.static_bcs.iter().copied().chain(
             self.moving_bcs
@@ -310,11 +323,7 @@ impl<'s> State<'s> {
                 label: b.label.clone(),
             });
         }
-        if cs.is_empty() {
-            Ok(Frames::unconstrained(d, self.scene.model.n_nodes))
-        } else {
-            Frames::build(d, self.scene.model.n_nodes, &cs)
-        }
+        cs
     }
 
     /// Projects the start-of-step positions onto the static constraint sets (a node with

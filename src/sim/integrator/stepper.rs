@@ -3,6 +3,7 @@
 
 use super::backend::Backend;
 use super::device::DeviceLoop;
+use super::dump::{NewtonSystem, SystemSink};
 use super::error::{InitError, StepError};
 use super::forcing::Forcing;
 use super::host::HostBackend;
@@ -153,6 +154,12 @@ impl<'s> Stepper<'s> {
     /// updates and the CCD-bounded line search), then the end-of-step recovery of forces,
     /// velocities and state.
     pub fn step(&mut self) -> Result<StepReport, StepError> {
+        self.step_with(None)
+    }
+
+    /// [`Stepper::step`], handing every Newton system of the step (after its solve) to
+    /// `dump` when given (`run --dump-systems`).
+    pub fn step_with(&mut self, mut dump: Option<SystemSink>) -> Result<StepReport, StepError> {
         let sc = self.state.scene;
         let t1 = self.state.t + sc.time_step;
         let mut rep = StepReport {
@@ -179,7 +186,7 @@ impl<'s> Stepper<'s> {
         };
         self.snap(&mut moving)?;
         // 3. Newton.
-        self.newton(&mut moving, &mut rep)?;
+        self.newton(&mut moving, &mut rep, &mut dump)?;
         // 4. Reactions and contact forces at the converged iterate.
         let end = self.backend.end_step(&self.state)?;
         self.state.recover_forces(&end.x, &end.g, &moving.snapped);
@@ -247,6 +254,7 @@ impl<'s> Stepper<'s> {
         &mut self,
         moving: &mut MovingTargets,
         rep: &mut StepReport,
+        dump: &mut Option<SystemSink>,
     ) -> Result<(), StepError> {
         let sc = self.state.scene;
         let h = sc.time_step;
@@ -286,6 +294,7 @@ impl<'s> Stepper<'s> {
                 .backend
                 .direction(&self.state, moving, iter, &mut |n| forcing.tolerance(n))?;
             rep.add_solve(&stats);
+            let mut last = stats;
             let mut dmax = self.max_abs_dx(iter)?;
             let tight = forcing.converged_tolerance();
             if dmax / h < self.state.newton_tol && stats.tolerance.is_some_and(|t| t > tight) {
@@ -293,10 +302,30 @@ impl<'s> Stepper<'s> {
                 // system solved to the convergence tolerance, whatever the sequence did.
                 let stats = self.backend.resolve(&self.state, moving, iter, tight)?;
                 rep.add_solve(&stats);
+                last = stats;
                 rep.linear_resolves += 1;
                 dmax = self.max_abs_dx(iter)?;
             }
             forcing.step_taken(dmax);
+            if let Some(sink) = dump.as_mut() {
+                let a = self.backend.system()?;
+                sink(NewtonSystem {
+                    step: rep.step,
+                    iteration: iter,
+                    dim: sc.dim,
+                    h: a.h,
+                    g: a.g,
+                    x: a.x,
+                    dx: a.dx,
+                    constraints: self.state.constraints_of(&moving.snapped),
+                    tolerance: last.tolerance,
+                    iterations: last.iterations,
+                })
+                .map_err(|cause| StepError::Dump {
+                    iteration: iter,
+                    cause,
+                })?;
+            }
             if dmax / h < self.state.newton_tol {
                 if moving.snapped.iter().all(|&s| s) {
                     break;
