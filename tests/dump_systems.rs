@@ -137,6 +137,41 @@ fn cholesky_systems_replay_exactly_with_solve() {
     let _ = std::fs::remove_dir_all(out.parent().expect("parent"));
 }
 
+/// `bench --systems` runs every CPU solver on every dumped system to 1e-6.
+#[test]
+fn bench_times_every_solver_on_the_dumped_systems() {
+    let (out, r) = dump_run("incline", "cholesky", NewtonLoop::Cpu, 1, "1");
+    let summary = r.expect("incline with --dump-systems");
+    let systems = summary.records[1].newton_iterations;
+    let bench_out = out.with_file_name("bench");
+    let o = run_cli(&[
+        "bench",
+        "--systems",
+        &s(&out.join("systems")),
+        "--no-gpu",
+        "--quiet",
+        "--out",
+        &s(&bench_out),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let json: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(bench_out.join("bench.json")).expect("bench.json"),
+    )
+    .expect("json");
+    let records = json["records"].as_array().expect("records");
+    // Cholesky and 2 preconditioners × 3 coarse spaces per system.
+    assert_eq!(records.len(), 7 * systems, "{json}");
+    for r in records {
+        assert!(r["error"].is_null(), "{r}");
+        let res = r["relative_residual"].as_f64().expect("residual");
+        assert!(res <= 1e-6, "{r}");
+    }
+    let o = run_cli(&["bench", "--systems", &s(&bench_out), "--no-gpu"]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("holds no system"), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(out.parent().expect("parent"));
+}
+
 #[test]
 fn cg_systems_meet_the_recorded_tolerance() {
     let (out, r) = dump_run("twist", "cg", NewtonLoop::Cpu, 1, "all");

@@ -16,7 +16,7 @@ use crate::solve::cg::Preconditioner;
 use crate::solve::coarse::CoarseSpace;
 use crate::{CholeskyOrdering, Precision, Problem, SolveDetails, Solver, SolverConfig, SolverKind};
 use clap::{ArgGroup, Args, Parser, Subcommand, ValueEnum};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
@@ -105,6 +105,12 @@ pub struct BenchArgs {
     /// reported), at least 1 [default: 5; with --quick 2].
     #[arg(long, requires = "newton", value_parser = positive_usize)]
     pub reps: Option<usize>,
+    /// Time every solver and preconditioner (Cholesky; CPU CG with Jacobi and block
+    /// Jacobi, each with no coarse space, translations and aggregates; the GPU CG in f64
+    /// unless --no-gpu) to relative residual 1e-6 on the Newton systems captured under
+    /// DIR (`run --dump-systems`: every folder with H.mtx, g.mtx and bc.json).
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["newton", "hard", "quick", "sizes", "dims", "oracle_max_nodes", "coarse", "ordering", "seed"])]
+    pub systems: Option<PathBuf>,
 }
 
 #[derive(Debug, Clone, Args)]
@@ -1019,6 +1025,9 @@ fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
     if a.newton {
         return bench_newton(a, quiet);
     }
+    if let Some(dir) = &a.systems {
+        return bench_systems(dir, a, quiet);
+    }
     if a.hard {
         let coarse = match a.coarse {
             Some(c) => vec![c],
@@ -1067,6 +1076,58 @@ fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
     })?;
     if !quiet {
         println!("{}", crate::app::bench::summary_text(&report));
+    }
+    Ok(())
+}
+
+/// `stickslip bench --systems DIR`: see [`crate::app::bench_systems`].
+fn bench_systems(dir: &Path, a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
+    use crate::app::bench_systems as bs;
+    let shown = dir.display().to_string();
+    if !dir.is_dir() {
+        return Err(InputError::new(&shown, "--systems", "is not a folder").into());
+    }
+    let found =
+        bs::find_systems(dir).map_err(|e| CliError::Failed(format!("cannot read {shown}: {e}")))?;
+    if found.is_empty() {
+        return Err(InputError::new(
+            &shown,
+            "--systems",
+            "holds no system (a folder with H.mtx, g.mtx and bc.json; `run --dump-systems` writes them)",
+        )
+        .into());
+    }
+    let mut progress = |r: &bs::SystemRecord| {
+        if !quiet {
+            eprintln!(
+                "{} {}: {}",
+                r.system,
+                r.solver,
+                match (&r.error, r.iterations, r.solve_s) {
+                    (Some(e), _, _) => format!("failed: {e}"),
+                    (None, k, Some(t)) => format!(
+                        "{:.4} s setup, {t:.4} s solve, {} iterations",
+                        r.setup_s.unwrap_or(0.0),
+                        k.map_or("–".into(), |k| k.to_string())
+                    ),
+                    _ => String::new(),
+                }
+            );
+        }
+    };
+    let records = bs::run(dir, a.no_gpu, &mut progress).map_err(CliError::Failed)?;
+    if let Some(out) = &a.out {
+        let json = serde_json::json!({
+            "command": std::env::args().collect::<Vec<_>>().join(" "),
+            "tolerance": bs::TOL,
+            "records": records,
+        });
+        let path = out.join("bench.json");
+        crate::io::files::write_atomic_bytes(&path, json.to_string().as_bytes())
+            .map_err(|e| write_failed(&path.display().to_string(), e))?;
+    }
+    if !quiet {
+        print!("{}", bs::table(&records));
     }
     Ok(())
 }

@@ -5,6 +5,7 @@
 pub mod bench;
 pub mod bench_newton;
 pub mod bench_report;
+pub mod bench_systems;
 pub mod cli;
 pub mod export;
 pub mod hard;

@@ -55,6 +55,17 @@ pub enum Preconditioner {
     BlockJacobi,
 }
 
+impl Preconditioner {
+    /// The name used on the command line, in scenes and in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Preconditioner::None => "none",
+            Preconditioner::Jacobi => "jacobi",
+            Preconditioner::BlockJacobi => "block-jacobi",
+        }
+    }
+}
+
 impl std::str::FromStr for Preconditioner {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
