@@ -42,7 +42,7 @@ except ImportError:  # pragma: no cover - said in one line
 def systems(root):
     """Folders under root holding a dumped system, in natural order."""
     found = []
-    for d, _, files in os.walk(root):
+    for d, _, files in os.walk(root, followlinks=True):
         if {"H.mtx", "g.mtx", "bc.json", "x.mtx"} <= set(files):
             found.append(d)
 

@@ -1307,12 +1307,16 @@ fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
         Ok(summary) => {
             if !quiet {
                 eprintln!(
-                    "{}: {} steps of {} s on {} nodes with {} in {:.2} s ({} Newton, {} linear iterations); output in {}",
+                    "{}: {} steps of {} s on {} nodes with {}{} in {:.2} s ({} Newton, {} linear iterations); output in {}",
                     summary.scene,
                     summary.steps,
                     summary.time_step,
                     summary.nodes,
                     summary.solver,
+                    summary
+                        .linear_choice
+                        .as_ref()
+                        .map_or(String::new(), |r| format!(" ({r})")),
                     summary.wall_seconds,
                     summary.newton_iterations,
                     summary.linear_iterations,

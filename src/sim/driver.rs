@@ -192,6 +192,8 @@ pub struct RunSummary {
     pub end_time: f64,
     pub wall_seconds: f64,
     pub solver: String,
+    /// Why `[solver] linear = "auto"` chose `solver` (None for an explicit choice).
+    pub linear_choice: Option<String>,
     pub adapter: Option<String>,
     pub characteristic_length: f64,
     /// Newton stops when ‖Δx‖∞/h is below this (m/s).
@@ -382,6 +384,7 @@ fn build_scene(
         scene.solver.linear = s
             .parse::<LinearKind>()
             .map_err(|e| InputError::new("--solver", "", e))?;
+        scene.solver.linear_choice = crate::sim::scene::LinearChoice::of(scene.solver.linear);
     }
     if let Some(o) = start.ordering {
         scene.solver.ordering = o;
@@ -621,6 +624,13 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         solver: match scene.solver.newton {
             crate::sim::scene::NewtonLoop::Gpu => "newton-gpu".to_string(),
             crate::sim::scene::NewtonLoop::Cpu => scene.solver.linear.to_string(),
+        },
+        linear_choice: match scene.solver.newton {
+            crate::sim::scene::NewtonLoop::Gpu => None,
+            crate::sim::scene::NewtonLoop::Cpu => scene
+                .solver
+                .linear_choice
+                .reason(scene.dim, scene.model.n_nodes),
         },
         adapter: None,
         characteristic_length: scene.characteristic_length,

@@ -79,7 +79,10 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
         time_step: h,
         steps,
         output: spec.output.clone(),
-        solver: spec.solver.clone(),
+        solver: SolverSpec {
+            linear: spec.solver.linear_choice.resolve(dim, x0.len() / dim),
+            ..spec.solver.clone()
+        },
         moving: spec.moving.clone(),
         model,
         x0,
@@ -187,7 +190,8 @@ fn build_bodies(c: &Ctx, spec: &SceneFile, dim: usize, size: f64) -> Result<Bodi
     let s = &spec.solver;
     let meshes: Vec<&super::spec::MeshSpec> = spec.bodies.iter().map(|b| &b.mesh).collect();
     let planned = check_planned_nodes(c, &meshes, dim, size)?;
-    check_solver_size(dim, planned, s.linear).map_err(|p| c.err("solver.linear", p))?;
+    check_solver_size(dim, planned, s.linear_choice.resolve(dim, planned))
+        .map_err(|p| c.err("solver.linear", p))?;
 
     let mut out = Bodies {
         x0: Vec::new(),
@@ -230,7 +234,9 @@ fn build_bodies(c: &Ctx, spec: &SceneFile, dim: usize, size: f64) -> Result<Bodi
         out.sets.push(set);
     }
     // Again with gmsh bodies counted.
-    check_solver_size(dim, out.x0.len() / dim, s.linear).map_err(|p| c.err("solver.linear", p))?;
+    let nodes = out.x0.len() / dim;
+    check_solver_size(dim, nodes, s.linear_choice.resolve(dim, nodes))
+        .map_err(|p| c.err("solver.linear", p))?;
     Ok(out)
 }
 

@@ -93,7 +93,12 @@ pub use crate::engine::solver::SolverKind as LinearKind;
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SolverSpec {
-    #[serde(default = "default_linear")]
+    /// `linear` as the scene file says it: a solver or "auto" (the default).
+    #[serde(rename = "linear", default)]
+    pub linear_choice: LinearChoice,
+    /// The solver that runs: `linear_choice` resolved for the scene's size when the scene
+    /// is read (or set by `run --solver`).
+    #[serde(skip, default = "default_linear")]
     pub linear: LinearKind,
     /// CG and GPU: the relative residual ‖b̂ − Ĥy‖/‖b̂‖ each Newton system is solved to:
     /// "adaptive" (the default, inexact Newton) or a number (every system to it).
@@ -124,6 +129,70 @@ pub struct SolverSpec {
     /// f64; `linear` is not used).
     #[serde(default)]
     pub newton: NewtonLoop,
+}
+
+/// `[solver] linear`: a linear solver, or "auto".
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LinearChoice {
+    /// The sparse Cholesky solver up to [`LinearChoice::AUTO_CHOLESKY_MAX_NODES_2D`] or
+    /// [`LinearChoice::AUTO_CHOLESKY_MAX_NODES_3D`] nodes, the CPU CG above (where each
+    /// wins on a 2-core machine: BENCHMARKS.md, "The linear solver a scene gets").
+    #[default]
+    Auto,
+    Cholesky,
+    Cg,
+    Gpu,
+}
+
+impl LinearChoice {
+    /// The most nodes a 2D scene solves with Cholesky under "auto".
+    pub const AUTO_CHOLESKY_MAX_NODES_2D: usize = 1_500;
+    /// The most nodes a 3D scene solves with Cholesky under "auto".
+    pub const AUTO_CHOLESKY_MAX_NODES_3D: usize = 300;
+
+    /// The solver this choice runs on a scene of `nodes` nodes in `dim` dimensions.
+    pub fn resolve(self, dim: usize, nodes: usize) -> LinearKind {
+        match self {
+            LinearChoice::Auto => {
+                let max = if dim == 3 {
+                    Self::AUTO_CHOLESKY_MAX_NODES_3D
+                } else {
+                    Self::AUTO_CHOLESKY_MAX_NODES_2D
+                };
+                if nodes <= max {
+                    LinearKind::Cholesky
+                } else {
+                    LinearKind::Cg
+                }
+            }
+            LinearChoice::Cholesky => LinearKind::Cholesky,
+            LinearChoice::Cg => LinearKind::Cg,
+            LinearChoice::Gpu => LinearKind::Gpu,
+        }
+    }
+
+    /// The explicit choice of `kind` (`run --solver`).
+    pub fn of(kind: LinearKind) -> Self {
+        match kind {
+            LinearKind::Cholesky => LinearChoice::Cholesky,
+            LinearKind::Cg => LinearChoice::Cg,
+            LinearKind::Gpu => LinearChoice::Gpu,
+        }
+    }
+
+    /// Why "auto" picked what it did, for the run's report; None for an explicit choice.
+    pub fn reason(self, dim: usize, nodes: usize) -> Option<String> {
+        (self == LinearChoice::Auto).then(|| {
+            let max = if dim == 3 {
+                Self::AUTO_CHOLESKY_MAX_NODES_3D
+            } else {
+                Self::AUTO_CHOLESKY_MAX_NODES_2D
+            };
+            let side = if nodes <= max { "≤" } else { ">" };
+            format!("linear = \"auto\": {nodes} nodes {side} {max} in {dim}D")
+        })
+    }
 }
 
 /// The CG tolerance of the Newton systems (`[solver] cg_tolerance`).
@@ -280,6 +349,7 @@ fn default_newton_iters() -> usize {
 impl Default for SolverSpec {
     fn default() -> Self {
         SolverSpec {
+            linear_choice: LinearChoice::Auto,
             linear: default_linear(),
             cg_tolerance: CgTolerance::Adaptive,
             cg_max_iterations: default_cg_iters(),
@@ -463,4 +533,57 @@ pub struct MotionSpec {
     #[serde(default)]
     pub start: f64,
     pub end: Option<f64>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn auto_picks_cholesky_up_to_the_measured_sizes() {
+        let auto = LinearChoice::Auto;
+        assert_eq!(auto.resolve(3, 300), LinearKind::Cholesky);
+        assert_eq!(auto.resolve(3, 301), LinearKind::Cg);
+        assert_eq!(auto.resolve(2, 1_500), LinearKind::Cholesky);
+        assert_eq!(auto.resolve(2, 1_501), LinearKind::Cg);
+        assert_eq!(LinearChoice::Gpu.resolve(2, 10), LinearKind::Gpu);
+        assert_eq!(
+            LinearChoice::Cholesky.resolve(3, 1 << 20),
+            LinearKind::Cholesky
+        );
+        let why = auto.reason(3, 525).expect("auto says why");
+        assert!(why.contains("525 nodes > 300 in 3D"), "{why}");
+        assert_eq!(LinearChoice::Cg.reason(3, 525), None);
+        for k in [LinearKind::Cholesky, LinearKind::Cg, LinearKind::Gpu] {
+            assert_eq!(LinearChoice::of(k).resolve(3, 1_000_000), k);
+        }
+    }
+
+    #[test]
+    fn scene_solver_keys_parse() {
+        let spec: SolverSpec = toml::from_str("").expect("defaults");
+        assert_eq!(spec.linear_choice, LinearChoice::Auto);
+        assert_eq!(spec.cg_tolerance, CgTolerance::Adaptive);
+        let spec: SolverSpec =
+            toml::from_str("linear = \"cg\"\ncg_tolerance = 1e-9").expect("explicit");
+        assert_eq!(spec.linear_choice, LinearChoice::Cg);
+        assert_eq!(spec.cg_tolerance, CgTolerance::Fixed(1e-9));
+        let spec: SolverSpec = toml::from_str("cg_tolerance = \"adaptive\"").expect("word");
+        assert_eq!(spec.cg_tolerance, CgTolerance::Adaptive);
+        for bad in [
+            "cg_tolerance = \"tight\"",
+            "cg_tolerance = true",
+            "linear = \"lu\"",
+        ] {
+            let e = toml::from_str::<SolverSpec>(bad)
+                .expect_err(bad)
+                .to_string();
+            assert!(e.contains("adaptive") || e.contains("auto"), "{bad}: {e}");
+        }
+        assert_eq!("1e-4".parse::<CgTolerance>(), Ok(CgTolerance::Fixed(1e-4)));
+        for bad in ["0", "1", "-1e-3", "nan", "loose"] {
+            let e = bad.parse::<CgTolerance>().expect_err(bad);
+            assert!(e.contains("adaptive") && !e.contains('\n'), "{bad}: {e}");
+        }
+    }
 }
