@@ -1,6 +1,6 @@
 //! Finite-difference checks of the energies' gradients and Hessians, and PSD projection.
 
-use stickslip::sim::energy::{ElementSet, Model, NeoHookean, Springs};
+use stickslip::sim::energy::{ElementSet, Law, Model, NeoHookean, Springs};
 use stickslip::sim::mesh;
 
 /// Deterministic pseudo-random perturbation in [-amp, amp].
@@ -20,7 +20,7 @@ fn perturb(x: &mut [f64], amp: f64, seed: u64) {
 fn models() -> Vec<(&'static str, Model, Vec<f64>)> {
     let mut out = Vec::new();
     let r = mesh::rectangle(2, [1.0, 0.5], [3, 2]);
-    let nh2 = NeoHookean::new(&r, 1e4, 0.4).expect("valid mesh");
+    let nh2 = NeoHookean::new(&r, 1e4, 0.4, Law::StableNeoHookean).expect("valid mesh");
     let sp2 = Springs::new(2, &r.x, r.edges(), 50.0).expect("valid mesh");
     let m2 = r.lumped_masses(100.0);
     let mut x2 = r.x.clone();
@@ -36,7 +36,7 @@ fn models() -> Vec<(&'static str, Model, Vec<f64>)> {
         x2,
     ));
     let b = mesh::cuboid([1.0, 0.6, 0.4], [2, 2, 1]);
-    let nh3 = NeoHookean::new(&b, 1e4, 0.3).expect("valid mesh");
+    let nh3 = NeoHookean::new(&b, 1e4, 0.3, Law::StableNeoHookean).expect("valid mesh");
     let sp3 = Springs::new(3, &b.x, b.edges(), 30.0).expect("valid mesh");
     let m3 = b.lumped_masses(100.0);
     let mut x3 = b.x.clone();
@@ -53,7 +53,7 @@ fn models() -> Vec<(&'static str, Model, Vec<f64>)> {
     ));
     // A compressed, partly inverted state exercises the indefinite branch.
     let t = mesh::cuboid([1.0, 1.0, 1.0], [1, 1, 1]);
-    let nh = NeoHookean::new(&t, 1e3, 0.45).expect("valid mesh");
+    let nh = NeoHookean::new(&t, 1e3, 0.45, Law::StableNeoHookean).expect("valid mesh");
     let m = t.lumped_masses(1.0);
     let mut xt: Vec<f64> = t.x.iter().map(|v| 0.4 * v).collect();
     perturb(&mut xt, 0.3, 3);
@@ -131,7 +131,7 @@ fn hessians_match_finite_differences_and_projection_is_psd() {
 #[test]
 fn rest_state_is_stress_free_and_rigid_motions_cost_nothing() {
     let b = mesh::cuboid([1.0, 0.5, 0.5], [2, 1, 1]);
-    let nh = NeoHookean::new(&b, 1e5, 0.3).expect("valid mesh");
+    let nh = NeoHookean::new(&b, 1e5, 0.3, Law::StableNeoHookean).expect("valid mesh");
     let model = Model::new(
         3,
         b.lumped_masses(1.0),
@@ -164,7 +164,7 @@ fn small_strain_matches_linear_elasticity() {
     let (e, nu) = (2e5, 0.3);
     let (mu_l, la_l) = stickslip::sim::energy::neohookean::lame(e, nu);
     let t = mesh::cuboid([1.0, 1.0, 1.0], [1, 1, 1]);
-    let nh = NeoHookean::new(&t, e, nu).expect("valid mesh");
+    let nh = NeoHookean::new(&t, e, nu, Law::StableNeoHookean).expect("valid mesh");
     let eps = 1e-5;
     let s = [1.0, 0.3, 0.0, 0.3, -0.5, 0.2, 0.0, 0.2, 0.7];
     let f: Vec<f64> = (0..9)

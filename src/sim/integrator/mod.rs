@@ -68,6 +68,6 @@ pub use device::{check_capacity, device_bytes_needed};
 pub use error::{InitError, StepError};
 pub use linear::{LinearSolver, LinearStats, CHOLESKY_MAX_RESIDUAL};
 pub use report::{ContactCounters, GpuRunReport, StepReport};
-pub use state::{Snapshot, State, CCD_FRACTION};
+pub use state::{Snapshot, State, CCD_FRACTION, INVERSION_FRACTION};
 pub use stepper::Stepper;
 pub use targets::{offset, projector};

@@ -55,9 +55,9 @@ mod resolve;
 mod spec;
 
 pub use spec::{
-    BcKindSpec, BodySpec, BoundarySpec, BoxRegion, LinearKind, MaterialModel, MaterialSpec,
-    MeshKind, MeshSpec, MotionSpec, MovingSpec, NewtonLoop, ObstacleKind, ObstacleSpec, OutputSpec,
-    PlaneRegion, RegionSpec, SceneFile, SolverSpec,
+    BcKindSpec, BodySpec, BoundarySpec, BoxRegion, InversionPolicy, LinearKind, MaterialModel,
+    MaterialSpec, MeshKind, MeshSpec, MotionSpec, MovingSpec, NewtonLoop, ObstacleKind,
+    ObstacleSpec, OutputSpec, PlaneRegion, RegionSpec, SceneFile, SolverSpec,
 };
 
 pub use model::{
