@@ -338,7 +338,9 @@ impl<'s> Stepper<'s> {
     }
 
     /// Armijo backtracking on E along Δx, from the CCD bound α_C when there is contact (1
-    /// without); the accepted iterate becomes the current one. When no step decreases E,
+    /// without), lowered to [`INVERSION_FRACTION`] of the first step that inverts an
+    /// element of the classical neo-Hookean law (an element already inverted fails the
+    /// step, naming it); the accepted iterate becomes the current one. When no step decreases E,
     /// the bounded step is taken if the energy is flat to round-off near the minimum and
     /// the step fails otherwise. A bounded step taken whole is checked by
     /// [`State::check_unbarriered_limit`].
