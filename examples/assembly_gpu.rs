@@ -10,7 +10,7 @@ use std::time::Instant;
 use stickslip::gpu::{GpuContext, GpuOptions, Precision};
 use stickslip::sim::device::assembly::GpuAssembly;
 use stickslip::sim::device::elements::GpuElements;
-use stickslip::sim::energy::{ElementSet, Model, NeoHookean};
+use stickslip::sim::energy::{ElementSet, Law, Model, NeoHookean};
 use stickslip::sim::mesh;
 
 /// Best wall time of `reps` runs of `f` (each waited for).
@@ -47,7 +47,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 ]
             })
             .collect();
-    let nh = NeoHookean::new(&m, 1e5, 0.4).map_err(|e| format!("mesh: {e}"))?;
+    let nh =
+        NeoHookean::new(&m, 1e5, 0.4, Law::StableNeoHookean).map_err(|e| format!("mesh: {e}"))?;
     let ne = nh.elements.len();
     let model = Model::new(
         3,

@@ -4,9 +4,11 @@
 //   energy[e], gradient[e·nl + a·D + c], hessian[e·nl² + (a·D + c)·nl + b·D + k],
 // nl = (nodes per element)·D, node-major and row-major like the CPU's element buffers.
 //
-// - neohookean_elements: stable neo-Hookean triangles (D = 2) or tetrahedra (D = 3); the
-//   Hessian is (∂F/∂x)ᵀ proj(∂²Ψ/∂F²) (∂F/∂x), proj through the analytic eigensystem of
-//   ∂²Ψ/∂F² (Smith, de Goes, Kim 2019) on a signed SVD of F (src/energy/eigensystem.rs).
+// - neohookean_elements: neo-Hookean triangles (D = 2) or tetrahedra (D = 3), per element
+//   the classical law μ/2 (I_C − D) − μ ln J + λ/2 (ln J)² (flags[e] = 1 where J ≤ 0, its
+//   energy being +∞ there) or the stable law of Smith, de Goes, Kim (2018); the Hessian is
+//   (∂F/∂x)ᵀ proj(∂²Ψ/∂F²) (∂F/∂x), proj through the analytic eigensystem of ∂²Ψ/∂F²
+//   (Smith, de Goes, Kim 2019) on a signed SVD of F (src/sim/energy/eigensystem.rs).
 // - spring_elements: k/(2 l₀)(l − l₀)², transverse stiffness clamped at zero.
 // - inertia_nodes, gravity_nodes, barrier_nodes: per node; gravity has no Hessian.
 // `params.project` = 0 keeps every eigenvalue (the unprojected Hessian, for tests).
@@ -42,7 +44,8 @@ struct ElementParams {
 @group(0) @binding(1) var<storage, read> x: array<real>;
 // Element-to-node indices, nodes per element each.
 @group(0) @binding(2) var<storage, read> nodes: array<u32>;
-// Per element: neo-Hookean (Dm⁻¹ row-major D×D, rest volume, μ, λ), springs (l₀, k).
+// Per element: neo-Hookean (Dm⁻¹ row-major D×D, rest volume, μ, λ, law: 1 classical,
+// 0 stable), springs (l₀, k).
 // Per node (node kernels): (lumped mass, contact weight), for every node of the mesh.
 @group(0) @binding(3) var<storage, read> rest: array<real>;
 // Gravity (3 entries), then per half-space (normal xyz, offset, d̂, κ).
@@ -52,8 +55,9 @@ struct ElementParams {
 @group(0) @binding(6) var<storage, read_write> energy: array<real>;
 @group(0) @binding(7) var<storage, read_write> gradient: array<real>;
 @group(0) @binding(8) var<storage, read_write> hessian: array<real>;
-// Barrier: 1 where a weighted node touches or crosses a half-space (energy +∞ there; WGSL
-// has no portable infinity, so the host reads this instead).
+// Barrier: 1 where a weighted node touches or crosses a half-space; classical neo-Hookean
+// elements: 1 where J ≤ 0 (energy +∞ there; WGSL has no portable infinity, so the host
+// reads this instead).
 @group(0) @binding(9) var<storage, read_write> flags: array<u32>;
 
 const LN2_HI = 0.693147180369123816490;
@@ -397,7 +401,7 @@ fn add_mode(h: ptr<function, array<real, 144>>, l: real, q: array<real, 9>, g: a
 fn neohookean_element(e: u32) {
     let nn = D + 1u;
     let nl = nn * D;
-    let base = e * (D * D + 3u);
+    let base = e * (D * D + 4u);
     // Shape-function gradients: node a ≥ 1 takes row a − 1 of Dm⁻¹, node 0 minus their sum.
     var g = array<real, 12>();
     for (var a = 1u; a <= D; a++) {
@@ -410,6 +414,7 @@ fn neohookean_element(e: u32) {
     let vol = rest[base + D * D];
     let mu = rest[base + D * D + 1u];
     let lam = rest[base + D * D + 2u];
+    let classical = rest[base + D * D + 3u] != real(0.0);
     let dr = real(D);
     let alpha = real(1.0) + mu * dr / (lam * (dr + real(1.0)));
     // F = Ds Dm⁻¹ from edge vectors x_a − x_0 (not Σ x_a g_aᵀ): the subtraction comes
@@ -441,16 +446,43 @@ fn neohookean_element(e: u32) {
         }
     }
     let jac = det_f(f);
-    let psi = real(0.5) * mu * u - real(0.5) * mu * ln1p(u / (dr + real(1.0)))
-        + real(0.5) * lam * (jac - real(1.0)) * (jac + real(1.0) - real(2.0) * alpha);
+    if (classical) {
+        // J ≤ 0: +∞, said by the flag; the outputs are zeros.
+        let inverted = !(jac > real(0.0));
+        flags[e] = select(0u, 1u, inverted);
+        if (inverted) {
+            energy[e] = real(0.0);
+            if (params.energy_only == 0u) {
+                for (var k = 0u; k < nl; k++) {
+                    gradient[e * nl + k] = real(0.0);
+                }
+                for (var k = 0u; k < nl * nl; k++) {
+                    hessian[e * nl * nl + k] = real(0.0);
+                }
+            }
+            return;
+        }
+    }
+    // Classical: Ψ = μ/2 u − μ ln J + λ/2 (ln J)², ln J = ln1p(J − 1).
+    let lnj = select(real(0.0), ln1p(jac - real(1.0)), classical);
+    var psi = real(0.5) * mu * u - mu * lnj + real(0.5) * lam * lnj * lnj;
+    if (!classical) {
+        psi = real(0.5) * mu * u - real(0.5) * mu * ln1p(u / (dr + real(1.0)))
+            + real(0.5) * lam * (jac - real(1.0)) * (jac + real(1.0) - real(2.0) * alpha);
+    }
     energy[e] = vol * psi;
     if (params.energy_only != 0u) {
         return;
     }
-    // P = s F + t cof(F).
+    // P = s F + t cof(F): classical s = μ, t = (λ ln J − μ)/J; stable s = μ − μ/(I_C + 1),
+    // t = λ (J − α).
     let cof = cofactor(f);
-    let s = mu - mu / (ic + real(1.0));
-    let t = lam * (jac - alpha);
+    var s = mu - mu / (ic + real(1.0));
+    var t = lam * (jac - alpha);
+    if (classical) {
+        s = mu;
+        t = (lam * lnj - mu) / jac;
+    }
     for (var a = 0u; a < nn; a++) {
         for (var c = 0u; c < D; c++) {
             var acc_g = real(0.0);
@@ -462,7 +494,7 @@ fn neohookean_element(e: u32) {
     }
     // ∂²Ψ/∂F² by its eigensystem at the signed singular values (see
     // NeoHookean::singular_value_hessian): scaling modes from the D×D block
-    // A = q σσᵀ + λ c cᵀ + s I + t E, twist and flip modes with eigenvalues s ± t σ_k.
+    // A = q σσᵀ + w c cᵀ + s I + t E, twist and flip modes with eigenvalues s ± t σ_k.
     let svd = signed_svd(f);
     var sg = array<real, 3>(svd.s[0], svd.s[1], real(1.0));
     if (D == 3u) {
@@ -474,9 +506,19 @@ fn neohookean_element(e: u32) {
         ics += sg[k] * sg[k];
         js *= sg[k];
     }
-    let ss = mu - mu / (ics + real(1.0));
-    let qs = real(2.0) * mu / ((ics + real(1.0)) * (ics + real(1.0)));
-    let ts = lam * (js - alpha);
+    var ss = mu - mu / (ics + real(1.0));
+    var qs = real(2.0) * mu / ((ics + real(1.0)) * (ics + real(1.0)));
+    var ws = lam;
+    var ts = lam * (js - alpha);
+    if (classical) {
+        // s = μ, q = 0, t = (λ ln J − μ)/J, w = dt/dJ = (λ (1 − ln J) + μ)/J², at the
+        // singular values' J (positive here).
+        let lns = ln1p(js - real(1.0));
+        ss = mu;
+        qs = real(0.0);
+        ws = (lam * (real(1.0) - lns) + mu) / (js * js);
+        ts = (lam * lns - mu) / js;
+    }
     // others[k]: product of the singular values other than k; pair products other than
     // (a, b) are the third one (D = 3) or 1 (D = 2).
     var others = array<real, 3>();
@@ -492,7 +534,7 @@ fn neohookean_element(e: u32) {
     var am = array<real, 9>();
     for (var a = 0u; a < D; a++) {
         for (var b = 0u; b < D; b++) {
-            var v = qs * sg[a] * sg[b] + lam * others[a] * others[b];
+            var v = qs * sg[a] * sg[b] + ws * others[a] * others[b];
             if (a == b) {
                 v += ss;
             } else {

@@ -30,7 +30,7 @@ use rand::{Rng, SeedableRng};
 use stickslip::gpu::{GpuContext, GpuError, Precision};
 use stickslip::sim::device::elements::{ElementKernels, GpuElements, TermKind, TermValues};
 use stickslip::sim::energy::barrier::{Barrier, HalfSpace};
-use stickslip::sim::energy::{gravity, inertia, ElementSet, Model, NeoHookean, Springs};
+use stickslip::sim::energy::{gravity, inertia, ElementSet, Law, Model, NeoHookean, Springs};
 use stickslip::sim::mesh::{ElementKind, Mesh};
 
 mod common;
@@ -42,6 +42,8 @@ const ELEMENTS_PER_CATEGORY: usize = 24;
 enum Category {
     WellShaped,
     Flat,
+    /// The smallest σ in [0.02, 0.05]: J small and positive.
+    NearlyInverted,
     Inverted,
     /// Ties in |σ|, where an SVD's vectors are not unique: pure rotations, two equal σ,
     /// and all |σ| equal with the last negative.
@@ -85,6 +87,7 @@ fn deformation(d: usize, cat: Category, rng: &mut StdRng) -> Vec<f64> {
                 .collect();
         }
         Category::Flat => s[d - 1] = 1e-6 * rng.random_range(0.5..2.0),
+        Category::NearlyInverted => s[d - 1] = rng.random_range(0.02..0.05),
         Category::Inverted => s[d - 1] = -rng.random_range(0.1..0.6),
         Category::RepeatedSigma => {
             let ties: [&[f64]; 3] = if d == 2 {
@@ -181,10 +184,15 @@ struct Scene {
 }
 
 fn scene(d: usize, cat: Category, seed: u64) -> Scene {
+    scene_of(d, cat, seed, Law::StableNeoHookean)
+}
+
+/// [`scene`] with its neo-Hookean elements of `law`.
+fn scene_of(d: usize, cat: Category, seed: u64, law: Law) -> Scene {
     let mut rng = StdRng::seed_from_u64(seed);
     let (mesh, x) = elements(d, cat, &mut rng);
     let n = mesh.x.len() / d;
-    let nh = NeoHookean::new(&mesh, 1e5, 0.45).expect("valid rest elements");
+    let nh = NeoHookean::new(&mesh, 1e5, 0.45, law).expect("valid rest elements");
     let springs = Springs::new(d, &mesh.x, mesh.edges(), 3e3).expect("valid springs");
     let mass: Vec<f64> = (0..n).map(|_| rng.random_range(0.5..2.0)).collect();
     let g = [0.0, -9.81, 1.5];
@@ -270,8 +278,13 @@ fn cpu_values_at(s: &Scene, xe: &[f64], kind: TermKind, set: usize, project: boo
         TermKind::NeoHookean | TermKind::Springs => {
             let es = &m.sets[set];
             let nl = es.arity() * d;
+            let flagged = matches!(es, ElementSet::NeoHookean(nh) if nh.law == Law::NeoHookean);
             for e in 0..es.len() {
                 out.energy.push(es.energy(xe, e));
+                if flagged {
+                    // Classical neo-Hookean: J ≤ 0 is flagged (energy +∞).
+                    out.flags.push(u32::from(es.energy(xe, e).is_infinite()));
+                }
                 let mut g = vec![0.0; nl];
                 es.gradient(xe, e, &mut g);
                 out.gradient.extend_from_slice(&g);
@@ -529,6 +542,67 @@ fn run(precision: Precision, tol: f64) {
             compare(ctx, &kernels, &s, tol, &format!("{precision} {d}D {cat:?}"));
         }
     }
+}
+
+/// The classical neo-Hookean law's elements (defined for J > 0 only: well-shaped, flat and
+/// nearly inverted ones) against the CPU and the numerical projection.
+fn run_classical(precision: Precision, tol: f64, cats: &[Category]) {
+    let Some((ctx, _g)) = gpu() else { return };
+    if precision == Precision::F64 && !ctx.has_f64() {
+        common::skip(&format!(
+            "SKIP: adapter '{}' has no SHADER_F64",
+            ctx.adapter_name()
+        ));
+        return;
+    }
+    for d in [2, 3] {
+        let kernels = ElementKernels::new(ctx, d, precision).expect("element kernels");
+        for (k, &cat) in cats.iter().enumerate() {
+            let s = scene_of(d, cat, 700 + 100 * d as u64 + k as u64, Law::NeoHookean);
+            // Flat elements (σ = 1e-6): J formed from O(1) entries is known only to ε/J
+            // ≈ 2e-10 of itself, whether as det F or as the SVD's Πσ, and the classical
+            // law's gradient and Hessian go as 1/J and 1/J², so any two correct
+            // evaluations (CPU, GPU, the numerical projection) differ by ~ε/J: 1e-9.
+            let tol = if cat == Category::Flat && precision == Precision::F64 {
+                1e-9
+            } else {
+                tol
+            };
+            compare(
+                ctx,
+                &kernels,
+                &s,
+                tol,
+                &format!("classical {precision} {d}D {cat:?}"),
+            );
+        }
+    }
+}
+
+#[test]
+fn f64_classical_element_terms_match_the_cpu() {
+    run_classical(
+        Precision::F64,
+        1e-12,
+        &[
+            Category::WellShaped,
+            Category::Flat,
+            Category::NearlyInverted,
+            Category::SliverAtRest,
+        ],
+    );
+}
+
+/// f32: F carries the input rounding ~|x|/|Ds|·2⁻²⁴ (a few ×1e-7), and the classical
+/// Hessian's terms go as 1/σ², so flat elements (σ = 1e-6) are left out: their f32 F is
+/// ~10% off before any arithmetic.
+#[test]
+fn f32_classical_element_terms_match_the_cpu() {
+    run_classical(
+        Precision::F32,
+        1e-5,
+        &[Category::WellShaped, Category::NearlyInverted],
+    );
 }
 
 #[test]

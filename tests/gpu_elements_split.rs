@@ -27,7 +27,7 @@ use stickslip::sim::device::assembly::GpuAssembly;
 use stickslip::sim::device::elements::{ElementKernels, GpuElements, TermKind};
 use stickslip::sim::device::newton_ops::NewtonOps;
 use stickslip::sim::energy::barrier::{Barrier, HalfSpace};
-use stickslip::sim::energy::{ElementSet, Model, NeoHookean, Springs};
+use stickslip::sim::energy::{ElementSet, Law, Model, NeoHookean, Springs};
 use stickslip::sim::mesh;
 
 mod common;
@@ -60,7 +60,7 @@ fn case(d: usize, seed: u64) -> Case {
         m.x.iter()
             .map(|v| v + rng.random_range(-0.03..0.03))
             .collect();
-    let nh = NeoHookean::new(&m, 1e5, 0.4).expect("valid rest elements");
+    let nh = NeoHookean::new(&m, 1e5, 0.4, Law::StableNeoHookean).expect("valid rest elements");
     let springs = Springs::new(d, &m.x, m.edges(), 3e3).expect("valid springs");
     let mass: Vec<f64> = (0..n).map(|_| rng.random_range(0.5..2.0)).collect();
     let g = [0.0, -9.81, 1.5];

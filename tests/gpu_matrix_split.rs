@@ -28,7 +28,7 @@ use stickslip::sim::device::elements::{ElementKernels, GpuElements, TermKind};
 use stickslip::sim::device::newton_cg::{DeviceCg, DeviceCgParams};
 use stickslip::sim::device::newton_ops::{MovingTerm, NewtonOps};
 use stickslip::sim::energy::barrier::{Barrier, HalfSpace};
-use stickslip::sim::energy::{ElementSet, Model, NeoHookean};
+use stickslip::sim::energy::{ElementSet, Law, Model, NeoHookean};
 use stickslip::sim::mesh;
 use stickslip::sim::scene::BcShape;
 use stickslip::solve::cg::Preconditioner;
@@ -69,7 +69,7 @@ fn case(d: usize, seed: u64, large: bool) -> Case {
         m.x.iter()
             .map(|v| v + rng.random_range(-0.01..0.01))
             .collect();
-    let nh = NeoHookean::new(&m, 1e5, 0.35).expect("valid rest elements");
+    let nh = NeoHookean::new(&m, 1e5, 0.35, Law::StableNeoHookean).expect("valid rest elements");
     let mass: Vec<f64> = (0..n).map(|_| rng.random_range(0.5..2.0)).collect();
     let g = [0.0, -9.81, 1.5];
     let model = Model::new(

@@ -33,7 +33,7 @@ use stickslip::gpu::{GpuContext, GpuError, Precision};
 use stickslip::sim::device::assembly::GpuAssembly;
 use stickslip::sim::device::elements::GpuElements;
 use stickslip::sim::device::newton_cg::{DeviceCg, DeviceCgParams};
-use stickslip::sim::energy::{ElementSet, Model, NeoHookean};
+use stickslip::sim::energy::{ElementSet, Law, Model, NeoHookean};
 use stickslip::sim::mesh;
 use stickslip::solve::cg::{CgError, Preconditioner};
 use stickslip::solve::coarse::{translations_einv_from_blocks, CoarseSpace};
@@ -77,7 +77,7 @@ fn body(d: usize, seed: u64, gravity: bool, free: bool) -> Scene {
         m.x.iter()
             .map(|v| v + rng.random_range(-0.01..0.01))
             .collect();
-    let nh = NeoHookean::new(&m, 1e5, 0.35).expect("valid rest elements");
+    let nh = NeoHookean::new(&m, 1e5, 0.35, Law::StableNeoHookean).expect("valid rest elements");
     let mass_scale = if free { 0.01 } else { 1.0 };
     let mass: Vec<f64> = (0..n)
         .map(|_| mass_scale * rng.random_range(0.5..2.0))

@@ -1,6 +1,6 @@
 //! Finite-difference checks of the energies' gradients and Hessians, and PSD projection.
 
-use stickslip::sim::energy::{ElementSet, Model, NeoHookean, Springs};
+use stickslip::sim::energy::{ElementSet, Law, Model, NeoHookean, Springs};
 use stickslip::sim::mesh;
 
 /// Deterministic pseudo-random perturbation in [-amp, amp].
@@ -20,7 +20,7 @@ fn perturb(x: &mut [f64], amp: f64, seed: u64) {
 fn models() -> Vec<(&'static str, Model, Vec<f64>)> {
     let mut out = Vec::new();
     let r = mesh::rectangle(2, [1.0, 0.5], [3, 2]);
-    let nh2 = NeoHookean::new(&r, 1e4, 0.4).expect("valid mesh");
+    let nh2 = NeoHookean::new(&r, 1e4, 0.4, Law::StableNeoHookean).expect("valid mesh");
     let sp2 = Springs::new(2, &r.x, r.edges(), 50.0).expect("valid mesh");
     let m2 = r.lumped_masses(100.0);
     let mut x2 = r.x.clone();
@@ -36,7 +36,7 @@ fn models() -> Vec<(&'static str, Model, Vec<f64>)> {
         x2,
     ));
     let b = mesh::cuboid([1.0, 0.6, 0.4], [2, 2, 1]);
-    let nh3 = NeoHookean::new(&b, 1e4, 0.3).expect("valid mesh");
+    let nh3 = NeoHookean::new(&b, 1e4, 0.3, Law::StableNeoHookean).expect("valid mesh");
     let sp3 = Springs::new(3, &b.x, b.edges(), 30.0).expect("valid mesh");
     let m3 = b.lumped_masses(100.0);
     let mut x3 = b.x.clone();
@@ -51,9 +51,38 @@ fn models() -> Vec<(&'static str, Model, Vec<f64>)> {
         ),
         x3,
     ));
+    // The classical law (defined for J > 0): the same meshes, perturbed less, and a
+    // strongly compressed (not inverted) box.
+    for (d, law_mesh, amp, squeeze) in [
+        (2, mesh::rectangle(2, [1.0, 0.5], [3, 2]), 0.03, 1.0),
+        (3, mesh::cuboid([1.0, 0.6, 0.4], [2, 2, 1]), 0.03, 1.0),
+        (3, mesh::cuboid([1.0, 1.0, 1.0], [1, 1, 1]), 0.02, 0.3),
+    ] {
+        let nh = NeoHookean::new(&law_mesh, 1e4, 0.4, Law::NeoHookean).expect("valid mesh");
+        let m = law_mesh.lumped_masses(100.0);
+        let mut x: Vec<f64> = law_mesh.x.iter().map(|v| squeeze * v).collect();
+        perturb(&mut x, amp, 10 + d as u64);
+        let model = Model::new(d, m, None, vec![ElementSet::NeoHookean(nh)]);
+        let j = model.min_volume_ratio(&x)[0].j;
+        assert!(
+            j > 0.0,
+            "the classical law's test state is not inverted: {j}"
+        );
+        out.push((
+            if squeeze < 1.0 {
+                "3D classical neo-Hookean, compressed"
+            } else if d == 2 {
+                "2D classical neo-Hookean"
+            } else {
+                "3D classical neo-Hookean"
+            },
+            model,
+            x,
+        ));
+    }
     // A compressed, partly inverted state exercises the indefinite branch.
     let t = mesh::cuboid([1.0, 1.0, 1.0], [1, 1, 1]);
-    let nh = NeoHookean::new(&t, 1e3, 0.45).expect("valid mesh");
+    let nh = NeoHookean::new(&t, 1e3, 0.45, Law::StableNeoHookean).expect("valid mesh");
     let m = t.lumped_masses(1.0);
     let mut xt: Vec<f64> = t.x.iter().map(|v| 0.4 * v).collect();
     perturb(&mut xt, 0.3, 3);
@@ -130,8 +159,14 @@ fn hessians_match_finite_differences_and_projection_is_psd() {
 
 #[test]
 fn rest_state_is_stress_free_and_rigid_motions_cost_nothing() {
+    for law in [Law::NeoHookean, Law::StableNeoHookean] {
+        rest_state_is_stress_free_for(law);
+    }
+}
+
+fn rest_state_is_stress_free_for(law: Law) {
     let b = mesh::cuboid([1.0, 0.5, 0.5], [2, 1, 1]);
-    let nh = NeoHookean::new(&b, 1e5, 0.3).expect("valid mesh");
+    let nh = NeoHookean::new(&b, 1e5, 0.3, law).expect("valid mesh");
     let model = Model::new(
         3,
         b.lumped_masses(1.0),
@@ -164,7 +199,14 @@ fn small_strain_matches_linear_elasticity() {
     let (e, nu) = (2e5, 0.3);
     let (mu_l, la_l) = stickslip::sim::energy::neohookean::lame(e, nu);
     let t = mesh::cuboid([1.0, 1.0, 1.0], [1, 1, 1]);
-    let nh = NeoHookean::new(&t, e, nu).expect("valid mesh");
+    for law in [Law::NeoHookean, Law::StableNeoHookean] {
+        let nh = NeoHookean::new(&t, e, nu, law).expect("valid mesh");
+        small_strain_for(&nh, mu_l, la_l);
+    }
+}
+
+/// Ψ(I + εS) against linear elasticity with the Lamé parameters (μ_L, λ_L).
+fn small_strain_for(nh: &NeoHookean, mu_l: f64, la_l: f64) {
     let eps = 1e-5;
     let s = [1.0, 0.3, 0.0, 0.3, -0.5, 0.2, 0.0, 0.2, 0.7];
     let f: Vec<f64> = (0..9)
@@ -174,5 +216,9 @@ fn small_strain_matches_linear_elasticity() {
     let ss: f64 = s.iter().map(|v| v * v).sum();
     let lin = mu_l * eps * eps * ss + 0.5 * la_l * eps * eps * tr * tr;
     let psi = nh.density(&f);
-    assert!((psi - lin).abs() <= 1e-3 * lin, "Ψ = {psi}, linear {lin}");
+    assert!(
+        (psi - lin).abs() <= 1e-3 * lin,
+        "{}: Ψ = {psi}, linear {lin}",
+        nh.law.name()
+    );
 }

@@ -23,6 +23,7 @@ fn run_scene(name: &str) -> RunSummary {
         .lines()
         .next()
         .expect("header")
+        .trim_end_matches(",min_j")
         .ends_with(",k_m,eliminated_at_iteration"));
     let _ = std::fs::remove_dir_all(&out);
     s

@@ -437,7 +437,7 @@ fn eig_range(n: usize, m: &[f64]) -> (f64, f64) {
 /// M + h²K with such elements is SPD, so the simulation never hands CG an indefinite H.
 #[test]
 fn projected_element_hessians_are_psd_on_inverted_and_degenerate_elements() {
-    use stickslip::sim::energy::{ElementSet, Model, NeoHookean};
+    use stickslip::sim::energy::{ElementSet, Law, Model, NeoHookean};
     use stickslip::sim::mesh::{ElementKind, Mesh};
     let tet = Mesh {
         dim: 3,
@@ -473,7 +473,8 @@ fn projected_element_hessians_are_psd_on_inverted_and_degenerate_elements() {
     ];
     for poisson in [0.3, 0.49, 0.499] {
         for (mesh, configs) in [(&tet, &configs3), (&tri, &configs2)] {
-            let nh = NeoHookean::new(mesh, 1e9, poisson).expect("valid rest shape");
+            let nh = NeoHookean::new(mesh, 1e9, poisson, Law::StableNeoHookean)
+                .expect("valid rest shape");
             let nl = (mesh.dim + 1) * mesh.dim;
             for (what, x) in configs.iter() {
                 let mut raw = vec![0.0; nl * nl];
@@ -496,7 +497,7 @@ fn projected_element_hessians_are_psd_on_inverted_and_degenerate_elements() {
     }
     // Assembled: a tet box with several inverted and flattened elements, H = M + h²K.
     let m = stickslip::sim::mesh::cuboid([1.0, 0.25, 0.25], [4, 1, 1]);
-    let nh = NeoHookean::new(&m, 1e9, 0.499).expect("valid rest shape");
+    let nh = NeoHookean::new(&m, 1e9, 0.499, Law::StableNeoHookean).expect("valid rest shape");
     let mass = m.lumped_masses(1000.0);
     let model = Model::new(3, mass, None, vec![ElementSet::NeoHookean(nh)]);
     let mut x = m.x.clone();

@@ -342,7 +342,7 @@ pub struct GenerateArgs {
 #[derive(Debug, Clone, Args)]
 pub struct RunArgs {
     /// A scene file (TOML) or a built-in scene name (default, hanging, incline, bead,
-    /// twist, compress, slip-line, drop, squash); the built-in `default` when absent.
+    /// twist, compress, slip-line, drop, squash, crush); the built-in `default` when absent.
     pub scene: Option<String>,
     /// Output folder for frames (VTK), steps.csv and summary.json [default: out/SCENE].
     #[arg(long, value_name = "DIR")]

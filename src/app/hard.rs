@@ -12,7 +12,7 @@
 use crate::core::constraints::{Constraint, ConstraintKind, Frames};
 use crate::core::elimination::{norm2, ConstrainedDiagonal, Eliminated};
 use crate::core::sparse::BlockCsr;
-use crate::sim::energy::{ElementSet, Model, NeoHookean};
+use crate::sim::energy::{ElementSet, Law, Model, NeoHookean};
 use crate::sim::mesh;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -212,7 +212,7 @@ pub struct BoxSpec {
 /// neo-Hookean tet box at a twisted, perturbed configuration; the x = 0 face sticky.
 pub fn neo_hookean_box(name: &str, what: &str, spec: &BoxSpec, seed: u64) -> HardCase {
     let m = mesh::cuboid(spec.size, spec.cells);
-    let nh = NeoHookean::new(&m, spec.young, spec.poisson)
+    let nh = NeoHookean::new(&m, spec.young, spec.poisson, Law::StableNeoHookean)
         .unwrap_or_else(|e| panic!("hard case {name}: {e}"));
     let mass = m.lumped_masses(spec.density);
     let model = Model::new(3, mass.clone(), None, vec![ElementSet::NeoHookean(nh)]);

@@ -66,6 +66,10 @@ pub struct Tallies {
     /// Wall time of the run's invocations so far, and of their checkpoint writes.
     pub wall_seconds: f64,
     pub checkpoint_seconds: f64,
+    /// Per neo-Hookean law (by its scene name): the steps that ended with an inverted
+    /// element.
+    #[serde(default)]
+    pub inverted_steps: std::collections::BTreeMap<String, usize>,
 }
 
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]

@@ -216,6 +216,10 @@ pub struct RunSummary {
     /// Wall time spent writing checkpoints, over every invocation of the run.
     pub checkpoint_seconds: f64,
     pub moving_boundary: Option<MovingSummary>,
+    /// Per neo-Hookean law of the scene (by its scene name, e.g. "stable-neo-hookean"):
+    /// the steps that ended with an inverted element (J ≤ 0). The classical law's line
+    /// search keeps its elements' J positive, so its count stays 0.
+    pub inverted_steps: std::collections::BTreeMap<String, usize>,
     /// What the contact code did: all zero for a scene without obstacles.
     pub contact_counters: ContactCounters,
     /// Contact history; None for a scene without obstacles.
@@ -646,6 +650,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         checkpoint_every: scene.output.checkpoint_every.unwrap_or(scene.output.every),
         checkpoint_seconds: 0.0,
         moving_boundary: None,
+        inverted_steps: Default::default(),
         contact_counters: ContactCounters::default(),
         contact: None,
         gpu: None,
@@ -891,6 +896,17 @@ fn fill_summary(run: &Run, stepper: &Stepper, summary: &mut RunSummary) {
     summary.steps_completed = stepper.step;
     summary.end_time = stepper.t;
     summary.checkpoint_seconds = t.checkpoint_seconds;
+    // Every neo-Hookean law of the scene, with zero when no step ended inverted.
+    summary.inverted_steps = scene
+        .model
+        .min_volume_ratio(&scene.x0)
+        .iter()
+        .map(|m| {
+            let name = m.law.name().to_string();
+            let n = t.inverted_steps.get(&name).copied().unwrap_or(0);
+            (name, n)
+        })
+        .collect();
     summary.moving_boundary = stepper.has_moving().then(|| MovingSummary {
         settings: scene.moving.clone(),
         moving_nodes: scene.bcs.iter().filter(|b| b.motion.is_some()).count(),
@@ -934,10 +950,11 @@ fn simulate(
         .map_err(|e| out_err(dir.path(), e))?;
     let resuming = summary.resumed_from_step.is_some();
     let (dim, moving, contact) = (scene.dim, stepper.has_moving(), stepper.has_contact());
+    let solid = !scene.model.min_volume_ratio(&scene.x0).is_empty();
     let mut csv = if resuming {
-        StepsCsv::append(&csv_path, moving, contact)
+        StepsCsv::append(&csv_path, moving, contact, solid)
     } else {
-        StepsCsv::create(&csv_path, dim, moving, contact)
+        StepsCsv::create(&csv_path, dim, moving, contact, solid)
     }
     .map_err(|e| out_err(&csv_path, e))?;
 
@@ -963,6 +980,15 @@ fn simulate(
         contact: s.total_contact().unwrap_or_default(),
         max_slope: rep.and_then(|r| r.max_slope),
         ascent_directions: rep.map_or(0, |r| r.ascent_directions),
+        min_j: match rep {
+            Some(r) => r.min_j,
+            None => scene
+                .model
+                .min_volume_ratio(&s.x)
+                .iter()
+                .map(|m| m.j)
+                .reduce(f64::min),
+        },
     };
     let fold_min = |t: &mut Tallies, r: &StepRecord| {
         if let Some(d) = r.min_distance {
@@ -1031,6 +1057,9 @@ fn simulate(
         t.linear_seconds += rep.linear_seconds;
         t.linear_resolves += rep.linear_resolves;
         t.ccd_limited += rep.ccd_limited;
+        for law in &rep.inverted {
+            *t.inverted_steps.entry(law.name().to_string()).or_default() += 1;
+        }
         if stepper.has_moving() {
             t.k_m_doublings += rep.k_m_doublings;
             if t.k_m_history.last().is_none_or(|&(_, k)| k != rep.k_m) {

@@ -4,10 +4,12 @@
 //! zero reaction):
 //! `step,time,newton_iterations,linear_iterations,linear_seconds,energy,com_x,com_y[,com_z],
 //! p_x,p_y[,p_z],f_x,f_y[,f_z]`; for scenes with obstacles `,min_distance,c_x,c_y[,c_z]`;
-//! and, for scenes with moving conditions, `,k_m,eliminated_at_iteration`; then, always,
-//! `,cg_tol_loosest,cg_tol_tightest,linear_resolves`: the loosest and tightest relative
-//! residual tolerance of the step's iterative solves (empty for direct solves; see
-//! `[solver] cg_tolerance`) and the systems solved again to the convergence tolerance.
+//! for scenes with moving conditions, `,k_m,eliminated_at_iteration`; for scenes with
+//! neo-Hookean (solid) bodies, `,min_j`: the smallest element volume ratio J = det F of the
+//! step's end state (row 0: of the initial state), ≤ 0 when an element is inverted; then,
+//! always, `,cg_tol_loosest,cg_tol_tightest,linear_resolves`: the loosest and tightest
+//! relative residual tolerance of the step's iterative solves (empty for direct solves;
+//! see `[solver] cg_tolerance`) and the systems solved again to the convergence tolerance.
 //! `min_distance` is the smallest signed distance of any node to any obstacle over every
 //! Newton iterate of the step (row 0: at t = 0) and `c` the summed contact force (newtons,
 //! −∇P_b, an external force apart from the reactions `f`). `energy` is the mechanical energy (kinetic + elastic +
@@ -116,6 +118,8 @@ pub struct StepRecord {
     pub max_slope: Option<f64>,
     /// Line-searched iterates whose step was not a descent direction.
     pub ascent_directions: usize,
+    /// Solid bodies only: the smallest element volume ratio J of the state.
+    pub min_j: Option<f64>,
 }
 
 /// The steps.csv writer: unbuffered, one `write` per row, so a killed run leaves every
@@ -124,10 +128,17 @@ pub struct StepsCsv {
     w: File,
     moving: bool,
     contact: bool,
+    solid: bool,
 }
 
 impl StepsCsv {
-    pub fn create(path: &Path, dim: usize, moving: bool, contact: bool) -> std::io::Result<Self> {
+    pub fn create(
+        path: &Path,
+        dim: usize,
+        moving: bool,
+        contact: bool,
+        solid: bool,
+    ) -> std::io::Result<Self> {
         let mut w = File::create(path)?;
         let axes = &["x", "y", "z"][..dim];
         let mut h =
@@ -146,16 +157,29 @@ impl StepsCsv {
         if moving {
             h.push_str(",k_m,eliminated_at_iteration");
         }
+        if solid {
+            h.push_str(",min_j");
+        }
         h.push_str(",cg_tol_loosest,cg_tol_tightest,linear_resolves");
         h.push('\n');
         w.write_all(h.as_bytes())?;
-        Ok(StepsCsv { w, moving, contact })
+        Ok(StepsCsv {
+            w,
+            moving,
+            contact,
+            solid,
+        })
     }
 
     /// Continues a steps.csv that holds the header and the rows so far (a resumed run).
-    pub fn append(path: &Path, moving: bool, contact: bool) -> std::io::Result<Self> {
+    pub fn append(path: &Path, moving: bool, contact: bool, solid: bool) -> std::io::Result<Self> {
         let w = std::fs::OpenOptions::new().append(true).open(path)?;
-        Ok(StepsCsv { w, moving, contact })
+        Ok(StepsCsv {
+            w,
+            moving,
+            contact,
+            solid,
+        })
     }
 
     pub fn row(&mut self, r: &StepRecord) -> std::io::Result<()> {
@@ -177,6 +201,9 @@ impl StepsCsv {
             if let Some(k) = r.eliminated_at_iteration {
                 let _ = write!(s, "{k}");
             }
+        }
+        if self.solid {
+            let _ = write!(s, ",{:.17e}", r.min_j.unwrap_or(f64::NAN));
         }
         // Empty where the step made no iterative solve (row 0, a direct solver).
         for t in [r.cg_tol_loosest, r.cg_tol_tightest] {

@@ -5,7 +5,8 @@
 //!
 //! Mesh data is uploaded once ([`GpuElements::new`]): per element set the element-to-node
 //! indices (u32, nodes per element each) and the rest data (neo-Hookean: Dm⁻¹, rest
-//! volume, μ, λ; springs: rest length, stiffness), per node the lumped mass and contact
+//! volume, μ, λ, law: 1 classical, 0 stable; springs: rest length, stiffness), per node
+//! the lumped mass and contact
 //! weight, and the gravity and half-spaces. Per evaluation only the positions (and the
 //! inertia target, the half-spaces when they move) are written. Each term leaves its own
 //! per-item arrays on the device, in the layout of the CPU's element buffers
@@ -17,7 +18,9 @@
 //!
 //! with a node term (inertia, gravity, barrier) as an element of one node; gravity has no
 //! Hessian, and the barrier adds `flags[i]` = 1 where a weighted node touches or crosses a
-//! half-space (its energy is +∞ there, which WGSL cannot write portably).
+//! half-space (its energy is +∞ there, which WGSL cannot write portably), as a set of
+//! classical neo-Hookean elements does where J ≤ 0 (energy written as 0, gradient and
+//! Hessian as 0).
 //!
 //! One storage binding is capped (`max_storage_buffer_binding_size`: 128 MiB on lavapipe,
 //! 2³¹ − 1 bytes at most under wgpu), and a tetrahedron's Hessian alone is 1152 B. A term whose
@@ -36,7 +39,7 @@
 use crate::gpu::kernels::{self, Access, Layout};
 use crate::gpu::{GpuContext, GpuError, Precision};
 use crate::sim::energy::barrier::{Barrier, HalfSpace};
-use crate::sim::energy::{ElementSet, Model};
+use crate::sim::energy::{ElementSet, Law, Model};
 
 use Access::{Read as R, ReadWrite as W, Uniform as U};
 
@@ -247,7 +250,8 @@ pub struct TermValues {
     pub gradient: Vec<f64>,
     /// Per element (nodes·d)² row-major (node terms: d²); empty for gravity.
     pub hessian: Vec<f64>,
-    /// Barrier: 1 where a weighted node touches or crosses a half-space; else empty.
+    /// Barrier: 1 where a weighted node touches or crosses a half-space; classical
+    /// neo-Hookean elements: 1 where J ≤ 0 (the energy is +∞ there); else empty.
     pub flags: Vec<u32>,
 }
 
@@ -334,6 +338,8 @@ struct TermData<'a> {
     shared_rest: Option<&'a wgpu::Buffer>,
     grad_len: usize,
     hess_len: usize,
+    /// The term writes per-item flags (the barrier; classical neo-Hookean elements).
+    flagged: bool,
 }
 
 /// Splits `len` items whose largest per-item array takes `item_bytes` into consecutive
@@ -475,7 +481,7 @@ impl GpuElements {
         let mut data: Vec<TermData> = Vec::new();
         for (k, s) in model.sets.iter().enumerate() {
             let (kind, stride) = match s {
-                ElementSet::NeoHookean(_) => (TermKind::NeoHookean, d * d + 3),
+                ElementSet::NeoHookean(_) => (TermKind::NeoHookean, d * d + 4),
                 ElementSet::Springs(_) => (TermKind::Springs, 2),
             };
             let arity = s.arity();
@@ -497,7 +503,11 @@ impl GpuElements {
                         for e in r.clone() {
                             // Rows 1..=d of the shape gradients are Dm⁻¹.
                             rest.extend_from_slice(&nh.grads(e)[d..]);
-                            rest.extend_from_slice(&[nh.volume[e], nh.mu, nh.lambda]);
+                            let law = match nh.law {
+                                Law::NeoHookean => 1.0,
+                                Law::StableNeoHookean => 0.0,
+                            };
+                            rest.extend_from_slice(&[nh.volume[e], nh.mu, nh.lambda, law]);
                         }
                     }
                     ElementSet::Springs(sp) => {
@@ -522,6 +532,7 @@ impl GpuElements {
                     shared_rest: None,
                     grad_len: nl,
                     hess_len: nl * nl,
+                    flagged: matches!(s, ElementSet::NeoHookean(nh) if nh.law == Law::NeoHookean),
                 });
             }
         }
@@ -547,6 +558,7 @@ impl GpuElements {
                     shared_rest: Some(&node_data),
                     grad_len: d,
                     hess_len,
+                    flagged: kind == TermKind::Barrier,
                 });
             }
         }
@@ -579,7 +591,8 @@ impl GpuElements {
                     )
                 })
                 .transpose()?;
-            let flags = (t.kind == TermKind::Barrier)
+            let flags = t
+                .flagged
                 .then(|| a.zeroed(&format!("{label} flags"), t.count as u64 * 4))
                 .transpose()?;
             // Bindings the entry point never touches still need a buffer: small ones of

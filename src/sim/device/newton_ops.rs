@@ -811,6 +811,18 @@ impl NewtonOps {
         self.run("newton end step", &[(&self.end, Self::grid(nd))], |_| {})
     }
 
+    /// The current iterate x and the Newton direction Δx (full downloads, n·d f64 each).
+    pub fn read_positions_and_direction(&self) -> Result<(Vec<f64>, Vec<f64>), GpuError> {
+        let nb = self.nd_bytes();
+        let x = self
+            .ctx
+            .download(&self.binder.x, 0, nb, "reading the positions")?;
+        let dx = self
+            .ctx
+            .download(&self.binder.dx, 0, nb, "reading the Newton direction")?;
+        Ok((from_bytes(true, &x), from_bytes(true, &dx)))
+    }
+
     /// The assembled gradient (full download, for the reactions at the end of a step).
     pub fn read_gradient(&self) -> Result<Vec<f64>, GpuError> {
         let b = self.ctx.download(

@@ -19,8 +19,36 @@ use crate::core::sparse::BlockCsr;
 use rayon::prelude::*;
 
 pub use eigensystem::project_psd;
-pub use neohookean::NeoHookean;
+pub use neohookean::{Law, NeoHookean};
 pub use spring::Springs;
+
+/// The smallest element volume ratio of one law ([`Model::min_volume_ratio`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MinVolumeRatio {
+    pub law: Law,
+    pub j: f64,
+    /// The element set (one per body) and the element within it.
+    pub set: usize,
+    pub element: usize,
+}
+
+/// Where a step along Δx first inverts an element ([`Model::inversion_bound`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct InversionLimit {
+    /// The exact root α of det F(x + αΔx) = 0.
+    pub alpha: f64,
+    pub set: usize,
+    pub element: usize,
+}
+
+/// An element with J ≤ 0 where the classical law needs J > 0.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Inverted {
+    /// The element set (one per body) and the element within it.
+    pub set: usize,
+    pub element: usize,
+    pub j: f64,
+}
 
 /// One body's elastic elements.
 #[derive(Debug, Clone)]
@@ -415,6 +443,76 @@ impl Model {
     }
 
     /// A zero matrix on the Hessian's pattern.
+    /// Whether some element set follows `law`.
+    pub fn has_law(&self, law: Law) -> bool {
+        self.sets
+            .iter()
+            .any(|s| matches!(s, ElementSet::NeoHookean(nh) if nh.law == law))
+    }
+
+    /// Per neo-Hookean law of the model (in [`Law`] order): the smallest element volume
+    /// ratio J at x with its set and element (within the set). Empty without neo-Hookean
+    /// elements.
+    pub fn min_volume_ratio(&self, x: &[f64]) -> Vec<MinVolumeRatio> {
+        let mut out: Vec<MinVolumeRatio> = Vec::new();
+        for (k, s) in self.sets.iter().enumerate() {
+            let ElementSet::NeoHookean(nh) = s else {
+                continue;
+            };
+            let Some((j, e)) = nh.min_volume_ratio(x) else {
+                continue;
+            };
+            let m = MinVolumeRatio {
+                law: nh.law,
+                j,
+                set: k,
+                element: e,
+            };
+            match out.iter_mut().find(|o| o.law == nh.law) {
+                Some(o) if j < o.j || j.is_nan() => *o = m,
+                Some(_) => {}
+                None => out.push(m),
+            }
+        }
+        out.sort_by_key(|m| m.law);
+        out
+    }
+
+    /// The largest step along Δx from x before an element of the classical law inverts:
+    /// the smallest root α ∈ (0, `max`] of det F(x + αΔx) = 0 over those elements
+    /// ([`NeoHookean::inversion_bound`]), with its (set, element); None when none inverts
+    /// on (0, `max`]. Err names an element already inverted at x.
+    pub fn inversion_bound(
+        &self,
+        x: &[f64],
+        dx: &[f64],
+        max: f64,
+    ) -> Result<Option<InversionLimit>, Inverted> {
+        let mut best: Option<InversionLimit> = None;
+        for (k, s) in self.sets.iter().enumerate() {
+            let ElementSet::NeoHookean(nh) = s else {
+                continue;
+            };
+            if nh.law != Law::NeoHookean {
+                continue;
+            }
+            let limit = best.map_or(max, |b| b.alpha);
+            if let Some((alpha, e)) = nh
+                .inversion_bound(x, dx, limit)
+                .map_err(|(element, j)| Inverted { set: k, element, j })?
+            {
+                if best.is_none_or(|b| alpha < b.alpha) {
+                    best = Some(InversionLimit {
+                        alpha,
+                        set: k,
+                        element: e,
+                    });
+                }
+            }
+        }
+        Ok(best)
+    }
+
     pub fn zero_matrix(&self) -> BlockCsr {
         self.pattern.clone()
     }

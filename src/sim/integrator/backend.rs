@@ -11,6 +11,7 @@ use super::report::GpuRunReport;
 use super::state::State;
 use super::targets::MovingTargets;
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
+use crate::sim::energy::{InversionLimit, Inverted};
 
 /// The state at the end of a step, read back from wherever it lived.
 pub(super) struct EndState {
@@ -95,6 +96,17 @@ pub(super) trait Backend {
 
     /// The CCD bound α_C of Δx from the current iterate (call only with obstacles).
     fn ccd(&mut self, state: &State) -> Result<Ccd, StepError>;
+
+    /// The largest step along Δx from the current iterate before an element of the
+    /// classical neo-Hookean law inverts: the smallest root α ∈ (0, `max`] of
+    /// det F(x + αΔx) = 0 over those elements (`Model::inversion_bound`), None when none
+    /// inverts there; the inner Err names an element already inverted at x. Both backends
+    /// compute it with the same host function on the same x and Δx.
+    fn inversion_bound(
+        &mut self,
+        state: &State,
+        max: f64,
+    ) -> Result<Result<Option<InversionLimit>, Inverted>, StepError>;
 
     /// The trial iterate x + α Δx.
     fn set_trial(&mut self, alpha: f64) -> Result<(), StepError>;

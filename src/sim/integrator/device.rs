@@ -27,6 +27,7 @@ use crate::sim::device::elements::{GpuElements, TermKind};
 use crate::sim::device::newton_cg::{DeviceCg, DeviceCgParams, DeviceFrames};
 use crate::sim::device::newton_ops::{static_projections, MovingTerm, NewtonOps};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
+use crate::sim::energy::{InversionLimit, Inverted};
 use crate::sim::scene::Scene;
 use std::collections::HashMap;
 use std::time::Instant;
@@ -81,7 +82,7 @@ pub fn device_bytes_needed(scene: &Scene) -> u64 {
         let (count, arity) = (set.len() as u64, set.arity() as u64);
         let nl = arity * d;
         // Element indices and rest data, energy, gradient, Hessian.
-        bytes += count * (4 * arity + real * (d * d + 3) + real * (1 + nl + nl * nl));
+        bytes += count * (4 * arity + real * (d * d + 4) + real * (1 + nl + nl * nl));
         gathers += count * (arity * arity + arity);
     }
     // Node terms (inertia, gravity, barrier): energy, gradient, Hessian, constants.
@@ -417,6 +418,18 @@ impl Backend for DeviceLoop {
             .as_ref()
             .expect("the CCD bound is asked only with obstacles");
         Ok(self.ops.ccd(&c.planes, CCD_FRACTION)?)
+    }
+
+    /// x and Δx are read back whole (2·n·d f64) and the bound computed on the host with
+    /// the host backend's function: exact, and the same numbers on both loops; one
+    /// download per line search of a scene with classical neo-Hookean elements.
+    fn inversion_bound(
+        &mut self,
+        state: &State,
+        max: f64,
+    ) -> Result<Result<Option<InversionLimit>, Inverted>, StepError> {
+        let (x, dx) = self.ops.read_positions_and_direction()?;
+        Ok(state.scene.model.inversion_bound(&x, &dx, max))
     }
 
     fn set_trial(&mut self, alpha: f64) -> Result<(), StepError> {

@@ -61,6 +61,21 @@ pub enum StepError {
     },
     #[error("the velocities overflow (2·kinetic energy = {kinetic:e}): a node was moved by about {moved:e} m in one step")]
     VelocityOverflow { kinetic: f64, moved: f64 },
+    #[error("element {element} of body {body} ({law}) is inverted {when} (J = {j:e}): the classical neo-Hookean energy is not defined for J ≤ 0; the state must be inversion-free")]
+    InvertedStart {
+        body: usize,
+        element: usize,
+        j: f64,
+        law: &'static str,
+        when: String,
+    },
+    #[error("element {element} of body {body} ({law}) ended the step inverted (J = {j:e}) and [solver] inversion = \"fail\"")]
+    InvertedEnd {
+        body: usize,
+        element: usize,
+        j: f64,
+        law: &'static str,
+    },
     #[error("{0}")]
     Constraints(#[from] ConstraintError),
     #[error("cannot restore the stepper: {0}")]

@@ -11,7 +11,7 @@ use super::targets::{offset, projector, MovingTargets};
 use crate::core::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::core::sparse::BlockCsr;
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
-use crate::sim::energy::{inertia, AssemblyWork};
+use crate::sim::energy::{inertia, AssemblyWork, InversionLimit, Inverted};
 use crate::sim::scene::{BcShape, SolverSpec};
 use crate::Precision;
 
@@ -177,6 +177,14 @@ impl Backend for HostBackend {
             .as_ref()
             .expect("the CCD bound is asked only with obstacles");
         Ok(c.barrier.ccd(&self.x, &self.dx, &c.planes, CCD_FRACTION))
+    }
+
+    fn inversion_bound(
+        &mut self,
+        state: &State,
+        max: f64,
+    ) -> Result<Result<Option<InversionLimit>, Inverted>, StepError> {
+        Ok(state.scene.model.inversion_bound(&self.x, &self.dx, max))
     }
 
     fn set_trial(&mut self, alpha: f64) -> Result<(), StepError> {

@@ -35,6 +35,13 @@ pub struct StepReport {
     pub ascent_directions: usize,
     /// Line searches whose CCD bound α_C was below 1.
     pub ccd_limited: usize,
+    /// Line searches that started at the inversion bound (below 1 and the CCD bound).
+    pub inversion_limited: usize,
+    /// The smallest element volume ratio J of the step's end state over the neo-Hookean
+    /// elements; None without them.
+    pub min_j: Option<f64>,
+    /// The neo-Hookean laws with an element inverted (J ≤ 0) at the end of the step.
+    pub inverted: Vec<crate::sim::energy::Law>,
 }
 
 impl StepReport {

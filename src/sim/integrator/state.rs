@@ -21,6 +21,10 @@ pub(super) const MAX_HALVINGS: usize = 40;
 /// CCD filter: a Newton step may cover at most this fraction of any node's distance to an
 /// obstacle (IPC's 1 − s with s = 0.1).
 pub const CCD_FRACTION: f64 = 0.9;
+/// Inversion filter: the line search of a scene with classical neo-Hookean elements starts
+/// at most at this fraction of the first step size that would invert an element (the
+/// smallest positive root of det F(x + αΔx) = 0).
+pub const INVERSION_FRACTION: f64 = 0.9;
 
 /// The barrier and the obstacles' half-spaces for the current step.
 pub(super) struct Contact {

@@ -8,9 +8,11 @@ use super::error::{InitError, StepError};
 use super::forcing::Forcing;
 use super::host::HostBackend;
 use super::report::{GpuRunReport, StepReport};
-use super::state::{Snapshot, State, ARMIJO, MAX_HALVINGS};
+use super::state::{Snapshot, State, ARMIJO, INVERSION_FRACTION, MAX_HALVINGS};
 use super::targets::MovingTargets;
 use crate::sim::energy::barrier::Ccd;
+use crate::sim::energy::Law;
+use crate::sim::scene::InversionPolicy;
 use crate::sim::scene::{check_solver_size, joint_targets, LinearKind, NewtonLoop, Scene};
 
 /// Time stepper: the [`State`] (read through this type) and the backend its Newton loop
@@ -86,6 +88,23 @@ impl<'s> Stepper<'s> {
             .copied()
             .filter(|&k| !is_joint[scene.bcs[k].node])
             .collect();
+        // The classical law is not defined for an inverted element: a scene that starts
+        // with one is bad input.
+        let inverted = scene
+            .model
+            .min_volume_ratio(&scene.x0)
+            .into_iter()
+            .find(|m| m.law == Law::NeoHookean && (m.j.is_nan() || m.j <= 0.0));
+        if let Some(m) = inverted {
+            return Err(InitError::Input {
+                entry: format!("bodies[{}]", m.set),
+                problem: format!(
+                    "element {} is inverted in the initial state (J = {:e}); the neo-Hookean \
+                     law needs J > 0",
+                    m.element, m.j
+                ),
+            });
+        }
         let mut state = State::new(scene, static_bcs, single_static_bcs, joint, moving_bcs);
         // The host loop's linear solver starts first (a missing GPU adapter for `linear =
         // "gpu"` is said before anything else).
@@ -189,10 +208,35 @@ impl<'s> Stepper<'s> {
         self.newton(&mut moving, &mut rep, &mut dump)?;
         // 4. Reactions and contact forces at the converged iterate.
         let end = self.backend.end_step(&self.state)?;
+        self.check_inversion(&end.x, &mut rep)?;
         self.state.recover_forces(&end.x, &end.g, &moving.snapped);
         // 5. Velocity and state.
         self.state.finish_step(end.x, end.v, t1)?;
         Ok(rep)
+    }
+
+    /// The end state's smallest element volume ratio and the laws with an inverted
+    /// element, into `rep`; with `[solver] inversion = "fail"` an inverted element fails
+    /// the step, naming it.
+    fn check_inversion(&self, x: &[f64], rep: &mut StepReport) -> Result<(), StepError> {
+        let sc = self.state.scene;
+        let per_law = sc.model.min_volume_ratio(x);
+        rep.min_j = per_law
+            .iter()
+            .map(|m| m.j)
+            .reduce(|a, b| if b < a || b.is_nan() { b } else { a });
+        for m in per_law.iter().filter(|m| m.j.is_nan() || m.j <= 0.0) {
+            rep.inverted.push(m.law);
+            if sc.solver.inversion == InversionPolicy::Fail {
+                return Err(StepError::InvertedEnd {
+                    body: m.set,
+                    element: m.element,
+                    j: m.j,
+                    law: m.law.name(),
+                });
+            }
+        }
+        Ok(())
     }
 
     /// Moves the obstacles to t1 on the host (and the backend's planes); a moving obstacle
@@ -367,7 +411,9 @@ impl<'s> Stepper<'s> {
     }
 
     /// Armijo backtracking on E along Δx, from the CCD bound α_C when there is contact (1
-    /// without); the accepted iterate becomes the current one. When no step decreases E,
+    /// without), lowered to [`INVERSION_FRACTION`] of the first step that inverts an
+    /// element of the classical neo-Hookean law (an element already inverted fails the
+    /// step, naming it); the accepted iterate becomes the current one. When no step decreases E,
     /// the bounded step is taken if the energy is flat to round-off near the minimum and
     /// the step fails otherwise. A bounded step taken whole is checked by
     /// [`State::check_unbarriered_limit`].
@@ -402,9 +448,31 @@ impl<'s> Stepper<'s> {
                 limit: None,
             }
         };
-        let alpha_c = ccd.alpha;
+        let mut alpha_c = ccd.alpha;
         if alpha_c < 1.0 {
             rep.ccd_limited += 1;
+        }
+        // Classical neo-Hookean elements: start below the first step size that inverts one.
+        if self.state.scene.model.has_law(Law::NeoHookean) {
+            match self
+                .backend
+                .inversion_bound(&self.state, 1.0 / INVERSION_FRACTION)?
+            {
+                Ok(Some(b)) if INVERSION_FRACTION * b.alpha < alpha_c => {
+                    alpha_c = INVERSION_FRACTION * b.alpha;
+                    rep.inversion_limited += 1;
+                }
+                Ok(_) => {}
+                Err(inv) => {
+                    return Err(StepError::InvertedStart {
+                        body: inv.set,
+                        element: inv.element,
+                        j: inv.j,
+                        law: Law::NeoHookean.name(),
+                        when: format!("at Newton iteration {iter}"),
+                    })
+                }
+            }
         }
         let mut alpha = alpha_c;
         let mut accepted = false;
@@ -429,7 +497,7 @@ impl<'s> Stepper<'s> {
                 });
             }
         }
-        if alpha == alpha_c {
+        if alpha == ccd.alpha {
             if let Some((node, _)) = ccd.limit {
                 let x = self.backend.positions(Some(&[node]))?;
                 self.state.check_unbarriered_limit(x, &ccd, iter)?;

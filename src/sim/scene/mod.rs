@@ -55,9 +55,10 @@ mod resolve;
 mod spec;
 
 pub use spec::{
-    BcKindSpec, BodySpec, BoundarySpec, BoxRegion, CgTolerance, LinearChoice, LinearKind,
-    MaterialModel, MaterialSpec, MeshKind, MeshSpec, MotionSpec, MovingSpec, NewtonLoop,
-    ObstacleKind, ObstacleSpec, OutputSpec, PlaneRegion, RegionSpec, SceneFile, SolverSpec,
+    BcKindSpec, BodySpec, BoundarySpec, BoxRegion, CgTolerance, InversionPolicy, LinearChoice,
+    LinearKind, MaterialModel, MaterialSpec, MeshKind, MeshSpec, MotionSpec, MovingSpec,
+    NewtonLoop, ObstacleKind, ObstacleSpec, OutputSpec, PlaneRegion, RegionSpec, SceneFile,
+    SolverSpec,
 };
 
 pub use model::{

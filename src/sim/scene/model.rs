@@ -97,6 +97,10 @@ pub const BUILTIN: &[(&str, &str)] = &[
         "squash",
         include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/squash.toml")),
     ),
+    (
+        "crush",
+        include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/crush.toml")),
+    ),
 ];
 
 /// The text of a built-in scene.

@@ -13,7 +13,7 @@ use super::spec::{
 };
 use crate::error::InputError;
 use crate::sim::energy::barrier::HalfSpace;
-use crate::sim::energy::{ElementSet, Model, NeoHookean, Springs};
+use crate::sim::energy::{ElementSet, Law, Model, NeoHookean, Springs};
 use crate::sim::mesh::{self, ElementKind, Mesh};
 
 pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, InputError> {
@@ -253,7 +253,12 @@ fn build_material(
     let mat = &body.material;
     let mk = format!("{key}.material");
     match mat.model {
-        MaterialModel::NeoHookean => {
+        MaterialModel::NeoHookean | MaterialModel::StableNeoHookean => {
+            let law = if mat.model == MaterialModel::NeoHookean {
+                Law::NeoHookean
+            } else {
+                Law::StableNeoHookean
+            };
             for (name, v) in [("stiffness", mat.stiffness.is_some())] {
                 if v {
                     return Err(c.err(
@@ -291,8 +296,8 @@ fn build_material(
                     format!("neo-Hookean needs a solid mesh (rectangle in 2D, box in 3D), got {:?} in {dim}D", body.mesh.kind),
                 ));
             }
-            let mut nh =
-                NeoHookean::new(mesh, young, nu).map_err(|e| c.err(format!("{key}.mesh"), e))?;
+            let mut nh = NeoHookean::new(mesh, young, nu, law)
+                .map_err(|e| c.err(format!("{key}.mesh"), e))?;
             shift_elements(&mut nh.elements, offset);
             Ok((ElementSet::NeoHookean(nh), young))
         }

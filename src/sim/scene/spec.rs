@@ -129,6 +129,22 @@ pub struct SolverSpec {
     /// f64; `linear` is not used).
     #[serde(default)]
     pub newton: NewtonLoop,
+    /// What a step that ends with an inverted element (J ≤ 0, possible only for the stable
+    /// neo-Hookean law) does: "allow" (the default; summary.json counts such steps) or
+    /// "fail" (the step fails naming the element).
+    #[serde(default)]
+    pub inversion: InversionPolicy,
+}
+
+/// `[solver] inversion`: what a step that ends with an inverted element does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum InversionPolicy {
+    /// The step completes; the run's summary counts the steps that ended inverted.
+    #[default]
+    Allow,
+    /// The step fails with one line naming the step and the element.
+    Fail,
 }
 
 /// `[solver] linear`: a linear solver, or "auto".
@@ -361,6 +377,7 @@ impl Default for SolverSpec {
             characteristic_length: None,
             ordering: crate::CholeskyOrdering::Auto,
             newton: NewtonLoop::Cpu,
+            inversion: InversionPolicy::Allow,
         }
     }
 }
@@ -451,7 +468,12 @@ pub struct MeshSpec {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum MaterialModel {
+    /// The classical neo-Hookean law, μ/2 (I_C − d) − μ ln J + λ/2 (ln J)², with the Lamé
+    /// parameters of (young, poisson); elements never invert.
     NeoHookean,
+    /// The stable neo-Hookean law of Smith, de Goes and Kim (2018), with remapped
+    /// parameters; defined for inverted elements.
+    StableNeoHookean,
     MassSpring,
 }
 
@@ -461,9 +483,9 @@ pub struct MaterialSpec {
     pub model: MaterialModel,
     /// Mass per unit length, area or volume of the mesh's elements.
     pub density: f64,
-    /// Neo-Hookean: Young's modulus (Pa).
+    /// Neo-Hookean (either law): Young's modulus (Pa).
     pub young: Option<f64>,
-    /// Neo-Hookean: Poisson ratio in (0, 0.5).
+    /// Neo-Hookean (either law): Poisson ratio in (0, 0.5).
     pub poisson: Option<f64>,
     /// Mass-spring: k in newtons (a strain ε stores ½ k l₀ ε²).
     pub stiffness: Option<f64>,
