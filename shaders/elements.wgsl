@@ -464,7 +464,11 @@ fn neohookean_element(e: u32) {
         }
     }
     // Classical: Ψ = μ/2 u − μ ln J + λ/2 (ln J)², ln J = ln1p(J − 1).
-    let lnj = select(real(0.0), ln1p(jac - real(1.0)), classical);
+    // (Only for the classical law: WGSL's select would evaluate ln1p for every element.)
+    var lnj = real(0.0);
+    if (classical) {
+        lnj = ln1p(jac - real(1.0));
+    }
     var psi = real(0.5) * mu * u - mu * lnj + real(0.5) * lam * lnj * lnj;
     if (!classical) {
         psi = real(0.5) * mu * u - real(0.5) * mu * ln1p(u / (dr + real(1.0)))

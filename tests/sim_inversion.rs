@@ -11,6 +11,9 @@
 //!   fixed ones) is cut back to a step that keeps every J positive, on both loops.
 //! - A scene whose initial state has an inverted classical element is an input error
 //!   naming the element.
+//! - Command line: `min_j` ends steps.csv of solid scenes only, summary.json's
+//!   `inverted_steps` has one entry per neo-Hookean law of the scene, and a bad
+//!   `[solver] inversion` is a one-line input error (exit 2).
 //!
 //! GPU parts skip loudly without an adapter unless STICKSLIP_REQUIRE_GPU=1.
 
@@ -288,4 +291,56 @@ fn an_inverted_classical_element_at_the_start_is_an_input_error() {
         err.contains("bodies[0]") && err.contains("element ") && err.contains("inverted"),
         "{err}"
     );
+}
+
+/// Through the command line: steps.csv of a solid scene ends with `min_j` and its summary
+/// counts inverted steps per law; a mass-spring scene has neither; a bad `inversion` value
+/// is an input error naming the key (exit 2, one line).
+#[test]
+fn command_line_reports_min_j_and_rejects_a_bad_policy() {
+    use common::cli;
+    let dir = cli::tmpdir("inversion-cli");
+    for (scene, solid) in [("crush", true), ("hanging", false)] {
+        let out = dir.join(scene);
+        let o = cli::run(&[
+            "run",
+            scene,
+            "--steps",
+            "2",
+            "--quiet",
+            "--out",
+            out.to_str().expect("utf-8"),
+        ]);
+        assert_eq!(o.status.code(), Some(0), "{scene}: {}", cli::stderr(&o));
+        let csv = std::fs::read_to_string(out.join("steps.csv")).expect("steps.csv");
+        let header = csv.lines().next().expect("header");
+        assert_eq!(header.ends_with(",min_j"), solid, "{scene}: {header}");
+        let summary: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(out.join("summary.json")).expect("summary.json"),
+        )
+        .expect("json");
+        let want = if solid {
+            serde_json::json!({"neo-hookean": 0})
+        } else {
+            serde_json::json!({})
+        };
+        assert_eq!(summary["inverted_steps"], want, "{scene}");
+    }
+    let text = scene::builtin("crush").expect("built-in").replace(
+        "newton_tolerance = 1e-6",
+        "newton_tolerance = 1e-6\ninversion = \"sometimes\"",
+    );
+    let path = cli::write(&dir, "bad.toml", &text);
+    let o = cli::run(&[
+        "run",
+        &path,
+        "--quiet",
+        "--out",
+        dir.join("bad").to_str().expect("utf-8"),
+    ]);
+    let e = cli::stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert_eq!(e.trim_end().lines().count(), 1, "{e}");
+    assert!(e.contains("solver.inversion"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
 }

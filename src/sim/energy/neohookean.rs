@@ -478,8 +478,8 @@ impl NeoHookean {
     }
 }
 
-/// det(A + αB) = c[0] + c[1] α + c[2] α² + c[3] α³ for d×d row-major A, B (d = 2: c[3] = 0):
-/// c[0] = det A, c[1] = Σ cof(A)∘B, c[2] = Σ cof(B)∘A (2D: det B), c[3] = det B (3D).
+/// det(A + αB) = c_0 + c_1 α + c_2 α² + c_3 α³ for d×d row-major A, B (d = 2: c_3 = 0):
+/// c_0 = det A, c_1 = Σ cof(A)∘B, c_2 = Σ cof(B)∘A (2D: det B), c_3 = det B (3D).
 pub fn det_polynomial(d: usize, a: &[f64], b: &[f64]) -> [f64; 4] {
     let dd = d * d;
     let mut ca = [0.0; 9];
@@ -494,8 +494,8 @@ pub fn det_polynomial(d: usize, a: &[f64], b: &[f64]) -> [f64; 4] {
     [det(3, a), c1, c2, det(3, b)]
 }
 
-/// The smallest root in (0, `max`] of p(α) = c[0] + c[1] α + c[2] α² + c[3] α³ with
-/// p(0) = c[0] > 0, to rounding: the critical points of p (the real roots of p′ in
+/// The smallest root in (0, `max`] of p(α) = c_0 + c_1 α + c_2 α² + c_3 α³ with
+/// p(0) = c_0 > 0, to rounding: the critical points of p (the real roots of p′ in
 /// (0, `max`)) cut (0, `max`] into pieces on which p is monotone; the first piece whose
 /// right end has p ≤ 0 holds the root, which bisection pins down until its bracket is two
 /// adjacent floats (the right one is returned, so p(root) ≤ 0 as evaluated). Any leading

@@ -32,6 +32,15 @@
 //!    support). Moving nodes are eliminated at the end of every step, so the force that
 //!    drives them shows up as their reaction; no penalty force is left at the end of a step.
 //!
+//! Inversion (classical neo-Hookean elements only; docs/method.md): their energy is +∞
+//! for J ≤ 0, so each line search starts at most at [`INVERSION_FRACTION`] of the first
+//! step size α along Δx at which an element's J reaches zero (the smallest positive root of
+//! det F(x + αΔx), `energy::Model::inversion_bound`), together with the CCD bound below;
+//! every iterate then keeps every such element's J positive, and an element already
+//! inverted fails the step naming it. Every step reports the smallest J of its end state
+//! ([`StepReport::min_j`]) and the laws with an inverted element; `[solver] inversion =
+//! "fail"` makes such a step fail.
+//!
 //! Contact (only when the scene declares obstacles; docs/method.md, "Contact with
 //! half-spaces"): E gains h² P_b(x), the distance
 //! barrier of [`crate::sim::energy::barrier`] against every half-space at its end-of-step
