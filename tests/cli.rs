@@ -1084,9 +1084,11 @@ fn overflowing_data_fails_instead_of_writing_nan() {
     }
 }
 
-/// Runs a 4×2-cell neo-Hookean rectangle scene with the given time step and `[[boundary]]`
-/// body; whatever the outcome, steps.csv must hold no NaN or ∞ row. Returns the scene
-/// file and the run's output.
+/// Runs a 4×2-cell stable neo-Hookean rectangle scene with the given time step and
+/// `[[boundary]]` body; whatever the outcome, steps.csv must hold no NaN or ∞ row. Returns
+/// the scene file and the run's output. (The stable law is defined for any J: with the
+/// classical one a projection far away inverts elements, which is refused as bad input
+/// before the Newton system could overflow.)
 fn run_rectangle_scene(name: &str, time_step: &str, boundary: &str) -> (String, Output) {
     let dir = tmpdir(name);
     let scene = write(
@@ -1101,7 +1103,7 @@ gravity = [0.0, -9.81]
 
 [[bodies]]
 mesh = {{ kind = "rectangle", size = [1.0, 0.5], cells = [4, 2] }}
-material = {{ model = "neo-hookean", young = 1e4, poisson = 0.3, density = 100.0 }}
+material = {{ model = "stable-neo-hookean", young = 1e4, poisson = 0.3, density = 100.0 }}
 
 [[boundary]]
 {boundary}
@@ -1126,11 +1128,12 @@ fn run_stops_on_a_non_finite_state() {
 }
 
 /// A plane 1e300 away: every input is finite, but the first step's Newton system
-/// overflows. The step fails (exit 1, one line naming step 1 and the overflow) and
+/// overflows. (With the classical law the projected start is inverted: bad input, exit 2,
+/// naming the element; checked too.) The step fails (exit 1, one line naming step 1 and the overflow) and
 /// steps.csv holds no NaN row.
 #[test]
 fn run_step_that_overflows_fails_cleanly() {
-    let (_, o) = run_rectangle_scene(
+    let (scene, o) = run_rectangle_scene(
         "far_plane",
         "0.01",
         "kind = \"plane\"\nnormal = [1.0, 0.0]\noffset = 1e300",
@@ -1139,6 +1142,25 @@ fn run_step_that_overflows_fails_cleanly() {
     assert_eq!(o.status.code(), Some(1), "{e}");
     assert_eq!(e.lines().count(), 1, "{e:?}");
     assert!(e.contains("step 1") && e.contains("overflow"), "{e}");
+    let dir = tmpdir("far_plane_classical");
+    let text = std::fs::read_to_string(&scene)
+        .expect("scene")
+        .replace("stable-neo-hookean", "neo-hookean");
+    let classical = write(&dir, "far_plane_classical.toml", &text);
+    let o = run(&[
+        "run",
+        &classical,
+        "--out",
+        dir.join("out").to_str().unwrap(),
+        "--quiet",
+    ]);
+    let e = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert_eq!(e.lines().count(), 1, "{e:?}");
+    assert!(
+        e.contains("bodies[0]") && e.contains("inverted at the start of the step"),
+        "{e}"
+    );
 }
 
 /// `solve --ordering`: each ordering is reported as the one that ran, with the factor's

@@ -9,9 +9,9 @@
 //!   and with `inversion = "allow"` it completes and summary.json counts the inverted steps.
 //! - A step whose first Newton direction inverts elements (free nodes thrown through the
 //!   fixed ones) is cut back to a step that keeps every J positive, on both loops.
-//! - A scene whose initial state has an inverted classical element is an input error
-//!   naming the element.
-//! - Command line: `min_j` ends steps.csv of solid scenes only, summary.json's
+//! - A scene whose initial state, or whose step's starting state after the static
+//!   projection, has an inverted classical element is an input error naming the element.
+//! - Command line: steps.csv has a `min_j` column for solid scenes only, summary.json's
 //!   `inverted_steps` has one entry per neo-Hookean law of the scene, and a bad
 //!   `[solver] inversion` is a one-line input error (exit 2).
 //!
@@ -314,7 +314,8 @@ fn command_line_reports_min_j_and_rejects_a_bad_policy() {
         assert_eq!(o.status.code(), Some(0), "{scene}: {}", cli::stderr(&o));
         let csv = std::fs::read_to_string(out.join("steps.csv")).expect("steps.csv");
         let header = csv.lines().next().expect("header");
-        assert_eq!(header.ends_with(",min_j"), solid, "{scene}: {header}");
+        let columns: Vec<&str> = header.split(',').collect();
+        assert_eq!(columns.contains(&"min_j"), solid, "{scene}: {header}");
         let summary: serde_json::Value = serde_json::from_str(
             &std::fs::read_to_string(out.join("summary.json")).expect("summary.json"),
         )
@@ -342,5 +343,27 @@ fn command_line_reports_min_j_and_rejects_a_bad_policy() {
     assert_eq!(o.status.code(), Some(2), "{e}");
     assert_eq!(e.trim_end().lines().count(), 1, "{e}");
     assert!(e.contains("solver.inversion"), "{e}");
+    // A plane condition whose start-of-step projection puts the top edge below the fixed
+    // bottom one: the step's starting state has inverted classical elements, an input
+    // error naming the body and the element.
+    let text = THROWN.replace("velocity = [0.0, -150.0]\n", "")
+        + "[[boundary]]\nkind = \"plane\"\nnormal = [0.0, 1.0]\noffset = -1.0\n\
+           region = { plane = { normal = [0.0, 1.0], offset = 1.0 } }\n";
+    let path = cli::write(&dir, "projected.toml", &text);
+    let o = cli::run(&[
+        "run",
+        &path,
+        "--quiet",
+        "--out",
+        dir.join("projected").to_str().expect("utf-8"),
+    ]);
+    let e = cli::stderr(&o);
+    eprintln!("{e}");
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert_eq!(e.trim_end().lines().count(), 1, "{e}");
+    assert!(
+        e.contains("bodies[0]") && e.contains("element ") && e.contains("inverted"),
+        "{e}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -15,7 +15,9 @@
 use crate::error::InputError;
 use crate::io::files::{Named, OutputDir};
 use crate::sim::checkpoint::{self, Checkpoint, StartOptions, Tallies};
-use crate::sim::integrator::{ContactCounters, InitError, NewtonSystem, Stepper, SystemSink};
+use crate::sim::integrator::{
+    ContactCounters, InitError, NewtonSystem, StepError, Stepper, SystemSink,
+};
 use crate::sim::output::{write_vtk, StepRecord, StepsCsv};
 use crate::sim::scene::{self, LinearKind, MovingSpec, Scene};
 use std::io::Write as _;
@@ -1046,10 +1048,21 @@ fn simulate(
             .as_ref()
             .filter(|sel| sel.contains(next))
             .map(|_| &mut sink as SystemSink);
-        let rep = stepper.step_with(dump).map_err(|cause| RunError::Solve {
-            step: stepper.step + 1,
-            time: stepper.t + scene.time_step,
-            cause: cause.to_string(),
+        let rep = stepper.step_with(dump).map_err(|cause| match cause {
+            // The step's starting iterate (after its static projection) has an inverted
+            // classical neo-Hookean element: bad input, naming the body and element.
+            StepError::InvertedStart {
+                body, iteration: 0, ..
+            } => RunError::Input(InputError::new(
+                scene.file.clone(),
+                format!("bodies[{body}]"),
+                format!("step {}: {cause}", stepper.step + 1),
+            )),
+            cause => RunError::Solve {
+                step: stepper.step + 1,
+                time: stepper.t + scene.time_step,
+                cause: cause.to_string(),
+            },
         })?;
         let t = &mut run.tallies;
         t.newton_iterations += rep.newton_iterations;

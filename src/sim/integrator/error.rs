@@ -61,13 +61,15 @@ pub enum StepError {
     },
     #[error("the velocities overflow (2·kinetic energy = {kinetic:e}): a node was moved by about {moved:e} m in one step")]
     VelocityOverflow { kinetic: f64, moved: f64 },
-    #[error("element {element} of body {body} ({law}) is inverted {when} (J = {j:e}): the classical neo-Hookean energy is not defined for J ≤ 0; the state must be inversion-free")]
+    #[error("element {element} of body {body} ({law}) is inverted {} (J = {j:e}): the classical neo-Hookean energy is not defined for J ≤ 0; the state must be inversion-free", inverted_when(*.iteration))]
     InvertedStart {
         body: usize,
         element: usize,
         j: f64,
         law: &'static str,
-        when: String,
+        /// The Newton iteration; 0: the step's starting state (after the static projection
+        /// and the obstacles' pushes), the scene's fault rather than the solver's.
+        iteration: usize,
     },
     #[error("element {element} of body {body} ({law}) ended the step inverted (J = {j:e}) and [solver] inversion = \"fail\"")]
     InvertedEnd {
@@ -84,6 +86,14 @@ pub enum StepError {
     Device(#[from] GpuError),
     #[error("cannot write the Newton system of iteration {iteration}: {cause}")]
     Dump { iteration: usize, cause: String },
+}
+
+fn inverted_when(iteration: usize) -> String {
+    if iteration == 0 {
+        "at the start of the step".into()
+    } else {
+        format!("at Newton iteration {iteration}")
+    }
 }
 
 fn moving_state(moving: &Option<(f64, usize)>) -> String {

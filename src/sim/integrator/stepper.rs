@@ -193,6 +193,24 @@ impl<'s> Stepper<'s> {
             self.advance_obstacles(t1)?;
             rep.min_distance = Some(self.check_distance("at the start of the step")?);
         }
+        // The classical neo-Hookean law needs every element's J > 0 in the starting state.
+        if sc.model.has_law(Law::NeoHookean) {
+            let x = self.backend.positions(None)?;
+            let inverted = sc
+                .model
+                .min_volume_ratio(x)
+                .into_iter()
+                .find(|m| m.law == Law::NeoHookean && (m.j.is_nan() || m.j <= 0.0));
+            if let Some(m) = inverted {
+                return Err(StepError::InvertedStart {
+                    body: m.set,
+                    element: m.element,
+                    j: m.j,
+                    law: m.law.name(),
+                    iteration: 0,
+                });
+            }
+        }
         // 2. Moving targets at t^{n+1}; nodes already within ε are snapped now.
         let mut moving = MovingTargets {
             shapes: self
@@ -469,7 +487,7 @@ impl<'s> Stepper<'s> {
                         element: inv.element,
                         j: inv.j,
                         law: Law::NeoHookean.name(),
-                        when: format!("at Newton iteration {iter}"),
+                        iteration: iter,
                     })
                 }
             }
