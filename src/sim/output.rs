@@ -8,7 +8,7 @@
 //! neo-Hookean (solid) bodies, `,min_j`: the smallest element volume ratio J = det F of the
 //! step's end state (row 0: of the initial state), ≤ 0 when an element is inverted; then,
 //! always, `,cg_tol_loosest,cg_tol_tightest,linear_resolves`: the loosest and tightest
-//! relative residual tolerance of the step's iterative solves (NaN for direct solves;
+//! relative residual tolerance of the step's iterative solves (0 for direct solves;
 //! see `[solver] cg_tolerance`) and the systems solved again to the convergence tolerance.
 //! `min_distance` is the smallest signed distance of any node to any obstacle over every
 //! Newton iterate of the step (row 0: at t = 0) and `c` the summed contact force (newtons,
@@ -205,9 +205,10 @@ impl StepsCsv {
         if self.solid {
             let _ = write!(s, ",{:.17e}", r.min_j.unwrap_or(f64::NAN));
         }
-        // NaN where the step made no iterative solve (row 0, a direct solver).
+        // 0 where the step made no iterative solve (row 0, a direct solver): every field
+        // stays a finite number.
         for t in [r.cg_tol_loosest, r.cg_tol_tightest] {
-            let _ = write!(s, ",{:.6e}", t.unwrap_or(f64::NAN));
+            let _ = write!(s, ",{:.6e}", t.unwrap_or(0.0));
         }
         let _ = write!(s, ",{}", r.linear_resolves);
         s.push('\n');
