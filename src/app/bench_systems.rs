@@ -53,7 +53,7 @@ pub fn find_systems(dir: &Path) -> std::io::Result<Vec<PathBuf>> {
             }
         }
     }
-    found.sort_by(|a, b| natural_key(a).cmp(&natural_key(b)));
+    found.sort_by_key(|p| natural_key(p));
     Ok(found)
 }
 
@@ -174,8 +174,8 @@ pub fn run(
 
 /// A Markdown table of the records, one row each.
 pub fn table(records: &[SystemRecord]) -> String {
-    let mut s = format!(
-        "| system | nodes | solver | setup s | solve s | iterations | relative residual |\n|---|---:|---|---:|---:|---:|---:|\n"
+    let mut s = String::from(
+        "| system | nodes | solver | setup s | solve s | iterations | relative residual |\n|---|---:|---|---:|---:|---:|---:|\n",
     );
     let f = |v: Option<f64>| v.map_or("–".to_string(), |x| format!("{x:.4}"));
     for r in records {
