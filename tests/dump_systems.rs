@@ -95,6 +95,24 @@ fn dumped_residual(it: &Path) -> (f64, Option<f64>) {
     (free(&r) / free(&g), info["tolerance"].as_f64())
 }
 
+/// Every dumped direction of `step` meets the CG tolerance recorded beside it.
+fn meet_their_tolerance(out: &Path, step: usize) {
+    for it in iterations(out, step) {
+        let (res, tol) = dumped_residual(&it);
+        let tol = tol.expect("a CG solve records its tolerance");
+        eprintln!(
+            "{}: relative residual {res:.3e}, tolerance {tol:.1e}",
+            it.display()
+        );
+        // The run met tol on the same arrays; the files hold them to 17 digits.
+        assert!(
+            res <= tol * (1.0 + 1e-6),
+            "{}: {res:e} > {tol:e}",
+            it.display()
+        );
+    }
+}
+
 #[test]
 fn cholesky_systems_replay_exactly_with_solve() {
     let (out, r) = dump_run("twist", "cholesky", NewtonLoop::Cpu, 2, "2");
@@ -176,20 +194,7 @@ fn bench_times_every_solver_on_the_dumped_systems() {
 fn cg_systems_meet_the_recorded_tolerance() {
     let (out, r) = dump_run("twist", "cg", NewtonLoop::Cpu, 1, "all");
     r.expect("twist with cg");
-    for it in iterations(&out, 1) {
-        let (res, tol) = dumped_residual(&it);
-        let tol = tol.expect("a CG solve records its tolerance");
-        eprintln!(
-            "{}: relative residual {res:.3e}, tolerance {tol:.1e}",
-            it.display()
-        );
-        // The run met tol on the same arrays; the files hold them to 17 digits.
-        assert!(
-            res <= tol * (1.0 + 1e-6),
-            "{}: {res:e} > {tol:e}",
-            it.display()
-        );
-    }
+    meet_their_tolerance(&out, 1);
     let _ = std::fs::remove_dir_all(out.parent().expect("parent"));
 }
 
@@ -211,19 +216,7 @@ fn device_loop_systems_meet_the_recorded_tolerance() {
         }
         Err(e) => panic!("drop on the device loop: {e}"),
     }
-    for it in iterations(&out, 2) {
-        let (res, tol) = dumped_residual(&it);
-        let tol = tol.expect("the device CG records its tolerance");
-        eprintln!(
-            "{}: relative residual {res:.3e}, tolerance {tol:.1e}",
-            it.display()
-        );
-        assert!(
-            res <= tol * (1.0 + 1e-6),
-            "{}: {res:e} > {tol:e}",
-            it.display()
-        );
-    }
+    meet_their_tolerance(&out, 2);
     let _ = std::fs::remove_dir_all(out.parent().expect("parent"));
 }
 

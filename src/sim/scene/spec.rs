@@ -167,16 +167,20 @@ impl LinearChoice {
     /// The most nodes a 3D scene solves with Cholesky under "auto".
     pub const AUTO_CHOLESKY_MAX_NODES_3D: usize = 300;
 
+    /// The most nodes a `dim`-dimensional scene solves with Cholesky under "auto".
+    fn auto_cholesky_max(dim: usize) -> usize {
+        if dim == 3 {
+            Self::AUTO_CHOLESKY_MAX_NODES_3D
+        } else {
+            Self::AUTO_CHOLESKY_MAX_NODES_2D
+        }
+    }
+
     /// The solver this choice runs on a scene of `nodes` nodes in `dim` dimensions.
     pub fn resolve(self, dim: usize, nodes: usize) -> LinearKind {
         match self {
             LinearChoice::Auto => {
-                let max = if dim == 3 {
-                    Self::AUTO_CHOLESKY_MAX_NODES_3D
-                } else {
-                    Self::AUTO_CHOLESKY_MAX_NODES_2D
-                };
-                if nodes <= max {
+                if nodes <= Self::auto_cholesky_max(dim) {
                     LinearKind::Cholesky
                 } else {
                     LinearKind::Cg
@@ -200,11 +204,7 @@ impl LinearChoice {
     /// Why "auto" picked what it did, for the run's report; None for an explicit choice.
     pub fn reason(self, dim: usize, nodes: usize) -> Option<String> {
         (self == LinearChoice::Auto).then(|| {
-            let max = if dim == 3 {
-                Self::AUTO_CHOLESKY_MAX_NODES_3D
-            } else {
-                Self::AUTO_CHOLESKY_MAX_NODES_2D
-            };
+            let max = Self::auto_cholesky_max(dim);
             let side = if nodes <= max { "≤" } else { ">" };
             format!("linear = \"auto\": {nodes} nodes {side} {max} in {dim}D")
         })
