@@ -32,12 +32,13 @@
 #   GPU_EVAL_PYTHON        the Python with CuPy [python3]
 #   GPU_EVAL_ALLOW_CPU     1: accept a CPU adapter on Vulkan (a rehearsal on lavapipe)
 #   GPU_EVAL_LIMITS        seconds per step: tests,ladder,newton,twist,hard,cupy; 0 skips
-#                          [60,150,90,40,60,60 / 0,300,200,0,0,60]
-# Estimates behind the default limits (H100, from the lavapipe figures of BENCHMARKS.md
-# scaled by memory bandwidth, with 2x margin; the CPU sides on 16 cores): the ladder to
-# 1M nodes 3D is ~60 s (generation and the CPU CG dominate), 3M ~200 s; bench --newton to
-# 100k ~40 s, 1M ~150 s; twist at size 6 one step ~20 s; bench --hard at scale 2 ~40 s;
-# CuPy at 100k ~30 s (export included), 1M ~50 s. Default total: 460 s + info.
+#                          [60,150,90,40,60,60 / 0,240,120,30,0,180]
+# The limits against what the first NVIDIA H100 run took (BENCHMARKS.md, "On a real
+# GPU"; 16 cores): by default tests 15 s, ladder to 1M nodes 91 s, bench --newton to 100k
+# 7 s, twist at size 6 4 s, bench --hard at scale 2 24 s, CuPy at 100k 25 s (166 s in
+# all, limits 460 s); with --large the 3M ladder 177 s, the 1M Newton step 77 s, twist
+# at size 10 12 s, CuPy at 1M ~60 s (generation and export) + ~3 x 30 s (reading the
+# 1M-node system for each precision): limits 540 s.
 set -uo pipefail
 
 large=0
@@ -60,7 +61,7 @@ if [ $large = 1 ]; then
     twist_size=${GPU_EVAL_TWIST_SIZE:-10}
     hard_scale=${GPU_EVAL_HARD_SCALE:-5}
     cupy_sizes=${GPU_EVAL_CUPY_SIZES:-1000000}
-    limits=${GPU_EVAL_LIMITS:-0,300,200,0,0,60}
+    limits=${GPU_EVAL_LIMITS:-0,240,120,30,0,180}
 else
     sizes=${GPU_EVAL_SIZES:-100000,1000000}
     newton_sizes=${GPU_EVAL_NEWTON_SIZES:-10000,100000}
@@ -150,7 +151,9 @@ if [ -n "$test_bins" ]; then
         done
         return $rc
     }
-    export test_bins
+    # A carried test binary runs the carried stickslip, not the path cargo built it with.
+    STICKSLIP_BIN=$(cd "$(dirname "$bin")" && pwd)/$(basename "$bin")
+    export test_bins STICKSLIP_BIN
     export -f tests_all
     step tests "$t_tests" bash -c tests_all > "$work/tests/tests.log" 2>&1
 else
@@ -159,11 +162,11 @@ fi
 
 # 2. The solver ladder, 3D.
 step ladder "$t_ladder" "$bin" bench --quick --sizes "$sizes" --dims 3 \
-    --oracle-max-nodes 100000 --out "$work/ladder" 2> "$work/ladder/log.txt"
+    --oracle-max-nodes 100000 --out "$work/ladder" > "$work/ladder/tables.md" 2> "$work/ladder/log.txt"
 
 # 3. The Newton step.
 step newton "$t_newton" "$bin" bench --newton --sizes "$newton_sizes" --reps 1 \
-    --out "$work/newton" 2> "$work/newton/log.txt"
+    --out "$work/newton" > "$work/newton/tables.md" 2> "$work/newton/log.txt"
 
 # 4. One step of a twist, the whole Newton step on the GPU against the CPU loop.
 twist_both() {
@@ -230,13 +233,18 @@ done
         head -c 200000 "$f"
     done
 } >> "$summary"
-tar -C "$work" --exclude=frames --exclude='*.mtx' -czf "$out/eval.tar.gz" . 2>/dev/null
-# Over 16 MiB (a runaway log): cut to the summaries and records.
+# Inputs are left out: frames, matrices, checkpoints and the CuPy step's systems (a step
+# stopped at its limit leaves them behind).
+tar -C "$work" --exclude=frames --exclude='*.mtx' --exclude='*.petsc' --exclude='checkpoint*.bin' \
+    --exclude='cupy/n[0-9]*' -czf "$out/eval.tar.gz" . 2>/dev/null
+# Still over 16 MiB (a runaway log): only the files under 1 MiB, so the tarball stays whole.
 if [ "$(stat -c %s "$out/eval.tar.gz")" -gt $((16 << 20)) ]; then
-    tar -C "$work" --exclude=frames --exclude='*.mtx' --exclude='*.vtk' \
-        --exclude='log.txt' -czf "$out/eval.tar.gz" .
+    (cd "$work" && find . -type f -size -1M ! -path '*/frames/*' ! -path './cupy/n*' -print0 |
+        tar --null -T - -czf "$out/eval.tar.gz")
 fi
+# A text file over 16 MiB is cut (a tarball never is: it would not open).
 for f in "$out"/*; do
+    case $f in *.tar.gz) continue ;; esac
     [ -f "$f" ] && [ "$(stat -c %s "$f")" -gt $((16 << 20)) ] && truncate -s 16M "$f"
 done
 cat "$summary"

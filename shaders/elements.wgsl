@@ -694,9 +694,11 @@ fn barrier_node(i: u32) {
                 en += w * (dhat * real(0.5) * kappa * (s - real(1.0)) * ls);
                 let gg = w * (real(0.5) * kappa * (ls + real(1.0) - real(1.0) / s));
                 let hh = w * (real(0.5) * kappa * (real(1.0) / dist + dhat / (dist * dist)));
+                // Upper triangle only (mirrored when written): a driver may contract
+                // (a, b) and (b, a) differently, and the output must be exactly symmetric.
                 for (var a = 0u; a < D; a++) {
                     gr[a] += gg * consts[o + a];
-                    for (var b = 0u; b < D; b++) {
+                    for (var b = a; b < D; b++) {
                         he[a * D + b] += hh * (consts[o + a] * consts[o + b]);
                     }
                 }
@@ -711,7 +713,7 @@ fn barrier_node(i: u32) {
     for (var a = 0u; a < D; a++) {
         gradient[i * D + a] = gr[a];
         for (var b = 0u; b < D; b++) {
-            hessian[(i * D + a) * D + b] = he[a * D + b];
+            hessian[(i * D + a) * D + b] = he[min(a, b) * D + max(a, b)];
         }
     }
 }

@@ -104,12 +104,15 @@ fn the_device_newton_loop_gives_the_same_bytes_under_a_forced_limit() {
     if gpu().is_none() {
         return;
     }
-    let bin = env!("CARGO_BIN_EXE_stickslip");
+    // A test binary carried to another machine (scripts/gpu-eval.sh) runs the binary
+    // carried beside it, named by STICKSLIP_BIN; here, the one cargo built.
+    let bin = std::env::var("STICKSLIP_BIN")
+        .unwrap_or_else(|_| env!("CARGO_BIN_EXE_stickslip").to_string());
     let root = std::env::temp_dir().join(format!("stickslip-launch-{}", std::process::id()));
     for scene in ["twist", "compress"] {
         let run = |limit: Option<&str>| -> std::path::PathBuf {
             let out = root.join(format!("{scene}-{}", limit.unwrap_or("none")));
-            let mut cmd = std::process::Command::new(bin);
+            let mut cmd = std::process::Command::new(&bin);
             cmd.args(["run", scene, "--steps", "1", "--newton", "gpu", "--quiet"])
                 .args(["--overwrite", "--out"])
                 .arg(&out);
