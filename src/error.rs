@@ -56,6 +56,14 @@ pub enum SolveError {
     /// A GPU failure (no adapter, out of memory, a device error).
     #[error("{0}")]
     Gpu(String),
+    /// A Cholesky solve whose residual stayed above its bound after refinement: the
+    /// eliminated Hessian is too ill-conditioned for f64.
+    #[error("the Cholesky solve reached a residual ‖D(b̂ − Ĥy)‖/‖Db̂‖ = {scaled_residual:.3e} (D: Ĥ's diagonal to the −½) after {refinements} refinement steps, above the bound {bound:.0e}: the eliminated Hessian is too ill-conditioned for a direct solve in f64")]
+    Inaccurate {
+        scaled_residual: f64,
+        bound: f64,
+        refinements: usize,
+    },
     /// Anything else from the factorization library.
     #[error("sparse factorization failed: {0}")]
     Factorization(String),

@@ -1084,6 +1084,104 @@ fn overflowing_data_fails_instead_of_writing_nan() {
     }
 }
 
+/// A Cholesky solve whose residual cannot reach the bound (κ ≈ 2e15: the f64 answer is
+/// off by about 10 %) fails with exit 1 in one line and writes nothing.
+#[test]
+fn an_inaccurate_cholesky_solve_fails() {
+    let c = case("cholesky-inaccurate");
+    let mut h = [[0.0f64; 4]; 4];
+    for (i, row) in h.iter_mut().enumerate() {
+        row[i] = 1.0;
+    }
+    h[0][2] = 1.0 - 1e-15;
+    h[2][0] = h[0][2];
+    let rows: Vec<&[f64]> = h.iter().map(|r| &r[..]).collect();
+    let hf = write(&c.dir, "H_ill.mtx", &h_general(&rows));
+    let gf = write(&c.dir, "g_ill.mtx", &g_array(&[1.0, 0.3, -0.7, 0.2]));
+    let bc = write(&c.dir, "bc_free.json", r#"{"dim": 2, "constraints": []}"#);
+    let out = c.dir.join("dx-ill.mtx");
+    let o = run(&[
+        "solve",
+        "--hessian",
+        &hf,
+        "--gradient",
+        &gf,
+        "--constraints",
+        &bc,
+        "--solver",
+        "cholesky",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let e = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{e}");
+    assert_eq!(e.lines().count(), 1, "{e:?}");
+    assert!(e.contains("above the bound 1e-8"), "{e}");
+    assert!(!out.exists());
+}
+
+/// H = S T S with T tridiagonal (4, −1) and S = 2^k from 2^-480 to 2^480: the plain
+/// residual cancels beyond f64 (Ĥy's terms reach 1e280 where b̂ is 1), the scaled one does
+/// not, and Δx is S⁻¹z with T z = −S⁻¹g (powers of two scale exactly).
+#[test]
+fn cholesky_solves_a_system_whose_diagonal_spans_the_f64_range() {
+    let c = case("cholesky-scaled");
+    let n = 10;
+    let s: Vec<f64> = (0..n)
+        .map(|i| (-480.0 + 960.0 * i as f64 / (n - 1) as f64).round().exp2())
+        .collect();
+    let mut h = vec![vec![0.0f64; n]; n];
+    for i in 0..n {
+        h[i][i] = 4.0 * s[i] * s[i];
+        if i + 1 < n {
+            h[i][i + 1] = -s[i] * s[i + 1];
+            h[i + 1][i] = h[i][i + 1];
+        }
+    }
+    let rows: Vec<&[f64]> = h.iter().map(|r| &r[..]).collect();
+    let hf = write(&c.dir, "H_scaled.mtx", &h_general(&rows));
+    let gf = write(&c.dir, "g_scaled.mtx", &g_array(&vec![1.0; n]));
+    let bc = write(&c.dir, "bc_free.json", r#"{"dim": 2, "constraints": []}"#);
+    let out = c.dir.join("dx-scaled.mtx");
+    let o = run(&[
+        "solve",
+        "--hessian",
+        &hf,
+        "--gradient",
+        &gf,
+        "--constraints",
+        &bc,
+        "--solver",
+        "cholesky",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let dx = read_vec(out.to_str().unwrap());
+    // T z = −S⁻¹g by the Thomas algorithm (T is diagonally dominant: stable in f64).
+    let mut diag = vec![4.0f64; n];
+    let mut rhs: Vec<f64> = s.iter().map(|si| -1.0 / si).collect();
+    for i in 1..n {
+        let m = -1.0 / diag[i - 1];
+        diag[i] -= m * -1.0;
+        rhs[i] -= m * rhs[i - 1];
+    }
+    let mut z = vec![0.0; n];
+    z[n - 1] = rhs[n - 1] / diag[n - 1];
+    for i in (0..n - 1).rev() {
+        z[i] = (rhs[i] + z[i + 1]) / diag[i];
+    }
+    for i in 0..n {
+        let want = z[i] / s[i];
+        // Both are backward-stable solves of T to rounding: a few ε apart.
+        assert!(
+            (dx[i] - want).abs() <= 1e-14 * want.abs(),
+            "{i}: {} vs {want}",
+            dx[i]
+        );
+    }
+}
+
 /// Runs a 4×2-cell stable neo-Hookean rectangle scene with the given time step and
 /// `[[boundary]]` body; whatever the outcome, steps.csv must hold no NaN or ∞ row. Returns
 /// the scene file and the run's output. (The stable law is defined for any J: with the

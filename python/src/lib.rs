@@ -497,6 +497,8 @@ impl Engine {
                     "factor_nnz_exact": o.factor_nnz_exact,
                     "ordering": o.ordering.name(),
                     "ordering_seconds": o.ordering_seconds,
+                    "scaled_residual": o.scaled_residual,
+                    "refinements": o.refinements,
                 });
             }
             SolveDetails::Cg(c) => {

@@ -234,3 +234,30 @@ def test_exception_classes():
     assert issubclass(stickslip.DeviceError, RuntimeError)
     assert not issubclass(stickslip.DeviceError, stickslip.SolveError)
     assert stickslip.SolveError.__module__ == "stickslip"
+
+
+def test_an_inaccurate_cholesky_solve_is_a_solve_error():
+    # κ ≈ 2e15 on the pair (0, 2): the f64 factor's answer is off by about 10 %, and its
+    # residual cannot be refined below 1e-8 in f64.
+    H = np.eye(4)
+    H[0, 2] = H[2, 0] = 1.0 - 1e-15
+    with pytest.raises(stickslip.SolveError) as e:
+        stickslip.solve(sp.csr_matrix(H), np.array([1.0, 0.3, -0.7, 0.2]), [], dim=2)
+    msg = one_line(e)
+    assert "above the bound 1e-8" in msg and "ill-conditioned" in msg
+
+
+def test_cholesky_solves_a_system_whose_diagonal_spans_the_f64_range():
+    # H = S T S with T tridiagonal (4, −1) and S = 2^k from 2^-480 to 2^480: y = S⁻¹ z
+    # where T z = S⁻¹ b, and powers of two scale exactly.
+    n = 10
+    k = np.linspace(-480, 480, n).round()
+    s = np.exp2(k)
+    T = np.diag(np.full(n, 4.0)) - np.diag(np.ones(n - 1), 1) - np.diag(np.ones(n - 1), -1)
+    H = sp.csr_matrix((s[:, None] * T) * s[None, :])
+    g = np.ones(n)
+    sol = stickslip.solve(H, g, [], dim=2)
+    z = np.linalg.solve(T, -g / s)
+    expected = z / s
+    assert np.max(np.abs(sol.dx - expected) / np.abs(expected)) <= 1e-14
+    assert sol.info["cholesky"]["scaled_residual"] <= 1e-15

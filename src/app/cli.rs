@@ -786,6 +786,8 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
                 factor_nnz_exact: info.factor_nnz_exact,
                 ordering: info.ordering.name().into(),
                 ordering_seconds: info.ordering_seconds,
+                scaled_residual: info.scaled_residual,
+                refinements: info.refinements,
             });
         }
         SolveDetails::Cg(info) => {

@@ -41,6 +41,12 @@ pub struct CholeskyReport {
     /// Seconds computing a nested-dissection ordering (0 for AMD, which faer's analysis
     /// runs inside `seconds.symbolic`).
     pub ordering_seconds: f64,
+    /// ‖D(b̂ − Ĥy)‖/‖Db̂‖ with D Ĥ's diagonal to the −½ (powers of two): the residual the
+    /// bound 1e-8 applies to, meaningful where the plain one cancels.
+    pub scaled_residual: f64,
+    /// Steps of iterative refinement on the factor (0 unless the first solve missed the
+    /// bound).
+    pub refinements: usize,
 }
 
 /// CG details.
@@ -128,8 +134,19 @@ impl Report {
             .map_or(String::new(), |e| {
                 format!(", estimated relative error {e:.2e}")
             });
+        // Cholesky's bound is on the scaled residual: shown where the two differ.
+        let scaled = self
+            .cholesky
+            .as_ref()
+            .filter(|c| {
+                let (a, b) = (c.scaled_residual, self.relative_residual);
+                (a - b).abs() > 0.5 * a.abs().max(b.abs())
+            })
+            .map_or(String::new(), |c| {
+                format!(" (scaled {:.2e})", c.scaled_residual)
+            });
         format!(
-            "stickslip: {} {}{adapter}: {} nodes, {} free + {} constrained dofs{iters}, relative residual {:.2e}{est}, solve {:.3} s, total {:.3} s",
+            "stickslip: {} {}{adapter}: {} nodes, {} free + {} constrained dofs{iters}, relative residual {:.2e}{scaled}{est}, solve {:.3} s, total {:.3} s",
             self.solver,
             self.precision,
             self.nodes,

@@ -49,7 +49,27 @@ pub struct OracleInfo {
     pub factor_nnz_exact: usize,
     /// ‖b̂ − Ĥy‖/‖b̂‖ recomputed in f64 (matrix-free).
     pub relative_residual: f64,
+    /// ‖D(b̂ − Ĥy)‖/‖Db̂‖, the residual of the system the factor is of (D: the powers of
+    /// two nearest Ĥ_kk^(−½)); the bound [`CHOLESKY_MAX_RESIDUAL`] applies to it. It
+    /// equals the relative residual when Ĥ's diagonal is uniform, and stays meaningful
+    /// when the diagonal spans the f64 range (where Ĥy cancels to far below its terms
+    /// and the plain residual cannot be computed in f64).
+    pub scaled_residual: f64,
+    /// Steps of iterative refinement on the factor (0 unless the first solve's scaled
+    /// residual was above [`CHOLESKY_MAX_RESIDUAL`]).
+    pub refinements: usize,
 }
+
+/// Largest relative residual ‖b̂ − Ĥy‖/‖b̂‖ a Cholesky solve returns. Above it the solve
+/// refines (up to [`MAX_REFINEMENTS`] steps on the same factor); a result still above it
+/// is an error ([`SolveError::Inaccurate`]), never a solution. The residual is computed
+/// in f64: where κ(Ĥ)·ε approaches 1 it cannot be made (or even measured) smaller.
+pub const CHOLESKY_MAX_RESIDUAL: f64 = 1e-8;
+/// Refinement steps at most; refinement also stops when a step does not lower the
+/// residual, or once it is below [`REFINED`].
+pub const MAX_REFINEMENTS: usize = 10;
+/// Where refinement stops: a residual at the level of rounding.
+const REFINED: f64 = 1e-14;
 
 /// Structure of the lower triangle of Ĥ in CSC, with a map from each stored entry back
 /// to its place in H's block values.
@@ -65,7 +85,76 @@ struct Structure {
     src: Vec<usize>,
 }
 
+/// ‖D(b̂ − Ĥy)‖/‖Db̂‖ with its vector D(b̂ − Ĥy), for one system and scaling.
+struct ScaledResidual<'e, 'a> {
+    e: &'e Eliminated<'a>,
+    scale: &'e [f64],
+    db_norm: f64,
+    hy: Vec<f64>,
+    work: Vec<f64>,
+}
+
+impl<'e, 'a> ScaledResidual<'e, 'a> {
+    fn new(e: &'e Eliminated<'a>, scale: &'e [f64]) -> Self {
+        let n = e.ndof();
+        let db: Vec<f64> = e.rhs.iter().zip(scale).map(|(b, s)| b * s).collect();
+        ScaledResidual {
+            e,
+            scale,
+            db_norm: crate::core::linalg::norm2(&db),
+            hy: vec![0.0; n],
+            work: vec![0.0; 2 * n],
+        }
+    }
+
+    /// D(b̂ − Ĥy) and its norm over ‖Db̂‖ (0 when both vanish, 1 when only b̂ does).
+    fn of(&mut self, y: &[f64]) -> (Vec<f64>, f64) {
+        self.e.apply(y, &mut self.hy, &mut self.work);
+        let dr: Vec<f64> = (self.e.rhs.iter().zip(&self.hy).zip(self.scale))
+            .map(|((b, h), s)| (b - h) * s)
+            .collect();
+        let rn = crate::core::linalg::norm2(&dr);
+        let ratio = match (self.db_norm == 0.0, rn == 0.0) {
+            (true, true) => 0.0,
+            (true, false) => 1.0,
+            _ => rn / self.db_norm,
+        };
+        (dr, ratio)
+    }
+}
+
+/// y ← D y.
+fn unscale(y: &mut [f64], scale: &[f64]) {
+    for (v, s) in y.iter_mut().zip(scale) {
+        *v *= s;
+    }
+}
+
 impl Structure {
+    /// Scales the lower triangle's values to D Ĥ D in place and returns D: per DOF the
+    /// power of two nearest Ĥ_kk^(−½) (1 where Ĥ_kk is not a positive finite number).
+    /// Powers of two scale every operation of the factorization exactly, so this changes
+    /// no bits unless Ĥ's entries approach the ends of the f64 range.
+    fn scale(&self, values: &mut [f64]) -> Vec<f64> {
+        let nd = self.col_ptr.len() - 1;
+        let mut scale = vec![1.0; nd];
+        for (c, s) in scale.iter_mut().enumerate() {
+            let range = self.col_ptr[c]..self.col_ptr[c + 1];
+            if let Some(k) = range.clone().find(|&k| self.row_idx[k] == c) {
+                let d = values[k];
+                if d > 0.0 && d.is_finite() {
+                    *s = (-0.5 * d.log2()).round().clamp(-1000.0, 1000.0).exp2();
+                }
+            }
+        }
+        for c in 0..nd {
+            for k in self.col_ptr[c]..self.col_ptr[c + 1] {
+                values[k] *= scale[self.row_idx[k]] * scale[c];
+            }
+        }
+        scale
+    }
+
     fn new(e: &Eliminated) -> Self {
         let h = e.h;
         let d = h.dim;
@@ -235,7 +324,32 @@ impl CholeskyOracle {
     }
 
     /// Factors Ĥ and solves Ĥ y = b̂; re-analyses first if the pattern or masks changed.
+    /// The factor is of D Ĥ D with D the powers of two nearest Ĥ's diagonal to the −½
+    /// (exact: the same bits as Ĥ's own factor wherever that stays inside the f64 range,
+    /// and a factor where Ĥ's entries span it). A residual above [`CHOLESKY_MAX_RESIDUAL`]
+    /// is refined on the factor; if it still misses the bound the solve fails
+    /// ([`SolveError::Inaccurate`], or [`SolveError::NotFinite`] for an overflow).
     pub fn solve(&mut self, e: &Eliminated) -> Result<(Vec<f64>, OracleInfo), SolveError> {
+        let (y, info) = self.solve_refined(e)?;
+        let r = info.scaled_residual;
+        if r.is_nan() || r.is_infinite() {
+            return Err(SolveError::NotFinite(format!(
+                "the Cholesky solve's relative residual is {r}: the system overflows f64 \
+                 (check the magnitudes of H, g and the prescribed values)"
+            )));
+        }
+        if r > CHOLESKY_MAX_RESIDUAL {
+            return Err(SolveError::Inaccurate {
+                scaled_residual: r,
+                bound: CHOLESKY_MAX_RESIDUAL,
+                refinements: info.refinements,
+            });
+        }
+        Ok((y, info))
+    }
+
+    /// One factorization and solve, refined while the residual is above the bound.
+    fn solve_refined(&mut self, e: &Eliminated) -> Result<(Vec<f64>, OracleInfo), SolveError> {
         let mut reused = self.used;
         if !self.fits(e) {
             *self = CholeskyOracle::analyze_with(e, self.requested)?;
@@ -247,7 +361,8 @@ impl CholeskyOracle {
         let t = Instant::now();
         // Values of the lower triangle of Ĥ, gathered from the assembled blocks.
         let hat = e.assemble();
-        let values: Vec<f64> = self.structure.src.iter().map(|&s| hat.values[s]).collect();
+        let mut values: Vec<f64> = self.structure.src.iter().map(|&s| hat.values[s]).collect();
+        let scale = self.structure.scale(&mut values);
         let sym = SymbolicSparseColMatRef::new_checked(
             nd,
             nd,
@@ -276,7 +391,12 @@ impl CholeskyOracle {
         let llt: LltRef<'_, usize, f64> = match result {
             Ok(l) => l,
             Err(PivotError::NonPositivePivot { index }) => {
-                // The pivot index is in the permuted order; map it back to a DOF.
+                // The pivot index is in the permuted order; map it back to a DOF. faer's
+                // simplicial factorization reports it one-based, the supernodal zero-based.
+                let index = match self.symbolic.raw() {
+                    SymbolicCholeskyRaw::Simplicial(_) => index.saturating_sub(1),
+                    SymbolicCholeskyRaw::Supernodal(_) => index,
+                };
                 let dof = match self.symbolic.perm() {
                     Some(p) => p.arrays().0[index.min(nd - 1)],
                     None => index,
@@ -290,7 +410,7 @@ impl CholeskyOracle {
         };
         let numeric_seconds = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let mut y = e.rhs.clone();
+        let mut y: Vec<f64> = e.rhs.iter().zip(&scale).map(|(b, s)| b * s).collect();
         let mut mem = MemBuffer::try_new(self.symbolic.solve_in_place_scratch::<f64>(1, par))
             .map_err(|err| SolveError::Factorization(format!("out of memory: {err:?}")))?;
         llt.solve_in_place_with_conj(
@@ -299,8 +419,33 @@ impl CholeskyOracle {
             par,
             MemStack::new(&mut mem),
         );
-        let solve_seconds = t.elapsed().as_secs_f64();
+        unscale(&mut y, &scale);
+        let mut scaled = ScaledResidual::new(e, &scale);
+        let (mut dr, mut scaled_residual) = scaled.of(&y);
+        let mut refinements = 0;
+        if scaled_residual > CHOLESKY_MAX_RESIDUAL && scaled_residual.is_finite() {
+            while refinements < MAX_REFINEMENTS && scaled_residual > REFINED {
+                // y + D (DĤD)⁻¹ D(b̂ − Ĥy) on the same factor, kept only if it lowers the
+                // residual.
+                let mut d = dr.clone();
+                llt.solve_in_place_with_conj(
+                    Conj::No,
+                    MatMut::from_column_major_slice_mut(&mut d, nd, 1),
+                    par,
+                    MemStack::new(&mut mem),
+                );
+                unscale(&mut d, &scale);
+                let next: Vec<f64> = y.iter().zip(&d).map(|(a, b)| a + b).collect();
+                let (next_dr, r) = scaled.of(&next);
+                if !(r < scaled_residual) {
+                    break;
+                }
+                (y, dr, scaled_residual) = (next, next_dr, r);
+                refinements += 1;
+            }
+        }
         let relative_residual = e.relative_residual(&y);
+        let solve_seconds = t.elapsed().as_secs_f64();
         Ok((
             y,
             OracleInfo {
@@ -314,6 +459,8 @@ impl CholeskyOracle {
                 factor_nnz: self.symbolic.len_val(),
                 factor_nnz_exact: self.factor_nnz_exact,
                 relative_residual,
+                scaled_residual,
+                refinements,
             },
         ))
     }
@@ -491,11 +638,10 @@ pub fn solve(e: &Eliminated) -> Result<(Vec<f64>, OracleInfo), SolveError> {
     CholeskyOracle::analyze(e)?.solve(e)
 }
 
-/// Cholesky of the equilibrated system S Ĥ S (see [`crate::solve::cg::Scaling`]), unscaled
-/// after. With power-of-two scaling, Cholesky's rounding is unchanged (scaling commutes
-/// with every floating-point operation short of over/underflow), so this helps only when
-/// entries approach the ends of the f64 range; the plain [`solve`] stays the default.
-/// The residual reported is the unscaled one.
+/// Cholesky of the node-wise equilibrated system S Ĥ S (see [`crate::solve::cg::Scaling`]),
+/// unscaled after: the CG's scaling, for comparison. [`solve`] already scales per DOF
+/// by powers of two, which changes no bits short of over/underflow, so the two agree
+/// except at the ends of the f64 range. The residual reported is the unscaled one.
 pub fn solve_equilibrated(e: &Eliminated) -> Result<(Vec<f64>, OracleInfo), SolveError> {
     let eq = crate::solve::cg::equilibrate(e);
     let es = eq.eliminated(e.frames);
@@ -547,6 +693,74 @@ mod tests {
             Err(SolveError::NotPositiveDefinite { node, .. }) => assert!(node < s.h.n),
             other => panic!("expected NotPositiveDefinite, got {other:?}"),
         }
+    }
+}
+
+#[cfg(test)]
+mod pivot_tests {
+    use super::*;
+    use crate::cases::generate::{random_system, GeneratedSystem, SystemSpec};
+    use crate::core::elimination::ConstrainedDiagonal;
+
+    /// A diagonal Ĥ with one zero entry: the error names that DOF, under both orderings.
+    #[test]
+    fn a_zero_pivot_names_its_own_dof() {
+        for dim in [2usize, 3] {
+            for seed in 0..5u64 {
+                let s = random_system(&SystemSpec::small(dim, 40 + seed));
+                zero_pivot_case(&s, (seed as usize * 7 + 3) % s.h.ndof());
+            }
+        }
+    }
+
+    /// The same on grids large enough for faer's supernodal factorization.
+    #[test]
+    fn a_zero_pivot_names_its_own_dof_in_a_supernodal_factor() {
+        let mut supernodal = 0;
+        for (dim, grid) in [(2usize, [40usize, 40, 1]), (3, [12, 12, 12])] {
+            let mut spec = SystemSpec::small(dim, 7);
+            spec.grid = grid;
+            let s = random_system(&spec);
+            let n = s.h.ndof();
+            for dof in [0, 1, n / 2 + 1, n - 1] {
+                supernodal += zero_pivot_case(&s, dof);
+            }
+        }
+        assert!(supernodal > 0, "no case used the supernodal factorization");
+    }
+
+    /// Ĥ = 2I on the system's pattern (no constraints) with a zero at `dof`: the error
+    /// names `dof` under AMD and nested dissection. Returns how many of the two
+    /// factorizations were supernodal.
+    fn zero_pivot_case(s: &GeneratedSystem, dof: usize) -> usize {
+        let (dim, d2) = (s.h.dim, s.h.dim * s.h.dim);
+        let mut h = s.h.clone();
+        for i in 0..h.n {
+            for k in h.row_ptr[i]..h.row_ptr[i + 1] {
+                for a in 0..d2 {
+                    let diag = h.col_idx[k] == i && a % (dim + 1) == 0;
+                    h.values[k * d2 + a] = if diag { 2.0 } else { 0.0 };
+                }
+            }
+        }
+        let k = h.diag_index(dof / dim).unwrap();
+        h.values[k * d2 + (dof % dim) * (dim + 1)] = 0.0;
+        let frames = crate::core::constraints::Frames::unconstrained(dim, h.n);
+        let e = Eliminated::new(&h, &s.g, &frames, ConstrainedDiagonal::Identity);
+        let mut supernodal = 0;
+        for ordering in [CholeskyOrdering::Amd, CholeskyOrdering::NestedDissection] {
+            let mut oracle = CholeskyOracle::analyze_with(&e, ordering).unwrap();
+            supernodal += oracle.supernodes().is_some() as usize;
+            match oracle.solve(&e) {
+                Err(SolveError::NotPositiveDefinite { node, component }) => assert_eq!(
+                    (node, component),
+                    (dof / dim, dof % dim),
+                    "{dim}D DOF {dof} {ordering:?}"
+                ),
+                other => panic!("{dim}D DOF {dof} {ordering:?}: {other:?}"),
+            }
+        }
+        supernodal
     }
 }
 
