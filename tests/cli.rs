@@ -1379,6 +1379,11 @@ fn no_adapter_is_one_line_and_a_failure() {
         "{e}"
     );
     assert!(e.contains("VK_ICD_FILENAMES"), "{e}");
+    // A backend name that names none: the remedy is the variable, not a driver install.
+    assert!(
+        e.contains("set WGPU_BACKEND to vulkan") && !e.contains("install"),
+        "{e}"
+    );
     let dest = out.join("bench");
     let o = no_gpu(&[
         "bench",

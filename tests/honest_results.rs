@@ -308,7 +308,8 @@ fn system(dir: &Path, seed: &str) -> (String, String, String) {
 }
 
 /// WGPU_ADAPTER_NAME that names no adapter: exit 2 with the adapters listed, for `solve`
-/// and for a `run` on the GPU; never a silent run on another adapter.
+/// and for a `run` with the GPU solver or the device Newton loop; never a silent run on
+/// another adapter.
 #[test]
 fn an_adapter_name_that_matches_nothing_is_refused() {
     let dir = tmpdir("adapter-name");
@@ -350,6 +351,19 @@ fn an_adapter_name_that_matches_nothing_is_refused() {
     let e = our_stderr(&o);
     assert_eq!(o.status.code(), Some(2), "{e}");
     assert!(e.contains("names no GPU adapter"), "{e}");
+    // The device Newton loop: the same input error, not a failed step 0.
+    let o = std::process::Command::new(common::cli::BIN)
+        .args([
+            "run", "hanging", "--newton", "gpu", "--steps", "1", "-q", "--out",
+        ])
+        .arg(dir.join("run-device"))
+        .env("WGPU_ADAPTER_NAME", "no-such-adapter-anywhere")
+        .output()
+        .unwrap();
+    let e = our_stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert_eq!(e.lines().count(), 1, "{e}");
+    assert!(e.starts_with("error: WGPU_ADAPTER_NAME: "), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

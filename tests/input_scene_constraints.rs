@@ -649,6 +649,45 @@ material = { model = "mass-spring", stiffness = 1e4, density = 100.0 }"#,
     );
 }
 
+/// The Cholesky cap belongs to the solver that runs: a scene that names Cholesky parses
+/// at any size, and its run starts once `--solver cg` or the device loop replaces it.
+#[test]
+fn the_cholesky_cap_follows_the_solver_that_runs() {
+    use stickslip::sim::integrator::{InitError, Stepper};
+    use stickslip::sim::mesh::MAX_CHOLESKY_NODES_3D;
+    use stickslip::sim::scene::LinearKind;
+    let cells = MAX_CHOLESKY_NODES_3D; // cells + 1 nodes: one over the cap
+    let text = format!(
+        r#"name = "long-rod"
+dimension = 3
+time_step = 0.01
+steps = 1
+[solver]
+linear = "cholesky"
+[[bodies]]
+mesh = {{ kind = "rod", length = 1.0, cells = [{cells}] }}
+material = {{ model = "mass-spring", stiffness = 1e4, density = 100.0 }}
+[[boundary]]
+kind = "sticky"
+region = {{ nodes = [0] }}
+"#
+    );
+    let mut scene = stickslip::sim::scene::parse(&text, "rod.toml", 1.0).expect("parses");
+    match Stepper::new(&scene) {
+        Err(InitError::Input { entry, problem }) => {
+            assert_eq!(entry, "solver.linear");
+            assert!(
+                problem.contains(&format!("{MAX_CHOLESKY_NODES_3D}")),
+                "{problem}"
+            );
+        }
+        Err(e) => panic!("expected the cap, got {e:?}"),
+        Ok(_) => panic!("expected the cap"),
+    }
+    scene.solver.linear = LinearKind::Cg;
+    assert!(Stepper::new(&scene).is_ok(), "CG has no cap of its own");
+}
+
 /// Values near f64's top on more rows than dimensions: the QR reduction scales them, so a
 /// finite lift of 5e307 is kept (unscaled, the reflections' sums overflowed to NaN).
 #[test]

@@ -130,18 +130,19 @@ fn environment_read() -> String {
 /// Why no adapter was found, in one line: the backends tried and the environment read.
 pub fn no_adapter_message(opts: &GpuOptions) -> String {
     let b = backends(opts);
-    let tried = if b.is_empty() {
-        format!(
-            "WGPU_BACKEND='{}' names no backend (vulkan, metal, dx12, gl)",
-            crate::io::one_line(opts.backend.as_deref().unwrap_or(""), 40)
-        )
-    } else {
-        format!("backends tried: {b:?}")
-    };
+    if b.is_empty() {
+        // No backend was tried: the remedy is the variable, not a driver.
+        return format!(
+            "no GPU adapter found (WGPU_BACKEND='{}' names no backend; {}); set WGPU_BACKEND \
+             to vulkan, metal, dx12 or gl, or unset it",
+            crate::io::one_line(opts.backend.as_deref().unwrap_or(""), 40),
+            environment_read()
+        );
+    }
     format!(
-        "no GPU adapter found ({tried}; {}); install a Vulkan driver and its loader \
-         (libvulkan1; NVIDIA's driver, or Mesa lavapipe: mesa-vulkan-drivers) or point \
-         VK_ICD_FILENAMES at its ICD json",
+        "no GPU adapter found (backends tried: {b:?}; {}); install a Vulkan driver and its \
+         loader (libvulkan1; NVIDIA's driver, or Mesa lavapipe: mesa-vulkan-drivers) or \
+         point VK_ICD_FILENAMES at its ICD json",
         environment_read()
     )
 }

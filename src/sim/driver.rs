@@ -454,7 +454,9 @@ fn build_scene(
         .into());
     }
     check_magnitudes(&scene)?;
-    if scene.solver.linear == LinearKind::Gpu {
+    if scene.solver.linear == LinearKind::Gpu
+        || scene.solver.newton == crate::sim::scene::NewtonLoop::Gpu
+    {
         if let Some(problem) = crate::gpu::adapter_name_mismatch(&crate::gpu::GpuOptions::default())
         {
             return Err(InputError::new("WGPU_ADAPTER_NAME", "", problem).into());

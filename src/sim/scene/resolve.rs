@@ -4,9 +4,7 @@
 
 use super::check::Ctx;
 use super::mesh_build::{build_mesh, check_planned_nodes};
-use super::model::{
-    check_name, check_solver_size, BcShape, CellBlock, Motion, NodeBc, Obstacle, Scene, MAX_STEPS,
-};
+use super::model::{check_name, BcShape, CellBlock, Motion, NodeBc, Obstacle, Scene, MAX_STEPS};
 use super::spec::{
     BcKindSpec, BodySpec, BoundarySpec, CgTolerance, MaterialModel, MotionSpec, MovingSpec,
     ObstacleKind, ObstacleSpec, RegionSpec, SceneFile, SolverSpec,
@@ -187,11 +185,10 @@ struct Bodies {
 /// The node caps are checked over all generated bodies before any mesh is allocated, and
 /// again once Gmsh bodies have been counted.
 fn build_bodies(c: &Ctx, spec: &SceneFile, dim: usize, size: f64) -> Result<Bodies, InputError> {
-    let s = &spec.solver;
     let meshes: Vec<&super::spec::MeshSpec> = spec.bodies.iter().map(|b| &b.mesh).collect();
-    let planned = check_planned_nodes(c, &meshes, dim, size)?;
-    check_solver_size(dim, planned, s.linear_choice.resolve(dim, planned))
-        .map_err(|p| c.err("solver.linear", p))?;
+    // The linear solver's own cap is checked when the run starts (`Stepper::new`): the
+    // command line may choose another solver or the device loop.
+    check_planned_nodes(c, &meshes, dim, size)?;
 
     let mut out = Bodies {
         x0: Vec::new(),
@@ -233,10 +230,6 @@ fn build_bodies(c: &Ctx, spec: &SceneFile, dim: usize, size: f64) -> Result<Bodi
         out.mass.extend(m);
         out.sets.push(set);
     }
-    // Again with gmsh bodies counted.
-    let nodes = out.x0.len() / dim;
-    check_solver_size(dim, nodes, s.linear_choice.resolve(dim, nodes))
-        .map_err(|p| c.err("solver.linear", p))?;
     Ok(out)
 }
 
