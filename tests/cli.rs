@@ -1084,6 +1084,49 @@ fn overflowing_data_fails_instead_of_writing_nan() {
     }
 }
 
+/// A well-conditioned system (κ ≈ 2.6) whose gradient is 1e-170, 1e-160 or 1e155: CG
+/// solves it (rᵀr would under- or overflow unscaled) and agrees with Cholesky.
+#[test]
+fn cg_solves_well_conditioned_systems_at_any_scale_of_g() {
+    let c = case("cg-scales");
+    let h = [
+        [3.0, -1.0, 0.0, 0.0],
+        [-1.0, 3.0, -1.0, 0.0],
+        [0.0, -1.0, 3.0, -1.0],
+        [0.0, 0.0, -1.0, 3.0],
+    ];
+    let rows: Vec<&[f64]> = h.iter().map(|r| &r[..]).collect();
+    let hf = write(&c.dir, "H_tri.mtx", &h_general(&rows));
+    let bc = write(&c.dir, "bc_free.json", r#"{"dim": 2, "constraints": []}"#);
+    for scale in [1e-170, 1e-160, 1e155] {
+        let g: Vec<f64> = [1.0, -0.5, 0.25, 2.0].iter().map(|v| v * scale).collect();
+        let gf = write(&c.dir, &format!("g_{scale:e}.mtx"), &g_array(&g));
+        let mut dx = Vec::new();
+        for solver in ["cholesky", "cg"] {
+            let out = c.dir.join(format!("dx-{solver}-{scale:e}.mtx"));
+            let o = run(&[
+                "solve",
+                "--hessian",
+                &hf,
+                "--gradient",
+                &gf,
+                "--constraints",
+                &bc,
+                "--solver",
+                solver,
+                "--out",
+                out.to_str().unwrap(),
+            ]);
+            assert!(o.status.success(), "{solver} at {scale:e}: {}", stderr(&o));
+            dx.push(read_vec(out.to_str().unwrap()));
+        }
+        // CG's tolerance 1e-8 on the residual, κ < 3: the error is below 3e-8.
+        for (a, b) in dx[1].iter().zip(&dx[0]) {
+            assert!((a - b).abs() <= 3e-8 * b.abs(), "{scale:e}: {a:e} vs {b:e}");
+        }
+    }
+}
+
 /// A Cholesky solve whose residual cannot reach the bound (κ ≈ 2e15: the f64 answer is
 /// off by about 10 %) fails with exit 1 in one line and writes nothing.
 #[test]

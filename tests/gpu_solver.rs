@@ -429,6 +429,32 @@ fn solves_are_deterministic() {
     assert_eq!(i1.iterations, i2.iterations);
 }
 
+/// A right-hand side near either end of the f64 range (‖b̂‖ ≈ 1e-169 or 1e155, where rᵀr
+/// under- or overflows) solves like the unit one: the CG iterates on σb̂ with σ a power of
+/// two, so y scaled back by 2^k is the same bits, in f64 and f32.
+#[test]
+fn a_right_hand_side_at_the_ends_of_the_range_gives_the_same_bits() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = random_system(&SystemSpec::small(3, 22));
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    for (precision, tol) in [(Precision::F64, 1e-10), (Precision::F32, 1e-5)] {
+        let prm = params(precision, tol, Preconditioner::Jacobi);
+        let unit = GpuSolver::new(ctx, &e, &prm)
+            .and_then(|mut sol| sol.solve())
+            .expect("unit solve");
+        for k in [-560i32, 515] {
+            let mut es = e.clone();
+            es.rhs.iter_mut().for_each(|v| *v *= 2f64.powi(k));
+            let out = GpuSolver::new(ctx, &es, &prm)
+                .and_then(|mut sol| sol.solve())
+                .unwrap_or_else(|err| panic!("{precision:?} 2^{k}: {err}"));
+            let back: Vec<f64> = out.y.iter().map(|v| v * 2f64.powi(-k)).collect();
+            assert_eq!(back, unit.y, "{precision:?} 2^{k}");
+            assert_eq!(out.info.iterations, unit.info.iterations);
+        }
+    }
+}
+
 /// The number of workgroups only changes the order of the partial sums: every choice
 /// reaches the tolerance on the same system and reports how many it used (capped at one
 /// per workgroup_size nodes). On a CPU adapter the default is a few per hardware thread.

@@ -261,3 +261,13 @@ def test_cholesky_solves_a_system_whose_diagonal_spans_the_f64_range():
     expected = z / s
     assert np.max(np.abs(sol.dx - expected) / np.abs(expected)) <= 1e-14
     assert sol.info["cholesky"]["scaled_residual"] <= 1e-15
+
+
+@pytest.mark.parametrize("scale", [1e-170, 1e-160, 1e155])
+def test_cg_solves_a_well_conditioned_system_at_any_scale_of_g(scale):
+    H = sp.csr_matrix(np.diag(np.full(4, 3.0)) - np.diag(np.ones(3), 1) - np.diag(np.ones(3), -1))
+    g = np.array([1.0, -0.5, 0.25, 2.0]) * scale
+    chol = stickslip.solve(H, g, [], dim=2)
+    cg = stickslip.solve(H, g, [], dim=2, solver="cg")
+    # tol 1e-8 on the residual and κ < 3: the error is below 3e-8.
+    assert np.all(np.abs(cg.dx - chol.dx) <= 3e-8 * np.abs(chol.dx))

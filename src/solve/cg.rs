@@ -382,7 +382,45 @@ fn tridiagonal_extremes(a: &[f64], b: &[f64]) -> Option<(f64, f64)> {
 
 /// PCG with true-residual checks (see the module docs); returns the final iterate and
 /// the outcome.
+/// The power of two nearest 1/‖b̂‖ (1 where ‖b̂‖ is 0 or not finite): CG runs on σb̂,
+/// whose scalars (rᵀz ∝ ‖b̂‖², pᵀĤp) stay inside the f64 range for any ‖b̂‖ whose
+/// solution does, and unscales y. Powers of two scale every CG operation exactly, so
+/// the iterates are the same bits wherever the unscaled run neither over- nor underflows.
+pub fn rhs_scale(bnorm: f64) -> f64 {
+    if bnorm > 0.0 && bnorm.is_finite() {
+        (-bnorm.log2()).round().clamp(-1000.0, 1000.0).exp2()
+    } else {
+        1.0
+    }
+}
+
+/// [`pcg_unit`] on σb̂ with σ = [`rhs_scale`]`(‖b̂‖)`, y unscaled after.
 fn pcg_core(
+    e: &Eliminated,
+    pre: &BuiltPreconditioner,
+    y0: Option<&[f64]>,
+    params: &CgParams,
+) -> (Vec<f64>, Result<CgInfo, CgError>) {
+    let sigma = rhs_scale(norm2(&e.rhs));
+    if sigma == 1.0 {
+        return pcg_unit(e, pre, y0, params);
+    }
+    let es = Eliminated {
+        h: e.h,
+        frames: e.frames,
+        rhs: e.rhs.iter().map(|v| v * sigma).collect(),
+        diag: e.diag.clone(),
+    };
+    let y0s: Option<Vec<f64>> = y0.map(|y| y.iter().map(|v| v * sigma).collect());
+    let (mut y, res) = pcg_unit(&es, pre, y0s.as_deref(), params);
+    for v in &mut y {
+        *v /= sigma;
+    }
+    (y, res)
+}
+
+/// PCG on Ĥ y = b̂ as given (see [`pcg_core`] for the scaling of b̂).
+fn pcg_unit(
     e: &Eliminated,
     pre: &BuiltPreconditioner,
     y0: Option<&[f64]>,
@@ -582,6 +620,34 @@ mod tests {
     use super::*;
     use crate::cases::generate::{random_system, SystemSpec};
     use crate::core::elimination::ConstrainedDiagonal;
+
+    /// ‖b̂‖ near either end of the f64 range (rᵀr under- or overflows unscaled): the
+    /// solution scaled back by 2^k is the same bits as the unit right-hand side's.
+    #[test]
+    fn a_right_hand_side_at_the_ends_of_the_range_gives_the_same_bits() {
+        let s = crate::cases::generate::random_system(&crate::cases::generate::SystemSpec::small(
+            3, 22,
+        ));
+        let e = Eliminated::new(
+            &s.h,
+            &s.g,
+            &s.frames,
+            crate::core::elimination::ConstrainedDiagonal::Identity,
+        );
+        let params = CgParams {
+            tol: 1e-10,
+            ..CgParams::default()
+        };
+        let (unit, ui) = solve(&e, &params).expect("unit");
+        for k in [-560i32, 515] {
+            let mut es = e.clone();
+            es.rhs.iter_mut().for_each(|v| *v *= 2f64.powi(k));
+            let (y, info) = solve(&es, &params).unwrap_or_else(|err| panic!("2^{k}: {err}"));
+            let back: Vec<f64> = y.iter().map(|v| v * 2f64.powi(-k)).collect();
+            assert_eq!(back, unit, "2^{k}");
+            assert_eq!(info.iterations, ui.iterations);
+        }
+    }
 
     #[test]
     fn all_preconditioners_converge_and_report_the_true_residual() {

@@ -208,9 +208,15 @@ impl GpuSolver {
             self.dev.level.buf.r.clone(),
             self.dev.level.buf.p.clone(),
         );
-        let xs = self.download(self.encoder("x"), &x, real, nd)?;
-        let rs = self.download(self.encoder("r"), &r, real, nd)?;
-        let ps = self.download(self.encoder("p"), &p, real, nd)?;
+        // The plain CG iterates on σb̂: x, r and p are σ times those of b̂.
+        let sigma = self.rhs_scale;
+        let unscale = |mut v: Vec<f64>| {
+            v.iter_mut().for_each(|a| *a /= sigma);
+            v
+        };
+        let xs = unscale(self.download(self.encoder("x"), &x, real, nd)?);
+        let rs = unscale(self.download(self.encoder("r"), &r, real, nd)?);
+        let ps = unscale(self.download(self.encoder("p"), &p, real, nd)?);
         Ok((xs, rs, ps))
     }
 }

@@ -89,6 +89,9 @@ pub struct GpuSolver {
     mixed: MixedState,
     /// What the reports say was allocated, dispatched and timed.
     tel: Telemetry,
+    /// σ of the plain CG's right-hand side σb̂ ([`crate::solve::cg::rhs_scale`]; 1 for
+    /// mixed precision, which scales its own inner systems): y is unscaled on download.
+    rhs_scale: f64,
 }
 
 impl GpuSolver {
@@ -151,6 +154,7 @@ impl GpuSolver {
             run: RunState::new(),
             mixed,
             tel: Telemetry::new(buffers, kernels, bpi),
+            rhs_scale: 1.0,
         };
         s.tel.upload_seconds = t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
@@ -301,7 +305,12 @@ impl GpuSolver {
         enc.copy_buffer_to_buffer(&y_buf, 0, &self.dev.solution_staging, 0, bytes);
         self.ctx.queue.submit([enc.finish()]);
         let staging = self.dev.solution_staging.clone();
-        let y = real.values(&self.read(&staging, bytes)?);
+        let mut y = real.values(&self.read(&staging, bytes)?);
+        if self.rhs_scale != 1.0 {
+            for v in &mut y {
+                *v /= self.rhs_scale;
+            }
+        }
         let dx = self.host.recover(&y);
         Ok((y, dx))
     }
@@ -397,7 +406,8 @@ impl GpuSolver {
 
     fn solve_plain(&mut self, bnorm: f64) -> Result<Solved, GpuError> {
         let tol = self.params.tol;
-        let thresh = (tol * bnorm).powi(2);
+        // The device iterates on σb̂ (see `upload_values`).
+        let thresh = (tol * bnorm * self.rhs_scale).powi(2);
         let t0 = Instant::now();
         let mut total = 0usize;
         let mut restarts = 0usize;

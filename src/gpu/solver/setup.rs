@@ -111,11 +111,16 @@ impl GpuSolver {
                 }
                 self.ctx
                     .write_buffer(&rf.b64, 0, &Real::F64.bytes(&self.host.rhs));
+                self.rhs_scale = 1.0;
             }
             None => {
+                // σb̂ keeps rᵀr and pᵀĤp inside the range for any ‖b̂‖ (exact: σ = 2^k).
+                self.rhs_scale =
+                    crate::solve::cg::rhs_scale(crate::core::linalg::norm2(&self.host.rhs));
+                let sigma = self.rhs_scale;
+                let b: Vec<f64> = self.host.rhs.iter().map(|v| v * sigma).collect();
                 let l = &self.dev.level;
-                self.ctx
-                    .write_buffer(&l.buf.b, 0, &l.real.bytes(&self.host.rhs));
+                self.ctx.write_buffer(&l.buf.b, 0, &l.real.bytes(&b));
             }
         }
         self.ctx.check("uploading the system")
