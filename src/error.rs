@@ -56,12 +56,12 @@ pub enum SolveError {
     /// A GPU failure (no adapter, out of memory, a device error).
     #[error("{0}")]
     Gpu(String),
-    /// A Cholesky solve whose residual stayed above its bound after refinement: the
-    /// eliminated Hessian is too ill-conditioned for f64.
-    #[error("the Cholesky solve reached a residual ‖D(b̂ − Ĥy)‖/‖Db̂‖ = {scaled_residual:.3e} (D: Ĥ's diagonal to the −½) after {refinements} refinement steps, above the bound {bound:.0e}: the eliminated Hessian is too ill-conditioned for a direct solve in f64")]
-    Inaccurate {
+    /// A Cholesky solve whose residual stayed above its bound after refinement, on a
+    /// DĤD singular to working precision: no f64 answer can be trusted.
+    #[error("the eliminated Hessian is singular to working precision: κ(DĤD) ≈ {condition_estimate:.1e} ≥ 1/(64ε) (D: Ĥ's diagonal to the −½), and the Cholesky solve's residual ‖D(b̂ − Ĥy)‖/‖Db̂‖ stayed at {scaled_residual:.3e} after {refinements} refinement steps")]
+    Singular {
+        condition_estimate: f64,
         scaled_residual: f64,
-        bound: f64,
         refinements: usize,
     },
     /// Anything else from the factorization library.
@@ -151,7 +151,8 @@ pub struct Unpinned {
     pub direction: Vec<f64>,
     /// tᵀĤt/tᵀt of the translation.
     pub stiffness: f64,
-    /// The group's mean absolute row sum of Ĥ (what the stiffness is measured against).
+    /// The group's absolute row sums of Ĥ along the translation, per node it moves (what
+    /// the stiffness is measured against).
     pub row_scale: f64,
 }
 

@@ -499,6 +499,7 @@ impl Engine {
                     "ordering_seconds": o.ordering_seconds,
                     "scaled_residual": o.scaled_residual,
                     "refinements": o.refinements,
+                    "condition_estimate": o.condition_estimate,
                 });
             }
             SolveDetails::Cg(c) => {

@@ -788,6 +788,7 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
                 ordering_seconds: info.ordering_seconds,
                 scaled_residual: info.scaled_residual,
                 refinements: info.refinements,
+                condition_estimate: info.condition_estimate,
             });
         }
         SolveDetails::Cg(info) => {

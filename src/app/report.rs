@@ -47,6 +47,9 @@ pub struct CholeskyReport {
     /// Steps of iterative refinement on the factor (0 unless the first solve missed the
     /// bound).
     pub refinements: usize,
+    /// κ(DĤD) estimated on the factor when the refined residual stayed above the bound
+    /// (the answer is then as good as f64 allows for that κ); null otherwise.
+    pub condition_estimate: Option<f64>,
 }
 
 /// CG details.

@@ -794,6 +794,9 @@ pub fn unpinned_translation(
         .find(|t| t.stiffness.abs() <= UNPINNED_EPS * f64::EPSILON * t.row_scale)
 }
 
+/// 2^-64: the scale of the running sums of |Ĥ| in [`softest_translations`].
+const ABS_SUM_SCALE: f64 = 1.0 / 18_446_744_073_709_551_616.0;
+
 /// The softest translation of every connected group of free nodes (see
 /// [`unpinned_translation`]), in the order of the groups' first nodes.
 pub fn softest_translations(
@@ -848,7 +851,8 @@ pub fn softest_translations(
     let groups = count as usize;
     let mut e = vec![0.0; groups * dd];
     let mut g = vec![0.0; groups * dd];
-    let mut abs = vec![0.0; groups];
+    // Per group and world axis a: Σ |entries| of the rows of component a (scaled).
+    let mut abs = vec![0.0; groups * d];
     let mut first = vec![usize::MAX; groups];
     let mut size = vec![0usize; groups];
     let mut row = [0.0; 9];
@@ -877,7 +881,14 @@ pub fn softest_translations(
             for (r, v) in row[..dd].iter_mut().zip(&pb[..dd]) {
                 *r += v;
             }
-            abs[c] += pb[..dd].iter().map(|v| v.abs()).sum::<f64>();
+            // Scaled by 2^-64 while summed: rows near the top of the f64 range would
+            // overflow the group's total (and every translation would look unpinned).
+            for a in 0..d {
+                abs[c * d + a] += pb[a * d..(a + 1) * d]
+                    .iter()
+                    .map(|v| v.abs() * ABS_SUM_SCALE)
+                    .sum::<f64>();
+            }
         }
         for (x, v) in e[c * dd..(c + 1) * dd].iter_mut().zip(&row[..dd]) {
             *x += v;
@@ -886,11 +897,20 @@ pub fn softest_translations(
     let mut out = Vec::new();
     for c in 0..groups {
         let (ec, gc) = (&e[c * dd..(c + 1) * dd], &g[c * dd..(c + 1) * dd]);
-        // Free components of the group: the trace of G (each Q_i is a projection).
-        let free_dofs: f64 = (0..d).map(|a| gc[a * d + a]).sum();
-        let row_scale = abs[c] / free_dofs.max(1.0);
         // A non-finite E (overflowed data) is left to the solvers' own checks.
         if let Some((stiffness, direction)) = softest(d, ec, gc) {
+            // The rows the translation moves: Σ_a t_a² |rows of a| over tᵀGt (Gt's
+            // free components, as many as the translation moves). For a body whose
+            // stiffness is alike along every axis this is the mean absolute row sum; a
+            // component far softer than the node's others is measured against its own
+            // rows, not theirs.
+            let moved: f64 = (0..d)
+                .map(|a| direction[a] * (0..d).map(|b| gc[a * d + b] * direction[b]).sum::<f64>())
+                .sum();
+            let rows: f64 = (0..d)
+                .map(|a| direction[a] * direction[a] * abs[c * d + a])
+                .sum();
+            let row_scale = rows / moved.max(1.0) / ABS_SUM_SCALE;
             out.push(Unpinned {
                 node: first[c],
                 nodes: size[c],

@@ -58,13 +58,22 @@ pub struct OracleInfo {
     /// Steps of iterative refinement on the factor (0 unless the first solve's scaled
     /// residual was above [`CHOLESKY_MAX_RESIDUAL`]).
     pub refinements: usize,
+    /// κ(DĤD) estimated on the factor (‖DĤD‖∞ times an inverse-iteration estimate of
+    /// ‖(DĤD)⁻¹‖₂), computed only when the refined residual stayed above the bound.
+    pub condition_estimate: Option<f64>,
 }
 
-/// Largest relative residual ‖b̂ − Ĥy‖/‖b̂‖ a Cholesky solve returns. Above it the solve
-/// refines (up to [`MAX_REFINEMENTS`] steps on the same factor); a result still above it
-/// is an error ([`SolveError::Inaccurate`]), never a solution. The residual is computed
-/// in f64: where κ(Ĥ)·ε approaches 1 it cannot be made (or even measured) smaller.
+/// The residual ‖D(b̂ − Ĥy)‖/‖Db̂‖ a Cholesky solve aims for. Above it the solve refines
+/// (up to [`MAX_REFINEMENTS`] steps on the same factor, residuals in double-double). A
+/// result still above it is accepted only while κ(DĤD) stays below [`SINGULAR_KAPPA`]:
+/// no f64 y has a residual much below κε‖b̂‖, so an ill-conditioned Ĥ (κ = 1e10, say)
+/// misses the bound with the best answer f64 holds; past that κ, Ĥ is singular to
+/// working precision and the solve fails ([`SolveError::Singular`]).
 pub const CHOLESKY_MAX_RESIDUAL: f64 = 1e-8;
+/// κ(DĤD) from which Ĥ counts as singular to working precision: 1/(64ε) ≈ 7.0e13 (the
+/// LAPACK test rcond < ε, with a margin of 64 for the estimate). At κε = 1/64 a
+/// backward-stable solve can already be off by a few per cent.
+pub const SINGULAR_KAPPA: f64 = 1.0 / (64.0 * f64::EPSILON);
 /// Refinement steps at most; refinement also stops when a step does not lower the
 /// residual, or once it is below [`REFINED`].
 pub const MAX_REFINEMENTS: usize = 10;
@@ -85,34 +94,33 @@ struct Structure {
     src: Vec<usize>,
 }
 
-/// ‖D(b̂ − Ĥy)‖/‖Db̂‖ with its vector D(b̂ − Ĥy), for one system and scaling.
-struct ScaledResidual<'e, 'a> {
-    e: &'e Eliminated<'a>,
+/// ‖D(b̂ − Ĥy)‖/‖Db̂‖ with its vector D(b̂ − Ĥy), for one system and scaling. The
+/// residual is summed in double-double ([`crate::core::sparse::BlockCsr::residual_dd`]):
+/// accurate however much b̂ and Ĥy cancel, where an f64 residual would stall at
+/// ε‖Ĥ‖‖y‖ (≈ κε‖b̂‖), so refinement converges while κ(Ĥ)·ε < 1 and the check measures
+/// the solve, not its own rounding.
+struct ScaledResidual<'e> {
+    hat: &'e crate::core::sparse::BlockCsr,
+    rhs: &'e [f64],
     scale: &'e [f64],
     db_norm: f64,
-    hy: Vec<f64>,
-    work: Vec<f64>,
 }
 
-impl<'e, 'a> ScaledResidual<'e, 'a> {
-    fn new(e: &'e Eliminated<'a>, scale: &'e [f64]) -> Self {
-        let n = e.ndof();
-        let db: Vec<f64> = e.rhs.iter().zip(scale).map(|(b, s)| b * s).collect();
+impl<'e> ScaledResidual<'e> {
+    fn new(hat: &'e crate::core::sparse::BlockCsr, rhs: &'e [f64], scale: &'e [f64]) -> Self {
+        let db: Vec<f64> = rhs.iter().zip(scale).map(|(b, s)| b * s).collect();
         ScaledResidual {
-            e,
+            hat,
+            rhs,
             scale,
             db_norm: crate::core::linalg::norm2(&db),
-            hy: vec![0.0; n],
-            work: vec![0.0; 2 * n],
         }
     }
 
     /// D(b̂ − Ĥy) and its norm over ‖Db̂‖ (0 when both vanish, 1 when only b̂ does).
-    fn of(&mut self, y: &[f64]) -> (Vec<f64>, f64) {
-        self.e.apply(y, &mut self.hy, &mut self.work);
-        let dr: Vec<f64> = (self.e.rhs.iter().zip(&self.hy).zip(self.scale))
-            .map(|((b, h), s)| (b - h) * s)
-            .collect();
+    fn of(&self, y: &[f64]) -> (Vec<f64>, f64) {
+        let mut dr = self.hat.residual_dd(self.rhs, y);
+        dr.iter_mut().zip(self.scale).for_each(|(r, s)| *r *= s);
         let rn = crate::core::linalg::norm2(&dr);
         let ratio = match (self.db_norm == 0.0, rn == 0.0) {
             (true, true) => 0.0,
@@ -121,6 +129,28 @@ impl<'e, 'a> ScaledResidual<'e, 'a> {
         };
         (dr, ratio)
     }
+}
+
+/// ‖A⁻¹‖₂ estimated by 8 steps of inverse iteration from a fixed vector (`solve`
+/// overwrites its argument with A⁻¹ times it): ‖A⁻¹v_k‖ for unit v_k, a lower bound that
+/// approaches ‖A⁻¹‖₂ as the smallest eigenvalue separates.
+fn inverse_norm_estimate(n: usize, mut solve: impl FnMut(&mut [f64])) -> f64 {
+    // A fixed, irregular start (golden-ratio sequence): no eigenvector of a structured
+    // matrix is orthogonal to it by accident.
+    let mut v: Vec<f64> = (0..n)
+        .map(|k| 0.5 + (k as f64 * 0.618_033_988_749_895).fract())
+        .collect();
+    let mut est = 0.0;
+    for _ in 0..8 {
+        let nv = crate::core::linalg::norm2(&v);
+        if !(nv > 0.0 && nv.is_finite()) {
+            return f64::INFINITY;
+        }
+        v.iter_mut().for_each(|x| *x /= nv);
+        solve(&mut v);
+        est = crate::core::linalg::norm2(&v);
+    }
+    est
 }
 
 /// y ← D y.
@@ -153,6 +183,22 @@ impl Structure {
             }
         }
         scale
+    }
+
+    /// ‖A‖∞ of the symmetric matrix whose lower triangle `values` holds.
+    fn norm_inf(&self, values: &[f64]) -> f64 {
+        let nd = self.col_ptr.len() - 1;
+        let mut rows = vec![0.0f64; nd];
+        for c in 0..nd {
+            let range = self.col_ptr[c]..self.col_ptr[c + 1];
+            for (&r, v) in self.row_idx[range.clone()].iter().zip(&values[range]) {
+                rows[r] += v.abs();
+                if r != c {
+                    rows[c] += v.abs();
+                }
+            }
+        }
+        rows.into_iter().fold(0.0, f64::max)
     }
 
     fn new(e: &Eliminated) -> Self {
@@ -327,8 +373,9 @@ impl CholeskyOracle {
     /// The factor is of D Ĥ D with D the powers of two nearest Ĥ's diagonal to the −½
     /// (exact: the same bits as Ĥ's own factor wherever that stays inside the f64 range,
     /// and a factor where Ĥ's entries span it). A residual above [`CHOLESKY_MAX_RESIDUAL`]
-    /// is refined on the factor; if it still misses the bound the solve fails
-    /// ([`SolveError::Inaccurate`], or [`SolveError::NotFinite`] for an overflow).
+    /// is refined on the factor; if it still misses the bound and DĤD is singular to
+    /// working precision ([`SINGULAR_KAPPA`]) the solve fails ([`SolveError::Singular`],
+    /// or [`SolveError::NotFinite`] for an overflow).
     pub fn solve(&mut self, e: &Eliminated) -> Result<(Vec<f64>, OracleInfo), SolveError> {
         let (y, info) = self.solve_refined(e)?;
         let r = info.scaled_residual;
@@ -338,12 +385,14 @@ impl CholeskyOracle {
                  (check the magnitudes of H, g and the prescribed values)"
             )));
         }
-        if r > CHOLESKY_MAX_RESIDUAL {
-            return Err(SolveError::Inaccurate {
-                scaled_residual: r,
-                bound: CHOLESKY_MAX_RESIDUAL,
-                refinements: info.refinements,
-            });
+        if let Some(kappa) = info.condition_estimate {
+            if kappa >= SINGULAR_KAPPA || kappa.is_nan() {
+                return Err(SolveError::Singular {
+                    condition_estimate: kappa,
+                    scaled_residual: r,
+                    refinements: info.refinements,
+                });
+            }
         }
         Ok((y, info))
     }
@@ -420,13 +469,13 @@ impl CholeskyOracle {
             MemStack::new(&mut mem),
         );
         unscale(&mut y, &scale);
-        let mut scaled = ScaledResidual::new(e, &scale);
+        let scaled = ScaledResidual::new(&hat, &e.rhs, &scale);
         let (mut dr, mut scaled_residual) = scaled.of(&y);
         let mut refinements = 0;
         if scaled_residual > CHOLESKY_MAX_RESIDUAL && scaled_residual.is_finite() {
             while refinements < MAX_REFINEMENTS && scaled_residual > REFINED {
-                // y + D (DĤD)⁻¹ D(b̂ − Ĥy) on the same factor, kept only if it lowers the
-                // residual.
+                // y + D (DĤD)⁻¹ D(b̂ − Ĥy) on the same factor (the residual in
+                // double-double), kept only if it lowers the residual.
                 let mut d = dr.clone();
                 llt.solve_in_place_with_conj(
                     Conj::No,
@@ -437,13 +486,28 @@ impl CholeskyOracle {
                 unscale(&mut d, &scale);
                 let next: Vec<f64> = y.iter().zip(&d).map(|(a, b)| a + b).collect();
                 let (next_dr, r) = scaled.of(&next);
-                if !(r < scaled_residual) {
+                if r >= scaled_residual || r.is_nan() {
                     break;
                 }
                 (y, dr, scaled_residual) = (next, next_dr, r);
                 refinements += 1;
             }
         }
+        // Above the bound after refinement: is DĤD singular to working precision, or is
+        // this the residual f64 allows for its condition (an f64 y cannot do better than
+        // ‖b̂ − Ĥy‖ ≈ κε‖b̂‖)? Estimated on the same factor.
+        let condition_estimate = (scaled_residual > CHOLESKY_MAX_RESIDUAL).then(|| {
+            let norm_inf = self.structure.norm_inf(&values);
+            norm_inf
+                * inverse_norm_estimate(nd, |v| {
+                    llt.solve_in_place_with_conj(
+                        Conj::No,
+                        MatMut::from_column_major_slice_mut(v, nd, 1),
+                        par,
+                        MemStack::new(&mut mem),
+                    )
+                })
+        });
         let relative_residual = e.relative_residual(&y);
         let solve_seconds = t.elapsed().as_secs_f64();
         Ok((
@@ -461,6 +525,7 @@ impl CholeskyOracle {
                 relative_residual,
                 scaled_residual,
                 refinements,
+                condition_estimate,
             },
         ))
     }

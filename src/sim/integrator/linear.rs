@@ -8,9 +8,9 @@ use crate::{LayoutKey, Solver};
 use std::collections::HashMap;
 use std::time::Instant;
 
-/// Largest relative residual a Cholesky solve returns (the oracle refines, equilibrates,
-/// then fails above it): a nearly singular Ĥ fails the step, naming the residual, instead
-/// of line-searching a wrong direction.
+/// The residual a Cholesky solve aims for (the oracle refines above it, and fails on an Ĥ
+/// singular to working precision): such an Ĥ fails the step, naming its condition,
+/// instead of line-searching a wrong direction.
 pub use crate::solve::oracle::CHOLESKY_MAX_RESIDUAL;
 /// What one linear solve cost.
 #[derive(Debug, Clone, Copy, Default)]
