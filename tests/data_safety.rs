@@ -431,9 +431,46 @@ fn a_second_concurrent_run_into_a_folder_refuses() {
         std::thread::sleep(std::time::Duration::from_millis(10));
     }
     let o = run(&["run", &sc, "--out", &s(&out), "--steps", "1", "-q"]);
+    // Another command's output file in that folder is refused too (nothing replaced).
+    let sys = dir.join("sys");
+    let g = run(&[
+        "generate",
+        "--dim",
+        "2",
+        "--nodes",
+        "50",
+        "-q",
+        "--out-dir",
+        &s(&sys),
+    ]);
+    assert_eq!(g.status.code(), Some(0), "{}", stderr(&g));
+    let steps = out.join("steps.csv");
+    let before = std::fs::read(&steps).ok();
+    let solve = run(&[
+        "solve",
+        "--hessian",
+        &s(&sys.join("H.mtx")),
+        "--gradient",
+        &s(&sys.join("g.mtx")),
+        "--constraints",
+        &s(&sys.join("bc.json")),
+        "--out",
+        &s(&steps),
+    ]);
     first.kill().unwrap();
     first.wait().unwrap();
     assert_input_error(&o, &s(&out), &["another stickslip process", "writing into"]);
+    assert_input_error(
+        &solve,
+        &s(&steps),
+        &["another stickslip process", "writing into the folder"],
+    );
+    if let Some(before) = before {
+        assert!(
+            std::fs::read(&steps).unwrap().starts_with(&before),
+            "solve replaced the running run's steps.csv"
+        );
+    }
     assert_eq!(summary(&out)["status"], "running");
     // Once the first has ended (killed), the folder can be taken again.
     let o = run(&["run", &sc, "--out", &s(&out), "--steps", "1", "-q"]);

@@ -181,8 +181,48 @@ pub fn check_outputs(inputs: &[Named], outputs: &[Named]) -> Result<(), InputErr
         }
         let dir = parent_of(&resolved);
         probe_folder(&dir).map_err(|problem| InputError::new(&shown, o.option, problem))?;
+        if let Some(problem) = held_by_another(&dir) {
+            return fail(problem);
+        }
     }
     Ok(())
+}
+
+/// When another live process holds `dir`'s lock (a `run` writing there): the problem, as
+/// [`take_lock`] words it. The lock file is only read, never created, and a lock this
+/// process holds is its own.
+fn held_by_another(dir: &Path) -> Option<String> {
+    let path = dir.join(LOCK_FILE);
+    let mut f = File::open(&path).ok()?;
+    let mut holder = String::new();
+    {
+        use std::io::Read;
+        let _ = f.read_to_string(&mut holder);
+    }
+    let holder = holder.trim();
+    if holder == std::process::id().to_string() {
+        return None;
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::io::AsRawFd;
+        // SAFETY: flock on a file descriptor this function owns; closing it (the drop at
+        // return) releases a lock taken here.
+        let rc = unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_SH | libc::LOCK_NB) };
+        if rc != 0 {
+            let who = if holder.is_empty() {
+                String::new()
+            } else {
+                format!(" (pid {})", crate::io::one_line(holder, 20))
+            };
+            return Some(format!(
+                "another stickslip process{who} is writing into the folder {}; wait for it \
+                 or choose another folder",
+                dir.display()
+            ));
+        }
+    }
+    None
 }
 
 /// Ok when `dir` is an existing folder in which a new file can be created (tried).
