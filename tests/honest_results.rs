@@ -248,6 +248,16 @@ fn gmsh_node_tags_out_of_file_order_keep_the_geometry() {
             for e in 0..4 {
                 assert_eq!(m.measure(e), 0.25, "{what}: element {e}");
             }
+            // Nodes keep their $Nodes order: node k sits at the k-th listed tag's position.
+            let listed: Vec<u64> = blocks.iter().flat_map(|b| b.iter().copied()).collect();
+            for (k, &t) in listed.iter().enumerate() {
+                let p = SQUARE.iter().find(|(tag, _)| *tag == t).unwrap().1;
+                assert_eq!(
+                    [m.x[2 * k], m.x[2 * k + 1]],
+                    [p[0], p[1]],
+                    "{what}: node {k}"
+                );
+            }
             // Element 1 is (1, 2, 5): its nodes sit at the tags' positions.
             let at = |i: usize| [m.x[2 * i], m.x[2 * i + 1]];
             let mut got: Vec<[f64; 2]> = m.elements[0].iter().map(|&i| at(i)).collect();

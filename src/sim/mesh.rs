@@ -394,9 +394,11 @@ pub fn rod(dim: usize, length: f64, cells: usize) -> Mesh {
 
 /// Reads a Gmsh MSH 4.1 file (ASCII or binary, through `mshio`): 3-node triangles in 2D,
 /// 4-node tetrahedra in 3D. Elements of lower dimension (boundary lines, faces, points) are
-/// skipped; nodes no kept element uses are dropped (they would carry no mass); triangles
-/// are made counter-clockwise and tetrahedra positively oriented. The error says what is
-/// wrong, the caller names the file.
+/// skipped; nodes no kept element uses are dropped (they would carry no mass); the others
+/// keep their order in `$Nodes`, so node k is the file's k-th node that an element uses
+/// (what `region = { nodes = [k] }` names); triangles are made counter-clockwise and
+/// tetrahedra positively oriented. The error says what is wrong, the caller names the
+/// file.
 pub fn gmsh(dim: usize, bytes: &[u8]) -> Result<Mesh, String> {
     use mshio::mshfile::ElementType;
     use std::collections::HashMap;
@@ -501,6 +503,31 @@ pub fn gmsh(dim: usize, bytes: &[u8]) -> Result<Mesh, String> {
             if dim == 2 { "triangles" } else { "tetrahedra" },
             want
         ));
+    }
+    // Nodes were numbered by first use; renumber the kept ones in their $Nodes order.
+    let file_order: HashMap<u64, usize> = tags
+        .iter()
+        .flatten()
+        .enumerate()
+        .map(|(k, &t)| (t, k))
+        .collect();
+    // (Every kept tag was found in $Nodes above.)
+    let mut kept: Vec<(usize, usize)> = index
+        .iter()
+        .map(|(t, &i)| (file_order.get(t).copied().unwrap_or(usize::MAX), i))
+        .collect();
+    kept.sort_unstable();
+    let mut renumber = vec![0usize; kept.len()];
+    let mut xs = vec![0.0; x.len()];
+    for (new, &(_, old)) in kept.iter().enumerate() {
+        renumber[old] = new;
+        xs[new * dim..(new + 1) * dim].copy_from_slice(&x[old * dim..(old + 1) * dim]);
+    }
+    let x = xs;
+    for el in elements.iter_mut() {
+        for i in el.iter_mut() {
+            *i = renumber[*i];
+        }
     }
     let mut m = Mesh {
         dim,
