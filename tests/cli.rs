@@ -1084,6 +1084,29 @@ fn overflowing_data_fails_instead_of_writing_nan() {
     }
 }
 
+/// `solve --solver SOLVER` on dense H and g with no constraints (2D), the files named
+/// after `name` in `dir`; returns the run and the Δx path.
+fn solve_free(dir: &Path, name: &str, h: &[&[f64]], g: &[f64], solver: &str) -> (Output, PathBuf) {
+    let hf = write(dir, &format!("H_{name}.mtx"), &h_general(h));
+    let gf = write(dir, &format!("g_{name}.mtx"), &g_array(g));
+    let bc = write(dir, "bc_free.json", r#"{"dim": 2, "constraints": []}"#);
+    let out = dir.join(format!("dx-{name}-{solver}.mtx"));
+    let o = run(&[
+        "solve",
+        "--hessian",
+        &hf,
+        "--gradient",
+        &gf,
+        "--constraints",
+        &bc,
+        "--solver",
+        solver,
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    (o, out)
+}
+
 /// A well-conditioned system (κ ≈ 2.6) whose gradient is 1e-170, 1e-160 or 1e155: CG
 /// solves it (rᵀr would under- or overflow unscaled) and agrees with Cholesky.
 #[test]
@@ -1096,27 +1119,11 @@ fn cg_solves_well_conditioned_systems_at_any_scale_of_g() {
         [0.0, 0.0, -1.0, 3.0],
     ];
     let rows: Vec<&[f64]> = h.iter().map(|r| &r[..]).collect();
-    let hf = write(&c.dir, "H_tri.mtx", &h_general(&rows));
-    let bc = write(&c.dir, "bc_free.json", r#"{"dim": 2, "constraints": []}"#);
     for scale in [1e-170, 1e-160, 1e155] {
         let g: Vec<f64> = [1.0, -0.5, 0.25, 2.0].iter().map(|v| v * scale).collect();
-        let gf = write(&c.dir, &format!("g_{scale:e}.mtx"), &g_array(&g));
         let mut dx = Vec::new();
         for solver in ["cholesky", "cg"] {
-            let out = c.dir.join(format!("dx-{solver}-{scale:e}.mtx"));
-            let o = run(&[
-                "solve",
-                "--hessian",
-                &hf,
-                "--gradient",
-                &gf,
-                "--constraints",
-                &bc,
-                "--solver",
-                solver,
-                "--out",
-                out.to_str().unwrap(),
-            ]);
+            let (o, out) = solve_free(&c.dir, &format!("tri-{scale:e}"), &rows, &g, solver);
             assert!(o.status.success(), "{solver} at {scale:e}: {}", stderr(&o));
             dx.push(read_vec(out.to_str().unwrap()));
         }
@@ -1139,23 +1146,7 @@ fn a_hessian_singular_to_working_precision_fails_cholesky() {
     h[0][2] = 1.0 - 1e-15;
     h[2][0] = h[0][2];
     let rows: Vec<&[f64]> = h.iter().map(|r| &r[..]).collect();
-    let hf = write(&c.dir, "H_ill.mtx", &h_general(&rows));
-    let gf = write(&c.dir, "g_ill.mtx", &g_array(&[1.0, 0.3, -0.7, 0.2]));
-    let bc = write(&c.dir, "bc_free.json", r#"{"dim": 2, "constraints": []}"#);
-    let out = c.dir.join("dx-ill.mtx");
-    let o = run(&[
-        "solve",
-        "--hessian",
-        &hf,
-        "--gradient",
-        &gf,
-        "--constraints",
-        &bc,
-        "--solver",
-        "cholesky",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let (o, out) = solve_free(&c.dir, "ill", &rows, &[1.0, 0.3, -0.7, 0.2], "cholesky");
     let e = stderr(&o);
     assert_eq!(o.status.code(), Some(1), "{e}");
     assert_eq!(e.lines().count(), 1, "{e:?}");
@@ -1182,23 +1173,7 @@ fn cholesky_solves_a_system_whose_diagonal_spans_the_f64_range() {
         }
     }
     let rows: Vec<&[f64]> = h.iter().map(|r| &r[..]).collect();
-    let hf = write(&c.dir, "H_scaled.mtx", &h_general(&rows));
-    let gf = write(&c.dir, "g_scaled.mtx", &g_array(&vec![1.0; n]));
-    let bc = write(&c.dir, "bc_free.json", r#"{"dim": 2, "constraints": []}"#);
-    let out = c.dir.join("dx-scaled.mtx");
-    let o = run(&[
-        "solve",
-        "--hessian",
-        &hf,
-        "--gradient",
-        &gf,
-        "--constraints",
-        &bc,
-        "--solver",
-        "cholesky",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let (o, out) = solve_free(&c.dir, "scaled", &rows, &vec![1.0; n], "cholesky");
     assert!(o.status.success(), "{}", stderr(&o));
     let dx = read_vec(out.to_str().unwrap());
     // T z = −S⁻¹g by the Thomas algorithm (T is diagonally dominant: stable in f64).

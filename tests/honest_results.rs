@@ -350,30 +350,23 @@ fn an_adapter_name_that_matches_nothing_is_refused() {
         "{e}"
     );
     assert!(!Path::new(&out).exists());
-    let o = std::process::Command::new(common::cli::BIN)
-        .args([
-            "run", "hanging", "--solver", "gpu", "--steps", "1", "-q", "--out",
-        ])
-        .arg(dir.join("run"))
-        .env("WGPU_ADAPTER_NAME", "no-such-adapter-anywhere")
-        .output()
-        .unwrap();
-    let e = our_stderr(&o);
-    assert_eq!(o.status.code(), Some(2), "{e}");
-    assert!(e.contains("names no GPU adapter"), "{e}");
-    // The device Newton loop: the same input error, not a failed step 0.
-    let o = std::process::Command::new(common::cli::BIN)
-        .args([
-            "run", "hanging", "--newton", "gpu", "--steps", "1", "-q", "--out",
-        ])
-        .arg(dir.join("run-device"))
-        .env("WGPU_ADAPTER_NAME", "no-such-adapter-anywhere")
-        .output()
-        .unwrap();
-    let e = our_stderr(&o);
-    assert_eq!(o.status.code(), Some(2), "{e}");
-    assert_eq!(e.lines().count(), 1, "{e}");
-    assert!(e.starts_with("error: WGPU_ADAPTER_NAME: "), "{e}");
+    // `run` with the GPU solver, and with the device Newton loop (an input error, not a
+    // failed step 0).
+    for (option, folder) in [("--solver", "run"), ("--newton", "run-device")] {
+        let o = std::process::Command::new(common::cli::BIN)
+            .args([
+                "run", "hanging", option, "gpu", "--steps", "1", "-q", "--out",
+            ])
+            .arg(dir.join(folder))
+            .env("WGPU_ADAPTER_NAME", "no-such-adapter-anywhere")
+            .output()
+            .unwrap();
+        let e = our_stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{option}: {e}");
+        assert_eq!(e.lines().count(), 1, "{option}: {e}");
+        assert!(e.starts_with("error: WGPU_ADAPTER_NAME: "), "{option}: {e}");
+        assert!(e.contains("names no GPU adapter"), "{option}: {e}");
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }
 

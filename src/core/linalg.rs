@@ -1,5 +1,11 @@
 //! Small dense vector helpers shared by the modules (one home, one behaviour).
 
+/// 2^round(e), e clamped to ±1000: a scale factor whose products are exact (short of
+/// over- or underflow), for the power-of-two scalings of the solvers.
+pub fn power_of_two(e: f64) -> f64 {
+    e.round().clamp(-1000.0, 1000.0).exp2()
+}
+
 /// Euclidean norm, scaled so that entries near 1e±200 neither overflow nor underflow.
 ///
 /// Returns 0 for an all-zero (or empty) vector, NaN when any entry is NaN (a residual

@@ -210,14 +210,10 @@ fn held_by_another(dir: &Path) -> Option<String> {
         // return) releases a lock taken here.
         let rc = unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_SH | libc::LOCK_NB) };
         if rc != 0 {
-            let who = if holder.is_empty() {
-                String::new()
-            } else {
-                format!(" (pid {})", crate::io::one_line(holder, 20))
-            };
             return Some(format!(
-                "another stickslip process{who} is writing into the folder {}; wait for it \
-                 or choose another folder",
+                "another stickslip process{} is writing into the folder {}; wait for it or \
+                 choose another folder",
+                holder_pid(holder),
                 dir.display()
             ));
         }
@@ -597,6 +593,15 @@ fn matching(dir: &Path, pat: &str) -> Vec<PathBuf> {
     out
 }
 
+/// " (pid N)" from a lock file's content, or nothing when it is empty.
+fn holder_pid(holder: &str) -> String {
+    if holder.is_empty() {
+        String::new()
+    } else {
+        format!(" (pid {})", crate::io::one_line(holder, 20))
+    }
+}
+
 /// Takes the folder's lock without waiting; the error says who holds it.
 fn take_lock(dir: &Path) -> Result<File, String> {
     let path = dir.join(LOCK_FILE);
@@ -616,15 +621,10 @@ fn take_lock(dir: &Path) -> Result<File, String> {
         if rc != 0 {
             let mut holder = String::new();
             let _ = f.read_to_string(&mut holder);
-            let holder = holder.trim();
-            let who = if holder.is_empty() {
-                String::new()
-            } else {
-                format!(" (pid {})", crate::io::one_line(holder, 20))
-            };
             return Err(format!(
-                "another stickslip process{who} is writing into this folder; wait for it or \
-                 choose another folder"
+                "another stickslip process{} is writing into this folder; wait for it or \
+                 choose another folder",
+                holder_pid(holder.trim())
             ));
         }
         let _ = f.set_len(0);

@@ -190,7 +190,7 @@ pub fn equilibrate(e: &Eliminated) -> Equilibrated {
                 (0..d).map(|a| h.values[k * d * d + a * d + a]).sum::<f64>() / d as f64
             });
             if t > 0.0 && t.is_finite() {
-                (-0.5 * t.log2()).round().clamp(-1000.0, 1000.0).exp2()
+                crate::core::linalg::power_of_two(-0.5 * t.log2())
             } else {
                 1.0
             }
@@ -388,7 +388,7 @@ fn tridiagonal_extremes(a: &[f64], b: &[f64]) -> Option<(f64, f64)> {
 /// the iterates are the same bits wherever the unscaled run neither over- nor underflows.
 pub fn rhs_scale(bnorm: f64) -> f64 {
     if bnorm > 0.0 && bnorm.is_finite() {
-        (-bnorm.log2()).round().clamp(-1000.0, 1000.0).exp2()
+        crate::core::linalg::power_of_two(-bnorm.log2())
     } else {
         1.0
     }

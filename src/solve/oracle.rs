@@ -173,7 +173,7 @@ impl Structure {
             if let Some(k) = range.clone().find(|&k| self.row_idx[k] == c) {
                 let d = values[k];
                 if d > 0.0 && d.is_finite() {
-                    *s = (-0.5 * d.log2()).round().clamp(-1000.0, 1000.0).exp2();
+                    *s = crate::core::linalg::power_of_two(-0.5 * d.log2());
                 }
             }
         }
@@ -462,12 +462,16 @@ impl CholeskyOracle {
         let mut y: Vec<f64> = e.rhs.iter().zip(&scale).map(|(b, s)| b * s).collect();
         let mut mem = MemBuffer::try_new(self.symbolic.solve_in_place_scratch::<f64>(1, par))
             .map_err(|err| SolveError::Factorization(format!("out of memory: {err:?}")))?;
-        llt.solve_in_place_with_conj(
-            Conj::No,
-            MatMut::from_column_major_slice_mut(&mut y, nd, 1),
-            par,
-            MemStack::new(&mut mem),
-        );
+        // v ← (DĤD)⁻¹v on the factor.
+        let mut solve_in_place = |v: &mut [f64]| {
+            llt.solve_in_place_with_conj(
+                Conj::No,
+                MatMut::from_column_major_slice_mut(v, nd, 1),
+                par,
+                MemStack::new(&mut mem),
+            )
+        };
+        solve_in_place(&mut y);
         unscale(&mut y, &scale);
         let scaled = ScaledResidual::new(&hat, &e.rhs, &scale);
         let (mut dr, mut scaled_residual) = scaled.of(&y);
@@ -476,13 +480,8 @@ impl CholeskyOracle {
             while refinements < MAX_REFINEMENTS && scaled_residual > REFINED {
                 // y + D (DĤD)⁻¹ D(b̂ − Ĥy) on the same factor (the residual in
                 // double-double), kept only if it lowers the residual.
-                let mut d = dr.clone();
-                llt.solve_in_place_with_conj(
-                    Conj::No,
-                    MatMut::from_column_major_slice_mut(&mut d, nd, 1),
-                    par,
-                    MemStack::new(&mut mem),
-                );
+                let mut d = dr;
+                solve_in_place(&mut d);
                 unscale(&mut d, &scale);
                 let next: Vec<f64> = y.iter().zip(&d).map(|(a, b)| a + b).collect();
                 let (next_dr, r) = scaled.of(&next);
@@ -498,15 +497,7 @@ impl CholeskyOracle {
         // ‖b̂ − Ĥy‖ ≈ κε‖b̂‖)? Estimated on the same factor.
         let condition_estimate = (scaled_residual > CHOLESKY_MAX_RESIDUAL).then(|| {
             let norm_inf = self.structure.norm_inf(&values);
-            norm_inf
-                * inverse_norm_estimate(nd, |v| {
-                    llt.solve_in_place_with_conj(
-                        Conj::No,
-                        MatMut::from_column_major_slice_mut(v, nd, 1),
-                        par,
-                        MemStack::new(&mut mem),
-                    )
-                })
+            norm_inf * inverse_norm_estimate(nd, &mut solve_in_place)
         });
         let relative_residual = e.relative_residual(&y);
         let solve_seconds = t.elapsed().as_secs_f64();
