@@ -64,7 +64,9 @@ const H_LAST_CHUNK: u32 = 2u;
 // scal: ρ = r·z (scalar_start, scalar_beta), p·q (scalar_alpha), α (scalar_alpha),
 // β (scalar_beta), r·r of the last reduction, tol² (host), ‖b̂‖² (scalar_start); then
 // (COARSE) c = E⁺Zᵀr, D values (scalar_beta, scalar_start), E⁺, D² row-major (host), and
-// E = ZᵀĤZ unsymmetrized, D² row-major (coarse_e_sum, read back by the host).
+// E = ZᵀĤZ unsymmetrized, D² row-major, then per world axis a 2^-64 · Σ|entries| of the
+// rows of component a of ZᵀĤ's blocks, D values (coarse_e_sum, read back by the host,
+// which asks whether a translation is pinned by nothing).
 const NCG_RHO: u32 = 0u;
 const NCG_PQ: u32 = 1u;
 const NCG_ALPHA: u32 = 2u;
@@ -75,6 +77,7 @@ const NCG_BB: u32 = 6u;
 const NCG_C: u32 = 8u;
 const NCG_EINV: u32 = 11u;
 const NCG_E: u32 = 20u;
+const NCG_EABS: u32 = 29u;
 // state: stop (any reason), converged, non-positive curvature, non-finite value,
 // iterations done (all u32; the host clears the four flags before a restart).
 const NCG_DONE: u32 = 0u;
@@ -83,7 +86,7 @@ const NCG_HALT: u32 = 2u;
 const NCG_BREAKDOWN: u32 = 3u;
 const NCG_ITERS: u32 = 4u;
 // Partial-sum slots, each n_partials long: p·q, r·z, r·r, ‖b̂‖², then D slots of Zᵀr
-// (COARSE) and D² of E (coarse_e).
+// (COARSE), D² of E then D of its rows' absolute sums (coarse_e).
 const NCG_PART_PQ: u32 = 0u;
 const NCG_PART_RZ: u32 = 1u;
 const NCG_PART_RR: u32 = 2u;
@@ -91,8 +94,11 @@ const NCG_PART_BB: u32 = 3u;
 const NCG_PART_ZR: u32 = 4u;
 const NCG_PART_E: u32 = 7u;
 // After the partial-sum slots (NCG_CARRY · n_partials): per thread of the grid-stride
-// kernels, 9 running sums carried between the dispatches of H's chunks.
-const NCG_CARRY: u32 = 16u;
+// kernels, NCG_CARRY_LEN running sums carried between the dispatches of H's chunks.
+const NCG_CARRY: u32 = 19u;
+const NCG_CARRY_LEN: u32 = 12u;
+// 2^-64: the scale of the absolute row sums (src/solve/coarse.rs, ABS_SUM_SCALE).
+const ABS_SUM_SCALE = 0x1p-64;
 
 @group(0) @binding(0) var<uniform> params: NewtonCgParams;
 // Row pointers, column indices and per node its diagonal block (see NewtonCgParams).
@@ -227,7 +233,7 @@ fn coarse_c(zr: array<acc, 3>) -> acc {
 
 // Index of thread t's carried sum m (see NCG_CARRY).
 fn carry(t: u32, m: u32) -> u32 {
-    return NCG_CARRY * params.n_partials + t * 9u + m;
+    return NCG_CARRY * params.n_partials + t * NCG_CARRY_LEN + m;
 }
 
 // Thread t's first row of the chunk in the unsplit grid-stride order (t, t + stride, …).
@@ -693,17 +699,22 @@ fn mat_mul(x: array<real, 9>, y: array<real, 9>) -> array<real, 9> {
 }
 
 // The partials of E = ZᵀĤZ = Σ_i Q_i (Σ_j H_ij Q_j), D² slots (Ĥ's identity on the
-// constrained components never meets Z). Row i's blocks are summed before Q_i is applied,
-// as src/coarse.rs does: for a nearly free body they cancel to the mass term, and summing
-// every block into E would carry the rounding of the stiffness into the small E.
+// constrained components never meets Z), and of the D absolute row sums 2^-64 ·
+// Σ_j |(Q_i H_ij Q_j)_a·| (each block projected on its own, as src/solve/coarse.rs sums
+// them; scaled so that rows near the top of the range do not overflow). Row i's blocks are
+// summed before Q_i is applied, as src/solve/coarse.rs does: for a nearly free body they
+// cancel to the mass term, and summing every block into E would carry the rounding of the
+// stiffness into the small E.
 @compute @workgroup_size(WG)
 fn coarse_e(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
+    let n_sums = dd + D;
     let th = group_index(wid, nwg) * WG + lid.x;
     let stride = grid_stride(nwg);
-    var e: array<acc, 9>;
+    // E's D² entries, then the D absolute row sums.
+    var e: array<acc, 12>;
     if ((params.chunk & H_FIRST_CHUNK) == 0u) {
-        for (var m = 0u; m < dd; m++) {
+        for (var m = 0u; m < n_sums; m++) {
             e[m] = partials[carry(th, m)];
         }
     }
@@ -727,6 +738,17 @@ fn coarse_e(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
             for (var m = 0u; m < dd; m++) {
                 part[m] += t[m];
             }
+            var b = t;
+            if (!plain(i)) {
+                b = mat_mul(proj(i), t);
+            }
+            for (var a = 0u; a < D; a++) {
+                var s = real(0.0);
+                for (var c = 0u; c < D; c++) {
+                    s += abs(b[a * D + c]) * ABS_SUM_SCALE;
+                }
+                e[dd + a] += acc(s);
+            }
         }
         if (!plain(i)) {
             part = mat_mul(proj(i), part);
@@ -736,59 +758,54 @@ fn coarse_e(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
         }
     }
     if ((params.chunk & H_LAST_CHUNK) == 0u) {
-        for (var m = 0u; m < dd; m++) {
+        for (var m = 0u; m < n_sums; m++) {
             partials[carry(th, m)] = e[m];
         }
         return;
     }
-    // D² sums in trees of at most five.
+    // The sums in trees of at most five.
     let np = params.n_partials;
-    let n0 = min(dd, 5u);
-    workgroup_sum(lid.x, array<acc, 5>(e[0], e[1], e[2], e[3], e[4]), n0);
-    if (lid.x == 0u) {
-        for (var m = 0u; m < n0; m++) {
-            partials[(NCG_PART_E + m) * np + group_index(wid, nwg)] = summed(m);
+    for (var base = 0u; base < n_sums; base += 5u) {
+        let n = min(n_sums - base, 5u);
+        var v: array<acc, 5>;
+        for (var m = 0u; m < n; m++) {
+            v[m] = e[base + m];
         }
-    }
-    if (dd > 5u) {
-        workgroup_sum(lid.x, array<acc, 5>(e[5], e[6], e[7], e[8], acc(0.0)), dd - 5u);
+        workgroup_sum(lid.x, v, n);
         if (lid.x == 0u) {
-            for (var m = 5u; m < dd; m++) {
-                partials[(NCG_PART_E + m) * np + group_index(wid, nwg)] = summed(m - 5u);
+            for (var m = 0u; m < n; m++) {
+                partials[(NCG_PART_E + base + m) * np + group_index(wid, nwg)] = summed(m);
             }
         }
+        workgroupBarrier();
     }
 }
 
-// E from coarse_e's partials (one workgroup, fixed order) into scal, for the host, which
-// symmetrizes and pseudo-inverts it as the CPU does (src/coarse.rs).
+// E and the absolute row sums from coarse_e's partials (one workgroup, fixed order) into
+// scal, for the host, which symmetrizes and pseudo-inverts E as the CPU does
+// (src/solve/coarse.rs).
 @compute @workgroup_size(WG)
 fn coarse_e_sum(@builtin(local_invocation_id) lid: vec3<u32>) {
     let dd = D * D;
+    let n_sums = dd + D;
     let np = params.n_partials;
-    var v = array<acc, 5>(acc(0.0), acc(0.0), acc(0.0), acc(0.0), acc(0.0));
-    var w = array<acc, 5>(acc(0.0), acc(0.0), acc(0.0), acc(0.0), acc(0.0));
-    for (var t = lid.x; t < np; t += WG) {
-        for (var m = 0u; m < dd; m++) {
-            let x = partials[(NCG_PART_E + m) * np + t];
-            if (m < 5u) {
-                v[m] += x;
-            } else {
-                w[m - 5u] += x;
+    for (var base = 0u; base < n_sums; base += 5u) {
+        let n = min(n_sums - base, 5u);
+        var v: array<acc, 5>;
+        for (var t = lid.x; t < np; t += WG) {
+            for (var m = 0u; m < n; m++) {
+                v[m] += partials[(NCG_PART_E + base + m) * np + t];
             }
         }
-    }
-    let s = workgroup_sum_uniform(lid.x, v, min(dd, 5u));
-    var s2 = array<acc, 5>(acc(0.0), acc(0.0), acc(0.0), acc(0.0), acc(0.0));
-    if (dd > 5u) {
-        s2 = workgroup_sum_uniform(lid.x, w, dd - 5u);
-    }
-    if (lid.x == 0u) {
-        for (var m = 0u; m < dd; m++) {
-            if (m < 5u) {
-                scal[NCG_E + m] = s[m];
-            } else {
-                scal[NCG_E + m] = s2[m - 5u];
+        let s = workgroup_sum_uniform(lid.x, v, n);
+        if (lid.x == 0u) {
+            for (var m = 0u; m < n; m++) {
+                let at = base + m;
+                if (at < dd) {
+                    scal[NCG_E + at] = s[m];
+                } else {
+                    scal[NCG_EABS + at - dd] = s[m];
+                }
             }
         }
     }

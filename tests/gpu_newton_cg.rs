@@ -263,10 +263,8 @@ fn compare(ctx: &GpuContext, s: &Scene, bound: Bound) -> Vec<(Preconditioner, Co
             );
             assert!(de <= 1e-12, "{d}D: E⁺ differs by {de:e}");
         } else {
-            assert!(
-                cg.coarse_matrix().is_none(),
-                "E is read only when it is used"
-            );
+            // Read for every solve: the check for a translation pinned by nothing uses it.
+            assert!(cg.coarse_matrix().is_some(), "E read back");
         }
         iterations.push((pre, coarse, info.iterations));
         eprintln!(

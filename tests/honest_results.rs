@@ -750,3 +750,58 @@ fn a_large_input_under_an_address_space_limit_is_an_input_error() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// An unsupported body with a mass term 1e-25 of its stiffness (density 1e-16, Young's
+/// modulus 1e12) under gravity: Ĥ is singular to working precision along a rigid
+/// translation. Both Newton loops, with the CPU's CG and the device's, refuse the first
+/// step with the same one-line verdict (exit 1); the CPU loop's Cholesky meets the zero
+/// pivot. The same body with a density of 1e3 runs.
+#[test]
+fn a_weightless_stiff_body_fails_on_both_newton_loops() {
+    let dir = tmpdir("weightless");
+    let scene = |density: &str| {
+        let text = format!(
+            "name = \"weightless\"\ndimension = 2\ntime_step = 0.01\nsteps = 2\n\
+             gravity = [0.0, -9.81]\n\n[[bodies]]\n\
+             mesh = {{ kind = \"rectangle\", size = [1.0, 0.5], cells = [4, 2] }}\n\
+             material = {{ model = \"stable-neo-hookean\", young = 1e12, poisson = 0.3, \
+             density = {density} }}\n"
+        );
+        write(&dir, &format!("weightless_{density}.toml"), &text)
+    };
+    let singular = scene("1e-16");
+    let mut runs = vec![
+        (vec!["--solver", "cholesky"], "not positive definite"),
+        (
+            vec!["--solver", "cg"],
+            "meets no constraint and no mass term",
+        ),
+    ];
+    let gpu = have_gpu("a_weightless_stiff_body_fails_on_both_newton_loops");
+    if gpu {
+        runs.push((
+            vec!["--newton", "gpu"],
+            "meets no constraint and no mass term",
+        ));
+    }
+    for (k, (args, want)) in runs.iter().enumerate() {
+        let out = s(&dir.join(format!("out{k}")));
+        let mut a = vec!["run", singular.as_str(), "--out", &out, "-q"];
+        a.extend(args.iter().copied());
+        let o = run(&a);
+        let e = our_stderr(&o);
+        assert_eq!(o.status.code(), Some(1), "{args:?}: {e}");
+        assert_eq!(e.lines().count(), 1, "{args:?}: {e:?}");
+        assert!(
+            e.contains("step 1") && e.contains("Newton iteration 1") && e.contains(want),
+            "{args:?}: {e}"
+        );
+    }
+    if gpu {
+        let heavy = scene("1e3");
+        let out = s(&dir.join("heavy"));
+        let o = run(&["run", &heavy, "--out", &out, "-q", "--newton", "gpu"]);
+        assert!(o.status.success(), "{}", our_stderr(&o));
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -790,12 +790,12 @@ pub fn unpinned_translation(
 ) -> Option<Unpinned> {
     softest_translations(h, frames)
         .into_iter()
-        // Clearly negative is indefinite, not floating: the solvers report that.
-        .find(|t| t.stiffness.abs() <= UNPINNED_EPS * f64::EPSILON * t.row_scale)
+        .find(is_unpinned)
 }
 
-/// 2^-64: the scale of the running sums of |Ĥ| in [`softest_translations`].
-const ABS_SUM_SCALE: f64 = 1.0 / 18_446_744_073_709_551_616.0;
+/// 2^-64: the scale of the running sums of |Ĥ| in [`softest_translations`] (and the
+/// device Newton CG's).
+pub const ABS_SUM_SCALE: f64 = 1.0 / 18_446_744_073_709_551_616.0;
 
 /// The softest translation of every connected group of free nodes (see
 /// [`unpinned_translation`]), in the order of the groups' first nodes.
@@ -894,33 +894,78 @@ pub fn softest_translations(
             *x += v;
         }
     }
-    let mut out = Vec::new();
-    for c in 0..groups {
-        let (ec, gc) = (&e[c * dd..(c + 1) * dd], &g[c * dd..(c + 1) * dd]);
-        // A non-finite E (overflowed data) is left to the solvers' own checks.
-        if let Some((stiffness, direction)) = softest(d, ec, gc) {
-            // The rows the translation moves: Σ_a t_a² |rows of a| over tᵀGt (Gt's
-            // free components, as many as the translation moves). For a body whose
-            // stiffness is alike along every axis this is the mean absolute row sum; a
-            // component far softer than the node's others is measured against its own
-            // rows, not theirs.
-            let moved: f64 = (0..d)
-                .map(|a| direction[a] * (0..d).map(|b| gc[a * d + b] * direction[b]).sum::<f64>())
-                .sum();
-            let rows: f64 = (0..d)
-                .map(|a| direction[a] * direction[a] * abs[c * d + a])
-                .sum();
-            let row_scale = rows / moved.max(1.0) / ABS_SUM_SCALE;
-            out.push(Unpinned {
-                node: first[c],
-                nodes: size[c],
-                direction,
-                stiffness,
-                row_scale,
-            });
+    (0..groups)
+        .filter_map(|c| {
+            group_translation(
+                d,
+                &e[c * dd..(c + 1) * dd],
+                &g[c * dd..(c + 1) * dd],
+                &abs[c * d..(c + 1) * d],
+                first[c],
+                size[c],
+            )
+        })
+        .collect()
+}
+
+/// The softest translation of one group of free nodes from its E = ZᵀĤZ, G = ZᵀZ (d×d)
+/// and, per world axis a, 2^-64 · Σ |entries| of its rows of component a (`abs`); `node`
+/// and `nodes` name the group. None when E or G is not finite or G is zero. The device
+/// Newton CG reduces the same three sums over all its free nodes and asks this too.
+pub fn group_translation(
+    d: usize,
+    e: &[f64],
+    g: &[f64],
+    abs: &[f64],
+    node: usize,
+    nodes: usize,
+) -> Option<Unpinned> {
+    // A non-finite E (overflowed data) is left to the solvers' own checks.
+    let (stiffness, direction) = softest(d, e, g)?;
+    // The rows the translation moves: Σ_a t_a² |rows of a| over tᵀGt (Gt's free
+    // components, as many as the translation moves). For a body whose stiffness is alike
+    // along every axis this is the mean absolute row sum; a component far softer than the
+    // node's others is measured against its own rows, not theirs.
+    let moved: f64 = (0..d)
+        .map(|a| direction[a] * (0..d).map(|b| g[a * d + b] * direction[b]).sum::<f64>())
+        .sum();
+    let rows: f64 = (0..d).map(|a| direction[a] * direction[a] * abs[a]).sum();
+    let row_scale = rows / moved.max(1.0) / ABS_SUM_SCALE;
+    Some(Unpinned {
+        node,
+        nodes,
+        direction,
+        stiffness,
+        row_scale,
+    })
+}
+
+/// Whether a group's softest translation ([`group_translation`]) is pinned by nothing:
+/// below [`UNPINNED_EPS`]·ε of its rows. Clearly negative is indefinite, not floating:
+/// the solvers report that.
+pub fn is_unpinned(t: &Unpinned) -> bool {
+    t.stiffness.abs() <= UNPINNED_EPS * f64::EPSILON * t.row_scale
+}
+
+/// G = ZᵀZ = Σ_i Q_i over the nodes with a free component (d×d, row-major), the first of
+/// them and their count: the translations of every free node as one group.
+pub fn translation_gram(frames: &crate::core::constraints::Frames) -> (Vec<f64>, usize, usize) {
+    let d = frames.dim;
+    let full = (1u8 << d) - 1;
+    let mut g = vec![0.0; d * d];
+    let (mut first, mut count) = (usize::MAX, 0);
+    for (i, q) in node_projections(frames).iter().enumerate() {
+        if frames.mask[i] & full == full {
+            continue;
+        }
+        first = first.min(i);
+        count += 1;
+        match q {
+            None => (0..d).for_each(|a| g[a * d + a] += 1.0),
+            Some(qi) => g.iter_mut().zip(&qi[..d * d]).for_each(|(x, y)| *x += y),
         }
     }
-    out
+    (g, first, count)
 }
 
 /// The smallest Rayleigh quotient vᵀEv/vᵀGv over range(G) (d×d symmetric E, G) and its

@@ -84,10 +84,12 @@ mod slot {
     pub const RR: u32 = 4;
     pub const TOL2: u32 = 5;
     pub const BB: u32 = 6;
-    /// c = E⁺Zᵀr (D values), E⁺ (D², from the host), E (D², for the host).
+    /// c = E⁺Zᵀr (D values), E⁺ (D², from the host), E (D², for the host), the rows'
+    /// absolute sums per axis (D, for the host).
     pub const C: u32 = 8;
     pub const EINV: u32 = 11;
     pub const E: u32 = 20;
+    pub const EABS: u32 = 29;
     /// Length of `scal`.
     pub const SCAL_LEN: usize = 32;
     /// The leading slots of `scal` read back with every status (the CG's scalars).
@@ -103,18 +105,18 @@ mod slot {
     pub const PART_RZ: u32 = 1;
     pub const PART_RR: u32 = 2;
     pub const PART_BB: u32 = 3;
-    /// Zᵀr (D slots), E (D² slots).
+    /// Zᵀr (D slots); E (D² slots) and its rows' absolute sums (D slots) in one run.
     pub const PART_ZR: u32 = 4;
     pub const PART_E: u32 = 7;
     /// Partial-sum slots.
-    pub const N_PART: usize = 16;
+    pub const N_PART: usize = 19;
     /// Where the per-thread sums carried between H's chunks start (× partials per slot).
     pub const CARRY: u32 = N_PART as u32;
     /// Carried sums per thread.
-    pub const CARRY_LEN: usize = 9;
+    pub const CARRY_LEN: usize = 12;
     /// Every slot with its WGSL name.
     #[cfg(test)]
-    pub const ALL: [(&str, u32); 22] = [
+    pub const ALL: [(&str, u32); 24] = [
         ("NCG_RHO", RHO),
         ("NCG_PQ", PQ),
         ("NCG_ALPHA", ALPHA),
@@ -125,6 +127,7 @@ mod slot {
         ("NCG_C", C),
         ("NCG_EINV", EINV),
         ("NCG_E", E),
+        ("NCG_EABS", EABS),
         ("NCG_DONE", DONE),
         ("NCG_CONVERGED", CONVERGED),
         ("NCG_HALT", HALT),
@@ -137,11 +140,15 @@ mod slot {
         ("NCG_PART_ZR", PART_ZR),
         ("NCG_PART_E", PART_E),
         ("NCG_CARRY", CARRY),
+        ("NCG_CARRY_LEN", CARRY_LEN as u32),
     ];
     // The slot ranges do not overlap (D ≤ 3).
-    const _: () = assert!(C + 3 <= EINV && EINV + 9 <= E && E as usize + 9 <= SCAL_LEN);
+    const _: () =
+        assert!(C + 3 <= EINV && EINV + 9 <= E && E + 9 <= EABS && EABS as usize + 3 <= SCAL_LEN);
     const _: () = assert!(STATUS_SCAL <= C as usize);
-    const _: () = assert!(PART_ZR + 3 <= PART_E && PART_E as usize + 9 <= N_PART);
+    const _: () = assert!(PART_ZR + 3 <= PART_E && PART_E as usize + 12 <= N_PART);
+    // coarse_e carries E and the absolute sums.
+    const _: () = assert!(CARRY_LEN == 12);
 }
 
 /// Uniform parameters of every kernel (mirrors `NewtonCgParams` in the WGSL).
@@ -218,6 +225,10 @@ pub struct DeviceFrames {
     /// One bind group per values chunk of H (the kernels that do not read H use the
     /// first).
     groups: Vec<wgpu::BindGroup>,
+    /// G = ZᵀZ of the translations of every node with a free component, the first such
+    /// node and their count (src/solve/coarse.rs, `translation_gram`): with the E and
+    /// absolute row sums `prepare` reduces, whether a translation is pinned by nothing.
+    gram: (Vec<f64>, usize, usize),
     /// Kept alive with the bind groups.
     _frame: wgpu::Buffer,
     _rotations: wgpu::Buffer,
@@ -249,7 +260,12 @@ enum Galerkin {
     /// Read back and symmetrized (D², row-major) with its pseudo-inverse, `None` when
     /// every translation is constrained or E is not finite (no correction then, as on
     /// the CPU).
-    Read { e: Vec<f64>, einv: Option<Vec<f64>> },
+    Read {
+        e: Vec<f64>,
+        /// 2^-64 · Σ |entries| of the rows of each world axis (D).
+        abs: Vec<f64>,
+        einv: Option<Vec<f64>>,
+    },
 }
 
 /// The device buffers of the CG (all f64 vectors are n·d, node-major).
@@ -609,6 +625,7 @@ impl DeviceCg {
             owner: self.id,
             id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
             groups,
+            gram: crate::solve::coarse::translation_gram(f),
             _frame: frame_buf,
             _rotations: rot_buf,
         })
@@ -683,17 +700,19 @@ impl DeviceCg {
         Ok(())
     }
 
-    /// E of the last `prepare` read back and pseudo-inverted (once per `prepare`).
+    /// E of the last `prepare` read back and pseudo-inverted, with its rows' absolute sums
+    /// (once per `prepare`).
     fn read_galerkin(&mut self) -> Result<(), GpuError> {
         if let Galerkin::Read { .. } = self.galerkin {
             return Ok(());
         }
         let d = self.dim;
         let what = "reading back the coarse matrix E = ZᵀĤZ";
-        let bytes =
-            self.ctx
-                .download(&self.buf.scal, 8 * slot::E as u64, 8 * (d * d) as u64, what)?;
-        let mut e: Vec<f64> = bytes
+        let len = (slot::EABS - slot::E) as usize + d;
+        let bytes = self
+            .ctx
+            .download(&self.buf.scal, 8 * slot::E as u64, 8 * len as u64, what)?;
+        let v: Vec<f64> = bytes
             .chunks_exact(8)
             .map(|c| {
                 let mut w = [0u8; 8];
@@ -701,6 +720,8 @@ impl DeviceCg {
                 f64::from_le_bytes(w)
             })
             .collect();
+        let mut e = v[..d * d].to_vec();
+        let abs = v[(slot::EABS - slot::E) as usize..].to_vec();
         // As src/solve/coarse.rs: the mean of E and Eᵀ, then the pseudo-inverse.
         for a in 0..d {
             for b in 0..a {
@@ -710,16 +731,34 @@ impl DeviceCg {
             }
         }
         let einv = crate::solve::coarse::pseudo_inverse(d, &e);
-        self.galerkin = Galerkin::Read { e, einv };
+        self.galerkin = Galerkin::Read { e, abs, einv };
+        Ok(())
+    }
+
+    /// Refuses a system that a rigid translation of the free nodes leaves singular to
+    /// working precision, by the CPU CG's test ([`crate::solve::coarse::is_unpinned`]),
+    /// with every free node as one group (the CPU tests each connected group).
+    fn check_pinned(&mut self, frames: &DeviceFrames) -> Result<(), GpuError> {
+        self.read_galerkin()?;
+        let (g, first, count) = &frames.gram;
+        if *count == 0 {
+            return Ok(());
+        }
+        if let Galerkin::Read { e, abs, .. } = &self.galerkin {
+            let t = crate::solve::coarse::group_translation(self.dim, e, g, abs, *first, *count);
+            if let Some(t) = t.filter(crate::solve::coarse::is_unpinned) {
+                return Err(CgError::Unpinned(t).into());
+            }
+        }
         Ok(())
     }
 
     /// E = ZᵀĤZ of the translations (D², row-major, symmetrized) and its pseudo-inverse
-    /// (`None`: no correction) as the last `iterate` with the coarse correction read them;
-    /// `None` before one. For tests and diagnostics.
+    /// (`None`: no correction) as the last `iterate` read them (every solve reads E for
+    /// its check of the translations); `None` before one. For tests and diagnostics.
     pub fn coarse_matrix(&self) -> Option<(&[f64], Option<&[f64]>)> {
         match &self.galerkin {
-            Galerkin::Read { e, einv } => Some((e, einv.as_deref())),
+            Galerkin::Read { e, einv, .. } => Some((e, einv.as_deref())),
             Galerkin::OnDevice => None,
         }
     }
@@ -849,6 +888,7 @@ impl DeviceCg {
                 ))
             }
         };
+        self.check_pinned(frames)?;
         let g = self.groups;
         let tol2 = tol * tol;
         // Every slot before E: the scalars, c and E⁺ (zero without the correction, or
