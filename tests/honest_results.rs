@@ -805,3 +805,171 @@ fn a_weightless_stiff_body_fails_on_both_newton_loops() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// steps.csv as (header, rows of numbers).
+fn steps_csv(dir: &Path) -> (Vec<String>, Vec<Vec<f64>>) {
+    let text = std::fs::read_to_string(dir.join("steps.csv")).expect("steps.csv");
+    let mut lines = text.lines();
+    let header = lines
+        .next()
+        .expect("header")
+        .split(',')
+        .map(String::from)
+        .collect();
+    let rows = lines
+        .map(|l| {
+            l.split(',')
+                .map(|v| v.parse().unwrap_or(f64::NAN))
+                .collect()
+        })
+        .collect();
+    (header, rows)
+}
+
+/// Column `name` of steps.csv.
+fn column(csv: &(Vec<String>, Vec<Vec<f64>>), name: &str) -> Vec<f64> {
+    let k = csv.0.iter().position(|h| h == name).expect(name);
+    csv.1.iter().map(|r| r[k]).collect()
+}
+
+/// The Newton loops (`--newton cpu`, and `gpu` with an adapter) on `scene`: their
+/// steps.csv, in that order.
+fn both_loops(dir: &Path, scene: &str, test: &str) -> Vec<(Vec<String>, Vec<Vec<f64>>)> {
+    let mut loops = vec!["cpu"];
+    if have_gpu(test) {
+        loops.push("gpu");
+    }
+    loops
+        .iter()
+        .map(|l| {
+            let out = dir.join(format!("out_{l}"));
+            let o = run(&["run", scene, "--out", &s(&out), "-q", "--newton", l]);
+            assert!(o.status.success(), "{l}: {}", our_stderr(&o));
+            steps_csv(&out)
+        })
+        .collect()
+}
+
+/// A clamped beam (10 kg) under gravity with a time step of 1e6 s: every Newton step is
+/// short against ‖Δx‖∞/h < tol, so only the force balance ends the step. Both loops reach
+/// the equilibrium in step 1 (the supports carry the weight to the force tolerance, and
+/// the next steps start there and stay); with 3 Newton iterations allowed the step fails
+/// in one line naming the node whose forces do not balance.
+#[test]
+fn a_huge_time_step_ends_at_the_equilibrium() {
+    let dir = tmpdir("huge_step");
+    let text = "name = \"beam\"\ndimension = 2\ntime_step = 1e6\nsteps = 3\n\
+                gravity = [0.0, -9.81]\n\n[[bodies]]\n\
+                mesh = { kind = \"rectangle\", size = [1.0, 0.1], cells = [10, 2] }\n\
+                material = { model = \"stable-neo-hookean\", young = 1e5, poisson = 0.3, \
+                density = 100.0 }\n\n[[boundary]]\nkind = \"sticky\"\n\
+                region = { box = { min = [-0.001, -1.0], max = [0.001, 1.0] } }\n";
+    let scene = write(&dir, "beam.toml", text);
+    let weight = 10.0 * 9.81;
+    let runs = both_loops(&dir, &scene, "a_huge_time_step_ends_at_the_equilibrium");
+    for csv in &runs {
+        let newton = column(csv, "newton_iterations");
+        let f_y = column(csv, "f_y");
+        let com_y = column(csv, "com_y");
+        let balance = column(csv, "force_residual");
+        assert!(
+            newton[1] > 3.0,
+            "step 1 took {} Newton iterations",
+            newton[1]
+        );
+        for k in 1..=3 {
+            assert!(
+                balance[k] <= 1e-4,
+                "step {k}: force residual {}",
+                balance[k]
+            );
+            // p = 0 at rest: the supports carry the weight, to the force tolerance
+            // summed over the 33 nodes.
+            assert!(
+                (f_y[k] - weight).abs() <= 33.0 * 1e-4 * weight,
+                "step {k}: f_y {} against the weight {weight}",
+                f_y[k]
+            );
+        }
+        // The beam sags (its centre of mass was at 0.05) and stays.
+        assert!(com_y[1] < 0.0, "com_y {}", com_y[1]);
+        assert!((com_y[3] - com_y[1]).abs() <= 1e-6, "{com_y:?}");
+    }
+    if let [cpu, gpu] = &runs[..] {
+        let (a, b) = (column(cpu, "com_y"), column(gpu, "com_y"));
+        // Both stop within the force tolerance of the same equilibrium: 1e-4 of its sag.
+        assert!((a[3] - b[3]).abs() <= 1e-4 * a[3].abs(), "{a:?} {b:?}");
+    }
+    let limited = write(
+        &dir,
+        "beam3.toml",
+        &format!("{text}\n[solver]\nmax_newton_iterations = 3\n"),
+    );
+    let o = run(&["run", &limited, "--out", &s(&dir.join("out3")), "-q"]);
+    let e = our_stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{e}");
+    assert_eq!(e.lines().count(), 1, "{e:?}");
+    assert!(
+        e.contains("step 1") && e.contains("do not balance") && e.contains(" N on node "),
+        "{e}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A 4 kg square released 1e-12 m above a half-space: the barrier's force is ~1e12 times
+/// the weight and every Newton step ~1e-12 m. Both loops climb out of the barrier in step 1
+/// to the same state (1e-9·L), and momentum balances in every step,
+/// p_k − p_{k−1} = h·(M·g + c_k), to the force tolerance (1e-4) of the step's impulse
+/// (the step that stopped at 1e-12 m missed it by 12 orders).
+#[test]
+fn a_body_deep_in_the_barrier_balances_its_forces() {
+    let dir = tmpdir("deep_barrier");
+    let text = "name = \"rest\"\ndimension = 2\ntime_step = 0.01\nsteps = 3\n\
+                gravity = [0.0, -9.81]\n\n[[bodies]]\n\
+                mesh = { kind = \"rectangle\", size = [0.2, 0.2], cells = [2, 2], \
+                origin = [0.0, 1e-12] }\n\
+                material = { model = \"stable-neo-hookean\", young = 1e5, poisson = 0.3, \
+                density = 100.0 }\n\n[[obstacle]]\nkind = \"half-space\"\n\
+                point = [0.0, 0.0]\nnormal = [0.0, 1.0]\n";
+    let scene = write(&dir, "rest.toml", text);
+    let (h, m, g) = (0.01, 4.0, -9.81);
+    let runs = both_loops(
+        &dir,
+        &scene,
+        "a_body_deep_in_the_barrier_balances_its_forces",
+    );
+    for csv in &runs {
+        let p = column(csv, "p_y");
+        let c = column(csv, "c_y");
+        let d = column(csv, "min_distance");
+        let balance = column(csv, "force_residual");
+        for k in 1..=3 {
+            let impulse = h * (m * g + c[k]);
+            assert!(
+                (p[k] - p[k - 1] - impulse).abs() <= 1e-4 * impulse.abs().max(h * m * g.abs()),
+                "step {k}: Δp {} against h(Mg + c) {impulse}",
+                p[k] - p[k - 1]
+            );
+            assert!(
+                balance[k] <= 1e-4,
+                "step {k}: force residual {}",
+                balance[k]
+            );
+        }
+        // Out of the barrier's stiff core: the body left 1e-12 m behind.
+        assert!(d[2] > 1e-4, "min_distance {d:?}");
+    }
+    if let [cpu, gpu] = &runs[..] {
+        let (a, b) = (column(cpu, "com_y"), column(gpu, "com_y"));
+        let l = (0.2f64 * 0.2 * 2.0).sqrt();
+        for k in 1..=3 {
+            assert!(
+                (a[k] - b[k]).abs() <= 1e-9 * l,
+                "step {k}: {} vs {}",
+                a[k],
+                b[k]
+            );
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

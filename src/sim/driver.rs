@@ -971,6 +971,7 @@ fn simulate(
         cg_tol_loosest: rep.and_then(|r| r.cg_tol_loosest),
         cg_tol_tightest: rep.and_then(|r| r.cg_tol_tightest),
         linear_resolves: rep.map_or(0, |r| r.linear_resolves),
+        force_residual: rep.and_then(|r| r.force_residual),
         energy: s.mechanical_energy(),
         com: s.center_of_mass(),
         momentum: s.momentum(),

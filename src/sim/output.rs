@@ -120,6 +120,9 @@ pub struct StepRecord {
     pub ascent_directions: usize,
     /// Solid bodies only: the smallest element volume ratio J of the state.
     pub min_j: Option<f64>,
+    /// The step's end iterate: its largest unbalanced free force over its force scale
+    /// (None: row 0).
+    pub force_residual: Option<f64>,
 }
 
 /// The steps.csv writer: unbuffered, one `write` per row, so a killed run leaves every
@@ -160,7 +163,7 @@ impl StepsCsv {
         if solid {
             h.push_str(",min_j");
         }
-        h.push_str(",cg_tol_loosest,cg_tol_tightest,linear_resolves");
+        h.push_str(",cg_tol_loosest,cg_tol_tightest,linear_resolves,force_residual");
         h.push('\n');
         w.write_all(h.as_bytes())?;
         Ok(StepsCsv {
@@ -211,6 +214,7 @@ impl StepsCsv {
             let _ = write!(s, ",{:.6e}", t.unwrap_or(0.0));
         }
         let _ = write!(s, ",{}", r.linear_resolves);
+        let _ = write!(s, ",{:.3e}", r.force_residual.unwrap_or(0.0));
         s.push('\n');
         self.w.write_all(s.as_bytes())
     }

@@ -140,6 +140,15 @@ impl Barrier {
         n
     }
 
+    /// Per node i, out[i] += scale · Σ_planes ‖∇_i P_b‖: the sizes of the barrier forces
+    /// before they add up (a node between two planes meets two).
+    pub fn add_force_scale(&self, x: &[f64], planes: &[HalfSpace], scale: f64, out: &mut [f64]) {
+        self.active(x, planes, |i, j, dist| {
+            let o = &planes[j];
+            out[i] += scale * (self.weight[i] * scalar(dist, o.dhat, o.kappa).1).abs();
+        });
+    }
+
     /// h += scale·∇²P_b(x) (node-diagonal blocks w b'' n nᵀ; every pattern has them).
     pub fn add_hessian(&self, x: &[f64], planes: &[HalfSpace], scale: f64, h: &mut BlockCsr) {
         let d = self.dim;

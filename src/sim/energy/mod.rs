@@ -324,19 +324,7 @@ impl Model {
     ) {
         let d = self.dim;
         let gt = &self.gather;
-        let total = gt.grad_ptr[self.n_nodes];
-        work.grad.resize(total * d, 0.0);
-        for (s, &base) in self.sets.iter().zip(&gt.grad_base) {
-            let nl = s.arity() * d;
-            work.grad[base * d..(base + s.len() * s.arity()) * d]
-                .par_chunks_mut(CHUNK * nl)
-                .enumerate()
-                .for_each(|(c, buf)| {
-                    for (k, b) in buf.chunks_exact_mut(nl).enumerate() {
-                        s.gradient(x, c * CHUNK + k, b);
-                    }
-                });
-        }
+        self.element_gradients(x, work);
         let buf = &work.grad;
         out[..self.n_nodes * d]
             .par_chunks_mut(d)
@@ -351,6 +339,60 @@ impl Model {
             });
         if let Some(g) = &self.gravity {
             gravity::add_gradient(&self.mass, d, g, scale, out);
+        }
+    }
+
+    /// Per node i, out[i] += scale · (Σ_e ‖∇_i Ψ_e(x)‖ + m_i‖g‖): the sizes of the forces
+    /// that ∇Ψ sums at the node before they cancel (the force scale of a step's
+    /// stationarity test).
+    pub fn add_potential_force_scale(
+        &self,
+        x: &[f64],
+        scale: f64,
+        out: &mut [f64],
+        work: &mut AssemblyWork,
+    ) {
+        let d = self.dim;
+        let gt = &self.gather;
+        self.element_gradients(x, work);
+        let buf = &work.grad;
+        let gnorm = self
+            .gravity
+            .as_ref()
+            .map_or(0.0, |g| g.iter().map(|v| v * v).sum::<f64>().sqrt());
+        out[..self.n_nodes]
+            .par_iter_mut()
+            .enumerate()
+            .with_min_len(GATHER_CHUNK)
+            .for_each(|(i, o)| {
+                let mut s = self.mass[i] * gnorm;
+                for &slot in &gt.grad_src[gt.grad_ptr[i]..gt.grad_ptr[i + 1]] {
+                    s += buf[slot * d..(slot + 1) * d]
+                        .iter()
+                        .map(|v| v * v)
+                        .sum::<f64>()
+                        .sqrt();
+                }
+                *o += scale * s;
+            });
+    }
+
+    /// Every element's gradient into `work.grad`, in parallel, in the gather's slots.
+    fn element_gradients(&self, x: &[f64], work: &mut AssemblyWork) {
+        let d = self.dim;
+        let gt = &self.gather;
+        let total = gt.grad_ptr[self.n_nodes];
+        work.grad.resize(total * d, 0.0);
+        for (s, &base) in self.sets.iter().zip(&gt.grad_base) {
+            let nl = s.arity() * d;
+            work.grad[base * d..(base + s.len() * s.arity()) * d]
+                .par_chunks_mut(CHUNK * nl)
+                .enumerate()
+                .for_each(|(c, buf)| {
+                    for (k, b) in buf.chunks_exact_mut(nl).enumerate() {
+                        s.gradient(x, c * CHUNK + k, b);
+                    }
+                });
         }
     }
 

@@ -5,6 +5,7 @@
 //! need. Both evaluate the same energy, so the loop's decisions (Armijo, snapping, the
 //! penalty update, the CCD bound, convergence) are made once, here, for both.
 
+use super::balance::ForceBalance;
 use super::error::StepError;
 use super::linear::LinearStats;
 use super::report::GpuRunReport;
@@ -81,6 +82,11 @@ pub(super) trait Backend {
 
     /// ‖Δx‖∞.
     fn max_abs_dx(&mut self) -> Result<f64, StepError>;
+
+    /// The force balance of the current iterate, with ∇E of the last
+    /// [`Backend::direction`] (taken there) and every moving node of `snapped` eliminated.
+    fn force_balance(&mut self, state: &State, snapped: &[bool])
+        -> Result<ForceBalance, StepError>;
 
     /// E at the current iterate (`trial` false) or at the trial iterate of the last
     /// [`Backend::set_trial`].

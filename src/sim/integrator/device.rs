@@ -16,6 +16,7 @@
 //! solvers' tolerances, not bit for bit (tests/sim_gpu_newton.rs).
 
 use super::backend::{Backend, EndState, SystemArrays};
+use super::balance::{force_balance, ForceBalance};
 use super::error::{InitError, StepError};
 use super::linear::LinearStats;
 use super::report::GpuRunReport;
@@ -27,7 +28,7 @@ use crate::sim::device::elements::{GpuElements, TermKind};
 use crate::sim::device::newton_cg::{DeviceCg, DeviceCgParams, DeviceFrames};
 use crate::sim::device::newton_ops::{static_projections, MovingTerm, NewtonOps};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
-use crate::sim::energy::{InversionLimit, Inverted};
+use crate::sim::energy::{AssemblyWork, InversionLimit, Inverted};
 use crate::sim::scene::Scene;
 use std::collections::HashMap;
 use std::time::Instant;
@@ -373,6 +374,32 @@ impl Backend for DeviceLoop {
 
     fn max_abs_dx(&mut self) -> Result<f64, StepError> {
         Ok(self.ops.max_abs_dx()?)
+    }
+
+    /// Reads back x and ∇E and asks the host's test, on x̃ = xⁿ + h vⁿ as the device
+    /// formed it.
+    fn force_balance(
+        &mut self,
+        state: &State,
+        snapped: &[bool],
+    ) -> Result<ForceBalance, StepError> {
+        let h = state.scene.time_step;
+        let (x, _) = self.ops.read_state()?;
+        let g = self.ops.read_gradient()?;
+        let xt: Vec<f64> = state
+            .x
+            .iter()
+            .zip(&state.v)
+            .map(|(x, v)| x + h * v)
+            .collect();
+        Ok(force_balance(
+            state,
+            &x,
+            &xt,
+            &g,
+            &state.frames[snapped],
+            &mut AssemblyWork::default(),
+        ))
     }
 
     /// E at the evaluation positions (the current iterate, or the trial one after

@@ -16,12 +16,16 @@ pub enum InitError {
 /// Why a step failed. Iterations count from 1, on both loops.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum StepError {
-    #[error("Newton did not converge in {iterations} iterations{}", moving_state(.moving))]
+    #[error("Newton did not converge in {iterations} iterations{}{}", moving_state(.moving), unbalanced_state(.unbalanced))]
     NewtonLimit {
         iterations: usize,
         /// k_M and the moving nodes still off target; None for a scene without moving
         /// boundaries.
         moving: Option<(f64, usize)>,
+        /// When the last iterate passed ‖Δx‖∞/h < tol but did not balance its forces:
+        /// the node, its unbalanced force (N), that force over the step's force scale and
+        /// the force tolerance.
+        unbalanced: Option<(usize, f64, f64, f64)>,
     },
     #[error("the Newton direction is not finite at iteration {iteration}")]
     DirectionNotFinite { iteration: usize },
@@ -93,6 +97,17 @@ fn inverted_when(iteration: usize) -> String {
         "at the start of the step".into()
     } else {
         format!("at Newton iteration {iteration}")
+    }
+}
+
+fn unbalanced_state(unbalanced: &Option<(usize, f64, f64, f64)>) -> String {
+    match unbalanced {
+        Some((node, force, ratio, tol)) => format!(
+            "; its steps there are short but the forces do not balance: {force:.3e} N on \
+             node {node}'s free components, {ratio:.1e} of the step's force scale \
+             (force_tolerance {tol:e})"
+        ),
+        None => String::new(),
     }
 }
 

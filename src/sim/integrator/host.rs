@@ -3,6 +3,7 @@
 //! GPU CG, as the scene's `linear` says).
 
 use super::backend::{Backend, EndState, SystemArrays};
+use super::balance::{force_balance, ForceBalance};
 use super::error::StepError;
 use super::linear::{LinearSolver, LinearStats};
 use super::report::GpuRunReport;
@@ -155,6 +156,21 @@ impl Backend for HostBackend {
 
     fn max_abs_dx(&mut self) -> Result<f64, StepError> {
         Ok(self.dx.iter().fold(0.0f64, |m, v| m.max(v.abs())))
+    }
+
+    fn force_balance(
+        &mut self,
+        state: &State,
+        snapped: &[bool],
+    ) -> Result<ForceBalance, StepError> {
+        Ok(force_balance(
+            state,
+            &self.x,
+            &self.xt,
+            &self.g,
+            &state.frames[snapped],
+            &mut self.assembly,
+        ))
     }
 
     fn energy(

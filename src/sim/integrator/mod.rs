@@ -64,6 +64,7 @@
 //! is decided on the host by the same code for both.
 
 mod backend;
+mod balance;
 mod device;
 mod dump;
 mod error;

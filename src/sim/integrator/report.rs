@@ -42,6 +42,9 @@ pub struct StepReport {
     pub min_j: Option<f64>,
     /// The neo-Hookean laws with an element inverted (J ≤ 0) at the end of the step.
     pub inverted: Vec<crate::sim::energy::Law>,
+    /// The last iterate's largest unbalanced free force over the step's force scale
+    /// (the stationarity test, `[solver] force_tolerance`).
+    pub force_residual: Option<f64>,
 }
 
 impl StepReport {

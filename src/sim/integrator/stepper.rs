@@ -2,6 +2,7 @@
 //! holds the iterate (host arrays, or device buffers with scalars read back).
 
 use super::backend::Backend;
+use super::balance::ForceBalance;
 use super::device::DeviceLoop;
 use super::dump::{NewtonSystem, SystemSink};
 use super::error::{InitError, StepError};
@@ -311,7 +312,8 @@ impl<'s> Stepper<'s> {
     /// Newton on E from the starting iterate: per iteration the eliminated solve; when it
     /// has converged with moving nodes still off target, the moving-boundary update;
     /// otherwise the CCD-bounded line search. The step is done when ‖Δx‖∞/h < tol with
-    /// every moving node snapped and eliminated.
+    /// every moving node snapped and eliminated, at an iterate whose forces balance
+    /// (`balance.rs`).
     fn newton(
         &mut self,
         moving: &mut MovingTargets,
@@ -327,6 +329,8 @@ impl<'s> Stepper<'s> {
         let mut forcing = self.forcing.clone();
         forcing.restart();
         let mut sequence_of = moving.snapped.clone();
+        // The last iterate that passed the ‖Δx‖∞ test without balancing its forces.
+        let mut unbalanced: Option<ForceBalance> = None;
         loop {
             if iter >= sc.solver.max_newton_iterations {
                 return Err(StepError::NewtonLimit {
@@ -335,6 +339,14 @@ impl<'s> Stepper<'s> {
                         (
                             self.state.k_m,
                             moving.snapped.iter().filter(|s| !**s).count(),
+                        )
+                    }),
+                    unbalanced: unbalanced.map(|b| {
+                        (
+                            b.node,
+                            b.residual / (h * h),
+                            b.residual / b.scale,
+                            sc.solver.force_tolerance,
                         )
                     }),
                 });
@@ -388,10 +400,16 @@ impl<'s> Stepper<'s> {
                     cause,
                 })?;
             }
-            if dmax / h < self.state.newton_tol {
-                if moving.snapped.iter().all(|&s| s) {
+            if dmax / h < self.state.newton_tol && moving.snapped.iter().all(|&s| s) {
+                // Short steps are not enough: the forces must balance too (a huge h or
+                // a stiff barrier makes every step short).
+                let b = self.backend.force_balance(&self.state, &moving.snapped)?;
+                rep.force_residual = Some(b.residual / b.scale);
+                if b.stationary(dmax, sc.solver.force_tolerance) {
                     break;
                 }
+                unbalanced = Some(b);
+            } else if dmax / h < self.state.newton_tol {
                 // Converged with the penalty but nodes still off target.
                 let nodes = self.state.unsnapped_nodes(&moving.snapped);
                 let x = self.backend.positions(Some(&nodes))?;

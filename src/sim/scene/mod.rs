@@ -11,7 +11,8 @@
 //! (the bounding-box diagonal of all bodies at t = 0 unless `solver.characteristic_length`
 //! sets it):
 //! - Newton stops when ‖Δx‖∞ / h < `solver.newton_tolerance` · L (per second);
-//!   default 1e-6 · L/s.
+//!   default 1e-6 · L/s, at an iterate whose largest unbalanced free force is at most
+//!   `solver.force_tolerance` (default 1e-4) of the step's force scale.
 //! - A moving boundary node is satisfied (snapped and eliminated) when
 //!   ‖x_k − x̂_k‖ / h < `moving.tolerance` · L (per second); default 1e-3 · L/s.
 //!

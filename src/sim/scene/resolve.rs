@@ -139,6 +139,9 @@ fn check_solver(c: &Ctx, s: &SolverSpec) -> Result<(), InputError> {
         return Err(c.err("solver.cg_max_iterations", "must be at least 1"));
     }
     c.positive("solver.newton_tolerance", s.newton_tolerance)?;
+    if !(s.force_tolerance > 0.0 && s.force_tolerance < 1.0) {
+        return Err(c.err("solver.force_tolerance", "must be a number in (0, 1)"));
+    }
     if s.max_newton_iterations == 0 {
         return Err(c.err("solver.max_newton_iterations", "must be at least 1"));
     }

@@ -118,6 +118,10 @@ pub struct SolverSpec {
     /// Newton stops when ‖Δx‖∞/h < newton_tolerance · L (per second).
     #[serde(default = "default_newton_tol")]
     pub newton_tolerance: f64,
+    /// ... and at an iterate whose largest unbalanced free force is at most
+    /// force_tolerance of the step's force scale (in (0, 1)).
+    #[serde(default = "default_force_tol")]
+    pub force_tolerance: f64,
     #[serde(default = "default_newton_iters")]
     pub max_newton_iterations: usize,
     pub characteristic_length: Option<f64>,
@@ -358,6 +362,9 @@ fn default_precision() -> Precision {
 fn default_newton_tol() -> f64 {
     1e-6
 }
+fn default_force_tol() -> f64 {
+    1e-4
+}
 fn default_newton_iters() -> usize {
     400
 }
@@ -373,6 +380,7 @@ impl Default for SolverSpec {
             coarse: CoarseSpace::default(),
             precision: default_precision(),
             newton_tolerance: default_newton_tol(),
+            force_tolerance: default_force_tol(),
             max_newton_iterations: default_newton_iters(),
             characteristic_length: None,
             ordering: crate::CholeskyOrdering::Auto,
