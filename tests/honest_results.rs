@@ -973,3 +973,60 @@ fn a_body_deep_in_the_barrier_balances_its_forces() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Extreme scenes on which the Newton loops once parted ways, each run on both: the same
+/// exit code, and, when they complete, the same end state (centre of mass to 1e-8·L).
+/// A 10 m activation distance under a 0.2 m box (the barrier launches it; the CPU loop's
+/// line search stalled on energy differences below rounding), and an edge of a strip
+/// dragged through its clamp at 100 m/s.
+#[test]
+fn extreme_scenes_reach_the_same_verdict_on_both_loops() {
+    let test = "extreme_scenes_reach_the_same_verdict_on_both_loops";
+    if !have_gpu(test) {
+        return;
+    }
+    let dir = tmpdir("same_verdict");
+    let drop = stickslip::sim::scene::builtin("drop")
+        .unwrap()
+        .replace("steps = 100", "steps = 3")
+        .replace(
+            "normal = [0.0, 1.0, 0.0]",
+            "normal = [0.0, 1.0, 0.0]\ndhat = 10.0",
+        );
+    let drag = "name = \"drag\"\ndimension = 2\ntime_step = 0.01\nsteps = 5\n\
+                gravity = [0.0, -9.81]\n\n[[bodies]]\n\
+                mesh = { kind = \"rectangle\", size = [1.0, 0.2], cells = [10, 2] }\n\
+                material = { model = \"stable-neo-hookean\", young = 1e4, poisson = 0.3, \
+                density = 100.0 }\n\n[[boundary]]\nkind = \"sticky\"\n\
+                region = { box = { min = [-0.001, -1.0], max = [0.001, 1.0] } }\n\n\
+                [[boundary]]\nkind = \"sticky\"\n\
+                region = { box = { min = [0.999, -1.0], max = [1.001, 1.0] } }\n\
+                motion = { velocity = [-100.0, 0.0], end = 0.4 }\n";
+    for (name, text, l) in [
+        ("dhat", drop, 0.2 * 3f64.sqrt()),
+        ("drag", drag.to_string(), 1.02),
+    ] {
+        let scene = write(&dir, &format!("{name}.toml"), &text);
+        let mut ends = Vec::new();
+        for lp in ["cpu", "gpu"] {
+            let out = dir.join(format!("{name}_{lp}"));
+            let o = run(&["run", &scene, "--out", &s(&out), "-q", "--newton", lp]);
+            let com = o.status.success().then(|| {
+                let csv = steps_csv(&out);
+                ["com_x", "com_y"].map(|c| *column(&csv, c).last().unwrap())
+            });
+            ends.push((o.status.code(), com, our_stderr(&o)));
+        }
+        let (cpu, gpu) = (&ends[0], &ends[1]);
+        assert_eq!(cpu.0, gpu.0, "{name}: cpu {} / gpu {}", cpu.2, gpu.2);
+        assert_eq!(cpu.0, Some(0), "{name}: {}", cpu.2);
+        let (a, b) = (cpu.1.unwrap(), gpu.1.unwrap());
+        for k in 0..2 {
+            assert!(
+                (a[k] - b[k]).abs() <= 1e-8 * l,
+                "{name}: com {a:?} vs {b:?}"
+            );
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -16,6 +16,9 @@ use std::collections::HashMap;
 
 /// Armijo sufficient-decrease constant.
 pub(super) const ARMIJO: f64 = 1e-4;
+/// A decrease of E below this many ε of |E| is rounding: the line search takes the bounded
+/// step without judging it.
+pub(super) const ENERGY_ULPS: f64 = 64.0;
 /// Backtracking halvings before the line search gives up.
 pub(super) const MAX_HALVINGS: usize = 40;
 /// CCD filter: a Newton step may cover at most this fraction of any node's distance to an

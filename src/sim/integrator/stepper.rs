@@ -9,7 +9,7 @@ use super::error::{InitError, StepError};
 use super::forcing::Forcing;
 use super::host::HostBackend;
 use super::report::{GpuRunReport, StepReport};
-use super::state::{Snapshot, State, ARMIJO, INVERSION_FRACTION, MAX_HALVINGS};
+use super::state::{Snapshot, State, ARMIJO, ENERGY_ULPS, INVERSION_FRACTION, MAX_HALVINGS};
 use super::targets::MovingTargets;
 use crate::sim::energy::barrier::Ccd;
 use crate::sim::energy::Law;
@@ -512,7 +512,21 @@ impl<'s> Stepper<'s> {
         }
         let mut alpha = alpha_c;
         let mut accepted = false;
+        // Near the minimum, a decrease below the energy's rounding cannot be judged:
+        // Armijo would compare noise, and a tiny step that happens to pass it stalls
+        // Newton. When even the whole bounded step predicts less than ENERGY_ULPS·ε·|E|,
+        // it is taken, as the flat case below takes it.
+        let near = dmax / h < 1e3 * self.state.newton_tol;
+        let flat =
+            near && slope <= 0.0 && -alpha_c * slope <= ENERGY_ULPS * f64::EPSILON * e0.abs();
+        if flat {
+            self.backend.set_trial(alpha_c)?;
+            accepted = true;
+        }
         for _ in 0..MAX_HALVINGS {
+            if accepted {
+                break;
+            }
             self.backend.set_trial(alpha)?;
             let e1 = self.backend.energy(&self.state, moving, true)?;
             if e1 <= e0 + ARMIJO * alpha * slope.min(0.0) {
@@ -523,7 +537,7 @@ impl<'s> Stepper<'s> {
         }
         if !accepted {
             // Energy flat to round-off near the minimum: take the full (CCD-bounded) step.
-            if dmax / h < 1e3 * self.state.newton_tol {
+            if near {
                 alpha = alpha_c;
                 self.backend.set_trial(alpha_c)?;
             } else {
