@@ -478,6 +478,30 @@ impl Model {
         out
     }
 
+    /// The first element (in set and element order) of a neo-Hookean set, either law,
+    /// that has J > 0 at `before` and J ≤ 0 (or NaN) at `after`: an element that moving
+    /// the nodes from `before` to `after` inverts. Elements already inverted at `before`
+    /// are not counted.
+    pub fn first_inverted_by(&self, before: &[f64], after: &[f64]) -> Option<MinVolumeRatio> {
+        for (k, s) in self.sets.iter().enumerate() {
+            let ElementSet::NeoHookean(nh) = s else {
+                continue;
+            };
+            for e in 0..nh.elements.len() {
+                let j = nh.volume_ratio(after, e);
+                if (j.is_nan() || j <= 0.0) && nh.volume_ratio(before, e) > 0.0 {
+                    return Some(MinVolumeRatio {
+                        law: nh.law,
+                        j,
+                        set: k,
+                        element: e,
+                    });
+                }
+            }
+        }
+        None
+    }
+
     /// The largest step along Δx from x before an element of the classical law inverts:
     /// the smallest root α ∈ (0, `max`] of det F(x + αΔx) = 0 over those elements
     /// ([`NeoHookean::inversion_bound`]), with its (set, element); None when none inverts

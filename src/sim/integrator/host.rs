@@ -117,7 +117,7 @@ impl Backend for HostBackend {
             &mut self.assembly,
         );
         hessian(state, &self.x, moving, &mut self.hmat, &mut self.assembly);
-        // Positions far beyond the scene (a plane offset near 1e300) overflow the element
+        // Positions far beyond the scene (a moving target running off at 1e300 m/s) overflow the element
         // terms; say so here rather than as a failed factorization of a non-finite H.
         for (what, v) in [
             ("gradient", &self.g[..]),
