@@ -1413,6 +1413,37 @@ fn run_step_that_overflows_fails_cleanly() {
     }
 }
 
+/// A scene too large for the address space the process may use (`ulimit -v` of 1 GB;
+/// `twist --size 40` has 2.6 million nodes) is refused before any of its meshes is built:
+/// exit 1 (a resource limit, not bad input), one line naming the scene, the bytes and
+/// the nodes, no panic or backtrace, at once.
+#[cfg(target_os = "linux")]
+#[test]
+fn run_refuses_a_scene_too_large_for_the_address_space() {
+    let dir = tmpdir("too_large");
+    let out = dir.join("out");
+    let start = std::time::Instant::now();
+    let o = std::process::Command::new("sh")
+        .arg("-c")
+        .arg("ulimit -v 1000000 && exec \"$0\" run twist --size 40 --steps 1 --threads 1 --quiet --out \"$1\"")
+        .arg(common::cli::BIN)
+        .arg(&out)
+        .output()
+        .expect("run sh");
+    let e = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{e}");
+    assert_eq!(e.lines().count(), 1, "not one line: {e:?}");
+    assert!(
+        e.starts_with("error: scene \"twist\" needs ")
+            && e.contains(" bytes) for ")
+            && e.contains("(2,630,961 nodes); the allocation failed"),
+        "{e}"
+    );
+    assert!(!e.contains("panicked") && !e.contains("backtrace"), "{e}");
+    assert!(start.elapsed().as_secs() < 30, "{:?}", start.elapsed());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// `solve --ordering`: each ordering is reported as the one that ran, with the factor's
 /// structural nnz; AMD and nested dissection give the same Δx to 1e-9 relative (both
 /// backward-stable factorizations of one SPD system); an unknown name exits 2.

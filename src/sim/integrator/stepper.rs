@@ -119,7 +119,7 @@ impl<'s> Stepper<'s> {
         let host = if on_device {
             None
         } else {
-            Some(HostBackend::new(&state, &linear).map_err(InitError::Solver)?)
+            Some(HostBackend::new(&state, &linear)?)
         };
         // Build (and validate) the static constraint set up front: bad conditions fail
         // before the first step; then every moving node eliminated at once, the largest
