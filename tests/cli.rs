@@ -1244,40 +1244,204 @@ fn run_stops_on_a_non_finite_state() {
     assert_input_error(&o, &scene, &["time_step", "not a finite f64"]);
 }
 
-/// A plane 1e300 away: every input is finite, but the first step's Newton system
-/// overflows. (With the classical law the projected start is inverted: bad input, exit 2,
-/// naming the element; checked too.) The step fails (exit 1, one line naming step 1 and the overflow) and
-/// steps.csv holds no NaN row.
+/// A scene on the 1 × 0.5 rectangle of 4 × 2 cells (L = 1.118 m) with one boundary
+/// condition on the nodes of `region`, run with `args`.
+fn run_boundary_scene(
+    name: &str,
+    law: &str,
+    boundary: &str,
+    region: &str,
+    args: &[&str],
+) -> (String, Output) {
+    let dir = tmpdir(name);
+    let scene = write(
+        &dir,
+        &format!("{name}.toml"),
+        &format!(
+            r#"name = "{name}"
+dimension = 2
+time_step = 0.01
+steps = 2
+gravity = [0.0, -9.81]
+
+[output]
+vtk = false
+
+[[bodies]]
+mesh = {{ kind = "rectangle", size = [1.0, 0.5], cells = [4, 2] }}
+material = {{ model = "{law}", young = 1e4, poisson = 0.3, density = 100.0 }}
+
+[[boundary]]
+{boundary}
+region = {region}
+"#
+        ),
+    );
+    let out = dir.join("out");
+    let mut all = vec![
+        "run",
+        scene.as_str(),
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+    ];
+    all.extend_from_slice(args);
+    let o = run(&all);
+    if let Ok(csv) = std::fs::read_to_string(out.join("steps.csv")) {
+        assert!(!csv.contains("NaN") && !csv.contains("inf"), "{csv}");
+    }
+    (scene, o)
+}
+
+/// The left edge x = 0.
+const LEFT_EDGE: &str = "{ box = { min = [-0.001, -1.0], max = [0.001, 1.0] } }";
+
+/// A static plane far from its nodes is refused when the scene is loaded (exit 2, one line
+/// naming the condition, the node, the distance and the limit 1e-3·L), on either law and
+/// before the Newton loop is chosen: `--newton gpu` says the same without a GPU.
+#[test]
+fn run_refuses_a_static_plane_far_from_its_nodes() {
+    let plane = "kind = \"plane\"\nnormal = [1.0, 0.0]";
+    for (name, law, offset, args, distance) in [
+        ("plane_99m", "neo-hookean", "-99.0", &[][..], "9.900e1 m"),
+        (
+            "plane_99m_stable",
+            "stable-neo-hookean",
+            "-99.0",
+            &[][..],
+            "9.900e1 m",
+        ),
+        (
+            "plane_99m_gpu",
+            "neo-hookean",
+            "-99.0",
+            &["--newton", "gpu"][..],
+            "9.900e1 m",
+        ),
+        (
+            "plane_1e300",
+            "stable-neo-hookean",
+            "-1e300",
+            &[][..],
+            "1.000e300 m",
+        ),
+    ] {
+        let (scene, o) = run_boundary_scene(
+            name,
+            law,
+            &format!("{plane}\noffset = {offset}"),
+            LEFT_EDGE,
+            args,
+        );
+        assert_input_error(
+            &o,
+            &scene,
+            &[
+                "boundary[0]: node ",
+                &format!("lies {distance} from"),
+                "1e-3·L = 1.118e-3 m",
+            ],
+        );
+    }
+}
+
+/// A static plane through the body: its projection puts the left edge beyond the nodes
+/// of the next column, inverting elements; refused naming the element (exit 2, one line).
+#[test]
+fn run_refuses_a_static_plane_through_the_body() {
+    for law in ["neo-hookean", "stable-neo-hookean"] {
+        let (scene, o) = run_boundary_scene(
+            &format!("plane_through_{law}"),
+            law,
+            "kind = \"plane\"\nnormal = [1.0, 0.0]\noffset = 0.6",
+            LEFT_EDGE,
+            &[],
+        );
+        assert_input_error(
+            &o,
+            &scene,
+            &[
+                "boundary[0]: projecting node ",
+                "moves it by 6.000e-1 m",
+                "inverts element ",
+                "of bodies[0]",
+            ],
+        );
+    }
+}
+
+/// Nodes on their static plane up to round-off run: the column x = 0.75 on the plane
+/// 0.1·x = 0.075, whose offset / |normal| is 0.7499999999999999; and the left edge on a
+/// plane 1e-6·L from it.
+#[test]
+fn run_accepts_a_static_plane_off_its_nodes_by_round_off() {
+    for (name, boundary, region) in [
+        (
+            "plane_roundoff",
+            "kind = \"plane\"\nnormal = [0.1, 0.0]\noffset = 0.075",
+            "{ box = { min = [0.749, -1.0], max = [0.751, 1.0] } }",
+        ),
+        (
+            "plane_near",
+            "kind = \"plane\"\nnormal = [1.0, 0.0]\noffset = 1.1e-6",
+            LEFT_EDGE,
+        ),
+    ] {
+        let (_, o) = run_boundary_scene(name, "neo-hookean", boundary, region, &[]);
+        assert_eq!(o.status.code(), Some(0), "{name}: {}", stderr(&o));
+    }
+}
+
+/// A moving boundary whose target runs off at 1e300 m/s: every input is finite, but the
+/// first step's energy overflows. The step fails (exit 1, one line naming step 1 and the
+/// overflow) and steps.csv holds no NaN row.
 #[test]
 fn run_step_that_overflows_fails_cleanly() {
-    let (scene, o) = run_rectangle_scene(
-        "far_plane",
-        "0.01",
-        "kind = \"plane\"\nnormal = [1.0, 0.0]\noffset = 1e300",
-    );
+    for law in ["neo-hookean", "stable-neo-hookean"] {
+        let (_, o) = run_boundary_scene(
+            &format!("runaway_{law}"),
+            law,
+            "kind = \"sticky\"\nmotion = { velocity = [1e300, 0.0] }",
+            LEFT_EDGE,
+            &[],
+        );
+        let e = stderr(&o);
+        assert_eq!(o.status.code(), Some(1), "{e}");
+        assert_eq!(e.lines().count(), 1, "{e:?}");
+        assert!(e.contains("step 1") && e.contains("overflow"), "{e}");
+        assert!(!e.contains("panicked"), "{e}");
+    }
+}
+
+/// A scene too large for the address space the process may use (`ulimit -v` of 1 GB;
+/// `twist --size 40` has 2.6 million nodes) is refused before any of its meshes is built:
+/// exit 1 (a resource limit, not bad input), one line naming the scene, the bytes and
+/// the nodes, no panic or backtrace, at once.
+#[cfg(target_os = "linux")]
+#[test]
+fn run_refuses_a_scene_too_large_for_the_address_space() {
+    let dir = tmpdir("too_large");
+    let out = dir.join("out");
+    let start = std::time::Instant::now();
+    let o = std::process::Command::new("sh")
+        .arg("-c")
+        .arg("ulimit -v 1000000 && exec \"$0\" run twist --size 40 --steps 1 --threads 1 --quiet --out \"$1\"")
+        .arg(common::cli::BIN)
+        .arg(&out)
+        .output()
+        .expect("run sh");
     let e = stderr(&o);
     assert_eq!(o.status.code(), Some(1), "{e}");
-    assert_eq!(e.lines().count(), 1, "{e:?}");
-    assert!(e.contains("step 1") && e.contains("overflow"), "{e}");
-    let dir = tmpdir("far_plane_classical");
-    let text = std::fs::read_to_string(&scene)
-        .expect("scene")
-        .replace("stable-neo-hookean", "neo-hookean");
-    let classical = write(&dir, "far_plane_classical.toml", &text);
-    let o = run(&[
-        "run",
-        &classical,
-        "--out",
-        dir.join("out").to_str().unwrap(),
-        "--quiet",
-    ]);
-    let e = stderr(&o);
-    assert_eq!(o.status.code(), Some(2), "{e}");
-    assert_eq!(e.lines().count(), 1, "{e:?}");
+    assert_eq!(e.lines().count(), 1, "not one line: {e:?}");
     assert!(
-        e.contains("bodies[0]") && e.contains("inverted at the start of the step"),
+        e.starts_with("error: scene \"twist\" needs ")
+            && e.contains(" bytes) for ")
+            && e.contains("(2,630,961 nodes); the allocation failed"),
         "{e}"
     );
+    assert!(!e.contains("panicked") && !e.contains("backtrace"), "{e}");
+    assert!(start.elapsed().as_secs() < 30, "{:?}", start.elapsed());
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// `solve --ordering`: each ordering is reported as the one that ran, with the factor's

@@ -344,8 +344,8 @@ fn command_line_reports_min_j_and_rejects_a_bad_policy() {
     assert_eq!(e.trim_end().lines().count(), 1, "{e}");
     assert!(e.contains("solver.inversion"), "{e}");
     // A plane condition whose start-of-step projection puts the top edge below the fixed
-    // bottom one: the step's starting state has inverted classical elements, an input
-    // error naming the body and the element.
+    // bottom one inverts the elements between: an input error naming the condition, the
+    // node, the body and the element.
     let text = THROWN.replace("velocity = [0.0, -150.0]\n", "")
         + "[[boundary]]\nkind = \"plane\"\nnormal = [0.0, 1.0]\noffset = -1.0\n\
            region = { plane = { normal = [0.0, 1.0], offset = 1.0 } }\n";
@@ -362,7 +362,9 @@ fn command_line_reports_min_j_and_rejects_a_bad_policy() {
     assert_eq!(o.status.code(), Some(2), "{e}");
     assert_eq!(e.trim_end().lines().count(), 1, "{e}");
     assert!(
-        e.contains("bodies[0]") && e.contains("element ") && e.contains("inverted"),
+        e.contains("boundary[1]: projecting node ")
+            && e.contains("inverts element ")
+            && e.contains("of bodies[0]"),
         "{e}"
     );
     let _ = std::fs::remove_dir_all(&dir);

@@ -18,8 +18,9 @@ use crate::sim::checkpoint::{self, Checkpoint, StartOptions, Tallies};
 use crate::sim::integrator::{
     ContactCounters, InitError, NewtonSystem, StepError, Stepper, SystemSink,
 };
+use crate::sim::memory::SceneTooLarge;
 use crate::sim::output::{write_vtk, StepRecord, StepsCsv};
-use crate::sim::scene::{self, LinearKind, MovingSpec, Scene};
+use crate::sim::scene::{self, LinearKind, LoadError, MovingSpec, Scene};
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicI32, Ordering};
@@ -75,6 +76,9 @@ pub enum RunError {
     /// Output could not be written (exit code 1).
     #[error("cannot write {path}: {cause}")]
     Output { path: String, cause: String },
+    /// The scene does not fit in the memory the process may allocate (exit code 1).
+    #[error("{0}")]
+    Memory(#[from] SceneTooLarge),
     /// SIGINT or SIGTERM: the run stopped after a completed step and wrote its checkpoint
     /// (exit code 128 + the signal).
     #[error("interrupted by signal {signal} after step {step}; `stickslip run --resume {dir}` continues the run")]
@@ -240,26 +244,32 @@ pub struct RunSummary {
 
 /// Loads a scene by path or built-in name, applying the size option.
 pub fn load_scene(name_or_path: &str, size: f64) -> Result<Scene, InputError> {
+    open_scene(name_or_path, size).map_err(|e| match e {
+        LoadError::Input(e) => e,
+        LoadError::Memory(m) => InputError::new(name_or_path, "", m.to_string()),
+    })
+}
+
+/// [`load_scene`], telling a scene too large for memory ([`LoadError::Memory`]) apart.
+pub fn open_scene(name_or_path: &str, size: f64) -> Result<Scene, LoadError> {
     let p = Path::new(name_or_path);
     // A path that exists is a file to read, never a name to look up: a folder (or a
     // device) says so instead of "no such scene".
     if let Ok(m) = std::fs::metadata(p) {
         if m.is_dir() {
-            return Err(InputError::new(
-                name_or_path,
-                "",
-                "is a folder, not a scene file (TOML)",
-            ));
+            return Err(
+                InputError::new(name_or_path, "", "is a folder, not a scene file (TOML)").into(),
+            );
         }
-        let text = crate::io::read_text(name_or_path)?;
-        return scene::parse(crate::io::strip_bom(&text), name_or_path, size);
+        let text = crate::io::read_text(name_or_path).map_err(LoadError::Input)?;
+        return scene::load(crate::io::strip_bom(&text), name_or_path, size);
     }
     if p.is_file() {
-        let text = crate::io::read_text(name_or_path)?;
-        return scene::parse(crate::io::strip_bom(&text), name_or_path, size);
+        let text = crate::io::read_text(name_or_path).map_err(LoadError::Input)?;
+        return scene::load(crate::io::strip_bom(&text), name_or_path, size);
     }
     if let Some(text) = scene::builtin(name_or_path) {
-        return scene::parse(text, &format!("scenes/{name_or_path}.toml"), size);
+        return scene::load(text, &format!("scenes/{name_or_path}.toml"), size);
     }
     let names: Vec<&str> = scene::BUILTIN.iter().map(|(n, _)| *n).collect();
     Err(InputError::new(
@@ -269,7 +279,8 @@ pub fn load_scene(name_or_path: &str, size: f64) -> Result<Scene, InputError> {
             "no such scene file or built-in scene (built-ins: {})",
             names.join(", ")
         ),
-    ))
+    )
+    .into())
 }
 
 /// The largest entry a Newton system may hold, about √(f64::MAX): the solvers square
@@ -279,10 +290,13 @@ pub const MAX_SYSTEM_ENTRY: f64 = 1.3e154;
 /// Magnitudes that each look valid but together overflow the Newton system H = M + h²K
 /// (+ h²·barrier): found here, named on the key that causes them, instead of failing a
 /// step later as "not positive definite" or "overflowed".
-fn check_magnitudes(scene: &Scene) -> Result<(), InputError> {
+fn check_magnitudes(scene: &Scene) -> Result<(), RunError> {
     let h = scene.time_step;
     let h2 = h * h;
-    let mut k = scene.model.zero_matrix();
+    let mut k = scene.model.try_zero_matrix().map_err(|e| SceneTooLarge {
+        scene: scene.name.clone(),
+        error: e.with_nodes(scene.model.n_nodes),
+    })?;
     scene
         .model
         .add_potential_hessian(&scene.x0, 1.0, true, &mut k);
@@ -299,7 +313,8 @@ fn check_magnitudes(scene: &Scene) -> Result<(), InputError> {
                  solvers can square; take a smaller time step",
                 scaled
             ),
-        ));
+        )
+        .into());
     }
     for (j, o) in scene.obstacles.iter().enumerate() {
         let (dhat, kappa) = (o.plane.dhat, o.plane.kappa);
@@ -315,7 +330,8 @@ fn check_magnitudes(scene: &Scene) -> Result<(), InputError> {
                      (L = {:.3e} m)",
                     scene.characteristic_length
                 ),
-            ));
+            )
+            .into());
         }
     }
     Ok(())
@@ -385,7 +401,10 @@ fn build_scene(
     end_time: Option<f64>,
 ) -> Result<Scene, RunError> {
     // `--size` is checked (once) by the scene parser, which names `--size`.
-    let mut scene = load_scene(&start.scene, start.size)?;
+    let mut scene = open_scene(&start.scene, start.size).map_err(|e| match e {
+        LoadError::Input(e) => RunError::Input(e),
+        LoadError::Memory(m) => RunError::Memory(m),
+    })?;
     if let Some(s) = &start.solver {
         scene.solver.linear = s
             .parse::<LinearKind>()
@@ -596,6 +615,10 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
             time: 0.0,
             cause,
         },
+        InitError::Memory(e) => RunError::Memory(SceneTooLarge {
+            scene: scene.name.clone(),
+            error: e.with_nodes(scene.model.n_nodes),
+        }),
     });
     // From here on the folder is this run's: the previous run's files go (or, resuming,
     // what came after the checkpoint), and summary.json always says how far the run got.

@@ -1,13 +1,15 @@
 //! Simulation: meshes ([`mesh`]), the energies of the incremental potential ([`energy`]),
 //! scene files ([`scene`]), the implicit time stepper and its Newton loop
-//! ([`integrator`]), the Newton loop's device operators ([`device`]), and the `run`
-//! driver with its output files ([`driver`]).
+//! ([`integrator`]), the Newton loop's device operators ([`device`]), the `run` driver
+//! with its output files ([`driver`]), and the fallible scene-sized allocations
+//! ([`memory`]).
 
 pub mod checkpoint;
 pub mod device;
 pub mod driver;
 pub mod energy;
 pub mod integrator;
+pub mod memory;
 pub mod mesh;
 mod output;
 pub mod scene;

@@ -16,6 +16,7 @@ pub mod neohookean;
 pub mod spring;
 
 use crate::core::sparse::BlockCsr;
+use crate::sim::memory::{try_vec, AllocError};
 use rayon::prelude::*;
 
 pub use eigensystem::project_psd;
@@ -132,18 +133,84 @@ struct Gather {
     grad_src: Vec<usize>,
 }
 
+/// The Hessian's block pattern: every node's diagonal block and the blocks of every
+/// element's node pairs, columns sorted, values zero; built in flat arrays allocated
+/// fallibly.
+fn block_pattern(dim: usize, n: usize, sets: &[ElementSet]) -> Result<BlockCsr, AllocError> {
+    const WHAT: &str = "the Hessian's block pattern";
+    // Room per row for its diagonal and every element pair, before duplicates go.
+    let mut ptr = try_vec(n + 1, 0usize, WHAT)?;
+    for s in sets {
+        for e in 0..s.len() {
+            for &a in s.nodes(e) {
+                ptr[a + 1] += s.arity();
+            }
+        }
+    }
+    for i in 0..n {
+        ptr[i + 1] += ptr[i] + 1;
+    }
+    let mut cols = try_vec(ptr[n], 0usize, WHAT)?;
+    let mut next = try_vec(n, 0usize, WHAT)?;
+    for i in 0..n {
+        cols[ptr[i]] = i;
+        next[i] = ptr[i] + 1;
+    }
+    for s in sets {
+        for e in 0..s.len() {
+            let nodes = s.nodes(e);
+            for &a in nodes {
+                for &b in nodes {
+                    cols[next[a]] = b;
+                    next[a] += 1;
+                }
+            }
+        }
+    }
+    drop(next);
+    // Sort and deduplicate each row, packing the rows to the front.
+    let mut row_ptr = try_vec(n + 1, 0usize, WHAT)?;
+    let mut w = 0;
+    for i in 0..n {
+        let row = &mut cols[ptr[i]..ptr[i + 1]];
+        row.sort_unstable();
+        let mut last = usize::MAX;
+        for k in ptr[i]..ptr[i + 1] {
+            let c = cols[k];
+            if c != last {
+                cols[w] = c;
+                w += 1;
+                last = c;
+            }
+        }
+        row_ptr[i + 1] = w;
+    }
+    drop(ptr);
+    cols.truncate(w);
+    cols.shrink_to_fit();
+    let values = try_vec(w * dim * dim, 0.0, "the Hessian")?;
+    Ok(BlockCsr {
+        dim,
+        n,
+        row_ptr,
+        col_idx: cols,
+        values,
+    })
+}
+
 /// Upper node pairs (a, b), a ≤ b, of an element with `ar` nodes, in slot order.
 fn upper_pairs(ar: usize) -> impl Iterator<Item = (usize, usize)> {
     (0..ar).flat_map(move |a| (a..ar).map(move |b| (a, b)))
 }
 
 impl Gather {
-    fn new(n: usize, sets: &[ElementSet], pattern: &BlockCsr) -> Self {
+    fn new(n: usize, sets: &[ElementSet], pattern: &BlockCsr) -> Result<Self, AllocError> {
+        const WHAT: &str = "the assembly's gather tables";
         let nb = pattern.nnz_blocks();
         let (mut hess_base, mut grad_base) = (Vec::new(), Vec::new());
         let (mut hs, mut gs) = (0usize, 0usize);
-        let mut hess_count = vec![0usize; nb + 1];
-        let mut grad_count = vec![0usize; n + 1];
+        let mut hess_count = try_vec(nb + 1, 0usize, WHAT)?;
+        let mut grad_count = try_vec(n + 1, 0usize, WHAT)?;
         for s in sets {
             let ar = s.arity();
             hess_base.push(hs);
@@ -169,10 +236,12 @@ impl Gather {
         for i in 0..n {
             grad_count[i + 1] += grad_count[i];
         }
-        let hess_ptr = hess_count.clone();
-        let grad_ptr = grad_count.clone();
-        let mut hess_src = vec![0usize; hess_ptr[nb]];
-        let mut grad_src = vec![0usize; grad_ptr[n]];
+        let mut hess_ptr = try_vec(nb + 1, 0usize, WHAT)?;
+        hess_ptr.copy_from_slice(&hess_count);
+        let mut grad_ptr = try_vec(n + 1, 0usize, WHAT)?;
+        grad_ptr.copy_from_slice(&grad_count);
+        let mut hess_src = try_vec(hess_ptr[nb], 0usize, WHAT)?;
+        let mut grad_src = try_vec(grad_ptr[n], 0usize, WHAT)?;
         // Filled in set and element order: each block's (node's) list is in the order of
         // the sequential loop.
         let (mut hnext, mut gnext) = (hess_count, grad_count);
@@ -198,14 +267,14 @@ impl Gather {
                 }
             }
         }
-        Gather {
+        Ok(Gather {
             hess_base,
             grad_base,
             hess_ptr,
             hess_src,
             grad_ptr,
             grad_src,
-        }
+        })
     }
 }
 
@@ -235,33 +304,31 @@ pub struct Model {
 }
 
 impl Model {
+    /// [`Model::try_new`] for a model known to fit: a refused allocation aborts, as any
+    /// infallible allocation does.
     pub fn new(
         dim: usize,
         mass: Vec<f64>,
         gravity: Option<Vec<f64>>,
         sets: Vec<ElementSet>,
     ) -> Self {
+        Self::try_new(dim, mass, gravity, sets).unwrap_or_else(|e| crate::sim::memory::abort_on(&e))
+    }
+
+    /// The model of `sets` on `mass.len()` nodes: the Hessian's block pattern (every
+    /// node's diagonal block and every element's node pairs) and the assembly's gather
+    /// tables, each allocated fallibly: Err names the one the system refused and its bytes.
+    pub fn try_new(
+        dim: usize,
+        mass: Vec<f64>,
+        gravity: Option<Vec<f64>>,
+        sets: Vec<ElementSet>,
+    ) -> Result<Self, AllocError> {
         let n = mass.len();
-        let mut rows: Vec<Vec<usize>> = (0..n).map(|i| vec![i]).collect();
-        for s in &sets {
-            for e in 0..s.len() {
-                let nodes = s.nodes(e);
-                for &a in nodes {
-                    for &b in nodes {
-                        rows[a].push(b);
-                    }
-                }
-            }
-        }
-        for r in rows.iter_mut() {
-            r.sort_unstable();
-            r.dedup();
-        }
-        let pattern = BlockCsr::from_pattern(dim, &rows);
-        drop(rows);
-        let gather = Gather::new(n, &sets, &pattern);
+        let pattern = block_pattern(dim, n, &sets)?;
+        let gather = Gather::new(n, &sets, &pattern)?;
         let gravity = gravity.filter(|g| g.iter().any(|&v| v != 0.0));
-        Model {
+        Ok(Model {
             dim,
             n_nodes: n,
             mass,
@@ -269,7 +336,7 @@ impl Model {
             sets,
             gather,
             pattern,
-        }
+        })
     }
 
     pub fn ndof(&self) -> usize {
@@ -520,6 +587,30 @@ impl Model {
         out
     }
 
+    /// The first element (in set and element order) of a neo-Hookean set, either law,
+    /// that has J > 0 at `before` and J ≤ 0 (or NaN) at `after`: an element that moving
+    /// the nodes from `before` to `after` inverts. Elements already inverted at `before`
+    /// are not counted.
+    pub fn first_inverted_by(&self, before: &[f64], after: &[f64]) -> Option<MinVolumeRatio> {
+        for (k, s) in self.sets.iter().enumerate() {
+            let ElementSet::NeoHookean(nh) = s else {
+                continue;
+            };
+            for e in 0..nh.elements.len() {
+                let j = nh.volume_ratio(after, e);
+                if (j.is_nan() || j <= 0.0) && nh.volume_ratio(before, e) > 0.0 {
+                    return Some(MinVolumeRatio {
+                        law: nh.law,
+                        j,
+                        set: k,
+                        element: e,
+                    });
+                }
+            }
+        }
+        None
+    }
+
     /// The largest step along Δx from x before an element of the classical law inverts:
     /// the smallest root α ∈ (0, `max`] of det F(x + αΔx) = 0 over those elements
     /// ([`NeoHookean::inversion_bound`]), with its (set, element); None when none inverts
@@ -557,5 +648,22 @@ impl Model {
 
     pub fn zero_matrix(&self) -> BlockCsr {
         self.pattern.clone()
+    }
+
+    /// [`Model::zero_matrix`], allocated fallibly (Err: the bytes of the Hessian).
+    pub fn try_zero_matrix(&self) -> Result<BlockCsr, AllocError> {
+        let p = &self.pattern;
+        let mut row_ptr = try_vec(p.row_ptr.len(), 0usize, "the Hessian")?;
+        row_ptr.copy_from_slice(&p.row_ptr);
+        let mut col_idx = try_vec(p.col_idx.len(), 0usize, "the Hessian")?;
+        col_idx.copy_from_slice(&p.col_idx);
+        let values = try_vec(p.values.len(), 0.0, "the Hessian")?;
+        Ok(BlockCsr {
+            dim: p.dim,
+            n: p.n,
+            row_ptr,
+            col_idx,
+            values,
+        })
     }
 }

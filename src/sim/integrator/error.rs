@@ -3,6 +3,7 @@
 
 use crate::core::constraints::ConstraintError;
 use crate::gpu::GpuError;
+use crate::sim::memory::AllocError;
 
 /// Why a stepper could not start.
 #[derive(Debug, Clone, PartialEq)]
@@ -11,6 +12,8 @@ pub enum InitError {
     Input { entry: String, problem: String },
     /// The linear solver cannot start.
     Solver(String),
+    /// The system refused an allocation of the scene's size.
+    Memory(AllocError),
 }
 
 /// Why a step failed. Iterations count from 1, on both loops.

@@ -4,7 +4,7 @@
 
 use super::backend::{Backend, EndState, SystemArrays};
 use super::balance::{force_balance, ForceBalance};
-use super::error::StepError;
+use super::error::{InitError, StepError};
 use super::linear::{LinearSolver, LinearStats};
 use super::report::GpuRunReport;
 use super::state::{State, CCD_FRACTION};
@@ -13,6 +13,7 @@ use crate::core::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::core::sparse::BlockCsr;
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
 use crate::sim::energy::{inertia, AssemblyWork, InversionLimit, Inverted};
+use crate::sim::memory::try_vec;
 use crate::sim::scene::{BcShape, SolverSpec};
 use crate::Precision;
 
@@ -36,18 +37,26 @@ pub(super) struct HostBackend {
 }
 
 impl HostBackend {
-    pub(super) fn new(state: &State, linear: &SolverSpec) -> Result<Self, String> {
+    /// Fails with [`InitError::Solver`] when the linear solver cannot start and
+    /// [`InitError::Memory`] when the system refuses the Hessian or the loop's vectors.
+    pub(super) fn new(state: &State, linear: &SolverSpec) -> Result<Self, InitError> {
         let n = state.x.len();
+        let linear = LinearSolver::new(linear).map_err(InitError::Solver)?;
+        let vector = || try_vec(n, 0.0, "the Newton loop's vectors").map_err(InitError::Memory);
         Ok(HostBackend {
-            linear: LinearSolver::new(linear)?,
-            hmat: state.scene.model.zero_matrix(),
+            linear,
+            hmat: state
+                .scene
+                .model
+                .try_zero_matrix()
+                .map_err(InitError::Memory)?,
             assembly: AssemblyWork::default(),
-            x: vec![0.0; n],
-            xn: vec![0.0; n],
-            xt: vec![0.0; n],
-            g: vec![0.0; n],
-            xtry: vec![0.0; n],
-            dx: vec![0.0; n],
+            x: vector()?,
+            xn: vector()?,
+            xt: vector()?,
+            g: vector()?,
+            xtry: vector()?,
+            dx: vector()?,
         })
     }
 
@@ -118,7 +127,7 @@ impl Backend for HostBackend {
             &mut self.assembly,
         );
         hessian(state, &self.x, moving, &mut self.hmat, &mut self.assembly);
-        // Positions far beyond the scene (a plane offset near 1e300) overflow the element
+        // Positions far beyond the scene (a moving target running off at 1e300 m/s) overflow the element
         // terms; say so here rather than as a failed factorization of a non-finite H.
         for (what, v) in [
             ("gradient", &self.g[..]),

@@ -81,6 +81,6 @@ pub use dump::{NewtonSystem, StepSelection, SystemSink};
 pub use error::{InitError, StepError};
 pub use linear::{LinearSolver, LinearStats, CHOLESKY_MAX_RESIDUAL};
 pub use report::{ContactCounters, GpuRunReport, StepReport};
-pub use state::{Snapshot, State, CCD_FRACTION, INVERSION_FRACTION};
+pub use state::{Snapshot, State, CCD_FRACTION, INVERSION_FRACTION, STATIC_PROJECTION_FRACTION};
 pub use stepper::Stepper;
 pub use targets::{offset, projector};

@@ -8,8 +8,9 @@ use super::error::StepError;
 use super::report::ContactCounters;
 use super::targets::{offset, project, MovingTargets};
 use crate::core::constraints::{Constraint, ConstraintError, ConstraintKind, Frames};
-use crate::core::linalg::norm3;
+use crate::core::linalg::{norm2, norm3};
 use crate::sim::energy::barrier::{Barrier, Ccd, HalfSpace};
+use crate::sim::energy::ElementSet;
 use crate::sim::scene::{BcShape, JointTarget, Scene};
 use std::cell::Cell;
 use std::collections::HashMap;
@@ -28,6 +29,11 @@ pub const CCD_FRACTION: f64 = 0.9;
 /// at most at this fraction of the first step size that would invert an element (the
 /// smallest positive root of det F(x + αΔx) = 0).
 pub const INVERSION_FRACTION: f64 = 0.9;
+/// A static condition holds its node where it starts: the start-of-step projection of the
+/// initial positions may move a node by at most this fraction of the characteristic
+/// length L (round-off, and meshes written with a few digits, are far below it; a node
+/// meant to move takes a moving condition).
+pub const STATIC_PROJECTION_FRACTION: f64 = 1e-3;
 
 /// The barrier and the obstacles' half-spaces for the current step.
 pub(super) struct Contact {
@@ -346,6 +352,96 @@ impl<'s> State<'s> {
         }
     }
 
+    /// Checks the start-of-step projection of the initial positions (the static conditions
+    /// are known when the scene is loaded, and later steps start on their sets): it may
+    /// neither invert an element (J > 0 before, J ≤ 0 after, either neo-Hookean law) nor
+    /// move a node farther than [`STATIC_PROJECTION_FRACTION`]·L. Err((entry, problem))
+    /// names the condition's entry, the node, the distance and the limit (and the element).
+    pub(super) fn check_static_projection(&self) -> Result<(), (String, String)> {
+        let sc = self.scene;
+        let d = sc.dim;
+        let mut x = sc.x0.clone();
+        self.project_static(&mut x);
+        let moved = |i: usize| -> f64 {
+            let mut r = [0.0; 3];
+            for a in 0..d {
+                r[a] = x[i * d + a] - sc.x0[i * d + a];
+            }
+            // Scaled: a move of 1e300 m is said as such, not as ∞.
+            let n = norm2(&r[..d]);
+            // An overflowed offset is as far as it gets.
+            if n.is_nan() {
+                f64::INFINITY
+            } else {
+                n
+            }
+        };
+        // The entry of a projected node: its one condition, or all of them (a joint node).
+        let entry = |i: usize| -> String {
+            let labels: Vec<&str> = self
+                .static_bcs
+                .iter()
+                .map(|&k| &sc.bcs[k])
+                .filter(|b| b.node == i)
+                .map(|b| b.label.as_str())
+                .collect();
+            if labels.len() == 1 {
+                labels[0].to_string()
+            } else {
+                format!("node {i} ({})", labels.join(", "))
+            }
+        };
+        let nodes: Vec<usize> = self
+            .single_static_bcs
+            .iter()
+            .map(|&k| sc.bcs[k].node)
+            .chain(self.joint.iter().map(|j| j.node))
+            .collect();
+        let limit = STATIC_PROJECTION_FRACTION * sc.characteristic_length;
+        let said_limit = format!(
+            "a static condition may move its node by at most {STATIC_PROJECTION_FRACTION:e}·L = \
+             {limit:.3e} m at the start of a step (L = {:.3e} m); give a node that is to move a \
+             moving condition (motion)",
+            sc.characteristic_length
+        );
+        if let Some(m) = sc.model.first_inverted_by(&sc.x0, &x) {
+            let ElementSet::NeoHookean(nh) = &sc.model.sets[m.set] else {
+                unreachable!("first_inverted_by names neo-Hookean elements")
+            };
+            let node = nh.elements[m.element]
+                .iter()
+                .copied()
+                .max_by(|&a, &b| moved(a).total_cmp(&moved(b)))
+                .expect("an element has nodes");
+            return Err((
+                entry(node),
+                format!(
+                    "projecting node {node} onto its static conditions moves it by {:.3e} m \
+                     and inverts element {} of bodies[{}] (J = {:.3e}); {said_limit}",
+                    moved(node),
+                    m.element,
+                    m.set,
+                    m.j
+                ),
+            ));
+        }
+        let far = nodes
+            .iter()
+            .copied()
+            .map(|i| (i, moved(i)))
+            .max_by(|a, b| a.1.total_cmp(&b.1));
+        if let Some((node, dist)) = far.filter(|&(_, dist)| dist > limit) {
+            return Err((
+                entry(node),
+                format!(
+                    "node {node} lies {dist:.3e} m from the set its static conditions hold it \
+                     on; {said_limit}"
+                ),
+            ));
+        }
+        Ok(())
+    }
+
     /// The nodes of the moving conditions not yet snapped.
     pub(super) fn unsnapped_nodes(&self, snapped: &[bool]) -> Vec<usize> {
         self.moving_bcs
@@ -493,7 +589,7 @@ impl<'s> State<'s> {
     }
 
     /// End of step: x and v become the state at t1. A kinetic energy that overflows (a
-    /// static condition whose target lies near the end of the f64 range pulls its node
+    /// moving condition whose target runs off near the end of the f64 range drags its node
     /// there in one step) fails the step instead of writing NaN energies.
     pub(super) fn finish_step(
         &mut self,

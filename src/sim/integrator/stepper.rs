@@ -40,7 +40,9 @@ impl<'s> std::ops::DerefMut for Stepper<'s> {
 
 impl<'s> Stepper<'s> {
     /// Fails with [`InitError::Input`] when the scene's conditions are inconsistent (for
-    /// example contradictory conditions on one node, see [`joint_targets`]) or the scene
+    /// example contradictory conditions on one node, see [`joint_targets`]), when the static
+    /// conditions' projection of the initial positions inverts an element or moves a node
+    /// farther than [`STATIC_PROJECTION_FRACTION`](super::STATIC_PROJECTION_FRACTION)·L, or the scene
     /// is too big for its linear solver ([`check_solver_size`]: the solver may have been
     /// overridden after parsing), and [`InitError::Solver`] when the linear solver cannot
     /// start (no GPU adapter).
@@ -107,12 +109,18 @@ impl<'s> Stepper<'s> {
             });
         }
         let mut state = State::new(scene, static_bcs, single_static_bcs, joint, moving_bcs);
+        // Every step starts with the static projection; the first one moves the initial
+        // positions, later ones only round-off. It may not carry a node far or through
+        // the body (whichever loop runs the steps).
+        state
+            .check_static_projection()
+            .map_err(|(entry, problem)| InitError::Input { entry, problem })?;
         // The host loop's linear solver starts first (a missing GPU adapter for `linear =
         // "gpu"` is said before anything else).
         let host = if on_device {
             None
         } else {
-            Some(HostBackend::new(&state, &linear).map_err(InitError::Solver)?)
+            Some(HostBackend::new(&state, &linear)?)
         };
         // Build (and validate) the static constraint set up front: bad conditions fail
         // before the first step; then every moving node eliminated at once, the largest
@@ -463,7 +471,7 @@ impl<'s> Stepper<'s> {
         let h = self.state.scene.time_step;
         let e0 = self.backend.energy(&self.state, moving, false)?;
         if !e0.is_finite() {
-            // Positions far beyond the scene (a plane offset near 1e300) overflow the
+            // Positions far beyond the scene (a moving target running off at 1e300 m/s) overflow the
             // energy; line-searching NaN would "converge" and write NaN results.
             return Err(StepError::EnergyNotFinite {
                 energy: e0,

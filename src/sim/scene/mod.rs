@@ -69,11 +69,24 @@ pub use model::{
 };
 
 use crate::error::InputError;
+use crate::sim::memory::SceneTooLarge;
 use resolve::resolve;
 
+/// Why a scene could not be loaded: bad input, or a scene too large for the memory the
+/// process may allocate.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum LoadError {
+    #[error("{0}")]
+    Input(#[from] InputError),
+    #[error("{0}")]
+    Memory(#[from] SceneTooLarge),
+}
+
 /// Parses a scene file's text. `file` names it in errors; `size` multiplies every mesh
-/// resolution (cells), rounded, at least 1.
-pub fn parse(text: &str, file: &str, size: f64) -> Result<Scene, InputError> {
+/// resolution (cells), rounded, at least 1. A scene too large for the memory the process
+/// may allocate is refused with [`LoadError::Memory`] (the bytes it needs), before its
+/// meshes are built when their sizes are known from the file.
+pub fn load(text: &str, file: &str, size: f64) -> Result<Scene, LoadError> {
     let de = toml::Deserializer::parse(text).map_err(|e| toml_error(file, text, &e, ""))?;
     let spec: SceneFile = serde_path_to_error::deserialize(de).map_err(|e| {
         let path = e.path().to_string();
@@ -81,6 +94,14 @@ pub fn parse(text: &str, file: &str, size: f64) -> Result<Scene, InputError> {
         toml_error(file, text, &inner, &path)
     })?;
     resolve(spec, file, size)
+}
+
+/// [`load`], with a scene too large for memory reported as an error on the file.
+pub fn parse(text: &str, file: &str, size: f64) -> Result<Scene, InputError> {
+    load(text, file, size).map_err(|e| match e {
+        LoadError::Input(e) => e,
+        LoadError::Memory(m) => InputError::new(file, "", m.to_string()),
+    })
 }
 
 fn toml_error(file: &str, text: &str, e: &toml::de::Error, path: &str) -> InputError {

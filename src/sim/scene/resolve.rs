@@ -9,16 +9,20 @@ use super::spec::{
     BcKindSpec, BodySpec, BoundarySpec, CgTolerance, MaterialModel, MotionSpec, MovingSpec,
     ObstacleKind, ObstacleSpec, RegionSpec, SceneFile, SolverSpec,
 };
+use super::LoadError;
 use crate::error::InputError;
 use crate::sim::energy::barrier::HalfSpace;
 use crate::sim::energy::{ElementSet, Law, Model, NeoHookean, Springs};
+use crate::sim::memory::{self, AllocError, SceneTooLarge};
 use crate::sim::mesh::{self, ElementKind, Mesh};
 
-pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, InputError> {
+pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, LoadError> {
     let c = Ctx { file };
     let dim = spec.dimension;
     if dim != 2 && dim != 3 {
-        return Err(c.err("dimension", format!("must be 2 or 3, got {dim}")));
+        return Err(c
+            .err("dimension", format!("must be 2 or 3, got {dim}"))
+            .into());
     }
     // The one check of the run's `--size` (the resolution multiplier).
     if !(size.is_finite() && size > 0.0) {
@@ -26,7 +30,8 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
             "--size",
             "",
             format!("must be a positive number, got {size}"),
-        ));
+        )
+        .into());
     }
     // 1. Time, gravity, output, solver and moving-boundary settings.
     let (h, steps) = time_steps(&c, &spec)?;
@@ -35,18 +40,39 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
         None => vec![0.0; dim],
     };
     if spec.output.checkpoint_every == Some(0) {
-        return Err(c.err("output.checkpoint_every", "must be at least 1"));
+        return Err(c
+            .err("output.checkpoint_every", "must be at least 1")
+            .into());
     }
     if spec.output.every == 0 {
-        return Err(c.err("output.every", "must be at least 1"));
+        return Err(c.err("output.every", "must be at least 1").into());
     }
     check_solver(&c, &spec.solver)?;
     check_moving(&c, &spec.moving)?;
     if spec.bodies.is_empty() {
-        return Err(c.err("bodies", "at least one body is needed"));
+        return Err(c.err("bodies", "at least one body is needed").into());
     }
-    // 2. Bodies: meshes, materials, masses, element sets.
+    // 2. Bodies: meshes, materials, masses, element sets; first, whether the address
+    // space has room for what the run will allocate (for the generated meshes, before any
+    // is built; a Gmsh body counts once it is read).
+    let too_large = |e: AllocError, nodes: usize| SceneTooLarge {
+        scene: scene_name(&c, spec.name.as_deref(), file).unwrap_or_else(|_| file.to_string()),
+        error: e.with_nodes(nodes),
+    };
+    let planned = check_planned_nodes(
+        &c,
+        &spec.bodies.iter().map(|b| &b.mesh).collect::<Vec<_>>(),
+        dim,
+        size,
+    )?;
+    memory::probe(memory::scene_bytes(dim, planned), memory::SCENE_WHAT)
+        .map_err(|e| too_large(e, planned))?;
     let bodies = build_bodies(&c, &spec, dim, size)?;
+    let n_nodes = bodies.x0.len() / dim;
+    if n_nodes > planned {
+        memory::probe(memory::scene_bytes(dim, n_nodes), memory::SCENE_WHAT)
+            .map_err(|e| too_large(e, n_nodes))?;
+    }
     let char_len = characteristic_length(&c, &spec.solver, &bodies.x0, dim)?;
     // 3. Boundary conditions and obstacles.
     let bcs = build_bcs(&c, &spec, dim, &bodies, char_len)?;
@@ -69,7 +95,8 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, I
         contact_weight,
         ..
     } = bodies;
-    let model = Model::new(dim, mass, Some(gravity.clone()), sets);
+    let model = Model::try_new(dim, mass, Some(gravity.clone()), sets)
+        .map_err(|e| too_large(e, n_nodes))?;
     Ok(Scene {
         name,
         file: file.to_string(),
