@@ -120,6 +120,16 @@ pub fn scene_bytes(dim: usize, nodes: usize) -> u64 {
     (nodes as u64).saturating_mul(per_node)
 }
 
+/// Why a scene could not be loaded: bad input, or a scene too large for the memory the
+/// process may allocate.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum LoadError {
+    #[error("{0}")]
+    Input(#[from] crate::error::InputError),
+    #[error("{0}")]
+    Memory(#[from] SceneTooLarge),
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -69,18 +69,8 @@ pub use model::{
 };
 
 use crate::error::InputError;
-use crate::sim::memory::SceneTooLarge;
+pub use crate::sim::memory::LoadError;
 use resolve::resolve;
-
-/// Why a scene could not be loaded: bad input, or a scene too large for the memory the
-/// process may allocate.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum LoadError {
-    #[error("{0}")]
-    Input(#[from] InputError),
-    #[error("{0}")]
-    Memory(#[from] SceneTooLarge),
-}
 
 /// Parses a scene file's text. `file` names it in errors; `size` multiplies every mesh
 /// resolution (cells), rounded, at least 1. A scene too large for the memory the process

@@ -9,10 +9,10 @@ use super::spec::{
     BcKindSpec, BodySpec, BoundarySpec, CgTolerance, MaterialModel, MotionSpec, MovingSpec,
     ObstacleKind, ObstacleSpec, RegionSpec, SceneFile, SolverSpec,
 };
-use super::LoadError;
 use crate::error::InputError;
 use crate::sim::energy::barrier::HalfSpace;
 use crate::sim::energy::{ElementSet, Law, Model, NeoHookean, Springs};
+use crate::sim::memory::LoadError;
 use crate::sim::memory::{self, AllocError, SceneTooLarge};
 use crate::sim::mesh::{self, ElementKind, Mesh};
 
