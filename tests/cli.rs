@@ -1201,53 +1201,38 @@ fn cholesky_solves_a_system_whose_diagonal_spans_the_f64_range() {
     }
 }
 
-/// Runs a 4×2-cell stable neo-Hookean rectangle scene with the given time step and
-/// `[[boundary]]` body; whatever the outcome, steps.csv must hold no NaN or ∞ row. Returns
-/// the scene file and the run's output. (The stable law is defined for any J: with the
-/// classical one a projection far away inverts elements, which is refused as bad input
-/// before the Newton system could overflow.)
-fn run_rectangle_scene(name: &str, time_step: &str, boundary: &str) -> (String, Output) {
-    let dir = tmpdir(name);
-    let scene = write(
-        &dir,
-        &format!("{name}.toml"),
-        &format!(
-            r#"name = "{name}"
-dimension = 2
-time_step = {time_step}
-steps = 3
-gravity = [0.0, -9.81]
-
-[[bodies]]
-mesh = {{ kind = "rectangle", size = [1.0, 0.5], cells = [4, 2] }}
-material = {{ model = "stable-neo-hookean", young = 1e4, poisson = 0.3, density = 100.0 }}
-
-[[boundary]]
-{boundary}
-region = {{ box = {{ min = [-0.001, -1.0], max = [0.001, 1.0] }} }}
-"#
-        ),
-    );
-    let out = dir.join("out");
-    let o = run(&["run", &scene, "--out", out.to_str().unwrap(), "--quiet"]);
-    if let Ok(csv) = std::fs::read_to_string(out.join("steps.csv")) {
-        assert!(!csv.contains("NaN") && !csv.contains("inf"), "{csv}");
-    }
-    (scene, o)
-}
-
 /// A scene whose magnitudes overflow: a time step of 1e-300 (m/h² = ∞) is the scene's
 /// fault (exit 2, naming time_step), and no NaN row is written to steps.csv.
 #[test]
 fn run_stops_on_a_non_finite_state() {
-    let (scene, o) = run_rectangle_scene("tiny_dt", "1e-300", r#"kind = "sticky""#);
+    let (scene, o) = run_rectangle_scene(
+        "tiny_dt",
+        "1e-300",
+        "stable-neo-hookean",
+        r#"kind = "sticky""#,
+        LEFT_EDGE,
+        &[],
+    );
     assert_input_error(&o, &scene, &["time_step", "not a finite f64"]);
 }
 
 /// A scene on the 1 × 0.5 rectangle of 4 × 2 cells (L = 1.118 m) with one boundary
-/// condition on the nodes of `region`, run with `args`.
+/// condition on the nodes of `region`, run with `args` at h = 0.01 s.
 fn run_boundary_scene(
     name: &str,
+    law: &str,
+    boundary: &str,
+    region: &str,
+    args: &[&str],
+) -> (String, Output) {
+    run_rectangle_scene(name, "0.01", law, boundary, region, args)
+}
+
+/// [`run_boundary_scene`] with the time step `time_step`; whatever the outcome, steps.csv
+/// must hold no NaN or ∞ row. Returns the scene file and the run's output.
+fn run_rectangle_scene(
+    name: &str,
+    time_step: &str,
     law: &str,
     boundary: &str,
     region: &str,
@@ -1260,7 +1245,7 @@ fn run_boundary_scene(
         &format!(
             r#"name = "{name}"
 dimension = 2
-time_step = 0.01
+time_step = {time_step}
 steps = 2
 gravity = [0.0, -9.81]
 

@@ -526,6 +526,14 @@ fn translations_galerkin_from_blocks(
     galerkin_from_blocks(h, frames, &Aggregation::single(frames), None)
 }
 
+/// g += Q_i (d×d, row-major; None is the identity).
+fn add_projection(d: usize, q: &Option<[f64; 9]>, g: &mut [f64]) {
+    match q {
+        None => (0..d).for_each(|a| g[a * d + a] += 1.0),
+        Some(qi) => g.iter_mut().zip(&qi[..d * d]).for_each(|(x, y)| *x += y),
+    }
+}
+
 /// Q_i = Z_iᵀZ_i = V_i P_i V_iᵀ where Z_i is not the identity.
 fn node_projections(frames: &crate::core::constraints::Frames) -> Vec<Option<[f64; 9]>> {
     let d = frames.dim;
@@ -572,11 +580,7 @@ fn galerkin_from_blocks(
         if ai == NO_AGGREGATE {
             continue;
         }
-        let gi = &mut g[ai as usize * dd..(ai as usize + 1) * dd];
-        match &q[i] {
-            None => (0..d).for_each(|a| gi[a * d + a] += 1.0),
-            Some(qi) => gi.iter_mut().zip(&qi[..dd]).for_each(|(ge, qe)| *ge += qe),
-        }
+        add_projection(d, &q[i], &mut g[ai as usize * dd..(ai as usize + 1) * dd]);
         row.clear();
         for kb in h.row_ptr[i]..h.row_ptr[i + 1] {
             let j = h.col_idx[kb];
@@ -864,11 +868,7 @@ pub fn softest_translations(
         let c = c as usize;
         first[c] = first[c].min(i);
         size[c] += 1;
-        let gi = &mut g[c * dd..(c + 1) * dd];
-        match &q[i] {
-            None => (0..d).for_each(|a| gi[a * d + a] += 1.0),
-            Some(qi) => gi.iter_mut().zip(&qi[..dd]).for_each(|(x, y)| *x += y),
-        }
+        add_projection(d, &q[i], &mut g[c * dd..(c + 1) * dd]);
         // Row i's projected blocks summed first (for a floating body they cancel), then
         // added to the group's E: rounding stays at the size of a row.
         row[..dd].iter_mut().for_each(|v| *v = 0.0);
@@ -960,10 +960,7 @@ pub fn translation_gram(frames: &crate::core::constraints::Frames) -> (Vec<f64>,
         }
         first = first.min(i);
         count += 1;
-        match q {
-            None => (0..d).for_each(|a| g[a * d + a] += 1.0),
-            Some(qi) => g.iter_mut().zip(&qi[..d * d]).for_each(|(x, y)| *x += y),
-        }
+        add_projection(d, q, &mut g);
     }
     (g, first, count)
 }

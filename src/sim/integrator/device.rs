@@ -51,6 +51,8 @@ pub(super) struct DeviceLoop {
     scratch: Vec<f64>,
     /// The velocities read with every position (kept to write the state back whole).
     scratch_v: Vec<f64>,
+    /// The host's element buffer of the force balance, kept between steps.
+    assembly: AssemblyWork,
     dim: usize,
 }
 
@@ -176,6 +178,7 @@ impl DeviceLoop {
             moving: None,
             scratch: vec![0.0; scene.model.n_nodes * d],
             scratch_v: Vec::new(),
+            assembly: AssemblyWork::default(),
             dim: d,
         })
     }
@@ -398,7 +401,7 @@ impl Backend for DeviceLoop {
             &xt,
             &g,
             &state.frames[snapped],
-            &mut AssemblyWork::default(),
+            &mut self.assembly,
         ))
     }
 

@@ -408,28 +408,30 @@ impl<'s> Stepper<'s> {
                     cause,
                 })?;
             }
-            if dmax / h < self.state.newton_tol && moving.snapped.iter().all(|&s| s) {
-                // Short steps are not enough: the forces must balance too (a huge h or
-                // a stiff barrier makes every step short).
-                let b = self.backend.force_balance(&self.state, &moving.snapped)?;
-                rep.force_residual = Some(b.residual / b.scale);
-                if b.stationary(dmax, sc.solver.force_tolerance) {
-                    break;
+            if dmax / h < self.state.newton_tol {
+                if moving.snapped.iter().all(|&s| s) {
+                    // Short steps are not enough: the forces must balance too (a huge h
+                    // or a stiff barrier makes every step short).
+                    let b = self.backend.force_balance(&self.state, &moving.snapped)?;
+                    rep.force_residual = Some(b.residual / b.scale);
+                    if b.stationary(dmax, sc.solver.force_tolerance) {
+                        break;
+                    }
+                    unbalanced = Some(b);
+                } else {
+                    // Converged with the penalty but nodes still off target.
+                    let nodes = self.state.unsnapped_nodes(&moving.snapped);
+                    let x = self.backend.positions(Some(&nodes))?;
+                    if self
+                        .state
+                        .update_moving_penalty(x, moving, &mut residual_at_update)?
+                    {
+                        rep.k_m_doublings += 1;
+                    }
+                    // The penalty changed the energy: a new forcing sequence.
+                    forcing.restart();
+                    continue;
                 }
-                unbalanced = Some(b);
-            } else if dmax / h < self.state.newton_tol {
-                // Converged with the penalty but nodes still off target.
-                let nodes = self.state.unsnapped_nodes(&moving.snapped);
-                let x = self.backend.positions(Some(&nodes))?;
-                if self
-                    .state
-                    .update_moving_penalty(x, moving, &mut residual_at_update)?
-                {
-                    rep.k_m_doublings += 1;
-                }
-                // The penalty changed the energy: a new forcing sequence.
-                forcing.restart();
-                continue;
             }
             self.line_search(moving, dmax, iter, rep)?;
             self.snap(moving)?;
