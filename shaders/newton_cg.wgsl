@@ -1,4 +1,4 @@
-// The eliminated PCG on the device-assembled Newton system (src/gpu/newton/cg.rs):
+// The eliminated PCG on the device-assembled Newton system (src/sim/device/newton_cg.rs):
 //
 //   Ĥ y = b̂,  Ĥ = P VᵀHV P + (I − P),  b̂ = −P Vᵀ g,  Δx = V P y
 //
@@ -11,34 +11,48 @@
 //   update_yr    y += αp, r −= αq, z = M⁻¹r, r·z and r·r partials
 //   scalar_beta  one workgroup: ρ' = r·z, r·r, stop flags, β = ρ'/ρ, iteration count
 //   update_p     p = z + βp
+// and with the aggregates (COARSE = 2) agg_restrict and agg_solve before scalar_beta.
 // A (re)start is `init` (r = b̂ − q with q = Ĥy, z = M⁻¹r, p = z, partials) and
 // `scalar_start` (then `update_p` with β = 0 under COARSE), whose r·r is the true residual.
-// `prepare` adds `coarse_e` and `coarse_e_sum` (E = ZᵀĤZ, below) to `rhs` and `precond`. Reductions are deterministic: a fixed
-// number of workgroups each writes one partial from a grid-stride loop in a fixed order,
-// and the one-workgroup scalar kernels sum the partials in a fixed order too.
+// `prepare` adds `coarse_e` and `coarse_e_sum` (E = ZᵀĤZ of the translations, below) and,
+// with the aggregates, `agg_rows` and `agg_e` to `rhs` and `precond`.
 // Once a stop flag is set, every later CG dispatch of the submit is a no-op.
+//
+// Reductions are segmented (src/gpu/launch.rs, SegmentPolicy): the nodes are cut into
+// segments of SEG = WG·ITEMS consecutive nodes (n_partials of them); invocation lid of
+// the workgroup that takes segment s sums nodes s·SEG + lid + m·WG, m = 0, 1, …, in that
+// order, and one tree per segment writes partial s; the one-workgroup scalar kernels sum
+// the partials in a fixed order. Workgroups loop over segments, so how many run (one per
+// segment on a GPU, a few on a CPU adapter) changes nothing in the sums, bit for bit.
 //
 // H's values come in chunks of consecutive block rows, one buffer each (one storage
 // binding caps its size). The kernels that read them (matvec, precond, coarse_e) run once
-// per chunk, each over its rows with `hvals` that chunk's buffer. A thread visits its rows
-// in the order of the unsplit grid-stride loop; the reductions carry each thread's running
-// sum from one chunk's dispatch to the next (the CARRY slots of `partials`), and only the
-// last chunk's dispatch sums the workgroup: the same additions in the same order, so the
+// per chunk, each over its rows with `hvals` that chunk's buffer. A segment cut by a
+// chunk's end carries each invocation's running sum to the next chunk's dispatch (the
+// CARRY slots of `partials`), which goes on from it; only the dispatch holding the
+// segment's last node sums the tree: the same additions in the same order, so the
 // results are those of one chunk, bit for bit.
 
 override D: u32 = 3u;
 // 0: none, 1: Jacobi, 2: block Jacobi (the preconditioner applied by init and update_yr).
 override PRECOND: u32 = 1u;
-// The coarse correction on the rigid translations (src/coarse.rs, docs/coarse.md):
-// M⁻¹r = M_J⁻¹r + Z E⁺ Zᵀr with Z_i = P_i V_iᵀ from the frames (no basis stored) and
-// E⁺ (D×D, from the host) in `scal`. Why: a body that can translate or slide has Ĥ's
-// smallest eigenvalues on its translations (the mass term), which M_J cannot see.
-// update_yr and init sum Zᵀr in the tree of r·M_J⁻¹r and r·r; scalar_beta and
-// scalar_start form c = E⁺Zᵀr and ρ = r·M_J⁻¹r + Zᵀr·c; update_p adds Z_i c to p.
-// z holds M_J⁻¹r only, so the correction costs no dispatch in the iteration.
-override COARSE: bool = false;
+// The coarse correction (src/solve/coarse.rs, docs/coarse.md): 0 none, 1 the rigid
+// translations, 2 the translations of each aggregate. M⁻¹r = M_J⁻¹r + Z E⁺ Zᵀr with
+// Z_i = P_i V_iᵀ from the frames (no basis stored). Why: a body that can translate or
+// slide has Ĥ's smallest eigenvalues on its translations (the mass term), and a soft
+// body's on its smooth modes, which M_J cannot see.
+// 1: E⁺ (D×D, from the host) is in `scal`; update_yr and init sum Zᵀr in the tree of
+// r·M_J⁻¹r and r·r; scalar_beta and scalar_start form c = E⁺Zᵀr and ρ = r·M_J⁻¹r + Zᵀr·c;
+// update_p adds Z_i c to p. No dispatch in the iteration.
+// 2: E⁺ (K×K, K = D·aggregates, from the host) is in `coarse`; after update_yr (init)
+// agg_restrict forms w = Zᵀr (a workgroup per aggregate) and agg_solve c = E⁺w (a thread
+// per coarse row); scalar_beta (scalar_start) adds w·c to ρ and update_p adds
+// Z_i c_{aggregate of i} to p. Two dispatches per iteration.
+override COARSE: u32 = 0u;
+// Nodes per invocation within a segment (the device's SegmentPolicy).
+override ITEMS: u32 = 1u;
 
-// Mirrors `NewtonCgParams` in src/gpu/newton/cg.rs (four u32, 16 bytes, size-asserted
+// Mirrors `NewtonCgParams` in src/sim/device/newton_cg.rs (four u32, 16 bytes, size-asserted
 // there).
 struct NewtonCgParams {
     n_nodes: u32,
@@ -60,7 +74,7 @@ const H_FIRST_CHUNK: u32 = 1u;
 const H_LAST_CHUNK: u32 = 2u;
 
 // Slots of `scal`, `state` and the partial sums, mirrored by `slot` in
-// src/gpu/newton/cg.rs (a unit test there checks every value).
+// src/sim/device/newton_cg.rs (a unit test there checks every value).
 // scal: ρ = r·z (scalar_start, scalar_beta), p·q (scalar_alpha), α (scalar_alpha),
 // β (scalar_beta), r·r of the last reduction, tol² (host), ‖b̂‖² (scalar_start); then
 // (COARSE) c = E⁺Zᵀr, D values (scalar_beta, scalar_start), E⁺, D² row-major (host), and
@@ -93,8 +107,29 @@ const NCG_PART_RR: u32 = 2u;
 const NCG_PART_BB: u32 = 3u;
 const NCG_PART_ZR: u32 = 4u;
 const NCG_PART_E: u32 = 7u;
-// After the partial-sum slots (NCG_CARRY · n_partials): per thread of the grid-stride
-// kernels, NCG_CARRY_LEN running sums carried between the dispatches of H's chunks.
+// The header of `aggregates` (src/sim/device/newton_coarse.rs): the aggregate count, K,
+// then where each index array starts in `aggregates` (u32 words) and each f64 array in
+// `coarse`: the aggregate of each node, the aggregates' node lists (offsets, nodes), per
+// block row the range of its row-pair slots, per block its slot, per aggregate pair its
+// slots (offsets, slots in row order), the pair of each (a, b) (dense, count²), then E,
+// E⁺, w = Zᵀr and c = E⁺w in `coarse` (whose first entries are the slots' D² sums).
+const AGG_COUNT: u32 = 0u;
+const AGG_K: u32 = 1u;
+const AGG_OF: u32 = 2u;
+const AGG_PTR: u32 = 3u;
+const AGG_NODES: u32 = 4u;
+const AGG_SLOT_PTR: u32 = 5u;
+const AGG_SLOT_OF: u32 = 6u;
+const AGG_PAIR_PTR: u32 = 7u;
+const AGG_PAIR_SLOTS: u32 = 8u;
+const AGG_PAIR_OF: u32 = 9u;
+const AGG_E: u32 = 10u;
+const AGG_EINV: u32 = 11u;
+const AGG_W: u32 = 12u;
+const AGG_C: u32 = 13u;
+// After the partial-sum slots (NCG_CARRY · n_partials): per invocation of each segment
+// (n_partials · WG of them), NCG_CARRY_LEN running sums carried between the dispatches of
+// H's chunks.
 const NCG_CARRY: u32 = 19u;
 const NCG_CARRY_LEN: u32 = 12u;
 // 2^-64: the scale of the absolute row sums (src/solve/coarse.rs, ABS_SUM_SCALE).
@@ -124,6 +159,10 @@ const ABS_SUM_SCALE = 0x1p-64;
 @group(0) @binding(14) var<storage, read_write> partials: array<acc>;
 @group(0) @binding(15) var<storage, read_write> scal: array<acc>;
 @group(0) @binding(16) var<storage, read_write> state: array<u32>;
+// The aggregate coarse space (COARSE = 2): its index arrays after the header above, and
+// its f64 data (a 16-byte placeholder each for frames built without it).
+@group(0) @binding(17) var<storage, read> aggregates: array<u32>;
+@group(0) @binding(18) var<storage, read_write> coarse: array<acc>;
 
 var<workgroup> wg_flag: u32;
 
@@ -231,17 +270,24 @@ fn coarse_c(zr: array<acc, 3>) -> acc {
     return wc;
 }
 
-// Index of thread t's carried sum m (see NCG_CARRY).
-fn carry(t: u32, m: u32) -> u32 {
-    return NCG_CARRY * params.n_partials + t * NCG_CARRY_LEN + m;
+// Index of carried sum m of invocation lid of segment s (see NCG_CARRY).
+fn carry(s: u32, lid: u32, m: u32) -> u32 {
+    return NCG_CARRY * params.n_partials + (s * WG + lid) * NCG_CARRY_LEN + m;
 }
 
-// Thread t's first row of the chunk in the unsplit grid-stride order (t, t + stride, …).
-fn chunk_start(t: u32, stride: u32) -> u32 {
-    if (t >= params.row_begin) {
-        return t;
-    }
-    return t + (params.row_begin - t + stride - 1u) / stride * stride;
+// The segments a chunk's dispatch takes: those holding a row of [row_begin, row_end).
+fn chunk_segments() -> vec2<u32> {
+    let seg = WG * ITEMS;
+    return vec2<u32>(params.row_begin / seg, (params.row_end + seg - 1u) / seg);
+}
+
+// Whether segment s began in an earlier chunk (its invocations go on from their carried
+// sums) and whether it ends in a later one (they carry them on).
+fn segment_begun(s: u32) -> bool {
+    return s * WG * ITEMS < params.row_begin;
+}
+fn segment_goes_on(s: u32) -> bool {
+    return min((s + 1u) * WG * ITEMS, params.n_nodes) > params.row_end;
 }
 
 // Sum of partial slot `slot`, in a fixed order, in one workgroup.
@@ -256,25 +302,33 @@ fn reduce_slot(slot: u32, lid: u32) -> acc {
 // b̂ = −P Vᵀ g and the ‖b̂‖² partials.
 @compute @workgroup_size(WG)
 fn rhs(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    var bb = acc(0.0);
-    for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += grid_stride(nwg)) {
-        var g: array<real, 3>;
-        for (var a = 0u; a < D; a++) {
-            g[a] = grad[i * D + a];
-        }
-        let t = to_frame(i, g);
-        for (var a = 0u; a < D; a++) {
-            var v = -t[a];
-            if (fixed(i, a)) {
-                v = real(0.0);
+    for (var s = group_index(wid, nwg); s < params.n_partials; s += group_count(nwg)) {
+        var bb = acc(0.0);
+        for (var m = 0u; m < ITEMS; m++) {
+            let i = (s * ITEMS + m) * WG + lid.x;
+            if (i >= params.n_nodes) {
+                break;
             }
-            b[i * D + a] = v;
-            bb += acc(v) * acc(v);
+            var g: array<real, 3>;
+            for (var a = 0u; a < D; a++) {
+                g[a] = grad[i * D + a];
+            }
+            let t = to_frame(i, g);
+            for (var a = 0u; a < D; a++) {
+                var v = -t[a];
+                if (fixed(i, a)) {
+                    v = real(0.0);
+                }
+                b[i * D + a] = v;
+                bb += acc(v) * acc(v);
+            }
         }
-    }
-    workgroup_sum(lid.x, sum1(bb), 1u);
-    if (lid.x == 0u) {
-        partials[NCG_PART_BB * params.n_partials + group_index(wid, nwg)] = summed(0u);
+        workgroup_sum(lid.x, sum1(bb), 1u);
+        if (lid.x == 0u) {
+            partials[NCG_PART_BB * params.n_partials + s] = summed(0u);
+        }
+        // The tree's memory is reused by the next segment.
+        workgroupBarrier();
     }
 }
 
@@ -388,45 +442,54 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
         return;
     }
     let dd = D * D;
-    let th = group_index(wid, nwg) * WG + lid.x;
-    let stride = grid_stride(nwg);
-    var pq = acc(0.0);
-    if ((params.chunk & H_FIRST_CHUNK) == 0u) {
-        pq = partials[carry(th, 0u)];
-    }
-    for (var i = chunk_start(th, stride); i < params.row_end; i += stride) {
-        var s: array<real, 3>;
-        for (var k = pattern[i]; k < pattern[i + 1u]; k++) {
-            let j = pattern[params.col_at + k];
-            let kl = k - params.block_first;
-            var w: array<real, 3>;
-            for (var c = 0u; c < D; c++) {
-                w[c] = select(p[j * D + c], real(0.0), fixed(j, c));
+    let segs = chunk_segments();
+    for (var s = segs.x + group_index(wid, nwg); s < segs.y; s += group_count(nwg)) {
+        var pq = acc(0.0);
+        if (segment_begun(s)) {
+            pq = partials[carry(s, lid.x, 0u)];
+        }
+        for (var m = 0u; m < ITEMS; m++) {
+            let i = (s * ITEMS + m) * WG + lid.x;
+            if (i >= params.row_end) {
+                break;
             }
-            w = from_frame(j, w);
-            for (var a = 0u; a < D; a++) {
-                var t = s[a];
+            if (i < params.row_begin) {
+                continue;
+            }
+            var sum: array<real, 3>;
+            for (var k = pattern[i]; k < pattern[i + 1u]; k++) {
+                let j = pattern[params.col_at + k];
+                let kl = k - params.block_first;
+                var w: array<real, 3>;
                 for (var c = 0u; c < D; c++) {
-                    t += hvals[kl * dd + a * D + c] * w[c];
+                    w[c] = select(p[j * D + c], real(0.0), fixed(j, c));
                 }
-                s[a] = t;
+                w = from_frame(j, w);
+                for (var a = 0u; a < D; a++) {
+                    var t = sum[a];
+                    for (var c = 0u; c < D; c++) {
+                        t += hvals[kl * dd + a * D + c] * w[c];
+                    }
+                    sum[a] = t;
+                }
+            }
+            let t = to_frame(i, sum);
+            for (var a = 0u; a < D; a++) {
+                let pa = p[i * D + a];
+                let qa = select(t[a], pa, fixed(i, a));
+                q[i * D + a] = qa;
+                pq += acc(pa) * acc(qa);
             }
         }
-        let t = to_frame(i, s);
-        for (var a = 0u; a < D; a++) {
-            let pa = p[i * D + a];
-            let qa = select(t[a], pa, fixed(i, a));
-            q[i * D + a] = qa;
-            pq += acc(pa) * acc(qa);
+        if (segment_goes_on(s)) {
+            partials[carry(s, lid.x, 0u)] = pq;
+            continue;
         }
-    }
-    if ((params.chunk & H_LAST_CHUNK) == 0u) {
-        partials[carry(th, 0u)] = pq;
-        return;
-    }
-    workgroup_sum(lid.x, sum1(pq), 1u);
-    if (lid.x == 0u) {
-        partials[NCG_PART_PQ * params.n_partials + group_index(wid, nwg)] = summed(0u);
+        workgroup_sum(lid.x, sum1(pq), 1u);
+        if (lid.x == 0u) {
+            partials[NCG_PART_PQ * params.n_partials + s] = summed(0u);
+        }
+        workgroupBarrier();
     }
 }
 
@@ -454,7 +517,7 @@ fn scalar_alpha(@builtin(local_invocation_id) lid: vec3<u32>) {
 
 // The r·z and r·r partials of one workgroup and, with COARSE, those of Zᵀr (one tree).
 fn write_rz_rr(lid: u32, wg: u32, rz: acc, rr: acc, zr: array<acc, 3>) {
-    let n = select(2u, 2u + D, COARSE);
+    let n = select(2u, 2u + D, COARSE == 1u);
     workgroup_sum(lid, array<acc, 5>(rz, rr, zr[0], zr[1], zr[2]), n);
     if (lid == 0u) {
         let np = params.n_partials;
@@ -473,31 +536,38 @@ fn update_yr(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id
         return;
     }
     let alpha = real(scal[NCG_ALPHA]);
-    var rz = acc(0.0);
-    var rr = acc(0.0);
-    var zr: array<acc, 3>;
-    for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += grid_stride(nwg)) {
-        var rv: array<real, 3>;
-        for (var a = 0u; a < D; a++) {
-            let k = i * D + a;
-            y[k] += alpha * p[k];
-            rv[a] = r[k] - alpha * q[k];
-            r[k] = rv[a];
-        }
-        let zv = apply_precond(i, rv);
-        for (var a = 0u; a < D; a++) {
-            z[i * D + a] = zv[a];
-            rz += acc(rv[a]) * acc(zv[a]);
-            rr += acc(rv[a]) * acc(rv[a]);
-        }
-        if (COARSE) {
-            let w = zt(i, rv);
+    for (var s = group_index(wid, nwg); s < params.n_partials; s += group_count(nwg)) {
+        var rz = acc(0.0);
+        var rr = acc(0.0);
+        var zr: array<acc, 3>;
+        for (var m = 0u; m < ITEMS; m++) {
+            let i = (s * ITEMS + m) * WG + lid.x;
+            if (i >= params.n_nodes) {
+                break;
+            }
+            var rv: array<real, 3>;
             for (var a = 0u; a < D; a++) {
-                zr[a] += acc(w[a]);
+                let k = i * D + a;
+                y[k] += alpha * p[k];
+                rv[a] = r[k] - alpha * q[k];
+                r[k] = rv[a];
+            }
+            let zv = apply_precond(i, rv);
+            for (var a = 0u; a < D; a++) {
+                z[i * D + a] = zv[a];
+                rz += acc(rv[a]) * acc(zv[a]);
+                rr += acc(rv[a]) * acc(rv[a]);
+            }
+            if (COARSE == 1u) {
+                let w = zt(i, rv);
+                for (var a = 0u; a < D; a++) {
+                    zr[a] += acc(w[a]);
+                }
             }
         }
+        write_rz_rr(lid.x, s, rz, rr, zr);
+        workgroupBarrier();
     }
-    write_rz_rr(lid.x, group_index(wid, nwg), rz, rr, zr);
 }
 
 // ρ' = r·z (with COARSE r·M_J⁻¹r + Zᵀr·c, and c = E⁺Zᵀr) and r·r (one workgroup); stops
@@ -510,20 +580,30 @@ fn scalar_beta(@builtin(local_invocation_id) lid: vec3<u32>) {
     }
     var v = array<acc, 5>(acc(0.0), acc(0.0), acc(0.0), acc(0.0), acc(0.0));
     let np = params.n_partials;
-    let n = select(2u, 2u + D, COARSE);
+    var n = 2u;
+    if (COARSE == 1u) {
+        n = 2u + D;
+    } else if (COARSE == 2u) {
+        n = 3u;
+        v[2] = agg_wc(lid.x);
+    }
     for (var t = lid.x; t < np; t += WG) {
         v[0] += partials[NCG_PART_RZ * np + t];
         v[1] += partials[NCG_PART_RR * np + t];
-        for (var a = 0u; a + 2u < n; a++) {
-            v[2u + a] += partials[(NCG_PART_ZR + a) * np + t];
+        if (COARSE == 1u) {
+            for (var a = 0u; a < D; a++) {
+                v[2u + a] += partials[(NCG_PART_ZR + a) * np + t];
+            }
         }
     }
     let s = workgroup_sum_uniform(lid.x, v, n);
     if (lid.x == 0u) {
         var rz = s[0];
         let rr = s[1];
-        if (COARSE) {
+        if (COARSE == 1u) {
             rz += coarse_c(array<acc, 3>(s[2], s[3], s[4]));
+        } else if (COARSE == 2u) {
+            rz += s[2];
         }
         state[NCG_ITERS] += 1u;
         scal[NCG_RR] = rr;
@@ -548,7 +628,7 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
         return;
     }
     let beta = real(scal[NCG_BETA]);
-    if (!COARSE) {
+    if (COARSE == 0u) {
         for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += grid_stride(nwg)) {
             for (var a = 0u; a < D; a++) {
                 let k = i * D + a;
@@ -558,10 +638,21 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
         return;
     }
     var c: array<real, 3>;
-    for (var a = 0u; a < D; a++) {
-        c[a] = real(scal[NCG_C + a]);
+    if (COARSE == 1u) {
+        for (var a = 0u; a < D; a++) {
+            c[a] = real(scal[NCG_C + a]);
+        }
     }
     for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += grid_stride(nwg)) {
+        if (COARSE == 2u) {
+            let ag = aggregates[aggregates[AGG_OF] + i];
+            for (var a = 0u; a < D; a++) {
+                c[a] = real(0.0);
+                if (ag != NO_AGGREGATE) {
+                    c[a] = real(coarse[aggregates[AGG_C] + ag * D + a]);
+                }
+            }
+        }
         let w = zc(i, c);
         for (var a = 0u; a < D; a++) {
             let k = i * D + a;
@@ -575,31 +666,38 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
 // partials too, and update_p (β = 0) then adds Zc to p.
 @compute @workgroup_size(WG)
 fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    var rz = acc(0.0);
-    var rr = acc(0.0);
-    var zr: array<acc, 3>;
-    for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += grid_stride(nwg)) {
-        var rv: array<real, 3>;
-        for (var a = 0u; a < D; a++) {
-            let k = i * D + a;
-            rv[a] = b[k] - q[k];
-            r[k] = rv[a];
-        }
-        let zv = apply_precond(i, rv);
-        for (var a = 0u; a < D; a++) {
-            z[i * D + a] = zv[a];
-            p[i * D + a] = zv[a];
-            rz += acc(rv[a]) * acc(zv[a]);
-            rr += acc(rv[a]) * acc(rv[a]);
-        }
-        if (COARSE) {
-            let w = zt(i, rv);
+    for (var s = group_index(wid, nwg); s < params.n_partials; s += group_count(nwg)) {
+        var rz = acc(0.0);
+        var rr = acc(0.0);
+        var zr: array<acc, 3>;
+        for (var m = 0u; m < ITEMS; m++) {
+            let i = (s * ITEMS + m) * WG + lid.x;
+            if (i >= params.n_nodes) {
+                break;
+            }
+            var rv: array<real, 3>;
             for (var a = 0u; a < D; a++) {
-                zr[a] += acc(w[a]);
+                let k = i * D + a;
+                rv[a] = b[k] - q[k];
+                r[k] = rv[a];
+            }
+            let zv = apply_precond(i, rv);
+            for (var a = 0u; a < D; a++) {
+                z[i * D + a] = zv[a];
+                p[i * D + a] = zv[a];
+                rz += acc(rv[a]) * acc(zv[a]);
+                rr += acc(rv[a]) * acc(rv[a]);
+            }
+            if (COARSE == 1u) {
+                let w = zt(i, rv);
+                for (var a = 0u; a < D; a++) {
+                    zr[a] += acc(w[a]);
+                }
             }
         }
+        write_rz_rr(lid.x, s, rz, rr, zr);
+        workgroupBarrier();
     }
-    write_rz_rr(lid.x, group_index(wid, nwg), rz, rr, zr);
 }
 
 // After init (one workgroup): ρ, the true r·r and ‖b̂‖²; stops when the true residual
@@ -614,7 +712,7 @@ fn scalar_start(@builtin(local_invocation_id) lid: vec3<u32>) {
         v[0] += partials[NCG_PART_RZ * np + t];
         v[1] += partials[NCG_PART_RR * np + t];
         v[2] += partials[NCG_PART_BB * np + t];
-        if (COARSE) {
+        if (COARSE == 1u) {
             for (var a = 0u; a < D; a++) {
                 w[a] += partials[(NCG_PART_ZR + a) * np + t];
             }
@@ -622,16 +720,24 @@ fn scalar_start(@builtin(local_invocation_id) lid: vec3<u32>) {
     }
     let s = workgroup_sum_uniform(lid.x, v, 3u);
     var zr: array<acc, 3>;
-    if (COARSE) {
+    if (COARSE == 1u) {
         let sw = workgroup_sum_uniform(lid.x, w, D);
         zr = array<acc, 3>(sw[0], sw[1], sw[2]);
+    }
+    var wc = acc(0.0);
+    if (COARSE == 2u) {
+        wc = workgroup_sum_uniform1(lid.x, agg_wc(lid.x));
     }
     if (lid.x == 0u) {
         var rz = s[0];
         let rr = s[1];
         let bb = s[2];
-        if (COARSE) {
+        if (COARSE == 1u) {
             rz += coarse_c(zr);
+        } else if (COARSE == 2u) {
+            rz += wc;
+        }
+        if (COARSE != 0u) {
             scal[NCG_BETA] = acc(0.0);
         }
         scal[NCG_RHO] = rz;
@@ -709,75 +815,80 @@ fn mat_mul(x: array<real, 9>, y: array<real, 9>) -> array<real, 9> {
 fn coarse_e(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
     let n_sums = dd + D;
-    let th = group_index(wid, nwg) * WG + lid.x;
-    let stride = grid_stride(nwg);
-    // E's D² entries, then the D absolute row sums.
-    var e: array<acc, 12>;
-    if ((params.chunk & H_FIRST_CHUNK) == 0u) {
-        for (var m = 0u; m < n_sums; m++) {
-            e[m] = partials[carry(th, m)];
+    let np = params.n_partials;
+    let segs = chunk_segments();
+    for (var s = segs.x + group_index(wid, nwg); s < segs.y; s += group_count(nwg)) {
+        // E's D² entries, then the D absolute row sums.
+        var e: array<acc, 12>;
+        if (segment_begun(s)) {
+            for (var m = 0u; m < n_sums; m++) {
+                e[m] = partials[carry(s, lid.x, m)];
+            }
         }
-    }
-    for (var i = chunk_start(th, stride); i < params.row_end; i += stride) {
-        if (all_fixed(i)) {
-            continue;
-        }
-        var part: array<real, 9>;
-        for (var k = pattern[i]; k < pattern[i + 1u]; k++) {
-            let j = pattern[params.col_at + k];
-            if (all_fixed(j)) {
+        for (var mi = 0u; mi < ITEMS; mi++) {
+            let i = (s * ITEMS + mi) * WG + lid.x;
+            if (i >= params.row_end) {
+                break;
+            }
+            if (i < params.row_begin || all_fixed(i)) {
                 continue;
             }
-            var t: array<real, 9>;
-            for (var m = 0u; m < dd; m++) {
-                t[m] = hvals[(k - params.block_first) * dd + m];
-            }
-            if (!plain(j)) {
-                t = mat_mul(t, proj(j));
-            }
-            for (var m = 0u; m < dd; m++) {
-                part[m] += t[m];
-            }
-            var b = t;
-            if (!plain(i)) {
-                b = mat_mul(proj(i), t);
-            }
-            for (var a = 0u; a < D; a++) {
-                var s = real(0.0);
-                for (var c = 0u; c < D; c++) {
-                    s += abs(b[a * D + c]) * ABS_SUM_SCALE;
+            var part: array<real, 9>;
+            for (var k = pattern[i]; k < pattern[i + 1u]; k++) {
+                let j = pattern[params.col_at + k];
+                if (all_fixed(j)) {
+                    continue;
                 }
-                e[dd + a] += acc(s);
+                var t: array<real, 9>;
+                for (var m = 0u; m < dd; m++) {
+                    t[m] = hvals[(k - params.block_first) * dd + m];
+                }
+                if (!plain(j)) {
+                    t = mat_mul(t, proj(j));
+                }
+                for (var m = 0u; m < dd; m++) {
+                    part[m] += t[m];
+                }
+                var b = t;
+                if (!plain(i)) {
+                    b = mat_mul(proj(i), t);
+                }
+                for (var a = 0u; a < D; a++) {
+                    var sa = real(0.0);
+                    for (var c = 0u; c < D; c++) {
+                        sa += abs(b[a * D + c]) * ABS_SUM_SCALE;
+                    }
+                    e[dd + a] += acc(sa);
+                }
+            }
+            if (!plain(i)) {
+                part = mat_mul(proj(i), part);
+            }
+            for (var m = 0u; m < dd; m++) {
+                e[m] += acc(part[m]);
             }
         }
-        if (!plain(i)) {
-            part = mat_mul(proj(i), part);
+        if (segment_goes_on(s)) {
+            for (var m = 0u; m < n_sums; m++) {
+                partials[carry(s, lid.x, m)] = e[m];
+            }
+            continue;
         }
-        for (var m = 0u; m < dd; m++) {
-            e[m] += acc(part[m]);
-        }
-    }
-    if ((params.chunk & H_LAST_CHUNK) == 0u) {
-        for (var m = 0u; m < n_sums; m++) {
-            partials[carry(th, m)] = e[m];
-        }
-        return;
-    }
-    // The sums in trees of at most five.
-    let np = params.n_partials;
-    for (var base = 0u; base < n_sums; base += 5u) {
-        let n = min(n_sums - base, 5u);
-        var v: array<acc, 5>;
-        for (var m = 0u; m < n; m++) {
-            v[m] = e[base + m];
-        }
-        workgroup_sum(lid.x, v, n);
-        if (lid.x == 0u) {
+        // The sums in trees of at most five.
+        for (var base = 0u; base < n_sums; base += 5u) {
+            let n = min(n_sums - base, 5u);
+            var v: array<acc, 5>;
             for (var m = 0u; m < n; m++) {
-                partials[(NCG_PART_E + base + m) * np + group_index(wid, nwg)] = summed(m);
+                v[m] = e[base + m];
             }
+            workgroup_sum(lid.x, v, n);
+            if (lid.x == 0u) {
+                for (var m = 0u; m < n; m++) {
+                    partials[(NCG_PART_E + base + m) * np + s] = summed(m);
+                }
+            }
+            workgroupBarrier();
         }
-        workgroupBarrier();
     }
 }
 
@@ -823,5 +934,146 @@ fn recover(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
         for (var a = 0u; a < D; a++) {
             dx[i * D + a] = o[a];
         }
+    }
+}
+
+// This invocation's share of w·c = Zᵀr·E⁺Zᵀr (COARSE = 2), the coarse part of ρ: lane
+// `lid` of one workgroup sums rows lid, lid + WG, … (a fixed order).
+fn agg_wc(lid: u32) -> acc {
+    let k = aggregates[AGG_K];
+    let w = aggregates[AGG_W];
+    let c = aggregates[AGG_C];
+    var s = acc(0.0);
+    for (var t = lid; t < k; t += WG) {
+        s += coarse[w + t] * coarse[c + t];
+    }
+    return s;
+}
+
+// Row i's share of E = ZᵀĤZ over the aggregates: per slot (one per column aggregate b of
+// the row, in the order of first appearance) Q_i Σ_{j∈b} H_ij Q_j, D² values. The row's
+// blocks are summed per column aggregate before Q_i is applied, as
+// src/solve/coarse.rs does: for a nearly free body they cancel to the mass term, and
+// summing each block into E would carry the rounding of the stiffness into a small E.
+// One invocation per block row of the values chunk; no reduction.
+@compute @workgroup_size(WG)
+fn agg_rows(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let dd = D * D;
+    let slot_ptr = aggregates[AGG_SLOT_PTR];
+    let slot_of = aggregates[AGG_SLOT_OF];
+    for (var i = params.row_begin + grid_index(gid, nwg); i < params.row_end; i += grid_stride(nwg)) {
+        let s0 = aggregates[slot_ptr + i];
+        let s1 = aggregates[slot_ptr + i + 1u];
+        if (s0 == s1) {
+            continue;
+        }
+        for (var t = s0 * dd; t < s1 * dd; t++) {
+            coarse[t] = acc(0.0);
+        }
+        for (var k = pattern[i]; k < pattern[i + 1u]; k++) {
+            let sl = aggregates[slot_of + k];
+            if (sl == NO_AGGREGATE) {
+                continue;
+            }
+            let j = pattern[params.col_at + k];
+            var t: array<real, 9>;
+            for (var m = 0u; m < dd; m++) {
+                t[m] = hvals[(k - params.block_first) * dd + m];
+            }
+            if (!plain(j)) {
+                t = mat_mul(t, proj(j));
+            }
+            for (var m = 0u; m < dd; m++) {
+                coarse[sl * dd + m] += acc(t[m]);
+            }
+        }
+        if (!plain(i)) {
+            let qi = proj(i);
+            for (var sl = s0; sl < s1; sl++) {
+                var t: array<real, 9>;
+                for (var m = 0u; m < dd; m++) {
+                    t[m] = real(coarse[sl * dd + m]);
+                }
+                t = mat_mul(qi, t);
+                for (var m = 0u; m < dd; m++) {
+                    coarse[sl * dd + m] = acc(t[m]);
+                }
+            }
+        }
+    }
+}
+
+// E (K×K, row-major, not symmetrized: the host does that): entry (a·D + x, b·D + y) sums
+// component (x, y) of the slots of aggregate pair (a, b) in row order, as the CPU adds
+// them. One invocation per entry.
+@compute @workgroup_size(WG)
+fn agg_e(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let n_agg = aggregates[AGG_COUNT];
+    let k = aggregates[AGG_K];
+    let pair_ptr = aggregates[AGG_PAIR_PTR];
+    let pair_slots = aggregates[AGG_PAIR_SLOTS];
+    for (var t = grid_index(gid, nwg); t < k * k; t += grid_stride(nwg)) {
+        let row = t / k;
+        let col = t % k;
+        let pair = aggregates[aggregates[AGG_PAIR_OF] + (row / D) * n_agg + col / D];
+        var s = acc(0.0);
+        if (pair != NO_AGGREGATE) {
+            let at = (row % D) * D + col % D;
+            for (var m = aggregates[pair_ptr + pair]; m < aggregates[pair_ptr + pair + 1u]; m++) {
+                s += coarse[aggregates[pair_slots + m] * D * D + at];
+            }
+        }
+        coarse[aggregates[AGG_E] + t] = s;
+    }
+}
+
+// w = Zᵀr per aggregate (COARSE = 2): one workgroup per aggregate over its nodes, in a
+// fixed order.
+@compute @workgroup_size(WG)
+fn agg_restrict(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    if (stopped(lid.x)) {
+        return;
+    }
+    let n_agg = aggregates[AGG_COUNT];
+    let ptr = aggregates[AGG_PTR];
+    let nodes = aggregates[AGG_NODES];
+    for (var a = group_index(wid, nwg); a < n_agg; a += group_count(nwg)) {
+        var s: array<acc, 5>;
+        for (var t = aggregates[ptr + a] + lid.x; t < aggregates[ptr + a + 1u]; t += WG) {
+            let i = aggregates[nodes + t];
+            var rv: array<real, 3>;
+            for (var x = 0u; x < D; x++) {
+                rv[x] = r[i * D + x];
+            }
+            let w = zt(i, rv);
+            for (var x = 0u; x < D; x++) {
+                s[x] += acc(w[x]);
+            }
+        }
+        workgroup_sum(lid.x, s, D);
+        if (lid.x < D) {
+            coarse[aggregates[AGG_W] + a * D + lid.x] = summed(lid.x);
+        }
+        // The tree's memory is reused by the next aggregate.
+        workgroupBarrier();
+    }
+}
+
+// c = E⁺w (COARSE = 2), one invocation per coarse row; E⁺ is symmetric, so row `row` is
+// read as column `row` (neighbouring invocations read neighbouring addresses).
+@compute @workgroup_size(WG)
+fn agg_solve(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    if (stopped(lid.x)) {
+        return;
+    }
+    let k = aggregates[AGG_K];
+    let einv = aggregates[AGG_EINV];
+    let w = aggregates[AGG_W];
+    for (var row = grid_index(gid, nwg); row < k; row += grid_stride(nwg)) {
+        var s = acc(0.0);
+        for (var col = 0u; col < k; col++) {
+            s += coarse[einv + col * k + row] * coarse[w + col];
+        }
+        coarse[aggregates[AGG_C] + row] = s;
     }
 }

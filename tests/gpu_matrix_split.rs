@@ -13,6 +13,7 @@
 //! - H and g after `NewtonOps::add_moving`;
 //! - `DeviceCg`'s Δx and iteration count, for Jacobi and block Jacobi, without and with
 //!   the coarse correction on the translations (whose E is reduced per chunk too).
+//!   With the aggregates, the rows' E sums are written per chunk and summed after.
 //!
 //! A second build also splits the element terms (`GpuElements::with_binding_limit`), so
 //! that node terms' chunks and values chunks cut the nodes at different places.
@@ -217,13 +218,14 @@ fn evaluate(
     let h_moving = asm.read_matrix()?.values;
     let g_moving = asm.read_gradient()?;
     let mut cg = DeviceCg::new(&asm)?;
-    let frames = cg.frames(&c.frames)?;
+    let frames = cg.frames(&c.frames, CoarseSpace::Aggregates)?;
     let mut solves = Vec::new();
     for (preconditioner, coarse) in [
         (Preconditioner::Jacobi, CoarseSpace::None),
         (Preconditioner::Jacobi, CoarseSpace::Translations),
         (Preconditioner::BlockJacobi, CoarseSpace::None),
         (Preconditioner::BlockJacobi, CoarseSpace::Translations),
+        (Preconditioner::BlockJacobi, CoarseSpace::Aggregates),
     ] {
         let info = cg.solve(
             &frames,

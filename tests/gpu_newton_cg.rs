@@ -1,4 +1,4 @@
-//! The eliminated CG on the device-assembled Newton system (`gpu::newton::cg::DeviceCg`)
+//! The eliminated CG on the device-assembled Newton system (`sim::device::newton_cg::DeviceCg`)
 //! against the CPU Cholesky solution of the same eliminated system.
 //!
 //! Systems: a box of tetrahedra (3D) and a rectangle of triangles (2D), deformed at random,
@@ -21,7 +21,11 @@
 //! is reduced on the device in the row order of `translations_einv_from_blocks` (each
 //! block row summed before it is added) and pseudo-inverted on the host by the same
 //! function: the two E⁺ differ by the rounding of the sums over the rows (a few ulps of E
-//! times κ(E), a d×d matrix), required ≤ 1e-12 relative (Frobenius).
+//! times κ(E), a d×d matrix), required ≤ 1e-12 relative (Frobenius). With the aggregates
+//! the device sums E in the CPU's order (`galerkin_from_blocks`: per row and column
+//! aggregate, then per aggregate pair in row order) and the host pseudo-inverts it with
+//! the CPU's function: E⁺ is the same up to a compiler's fused multiply-adds (lavapipe
+//! gives the same bits), held to the same 1e-12.
 //!
 //! Every test shares one device (tests/common/gpu.rs); sizes are small for lavapipe.
 
@@ -36,7 +40,9 @@ use stickslip::sim::device::newton_cg::{DeviceCg, DeviceCgParams};
 use stickslip::sim::energy::{ElementSet, Law, Model, NeoHookean};
 use stickslip::sim::mesh;
 use stickslip::solve::cg::{CgError, Preconditioner};
-use stickslip::solve::coarse::{translations_einv_from_blocks, CoarseSpace};
+use stickslip::solve::coarse::{
+    aggregates_einv_from_blocks, translations_einv_from_blocks, Aggregation, CoarseSpace,
+};
 
 mod common;
 use common::gpu::gpu;
@@ -205,8 +211,13 @@ fn compare(ctx: &GpuContext, s: &Scene, bound: Bound) -> Vec<(Preconditioner, Co
     }
 
     let einv_cpu = translations_einv_from_blocks(&h, &s.frames).expect("free translations");
+    let agg = Aggregation::build(&h, &s.frames);
+    let agg_einv_cpu =
+        aggregates_einv_from_blocks(&h, &s.frames, &agg).expect("free aggregate translations");
     let mut cg = DeviceCg::new(&asm).expect("device CG");
-    let frames = cg.frames(&s.frames).expect("device frames");
+    let frames = cg
+        .frames(&s.frames, CoarseSpace::Aggregates)
+        .expect("device frames");
     let n = s.model.n_nodes;
     eprintln!(
         "{d}D: {n} nodes, {} constrained components, {} rotated nodes",
@@ -217,8 +228,10 @@ fn compare(ctx: &GpuContext, s: &Scene, bound: Bound) -> Vec<(Preconditioner, Co
     for (pre, coarse) in [
         (Preconditioner::Jacobi, CoarseSpace::None),
         (Preconditioner::Jacobi, CoarseSpace::Translations),
+        (Preconditioner::Jacobi, CoarseSpace::Aggregates),
         (Preconditioner::BlockJacobi, CoarseSpace::None),
         (Preconditioner::BlockJacobi, CoarseSpace::Translations),
+        (Preconditioner::BlockJacobi, CoarseSpace::Aggregates),
     ] {
         let before = ctx.traffic();
         let info = cg
@@ -262,6 +275,17 @@ fn compare(ctx: &GpuContext, s: &Scene, bound: Bound) -> Vec<(Preconditioner, Co
                 e_dev.join(", ")
             );
             assert!(de <= 1e-12, "{d}D: E⁺ differs by {de:e}");
+        } else if coarse == CoarseSpace::Aggregates {
+            let einv_dev = cg
+                .aggregate_einv(&frames)
+                .expect("read E⁺")
+                .expect("aggregates on the device");
+            let de = rel_diff(&einv_dev, &agg_einv_cpu);
+            eprintln!(
+                "{d}D: {} aggregates; ‖E⁺ − E⁺_cpu‖/‖E⁺_cpu‖ {de:.3e}",
+                agg.count
+            );
+            assert!(de <= 1e-12, "{d}D: the aggregates' E⁺ differs by {de:e}");
         } else {
             // Read for every solve: the check for a translation pinned by nothing uses it.
             assert!(cg.coarse_matrix().is_some(), "E read back");
@@ -350,14 +374,16 @@ fn free_body_matches_cholesky_with_the_coarse_correction() {
     }
 }
 
-/// The aggregates have no device path: refused with a one-line error.
+/// The aggregates need frames built for them: others are refused with a one-line error.
 #[test]
-fn aggregates_are_refused() {
+fn aggregates_need_frames_built_for_them() {
     let Some((ctx, _g)) = gpu() else { return };
     let s = scene(2, 19, true);
     let (_el, asm) = assembled(ctx, &s, Precision::F64);
     let mut cg = DeviceCg::new(&asm).expect("device CG");
-    let frames = cg.frames(&s.frames).expect("device frames");
+    let frames = cg
+        .frames(&s.frames, CoarseSpace::Translations)
+        .expect("device frames");
     let params = DeviceCgParams {
         tol: TOL,
         max_iterations: 100,
@@ -365,7 +391,7 @@ fn aggregates_are_refused() {
         coarse: CoarseSpace::Aggregates,
     };
     match cg.solve(&frames, &params) {
-        Err(GpuError::Unsupported(m)) => {
+        Err(GpuError::Mismatch(m)) => {
             assert!(m.contains("aggregates") && !m.contains('\n'), "{m}")
         }
         other => panic!("aggregates: {other:?}"),
@@ -380,7 +406,9 @@ fn zero_gradient_gives_zero_step() {
     let mut s = scene(3, 13, false);
     let (el, asm) = assembled(ctx, &s, Precision::F64);
     let mut cg = DeviceCg::new(&asm).expect("device CG");
-    let frames = cg.frames(&s.frames).expect("device frames");
+    let frames = cg
+        .frames(&s.frames, CoarseSpace::Translations)
+        .expect("device frames");
     let params = DeviceCgParams {
         tol: TOL,
         max_iterations: 1000,
@@ -412,7 +440,9 @@ fn iteration_limit_is_an_error() {
     let s = scene(3, 14, true);
     let (_el, asm) = assembled(ctx, &s, Precision::F64);
     let mut cg = DeviceCg::new(&asm).expect("device CG");
-    let frames = cg.frames(&s.frames).expect("device frames");
+    let frames = cg
+        .frames(&s.frames, CoarseSpace::Translations)
+        .expect("device frames");
     for max in [0, 3] {
         let r = cg.solve(
             &frames,
@@ -458,7 +488,9 @@ fn f32_and_foreign_frames_are_refused() {
     let (_el64, asm64) = assembled(ctx, &s, Precision::F64);
     let mut cg = DeviceCg::new(&asm64).expect("device CG");
     // Iterating before b̂ and the preconditioner exist for these frames.
-    let frames = cg.frames(&s.frames).expect("device frames");
+    let frames = cg
+        .frames(&s.frames, CoarseSpace::Translations)
+        .expect("device frames");
     let params = DeviceCgParams {
         tol: TOL,
         max_iterations: 100,
@@ -470,9 +502,58 @@ fn f32_and_foreign_frames_are_refused() {
         other => panic!("iterate before prepare: {other:?}"),
     }
     let other = scene(3, 16, true);
-    match cg.frames(&other.frames) {
+    match cg.frames(&other.frames, CoarseSpace::None) {
         Err(GpuError::Mismatch(m)) => assert!(m.contains("3D"), "{m}"),
         Err(e) => panic!("unexpected error {e}"),
         Ok(_) => panic!("3D frames were accepted for a 2D mesh"),
+    }
+}
+
+/// The reductions are segmented (src/gpu/launch.rs, `SegmentPolicy`): their partials and
+/// the order in which they are summed depend on the segment length only, so the device CG
+/// gives the same iterations and Δx bit for bit whether its reductions run on 1, 7, 256 or
+/// 4,096 workgroups (idle ones included) or on the adapter's own count.
+#[test]
+fn reductions_give_the_same_bits_on_any_workgroup_count() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = scene(3, 21, true);
+    let run = |ctx: &GpuContext, coarse: CoarseSpace| {
+        let (_el, asm) = assembled(ctx, &s, Precision::F64);
+        let mut cg = DeviceCg::new(&asm).expect("device CG");
+        let frames = cg.frames(&s.frames, coarse).expect("device frames");
+        let params = DeviceCgParams {
+            tol: TOL,
+            max_iterations: 10_000,
+            preconditioner: Preconditioner::BlockJacobi,
+            coarse,
+        };
+        let info = cg.solve(&frames, &params).expect("device CG converges");
+        let dx: Vec<u64> = cg
+            .read_dx()
+            .expect("read dx")
+            .iter()
+            .map(|v| v.to_bits())
+            .collect();
+        (info.iterations, info.rhs_norm.to_bits(), dx)
+    };
+    for coarse in [CoarseSpace::Translations, CoarseSpace::Aggregates] {
+        let own = run(ctx, coarse);
+        for w in [1u64, 7, 256, 4096] {
+            let forced = ctx.with_reduction_workgroups(Some(w));
+            let got = run(&forced, coarse);
+            eprintln!(
+                "coarse {}: {} iterations on the adapter's workgroups, {} on {w}",
+                coarse.name(),
+                own.0,
+                got.0
+            );
+            assert_eq!(got.0, own.0, "{} at {w} workgroups", coarse.name());
+            assert_eq!(got.1, own.1, "‖b̂‖ at {w} workgroups");
+            assert!(
+                got.2 == own.2,
+                "{}: Δx differs at {w} workgroups",
+                coarse.name()
+            );
+        }
     }
 }

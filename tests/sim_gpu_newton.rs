@@ -217,8 +217,10 @@ fn drop_adaptive_device_loop_matches_cholesky() {
     adaptive_against_cholesky("drop", 40, 1e-6);
 }
 
-/// Per Newton iteration, what goes to the device is scalars and a few nodes: over the
-/// whole run (set-up included) at most 1 % of one assembled Hessian per iteration.
+/// Per Newton iteration, what goes to the device is scalars, a few nodes and the coarse
+/// space's E⁺: over the whole run (set-up included) at most 1 % of one assembled Hessian
+/// per iteration besides E⁺, and E⁺ at most one (3·128)² f64 matrix per iteration, a
+/// bound that does not grow with the mesh.
 #[test]
 fn twist_size_4_moves_scalars_not_matrices() {
     let Some(gpu) = gpu_run("twist", 50, Some(4.0)) else {
@@ -226,15 +228,22 @@ fn twist_size_4_moves_scalars_not_matrices() {
     };
     let g = gpu.gpu.expect("gpu report");
     assert_eq!(g.precision, "f64");
-    let per_iter = g.host_to_device_bytes as f64 / g.newton_iterations as f64;
+    let its = g.newton_iterations as f64;
+    let per_iter = (g.host_to_device_bytes - g.coarse_host_to_device_bytes) as f64 / its;
     let ratio = per_iter / g.matrix_bytes as f64;
+    let coarse_per_iter = g.coarse_host_to_device_bytes as f64 / its;
     eprintln!(
-        "twist --size 4: {} nodes, {} Newton iterations; host→device {} B ({per_iter:.0} B per iteration), device→host {} B; matrix {} B; ratio {ratio:.4}",
-        gpu.nodes, g.newton_iterations, g.host_to_device_bytes, g.device_to_host_bytes, g.matrix_bytes
+        "twist --size 4: {} nodes, {} Newton iterations; host→device {} B ({per_iter:.0} B per iteration besides E⁺, E⁺ {coarse_per_iter:.0} B), device→host {} B (E {} B); matrix {} B; ratio {ratio:.4}",
+        gpu.nodes, g.newton_iterations, g.host_to_device_bytes, g.device_to_host_bytes, g.coarse_device_to_host_bytes, g.matrix_bytes
     );
     assert!(
         ratio <= 0.01,
-        "host→device per Newton iteration is {ratio} of the matrix"
+        "host→device per Newton iteration is {ratio} of the matrix besides E⁺"
+    );
+    let most = 8.0 * (3.0 * stickslip::solve::coarse::MAX_AGGREGATES as f64).powi(2);
+    assert!(
+        coarse_per_iter > 0.0 && coarse_per_iter <= most,
+        "E⁺ per Newton iteration: {coarse_per_iter} B"
     );
 }
 

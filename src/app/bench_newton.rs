@@ -252,6 +252,19 @@ pub struct CpuCheck {
     pub energy_change: f64,
 }
 
+/// The device CG's iteration (f64): what it launched and the bytes it must move, beside
+/// the time per iteration (the median solve over its iterations). Dispatches, threads and
+/// bytes do not depend on the machine; the bandwidth is those bytes over that time.
+#[derive(Debug, Clone, Serialize)]
+pub struct GpuCgRecord {
+    pub iterations: usize,
+    pub seconds_per_iteration: f64,
+    pub bytes_per_iteration: u64,
+    /// bytes_per_iteration / seconds_per_iteration, GB/s.
+    pub gb_per_second: f64,
+    pub dispatches_per_iteration: Vec<crate::sim::device::newton_cg::DispatchRecord>,
+}
+
 /// The device's assembled system against the CPU's at the same iterate, as
 /// max|device − CPU| / max|CPU| over the entries (both f64).
 #[derive(Debug, Clone, Copy, Serialize)]
@@ -277,6 +290,7 @@ pub struct SizeRecord {
     pub ratio: Phases,
     pub ratio_total: Option<f64>,
     pub cpu_check: Option<CpuCheck>,
+    pub gpu_cg: Option<GpuCgRecord>,
     pub gpu_assembly_difference: Option<AssemblyDifference>,
     /// Peak resident memory of the process after this size (VmHWM), bytes.
     pub peak_rss_bytes: u64,
@@ -484,7 +498,17 @@ fn run_cpu(side: &mut CpuSide, reps: usize) -> Result<(Phases, CpuCheck), String
 /// The device side at one size: the element terms and the assembly (phase 1) now; the
 /// device CG and the loop's operations (phases 2–4) plug in at `GpuSide::eliminate`,
 /// `GpuSide::solve` and `GpuSide::line_search`.
+/// The device CG of phase 3.
+const GPU_CG: DeviceCgParams = DeviceCgParams {
+    tol: CG_TOL,
+    max_iterations: 100_000,
+    preconditioner: Preconditioner::BlockJacobi,
+    coarse: crate::solve::coarse::CoarseSpace::None,
+};
+
 struct GpuSide {
+    /// CG iterations of the last solve.
+    cg_iterations: usize,
     elements: GpuElements,
     assembly: GpuAssembly,
     cg: DeviceCg,
@@ -510,12 +534,15 @@ impl GpuSide {
         let assembly = GpuAssembly::new(&elements, &scene.model).map_err(|e| e.to_string())?;
         assembly.set_scale(scene.time_step * scene.time_step);
         let cg = DeviceCg::new(&assembly).map_err(|e| e.to_string())?;
-        let frames = cg.frames(frames).map_err(|e| e.to_string())?;
+        let frames = cg
+            .frames(frames, GPU_CG.coarse)
+            .map_err(|e| e.to_string())?;
         let ops =
             NewtonOps::new(&elements, &assembly, cg.dx_buffer()).map_err(|e| e.to_string())?;
         ops.set_state(x, &vec![0.0; x.len()])
             .map_err(|e| e.to_string())?;
         Ok(GpuSide {
+            cg_iterations: 0,
             elements,
             assembly,
             cg,
@@ -545,16 +572,25 @@ impl GpuSide {
     /// Phase 3: the device CG to [`CG_TOL`] (block-Jacobi), the true residual and
     /// Δx = V P y (its last status read waits for the device).
     fn solve(&mut self) -> Result<Option<()>, String> {
-        let params = DeviceCgParams {
-            tol: CG_TOL,
-            max_iterations: 100_000,
-            preconditioner: Preconditioner::BlockJacobi,
-            coarse: crate::solve::coarse::CoarseSpace::None,
-        };
-        self.cg
-            .iterate(&self.frames, &params)
+        let info = self
+            .cg
+            .iterate(&self.frames, &GPU_CG)
             .map_err(|e| e.to_string())?;
+        self.cg_iterations = info.iterations;
         Ok(Some(()))
+    }
+
+    /// The CG's iteration record, its solve having taken `seconds`.
+    fn cg_record(&self, seconds: f64) -> GpuCgRecord {
+        let profile = self.cg.iteration_profile(&self.frames, &GPU_CG);
+        let per_it = seconds / self.cg_iterations.max(1) as f64;
+        GpuCgRecord {
+            iterations: self.cg_iterations,
+            seconds_per_iteration: per_it,
+            bytes_per_iteration: profile.bytes,
+            gb_per_second: profile.bytes as f64 / per_it / 1e9,
+            dispatches_per_iteration: profile.dispatches,
+        }
     }
 
     /// Phase 4: the trial x + Δx, E there (an energy-only pass, one sum per term) and
@@ -730,6 +766,7 @@ fn bench_size(
         ratio: Phases::default(),
         ratio_total: None,
         cpu_check: None,
+        gpu_cg: None,
         gpu_assembly_difference: None,
         peak_rss_bytes: 0,
     };
@@ -810,14 +847,16 @@ fn bench_size(
                     Some((h, g)) => Some(side.difference(h, g)?),
                     None => None,
                 };
-                Ok((phases, diff))
+                let cg = phases.solve.map(|secs| side.cg_record(secs));
+                Ok((phases, diff, cg))
             });
             match run {
-                Ok((phases, diff)) => {
+                Ok((phases, diff, cg)) => {
                     rec.gpu.ran = true;
                     rec.gpu.seconds = phases;
                     rec.gpu.total_seconds = phases.total();
                     rec.gpu_assembly_difference = diff;
+                    rec.gpu_cg = cg;
                     let absent: Vec<&str> = phases
                         .list()
                         .iter()
@@ -925,6 +964,22 @@ pub fn summary_text(report: &NewtonReport) -> String {
             s.push_str(&format!(
                 "{:>21}CG {} it, residual {:.2e}, gᵀΔx {:.3e}, E(x+Δx) − E(x) {:.3e}\n",
                 "", c.cg_iterations, c.relative_residual, c.slope, c.energy_change
+            ));
+        }
+        if let Some(c) = &r.gpu_cg {
+            let threads: Vec<String> = c
+                .dispatches_per_iteration
+                .iter()
+                .map(|d| format!("{} {}", d.kernel, d.threads))
+                .collect();
+            s.push_str(&format!(
+                "{:>21}GPU CG {} it, {:.3e} s/it, {} B/it ({:.1} GB/s); threads per dispatch: {}\n",
+                "",
+                c.iterations,
+                c.seconds_per_iteration,
+                c.bytes_per_iteration,
+                c.gb_per_second,
+                threads.join(", ")
             ));
         }
         if let Some(d) = &r.gpu_assembly_difference {

@@ -252,6 +252,8 @@ pub struct GpuContext {
     traffic: Arc<Traffic>,
     /// A per-dimension workgroup limit below the adapter's (`with_dispatch_limit`).
     dispatch_limit: Option<u32>,
+    /// Workgroups of every segmented reduction (`with_reduction_workgroups`).
+    reduction_workgroups: Option<u64>,
 }
 
 #[derive(Default)]
@@ -336,6 +338,7 @@ impl GpuContext {
             errors,
             traffic: Arc::default(),
             dispatch_limit: forced_dispatch_limit()?,
+            reduction_workgroups: None,
         })
     }
 
@@ -345,6 +348,25 @@ impl GpuContext {
             self.limits.max_compute_workgroups_per_dimension,
             self.dispatch_limit,
         )
+    }
+
+    /// The policy of segmented reductions on this adapter (`gpu::launch`).
+    pub fn segments(&self) -> super::SegmentPolicy {
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let mut p = super::SegmentPolicy::for_device(self.info.device_type, threads);
+        if let Some(w) = self.reduction_workgroups {
+            p.workgroups = super::SegmentWorkgroups::Exactly(w);
+        }
+        p
+    }
+
+    /// The same device with exactly `workgroups` workgroups in every segmented reduction
+    /// (None: the adapter's policy), idle ones included: the sums must not change (tests).
+    #[doc(hidden)]
+    pub fn with_reduction_workgroups(&self, workgroups: Option<u64>) -> GpuContext {
+        let mut c = self.clone();
+        c.reduction_workgroups = workgroups;
+        c
     }
 
     /// The same device with at most `limit` workgroups per dispatch dimension (None: the

@@ -127,9 +127,89 @@ impl LaunchLimits {
     }
 }
 
+/// How many workgroups a segmented reduction launches (see [`SegmentPolicy`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SegmentWorkgroups {
+    /// One per segment (up to the launch limits): a GPU.
+    PerSegment,
+    /// At most this many, each looping over segments: a CPU adapter, whose workgroups
+    /// run a few at a time on its threads.
+    AtMost(u64),
+    /// Exactly this many, idle ones included (tests of the reductions' independence
+    /// from the workgroup count).
+    Exactly(u64),
+}
+
+/// The device policy of segmented reductions (shaders/newton_cg.wgsl): the items are cut
+/// into segments of `WG · items` consecutive items; invocation `lid` of the workgroup
+/// that takes segment s sums items s·WG·items + lid + m·WG (m = 0, 1, …) in that order,
+/// then one tree per segment writes segment s's partial, and a one-workgroup kernel
+/// sums the partials in a fixed order. The partials and their order depend on the
+/// segment length only, never on how many workgroups run, so every workgroup count
+/// gives the same bits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SegmentPolicy {
+    /// Items per invocation within a segment: 1 on a GPU (one invocation per item, as
+    /// many in flight as the system has), more on a CPU adapter (fewer trees).
+    pub items: u32,
+    pub workgroups: SegmentWorkgroups,
+}
+
+impl SegmentPolicy {
+    /// The policy for an adapter of this type on a host with `cpu_threads` threads: a GPU
+    /// launches a workgroup per segment of 64 items; a CPU adapter segments of 8·64 items
+    /// and at most 8 workgroups per thread (at least 16).
+    pub fn for_device(device_type: wgpu::DeviceType, cpu_threads: usize) -> Self {
+        match device_type {
+            wgpu::DeviceType::Cpu => SegmentPolicy {
+                items: 8,
+                workgroups: SegmentWorkgroups::AtMost((8 * cpu_threads as u64).max(16)),
+            },
+            _ => SegmentPolicy {
+                items: 1,
+                workgroups: SegmentWorkgroups::PerSegment,
+            },
+        }
+    }
+
+    /// Segments of `items` items at workgroup size `wg` (at least one).
+    pub fn segments(&self, items: u64, wg: u32) -> u64 {
+        items.div_ceil(wg as u64 * self.items.max(1) as u64).max(1)
+    }
+
+    /// The launch of a segmented kernel over `segments` segments.
+    pub fn launch(&self, limits: &LaunchLimits, segments: u64, wg: u32) -> Launch {
+        let groups = match self.workgroups {
+            SegmentWorkgroups::PerSegment => segments,
+            SegmentWorkgroups::AtMost(c) => segments.min(c),
+            SegmentWorkgroups::Exactly(w) => w,
+        };
+        limits.groups(groups, wg)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A discrete GPU with NVIDIA's limits launches one invocation per block row of a
+    /// 1M-row matvec; a CPU adapter keeps a few workgroups.
+    #[test]
+    fn a_gpu_launches_an_invocation_per_row() {
+        let rows = 1_000_000u64;
+        let gpu = SegmentPolicy::for_device(wgpu::DeviceType::DiscreteGpu, 16);
+        let segs = gpu.segments(rows, 64);
+        let l = gpu.launch(&NVIDIA, segs, 64);
+        assert!(l.threads(64) >= rows, "{l:?}");
+        let cpu = SegmentPolicy::for_device(wgpu::DeviceType::Cpu, 2);
+        let l = cpu.launch(&NVIDIA, cpu.segments(rows, 64), 64);
+        assert_eq!(l.workgroups(), 16);
+        let exact = SegmentPolicy {
+            items: 1,
+            workgroups: SegmentWorkgroups::Exactly(4096),
+        };
+        assert_eq!(exact.launch(&NVIDIA, 3, 64).workgroups(), 4096);
+    }
 
     const NVIDIA: LaunchLimits = LaunchLimits { per_dim: 65_535 };
 

@@ -21,7 +21,7 @@ pub use solver::{
 };
 
 pub use error::GpuError;
-pub use launch::{Launch, LaunchLimits};
+pub use launch::{Launch, LaunchLimits, SegmentPolicy, SegmentWorkgroups};
 pub use params::{DifferenceForm, GpuParams, MAX_WORKGROUPS};
 
 pub use crate::solve::options::{CoarseSpace, Precision, Preconditioner};

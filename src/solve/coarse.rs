@@ -60,15 +60,25 @@ impl Aggregation {
         h: &crate::core::sparse::BlockCsr,
         frames: &crate::core::constraints::Frames,
     ) -> Self {
+        Self::from_pattern(&h.row_ptr, &h.col_idx, frames)
+    }
+
+    /// [`Aggregation::build`] on a block pattern given by its row pointers and column
+    /// indices (the device assembly's, which has no host values).
+    pub fn from_pattern(
+        row_ptr: &[usize],
+        col_idx: &[usize],
+        frames: &crate::core::constraints::Frames,
+    ) -> Self {
         use std::collections::VecDeque;
-        let n = h.n;
-        let full = (1u32 << h.dim) - 1;
+        let n = row_ptr.len().saturating_sub(1);
+        let full = (1u32 << frames.dim) - 1;
         let free: Vec<bool> = (0..n)
             .map(|i| u32::from(frames.mask[i]) & full != full)
             .collect();
         let n_free = free.iter().filter(|f| **f).count();
         let target = AGGREGATE_NODES.max(n_free.div_ceil(MAX_AGGREGATES));
-        let neighbours = |i: usize| h.col_idx[h.row_ptr[i]..h.row_ptr[i + 1]].iter().copied();
+        let neighbours = |i: usize| col_idx[row_ptr[i]..row_ptr[i + 1]].iter().copied();
         let mut of = vec![NO_AGGREGATE; n];
         let mut sizes: Vec<usize> = Vec::new();
         let mut seeds = VecDeque::new();
@@ -567,7 +577,6 @@ fn galerkin_from_blocks(
     let k = d * agg.count;
     let q = node_projections(frames);
     let mut e = vec![0.0; k * k];
-    let mut g = vec![0.0; agg.count * dd];
     let mut t = [0.0; 9];
     let mut u = [0.0; 9];
     // Row i's blocks summed per column aggregate first: for a nearly free body they (size
@@ -580,7 +589,6 @@ fn galerkin_from_blocks(
         if ai == NO_AGGREGATE {
             continue;
         }
-        add_projection(d, &q[i], &mut g[ai as usize * dd..(ai as usize + 1) * dd]);
         row.clear();
         for kb in h.row_ptr[i]..h.row_ptr[i + 1] {
             let j = h.col_idx[kb];
@@ -622,10 +630,7 @@ fn galerkin_from_blocks(
         }
     }
     symmetrize(k, &mut e);
-    for ga in g.chunks_exact_mut(dd) {
-        symmetrize(d, ga);
-    }
-    (e, g)
+    (e, aggregate_projections(frames, agg))
 }
 
 /// E⁺ of the aggregates' translations from H's blocks (what the GPU solver needs after
@@ -648,10 +653,47 @@ fn aggregates_einv(
     agg: &Aggregation,
     inv_scale: Option<&[f64]>,
 ) -> Option<Vec<f64>> {
-    let d = h.dim;
-    let k = d * agg.count;
     let (e, g) = galerkin_from_blocks(h, frames, agg, inv_scale);
-    if e.iter().chain(&g).any(|v| !v.is_finite()) {
+    aggregates_einv_from_galerkin(h.dim, agg.count, e, &g)
+}
+
+/// G_a = Σ_{i∈a} Q_i of every aggregate (count blocks of d×d, symmetrized): the Gram
+/// matrix of aggregate a's translations, whose null space is what its constraints remove.
+pub fn aggregate_projections(
+    frames: &crate::core::constraints::Frames,
+    agg: &Aggregation,
+) -> Vec<f64> {
+    let d = frames.dim;
+    let dd = d * d;
+    let q = node_projections(frames);
+    let mut g = vec![0.0; agg.count * dd];
+    for (i, &a) in agg.of_node.iter().enumerate() {
+        if a != NO_AGGREGATE {
+            add_projection(d, &q[i], &mut g[a as usize * dd..(a as usize + 1) * dd]);
+        }
+    }
+    for ga in g.chunks_exact_mut(dd) {
+        symmetrize(d, ga);
+    }
+    g
+}
+
+/// E⁺ of the aggregates' translations from E = ZᵀĤZ (k×k row-major, k = d·count;
+/// symmetrized here) and G of [`aggregate_projections`]: the pseudo-inverse on the range
+/// of each G_a, as [`aggregates_einv_from_blocks`] (which computes E on the host; the
+/// device Newton CG reduces it on the device).
+pub fn aggregates_einv_from_galerkin(
+    d: usize,
+    count: usize,
+    mut e: Vec<f64>,
+    g: &[f64],
+) -> Option<Vec<f64>> {
+    let k = d * count;
+    if e.len() != k * k || g.len() != count * d * d {
+        return None;
+    }
+    symmetrize(k, &mut e);
+    if e.iter().chain(g).any(|v| !v.is_finite()) {
         return None;
     }
     // W: (aggregate, unit vector in its d translations) per kept direction.

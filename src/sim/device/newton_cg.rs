@@ -12,20 +12,28 @@
 //! put it: the product q = Ĥp is one invocation per block row over the assembly's blocks,
 //! rotating only at rotated nodes. CG scalars stay on the device: per iteration five
 //! dispatches (product with p·q partials, a one-workgroup α kernel, the y/r/z update with
-//! r·z and r·r partials, a one-workgroup β kernel, the p update), many iterations per
+//! r·z and r·r partials, a one-workgroup β kernel, the p update; seven with the
+//! aggregates), many iterations per
 //! submit, and one small status read-back (the scalars and flags, 96 bytes) per chunk.
 //! Every reduction has a fixed number of workgroups and a fixed order: the same inputs
 //! give the same Δx bit for bit.
 //!
-//! The preconditioner is Jacobi or block Jacobi, plus (with [`CoarseSpace::Translations`])
-//! the coarse correction on the rigid translations of [`crate::solve::coarse`]:
-//! M⁻¹r = M_J⁻¹r + Z E⁺ Zᵀr, Z_i = P_i V_iᵀ. Why: a body that can translate or slide has
-//! Ĥ's smallest eigenvalues on its translations (the mass term), which a point-wise
-//! preconditioner cannot see. `prepare` reduces E = ZᵀĤZ on the device from the assembled
-//! blocks (D² sums); the first `iterate` with the correction reads those D² values back,
-//! pseudo-inverts E on the host as the CPU does ([`crate::solve::coarse::pseudo_inverse`]) and
-//! writes E⁺ back. In the iteration Zᵀr rides in the tree of r·z and r·r, and Z E⁺ Zᵀr is
-//! added where p is updated: no extra dispatch per iteration (one per CG start).
+//! The preconditioner is Jacobi or block Jacobi, plus a coarse correction of
+//! [`crate::solve::coarse`]: M⁻¹r = M_J⁻¹r + Z E⁺ Zᵀr, Z_i = P_i V_iᵀ. Why: a body that
+//! can translate or slide has Ĥ's smallest eigenvalues on its translations (the mass
+//! term), and a soft one on its smooth modes, which a point-wise preconditioner cannot see.
+//! - [`CoarseSpace::Translations`]: `prepare` reduces E = ZᵀĤZ (D×D) on the device from
+//!   the assembled blocks; the first `iterate` reads it back, pseudo-inverts it on the host
+//!   as the CPU does ([`crate::solve::coarse::pseudo_inverse`]) and writes E⁺ back. In the
+//!   iteration Zᵀr rides in the tree of r·z and r·r, and Z E⁺ Zᵀr is added where p is
+//!   updated: no extra dispatch per iteration.
+//! - [`CoarseSpace::Aggregates`] (the CPU loop's default, and so the device loop's): the
+//!   translations of each aggregate of [`crate::solve::coarse::Aggregation`] on H's block
+//!   pattern (frames built for them: [`DeviceCg::frames`], index arrays in
+//!   [`crate::sim::device::newton_coarse`]). `prepare` sums E (K×K, K = D·aggregates) on
+//!   the device in the CPU's order; the first `iterate` reads it back and writes E⁺ from
+//!   [`crate::solve::coarse::aggregates_einv_from_galerkin`]. Per iteration two more
+//!   dispatches: w = Zᵀr (a workgroup per aggregate) and c = E⁺w.
 //!
 //! H's values may come in several buffers of consecutive block rows
 //! ([`GpuAssembly::values_chunks`]; one storage binding caps each). The kernels that read
@@ -36,8 +44,9 @@
 
 use crate::core::constraints::{Frames, NO_ROTATION};
 use crate::gpu::kernels::{self, Access, Layout};
-use crate::gpu::{GpuContext, GpuError, LaunchLimits};
+use crate::gpu::{GpuContext, GpuError, Launch, TrafficCount};
 use crate::sim::device::assembly::GpuAssembly;
+use crate::sim::device::newton_coarse::{self, AggregateIndex};
 use crate::solve::cg::{CgError, Preconditioner};
 use crate::solve::coarse::CoarseSpace;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -69,6 +78,8 @@ pub const NEWTON_CG: Layout = Layout {
         ("partials", W),
         ("scal", W),
         ("state", W),
+        ("aggregates", R),
+        ("coarse", W),
     ],
 };
 
@@ -170,10 +181,6 @@ const _: () = assert!(std::mem::size_of::<NewtonCgParams>() == 32);
 /// Workgroup size of every kernel.
 const WORKGROUP: u32 = 64;
 
-/// Upper bound of the workgroups of the grid-stride kernels (and so of the partials per
-/// reduction): enough to fill a GPU, few enough for one workgroup to sum them quickly.
-const MAX_GROUPS: u32 = 256;
-
 /// Bytes of the status read back per chunk: the leading `scal` slots then `state`.
 const STATUS_BYTES: u64 = 8 * slot::STATUS_SCAL as u64 + 4 * slot::STATE_LEN as u64;
 
@@ -186,7 +193,37 @@ const MAX_CHUNK: usize = 256;
 static NEXT_ID: AtomicU64 = AtomicU64::new(0);
 
 /// One dispatch: pipeline, workgroups, bind group.
-type Kernel<'a> = (&'a wgpu::ComputePipeline, u32, &'a wgpu::BindGroup);
+type Kernel<'a> = (&'a wgpu::ComputePipeline, Launch, &'a wgpu::BindGroup);
+
+/// One dispatch of a CG iteration: the kernel, its workgroups and invocations.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub struct DispatchRecord {
+    pub kernel: &'static str,
+    pub workgroups: u64,
+    pub threads: u64,
+}
+
+/// The dispatches of one CG iteration and the bytes it must move at the least.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct IterationProfile {
+    pub dispatches: Vec<DispatchRecord>,
+    pub bytes: u64,
+}
+
+/// One workgroup (the scalar kernels).
+const ONE: Launch = Launch { x: 1, y: 1 };
+
+/// The launches of the CG's kernels, from the device's limits and segment policy.
+struct Launches {
+    /// The segmented reductions over every node (rhs, init, update_yr).
+    segments: Launch,
+    /// Per values chunk of H: its segmented reductions (matvec, coarse_e) and its
+    /// per-row kernels (precond, agg_rows).
+    chunk_segments: Vec<Launch>,
+    chunk_rows: Vec<Launch>,
+    /// One invocation per node (update_p, recover).
+    nodes: Launch,
+}
 
 /// Parameters of one [`DeviceCg::solve`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -197,9 +234,8 @@ pub struct DeviceCgParams {
     pub max_iterations: usize,
     /// Jacobi or block Jacobi (or none).
     pub preconditioner: Preconditioner,
-    /// `None` or `Translations` (added to the preconditioner; see the module docs).
-    /// `Aggregates` is refused: E⁺ of the aggregates is dense, (D·aggregates)², and has
-    /// no device path here.
+    /// Added to the preconditioner (see the module docs). `Aggregates` needs frames built
+    /// for it ([`DeviceCg::frames`]).
     pub coarse: CoarseSpace,
 }
 
@@ -229,26 +265,38 @@ pub struct DeviceFrames {
     /// node and their count (src/solve/coarse.rs, `translation_gram`): with the E and
     /// absolute row sums `prepare` reduces, whether a translation is pinned by nothing.
     gram: (Vec<f64>, usize, usize),
+    /// The coarse space these frames were built for.
+    coarse: CoarseSpace,
+    /// With `Aggregates`: the aggregate index (`None` when every node is fixed).
+    agg: Option<AggregateIndex>,
     /// Kept alive with the bind groups.
     _frame: wgpu::Buffer,
     _rotations: wgpu::Buffer,
+    _aggregates: wgpu::Buffer,
+    /// The aggregate coarse space's f64 data (shaders/newton_cg.wgsl, `coarse`).
+    coarse_buf: wgpu::Buffer,
 }
 
-/// The pipelines of shaders/newton_cg.wgsl; those the coarse correction changes once
-/// without and once with it (`[0]`, `[1]`: the COARSE override), `init` and `update_yr`
-/// once per preconditioner too (none, Jacobi, block Jacobi: the PRECOND override).
+/// The pipelines of shaders/newton_cg.wgsl; those the coarse correction changes once per
+/// coarse space (`[0]`, `[1]`, `[2]`: none, translations, aggregates: the COARSE
+/// override), `init` and `update_yr` once per preconditioner too (none, Jacobi, block
+/// Jacobi: the PRECOND override).
 struct Pipelines {
     rhs: wgpu::ComputePipeline,
     precond: wgpu::ComputePipeline,
     coarse_e: wgpu::ComputePipeline,
     coarse_e_sum: wgpu::ComputePipeline,
+    agg_rows: wgpu::ComputePipeline,
+    agg_e: wgpu::ComputePipeline,
+    agg_restrict: wgpu::ComputePipeline,
+    agg_solve: wgpu::ComputePipeline,
     matvec: wgpu::ComputePipeline,
     scalar_alpha: wgpu::ComputePipeline,
-    update_yr: [[wgpu::ComputePipeline; 3]; 2],
-    scalar_beta: [wgpu::ComputePipeline; 2],
-    update_p: [wgpu::ComputePipeline; 2],
-    init: [[wgpu::ComputePipeline; 3]; 2],
-    scalar_start: [wgpu::ComputePipeline; 2],
+    update_yr: [[wgpu::ComputePipeline; 3]; 3],
+    scalar_beta: [wgpu::ComputePipeline; 3],
+    update_p: [wgpu::ComputePipeline; 3],
+    init: [[wgpu::ComputePipeline; 3]; 3],
+    scalar_start: [wgpu::ComputePipeline; 3],
     recover: wgpu::ComputePipeline,
 }
 
@@ -298,8 +346,10 @@ pub struct DeviceCg {
     id: u64,
     dim: usize,
     n_nodes: usize,
-    /// Workgroups of the grid-stride kernels (= partials per reduction).
-    groups: u32,
+    /// The launches of every kernel.
+    launches: Launches,
+    /// Partial sums per reduction (its segments).
+    n_partials: u32,
     layout: wgpu::BindGroupLayout,
     pipes: Pipelines,
     buf: Buffers,
@@ -307,6 +357,15 @@ pub struct DeviceCg {
     prepared: Option<u64>,
     /// E of that `prepare`.
     galerkin: Galerkin,
+    /// Whether E⁺ of the aggregates is on the device for that `prepare`.
+    agg_ready: bool,
+    /// Bytes of the aggregates' E read back and E⁺ written so far (a part of the
+    /// context's traffic: (D·aggregates)² values each way per `prepare`, whatever the
+    /// mesh).
+    coarse_traffic: TrafficCount,
+    /// The pattern as uploaded (row pointers, column indices, diagonal blocks), for the
+    /// aggregates of [`DeviceCg::frames`].
+    host_pattern: Vec<u32>,
 }
 
 /// One status read: the scalars and flags after a submit.
@@ -353,24 +412,38 @@ impl DeviceCg {
         }
         let col_at = u32::try_from(n + 1).map_err(|_| too_big("nodes"))?;
         let diag_at = u32::try_from(n + 1 + nnz).map_err(|_| too_big("blocks"))?;
-        // A power of two: under a forced per-dimension limit L the reductions still split
-        // exactly into two dimensions up to L² workgroups (`gpu::launch`).
-        let groups = (n as u64)
-            .div_ceil(WORKGROUP as u64)
-            .next_power_of_two()
-            .clamp(1, MAX_GROUPS as u64) as u32;
-        ctx.launch()
-            .require_exact(groups, "the device CG's reductions")?;
+        // The segmented reductions: partials per segment, workgroups by the device.
+        let policy = ctx.segments();
+        let limits = ctx.launch();
+        let segments = policy.segments(n as u64, WORKGROUP);
+        let n_partials = u32::try_from(segments).map_err(|_| too_big("nodes"))?;
+        let chunks = asm.values_chunks();
+        let seg_len = (WORKGROUP * policy.items) as usize;
+        let launches = Launches {
+            segments: policy.launch(&limits, segments, WORKGROUP),
+            chunk_segments: chunks
+                .iter()
+                .map(|c| {
+                    let s = c.rows.end.div_ceil(seg_len) - c.rows.start / seg_len;
+                    policy.launch(&limits, s as u64, WORKGROUP)
+                })
+                .collect(),
+            chunk_rows: chunks
+                .iter()
+                .map(|c| limits.grid(c.rows.len() as u64, WORKGROUP))
+                .collect(),
+            nodes: limits.grid(n as u64, WORKGROUP),
+        };
 
         // Pipelines.
         NEWTON_CG.check_adapter(&ctx)?;
         let module = NEWTON_CG.module(dev, "f64", "f64", false);
         let (layout, pl) = NEWTON_CG.layouts(dev, "newton cg");
-        let pipe = |entry: &str, precond: u32, coarse: bool| {
+        let pipe = |entry: &str, precond: u32, coarse: u32| {
             // SUM_LANES: scalar_start sums three values in one tree, no kernel more; the
-            // coarse correction sums r·z, r·r and Zᵀr (2 + D) in one, coarse_e E's D² in
-            // trees of five.
-            let wide = coarse || entry.starts_with("coarse_e");
+            // translations' correction sums r·z, r·r and Zᵀr (2 + D) in one, coarse_e E's
+            // D² in trees of five.
+            let wide = coarse == 1 || entry.starts_with("coarse_e");
             let lanes = match (wide, dim) {
                 (false, _) => 3.0,
                 (true, 3) => 5.0,
@@ -381,46 +454,37 @@ impl DeviceCg {
                 ("WG", WORKGROUP as f64),
                 ("SUM_LANES", lanes),
                 ("PRECOND", precond as f64),
-                ("COARSE", coarse as u8 as f64),
+                ("COARSE", coarse as f64),
+                ("ITEMS", policy.items as f64),
             ];
             let label =
                 format!("newton cg {entry} ({dim}D, preconditioner {precond}, coarse {coarse})");
             kernels::pipeline(dev, &pl, &module, entry, &label, &constants)
         };
-        let both = |entry: &str| [false, true].map(|c| pipe(entry, 0, c));
-        let each = |entry: &str| [false, true].map(|c| [0, 1, 2].map(|k| pipe(entry, k, c)));
+        let both = |entry: &str| [0, 1, 2].map(|c| pipe(entry, 0, c));
+        let each = |entry: &str| [0, 1, 2].map(|c| [0, 1, 2].map(|k| pipe(entry, k, c)));
         let pipes = Pipelines {
-            rhs: pipe("rhs", 0, false),
-            precond: pipe("precond", 0, false),
-            coarse_e: pipe("coarse_e", 0, false),
-            coarse_e_sum: pipe("coarse_e_sum", 0, false),
-            matvec: pipe("matvec", 0, false),
-            scalar_alpha: pipe("scalar_alpha", 0, false),
+            rhs: pipe("rhs", 0, 0),
+            precond: pipe("precond", 0, 0),
+            coarse_e: pipe("coarse_e", 0, 0),
+            coarse_e_sum: pipe("coarse_e_sum", 0, 0),
+            agg_rows: pipe("agg_rows", 0, 2),
+            agg_e: pipe("agg_e", 0, 2),
+            agg_restrict: pipe("agg_restrict", 0, 2),
+            agg_solve: pipe("agg_solve", 0, 2),
+            matvec: pipe("matvec", 0, 0),
+            scalar_alpha: pipe("scalar_alpha", 0, 0),
             update_yr: each("update_yr"),
             scalar_beta: both("scalar_beta"),
             update_p: both("update_p"),
             init: each("init"),
             scalar_start: both("scalar_start"),
-            recover: pipe("recover", 0, false),
+            recover: pipe("recover", 0, 0),
         };
 
         // Buffers, limits checked first.
         let nd = (n * dim) as u64;
-        let check = |label: &str, bytes: u64| -> Result<u64, GpuError> {
-            let bytes = bytes.max(16).div_ceil(16) * 16;
-            let l = &ctx.limits;
-            let limit = l.max_buffer_size.min(l.max_storage_buffer_binding_size);
-            if bytes > limit {
-                return Err(GpuError::BufferTooLarge {
-                    label: label.to_string(),
-                    bytes,
-                    limit,
-                    what: "storage binding",
-                    adapter: ctx.adapter_name().to_string(),
-                });
-            }
-            Ok(bytes)
-        };
+        let check = |label: &str, bytes: u64| binding_size(&ctx, label, bytes);
         let usage = wgpu::BufferUsages::STORAGE
             | wgpu::BufferUsages::COPY_DST
             | wgpu::BufferUsages::COPY_SRC;
@@ -444,13 +508,12 @@ impl DeviceCg {
                 usage,
             })
         };
-        let chunks = asm.values_chunks();
         let last = chunks.len().saturating_sub(1);
         let mut params = Vec::with_capacity(chunks.len());
         for (c, ch) in chunks.iter().enumerate() {
             let p = NewtonCgParams {
                 n_nodes: u32::try_from(n).map_err(|_| too_big("nodes"))?,
-                n_partials: groups,
+                n_partials,
                 col_at,
                 diag_at,
                 row_begin: ch.rows.start as u32,
@@ -480,10 +543,17 @@ impl DeviceCg {
                 8 * (n * dim * dim) as u64 + 8 * nd,
             )?,
             dx: vector("newton cg dx")?,
-            // The partial sums, then the sums carried between H's chunks (per thread).
+            // The partial sums, then (H in several chunks) the sums carried between the
+            // chunks (per invocation of each segment).
             partials: zeroed(
                 "newton cg partial sums",
-                8 * (slot::N_PART + slot::CARRY_LEN * WORKGROUP as usize) as u64 * groups as u64,
+                8 * segments
+                    * (slot::N_PART as u64
+                        + if chunks.len() > 1 {
+                            slot::CARRY_LEN as u64 * WORKGROUP as u64
+                        } else {
+                            0
+                        }),
             )?,
             scal: zeroed("newton cg scalars", 8 * slot::SCAL_LEN as u64)?,
             state: zeroed("newton cg state", 4 * slot::STATE_LEN as u64)?,
@@ -495,12 +565,16 @@ impl DeviceCg {
             ctx,
             dim,
             n_nodes: n,
-            groups,
+            launches,
+            n_partials,
             layout,
             pipes,
             buf,
             prepared: None,
             galerkin: Galerkin::OnDevice,
+            agg_ready: false,
+            coarse_traffic: TrafficCount::default(),
+            host_pattern: pattern,
         })
     }
 
@@ -518,21 +592,16 @@ impl DeviceCg {
             8 * nd as u64,
             "reading back the Newton step",
         )?;
-        Ok(bytes
-            .chunks_exact(8)
-            .map(|c| {
-                let mut w = [0u8; 8];
-                w.copy_from_slice(c);
-                f64::from_le_bytes(w)
-            })
-            .collect())
+        Ok(f64s(&bytes))
     }
 
     /// Uploads one constraint set (mask per node, rotation per rotated node) and builds
-    /// its bind group, once: callers keep it for as long as the constraints hold.
+    /// its bind group, once: callers keep it for as long as the constraints hold. With
+    /// `coarse` = `Aggregates` also the aggregates of the pattern and their index arrays
+    /// (`newton_coarse`); frames built for another coarse space refuse it in `iterate`.
     /// Refuses frames of another mesh and prescribed (non-zero) constraint values, which
     /// a Newton step never has.
-    pub fn frames(&self, f: &Frames) -> Result<DeviceFrames, GpuError> {
+    pub fn frames(&self, f: &Frames, coarse: CoarseSpace) -> Result<DeviceFrames, GpuError> {
         let (n, d) = (self.n_nodes, self.dim);
         if f.dim != d || f.n_nodes != n {
             return Err(GpuError::Mismatch(format!(
@@ -580,10 +649,24 @@ impl DeviceCg {
             "newton cg rotations",
             bytemuck::cast_slice(&f.rotations).to_vec(),
         );
+        let agg = match coarse {
+            CoarseSpace::Aggregates => {
+                let (row_ptr, col_idx) = self.usize_pattern();
+                newton_coarse::aggregate_index(&row_ptr, &col_idx, f)?
+            }
+            _ => None,
+        };
+        let (agg_words, coarse_bytes) = match &agg {
+            Some(a) => (a.words.clone(), 8 * a.values as u64),
+            None => (vec![0u32; 4], 16),
+        };
+        let agg_buf =
+            self.storage_init("newton cg aggregates", bytemuck::cast_slice(&agg_words))?;
+        let coarse_buf = self.storage("newton cg coarse space", coarse_bytes)?;
         let b = &self.buf;
         let mut groups = Vec::with_capacity(b.hvals.len());
         for (params, hvals) in b.params.iter().zip(&b.hvals) {
-            let bufs: [&wgpu::Buffer; 17] = [
+            let bufs: [&wgpu::Buffer; 19] = [
                 params,
                 &b.pattern,
                 hvals,
@@ -601,6 +684,8 @@ impl DeviceCg {
                 &b.partials,
                 &b.scal,
                 &b.state,
+                &agg_buf,
+                &coarse_buf,
             ];
             let entries: Vec<wgpu::BindGroupEntry> = bufs
                 .iter()
@@ -626,9 +711,51 @@ impl DeviceCg {
             id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
             groups,
             gram: crate::solve::coarse::translation_gram(f),
+            coarse,
+            agg,
             _frame: frame_buf,
             _rotations: rot_buf,
+            _aggregates: agg_buf,
+            coarse_buf,
         })
+    }
+
+    /// The block pattern's row pointers and column indices as `usize` (from the uploaded
+    /// u32 copy; only while aggregates are built).
+    fn usize_pattern(&self) -> (Vec<usize>, Vec<usize>) {
+        let n = self.n_nodes;
+        let p = &self.host_pattern;
+        let row_ptr: Vec<usize> = p[..=n].iter().map(|&v| v as usize).collect();
+        let nnz = row_ptr[n];
+        let col_idx = p[n + 1..n + 1 + nnz].iter().map(|&v| v as usize).collect();
+        (row_ptr, col_idx)
+    }
+
+    /// A zeroed storage buffer of at least `bytes` (16-byte multiple), refused where it
+    /// exceeds the adapter's buffer or storage binding limit.
+    fn storage(&self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
+        let size = binding_size(&self.ctx, label, bytes)?;
+        Ok(self.ctx.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size,
+            usage: wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_DST
+                | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        }))
+    }
+
+    /// A storage buffer holding `bytes` (padded to a 16-byte multiple), refused as
+    /// [`DeviceCg::storage`].
+    fn storage_init(&self, label: &str, bytes: &[u8]) -> Result<wgpu::Buffer, GpuError> {
+        let size = binding_size(&self.ctx, label, bytes.len() as u64)?;
+        let mut contents = bytes.to_vec();
+        contents.resize(size as usize, 0);
+        Ok(self.ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents: &contents,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+        }))
     }
 
     fn own(&self, frames: &DeviceFrames) -> Result<(), GpuError> {
@@ -647,35 +774,33 @@ impl DeviceCg {
     }
 
     /// Records `kernels` (pipeline, workgroups, bind group) in one compute pass.
-    fn pass(
-        launch: &LaunchLimits,
-        enc: &mut wgpu::CommandEncoder,
-        label: &str,
-        kernels: &[Kernel],
-    ) {
+    fn pass(enc: &mut wgpu::CommandEncoder, label: &str, kernels: &[Kernel]) {
         let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some(label),
             timestamp_writes: None,
         });
         let mut bound: Option<&wgpu::BindGroup> = None;
-        for &(pipe, groups, group) in kernels {
+        for &(pipe, launch, group) in kernels {
             if bound.is_none_or(|b| !std::ptr::eq(b, group)) {
                 cp.set_bind_group(0, group, &[]);
                 bound = Some(group);
             }
             cp.set_pipeline(pipe);
-            // Exactly `groups` workgroups (checked when built): the reductions' partials.
-            launch.reduction(groups, WORKGROUP).dispatch(&mut cp);
+            launch.dispatch(&mut cp);
         }
     }
 
-    /// `pipe` once per values chunk of H, in row order, each with its chunk's bind group.
+    /// `pipe` once per values chunk of H, in row order, each with its chunk's launch and
+    /// bind group.
     fn per_chunk<'a>(
         pipe: &'a wgpu::ComputePipeline,
-        groups: u32,
+        launches: &'a [Launch],
         frames: &'a DeviceFrames,
     ) -> impl Iterator<Item = Kernel<'a>> {
-        frames.groups.iter().map(move |g| (pipe, groups, g))
+        launches
+            .iter()
+            .zip(&frames.groups)
+            .map(move |(l, g)| (pipe, *l, g))
     }
 
     /// b̂ = −P Vᵀ g, the preconditioners (Jacobi and block Jacobi both) and E = ZᵀĤZ of
@@ -685,19 +810,60 @@ impl DeviceCg {
     pub fn prepare(&mut self, frames: &DeviceFrames) -> Result<(), GpuError> {
         self.own(frames)?;
         let mut enc = self.encoder("newton cg prepare");
-        let g = self.groups;
+        let l = &self.launches;
         let p = &self.pipes;
         let g0 = &frames.groups[0];
-        let mut kernels: Vec<Kernel> = vec![(&p.rhs, g, g0)];
-        kernels.extend(Self::per_chunk(&p.precond, g, frames));
-        kernels.extend(Self::per_chunk(&p.coarse_e, g, frames));
-        kernels.push((&p.coarse_e_sum, 1, g0));
-        Self::pass(&self.ctx.launch(), &mut enc, "newton cg prepare", &kernels);
+        let mut kernels: Vec<Kernel> = vec![(&p.rhs, l.segments, g0)];
+        kernels.extend(Self::per_chunk(&p.precond, &l.chunk_rows, frames));
+        kernels.extend(Self::per_chunk(&p.coarse_e, &l.chunk_segments, frames));
+        kernels.push((&p.coarse_e_sum, ONE, g0));
+        if let Some(a) = &frames.agg {
+            kernels.extend(Self::per_chunk(&p.agg_rows, &l.chunk_rows, frames));
+            let e = self.ctx.launch().grid((a.k * a.k) as u64, WORKGROUP);
+            kernels.push((&p.agg_e, e, g0));
+        }
+        Self::pass(&mut enc, "newton cg prepare", &kernels);
         self.ctx.queue.submit([enc.finish()]);
         self.ctx.check("preparing the device Newton CG")?;
         self.prepared = Some(frames.id);
         self.galerkin = Galerkin::OnDevice;
+        self.agg_ready = false;
         Ok(())
+    }
+
+    /// E of the aggregates (`prepare` reduced it on the device) read back, pseudo-inverted
+    /// on the host as the CPU does ([`crate::solve::coarse::aggregates_einv_from_galerkin`])
+    /// and E⁺ written back (zero where E has no usable part: no correction then); once per
+    /// `prepare`.
+    fn upload_aggregate_einv(&mut self, frames: &DeviceFrames) -> Result<(), GpuError> {
+        let Some(a) = frames.agg.as_ref().filter(|_| !self.agg_ready) else {
+            return Ok(());
+        };
+        let bytes = self.ctx.download(
+            &frames.coarse_buf,
+            8 * a.e_at as u64,
+            8 * (a.k * a.k) as u64,
+            "reading back the aggregates' coarse matrix E = ZᵀĤZ",
+        )?;
+        let e = f64s(&bytes);
+        let einv =
+            crate::solve::coarse::aggregates_einv_from_galerkin(self.dim, a.count, e, &a.gram)
+                .unwrap_or_else(|| vec![0.0; a.k * a.k]);
+        self.ctx.write_buffer(
+            &frames.coarse_buf,
+            8 * a.einv_at as u64,
+            bytemuck::cast_slice(&einv),
+        );
+        self.coarse_traffic.device_to_host_bytes += bytes.len() as u64;
+        self.coarse_traffic.host_to_device_bytes += 8 * einv.len() as u64;
+        self.agg_ready = true;
+        Ok(())
+    }
+
+    /// The aggregates' E and E⁺ moved between host and device so far (part of the
+    /// context's [`GpuContext::traffic`]).
+    pub fn coarse_traffic(&self) -> TrafficCount {
+        self.coarse_traffic
     }
 
     /// E of the last `prepare` read back and pseudo-inverted, with its rows' absolute sums
@@ -712,14 +878,7 @@ impl DeviceCg {
         let bytes = self
             .ctx
             .download(&self.buf.scal, 8 * slot::E as u64, 8 * len as u64, what)?;
-        let v: Vec<f64> = bytes
-            .chunks_exact(8)
-            .map(|c| {
-                let mut w = [0u8; 8];
-                w.copy_from_slice(c);
-                f64::from_le_bytes(w)
-            })
-            .collect();
+        let v = f64s(&bytes);
         let mut e = v[..d * d].to_vec();
         let abs = v[(slot::EABS - slot::E) as usize..].to_vec();
         // As src/solve/coarse.rs: the mean of E and Eᵀ, then the pseudo-inverse.
@@ -761,6 +920,22 @@ impl DeviceCg {
             Galerkin::Read { e, einv, .. } => Some((e, einv.as_deref())),
             Galerkin::OnDevice => None,
         }
+    }
+
+    /// E⁺ of the aggregates (K×K, row-major) as the last `iterate` with them wrote it;
+    /// `None` for frames without aggregates. For tests and diagnostics (a read-back).
+    pub fn aggregate_einv(&self, frames: &DeviceFrames) -> Result<Option<Vec<f64>>, GpuError> {
+        self.own(frames)?;
+        let Some(a) = &frames.agg else {
+            return Ok(None);
+        };
+        let bytes = self.ctx.download(
+            &frames.coarse_buf,
+            8 * a.einv_at as u64,
+            8 * (a.k * a.k) as u64,
+            "reading back the aggregates' E⁺",
+        )?;
+        Ok(Some(f64s(&bytes)))
     }
 
     /// Records the status copies (`scal`, `state` into `status`) after the work of `enc`,
@@ -877,19 +1052,22 @@ impl DeviceCg {
             Preconditioner::Jacobi => 1,
             Preconditioner::BlockJacobi => 2,
         };
+        if params.coarse == CoarseSpace::Aggregates && frames.coarse != CoarseSpace::Aggregates {
+            return Err(GpuError::Mismatch(
+                "the device CG's aggregates need frames built for them (DeviceCg::frames)".into(),
+            ));
+        }
         let co = match params.coarse {
             CoarseSpace::None => 0,
             CoarseSpace::Translations => 1,
-            CoarseSpace::Aggregates => {
-                return Err(GpuError::Unsupported(
-                    "the device Newton CG's coarse space is none or translations, not \
-                     aggregates"
-                        .into(),
-                ))
-            }
+            // Every node fixed: no aggregate, no correction.
+            CoarseSpace::Aggregates if frames.agg.is_none() => 0,
+            CoarseSpace::Aggregates => 2,
         };
         self.check_pinned(frames)?;
-        let g = self.groups;
+        if co == 2 {
+            self.upload_aggregate_einv(frames)?;
+        }
         let tol2 = tol * tol;
         // Every slot before E: the scalars, c and E⁺ (zero without the correction, or
         // when every translation is constrained: then c = 0 and so is the correction).
@@ -914,12 +1092,7 @@ impl DeviceCg {
         let mut enc = self.encoder("newton cg start");
         enc.clear_buffer(&self.buf.y, 0, None);
         enc.clear_buffer(&self.buf.q, 0, None);
-        Self::pass(
-            &self.ctx.launch(),
-            &mut enc,
-            "newton cg start",
-            &self.start(frames, pre, co),
-        );
+        Self::pass(&mut enc, "newton cg start", &self.start(frames, pre, co));
         let mut st = self.submit_and_read(enc, "starting the device Newton CG")?;
         Self::status_error(&st)?;
         let bb = st.bb;
@@ -966,23 +1139,19 @@ impl DeviceCg {
             self.clear_flags();
             let mut enc = self.encoder("newton cg true residual");
             enc.copy_buffer_to_buffer(&self.buf.y, 0, &self.buf.p, 0, None);
-            let mut kernels: Vec<Kernel> = Self::per_chunk(&self.pipes.matvec, g, frames).collect();
+            let mut kernels: Vec<Kernel> =
+                Self::per_chunk(&self.pipes.matvec, &self.launches.chunk_segments, frames)
+                    .collect();
             kernels.extend(self.start(frames, pre, co));
-            Self::pass(
-                &self.ctx.launch(),
-                &mut enc,
-                "newton cg true residual",
-                &kernels,
-            );
+            Self::pass(&mut enc, "newton cg true residual", &kernels);
             st = self.submit_and_read(enc, "the device Newton CG's true residual")?;
             Self::status_error(&st)?;
         }
         let mut enc = self.encoder("newton cg recovery");
         Self::pass(
-            &self.ctx.launch(),
             &mut enc,
             "newton cg recovery",
-            &[(&self.pipes.recover, g, &frames.groups[0])],
+            &[(&self.pipes.recover, self.launches.nodes, &frames.groups[0])],
         );
         self.ctx.queue.submit([enc.finish()]);
         self.ctx.check("recovering the device Newton step")?;
@@ -999,14 +1168,110 @@ impl DeviceCg {
     fn start<'a>(&'a self, frames: &'a DeviceFrames, pre: usize, co: usize) -> Vec<Kernel<'a>> {
         let p = &self.pipes;
         let g0 = &frames.groups[0];
-        let mut k = vec![
-            (&p.init[co][pre], self.groups, g0),
-            (&p.scalar_start[co], 1, g0),
-        ];
-        if co == 1 {
-            k.push((&p.update_p[co], self.groups, g0));
+        let l = &self.launches;
+        let mut k = vec![(&p.init[co][pre], l.segments, g0)];
+        k.extend(self.aggregate_correction(frames, co));
+        k.push((&p.scalar_start[co], ONE, g0));
+        if co != 0 {
+            k.push((&p.update_p[co], l.nodes, g0));
         }
         k
+    }
+
+    /// With the aggregates (`co` = 2): w = Zᵀr (a workgroup per aggregate) and c = E⁺w.
+    fn aggregate_correction<'a>(&'a self, frames: &'a DeviceFrames, co: usize) -> Vec<Kernel<'a>> {
+        let (p, limits) = (&self.pipes, self.ctx.launch());
+        match (&frames.agg, co) {
+            (Some(a), 2) => vec![
+                (
+                    &p.agg_restrict,
+                    limits.groups(a.count as u64, WORKGROUP),
+                    &frames.groups[0],
+                ),
+                (
+                    &p.agg_solve,
+                    limits.grid(a.k as u64, WORKGROUP),
+                    &frames.groups[0],
+                ),
+            ],
+            _ => Vec::new(),
+        }
+    }
+
+    /// The dispatches of one CG iteration, named.
+    fn iteration<'a>(
+        &'a self,
+        frames: &'a DeviceFrames,
+        pre: usize,
+        co: usize,
+    ) -> Vec<(&'static str, Kernel<'a>)> {
+        let (p, l) = (&self.pipes, &self.launches);
+        let g0 = &frames.groups[0];
+        let mut one: Vec<(&'static str, Kernel)> =
+            Self::per_chunk(&p.matvec, &l.chunk_segments, frames)
+                .map(|k| ("matvec", k))
+                .collect();
+        one.extend([
+            ("scalar_alpha", (&p.scalar_alpha, ONE, g0)),
+            ("update_yr", (&p.update_yr[co][pre], l.segments, g0)),
+        ]);
+        let agg = self.aggregate_correction(frames, co);
+        one.extend(["agg_restrict", "agg_solve"].into_iter().zip(agg));
+        one.extend([
+            ("scalar_beta", (&p.scalar_beta[co], ONE, g0)),
+            ("update_p", (&p.update_p[co], l.nodes, g0)),
+        ]);
+        one
+    }
+
+    /// What one CG iteration launches with these frames and parameters, and the bytes it
+    /// must move at the least (every array its kernels read or write, once per kernel):
+    /// the floor against which a measured time per iteration is a bandwidth.
+    pub fn iteration_profile(
+        &self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+    ) -> IterationProfile {
+        let pre = match params.preconditioner {
+            Preconditioner::None => 0,
+            Preconditioner::Jacobi => 1,
+            Preconditioner::BlockJacobi => 2,
+        };
+        let co = match params.coarse {
+            CoarseSpace::None => 0,
+            CoarseSpace::Translations => 1,
+            CoarseSpace::Aggregates if frames.agg.is_some() => 2,
+            CoarseSpace::Aggregates => 0,
+        };
+        let dispatches = self
+            .iteration(frames, pre, co)
+            .into_iter()
+            .map(|(name, (_, l, _))| DispatchRecord {
+                kernel: name,
+                workgroups: l.workgroups(),
+                threads: l.threads(WORKGROUP),
+            })
+            .collect();
+        let (n, d) = (self.n_nodes as u64, self.dim as u64);
+        let nnz = self.host_pattern[self.n_nodes] as u64;
+        let vec = 8 * n * d;
+        let partials = 8 * self.n_partials as u64;
+        // matvec: H, its column indices and row pointers, the frames, p, q.
+        let matvec = nnz * (8 * d * d + 4) + 4 * (n + 1) + 8 * n + 2 * vec;
+        // update_yr: y and r read and written, p, q and the preconditioner read, z written.
+        let minv = [0, vec, 8 * n * d * d][pre];
+        let update_yr = 7 * vec + minv + 8 * n * u64::from(co == 1);
+        // update_p: z and p read, p written (the frames and each node's aggregate too).
+        let update_p = 3 * vec + [0, 8 * n, 12 * n][co];
+        let agg = frames.agg.as_ref().filter(|_| co == 2).map_or(0, |a| {
+            let k = a.k as u64;
+            // restrict: r, the frames and the node lists; solve: E⁺ and w.
+            vec + 12 * n + 8 * (k * k + 2 * k)
+        });
+        IterationProfile {
+            dispatches,
+            bytes: matvec + update_yr + update_p + agg + 2 * partials,
+        }
     }
 
     /// CG iterations in chunks from the current state until the recurrence residual meets
@@ -1020,7 +1285,6 @@ impl DeviceCg {
         thresh: f64,
         st: &mut Status,
     ) -> Result<(), GpuError> {
-        let g = self.groups;
         let mut k = FIRST_CHUNK;
         // (iterations, ln r·r) at each status read of this run.
         let mut hist: Vec<(usize, f64)> = Vec::new();
@@ -1032,18 +1296,14 @@ impl DeviceCg {
             if kk == 0 {
                 return Ok(());
             }
-            let p = &self.pipes;
-            let g0 = &frames.groups[0];
-            let mut one: Vec<Kernel> = Self::per_chunk(&p.matvec, g, frames).collect();
-            one.extend([
-                (&p.scalar_alpha, 1, g0),
-                (&p.update_yr[co][pre], g, g0),
-                (&p.scalar_beta[co], 1, g0),
-                (&p.update_p[co], g, g0),
-            ]);
+            let one: Vec<Kernel> = self
+                .iteration(frames, pre, co)
+                .into_iter()
+                .map(|(_, k)| k)
+                .collect();
             let kernels: Vec<Kernel> = (0..kk).flat_map(|_| one.iter().copied()).collect();
             let mut enc = self.encoder("newton cg chunk");
-            Self::pass(&self.ctx.launch(), &mut enc, "newton cg chunk", &kernels);
+            Self::pass(&mut enc, "newton cg chunk", &kernels);
             *st = self.submit_and_read(enc, "a device Newton CG chunk")?;
             Self::status_error(st)?;
             if st.converged {
@@ -1065,6 +1325,36 @@ impl DeviceCg {
         self.prepare(frames)?;
         self.iterate(frames, params)
     }
+}
+
+/// Little-endian f64s.
+fn f64s(bytes: &[u8]) -> Vec<f64> {
+    bytes
+        .chunks_exact(8)
+        .map(|c| {
+            let mut w = [0u8; 8];
+            w.copy_from_slice(c);
+            f64::from_le_bytes(w)
+        })
+        .collect()
+}
+
+/// `bytes` padded to a 16-byte multiple (at least 16), or the error naming `label` where
+/// that exceeds the adapter's buffer or storage binding limit.
+fn binding_size(ctx: &GpuContext, label: &str, bytes: u64) -> Result<u64, GpuError> {
+    let bytes = bytes.max(16).div_ceil(16) * 16;
+    let l = &ctx.limits;
+    let limit = l.max_buffer_size.min(l.max_storage_buffer_binding_size);
+    if bytes > limit {
+        return Err(GpuError::BufferTooLarge {
+            label: label.to_string(),
+            bytes,
+            limit,
+            what: "storage binding",
+            adapter: ctx.adapter_name().to_string(),
+        });
+    }
+    Ok(bytes)
 }
 
 /// The next chunk: the iterations the fall of ln r·r since the run's first status read
@@ -1121,7 +1411,24 @@ mod tests {
             }
             other => panic!("NewtonCgParams is {other:?}"),
         }
-        for (name, want) in slot::ALL {
+        use newton_coarse::header as h;
+        let agg = [
+            ("AGG_COUNT", h::COUNT),
+            ("AGG_K", h::K),
+            ("AGG_OF", h::OF),
+            ("AGG_PTR", h::PTR),
+            ("AGG_NODES", h::NODES),
+            ("AGG_SLOT_PTR", h::SLOT_PTR),
+            ("AGG_SLOT_OF", h::SLOT_OF),
+            ("AGG_PAIR_PTR", h::PAIR_PTR),
+            ("AGG_PAIR_SLOTS", h::PAIR_SLOTS),
+            ("AGG_PAIR_OF", h::PAIR_OF),
+            ("AGG_E", h::E),
+            ("AGG_EINV", h::EINV),
+            ("AGG_W", h::W),
+            ("AGG_C", h::C),
+        ];
+        for (name, want) in slot::ALL.into_iter().chain(agg) {
             let (_, c) = m
                 .constants
                 .iter()
@@ -1145,6 +1452,10 @@ mod tests {
             "recover",
             "coarse_e",
             "coarse_e_sum",
+            "agg_rows",
+            "agg_e",
+            "agg_restrict",
+            "agg_solve",
         ] {
             assert!(
                 m.entry_points.iter().any(|p| p.name == e),

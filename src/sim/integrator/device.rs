@@ -165,14 +165,7 @@ impl DeviceLoop {
                 tol: scene.solver.cg_tolerance.loosest(),
                 max_iterations: scene.solver.cg_max_iterations,
                 preconditioner: scene.solver.preconditioner,
-                // The device CG's coarse space is the rigid translations: `aggregates`
-                // (the default) has no device path, and gets the translations.
-                coarse: match scene.solver.coarse {
-                    crate::solve::coarse::CoarseSpace::None => {
-                        crate::solve::coarse::CoarseSpace::None
-                    }
-                    _ => crate::solve::coarse::CoarseSpace::Translations,
-                },
+                coarse: scene.solver.coarse,
             },
             matrix_bytes,
             moving: None,
@@ -190,12 +183,15 @@ impl DeviceLoop {
     /// The summary.json report so far.
     pub(super) fn report(&self) -> GpuRunReport {
         let t = self.ctx.traffic();
+        let c = self.cg.coarse_traffic();
         GpuRunReport {
             adapter: self.ctx.adapter_name().to_string(),
             precision: "f64".into(),
             host_to_device_bytes: t.host_to_device_bytes,
             device_to_host_bytes: t.device_to_host_bytes,
             matrix_bytes: self.matrix_bytes,
+            coarse_host_to_device_bytes: c.host_to_device_bytes,
+            coarse_device_to_host_bytes: c.device_to_host_bytes,
             newton_iterations: 0,
         }
     }
@@ -329,7 +325,7 @@ impl Backend for DeviceLoop {
         // Gradient and Hessian, as the host loop counts them.
         state.count_barrier(2);
         if !self.frames.contains_key(snapped) {
-            let f = self.cg.frames(&state.frames[snapped])?;
+            let f = self.cg.frames(&state.frames[snapped], self.params.coarse)?;
             self.frames.insert(snapped.to_vec(), f);
         }
         let frames = &self.frames[snapped];

@@ -257,6 +257,8 @@ impl Backend for HostBackend {
             host_to_device_bytes: t.host_to_device_bytes,
             device_to_host_bytes: t.device_to_host_bytes,
             matrix_bytes: (sc.model.pattern.nnz_blocks() * sc.dim * sc.dim * real) as u64,
+            coarse_host_to_device_bytes: 0,
+            coarse_device_to_host_bytes: 0,
             newton_iterations: 0,
         })
     }

@@ -81,6 +81,11 @@ pub struct GpuRunReport {
     pub device_to_host_bytes: u64,
     /// Bytes of one assembled Hessian as stored on the device.
     pub matrix_bytes: u64,
+    /// Of the totals, the device loop's coarse matrix: E = ZᵀĤZ of the aggregates read
+    /// back and E⁺ written, (D·aggregates)² f64 each way per Newton iteration, at most
+    /// (3·128)² whatever the mesh (0 for the CPU loop and other coarse spaces).
+    pub coarse_host_to_device_bytes: u64,
+    pub coarse_device_to_host_bytes: u64,
     /// Newton iterations of the run (filled in by the driver, which counts them).
     pub newton_iterations: usize,
 }
