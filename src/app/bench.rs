@@ -218,6 +218,8 @@ fn bench_one(
         achieved_gb_per_s: 0.0,
         seconds_per_iteration: 0.0,
         recorded_iterations: None,
+        dispatches_per_iteration: None,
+        threads_per_dispatch: None,
         bandwidth_floor_ratio: f64::NAN,
         peak_rss_bytes: 0,
         note: String::new(),
@@ -349,6 +351,7 @@ fn bench_one(
                     coarse: opts.coarse,
                     ..Default::default()
                 };
+                let workgroup_size = params.workgroup_size as u64;
                 let config = SolverConfig::gpu(precision)
                     .gpu_params(params)
                     .gpu_context(ctx.clone());
@@ -397,6 +400,9 @@ fn bench_one(
                         r.gpu_seconds = info.gpu_seconds;
                         r.bytes_per_iteration = info.bytes_per_iteration;
                         r.recorded_iterations = Some(info.recorded_iterations);
+                        r.dispatches_per_iteration = Some(info.dispatches_per_iteration);
+                        r.threads_per_dispatch =
+                            Some(info.workgroups as u64 * workgroup_size);
                         r.note = info.notes.join("; ");
                     }
                     Err(err) => {

@@ -30,6 +30,10 @@ pub struct RunRecord {
     pub seconds_per_iteration: f64,
     /// Iterations the device recorded (≥ iterations: chunks end past convergence).
     pub recorded_iterations: Option<usize>,
+    /// GPU: dispatches per CG iteration, and invocations each launches (the grid-stride
+    /// kernels' workgroups × workgroup size).
+    pub dispatches_per_iteration: Option<usize>,
+    pub threads_per_dispatch: Option<u64>,
     /// Seconds per iteration over the bandwidth floor (bytes per iteration / copy
     /// bandwidth of the device that ran it): 1 is the physical limit.
     pub bandwidth_floor_ratio: f64,
