@@ -401,8 +401,7 @@ fn bench_one(
                         r.bytes_per_iteration = info.bytes_per_iteration;
                         r.recorded_iterations = Some(info.recorded_iterations);
                         r.dispatches_per_iteration = Some(info.dispatches_per_iteration);
-                        r.threads_per_dispatch =
-                            Some(info.workgroups as u64 * workgroup_size);
+                        r.threads_per_dispatch = Some(info.workgroups as u64 * workgroup_size);
                         r.note = info.notes.join("; ");
                     }
                     Err(err) => {
