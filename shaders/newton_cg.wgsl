@@ -45,8 +45,8 @@ override PRECOND: u32 = 1u;
 // r·M_J⁻¹r and r·r; scalar_beta and scalar_start form c = E⁺Zᵀr and ρ = r·M_J⁻¹r + Zᵀr·c;
 // update_p adds Z_i c to p. No dispatch in the iteration.
 // 2: E⁺ (K×K, K = D·aggregates, from the host) is in `coarse`; after update_yr (init)
-// agg_restrict forms w = Zᵀr (a workgroup per aggregate) and agg_solve c = E⁺w (a thread
-// per coarse row); scalar_beta (scalar_start) adds w·c to ρ and update_p adds
+// agg_restrict forms w = Zᵀr (a workgroup per aggregate) and agg_solve c = E⁺w (a
+// workgroup per coarse row); scalar_beta (scalar_start) adds w·c to ρ and update_p adds
 // Z_i c_{aggregate of i} to p. Two dispatches per iteration.
 override COARSE: u32 = 0u;
 // Nodes per invocation within a segment (the device's SegmentPolicy).
@@ -62,16 +62,12 @@ struct NewtonCgParams {
     // n + 1 row pointers start at 0).
     col_at: u32,
     diag_at: u32,
-    // The values chunk bound as `hvals`: its rows, its first (global) block, and whether
-    // it is the first (bit 0) and the last (bit 1) chunk.
+    // The values chunk bound as `hvals`: its rows, its first (global) block and its index.
     row_begin: u32,
     row_end: u32,
     block_first: u32,
     chunk: u32,
 }
-
-const H_FIRST_CHUNK: u32 = 1u;
-const H_LAST_CHUNK: u32 = 2u;
 
 // Slots of `scal`, `state` and the partial sums, mirrored by `slot` in
 // src/sim/device/newton_cg.rs (a unit test there checks every value).
@@ -127,8 +123,9 @@ const AGG_E: u32 = 10u;
 const AGG_EINV: u32 = 11u;
 const AGG_W: u32 = 12u;
 const AGG_C: u32 = 13u;
-// After the partial-sum slots (NCG_CARRY · n_partials): per invocation of each segment
-// (n_partials · WG of them), NCG_CARRY_LEN running sums carried between the dispatches of
+// After the partial-sum slots (NCG_CARRY · n_partials): per boundary between H's chunks
+// (the segment that straddles it) and per invocation, NCG_CARRY_LEN running sums carried
+// between the dispatches of
 // H's chunks.
 const NCG_CARRY: u32 = 19u;
 const NCG_CARRY_LEN: u32 = 12u;
@@ -270,9 +267,12 @@ fn coarse_c(zr: array<acc, 3>) -> acc {
     return wc;
 }
 
-// Index of carried sum m of invocation lid of segment s (see NCG_CARRY).
-fn carry(s: u32, lid: u32, m: u32) -> u32 {
-    return NCG_CARRY * params.n_partials + (s * WG + lid) * NCG_CARRY_LEN + m;
+// Index of carried sum m of invocation lid across the boundary after chunk c (see
+// NCG_CARRY): a segment begun in an earlier chunk reads the boundary before this chunk,
+// one going on to a later chunk writes the boundary after it (a segment across several
+// chunks passes its sums on at each).
+fn carry(c: u32, lid: u32, m: u32) -> u32 {
+    return NCG_CARRY * params.n_partials + (c * WG + lid) * NCG_CARRY_LEN + m;
 }
 
 // The segments a chunk's dispatch takes: those holding a row of [row_begin, row_end).
@@ -446,7 +446,7 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
     for (var s = segs.x + group_index(wid, nwg); s < segs.y; s += group_count(nwg)) {
         var pq = acc(0.0);
         if (segment_begun(s)) {
-            pq = partials[carry(s, lid.x, 0u)];
+            pq = partials[carry(params.chunk - 1u, lid.x, 0u)];
         }
         for (var m = 0u; m < ITEMS; m++) {
             let i = (s * ITEMS + m) * WG + lid.x;
@@ -482,7 +482,7 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
             }
         }
         if (segment_goes_on(s)) {
-            partials[carry(s, lid.x, 0u)] = pq;
+            partials[carry(params.chunk, lid.x, 0u)] = pq;
             continue;
         }
         workgroup_sum(lid.x, sum1(pq), 1u);
@@ -822,7 +822,7 @@ fn coarse_e(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
         var e: array<acc, 12>;
         if (segment_begun(s)) {
             for (var m = 0u; m < n_sums; m++) {
-                e[m] = partials[carry(s, lid.x, m)];
+                e[m] = partials[carry(params.chunk - 1u, lid.x, m)];
             }
         }
         for (var mi = 0u; mi < ITEMS; mi++) {
@@ -870,7 +870,7 @@ fn coarse_e(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
         }
         if (segment_goes_on(s)) {
             for (var m = 0u; m < n_sums; m++) {
-                partials[carry(s, lid.x, m)] = e[m];
+                partials[carry(params.chunk, lid.x, m)] = e[m];
             }
             continue;
         }
@@ -1059,21 +1059,26 @@ fn agg_restrict(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup
     }
 }
 
-// c = E⁺w (COARSE = 2), one invocation per coarse row; E⁺ is symmetric, so row `row` is
-// read as column `row` (neighbouring invocations read neighbouring addresses).
+// c = E⁺w (COARSE = 2), one workgroup per coarse row: its lanes take the columns
+// lid, lid + WG, … (a fixed order) and one tree sums them, so a row costs K/WG loads in
+// sequence, not K. E⁺ is symmetric: row `row` is read as column `row`.
 @compute @workgroup_size(WG)
-fn agg_solve(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+fn agg_solve(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     if (stopped(lid.x)) {
         return;
     }
     let k = aggregates[AGG_K];
     let einv = aggregates[AGG_EINV];
     let w = aggregates[AGG_W];
-    for (var row = grid_index(gid, nwg); row < k; row += grid_stride(nwg)) {
+    for (var row = group_index(wid, nwg); row < k; row += group_count(nwg)) {
         var s = acc(0.0);
-        for (var col = 0u; col < k; col++) {
+        for (var col = lid.x; col < k; col += WG) {
             s += coarse[einv + col * k + row] * coarse[w + col];
         }
-        coarse[aggregates[AGG_C] + row] = s;
+        workgroup_sum(lid.x, sum1(s), 1u);
+        if (lid.x == 0u) {
+            coarse[aggregates[AGG_C] + row] = summed(0u);
+        }
+        workgroupBarrier();
     }
 }

@@ -6,13 +6,14 @@
 //! steps.csv columns) must agree.
 //!
 //! Tolerances: both loops make the same decisions and stop Newton at ‖Δx‖∞/h < 1e-6·L/s;
-//! their iterates differ by the CG's (relative residual 1e-10 on both sides, with different
-//! preconditioners) and by summation order, so positions agree to ~1e-10·L or better:
+//! their iterates differ by the CG's (relative residual 1e-10 on both sides, the same
+//! preconditioner and coarse space) and by summation order, so positions agree to ~1e-10·L or better:
 //! 1e-9·L is the bound. Reactions and contact forces are forces (newtons): they are
 //! compared relative to the largest summed value of the run, at the same 1e-9; a position
 //! difference δx moves them by k·δx with k the stiffness of the supported layer, and the
 //! measured differences are ~1e-12 of the largest (the loops stop on nearly the same
-//! iterates).
+//! iterates). The two CGs take the same iterations but for rounding that moves a stop:
+//! within 5 % over the run.
 //!
 //! The comparisons above solve every Newton system to 1e-10 on both loops. With the
 //! adaptive CG tolerance (inexact Newton, the default) the device loop is compared with the
@@ -23,7 +24,8 @@
 //! iterations.
 //!
 //! Also: `twist --size 4` moves less than 1 % of one assembled Hessian's bytes from host
-//! to device per Newton iteration, and the bad-input cases of the loop.
+//! to device per Newton iteration besides the coarse space's E⁺, and the bad-input cases
+//! of the loop.
 
 mod common;
 
@@ -151,6 +153,18 @@ fn compare(name: &str, steps: usize) {
     assert!(
         contact_worst <= 1e-9,
         "{name}: contact forces differ by {contact_worst:e} of the largest"
+    );
+    // Both CGs: the scene's preconditioner and coarse space (the aggregates by default),
+    // the same algorithm summed in another order, so rounding may move a stop by an
+    // iteration here and there: within 5 % over the run.
+    let (gi, ci) = (gpu.linear_iterations as f64, cpu.linear_iterations as f64);
+    eprintln!(
+        "{name}: CG iterations {} (gpu) vs {} (cpu)",
+        gpu.linear_iterations, cpu.linear_iterations
+    );
+    assert!(
+        (gi - ci).abs() <= 0.05 * ci,
+        "{name}: {gi} CG iterations on the device loop against the CPU loop's {ci}"
     );
 }
 

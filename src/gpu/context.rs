@@ -350,6 +350,25 @@ impl GpuContext {
         )
     }
 
+    /// `bytes` padded to a 16-byte multiple (at least 16): the size of a storage buffer
+    /// bound whole, or the error naming `label` where that exceeds the adapter's buffer or
+    /// storage binding limit.
+    pub(crate) fn binding_size(&self, label: &str, bytes: u64) -> Result<u64, GpuError> {
+        let bytes = bytes.max(16).div_ceil(16) * 16;
+        let l = &self.limits;
+        let limit = l.max_buffer_size.min(l.max_storage_buffer_binding_size);
+        if bytes > limit {
+            return Err(GpuError::BufferTooLarge {
+                label: label.to_string(),
+                bytes,
+                limit,
+                what: "storage binding",
+                adapter: self.adapter_name().to_string(),
+            });
+        }
+        Ok(bytes)
+    }
+
     /// The policy of segmented reductions on this adapter (`gpu::launch`).
     pub fn segments(&self) -> super::SegmentPolicy {
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());

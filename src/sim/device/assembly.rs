@@ -343,21 +343,7 @@ impl GpuAssembly {
             .collect();
 
         // Buffers, limits checked first.
-        let check = |label: &str, bytes: u64| -> Result<u64, GpuError> {
-            let bytes = bytes.max(16).div_ceil(16) * 16;
-            let l = &ctx.limits;
-            let limit = l.max_buffer_size.min(l.max_storage_buffer_binding_size);
-            if bytes > limit {
-                return Err(GpuError::BufferTooLarge {
-                    label: label.to_string(),
-                    bytes,
-                    limit,
-                    what: "storage binding",
-                    adapter: ctx.adapter_name().to_string(),
-                });
-            }
-            Ok(bytes)
-        };
+        let check = |label: &str, bytes: u64| ctx.binding_size(label, bytes);
         let init = |label: &str, data: &[u8]| -> Result<wgpu::Buffer, GpuError> {
             let size = check(label, data.len() as u64)?;
             let mut padded = data.to_vec();

@@ -37,9 +37,15 @@
 //!
 //! H's values may come in several buffers of consecutive block rows
 //! ([`GpuAssembly::values_chunks`]; one storage binding caps each). The kernels that read
-//! them run once per chunk with a bind group built once per chunk and constraint set; the
-//! reductions carry each thread's running sum across those dispatches, so Δx and the
-//! iteration count are the same bits however H is split.
+//! them run once per chunk with a bind group built once per chunk and constraint set; a
+//! reduction segment cut by a chunk's end carries each invocation's running sum to the
+//! next chunk's dispatch, so Δx and the iteration count are the same bits however H is
+//! split.
+//!
+//! Reductions are segmented ([`crate::gpu::SegmentPolicy`]): one partial per segment of
+//! consecutive nodes, whatever number of workgroups the device's policy launches (one per
+//! segment on a GPU, so the product and the updates run an invocation per node), then one
+//! workgroup sums the partials in a fixed order: the same bits on any workgroup count.
 #![cfg(feature = "sim")]
 
 use crate::core::constraints::{Frames, NO_ROTATION};
@@ -170,7 +176,7 @@ struct NewtonCgParams {
     n_partials: u32,
     col_at: u32,
     diag_at: u32,
-    /// The values chunk of the dispatch: rows, first block, first/last bits.
+    /// The values chunk of the dispatch: rows, first block, index.
     row_begin: u32,
     row_end: u32,
     block_first: u32,
@@ -484,7 +490,7 @@ impl DeviceCg {
 
         // Buffers, limits checked first.
         let nd = (n * dim) as u64;
-        let check = |label: &str, bytes: u64| binding_size(&ctx, label, bytes);
+        let check = |label: &str, bytes: u64| ctx.binding_size(label, bytes);
         let usage = wgpu::BufferUsages::STORAGE
             | wgpu::BufferUsages::COPY_DST
             | wgpu::BufferUsages::COPY_SRC;
@@ -508,7 +514,6 @@ impl DeviceCg {
                 usage,
             })
         };
-        let last = chunks.len().saturating_sub(1);
         let mut params = Vec::with_capacity(chunks.len());
         for (c, ch) in chunks.iter().enumerate() {
             let p = NewtonCgParams {
@@ -519,7 +524,7 @@ impl DeviceCg {
                 row_begin: ch.rows.start as u32,
                 row_end: ch.rows.end as u32,
                 block_first: ch.blocks.start as u32,
-                chunk: (c == 0) as u32 | (((c == last) as u32) << 1),
+                chunk: c as u32,
             };
             params.push(ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(&format!("newton cg params of values chunk {c}")),
@@ -543,17 +548,14 @@ impl DeviceCg {
                 8 * (n * dim * dim) as u64 + 8 * nd,
             )?,
             dx: vector("newton cg dx")?,
-            // The partial sums, then (H in several chunks) the sums carried between the
-            // chunks (per invocation of each segment).
+            // The partial sums, then the sums carried across each boundary between H's
+            // chunks (one segment straddles it), per invocation.
             partials: zeroed(
                 "newton cg partial sums",
-                8 * segments
-                    * (slot::N_PART as u64
-                        + if chunks.len() > 1 {
-                            slot::CARRY_LEN as u64 * WORKGROUP as u64
-                        } else {
-                            0
-                        }),
+                8 * (slot::N_PART as u64 * segments
+                    + (chunks.len().saturating_sub(1) as u64)
+                        * slot::CARRY_LEN as u64
+                        * WORKGROUP as u64),
             )?,
             scal: zeroed("newton cg scalars", 8 * slot::SCAL_LEN as u64)?,
             state: zeroed("newton cg state", 4 * slot::STATE_LEN as u64)?,
@@ -734,7 +736,7 @@ impl DeviceCg {
     /// A zeroed storage buffer of at least `bytes` (16-byte multiple), refused where it
     /// exceeds the adapter's buffer or storage binding limit.
     fn storage(&self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
-        let size = binding_size(&self.ctx, label, bytes)?;
+        let size = self.ctx.binding_size(label, bytes)?;
         Ok(self.ctx.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size,
@@ -748,7 +750,7 @@ impl DeviceCg {
     /// A storage buffer holding `bytes` (padded to a 16-byte multiple), refused as
     /// [`DeviceCg::storage`].
     fn storage_init(&self, label: &str, bytes: &[u8]) -> Result<wgpu::Buffer, GpuError> {
-        let size = binding_size(&self.ctx, label, bytes.len() as u64)?;
+        let size = self.ctx.binding_size(label, bytes.len() as u64)?;
         let mut contents = bytes.to_vec();
         contents.resize(size as usize, 0);
         Ok(self.ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -839,13 +841,12 @@ impl DeviceCg {
         let Some(a) = frames.agg.as_ref().filter(|_| !self.agg_ready) else {
             return Ok(());
         };
-        let bytes = self.ctx.download(
-            &frames.coarse_buf,
-            8 * a.e_at as u64,
-            8 * (a.k * a.k) as u64,
+        let e = self.read_coarse(
+            frames,
+            a.e_at,
+            a.k * a.k,
             "reading back the aggregates' coarse matrix E = ZᵀĤZ",
         )?;
-        let e = f64s(&bytes);
         let einv =
             crate::solve::coarse::aggregates_einv_from_galerkin(self.dim, a.count, e, &a.gram)
                 .unwrap_or_else(|| vec![0.0; a.k * a.k]);
@@ -854,7 +855,7 @@ impl DeviceCg {
             8 * a.einv_at as u64,
             bytemuck::cast_slice(&einv),
         );
-        self.coarse_traffic.device_to_host_bytes += bytes.len() as u64;
+        self.coarse_traffic.device_to_host_bytes += 8 * (a.k * a.k) as u64;
         self.coarse_traffic.host_to_device_bytes += 8 * einv.len() as u64;
         self.agg_ready = true;
         Ok(())
@@ -929,13 +930,27 @@ impl DeviceCg {
         let Some(a) = &frames.agg else {
             return Ok(None);
         };
-        let bytes = self.ctx.download(
-            &frames.coarse_buf,
-            8 * a.einv_at as u64,
-            8 * (a.k * a.k) as u64,
+        let einv = self.read_coarse(
+            frames,
+            a.einv_at,
+            a.k * a.k,
             "reading back the aggregates' E⁺",
         )?;
-        Ok(Some(f64s(&bytes)))
+        Ok(Some(einv))
+    }
+
+    /// `len` f64 of the frames' coarse buffer from f64 index `at`.
+    fn read_coarse(
+        &self,
+        frames: &DeviceFrames,
+        at: usize,
+        len: usize,
+        what: &str,
+    ) -> Result<Vec<f64>, GpuError> {
+        let bytes = self
+            .ctx
+            .download(&frames.coarse_buf, 8 * at as u64, 8 * len as u64, what)?;
+        Ok(f64s(&bytes))
     }
 
     /// Records the status copies (`scal`, `state` into `status`) after the work of `enc`,
@@ -1178,7 +1193,8 @@ impl DeviceCg {
         k
     }
 
-    /// With the aggregates (`co` = 2): w = Zᵀr (a workgroup per aggregate) and c = E⁺w.
+    /// With the aggregates (`co` = 2): w = Zᵀr (a workgroup per aggregate) and c = E⁺w (a
+    /// workgroup per coarse row).
     fn aggregate_correction<'a>(&'a self, frames: &'a DeviceFrames, co: usize) -> Vec<Kernel<'a>> {
         let (p, limits) = (&self.pipes, self.ctx.launch());
         match (&frames.agg, co) {
@@ -1190,7 +1206,7 @@ impl DeviceCg {
                 ),
                 (
                     &p.agg_solve,
-                    limits.grid(a.k as u64, WORKGROUP),
+                    limits.groups(a.k as u64, WORKGROUP),
                     &frames.groups[0],
                 ),
             ],
@@ -1337,24 +1353,6 @@ fn f64s(bytes: &[u8]) -> Vec<f64> {
             f64::from_le_bytes(w)
         })
         .collect()
-}
-
-/// `bytes` padded to a 16-byte multiple (at least 16), or the error naming `label` where
-/// that exceeds the adapter's buffer or storage binding limit.
-fn binding_size(ctx: &GpuContext, label: &str, bytes: u64) -> Result<u64, GpuError> {
-    let bytes = bytes.max(16).div_ceil(16) * 16;
-    let l = &ctx.limits;
-    let limit = l.max_buffer_size.min(l.max_storage_buffer_binding_size);
-    if bytes > limit {
-        return Err(GpuError::BufferTooLarge {
-            label: label.to_string(),
-            bytes,
-            limit,
-            what: "storage binding",
-            adapter: ctx.adapter_name().to_string(),
-        });
-    }
-    Ok(bytes)
 }
 
 /// The next chunk: the iterations the fall of ln r·r since the run's first status read

@@ -409,18 +409,7 @@ impl NewtonOps {
         ctx.launch()
             .require_exact(groups as u32, "the Newton loop's reductions")?;
         let zeroed = |label: &str, bytes: u64| -> Result<wgpu::Buffer, GpuError> {
-            let bytes = bytes.max(16).div_ceil(16) * 16;
-            let l = &ctx.limits;
-            let limit = l.max_buffer_size.min(l.max_storage_buffer_binding_size);
-            if bytes > limit {
-                return Err(GpuError::BufferTooLarge {
-                    label: label.to_string(),
-                    bytes,
-                    limit,
-                    what: "storage binding",
-                    adapter: ctx.adapter_name().to_string(),
-                });
-            }
+            let bytes = ctx.binding_size(label, bytes)?;
             Ok(dev.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
                 size: bytes,
