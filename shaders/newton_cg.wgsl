@@ -516,15 +516,36 @@ fn scalar_alpha(@builtin(local_invocation_id) lid: vec3<u32>) {
 }
 
 // The r·z and r·r partials of one workgroup and, with COARSE, those of Zᵀr (one tree).
-fn write_rz_rr(lid: u32, wg: u32, rz: acc, rr: acc, zr: array<acc, 3>) {
+// `sums`: r·z, r·r, then (COARSE = 1) Zᵀr.
+fn write_rz_rr(lid: u32, wg: u32, sums: array<acc, 5>) {
     let n = select(2u, 2u + D, COARSE == 1u);
-    workgroup_sum(lid, array<acc, 5>(rz, rr, zr[0], zr[1], zr[2]), n);
+    workgroup_sum(lid, sums, n);
     if (lid == 0u) {
         let np = params.n_partials;
         partials[NCG_PART_RZ * np + wg] = summed(0u);
         partials[NCG_PART_RR * np + wg] = summed(1u);
         for (var a = 0u; a + 2u < n; a++) {
             partials[(NCG_PART_ZR + a) * np + wg] = summed(2u + a);
+        }
+    }
+}
+
+// z_i = M⁻¹r_i (and p_i = z_i at a start), with node i's shares of r·z and r·r and
+// (COARSE = 1) Zᵀr added to sums[0], sums[1] and sums[2..].
+fn precondition(i: u32, rv: array<real, 3>, start: bool, sums: ptr<function, array<acc, 5>>) {
+    let zv = apply_precond(i, rv);
+    for (var a = 0u; a < D; a++) {
+        z[i * D + a] = zv[a];
+        if (start) {
+            p[i * D + a] = zv[a];
+        }
+        (*sums)[0] += acc(rv[a]) * acc(zv[a]);
+        (*sums)[1] += acc(rv[a]) * acc(rv[a]);
+    }
+    if (COARSE == 1u) {
+        let w = zt(i, rv);
+        for (var a = 0u; a < D; a++) {
+            (*sums)[2u + a] += acc(w[a]);
         }
     }
 }
@@ -537,9 +558,7 @@ fn update_yr(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id
     }
     let alpha = real(scal[NCG_ALPHA]);
     for (var s = group_index(wid, nwg); s < params.n_partials; s += group_count(nwg)) {
-        var rz = acc(0.0);
-        var rr = acc(0.0);
-        var zr: array<acc, 3>;
+        var sums: array<acc, 5>;
         for (var m = 0u; m < ITEMS; m++) {
             let i = (s * ITEMS + m) * WG + lid.x;
             if (i >= params.n_nodes) {
@@ -552,20 +571,9 @@ fn update_yr(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id
                 rv[a] = r[k] - alpha * q[k];
                 r[k] = rv[a];
             }
-            let zv = apply_precond(i, rv);
-            for (var a = 0u; a < D; a++) {
-                z[i * D + a] = zv[a];
-                rz += acc(rv[a]) * acc(zv[a]);
-                rr += acc(rv[a]) * acc(rv[a]);
-            }
-            if (COARSE == 1u) {
-                let w = zt(i, rv);
-                for (var a = 0u; a < D; a++) {
-                    zr[a] += acc(w[a]);
-                }
-            }
+            precondition(i, rv, false, &sums);
         }
-        write_rz_rr(lid.x, s, rz, rr, zr);
+        write_rz_rr(lid.x, s, sums);
         workgroupBarrier();
     }
 }
@@ -667,9 +675,7 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
 @compute @workgroup_size(WG)
 fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     for (var s = group_index(wid, nwg); s < params.n_partials; s += group_count(nwg)) {
-        var rz = acc(0.0);
-        var rr = acc(0.0);
-        var zr: array<acc, 3>;
+        var sums: array<acc, 5>;
         for (var m = 0u; m < ITEMS; m++) {
             let i = (s * ITEMS + m) * WG + lid.x;
             if (i >= params.n_nodes) {
@@ -681,21 +687,9 @@ fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid
                 rv[a] = b[k] - q[k];
                 r[k] = rv[a];
             }
-            let zv = apply_precond(i, rv);
-            for (var a = 0u; a < D; a++) {
-                z[i * D + a] = zv[a];
-                p[i * D + a] = zv[a];
-                rz += acc(rv[a]) * acc(zv[a]);
-                rr += acc(rv[a]) * acc(rv[a]);
-            }
-            if (COARSE == 1u) {
-                let w = zt(i, rv);
-                for (var a = 0u; a < D; a++) {
-                    zr[a] += acc(w[a]);
-                }
-            }
+            precondition(i, rv, true, &sums);
         }
-        write_rz_rr(lid.x, s, rz, rr, zr);
+        write_rz_rr(lid.x, s, sums);
         workgroupBarrier();
     }
 }
