@@ -658,8 +658,10 @@ impl DeviceCg {
             }
             _ => None,
         };
-        let (agg_words, coarse_bytes) = match &agg {
-            Some(a) => (a.words.clone(), 8 * a.values as u64),
+        let mut agg = agg;
+        // The index words live on the device only: taken, not kept on the host.
+        let (agg_words, coarse_bytes) = match agg.as_mut() {
+            Some(a) => (std::mem::take(&mut a.words), 8 * a.values as u64),
             None => (vec![0u32; 4], 16),
         };
         let agg_buf =
@@ -1062,23 +1064,13 @@ impl DeviceCg {
         };
         let tol = check_tol(params.tol)?;
         let max = params.max_iterations;
-        let pre = match params.preconditioner {
-            Preconditioner::None => 0,
-            Preconditioner::Jacobi => 1,
-            Preconditioner::BlockJacobi => 2,
-        };
+        let pre = precond_index(params.preconditioner);
         if params.coarse == CoarseSpace::Aggregates && frames.coarse != CoarseSpace::Aggregates {
             return Err(GpuError::Mismatch(
                 "the device CG's aggregates need frames built for them (DeviceCg::frames)".into(),
             ));
         }
-        let co = match params.coarse {
-            CoarseSpace::None => 0,
-            CoarseSpace::Translations => 1,
-            // Every node fixed: no aggregate, no correction.
-            CoarseSpace::Aggregates if frames.agg.is_none() => 0,
-            CoarseSpace::Aggregates => 2,
-        };
+        let co = coarse_index(params.coarse, frames);
         self.check_pinned(frames)?;
         if co == 2 {
             self.upload_aggregate_einv(frames)?;
@@ -1248,17 +1240,10 @@ impl DeviceCg {
         frames: &DeviceFrames,
         params: &DeviceCgParams,
     ) -> IterationProfile {
-        let pre = match params.preconditioner {
-            Preconditioner::None => 0,
-            Preconditioner::Jacobi => 1,
-            Preconditioner::BlockJacobi => 2,
-        };
-        let co = match params.coarse {
-            CoarseSpace::None => 0,
-            CoarseSpace::Translations => 1,
-            CoarseSpace::Aggregates if frames.agg.is_some() => 2,
-            CoarseSpace::Aggregates => 0,
-        };
+        let (pre, co) = (
+            precond_index(params.preconditioner),
+            coarse_index(params.coarse, frames),
+        );
         let dispatches = self
             .iteration(frames, pre, co)
             .into_iter()
@@ -1340,6 +1325,26 @@ impl DeviceCg {
     ) -> Result<DeviceCgInfo, GpuError> {
         self.prepare(frames)?;
         self.iterate(frames, params)
+    }
+}
+
+/// The PRECOND override of a preconditioner.
+fn precond_index(p: Preconditioner) -> usize {
+    match p {
+        Preconditioner::None => 0,
+        Preconditioner::Jacobi => 1,
+        Preconditioner::BlockJacobi => 2,
+    }
+}
+
+/// The COARSE override of a coarse space on these frames (aggregates with every node
+/// fixed: no aggregate, no correction).
+fn coarse_index(c: CoarseSpace, frames: &DeviceFrames) -> usize {
+    match c {
+        CoarseSpace::None => 0,
+        CoarseSpace::Translations => 1,
+        CoarseSpace::Aggregates if frames.agg.is_none() => 0,
+        CoarseSpace::Aggregates => 2,
     }
 }
 

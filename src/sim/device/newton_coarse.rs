@@ -39,7 +39,7 @@ pub mod header {
 /// The aggregate coarse space of one constraint set, ready to upload.
 #[derive(Debug, Clone)]
 pub struct AggregateIndex {
-    /// The header, then the index arrays (u32).
+    /// The header, then the index arrays (u32); emptied once uploaded.
     pub words: Vec<u32>,
     /// Aggregates, and K = D · aggregates (E is K×K).
     pub count: usize,
