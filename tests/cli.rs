@@ -1640,3 +1640,33 @@ fn bench_records_are_this_runs_own() {
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     assert_eq!(lines(), first);
 }
+
+/// The multilevel preconditioner solves the worked case on the CPU CG to the oracle's
+/// Δx, and a GPU solver asked for it is refused before any work: one line, exit 2.
+#[test]
+fn multilevel_runs_on_the_cpu_cg_and_the_gpu_refuses_it() {
+    let c = case("multilevel");
+    let o = c.solve(&["--solver", "cg", "--preconditioner", "multilevel"]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let cg = read_vec(c.dir.join("dx.mtx").to_str().unwrap());
+    let o = c.solve(&["--solver", "cholesky"]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let oracle = read_vec(c.dir.join("dx.mtx").to_str().unwrap());
+    // CG stops at its default relative residual; on this 2-node system it is exact to a
+    // few ulps of the largest entry (2).
+    for (a, b) in cg.iter().zip(&oracle) {
+        assert!((a - b).abs() <= 1e-12, "{cg:?} vs {oracle:?}");
+    }
+    let o = c.solve(&[
+        "--solver",
+        "gpu",
+        "--precision",
+        "f64",
+        "--preconditioner",
+        "multilevel",
+    ]);
+    let e = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert_eq!(e.lines().count(), 1, "{e:?}");
+    assert!(e.contains("multilevel"), "{e}");
+}

@@ -710,3 +710,24 @@ fn many_rows_with_huge_finite_values_keep_their_lift() {
         assert_eq!(&f.lift[1..3], &[0.0, 0.0]);
     }
 }
+
+/// The multilevel preconditioner runs in the CPU CG only: a scene that asks for it with
+/// the device Newton loop or the GPU linear solver is refused before any work.
+#[test]
+fn multilevel_with_a_gpu_solver_is_an_input_error() {
+    let dir = tmpdir("multilevel-gpu");
+    for (name, solver) in [
+        (
+            "newton",
+            "newton = \"gpu\"\npreconditioner = \"multilevel\"",
+        ),
+        (
+            "linear",
+            "linear = \"gpu\"\npreconditioner = \"multilevel\"",
+        ),
+    ] {
+        let text = format!("{SCENE_2D}\n[solver]\n{solver}\n");
+        let (path, o) = run_scene(&dir, name, &text);
+        assert_input_error(&o, &path, &["solver.preconditioner", "multilevel"]);
+    }
+}

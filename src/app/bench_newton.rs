@@ -581,16 +581,19 @@ impl GpuSide {
     }
 
     /// The CG's iteration record, its solve having taken `seconds`.
-    fn cg_record(&self, seconds: f64) -> GpuCgRecord {
-        let profile = self.cg.iteration_profile(&self.frames, &GPU_CG);
+    fn cg_record(&self, seconds: f64) -> Result<GpuCgRecord, String> {
+        let profile = self
+            .cg
+            .iteration_profile(&self.frames, &GPU_CG)
+            .map_err(|e| e.to_string())?;
         let per_it = seconds / self.cg_iterations.max(1) as f64;
-        GpuCgRecord {
+        Ok(GpuCgRecord {
             iterations: self.cg_iterations,
             seconds_per_iteration: per_it,
             bytes_per_iteration: profile.bytes,
             gb_per_second: profile.bytes as f64 / per_it / 1e9,
             dispatches_per_iteration: profile.dispatches,
-        }
+        })
     }
 
     /// Phase 4: the trial x + Δx, E there (an energy-only pass, one sum per term) and
@@ -847,7 +850,7 @@ fn bench_size(
                     Some((h, g)) => Some(side.difference(h, g)?),
                     None => None,
                 };
-                let cg = phases.solve.map(|secs| side.cg_record(secs));
+                let cg = phases.solve.map(|secs| side.cg_record(secs)).transpose()?;
                 Ok((phases, diff, cg))
             });
             match run {

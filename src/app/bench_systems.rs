@@ -93,6 +93,14 @@ fn solvers(no_gpu: bool) -> Vec<(String, SolverConfig)> {
             ));
         }
     }
+    for c in [CoarseSpace::None, CoarseSpace::Aggregates] {
+        v.push((
+            format!("cg multilevel {}", c.name()),
+            SolverConfig::cg()
+                .preconditioner(Preconditioner::Multilevel)
+                .coarse(c),
+        ));
+    }
     if !no_gpu {
         v.push((
             "gpu f64 jacobi aggregates".into(),

@@ -793,7 +793,7 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
         }
         SolveDetails::Cg(info) => {
             cgr = Some(CgReport {
-                preconditioner: preconditioner_name(args.preconditioner).into(),
+                preconditioner: args.preconditioner.name().into(),
                 coarse: args.coarse.name().into(),
                 tol: args.tol,
                 max_iters,
@@ -882,14 +882,6 @@ fn solve_error(e: Error) -> CliError {
             CliError::Input(InputError::new("--solver gpu", "", msg))
         }
         Error::Device(msg) => CliError::Solve(SolveError::Gpu(msg)),
-    }
-}
-
-fn preconditioner_name(p: Preconditioner) -> &'static str {
-    match p {
-        Preconditioner::None => "none",
-        Preconditioner::Jacobi => "jacobi",
-        Preconditioner::BlockJacobi => "block-jacobi",
     }
 }
 

@@ -226,6 +226,9 @@ impl SolverConfig {
         if self.kind == SolverKind::Cholesky {
             return Ok(());
         }
+        if self.kind == SolverKind::Gpu && self.preconditioner == Preconditioner::Multilevel {
+            return bad("preconditioner", crate::gpu::MULTILEVEL_ON_CPU.into());
+        }
         let (tol, max_iters, error_tol) = match self.kind {
             SolverKind::Gpu => {
                 let p = self.resolved_gpu_params();
@@ -341,6 +344,8 @@ pub struct Solver {
     gpu: Option<GpuContext>,
     /// Most recently used last.
     prepared: Vec<(LayoutKey, Prepared)>,
+    /// The multilevel preconditioner's clusters of the last pattern solved.
+    hierarchy: Option<std::sync::Arc<crate::solve::multilevel::Hierarchy>>,
 }
 
 impl Solver {
@@ -372,6 +377,7 @@ impl Solver {
             config,
             gpu,
             prepared: Vec::new(),
+            hierarchy: None,
         })
     }
 
@@ -449,7 +455,7 @@ impl Solver {
         let (y, mut stats) = match self.config.kind {
             SolverKind::Cholesky => self.cholesky(layout, e)?,
             SolverKind::Cg => {
-                let (y, info) = crate::solve::cg::solve(e, &self.cg)?;
+                let (y, info) = self.cg(e)?;
                 let stats = self.stats(
                     Some(info.iterations),
                     info.relative_residual,
@@ -502,6 +508,30 @@ impl Solver {
             self.prepared.remove(0);
         }
         self.prepared.push((layout, p));
+    }
+
+    /// The CPU CG; the multilevel preconditioner partitions H's pattern once and keeps the
+    /// clusters while the pattern stays.
+    fn cg(&mut self, e: &Eliminated) -> Result<(Vec<f64>, crate::solve::cg::CgInfo), Error> {
+        use crate::solve::cg::{BuiltPreconditioner, Scaling};
+        use crate::solve::multilevel::Hierarchy;
+        if self.cg.preconditioner != Preconditioner::Multilevel || self.cg.scaling != Scaling::None
+        {
+            return Ok(crate::solve::cg::solve(e, &self.cg)?);
+        }
+        crate::solve::cg::check_pinned(e)?;
+        // The clusters depend on H's pattern only (not on the constraints of a layout).
+        let hierarchy = match self.hierarchy.take() {
+            Some(h) if h.fits(e.h) => h,
+            _ => std::sync::Arc::new(Hierarchy::new(e.h)),
+        };
+        let pre = BuiltPreconditioner::multilevel(e, hierarchy.clone()).with_coarse(
+            e,
+            self.cg.coarse,
+            None,
+        );
+        self.hierarchy = Some(hierarchy);
+        Ok(crate::solve::cg::solve_with(e, &pre, None, &self.cg)?)
     }
 
     fn cholesky(

@@ -17,7 +17,7 @@ pub use context::{
 };
 pub use solver::{
     BufferRecord, GpuSolveInfo, GpuSolver, KernelRecord, KernelTime, Resources, SolveOutcome,
-    StageSeconds, DOES_NOT_FIT,
+    StageSeconds, DOES_NOT_FIT, MULTILEVEL_ON_CPU,
 };
 
 pub use error::GpuError;

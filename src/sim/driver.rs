@@ -473,6 +473,17 @@ fn build_scene(
         .into());
     }
     check_magnitudes(&scene)?;
+    if scene.solver.preconditioner == crate::solve::options::Preconditioner::Multilevel
+        && (scene.solver.linear == LinearKind::Gpu
+            || scene.solver.newton == crate::sim::scene::NewtonLoop::Gpu)
+    {
+        return Err(InputError::new(
+            scene.file.clone(),
+            "solver.preconditioner",
+            crate::gpu::MULTILEVEL_ON_CPU,
+        )
+        .into());
+    }
     if scene.solver.linear == LinearKind::Gpu
         || scene.solver.newton == crate::sim::scene::NewtonLoop::Gpu
     {

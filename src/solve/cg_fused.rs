@@ -77,6 +77,8 @@ pub(crate) struct Fused<'a> {
     /// Run the chunks on rayon's pool (else in order on this thread: the same bits).
     parallel: bool,
     coarse: Option<CoarseChunks<'a>>,
+    /// z = M⁻¹r of the last update, for a preconditioner that is not point-wise.
+    full: Option<Vec<f64>>,
 }
 
 /// Node boundaries of chunks of about [`CHUNK_BLOCKS`] stored blocks (at least one row
@@ -174,6 +176,7 @@ impl<'a> Fused<'a> {
             bounds,
             constrained: e.frames.has_constraints(),
             coarse,
+            full: pre.multilevel_factors().map(|_| vec![0.0; h.ndof()]),
         }
     }
 
@@ -297,10 +300,12 @@ impl<'a> Fused<'a> {
     }
 
     /// With `step` = Some(α): y += αp, r −= αq. Then u = M_J r (point-wise part) gives
-    /// (rᵀu, rᵀr), and Zᵀr is restricted into the coarse buffers. Returns (rᵀu, rᵀr).
+    /// (rᵀu, rᵀr), and Zᵀr is restricted into the coarse buffers. The multilevel
+    /// preconditioner is not point-wise: its u = M⁻¹r is applied to the whole updated r
+    /// and kept for [`Fused::direction`]. Returns (rᵀu, rᵀr).
     pub fn update(&mut self, step: Option<Step<'_>>, r: &mut [f64]) -> (f64, f64) {
         let d = self.d;
-        let point = Point::of(self.pre);
+        let point = Point::of(self.pre, None);
         let (ys, alpha, p, q) = match step {
             Some((a, y, p, q)) => (Some(split(y, &self.bounds, d)), a, p, q),
             None => (None, 0.0, &[][..], &[][..]),
@@ -342,6 +347,8 @@ impl<'a> Fused<'a> {
             let rr = sum_lanes(m, |k| rc[k] * rc[k]);
             let ru = match point {
                 Point::Identity => rr,
+                // Summed below, once z = M⁻¹r is known.
+                Point::Full(_) => 0.0,
                 Point::Diagonal(dg) => {
                     let dg = &dg[off..off + m];
                     sum_lanes(m, |k| rc[k] * (rc[k] * dg[k]))
@@ -357,10 +364,19 @@ impl<'a> Fused<'a> {
             }
             (ru, rr)
         });
-        (
-            ordered_sum(parts.iter().map(|p| p.0)),
-            ordered_sum(parts.iter().map(|p| p.1)),
-        )
+        let rr = ordered_sum(parts.iter().map(|p| p.1));
+        if let (Some(z), Some(m)) = (self.full.as_mut(), self.pre.multilevel_factors()) {
+            let r: &[f64] = r;
+            m.apply(r, z);
+            let z: &[f64] = z;
+            let items: Vec<_> = self.bounds.windows(2).collect();
+            let dots = map_chunks(self.parallel, items, |b| {
+                let (lo, hi) = (b[0] * d, b[1] * d);
+                sum_lanes(hi - lo, |k| r[lo + k] * z[lo + k])
+            });
+            return (ordered_sum(dots), rr);
+        }
+        (ordered_sum(parts.iter().map(|p| p.0)), rr)
     }
 }
 
@@ -413,7 +429,7 @@ impl Fused<'_> {
         w: Option<&mut [f64]>,
     ) {
         let d = self.d;
-        let point = Point::of(self.pre);
+        let point = Point::of(self.pre, self.full.as_deref());
         let f = self.e.frames;
         let coarse = self.coarse.as_ref().map(|c| (c.coarse, &c.c[..]));
         let mut ws = w.map(|w| split(w, &self.bounds, d).into_iter());
@@ -438,6 +454,7 @@ impl Fused<'_> {
                 _ => {
                     match point {
                         Point::Identity => pc.copy_from_slice(rc),
+                        Point::Full(z) => pc.copy_from_slice(&z[off..off + m]),
                         Point::Diagonal(dg) => {
                             for (v, (x, g)) in pc.iter_mut().zip(rc.iter().zip(&dg[off..off + m])) {
                                 *v = x * g;
@@ -507,12 +524,15 @@ enum Point<'p> {
     Diagonal(&'p [f64]),
     /// D×D inverse blocks, per node.
     Blocks(&'p [f64]),
+    /// Not point-wise: z = M⁻¹r computed over the whole vector (`full`, when known).
+    Full(&'p [f64]),
 }
 
 impl<'p> Point<'p> {
-    fn of(pre: &'p BuiltPreconditioner) -> Self {
+    fn of(pre: &'p BuiltPreconditioner, full: Option<&'p [f64]>) -> Self {
         match pre.kind() {
             Preconditioner::None => Point::Identity,
+            Preconditioner::Multilevel => Point::Full(full.unwrap_or(&[])),
             Preconditioner::Jacobi => Point::Diagonal(pre.data()),
             Preconditioner::BlockJacobi => Point::Blocks(pre.data()),
         }

@@ -6,6 +6,7 @@
 pub mod cg;
 mod cg_fused;
 pub mod coarse;
+pub mod multilevel;
 pub mod options;
 pub mod oracle;
 pub mod ordering;

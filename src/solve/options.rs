@@ -53,6 +53,10 @@ pub enum Preconditioner {
     Jacobi,
     /// The inverse of each node's d×d diagonal block of Ĥ (in the node's frame, masked).
     BlockJacobi,
+    /// Multilevel additive Schwarz: Ĥ's dense blocks on clusters of about 16 nodes, plus
+    /// the translations of clusters of clusters, level by level (see
+    /// `solve::multilevel`). CPU CG only.
+    Multilevel,
 }
 
 impl Preconditioner {
@@ -62,6 +66,7 @@ impl Preconditioner {
             Preconditioner::None => "none",
             Preconditioner::Jacobi => "jacobi",
             Preconditioner::BlockJacobi => "block-jacobi",
+            Preconditioner::Multilevel => "multilevel",
         }
     }
 }
@@ -73,8 +78,9 @@ impl std::str::FromStr for Preconditioner {
             "none" => Ok(Preconditioner::None),
             "jacobi" => Ok(Preconditioner::Jacobi),
             "block-jacobi" => Ok(Preconditioner::BlockJacobi),
+            "multilevel" => Ok(Preconditioner::Multilevel),
             _ => Err(format!(
-                "unknown preconditioner '{s}' (expected none, jacobi or block-jacobi)"
+                "unknown preconditioner '{s}' (expected none, jacobi, block-jacobi or multilevel)"
             )),
         }
     }

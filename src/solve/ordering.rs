@@ -92,7 +92,7 @@ impl NodeGraph {
 
 /// METIS keeps per-call state behind signal handlers that it installs and removes around
 /// each call; one call at a time keeps two threads from undoing each other's handlers.
-static METIS_LOCK: Mutex<()> = Mutex::new(());
+pub(crate) static METIS_LOCK: Mutex<()> = Mutex::new(());
 
 /// Nested dissection of the node graph, expanded to DOFs: the forward permutation
 /// (`perm[new] = old` DOF) of length `dim · n`. Fully constrained nodes come first (they

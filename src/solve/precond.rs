@@ -4,7 +4,9 @@
 
 use crate::core::elimination::{rotate_block, Eliminated};
 use crate::solve::coarse::{Coarse, CoarseSpace};
+use crate::solve::multilevel::{Hierarchy, Multilevel};
 use crate::solve::options::Preconditioner;
+use std::sync::Arc;
 
 /// A preconditioner applied as z = M⁻¹ r.
 #[derive(Debug, Clone)]
@@ -15,16 +17,22 @@ pub struct BuiltPreconditioner {
     data: Vec<f64>,
     /// The coarse correction added to M⁻¹ (see [`crate::solve::coarse`]).
     coarse: Option<Coarse>,
+    /// The multilevel Schwarz factors ([`Preconditioner::Multilevel`]).
+    multilevel: Option<Multilevel>,
 }
 
 impl BuiltPreconditioner {
-    /// Builds the preconditioner from the diagonal blocks of Ĥ.
+    /// Builds the preconditioner from the diagonal blocks of Ĥ (the multilevel one on a
+    /// hierarchy partitioned for this call: [`BuiltPreconditioner::multilevel`] reuses one).
     pub fn new(e: &Eliminated, kind: Preconditioner) -> Self {
+        if kind == Preconditioner::Multilevel {
+            return Self::multilevel(e, Arc::new(Hierarchy::new(e.h)));
+        }
         let d = e.h.dim;
         let n = e.h.n;
         let blocks = diagonal_blocks(e);
         let data = match kind {
-            Preconditioner::None => Vec::new(),
+            Preconditioner::None | Preconditioner::Multilevel => Vec::new(),
             Preconditioner::Jacobi => (0..n * d)
                 .map(|k| {
                     let (i, a) = (k / d, k % d);
@@ -60,7 +68,30 @@ impl BuiltPreconditioner {
             dim: d,
             data,
             coarse: None,
+            multilevel: None,
         }
+    }
+
+    /// The multilevel Schwarz preconditioner of `e` on `hierarchy` (partitioned for `e.h`'s
+    /// pattern, once per mesh; a hierarchy of another pattern is rebuilt).
+    pub fn multilevel(e: &Eliminated, hierarchy: Arc<Hierarchy>) -> Self {
+        let hierarchy = if hierarchy.fits(e.h) {
+            hierarchy
+        } else {
+            Arc::new(Hierarchy::new(e.h))
+        };
+        BuiltPreconditioner {
+            kind: Preconditioner::Multilevel,
+            dim: e.h.dim,
+            data: Vec::new(),
+            coarse: None,
+            multilevel: Some(Multilevel::new(e, hierarchy)),
+        }
+    }
+
+    /// The multilevel factors, for [`Preconditioner::Multilevel`].
+    pub fn multilevel_factors(&self) -> Option<&Multilevel> {
+        self.multilevel.as_ref()
     }
 
     /// Adds the coarse correction of `space` on `e` (nothing for [`CoarseSpace::None`], or
@@ -102,6 +133,10 @@ impl BuiltPreconditioner {
     fn apply_pointwise(&self, r: &[f64], z: &mut [f64]) {
         match self.kind {
             Preconditioner::None => z.copy_from_slice(r),
+            Preconditioner::Multilevel => match &self.multilevel {
+                Some(m) => m.apply(r, z),
+                None => z.copy_from_slice(r),
+            },
             Preconditioner::Jacobi => {
                 for ((zi, ri), di) in z.iter_mut().zip(r).zip(&self.data) {
                     *zi = ri * di;

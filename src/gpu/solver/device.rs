@@ -295,7 +295,7 @@ fn specialization(
         masked: f.has_constraints(),
         rotated: f.has_rotation(),
         precond: match params.preconditioner {
-            Preconditioner::None => 0.0,
+            Preconditioner::None | Preconditioner::Multilevel => 0.0,
             Preconditioner::Jacobi => 1.0,
             Preconditioner::BlockJacobi => 2.0,
         },

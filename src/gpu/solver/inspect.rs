@@ -179,7 +179,7 @@ impl GpuSolver {
     pub fn preconditioner_data(&mut self) -> Result<Vec<f64>, GpuError> {
         let d = self.dev.dim;
         let len = match self.params.preconditioner {
-            Preconditioner::None => return Ok(Vec::new()),
+            Preconditioner::None | Preconditioner::Multilevel => return Ok(Vec::new()),
             Preconditioner::Jacobi => self.dev.n_nodes * d,
             Preconditioner::BlockJacobi => self.dev.n_nodes * d * d,
         };

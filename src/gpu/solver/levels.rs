@@ -571,7 +571,8 @@ fn cg_buffers(
     let n = host.frames.n_nodes as u64;
     let d = host.frames.dim as u64;
     let minv = match pc {
-        Preconditioner::None => None,
+        // Multilevel is refused by GpuSolver::build.
+        Preconditioner::None | Preconditioner::Multilevel => None,
         Preconditioner::Jacobi => Some(bld.buffer(
             &format!("precond_jacobi_{rn}"),
             n * d * real.size(),
@@ -928,7 +929,7 @@ pub(super) fn bytes_per_iteration(
     // update_xrz: x rw, p r, r rw, q r, z w; update_p: z r, p rw.
     let vec = (2 + 1 + 2 + 1 + 1 + 1 + 2) * nd * s;
     let pre = match pc {
-        Preconditioner::None => 0,
+        Preconditioner::None | Preconditioner::Multilevel => 0,
         Preconditioner::Jacobi => nd * s,
         Preconditioner::BlockJacobi => n * d * d * s,
     };

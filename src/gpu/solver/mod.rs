@@ -43,11 +43,12 @@ use crate::core::constraints::Frames;
 use crate::core::elimination::{norm2, Eliminated};
 use crate::solve::cg::CgError;
 use crate::solve::coarse::Aggregation;
+use crate::solve::options::Preconditioner;
 use builder::Real;
 use device::{Built, Device};
 use host::{spring_rhs, Host, HostOp};
 use levels::bytes_per_iteration;
-pub use plan::DOES_NOT_FIT;
+pub use plan::{DOES_NOT_FIT, MULTILEVEL_ON_CPU};
 use state::{MixedState, Outcome, RunState};
 use std::time::Instant;
 use telemetry::Telemetry;
@@ -133,6 +134,9 @@ impl GpuSolver {
     /// Allocates and compiles (`Device::build`), then uploads the values and runs the
     /// setup kernels.
     fn build(ctx: &GpuContext, host: Host, params: &GpuParams) -> Result<Self, GpuError> {
+        if params.preconditioner == Preconditioner::Multilevel {
+            return Err(GpuError::Unsupported(MULTILEVEL_ON_CPU.into()));
+        }
         let t0 = Instant::now();
         let Built {
             device,

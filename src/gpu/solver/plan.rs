@@ -15,6 +15,10 @@ use crate::solve::coarse::Aggregation;
 /// it: the input, not the device, is what must change).
 pub const DOES_NOT_FIT: &str = "does not fit on the GPU";
 
+/// Why a GPU solver refuses the multilevel preconditioner.
+pub const MULTILEVEL_ON_CPU: &str =
+    "the multilevel preconditioner runs in the CPU CG only (the GPU CGs take none, jacobi or block-jacobi)";
+
 /// A `Builder::buffer` of `bytes`: at least 16, whole 16-byte units.
 fn buf(bytes: u64) -> u64 {
     bytes.max(16).div_ceil(16) * 16
@@ -105,7 +109,7 @@ fn level(host: &Host, real: Real, acc: Real, c: &Consts, pc: Preconditioner) -> 
     let d = host.frames.dim as u64;
     let mut t = 6 * buf(nd * s);
     t += match pc {
-        Preconditioner::None => 0,
+        Preconditioner::None | Preconditioner::Multilevel => 0,
         Preconditioner::Jacobi => buf(n * d * s),
         Preconditioner::BlockJacobi => buf(n * d * d * s),
     };

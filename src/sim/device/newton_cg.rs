@@ -1064,7 +1064,7 @@ impl DeviceCg {
         };
         let tol = check_tol(params.tol)?;
         let max = params.max_iterations;
-        let pre = precond_index(params.preconditioner);
+        let pre = precond_index(params.preconditioner)?;
         if params.coarse == CoarseSpace::Aggregates && frames.coarse != CoarseSpace::Aggregates {
             return Err(GpuError::Mismatch(
                 "the device CG's aggregates need frames built for them (DeviceCg::frames)".into(),
@@ -1239,9 +1239,9 @@ impl DeviceCg {
         &self,
         frames: &DeviceFrames,
         params: &DeviceCgParams,
-    ) -> IterationProfile {
+    ) -> Result<IterationProfile, GpuError> {
         let (pre, co) = (
-            precond_index(params.preconditioner),
+            precond_index(params.preconditioner)?,
             coarse_index(params.coarse, frames),
         );
         let dispatches = self
@@ -1269,10 +1269,10 @@ impl DeviceCg {
             // restrict: r, the frames and the node lists; solve: E⁺ and w.
             vec + 12 * n + 8 * (k * k + 2 * k)
         });
-        IterationProfile {
+        Ok(IterationProfile {
             dispatches,
             bytes: matvec + update_yr + update_p + agg + 2 * partials,
-        }
+        })
     }
 
     /// CG iterations in chunks from the current state until the recurrence residual meets
@@ -1329,11 +1329,14 @@ impl DeviceCg {
 }
 
 /// The PRECOND override of a preconditioner.
-fn precond_index(p: Preconditioner) -> usize {
+fn precond_index(p: Preconditioner) -> Result<usize, GpuError> {
     match p {
-        Preconditioner::None => 0,
-        Preconditioner::Jacobi => 1,
-        Preconditioner::BlockJacobi => 2,
+        Preconditioner::None => Ok(0),
+        Preconditioner::Jacobi => Ok(1),
+        Preconditioner::BlockJacobi => Ok(2),
+        Preconditioner::Multilevel => {
+            Err(GpuError::Unsupported(crate::gpu::MULTILEVEL_ON_CPU.into()))
+        }
     }
 }
 

@@ -1,0 +1,361 @@
+//! One level of the hierarchy: its clusters, its matrix's pattern and the operations on
+//! them (the product, the cluster blocks' inverses and their application, the Galerkin
+//! sum into the next level).
+
+use super::dense::cholesky_dropping;
+use super::dense::inverse_from_factor;
+use crate::core::elimination::{rotate_block, Eliminated};
+use rayon::prelude::*;
+
+/// Power-iteration steps of the smoother's estimate of λmax(B_l⁺A_l).
+pub const LAMBDA_STEPS: usize = 4;
+
+/// A partition of one level's items (nodes, or the clusters of the level below) into
+/// clusters, with the pattern of the next level's matrix.
+#[derive(Debug, Clone)]
+pub(super) struct Level {
+    /// Items of this level.
+    pub(super) n: usize,
+    /// Cluster of each item.
+    pub(super) of: Vec<u32>,
+    /// Position of each item in its cluster.
+    pub(super) pos: Vec<u32>,
+    /// Items of cluster c: `items[ptr[c]..ptr[c + 1]]`, ascending.
+    pub(super) ptr: Vec<usize>,
+    pub(super) items: Vec<u32>,
+    /// The matrix of this level's items (level 0: H's own pattern).
+    pub(super) row_ptr: Vec<usize>,
+    pub(super) col_idx: Vec<usize>,
+    /// For each stored block of this level's matrix, its block in the next level's
+    /// matrix (whose pattern is `next_row_ptr`, `next_col_idx`).
+    pub(super) slot: Vec<usize>,
+    pub(super) next_row_ptr: Vec<usize>,
+    pub(super) next_col_idx: Vec<usize>,
+}
+
+impl Level {
+    pub(super) fn clusters(&self) -> usize {
+        self.ptr.len() - 1
+    }
+}
+
+/// λmax(M⁻¹A) estimated by `steps` power steps from a fixed start, as the Rayleigh
+/// quotient in the A inner product (a lower bound); `step(x, ax, y)` sets ax = A x and
+/// y = M⁻¹ ax. 0 when a step meets a non-positive xᵀAx or a vanishing y.
+pub(super) fn power_estimate(
+    n: usize,
+    steps: usize,
+    mut step: impl FnMut(&[f64], &mut [f64], &mut [f64]),
+) -> f64 {
+    use crate::core::linalg::{dot, norm2};
+    // Every component non-zero, the same on every run.
+    let mut x: Vec<f64> = (0..n)
+        .map(|k| 1.0 + ((k * 7919) % 13) as f64 / 13.0)
+        .collect();
+    let (mut ax, mut y) = (vec![0.0; n], vec![0.0; n]);
+    let mut lam = 0.0;
+    for _ in 0..steps {
+        step(&x, &mut ax, &mut y);
+        let xax = dot(&x, &ax);
+        let nrm = norm2(&y);
+        if xax.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
+            || nrm.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
+            || !nrm.is_finite()
+        {
+            break;
+        }
+        lam = dot(&y, &ax) / xax;
+        x.iter_mut().zip(&y).for_each(|(a, b)| *a = b / nrm);
+    }
+    lam
+}
+
+/// Indices 0..keys.len() grouped by key (`groups` keys): group g holds
+/// `members[ptr[g]..ptr[g + 1]]`, ascending.
+pub(super) fn group(keys: &[u32], groups: usize) -> (Vec<usize>, Vec<u32>) {
+    let mut ptr = vec![0usize; groups + 1];
+    for &k in keys {
+        ptr[k as usize + 1] += 1;
+    }
+    for g in 0..groups {
+        ptr[g + 1] += ptr[g];
+    }
+    let mut fill = ptr.clone();
+    let mut members = vec![0u32; keys.len()];
+    for (i, &k) in keys.iter().enumerate() {
+        members[fill[k as usize]] = i as u32;
+        fill[k as usize] += 1;
+    }
+    (ptr, members)
+}
+
+impl Level {
+    pub(super) fn new(n: usize, of: Vec<u32>, row_ptr: Vec<usize>, col_idx: Vec<usize>) -> Self {
+        let nc = of.iter().map(|&c| c as usize + 1).max().unwrap_or(0);
+        let (ptr, items) = group(&of, nc);
+        let mut pos = vec![0u32; n];
+        for c in 0..nc {
+            for (p, &i) in items[ptr[c]..ptr[c + 1]].iter().enumerate() {
+                pos[i as usize] = p as u32;
+            }
+        }
+        // The next level's pattern: cluster c couples with c' where an item of c couples
+        // with an item of c'.
+        let mut next_row_ptr = vec![0usize];
+        let mut next_col_idx = Vec::new();
+        let mut cols: Vec<usize> = Vec::new();
+        for c in 0..nc {
+            cols.clear();
+            for &i in &items[ptr[c]..ptr[c + 1]] {
+                let i = i as usize;
+                cols.extend(
+                    col_idx[row_ptr[i]..row_ptr[i + 1]]
+                        .iter()
+                        .map(|&j| of[j] as usize),
+                );
+            }
+            cols.sort_unstable();
+            cols.dedup();
+            next_col_idx.extend_from_slice(&cols);
+            next_row_ptr.push(next_col_idx.len());
+        }
+        let mut slot = vec![0usize; col_idx.len()];
+        for i in 0..n {
+            let c = of[i] as usize;
+            let row = &next_col_idx[next_row_ptr[c]..next_row_ptr[c + 1]];
+            for k in row_ptr[i]..row_ptr[i + 1] {
+                let cj = of[col_idx[k]] as usize;
+                // Present by construction.
+                slot[k] = next_row_ptr[c] + row.binary_search(&cj).unwrap_or(0);
+            }
+        }
+        Level {
+            n,
+            of,
+            pos,
+            ptr,
+            items,
+            row_ptr,
+            col_idx,
+            slot,
+            next_row_ptr,
+            next_col_idx,
+        }
+    }
+}
+
+/// One level's cluster inverses: cluster c's (L Lᵀ)⁺ (m×m with m = d·|c|, symmetric) at
+/// `factor[start[c]..]`. An explicit inverse applies as one dense product, which
+/// vectorises; the two triangular sweeps it replaces do not.
+#[derive(Debug, Clone)]
+pub(super) struct Factors {
+    pub(super) start: Vec<usize>,
+    pub(super) factor: Vec<f64>,
+}
+
+/// Ĥ's stored blocks in the node frames ([`frame_block`]), on H's pattern.
+pub(super) fn frame_values(e: &Eliminated) -> Vec<f64> {
+    let h = e.h;
+    let dd = h.dim * h.dim;
+    let mut v = vec![0.0; h.values.len()];
+    let rows: Vec<&mut [f64]> = split_rows(&mut v, &h.row_ptr, dd);
+    rows.into_par_iter().enumerate().for_each(|(i, out)| {
+        for (k, o) in (h.row_ptr[i]..h.row_ptr[i + 1]).zip(out.chunks_exact_mut(dd)) {
+            frame_block(e, i, k, h.col_idx[k], o);
+        }
+    });
+    v
+}
+
+/// `v` split at the rows of a block pattern (`per` values per stored block).
+fn split_rows<'v>(mut v: &'v mut [f64], row_ptr: &[usize], per: usize) -> Vec<&'v mut [f64]> {
+    let mut out = Vec::with_capacity(row_ptr.len().saturating_sub(1));
+    for w in row_ptr.windows(2) {
+        let (a, rest) = std::mem::take(&mut v).split_at_mut((w[1] - w[0]) * per);
+        out.push(a);
+        v = rest;
+    }
+    out
+}
+
+/// y = A x for a level's matrix (d×d row-major blocks on the level's pattern).
+pub(super) fn block_matvec(d: usize, lev: &Level, a: &[f64], x: &[f64], y: &mut [f64]) {
+    match d {
+        2 => block_matvec_d::<2, 4>(lev, a, x, y),
+        _ => block_matvec_d::<3, 9>(lev, a, x, y),
+    }
+}
+
+fn block_matvec_d<const D: usize, const DD: usize>(
+    lev: &Level,
+    a: &[f64],
+    x: &[f64],
+    y: &mut [f64],
+) {
+    let (row_ptr, col_idx) = (&lev.row_ptr, &lev.col_idx);
+    y.par_chunks_mut(D * 64)
+        .enumerate()
+        .for_each(|(chunk, ys)| {
+            for (r0, yi) in ys.chunks_exact_mut(D).enumerate() {
+                let i = chunk * 64 + r0;
+                let mut acc = [0.0f64; D];
+                let (rs, re) = (row_ptr[i], row_ptr[i + 1]);
+                for (b, &j) in a[rs * DD..re * DD].chunks_exact(DD).zip(&col_idx[rs..re]) {
+                    let xj: &[f64; D] = x[j * D..j * D + D].try_into().expect("D values");
+                    let b: &[f64; DD] = b.try_into().expect("D·D values");
+                    for r in 0..D {
+                        let mut s = b[r * D] * xj[0];
+                        for c in 1..D {
+                            s += b[r * D + c] * xj[c];
+                        }
+                        acc[r] += s;
+                    }
+                }
+                yi.copy_from_slice(&acc);
+            }
+        });
+}
+
+/// Ĥ_ij for stored block k = (i, j): P_i V_iᵀ H_ij V_j P_j, with D on the constrained
+/// diagonal.
+fn frame_block(e: &Eliminated, i: usize, k: usize, j: usize, out: &mut [f64]) {
+    let d = e.h.dim;
+    let f = e.frames;
+    rotate_block(d, e.h.block(k), f.rotation(i), f.rotation(j), out);
+    let (mi, mj) = (f.mask[i], f.mask[j]);
+    if mi | mj == 0 {
+        return;
+    }
+    for r in 0..d {
+        for c in 0..d {
+            if mi & (1 << r) != 0 || mj & (1 << c) != 0 {
+                out[r * d + c] = 0.0;
+            }
+        }
+        if i == j && mi & (1 << r) != 0 {
+            out[r * d + r] = e.diag[i * d + r];
+        }
+    }
+}
+
+/// The next level's matrix values: block (c, c') = Σ over the stored blocks (i, j) of this
+/// level with i in c, j in c' of `block(i, k, j)`, summed row by row in the items' order.
+pub(super) fn galerkin(
+    lev: &Level,
+    d: usize,
+    block: impl Fn(usize, usize, usize, &mut [f64]) + Sync,
+) -> Vec<f64> {
+    let dd = d * d;
+    let rows: Vec<Vec<f64>> = (0..lev.clusters())
+        .into_par_iter()
+        .map(|c| {
+            let base = lev.next_row_ptr[c];
+            let mut v = vec![0.0; (lev.next_row_ptr[c + 1] - base) * dd];
+            let mut b = [0.0f64; 9];
+            for &i in &lev.items[lev.ptr[c]..lev.ptr[c + 1]] {
+                let i = i as usize;
+                for k in lev.row_ptr[i]..lev.row_ptr[i + 1] {
+                    block(i, k, lev.col_idx[k], &mut b[..dd]);
+                    let s = (lev.slot[k] - base) * dd;
+                    for (o, x) in v[s..s + dd].iter_mut().zip(&b[..dd]) {
+                        *o += x;
+                    }
+                }
+            }
+            v
+        })
+        .collect();
+    rows.concat()
+}
+
+/// Factors every cluster block of a level's matrix, `block(i, k, j, out)` giving stored
+/// block k = (i, j). Returns the factors and the pivots dropped.
+pub(super) fn factor_level(
+    lev: &Level,
+    d: usize,
+    block: impl Fn(usize, usize, usize, &mut [f64]) + Sync,
+) -> (Factors, usize) {
+    let nc = lev.clusters();
+    let mut start = Vec::with_capacity(nc + 1);
+    let mut total = 0;
+    for c in 0..nc {
+        start.push(total);
+        let m = (lev.ptr[c + 1] - lev.ptr[c]) * d;
+        total += m * m;
+    }
+    start.push(total);
+    let mut factor = vec![0.0; total];
+    let mut parts: Vec<&mut [f64]> = Vec::with_capacity(nc);
+    let mut rest: &mut [f64] = &mut factor;
+    for c in 0..nc {
+        let (a, b) = std::mem::take(&mut rest).split_at_mut(start[c + 1] - start[c]);
+        parts.push(a);
+        rest = b;
+    }
+    let dropped: usize = parts
+        .into_par_iter()
+        .enumerate()
+        .map(|(c, a)| {
+            let items = &lev.items[lev.ptr[c]..lev.ptr[c + 1]];
+            let m = items.len() * d;
+            let mut b = [0.0f64; 9];
+            for (p, &i) in items.iter().enumerate() {
+                let i = i as usize;
+                for k in lev.row_ptr[i]..lev.row_ptr[i + 1] {
+                    let j = lev.col_idx[k];
+                    if lev.of[j] as usize != c {
+                        continue;
+                    }
+                    let q = lev.pos[j] as usize;
+                    block(i, k, j, &mut b[..d * d]);
+                    for r in 0..d {
+                        for s in 0..d {
+                            a[(p * d + r) * m + q * d + s] = b[r * d + s];
+                        }
+                    }
+                }
+            }
+            let dropped = cholesky_dropping(m, a);
+            let inv = inverse_from_factor(m, a);
+            a.copy_from_slice(&inv);
+            dropped
+        })
+        .sum();
+    (Factors { start, factor }, dropped)
+}
+
+/// out = B⁺ src over a level's clusters: each cluster's items gathered into its own
+/// slice of a cluster-ordered copy and solved there, then scattered back.
+pub(super) fn solve_level(lev: &Level, d: usize, f: &Factors, src: &[f64], out: &mut [f64]) {
+    let mut tmp = vec![0.0; lev.n * d];
+    let parts = split_rows(&mut tmp, &lev.ptr, d);
+    parts
+        .into_par_iter()
+        .with_min_len(8)
+        .enumerate()
+        .for_each(|(c, x)| {
+            let items = &lev.items[lev.ptr[c]..lev.ptr[c + 1]];
+            let inv = &f.factor[f.start[c]..f.start[c + 1]];
+            let m = x.len();
+            x.iter_mut().for_each(|v| *v = 0.0);
+            // x = Σ_k inv[:, k] b_k (inv is symmetric: its rows are its columns), in a
+            // fixed order, column by column: each step is a streaming, vectorised axpy.
+            for (p, &i) in items.iter().enumerate() {
+                let i = i as usize;
+                for a in 0..d {
+                    let bk = src[i * d + a];
+                    let col = &inv[(p * d + a) * m..(p * d + a + 1) * m];
+                    for (xv, cv) in x.iter_mut().zip(col) {
+                        *xv += cv * bk;
+                    }
+                }
+            }
+        });
+    out.par_chunks_mut(d)
+        .with_min_len(256)
+        .enumerate()
+        .for_each(|(i, o)| {
+            let at = (lev.ptr[lev.of[i] as usize] + lev.pos[i] as usize) * d;
+            o.copy_from_slice(&tmp[at..at + d]);
+        });
+}

@@ -1,0 +1,354 @@
+//! The multilevel preconditioner of the CPU CG: one symmetric V-cycle over a hierarchy of
+//! node clusters.
+//!
+//! Level 0 groups the nodes into clusters of about [`CLUSTER_NODES`] (a METIS k-way
+//! partition of H's node graph, `partition`); each cluster's dense block of Ĥ (in the
+//! node frames, constrained components masked) is inverted. Level l + 1 groups level l's
+//! clusters the same way on the graph of the level-l matrix, until one cluster is left.
+//! Level 1's unknowns are the d translations of each level-0 cluster, interpolated by the
+//! smoothed prolongation P = (I − ω D⁻¹Ĥ) T (`smoothed`: T puts a cluster's world
+//! translation into each of its nodes' frames); deeper levels sum their children's
+//! translations. Each level's matrix is the Galerkin product A_{l+1} = P_lᵀ A_l P_l.
+//!
+//! One application z = M⁻¹r is a V-cycle: z = ω B_0⁺ r (B_l: the cluster blocks of A_l),
+//! the residual restricted to level 1 and corrected there recursively, then
+//! z += ω B_0⁺ (r − Ĥz); the coarsest level is solved. Pre- and post-smoothing are the
+//! same symmetric step, so M⁻¹ is symmetric, and positive definite while
+//! ω λmax(B_l⁺A_l) < 2: ω_l comes from a power estimate of that λmax ([`OMEGA_MAX`]).
+//!
+//! Why this design (BENCHMARKS.md, "The multilevel preconditioner", has the numbers): on
+//! the twist systems the additive sum of the levels' block inverses (MAS) took about
+//! 2.5× the V-cycle's iterations, and a piecewise-constant level 1 grew 1.6× in
+//! iterations per Newton iteration from 3,321 to 75,625 nodes where the smoothed one
+//! grows far less.
+//!
+//! The partition ([`Hierarchy`]) depends on H's pattern only and is built once per mesh;
+//! the inverses and matrices ([`Multilevel`]) are rebuilt for every system. Every sum runs
+//! in a fixed order over a fixed partition, so the bits do not depend on the thread
+//! count.
+//!
+//! The block factorisation drops a pivot at or below [`PIVOT_DROP`] times the largest
+//! diagonal entry of its block (with its column): a coarse block is singular when its
+//! translations are constrained (a pinned cluster, or slip nodes sharing a normal), and
+//! the dropped pivots are exactly those directions, on which the restricted residual
+//! vanishes. A negative pivot (Ĥ indefinite there) is dropped too, so the smoother stays
+//! semidefinite and CG itself reports the negative curvature.
+
+use crate::core::elimination::Eliminated;
+use crate::core::sparse::BlockCsr;
+use rayon::prelude::*;
+
+mod dense;
+mod level;
+mod partition;
+mod smoothed;
+use dense::block9;
+pub use dense::PIVOT_DROP;
+pub use dense::{cholesky_dropping, inverse_from_factor};
+pub use level::LAMBDA_STEPS;
+use level::{
+    block_matvec, factor_level, frame_values, galerkin, power_estimate, solve_level, Factors, Level,
+};
+use partition::partition;
+pub use partition::CLUSTER_NODES;
+use smoothed::{smoothed_p, SmoothPattern};
+
+/// The clusters of every level, from H's block pattern alone.
+#[derive(Debug, Clone)]
+pub struct Hierarchy {
+    n: usize,
+    /// Level l partitions level l's items; the last level has a single cluster.
+    levels: Vec<Level>,
+    /// The smoothed prolongation's patterns from the nodes to level 1 (None: the
+    /// tentative one, or a single level).
+    smooth: Option<SmoothPattern>,
+}
+
+impl Hierarchy {
+    /// Partitions the node graph of `h`'s pattern (both triangles stored) and every
+    /// coarser level's graph.
+    pub fn new(h: &BlockCsr) -> Self {
+        let mut levels = Vec::new();
+        let (mut row_ptr, mut col_idx) = (h.row_ptr.clone(), h.col_idx.clone());
+        let mut n = h.n;
+        let mut smooth = None;
+        loop {
+            let of = partition(n, &row_ptr, &col_idx);
+            let mut level = Level::new(n, of, row_ptr, col_idx);
+            let single = level.clusters() <= 1;
+            if levels.is_empty() && !single {
+                let sp =
+                    SmoothPattern::new(&level.row_ptr, &level.col_idx, &level.of, level.clusters());
+                level.next_row_ptr = sp.a_ptr.clone();
+                level.next_col_idx = sp.a_col.clone();
+                smooth = Some(sp);
+            }
+            n = level.clusters();
+            row_ptr = level.next_row_ptr.clone();
+            col_idx = level.next_col_idx.clone();
+            levels.push(level);
+            if single {
+                break;
+            }
+        }
+        Hierarchy {
+            n: h.n,
+            levels,
+            smooth,
+        }
+    }
+
+    /// Whether this hierarchy was built for `h`'s node count.
+    pub fn fits(&self, h: &BlockCsr) -> bool {
+        self.n == h.n && self.levels[0].row_ptr == h.row_ptr && self.levels[0].col_idx == h.col_idx
+    }
+
+    /// Clusters per level, finest first.
+    pub fn cluster_counts(&self) -> Vec<usize> {
+        self.levels.iter().map(Level::clusters).collect()
+    }
+}
+
+/// The smoother's damping is ω_l = min([`OMEGA_MAX`], [`OMEGA_LAMBDA`] / λ̂_l): the V-cycle
+/// is SPD when ω_l λmax(B_l⁺A_l) < 2, and the estimate λ̂_l (a lower bound, from
+/// [`LAMBDA_STEPS`] power steps) keeps ω_l λmax near 1.3. On the twist systems λ̂ ≈ 2
+/// at every level, so ω = 2/3.
+pub const OMEGA_MAX: f64 = 2.0 / 3.0;
+/// See [`OMEGA_MAX`].
+pub const OMEGA_LAMBDA: f64 = 1.3;
+
+/// The preconditioner of one system: the factors and matrices of every level.
+#[derive(Debug, Clone)]
+pub struct Multilevel {
+    dim: usize,
+    hierarchy: std::sync::Arc<Hierarchy>,
+    factors: Vec<Factors>,
+    /// Each level's matrix values (level 0: Ĥ's blocks in the node frames), on the
+    /// level's pattern.
+    values: Vec<Vec<f64>>,
+    /// The smoother's damping per level.
+    omega: Vec<f64>,
+    /// The smoothed prolongation's values on `hierarchy.smooth`'s pattern, and its ω.
+    p: Vec<f64>,
+    /// P's blocks transposed, in the restriction's order.
+    pt: Vec<f64>,
+    p_omega: f64,
+    /// Pivots dropped, all levels together.
+    dropped: usize,
+}
+
+impl Multilevel {
+    /// Factors every level of `hierarchy` (built for `e.h`'s pattern) on the system `e`.
+    pub fn new(e: &Eliminated, hierarchy: std::sync::Arc<Hierarchy>) -> Self {
+        let d = e.h.dim;
+        let nl = hierarchy.levels.len();
+        let mut values = Vec::with_capacity(nl);
+        values.push(frame_values(e));
+        let mut p = Vec::new();
+        let mut p_omega = 0.0;
+        for l in 0..nl - 1 {
+            let lev = &hierarchy.levels[l];
+            let next = if let (0, Some(sp)) = (l, hierarchy.smooth.as_ref()) {
+                // A_1 = Pᵀ Ĥ P with the smoothed prolongation.
+                let (pv, wp) = smoothed_p(e, lev, sp, &values[0]);
+                p_omega = wp;
+                let a0 = &values[0];
+                let hb = |k: usize| block9(d, &a0[k * d * d..(k + 1) * d * d]);
+                let a1 = sp.galerkin(d, &lev.row_ptr, &lev.col_idx, &pv, &hb);
+                p = pv;
+                a1
+            } else {
+                // Deeper levels: the sum of the children's blocks (piecewise constant).
+                let a = &values[l];
+                galerkin(lev, d, |_, k, _, out| {
+                    out.copy_from_slice(&a[k * d * d..(k + 1) * d * d]);
+                })
+            };
+            values.push(next);
+        }
+        let mut factors = Vec::with_capacity(nl);
+        let mut dropped = 0;
+        for (lev, a) in hierarchy.levels.iter().zip(&values) {
+            let (fac, drop) = factor_level(lev, d, |_, k, _, out| {
+                out.copy_from_slice(&a[k * d * d..(k + 1) * d * d]);
+            });
+            factors.push(fac);
+            dropped += drop;
+        }
+        let pt = hierarchy
+            .smooth
+            .as_ref()
+            .map_or_else(Vec::new, |sp| sp.transpose(d, &p));
+        let mut ml = Multilevel {
+            dim: d,
+            hierarchy,
+            factors,
+            values,
+            pt,
+            p,
+            p_omega,
+            omega: Vec::new(),
+            dropped,
+        };
+        ml.omega = (0..nl)
+            .map(|l| {
+                let lam = ml.lambda_max(l, LAMBDA_STEPS);
+                if lam > 0.0 && lam.is_finite() {
+                    OMEGA_MAX.min(OMEGA_LAMBDA / lam)
+                } else {
+                    OMEGA_MAX
+                }
+            })
+            .collect();
+        ml
+    }
+
+    /// The damping ω of the smoothed prolongation (0 without one).
+    pub fn prolongation_omega(&self) -> f64 {
+        self.p_omega
+    }
+
+    /// Pivots dropped (singular or indefinite directions), all levels together.
+    pub fn dropped_pivots(&self) -> usize {
+        self.dropped
+    }
+
+    /// The smoother's damping per level, finest first (the coarsest is solved, not
+    /// smoothed).
+    pub fn omega(&self) -> &[f64] {
+        &self.omega
+    }
+
+    /// Power-iteration estimate of λmax(B_l⁺A_l) after `steps` products (a lower bound).
+    pub fn lambda_max(&self, l: usize, steps: usize) -> f64 {
+        let d = self.dim;
+        let lev = &self.hierarchy.levels[l];
+        power_estimate(lev.n * d, steps, |x, ax, y| {
+            block_matvec(d, lev, &self.values[l], x, ax);
+            solve_level(lev, d, &self.factors[l], ax, y);
+        })
+    }
+
+    /// z = M⁻¹ r: one symmetric V-cycle from zero.
+    pub fn apply(&self, r: &[f64], z: &mut [f64]) {
+        self.vcycle(0, r, z);
+    }
+
+    /// x = one symmetric V-cycle on level l for the right-hand side b: smooth
+    /// (x = ω B⁺b), correct from the level below with the restricted residual, smooth
+    /// again; the coarsest level is solved with its single cluster.
+    fn vcycle(&self, l: usize, b: &[f64], x: &mut [f64]) {
+        let d = self.dim;
+        let lev = &self.hierarchy.levels[l];
+        solve_level(lev, d, &self.factors[l], b, x);
+        if l + 1 == self.hierarchy.levels.len() {
+            return;
+        }
+        let omega = self.omega[l];
+        x.par_iter_mut().for_each(|v| *v *= omega);
+        let mut res = vec![0.0; b.len()];
+        self.residual(l, b, x, &mut res);
+        let mut bc = vec![0.0; lev.clusters() * d];
+        // Restrict: level 1 through Pᵀ, deeper levels sum their children.
+        let smooth = if l == 0 {
+            self.hierarchy.smooth.as_ref()
+        } else {
+            None
+        };
+        match smooth {
+            Some(sp) => sp.restrict(d, &self.pt, &res, &mut bc),
+            None => bc.par_chunks_mut(d).enumerate().for_each(|(c, o)| {
+                for &i in &lev.items[lev.ptr[c]..lev.ptr[c + 1]] {
+                    let v = &res[i as usize * d..i as usize * d + d];
+                    o.iter_mut().zip(v).for_each(|(o, v)| *o += v);
+                }
+            }),
+        }
+        let mut xc = vec![0.0; bc.len()];
+        self.vcycle(l + 1, &bc, &mut xc);
+        match smooth {
+            Some(sp) => sp.prolong_add(d, &self.p, &xc, x),
+            None => x.par_chunks_mut(d).enumerate().for_each(|(i, xi)| {
+                let c = lev.of[i] as usize;
+                let t = &xc[c * d..c * d + d];
+                xi.iter_mut().zip(t).for_each(|(x, t)| *x += t);
+            }),
+        }
+        self.residual(l, b, x, &mut res);
+        let mut s = xc;
+        s.clear();
+        s.resize(b.len(), 0.0);
+        solve_level(lev, d, &self.factors[l], &res, &mut s);
+        x.par_iter_mut()
+            .zip(&s)
+            .for_each(|(xi, si)| *xi += omega * si);
+    }
+
+    /// res = b − A_l x.
+    fn residual(&self, l: usize, b: &[f64], x: &[f64], res: &mut [f64]) {
+        let lev = &self.hierarchy.levels[l];
+        block_matvec(self.dim, lev, &self.values[l], x, res);
+        res.par_iter_mut().zip(b).for_each(|(r, bi)| *r = bi - *r);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cases::generate::{random_system, SystemSpec};
+    use crate::core::elimination::ConstrainedDiagonal;
+
+    #[test]
+    fn the_preconditioner_is_symmetric_and_positive_definite() {
+        for (dim, nodes, seed) in [(3, 900, 3u64), (2, 1500, 4)] {
+            let s = random_system(&SystemSpec::with_nodes(dim, nodes, seed));
+            let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Hessian);
+            let hier = std::sync::Arc::new(Hierarchy::new(&s.h));
+            assert!(
+                hier.cluster_counts().len() >= 2,
+                "{:?}",
+                hier.cluster_counts()
+            );
+            assert_eq!(*hier.cluster_counts().last().unwrap(), 1);
+            let m = Multilevel::new(&e, hier);
+            let n = e.ndof();
+            let x: Vec<f64> = (0..n).map(|k| ((k * 7919) % 23) as f64 - 11.0).collect();
+            let y: Vec<f64> = (0..n).map(|k| ((k * 104729) % 17) as f64 - 8.0).collect();
+            let (mut mx, mut my) = (vec![0.0; n], vec![0.0; n]);
+            m.apply(&x, &mut mx);
+            m.apply(&y, &mut my);
+            let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(u, v)| u * v).sum::<f64>();
+            let (a, b) = (dot(&y, &mx), dot(&x, &my));
+            // Both sides sum the same products in different orders: a few ulps of the
+            // magnitudes summed.
+            let mag: f64 = y.iter().zip(&mx).map(|(u, v)| (u * v).abs()).sum();
+            assert!((a - b).abs() <= 1e-12 * mag, "{a} vs {b}");
+            assert!(dot(&x, &mx) > 0.0 && dot(&y, &my) > 0.0);
+        }
+    }
+
+    #[test]
+    fn a_singular_block_drops_its_null_direction() {
+        // [[4, 2], [2, 1]] has the null vector (1, −2): one pivot dropped, and the
+        // pseudo-inverse solves a right-hand side in its range.
+        let mut a = vec![4.0, 2.0, 2.0, 1.0];
+        assert_eq!(cholesky_dropping(2, &mut a), 1);
+        let inv = inverse_from_factor(2, &a);
+        let x = [inv[0] * 2.0 + inv[1], inv[2] * 2.0 + inv[3]];
+        assert!((4.0 * x[0] + 2.0 * x[1] - 2.0).abs() < 1e-15);
+        assert!((2.0 * x[0] + x[1] - 1.0).abs() < 1e-15);
+        // An SPD block keeps every pivot and inverts exactly enough.
+        let mut b = vec![4.0, 1.0, 1.0, 3.0];
+        assert_eq!(cholesky_dropping(2, &mut b), 0);
+        let inv = inverse_from_factor(2, &b);
+        let id = [
+            4.0 * inv[0] + inv[2],
+            4.0 * inv[1] + inv[3],
+            inv[0] + 3.0 * inv[2],
+            inv[1] + 3.0 * inv[3],
+        ];
+        for (v, e) in id.iter().zip([1.0, 0.0, 0.0, 1.0]) {
+            assert!((v - e).abs() < 1e-15, "{id:?}");
+        }
+    }
+}

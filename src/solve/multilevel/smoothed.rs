@@ -1,0 +1,359 @@
+//! The smoothed prolongation from the nodes to level 1: P = (I − ω D⁻¹Ĥ) T, T the
+//! tentative prolongation (a cluster's world translation seen in each of its nodes'
+//! frames, T_i = P_i V_iᵀ) and D the node blocks of Ĥ. A piecewise-constant T alone
+//! interpolates smooth modes with an energy that grows as the mesh is refined, and the
+//! V-cycle's iterations with it; one Jacobi smoothing step of T is smoothed aggregation's
+//! answer. Level 1's matrix is then the Galerkin product A_1 = Pᵀ Ĥ P = Pᵀ Q, Q = Ĥ P.
+//!
+//! The patterns of P, Q and A_1 depend on H's pattern and the clusters only
+//! ([`SmoothPattern`], once per mesh); the values are rebuilt for every system.
+
+use super::dense::{block9, cholesky_dropping, inverse_from_factor};
+use super::level::{block_matvec, group, power_estimate, Level, LAMBDA_STEPS};
+use crate::core::elimination::Eliminated;
+use rayon::prelude::*;
+
+/// Block patterns (CSR over rows, sorted columns) of P (nodes × clusters), Q = Ĥ P (nodes ×
+/// clusters) and A_1 = Pᵀ Q (clusters × clusters), and Pᵀ's lists.
+#[derive(Debug, Clone)]
+pub(super) struct SmoothPattern {
+    pub p_ptr: Vec<usize>,
+    pub p_col: Vec<u32>,
+    pub q_ptr: Vec<usize>,
+    pub q_col: Vec<u32>,
+    /// For cluster c: the P blocks in its column, as (row i, block index in P), by i.
+    pub pt_ptr: Vec<usize>,
+    pub pt: Vec<(u32, u32)>,
+    pub a_ptr: Vec<usize>,
+    pub a_col: Vec<usize>,
+}
+
+/// Sorted unique values of an iterator into `out` (cleared first).
+fn unique(out: &mut Vec<u32>, it: impl Iterator<Item = u32>) {
+    out.clear();
+    out.extend(it);
+    out.sort_unstable();
+    out.dedup();
+}
+
+impl SmoothPattern {
+    /// From H's pattern (both triangles) and each node's cluster (`nc` clusters).
+    pub fn new(row_ptr: &[usize], col_idx: &[usize], of: &[u32], nc: usize) -> Self {
+        let n = of.len();
+        let mut tmp = Vec::new();
+        let (mut p_ptr, mut p_col) = (vec![0usize], Vec::new());
+        for i in 0..n {
+            unique(
+                &mut tmp,
+                col_idx[row_ptr[i]..row_ptr[i + 1]].iter().map(|&j| of[j]),
+            );
+            p_col.extend_from_slice(&tmp);
+            p_ptr.push(p_col.len());
+        }
+        let (mut q_ptr, mut q_col) = (vec![0usize], Vec::new());
+        for i in 0..n {
+            unique(
+                &mut tmp,
+                col_idx[row_ptr[i]..row_ptr[i + 1]]
+                    .iter()
+                    .flat_map(|&j| p_col[p_ptr[j]..p_ptr[j + 1]].iter().copied()),
+            );
+            q_col.extend_from_slice(&tmp);
+            q_ptr.push(q_col.len());
+        }
+        // Pᵀ: each cluster's blocks, by row (blocks are stored row by row).
+        let mut row = vec![0u32; p_col.len()];
+        for i in 0..n {
+            row[p_ptr[i]..p_ptr[i + 1]].fill(i as u32);
+        }
+        let (pt_ptr, blocks) = group(&p_col, nc);
+        let pt: Vec<(u32, u32)> = blocks.iter().map(|&k| (row[k as usize], k)).collect();
+        let (mut a_ptr, mut a_col) = (vec![0usize], Vec::new());
+        for c in 0..nc {
+            unique(
+                &mut tmp,
+                pt[pt_ptr[c]..pt_ptr[c + 1]].iter().flat_map(|&(i, _)| {
+                    let i = i as usize;
+                    q_col[q_ptr[i]..q_ptr[i + 1]].iter().copied()
+                }),
+            );
+            a_col.extend(tmp.iter().map(|&c| c as usize));
+            a_ptr.push(a_col.len());
+        }
+        SmoothPattern {
+            p_ptr,
+            p_col,
+            q_ptr,
+            q_col,
+            pt_ptr,
+            pt,
+            a_ptr,
+            a_col,
+        }
+    }
+
+    /// P's values: row i's blocks (d×d, row-major) δ_{c,c(i)} T_i − ω Σ_{j: c(j)=c} S_ij T_j
+    /// with S_ij = D_i⁻¹ Ĥ_ij; `hblock(k)` is Ĥ's stored block k (in the node frames),
+    /// `dinv(i)` is D_i⁻¹ and `t(i)` is T_i.
+    #[allow(clippy::too_many_arguments)]
+    pub fn p_values(
+        &self,
+        d: usize,
+        row_ptr: &[usize],
+        col_idx: &[usize],
+        of: &[u32],
+        omega: f64,
+        hblock: &(dyn Fn(usize) -> [f64; 9] + Sync),
+        dinv: &(dyn Fn(usize) -> [f64; 9] + Sync),
+        t: &(dyn Fn(usize) -> [f64; 9] + Sync),
+    ) -> Vec<f64> {
+        let dd = d * d;
+        let n = of.len();
+        let rows: Vec<Vec<f64>> = (0..n)
+            .into_par_iter()
+            .with_min_len(64)
+            .map(|i| {
+                let cols = &self.p_col[self.p_ptr[i]..self.p_ptr[i + 1]];
+                let mut v = vec![0.0; cols.len() * dd];
+                let di = dinv(i);
+                for (k, &j) in col_idx
+                    .iter()
+                    .enumerate()
+                    .take(row_ptr[i + 1])
+                    .skip(row_ptr[i])
+                {
+                    // S_ij T_j = D_i⁻¹ (Ĥ_ij T_j)
+                    let ht = mul(d, &hblock(k), &t(j));
+                    let st = mul(d, &di, &ht);
+                    let s = cols.binary_search(&of[j]).unwrap_or(0) * dd;
+                    for (o, x) in v[s..s + dd].iter_mut().zip(&st[..dd]) {
+                        *o -= omega * x;
+                    }
+                }
+                let s = cols.binary_search(&of[i]).unwrap_or(0) * dd;
+                let ti = t(i);
+                for (o, x) in v[s..s + dd].iter_mut().zip(&ti[..dd]) {
+                    *o += x;
+                }
+                v
+            })
+            .collect();
+        rows.concat()
+    }
+
+    /// A_1 = Pᵀ (Ĥ P) on `a_ptr`/`a_col`, summed in a fixed order (row c: its P blocks by
+    /// node, each node's Q row by column).
+    pub fn galerkin(
+        &self,
+        d: usize,
+        row_ptr: &[usize],
+        col_idx: &[usize],
+        p: &[f64],
+        hblock: &(dyn Fn(usize) -> [f64; 9] + Sync),
+    ) -> Vec<f64> {
+        let dd = d * d;
+        let n = self.p_ptr.len() - 1;
+        // Q = Ĥ P, row by row.
+        let q_rows: Vec<Vec<f64>> = (0..n)
+            .into_par_iter()
+            .with_min_len(64)
+            .map(|i| {
+                let cols = &self.q_col[self.q_ptr[i]..self.q_ptr[i + 1]];
+                let mut v = vec![0.0; cols.len() * dd];
+                for (k, &j) in col_idx
+                    .iter()
+                    .enumerate()
+                    .take(row_ptr[i + 1])
+                    .skip(row_ptr[i])
+                {
+                    let h = hblock(k);
+                    for pk in self.p_ptr[j]..self.p_ptr[j + 1] {
+                        let m = mul(
+                            d,
+                            &h,
+                            p[pk * dd..(pk + 1) * dd].try_into().unwrap_or(&[0.0; 9]),
+                        );
+                        let s = cols.binary_search(&self.p_col[pk]).unwrap_or(0) * dd;
+                        for (o, x) in v[s..s + dd].iter_mut().zip(&m[..dd]) {
+                            *o += x;
+                        }
+                    }
+                }
+                v
+            })
+            .collect();
+        let q = q_rows.concat();
+        let nc = self.a_ptr.len() - 1;
+        let rows: Vec<Vec<f64>> = (0..nc)
+            .into_par_iter()
+            .map(|c| {
+                let cols = &self.a_col[self.a_ptr[c]..self.a_ptr[c + 1]];
+                let mut v = vec![0.0; cols.len() * dd];
+                for &(i, pk) in &self.pt[self.pt_ptr[c]..self.pt_ptr[c + 1]] {
+                    let (i, pk) = (i as usize, pk as usize);
+                    let pb = &p[pk * dd..(pk + 1) * dd];
+                    for qk in self.q_ptr[i]..self.q_ptr[i + 1] {
+                        let qb = &q[qk * dd..(qk + 1) * dd];
+                        let s = cols.binary_search(&(self.q_col[qk] as usize)).unwrap_or(0) * dd;
+                        // Pᵀ block times Q block.
+                        for r in 0..d {
+                            for cc in 0..d {
+                                let mut acc = 0.0;
+                                for k in 0..d {
+                                    acc += pb[k * d + r] * qb[k * d + cc];
+                                }
+                                v[s + r * d + cc] += acc;
+                            }
+                        }
+                    }
+                }
+                v
+            })
+            .collect();
+        rows.concat()
+    }
+
+    /// P's blocks in `pt`'s order (cluster by cluster), each transposed: what the
+    /// restriction reads, in the order it reads it.
+    pub fn transpose(&self, d: usize, p: &[f64]) -> Vec<f64> {
+        let dd = d * d;
+        let mut out = vec![0.0; p.len()];
+        out.par_chunks_mut(dd)
+            .zip(self.pt.par_iter())
+            .for_each(|(o, &(_, pk))| {
+                let b = &p[pk as usize * dd..(pk as usize + 1) * dd];
+                for r in 0..d {
+                    for c in 0..d {
+                        o[r * d + c] = b[c * d + r];
+                    }
+                }
+            });
+        out
+    }
+
+    /// out_c = Σ_i P_icᵀ r_i (d values per cluster), `pt_values` from [`Self::transpose`].
+    pub fn restrict(&self, d: usize, pt_values: &[f64], r: &[f64], out: &mut [f64]) {
+        let dd = d * d;
+        out.par_chunks_mut(d).enumerate().for_each(|(c, o)| {
+            o.iter_mut().for_each(|v| *v = 0.0);
+            for t in self.pt_ptr[c]..self.pt_ptr[c + 1] {
+                let i = self.pt[t].0 as usize;
+                let pb = &pt_values[t * dd..(t + 1) * dd];
+                for a in 0..d {
+                    let mut s = 0.0;
+                    for k in 0..d {
+                        s += pb[a * d + k] * r[i * d + k];
+                    }
+                    o[a] += s;
+                }
+            }
+        });
+    }
+
+    /// z_i += Σ_c P_ic x_c.
+    pub fn prolong_add(&self, d: usize, p: &[f64], x: &[f64], z: &mut [f64]) {
+        let dd = d * d;
+        z.par_chunks_mut(d)
+            .with_min_len(64)
+            .enumerate()
+            .for_each(|(i, zi)| {
+                for pk in self.p_ptr[i]..self.p_ptr[i + 1] {
+                    let c = self.p_col[pk] as usize;
+                    let pb = &p[pk * dd..(pk + 1) * dd];
+                    for a in 0..d {
+                        let mut s = 0.0;
+                        for k in 0..d {
+                            s += pb[a * d + k] * x[c * d + k];
+                        }
+                        zi[a] += s;
+                    }
+                }
+            });
+    }
+}
+
+/// The smoothed prolongation's values and its ω = 4 / (3 λ̂), λ̂ a power estimate of
+/// λmax(D⁻¹Ĥ) with D the node blocks of Ĥ (`a0`: Ĥ's blocks in the node frames).
+pub(super) fn smoothed_p(
+    e: &Eliminated,
+    lev: &Level,
+    sp: &SmoothPattern,
+    a0: &[f64],
+) -> (Vec<f64>, f64) {
+    let d = e.h.dim;
+    let dd = d * d;
+    let n = e.h.n;
+    let f = e.frames;
+    // D_i⁻¹ (the diagonal's inverse where the block is not SPD).
+    let dinv: Vec<[f64; 9]> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let b = match e.h.diag_index(i) {
+                Some(k) => block9(d, &a0[k * dd..(k + 1) * dd]),
+                None => [0.0; 9],
+            };
+            let mut l = b;
+            let mut o = [0.0; 9];
+            if cholesky_dropping(d, &mut l[..dd]) == 0 {
+                o[..dd].copy_from_slice(&inverse_from_factor(d, &l[..dd]));
+            } else {
+                for a in 0..d {
+                    let v = b[a * d + a];
+                    o[a * d + a] = if v > 0.0 { 1.0 / v } else { 1.0 };
+                }
+            }
+            o
+        })
+        .collect();
+    // λmax(D⁻¹Ĥ) by a few power steps.
+    let lam = power_estimate(n * d, LAMBDA_STEPS, |x, ax, y| {
+        block_matvec(d, lev, a0, x, ax);
+        y.par_chunks_mut(d).enumerate().for_each(|(i, yi)| {
+            for r in 0..d {
+                yi[r] = (0..d).map(|c| dinv[i][r * d + c] * ax[i * d + c]).sum();
+            }
+        });
+    });
+    let omega = if lam > 0.0 && lam.is_finite() {
+        4.0 / (3.0 * lam)
+    } else {
+        0.0
+    };
+    let t = |i: usize| {
+        // T_i = P_i V_iᵀ: row a is column a of V_i (zero where a is constrained).
+        let mut o = [0.0; 9];
+        let m = f.mask[i];
+        let v = f.rotation(i);
+        for a in 0..d {
+            if m & (1 << a) != 0 {
+                continue;
+            }
+            for b in 0..d {
+                o[a * d + b] = match v {
+                    None => f64::from(u8::from(a == b)),
+                    Some(v) => v[b * d + a],
+                };
+            }
+        }
+        o
+    };
+    let hb = |k: usize| block9(d, &a0[k * dd..(k + 1) * dd]);
+    let di = |i: usize| dinv[i];
+    let p = sp.p_values(d, &lev.row_ptr, &lev.col_idx, &lev.of, omega, &hb, &di, &t);
+    (p, omega)
+}
+
+/// a·b for d×d row-major blocks (in the first d² of 9).
+fn mul(d: usize, a: &[f64; 9], b: &[f64; 9]) -> [f64; 9] {
+    let mut o = [0.0f64; 9];
+    for r in 0..d {
+        for c in 0..d {
+            let mut s = 0.0;
+            for k in 0..d {
+                s += a[r * d + k] * b[k * d + c];
+            }
+            o[r * d + c] = s;
+        }
+    }
+    o
+}
