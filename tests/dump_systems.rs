@@ -177,8 +177,16 @@ fn bench_times_every_solver_on_the_dumped_systems() {
     )
     .expect("json");
     let records = json["records"].as_array().expect("records");
-    // Cholesky and 2 preconditioners × 3 coarse spaces per system.
-    assert_eq!(records.len(), 7 * systems, "{json}");
+    // Cholesky, 2 preconditioners × 3 coarse spaces and the multilevel CG per system.
+    assert_eq!(records.len(), 8 * systems, "{json}");
+    assert_eq!(
+        records
+            .iter()
+            .filter(|r| r["solver"] == "cg multilevel")
+            .count(),
+        systems,
+        "{json}"
+    );
     for r in records {
         assert!(r["error"].is_null(), "{r}");
         let res = r["relative_residual"].as_f64().expect("residual");

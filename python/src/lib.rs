@@ -295,14 +295,6 @@ fn parse<T: std::str::FromStr<Err = String>>(entry: &str, s: &str) -> PyResult<T
         .map_err(|e: String| input("solver config", entry, e))
 }
 
-fn preconditioner_name(p: Preconditioner) -> &'static str {
-    match p {
-        Preconditioner::None => "none",
-        Preconditioner::Jacobi => "jacobi",
-        Preconditioner::BlockJacobi => "block-jacobi",
-    }
-}
-
 fn diagonal_name(d: ConstrainedDiagonal) -> &'static str {
     match d {
         ConstrainedDiagonal::Identity => "identity",
@@ -504,7 +496,7 @@ impl Engine {
             }
             SolveDetails::Cg(c) => {
                 info["cg"] = json!({
-                    "preconditioner": preconditioner_name(self.preconditioner),
+                    "preconditioner": self.preconditioner.name(),
                     "coarse": self.coarse.name(),
                     "tol": self.tol,
                     "max_iters": self.max_iters,

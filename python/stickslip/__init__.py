@@ -99,7 +99,8 @@ class Solver:
         tol: CG stops at ‖b̂ − Ĥy‖/‖b̂‖ ≤ tol (the true residual, recomputed in f64);
             in (0, 1).
         max_iters: CG iteration limit (all restarts together), ≥ 1.
-        preconditioner: ``"jacobi"``, ``"block-jacobi"`` or ``"none"``.
+        preconditioner: ``"jacobi"``, ``"block-jacobi"``, ``"none"`` or ``"multilevel"``
+            (``"cg"`` only).
         coarse: coarse correction added to the preconditioner: ``"aggregates"``,
             ``"translations"`` or ``"none"``.
         error_tol: mixed precision only: after ``tol``, refine until the estimated

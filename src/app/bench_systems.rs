@@ -93,14 +93,10 @@ fn solvers(no_gpu: bool) -> Vec<(String, SolverConfig)> {
             ));
         }
     }
-    for c in [CoarseSpace::None, CoarseSpace::Aggregates] {
-        v.push((
-            format!("cg multilevel {}", c.name()),
-            SolverConfig::cg()
-                .preconditioner(Preconditioner::Multilevel)
-                .coarse(c),
-        ));
-    }
+    v.push((
+        "cg multilevel".to_string(),
+        SolverConfig::cg().preconditioner(Preconditioner::Multilevel),
+    ));
     if !no_gpu {
         v.push((
             "gpu f64 jacobi aggregates".into(),

@@ -353,6 +353,8 @@ impl GpuContext {
     /// `bytes` padded to a 16-byte multiple (at least 16): the size of a storage buffer
     /// bound whole, or the error naming `label` where that exceeds the adapter's buffer or
     /// storage binding limit.
+    // The device Newton loop's (feature `sim`) buffers are its only users.
+    #[cfg_attr(not(feature = "sim"), allow(dead_code))]
     pub(crate) fn binding_size(&self, label: &str, bytes: u64) -> Result<u64, GpuError> {
         let bytes = bytes.max(16).div_ceil(16) * 16;
         let l = &self.limits;
@@ -431,6 +433,7 @@ impl GpuContext {
     /// Copies `bytes` of `buf` from `offset` to the host (through a staging buffer), waits
     /// and counts the read-back. `offset` and `bytes` are rounded to whole 4-byte words
     /// for the copy; exactly `bytes` come back.
+    #[cfg_attr(not(feature = "sim"), allow(dead_code))]
     pub(crate) fn download(
         &self,
         buf: &wgpu::Buffer,

@@ -96,12 +96,18 @@ impl BuiltPreconditioner {
 
     /// Adds the coarse correction of `space` on `e` (nothing for [`CoarseSpace::None`], or
     /// when every translation is constrained). `node_scale`: e is an equilibrated SĤS.
+    /// The multilevel preconditioner has coarse levels of its own and takes none: added
+    /// to its V-cycle, the aggregates cost iterations (BENCHMARKS.md, "The multilevel
+    /// preconditioner").
     pub fn with_coarse(
         mut self,
         e: &Eliminated,
         space: CoarseSpace,
         node_scale: Option<&[f64]>,
     ) -> Self {
+        if self.kind == Preconditioner::Multilevel {
+            return self;
+        }
         self.coarse = match space {
             CoarseSpace::None => None,
             CoarseSpace::Translations => {
