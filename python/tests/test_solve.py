@@ -157,3 +157,17 @@ def test_no_constraints():
         sol = stickslip.solve(H, g, cs)
         assert rel(sol.dx, np.linalg.solve(H.toarray(), -g)) <= 1e-12
         assert np.abs(sol.reactions).max() <= 1e-12 * np.abs(g).max()
+
+
+@pytest.mark.parametrize("dim,n,seed,mass", SHAPES)
+def test_multilevel_cg_matches_the_dense_kkt_solve(dim, n, seed, mass):
+    # The same bound as Jacobi CG at tol 1e-12 (κ(Ĥ)·tol, see CASES): the preconditioner
+    # changes the path, not where CG stops.
+    H, g = random_system(dim, n, seed, mass)
+    cs = every_kind(dim, n, seed)
+    B, p = global_form(dim, n, cs)
+    dx_ref, _ = kkt(H, g, B, p)
+    sol = stickslip.solve(H, g, cs, dim=dim, solver="cg", preconditioner="multilevel", tol=1e-12)
+    assert rel(sol.dx, dx_ref) <= 1e-9
+    assert sol.info["relative_residual"] <= 1e-12
+    assert np.abs(B @ sol.dx - p).max() <= 1e-12

@@ -146,7 +146,7 @@ impl Level {
 
 /// One level's cluster inverses: cluster c's (L Lᵀ)⁺ (m×m with m = d·|c|, symmetric) at
 /// `factor[start[c]..]`. An explicit inverse applies as one dense product, which
-/// vectorises; the two triangular sweeps it replaces do not.
+/// vectorises (two triangular sweeps with the factor would not).
 #[derive(Debug, Clone)]
 pub(super) struct Factors {
     pub(super) start: Vec<usize>,

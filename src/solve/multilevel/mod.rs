@@ -59,8 +59,8 @@ pub struct Hierarchy {
     n: usize,
     /// Level l partitions level l's items; the last level has a single cluster.
     levels: Vec<Level>,
-    /// The smoothed prolongation's patterns from the nodes to level 1 (None: the
-    /// tentative one, or a single level).
+    /// The smoothed prolongation's patterns from the nodes to level 1 (None: a single
+    /// level).
     smooth: Option<SmoothPattern>,
 }
 
@@ -79,8 +79,11 @@ impl Hierarchy {
             if levels.is_empty() && !single {
                 let sp =
                     SmoothPattern::new(&level.row_ptr, &level.col_idx, &level.of, level.clusters());
+                // Level 1's matrix is PᵀĤP on A_1's pattern; the piecewise-constant
+                // slots of level 0 have no use.
                 level.next_row_ptr = sp.a_ptr.clone();
                 level.next_col_idx = sp.a_col.clone();
+                level.slot = Vec::new();
                 smooth = Some(sp);
             }
             n = level.clusters();
@@ -98,7 +101,7 @@ impl Hierarchy {
         }
     }
 
-    /// Whether this hierarchy was built for `h`'s node count.
+    /// Whether this hierarchy was built for `h`'s block pattern.
     pub fn fits(&self, h: &BlockCsr) -> bool {
         self.n == h.n && self.levels[0].row_ptr == h.row_ptr && self.levels[0].col_idx == h.col_idx
     }
