@@ -330,6 +330,52 @@ mod tests {
         }
     }
 
+    /// Level 1's matrix is PᵀĤP: each column, A_1 e_k, equals Pᵀ Ĥ (P e_k) formed with
+    /// the prolongation, the matrix-free Ĥ and the restriction, in 2D and 3D.
+    #[test]
+    fn level_one_is_the_galerkin_product_of_the_smoothed_prolongation() {
+        for (dim, nodes, seed) in [(2, 300, 7u64), (3, 200, 8)] {
+            let s = random_system(&SystemSpec::with_nodes(dim, nodes, seed));
+            let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Hessian);
+            let hier = std::sync::Arc::new(Hierarchy::new(&s.h));
+            let m = Multilevel::new(&e, hier.clone());
+            let sp = hier.smooth.as_ref().expect("two levels or more");
+            let (n, nc) = (e.ndof(), hier.levels[0].clusters() * dim);
+            let l1 = &hier.levels[1];
+            let a1 = &m.values[1];
+            let mut worst = 0.0f64;
+            let mut scale = 0.0f64;
+            let mut work = vec![0.0; 2 * n];
+            for k in 0..nc {
+                let mut ek = vec![0.0; nc];
+                ek[k] = 1.0;
+                let mut pk = vec![0.0; n];
+                sp.prolong_add(dim, &m.p, &ek, &mut pk);
+                let mut hp = vec![0.0; n];
+                e.apply(&pk, &mut hp, &mut work);
+                let mut col = vec![0.0; nc];
+                sp.restrict(dim, &m.pt, &hp, &mut col);
+                // Column k of A_1 from its stored blocks (row c, block column k / dim).
+                let (kc, kb) = (k / dim, k % dim);
+                for c in 0..l1.n {
+                    for t in l1.row_ptr[c]..l1.row_ptr[c + 1] {
+                        if l1.col_idx[t] != kc {
+                            continue;
+                        }
+                        for r in 0..dim {
+                            let stored = a1[t * dim * dim + r * dim + kb];
+                            worst = worst.max((stored - col[c * dim + r]).abs());
+                            scale = scale.max(stored.abs());
+                        }
+                    }
+                }
+            }
+            assert!(scale > 0.0, "{dim}D: A_1 is zero");
+            // Two orders of summing the same products: a few ulps of the largest entry.
+            assert!(worst <= 1e-12 * scale, "{dim}D: {worst:e} of {scale:e}");
+        }
+    }
+
     #[test]
     fn a_singular_block_drops_its_null_direction() {
         // [[4, 2], [2, 1]] has the null vector (1, −2): one pivot dropped, and the

@@ -168,11 +168,7 @@ impl SmoothPattern {
                 {
                     let h = hblock(k);
                     for pk in self.p_ptr[j]..self.p_ptr[j + 1] {
-                        let m = mul(
-                            d,
-                            &h,
-                            p[pk * dd..(pk + 1) * dd].try_into().unwrap_or(&[0.0; 9]),
-                        );
+                        let m = mul(d, &h, &block9(d, &p[pk * dd..(pk + 1) * dd]));
                         let s = cols.binary_search(&self.p_col[pk]).unwrap_or(0) * dd;
                         for (o, x) in v[s..s + dd].iter_mut().zip(&m[..dd]) {
                             *o += x;
