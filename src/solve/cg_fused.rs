@@ -77,8 +77,9 @@ pub(crate) struct Fused<'a> {
     /// Run the chunks on rayon's pool (else in order on this thread: the same bits).
     parallel: bool,
     coarse: Option<CoarseChunks<'a>>,
-    /// z = M⁻¹r of the last update, for a preconditioner that is not point-wise.
-    full: Option<Vec<f64>>,
+    /// z = M⁻¹r of the last update, for a preconditioner that is not point-wise, and the
+    /// V-cycle's vectors (kept for the whole solve).
+    full: Option<(Vec<f64>, crate::solve::multilevel::VcycleWork)>,
 }
 
 /// Node boundaries of chunks of about [`CHUNK_BLOCKS`] stored blocks (at least one row
@@ -176,7 +177,9 @@ impl<'a> Fused<'a> {
             bounds,
             constrained: e.frames.has_constraints(),
             coarse,
-            full: pre.multilevel_factors().map(|_| vec![0.0; h.ndof()]),
+            full: pre
+                .multilevel_factors()
+                .map(|m| (vec![0.0; h.ndof()], m.workspace())),
         }
     }
 
@@ -365,9 +368,9 @@ impl<'a> Fused<'a> {
             (ru, rr)
         });
         let rr = ordered_sum(parts.iter().map(|p| p.1));
-        if let (Some(z), Some(m)) = (self.full.as_mut(), self.pre.multilevel_factors()) {
+        if let (Some((z, work)), Some(m)) = (self.full.as_mut(), self.pre.multilevel_factors()) {
             let r: &[f64] = r;
-            m.apply(r, z);
+            m.apply_with(r, z, work);
             let z: &[f64] = z;
             let items: Vec<_> = self.bounds.windows(2).collect();
             let dots = map_chunks(self.parallel, items, |b| {
@@ -429,7 +432,7 @@ impl Fused<'_> {
         w: Option<&mut [f64]>,
     ) {
         let d = self.d;
-        let point = Point::of(self.pre, self.full.as_deref());
+        let point = Point::of(self.pre, self.full.as_ref().map(|(z, _)| &z[..]));
         let f = self.e.frames;
         let coarse = self.coarse.as_ref().map(|c| (c.coarse, &c.c[..]));
         let mut ws = w.map(|w| split(w, &self.bounds, d).into_iter());

@@ -326,9 +326,17 @@ pub(super) fn factor_level(
 
 /// out = B⁺ src over a level's clusters: each cluster's items gathered into its own
 /// slice of a cluster-ordered copy and solved there, then scattered back.
-pub(super) fn solve_level(lev: &Level, d: usize, f: &Factors, src: &[f64], out: &mut [f64]) {
-    let mut tmp = vec![0.0; lev.n * d];
-    let parts = split_rows(&mut tmp, &lev.ptr, d);
+/// `tmp` holds the cluster-ordered copy (resized to the level's length).
+pub(super) fn solve_level(
+    lev: &Level,
+    d: usize,
+    f: &Factors,
+    src: &[f64],
+    out: &mut [f64],
+    tmp: &mut Vec<f64>,
+) {
+    tmp.resize(lev.n * d, 0.0);
+    let parts = split_rows(tmp, &lev.ptr, d);
     parts
         .into_par_iter()
         .with_min_len(8)

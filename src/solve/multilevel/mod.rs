@@ -53,6 +53,24 @@ use partition::partition;
 pub use partition::CLUSTER_NODES;
 use smoothed::{smoothed_p, SmoothPattern};
 
+/// One level's vectors in a V-cycle.
+#[derive(Debug, Clone)]
+struct LevelWork {
+    /// The restricted right-hand side and the correction (levels below the finest).
+    b: Vec<f64>,
+    x: Vec<f64>,
+    /// The residual, the post-smoothing step and the cluster-ordered copy.
+    res: Vec<f64>,
+    s: Vec<f64>,
+    tmp: Vec<f64>,
+}
+
+/// The vectors of every level of a V-cycle ([`Multilevel::workspace`]).
+#[derive(Debug, Clone)]
+pub struct VcycleWork {
+    levels: Vec<LevelWork>,
+}
+
 /// The clusters of every level, from H's block pattern alone.
 #[derive(Debug, Clone)]
 pub struct Hierarchy {
@@ -226,32 +244,69 @@ impl Multilevel {
     pub fn lambda_max(&self, l: usize, steps: usize) -> f64 {
         let d = self.dim;
         let lev = &self.hierarchy.levels[l];
+        let mut tmp = Vec::new();
         power_estimate(lev.n * d, steps, |x, ax, y| {
             block_matvec(d, lev, &self.values[l], x, ax);
-            solve_level(lev, d, &self.factors[l], ax, y);
+            solve_level(lev, d, &self.factors[l], ax, y, &mut tmp);
         })
     }
 
-    /// z = M⁻¹ r: one symmetric V-cycle from zero.
+    /// The vectors of one V-cycle, every level's (reused across
+    /// [`Multilevel::apply_with`] calls: a CG iteration allocates nothing).
+    pub fn workspace(&self) -> VcycleWork {
+        VcycleWork {
+            levels: self
+                .hierarchy
+                .levels
+                .iter()
+                .map(|lev| {
+                    let n = lev.n * self.dim;
+                    LevelWork {
+                        b: vec![0.0; n],
+                        x: vec![0.0; n],
+                        res: vec![0.0; n],
+                        s: vec![0.0; n],
+                        tmp: vec![0.0; n],
+                    }
+                })
+                .collect(),
+        }
+    }
+
+    /// z = M⁻¹ r: one symmetric V-cycle from zero (with a workspace of its own).
     pub fn apply(&self, r: &[f64], z: &mut [f64]) {
-        self.vcycle(0, r, z);
+        let mut work = self.workspace();
+        self.apply_with(r, z, &mut work);
+    }
+
+    /// z = M⁻¹ r in `work` (from [`Multilevel::workspace`]).
+    pub fn apply_with(&self, r: &[f64], z: &mut [f64], work: &mut VcycleWork) {
+        self.vcycle(0, r, z, &mut work.levels);
     }
 
     /// x = one symmetric V-cycle on level l for the right-hand side b: smooth
     /// (x = ω B⁺b), correct from the level below with the restricted residual, smooth
     /// again; the coarsest level is solved with its single cluster.
-    fn vcycle(&self, l: usize, b: &[f64], x: &mut [f64]) {
+    /// `work[0]` is level l's (its `res`, `s`, `tmp`), `work[1]` the next level's (its
+    /// `b` and `x` receive the restricted residual and the correction).
+    fn vcycle(&self, l: usize, b: &[f64], x: &mut [f64], work: &mut [LevelWork]) {
         let d = self.dim;
         let lev = &self.hierarchy.levels[l];
-        solve_level(lev, d, &self.factors[l], b, x);
-        if l + 1 == self.hierarchy.levels.len() {
+        let Some((w, below)) = work.split_first_mut() else {
             return;
-        }
+        };
+        solve_level(lev, d, &self.factors[l], b, x, &mut w.tmp);
+        let Some(next) = below.first_mut() else {
+            return;
+        };
         let omega = self.omega[l];
         x.par_iter_mut().for_each(|v| *v *= omega);
-        let mut res = vec![0.0; b.len()];
-        self.residual(l, b, x, &mut res);
-        let mut bc = vec![0.0; lev.clusters() * d];
+        let res = &mut w.res;
+        self.residual(l, b, x, res);
+        // The next level's vectors leave `below` while it recurses (a move, no copy).
+        let mut bc = std::mem::take(&mut next.b);
+        let mut xc = std::mem::take(&mut next.x);
+        bc.iter_mut().for_each(|v| *v = 0.0);
         // Restrict: level 1 through Pᵀ, deeper levels sum their children.
         let smooth = if l == 0 {
             self.hierarchy.smooth.as_ref()
@@ -259,7 +314,7 @@ impl Multilevel {
             None
         };
         match smooth {
-            Some(sp) => sp.restrict(d, &self.pt, &res, &mut bc),
+            Some(sp) => sp.restrict(d, &self.pt, res, &mut bc),
             None => bc.par_chunks_mut(d).enumerate().for_each(|(c, o)| {
                 for &i in &lev.items[lev.ptr[c]..lev.ptr[c + 1]] {
                     let v = &res[i as usize * d..i as usize * d + d];
@@ -267,8 +322,7 @@ impl Multilevel {
                 }
             }),
         }
-        let mut xc = vec![0.0; bc.len()];
-        self.vcycle(l + 1, &bc, &mut xc);
+        self.vcycle(l + 1, &bc, &mut xc, below);
         match smooth {
             Some(sp) => sp.prolong_add(d, &self.p, &xc, x),
             None => x.par_chunks_mut(d).enumerate().for_each(|(i, xi)| {
@@ -277,14 +331,14 @@ impl Multilevel {
                 xi.iter_mut().zip(t).for_each(|(x, t)| *x += t);
             }),
         }
-        self.residual(l, b, x, &mut res);
-        let mut s = xc;
-        s.clear();
-        s.resize(b.len(), 0.0);
-        solve_level(lev, d, &self.factors[l], &res, &mut s);
+        self.residual(l, b, x, res);
+        solve_level(lev, d, &self.factors[l], res, &mut w.s, &mut w.tmp);
         x.par_iter_mut()
-            .zip(&s)
+            .zip(&w.s)
             .for_each(|(xi, si)| *xi += omega * si);
+        let next = &mut below[0];
+        next.b = bc;
+        next.x = xc;
     }
 
     /// res = b − A_l x.
