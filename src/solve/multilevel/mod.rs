@@ -149,11 +149,10 @@ pub struct Multilevel {
     values: Vec<Vec<f64>>,
     /// The smoother's damping per level.
     omega: Vec<f64>,
-    /// The smoothed prolongation's values on `hierarchy.smooth`'s pattern, and its ω.
+    /// The smoothed prolongation's values on `hierarchy.smooth`'s pattern.
     p: Vec<f64>,
     /// P's blocks transposed, in the restriction's order.
     pt: Vec<f64>,
-    p_omega: f64,
     /// Pivots dropped, all levels together.
     dropped: usize,
 }
@@ -166,13 +165,11 @@ impl Multilevel {
         let mut values = Vec::with_capacity(nl);
         values.push(frame_values(e));
         let mut p = Vec::new();
-        let mut p_omega = 0.0;
         for l in 0..nl - 1 {
             let lev = &hierarchy.levels[l];
             let next = if let (0, Some(sp)) = (l, hierarchy.smooth.as_ref()) {
                 // A_1 = Pᵀ Ĥ P with the smoothed prolongation.
-                let (pv, wp) = smoothed_p(e, lev, sp, &values[0]);
-                p_omega = wp;
+                let pv = smoothed_p(e, lev, sp, &values[0]);
                 let a0 = &values[0];
                 let hb = |k: usize| block9(d, &a0[k * d * d..(k + 1) * d * d]);
                 let a1 = sp.galerkin(d, &lev.row_ptr, &lev.col_idx, &pv, &hb);
@@ -207,7 +204,6 @@ impl Multilevel {
             values,
             pt,
             p,
-            p_omega,
             omega: Vec::new(),
             dropped,
         };
@@ -224,20 +220,9 @@ impl Multilevel {
         ml
     }
 
-    /// The damping ω of the smoothed prolongation (0 without one).
-    pub fn prolongation_omega(&self) -> f64 {
-        self.p_omega
-    }
-
     /// Pivots dropped (singular or indefinite directions), all levels together.
     pub fn dropped_pivots(&self) -> usize {
         self.dropped
-    }
-
-    /// The smoother's damping per level, finest first (the coarsest is solved, not
-    /// smoothed).
-    pub fn omega(&self) -> &[f64] {
-        &self.omega
     }
 
     /// Power-iteration estimate of λmax(B_l⁺A_l) after `steps` products (a lower bound).

@@ -268,14 +268,9 @@ impl SmoothPattern {
     }
 }
 
-/// The smoothed prolongation's values and its ω = 4 / (3 λ̂), λ̂ a power estimate of
+/// The smoothed prolongation's values, with ω = 4 / (3 λ̂), λ̂ a power estimate of
 /// λmax(D⁻¹Ĥ) with D the node blocks of Ĥ (`a0`: Ĥ's blocks in the node frames).
-pub(super) fn smoothed_p(
-    e: &Eliminated,
-    lev: &Level,
-    sp: &SmoothPattern,
-    a0: &[f64],
-) -> (Vec<f64>, f64) {
+pub(super) fn smoothed_p(e: &Eliminated, lev: &Level, sp: &SmoothPattern, a0: &[f64]) -> Vec<f64> {
     let d = e.h.dim;
     let dd = d * d;
     let n = e.h.n;
@@ -335,8 +330,7 @@ pub(super) fn smoothed_p(
     };
     let hb = |k: usize| block9(d, &a0[k * dd..(k + 1) * dd]);
     let di = |i: usize| dinv[i];
-    let p = sp.p_values(d, &lev.row_ptr, &lev.col_idx, &lev.of, omega, &hb, &di, &t);
-    (p, omega)
+    sp.p_values(d, &lev.row_ptr, &lev.col_idx, &lev.of, omega, &hb, &di, &t)
 }
 
 /// a·b for d×d row-major blocks (in the first d² of 9).
