@@ -11,7 +11,7 @@ use rayon::prelude::*;
 pub const LAMBDA_STEPS: usize = 4;
 
 /// A partition of one level's items (nodes, or the clusters of the level below) into
-/// clusters, with the pattern of the next level's matrix.
+/// clusters, with the pattern of the level's matrix.
 #[derive(Debug, Clone)]
 pub(super) struct Level {
     /// Items of this level.
@@ -26,16 +26,17 @@ pub(super) struct Level {
     /// The matrix of this level's items (level 0: H's own pattern).
     pub(super) row_ptr: Vec<usize>,
     pub(super) col_idx: Vec<usize>,
-    /// For each stored block of this level's matrix, its block in the next level's
-    /// matrix (whose pattern is `next_row_ptr`, `next_col_idx`).
-    pub(super) slot: Vec<usize>,
-    pub(super) next_row_ptr: Vec<usize>,
-    pub(super) next_col_idx: Vec<usize>,
 }
 
 impl Level {
     pub(super) fn clusters(&self) -> usize {
         self.ptr.len() - 1
+    }
+
+    /// The stored block (i, i), if any (columns are sorted in every row).
+    pub(super) fn diag_index(&self, i: usize) -> Option<usize> {
+        let row = &self.col_idx[self.row_ptr[i]..self.row_ptr[i + 1]];
+        row.binary_search(&i).ok().map(|k| self.row_ptr[i] + k)
     }
 }
 
@@ -99,36 +100,6 @@ impl Level {
                 pos[i as usize] = p as u32;
             }
         }
-        // The next level's pattern: cluster c couples with c' where an item of c couples
-        // with an item of c'.
-        let mut next_row_ptr = vec![0usize];
-        let mut next_col_idx = Vec::new();
-        let mut cols: Vec<usize> = Vec::new();
-        for c in 0..nc {
-            cols.clear();
-            for &i in &items[ptr[c]..ptr[c + 1]] {
-                let i = i as usize;
-                cols.extend(
-                    col_idx[row_ptr[i]..row_ptr[i + 1]]
-                        .iter()
-                        .map(|&j| of[j] as usize),
-                );
-            }
-            cols.sort_unstable();
-            cols.dedup();
-            next_col_idx.extend_from_slice(&cols);
-            next_row_ptr.push(next_col_idx.len());
-        }
-        let mut slot = vec![0usize; col_idx.len()];
-        for i in 0..n {
-            let c = of[i] as usize;
-            let row = &next_col_idx[next_row_ptr[c]..next_row_ptr[c + 1]];
-            for k in row_ptr[i]..row_ptr[i + 1] {
-                let cj = of[col_idx[k]] as usize;
-                // Present by construction.
-                slot[k] = next_row_ptr[c] + row.binary_search(&cj).unwrap_or(0);
-            }
-        }
         Level {
             n,
             of,
@@ -137,9 +108,6 @@ impl Level {
             items,
             row_ptr,
             col_idx,
-            slot,
-            next_row_ptr,
-            next_col_idx,
         }
     }
 }
@@ -236,36 +204,6 @@ fn frame_block(e: &Eliminated, i: usize, k: usize, j: usize, out: &mut [f64]) {
             out[r * d + r] = e.diag[i * d + r];
         }
     }
-}
-
-/// The next level's matrix values: block (c, c') = Σ over the stored blocks (i, j) of this
-/// level with i in c, j in c' of `block(i, k, j)`, summed row by row in the items' order.
-pub(super) fn galerkin(
-    lev: &Level,
-    d: usize,
-    block: impl Fn(usize, usize, usize, &mut [f64]) + Sync,
-) -> Vec<f64> {
-    let dd = d * d;
-    let rows: Vec<Vec<f64>> = (0..lev.clusters())
-        .into_par_iter()
-        .map(|c| {
-            let base = lev.next_row_ptr[c];
-            let mut v = vec![0.0; (lev.next_row_ptr[c + 1] - base) * dd];
-            let mut b = [0.0f64; 9];
-            for &i in &lev.items[lev.ptr[c]..lev.ptr[c + 1]] {
-                let i = i as usize;
-                for k in lev.row_ptr[i]..lev.row_ptr[i + 1] {
-                    block(i, k, lev.col_idx[k], &mut b[..dd]);
-                    let s = (lev.slot[k] - base) * dd;
-                    for (o, x) in v[s..s + dd].iter_mut().zip(&b[..dd]) {
-                        *o += x;
-                    }
-                }
-            }
-            v
-        })
-        .collect();
-    rows.concat()
 }
 
 /// Factors every cluster block of a level's matrix, `block(i, k, j, out)` giving stored

@@ -5,10 +5,10 @@
 //! partition of H's node graph, `partition`); each cluster's dense block of Ĥ (in the
 //! node frames, constrained components masked) is inverted. Level l + 1 groups level l's
 //! clusters the same way on the graph of the level-l matrix, until one cluster is left.
-//! Level 1's unknowns are the d translations of each level-0 cluster, interpolated by the
-//! smoothed prolongation P = (I − ω D⁻¹Ĥ) T (`smoothed`: T puts a cluster's world
-//! translation into each of its nodes' frames); deeper levels sum their children's
-//! translations. Each level's matrix is the Galerkin product A_{l+1} = P_lᵀ A_l P_l.
+//! Level l + 1's unknowns are the d translations of each level-l cluster, interpolated by
+//! the smoothed prolongation P_l = (I − ω D_l⁻¹A_l) T_l (`smoothed`: T_0 puts a cluster's
+//! world translation into each of its nodes' frames, deeper T_l copy it to each child).
+//! Each level's matrix is the Galerkin product A_{l+1} = P_lᵀ A_l P_l.
 //!
 //! One application z = M⁻¹r is a V-cycle: z = ω B_0⁺ r (B_l: the cluster blocks of A_l),
 //! the residual restricted to level 1 and corrected there recursively, then
@@ -18,9 +18,9 @@
 //!
 //! Why this design (BENCHMARKS.md, "The multilevel preconditioner", has the numbers): on
 //! the twist systems the additive sum of the levels' block inverses (MAS) took about
-//! 2.5× the V-cycle's iterations, and a piecewise-constant level 1 grew 1.6× in
-//! iterations per Newton iteration from 3,321 to 75,625 nodes where the smoothed one
-//! grows far less.
+//! 2.5× the V-cycle's iterations; piecewise-constant levels grew 1.6× in iterations per
+//! Newton iteration from 3,321 to 75,625 nodes, a smoothed level 1 over piecewise-constant
+//! deeper levels 1.39×, and smoothing at every level far less.
 //!
 //! The partition ([`Hierarchy`]) depends on H's pattern only and is built once per mesh;
 //! the inverses and matrices ([`Multilevel`]) are rebuilt for every system. Every sum runs
@@ -46,12 +46,10 @@ use dense::block9;
 pub use dense::PIVOT_DROP;
 pub use dense::{cholesky_dropping, inverse_from_factor};
 pub use level::LAMBDA_STEPS;
-use level::{
-    block_matvec, factor_level, frame_values, galerkin, power_estimate, solve_level, Factors, Level,
-};
+use level::{block_matvec, factor_level, frame_values, power_estimate, solve_level, Factors, Level};
 use partition::partition;
 pub use partition::CLUSTER_NODES;
-use smoothed::{smoothed_p, SmoothPattern};
+use smoothed::{identity, node_translation, smoothed_p, SmoothPattern};
 
 /// One level's vectors in a V-cycle.
 #[derive(Debug, Clone)]
@@ -77,9 +75,9 @@ pub struct Hierarchy {
     n: usize,
     /// Level l partitions level l's items; the last level has a single cluster.
     levels: Vec<Level>,
-    /// The smoothed prolongation's patterns from the nodes to level 1 (None: a single
-    /// level).
-    smooth: Option<SmoothPattern>,
+    /// The smoothed prolongation's patterns from each level to the next (one fewer than
+    /// the levels).
+    smooth: Vec<SmoothPattern>,
 }
 
 impl Hierarchy {
@@ -89,28 +87,21 @@ impl Hierarchy {
         let mut levels = Vec::new();
         let (mut row_ptr, mut col_idx) = (h.row_ptr.clone(), h.col_idx.clone());
         let mut n = h.n;
-        let mut smooth = None;
+        let mut smooth = Vec::new();
         loop {
             let of = partition(n, &row_ptr, &col_idx);
-            let mut level = Level::new(n, of, row_ptr, col_idx);
-            let single = level.clusters() <= 1;
-            if levels.is_empty() && !single {
-                let sp =
-                    SmoothPattern::new(&level.row_ptr, &level.col_idx, &level.of, level.clusters());
-                // Level 1's matrix is PᵀĤP on A_1's pattern; the piecewise-constant
-                // slots of level 0 have no use.
-                level.next_row_ptr = sp.a_ptr.clone();
-                level.next_col_idx = sp.a_col.clone();
-                level.slot = Vec::new();
-                smooth = Some(sp);
-            }
+            let level = Level::new(n, of, row_ptr, col_idx);
             n = level.clusters();
-            row_ptr = level.next_row_ptr.clone();
-            col_idx = level.next_col_idx.clone();
-            levels.push(level);
-            if single {
+            if n <= 1 {
+                levels.push(level);
                 break;
             }
+            // The next level's matrix is PᵀAP on the pattern the smoothed P gives.
+            let sp = SmoothPattern::new(&level.row_ptr, &level.col_idx, &level.of, n);
+            row_ptr = sp.a_ptr.clone();
+            col_idx = sp.a_col.clone();
+            smooth.push(sp);
+            levels.push(level);
         }
         Hierarchy {
             n: h.n,
@@ -149,10 +140,10 @@ pub struct Multilevel {
     values: Vec<Vec<f64>>,
     /// The smoother's damping per level.
     omega: Vec<f64>,
-    /// The smoothed prolongation's values on `hierarchy.smooth`'s pattern.
-    p: Vec<f64>,
+    /// Each level's smoothed prolongation, on `hierarchy.smooth`'s patterns.
+    p: Vec<Vec<f64>>,
     /// P's blocks transposed, in the restriction's order.
-    pt: Vec<f64>,
+    pt: Vec<Vec<f64>>,
     /// Pivots dropped, all levels together.
     dropped: usize,
 }
@@ -164,24 +155,19 @@ impl Multilevel {
         let nl = hierarchy.levels.len();
         let mut values = Vec::with_capacity(nl);
         values.push(frame_values(e));
-        let mut p = Vec::new();
-        for l in 0..nl - 1 {
+        let mut p = Vec::with_capacity(nl - 1);
+        for (l, sp) in hierarchy.smooth.iter().enumerate() {
             let lev = &hierarchy.levels[l];
-            let next = if let (0, Some(sp)) = (l, hierarchy.smooth.as_ref()) {
-                // A_1 = Pᵀ Ĥ P with the smoothed prolongation.
-                let pv = smoothed_p(e, lev, sp, &values[0]);
-                let a0 = &values[0];
-                let hb = |k: usize| block9(d, &a0[k * d * d..(k + 1) * d * d]);
-                let a1 = sp.galerkin(d, &lev.row_ptr, &lev.col_idx, &pv, &hb);
-                p = pv;
-                a1
+            let a = &values[l];
+            // A_{l+1} = P_lᵀ A_l P_l with the smoothed prolongation.
+            let pv = if l == 0 {
+                smoothed_p(d, lev, sp, a, &|i| node_translation(e, i))
             } else {
-                // Deeper levels: the sum of the children's blocks (piecewise constant).
-                let a = &values[l];
-                galerkin(lev, d, |_, k, _, out| {
-                    out.copy_from_slice(&a[k * d * d..(k + 1) * d * d]);
-                })
+                smoothed_p(d, lev, sp, a, &|_| identity(d))
             };
+            let hb = |k: usize| block9(d, &a[k * d * d..(k + 1) * d * d]);
+            let next = sp.galerkin(d, &lev.row_ptr, &lev.col_idx, &pv, &hb);
+            p.push(pv);
             values.push(next);
         }
         let mut factors = Vec::with_capacity(nl);
@@ -195,8 +181,10 @@ impl Multilevel {
         }
         let pt = hierarchy
             .smooth
-            .as_ref()
-            .map_or_else(Vec::new, |sp| sp.transpose(d, &p));
+            .iter()
+            .zip(&p)
+            .map(|(sp, pv)| sp.transpose(d, pv))
+            .collect();
         let mut ml = Multilevel {
             dim: d,
             hierarchy,
@@ -292,30 +280,10 @@ impl Multilevel {
         let mut bc = std::mem::take(&mut next.b);
         let mut xc = std::mem::take(&mut next.x);
         bc.iter_mut().for_each(|v| *v = 0.0);
-        // Restrict: level 1 through Pᵀ, deeper levels sum their children.
-        let smooth = if l == 0 {
-            self.hierarchy.smooth.as_ref()
-        } else {
-            None
-        };
-        match smooth {
-            Some(sp) => sp.restrict(d, &self.pt, res, &mut bc),
-            None => bc.par_chunks_mut(d).enumerate().for_each(|(c, o)| {
-                for &i in &lev.items[lev.ptr[c]..lev.ptr[c + 1]] {
-                    let v = &res[i as usize * d..i as usize * d + d];
-                    o.iter_mut().zip(v).for_each(|(o, v)| *o += v);
-                }
-            }),
-        }
+        let sp = &self.hierarchy.smooth[l];
+        sp.restrict(d, &self.pt[l], res, &mut bc);
         self.vcycle(l + 1, &bc, &mut xc, below);
-        match smooth {
-            Some(sp) => sp.prolong_add(d, &self.p, &xc, x),
-            None => x.par_chunks_mut(d).enumerate().for_each(|(i, xi)| {
-                let c = lev.of[i] as usize;
-                let t = &xc[c * d..c * d + d];
-                xi.iter_mut().zip(t).for_each(|(x, t)| *x += t);
-            }),
-        }
+        sp.prolong_add(d, &self.p[l], &xc, x);
         self.residual(l, b, x, res);
         solve_level(lev, d, &self.factors[l], res, &mut w.s, &mut w.tmp);
         x.par_iter_mut()
@@ -369,49 +337,56 @@ mod tests {
         }
     }
 
-    /// Level 1's matrix is PᵀĤP: each column, A_1 e_k, equals Pᵀ Ĥ (P e_k) formed with
-    /// the prolongation, the matrix-free Ĥ and the restriction, in 2D and 3D.
+    /// Every coarse level's matrix is P_lᵀ A_l P_l: each column, A_{l+1} e_k, equals
+    /// P_lᵀ A_l (P_l e_k) formed with the prolongation, the level's product (level 0: the
+    /// matrix-free Ĥ) and the restriction, in 2D and 3D.
     #[test]
-    fn level_one_is_the_galerkin_product_of_the_smoothed_prolongation() {
-        for (dim, nodes, seed) in [(2, 300, 7u64), (3, 200, 8)] {
+    fn every_coarse_level_is_the_galerkin_product_of_the_smoothed_prolongation() {
+        for (dim, nodes, seed) in [(2, 300, 7u64), (3, 600, 8)] {
             let s = random_system(&SystemSpec::with_nodes(dim, nodes, seed));
             let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Hessian);
             let hier = std::sync::Arc::new(Hierarchy::new(&s.h));
             let m = Multilevel::new(&e, hier.clone());
-            let sp = hier.smooth.as_ref().expect("two levels or more");
-            let (n, nc) = (e.ndof(), hier.levels[0].clusters() * dim);
-            let l1 = &hier.levels[1];
-            let a1 = &m.values[1];
-            let mut worst = 0.0f64;
-            let mut scale = 0.0f64;
-            let mut work = vec![0.0; 2 * n];
-            for k in 0..nc {
-                let mut ek = vec![0.0; nc];
-                ek[k] = 1.0;
-                let mut pk = vec![0.0; n];
-                sp.prolong_add(dim, &m.p, &ek, &mut pk);
-                let mut hp = vec![0.0; n];
-                e.apply(&pk, &mut hp, &mut work);
-                let mut col = vec![0.0; nc];
-                sp.restrict(dim, &m.pt, &hp, &mut col);
-                // Column k of A_1 from its stored blocks (row c, block column k / dim).
-                let (kc, kb) = (k / dim, k % dim);
-                for c in 0..l1.n {
-                    for t in l1.row_ptr[c]..l1.row_ptr[c + 1] {
-                        if l1.col_idx[t] != kc {
-                            continue;
-                        }
-                        for r in 0..dim {
-                            let stored = a1[t * dim * dim + r * dim + kb];
-                            worst = worst.max((stored - col[c * dim + r]).abs());
-                            scale = scale.max(stored.abs());
+            assert!(hier.smooth.len() >= 2, "{dim}D: {:?}", hier.cluster_counts());
+            for (l, sp) in hier.smooth.iter().enumerate() {
+                let (n, nc) = (hier.levels[l].n * dim, hier.levels[l].clusters() * dim);
+                let next = &hier.levels[l + 1];
+                let a = &m.values[l + 1];
+                let mut worst = 0.0f64;
+                let mut scale = 0.0f64;
+                let mut work = vec![0.0; 2 * n];
+                for k in 0..nc {
+                    let mut ek = vec![0.0; nc];
+                    ek[k] = 1.0;
+                    let mut pk = vec![0.0; n];
+                    sp.prolong_add(dim, &m.p[l], &ek, &mut pk);
+                    let mut hp = vec![0.0; n];
+                    if l == 0 {
+                        e.apply(&pk, &mut hp, &mut work);
+                    } else {
+                        block_matvec(dim, &hier.levels[l], &m.values[l], &pk, &mut hp);
+                    }
+                    let mut col = vec![0.0; nc];
+                    sp.restrict(dim, &m.pt[l], &hp, &mut col);
+                    // Column k from the stored blocks (row c, block column k / dim).
+                    let (kc, kb) = (k / dim, k % dim);
+                    for c in 0..next.n {
+                        for t in next.row_ptr[c]..next.row_ptr[c + 1] {
+                            if next.col_idx[t] != kc {
+                                continue;
+                            }
+                            for r in 0..dim {
+                                let stored = a[t * dim * dim + r * dim + kb];
+                                worst = worst.max((stored - col[c * dim + r]).abs());
+                                scale = scale.max(stored.abs());
+                            }
                         }
                     }
                 }
+                assert!(scale > 0.0, "{dim}D: A_{} is zero", l + 1);
+                // Two orders of summing the same products: a few ulps of the largest entry.
+                assert!(worst <= 1e-12 * scale, "{dim}D, A_{}: {worst:e} of {scale:e}", l + 1);
             }
-            assert!(scale > 0.0, "{dim}D: A_1 is zero");
-            // Two orders of summing the same products: a few ulps of the largest entry.
-            assert!(worst <= 1e-12 * scale, "{dim}D: {worst:e} of {scale:e}");
         }
     }
 

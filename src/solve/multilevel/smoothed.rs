@@ -1,11 +1,12 @@
-//! The smoothed prolongation from the nodes to level 1: P = (I − ω D⁻¹Ĥ) T, T the
-//! tentative prolongation (a cluster's world translation seen in each of its nodes'
-//! frames, T_i = P_i V_iᵀ) and D the node blocks of Ĥ. A piecewise-constant T alone
-//! interpolates smooth modes with an energy that grows as the mesh is refined, and the
-//! V-cycle's iterations with it; one Jacobi smoothing step of T is smoothed aggregation's
-//! answer. Level 1's matrix is then the Galerkin product A_1 = Pᵀ Ĥ P = Pᵀ Q, Q = Ĥ P.
+//! The smoothed prolongation from one level to the next: P = (I − ω D⁻¹A) T, T the
+//! tentative prolongation (a cluster's world translation seen by each of its items: in
+//! the node frames at level 0, T_i = P_i V_iᵀ, and T_i = I deeper) and D the item blocks
+//! of the level's matrix A. A piecewise-constant T alone interpolates smooth modes with
+//! an energy that grows as the mesh is refined, and the V-cycle's iterations with it; one
+//! Jacobi smoothing step of T is smoothed aggregation's answer. The next level's matrix
+//! is the Galerkin product Pᵀ A P = Pᵀ Q, Q = A P.
 //!
-//! The patterns of P, Q and A_1 depend on H's pattern and the clusters only
+//! The patterns of P, Q and PᵀAP depend on the level's pattern and clusters only
 //! ([`SmoothPattern`], once per mesh); the values are rebuilt for every system.
 
 use super::dense::{block9, cholesky_dropping, inverse_from_factor};
@@ -13,8 +14,8 @@ use super::level::{block_matvec, group, power_estimate, Level, LAMBDA_STEPS};
 use crate::core::elimination::Eliminated;
 use rayon::prelude::*;
 
-/// Block patterns (CSR over rows, sorted columns) of P (nodes × clusters), Q = Ĥ P (nodes ×
-/// clusters) and A_1 = Pᵀ Q (clusters × clusters), and Pᵀ's lists.
+/// Block patterns (CSR over rows, sorted columns) of P (items × clusters), Q = A P (items ×
+/// clusters) and Pᵀ Q (clusters × clusters), and Pᵀ's lists.
 #[derive(Debug, Clone)]
 pub(super) struct SmoothPattern {
     pub p_ptr: Vec<usize>,
@@ -37,7 +38,7 @@ fn unique(out: &mut Vec<u32>, it: impl Iterator<Item = u32>) {
 }
 
 impl SmoothPattern {
-    /// From H's pattern (both triangles) and each node's cluster (`nc` clusters).
+    /// From a level's pattern (both triangles) and each item's cluster (`nc` clusters).
     pub fn new(row_ptr: &[usize], col_idx: &[usize], of: &[u32], nc: usize) -> Self {
         let n = of.len();
         let mut tmp = Vec::new();
@@ -93,7 +94,7 @@ impl SmoothPattern {
     }
 
     /// P's values: row i's blocks (d×d, row-major) δ_{c,c(i)} T_i − ω Σ_{j: c(j)=c} S_ij T_j
-    /// with S_ij = D_i⁻¹ Ĥ_ij; `hblock(k)` is Ĥ's stored block k (in the node frames),
+    /// with S_ij = D_i⁻¹ A_ij; `hblock(k)` is the level matrix's stored block k,
     /// `dinv(i)` is D_i⁻¹ and `t(i)` is T_i.
     #[allow(clippy::too_many_arguments)]
     pub fn p_values(
@@ -122,7 +123,7 @@ impl SmoothPattern {
                     .take(row_ptr[i + 1])
                     .skip(row_ptr[i])
                 {
-                    // S_ij T_j = D_i⁻¹ (Ĥ_ij T_j)
+                    // S_ij T_j = D_i⁻¹ (A_ij T_j)
                     let ht = mul(d, &hblock(k), &t(j));
                     let st = mul(d, &di, &ht);
                     let s = cols.binary_search(&of[j]).unwrap_or(0) * dd;
@@ -141,8 +142,8 @@ impl SmoothPattern {
         rows.concat()
     }
 
-    /// A_1 = Pᵀ (Ĥ P) on `a_ptr`/`a_col`, summed in a fixed order (row c: its P blocks by
-    /// node, each node's Q row by column).
+    /// Pᵀ (A P) on `a_ptr`/`a_col`, summed in a fixed order (row c: its P blocks by
+    /// item, each item's Q row by column).
     pub fn galerkin(
         &self,
         d: usize,
@@ -153,7 +154,7 @@ impl SmoothPattern {
     ) -> Vec<f64> {
         let dd = d * d;
         let n = self.p_ptr.len() - 1;
-        // Q = Ĥ P, row by row.
+        // Q = A P, row by row.
         let q_rows: Vec<Vec<f64>> = (0..n)
             .into_par_iter()
             .with_min_len(64)
@@ -268,19 +269,24 @@ impl SmoothPattern {
     }
 }
 
-/// The smoothed prolongation's values, with ω = 4 / (3 λ̂), λ̂ a power estimate of
-/// λmax(D⁻¹Ĥ) with D the node blocks of Ĥ (`a0`: Ĥ's blocks in the node frames).
-pub(super) fn smoothed_p(e: &Eliminated, lev: &Level, sp: &SmoothPattern, a0: &[f64]) -> Vec<f64> {
-    let d = e.h.dim;
+/// The smoothed prolongation's values from level `lev` (matrix `a` on its pattern) to
+/// the next, with ω = 4 / (3 λ̂), λ̂ a power estimate of λmax(D⁻¹A) with D the item
+/// blocks of A, and `t(i)` the tentative block T_i of item i.
+pub(super) fn smoothed_p(
+    d: usize,
+    lev: &Level,
+    sp: &SmoothPattern,
+    a: &[f64],
+    t: &(dyn Fn(usize) -> [f64; 9] + Sync),
+) -> Vec<f64> {
     let dd = d * d;
-    let n = e.h.n;
-    let f = e.frames;
+    let n = lev.n;
     // D_i⁻¹ (the diagonal's inverse where the block is not SPD).
     let dinv: Vec<[f64; 9]> = (0..n)
         .into_par_iter()
         .map(|i| {
-            let b = match e.h.diag_index(i) {
-                Some(k) => block9(d, &a0[k * dd..(k + 1) * dd]),
+            let b = match lev.diag_index(i) {
+                Some(k) => block9(d, &a[k * dd..(k + 1) * dd]),
                 None => [0.0; 9],
             };
             let mut l = b;
@@ -296,9 +302,9 @@ pub(super) fn smoothed_p(e: &Eliminated, lev: &Level, sp: &SmoothPattern, a0: &[
             o
         })
         .collect();
-    // λmax(D⁻¹Ĥ) by a few power steps.
+    // λmax(D⁻¹A) by a few power steps.
     let lam = power_estimate(n * d, LAMBDA_STEPS, |x, ax, y| {
-        block_matvec(d, lev, a0, x, ax);
+        block_matvec(d, lev, a, x, ax);
         y.par_chunks_mut(d).enumerate().for_each(|(i, yi)| {
             for r in 0..d {
                 yi[r] = (0..d).map(|c| dinv[i][r * d + c] * ax[i * d + c]).sum();
@@ -310,27 +316,39 @@ pub(super) fn smoothed_p(e: &Eliminated, lev: &Level, sp: &SmoothPattern, a0: &[
     } else {
         0.0
     };
-    let t = |i: usize| {
-        // T_i = P_i V_iᵀ: row a is column a of V_i (zero where a is constrained).
-        let mut o = [0.0; 9];
-        let m = f.mask[i];
-        let v = f.rotation(i);
-        for a in 0..d {
-            if m & (1 << a) != 0 {
-                continue;
-            }
-            for b in 0..d {
-                o[a * d + b] = match v {
-                    None => f64::from(u8::from(a == b)),
-                    Some(v) => v[b * d + a],
-                };
-            }
-        }
-        o
-    };
-    let hb = |k: usize| block9(d, &a0[k * dd..(k + 1) * dd]);
+    let hb = |k: usize| block9(d, &a[k * dd..(k + 1) * dd]);
     let di = |i: usize| dinv[i];
-    sp.p_values(d, &lev.row_ptr, &lev.col_idx, &lev.of, omega, &hb, &di, &t)
+    sp.p_values(d, &lev.row_ptr, &lev.col_idx, &lev.of, omega, &hb, &di, t)
+}
+
+/// T_i = P_i V_iᵀ of the nodes (level 0): row a is column a of V_i, zero where a is
+/// constrained. Deeper levels take T_i = I (their unknowns are world translations).
+pub(super) fn node_translation(e: &Eliminated, i: usize) -> [f64; 9] {
+    let d = e.h.dim;
+    let mut o = [0.0; 9];
+    let m = e.frames.mask[i];
+    let v = e.frames.rotation(i);
+    for a in 0..d {
+        if m & (1 << a) != 0 {
+            continue;
+        }
+        for b in 0..d {
+            o[a * d + b] = match v {
+                None => f64::from(u8::from(a == b)),
+                Some(v) => v[b * d + a],
+            };
+        }
+    }
+    o
+}
+
+/// T_i = I (d×d in the first d² of 9).
+pub(super) fn identity(d: usize) -> [f64; 9] {
+    let mut o = [0.0; 9];
+    for a in 0..d {
+        o[a * d + a] = 1.0;
+    }
+    o
 }
 
 /// a·b for d×d row-major blocks (in the first d² of 9).
