@@ -69,40 +69,15 @@ struct NewtonCgParams {
     chunk: u32,
 }
 
-// Slots of `scal`, `state` and the partial sums, mirrored by `slot` in
-// src/sim/device/newton_cg.rs (a unit test there checks every value).
-// scal: ρ = r·z (scalar_start, scalar_beta), p·q (scalar_alpha), α (scalar_alpha),
-// β (scalar_beta), r·r of the last reduction, tol² (host), ‖b̂‖² (scalar_start); then
-// (COARSE) c = E⁺Zᵀr, D values (scalar_beta, scalar_start), E⁺, D² row-major (host), and
-// E = ZᵀĤZ unsymmetrized, D² row-major, then per world axis a 2^-64 · Σ|entries| of the
-// rows of component a of ZᵀĤ's blocks, D values (coarse_e_sum, read back by the host,
-// which asks whether a translation is pinned by nothing).
-const NCG_RHO: u32 = 0u;
-const NCG_PQ: u32 = 1u;
-const NCG_ALPHA: u32 = 2u;
-const NCG_BETA: u32 = 3u;
-const NCG_RR: u32 = 4u;
-const NCG_TOL2: u32 = 5u;
-const NCG_BB: u32 = 6u;
-const NCG_C: u32 = 8u;
-const NCG_EINV: u32 = 11u;
-const NCG_E: u32 = 20u;
-const NCG_EABS: u32 = 29u;
-// state: stop (any reason), converged, non-positive curvature, non-finite value,
-// iterations done (all u32; the host clears the four flags before a restart).
-const NCG_DONE: u32 = 0u;
-const NCG_CONVERGED: u32 = 1u;
-const NCG_HALT: u32 = 2u;
-const NCG_BREAKDOWN: u32 = 3u;
-const NCG_ITERS: u32 = 4u;
-// Partial-sum slots, each n_partials long: p·q, r·z, r·r, ‖b̂‖², then D slots of Zᵀr
-// (COARSE), D² of E then D of its rows' absolute sums (coarse_e).
-const NCG_PART_PQ: u32 = 0u;
-const NCG_PART_RZ: u32 = 1u;
-const NCG_PART_RR: u32 = 2u;
-const NCG_PART_BB: u32 = 3u;
-const NCG_PART_ZR: u32 = 4u;
-const NCG_PART_E: u32 = 7u;
+// Slots of `scal`, `state` and the partial sums: the one table of both device CGs
+// (`gpu::kernels::slots`, declared by the prelude). This CG uses, in scal: ρ = r·z
+// (scalar_start, scalar_beta), p·q and α (scalar_alpha), β (scalar_beta), r·r of the last
+// reduction, tol² (host), ‖b̂‖² (scalar_start); then (COARSE) c = E⁺Zᵀr, D values
+// (scalar_beta, scalar_start), E⁺, D² row-major (host), and E = ZᵀĤZ unsymmetrized, D²
+// row-major, then per world axis a 2^-64 · Σ|entries| of the rows of component a of
+// ZᵀĤ's blocks, D values (coarse_e_sum, read back by the host, which asks whether a
+// translation is pinned by nothing). Partial sums, each n_partials long: p·q, r·z, r·r,
+// D slots of Zᵀr (COARSE), ‖b̂‖², D² of E then D of its rows' absolute sums (coarse_e).
 // The header of `aggregates` (src/sim/device/newton_coarse.rs): the aggregate count, K,
 // then where each index array starts in `aggregates` (u32 words) and each f64 array in
 // `coarse`: the aggregate of each node, the aggregates' node lists (offsets, nodes), per
@@ -123,12 +98,9 @@ const AGG_E: u32 = 10u;
 const AGG_EINV: u32 = 11u;
 const AGG_W: u32 = 12u;
 const AGG_C: u32 = 13u;
-// After the partial-sum slots (NCG_CARRY · n_partials): per boundary between H's chunks
-// (the segment that straddles it) and per invocation, NCG_CARRY_LEN running sums carried
-// between the dispatches of
-// H's chunks.
-const NCG_CARRY: u32 = 19u;
-const NCG_CARRY_LEN: u32 = 12u;
+// After the partial-sum slots (PART_CARRY · n_partials): per boundary between H's chunks
+// (the segment that straddles it) and per invocation, CARRY_LEN running sums carried
+// between the dispatches of H's chunks.
 // 2^-64: the scale of the absolute row sums (src/solve/coarse.rs, ABS_SUM_SCALE).
 const ABS_SUM_SCALE = 0x1p-64;
 
@@ -166,7 +138,7 @@ var<workgroup> wg_flag: u32;
 // The stop flag as a workgroup-uniform value (later barriers may depend on it).
 fn stopped(lid: u32) -> bool {
     if (lid == 0u) {
-        wg_flag = state[NCG_DONE];
+        wg_flag = state[STATE_DONE];
     }
     return workgroupUniformLoad(&wg_flag) != 0u;
 }
@@ -259,20 +231,20 @@ fn coarse_c(zr: array<acc, 3>) -> acc {
     for (var a = 0u; a < D; a++) {
         var s = acc(0.0);
         for (var b = 0u; b < D; b++) {
-            s += scal[NCG_EINV + a * D + b] * zr[b];
+            s += scal[SCAL_EINV + a * D + b] * zr[b];
         }
-        scal[NCG_C + a] = s;
+        scal[SCAL_C + a] = s;
         wc += zr[a] * s;
     }
     return wc;
 }
 
 // Index of carried sum m of invocation lid across the boundary after chunk c (see
-// NCG_CARRY): a segment begun in an earlier chunk reads the boundary before this chunk,
+// PART_CARRY): a segment begun in an earlier chunk reads the boundary before this chunk,
 // one going on to a later chunk writes the boundary after it (a segment across several
 // chunks passes its sums on at each).
 fn carry(c: u32, lid: u32, m: u32) -> u32 {
-    return NCG_CARRY * params.n_partials + (c * WG + lid) * NCG_CARRY_LEN + m;
+    return PART_CARRY * params.n_partials + (c * WG + lid) * CARRY_LEN + m;
 }
 
 // The segments a chunk's dispatch takes: those holding a row of [row_begin, row_end).
@@ -325,7 +297,7 @@ fn rhs(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid:
         }
         workgroup_sum(lid.x, sum1(bb), 1u);
         if (lid.x == 0u) {
-            partials[NCG_PART_BB * params.n_partials + s] = summed(0u);
+            partials[PART_BB * params.n_partials + s] = summed(0u);
         }
         // The tree's memory is reused by the next segment.
         workgroupBarrier();
@@ -487,7 +459,7 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
         }
         workgroup_sum(lid.x, sum1(pq), 1u);
         if (lid.x == 0u) {
-            partials[NCG_PART_PQ * params.n_partials + s] = summed(0u);
+            partials[PART_PQ * params.n_partials + s] = summed(0u);
         }
         workgroupBarrier();
     }
@@ -499,17 +471,17 @@ fn scalar_alpha(@builtin(local_invocation_id) lid: vec3<u32>) {
     if (stopped(lid.x)) {
         return;
     }
-    let pq = reduce_slot(NCG_PART_PQ, lid.x);
+    let pq = reduce_slot(PART_PQ, lid.x);
     if (lid.x == 0u) {
-        scal[NCG_PQ] = pq;
+        scal[SCAL_PQ] = pq;
         if (pq > acc(0.0)) {
-            scal[NCG_ALPHA] = scal[NCG_RHO] / pq;
+            scal[SCAL_ALPHA] = scal[SCAL_RHO] / pq;
         } else {
-            state[NCG_DONE] = 1u;
+            state[STATE_DONE] = 1u;
             if (pq <= acc(0.0)) {
-                state[NCG_HALT] = 1u;
+                state[STATE_HALT] = 1u;
             } else {
-                state[NCG_BREAKDOWN] = 1u;
+                state[STATE_BREAKDOWN] = 1u;
             }
         }
     }
@@ -522,10 +494,10 @@ fn write_rz_rr(lid: u32, wg: u32, sums: array<acc, 5>) {
     workgroup_sum(lid, sums, n);
     if (lid == 0u) {
         let np = params.n_partials;
-        partials[NCG_PART_RZ * np + wg] = summed(0u);
-        partials[NCG_PART_RR * np + wg] = summed(1u);
+        partials[PART_RZ * np + wg] = summed(0u);
+        partials[PART_RR * np + wg] = summed(1u);
         for (var a = 0u; a + 2u < n; a++) {
-            partials[(NCG_PART_ZR + a) * np + wg] = summed(2u + a);
+            partials[(PART_ZR + a) * np + wg] = summed(2u + a);
         }
     }
 }
@@ -556,7 +528,7 @@ fn update_yr(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id
     if (stopped(lid.x)) {
         return;
     }
-    let alpha = real(scal[NCG_ALPHA]);
+    let alpha = real(scal[SCAL_ALPHA]);
     for (var s = group_index(wid, nwg); s < params.n_partials; s += group_count(nwg)) {
         var sums: array<acc, 5>;
         for (var m = 0u; m < ITEMS; m++) {
@@ -596,11 +568,11 @@ fn scalar_beta(@builtin(local_invocation_id) lid: vec3<u32>) {
         v[2] = agg_wc(lid.x);
     }
     for (var t = lid.x; t < np; t += WG) {
-        v[0] += partials[NCG_PART_RZ * np + t];
-        v[1] += partials[NCG_PART_RR * np + t];
+        v[0] += partials[PART_RZ * np + t];
+        v[1] += partials[PART_RR * np + t];
         if (COARSE == 1u) {
             for (var a = 0u; a < D; a++) {
-                v[2u + a] += partials[(NCG_PART_ZR + a) * np + t];
+                v[2u + a] += partials[(PART_ZR + a) * np + t];
             }
         }
     }
@@ -613,18 +585,18 @@ fn scalar_beta(@builtin(local_invocation_id) lid: vec3<u32>) {
         } else if (COARSE == 2u) {
             rz += s[2];
         }
-        state[NCG_ITERS] += 1u;
-        scal[NCG_RR] = rr;
+        state[STATE_ITERS] += 1u;
+        scal[SCAL_RR] = rr;
         // NaN fails every comparison: a non-finite ρ or r·r is a breakdown.
         if (!(rz >= acc(0.0)) || !(rr >= acc(0.0))) {
-            state[NCG_DONE] = 1u;
-            state[NCG_BREAKDOWN] = 1u;
-        } else if (rr <= scal[NCG_TOL2] * scal[NCG_BB]) {
-            state[NCG_DONE] = 1u;
-            state[NCG_CONVERGED] = 1u;
+            state[STATE_DONE] = 1u;
+            state[STATE_BREAKDOWN] = 1u;
+        } else if (rr <= scal[SCAL_TOL2] * scal[SCAL_BB]) {
+            state[STATE_DONE] = 1u;
+            state[STATE_CONVERGED] = 1u;
         } else {
-            scal[NCG_BETA] = rz / scal[NCG_RHO];
-            scal[NCG_RHO] = rz;
+            scal[SCAL_BETA] = rz / scal[SCAL_RHO];
+            scal[SCAL_RHO] = rz;
         }
     }
 }
@@ -635,7 +607,7 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
     if (stopped(lid.x)) {
         return;
     }
-    let beta = real(scal[NCG_BETA]);
+    let beta = real(scal[SCAL_BETA]);
     if (COARSE == 0u) {
         for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += grid_stride(nwg)) {
             for (var a = 0u; a < D; a++) {
@@ -648,7 +620,7 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
     var c: array<real, 3>;
     if (COARSE == 1u) {
         for (var a = 0u; a < D; a++) {
-            c[a] = real(scal[NCG_C + a]);
+            c[a] = real(scal[SCAL_C + a]);
         }
     }
     for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += grid_stride(nwg)) {
@@ -703,12 +675,12 @@ fn scalar_start(@builtin(local_invocation_id) lid: vec3<u32>) {
     var w = array<acc, 5>(acc(0.0), acc(0.0), acc(0.0), acc(0.0), acc(0.0));
     let np = params.n_partials;
     for (var t = lid.x; t < np; t += WG) {
-        v[0] += partials[NCG_PART_RZ * np + t];
-        v[1] += partials[NCG_PART_RR * np + t];
-        v[2] += partials[NCG_PART_BB * np + t];
+        v[0] += partials[PART_RZ * np + t];
+        v[1] += partials[PART_RR * np + t];
+        v[2] += partials[PART_BB * np + t];
         if (COARSE == 1u) {
             for (var a = 0u; a < D; a++) {
-                w[a] += partials[(NCG_PART_ZR + a) * np + t];
+                w[a] += partials[(PART_ZR + a) * np + t];
             }
         }
     }
@@ -732,17 +704,17 @@ fn scalar_start(@builtin(local_invocation_id) lid: vec3<u32>) {
             rz += wc;
         }
         if (COARSE != 0u) {
-            scal[NCG_BETA] = acc(0.0);
+            scal[SCAL_BETA] = acc(0.0);
         }
-        scal[NCG_RHO] = rz;
-        scal[NCG_RR] = rr;
-        scal[NCG_BB] = bb;
+        scal[SCAL_RHO] = rz;
+        scal[SCAL_RR] = rr;
+        scal[SCAL_BB] = bb;
         if (!(rz >= acc(0.0)) || !(rr >= acc(0.0)) || !(bb >= acc(0.0))) {
-            state[NCG_DONE] = 1u;
-            state[NCG_BREAKDOWN] = 1u;
-        } else if (rr <= scal[NCG_TOL2] * bb) {
-            state[NCG_DONE] = 1u;
-            state[NCG_CONVERGED] = 1u;
+            state[STATE_DONE] = 1u;
+            state[STATE_BREAKDOWN] = 1u;
+        } else if (rr <= scal[SCAL_TOL2] * bb) {
+            state[STATE_DONE] = 1u;
+            state[STATE_CONVERGED] = 1u;
         }
     }
 }
@@ -878,7 +850,7 @@ fn coarse_e(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
             workgroup_sum(lid.x, v, n);
             if (lid.x == 0u) {
                 for (var m = 0u; m < n; m++) {
-                    partials[(NCG_PART_E + base + m) * np + s] = summed(m);
+                    partials[(PART_E + base + m) * np + s] = summed(m);
                 }
             }
             workgroupBarrier();
@@ -899,7 +871,7 @@ fn coarse_e_sum(@builtin(local_invocation_id) lid: vec3<u32>) {
         var v: array<acc, 5>;
         for (var t = lid.x; t < np; t += WG) {
             for (var m = 0u; m < n; m++) {
-                v[m] += partials[(NCG_PART_E + base + m) * np + t];
+                v[m] += partials[(PART_E + base + m) * np + t];
             }
         }
         let s = workgroup_sum_uniform(lid.x, v, n);
@@ -907,9 +879,9 @@ fn coarse_e_sum(@builtin(local_invocation_id) lid: vec3<u32>) {
             for (var m = 0u; m < n; m++) {
                 let at = base + m;
                 if (at < dd) {
-                    scal[NCG_E + at] = s[m];
+                    scal[SCAL_E + at] = s[m];
                 } else {
-                    scal[NCG_EABS + at - dd] = s[m];
+                    scal[SCAL_EABS + at - dd] = s[m];
                 }
             }
         }

@@ -15,46 +15,86 @@
 /// Shared declarations, prepended to every kernel by [`prelude`].
 pub const COMMON: &str = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/common.wgsl"));
 
-/// Slots of the CG's scalar array `scal` (acc), its state array `state` (u32) and its
-/// partial sums (`partials[slot · G + workgroup]`), for the driver (src/gpu/solver/run.rs)
-/// and the kernels (shaders/cg.wgsl, whose header says who writes and reads each): the
-/// prelude declares every one as a WGSL `const` of the same name.
+/// The one slot table of the device CGs' scalar array `scal` (acc), state array `state`
+/// (u32) and partial sums (`partials[slot · G + segment]`): `solve`'s CG (the driver in
+/// src/gpu/solver/run.rs, the kernels in shaders/cg.wgsl, whose header says who writes and
+/// reads each) and the device Newton loop's (src/sim/device/newton_cg.rs,
+/// shaders/newton_cg.wgsl). The prelude declares every one as a WGSL `const` of the same
+/// name; a slot one CG does not use is simply unused there.
 pub mod slots {
-    /// ρ = r·z (update_p writes, update_xrz reads).
+    /// ρ = r·z.
     pub const SCAL_RHO: u32 = 0;
-    /// ρ of the previous iteration (update_xrz writes, update_p reads; the host sets it).
+    /// ρ of the previous iteration (`solve`'s CG; the host sets it).
     pub const SCAL_RHO_PREV: u32 = 1;
-    /// p·q of the last update_xrz (the curvature reported when it is not positive).
+    /// p·q of the last α (the curvature reported when it is not positive).
     pub const SCAL_PQ: u32 = 2;
     pub const SCAL_ALPHA: u32 = 3;
-    /// r·r of the last update_p.
+    /// r·r of the last reduction.
     pub const SCAL_RR: u32 = 4;
-    /// The convergence threshold tol²‖b‖² on r·r (host).
+    /// The convergence threshold tol²‖b‖² on r·r (`solve`'s CG; host).
     pub const SCAL_THRESH: u32 = 5;
-    /// The direction scale `init` keeps (host; 0: p = 0).
+    /// The direction scale `init` keeps (`solve`'s CG; host; 0: p = 0).
     pub const SCAL_PSCALE: u32 = 6;
     /// β of the first update_p of a run (the link of a resumed Lanczos sequence).
     pub const SCAL_BETA0: u32 = 7;
-    /// First slot of the Lanczos coefficient history: α_j at SCAL_HIST + 2j, β_{j+1} at
-    /// SCAL_HIST + 2j + 1.
-    pub const SCAL_HIST: u32 = 8;
-    /// A converged or halted CG: every later dispatch of the chunk is a no-op.
+    /// β (the Newton CG's scalar_beta).
+    pub const SCAL_BETA: u32 = 8;
+    /// tol² (host) and ‖b̂‖² (scalar_start): the Newton CG's threshold is their product.
+    pub const SCAL_TOL2: u32 = 9;
+    pub const SCAL_BB: u32 = 10;
+    /// The leading slots read back with every status of the Newton CG.
+    pub const STATUS_SCAL: u32 = 12;
+    /// The coarse correction on the translations (the Newton CG): c = E⁺Zᵀr (D values),
+    /// E⁺ (D², from the host), E = ZᵀĤZ (D², for the host), the rows' absolute sums per
+    /// world axis (D, for the host).
+    pub const SCAL_C: u32 = 12;
+    pub const SCAL_EINV: u32 = 15;
+    pub const SCAL_E: u32 = 24;
+    pub const SCAL_EABS: u32 = 33;
+    /// First slot of the Lanczos coefficient history (`solve`'s CG): α_j at
+    /// SCAL_HIST + 2j, β_{j+1} at SCAL_HIST + 2j + 1. The slots before it are the fixed
+    /// scalars of either CG.
+    pub const SCAL_HIST: u32 = 36;
+    /// A converged or stopped CG: every later dispatch of the chunk is a no-op.
     pub const STATE_DONE: u32 = 0;
-    /// Non-positive curvature met (update_xrz).
+    /// Non-positive curvature met.
     pub const STATE_HALT: u32 = 1;
-    /// Iterations done (update_xrz, workgroup 0).
-    pub const STATE_ITERS: u32 = 2;
-    pub const STATE_CONVERGED: u32 = 3;
+    pub const STATE_CONVERGED: u32 = 2;
     /// A non-finite ρ or r·r.
-    pub const STATE_BREAKDOWN: u32 = 4;
+    pub const STATE_BREAKDOWN: u32 = 3;
+    /// Iterations done. The four flags come before it, so that clearing them keeps it.
+    pub const STATE_ITERS: u32 = 4;
     /// Length of `state`.
     pub const N_STATE: u32 = 8;
-    /// Partial-sum slots: p·q (matvec), r·z and r·r (update_xrz, init), Zᵀr (D slots from
-    /// PART_ZR, with the coarse correction on the translations).
+    /// Partial-sum slots: p·q (the product), r·z and r·r (the updates, init), Zᵀr (D
+    /// slots from PART_ZR, with the coarse correction on the translations), ‖b̂‖² (the
+    /// Newton CG's rhs), then E (D² slots) and its rows' absolute sums (D slots) of the
+    /// Newton CG's coarse_e.
     pub const PART_PQ: u32 = 0;
     pub const PART_RZ: u32 = 1;
     pub const PART_RR: u32 = 2;
     pub const PART_ZR: u32 = 3;
+    pub const PART_BB: u32 = 6;
+    pub const PART_E: u32 = 7;
+    /// Partial-sum slots of the Newton CG.
+    pub const N_PART: u32 = 19;
+    /// Where the Newton CG's per-invocation sums carried between H's chunks start (×
+    /// partials per slot), and how many each invocation carries.
+    pub const PART_CARRY: u32 = N_PART;
+    pub const CARRY_LEN: u32 = 12;
+
+    // The slot ranges do not overlap (D ≤ 3).
+    const _: () = assert!(SCAL_BB < STATUS_SCAL && STATUS_SCAL <= SCAL_C);
+    const _: () = assert!(
+        SCAL_C + 3 <= SCAL_EINV
+            && SCAL_EINV + 9 <= SCAL_E
+            && SCAL_E + 9 <= SCAL_EABS
+            && SCAL_EABS + 3 <= SCAL_HIST
+    );
+    const _: () = assert!(STATE_ITERS < N_STATE);
+    const _: () = assert!(PART_ZR + 3 <= PART_BB && PART_BB < PART_E && PART_E + 12 <= N_PART);
+    // coarse_e carries E and the absolute sums.
+    const _: () = assert!(CARRY_LEN == 12);
 }
 
 /// A packed column index holds the column node's constraint mask in its bits from this
@@ -84,6 +124,17 @@ pub const SHARED: &[(&str, u32)] = &[
     ("PART_RZ", slots::PART_RZ),
     ("PART_RR", slots::PART_RR),
     ("PART_ZR", slots::PART_ZR),
+    ("SCAL_BETA", slots::SCAL_BETA),
+    ("SCAL_TOL2", slots::SCAL_TOL2),
+    ("SCAL_BB", slots::SCAL_BB),
+    ("SCAL_C", slots::SCAL_C),
+    ("SCAL_EINV", slots::SCAL_EINV),
+    ("SCAL_E", slots::SCAL_E),
+    ("SCAL_EABS", slots::SCAL_EABS),
+    ("PART_BB", slots::PART_BB),
+    ("PART_E", slots::PART_E),
+    ("PART_CARRY", slots::PART_CARRY),
+    ("CARRY_LEN", slots::CARRY_LEN),
     ("MASK_SHIFT", MASK_SHIFT),
     ("COL_BITS", (1 << MASK_SHIFT) - 1),
     ("NO_ROTATION", crate::core::constraints::NO_ROTATION),

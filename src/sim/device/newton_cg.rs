@@ -49,7 +49,7 @@
 #![cfg(feature = "sim")]
 
 use crate::core::constraints::{Frames, NO_ROTATION};
-use crate::gpu::kernels::{self, Access, Layout};
+use crate::gpu::kernels::{self, slots, Access, Layout};
 use crate::gpu::{GpuContext, GpuError, Launch, TrafficCount};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::newton_coarse::{self, AggregateIndex};
@@ -89,84 +89,8 @@ pub const NEWTON_CG: Layout = Layout {
     ],
 };
 
-/// Slots of the kernels' `scal` (f64), `state` (u32) and partial sums; the WGSL declares
-/// each as `NCG_<name>` with the same value (checked by a unit test).
-// Some slots are used by the kernels alone; they are listed so that the test covers all.
-#[allow(dead_code)]
-mod slot {
-    pub const RHO: u32 = 0;
-    pub const PQ: u32 = 1;
-    pub const ALPHA: u32 = 2;
-    pub const BETA: u32 = 3;
-    pub const RR: u32 = 4;
-    pub const TOL2: u32 = 5;
-    pub const BB: u32 = 6;
-    /// c = E⁺Zᵀr (D values), E⁺ (D², from the host), E (D², for the host), the rows'
-    /// absolute sums per axis (D, for the host).
-    pub const C: u32 = 8;
-    pub const EINV: u32 = 11;
-    pub const E: u32 = 20;
-    pub const EABS: u32 = 29;
-    /// Length of `scal`.
-    pub const SCAL_LEN: usize = 32;
-    /// The leading slots of `scal` read back with every status (the CG's scalars).
-    pub const STATUS_SCAL: usize = 8;
-    pub const DONE: u32 = 0;
-    pub const CONVERGED: u32 = 1;
-    pub const HALT: u32 = 2;
-    pub const BREAKDOWN: u32 = 3;
-    pub const ITERS: u32 = 4;
-    /// Length of `state`; the flags are its first four entries.
-    pub const STATE_LEN: usize = 8;
-    pub const PART_PQ: u32 = 0;
-    pub const PART_RZ: u32 = 1;
-    pub const PART_RR: u32 = 2;
-    pub const PART_BB: u32 = 3;
-    /// Zᵀr (D slots); E (D² slots) and its rows' absolute sums (D slots) in one run.
-    pub const PART_ZR: u32 = 4;
-    pub const PART_E: u32 = 7;
-    /// Partial-sum slots.
-    pub const N_PART: usize = 19;
-    /// Where the per-thread sums carried between H's chunks start (× partials per slot).
-    pub const CARRY: u32 = N_PART as u32;
-    /// Carried sums per thread.
-    pub const CARRY_LEN: usize = 12;
-    /// Every slot with its WGSL name.
-    #[cfg(test)]
-    pub const ALL: [(&str, u32); 24] = [
-        ("NCG_RHO", RHO),
-        ("NCG_PQ", PQ),
-        ("NCG_ALPHA", ALPHA),
-        ("NCG_BETA", BETA),
-        ("NCG_RR", RR),
-        ("NCG_TOL2", TOL2),
-        ("NCG_BB", BB),
-        ("NCG_C", C),
-        ("NCG_EINV", EINV),
-        ("NCG_E", E),
-        ("NCG_EABS", EABS),
-        ("NCG_DONE", DONE),
-        ("NCG_CONVERGED", CONVERGED),
-        ("NCG_HALT", HALT),
-        ("NCG_BREAKDOWN", BREAKDOWN),
-        ("NCG_ITERS", ITERS),
-        ("NCG_PART_PQ", PART_PQ),
-        ("NCG_PART_RZ", PART_RZ),
-        ("NCG_PART_RR", PART_RR),
-        ("NCG_PART_BB", PART_BB),
-        ("NCG_PART_ZR", PART_ZR),
-        ("NCG_PART_E", PART_E),
-        ("NCG_CARRY", CARRY),
-        ("NCG_CARRY_LEN", CARRY_LEN as u32),
-    ];
-    // The slot ranges do not overlap (D ≤ 3).
-    const _: () =
-        assert!(C + 3 <= EINV && EINV + 9 <= E && E + 9 <= EABS && EABS as usize + 3 <= SCAL_LEN);
-    const _: () = assert!(STATUS_SCAL <= C as usize);
-    const _: () = assert!(PART_ZR + 3 <= PART_E && PART_E as usize + 12 <= N_PART);
-    // coarse_e carries E and the absolute sums.
-    const _: () = assert!(CARRY_LEN == 12);
-}
+/// Length of this CG's `scal`: the fixed scalars of [`slots`] (it keeps no history).
+const SCAL_LEN: u32 = slots::SCAL_HIST;
 
 /// Uniform parameters of every kernel (mirrors `NewtonCgParams` in the WGSL).
 #[repr(C)]
@@ -188,7 +112,7 @@ const _: () = assert!(std::mem::size_of::<NewtonCgParams>() == 32);
 const WORKGROUP: u32 = 64;
 
 /// Bytes of the status read back per chunk: the leading `scal` slots then `state`.
-const STATUS_BYTES: u64 = 8 * slot::STATUS_SCAL as u64 + 4 * slot::STATE_LEN as u64;
+const STATUS_BYTES: u64 = 8 * slots::STATUS_SCAL as u64 + 4 * slots::N_STATE as u64;
 
 /// Iterations of the first chunk, and the longest chunk.
 const FIRST_CHUNK: usize = 8;
@@ -552,13 +476,13 @@ impl DeviceCg {
             // chunks (one segment straddles it), per invocation.
             partials: zeroed(
                 "newton cg partial sums",
-                8 * (slot::N_PART as u64 * segments
+                8 * (slots::N_PART as u64 * segments
                     + (chunks.len().saturating_sub(1) as u64)
-                        * slot::CARRY_LEN as u64
+                        * slots::CARRY_LEN as u64
                         * WORKGROUP as u64),
             )?,
-            scal: zeroed("newton cg scalars", 8 * slot::SCAL_LEN as u64)?,
-            state: zeroed("newton cg state", 4 * slot::STATE_LEN as u64)?,
+            scal: zeroed("newton cg scalars", 8 * SCAL_LEN as u64)?,
+            state: zeroed("newton cg state", 4 * slots::N_STATE as u64)?,
             status: zeroed("newton cg status", STATUS_BYTES)?,
         };
         ctx.check("building the device Newton CG")?;
@@ -877,13 +801,16 @@ impl DeviceCg {
         }
         let d = self.dim;
         let what = "reading back the coarse matrix E = ZᵀĤZ";
-        let len = (slot::EABS - slot::E) as usize + d;
-        let bytes = self
-            .ctx
-            .download(&self.buf.scal, 8 * slot::E as u64, 8 * len as u64, what)?;
+        let len = (slots::SCAL_EABS - slots::SCAL_E) as usize + d;
+        let bytes = self.ctx.download(
+            &self.buf.scal,
+            8 * slots::SCAL_E as u64,
+            8 * len as u64,
+            what,
+        )?;
         let v = f64s(&bytes);
         let mut e = v[..d * d].to_vec();
-        let abs = v[(slot::EABS - slot::E) as usize..].to_vec();
+        let abs = v[(slots::SCAL_EABS - slots::SCAL_E) as usize..].to_vec();
         // As src/solve/coarse.rs: the mean of E and Eᵀ, then the pseudo-inverse.
         for a in 0..d {
             for b in 0..a {
@@ -962,14 +889,14 @@ impl DeviceCg {
         mut enc: wgpu::CommandEncoder,
         what: &str,
     ) -> Result<Status, GpuError> {
-        let sb = 8 * slot::STATUS_SCAL as u64;
+        let sb = 8 * slots::STATUS_SCAL as u64;
         enc.copy_buffer_to_buffer(&self.buf.scal, 0, &self.buf.status, 0, sb);
         enc.copy_buffer_to_buffer(
             &self.buf.state,
             0,
             &self.buf.status,
             sb,
-            4 * slot::STATE_LEN as u64,
+            4 * slots::N_STATE as u64,
         );
         self.ctx.queue.submit([enc.finish()]);
         self.ctx.check(what)?;
@@ -987,13 +914,13 @@ impl DeviceCg {
             u32::from_le_bytes(w)
         };
         Ok(Status {
-            rr: f(slot::RR),
-            pq: f(slot::PQ),
-            bb: f(slot::BB),
-            iterations: u(slot::ITERS) as usize,
-            converged: u(slot::CONVERGED) != 0,
-            halt: u(slot::HALT) != 0,
-            breakdown: u(slot::BREAKDOWN) != 0,
+            rr: f(slots::SCAL_RR),
+            pq: f(slots::SCAL_PQ),
+            bb: f(slots::SCAL_BB),
+            iterations: u(slots::STATE_ITERS) as usize,
+            converged: u(slots::STATE_CONVERGED) != 0,
+            halt: u(slots::STATE_HALT) != 0,
+            breakdown: u(slots::STATE_BREAKDOWN) != 0,
         })
     }
 
@@ -1078,22 +1005,22 @@ impl DeviceCg {
         let tol2 = tol * tol;
         // Every slot before E: the scalars, c and E⁺ (zero without the correction, or
         // when every translation is constrained: then c = 0 and so is the correction).
-        let mut scal = [0.0f64; slot::E as usize];
-        scal[slot::TOL2 as usize] = tol2;
+        let mut scal = [0.0f64; slots::SCAL_E as usize];
+        scal[slots::SCAL_TOL2 as usize] = tol2;
         if co == 1 {
             self.read_galerkin()?;
             if let Galerkin::Read {
                 einv: Some(einv), ..
             } = &self.galerkin
             {
-                let at = slot::EINV as usize;
+                let at = slots::SCAL_EINV as usize;
                 scal[at..at + einv.len()].copy_from_slice(einv);
             }
         }
         self.ctx
             .write_buffer(&self.buf.scal, 0, bytemuck::cast_slice(&scal));
         self.ctx
-            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slot::STATE_LEN]);
+            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
 
         // Start: y = 0, so q = Ĥy = 0 without a product.
         let mut enc = self.encoder("newton cg start");
@@ -1108,7 +1035,7 @@ impl DeviceCg {
         let tol2 = tol * tol;
         self.ctx.write_buffer(
             &self.buf.scal,
-            8 * slot::TOL2 as u64,
+            8 * slots::SCAL_TOL2 as u64,
             bytemuck::bytes_of(&tol2),
         );
         let relative = |rr: f64| {
@@ -1401,9 +1328,10 @@ mod tests {
     }
 
     /// Bind group 0 is [`NEWTON_CG`]'s bindings in order with their access, the params
-    /// struct has Rust's size, and every slot constant has Rust's value.
+    /// struct has Rust's size, and every aggregate header constant has Rust's value (the
+    /// CG's slots come from the prelude, `gpu::kernels::slots`).
     #[test]
-    fn layout_params_and_slots_match_the_wgsl() {
+    fn layout_params_and_headers_match_the_wgsl() {
         let m = module();
         kernels::check::bindings_match(&NEWTON_CG, &m);
         let (_, ty) = m
@@ -1434,7 +1362,7 @@ mod tests {
             ("AGG_W", h::W),
             ("AGG_C", h::C),
         ];
-        for (name, want) in slot::ALL.into_iter().chain(agg) {
+        for (name, want) in agg {
             let (_, c) = m
                 .constants
                 .iter()

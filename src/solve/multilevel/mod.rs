@@ -46,7 +46,9 @@ use dense::block9;
 pub use dense::PIVOT_DROP;
 pub use dense::{cholesky_dropping, inverse_from_factor};
 pub use level::LAMBDA_STEPS;
-use level::{block_matvec, factor_level, frame_values, power_estimate, solve_level, Factors, Level};
+use level::{
+    block_matvec, factor_level, frame_values, power_estimate, solve_level, Factors, Level,
+};
 use partition::partition;
 pub use partition::CLUSTER_NODES;
 use smoothed::{identity, node_translation, smoothed_p, SmoothPattern};
@@ -347,7 +349,11 @@ mod tests {
             let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Hessian);
             let hier = std::sync::Arc::new(Hierarchy::new(&s.h));
             let m = Multilevel::new(&e, hier.clone());
-            assert!(hier.smooth.len() >= 2, "{dim}D: {:?}", hier.cluster_counts());
+            assert!(
+                hier.smooth.len() >= 2,
+                "{dim}D: {:?}",
+                hier.cluster_counts()
+            );
             for (l, sp) in hier.smooth.iter().enumerate() {
                 let (n, nc) = (hier.levels[l].n * dim, hier.levels[l].clusters() * dim);
                 let next = &hier.levels[l + 1];
@@ -385,7 +391,11 @@ mod tests {
                 }
                 assert!(scale > 0.0, "{dim}D: A_{} is zero", l + 1);
                 // Two orders of summing the same products: a few ulps of the largest entry.
-                assert!(worst <= 1e-12 * scale, "{dim}D, A_{}: {worst:e} of {scale:e}", l + 1);
+                assert!(
+                    worst <= 1e-12 * scale,
+                    "{dim}D, A_{}: {worst:e} of {scale:e}",
+                    l + 1
+                );
             }
         }
     }
