@@ -53,9 +53,9 @@ pub enum Preconditioner {
     Jacobi,
     /// The inverse of each node's d×d diagonal block of Ĥ (in the node's frame, masked).
     BlockJacobi,
-    /// One symmetric V-cycle over Ĥ's dense blocks on clusters of about 16 nodes, the
-    /// smoothed translations of the clusters and coarser levels of clusters of clusters
-    /// (see `solve::multilevel`). CPU CG only; its own coarse levels replace the coarse
+    /// One symmetric V-cycle over Ĥ's dense blocks on clusters of about 16 nodes and
+    /// coarser levels of the clusters' smoothed translations, down to one cluster (see
+    /// `solve::multilevel`). CPU CG only; its own coarse levels replace the coarse
     /// space, which it ignores.
     Multilevel,
 }
