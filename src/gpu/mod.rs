@@ -9,6 +9,7 @@ pub mod error;
 pub mod kernels;
 pub mod launch;
 pub mod params;
+pub mod schedule;
 pub mod solver;
 
 pub use context::{

@@ -50,7 +50,7 @@
 
 use crate::core::constraints::{Frames, NO_ROTATION};
 use crate::gpu::kernels::{self, slots, Access, Layout};
-use crate::gpu::{GpuContext, GpuError, Launch, TrafficCount};
+use crate::gpu::{schedule, GpuContext, GpuError, Launch, TrafficCount};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::newton_coarse::{self, AggregateIndex};
 use crate::solve::cg::{CgError, Preconditioner};
@@ -114,8 +114,10 @@ const WORKGROUP: u32 = 64;
 /// Bytes of the status read back per chunk: the leading `scal` slots then `state`.
 const STATUS_BYTES: u64 = 8 * slots::STATUS_SCAL as u64 + 4 * slots::N_STATE as u64;
 
-/// Iterations of the first chunk, and the longest chunk.
+/// Iterations of the first chunk, the shortest and the longest chunk
+/// ([`schedule::next_chunk`]).
 const FIRST_CHUNK: usize = 8;
+const MIN_CHUNK: usize = 2;
 const MAX_CHUNK: usize = 256;
 
 /// Identities of every [`DeviceCg`] and [`DeviceFrames`]: frames built for one CG are
@@ -956,7 +958,8 @@ impl DeviceCg {
     /// residual is computed in f64 on the device (q = Ĥy, r = b̂ − q); if it misses, CG
     /// restarts from y with that residual. Iterations are recorded in chunks, one status
     /// read-back each (the first chunk 8 iterations, then as many as the residual's rate of
-    /// fall predicts, at most double the last and 256).
+    /// fall predicts, at least 2, at most double the last and 256: [`schedule::next_chunk`],
+    /// the schedule of `solve`'s CG too).
     pub fn iterate(
         &mut self,
         frames: &DeviceFrames,
@@ -1240,7 +1243,7 @@ impl DeviceCg {
             if st.rr > 0.0 && st.rr.is_finite() {
                 hist.push((st.iterations, st.rr.ln()));
             }
-            k = next_chunk(&hist, thresh, kk);
+            k = schedule::next_chunk(&hist, thresh, kk, MIN_CHUNK, MAX_CHUNK);
         }
     }
 
@@ -1288,29 +1291,6 @@ fn f64s(bytes: &[u8]) -> Vec<f64> {
             f64::from_le_bytes(w)
         })
         .collect()
-}
-
-/// The next chunk: the iterations the fall of ln r·r since the run's first status read
-/// predicts to reach `thresh`, within [2, min(2·prev, MAX_CHUNK)]; doubling without a fall.
-fn next_chunk(hist: &[(usize, f64)], thresh: f64, prev: usize) -> usize {
-    let grow = (2 * prev).clamp(2, MAX_CHUNK);
-    let (Some(&(i0, l0)), Some(&(i1, l1))) = (hist.first(), hist.last()) else {
-        return grow;
-    };
-    let rate = if i1 > i0 {
-        (l0 - l1) / (i1 - i0) as f64
-    } else {
-        0.0
-    };
-    // Written to reject NaN too.
-    if !(rate > 0.0 && thresh > 0.0) {
-        return grow;
-    }
-    let need = ((l1 - thresh.ln()) / rate).ceil();
-    if !need.is_finite() {
-        return grow;
-    }
-    (need.max(0.0) as usize).clamp(2, grow)
 }
 
 #[cfg(test)]
@@ -1396,18 +1376,5 @@ mod tests {
                 "no entry point {e}"
             );
         }
-    }
-
-    /// Chunks follow the predicted remaining iterations, within [2, 2·prev].
-    #[test]
-    fn chunks_follow_the_rate_of_fall() {
-        assert_eq!(next_chunk(&[], 1e-20, 8), 16);
-        // ln r·r falls by 0.5 per iteration from 0 at 0 to −4 at 8: 12 more to −10.
-        let h = [(0, 0.0), (8, -4.0)];
-        assert_eq!(next_chunk(&h, (-10.0f64).exp(), 8), 12);
-        assert_eq!(next_chunk(&h, (-100.0f64).exp(), 8), 16);
-        assert_eq!(next_chunk(&h, (-4.1f64).exp(), 8), 2);
-        // No fall: doubling.
-        assert_eq!(next_chunk(&[(0, 0.0), (8, 0.0)], 1e-20, 8), 16);
     }
 }

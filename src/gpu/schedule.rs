@@ -1,0 +1,88 @@
+//! The chunk schedule of the device CGs: how many iterations one submit records before
+//! the next status read. A read costs a round trip; an iteration recorded past
+//! convergence costs an iteration. Both device CGs (`solve`'s, src/gpu/solver/run.rs,
+//! and the Newton loop's, src/sim/device/newton_cg.rs) size their chunks here.
+
+/// Iterations of the next chunk from the status history `hist` ((iterations, ln r·r) at
+/// each status read of the run): the iterations the fall of ln r·r predicts to reach
+/// `thresh` (on r·r), within [floor, min(2·prev, cap)]; doubling without a fall.
+pub fn next_chunk(
+    hist: &[(usize, f64)],
+    thresh: f64,
+    prev: usize,
+    floor: usize,
+    cap: usize,
+) -> usize {
+    let grow = (2 * prev).min(cap).max(floor);
+    // Without a fall over the later half (the CG residual is not monotone), the fall since
+    // the first status read: a better guess than doubling, which overshoots a bump.
+    let whole = || {
+        let (&(i0, l0), &(i1, l1)) = (hist.first()?, hist.last()?);
+        let rate = (l0 - l1) / (i1.checked_sub(i0)?) as f64;
+        (rate > 0.0 && rate.is_finite()).then_some(rate)
+    };
+    let rate = late_rate(hist).or_else(whole);
+    let (Some(rate), Some(&(_, lr))) = (rate, hist.last()) else {
+        return grow;
+    };
+    // Written to reject NaN too.
+    if thresh.is_nan() || thresh <= 0.0 {
+        return grow;
+    }
+    let need = (lr - thresh.ln()) / rate;
+    if !need.is_finite() {
+        return grow;
+    }
+    // CG converges superlinearly, so the rate so far overestimates what is left: a long
+    // prediction is cut to 3/4 and the next status read corrects it (dt-1e2 at 107k
+    // DOFs: 42 iterations recorded past convergence of 462 before this cut).
+    let need = need.max(0.0).ceil();
+    let take = if need > SHORT_PREDICTION {
+        (0.75 * need).ceil()
+    } else {
+        need
+    };
+    (take as usize).clamp(floor, grow)
+}
+
+/// The fall of ln r·r per iteration over the later half of a status history: early CG
+/// iterations are not representative, and a single chunk's rate is noisy (the CG residual
+/// is not monotone). None without two points or without a fall.
+pub fn late_rate(hist: &[(usize, f64)]) -> Option<f64> {
+    let &(it, lr) = hist.last()?;
+    let &(it0, lr0) = hist.iter().rev().find(|&&(i, _)| 2 * i <= it)?;
+    let rate = (lr0 - lr) / (it - it0) as f64;
+    // Written to reject NaN too.
+    (rate > 0.0 && rate.is_finite()).then_some(rate)
+}
+
+/// Predictions of at most this many iterations are taken whole (see `next_chunk`).
+const SHORT_PREDICTION: f64 = 8.0;
+
+#[cfg(test)]
+mod tests {
+    use super::next_chunk;
+
+    #[test]
+    fn chunks_follow_the_predicted_remaining_iterations() {
+        // No history, or too little of it: double within [floor, cap].
+        assert_eq!(next_chunk(&[], 1e-12, 8, 8, 256), 16);
+        assert_eq!(next_chunk(&[(8, 0.0)], 1e-12, 8, 8, 256), 16);
+        // ln r·r falls by 0.1 per iteration; 10 more iterations reach the threshold.
+        let t = (-6.0f64).exp();
+        let h = [(8, -0.8), (24, -2.4), (50, -5.0)];
+        // A short prediction is taken whole, a long one cut to 3/4.
+        assert_eq!(next_chunk(&h, t, 26, 2, 256), 8);
+        assert_eq!(next_chunk(&h, (-5.8f64).exp(), 26, 2, 256), 8);
+        assert_eq!(next_chunk(&h, (-5.3f64).exp(), 26, 2, 256), 3);
+        // Never below the floor, never above double the previous chunk.
+        assert_eq!(next_chunk(&h, (-5.1f64).exp(), 26, 8, 256), 8);
+        assert_eq!(next_chunk(&h, (-50.0f64).exp(), 26, 8, 256), 52);
+        assert_eq!(next_chunk(&h, (-9.0f64).exp(), 26, 2, 256), 30);
+        // No progress: plain doubling.
+        assert_eq!(next_chunk(&[(8, -1.0), (24, -1.0)], t, 16, 8, 256), 32);
+        // A bump over the later half: the fall since the first read, 0.05 per iteration.
+        let bump = [(0, 0.0), (10, -2.0), (20, -1.5), (30, -1.5)];
+        assert_eq!(next_chunk(&bump, (-2.0f64).exp(), 10, 2, 256), 8);
+    }
+}
