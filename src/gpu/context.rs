@@ -235,6 +235,28 @@ fn rank(a: &wgpu::Adapter) -> (u32, u32) {
     (t, b)
 }
 
+/// How a buffer is bound, which decides the limits it must meet
+/// ([`GpuContext::checked_size`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Binding {
+    /// Bound whole as one storage binding of at most this many bytes (and the adapter's
+    /// limit).
+    Whole(u64),
+    /// Bound in pieces (row chunks) or not as storage: the buffer size limit alone.
+    Pieces,
+}
+
+/// The size of every device buffer of `bytes`: at least 16 (bindings must not be empty),
+/// whole 16-byte units ([`GpuContext::checked_size`], and the memory plans before it).
+pub(crate) fn padded_size(bytes: u64) -> u64 {
+    bytes.max(16).div_ceil(16) * 16
+}
+
+/// The usage of every storage buffer: bound, written and read back.
+pub(crate) const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE
+    .union(wgpu::BufferUsages::COPY_DST)
+    .union(wgpu::BufferUsages::COPY_SRC);
+
 /// A device and queue with the adapter's own limits and the optional features the solver
 /// uses (SHADER_F64, SUBGROUP, TIMESTAMP_QUERY) where the adapter has them.
 #[derive(Clone)]
@@ -350,25 +372,91 @@ impl GpuContext {
         )
     }
 
-    /// `bytes` padded to a 16-byte multiple (at least 16): the size of a storage buffer
-    /// bound whole, or the error naming `label` where that exceeds the adapter's buffer or
-    /// storage binding limit.
-    // The device Newton loop's (feature `sim`) buffers are its only users.
-    #[cfg_attr(not(feature = "sim"), allow(dead_code))]
-    pub(crate) fn binding_size(&self, label: &str, bytes: u64) -> Result<u64, GpuError> {
-        let bytes = bytes.max(16).div_ceil(16) * 16;
+    /// `bytes` padded to a 16-byte multiple (at least 16: bindings must not be empty), or
+    /// the error naming `label` where that exceeds the adapter's buffer size or, for a
+    /// buffer bound as a whole ([`Binding::Whole`]), the storage binding limit in force.
+    pub(crate) fn checked_size(
+        &self,
+        label: &str,
+        bytes: u64,
+        binding: Binding,
+    ) -> Result<u64, GpuError> {
+        let bytes = padded_size(bytes);
         let l = &self.limits;
-        let limit = l.max_buffer_size.min(l.max_storage_buffer_binding_size);
-        if bytes > limit {
-            return Err(GpuError::BufferTooLarge {
-                label: label.to_string(),
-                bytes,
-                limit,
-                what: "storage binding",
-                adapter: self.adapter_name().to_string(),
-            });
+        let too_large = |limit: u64, what: &'static str| GpuError::BufferTooLarge {
+            label: label.to_string(),
+            bytes,
+            limit,
+            what,
+            adapter: self.adapter_name().to_string(),
+        };
+        if bytes > l.max_buffer_size {
+            return Err(too_large(l.max_buffer_size, "buffer"));
+        }
+        if let Binding::Whole(limit) = binding {
+            let limit = limit.min(l.max_storage_buffer_binding_size);
+            if bytes > limit {
+                return Err(too_large(limit, "storage binding"));
+            }
         }
         Ok(bytes)
+    }
+
+    /// A zeroed buffer of at least `bytes`, labelled, its size checked first
+    /// ([`GpuContext::checked_size`]): the one allocation path of every device buffer
+    /// that can grow with the problem.
+    pub(crate) fn zeroed_buffer(
+        &self,
+        label: &str,
+        bytes: u64,
+        usage: wgpu::BufferUsages,
+        binding: Binding,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let size = self.checked_size(label, bytes, binding)?;
+        Ok(self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size,
+            usage,
+            mapped_at_creation: false,
+        }))
+    }
+
+    /// A buffer holding `data` (zero-padded to the checked size), labelled, counted as
+    /// host-to-device traffic.
+    pub(crate) fn init_buffer(
+        &self,
+        label: &str,
+        data: &[u8],
+        usage: wgpu::BufferUsages,
+        binding: Binding,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let size = self.checked_size(label, data.len() as u64, binding)?;
+        let mut padded;
+        let contents = if size as usize == data.len() {
+            data
+        } else {
+            padded = data.to_vec();
+            padded.resize(size as usize, 0);
+            &padded[..]
+        };
+        Ok(self.buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents,
+            usage,
+        }))
+    }
+
+    /// A zeroed storage buffer (storage, copy source and destination) bound whole.
+    // The device Newton loop's (feature `sim`) buffers are its only users.
+    #[cfg_attr(not(feature = "sim"), allow(dead_code))]
+    pub(crate) fn storage_zeroed(&self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
+        self.zeroed_buffer(label, bytes, STORAGE, Binding::Whole(u64::MAX))
+    }
+
+    /// A storage buffer (storage, copy source and destination) holding `data`, bound whole.
+    #[cfg_attr(not(feature = "sim"), allow(dead_code))]
+    pub(crate) fn storage_with(&self, label: &str, data: &[u8]) -> Result<wgpu::Buffer, GpuError> {
+        self.init_buffer(label, data, STORAGE, Binding::Whole(u64::MAX))
     }
 
     /// The policy of segmented reductions on this adapter (`gpu::launch`).

@@ -5,6 +5,7 @@
 //! layout helpers.
 
 use super::info::{BufferRecord, KernelRecord};
+use crate::gpu::context::Binding;
 use crate::gpu::kernels::{self, Layout};
 use crate::gpu::{GpuContext, GpuError};
 use std::collections::BTreeMap;
@@ -207,9 +208,7 @@ pub(super) struct Builder<'a> {
     modules: BTreeMap<(String, &'static str, &'static str), wgpu::ShaderModule>,
 }
 
-pub(super) const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE
-    .union(wgpu::BufferUsages::COPY_DST)
-    .union(wgpu::BufferUsages::COPY_SRC);
+pub(super) use crate::gpu::context::STORAGE;
 
 impl<'a> Builder<'a> {
     pub(super) fn new(ctx: &'a GpuContext, binding_limit: u64) -> Self {
@@ -222,29 +221,15 @@ impl<'a> Builder<'a> {
         }
     }
 
-    fn check_size(
-        &self,
-        label: &str,
-        bytes: u64,
-        usage: wgpu::BufferUsages,
-        split: bool,
-    ) -> Result<(), GpuError> {
-        let l = &self.ctx.limits;
-        let too_large = |limit: u64, what: &'static str| GpuError::BufferTooLarge {
-            label: label.to_string(),
-            bytes,
-            limit,
-            what,
-            adapter: self.ctx.info.name.clone(),
-        };
-        if bytes > l.max_buffer_size {
-            return Err(too_large(l.max_buffer_size, "buffer"));
+    /// The limits a buffer of this usage meets: a storage array bound whole meets the
+    /// binding limit in force, a split one (bound in row-chunk pieces) and any other
+    /// buffer the buffer size alone.
+    fn binding(&self, usage: wgpu::BufferUsages, split: bool) -> Binding {
+        if usage.contains(wgpu::BufferUsages::STORAGE) && !split {
+            Binding::Whole(self.binding_limit)
+        } else {
+            Binding::Pieces
         }
-        // A split array is bound in pieces (row chunks), each within the limit.
-        if usage.contains(wgpu::BufferUsages::STORAGE) && !split && bytes > self.binding_limit {
-            return Err(too_large(self.binding_limit, "storage binding"));
-        }
-        Ok(())
     }
 
     pub(super) fn buffer(
@@ -272,18 +257,12 @@ impl<'a> Builder<'a> {
         usage: wgpu::BufferUsages,
         split: bool,
     ) -> Result<wgpu::Buffer, GpuError> {
-        // Bindings must not be empty; round up to whole 16-byte units.
-        let bytes = bytes.max(16).div_ceil(16) * 16;
-        self.check_size(label, bytes, usage, split)?;
-        let b = self.ctx.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(label),
-            size: bytes,
-            usage,
-            mapped_at_creation: false,
-        });
+        let b = self
+            .ctx
+            .zeroed_buffer(label, bytes, usage, self.binding(usage, split))?;
         self.buffers.push(BufferRecord {
             label: label.to_string(),
-            bytes,
+            bytes: b.size(),
         });
         Ok(b)
     }
@@ -313,23 +292,12 @@ impl<'a> Builder<'a> {
         usage: wgpu::BufferUsages,
         split: bool,
     ) -> Result<wgpu::Buffer, GpuError> {
-        let mut padded;
-        let contents = if data.len() < 16 || data.len() % 4 != 0 {
-            padded = data.to_vec();
-            padded.resize(data.len().max(16).div_ceil(4) * 4, 0);
-            &padded[..]
-        } else {
-            data
-        };
-        self.check_size(label, contents.len() as u64, usage, split)?;
-        let b = self.ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(label),
-            contents,
-            usage,
-        });
+        let b = self
+            .ctx
+            .init_buffer(label, data, usage, self.binding(usage, split))?;
         self.buffers.push(BufferRecord {
             label: label.to_string(),
-            bytes: contents.len() as u64,
+            bytes: b.size(),
         });
         Ok(b)
     }

@@ -19,15 +19,8 @@ pub const DOES_NOT_FIT: &str = "does not fit on the GPU";
 pub const MULTILEVEL_ON_CPU: &str =
     "the multilevel preconditioner runs in the CPU CG only (the GPU CGs take none, jacobi or block-jacobi)";
 
-/// A `Builder::buffer` of `bytes`: at least 16, whole 16-byte units.
-fn buf(bytes: u64) -> u64 {
-    bytes.max(16).div_ceil(16) * 16
-}
-
-/// A `Builder::init` of `bytes` of contents: at least 16, whole 4-byte units.
-fn init(bytes: u64) -> u64 {
-    bytes.max(16).div_ceil(4) * 4
-}
+// Every buffer the builder makes has the size the one allocator gives it.
+use crate::gpu::context::padded_size;
 
 /// Bytes of one operator in `real` (`levels::build_operator`).
 fn operator(
@@ -44,17 +37,17 @@ fn operator(
     let n = f.n_nodes as u64;
     let mut t = 0;
     if c.masked {
-        t += buf(nd * s);
+        t += padded_size(nd * s);
     }
     if c.rotated {
-        t += buf(f.rotations.len() as u64 * s);
+        t += padded_size(f.rotations.len() as u64 * s);
     }
     let limit = binding_limit(ctx, params);
     let diff = c.diff && real == Real::F32 && matches!(host.op, HostOp::Blocks(_));
     let planes = |blocks: u64| -> u64 {
         plane_widths(f.dim)
             .iter()
-            .map(|&w| buf((blocks * w as u64 * s).max(4 * s)))
+            .map(|&w| padded_size((blocks * w as u64 * s).max(4 * s)))
             .sum()
     };
     let chunks = |rp: &[u32], re: u64| {
@@ -67,10 +60,10 @@ fn operator(
         HostOp::Blocks(h) => h.nnz_blocks() as u64 * block_elem(real),
         HostOp::Springs(_) => n * block_elem(real),
     };
-    if buf(widest) > max {
+    if padded_size(widest) > max {
         return Err(GpuError::BufferTooLarge {
             label: format!("blocks_{}", real.name()),
-            bytes: buf(widest),
+            bytes: padded_size(widest),
             limit: max,
             what: "buffer",
             adapter: ctx.info.name.clone(),
@@ -79,20 +72,22 @@ fn operator(
     match &host.op {
         HostOp::Blocks(h) => {
             if diff {
-                t += buf(nd * f.dim as u64 * s);
+                t += padded_size(nd * f.dim as u64 * s);
             }
             t += planes(h.nnz_blocks() as u64);
             let rp: Vec<u32> = h.row_ptr.iter().map(|&v| v as u32).collect();
             let k = chunks(&rp, row_elem(host, real, diff));
             t += 16 * k;
             t += if k > 1 {
-                buf(u64::from(c.n_partials) * c.wg as u64 * acc.size())
+                padded_size(u64::from(c.n_partials) * c.wg as u64 * acc.size())
             } else {
                 16
             };
         }
         HostOp::Springs(ms) => {
-            t += buf(nd * s) + buf(2 * ms.edges.len() as u64 * s) + buf(n * s);
+            t += padded_size(nd * s)
+                + padded_size(2 * ms.edges.len() as u64 * s)
+                + padded_size(n * s);
             t += planes(n);
             let identity: Vec<u32> = (0..=n as u32).collect();
             t += 16 * chunks(&identity, 0);
@@ -107,23 +102,25 @@ fn level(host: &Host, real: Real, acc: Real, c: &Consts, pc: Preconditioner) -> 
     let nd = host.ndof() as u64;
     let n = host.frames.n_nodes as u64;
     let d = host.frames.dim as u64;
-    let mut t = 6 * buf(nd * s);
+    let mut t = 6 * padded_size(nd * s);
     t += match pc {
         Preconditioner::None | Preconditioner::Multilevel => 0,
-        Preconditioner::Jacobi => buf(n * d * s),
-        Preconditioner::BlockJacobi => buf(n * d * d * s),
+        Preconditioner::Jacobi => padded_size(n * d * s),
+        Preconditioner::BlockJacobi => padded_size(n * d * d * s),
     };
     let part_slots = u64::from(slots::PART_ZR) + if c.coarse { d } else { 0 };
-    t += buf(part_slots * u64::from(MAX_WORKGROUPS) * acc.size());
+    t += padded_size(part_slots * u64::from(MAX_WORKGROUPS) * acc.size());
     let kc = d * u64::from(c.agg.max(1));
     if c.coarse || c.agg > 0 {
-        t += buf(kc * kc * acc.size());
+        t += padded_size(kc * kc * acc.size());
     }
     if c.agg > 0 {
-        t += buf(2 * kc * acc.size());
+        t += padded_size(2 * kc * acc.size());
     }
     let scal = (N_SCAL + 2 * LANCZOS_HIST) as u64 * acc.size();
-    t += buf(scal) + buf(4 * N_STATE as u64) + buf(scal + 4 * N_STATE as u64 + 16);
+    t += padded_size(scal)
+        + padded_size(4 * N_STATE as u64)
+        + padded_size(scal + 4 * N_STATE as u64 + 16);
     t
 }
 
@@ -159,12 +156,15 @@ pub(super) fn device_bytes(
     let n = f.n_nodes as u64;
     let nd = host.ndof() as u64;
     // Shared: params, pattern, aggregates, mask, rotation indices, placeholder.
-    let mut t = init(16) + init(16);
+    let mut t = padded_size(16) + padded_size(16);
     t += match &host.op {
-        HostOp::Blocks(h) => init((n + 1) * 4) + init(h.nnz_blocks() as u64 * 4),
+        HostOp::Blocks(h) => padded_size((n + 1) * 4) + padded_size(h.nnz_blocks() as u64 * 4),
         HostOp::Springs(ms) => {
             let e = ms.edges.len() as u64;
-            init((n + 1) * 4) + init(4 * e * 4) + init((n + 1) * 4) + init(n * 4)
+            padded_size((n + 1) * 4)
+                + padded_size(4 * e * 4)
+                + padded_size((n + 1) * 4)
+                + padded_size(n * 4)
         }
     };
     if let Some(a) = aggregation {
@@ -173,13 +173,13 @@ pub(super) fn device_bytes(
             .iter()
             .filter(|&&g| g != crate::solve::coarse::NO_AGGREGATE)
             .count() as u64;
-        t += init(n * 4) + init((a.count as u64 + 1) * 4) + init(members * 4);
+        t += padded_size(n * 4) + padded_size((a.count as u64 + 1) * 4) + padded_size(members * 4);
     }
     if c.masked {
-        t += init(n * 4);
+        t += padded_size(n * 4);
     }
     if c.rotated {
-        t += init(n * 4) + init(f.rot_nodes.len() as u64 * 4);
+        t += padded_size(n * 4) + padded_size(f.rot_nodes.len() as u64 * 4);
     }
     t += operator(ctx, params, host, inner, acc, c)?;
     t += level(host, inner, acc, c, params.preconditioner);
@@ -189,12 +189,16 @@ pub(super) fn device_bytes(
             t += operator(ctx, params, host, Real::F64, acc, c)?;
         }
         let w = u64::from(MAX_WORKGROUPS) * 8;
-        t += 3 * buf(nd * 8) + buf(w) + buf(4 * N_STATE as u64) + buf(w) + buf(16);
+        t += 3 * padded_size(nd * 8)
+            + padded_size(w)
+            + padded_size(4 * N_STATE as u64)
+            + padded_size(w)
+            + padded_size(16);
     }
     let y = if mixed { 8 } else { inner.size() };
-    t += buf(nd * y);
+    t += padded_size(nd * y);
     if ctx.has_timestamps() {
-        t += buf(16);
+        t += padded_size(16);
     }
     Ok(t)
 }

@@ -25,7 +25,7 @@
 //! and per-block gather lists (4 bytes per block or entry) stay whole and are refused by
 //! name when they exceed a binding.
 
-use super::elements::{from_bytes, to_bytes, usage_storage};
+use super::elements::{from_bytes, to_bytes};
 use super::elements::{GpuElements, TermKind, WORKGROUP};
 use crate::core::sparse::BlockCsr;
 use crate::gpu::kernels::{self, Access, Layout};
@@ -343,26 +343,8 @@ impl GpuAssembly {
             .collect();
 
         // Buffers, limits checked first.
-        let check = |label: &str, bytes: u64| ctx.binding_size(label, bytes);
-        let init = |label: &str, data: &[u8]| -> Result<wgpu::Buffer, GpuError> {
-            let size = check(label, data.len() as u64)?;
-            let mut padded = data.to_vec();
-            padded.resize(size as usize, 0);
-            Ok(ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: &padded,
-                usage: usage_storage(),
-            }))
-        };
-        let zeroed = |label: &str, bytes: u64| -> Result<wgpu::Buffer, GpuError> {
-            let size = check(label, bytes)?;
-            Ok(dev.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage: usage_storage(),
-                mapped_at_creation: false,
-            }))
-        };
+        let init = |label: &str, data: &[u8]| ctx.storage_with(label, data);
+        let zeroed = |label: &str, bytes: u64| ctx.storage_zeroed(label, bytes);
         let u32s = |v: &[usize]| -> Result<Vec<u32>, GpuError> {
             v.iter()
                 .map(|&k| {

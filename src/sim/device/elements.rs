@@ -269,59 +269,19 @@ pub struct GpuElements {
     terms: Vec<Term>,
 }
 
-pub(super) fn usage_storage() -> wgpu::BufferUsages {
-    wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::COPY_SRC
-}
-
 /// Buffers with the adapter's limits checked first (a too-large mesh is an error, not a
-/// device fault).
+/// device fault): the context's one allocator ([`GpuContext::storage_with`]).
 struct Alloc<'a> {
     ctx: &'a GpuContext,
 }
 
 impl Alloc<'_> {
-    fn check(&self, label: &str, bytes: u64) -> Result<(), GpuError> {
-        let l = &self.ctx.limits;
-        let too_large = |limit: u64, what: &'static str| GpuError::BufferTooLarge {
-            label: label.to_string(),
-            bytes,
-            limit,
-            what,
-            adapter: self.ctx.adapter_name().to_string(),
-        };
-        if bytes > l.max_buffer_size {
-            return Err(too_large(l.max_buffer_size, "buffer"));
-        }
-        if bytes > l.max_storage_buffer_binding_size {
-            return Err(too_large(
-                l.max_storage_buffer_binding_size,
-                "storage binding",
-            ));
-        }
-        Ok(())
-    }
-
-    /// A storage buffer holding `data` (padded to 16 bytes: bindings must not be empty).
     fn init(&self, label: &str, data: &[u8]) -> Result<wgpu::Buffer, GpuError> {
-        let mut padded = data.to_vec();
-        padded.resize(data.len().max(16).div_ceil(16) * 16, 0);
-        self.check(label, padded.len() as u64)?;
-        Ok(self.ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(label),
-            contents: &padded,
-            usage: usage_storage(),
-        }))
+        self.ctx.storage_with(label, data)
     }
 
     fn zeroed(&self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
-        let bytes = bytes.max(16).div_ceil(16) * 16;
-        self.check(label, bytes)?;
-        Ok(self.ctx.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(label),
-            size: bytes,
-            usage: usage_storage(),
-            mapped_at_creation: false,
-        }))
+        self.ctx.storage_zeroed(label, bytes)
     }
 }
 

@@ -416,30 +416,9 @@ impl DeviceCg {
 
         // Buffers, limits checked first.
         let nd = (n * dim) as u64;
-        let check = |label: &str, bytes: u64| ctx.binding_size(label, bytes);
-        let usage = wgpu::BufferUsages::STORAGE
-            | wgpu::BufferUsages::COPY_DST
-            | wgpu::BufferUsages::COPY_SRC;
-        let zeroed = |label: &str, bytes: u64| -> Result<wgpu::Buffer, GpuError> {
-            let size = check(label, bytes)?;
-            Ok(dev.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage,
-                mapped_at_creation: false,
-            }))
-        };
+        let zeroed = |label: &str, bytes: u64| ctx.storage_zeroed(label, bytes);
         let vector = |label: &str| zeroed(label, 8 * nd);
-        let pattern_buf = {
-            let mut bytes: Vec<u8> = bytemuck::cast_slice(&pattern).to_vec();
-            let size = check("newton cg pattern", bytes.len() as u64)?;
-            bytes.resize(size as usize, 0);
-            ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("newton cg pattern"),
-                contents: &bytes,
-                usage,
-            })
-        };
+        let pattern_buf = ctx.storage_with("newton cg pattern", bytemuck::cast_slice(&pattern))?;
         let mut params = Vec::with_capacity(chunks.len());
         for (c, ch) in chunks.iter().enumerate() {
             let p = NewtonCgParams {
@@ -564,19 +543,12 @@ impl DeviceCg {
             frame.push(f.mask[i] as u32);
             frame.push(ri);
         }
-        let init = |label: &str, mut bytes: Vec<u8>| {
-            bytes.resize(bytes.len().max(16).div_ceil(16) * 16, 0);
-            self.ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: &bytes,
-                usage: wgpu::BufferUsages::STORAGE,
-            })
-        };
-        let frame_buf = init("newton cg frames", bytemuck::cast_slice(&frame).to_vec());
-        let rot_buf = init(
-            "newton cg rotations",
-            bytemuck::cast_slice(&f.rotations).to_vec(),
-        );
+        let frame_buf = self
+            .ctx
+            .storage_with("newton cg frames", bytemuck::cast_slice(&frame))?;
+        let rot_buf = self
+            .ctx
+            .storage_with("newton cg rotations", bytemuck::cast_slice(&f.rotations))?;
         let agg = match coarse {
             CoarseSpace::Aggregates => {
                 let (row_ptr, col_idx) = self.usize_pattern();
@@ -590,9 +562,12 @@ impl DeviceCg {
             Some(a) => (std::mem::take(&mut a.words), 8 * a.values as u64),
             None => (vec![0u32; 4], 16),
         };
-        let agg_buf =
-            self.storage_init("newton cg aggregates", bytemuck::cast_slice(&agg_words))?;
-        let coarse_buf = self.storage("newton cg coarse space", coarse_bytes)?;
+        let agg_buf = self
+            .ctx
+            .storage_with("newton cg aggregates", bytemuck::cast_slice(&agg_words))?;
+        let coarse_buf = self
+            .ctx
+            .storage_zeroed("newton cg coarse space", coarse_bytes)?;
         let b = &self.buf;
         let mut groups = Vec::with_capacity(b.hvals.len());
         for (params, hvals) in b.params.iter().zip(&b.hvals) {
@@ -659,33 +634,6 @@ impl DeviceCg {
         let nnz = row_ptr[n];
         let col_idx = p[n + 1..n + 1 + nnz].iter().map(|&v| v as usize).collect();
         (row_ptr, col_idx)
-    }
-
-    /// A zeroed storage buffer of at least `bytes` (16-byte multiple), refused where it
-    /// exceeds the adapter's buffer or storage binding limit.
-    fn storage(&self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
-        let size = self.ctx.binding_size(label, bytes)?;
-        Ok(self.ctx.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(label),
-            size,
-            usage: wgpu::BufferUsages::STORAGE
-                | wgpu::BufferUsages::COPY_DST
-                | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        }))
-    }
-
-    /// A storage buffer holding `bytes` (padded to a 16-byte multiple), refused as
-    /// [`DeviceCg::storage`].
-    fn storage_init(&self, label: &str, bytes: &[u8]) -> Result<wgpu::Buffer, GpuError> {
-        let size = self.ctx.binding_size(label, bytes.len() as u64)?;
-        let mut contents = bytes.to_vec();
-        contents.resize(size as usize, 0);
-        Ok(self.ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(label),
-            contents: &contents,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-        }))
     }
 
     fn own(&self, frames: &DeviceFrames) -> Result<(), GpuError> {

@@ -17,7 +17,7 @@
 use crate::gpu::kernels::{self, Access, Layout};
 use crate::gpu::{GpuContext, GpuError};
 use crate::sim::device::assembly::GpuAssembly;
-use crate::sim::device::elements::{from_bytes, to_bytes, usage_storage, GpuElements, TermKind};
+use crate::sim::device::elements::{from_bytes, to_bytes, GpuElements, TermKind};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
 use crate::sim::scene::{joint_targets, BcShape, Scene};
 
@@ -408,26 +408,14 @@ impl NewtonOps {
             .max(1);
         ctx.launch()
             .require_exact(groups as u32, "the Newton loop's reductions")?;
-        let zeroed = |label: &str, bytes: u64| -> Result<wgpu::Buffer, GpuError> {
-            let bytes = ctx.binding_size(label, bytes)?;
-            Ok(dev.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: bytes,
-                usage: usage_storage(),
-                mapped_at_creation: false,
-            }))
-        };
+        let zeroed = |label: &str, bytes: u64| ctx.storage_zeroed(label, bytes);
         let x = zeroed("newton x", nd * 8)?;
         let xn = zeroed("newton xn", nd * 8)?;
         let v = zeroed("newton v", nd * 8)?;
         let n_planes = elements.n_planes();
         let mut scal_init = vec![0.0; S_PLANES + 4 * n_planes.max(1)];
         scal_init[S_INF] = f64::INFINITY;
-        let scal = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("newton scalars"),
-            contents: &to_bytes(true, &scal_init),
-            usage: usage_storage(),
-        });
+        let scal = ctx.storage_with("newton scalars", &to_bytes(true, &scal_init))?;
         let slots = slot_count(t) as u64;
         let partials = zeroed("newton partial reductions", slots * groups as u64 * 32)?;
         let result = zeroed("newton reductions", slots * 32)?;
@@ -691,29 +679,9 @@ impl NewtonOps {
 
     /// A storage buffer holding `data` (padded to 16 bytes).
     fn table(&self, label: &str, data: &[u8]) -> Result<Table, GpuError> {
-        let mut padded = data.to_vec();
-        padded.resize(data.len().max(16).div_ceil(16) * 16, 0);
-        let limit = self
-            .ctx
-            .limits
-            .max_buffer_size
-            .min(self.ctx.limits.max_storage_buffer_binding_size);
-        if padded.len() as u64 > limit {
-            return Err(GpuError::BufferTooLarge {
-                label: label.to_string(),
-                bytes: padded.len() as u64,
-                limit,
-                what: "storage binding",
-                adapter: self.ctx.adapter_name().to_string(),
-            });
-        }
-        let buf = self.ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(label),
-            contents: &padded,
-            usage: usage_storage(),
-        });
+        let buf = self.ctx.storage_with(label, data)?;
         Ok(Table {
-            bytes: padded.len() as u64,
+            bytes: buf.size(),
             buf,
         })
     }
