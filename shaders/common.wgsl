@@ -121,3 +121,74 @@ fn group_index(wid: vec3<u32>, nwg: vec3<u32>) -> u32 {
 fn group_count(nwg: vec3<u32>) -> u32 {
     return nwg.x * nwg.y;
 }
+
+// The one block-Jacobi specification of every device CG (src/solve/precond.rs,
+// `jacobi_inverse` and `block_jacobi_inverse`, does the same operations in the same order
+// on the CPU). Jacobi: 1/v where the diagonal entry v is positive and finite, else 1.
+// Block Jacobi: B⁻¹ through the Cholesky factor when every pivot is positive and finite,
+// else the Jacobi diagonal (B is not SPD where H is indefinite: CG then meets the negative
+// curvature itself rather than through the preconditioner).
+fn positive_finite(v: real) -> bool {
+    return v > real(0.0) && real(1.0) / v > real(0.0);
+}
+
+fn jacobi_inverse(v: real) -> real {
+    return select(real(1.0), real(1.0) / v, positive_finite(v));
+}
+
+// B⁻¹ of the d×d block `h` (row-major in the first d² entries; the rest is zero).
+fn block_jacobi_inverse(h: array<real, 9>, d: u32) -> array<real, 9> {
+    var out: array<real, 9>;
+    for (var e = 0u; e < 9u; e++) {
+        out[e] = real(0.0);
+    }
+    // h = L Lᵀ.
+    var l: array<real, 9>;
+    for (var e = 0u; e < 9u; e++) {
+        l[e] = real(0.0);
+    }
+    for (var j = 0u; j < d; j++) {
+        var s = h[j * d + j];
+        for (var m = 0u; m < j; m++) {
+            s -= l[j * d + m] * l[j * d + m];
+        }
+        if (!positive_finite(s)) {
+            for (var a = 0u; a < d; a++) {
+                out[a * d + a] = jacobi_inverse(h[a * d + a]);
+            }
+            return out;
+        }
+        let ljj = sqrt(s);
+        l[j * d + j] = ljj;
+        for (var a = j + 1u; a < d; a++) {
+            var t = h[a * d + j];
+            for (var m = 0u; m < j; m++) {
+                t -= l[a * d + m] * l[j * d + m];
+            }
+            l[a * d + j] = t / ljj;
+        }
+    }
+    // Column c of h⁻¹: L u = e_c, then Lᵀ x = u.
+    for (var c = 0u; c < d; c++) {
+        var u: array<real, 3>;
+        for (var a = 0u; a < d; a++) {
+            var s = select(real(0.0), real(1.0), a == c);
+            for (var m = 0u; m < a; m++) {
+                s -= l[a * d + m] * u[m];
+            }
+            u[a] = s / l[a * d + a];
+        }
+        for (var aa = 0u; aa < d; aa++) {
+            let a = d - 1u - aa;
+            var s = u[a];
+            for (var m = a + 1u; m < d; m++) {
+                s -= l[m * d + a] * u[m];
+            }
+            u[a] = s / l[a * d + a];
+        }
+        for (var a = 0u; a < d; a++) {
+            out[a * d + c] = u[a];
+        }
+    }
+    return out;
+}

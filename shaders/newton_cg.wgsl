@@ -304,14 +304,8 @@ fn rhs(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid:
     }
 }
 
-// A positive, finite value (NaN and ±∞ fail).
-fn positive_finite(v: real) -> bool {
-    return v > real(0.0) && real(1.0) / v > real(0.0);
-}
-
 // The preconditioners from the diagonal blocks of Ĥ: B = P V_iᵀ H_ii V_i P + (I − P).
-// Jacobi: 1/B_aa (1 where B_aa is not positive and finite). Block Jacobi: B⁻¹ by
-// Cholesky, or the Jacobi diagonal where B is not positive definite (as the CPU's CG).
+// Jacobi and block Jacobi by the one specification (common.wgsl, block_jacobi_inverse).
 @compute @workgroup_size(WG)
 fn precond(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let dd = D * D;
@@ -351,58 +345,12 @@ fn precond(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
                 }
             }
         }
-        var dinv: array<real, 3>;
         for (var a = 0u; a < D; a++) {
-            let v = h[a * D + a];
-            dinv[a] = select(real(1.0), real(1.0) / v, positive_finite(v));
-            minv[params.n_nodes * dd + i * D + a] = dinv[a];
+            minv[params.n_nodes * dd + i * D + a] = jacobi_inverse(h[a * D + a]);
         }
-        // Cholesky h = L Lᵀ, then the columns of h⁻¹ by two triangular solves.
-        var l: array<real, 9>;
-        var ok = true;
-        for (var j = 0u; j < D; j++) {
-            var s = h[j * D + j];
-            for (var m = 0u; m < j; m++) {
-                s -= l[j * D + m] * l[j * D + m];
-            }
-            if (!positive_finite(s)) {
-                ok = false;
-                break;
-            }
-            let ljj = sqrt(s);
-            l[j * D + j] = ljj;
-            for (var a = j + 1u; a < D; a++) {
-                var t = h[a * D + j];
-                for (var m = 0u; m < j; m++) {
-                    t -= l[a * D + m] * l[j * D + m];
-                }
-                l[a * D + j] = t / ljj;
-            }
-        }
-        for (var c = 0u; c < D; c++) {
-            var u: array<real, 3>;
-            for (var a = 0u; a < D; a++) {
-                var s = select(real(0.0), real(1.0), a == c);
-                for (var m = 0u; m < a; m++) {
-                    s -= l[a * D + m] * u[m];
-                }
-                u[a] = s / l[a * D + a];
-            }
-            for (var aa = 0u; aa < D; aa++) {
-                let a = D - 1u - aa;
-                var s = u[a];
-                for (var m = a + 1u; m < D; m++) {
-                    s -= l[m * D + a] * u[m];
-                }
-                u[a] = s / l[a * D + a];
-            }
-            for (var a = 0u; a < D; a++) {
-                var v = u[a];
-                if (!ok) {
-                    v = select(real(0.0), dinv[a], a == c);
-                }
-                minv[i * dd + a * D + c] = v;
-            }
+        let inv = block_jacobi_inverse(h, D);
+        for (var e = 0u; e < dd; e++) {
+            minv[i * dd + e] = inv[e];
         }
     }
 }

@@ -31,13 +31,6 @@ fn load_block(k: u32) -> array<real, 9> {
     return array<real, 9>(a.x, a.y, a.z, a.w, z, z, z, z, z);
 }
 
-fn inv_or_one(v: real) -> real {
-    if (v > real(0.0)) {
-        return real(1.0) / v;
-    }
-    return real(1.0);
-}
-
 fn build_row(i: u32) {
     var b: array<real, 9>;
     for (var e = 0u; e < 9u; e++) {
@@ -62,50 +55,14 @@ fn build_row(i: u32) {
             }
         }
     }
+    // The one block-Jacobi specification (common.wgsl).
     if (PRECOND == 1u) {
         for (var a = 0u; a < D; a++) {
-            minv[i * D + a] = inv_or_one(b[a * D + a]);
+            minv[i * D + a] = jacobi_inverse(b[a * D + a]);
         }
         return;
     }
-    var out: array<real, 9>;
-    for (var e = 0u; e < 9u; e++) {
-        out[e] = real(0.0);
-    }
-    var spd = false;
-    if (D == 2u) {
-        let det = b[0] * b[3] - b[1] * b[2];
-        if (b[0] > real(0.0) && det > real(0.0)) {
-            spd = true;
-            out[0] = b[3] / det;
-            out[1] = -b[1] / det;
-            out[2] = -b[2] / det;
-            out[3] = b[0] / det;
-        }
-    } else {
-        let c00 = b[4] * b[8] - b[5] * b[7];
-        let c01 = b[5] * b[6] - b[3] * b[8];
-        let c02 = b[3] * b[7] - b[4] * b[6];
-        let det = b[0] * c00 + b[1] * c01 + b[2] * c02;
-        let m2 = b[0] * b[4] - b[1] * b[3];
-        if (b[0] > real(0.0) && m2 > real(0.0) && det > real(0.0)) {
-            spd = true;
-            out[0] = c00 / det;
-            out[1] = (b[2] * b[7] - b[1] * b[8]) / det;
-            out[2] = (b[1] * b[5] - b[2] * b[4]) / det;
-            out[3] = c01 / det;
-            out[4] = (b[0] * b[8] - b[2] * b[6]) / det;
-            out[5] = (b[2] * b[3] - b[0] * b[5]) / det;
-            out[6] = c02 / det;
-            out[7] = (b[1] * b[6] - b[0] * b[7]) / det;
-            out[8] = m2 / det;
-        }
-    }
-    if (!spd) {
-        for (var a = 0u; a < D; a++) {
-            out[a * D + a] = inv_or_one(b[a * D + a]);
-        }
-    }
+    let out = block_jacobi_inverse(b, D);
     for (var e = 0u; e < D * D; e++) {
         minv[i * D * D + e] = out[e];
     }

@@ -345,3 +345,88 @@ fn spring_kernel_matches_assembled_operator() {
         }
     }
 }
+
+/// The one block-Jacobi specification on blocks that are not SPD: the device builds, in
+/// f64 and f32, what the CPU's `block_jacobi_inverse` and `jacobi_inverse` give: B⁻¹ where
+/// every Cholesky pivot is positive and finite, else the Jacobi diagonal (1/B_aa where
+/// B_aa is positive, else 1). The fallback is a decision, so its pattern must match
+/// exactly; the values agree to a few ulps of the precision (f64: the same operations,
+/// in the same order, on the same inputs).
+#[test]
+fn block_jacobi_follows_one_specification_on_blocks_that_are_not_spd() {
+    use stickslip::solve::precond::{block_jacobi_inverse, jacobi_inverse};
+    let Some((ctx, _g)) = gpu() else { return };
+    let special: [[f64; 9]; 6] = [
+        // SPD.
+        [4.0, 1.0, 0.0, 1.0, 3.0, 1.0, 0.0, 1.0, 2.0],
+        // Positive diagonal, indefinite: the second pivot is −3.
+        [1.0, 2.0, 0.0, 2.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        // A negative diagonal entry.
+        [-2.0, 0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 0.0, 1.0],
+        // Zero.
+        [0.0; 9],
+        // SPD, badly scaled.
+        [1e6, 1.0, 0.0, 1.0, 1e-3, 0.0, 0.0, 0.0, 5.0],
+        // An infinite pivot: not finite, so the fallback (all ones).
+        [f64::INFINITY, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+    ];
+    for dim in [2usize, 3] {
+        let mut s = random_system(&SystemSpec::small(dim, 9));
+        let n = s.frames.n_nodes;
+        let dd = dim * dim;
+        for (t, b) in special.iter().enumerate() {
+            let k = s.h.diag_index(t).expect("diagonal block");
+            for r in 0..dim {
+                for c in 0..dim {
+                    s.h.values[k * dd + r * dim + c] = b[r * 3 + c];
+                }
+            }
+        }
+        let frames = Frames::unconstrained(dim, n);
+        let e = Eliminated::new(&s.h, &s.g, &frames, ConstrainedDiagonal::Identity);
+        for pc in [Preconditioner::Jacobi, Preconditioner::BlockJacobi] {
+            let want: Vec<f64> = (0..n)
+                .flat_map(|i| {
+                    let k = s.h.diag_index(i).expect("diagonal block");
+                    let b = &s.h.values[k * dd..(k + 1) * dd];
+                    match pc {
+                        Preconditioner::Jacobi => {
+                            (0..dim).map(|a| jacobi_inverse(b[a * dim + a])).collect()
+                        }
+                        _ => block_jacobi_inverse(dim, b)[..dd].to_vec(),
+                    }
+                })
+                .collect();
+            assert_eq!(
+                BuiltPreconditioner::new(&e, pc).data(),
+                &want[..],
+                "{dim}D {pc:?}: the CPU CG's preconditioner"
+            );
+            let precisions: &[(Precision, f64)] = if ctx.has_f64() {
+                &[(Precision::F64, 4.0 * f64::EPSILON), (Precision::F32, 4e-7)]
+            } else {
+                &[(Precision::F32, 4e-7)]
+            };
+            for &(prec, ulps) in precisions {
+                let mut sol = GpuSolver::new(ctx, &e, &params(prec, pc)).expect("solver");
+                let got = sol.preconditioner_data().expect("download");
+                assert_eq!(got.len(), want.len());
+                let per = want.len() / n;
+                for (i, (g, w)) in got.chunks(per).zip(want.chunks(per)).enumerate() {
+                    let what = format!("{dim}D {pc:?} {prec}: node {i}: {g:?} against {w:?}");
+                    // The fallback's pattern: zero where the CPU has zero.
+                    let zeros = |v: &[f64]| v.iter().map(|x| *x == 0.0).collect::<Vec<_>>();
+                    assert_eq!(zeros(g), zeros(w), "{what}");
+                    // A few roundings of the node's own values (f32: of its values rounded
+                    // to f32), relative to the largest entry of its inverse.
+                    let scale = w.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+                    let err = g
+                        .iter()
+                        .zip(w)
+                        .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+                    assert!(err <= 8.0 * ulps * scale, "{what}: {err:e} of {scale:e}");
+                }
+            }
+        }
+    }
+}

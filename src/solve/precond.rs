@@ -36,28 +36,14 @@ impl BuiltPreconditioner {
             Preconditioner::Jacobi => (0..n * d)
                 .map(|k| {
                     let (i, a) = (k / d, k % d);
-                    let v = blocks[i * d * d + a * d + a];
-                    if v > 0.0 && v.is_finite() {
-                        1.0 / v
-                    } else {
-                        1.0
-                    }
+                    jacobi_inverse(blocks[i * d * d + a * d + a])
                 })
                 .collect(),
             Preconditioner::BlockJacobi => {
                 let mut out = vec![0.0; n * d * d];
                 for i in 0..n {
                     let b = &blocks[i * d * d..(i + 1) * d * d];
-                    let inv = invert_spd(d, b).unwrap_or_else(|| {
-                        // Not SPD (H indefinite there): fall back to the diagonal so CG
-                        // can still detect the negative curvature itself.
-                        let mut m = [0.0; 9];
-                        for a in 0..d {
-                            let v = b[a * d + a];
-                            m[a * d + a] = if v > 0.0 { 1.0 / v } else { 1.0 };
-                        }
-                        m
-                    });
+                    let inv = block_jacobi_inverse(d, b);
                     out[i * d * d..(i + 1) * d * d].copy_from_slice(&inv[..d * d]);
                 }
                 out
@@ -199,16 +185,70 @@ pub fn diagonal_blocks(e: &Eliminated) -> Vec<f64> {
     out
 }
 
-/// Inverse of a small SPD matrix through its Cholesky factor; None if not SPD.
-fn invert_spd(d: usize, a: &[f64]) -> Option<[f64; 9]> {
-    let m = nalgebra::DMatrix::from_row_slice(d, d, a);
-    let chol = nalgebra::Cholesky::new(m)?;
-    let inv = chol.inverse();
+/// A positive, finite value (NaN and ±∞ fail), tested as the device does.
+fn positive_finite(v: f64) -> bool {
+    v > 0.0 && 1.0 / v > 0.0
+}
+
+/// Jacobi's inverse of a diagonal entry: 1/v where v is positive and finite, else 1. The
+/// one block-Jacobi specification, with [`block_jacobi_inverse`]; the device kernels
+/// (shaders/common.wgsl) do the same operations in the same order.
+pub fn jacobi_inverse(v: f64) -> f64 {
+    if positive_finite(v) {
+        1.0 / v
+    } else {
+        1.0
+    }
+}
+
+/// B⁻¹ of the d×d block `b` (row-major; the result in the first d² of 9): through the
+/// Cholesky factor when every pivot is positive and finite, else the Jacobi diagonal of
+/// [`jacobi_inverse`] (B is not SPD where H is indefinite: CG then meets the negative
+/// curvature itself rather than through the preconditioner).
+pub fn block_jacobi_inverse(d: usize, b: &[f64]) -> [f64; 9] {
     let mut out = [0.0; 9];
-    for r in 0..d {
-        for c in 0..d {
-            out[r * d + c] = inv[(r, c)];
+    let mut l = [0.0; 9];
+    for j in 0..d {
+        let mut s = b[j * d + j];
+        for m in 0..j {
+            s -= l[j * d + m] * l[j * d + m];
+        }
+        if !positive_finite(s) {
+            for a in 0..d {
+                out[a * d + a] = jacobi_inverse(b[a * d + a]);
+            }
+            return out;
+        }
+        let ljj = s.sqrt();
+        l[j * d + j] = ljj;
+        for a in j + 1..d {
+            let mut t = b[a * d + j];
+            for m in 0..j {
+                t -= l[a * d + m] * l[j * d + m];
+            }
+            l[a * d + j] = t / ljj;
         }
     }
-    Some(out)
+    // Column c of B⁻¹: L u = e_c, then Lᵀ x = u.
+    for c in 0..d {
+        let mut u = [0.0; 3];
+        for a in 0..d {
+            let mut s = if a == c { 1.0 } else { 0.0 };
+            for m in 0..a {
+                s -= l[a * d + m] * u[m];
+            }
+            u[a] = s / l[a * d + a];
+        }
+        for a in (0..d).rev() {
+            let mut s = u[a];
+            for m in a + 1..d {
+                s -= l[m * d + a] * u[m];
+            }
+            u[a] = s / l[a * d + a];
+        }
+        for a in 0..d {
+            out[a * d + c] = u[a];
+        }
+    }
+    out
 }
