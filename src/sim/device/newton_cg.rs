@@ -14,7 +14,7 @@
 //! dispatches (product with p·q partials, a one-workgroup α kernel, the y/r/z update with
 //! r·z and r·r partials, a one-workgroup β kernel, the p update; seven with the
 //! aggregates), many iterations per
-//! submit, and one small status read-back (the scalars and flags, 96 bytes) per chunk.
+//! submit, and one small status read-back (the scalars and flags, 128 bytes) per chunk.
 //! Every reduction has a fixed number of workgroups and a fixed order: the same inputs
 //! give the same Δx bit for bit.
 //!
