@@ -1,7 +1,73 @@
 //! The chunk schedule of the device CGs: how many iterations one submit records before
-//! the next status read. A read costs a round trip; an iteration recorded past
-//! convergence costs an iteration. Both device CGs (`solve`'s, src/gpu/solver/run.rs,
-//! and the Newton loop's, src/sim/device/newton_cg.rs) size their chunks here.
+//! the next status read, and what that read says. A read costs a round trip; an
+//! iteration recorded past convergence costs an iteration. Both device CGs (`solve`'s,
+//! src/gpu/solver/run.rs, and the Newton loop's, src/sim/device/newton_cg.rs) size their
+//! chunks and read their status here.
+
+use super::kernels::slots;
+use crate::solve::cg::CgError;
+
+/// One status read after a chunk: the CG's scalars and flags at the slots of
+/// [`slots`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ChunkStatus {
+    /// r·r of the last reduction.
+    pub rr: f64,
+    /// p·q of the last α (the curvature when it was not positive).
+    pub pq: f64,
+    /// ‖b̂‖² (the Newton CG's start; zero in `solve`'s CG).
+    pub bb: f64,
+    /// Iterations of this run.
+    pub iterations: usize,
+    pub converged: bool,
+    /// Non-positive curvature met.
+    pub halt: bool,
+    /// A non-finite ρ or r·r.
+    pub breakdown: bool,
+}
+
+impl ChunkStatus {
+    /// From `scal` (as f64, its first [`slots::STATUS_SCAL`] values at least) and
+    /// `state` ([`slots::N_STATE`] words).
+    pub fn read(scal: &[f64], state: &[u32]) -> Self {
+        let flag = |k: u32| state[k as usize] != 0;
+        ChunkStatus {
+            rr: scal[slots::SCAL_RR as usize],
+            pq: scal[slots::SCAL_PQ as usize],
+            bb: scal[slots::SCAL_BB as usize],
+            iterations: state[slots::STATE_ITERS as usize] as usize,
+            converged: flag(slots::STATE_CONVERGED),
+            halt: flag(slots::STATE_HALT),
+            breakdown: flag(slots::STATE_BREAKDOWN),
+        }
+    }
+
+    /// The errors a status can carry: a non-finite value, or non-positive curvature (met
+    /// in the α of the iteration after those counted). `done_before`: iterations of the
+    /// same solve's earlier runs.
+    pub fn error(&self, done_before: usize) -> Result<(), CgError> {
+        if self.breakdown {
+            return Err(CgError::Breakdown {
+                iteration: done_before + self.iterations,
+            });
+        }
+        if self.halt {
+            return Err(CgError::NonPositiveCurvature {
+                iteration: done_before + self.iterations + 1,
+                curvature: self.pq,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// `state`'s words from their little-endian bytes.
+pub fn state_words(bytes: &[u8]) -> Vec<u32> {
+    bytes
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
 
 /// Iterations of the next chunk from the status history `hist` ((iterations, ln r·r) at
 /// each status read of the run): the iterations the fall of ln r·r predicts to reach

@@ -5,9 +5,8 @@ use super::levels::{LANCZOS_HIST, N_SCAL, N_STATE, SCAL_LEN};
 use super::state::Outcome;
 use super::GpuSolver;
 use crate::gpu::kernels::slots;
-use crate::gpu::schedule::{late_rate, next_chunk};
+use crate::gpu::schedule::{late_rate, next_chunk, state_words, ChunkStatus};
 use crate::gpu::GpuError;
-use crate::solve::cg::CgError;
 
 impl GpuSolver {
     /// Resets the CG scalars: ρ_prev, the convergence threshold, the direction scale kept
@@ -137,7 +136,7 @@ impl GpuSolver {
     }
 
     /// Records `k` iterations in one submit, then reads the status back.
-    pub(super) fn chunk(&mut self, k: usize) -> Result<Status, GpuError> {
+    pub(super) fn chunk(&mut self, k: usize) -> Result<ChunkStatus, GpuError> {
         self.tel.recorded += k;
         let mut enc = self.encoder("cg chunk");
         {
@@ -191,27 +190,15 @@ impl GpuSolver {
         let staging = self.dev.level.buf.status_staging.clone();
         let bytes = self.read(&staging, total)?;
         let scal = self.dev.level.acc.values(&bytes[..sb as usize]);
-        let st: Vec<u32> = bytes[sb as usize..sb as usize + 4 * N_STATE]
-            .chunks_exact(4)
-            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-            .collect();
+        let st = state_words(&bytes[sb as usize..sb as usize + 4 * N_STATE]);
         if let Some(t) = &self.dev.timestamps {
             let o = sb as usize + 4 * N_STATE;
             let t0 = u64::from_le_bytes(bytes[o..o + 8].try_into().expect("8 bytes"));
             let t1 = u64::from_le_bytes(bytes[o + 8..o + 16].try_into().expect("8 bytes"));
             self.tel.gpu_seconds += t1.saturating_sub(t0) as f64 * t.period_ns * 1e-9;
         }
-        let at = |k: u32| scal[k as usize];
-        let flag = |k: u32| st[k as usize] != 0;
-        self.run.last_rho_prev = at(slots::SCAL_RHO_PREV);
-        let st_out = Status {
-            rr: at(slots::SCAL_RR),
-            pq: at(slots::SCAL_PQ),
-            iterations: st[slots::STATE_ITERS as usize] as usize,
-            converged: flag(slots::STATE_CONVERGED),
-            curvature: flag(slots::STATE_HALT),
-            breakdown: flag(slots::STATE_BREAKDOWN),
-        };
+        self.run.last_rho_prev = scal[slots::SCAL_RHO_PREV as usize];
+        let st_out = ChunkStatus::read(&scal, &st);
         self.run.last_scal = scal;
         Ok(st_out)
     }
@@ -359,19 +346,7 @@ impl GpuSolver {
             }
             let st = self.chunk(kk)?;
             iters = st.iterations;
-            if st.breakdown {
-                return Err(CgError::Breakdown {
-                    iteration: done_before + iters,
-                }
-                .into());
-            }
-            if st.curvature {
-                return Err(CgError::NonPositiveCurvature {
-                    iteration: done_before + iters + 1,
-                    curvature: st.pq,
-                }
-                .into());
-            }
+            st.error(done_before)?;
             if st.converged {
                 if st.rr > 0.0 && st.rr.is_finite() {
                     hist.push((iters, st.rr.ln()));
@@ -417,13 +392,4 @@ pub(super) enum Which {
     /// Aggregate coarse correction: w = Zᵀr, then c = E⁺w (no-ops without aggregates).
     Restrict,
     CoarseSolve,
-}
-
-pub(super) struct Status {
-    rr: f64,
-    pq: f64,
-    iterations: usize,
-    converged: bool,
-    curvature: bool,
-    breakdown: bool,
 }

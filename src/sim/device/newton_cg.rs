@@ -50,7 +50,8 @@
 
 use crate::core::constraints::{Frames, NO_ROTATION};
 use crate::gpu::kernels::{self, slots, Access, Layout};
-use crate::gpu::{schedule, GpuContext, GpuError, Launch, TrafficCount};
+use crate::gpu::schedule::{self, ChunkStatus};
+use crate::gpu::{GpuContext, GpuError, Launch, TrafficCount};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::newton_coarse::{self, AggregateIndex};
 use crate::solve::cg::{CgError, Preconditioner};
@@ -298,17 +299,6 @@ pub struct DeviceCg {
     /// The pattern as uploaded (row pointers, column indices, diagonal blocks), for the
     /// aggregates of [`DeviceCg::frames`].
     host_pattern: Vec<u32>,
-}
-
-/// One status read: the scalars and flags after a submit.
-struct Status {
-    rr: f64,
-    pq: f64,
-    bb: f64,
-    iterations: usize,
-    converged: bool,
-    halt: bool,
-    breakdown: bool,
 }
 
 impl DeviceCg {
@@ -833,12 +823,12 @@ impl DeviceCg {
     }
 
     /// Records the status copies (`scal`, `state` into `status`) after the work of `enc`,
-    /// submits, and reads the 96 status bytes back (one wait).
+    /// submits, and reads the 128 status bytes back (one wait).
     fn submit_and_read(
         &self,
         mut enc: wgpu::CommandEncoder,
         what: &str,
-    ) -> Result<Status, GpuError> {
+    ) -> Result<ChunkStatus, GpuError> {
         let sb = 8 * slots::STATUS_SCAL as u64;
         enc.copy_buffer_to_buffer(&self.buf.scal, 0, &self.buf.status, 0, sb);
         enc.copy_buffer_to_buffer(
@@ -851,27 +841,11 @@ impl DeviceCg {
         self.ctx.queue.submit([enc.finish()]);
         self.ctx.check(what)?;
         let bytes = self.ctx.download(&self.buf.status, 0, STATUS_BYTES, what)?;
-        let f = |k: u32| {
-            let o = 8 * k as usize;
-            let mut w = [0u8; 8];
-            w.copy_from_slice(&bytes[o..o + 8]);
-            f64::from_le_bytes(w)
-        };
-        let u = |k: u32| {
-            let o = sb as usize + 4 * k as usize;
-            let mut w = [0u8; 4];
-            w.copy_from_slice(&bytes[o..o + 4]);
-            u32::from_le_bytes(w)
-        };
-        Ok(Status {
-            rr: f(slots::SCAL_RR),
-            pq: f(slots::SCAL_PQ),
-            bb: f(slots::SCAL_BB),
-            iterations: u(slots::STATE_ITERS) as usize,
-            converged: u(slots::STATE_CONVERGED) != 0,
-            halt: u(slots::STATE_HALT) != 0,
-            breakdown: u(slots::STATE_BREAKDOWN) != 0,
-        })
+        let scal = f64s(&bytes[..sb as usize]);
+        Ok(ChunkStatus::read(
+            &scal,
+            &schedule::state_words(&bytes[sb as usize..]),
+        ))
     }
 
     /// Clears the four stop flags (the iteration count stays): the next CG dispatches run.
@@ -879,23 +853,9 @@ impl DeviceCg {
         self.ctx.write_buffer(&self.buf.state, 0, &[0u8; 16]);
     }
 
-    /// The errors a status can carry: a non-finite value, or non-positive curvature
-    /// (met in the α of the iteration after the ones counted).
-    fn status_error(st: &Status) -> Result<(), GpuError> {
-        if st.breakdown {
-            return Err(CgError::Breakdown {
-                iteration: st.iterations,
-            }
-            .into());
-        }
-        if st.halt {
-            return Err(CgError::NonPositiveCurvature {
-                iteration: st.iterations + 1,
-                curvature: st.pq,
-            }
-            .into());
-        }
-        Ok(())
+    /// The errors a status can carry ([`ChunkStatus::error`]).
+    fn status_error(st: &ChunkStatus) -> Result<(), GpuError> {
+        Ok(st.error(0)?)
     }
 
     /// CG from y = 0 on the b̂ and preconditioner of the last [`DeviceCg::prepare`] with
@@ -1162,7 +1122,7 @@ impl DeviceCg {
         co: usize,
         max: usize,
         thresh: f64,
-        st: &mut Status,
+        st: &mut ChunkStatus,
     ) -> Result<(), GpuError> {
         let mut k = FIRST_CHUNK;
         // (iterations, ln r·r) at each status read of this run.
