@@ -127,7 +127,39 @@ const SHORT_PREDICTION: f64 = 8.0;
 
 #[cfg(test)]
 mod tests {
-    use super::next_chunk;
+    use super::{next_chunk, slots, ChunkStatus};
+    use crate::solve::cg::CgError;
+
+    /// The slots are read where the table puts them, and a flag becomes its error with the
+    /// iteration counted over the solve's runs.
+    #[test]
+    fn a_status_reads_the_slots_and_maps_its_flags_to_errors() {
+        let mut scal = vec![0.0; slots::STATUS_SCAL as usize];
+        scal[slots::SCAL_RR as usize] = 2.0;
+        scal[slots::SCAL_PQ as usize] = -3.0;
+        scal[slots::SCAL_BB as usize] = 5.0;
+        let mut state = vec![0u32; slots::N_STATE as usize];
+        state[slots::STATE_ITERS as usize] = 7;
+        let st = ChunkStatus::read(&scal, &state);
+        assert_eq!((st.rr, st.pq, st.bb, st.iterations), (2.0, -3.0, 5.0, 7));
+        assert!(!st.converged && !st.halt && !st.breakdown);
+        assert!(st.error(10).is_ok());
+        state[slots::STATE_HALT as usize] = 1;
+        match ChunkStatus::read(&scal, &state).error(10) {
+            Err(CgError::NonPositiveCurvature {
+                iteration,
+                curvature,
+            }) => assert_eq!((iteration, curvature), (18, -3.0)),
+            other => panic!("{other:?}"),
+        }
+        state[slots::STATE_BREAKDOWN as usize] = 1;
+        match ChunkStatus::read(&scal, &state).error(10) {
+            Err(CgError::Breakdown { iteration }) => assert_eq!(iteration, 17),
+            other => panic!("{other:?}"),
+        }
+        state[slots::STATE_CONVERGED as usize] = 1;
+        assert!(ChunkStatus::read(&scal, &state).converged);
+    }
 
     #[test]
     fn chunks_follow_the_predicted_remaining_iterations() {
