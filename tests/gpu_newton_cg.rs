@@ -33,7 +33,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use stickslip::core::constraints::{Constraint, Frames};
 use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::gpu::{GpuContext, GpuError, Precision};
+use stickslip::gpu::{GpuContext, GpuError, GpuParams, GpuSolver, Precision};
 use stickslip::sim::device::assembly::GpuAssembly;
 use stickslip::sim::device::elements::GpuElements;
 use stickslip::sim::device::newton_cg::{DeviceCg, DeviceCgParams};
@@ -194,7 +194,8 @@ enum Bound {
 /// DeviceCg's Δx against the Cholesky Δx of the same H and g, for both preconditioners,
 /// without and with the coarse correction on the translations (whose E⁺ is checked against
 /// the CPU's); returns the iterations per (preconditioner, coarse space). With the
-/// correction Δx is always required within 1e-8; without it, within `bound`.
+/// correction Δx is always required within 1e-8; without it, within `bound`. `solve`'s
+/// GPU CG on the same eliminated system must stop after the same number of iterations.
 fn compare(ctx: &GpuContext, s: &Scene, bound: Bound) -> Vec<(Preconditioner, CoarseSpace, usize)> {
     let d = s.frames.dim;
     let (_el, asm) = assembled(ctx, s, Precision::F64);
@@ -332,6 +333,37 @@ fn compare(ctx: &GpuContext, s: &Scene, bound: Bound) -> Vec<(Preconditioner, Co
         assert!(
             worst_fixed <= 1e-14 * ref_norm,
             "{d}D {pre:?}: constrained component {worst_fixed:e}"
+        );
+        // `solve --solver gpu`'s CG on the same eliminated system, with the same
+        // preconditioner, coarse space and tolerance: the two device CGs must not drift.
+        // They sum in different orders, so their Δx agree within the bound each meets
+        // against Cholesky, not to the last bit; the stopping iteration must be the same.
+        let gp = GpuParams {
+            precision: Precision::F64,
+            preconditioner: pre,
+            coarse,
+            tol: TOL,
+            ..Default::default()
+        };
+        let other = GpuSolver::new(ctx, &e, &gp)
+            .and_then(|mut g| g.solve())
+            .expect("solve's GPU CG");
+        let gap = rel_diff(&other.dx, &dx);
+        eprintln!(
+            "{d}D {pre:?} coarse {}: solve's GPU CG {} iterations, ‖Δx − Δx_loop‖/‖Δx_loop‖              {gap:.3e}",
+            coarse.name(),
+            other.info.iterations
+        );
+        assert_eq!(
+            other.info.iterations,
+            info.iterations,
+            "{d}D {pre:?} coarse {}: solve's GPU CG against the device loop's",
+            coarse.name()
+        );
+        assert!(
+            gap <= 2.0 * limit,
+            "{d}D {pre:?} coarse {}: {gap:e}",
+            coarse.name()
         );
     }
     iterations
