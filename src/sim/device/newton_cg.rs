@@ -850,12 +850,8 @@ impl DeviceCg {
 
     /// Clears the four stop flags (the iteration count stays): the next CG dispatches run.
     fn clear_flags(&self) {
-        self.ctx.write_buffer(&self.buf.state, 0, &[0u8; 16]);
-    }
-
-    /// The errors a status can carry ([`ChunkStatus::error`]).
-    fn status_error(st: &ChunkStatus) -> Result<(), GpuError> {
-        Ok(st.error(0)?)
+        self.ctx
+            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::STATE_ITERS as usize]);
     }
 
     /// CG from y = 0 on the b̂ and preconditioner of the last [`DeviceCg::prepare`] with
@@ -939,7 +935,7 @@ impl DeviceCg {
         enc.clear_buffer(&self.buf.q, 0, None);
         Self::pass(&mut enc, "newton cg start", &self.start(frames, pre, co));
         let mut st = self.submit_and_read(enc, "starting the device Newton CG")?;
-        Self::status_error(&st)?;
+        st.error(0)?;
         let bb = st.bb;
         let rhs_norm = bb.sqrt();
         let tol = check_tol(tolerance(rhs_norm))?;
@@ -990,7 +986,7 @@ impl DeviceCg {
             kernels.extend(self.start(frames, pre, co));
             Self::pass(&mut enc, "newton cg true residual", &kernels);
             st = self.submit_and_read(enc, "the device Newton CG's true residual")?;
-            Self::status_error(&st)?;
+            st.error(0)?;
         }
         let mut enc = self.encoder("newton cg recovery");
         Self::pass(
@@ -1144,7 +1140,7 @@ impl DeviceCg {
             let mut enc = self.encoder("newton cg chunk");
             Self::pass(&mut enc, "newton cg chunk", &kernels);
             *st = self.submit_and_read(enc, "a device Newton CG chunk")?;
-            Self::status_error(st)?;
+            st.error(0)?;
             if st.converged {
                 return Ok(());
             }
