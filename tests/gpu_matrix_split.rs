@@ -23,10 +23,10 @@
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use stickslip::core::constraints::{Constraint, Frames};
+use stickslip::gpu::pcg::{DeviceCg, DeviceCgParams};
 use stickslip::gpu::{GpuContext, GpuError, Precision};
 use stickslip::sim::device::assembly::GpuAssembly;
 use stickslip::sim::device::elements::{ElementKernels, GpuElements, TermKind};
-use stickslip::sim::device::newton_cg::{DeviceCg, DeviceCgParams};
 use stickslip::sim::device::newton_ops::{MovingTerm, NewtonOps};
 use stickslip::sim::energy::barrier::{Barrier, HalfSpace};
 use stickslip::sim::energy::{ElementSet, Law, Model, NeoHookean};
@@ -217,7 +217,12 @@ fn evaluate(
     ops.add_moving()?;
     let h_moving = asm.read_matrix()?.values;
     let g_moving = asm.read_gradient()?;
-    let mut cg = DeviceCg::new(&asm)?;
+    let mut cg = DeviceCg::new(
+        asm.context(),
+        asm.matrix(),
+        Some(asm.gradient_buffer()),
+        false,
+    )?;
     let frames = cg.frames(&c.frames, CoarseSpace::Aggregates)?;
     let mut solves = Vec::new();
     for (preconditioner, coarse) in [

@@ -30,10 +30,10 @@ use crate::core::constraints::{Constraint, ConstraintKind, Frames};
 use crate::core::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::core::sparse::BlockCsr;
 use crate::error::InputError;
+use crate::gpu::pcg::{DeviceCg, DeviceCgParams, DeviceFrames};
 use crate::gpu::{GpuContext, GpuOptions, Precision};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::elements::GpuElements;
-use crate::sim::device::newton_cg::{DeviceCg, DeviceCgParams, DeviceFrames};
 use crate::sim::device::newton_ops::NewtonOps;
 use crate::sim::energy::{inertia, AssemblyWork};
 use crate::sim::scene::{BcShape, Scene};
@@ -262,7 +262,7 @@ pub struct GpuCgRecord {
     pub bytes_per_iteration: u64,
     /// bytes_per_iteration / seconds_per_iteration, GB/s.
     pub gb_per_second: f64,
-    pub dispatches_per_iteration: Vec<crate::sim::device::newton_cg::DispatchRecord>,
+    pub dispatches_per_iteration: Vec<crate::gpu::pcg::DispatchRecord>,
 }
 
 /// The device's assembled system against the CPU's at the same iterate, as
@@ -533,7 +533,13 @@ impl GpuSide {
         elements.set_inertia_target(xt).map_err(|e| e.to_string())?;
         let assembly = GpuAssembly::new(&elements, &scene.model).map_err(|e| e.to_string())?;
         assembly.set_scale(scene.time_step * scene.time_step);
-        let cg = DeviceCg::new(&assembly).map_err(|e| e.to_string())?;
+        let cg = DeviceCg::new(
+            assembly.context(),
+            assembly.matrix(),
+            Some(assembly.gradient_buffer()),
+            false,
+        )
+        .map_err(|e| e.to_string())?;
         let frames = cg
             .frames(frames, GPU_CG.coarse)
             .map_err(|e| e.to_string())?;

@@ -6,7 +6,9 @@ use crate::core::elimination::{reactions, ConstrainedDiagonal, Eliminated};
 pub use crate::core::problem::LayoutKey;
 use crate::core::problem::Problem;
 use crate::error::{Error, InputError, SolveError};
-use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolveInfo, GpuSolver, Precision};
+use crate::gpu::{
+    GpuContext, GpuOptions, GpuParams, GpuSolveInfo, GpuSolver, PcgSolver, Precision,
+};
 use crate::solve::cg::{CgInfo, CgParams, Preconditioner};
 use crate::solve::coarse::CoarseSpace;
 pub use crate::solve::options::SolverKind;
@@ -332,7 +334,51 @@ const KEPT_LAYOUTS: usize = 8;
 
 enum Prepared {
     Cholesky(Box<CholeskyOracle>),
-    Gpu(Box<GpuSolver>),
+    Gpu(Box<dyn DeviceSolver>),
+}
+
+/// The GPU solvers the engine keeps per layout: the device PCG in f64 (the CG the device
+/// Newton loop runs), the kernels of f32 and mixed precision otherwise.
+trait DeviceSolver {
+    fn update(&mut self, e: &Eliminated) -> Result<(), crate::gpu::GpuError>;
+    fn set_tol(&mut self, tol: f64) -> Result<(), crate::gpu::GpuError>;
+    fn solve(&mut self) -> Result<crate::gpu::SolveOutcome, crate::gpu::GpuError>;
+}
+
+impl DeviceSolver for GpuSolver {
+    fn update(&mut self, e: &Eliminated) -> Result<(), crate::gpu::GpuError> {
+        GpuSolver::update(self, e)
+    }
+    fn set_tol(&mut self, tol: f64) -> Result<(), crate::gpu::GpuError> {
+        GpuSolver::set_tol(self, tol)
+    }
+    fn solve(&mut self) -> Result<crate::gpu::SolveOutcome, crate::gpu::GpuError> {
+        GpuSolver::solve(self)
+    }
+}
+
+impl DeviceSolver for PcgSolver {
+    fn update(&mut self, e: &Eliminated) -> Result<(), crate::gpu::GpuError> {
+        PcgSolver::update(self, e)
+    }
+    fn set_tol(&mut self, tol: f64) -> Result<(), crate::gpu::GpuError> {
+        PcgSolver::set_tol(self, tol)
+    }
+    fn solve(&mut self) -> Result<crate::gpu::SolveOutcome, crate::gpu::GpuError> {
+        PcgSolver::solve(self)
+    }
+}
+
+/// The GPU solver for `e` in the configured precision.
+fn new_device_solver(
+    ctx: &GpuContext,
+    e: &Eliminated,
+    params: &GpuParams,
+) -> Result<Box<dyn DeviceSolver>, crate::gpu::GpuError> {
+    Ok(match params.precision {
+        Precision::F64 => Box::new(PcgSolver::new(ctx, e, params)?),
+        _ => Box::new(GpuSolver::new(ctx, e, params)?),
+    })
 }
 
 /// Solves [`Problem`]s with one configured solver, keeping what can be reused between
@@ -572,12 +618,12 @@ impl Solver {
                     Ok(()) => (s, true),
                     // Another pattern under the same key: build afresh.
                     Err(crate::gpu::GpuError::Mismatch(_)) => {
-                        (Box::new(GpuSolver::new(ctx, e, &self.gpu_params)?), false)
+                        (new_device_solver(ctx, e, &self.gpu_params)?, false)
                     }
                     Err(err) => return Err(err.into()),
                 }
             }
-            _ => (Box::new(GpuSolver::new(ctx, e, &self.gpu_params)?), false),
+            _ => (new_device_solver(ctx, e, &self.gpu_params)?, false),
         };
         let setup = t.elapsed().as_secs_f64();
         let result = solver.solve();

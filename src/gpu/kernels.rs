@@ -18,8 +18,8 @@ pub const COMMON: &str = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shad
 /// The one slot table of the device CGs' scalar array `scal` (acc), state array `state`
 /// (u32) and partial sums (`partials[slot · G + segment]`): `solve`'s CG (the driver in
 /// src/gpu/solver/run.rs, the kernels in shaders/cg.wgsl, whose header says who writes and
-/// reads each) and the device Newton loop's (src/sim/device/newton_cg.rs,
-/// shaders/newton_cg.wgsl). The prelude declares every one as a WGSL `const` of the same
+/// reads each) and the device Newton loop's (src/gpu/pcg/mod.rs,
+/// shaders/pcg.wgsl). The prelude declares every one as a WGSL `const` of the same
 /// name; a slot one CG does not use is simply unused there.
 pub mod slots {
     /// ρ = r·z.
@@ -37,14 +37,14 @@ pub mod slots {
     pub const SCAL_PSCALE: u32 = 6;
     /// β of the first update_p of a run (the link of a resumed Lanczos sequence).
     pub const SCAL_BETA0: u32 = 7;
-    /// β (the Newton CG's scalar_beta).
+    /// β (the device PCG's scalar_beta).
     pub const SCAL_BETA: u32 = 8;
-    /// tol² (host) and ‖b̂‖² (scalar_start): the Newton CG's threshold is their product.
+    /// tol² (host) and ‖b̂‖² (scalar_start): the device PCG's threshold is their product.
     pub const SCAL_TOL2: u32 = 9;
     pub const SCAL_BB: u32 = 10;
-    /// The leading slots read back with every status of the Newton CG.
+    /// The leading slots read back with every status of the device PCG.
     pub const STATUS_SCAL: u32 = 12;
-    /// The coarse correction on the translations (the Newton CG): c = E⁺Zᵀr (D values),
+    /// The coarse correction on the translations (the device PCG): c = E⁺Zᵀr (D values),
     /// E⁺ (D², from the host), E = ZᵀĤZ (D², for the host), the rows' absolute sums per
     /// world axis (D, for the host).
     pub const SCAL_C: u32 = 12;
@@ -68,17 +68,17 @@ pub mod slots {
     pub const N_STATE: u32 = 8;
     /// Partial-sum slots: p·q (the product), r·z and r·r (the updates, init), Zᵀr (D
     /// slots from PART_ZR, with the coarse correction on the translations), ‖b̂‖² (the
-    /// Newton CG's rhs), then E (D² slots) and its rows' absolute sums (D slots) of the
-    /// Newton CG's coarse_e.
+    /// device PCG's rhs), then E (D² slots) and its rows' absolute sums (D slots) of the
+    /// device PCG's coarse_e.
     pub const PART_PQ: u32 = 0;
     pub const PART_RZ: u32 = 1;
     pub const PART_RR: u32 = 2;
     pub const PART_ZR: u32 = 3;
     pub const PART_BB: u32 = 6;
     pub const PART_E: u32 = 7;
-    /// Partial-sum slots of the Newton CG.
+    /// Partial-sum slots of the device PCG.
     pub const N_PART: u32 = 19;
-    /// Where the Newton CG's per-invocation sums carried between H's chunks start (×
+    /// Where the device PCG's per-invocation sums carried between H's chunks start (×
     /// partials per slot), and how many each invocation carries.
     pub const PART_CARRY: u32 = N_PART;
     pub const CARRY_LEN: u32 = 12;

@@ -4,11 +4,13 @@
 //! Hessian product, Jacobi / block-Jacobi preconditioners and the CG updates with
 //! deterministic two-pass reductions.
 
+pub mod blocks;
 pub mod context;
 pub mod error;
 pub mod kernels;
 pub mod launch;
 pub mod params;
+pub mod pcg;
 pub mod schedule;
 pub mod solver;
 
@@ -24,5 +26,6 @@ pub use solver::{
 pub use error::GpuError;
 pub use launch::{Launch, LaunchLimits, SegmentPolicy, SegmentWorkgroups};
 pub use params::{DifferenceForm, GpuParams, MAX_WORKGROUPS};
+pub use pcg::PcgSolver;
 
 pub use crate::solve::options::{CoarseSpace, Precision, Preconditioner};

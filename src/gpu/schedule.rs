@@ -1,7 +1,7 @@
 //! The chunk schedule of the device CGs: how many iterations one submit records before
 //! the next status read, and what that read says. A read costs a round trip; an
 //! iteration recorded past convergence costs an iteration. Both device CGs (`solve`'s,
-//! src/gpu/solver/run.rs, and the Newton loop's, src/sim/device/newton_cg.rs) size their
+//! src/gpu/solver/run.rs, and the Newton loop's, src/gpu/pcg/mod.rs) size their
 //! chunks and read their status here.
 
 use super::kernels::slots;
@@ -15,7 +15,7 @@ pub struct ChunkStatus {
     pub rr: f64,
     /// p·q of the last α (the curvature when it was not positive).
     pub pq: f64,
-    /// ‖b̂‖² (the Newton CG's start; zero in `solve`'s CG).
+    /// ‖b̂‖² (the device PCG's start; zero in `solve`'s CG).
     pub bb: f64,
     /// Iterations of this run.
     pub iterations: usize,

@@ -681,7 +681,7 @@ pub fn aggregate_projections(
 /// E⁺ of the aggregates' translations from E = ZᵀĤZ (k×k row-major, k = d·count;
 /// symmetrized here) and G of [`aggregate_projections`]: the pseudo-inverse on the range
 /// of each G_a, as [`aggregates_einv_from_blocks`] (which computes E on the host; the
-/// device Newton CG reduces it on the device).
+/// device PCG reduces it on the device).
 pub fn aggregates_einv_from_galerkin(
     d: usize,
     count: usize,
@@ -840,7 +840,7 @@ pub fn unpinned_translation(
 }
 
 /// 2^-64: the scale of the running sums of |Ĥ| in [`softest_translations`] (and the
-/// device Newton CG's).
+/// device device PCG's).
 pub const ABS_SUM_SCALE: f64 = 1.0 / 18_446_744_073_709_551_616.0;
 
 /// The softest translation of every connected group of free nodes (see

@@ -21,7 +21,7 @@
 
 mod builder;
 mod device;
-mod host;
+pub(in crate::gpu) mod host;
 mod info;
 mod inspect;
 mod levels;

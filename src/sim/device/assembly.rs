@@ -28,6 +28,7 @@
 use super::elements::{from_bytes, to_bytes};
 use super::elements::{GpuElements, TermKind, WORKGROUP};
 use crate::core::sparse::BlockCsr;
+use crate::gpu::blocks::{plan_rows, values_limit, BlockMatrix, ValuesChunk};
 use crate::gpu::kernels::{self, Access, Layout};
 use crate::gpu::{GpuContext, GpuError};
 use crate::sim::energy::Model;
@@ -111,55 +112,6 @@ struct Pass {
     group: wgpu::BindGroup,
     /// Kept alive with the bind group.
     _params: wgpu::Buffer,
-}
-
-/// One buffer of the assembled values: the blocks of consecutive block rows.
-#[derive(Debug)]
-pub struct ValuesChunk {
-    /// Block rows (mesh nodes) whose blocks this buffer holds.
-    pub rows: std::ops::Range<usize>,
-    /// Global block indices (the pattern's order) of its blocks; block k is at
-    /// (k − blocks.start)·d² in the buffer.
-    pub blocks: std::ops::Range<usize>,
-    /// The values, row-major d×d per block (`real`).
-    pub buffer: wgpu::Buffer,
-}
-
-/// A run of consecutive block rows and the (global) blocks they hold.
-pub type RowRun = (std::ops::Range<usize>, std::ops::Range<usize>);
-
-/// Splits the block rows of `row_ptr` into runs of consecutive rows whose blocks
-/// (`block_bytes` each) fit `limit` bytes once padded to 16: (rows, blocks) per run. A
-/// row whose blocks alone exceed the limit is [`GpuError::BufferTooLarge`].
-pub fn plan_rows(
-    row_ptr: &[usize],
-    block_bytes: u64,
-    limit: u64,
-    adapter: &str,
-) -> Result<Vec<RowRun>, GpuError> {
-    let n = row_ptr.len().saturating_sub(1);
-    let padded = |blocks: usize| (blocks as u64 * block_bytes).max(16).div_ceil(16) * 16;
-    let mut out = Vec::new();
-    let mut start = 0;
-    for i in 0..n {
-        if padded(row_ptr[i + 1] - row_ptr[i]) > limit {
-            return Err(GpuError::BufferTooLarge {
-                label: format!("assembly blocks of row {i}"),
-                bytes: padded(row_ptr[i + 1] - row_ptr[i]),
-                limit,
-                what: "storage binding",
-                adapter: adapter.to_string(),
-            });
-        }
-        if padded(row_ptr[i + 1] - row_ptr[start]) > limit {
-            out.push((start..i, row_ptr[start]..row_ptr[i]));
-            start = i;
-        }
-    }
-    if start < n || out.is_empty() {
-        out.push((start..n, row_ptr[start]..row_ptr[n]));
-    }
-    Ok(out)
 }
 
 /// For each output item (block or node), the `src` offsets of its contributions.
@@ -355,15 +307,11 @@ impl GpuAssembly {
                 .collect()
         };
         // The assembled values: one buffer per run of rows that fits one binding.
-        let values_limit = {
-            let l = &ctx.limits;
-            let limit = l.max_buffer_size.min(l.max_storage_buffer_binding_size);
-            binding_limit.map_or(limit, |c| c.min(limit))
-        };
         let plan = plan_rows(
             &pattern.row_ptr,
             dd as u64 * rs,
-            values_limit,
+            values_limit(&ctx, binding_limit),
+            "assembly blocks",
             ctx.adapter_name(),
         )?;
         let single = plan.len() == 1;
@@ -882,6 +830,17 @@ impl GpuAssembly {
     /// one storage binding (or the limit of [`GpuAssembly::with_binding_limit`]).
     pub fn values_chunks(&self) -> &[ValuesChunk] {
         &self.values
+    }
+
+    /// The assembled H as the device PCG reads it.
+    pub fn matrix(&self) -> BlockMatrix<'_> {
+        BlockMatrix {
+            dim: self.dim,
+            row_ptr: &self.row_ptr,
+            col_idx: &self.col_idx,
+            chunks: &self.values,
+            f64: self.f64,
+        }
     }
 
     /// The assembled gradient (node-major, `real`).

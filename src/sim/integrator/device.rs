@@ -22,10 +22,10 @@ use super::linear::LinearStats;
 use super::report::GpuRunReport;
 use super::state::{Contact, State, CCD_FRACTION};
 use super::targets::MovingTargets;
+use crate::gpu::pcg::{DeviceCg, DeviceCgParams, DeviceFrames};
 use crate::gpu::{GpuContext, GpuError, GpuOptions, Precision};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::elements::{GpuElements, TermKind};
-use crate::sim::device::newton_cg::{DeviceCg, DeviceCgParams, DeviceFrames};
 use crate::sim::device::newton_ops::{static_projections, MovingTerm, NewtonOps};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
 use crate::sim::energy::{AssemblyWork, InversionLimit, Inverted};
@@ -149,7 +149,13 @@ impl DeviceLoop {
         let asm = GpuAssembly::new(&elements, &scene.model).map_err(device_error)?;
         let h = scene.time_step;
         asm.set_scale(h * h);
-        let cg = DeviceCg::new(&asm).map_err(device_error)?;
+        let cg = DeviceCg::new(
+            asm.context(),
+            asm.matrix(),
+            Some(asm.gradient_buffer()),
+            false,
+        )
+        .map_err(device_error)?;
         let ops = NewtonOps::new(&elements, &asm, cg.dx_buffer()).map_err(device_error)?;
         let d = scene.dim;
         let matrix_bytes = (asm.pattern().1.len() * d * d * 8) as u64;
@@ -209,7 +215,7 @@ impl DeviceLoop {
 
 impl DeviceLoop {
     /// What a device CG solve cost, as the host loop reports its solves.
-    fn stats(info: &crate::sim::device::newton_cg::DeviceCgInfo, t: Instant) -> LinearStats {
+    fn stats(info: &crate::gpu::pcg::DeviceCgInfo, t: Instant) -> LinearStats {
         LinearStats {
             iterations: info.iterations,
             seconds: t.elapsed().as_secs_f64(),

@@ -1,5 +1,5 @@
-//! The index arrays of the aggregate coarse space in the device Newton CG
-//! (shaders/newton_cg.wgsl, `COARSE = 2`): which aggregate each node is in, the nodes of
+//! The index arrays of the aggregate coarse space in the device PCG
+//! (shaders/pcg.wgsl, `COARSE = 2`): which aggregate each node is in, the nodes of
 //! each aggregate, and how the blocks of H add up to E = ZᵀĤZ without atomics.
 //!
 //! E's block (a, b) is Σ_{i∈a} Q_i Σ_{j∈b, j~i} H_ij Q_j (src/solve/coarse.rs). Each block
@@ -8,7 +8,6 @@
 //! slots and applies Q_i, one invocation per row. Each aggregate pair (a, b) lists its
 //! slots in row order, and `agg_e` sums them per entry of E: the CPU's additions in the
 //! CPU's order, and no two invocations write one value.
-#![cfg(feature = "sim")]
 
 use crate::core::constraints::Frames;
 use crate::gpu::GpuError;
@@ -17,8 +16,8 @@ use crate::solve::coarse::{aggregate_projections, Aggregation, NO_AGGREGATE};
 /// Words of the header of the index buffer (the `AGG_*` constants of the WGSL).
 pub const HEADER: usize = 16;
 
-/// Header entries, mirrored by `AGG_*` in shaders/newton_cg.wgsl (checked by a test in
-/// `newton_cg`).
+/// Header entries, mirrored by `AGG_*` in shaders/pcg.wgsl (checked by a test in
+/// `gpu::pcg`).
 pub mod header {
     pub const COUNT: u32 = 0;
     pub const K: u32 = 1;

@@ -1,22 +1,21 @@
-//! The eliminated CG on the device-assembled Newton system (shaders/newton_cg.wgsl).
-//!
-//! After [`GpuAssembly::assemble`], H (block CSR, both triangles) and g are on the device;
-//! [`DeviceCg`] solves the eliminated system of [`crate::core::elimination`] there,
+//! The device PCG (shaders/pcg.wgsl): the eliminated system of
+//! [`crate::core::elimination`] solved where its block matrix lies,
 //!
 //! ```text
-//! Ĥ y = b̂,   Ĥ = P VᵀHV P + (I − P),   b̂ = −P Vᵀ g,   Δx = V P y
+//! Ĥ y = b̂,   Ĥ = P VᵀHV P + (I − P),   b̂ = −P Vᵀ g (or given),   Δx = V P y
 //! ```
 //!
-//! (a Newton step has no prescribed part, and the constrained diagonal is the identity),
-//! and leaves Δx in a device buffer for the rest of the loop. H is read where the assembly
-//! put it: the product q = Ĥp is one invocation per block row over the assembly's blocks,
-//! rotating only at rotated nodes. CG scalars stay on the device: per iteration five
-//! dispatches (product with p·q partials, a one-workgroup α kernel, the y/r/z update with
-//! r·z and r·r partials, a one-workgroup β kernel, the p update; seven with the
-//! aggregates), many iterations per
-//! submit, and one small status read-back (the scalars and flags, 128 bytes) per chunk.
-//! Every reduction has a fixed number of workgroups and a fixed order: the same inputs
-//! give the same Δx bit for bit.
+//! for both users of the GPU: the device Newton loop, whose assembly leaves H and g in
+//! device buffers ([`crate::gpu::blocks::BlockMatrix`]; a Newton step has no prescribed
+//! part), and `solve --solver gpu`, which uploads H ([`crate::gpu::blocks::HostBlocks`])
+//! and b̂ (with the lift of prescribed values in it) and recovers Δx on the host. H is
+//! read in place: the product q = Ĥp is one invocation per block row, rotating only at
+//! rotated nodes. CG scalars stay on the device: per iteration five dispatches (product
+//! with p·q partials, a one-workgroup α kernel, the y/r/z update with r·z and r·r
+//! partials, a one-workgroup β kernel, the p update; seven with the aggregates), many
+//! iterations per submit, and one small status read-back (the scalars and flags, 128
+//! bytes) per chunk. Every reduction has a fixed number of partials and a fixed order: the
+//! same inputs give the same y bit for bit.
 //!
 //! The preconditioner is Jacobi or block Jacobi, plus a coarse correction of
 //! [`crate::solve::coarse`]: M⁻¹r = M_J⁻¹r + Z E⁺ Zᵀr, Z_i = P_i V_iᵀ. Why: a body that
@@ -30,13 +29,13 @@
 //! - [`CoarseSpace::Aggregates`] (the CPU loop's default, and so the device loop's): the
 //!   translations of each aggregate of [`crate::solve::coarse::Aggregation`] on H's block
 //!   pattern (frames built for them: [`DeviceCg::frames`], index arrays in
-//!   [`crate::sim::device::newton_coarse`]). `prepare` sums E (K×K, K = D·aggregates) on
+//!   [`aggregates`]). `prepare` sums E (K×K, K = D·aggregates) on
 //!   the device in the CPU's order; the first `iterate` reads it back and writes E⁺ from
 //!   [`crate::solve::coarse::aggregates_einv_from_galerkin`]. Per iteration two more
 //!   dispatches: w = Zᵀr (a workgroup per aggregate) and c = E⁺w.
 //!
 //! H's values may come in several buffers of consecutive block rows
-//! ([`GpuAssembly::values_chunks`]; one storage binding caps each). The kernels that read
+//! ([`crate::gpu::blocks::ValuesChunk`]; one storage binding caps each). The kernels that read
 //! them run once per chunk with a bind group built once per chunk and constraint set; a
 //! reduction segment cut by a chunk's end carries each invocation's running sum to the
 //! next chunk's dispatch, so Δx and the iteration count are the same bits however H is
@@ -46,27 +45,28 @@
 //! consecutive nodes, whatever number of workgroups the device's policy launches (one per
 //! segment on a GPU, so the product and the updates run an invocation per node), then one
 //! workgroup sums the partials in a fixed order: the same bits on any workgroup count.
-#![cfg(feature = "sim")]
 
 use crate::core::constraints::{Frames, NO_ROTATION};
+use crate::gpu::blocks::BlockMatrix;
 use crate::gpu::kernels::{self, slots, Access, Layout};
 use crate::gpu::schedule::{self, ChunkStatus};
 use crate::gpu::{GpuContext, GpuError, Launch, TrafficCount};
-use crate::sim::device::assembly::GpuAssembly;
-use crate::sim::device::newton_coarse::{self, AggregateIndex};
 use crate::solve::cg::{CgError, Preconditioner};
 use crate::solve::coarse::CoarseSpace;
+use std::cell::Cell;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use Access::{Read as R, ReadWrite as W, Uniform as U};
 
-/// Bind group 0 of shaders/newton_cg.wgsl, shared by all its entry points.
-pub const NEWTON_CG: Layout = Layout {
-    file: "newton_cg.wgsl",
-    source: include_str!(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/shaders/newton_cg.wgsl"
-    )),
+pub mod aggregates;
+mod solver;
+use aggregates::AggregateIndex;
+pub use solver::PcgSolver;
+
+/// Bind group 0 of shaders/pcg.wgsl, shared by all its entry points.
+pub const PCG: Layout = Layout {
+    file: "pcg.wgsl",
+    source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/pcg.wgsl")),
     bindings: &[
         ("params", U),
         ("pattern", R),
@@ -90,13 +90,14 @@ pub const NEWTON_CG: Layout = Layout {
     ],
 };
 
-/// Length of this CG's `scal`: the fixed scalars of [`slots`] (it keeps no history).
-const SCAL_LEN: u32 = slots::SCAL_HIST;
+/// Lanczos coefficient pairs a PCG built with history records per solve (the HIST
+/// override): enough for κ̃ on any solve that converges in reasonable time.
+pub const LANCZOS_HIST: u32 = 1024;
 
-/// Uniform parameters of every kernel (mirrors `NewtonCgParams` in the WGSL).
+/// Uniform parameters of every kernel (mirrors `PcgParams` in the WGSL).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct NewtonCgParams {
+struct PcgParams {
     n_nodes: u32,
     n_partials: u32,
     col_at: u32,
@@ -107,7 +108,7 @@ struct NewtonCgParams {
     block_first: u32,
     chunk: u32,
 }
-const _: () = assert!(std::mem::size_of::<NewtonCgParams>() == 32);
+const _: () = assert!(std::mem::size_of::<PcgParams>() == 32);
 
 /// Workgroup size of every kernel.
 const WORKGROUP: u32 = 64;
@@ -177,6 +178,13 @@ pub struct DeviceCgParams {
 pub struct DeviceCgInfo {
     /// CG iterations, restarts included (0 when b̂ = 0).
     pub iterations: usize,
+    /// Restarts from the true residual after the recurrence met the tolerance.
+    pub restarts: usize,
+    /// Iterations recorded into command buffers (those past the stop are no-ops on the
+    /// device but still cost their dispatches).
+    pub recorded_iterations: usize,
+    /// Status read-backs (one per chunk and per start).
+    pub status_reads: usize,
     /// The true relative residual ‖b̂ − Ĥy‖/‖b̂‖ at the returned y (0 when b̂ = 0).
     pub relative_residual: f64,
     /// ‖b̂‖.
@@ -206,16 +214,17 @@ pub struct DeviceFrames {
     _frame: wgpu::Buffer,
     _rotations: wgpu::Buffer,
     _aggregates: wgpu::Buffer,
-    /// The aggregate coarse space's f64 data (shaders/newton_cg.wgsl, `coarse`).
+    /// The aggregate coarse space's f64 data (shaders/pcg.wgsl, `coarse`).
     coarse_buf: wgpu::Buffer,
 }
 
-/// The pipelines of shaders/newton_cg.wgsl; those the coarse correction changes once per
+/// The pipelines of shaders/pcg.wgsl; those the coarse correction changes once per
 /// coarse space (`[0]`, `[1]`, `[2]`: none, translations, aggregates: the COARSE
 /// override), `init` and `update_yr` once per preconditioner too (none, Jacobi, block
 /// Jacobi: the PRECOND override).
 struct Pipelines {
     rhs: wgpu::ComputePipeline,
+    rhs_given: wgpu::ComputePipeline,
     precond: wgpu::ComputePipeline,
     coarse_e: wgpu::ComputePipeline,
     coarse_e_sum: wgpu::ComputePipeline,
@@ -271,7 +280,7 @@ struct Buffers {
     status: wgpu::Buffer,
 }
 
-/// The eliminated PCG on a [`GpuAssembly`]'s H and g, built once per mesh (f64 only).
+/// The eliminated PCG on a device block matrix, built once per pattern (f64 only).
 /// Per Newton iteration: [`DeviceCg::solve`] (or [`DeviceCg::prepare`] then
 /// [`DeviceCg::iterate`]) after every `assemble`; Δx is then in [`DeviceCg::dx_buffer`].
 pub struct DeviceCg {
@@ -299,19 +308,42 @@ pub struct DeviceCg {
     /// The pattern as uploaded (row pointers, column indices, diagonal blocks), for the
     /// aggregates of [`DeviceCg::frames`].
     host_pattern: Vec<u32>,
+    /// b̂ comes from the host ([`DeviceCg::prepare_with_rhs`]), not from a gradient.
+    given_rhs: bool,
+    /// Lanczos pairs recorded per solve (the HIST override; 0: none).
+    hist: u32,
+    /// The iteration counts at which the last solve's CG runs began (0, then each
+    /// restart): where its Lanczos sequence is cut.
+    run_starts: Vec<usize>,
+    /// The iterations of the last solve.
+    last_iterations: usize,
+    /// Iterations recorded into command buffers and status reads of the current solve.
+    recorded: Cell<usize>,
+    reads: Cell<usize>,
 }
 
 impl DeviceCg {
-    /// Pipelines and buffers for `asm`'s mesh; refuses an f32 assembly.
-    pub fn new(asm: &GpuAssembly) -> Result<Self, GpuError> {
-        if !asm.is_f64() {
+    /// Pipelines and buffers for the f64 block matrix `h` (its values are read in place
+    /// by every solve: write new ones there, then [`DeviceCg::prepare`]). `grad` is the
+    /// gradient g from which [`DeviceCg::prepare`] forms b̂ = −P Vᵀ g; without it b̂ is
+    /// given ([`DeviceCg::prepare_with_rhs`]).
+    ///
+    /// With `lanczos` the CG records its first [`LANCZOS_HIST`] Lanczos coefficient pairs
+    /// for [`DeviceCg::condition_estimate`].
+    pub fn new(
+        ctx: &GpuContext,
+        h: BlockMatrix<'_>,
+        grad: Option<&wgpu::Buffer>,
+        lanczos: bool,
+    ) -> Result<Self, GpuError> {
+        if !h.f64 {
             return Err(GpuError::Unsupported(
-                "the device Newton CG needs an f64 assembly, not f32".into(),
+                "the device PCG needs f64 block values, not f32".into(),
             ));
         }
-        let ctx = asm.context().clone();
-        let dim = asm.dim();
-        let (row_ptr, col_idx) = asm.pattern();
+        let ctx = ctx.clone();
+        let dim = h.dim;
+        let (row_ptr, col_idx) = (h.row_ptr, h.col_idx);
         let n = row_ptr.len().saturating_sub(1);
         let nnz = col_idx.len();
         let dev = &ctx.device;
@@ -339,7 +371,7 @@ impl DeviceCg {
         let limits = ctx.launch();
         let segments = policy.segments(n as u64, WORKGROUP);
         let n_partials = u32::try_from(segments).map_err(|_| too_big("nodes"))?;
-        let chunks = asm.values_chunks();
+        let chunks = h.chunks;
         let seg_len = (WORKGROUP * policy.items) as usize;
         let launches = Launches {
             segments: policy.launch(&limits, segments, WORKGROUP),
@@ -358,9 +390,10 @@ impl DeviceCg {
         };
 
         // Pipelines.
-        NEWTON_CG.check_adapter(&ctx)?;
-        let module = NEWTON_CG.module(dev, "f64", "f64", false);
-        let (layout, pl) = NEWTON_CG.layouts(dev, "newton cg");
+        let hist = if lanczos { LANCZOS_HIST } else { 0 };
+        PCG.check_adapter(&ctx)?;
+        let module = PCG.module(dev, "f64", "f64", false);
+        let (layout, pl) = PCG.layouts(dev, "pcg");
         let pipe = |entry: &str, precond: u32, coarse: u32| {
             // SUM_LANES: scalar_start sums three values in one tree, no kernel more; the
             // translations' correction sums r·z, r·r and Zᵀr (2 + D) in one, coarse_e E's
@@ -378,15 +411,16 @@ impl DeviceCg {
                 ("PRECOND", precond as f64),
                 ("COARSE", coarse as f64),
                 ("ITEMS", policy.items as f64),
+                ("HIST", hist as f64),
             ];
-            let label =
-                format!("newton cg {entry} ({dim}D, preconditioner {precond}, coarse {coarse})");
+            let label = format!("pcg {entry} ({dim}D, preconditioner {precond}, coarse {coarse})");
             kernels::pipeline(dev, &pl, &module, entry, &label, &constants)
         };
         let both = |entry: &str| [0, 1, 2].map(|c| pipe(entry, 0, c));
         let each = |entry: &str| [0, 1, 2].map(|c| [0, 1, 2].map(|k| pipe(entry, k, c)));
         let pipes = Pipelines {
             rhs: pipe("rhs", 0, 0),
+            rhs_given: pipe("rhs_given", 0, 0),
             precond: pipe("precond", 0, 0),
             coarse_e: pipe("coarse_e", 0, 0),
             coarse_e_sum: pipe("coarse_e_sum", 0, 0),
@@ -408,10 +442,10 @@ impl DeviceCg {
         let nd = (n * dim) as u64;
         let zeroed = |label: &str, bytes: u64| ctx.storage_zeroed(label, bytes);
         let vector = |label: &str| zeroed(label, 8 * nd);
-        let pattern_buf = ctx.storage_with("newton cg pattern", bytemuck::cast_slice(&pattern))?;
+        let pattern_buf = ctx.storage_with("pcg pattern", bytemuck::cast_slice(&pattern))?;
         let mut params = Vec::with_capacity(chunks.len());
         for (c, ch) in chunks.iter().enumerate() {
-            let p = NewtonCgParams {
+            let p = PcgParams {
                 n_nodes: u32::try_from(n).map_err(|_| too_big("nodes"))?,
                 n_partials,
                 col_at,
@@ -422,7 +456,7 @@ impl DeviceCg {
                 chunk: c as u32,
             };
             params.push(ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(&format!("newton cg params of values chunk {c}")),
+                label: Some(&format!("pcg params of values chunk {c}")),
                 contents: bytemuck::bytes_of(&p),
                 usage: wgpu::BufferUsages::UNIFORM,
             }));
@@ -431,32 +465,32 @@ impl DeviceCg {
             params,
             pattern: pattern_buf,
             hvals: chunks.iter().map(|c| c.buffer.clone()).collect(),
-            grad: asm.gradient_buffer().clone(),
-            y: vector("newton cg y")?,
-            r: vector("newton cg r")?,
-            z: vector("newton cg z")?,
-            p: vector("newton cg p")?,
-            q: vector("newton cg q")?,
-            b: vector("newton cg rhs")?,
-            minv: zeroed(
-                "newton cg preconditioner",
-                8 * (n * dim * dim) as u64 + 8 * nd,
-            )?,
-            dx: vector("newton cg dx")?,
+            grad: match grad {
+                Some(g) => g.clone(),
+                None => zeroed("pcg gradient (b̂ is given)", 16)?,
+            },
+            y: vector("pcg y")?,
+            r: vector("pcg r")?,
+            z: vector("pcg z")?,
+            p: vector("pcg p")?,
+            q: vector("pcg q")?,
+            b: vector("pcg rhs")?,
+            minv: zeroed("pcg preconditioner", 8 * (n * dim * dim) as u64 + 8 * nd)?,
+            dx: vector("pcg dx")?,
             // The partial sums, then the sums carried across each boundary between H's
             // chunks (one segment straddles it), per invocation.
             partials: zeroed(
-                "newton cg partial sums",
+                "pcg partial sums",
                 8 * (slots::N_PART as u64 * segments
                     + (chunks.len().saturating_sub(1) as u64)
                         * slots::CARRY_LEN as u64
                         * WORKGROUP as u64),
             )?,
-            scal: zeroed("newton cg scalars", 8 * SCAL_LEN as u64)?,
-            state: zeroed("newton cg state", 4 * slots::N_STATE as u64)?,
-            status: zeroed("newton cg status", STATUS_BYTES)?,
+            scal: zeroed("pcg scalars", 8 * (slots::SCAL_HIST + 2 * hist) as u64)?,
+            state: zeroed("pcg state", 4 * slots::N_STATE as u64)?,
+            status: zeroed("pcg status", STATUS_BYTES)?,
         };
-        ctx.check("building the device Newton CG")?;
+        ctx.check("building the device PCG")?;
         Ok(DeviceCg {
             id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
             ctx,
@@ -472,6 +506,12 @@ impl DeviceCg {
             agg_ready: false,
             coarse_traffic: TrafficCount::default(),
             host_pattern: pattern,
+            given_rhs: grad.is_none(),
+            hist,
+            run_starts: Vec::new(),
+            last_iterations: 0,
+            recorded: Cell::new(0),
+            reads: Cell::new(0),
         })
     }
 
@@ -492,10 +532,54 @@ impl DeviceCg {
         Ok(f64s(&bytes))
     }
 
+    /// κ̃(M⁻¹Ĥ) of the last solve from its Lanczos coefficients (a PCG built with
+    /// `lanczos`): the largest over its runs (cut at restarts) of at least 2 iterations
+    /// within the first [`LANCZOS_HIST`]; `None` without one (a read-back).
+    pub fn condition_estimate(&self) -> Result<Option<f64>, GpuError> {
+        let n = self.last_iterations.min(self.hist as usize);
+        if n < 2 {
+            return Ok(None);
+        }
+        let bytes = self.ctx.download(
+            &self.buf.scal,
+            8 * slots::SCAL_HIST as u64,
+            8 * 2 * n as u64,
+            "reading back the Lanczos coefficients",
+        )?;
+        let h = f64s(&bytes);
+        let mut ends: Vec<usize> = self.run_starts.iter().skip(1).copied().collect();
+        ends.push(self.last_iterations);
+        let mut kappa: Option<f64> = None;
+        for (&a, &b) in self.run_starts.iter().zip(&ends) {
+            let b = b.min(n);
+            if b < a + 2 {
+                continue;
+            }
+            let alphas: Vec<f64> = (a..b).map(|j| h[2 * j]).collect();
+            let betas: Vec<f64> = (a..b - 1).map(|j| h[2 * j + 1]).collect();
+            if let Some(k) = crate::solve::cg::lanczos_condition(&alphas, &betas) {
+                kappa = Some(kappa.map_or(k, |c| c.max(k)));
+            }
+        }
+        Ok(kappa)
+    }
+
+    /// The solution y of Ĥ y = b̂ (frame coordinates, n·d f64) read back.
+    pub fn read_y(&self) -> Result<Vec<f64>, GpuError> {
+        let nd = self.n_nodes * self.dim;
+        let bytes = self.ctx.download(
+            &self.buf.y,
+            0,
+            8 * nd as u64,
+            "reading back the PCG's solution",
+        )?;
+        Ok(f64s(&bytes))
+    }
+
     /// Uploads one constraint set (mask per node, rotation per rotated node) and builds
     /// its bind group, once: callers keep it for as long as the constraints hold. With
     /// `coarse` = `Aggregates` also the aggregates of the pattern and their index arrays
-    /// (`newton_coarse`); frames built for another coarse space refuse it in `iterate`.
+    /// ([`aggregates`]); frames built for another coarse space refuse it in `iterate`.
     /// Refuses frames of another mesh and prescribed (non-zero) constraint values, which
     /// a Newton step never has.
     pub fn frames(&self, f: &Frames, coarse: CoarseSpace) -> Result<DeviceFrames, GpuError> {
@@ -506,10 +590,10 @@ impl DeviceCg {
                 f.n_nodes, f.dim
             )));
         }
-        if !f.homogeneous {
+        if !f.homogeneous && !self.given_rhs {
             return Err(GpuError::Unsupported(
-                "the device Newton CG takes homogeneous constraints only (a Newton step \
-                 prescribes no displacement)"
+                "the device PCG forms b̂ from a gradient for homogeneous constraints only \
+                 (a Newton step prescribes no displacement)"
                     .into(),
             ));
         }
@@ -535,14 +619,14 @@ impl DeviceCg {
         }
         let frame_buf = self
             .ctx
-            .storage_with("newton cg frames", bytemuck::cast_slice(&frame))?;
+            .storage_with("pcg frames", bytemuck::cast_slice(&frame))?;
         let rot_buf = self
             .ctx
-            .storage_with("newton cg rotations", bytemuck::cast_slice(&f.rotations))?;
+            .storage_with("pcg rotations", bytemuck::cast_slice(&f.rotations))?;
         let agg = match coarse {
             CoarseSpace::Aggregates => {
                 let (row_ptr, col_idx) = self.usize_pattern();
-                newton_coarse::aggregate_index(&row_ptr, &col_idx, f)?
+                aggregates::aggregate_index(&row_ptr, &col_idx, f)?
             }
             _ => None,
         };
@@ -554,10 +638,8 @@ impl DeviceCg {
         };
         let agg_buf = self
             .ctx
-            .storage_with("newton cg aggregates", bytemuck::cast_slice(&agg_words))?;
-        let coarse_buf = self
-            .ctx
-            .storage_zeroed("newton cg coarse space", coarse_bytes)?;
+            .storage_with("pcg aggregates", bytemuck::cast_slice(&agg_words))?;
+        let coarse_buf = self.ctx.storage_zeroed("pcg coarse space", coarse_bytes)?;
         let b = &self.buf;
         let mut groups = Vec::with_capacity(b.hvals.len());
         for (params, hvals) in b.params.iter().zip(&b.hvals) {
@@ -594,7 +676,7 @@ impl DeviceCg {
                 self.ctx
                     .device
                     .create_bind_group(&wgpu::BindGroupDescriptor {
-                        label: Some("newton cg bind group"),
+                        label: Some("pcg bind group"),
                         layout: &self.layout,
                         entries: &entries,
                     }),
@@ -676,12 +758,43 @@ impl DeviceCg {
     /// constraint change). No read-back: E (D² values) is read by the first `iterate`
     /// that uses the coarse correction.
     pub fn prepare(&mut self, frames: &DeviceFrames) -> Result<(), GpuError> {
+        if self.given_rhs {
+            return Err(GpuError::Mismatch(
+                "this device PCG has no gradient: b̂ is given (prepare_with_rhs)".into(),
+            ));
+        }
+        self.prepare_kernels(frames, false)
+    }
+
+    /// [`DeviceCg::prepare`] with b̂ given (frame coordinates, zero in the constrained
+    /// components, n·d) for a PCG built without a gradient.
+    pub fn prepare_with_rhs(&mut self, frames: &DeviceFrames, rhs: &[f64]) -> Result<(), GpuError> {
+        if !self.given_rhs {
+            return Err(GpuError::Mismatch(
+                "this device PCG forms b̂ from its gradient (prepare)".into(),
+            ));
+        }
+        if rhs.len() != self.n_nodes * self.dim {
+            return Err(GpuError::Mismatch(format!(
+                "b̂ has {} entries, the system {}",
+                rhs.len(),
+                self.n_nodes * self.dim
+            )));
+        }
         self.own(frames)?;
-        let mut enc = self.encoder("newton cg prepare");
+        self.ctx
+            .write_buffer(&self.buf.b, 0, bytemuck::cast_slice(rhs));
+        self.prepare_kernels(frames, true)
+    }
+
+    fn prepare_kernels(&mut self, frames: &DeviceFrames, given: bool) -> Result<(), GpuError> {
+        self.own(frames)?;
+        let mut enc = self.encoder("pcg prepare");
         let l = &self.launches;
         let p = &self.pipes;
         let g0 = &frames.groups[0];
-        let mut kernels: Vec<Kernel> = vec![(&p.rhs, l.segments, g0)];
+        let rhs = if given { &p.rhs_given } else { &p.rhs };
+        let mut kernels: Vec<Kernel> = vec![(rhs, l.segments, g0)];
         kernels.extend(Self::per_chunk(&p.precond, &l.chunk_rows, frames));
         kernels.extend(Self::per_chunk(&p.coarse_e, &l.chunk_segments, frames));
         kernels.push((&p.coarse_e_sum, ONE, g0));
@@ -690,9 +803,9 @@ impl DeviceCg {
             let e = self.ctx.launch().grid((a.k * a.k) as u64, WORKGROUP);
             kernels.push((&p.agg_e, e, g0));
         }
-        Self::pass(&mut enc, "newton cg prepare", &kernels);
+        Self::pass(&mut enc, "pcg prepare", &kernels);
         self.ctx.queue.submit([enc.finish()]);
-        self.ctx.check("preparing the device Newton CG")?;
+        self.ctx.check("preparing the device PCG")?;
         self.prepared = Some(frames.id);
         self.galerkin = Galerkin::OnDevice;
         self.agg_ready = false;
@@ -792,6 +905,12 @@ impl DeviceCg {
         }
     }
 
+    /// Whether the last `iterate` found no usable E of the translations (every translation
+    /// constrained, or E not finite): the translations' correction then adds nothing.
+    pub fn translations_inactive(&self) -> bool {
+        matches!(self.galerkin, Galerkin::Read { einv: None, .. })
+    }
+
     /// E⁺ of the aggregates (K×K, row-major) as the last `iterate` with them wrote it;
     /// `None` for frames without aggregates. For tests and diagnostics (a read-back).
     pub fn aggregate_einv(&self, frames: &DeviceFrames) -> Result<Option<Vec<f64>>, GpuError> {
@@ -841,6 +960,7 @@ impl DeviceCg {
         self.ctx.queue.submit([enc.finish()]);
         self.ctx.check(what)?;
         let bytes = self.ctx.download(&self.buf.status, 0, STATUS_BYTES, what)?;
+        self.reads.set(self.reads.get() + 1);
         let scal = f64s(&bytes[..sb as usize]);
         Ok(ChunkStatus::read(
             &scal,
@@ -880,6 +1000,26 @@ impl DeviceCg {
         params: &DeviceCgParams,
         tolerance: &mut dyn FnMut(f64) -> f64,
     ) -> Result<DeviceCgInfo, GpuError> {
+        self.run(frames, params, tolerance, false)
+    }
+
+    /// [`DeviceCg::iterate`] from the y the last iterate left (a restart: r = b̂ − Ĥy),
+    /// for a caller whose own check of y missed the tolerance.
+    pub fn iterate_from_current(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+    ) -> Result<DeviceCgInfo, GpuError> {
+        self.run(frames, params, &mut |_| params.tol, true)
+    }
+
+    fn run(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+        tolerance: &mut dyn FnMut(f64) -> f64,
+        from_current: bool,
+    ) -> Result<DeviceCgInfo, GpuError> {
         self.own(frames)?;
         if self.prepared != Some(frames.id) {
             return Err(GpuError::Mismatch(
@@ -910,6 +1050,8 @@ impl DeviceCg {
             self.upload_aggregate_einv(frames)?;
         }
         let tol2 = tol * tol;
+        self.recorded.set(0);
+        self.reads.set(0);
         // Every slot before E: the scalars, c and E⁺ (zero without the correction, or
         // when every translation is constrained: then c = 0 and so is the correction).
         let mut scal = [0.0f64; slots::SCAL_E as usize];
@@ -929,13 +1071,25 @@ impl DeviceCg {
         self.ctx
             .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
 
-        // Start: y = 0, so q = Ĥy = 0 without a product.
-        let mut enc = self.encoder("newton cg start");
-        enc.clear_buffer(&self.buf.y, 0, None);
-        enc.clear_buffer(&self.buf.q, 0, None);
-        Self::pass(&mut enc, "newton cg start", &self.start(frames, pre, co));
-        let mut st = self.submit_and_read(enc, "starting the device Newton CG")?;
+        // Start: from y = 0, so q = Ĥy = 0 without a product, or from the current y.
+        let mut enc = self.encoder("pcg start");
+        let mut kernels: Vec<Kernel> = Vec::new();
+        if from_current {
+            enc.copy_buffer_to_buffer(&self.buf.y, 0, &self.buf.p, 0, None);
+            kernels.extend(Self::per_chunk(
+                &self.pipes.matvec,
+                &self.launches.chunk_segments,
+                frames,
+            ));
+        } else {
+            enc.clear_buffer(&self.buf.y, 0, None);
+            enc.clear_buffer(&self.buf.q, 0, None);
+        }
+        kernels.extend(self.start(frames, pre, co));
+        Self::pass(&mut enc, "pcg start", &kernels);
+        let mut st = self.submit_and_read(enc, "starting the device PCG")?;
         st.error(0)?;
+        self.run_starts = vec![0];
         let bb = st.bb;
         let rhs_norm = bb.sqrt();
         let tol = check_tol(tolerance(rhs_norm))?;
@@ -978,26 +1132,33 @@ impl DeviceCg {
             self.chunks(frames, pre, co, max, tol2 * bb, &mut st)?;
             // The true residual at y: q = Ĥy (y copied into p), r = b̂ − q, p = z.
             self.clear_flags();
-            let mut enc = self.encoder("newton cg true residual");
+            let mut enc = self.encoder("pcg true residual");
             enc.copy_buffer_to_buffer(&self.buf.y, 0, &self.buf.p, 0, None);
             let mut kernels: Vec<Kernel> =
                 Self::per_chunk(&self.pipes.matvec, &self.launches.chunk_segments, frames)
                     .collect();
             kernels.extend(self.start(frames, pre, co));
-            Self::pass(&mut enc, "newton cg true residual", &kernels);
-            st = self.submit_and_read(enc, "the device Newton CG's true residual")?;
+            Self::pass(&mut enc, "pcg true residual", &kernels);
+            st = self.submit_and_read(enc, "the device PCG's true residual")?;
             st.error(0)?;
+            self.run_starts.push(st.iterations);
         }
-        let mut enc = self.encoder("newton cg recovery");
-        Self::pass(
-            &mut enc,
-            "newton cg recovery",
-            &[(&self.pipes.recover, self.launches.nodes, &frames.groups[0])],
-        );
-        self.ctx.queue.submit([enc.finish()]);
-        self.ctx.check("recovering the device Newton step")?;
+        self.last_iterations = st.iterations;
+        if !self.given_rhs {
+            let mut enc = self.encoder("pcg recovery");
+            Self::pass(
+                &mut enc,
+                "pcg recovery",
+                &[(&self.pipes.recover, self.launches.nodes, &frames.groups[0])],
+            );
+            self.ctx.queue.submit([enc.finish()]);
+            self.ctx.check("recovering the device Newton step")?;
+        }
         Ok(DeviceCgInfo {
             iterations: st.iterations,
+            restarts: self.run_starts.len() - 1,
+            recorded_iterations: self.recorded.get(),
+            status_reads: self.reads.get(),
             relative_residual: relative(st.rr),
             rhs_norm,
             tolerance: tol,
@@ -1137,9 +1298,10 @@ impl DeviceCg {
                 .map(|(_, k)| k)
                 .collect();
             let kernels: Vec<Kernel> = (0..kk).flat_map(|_| one.iter().copied()).collect();
-            let mut enc = self.encoder("newton cg chunk");
-            Self::pass(&mut enc, "newton cg chunk", &kernels);
-            *st = self.submit_and_read(enc, "a device Newton CG chunk")?;
+            self.recorded.set(self.recorded.get() + kk);
+            let mut enc = self.encoder("pcg chunk");
+            Self::pass(&mut enc, "pcg chunk", &kernels);
+            *st = self.submit_and_read(enc, "a device PCG chunk")?;
             st.error(0)?;
             if st.converged {
                 return Ok(());
@@ -1159,6 +1321,14 @@ impl DeviceCg {
     ) -> Result<DeviceCgInfo, GpuError> {
         self.prepare(frames)?;
         self.iterate(frames, params)
+    }
+}
+
+impl DeviceFrames {
+    /// The number of aggregates of the coarse space these frames were built for (`None`
+    /// without the aggregates, or when every node is fixed).
+    pub fn aggregate_count(&self) -> Option<usize> {
+        self.agg.as_ref().map(|a| a.count)
     }
 }
 
@@ -1202,34 +1372,30 @@ mod tests {
     use super::*;
 
     fn module() -> naga::Module {
-        let src = format!(
-            "{}{}",
-            kernels::prelude("f64", "f64", false),
-            NEWTON_CG.source
-        );
+        let src = format!("{}{}", kernels::prelude("f64", "f64", false), PCG.source);
         naga::front::wgsl::parse_str(&src)
-            .unwrap_or_else(|e| panic!("newton_cg.wgsl: {}", e.emit_to_string(&src)))
+            .unwrap_or_else(|e| panic!("pcg.wgsl: {}", e.emit_to_string(&src)))
     }
 
-    /// Bind group 0 is [`NEWTON_CG`]'s bindings in order with their access, the params
+    /// Bind group 0 is [`PCG`]'s bindings in order with their access, the params
     /// struct has Rust's size, and every aggregate header constant has Rust's value (the
     /// CG's slots come from the prelude, `gpu::kernels::slots`).
     #[test]
     fn layout_params_and_headers_match_the_wgsl() {
         let m = module();
-        kernels::check::bindings_match(&NEWTON_CG, &m);
+        kernels::check::bindings_match(&PCG, &m);
         let (_, ty) = m
             .types
             .iter()
-            .find(|(_, t)| t.name.as_deref() == Some("NewtonCgParams"))
-            .expect("struct NewtonCgParams");
+            .find(|(_, t)| t.name.as_deref() == Some("PcgParams"))
+            .expect("struct PcgParams");
         match &ty.inner {
             naga::TypeInner::Struct { span, .. } => {
-                assert_eq!(*span as usize, std::mem::size_of::<NewtonCgParams>())
+                assert_eq!(*span as usize, std::mem::size_of::<PcgParams>())
             }
-            other => panic!("NewtonCgParams is {other:?}"),
+            other => panic!("PcgParams is {other:?}"),
         }
-        use newton_coarse::header as h;
+        use aggregates::header as h;
         let agg = [
             ("AGG_COUNT", h::COUNT),
             ("AGG_K", h::K),

@@ -1,4 +1,4 @@
-// The eliminated PCG on the device-assembled Newton system (src/sim/device/newton_cg.rs):
+// The eliminated PCG on the device-assembled Newton system (src/gpu/pcg/mod.rs):
 //
 //   Ĥ y = b̂,  Ĥ = P VᵀHV P + (I − P),  b̂ = −P Vᵀ g,  Δx = V P y
 //
@@ -51,10 +51,15 @@ override PRECOND: u32 = 1u;
 override COARSE: u32 = 0u;
 // Nodes per invocation within a segment (the device's SegmentPolicy).
 override ITEMS: u32 = 1u;
+// Lanczos coefficients recorded (0: none): scalar_beta of iteration j < HIST (counted from
+// the solve's start, restarts included) writes α_j at SCAL_HIST + 2j and, when CG goes on,
+// β_{j+1} at SCAL_HIST + 2j + 1; the host cuts the sequence at restarts and estimates
+// κ(M⁻¹Ĥ) from each run (src/solve/cg.rs, lanczos_condition).
+override HIST: u32 = 0u;
 
-// Mirrors `NewtonCgParams` in src/sim/device/newton_cg.rs (four u32, 16 bytes, size-asserted
+// Mirrors `PcgParams` in src/gpu/pcg/mod.rs (four u32, 16 bytes, size-asserted
 // there).
-struct NewtonCgParams {
+struct PcgParams {
     n_nodes: u32,
     // Partials per reduction (the workgroups of the grid-stride kernels).
     n_partials: u32,
@@ -78,7 +83,7 @@ struct NewtonCgParams {
 // ZᵀĤ's blocks, D values (coarse_e_sum, read back by the host, which asks whether a
 // translation is pinned by nothing). Partial sums, each n_partials long: p·q, r·z, r·r,
 // D slots of Zᵀr (COARSE), ‖b̂‖², D² of E then D of its rows' absolute sums (coarse_e).
-// The header of `aggregates` (src/sim/device/newton_coarse.rs): the aggregate count, K,
+// The header of `aggregates` (src/gpu/pcg/aggregates.rs): the aggregate count, K,
 // then where each index array starts in `aggregates` (u32 words) and each f64 array in
 // `coarse`: the aggregate of each node, the aggregates' node lists (offsets, nodes), per
 // block row the range of its row-pair slots, per block its slot, per aggregate pair its
@@ -104,8 +109,8 @@ const AGG_C: u32 = 13u;
 // 2^-64: the scale of the absolute row sums (src/solve/coarse.rs, ABS_SUM_SCALE).
 const ABS_SUM_SCALE = 0x1p-64;
 
-@group(0) @binding(0) var<uniform> params: NewtonCgParams;
-// Row pointers, column indices and per node its diagonal block (see NewtonCgParams).
+@group(0) @binding(0) var<uniform> params: PcgParams;
+// Row pointers, column indices and per node its diagonal block (see PcgParams).
 @group(0) @binding(1) var<storage, read> pattern: array<u32>;
 // The assembly's blocks and gradient.
 // (hvals: the values chunk of this dispatch, block block_first at 0.)
@@ -271,37 +276,47 @@ fn reduce_slot(slot: u32, lid: u32) -> acc {
     return workgroup_sum_uniform1(lid, s);
 }
 
-// b̂ = −P Vᵀ g and the ‖b̂‖² partials.
-@compute @workgroup_size(WG)
-fn rhs(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+// b̂ = −P Vᵀ g into b, or (`form` false) b as the host wrote it, with the ‖b̂‖² partials.
+fn rhs_partials(lid: u32, wid: vec3<u32>, nwg: vec3<u32>, form: bool) {
     for (var s = group_index(wid, nwg); s < params.n_partials; s += group_count(nwg)) {
         var bb = acc(0.0);
         for (var m = 0u; m < ITEMS; m++) {
-            let i = (s * ITEMS + m) * WG + lid.x;
+            let i = (s * ITEMS + m) * WG + lid;
             if (i >= params.n_nodes) {
                 break;
             }
-            var g: array<real, 3>;
-            for (var a = 0u; a < D; a++) {
-                g[a] = grad[i * D + a];
-            }
-            let t = to_frame(i, g);
-            for (var a = 0u; a < D; a++) {
-                var v = -t[a];
-                if (fixed(i, a)) {
-                    v = real(0.0);
+            if (form) {
+                var g: array<real, 3>;
+                for (var a = 0u; a < D; a++) {
+                    g[a] = grad[i * D + a];
                 }
-                b[i * D + a] = v;
+                let t = to_frame(i, g);
+                for (var a = 0u; a < D; a++) {
+                    b[i * D + a] = select(-t[a], real(0.0), fixed(i, a));
+                }
+            }
+            for (var a = 0u; a < D; a++) {
+                let v = b[i * D + a];
                 bb += acc(v) * acc(v);
             }
         }
-        workgroup_sum(lid.x, sum1(bb), 1u);
-        if (lid.x == 0u) {
+        workgroup_sum(lid, sum1(bb), 1u);
+        if (lid == 0u) {
             partials[PART_BB * params.n_partials + s] = summed(0u);
         }
         // The tree's memory is reused by the next segment.
         workgroupBarrier();
     }
+}
+
+@compute @workgroup_size(WG)
+fn rhs(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    rhs_partials(lid.x, wid, nwg, true);
+}
+
+@compute @workgroup_size(WG)
+fn rhs_given(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    rhs_partials(lid.x, wid, nwg, false);
 }
 
 // The preconditioners from the diagonal blocks of Ĥ: B = P V_iᵀ H_ii V_i P + (I − P).
@@ -533,7 +548,11 @@ fn scalar_beta(@builtin(local_invocation_id) lid: vec3<u32>) {
         } else if (COARSE == 2u) {
             rz += s[2];
         }
-        state[STATE_ITERS] += 1u;
+        let it = state[STATE_ITERS];
+        state[STATE_ITERS] = it + 1u;
+        if (it < HIST) {
+            scal[SCAL_HIST + 2u * it] = scal[SCAL_ALPHA];
+        }
         scal[SCAL_RR] = rr;
         // NaN fails every comparison: a non-finite ρ or r·r is a breakdown.
         if (!(rz >= acc(0.0)) || !(rr >= acc(0.0))) {
@@ -545,6 +564,9 @@ fn scalar_beta(@builtin(local_invocation_id) lid: vec3<u32>) {
         } else {
             scal[SCAL_BETA] = rz / scal[SCAL_RHO];
             scal[SCAL_RHO] = rz;
+            if (it < HIST) {
+                scal[SCAL_HIST + 2u * it + 1u] = scal[SCAL_BETA];
+            }
         }
     }
 }

@@ -1,0 +1,243 @@
+//! The device PCG on an eliminated system from the host: what `solve --solver gpu` runs
+//! in f64 (through the facade's engine). H is uploaded once per pattern into the block
+//! layout the device assembly writes ([`HostBlocks`]), b̂ with each system; the CG is the
+//! device Newton loop's own ([`DeviceCg`]), so the two give the same iterations and bits
+//! on the same system. The host keeps H in f64 to recompute the true residual from the
+//! downloaded y (success is declared on it) and recovers Δx = Δx_p + V P y with the f64
+//! frames.
+
+use super::{DeviceCg, DeviceCgParams, DeviceFrames};
+use crate::core::elimination::{norm2, Eliminated};
+use crate::gpu::blocks::HostBlocks;
+use crate::gpu::solver::host::{Host, HostOp};
+use crate::gpu::{
+    GpuContext, GpuError, GpuParams, GpuSolveInfo, Precision, SolveOutcome, StageSeconds,
+};
+use crate::solve::cg::CgError;
+use crate::solve::coarse::CoarseSpace;
+use std::time::Instant;
+
+/// The device PCG for eliminated systems given on the host (f64 only): built once per
+/// block pattern and constraint set; [`PcgSolver::update`] writes new values.
+pub struct PcgSolver {
+    ctx: GpuContext,
+    params: GpuParams,
+    host: Host,
+    blocks: HostBlocks,
+    cg: DeviceCg,
+    frames: DeviceFrames,
+    upload_seconds: f64,
+    setup_seconds: f64,
+}
+
+impl PcgSolver {
+    /// Uploads `e`'s H, frames and b̂ and builds the CG. Refuses precisions other than f64
+    /// and the multilevel preconditioner, and (as the CPU CG) a system that a rigid
+    /// translation leaves singular.
+    pub fn new(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<Self, GpuError> {
+        if params.precision != Precision::F64 {
+            return Err(GpuError::Unsupported(format!(
+                "the device PCG runs in f64, not {}",
+                params.precision
+            )));
+        }
+        crate::solve::cg::check_pinned(e)?;
+        let t0 = Instant::now();
+        let blocks = HostBlocks::upload(ctx, e.h, params.binding_limit)?;
+        let cg = DeviceCg::new(ctx, blocks.matrix(), None, true)?;
+        let frames = cg.frames(e.frames, params.coarse)?;
+        let host = Host::new(
+            HostOp::Blocks(e.h.clone()),
+            e.frames.clone(),
+            e.rhs.clone(),
+            e.diag.clone(),
+        );
+        let mut s = PcgSolver {
+            ctx: ctx.clone(),
+            params: params.clone(),
+            host,
+            blocks,
+            cg,
+            frames,
+            upload_seconds: t0.elapsed().as_secs_f64(),
+            setup_seconds: 0.0,
+        };
+        s.prepare()?;
+        Ok(s)
+    }
+
+    /// b̂ and the preconditioner (and coarse matrix) of the current values on the device.
+    fn prepare(&mut self) -> Result<(), GpuError> {
+        let t = Instant::now();
+        self.cg.prepare_with_rhs(&self.frames, &self.host.rhs)?;
+        self.setup_seconds = t.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// Sets the relative residual tolerance of the next solves; refuses a value outside
+    /// (0, 1).
+    pub fn set_tol(&mut self, tol: f64) -> Result<(), GpuError> {
+        if !(tol > 0.0 && tol < 1.0) {
+            return Err(GpuError::Unsupported(format!(
+                "the CG tolerance must lie in (0, 1), not {tol}"
+            )));
+        }
+        self.params.tol = tol;
+        Ok(())
+    }
+
+    /// New values for the same pattern and constraint set (a later Newton iteration).
+    pub fn update(&mut self, e: &Eliminated) -> Result<(), GpuError> {
+        let t0 = Instant::now();
+        let f = &self.host.frames;
+        if e.frames.mask != f.mask || e.frames.rot_index != f.rot_index {
+            return Err(GpuError::Mismatch(
+                "the constraint set changed; build a new solver".into(),
+            ));
+        }
+        self.blocks.write(&self.ctx, e.h)?;
+        // New rotations of the same constraint set (a slip plane turned) need new frames.
+        if e.frames.rotations != f.rotations {
+            self.frames = self.cg.frames(e.frames, self.params.coarse)?;
+        }
+        match &mut self.host.op {
+            HostOp::Blocks(h) => h.values.copy_from_slice(&e.h.values),
+            HostOp::Springs(_) => unreachable!("the device PCG holds assembled blocks"),
+        }
+        self.host.frames = e.frames.clone();
+        self.host.rhs.copy_from_slice(&e.rhs);
+        self.host.diag.copy_from_slice(&e.diag);
+        self.upload_seconds = t0.elapsed().as_secs_f64();
+        self.prepare()
+    }
+
+    /// Solves Ĥ y = b̂; returns y (frame coordinates), Δx = Δx_p + V y and the report.
+    pub fn solve(&mut self) -> Result<SolveOutcome, GpuError> {
+        let tol = self.params.tol;
+        let bnorm = norm2(&self.host.rhs);
+        let mut notes = Vec::new();
+        let t0 = Instant::now();
+        let cg_params = DeviceCgParams {
+            tol,
+            max_iterations: self.params.max_iters,
+            preconditioner: self.params.preconditioner,
+            coarse: self.params.coarse,
+        };
+        let (mut iterations, mut restarts, mut recorded, mut reads) = (0, 0, 0, 0);
+        let mut download = 0.0;
+        let mut kappa: Option<f64> = None;
+        let mut run = cg_params;
+        let mut first = true;
+        let (y, rel) = loop {
+            let remaining = self.params.max_iters.saturating_sub(iterations);
+            run.max_iterations = remaining;
+            let info = if first {
+                self.cg.iterate(&self.frames, &run)
+            } else {
+                self.cg.iterate_from_current(&self.frames, &run)
+            }
+            .map_err(|e| match e {
+                GpuError::Cg(CgError::MaxIterations {
+                    iterations: it,
+                    relative_residual,
+                    tol: t,
+                }) => GpuError::Cg(CgError::MaxIterations {
+                    iterations: iterations + it,
+                    relative_residual,
+                    tol: t,
+                }),
+                other => other,
+            })?;
+            first = false;
+            iterations += info.iterations;
+            restarts += info.restarts;
+            recorded += info.recorded_iterations;
+            reads += info.status_reads + 1;
+            if let Some(k) = self.cg.condition_estimate()? {
+                kappa = Some(kappa.map_or(k, |c: f64| c.max(k)));
+            }
+            let td = Instant::now();
+            let y = self.cg.read_y()?;
+            download += td.elapsed().as_secs_f64();
+            let rel = self.host.relative_residual(&y);
+            if rel <= tol || bnorm == 0.0 {
+                break (y, rel);
+            }
+            // The device's f64 residual met tol where the host's, summed in another
+            // order, misses it by rounding: go on from y to a tighter device tolerance.
+            if restarts >= self.params.max_restarts || iterations >= self.params.max_iters {
+                return Err(CgError::Stagnation {
+                    iterations,
+                    relative_residual: rel,
+                    tol,
+                }
+                .into());
+            }
+            restarts += 1;
+            run.tol = (run.tol * 0.5 * tol / rel).max(f64::MIN_POSITIVE);
+        };
+        if bnorm == 0.0 {
+            notes.push("b̂ = 0: y = 0 without iterating".into());
+        }
+        let solve_s = t0.elapsed().as_secs_f64() - download;
+        let dx = self.host.recover(&y);
+        let profile = self.cg.iteration_profile(&self.frames, &cg_params)?;
+        let bpi = profile.bytes;
+        let moved = bpi as f64 * iterations as f64;
+        let coarse = match (self.params.coarse, self.frames.aggregate_count()) {
+            (CoarseSpace::Aggregates, Some(k)) => format!("aggregates ({k})"),
+            (CoarseSpace::Translations, _) if self.cg.translations_inactive() => format!(
+                "{} (inactive: every translation is constrained)",
+                self.params.coarse.name()
+            ),
+            (c, _) => c.name().into(),
+        };
+        let info = GpuSolveInfo {
+            adapter: self.ctx.info.name.clone(),
+            precision: Precision::F64,
+            coarse,
+            f32_difference: false,
+            iterations,
+            recorded_iterations: recorded.max(iterations),
+            outer_refinements: 0,
+            restarts,
+            relative_residual: rel,
+            seconds: StageSeconds {
+                upload: self.upload_seconds,
+                setup: self.setup_seconds,
+                solve: solve_s,
+                download,
+            },
+            gpu_seconds: None,
+            bytes_per_iteration: bpi,
+            achieved_gb_per_s: if solve_s > 0.0 {
+                moved / solve_s / 1e9
+            } else {
+                0.0
+            },
+            achieved_gb_per_s_gpu: None,
+            dispatches_per_iteration: profile.dispatches.len(),
+            workgroups: profile
+                .dispatches
+                .iter()
+                .map(|d| d.workgroups)
+                .max()
+                .unwrap_or(1)
+                .min(u32::MAX as u64) as u32,
+            readbacks: reads,
+            fallback: None,
+            error_estimate: None,
+            condition_estimate: kappa,
+            notes,
+        };
+        Ok(SolveOutcome { y, dx, info })
+    }
+
+    pub fn adapter_name(&self) -> &str {
+        &self.ctx.info.name
+    }
+
+    pub fn params(&self) -> &GpuParams {
+        &self.params
+    }
+}
