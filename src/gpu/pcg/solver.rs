@@ -6,7 +6,7 @@
 //! downloaded y (success is declared on it) and recovers Δx = Δx_p + V P y with the f64
 //! frames.
 
-use super::{DeviceCg, DeviceCgParams, DeviceFrames};
+use super::cg::{DeviceCg, DeviceCgParams, DeviceFrames};
 use crate::core::elimination::{norm2, Eliminated};
 use crate::gpu::blocks::HostBlocks;
 use crate::gpu::solver::host::{Host, HostOp};
@@ -70,6 +70,11 @@ impl PcgSolver {
     fn prepare(&mut self) -> Result<(), GpuError> {
         let t = Instant::now();
         self.cg.prepare_with_rhs(&self.frames, &self.host.rhs)?;
+        // The setup kernels' time, not just their recording.
+        self.ctx
+            .device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))?;
         self.setup_seconds = t.elapsed().as_secs_f64();
         Ok(())
     }

@@ -8,16 +8,16 @@ use crate::core::elimination::{apply_eliminated, relative_residual_from, rotate_
 use crate::core::sparse::BlockCsr;
 
 /// The host copy of the system, for the true f64 residual and the recovery.
-pub(in crate::gpu) enum HostOp {
+pub(crate) enum HostOp {
     Blocks(BlockCsr),
     Springs(MassSpring),
 }
 
-pub(in crate::gpu) struct Host {
-    pub(in crate::gpu) op: HostOp,
-    pub(in crate::gpu) frames: Frames,
-    pub(in crate::gpu) rhs: Vec<f64>,
-    pub(in crate::gpu) diag: Vec<f64>,
+pub(crate) struct Host {
+    pub(crate) op: HostOp,
+    pub(crate) frames: Frames,
+    pub(crate) rhs: Vec<f64>,
+    pub(crate) diag: Vec<f64>,
     /// Reusable f64 scratch for the host products: Ĥy (d·n) and the work of the product
     /// (2·d·n); its contents between calls do not matter.
     scratch: Vec<f64>,
@@ -47,7 +47,7 @@ fn host_apply(op: &HostOp, f: &Frames, diag: &[f64], y: &[f64], out: &mut [f64],
 }
 
 impl Host {
-    pub(in crate::gpu) fn new(op: HostOp, frames: Frames, rhs: Vec<f64>, diag: Vec<f64>) -> Self {
+    pub(crate) fn new(op: HostOp, frames: Frames, rhs: Vec<f64>, diag: Vec<f64>) -> Self {
         let scratch = vec![0.0; 3 * rhs.len()];
         Host {
             op,
@@ -58,12 +58,12 @@ impl Host {
         }
     }
 
-    pub(in crate::gpu) fn ndof(&self) -> usize {
+    pub(crate) fn ndof(&self) -> usize {
         self.rhs.len()
     }
 
     /// out = Ĥ y in f64 (no per-call allocation once the scratch has its size).
-    pub(in crate::gpu) fn apply(&mut self, y: &[f64], out: &mut [f64]) {
+    pub(crate) fn apply(&mut self, y: &[f64], out: &mut [f64]) {
         let n = y.len();
         let Host {
             op,
@@ -79,7 +79,7 @@ impl Host {
     }
 
     /// Largest |diagonal entry| of H (its diagonal blocks, before rotation and masking).
-    pub(in crate::gpu) fn diag_max(&self) -> f64 {
+    pub(crate) fn diag_max(&self) -> f64 {
         let (d, blocks): (usize, Vec<f64>) = match &self.op {
             HostOp::Blocks(h) => {
                 let dd = h.dim * h.dim;
@@ -101,7 +101,7 @@ impl Host {
     }
 
     /// ‖b̂ − Ĥy‖ / ‖b̂‖ in f64, as [`Eliminated::relative_residual`].
-    pub(in crate::gpu) fn relative_residual(&mut self, y: &[f64]) -> f64 {
+    pub(crate) fn relative_residual(&mut self, y: &[f64]) -> f64 {
         let n = y.len();
         let Host {
             op,
@@ -120,7 +120,7 @@ impl Host {
 
     /// Δx = Δx_p + V P y in f64 with the f64 frames, whatever precision y was found in:
     /// the constrained components are then exactly the lift's.
-    pub(in crate::gpu) fn recover(&self, y: &[f64]) -> Vec<f64> {
+    pub(crate) fn recover(&self, y: &[f64]) -> Vec<f64> {
         let f = &self.frames;
         let mut dx = y.to_vec();
         f.apply_mask(&mut dx);
@@ -135,12 +135,12 @@ impl Host {
 }
 
 /// b̂ = −P Vᵀ(g + H Δx_p) for the matrix-free system.
-pub(in crate::gpu) fn spring_rhs(ms: &MassSpring, g: &[f64], frames: &Frames) -> Vec<f64> {
+pub(crate) fn spring_rhs(ms: &MassSpring, g: &[f64], frames: &Frames) -> Vec<f64> {
     crate::core::elimination::eliminated_rhs(g, frames, |x, y| ms.apply(x, y))
 }
 
 /// Diagonal blocks V_iᵀ H_ii V_i of the spring Hessian, computed on the host (O(springs)).
-pub(in crate::gpu) fn spring_diag_blocks(ms: &MassSpring, frames: &Frames) -> Vec<f64> {
+pub(crate) fn spring_diag_blocks(ms: &MassSpring, frames: &Frames) -> Vec<f64> {
     let d = ms.dim;
     let n = ms.n_nodes();
     let mut out = vec![0.0; n * d * d];
@@ -175,7 +175,7 @@ pub(in crate::gpu) fn spring_diag_blocks(ms: &MassSpring, frames: &Frames) -> Ve
 }
 
 /// Node adjacency of the springs: per node, (other node, spring) pairs.
-pub(in crate::gpu) fn spring_adjacency(ms: &MassSpring) -> (Vec<u32>, Vec<u32>) {
+pub(crate) fn spring_adjacency(ms: &MassSpring) -> (Vec<u32>, Vec<u32>) {
     let n = ms.n_nodes();
     let mut count = vec![0u32; n + 1];
     for &[i, j] in &ms.edges {
@@ -198,7 +198,7 @@ pub(in crate::gpu) fn spring_adjacency(ms: &MassSpring) -> (Vec<u32>, Vec<u32>) 
     (count, adj)
 }
 
-pub(in crate::gpu) fn spring_data(ms: &MassSpring) -> Vec<f64> {
+pub(crate) fn spring_data(ms: &MassSpring) -> Vec<f64> {
     let h2 = ms.h * ms.h;
     ms.rest_lengths
         .iter()
@@ -210,7 +210,7 @@ pub(in crate::gpu) fn spring_data(ms: &MassSpring) -> Vec<f64> {
 /// S_i = Σ_j Ĥ_ij for every node i, d·d row-major, in f64 (the difference form's diagonal,
 /// see `shaders/matvec.wgsl`); Ĥ_ij = V_iᵀ H_ij V_j where a rotation is involved, unmasked
 /// like the device blocks.
-pub(in crate::gpu) fn row_sums(h: &BlockCsr, f: &Frames) -> Vec<f64> {
+pub(crate) fn row_sums(h: &BlockCsr, f: &Frames) -> Vec<f64> {
     let d = h.dim;
     let dd = d * d;
     let mut out = vec![0.0; h.n * dd];

@@ -21,7 +21,7 @@
 
 mod builder;
 mod device;
-pub(in crate::gpu) mod host;
+pub(crate) mod host;
 mod info;
 mod inspect;
 mod levels;

@@ -1,0 +1,1406 @@
+//! [`DeviceCg`]: the kernels of shaders/pcg.wgsl, their buffers, launches and bind groups,
+//! and the CG driver (chunks, status reads, restarts from the true residual).
+
+use crate::core::constraints::{Frames, NO_ROTATION};
+use crate::gpu::blocks::BlockMatrix;
+use crate::gpu::kernels::{self, slots, Access, Layout};
+use crate::gpu::schedule::{self, ChunkStatus};
+use crate::gpu::{GpuContext, GpuError, Launch, TrafficCount};
+use crate::solve::cg::{CgError, Preconditioner};
+use crate::solve::coarse::CoarseSpace;
+use std::cell::Cell;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use Access::{Read as R, ReadWrite as W, Uniform as U};
+
+use super::aggregates::{self, AggregateIndex};
+
+/// Bind group 0 of shaders/pcg.wgsl, shared by all its entry points.
+pub const PCG: Layout = Layout {
+    file: "pcg.wgsl",
+    source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/pcg.wgsl")),
+    bindings: &[
+        ("params", U),
+        ("pattern", R),
+        ("hvals", R),
+        ("grad", R),
+        ("frame", R),
+        ("rotations", R),
+        ("y", W),
+        ("r", W),
+        ("z", W),
+        ("p", W),
+        ("q", W),
+        ("b", W),
+        ("minv", W),
+        ("dx", W),
+        ("partials", W),
+        ("scal", W),
+        ("state", W),
+        ("aggregates", R),
+        ("coarse", W),
+    ],
+};
+
+/// Lanczos coefficient pairs a PCG built with history records per solve (the HIST
+/// override): enough for κ̃ on any solve that converges in reasonable time.
+pub const LANCZOS_HIST: u32 = 1024;
+
+/// Uniform parameters of every kernel (mirrors `PcgParams` in the WGSL).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct PcgParams {
+    n_nodes: u32,
+    n_partials: u32,
+    col_at: u32,
+    diag_at: u32,
+    /// The values chunk of the dispatch: rows, first block, index.
+    row_begin: u32,
+    row_end: u32,
+    block_first: u32,
+    chunk: u32,
+}
+const _: () = assert!(std::mem::size_of::<PcgParams>() == 32);
+
+/// Workgroup size of every kernel.
+const WORKGROUP: u32 = 64;
+
+/// Bytes of the status read back per chunk: the leading `scal` slots then `state`.
+const STATUS_BYTES: u64 = 8 * slots::STATUS_SCAL as u64 + 4 * slots::N_STATE as u64;
+
+/// Iterations of the first chunk, the shortest and the longest chunk
+/// ([`schedule::next_chunk`]).
+const FIRST_CHUNK: usize = 8;
+const MIN_CHUNK: usize = 2;
+const MAX_CHUNK: usize = 256;
+
+/// Identities of every [`DeviceCg`] and [`DeviceFrames`]: frames built for one CG are
+/// refused by another, and `iterate` refuses frames `prepare` did not see.
+static NEXT_ID: AtomicU64 = AtomicU64::new(0);
+
+/// One dispatch: pipeline, workgroups, bind group.
+type Kernel<'a> = (&'a wgpu::ComputePipeline, Launch, &'a wgpu::BindGroup);
+
+/// One dispatch of a CG iteration: the kernel, its workgroups and invocations.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub struct DispatchRecord {
+    pub kernel: &'static str,
+    pub workgroups: u64,
+    pub threads: u64,
+}
+
+/// The dispatches of one CG iteration and the bytes it must move at the least.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct IterationProfile {
+    pub dispatches: Vec<DispatchRecord>,
+    pub bytes: u64,
+}
+
+/// One workgroup (the scalar kernels).
+const ONE: Launch = Launch { x: 1, y: 1 };
+
+/// The launches of the CG's kernels, from the device's limits and segment policy.
+struct Launches {
+    /// The segmented reductions over every node (rhs, init, update_yr).
+    segments: Launch,
+    /// Per values chunk of H: its segmented reductions (matvec, coarse_e) and its
+    /// per-row kernels (precond, agg_rows).
+    chunk_segments: Vec<Launch>,
+    chunk_rows: Vec<Launch>,
+    /// One invocation per node (update_p, recover).
+    nodes: Launch,
+}
+
+/// Parameters of one [`DeviceCg::solve`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DeviceCgParams {
+    /// Success when the true relative residual ‖b̂ − Ĥy‖/‖b̂‖ (f64, on the device) ≤ tol.
+    pub tol: f64,
+    /// Limit on CG iterations, restarts included.
+    pub max_iterations: usize,
+    /// Jacobi or block Jacobi (or none).
+    pub preconditioner: Preconditioner,
+    /// Added to the preconditioner (see the module docs). `Aggregates` needs frames built
+    /// for it ([`DeviceCg::frames`]).
+    pub coarse: CoarseSpace,
+}
+
+/// What a successful solve reports.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DeviceCgInfo {
+    /// CG iterations, restarts included (0 when b̂ = 0).
+    pub iterations: usize,
+    /// Restarts from the true residual after the recurrence met the tolerance.
+    pub restarts: usize,
+    /// Iterations recorded into command buffers (those past the stop are no-ops on the
+    /// device but still cost their dispatches).
+    pub recorded_iterations: usize,
+    /// Status read-backs (one per chunk and per start).
+    pub status_reads: usize,
+    /// The true relative residual ‖b̂ − Ĥy‖/‖b̂‖ at the returned y (0 when b̂ = 0).
+    pub relative_residual: f64,
+    /// ‖b̂‖.
+    pub rhs_norm: f64,
+    /// The relative residual tolerance the solve met.
+    pub tolerance: f64,
+}
+
+/// One constraint set on the device (mask and rotation per node) with the bind group that
+/// uses it; built by [`DeviceCg::frames`], valid only with the [`DeviceCg`] that built it.
+pub struct DeviceFrames {
+    owner: u64,
+    /// Its own identity: `iterate` needs the frames `prepare` used.
+    id: u64,
+    /// One bind group per values chunk of H (the kernels that do not read H use the
+    /// first).
+    groups: Vec<wgpu::BindGroup>,
+    /// G = ZᵀZ of the translations of every node with a free component, the first such
+    /// node and their count (src/solve/coarse.rs, `translation_gram`): with the E and
+    /// absolute row sums `prepare` reduces, whether a translation is pinned by nothing.
+    gram: (Vec<f64>, usize, usize),
+    /// The coarse space these frames were built for.
+    coarse: CoarseSpace,
+    /// With `Aggregates`: the aggregate index (`None` when every node is fixed).
+    agg: Option<AggregateIndex>,
+    /// Kept alive with the bind groups.
+    _frame: wgpu::Buffer,
+    _rotations: wgpu::Buffer,
+    _aggregates: wgpu::Buffer,
+    /// The aggregate coarse space's f64 data (shaders/pcg.wgsl, `coarse`).
+    coarse_buf: wgpu::Buffer,
+}
+
+/// The pipelines of shaders/pcg.wgsl; those the coarse correction changes once per
+/// coarse space (`[0]`, `[1]`, `[2]`: none, translations, aggregates: the COARSE
+/// override), `init` and `update_yr` once per preconditioner too (none, Jacobi, block
+/// Jacobi: the PRECOND override).
+struct Pipelines {
+    rhs: wgpu::ComputePipeline,
+    rhs_given: wgpu::ComputePipeline,
+    precond: wgpu::ComputePipeline,
+    coarse_e: wgpu::ComputePipeline,
+    coarse_e_sum: wgpu::ComputePipeline,
+    agg_rows: wgpu::ComputePipeline,
+    agg_e: wgpu::ComputePipeline,
+    agg_restrict: wgpu::ComputePipeline,
+    agg_solve: wgpu::ComputePipeline,
+    matvec: wgpu::ComputePipeline,
+    scalar_alpha: wgpu::ComputePipeline,
+    update_yr: [[wgpu::ComputePipeline; 3]; 3],
+    scalar_beta: [wgpu::ComputePipeline; 3],
+    update_p: [wgpu::ComputePipeline; 3],
+    init: [[wgpu::ComputePipeline; 3]; 3],
+    scalar_start: [wgpu::ComputePipeline; 3],
+    recover: wgpu::ComputePipeline,
+}
+
+/// E of the translations for the last `prepare`.
+#[derive(Debug, Clone)]
+enum Galerkin {
+    /// Reduced on the device (in `scal`), not read back yet.
+    OnDevice,
+    /// Read back and symmetrized (D², row-major) with its pseudo-inverse, `None` when
+    /// every translation is constrained or E is not finite (no correction then, as on
+    /// the CPU).
+    Read {
+        e: Vec<f64>,
+        /// 2^-64 · Σ |entries| of the rows of each world axis (D).
+        abs: Vec<f64>,
+        einv: Option<Vec<f64>>,
+    },
+}
+
+/// The device buffers of the CG (all f64 vectors are n·d, node-major).
+struct Buffers {
+    /// Per values chunk of H: its parameters and its values.
+    params: Vec<wgpu::Buffer>,
+    pattern: wgpu::Buffer,
+    hvals: Vec<wgpu::Buffer>,
+    grad: wgpu::Buffer,
+    y: wgpu::Buffer,
+    r: wgpu::Buffer,
+    z: wgpu::Buffer,
+    p: wgpu::Buffer,
+    q: wgpu::Buffer,
+    b: wgpu::Buffer,
+    minv: wgpu::Buffer,
+    dx: wgpu::Buffer,
+    partials: wgpu::Buffer,
+    scal: wgpu::Buffer,
+    state: wgpu::Buffer,
+    /// `scal` and `state` gathered for one read-back.
+    status: wgpu::Buffer,
+}
+
+/// The eliminated PCG on a device block matrix, built once per pattern (f64 only).
+/// Per Newton iteration: [`DeviceCg::solve`] (or [`DeviceCg::prepare`] then
+/// [`DeviceCg::iterate`]) after every `assemble`; Δx is then in [`DeviceCg::dx_buffer`].
+pub struct DeviceCg {
+    ctx: GpuContext,
+    id: u64,
+    dim: usize,
+    n_nodes: usize,
+    /// The launches of every kernel.
+    launches: Launches,
+    /// Partial sums per reduction (its segments).
+    n_partials: u32,
+    layout: wgpu::BindGroupLayout,
+    pipes: Pipelines,
+    buf: Buffers,
+    /// The frames `prepare` last built b̂ and the preconditioner for.
+    prepared: Option<u64>,
+    /// E of that `prepare`.
+    galerkin: Galerkin,
+    /// Whether E⁺ of the aggregates is on the device for that `prepare`.
+    agg_ready: bool,
+    /// Bytes of the aggregates' E read back and E⁺ written so far (a part of the
+    /// context's traffic: (D·aggregates)² values each way per `prepare`, whatever the
+    /// mesh).
+    coarse_traffic: TrafficCount,
+    /// The pattern as uploaded (row pointers, column indices, diagonal blocks), for the
+    /// aggregates of [`DeviceCg::frames`].
+    host_pattern: Vec<u32>,
+    /// b̂ comes from the host ([`DeviceCg::prepare_with_rhs`]), not from a gradient.
+    given_rhs: bool,
+    /// Lanczos pairs recorded per solve (the HIST override; 0: none).
+    hist: u32,
+    /// The iteration counts at which the last solve's CG runs began (0, then each
+    /// restart): where its Lanczos sequence is cut.
+    run_starts: Vec<usize>,
+    /// The iterations of the last solve.
+    last_iterations: usize,
+    /// Iterations recorded into command buffers and status reads of the current solve.
+    recorded: Cell<usize>,
+    reads: Cell<usize>,
+}
+
+impl DeviceCg {
+    /// Pipelines and buffers for the f64 block matrix `h` (its values are read in place
+    /// by every solve: write new ones there, then [`DeviceCg::prepare`]). `grad` is the
+    /// gradient g from which [`DeviceCg::prepare`] forms b̂ = −P Vᵀ g; without it b̂ is
+    /// given ([`DeviceCg::prepare_with_rhs`]).
+    ///
+    /// With `lanczos` the CG records its first [`LANCZOS_HIST`] Lanczos coefficient pairs
+    /// for [`DeviceCg::condition_estimate`].
+    pub fn new(
+        ctx: &GpuContext,
+        h: BlockMatrix<'_>,
+        grad: Option<&wgpu::Buffer>,
+        lanczos: bool,
+    ) -> Result<Self, GpuError> {
+        if !h.f64 {
+            return Err(GpuError::Unsupported(
+                "the device PCG needs f64 block values, not f32".into(),
+            ));
+        }
+        let ctx = ctx.clone();
+        let dim = h.dim;
+        let (row_ptr, col_idx) = (h.row_ptr, h.col_idx);
+        let n = row_ptr.len().saturating_sub(1);
+        let nnz = col_idx.len();
+        let dev = &ctx.device;
+
+        // The pattern as u32: row pointers, column indices, per node its diagonal block.
+        let too_big = |what: &str| {
+            GpuError::Unsupported(format!("the {what} exceed the device CG's u32 indices"))
+        };
+        let mut pattern: Vec<u32> = Vec::with_capacity(2 * n + 1 + nnz);
+        for &v in row_ptr.iter().chain(col_idx) {
+            pattern.push(u32::try_from(v).map_err(|_| too_big("block indices"))?);
+        }
+        for i in 0..n {
+            let row = &col_idx[row_ptr[i]..row_ptr[i + 1]];
+            let k = row
+                .iter()
+                .position(|&j| j == i)
+                .ok_or_else(|| GpuError::Mismatch(format!("node {i} has no diagonal block")))?;
+            pattern.push(u32::try_from(row_ptr[i] + k).map_err(|_| too_big("block indices"))?);
+        }
+        let col_at = u32::try_from(n + 1).map_err(|_| too_big("nodes"))?;
+        let diag_at = u32::try_from(n + 1 + nnz).map_err(|_| too_big("blocks"))?;
+        // The segmented reductions: partials per segment, workgroups by the device.
+        let policy = ctx.segments();
+        let limits = ctx.launch();
+        let segments = policy.segments(n as u64, WORKGROUP);
+        let n_partials = u32::try_from(segments).map_err(|_| too_big("nodes"))?;
+        let chunks = h.chunks;
+        let seg_len = (WORKGROUP * policy.items) as usize;
+        let launches = Launches {
+            segments: policy.launch(&limits, segments, WORKGROUP),
+            chunk_segments: chunks
+                .iter()
+                .map(|c| {
+                    let s = c.rows.end.div_ceil(seg_len) - c.rows.start / seg_len;
+                    policy.launch(&limits, s as u64, WORKGROUP)
+                })
+                .collect(),
+            chunk_rows: chunks
+                .iter()
+                .map(|c| limits.grid(c.rows.len() as u64, WORKGROUP))
+                .collect(),
+            nodes: limits.grid(n as u64, WORKGROUP),
+        };
+
+        // Pipelines.
+        let hist = if lanczos { LANCZOS_HIST } else { 0 };
+        PCG.check_adapter(&ctx)?;
+        let module = PCG.module(dev, "f64", "f64", false);
+        let (layout, pl) = PCG.layouts(dev, "pcg");
+        let pipe = |entry: &str, precond: u32, coarse: u32| {
+            // SUM_LANES: scalar_start sums three values in one tree, no kernel more; the
+            // translations' correction sums r·z, r·r and Zᵀr (2 + D) in one, coarse_e E's
+            // D² in trees of five.
+            let wide = coarse == 1 || entry.starts_with("coarse_e");
+            let lanes = match (wide, dim) {
+                (false, _) => 3.0,
+                (true, 3) => 5.0,
+                (true, _) => 4.0,
+            };
+            let constants = [
+                ("D", dim as f64),
+                ("WG", WORKGROUP as f64),
+                ("SUM_LANES", lanes),
+                ("PRECOND", precond as f64),
+                ("COARSE", coarse as f64),
+                ("ITEMS", policy.items as f64),
+                ("HIST", hist as f64),
+            ];
+            let label = format!("pcg {entry} ({dim}D, preconditioner {precond}, coarse {coarse})");
+            kernels::pipeline(dev, &pl, &module, entry, &label, &constants)
+        };
+        let both = |entry: &str| [0, 1, 2].map(|c| pipe(entry, 0, c));
+        let each = |entry: &str| [0, 1, 2].map(|c| [0, 1, 2].map(|k| pipe(entry, k, c)));
+        let pipes = Pipelines {
+            rhs: pipe("rhs", 0, 0),
+            rhs_given: pipe("rhs_given", 0, 0),
+            precond: pipe("precond", 0, 0),
+            coarse_e: pipe("coarse_e", 0, 0),
+            coarse_e_sum: pipe("coarse_e_sum", 0, 0),
+            agg_rows: pipe("agg_rows", 0, 2),
+            agg_e: pipe("agg_e", 0, 2),
+            agg_restrict: pipe("agg_restrict", 0, 2),
+            agg_solve: pipe("agg_solve", 0, 2),
+            matvec: pipe("matvec", 0, 0),
+            scalar_alpha: pipe("scalar_alpha", 0, 0),
+            update_yr: each("update_yr"),
+            scalar_beta: both("scalar_beta"),
+            update_p: both("update_p"),
+            init: each("init"),
+            scalar_start: both("scalar_start"),
+            recover: pipe("recover", 0, 0),
+        };
+
+        // Buffers, limits checked first.
+        let nd = (n * dim) as u64;
+        let zeroed = |label: &str, bytes: u64| ctx.storage_zeroed(label, bytes);
+        let vector = |label: &str| zeroed(label, 8 * nd);
+        let pattern_buf = ctx.storage_with("pcg pattern", bytemuck::cast_slice(&pattern))?;
+        let mut params = Vec::with_capacity(chunks.len());
+        for (c, ch) in chunks.iter().enumerate() {
+            let p = PcgParams {
+                n_nodes: u32::try_from(n).map_err(|_| too_big("nodes"))?,
+                n_partials,
+                col_at,
+                diag_at,
+                row_begin: ch.rows.start as u32,
+                row_end: ch.rows.end as u32,
+                block_first: ch.blocks.start as u32,
+                chunk: c as u32,
+            };
+            params.push(ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(&format!("pcg params of values chunk {c}")),
+                contents: bytemuck::bytes_of(&p),
+                usage: wgpu::BufferUsages::UNIFORM,
+            }));
+        }
+        let buf = Buffers {
+            params,
+            pattern: pattern_buf,
+            hvals: chunks.iter().map(|c| c.buffer.clone()).collect(),
+            grad: match grad {
+                Some(g) => g.clone(),
+                None => zeroed("pcg gradient (b̂ is given)", 16)?,
+            },
+            y: vector("pcg y")?,
+            r: vector("pcg r")?,
+            z: vector("pcg z")?,
+            p: vector("pcg p")?,
+            q: vector("pcg q")?,
+            b: vector("pcg rhs")?,
+            minv: zeroed("pcg preconditioner", 8 * (n * dim * dim) as u64 + 8 * nd)?,
+            dx: vector("pcg dx")?,
+            // The partial sums, then the sums carried across each boundary between H's
+            // chunks (one segment straddles it), per invocation.
+            partials: zeroed(
+                "pcg partial sums",
+                8 * (slots::N_PART as u64 * segments
+                    + (chunks.len().saturating_sub(1) as u64)
+                        * slots::CARRY_LEN as u64
+                        * WORKGROUP as u64),
+            )?,
+            scal: zeroed("pcg scalars", 8 * (slots::SCAL_HIST + 2 * hist) as u64)?,
+            state: zeroed("pcg state", 4 * slots::N_STATE as u64)?,
+            status: zeroed("pcg status", STATUS_BYTES)?,
+        };
+        ctx.check("building the device PCG")?;
+        Ok(DeviceCg {
+            id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
+            ctx,
+            dim,
+            n_nodes: n,
+            launches,
+            n_partials,
+            layout,
+            pipes,
+            buf,
+            prepared: None,
+            galerkin: Galerkin::OnDevice,
+            agg_ready: false,
+            coarse_traffic: TrafficCount::default(),
+            host_pattern: pattern,
+            given_rhs: grad.is_none(),
+            hist,
+            run_starts: Vec::new(),
+            last_iterations: 0,
+            recorded: Cell::new(0),
+            reads: Cell::new(0),
+        })
+    }
+
+    /// The world-frame Δx of the last successful solve (n·d f64, node-major).
+    pub fn dx_buffer(&self) -> &wgpu::Buffer {
+        &self.buf.dx
+    }
+
+    /// Δx read back to the host (a full read-back: for tests and diagnostics, not the loop).
+    pub fn read_dx(&self) -> Result<Vec<f64>, GpuError> {
+        let nd = self.n_nodes * self.dim;
+        let bytes = self.ctx.download(
+            &self.buf.dx,
+            0,
+            8 * nd as u64,
+            "reading back the Newton step",
+        )?;
+        Ok(f64s(&bytes))
+    }
+
+    /// κ̃(M⁻¹Ĥ) of the last solve from its Lanczos coefficients (a PCG built with
+    /// `lanczos`): the largest over its runs (cut at restarts) of at least 2 iterations
+    /// within the first [`LANCZOS_HIST`]; `None` without one (a read-back).
+    pub fn condition_estimate(&self) -> Result<Option<f64>, GpuError> {
+        let n = self.last_iterations.min(self.hist as usize);
+        if n < 2 {
+            return Ok(None);
+        }
+        let bytes = self.ctx.download(
+            &self.buf.scal,
+            8 * slots::SCAL_HIST as u64,
+            8 * 2 * n as u64,
+            "reading back the Lanczos coefficients",
+        )?;
+        let h = f64s(&bytes);
+        let mut ends: Vec<usize> = self.run_starts.iter().skip(1).copied().collect();
+        ends.push(self.last_iterations);
+        let mut kappa: Option<f64> = None;
+        for (&a, &b) in self.run_starts.iter().zip(&ends) {
+            let b = b.min(n);
+            if b < a + 2 {
+                continue;
+            }
+            let alphas: Vec<f64> = (a..b).map(|j| h[2 * j]).collect();
+            let betas: Vec<f64> = (a..b - 1).map(|j| h[2 * j + 1]).collect();
+            if let Some(k) = crate::solve::cg::lanczos_condition(&alphas, &betas) {
+                kappa = Some(kappa.map_or(k, |c| c.max(k)));
+            }
+        }
+        Ok(kappa)
+    }
+
+    /// The solution y of Ĥ y = b̂ (frame coordinates, n·d f64) read back.
+    pub fn read_y(&self) -> Result<Vec<f64>, GpuError> {
+        let nd = self.n_nodes * self.dim;
+        let bytes = self.ctx.download(
+            &self.buf.y,
+            0,
+            8 * nd as u64,
+            "reading back the PCG's solution",
+        )?;
+        Ok(f64s(&bytes))
+    }
+
+    /// Uploads one constraint set (mask per node, rotation per rotated node) and builds
+    /// its bind group, once: callers keep it for as long as the constraints hold. With
+    /// `coarse` = `Aggregates` also the aggregates of the pattern and their index arrays
+    /// ([`aggregates`]); frames built for another coarse space refuse it in `iterate`.
+    /// Refuses frames of another mesh and prescribed (non-zero) constraint values, which
+    /// a Newton step never has.
+    pub fn frames(&self, f: &Frames, coarse: CoarseSpace) -> Result<DeviceFrames, GpuError> {
+        let (n, d) = (self.n_nodes, self.dim);
+        if f.dim != d || f.n_nodes != n {
+            return Err(GpuError::Mismatch(format!(
+                "the constraints are for {} nodes in {}D, the mesh has {n} in {d}D",
+                f.n_nodes, f.dim
+            )));
+        }
+        if !f.homogeneous && !self.given_rhs {
+            return Err(GpuError::Unsupported(
+                "the device PCG forms b̂ from a gradient for homogeneous constraints only \
+                 (a Newton step prescribes no displacement)"
+                    .into(),
+            ));
+        }
+        if f.mask.len() != n
+            || f.rot_index.len() != n
+            || f.rotations.len() != d * d * f.rot_nodes.len()
+        {
+            return Err(GpuError::Mismatch(
+                "the constraint frames' arrays disagree with their node count".into(),
+            ));
+        }
+        let mut frame = Vec::with_capacity(2 * n);
+        for i in 0..n {
+            let ri = f.rot_index[i];
+            if ri != NO_ROTATION && ri as usize >= f.rot_nodes.len() {
+                return Err(GpuError::Mismatch(format!(
+                    "node {i} names rotation {ri} of {}",
+                    f.rot_nodes.len()
+                )));
+            }
+            frame.push(f.mask[i] as u32);
+            frame.push(ri);
+        }
+        let frame_buf = self
+            .ctx
+            .storage_with("pcg frames", bytemuck::cast_slice(&frame))?;
+        let rot_buf = self
+            .ctx
+            .storage_with("pcg rotations", bytemuck::cast_slice(&f.rotations))?;
+        let agg = match coarse {
+            CoarseSpace::Aggregates => {
+                let (row_ptr, col_idx) = self.usize_pattern();
+                aggregates::aggregate_index(&row_ptr, &col_idx, f)?
+            }
+            _ => None,
+        };
+        let mut agg = agg;
+        // The index words live on the device only: taken, not kept on the host.
+        let (agg_words, coarse_bytes) = match agg.as_mut() {
+            Some(a) => (std::mem::take(&mut a.words), 8 * a.values as u64),
+            None => (vec![0u32; 4], 16),
+        };
+        let agg_buf = self
+            .ctx
+            .storage_with("pcg aggregates", bytemuck::cast_slice(&agg_words))?;
+        let coarse_buf = self.ctx.storage_zeroed("pcg coarse space", coarse_bytes)?;
+        let b = &self.buf;
+        let mut groups = Vec::with_capacity(b.hvals.len());
+        for (params, hvals) in b.params.iter().zip(&b.hvals) {
+            let bufs: [&wgpu::Buffer; 19] = [
+                params,
+                &b.pattern,
+                hvals,
+                &b.grad,
+                &frame_buf,
+                &rot_buf,
+                &b.y,
+                &b.r,
+                &b.z,
+                &b.p,
+                &b.q,
+                &b.b,
+                &b.minv,
+                &b.dx,
+                &b.partials,
+                &b.scal,
+                &b.state,
+                &agg_buf,
+                &coarse_buf,
+            ];
+            let entries: Vec<wgpu::BindGroupEntry> = bufs
+                .iter()
+                .enumerate()
+                .map(|(i, b)| wgpu::BindGroupEntry {
+                    binding: i as u32,
+                    resource: b.as_entire_binding(),
+                })
+                .collect();
+            groups.push(
+                self.ctx
+                    .device
+                    .create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: Some("pcg bind group"),
+                        layout: &self.layout,
+                        entries: &entries,
+                    }),
+            );
+        }
+        self.ctx.check("uploading the constraint frames")?;
+        Ok(DeviceFrames {
+            owner: self.id,
+            id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
+            groups,
+            gram: crate::solve::coarse::translation_gram(f),
+            coarse,
+            agg,
+            _frame: frame_buf,
+            _rotations: rot_buf,
+            _aggregates: agg_buf,
+            coarse_buf,
+        })
+    }
+
+    /// The block pattern's row pointers and column indices as `usize` (from the uploaded
+    /// u32 copy; only while aggregates are built).
+    fn usize_pattern(&self) -> (Vec<usize>, Vec<usize>) {
+        let n = self.n_nodes;
+        let p = &self.host_pattern;
+        let row_ptr: Vec<usize> = p[..=n].iter().map(|&v| v as usize).collect();
+        let nnz = row_ptr[n];
+        let col_idx = p[n + 1..n + 1 + nnz].iter().map(|&v| v as usize).collect();
+        (row_ptr, col_idx)
+    }
+
+    fn own(&self, frames: &DeviceFrames) -> Result<(), GpuError> {
+        if frames.owner != self.id {
+            return Err(GpuError::Mismatch(
+                "these device frames were built by another device CG".into(),
+            ));
+        }
+        Ok(())
+    }
+
+    fn encoder(&self, label: &str) -> wgpu::CommandEncoder {
+        self.ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
+    }
+
+    /// Records `kernels` (pipeline, workgroups, bind group) in one compute pass.
+    fn pass(enc: &mut wgpu::CommandEncoder, label: &str, kernels: &[Kernel]) {
+        let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(label),
+            timestamp_writes: None,
+        });
+        let mut bound: Option<&wgpu::BindGroup> = None;
+        for &(pipe, launch, group) in kernels {
+            if bound.is_none_or(|b| !std::ptr::eq(b, group)) {
+                cp.set_bind_group(0, group, &[]);
+                bound = Some(group);
+            }
+            cp.set_pipeline(pipe);
+            launch.dispatch(&mut cp);
+        }
+    }
+
+    /// `pipe` once per values chunk of H, in row order, each with its chunk's launch and
+    /// bind group.
+    fn per_chunk<'a>(
+        pipe: &'a wgpu::ComputePipeline,
+        launches: &'a [Launch],
+        frames: &'a DeviceFrames,
+    ) -> impl Iterator<Item = Kernel<'a>> {
+        launches
+            .iter()
+            .zip(&frames.groups)
+            .map(move |(l, g)| (pipe, *l, g))
+    }
+
+    /// b̂ = −P Vᵀ g, the preconditioners (Jacobi and block Jacobi both) and E = ZᵀĤZ of
+    /// the translations from the current assembly; call after every `assemble` (or
+    /// constraint change). No read-back: E (D² values) is read by the first `iterate`
+    /// that uses the coarse correction.
+    pub fn prepare(&mut self, frames: &DeviceFrames) -> Result<(), GpuError> {
+        if self.given_rhs {
+            return Err(GpuError::Mismatch(
+                "this device PCG has no gradient: b̂ is given (prepare_with_rhs)".into(),
+            ));
+        }
+        self.prepare_kernels(frames, false)
+    }
+
+    /// [`DeviceCg::prepare`] with b̂ given (frame coordinates, zero in the constrained
+    /// components, n·d) for a PCG built without a gradient.
+    pub fn prepare_with_rhs(&mut self, frames: &DeviceFrames, rhs: &[f64]) -> Result<(), GpuError> {
+        if !self.given_rhs {
+            return Err(GpuError::Mismatch(
+                "this device PCG forms b̂ from its gradient (prepare)".into(),
+            ));
+        }
+        if rhs.len() != self.n_nodes * self.dim {
+            return Err(GpuError::Mismatch(format!(
+                "b̂ has {} entries, the system {}",
+                rhs.len(),
+                self.n_nodes * self.dim
+            )));
+        }
+        self.own(frames)?;
+        self.ctx
+            .write_buffer(&self.buf.b, 0, bytemuck::cast_slice(rhs));
+        self.prepare_kernels(frames, true)
+    }
+
+    fn prepare_kernels(&mut self, frames: &DeviceFrames, given: bool) -> Result<(), GpuError> {
+        self.own(frames)?;
+        let mut enc = self.encoder("pcg prepare");
+        let l = &self.launches;
+        let p = &self.pipes;
+        let g0 = &frames.groups[0];
+        let rhs = if given { &p.rhs_given } else { &p.rhs };
+        let mut kernels: Vec<Kernel> = vec![(rhs, l.segments, g0)];
+        kernels.extend(Self::per_chunk(&p.precond, &l.chunk_rows, frames));
+        kernels.extend(Self::per_chunk(&p.coarse_e, &l.chunk_segments, frames));
+        kernels.push((&p.coarse_e_sum, ONE, g0));
+        if let Some(a) = &frames.agg {
+            kernels.extend(Self::per_chunk(&p.agg_rows, &l.chunk_rows, frames));
+            let e = self.ctx.launch().grid((a.k * a.k) as u64, WORKGROUP);
+            kernels.push((&p.agg_e, e, g0));
+        }
+        Self::pass(&mut enc, "pcg prepare", &kernels);
+        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.check("preparing the device PCG")?;
+        self.prepared = Some(frames.id);
+        self.galerkin = Galerkin::OnDevice;
+        self.agg_ready = false;
+        Ok(())
+    }
+
+    /// E of the aggregates (`prepare` reduced it on the device) read back, pseudo-inverted
+    /// on the host as the CPU does ([`crate::solve::coarse::aggregates_einv_from_galerkin`])
+    /// and E⁺ written back (zero where E has no usable part: no correction then); once per
+    /// `prepare`.
+    fn upload_aggregate_einv(&mut self, frames: &DeviceFrames) -> Result<(), GpuError> {
+        let Some(a) = frames.agg.as_ref().filter(|_| !self.agg_ready) else {
+            return Ok(());
+        };
+        let e = self.read_coarse(
+            frames,
+            a.e_at,
+            a.k * a.k,
+            "reading back the aggregates' coarse matrix E = ZᵀĤZ",
+        )?;
+        let einv =
+            crate::solve::coarse::aggregates_einv_from_galerkin(self.dim, a.count, e, &a.gram)
+                .unwrap_or_else(|| vec![0.0; a.k * a.k]);
+        self.ctx.write_buffer(
+            &frames.coarse_buf,
+            8 * a.einv_at as u64,
+            bytemuck::cast_slice(&einv),
+        );
+        self.coarse_traffic.device_to_host_bytes += 8 * (a.k * a.k) as u64;
+        self.coarse_traffic.host_to_device_bytes += 8 * einv.len() as u64;
+        self.agg_ready = true;
+        Ok(())
+    }
+
+    /// The aggregates' E and E⁺ moved between host and device so far (part of the
+    /// context's [`GpuContext::traffic`]).
+    pub fn coarse_traffic(&self) -> TrafficCount {
+        self.coarse_traffic
+    }
+
+    /// E of the last `prepare` read back and pseudo-inverted, with its rows' absolute sums
+    /// (once per `prepare`).
+    fn read_galerkin(&mut self) -> Result<(), GpuError> {
+        if let Galerkin::Read { .. } = self.galerkin {
+            return Ok(());
+        }
+        let d = self.dim;
+        let what = "reading back the coarse matrix E = ZᵀĤZ";
+        let len = (slots::SCAL_EABS - slots::SCAL_E) as usize + d;
+        let bytes = self.ctx.download(
+            &self.buf.scal,
+            8 * slots::SCAL_E as u64,
+            8 * len as u64,
+            what,
+        )?;
+        let v = f64s(&bytes);
+        let mut e = v[..d * d].to_vec();
+        let abs = v[(slots::SCAL_EABS - slots::SCAL_E) as usize..].to_vec();
+        // As src/solve/coarse.rs: the mean of E and Eᵀ, then the pseudo-inverse.
+        for a in 0..d {
+            for b in 0..a {
+                let m = 0.5 * (e[a * d + b] + e[b * d + a]);
+                e[a * d + b] = m;
+                e[b * d + a] = m;
+            }
+        }
+        let einv = crate::solve::coarse::pseudo_inverse(d, &e);
+        self.galerkin = Galerkin::Read { e, abs, einv };
+        Ok(())
+    }
+
+    /// Refuses a system that a rigid translation of the free nodes leaves singular to
+    /// working precision, by the CPU CG's test ([`crate::solve::coarse::is_unpinned`]),
+    /// with every free node as one group (the CPU tests each connected group).
+    fn check_pinned(&mut self, frames: &DeviceFrames) -> Result<(), GpuError> {
+        self.read_galerkin()?;
+        let (g, first, count) = &frames.gram;
+        if *count == 0 {
+            return Ok(());
+        }
+        if let Galerkin::Read { e, abs, .. } = &self.galerkin {
+            let t = crate::solve::coarse::group_translation(self.dim, e, g, abs, *first, *count);
+            if let Some(t) = t.filter(crate::solve::coarse::is_unpinned) {
+                return Err(CgError::Unpinned(t).into());
+            }
+        }
+        Ok(())
+    }
+
+    /// E = ZᵀĤZ of the translations (D², row-major, symmetrized) and its pseudo-inverse
+    /// (`None`: no correction) as the last `iterate` read them (every solve reads E for
+    /// its check of the translations); `None` before one. For tests and diagnostics.
+    pub fn coarse_matrix(&self) -> Option<(&[f64], Option<&[f64]>)> {
+        match &self.galerkin {
+            Galerkin::Read { e, einv, .. } => Some((e, einv.as_deref())),
+            Galerkin::OnDevice => None,
+        }
+    }
+
+    /// Whether the last `iterate` found no usable E of the translations (every translation
+    /// constrained, or E not finite): the translations' correction then adds nothing.
+    pub fn translations_inactive(&self) -> bool {
+        matches!(self.galerkin, Galerkin::Read { einv: None, .. })
+    }
+
+    /// E⁺ of the aggregates (K×K, row-major) as the last `iterate` with them wrote it;
+    /// `None` for frames without aggregates. For tests and diagnostics (a read-back).
+    pub fn aggregate_einv(&self, frames: &DeviceFrames) -> Result<Option<Vec<f64>>, GpuError> {
+        self.own(frames)?;
+        let Some(a) = &frames.agg else {
+            return Ok(None);
+        };
+        let einv = self.read_coarse(
+            frames,
+            a.einv_at,
+            a.k * a.k,
+            "reading back the aggregates' E⁺",
+        )?;
+        Ok(Some(einv))
+    }
+
+    /// `len` f64 of the frames' coarse buffer from f64 index `at`.
+    fn read_coarse(
+        &self,
+        frames: &DeviceFrames,
+        at: usize,
+        len: usize,
+        what: &str,
+    ) -> Result<Vec<f64>, GpuError> {
+        let bytes = self
+            .ctx
+            .download(&frames.coarse_buf, 8 * at as u64, 8 * len as u64, what)?;
+        Ok(f64s(&bytes))
+    }
+
+    /// Records the status copies (`scal`, `state` into `status`) after the work of `enc`,
+    /// submits, and reads the 128 status bytes back (one wait).
+    fn submit_and_read(
+        &self,
+        mut enc: wgpu::CommandEncoder,
+        what: &str,
+    ) -> Result<ChunkStatus, GpuError> {
+        let sb = 8 * slots::STATUS_SCAL as u64;
+        enc.copy_buffer_to_buffer(&self.buf.scal, 0, &self.buf.status, 0, sb);
+        enc.copy_buffer_to_buffer(
+            &self.buf.state,
+            0,
+            &self.buf.status,
+            sb,
+            4 * slots::N_STATE as u64,
+        );
+        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.check(what)?;
+        let bytes = self.ctx.download(&self.buf.status, 0, STATUS_BYTES, what)?;
+        self.reads.set(self.reads.get() + 1);
+        let scal = f64s(&bytes[..sb as usize]);
+        Ok(ChunkStatus::read(
+            &scal,
+            &schedule::state_words(&bytes[sb as usize..]),
+        ))
+    }
+
+    /// Clears the four stop flags (the iteration count stays): the next CG dispatches run.
+    fn clear_flags(&self) {
+        self.ctx
+            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::STATE_ITERS as usize]);
+    }
+
+    /// CG from y = 0 on the b̂ and preconditioner of the last [`DeviceCg::prepare`] with
+    /// these frames, until the true residual ‖b̂ − Ĥy‖/‖b̂‖ ≤ tol, then Δx = V P y into
+    /// [`DeviceCg::dx_buffer`].
+    ///
+    /// The recurrence residual decides when to look: once it meets the tolerance, the true
+    /// residual is computed in f64 on the device (q = Ĥy, r = b̂ − q); if it misses, CG
+    /// restarts from y with that residual. Iterations are recorded in chunks, one status
+    /// read-back each (the first chunk 8 iterations, then as many as the residual's rate of
+    /// fall predicts, at least 2, at most double the last and 256: [`schedule::next_chunk`],
+    /// the schedule of `solve`'s CG too).
+    pub fn iterate(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+    ) -> Result<DeviceCgInfo, GpuError> {
+        self.iterate_to(frames, params, &mut |_| params.tol)
+    }
+
+    /// [`DeviceCg::iterate`] with the tolerance chosen from ‖b̂‖ once it is known (read
+    /// back with the start's status): `tolerance(‖b̂‖)` replaces `params.tol`.
+    pub fn iterate_to(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+        tolerance: &mut dyn FnMut(f64) -> f64,
+    ) -> Result<DeviceCgInfo, GpuError> {
+        self.run(frames, params, tolerance, false)
+    }
+
+    /// [`DeviceCg::iterate`] from the y the last iterate left (a restart: r = b̂ − Ĥy),
+    /// for a caller whose own check of y missed the tolerance.
+    pub fn iterate_from_current(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+    ) -> Result<DeviceCgInfo, GpuError> {
+        self.run(frames, params, &mut |_| params.tol, true)
+    }
+
+    fn run(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+        tolerance: &mut dyn FnMut(f64) -> f64,
+        from_current: bool,
+    ) -> Result<DeviceCgInfo, GpuError> {
+        self.own(frames)?;
+        if self.prepared != Some(frames.id) {
+            return Err(GpuError::Mismatch(
+                "the device CG was not prepared with these frames (call prepare first)".into(),
+            ));
+        }
+        // Written to reject NaN too.
+        let check_tol = |tol: f64| {
+            if tol > 0.0 && tol.is_finite() {
+                Ok(tol)
+            } else {
+                Err(GpuError::Unsupported(format!(
+                    "the CG tolerance must be positive and finite, not {tol}"
+                )))
+            }
+        };
+        let tol = check_tol(params.tol)?;
+        let max = params.max_iterations;
+        let pre = precond_index(params.preconditioner)?;
+        if params.coarse == CoarseSpace::Aggregates && frames.coarse != CoarseSpace::Aggregates {
+            return Err(GpuError::Mismatch(
+                "the device CG's aggregates need frames built for them (DeviceCg::frames)".into(),
+            ));
+        }
+        let co = coarse_index(params.coarse, frames);
+        self.check_pinned(frames)?;
+        if co == 2 {
+            self.upload_aggregate_einv(frames)?;
+        }
+        let tol2 = tol * tol;
+        self.recorded.set(0);
+        self.reads.set(0);
+        // Every slot before E: the scalars, c and E⁺ (zero without the correction, or
+        // when every translation is constrained: then c = 0 and so is the correction).
+        let mut scal = [0.0f64; slots::SCAL_E as usize];
+        scal[slots::SCAL_TOL2 as usize] = tol2;
+        if co == 1 {
+            self.read_galerkin()?;
+            if let Galerkin::Read {
+                einv: Some(einv), ..
+            } = &self.galerkin
+            {
+                let at = slots::SCAL_EINV as usize;
+                scal[at..at + einv.len()].copy_from_slice(einv);
+            }
+        }
+        self.ctx
+            .write_buffer(&self.buf.scal, 0, bytemuck::cast_slice(&scal));
+        self.ctx
+            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
+
+        // Start: from y = 0, so q = Ĥy = 0 without a product, or from the current y.
+        let mut enc = self.encoder("pcg start");
+        let mut kernels: Vec<Kernel> = Vec::new();
+        if from_current {
+            enc.copy_buffer_to_buffer(&self.buf.y, 0, &self.buf.p, 0, None);
+            kernels.extend(Self::per_chunk(
+                &self.pipes.matvec,
+                &self.launches.chunk_segments,
+                frames,
+            ));
+        } else {
+            enc.clear_buffer(&self.buf.y, 0, None);
+            enc.clear_buffer(&self.buf.q, 0, None);
+        }
+        kernels.extend(self.start(frames, pre, co));
+        Self::pass(&mut enc, "pcg start", &kernels);
+        let mut st = self.submit_and_read(enc, "starting the device PCG")?;
+        st.error(0)?;
+        self.run_starts = vec![0];
+        let bb = st.bb;
+        let rhs_norm = bb.sqrt();
+        let tol = check_tol(tolerance(rhs_norm))?;
+        let tol2 = tol * tol;
+        self.ctx.write_buffer(
+            &self.buf.scal,
+            8 * slots::SCAL_TOL2 as u64,
+            bytemuck::bytes_of(&tol2),
+        );
+        let relative = |rr: f64| {
+            if bb == 0.0 {
+                if rr == 0.0 {
+                    0.0
+                } else {
+                    1.0
+                }
+            } else {
+                rr.sqrt() / rhs_norm
+            }
+        };
+        // Each pass of this loop starts from a status whose r·r is the true residual.
+        loop {
+            let rel = relative(st.rr);
+            if rel <= tol {
+                break;
+            }
+            if st.iterations >= max {
+                return Err(CgError::MaxIterations {
+                    iterations: st.iterations,
+                    relative_residual: rel,
+                    tol,
+                }
+                .into());
+            }
+            if st.converged {
+                // The device's r·r ≤ tol²‖b̂‖² held where the host's quotient missed tol
+                // by rounding: go on iterating.
+                self.clear_flags();
+            }
+            self.chunks(frames, pre, co, max, tol2 * bb, &mut st)?;
+            // The true residual at y: q = Ĥy (y copied into p), r = b̂ − q, p = z.
+            self.clear_flags();
+            let mut enc = self.encoder("pcg true residual");
+            enc.copy_buffer_to_buffer(&self.buf.y, 0, &self.buf.p, 0, None);
+            let mut kernels: Vec<Kernel> =
+                Self::per_chunk(&self.pipes.matvec, &self.launches.chunk_segments, frames)
+                    .collect();
+            kernels.extend(self.start(frames, pre, co));
+            Self::pass(&mut enc, "pcg true residual", &kernels);
+            st = self.submit_and_read(enc, "the device PCG's true residual")?;
+            st.error(0)?;
+            self.run_starts.push(st.iterations);
+        }
+        // The last true residual met the tolerance: it began no run.
+        if self.run_starts.len() > 1 {
+            self.run_starts.pop();
+        }
+        self.last_iterations = st.iterations;
+        if !self.given_rhs {
+            let mut enc = self.encoder("pcg recovery");
+            Self::pass(
+                &mut enc,
+                "pcg recovery",
+                &[(&self.pipes.recover, self.launches.nodes, &frames.groups[0])],
+            );
+            self.ctx.queue.submit([enc.finish()]);
+            self.ctx.check("recovering the device Newton step")?;
+        }
+        Ok(DeviceCgInfo {
+            iterations: st.iterations,
+            restarts: self.run_starts.len() - 1,
+            recorded_iterations: self.recorded.get(),
+            status_reads: self.reads.get(),
+            relative_residual: relative(st.rr),
+            rhs_norm,
+            tolerance: tol,
+        })
+    }
+
+    /// The kernels of a (re)start from the q = Ĥy in `q`: r, z, p, ρ and the true r·r; with
+    /// the coarse correction `update_p` (β = 0) then completes p = z + Z E⁺Zᵀr.
+    fn start<'a>(&'a self, frames: &'a DeviceFrames, pre: usize, co: usize) -> Vec<Kernel<'a>> {
+        let p = &self.pipes;
+        let g0 = &frames.groups[0];
+        let l = &self.launches;
+        let mut k = vec![(&p.init[co][pre], l.segments, g0)];
+        k.extend(self.aggregate_correction(frames, co));
+        k.push((&p.scalar_start[co], ONE, g0));
+        if co != 0 {
+            k.push((&p.update_p[co], l.nodes, g0));
+        }
+        k
+    }
+
+    /// With the aggregates (`co` = 2): w = Zᵀr (a workgroup per aggregate) and c = E⁺w (a
+    /// workgroup per coarse row).
+    fn aggregate_correction<'a>(&'a self, frames: &'a DeviceFrames, co: usize) -> Vec<Kernel<'a>> {
+        let (p, limits) = (&self.pipes, self.ctx.launch());
+        match (&frames.agg, co) {
+            (Some(a), 2) => vec![
+                (
+                    &p.agg_restrict,
+                    limits.groups(a.count as u64, WORKGROUP),
+                    &frames.groups[0],
+                ),
+                (
+                    &p.agg_solve,
+                    limits.groups(a.k as u64, WORKGROUP),
+                    &frames.groups[0],
+                ),
+            ],
+            _ => Vec::new(),
+        }
+    }
+
+    /// The dispatches of one CG iteration, named.
+    fn iteration<'a>(
+        &'a self,
+        frames: &'a DeviceFrames,
+        pre: usize,
+        co: usize,
+    ) -> Vec<(&'static str, Kernel<'a>)> {
+        let (p, l) = (&self.pipes, &self.launches);
+        let g0 = &frames.groups[0];
+        let mut one: Vec<(&'static str, Kernel)> =
+            Self::per_chunk(&p.matvec, &l.chunk_segments, frames)
+                .map(|k| ("matvec", k))
+                .collect();
+        one.extend([
+            ("scalar_alpha", (&p.scalar_alpha, ONE, g0)),
+            ("update_yr", (&p.update_yr[co][pre], l.segments, g0)),
+        ]);
+        let agg = self.aggregate_correction(frames, co);
+        one.extend(["agg_restrict", "agg_solve"].into_iter().zip(agg));
+        one.extend([
+            ("scalar_beta", (&p.scalar_beta[co], ONE, g0)),
+            ("update_p", (&p.update_p[co], l.nodes, g0)),
+        ]);
+        one
+    }
+
+    /// What one CG iteration launches with these frames and parameters, and the bytes it
+    /// must move at the least (every array its kernels read or write, once per kernel):
+    /// the floor against which a measured time per iteration is a bandwidth.
+    pub fn iteration_profile(
+        &self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+    ) -> Result<IterationProfile, GpuError> {
+        let (pre, co) = (
+            precond_index(params.preconditioner)?,
+            coarse_index(params.coarse, frames),
+        );
+        let dispatches = self
+            .iteration(frames, pre, co)
+            .into_iter()
+            .map(|(name, (_, l, _))| DispatchRecord {
+                kernel: name,
+                workgroups: l.workgroups(),
+                threads: l.threads(WORKGROUP),
+            })
+            .collect();
+        let (n, d) = (self.n_nodes as u64, self.dim as u64);
+        let nnz = self.host_pattern[self.n_nodes] as u64;
+        let vec = 8 * n * d;
+        let partials = 8 * self.n_partials as u64;
+        // matvec: H, its column indices and row pointers, the frames, p, q.
+        let matvec = nnz * (8 * d * d + 4) + 4 * (n + 1) + 8 * n + 2 * vec;
+        // update_yr: y and r read and written, p, q and the preconditioner read, z written.
+        let minv = [0, vec, 8 * n * d * d][pre];
+        let update_yr = 7 * vec + minv + 8 * n * u64::from(co == 1);
+        // update_p: z and p read, p written (the frames and each node's aggregate too).
+        let update_p = 3 * vec + [0, 8 * n, 12 * n][co];
+        let agg = frames.agg.as_ref().filter(|_| co == 2).map_or(0, |a| {
+            let k = a.k as u64;
+            // restrict: r, the frames and the node lists; solve: E⁺ and w.
+            vec + 12 * n + 8 * (k * k + 2 * k)
+        });
+        Ok(IterationProfile {
+            dispatches,
+            bytes: matvec + update_yr + update_p + agg + 2 * partials,
+        })
+    }
+
+    /// CG iterations in chunks from the current state until the recurrence residual meets
+    /// `thresh` (on r·r) or `max` iterations are done in all; `st` is the last status.
+    fn chunks(
+        &self,
+        frames: &DeviceFrames,
+        pre: usize,
+        co: usize,
+        max: usize,
+        thresh: f64,
+        st: &mut ChunkStatus,
+    ) -> Result<(), GpuError> {
+        let mut k = FIRST_CHUNK;
+        // (iterations, ln r·r) at each status read of this run.
+        let mut hist: Vec<(usize, f64)> = Vec::new();
+        if st.rr > 0.0 && st.rr.is_finite() {
+            hist.push((st.iterations, st.rr.ln()));
+        }
+        loop {
+            let kk = k.min(max.saturating_sub(st.iterations));
+            if kk == 0 {
+                return Ok(());
+            }
+            let one: Vec<Kernel> = self
+                .iteration(frames, pre, co)
+                .into_iter()
+                .map(|(_, k)| k)
+                .collect();
+            let kernels: Vec<Kernel> = (0..kk).flat_map(|_| one.iter().copied()).collect();
+            self.recorded.set(self.recorded.get() + kk);
+            let mut enc = self.encoder("pcg chunk");
+            Self::pass(&mut enc, "pcg chunk", &kernels);
+            *st = self.submit_and_read(enc, "a device PCG chunk")?;
+            st.error(0)?;
+            if st.converged {
+                return Ok(());
+            }
+            if st.rr > 0.0 && st.rr.is_finite() {
+                hist.push((st.iterations, st.rr.ln()));
+            }
+            k = schedule::next_chunk(&hist, thresh, kk, MIN_CHUNK, MAX_CHUNK);
+        }
+    }
+
+    /// [`DeviceCg::prepare`] then [`DeviceCg::iterate`]: Δx of the current assembly.
+    pub fn solve(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+    ) -> Result<DeviceCgInfo, GpuError> {
+        self.prepare(frames)?;
+        self.iterate(frames, params)
+    }
+}
+
+impl DeviceFrames {
+    /// The number of aggregates of the coarse space these frames were built for (`None`
+    /// without the aggregates, or when every node is fixed).
+    pub fn aggregate_count(&self) -> Option<usize> {
+        self.agg.as_ref().map(|a| a.count)
+    }
+}
+
+/// The PRECOND override of a preconditioner.
+fn precond_index(p: Preconditioner) -> Result<usize, GpuError> {
+    match p {
+        Preconditioner::None => Ok(0),
+        Preconditioner::Jacobi => Ok(1),
+        Preconditioner::BlockJacobi => Ok(2),
+        Preconditioner::Multilevel => {
+            Err(GpuError::Unsupported(crate::gpu::MULTILEVEL_ON_CPU.into()))
+        }
+    }
+}
+
+/// The COARSE override of a coarse space on these frames (aggregates with every node
+/// fixed: no aggregate, no correction).
+fn coarse_index(c: CoarseSpace, frames: &DeviceFrames) -> usize {
+    match c {
+        CoarseSpace::None => 0,
+        CoarseSpace::Translations => 1,
+        CoarseSpace::Aggregates if frames.agg.is_none() => 0,
+        CoarseSpace::Aggregates => 2,
+    }
+}
+
+/// Little-endian f64s.
+fn f64s(bytes: &[u8]) -> Vec<f64> {
+    bytes
+        .chunks_exact(8)
+        .map(|c| {
+            let mut w = [0u8; 8];
+            w.copy_from_slice(c);
+            f64::from_le_bytes(w)
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn module() -> naga::Module {
+        let src = format!("{}{}", kernels::prelude("f64", "f64", false), PCG.source);
+        naga::front::wgsl::parse_str(&src)
+            .unwrap_or_else(|e| panic!("pcg.wgsl: {}", e.emit_to_string(&src)))
+    }
+
+    /// Bind group 0 is [`PCG`]'s bindings in order with their access, the params
+    /// struct has Rust's size, and every aggregate header constant has Rust's value (the
+    /// CG's slots come from the prelude, `gpu::kernels::slots`).
+    #[test]
+    fn layout_params_and_headers_match_the_wgsl() {
+        let m = module();
+        kernels::check::bindings_match(&PCG, &m);
+        let (_, ty) = m
+            .types
+            .iter()
+            .find(|(_, t)| t.name.as_deref() == Some("PcgParams"))
+            .expect("struct PcgParams");
+        match &ty.inner {
+            naga::TypeInner::Struct { span, .. } => {
+                assert_eq!(*span as usize, std::mem::size_of::<PcgParams>())
+            }
+            other => panic!("PcgParams is {other:?}"),
+        }
+        use aggregates::header as h;
+        let agg = [
+            ("AGG_COUNT", h::COUNT),
+            ("AGG_K", h::K),
+            ("AGG_OF", h::OF),
+            ("AGG_PTR", h::PTR),
+            ("AGG_NODES", h::NODES),
+            ("AGG_SLOT_PTR", h::SLOT_PTR),
+            ("AGG_SLOT_OF", h::SLOT_OF),
+            ("AGG_PAIR_PTR", h::PAIR_PTR),
+            ("AGG_PAIR_SLOTS", h::PAIR_SLOTS),
+            ("AGG_PAIR_OF", h::PAIR_OF),
+            ("AGG_E", h::E),
+            ("AGG_EINV", h::EINV),
+            ("AGG_W", h::W),
+            ("AGG_C", h::C),
+        ];
+        for (name, want) in agg {
+            let (_, c) = m
+                .constants
+                .iter()
+                .find(|(_, c)| c.name.as_deref() == Some(name))
+                .unwrap_or_else(|| panic!("no const {name}"));
+            match m.global_expressions[c.init] {
+                naga::Expression::Literal(naga::Literal::U32(v)) => assert_eq!(v, want, "{name}"),
+                ref e => panic!("{name} = {e:?}"),
+            }
+        }
+        for e in [
+            "rhs",
+            "precond",
+            "matvec",
+            "scalar_alpha",
+            "update_yr",
+            "scalar_beta",
+            "update_p",
+            "init",
+            "scalar_start",
+            "recover",
+            "coarse_e",
+            "coarse_e_sum",
+            "agg_rows",
+            "agg_e",
+            "agg_restrict",
+            "agg_solve",
+        ] {
+            assert!(
+                m.entry_points.iter().any(|p| p.name == e),
+                "no entry point {e}"
+            );
+        }
+    }
+}
