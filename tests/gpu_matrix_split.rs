@@ -239,6 +239,7 @@ fn evaluate(
                 max_iterations: 10_000,
                 preconditioner,
                 coarse,
+                stagnation_window: stickslip::solve::cg::STAGNATION_WINDOW,
             },
         )?;
         solves.push((info.iterations, cg.read_dx()?));

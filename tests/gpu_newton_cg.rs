@@ -251,6 +251,7 @@ fn compare(ctx: &GpuContext, s: &Scene, bound: Bound) -> Vec<(Preconditioner, Co
                     max_iterations: 10_000,
                     preconditioner: pre,
                     coarse,
+                    stagnation_window: stickslip::solve::cg::STAGNATION_WINDOW,
                 },
             )
             .expect("device CG converges");
@@ -437,6 +438,7 @@ fn aggregates_need_frames_built_for_them() {
         max_iterations: 100,
         preconditioner: Preconditioner::Jacobi,
         coarse: CoarseSpace::Aggregates,
+        stagnation_window: stickslip::solve::cg::STAGNATION_WINDOW,
     };
     match cg.solve(&frames, &params) {
         Err(GpuError::Mismatch(m)) => {
@@ -468,6 +470,7 @@ fn zero_gradient_gives_zero_step() {
         max_iterations: 1000,
         preconditioner: Preconditioner::BlockJacobi,
         coarse: CoarseSpace::Translations,
+        stagnation_window: stickslip::solve::cg::STAGNATION_WINDOW,
     };
     let first = cg.solve(&frames, &params).expect("non-zero step");
     assert!(first.iterations > 0 && first.rhs_norm > 0.0);
@@ -511,6 +514,7 @@ fn iteration_limit_is_an_error() {
                 max_iterations: max,
                 preconditioner: Preconditioner::Jacobi,
                 coarse: CoarseSpace::Translations,
+                stagnation_window: stickslip::solve::cg::STAGNATION_WINDOW,
             },
         );
         match r {
@@ -528,6 +532,49 @@ fn iteration_limit_is_an_error() {
             }
             other => panic!("max_iterations {max}: {other:?}"),
         }
+    }
+}
+
+/// A tolerance below f64's reach ends in stagnation, an error that carries the true
+/// residual reached, not in a claim of convergence and not at the iteration limit.
+#[test]
+fn a_tolerance_below_rounding_stagnates() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = scene(2, 15, true);
+    let (_el, asm) = assembled(ctx, &s, Precision::F64);
+    let mut cg = DeviceCg::new(
+        asm.context(),
+        asm.matrix(),
+        Some(asm.gradient_buffer()),
+        false,
+    )
+    .expect("device CG");
+    let frames = cg
+        .frames(&s.frames, CoarseSpace::None)
+        .expect("device frames");
+    let (tol, max) = (1e-30, 20_000);
+    let r = cg.solve(
+        &frames,
+        &DeviceCgParams {
+            tol,
+            max_iterations: max,
+            preconditioner: Preconditioner::Jacobi,
+            coarse: CoarseSpace::None,
+            stagnation_window: 40,
+        },
+    );
+    match r {
+        Err(GpuError::Cg(CgError::Stagnation {
+            iterations,
+            relative_residual,
+            ..
+        })) => {
+            eprintln!("stagnated after {iterations} iterations at {relative_residual:e}");
+            assert!(iterations < max);
+            // The rounding floor of f64 CG on this system: far above tol, far below 1e-10.
+            assert!(relative_residual > tol && relative_residual < 1e-10);
+        }
+        other => panic!("{other:?}"),
     }
 }
 
@@ -567,6 +614,7 @@ fn f32_and_foreign_frames_are_refused() {
         max_iterations: 100,
         preconditioner: Preconditioner::Jacobi,
         coarse: CoarseSpace::None,
+        stagnation_window: stickslip::solve::cg::STAGNATION_WINDOW,
     };
     match cg.iterate(&frames, &params) {
         Err(GpuError::Mismatch(m)) => assert!(m.contains("prepare"), "{m}"),
@@ -603,6 +651,7 @@ fn reductions_give_the_same_bits_on_any_workgroup_count() {
             max_iterations: 10_000,
             preconditioner: Preconditioner::BlockJacobi,
             coarse,
+            stagnation_window: stickslip::solve::cg::STAGNATION_WINDOW,
         };
         let info = cg.solve(&frames, &params).expect("device CG converges");
         let dx: Vec<u64> = cg

@@ -504,6 +504,7 @@ const GPU_CG: DeviceCgParams = DeviceCgParams {
     max_iterations: 100_000,
     preconditioner: Preconditioner::BlockJacobi,
     coarse: crate::solve::coarse::CoarseSpace::None,
+    stagnation_window: crate::solve::cg::STAGNATION_WINDOW,
 };
 
 struct GpuSide {

@@ -339,7 +339,7 @@ enum Prepared {
 
 /// The GPU solvers the engine keeps per layout: the device PCG in f64 (the CG the device
 /// Newton loop runs), the kernels of f32 and mixed precision otherwise.
-trait DeviceSolver {
+trait DeviceSolver: Send {
     fn update(&mut self, e: &Eliminated) -> Result<(), crate::gpu::GpuError>;
     fn set_tol(&mut self, tol: f64) -> Result<(), crate::gpu::GpuError>;
     fn solve(&mut self) -> Result<crate::gpu::SolveOutcome, crate::gpu::GpuError>;
@@ -368,6 +368,12 @@ impl DeviceSolver for PcgSolver {
         PcgSolver::solve(self)
     }
 }
+
+// A `Solver` moves between threads (the Python package releases the GIL around solves).
+const _: fn() = || {
+    fn send<T: Send>() {}
+    send::<Solver>();
+};
 
 /// The GPU solver for `e` in the configured precision.
 fn new_device_solver(

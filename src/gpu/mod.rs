@@ -1,8 +1,8 @@
-//! GPU solver (wgpu): device-resident PCG on the eliminated system Ĥ y = b̂ of
-//! docs/method.md ("The eliminated system", "Solvers", "The GPU CG loop"), with WGSL
-//! kernels for the per-node rotations, the masked block-sparse (or matrix-free mass-spring)
-//! Hessian product, Jacobi / block-Jacobi preconditioners and the CG updates with
-//! deterministic two-pass reductions.
+//! GPU solvers (wgpu) for the eliminated system Ĥ y = b̂ of docs/method.md ("The
+//! eliminated system", "Solvers", "The GPU CG loop"): the device PCG in f64 ([`pcg`], on
+//! any device block matrix: the Newton loop's assembly or an uploaded host H) and the
+//! precision kernels of f32 and mixed precision and the matrix-free mass-spring operator
+//! ([`solver`]), over shared device plumbing (context, launches, schedule, slot table).
 
 pub mod blocks;
 pub mod context;

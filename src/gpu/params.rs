@@ -24,7 +24,12 @@ pub enum DifferenceForm {
 /// and so of the partial sums one reduction leaves: the partial-sum buffers hold this many.
 pub const MAX_WORKGROUPS: u32 = 256;
 
-/// Parameters of a GPU solve.
+/// Parameters of a GPU solve. In f64 the facade runs the device PCG
+/// ([`crate::gpu::PcgSolver`]), which takes `tol`, `max_iters`, `preconditioner`,
+/// `coarse`, `stagnation_window` (checked at each status read), `max_restarts` and
+/// `binding_limit`; its workgroups and chunk lengths follow the device's own policy
+/// (`gpu::launch`, `gpu::schedule`). The other fields serve f32 and mixed precision
+/// ([`crate::gpu::GpuSolver`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct GpuParams {
     pub precision: Precision,
@@ -99,7 +104,7 @@ impl Default for GpuParams {
             tol: 1e-6,
             max_iters: 10_000,
             preconditioner: Preconditioner::Jacobi,
-            stagnation_window: 1_000,
+            stagnation_window: crate::solve::cg::STAGNATION_WINDOW,
             max_restarts: 3,
             first_chunk: 8,
             max_chunk: 256,

@@ -43,6 +43,10 @@ pub enum Scaling {
     NodeDiagonal,
 }
 
+/// The default stagnation window of every CG (CPU, GPU, the device PCG): iterations
+/// without a new smallest recurrence residual before the run is declared stagnant.
+pub const STAGNATION_WINDOW: usize = 1_000;
+
 /// Parameters of a CG solve.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CgParams {
@@ -74,7 +78,7 @@ impl Default for CgParams {
             tol: 1e-8,
             max_iters: 10_000,
             preconditioner: Preconditioner::Jacobi,
-            stagnation_window: 1_000,
+            stagnation_window: STAGNATION_WINDOW,
             max_restarts: 3,
             check_every: 64,
             scaling: Scaling::None,

@@ -5,7 +5,7 @@ use crate::core::constraints::{Frames, NO_ROTATION};
 use crate::gpu::blocks::BlockMatrix;
 use crate::gpu::kernels::{self, slots, Access, Layout};
 use crate::gpu::schedule::{self, ChunkStatus};
-use crate::gpu::{GpuContext, GpuError, Launch, TrafficCount};
+use crate::gpu::{GpuContext, GpuError, KernelTime, Launch, TrafficCount};
 use crate::solve::cg::{CgError, Preconditioner};
 use crate::solve::coarse::CoarseSpace;
 use std::cell::Cell;
@@ -39,6 +39,7 @@ pub const PCG: Layout = Layout {
         ("state", W),
         ("aggregates", R),
         ("coarse", W),
+        ("pw", W),
     ],
 };
 
@@ -96,6 +97,16 @@ pub struct IterationProfile {
     pub bytes: u64,
 }
 
+/// How a run of chunks ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Chunked {
+    /// The recurrence met the tolerance, or the iteration limit was reached.
+    Stopped,
+    /// The run reached the stagnation window's length, or its recurrence residual has
+    /// not improved for that long: the true residual decides whether CG goes on.
+    Check,
+}
+
 /// One workgroup (the scalar kernels).
 const ONE: Launch = Launch { x: 1, y: 1 };
 
@@ -123,6 +134,11 @@ pub struct DeviceCgParams {
     /// Added to the preconditioner (see the module docs). `Aggregates` needs frames built
     /// for it ([`DeviceCg::frames`]).
     pub coarse: CoarseSpace,
+    /// Stagnation: at least every this many iterations (and sooner when the recurrence
+    /// residual has not improved for as long) the true residual is computed and CG
+    /// restarts from it; a true residual no smaller than the best before it ends the
+    /// solve in [`CgError::Stagnation`].
+    pub stagnation_window: usize,
 }
 
 /// What a successful solve reports.
@@ -185,6 +201,7 @@ struct Pipelines {
     agg_restrict: wgpu::ComputePipeline,
     agg_solve: wgpu::ComputePipeline,
     matvec: wgpu::ComputePipeline,
+    world_p: wgpu::ComputePipeline,
     scalar_alpha: wgpu::ComputePipeline,
     update_yr: [[wgpu::ComputePipeline; 3]; 3],
     scalar_beta: [wgpu::ComputePipeline; 3],
@@ -222,6 +239,8 @@ struct Buffers {
     z: wgpu::Buffer,
     p: wgpu::Buffer,
     q: wgpu::Buffer,
+    /// V P p, what the matvec multiplies H by.
+    pw: wgpu::Buffer,
     b: wgpu::Buffer,
     minv: wgpu::Buffer,
     dx: wgpu::Buffer,
@@ -338,7 +357,8 @@ impl DeviceCg {
                 .iter()
                 .map(|c| limits.grid(c.rows.len() as u64, WORKGROUP))
                 .collect(),
-            nodes: limits.grid(n as u64, WORKGROUP),
+            // An invocation per node on a GPU; a CPU adapter's few workgroups loop.
+            nodes: policy.launch(&limits, (n as u64).div_ceil(WORKGROUP as u64), WORKGROUP),
         };
 
         // Pipelines.
@@ -381,6 +401,7 @@ impl DeviceCg {
             agg_restrict: pipe("agg_restrict", 0, 2),
             agg_solve: pipe("agg_solve", 0, 2),
             matvec: pipe("matvec", 0, 0),
+            world_p: pipe("world_p", 0, 0),
             scalar_alpha: pipe("scalar_alpha", 0, 0),
             update_yr: each("update_yr"),
             scalar_beta: both("scalar_beta"),
@@ -426,6 +447,7 @@ impl DeviceCg {
             z: vector("pcg z")?,
             p: vector("pcg p")?,
             q: vector("pcg q")?,
+            pw: vector("pcg p in the world frame")?,
             b: vector("pcg rhs")?,
             minv: zeroed("pcg preconditioner", 8 * (n * dim * dim) as u64 + 8 * nd)?,
             dx: vector("pcg dx")?,
@@ -595,7 +617,7 @@ impl DeviceCg {
         let b = &self.buf;
         let mut groups = Vec::with_capacity(b.hvals.len());
         for (params, hvals) in b.params.iter().zip(&b.hvals) {
-            let bufs: [&wgpu::Buffer; 19] = [
+            let bufs: [&wgpu::Buffer; 20] = [
                 params,
                 &b.pattern,
                 hvals,
@@ -615,6 +637,7 @@ impl DeviceCg {
                 &b.state,
                 &agg_buf,
                 &coarse_buf,
+                &b.pw,
             ];
             let entries: Vec<wgpu::BindGroupEntry> = bufs
                 .iter()
@@ -1027,12 +1050,7 @@ impl DeviceCg {
         let mut enc = self.encoder("pcg start");
         let mut kernels: Vec<Kernel> = Vec::new();
         if from_current {
-            enc.copy_buffer_to_buffer(&self.buf.y, 0, &self.buf.p, 0, None);
-            kernels.extend(Self::per_chunk(
-                &self.pipes.matvec,
-                &self.launches.chunk_segments,
-                frames,
-            ));
+            kernels.extend(self.product_of_y(&mut enc, frames));
         } else {
             enc.clear_buffer(&self.buf.y, 0, None);
             enc.clear_buffer(&self.buf.q, 0, None);
@@ -1062,6 +1080,10 @@ impl DeviceCg {
                 rr.sqrt() / rhs_norm
             }
         };
+        // The smallest true residual so far: a check that does not improve on it ends the
+        // solve in stagnation (the recurrence residual of f64 CG goes on falling long
+        // after the true one has stopped at its rounding floor).
+        let mut best_true = f64::INFINITY;
         // Each pass of this loop starts from a status whose r·r is the true residual.
         loop {
             let rel = relative(st.rr);
@@ -1081,18 +1103,33 @@ impl DeviceCg {
                 // by rounding: go on iterating.
                 self.clear_flags();
             }
-            self.chunks(frames, pre, co, max, tol2 * bb, &mut st)?;
+            let chunked = self.chunks(
+                frames,
+                pre,
+                co,
+                max,
+                tol2 * bb,
+                params.stagnation_window,
+                &mut st,
+            )?;
             // The true residual at y: q = Ĥy (y copied into p), r = b̂ − q, p = z.
             self.clear_flags();
             let mut enc = self.encoder("pcg true residual");
-            enc.copy_buffer_to_buffer(&self.buf.y, 0, &self.buf.p, 0, None);
-            let mut kernels: Vec<Kernel> =
-                Self::per_chunk(&self.pipes.matvec, &self.launches.chunk_segments, frames)
-                    .collect();
+            let mut kernels = self.product_of_y(&mut enc, frames);
             kernels.extend(self.start(frames, pre, co));
             Self::pass(&mut enc, "pcg true residual", &kernels);
             st = self.submit_and_read(enc, "the device PCG's true residual")?;
             st.error(0)?;
+            let rel = relative(st.rr);
+            if chunked == Chunked::Check && rel > tol && rel >= best_true {
+                return Err(CgError::Stagnation {
+                    iterations: st.iterations,
+                    relative_residual: rel,
+                    tol,
+                }
+                .into());
+            }
+            best_true = best_true.min(rel);
             self.run_starts.push(st.iterations);
         }
         // The last true residual met the tolerance: it began no run.
@@ -1121,6 +1158,23 @@ impl DeviceCg {
         })
     }
 
+    /// q = Ĥy: y copied into p (recorded in `enc`), then the kernels of pw = V P p and the
+    /// product.
+    fn product_of_y<'a>(
+        &'a self,
+        enc: &mut wgpu::CommandEncoder,
+        frames: &'a DeviceFrames,
+    ) -> Vec<Kernel<'a>> {
+        enc.copy_buffer_to_buffer(&self.buf.y, 0, &self.buf.p, 0, None);
+        let mut k = vec![(&self.pipes.world_p, self.launches.nodes, &frames.groups[0])];
+        k.extend(Self::per_chunk(
+            &self.pipes.matvec,
+            &self.launches.chunk_segments,
+            frames,
+        ));
+        k
+    }
+
     /// The kernels of a (re)start from the q = Ĥy in `q`: r, z, p, ρ and the true r·r; with
     /// the coarse correction `update_p` (β = 0) then completes p = z + Z E⁺Zᵀr.
     fn start<'a>(&'a self, frames: &'a DeviceFrames, pre: usize, co: usize) -> Vec<Kernel<'a>> {
@@ -1140,16 +1194,19 @@ impl DeviceCg {
     /// workgroup per coarse row).
     fn aggregate_correction<'a>(&'a self, frames: &'a DeviceFrames, co: usize) -> Vec<Kernel<'a>> {
         let (p, limits) = (&self.pipes, self.ctx.launch());
+        // A workgroup per aggregate (coarse row) on a GPU; a CPU adapter's few loop over
+        // them, each still summed by one workgroup in the same order.
+        let policy = self.ctx.segments();
         match (&frames.agg, co) {
             (Some(a), 2) => vec![
                 (
                     &p.agg_restrict,
-                    limits.groups(a.count as u64, WORKGROUP),
+                    policy.launch(&limits, a.count as u64, WORKGROUP),
                     &frames.groups[0],
                 ),
                 (
                     &p.agg_solve,
-                    limits.groups(a.k as u64, WORKGROUP),
+                    policy.launch(&limits, a.k as u64, WORKGROUP),
                     &frames.groups[0],
                 ),
             ],
@@ -1208,13 +1265,13 @@ impl DeviceCg {
         let nnz = self.host_pattern[self.n_nodes] as u64;
         let vec = 8 * n * d;
         let partials = 8 * self.n_partials as u64;
-        // matvec: H, its column indices and row pointers, the frames, p, q.
-        let matvec = nnz * (8 * d * d + 4) + 4 * (n + 1) + 8 * n + 2 * vec;
+        // matvec: H, its column indices and row pointers, the frames, pw, p, q.
+        let matvec = nnz * (8 * d * d + 4) + 4 * (n + 1) + 8 * n + 3 * vec;
         // update_yr: y and r read and written, p, q and the preconditioner read, z written.
         let minv = [0, vec, 8 * n * d * d][pre];
         let update_yr = 7 * vec + minv + 8 * n * u64::from(co == 1);
-        // update_p: z and p read, p written (the frames and each node's aggregate too).
-        let update_p = 3 * vec + [0, 8 * n, 12 * n][co];
+        // update_p: z and p read, p and pw written, the frames (and each node's aggregate).
+        let update_p = 4 * vec + [8 * n, 8 * n, 12 * n][co];
         let agg = frames.agg.as_ref().filter(|_| co == 2).map_or(0, |a| {
             let k = a.k as u64;
             // restrict: r, the frames and the node lists; solve: E⁺ and w.
@@ -1226,6 +1283,100 @@ impl DeviceCg {
         })
     }
 
+    /// Device time of each dispatch of one CG iteration with these frames and parameters,
+    /// in seconds (fastest and mean over `reps` iterations), from timestamp queries
+    /// around each dispatch in its own compute pass; `None` without TIMESTAMP_QUERY.
+    /// Runs from y = 0 with no stopping test; the next iterate starts afresh.
+    pub fn profile_iteration(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+        reps: usize,
+    ) -> Result<Option<Vec<KernelTime>>, GpuError> {
+        if !self.ctx.has_timestamps() {
+            return Ok(None);
+        }
+        self.own(frames)?;
+        let (pre, co) = (
+            precond_index(params.preconditioner)?,
+            coarse_index(params.coarse, frames),
+        );
+        if co == 2 {
+            self.upload_aggregate_einv(frames)?;
+        }
+        // Tolerance 0: no stop flag is ever set, so every dispatch does its work.
+        self.ctx
+            .write_buffer(&self.buf.scal, 0, &[0u8; 8 * slots::SCAL_E as usize]);
+        self.ctx
+            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
+        let mut enc = self.encoder("pcg profile start");
+        enc.clear_buffer(&self.buf.y, 0, None);
+        enc.clear_buffer(&self.buf.q, 0, None);
+        Self::pass(&mut enc, "pcg profile start", &self.start(frames, pre, co));
+        self.ctx.queue.submit([enc.finish()]);
+        let one = self.iteration(frames, pre, co);
+        let n_q = 2 * one.len() as u32;
+        let dev = &self.ctx.device;
+        let set = dev.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some("pcg profile timestamps"),
+            ty: wgpu::QueryType::Timestamp,
+            count: n_q,
+        });
+        let resolve = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("pcg profile resolve"),
+            size: 8 * n_q as u64,
+            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        let period_s = self.ctx.queue.get_timestamp_period() as f64 * 1e-9;
+        let mut best = vec![f64::INFINITY; one.len()];
+        let mut sum = vec![0.0f64; one.len()];
+        for _ in 0..reps.max(1) {
+            let mut enc = self.encoder("pcg profile");
+            for (j, &(_, (pipe, launch, group))) in one.iter().enumerate() {
+                let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("pcg profile pass"),
+                    timestamp_writes: Some(wgpu::ComputePassTimestampWrites {
+                        query_set: &set,
+                        beginning_of_pass_write_index: Some(2 * j as u32),
+                        end_of_pass_write_index: Some(2 * j as u32 + 1),
+                    }),
+                });
+                cp.set_bind_group(0, group, &[]);
+                cp.set_pipeline(pipe);
+                launch.dispatch(&mut cp);
+            }
+            enc.resolve_query_set(&set, 0..n_q, &resolve, 0);
+            self.ctx.queue.submit([enc.finish()]);
+            let bytes =
+                self.ctx
+                    .download(&resolve, 0, 8 * n_q as u64, "reading back timestamps")?;
+            let t: Vec<u64> = bytes
+                .chunks_exact(8)
+                .map(|c| {
+                    let mut w = [0u8; 8];
+                    w.copy_from_slice(c);
+                    u64::from_le_bytes(w)
+                })
+                .collect();
+            for j in 0..one.len() {
+                let dt = t[2 * j + 1].saturating_sub(t[2 * j]) as f64 * period_s;
+                best[j] = best[j].min(dt);
+                sum[j] += dt;
+            }
+        }
+        Ok(Some(
+            one.iter()
+                .zip(best.into_iter().zip(sum))
+                .map(|(&(name, _), (best_s, sum_s))| KernelTime {
+                    name: name.to_string(),
+                    best_s,
+                    mean_s: sum_s / reps.max(1) as f64,
+                })
+                .collect(),
+        ))
+    }
+
     /// CG iterations in chunks from the current state until the recurrence residual meets
     /// `thresh` (on r·r) or `max` iterations are done in all; `st` is the last status.
     fn chunks(
@@ -1235,9 +1386,14 @@ impl DeviceCg {
         co: usize,
         max: usize,
         thresh: f64,
+        window: usize,
         st: &mut ChunkStatus,
-    ) -> Result<(), GpuError> {
+    ) -> Result<Chunked, GpuError> {
         let mut k = FIRST_CHUNK;
+        let window = window.max(1);
+        let start = st.iterations;
+        // The smallest recurrence r·r so far and where it was reached.
+        let (mut best, mut best_at) = (st.rr, st.iterations);
         // (iterations, ln r·r) at each status read of this run.
         let mut hist: Vec<(usize, f64)> = Vec::new();
         if st.rr > 0.0 && st.rr.is_finite() {
@@ -1246,8 +1402,12 @@ impl DeviceCg {
         loop {
             let kk = k.min(max.saturating_sub(st.iterations));
             if kk == 0 {
-                return Ok(());
+                return Ok(Chunked::Stopped);
             }
+            if st.iterations - start >= window {
+                return Ok(Chunked::Check);
+            }
+            let kk = kk.min(window - (st.iterations - start));
             let one: Vec<Kernel> = self
                 .iteration(frames, pre, co)
                 .into_iter()
@@ -1260,7 +1420,12 @@ impl DeviceCg {
             *st = self.submit_and_read(enc, "a device PCG chunk")?;
             st.error(0)?;
             if st.converged {
-                return Ok(());
+                return Ok(Chunked::Stopped);
+            }
+            if st.rr < best {
+                (best, best_at) = (st.rr, st.iterations);
+            } else if st.iterations - best_at >= window {
+                return Ok(Chunked::Check);
             }
             if st.rr > 0.0 && st.rr.is_finite() {
                 hist.push((st.iterations, st.rr.ln()));

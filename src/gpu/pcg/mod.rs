@@ -51,7 +51,7 @@ mod cg;
 mod solver;
 
 pub use cg::{
-    DeviceCg, DeviceCgInfo, DeviceCgParams, DeviceFrames, DispatchRecord, IterationProfile, PCG,
-    LANCZOS_HIST,
+    DeviceCg, DeviceCgInfo, DeviceCgParams, DeviceFrames, DispatchRecord, IterationProfile,
+    LANCZOS_HIST, PCG,
 };
 pub use solver::PcgSolver;

@@ -127,6 +127,7 @@ impl PcgSolver {
             max_iterations: self.params.max_iters,
             preconditioner: self.params.preconditioner,
             coarse: self.params.coarse,
+            stagnation_window: self.params.stagnation_window,
         };
         let (mut iterations, mut restarts, mut recorded, mut reads) = (0, 0, 0, 0);
         let mut download = 0.0;
@@ -236,6 +237,22 @@ impl PcgSolver {
             notes,
         };
         Ok(SolveOutcome { y, dx, info })
+    }
+
+    /// Device time of each dispatch of one CG iteration (see
+    /// [`DeviceCg::profile_iteration`]); `None` without TIMESTAMP_QUERY.
+    pub fn profile_kernels(
+        &mut self,
+        reps: usize,
+    ) -> Result<Option<Vec<crate::gpu::KernelTime>>, GpuError> {
+        let params = DeviceCgParams {
+            tol: self.params.tol,
+            max_iterations: self.params.max_iters,
+            preconditioner: self.params.preconditioner,
+            coarse: self.params.coarse,
+            stagnation_window: self.params.stagnation_window,
+        };
+        self.cg.profile_iteration(&self.frames, &params, reps)
     }
 
     pub fn adapter_name(&self) -> &str {

@@ -1,4 +1,7 @@
-//! Device-resident preconditioned CG (docs/method.md, "The GPU CG loop").
+//! Device-resident preconditioned CG in f32 and mixed precision, and on the matrix-free
+//! mass-spring operator (docs/method.md, "The GPU CG loop"); f64 solves of an assembled
+//! system go to the device PCG of [`crate::gpu::pcg`] through the facade, and this f64
+//! level serves mixed precision's fallback.
 //!
 //! Per iteration three dispatches: `matvec` (q = Ĥp fused with p·q partials), `update_xrz`
 //! (α reduced redundantly per workgroup; x, r, z updated; r·z and r·r partials) and

@@ -172,6 +172,7 @@ impl DeviceLoop {
                 max_iterations: scene.solver.cg_max_iterations,
                 preconditioner: scene.solver.preconditioner,
                 coarse: scene.solver.coarse,
+                stagnation_window: crate::solve::cg::STAGNATION_WINDOW,
             },
             matrix_bytes,
             moving: None,
