@@ -1103,15 +1103,7 @@ impl DeviceCg {
                 // by rounding: go on iterating.
                 self.clear_flags();
             }
-            let chunked = self.chunks(
-                frames,
-                pre,
-                co,
-                max,
-                tol2 * bb,
-                params.stagnation_window,
-                &mut st,
-            )?;
+            let chunked = self.chunks(frames, (pre, co), params, tol2 * bb, &mut st)?;
             // The true residual at y: q = Ĥy (y copied into p), r = b̂ − q, p = z.
             self.clear_flags();
             let mut enc = self.encoder("pcg true residual");
@@ -1378,19 +1370,19 @@ impl DeviceCg {
     }
 
     /// CG iterations in chunks from the current state until the recurrence residual meets
-    /// `thresh` (on r·r) or `max` iterations are done in all; `st` is the last status.
+    /// `thresh` (on r·r), `params.max_iterations` are done in all, or the stagnation
+    /// window asks for the true residual; `st` is the last status.
     fn chunks(
         &self,
         frames: &DeviceFrames,
-        pre: usize,
-        co: usize,
-        max: usize,
+        (pre, co): (usize, usize),
+        params: &DeviceCgParams,
         thresh: f64,
-        window: usize,
         st: &mut ChunkStatus,
     ) -> Result<Chunked, GpuError> {
         let mut k = FIRST_CHUNK;
-        let window = window.max(1);
+        let max = params.max_iterations;
+        let window = params.stagnation_window.max(1);
         let start = st.iterations;
         // The smallest recurrence r·r so far and where it was reached.
         let (mut best, mut best_at) = (st.rr, st.iterations);
