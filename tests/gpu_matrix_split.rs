@@ -23,7 +23,7 @@
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use stickslip::core::constraints::{Constraint, Frames};
-use stickslip::gpu::pcg::{DeviceCg, DeviceCgParams};
+use stickslip::gpu::pcg::DeviceCgParams;
 use stickslip::gpu::{GpuContext, GpuError, Precision};
 use stickslip::sim::device::assembly::GpuAssembly;
 use stickslip::sim::device::elements::{ElementKernels, GpuElements, TermKind};
@@ -217,12 +217,7 @@ fn evaluate(
     ops.add_moving()?;
     let h_moving = asm.read_matrix()?.values;
     let g_moving = asm.read_gradient()?;
-    let mut cg = DeviceCg::new(
-        asm.context(),
-        asm.matrix(),
-        Some(asm.gradient_buffer()),
-        false,
-    )?;
+    let mut cg = asm.device_cg()?;
     let frames = cg.frames(&c.frames, CoarseSpace::Aggregates)?;
     let mut solves = Vec::new();
     for (preconditioner, coarse) in [

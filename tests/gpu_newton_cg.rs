@@ -34,7 +34,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use stickslip::core::constraints::{Constraint, Frames};
 use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::gpu::pcg::{DeviceCg, DeviceCgParams};
+use stickslip::gpu::pcg::DeviceCgParams;
 use stickslip::gpu::{GpuContext, GpuError, Precision};
 use stickslip::sim::device::assembly::GpuAssembly;
 use stickslip::sim::device::elements::GpuElements;
@@ -217,13 +217,7 @@ fn compare(ctx: &GpuContext, s: &Scene, bound: Bound) -> Vec<(Preconditioner, Co
     let agg = Aggregation::build(&h, &s.frames);
     let agg_einv_cpu =
         aggregates_einv_from_blocks(&h, &s.frames, &agg).expect("free aggregate translations");
-    let mut cg = DeviceCg::new(
-        asm.context(),
-        asm.matrix(),
-        Some(asm.gradient_buffer()),
-        false,
-    )
-    .expect("device CG");
+    let mut cg = asm.device_cg().expect("device CG");
     let frames = cg
         .frames(&s.frames, CoarseSpace::Aggregates)
         .expect("device frames");
@@ -423,13 +417,7 @@ fn aggregates_need_frames_built_for_them() {
     let Some((ctx, _g)) = gpu() else { return };
     let s = scene(2, 19, true);
     let (_el, asm) = assembled(ctx, &s, Precision::F64);
-    let mut cg = DeviceCg::new(
-        asm.context(),
-        asm.matrix(),
-        Some(asm.gradient_buffer()),
-        false,
-    )
-    .expect("device CG");
+    let mut cg = asm.device_cg().expect("device CG");
     let frames = cg
         .frames(&s.frames, CoarseSpace::Translations)
         .expect("device frames");
@@ -455,13 +443,7 @@ fn zero_gradient_gives_zero_step() {
     let Some((ctx, _g)) = gpu() else { return };
     let mut s = scene(3, 13, false);
     let (el, asm) = assembled(ctx, &s, Precision::F64);
-    let mut cg = DeviceCg::new(
-        asm.context(),
-        asm.matrix(),
-        Some(asm.gradient_buffer()),
-        false,
-    )
-    .expect("device CG");
+    let mut cg = asm.device_cg().expect("device CG");
     let frames = cg
         .frames(&s.frames, CoarseSpace::Translations)
         .expect("device frames");
@@ -496,13 +478,7 @@ fn iteration_limit_is_an_error() {
     let Some((ctx, _g)) = gpu() else { return };
     let s = scene(3, 14, true);
     let (_el, asm) = assembled(ctx, &s, Precision::F64);
-    let mut cg = DeviceCg::new(
-        asm.context(),
-        asm.matrix(),
-        Some(asm.gradient_buffer()),
-        false,
-    )
-    .expect("device CG");
+    let mut cg = asm.device_cg().expect("device CG");
     let frames = cg
         .frames(&s.frames, CoarseSpace::Translations)
         .expect("device frames");
@@ -542,13 +518,7 @@ fn a_tolerance_below_rounding_stagnates() {
     let Some((ctx, _g)) = gpu() else { return };
     let s = scene(2, 15, true);
     let (_el, asm) = assembled(ctx, &s, Precision::F64);
-    let mut cg = DeviceCg::new(
-        asm.context(),
-        asm.matrix(),
-        Some(asm.gradient_buffer()),
-        false,
-    )
-    .expect("device CG");
+    let mut cg = asm.device_cg().expect("device CG");
     let frames = cg
         .frames(&s.frames, CoarseSpace::None)
         .expect("device frames");
@@ -585,12 +555,7 @@ fn f32_and_foreign_frames_are_refused() {
     let Some((ctx, _g)) = gpu() else { return };
     let s = scene(2, 15, true);
     let (_el, asm) = assembled(ctx, &s, Precision::F32);
-    match DeviceCg::new(
-        asm.context(),
-        asm.matrix(),
-        Some(asm.gradient_buffer()),
-        false,
-    ) {
+    match asm.device_cg() {
         Err(GpuError::Unsupported(m)) => {
             assert!(m.contains("f64") && !m.contains('\n'), "{m}")
         }
@@ -598,13 +563,7 @@ fn f32_and_foreign_frames_are_refused() {
         Ok(_) => panic!("an f32 assembly was accepted"),
     }
     let (_el64, asm64) = assembled(ctx, &s, Precision::F64);
-    let mut cg = DeviceCg::new(
-        asm64.context(),
-        asm64.matrix(),
-        Some(asm64.gradient_buffer()),
-        false,
-    )
-    .expect("device CG");
+    let mut cg = asm64.device_cg().expect("device CG");
     // Iterating before b̂ and the preconditioner exist for these frames.
     let frames = cg
         .frames(&s.frames, CoarseSpace::Translations)
@@ -638,13 +597,7 @@ fn reductions_give_the_same_bits_on_any_workgroup_count() {
     let s = scene(3, 21, true);
     let run = |ctx: &GpuContext, coarse: CoarseSpace| {
         let (_el, asm) = assembled(ctx, &s, Precision::F64);
-        let mut cg = DeviceCg::new(
-            asm.context(),
-            asm.matrix(),
-            Some(asm.gradient_buffer()),
-            false,
-        )
-        .expect("device CG");
+        let mut cg = asm.device_cg().expect("device CG");
         let frames = cg.frames(&s.frames, coarse).expect("device frames");
         let params = DeviceCgParams {
             tol: TOL,

@@ -18,8 +18,8 @@
 //! CPU: f64 on every rayon worker (`--threads`): `Model`'s parallel assembly, `Eliminated`
 //! and `BuiltPreconditioner`, the fused CPU CG, the model's energy. GPU (f64): phase 1 is
 //! `GpuElements::evaluate` + `GpuAssembly::assemble`, waited for; phases 2–4 are the
-//! device Newton loop's (`gpu::newton`): `DeviceCg::prepare` (b̂ and the preconditioners
-//! from the assembled blocks), `DeviceCg::iterate` (PCG, true residual, Δx = V P y) and
+//! device Newton loop's (`gpu::pcg`, `sim::device`): `DeviceCg::prepare` (b̂ and the
+//! preconditioners from the assembled blocks), `DeviceCg::iterate` (PCG, true residual, Δx = V P y) and
 //! `NewtonOps` (the trial point, an energy-only pass reduced per term, gᵀΔx). A phase that
 //! fails to run is absent: null (JSON), an empty cell (CSV) and "n/a" (table).
 //!
@@ -534,13 +534,7 @@ impl GpuSide {
         elements.set_inertia_target(xt).map_err(|e| e.to_string())?;
         let assembly = GpuAssembly::new(&elements, &scene.model).map_err(|e| e.to_string())?;
         assembly.set_scale(scene.time_step * scene.time_step);
-        let cg = DeviceCg::new(
-            assembly.context(),
-            assembly.matrix(),
-            Some(assembly.gradient_buffer()),
-            false,
-        )
-        .map_err(|e| e.to_string())?;
+        let cg = assembly.device_cg().map_err(|e| e.to_string())?;
         let frames = cg
             .frames(frames, GPU_CG.coarse)
             .map_err(|e| e.to_string())?;

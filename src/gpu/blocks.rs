@@ -58,6 +58,45 @@ pub fn plan_rows(
     Ok(out)
 }
 
+/// The values buffers of a block pattern (`row_ptr`, `block_bytes` per block), split by
+/// [`plan_rows`] under `values_limit(ctx, forced)`: one buffer per run, labelled `what`
+/// (with its rows when there are several), holding its blocks' part of `data` (all the
+/// blocks' bytes in pattern order) or zeroed without it.
+pub fn values_chunks(
+    ctx: &GpuContext,
+    row_ptr: &[usize],
+    block_bytes: u64,
+    forced: Option<u64>,
+    what: &str,
+    data: Option<&[u8]>,
+) -> Result<Vec<ValuesChunk>, GpuError> {
+    let limit = values_limit(ctx, forced);
+    let plan = plan_rows(row_ptr, block_bytes, limit, what, ctx.adapter_name())?;
+    let single = plan.len() == 1;
+    plan.into_iter()
+        .map(|(rows, blocks)| {
+            let label = if single {
+                what.to_string()
+            } else {
+                format!("{what} of rows {}..{}", rows.start, rows.end)
+            };
+            let bytes = blocks.len() as u64 * block_bytes;
+            let buffer = match data {
+                Some(d) => {
+                    let at = (blocks.start as u64 * block_bytes) as usize;
+                    ctx.storage_with(&label, &d[at..at + bytes as usize])?
+                }
+                None => ctx.storage_zeroed(&label, bytes)?,
+            };
+            Ok(ValuesChunk {
+                buffer,
+                rows,
+                blocks,
+            })
+        })
+        .collect()
+}
+
 /// The bytes one values buffer may take on this device: its buffer and storage binding
 /// limits, lowered to `forced` where that is given (tests of the split path).
 pub fn values_limit(ctx: &GpuContext, forced: Option<u64>) -> u64 {
@@ -91,31 +130,14 @@ pub struct HostBlocks {
 impl HostBlocks {
     /// Uploads `h`'s values, each chunk at most `values_limit(ctx, forced)` bytes.
     pub fn upload(ctx: &GpuContext, h: &BlockCsr, forced: Option<u64>) -> Result<Self, GpuError> {
-        let dd = h.dim * h.dim;
-        let plan = plan_rows(
+        let chunks = values_chunks(
+            ctx,
             &h.row_ptr,
-            8 * dd as u64,
-            values_limit(ctx, forced),
+            8 * (h.dim * h.dim) as u64,
+            forced,
             "matrix blocks",
-            ctx.adapter_name(),
+            Some(bytemuck::cast_slice(&h.values)),
         )?;
-        let single = plan.len() == 1;
-        let chunks = plan
-            .into_iter()
-            .map(|(rows, blocks)| {
-                let label = if single {
-                    "matrix blocks".to_string()
-                } else {
-                    format!("matrix blocks of rows {}..{}", rows.start, rows.end)
-                };
-                let values = &h.values[blocks.start * dd..blocks.end * dd];
-                Ok(ValuesChunk {
-                    buffer: ctx.storage_with(&label, bytemuck::cast_slice(values))?,
-                    rows,
-                    blocks,
-                })
-            })
-            .collect::<Result<_, GpuError>>()?;
         Ok(HostBlocks {
             dim: h.dim,
             row_ptr: h.row_ptr.clone(),

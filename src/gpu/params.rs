@@ -97,6 +97,17 @@ pub struct GpuParams {
     pub memory_limit: Option<u64>,
 }
 
+/// A CG tolerance a solver accepts: in (0, 1) (NaN refused too).
+pub(crate) fn checked_tol(tol: f64) -> Result<f64, super::GpuError> {
+    if tol > 0.0 && tol < 1.0 {
+        Ok(tol)
+    } else {
+        Err(super::GpuError::Unsupported(format!(
+            "the CG tolerance must lie in (0, 1), not {tol}"
+        )))
+    }
+}
+
 impl Default for GpuParams {
     fn default() -> Self {
         GpuParams {

@@ -82,12 +82,7 @@ impl PcgSolver {
     /// Sets the relative residual tolerance of the next solves; refuses a value outside
     /// (0, 1).
     pub fn set_tol(&mut self, tol: f64) -> Result<(), GpuError> {
-        if !(tol > 0.0 && tol < 1.0) {
-            return Err(GpuError::Unsupported(format!(
-                "the CG tolerance must lie in (0, 1), not {tol}"
-            )));
-        }
-        self.params.tol = tol;
+        self.params.tol = crate::gpu::params::checked_tol(tol)?;
         Ok(())
     }
 

@@ -28,7 +28,7 @@
 use super::elements::{from_bytes, to_bytes};
 use super::elements::{GpuElements, TermKind, WORKGROUP};
 use crate::core::sparse::BlockCsr;
-use crate::gpu::blocks::{plan_rows, values_limit, BlockMatrix, ValuesChunk};
+use crate::gpu::blocks::{values_chunks, BlockMatrix, ValuesChunk};
 use crate::gpu::kernels::{self, Access, Layout};
 use crate::gpu::{GpuContext, GpuError};
 use crate::sim::energy::Model;
@@ -307,29 +307,15 @@ impl GpuAssembly {
                 .collect()
         };
         // The assembled values: one buffer per run of rows that fits one binding.
-        let plan = plan_rows(
+        let values = values_chunks(
+            &ctx,
             &pattern.row_ptr,
             dd as u64 * rs,
-            values_limit(&ctx, binding_limit),
+            binding_limit,
             "assembly blocks",
-            ctx.adapter_name(),
+            None,
         )?;
-        let single = plan.len() == 1;
-        let values: Vec<ValuesChunk> = plan
-            .into_iter()
-            .map(|(rows, blocks)| {
-                let label = if single {
-                    "assembly blocks".to_string()
-                } else {
-                    format!("assembly blocks of rows {}..{}", rows.start, rows.end)
-                };
-                Ok(ValuesChunk {
-                    buffer: zeroed(&label, (blocks.len() * dd) as u64 * rs)?,
-                    rows,
-                    blocks,
-                })
-            })
-            .collect::<Result<_, GpuError>>()?;
+        let single = values.len() == 1;
         let gradient = zeroed("assembly gradient", (n * dim) as u64 * rs)?;
         let x = zeroed("assembly product input", (n * dim) as u64 * rs)?;
         let y_assembled = zeroed("assembly assembled product", (n * dim) as u64 * rs)?;
@@ -830,6 +816,11 @@ impl GpuAssembly {
     /// one storage binding (or the limit of [`GpuAssembly::with_binding_limit`]).
     pub fn values_chunks(&self) -> &[ValuesChunk] {
         &self.values
+    }
+
+    /// The device PCG on this assembly's H and g (its b̂ formed from g on the device).
+    pub fn device_cg(&self) -> Result<crate::gpu::pcg::DeviceCg, GpuError> {
+        crate::gpu::pcg::DeviceCg::new(&self.ctx, self.matrix(), Some(&self.gradient), false)
     }
 
     /// The assembled H as the device PCG reads it.

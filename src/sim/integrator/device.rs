@@ -149,13 +149,7 @@ impl DeviceLoop {
         let asm = GpuAssembly::new(&elements, &scene.model).map_err(device_error)?;
         let h = scene.time_step;
         asm.set_scale(h * h);
-        let cg = DeviceCg::new(
-            asm.context(),
-            asm.matrix(),
-            Some(asm.gradient_buffer()),
-            false,
-        )
-        .map_err(device_error)?;
+        let cg = asm.device_cg().map_err(device_error)?;
         let ops = NewtonOps::new(&elements, &asm, cg.dx_buffer()).map_err(device_error)?;
         let d = scene.dim;
         let matrix_bytes = (asm.pattern().1.len() * d * d * 8) as u64;
