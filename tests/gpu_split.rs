@@ -4,10 +4,13 @@
 //! equal the one-chunk solve bit for bit: every row is computed by the same operations on
 //! the same values, and each invocation's p·q sum runs over the same rows in the same
 //! order (carried between the chunk dispatches), so the two differ in addresses only.
+//! A system over the device memory is refused before anything is allocated.
 
 use stickslip::cases::generate::{random_system, SystemSpec};
 use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::gpu::{GpuError, GpuParams, GpuSolver, Precision, Resources, SolveOutcome};
+use stickslip::gpu::{
+    GpuError, GpuParams, GpuSolver, PcgSolver, Precision, Resources, SolveOutcome,
+};
 use stickslip::solve::cg::Preconditioner;
 use stickslip::solve::coarse::CoarseSpace;
 
@@ -208,5 +211,45 @@ fn a_system_larger_than_device_memory_is_refused_with_the_exact_need() {
                 Ok(_) => panic!("{what}: accepted {total} bytes in {}", total - 1),
             }
         }
+    }
+}
+
+/// The device PCG (what `solve --solver gpu` runs in f64) refuses a system over the device
+/// memory in force before it allocates anything, in one line naming what it needs: more
+/// than H's values alone.
+#[test]
+fn the_device_pcg_refuses_a_system_over_device_memory() {
+    let Some((ctx, _g)) = gpu() else { return };
+    if !ctx.has_f64() {
+        eprintln!("SKIP the device PCG: no SHADER_F64");
+        return;
+    }
+    let s = random_system(&SystemSpec::with_nodes(3, 1000, 7));
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let h_bytes = 8 * s.h.values.len() as u64;
+    let p = GpuParams {
+        precision: Precision::F64,
+        ..Default::default()
+    };
+    assert!(PcgSolver::new(ctx, &e, &p).is_ok());
+    let short = GpuParams {
+        memory_limit: Some(h_bytes),
+        ..p
+    };
+    match PcgSolver::new(ctx, &e, &short) {
+        Err(GpuError::Device(m)) => {
+            assert!(m.contains(stickslip::gpu::DOES_NOT_FIT), "{m}");
+            assert!(!m.contains('\n'));
+            let needed: u64 = m
+                .split("needs ")
+                .nth(1)
+                .and_then(|t| t.split(' ').next())
+                .and_then(|t| t.parse().ok())
+                .unwrap_or_else(|| panic!("no need in {m}"));
+            eprintln!("{m}");
+            assert!(needed > h_bytes, "{needed} ≤ {h_bytes}");
+        }
+        Err(other) => panic!("{other}"),
+        Ok(_) => panic!("accepted a system in {h_bytes} bytes"),
     }
 }

@@ -246,6 +246,9 @@ pub(crate) enum Binding {
     Pieces,
 }
 
+/// What a refusal for want of device memory says (tests look for it).
+pub const DOES_NOT_FIT: &str = "does not fit on the GPU";
+
 /// The size of every device buffer of `bytes`: at least 16 (bindings must not be empty),
 /// whole 16-byte units ([`GpuContext::checked_size`], and the memory plans before it).
 pub(crate) fn padded_size(bytes: u64) -> u64 {
@@ -614,6 +617,28 @@ impl GpuContext {
             None => super::MAX_WORKGROUPS as usize,
         };
         n.clamp(1, super::MAX_WORKGROUPS as usize)
+    }
+
+    /// The device memory in force: the device's (where the backend reports it), or
+    /// `forced` where that is lower (`GpuParams::memory_limit`, tests).
+    pub(crate) fn memory_in_force(&self, forced: Option<u64>) -> Option<u64> {
+        match (self.device_memory(), forced) {
+            (Some(d), Some(l)) => Some(d.min(l)),
+            (d, l) => d.or(l),
+        }
+    }
+
+    /// Refuses a system whose buffers exceed the device's memory: one line with the bytes
+    /// needed and the bytes the device has. `memory` None: the device's size is unknown.
+    pub(crate) fn check_fits(&self, needed: u64, memory: Option<u64>) -> Result<(), GpuError> {
+        match memory {
+            Some(m) if needed > m => Err(GpuError::Device(format!(
+                "the system {DOES_NOT_FIT}: it needs {needed} bytes of device memory and \
+                 adapter '{}' has {m} bytes",
+                self.info.name
+            ))),
+            _ => Ok(()),
+        }
     }
 
     pub fn has_timestamps(&self) -> bool {

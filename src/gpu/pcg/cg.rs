@@ -97,6 +97,38 @@ pub struct IterationProfile {
     pub bytes: u64,
 }
 
+/// The bytes of the buffers [`DeviceCg::new`] sizes by the system (one place for both).
+struct Sizes {
+    /// One n·d f64 vector (y, r, z, p, q, pw, b̂, Δx).
+    vector: u64,
+    /// Both preconditioners: the block-Jacobi inverses (n·d²) and the Jacobi diagonal.
+    minv: u64,
+    /// The partial sums, then the sums carried across each boundary between H's chunks
+    /// (one segment straddles it), per invocation.
+    partials: u64,
+    /// The scalars and the Lanczos history.
+    scal: u64,
+}
+
+/// The f64 vectors of the CG: y, r, z, p, q, pw, b̂ and Δx.
+const N_VECTORS: u64 = 8;
+
+impl Sizes {
+    fn new(n: usize, dim: usize, segments: u64, chunks: usize, hist: u32) -> Self {
+        let nd = (n * dim) as u64;
+        Sizes {
+            vector: 8 * nd,
+            minv: 8 * (n * dim * dim) as u64 + 8 * nd,
+            partials: 8
+                * (slots::N_PART as u64 * segments
+                    + (chunks.saturating_sub(1) as u64)
+                        * slots::CARRY_LEN as u64
+                        * WORKGROUP as u64),
+            scal: 8 * (slots::SCAL_HIST + 2 * hist) as u64,
+        }
+    }
+}
+
 /// How a run of chunks ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Chunked {
@@ -412,9 +444,9 @@ impl DeviceCg {
         };
 
         // Buffers, limits checked first.
-        let nd = (n * dim) as u64;
+        let sz = Sizes::new(n, dim, segments, chunks.len(), hist);
         let zeroed = |label: &str, bytes: u64| ctx.storage_zeroed(label, bytes);
-        let vector = |label: &str| zeroed(label, 8 * nd);
+        let vector = |label: &str| zeroed(label, sz.vector);
         let pattern_buf = ctx.storage_with("pcg pattern", bytemuck::cast_slice(&pattern))?;
         let mut params = Vec::with_capacity(chunks.len());
         for (c, ch) in chunks.iter().enumerate() {
@@ -449,18 +481,10 @@ impl DeviceCg {
             q: vector("pcg q")?,
             pw: vector("pcg p in the world frame")?,
             b: vector("pcg rhs")?,
-            minv: zeroed("pcg preconditioner", 8 * (n * dim * dim) as u64 + 8 * nd)?,
+            minv: zeroed("pcg preconditioner", sz.minv)?,
             dx: vector("pcg dx")?,
-            // The partial sums, then the sums carried across each boundary between H's
-            // chunks (one segment straddles it), per invocation.
-            partials: zeroed(
-                "pcg partial sums",
-                8 * (slots::N_PART as u64 * segments
-                    + (chunks.len().saturating_sub(1) as u64)
-                        * slots::CARRY_LEN as u64
-                        * WORKGROUP as u64),
-            )?,
-            scal: zeroed("pcg scalars", 8 * (slots::SCAL_HIST + 2 * hist) as u64)?,
+            partials: zeroed("pcg partial sums", sz.partials)?,
+            scal: zeroed("pcg scalars", sz.scal)?,
             state: zeroed("pcg state", 4 * slots::N_STATE as u64)?,
             status: zeroed("pcg status", STATUS_BYTES)?,
         };
@@ -487,6 +511,35 @@ impl DeviceCg {
             recorded: Cell::new(0),
             reads: Cell::new(0),
         })
+    }
+
+    /// The device memory [`DeviceCg::new`] and [`DeviceCg::frames`] take beside H's values
+    /// and the gradient, for `n` block rows and `nnz` blocks in `dim` with H in `chunks`
+    /// buffers and `rotated` rotated nodes (the aggregates' index arrays, a few words per
+    /// node, not counted): what a caller adds to H's bytes to refuse a system that does not
+    /// fit before anything is allocated.
+    pub fn device_bytes(
+        ctx: &GpuContext,
+        (n, nnz, dim): (usize, usize, usize),
+        chunks: usize,
+        rotated: usize,
+        lanczos: bool,
+    ) -> u64 {
+        let p = crate::gpu::context::padded_size;
+        let segments = ctx.segments().segments(n as u64, WORKGROUP);
+        let hist = if lanczos { LANCZOS_HIST } else { 0 };
+        let sz = Sizes::new(n, dim, segments, chunks, hist);
+        let pattern = 4 * (2 * n as u64 + 1 + nnz as u64);
+        let frames = 8 * n as u64 + 8 * (rotated * dim * dim) as u64;
+        p(pattern)
+            + N_VECTORS * p(sz.vector)
+            + p(sz.minv)
+            + p(sz.partials)
+            + p(sz.scal)
+            + p(4 * slots::N_STATE as u64)
+            + p(STATUS_BYTES)
+            + chunks as u64 * p(std::mem::size_of::<PcgParams>() as u64)
+            + p(frames)
     }
 
     /// The world-frame Δx of the last successful solve (n·d f64, node-major).

@@ -8,7 +8,8 @@
 
 use super::cg::{DeviceCg, DeviceCgParams, DeviceFrames};
 use crate::core::elimination::{norm2, Eliminated};
-use crate::gpu::blocks::HostBlocks;
+use crate::gpu::blocks::{plan_rows, values_limit, HostBlocks};
+use crate::gpu::context::padded_size;
 use crate::gpu::solver::host::{Host, HostOp};
 use crate::gpu::{
     GpuContext, GpuError, GpuParams, GpuSolveInfo, Precision, SolveOutcome, StageSeconds,
@@ -16,6 +17,33 @@ use crate::gpu::{
 use crate::solve::cg::CgError;
 use crate::solve::coarse::CoarseSpace;
 use std::time::Instant;
+
+/// Refuses, before anything is allocated, a system whose H and CG buffers exceed the
+/// device memory in force (the aggregates' index arrays, a few words per node, come on
+/// top).
+fn check_memory(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<(), GpuError> {
+    let h = e.h;
+    let block = 8 * (h.dim * h.dim) as u64;
+    let plan = plan_rows(
+        &h.row_ptr,
+        block,
+        values_limit(ctx, params.binding_limit),
+        "matrix blocks",
+        ctx.adapter_name(),
+    )?;
+    let values: u64 = plan
+        .iter()
+        .map(|(_, b)| padded_size(b.len() as u64 * block))
+        .sum();
+    let cg = DeviceCg::device_bytes(
+        ctx,
+        (h.n, h.col_idx.len(), h.dim),
+        plan.len(),
+        e.frames.rot_nodes.len(),
+        true,
+    );
+    ctx.check_fits(values + cg, ctx.memory_in_force(params.memory_limit))
+}
 
 /// The device PCG for eliminated systems given on the host (f64 only): built once per
 /// block pattern and constraint set; [`PcgSolver::update`] writes new values.
@@ -42,6 +70,7 @@ impl PcgSolver {
             )));
         }
         crate::solve::cg::check_pinned(e)?;
+        check_memory(ctx, e, params)?;
         let t0 = Instant::now();
         let blocks = HostBlocks::upload(ctx, e.h, params.binding_limit)?;
         let cg = DeviceCg::new(ctx, blocks.matrix(), None, true)?;

@@ -103,7 +103,7 @@ impl Device {
             acc,
             op64,
         )?;
-        plan::check_fits(ctx, needed, memory_limit(ctx, params))?;
+        ctx.check_fits(needed, memory_limit(ctx, params))?;
         let shared = shared_buffers(&mut bld, host, n_partials, aggregation.as_ref())?;
         let op = build_operator(&mut bld, &shared, host, inner_real, acc, &consts)?;
         let level = build_level(

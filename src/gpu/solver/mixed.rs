@@ -474,7 +474,7 @@ impl GpuSolver {
             let c = &self.dev.consts;
             let need = plan::level_bytes(&ctx, &self.host, &self.params, c, Real::F64, acc)?;
             let used = self.tel.resources().total_bytes();
-            plan::check_fits(&ctx, used + need, Some(mem))?;
+            ctx.check_fits(used + need, Some(mem))?;
         }
         let mut bld = Builder::new(&ctx, binding_limit(&ctx, &self.params));
         let op = build_operator(

@@ -13,7 +13,7 @@ use crate::solve::coarse::Aggregation;
 
 /// Marks the refusal of a system too large for the device (the command line exits 2 on
 /// it: the input, not the device, is what must change).
-pub const DOES_NOT_FIT: &str = "does not fit on the GPU";
+pub use crate::gpu::context::DOES_NOT_FIT;
 
 /// Why a GPU solver refuses the multilevel preconditioner.
 pub const MULTILEVEL_ON_CPU: &str =
@@ -21,6 +21,11 @@ pub const MULTILEVEL_ON_CPU: &str =
 
 // Every buffer the builder makes has the size the one allocator gives it.
 use crate::gpu::context::padded_size;
+
+/// The device memory in force for these parameters (see `GpuContext::memory_in_force`).
+pub(super) fn memory_limit(ctx: &GpuContext, params: &GpuParams) -> Option<u64> {
+    ctx.memory_in_force(params.memory_limit)
+}
 
 /// Bytes of one operator in `real` (`levels::build_operator`).
 fn operator(
@@ -203,35 +208,9 @@ pub(super) fn device_bytes(
     Ok(t)
 }
 
-/// Refuses a system whose buffers exceed the device's memory: one line with the bytes
-/// needed and the bytes the device has. `memory` None: the device's size is unknown.
-pub(super) fn check_fits(
-    ctx: &GpuContext,
-    needed: u64,
-    memory: Option<u64>,
-) -> Result<(), GpuError> {
-    match memory {
-        Some(m) if needed > m => Err(GpuError::Device(format!(
-            "the system {DOES_NOT_FIT}: it needs {needed} bytes of device memory and adapter \
-             '{}' has {m} bytes",
-            ctx.info.name
-        ))),
-        _ => Ok(()),
-    }
-}
-
 /// The storage binding limit in force: the adapter's, or `GpuParams::binding_limit` where
 /// that is lower.
 pub(super) fn binding_limit(ctx: &GpuContext, params: &GpuParams) -> u64 {
     let adapter = ctx.limits.max_storage_buffer_binding_size;
     params.binding_limit.map_or(adapter, |l| l.min(adapter))
-}
-
-/// The device memory in force: the device's (where the backend reports it), or
-/// `GpuParams::memory_limit` where that is lower.
-pub(super) fn memory_limit(ctx: &GpuContext, params: &GpuParams) -> Option<u64> {
-    match (ctx.device_memory(), params.memory_limit) {
-        (Some(d), Some(l)) => Some(d.min(l)),
-        (d, l) => d.or(l),
-    }
 }
