@@ -59,9 +59,9 @@ pub struct PcgSolver {
 }
 
 impl PcgSolver {
-    /// Uploads `e`'s H, frames and b̂ and builds the CG. Refuses precisions other than f64
-    /// and the multilevel preconditioner, and (as the CPU CG) a system that a rigid
-    /// translation leaves singular.
+    /// Uploads `e`'s H, frames and b̂ and builds the CG. Refuses precisions other than f64,
+    /// a system over the device memory and (as the CPU CG) one that a rigid translation
+    /// leaves singular; `solve` refuses the multilevel preconditioner.
     pub fn new(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<Self, GpuError> {
         if params.precision != Precision::F64 {
             return Err(GpuError::Unsupported(format!(
