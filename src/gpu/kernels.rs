@@ -460,6 +460,19 @@ pub(crate) mod check {
         })
     }
 
+    /// Panics unless `m` declares a struct `name` of `size` bytes (a Rust `Pod` mirror).
+    pub(crate) fn struct_size(m: &naga::Module, name: &str, size: usize) {
+        let (_, ty) = m
+            .types
+            .iter()
+            .find(|(_, t)| t.name.as_deref() == Some(name))
+            .unwrap_or_else(|| panic!("no struct {name}"));
+        match &ty.inner {
+            naga::TypeInner::Struct { span, .. } => assert_eq!(*span as usize, size, "{name}"),
+            other => panic!("{name} is {other:?}"),
+        }
+    }
+
     /// Panics unless the WGSL declarations of `m` are `layout.bindings`: all in group 0,
     /// same indices, names and access, nothing more, nothing less.
     pub(crate) fn bindings_match(layout: &Layout, m: &naga::Module) {

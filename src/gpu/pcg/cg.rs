@@ -1550,17 +1550,7 @@ mod tests {
     fn layout_params_and_headers_match_the_wgsl() {
         let m = module();
         kernels::check::bindings_match(&PCG, &m);
-        let (_, ty) = m
-            .types
-            .iter()
-            .find(|(_, t)| t.name.as_deref() == Some("PcgParams"))
-            .expect("struct PcgParams");
-        match &ty.inner {
-            naga::TypeInner::Struct { span, .. } => {
-                assert_eq!(*span as usize, std::mem::size_of::<PcgParams>())
-            }
-            other => panic!("PcgParams is {other:?}"),
-        }
+        kernels::check::struct_size(&m, "PcgParams", std::mem::size_of::<PcgParams>());
         use aggregates::header as h;
         let agg = [
             ("AGG_COUNT", h::COUNT),

@@ -129,9 +129,8 @@ impl PcgSolver {
         if e.frames.rotations != f.rotations {
             self.frames = self.cg.frames(e.frames, self.params.coarse)?;
         }
-        match &mut self.host.op {
-            HostOp::Blocks(h) => h.values.copy_from_slice(&e.h.values),
-            HostOp::Springs(_) => unreachable!("the device PCG holds assembled blocks"),
+        if let HostOp::Blocks(h) = &mut self.host.op {
+            h.values.copy_from_slice(&e.h.values);
         }
         self.host.frames = e.frames.clone();
         self.host.rhs.copy_from_slice(&e.rhs);

@@ -981,17 +981,7 @@ mod tests {
     fn layout_and_params_match_the_wgsl() {
         let m = kernels::check::module(&ASSEMBLE, "f64", "f64", false);
         kernels::check::bindings_match(&ASSEMBLE, &m);
-        let (_, ty) = m
-            .types
-            .iter()
-            .find(|(_, t)| t.name.as_deref() == Some("AssemblyParams"))
-            .expect("struct AssemblyParams");
-        match &ty.inner {
-            naga::TypeInner::Struct { span, .. } => {
-                assert_eq!(*span as usize, std::mem::size_of::<AssemblyParams>())
-            }
-            other => panic!("AssemblyParams is {other:?}"),
-        }
+        kernels::check::struct_size(&m, "AssemblyParams", std::mem::size_of::<AssemblyParams>());
         for e in ENTRIES {
             assert!(
                 m.entry_points.iter().any(|p| p.name == e),
