@@ -34,7 +34,10 @@
 // results are those of one chunk, bit for bit.
 
 override D: u32 = 3u;
-// 0: none, 1: Jacobi, 2: block Jacobi (the preconditioner applied by init and update_yr).
+// 0: none, 1: Jacobi, 2: block Jacobi (the preconditioner applied by init and update_yr),
+// 3: multilevel (vcycle.wgsl applies it between update_yr and ml_dot, or init and
+// ml_start: init and update_yr then leave z alone and their r·z partials zero, and
+// ml_dot or ml_start writes them; only with COARSE = 0).
 override PRECOND: u32 = 1u;
 // The coarse correction (src/solve/coarse.rs, docs/coarse.md): 0 none, 1 the rigid
 // translations, 2 the translations of each aggregate. M⁻¹r = M_J⁻¹r + Z E⁺ Zᵀr with
@@ -520,6 +523,12 @@ fn write_rz_rr(lid: u32, wg: u32, sums: array<acc, 5>) {
 // z_i = M⁻¹r_i (and p_i = z_i at a start), with node i's shares of r·z and r·r and
 // (COARSE = 1) Zᵀr added to sums[0], sums[1] and sums[2..].
 fn precondition(i: u32, rv: array<real, 3>, start: bool, sums: ptr<function, array<acc, 5>>) {
+    if (PRECOND == 3u) {
+        for (var a = 0u; a < D; a++) {
+            (*sums)[1] += acc(rv[a]) * acc(rv[a]);
+        }
+        return;
+    }
     let zv = apply_precond(i, rv);
     for (var a = 0u; a < D; a++) {
         z[i * D + a] = zv[a];
@@ -643,6 +652,67 @@ fn world_p(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
     }
 }
 
+// pw = V P z: the multilevel V-cycle's product at level 0 (then `matvec`, whose q = Ĥz
+// and throw-away p·q partials the V-cycle reads before the next iteration's product).
+@compute @workgroup_size(WG)
+fn world_z(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    if (state[STATE_DONE] != 0u) {
+        return;
+    }
+    for (var i = grid_index(gid, nwg); i < params.n_nodes; i += grid_stride(nwg)) {
+        var w: array<real, 3>;
+        for (var c = 0u; c < D; c++) {
+            w[c] = select(z[i * D + c], real(0.0), fixed(i, c));
+        }
+        let o = from_frame(i, w);
+        for (var c = 0u; c < D; c++) {
+            pw[i * D + c] = o[c];
+        }
+    }
+}
+
+// The r·z partials after the V-cycle (PRECOND = 3); at a start (`START`) also p = z and
+// pw = V P p.
+fn ml_rz(lid: u32, wid: vec3<u32>, nwg: vec3<u32>, start: bool) {
+    for (var s = group_index(wid, nwg); s < params.n_partials; s += group_count(nwg)) {
+        var rz = acc(0.0);
+        for (var m = 0u; m < ITEMS; m++) {
+            let i = (s * ITEMS + m) * WG + lid;
+            if (i >= params.n_nodes) {
+                break;
+            }
+            for (var a = 0u; a < D; a++) {
+                let k = i * D + a;
+                rz += acc(r[k]) * acc(z[k]);
+                if (start) {
+                    p[k] = z[k];
+                }
+            }
+            if (start) {
+                write_world(i);
+            }
+        }
+        workgroup_sum(lid, sum1(rz), 1u);
+        if (lid == 0u) {
+            partials[PART_RZ * params.n_partials + s] = summed(0u);
+        }
+        workgroupBarrier();
+    }
+}
+
+@compute @workgroup_size(WG)
+fn ml_dot(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    if (stopped(lid.x)) {
+        return;
+    }
+    ml_rz(lid.x, wid, nwg, false);
+}
+
+@compute @workgroup_size(WG)
+fn ml_start(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    ml_rz(lid.x, wid, nwg, true);
+}
+
 // p = z + βp (and pw); with COARSE p = (z + Zc) + βp, the preconditioned residual
 // completed.
 @compute @workgroup_size(WG)
@@ -705,8 +775,9 @@ fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid
                 r[k] = rv[a];
             }
             precondition(i, rv, true, &sums);
-            // With COARSE, the update_p that completes p writes pw.
-            if (COARSE == 0u) {
+            // With COARSE, the update_p that completes p writes pw; with the multilevel
+            // preconditioner ml_start does.
+            if (COARSE == 0u && PRECOND != 3u) {
                 write_world(i);
             }
         }

@@ -3,8 +3,10 @@
 //!
 //! A system is a folder holding H.mtx, g.mtx and bc.json (found at any depth under DIR).
 //! Each is solved by Cholesky, by the CPU CG with Jacobi and block Jacobi, each with no
-//! coarse space, the rigid translations and the aggregates, and (unless `--no-gpu`) by the
-//! GPU CG in f64 with Jacobi and aggregates; setup (analysis or upload) and solve are timed
+//! coarse space, the rigid translations and the aggregates, by the CPU CG with the
+//! multilevel preconditioner, and (unless `--no-gpu`) by the GPU CG in f64 with Jacobi and
+//! aggregates and with the multilevel preconditioner; setup (analysis or upload, and the
+//! multilevel levels) and solve are timed
 //! apart, with the iterations and the true relative residual beside them.
 
 use crate::core::constraints::Constraint;
@@ -103,6 +105,10 @@ fn solvers(no_gpu: bool) -> Vec<(String, SolverConfig)> {
             SolverConfig::gpu(Precision::F64)
                 .preconditioner(Preconditioner::Jacobi)
                 .coarse(CoarseSpace::Aggregates),
+        ));
+        v.push((
+            "gpu f64 multilevel".into(),
+            SolverConfig::gpu(Precision::F64).preconditioner(Preconditioner::Multilevel),
         ));
     }
     v.into_iter()

@@ -106,8 +106,9 @@ pub struct BenchArgs {
     #[arg(long, requires = "newton", value_parser = positive_usize)]
     pub reps: Option<usize>,
     /// Time every solver and preconditioner (Cholesky; CPU CG with Jacobi and block
-    /// Jacobi, each with no coarse space, translations and aggregates; the GPU CG in f64
-    /// unless --no-gpu) to relative residual 1e-6 on the Newton systems captured under
+    /// Jacobi, each with no coarse space, translations and aggregates; multilevel; the GPU
+    /// CG in f64 with Jacobi and aggregates and with multilevel unless --no-gpu) to
+    /// relative residual 1e-6 on the Newton systems captured under
     /// DIR (`run --dump-systems`: every folder with H.mtx, g.mtx and bc.json).
     #[arg(long, value_name = "DIR", conflicts_with_all = ["newton", "hard", "quick", "sizes", "dims", "oracle_max_nodes", "coarse", "ordering", "seed"])]
     pub systems: Option<PathBuf>,
@@ -285,7 +286,8 @@ pub struct SolveArgs {
     /// only by κ·tol; this targets the error directly.
     #[arg(long, value_parser = relative_tol)]
     pub error_tol: Option<f64>,
-    /// Iterative solvers: none, jacobi or block-jacobi.
+    /// Iterative solvers: none, jacobi, block-jacobi or multilevel (the CPU CG and the GPU
+    /// in f64; it replaces --coarse).
     #[arg(long, default_value = "jacobi")]
     pub preconditioner: Preconditioner,
     /// Iterative solvers: coarse correction added to the preconditioner: aggregates (the

@@ -228,7 +228,10 @@ impl SolverConfig {
         if self.kind == SolverKind::Cholesky {
             return Ok(());
         }
-        if self.kind == SolverKind::Gpu && self.preconditioner == Preconditioner::Multilevel {
+        if self.kind == SolverKind::Gpu
+            && self.preconditioner == Preconditioner::Multilevel
+            && self.precision != Precision::F64
+        {
             return bad("preconditioner", crate::gpu::MULTILEVEL_ON_CPU.into());
         }
         let (tol, max_iters, error_tol) = match self.kind {

@@ -473,9 +473,12 @@ fn build_scene(
         .into());
     }
     check_magnitudes(&scene)?;
+    // The device Newton loop and the GPU solver in f64 run the device PCG, which has
+    // the multilevel preconditioner; f32 and mixed precision do not.
     if scene.solver.preconditioner == crate::solve::options::Preconditioner::Multilevel
-        && (scene.solver.linear == LinearKind::Gpu
-            || scene.solver.newton == crate::sim::scene::NewtonLoop::Gpu)
+        && scene.solver.linear == LinearKind::Gpu
+        && scene.solver.newton != crate::sim::scene::NewtonLoop::Gpu
+        && scene.solver.precision != crate::gpu::Precision::F64
     {
         return Err(InputError::new(
             scene.file.clone(),

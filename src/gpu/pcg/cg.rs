@@ -14,6 +14,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use Access::{Read as R, ReadWrite as W, Uniform as U};
 
 use super::aggregates::{self, AggregateIndex};
+use super::multilevel::{DeviceMultilevel, Finest, Step};
+use crate::solve::multilevel::Multilevel;
 
 /// Bind group 0 of shaders/pcg.wgsl, shared by all its entry points.
 pub const PCG: Layout = Layout {
@@ -234,6 +236,13 @@ struct Pipelines {
     agg_solve: wgpu::ComputePipeline,
     matvec: wgpu::ComputePipeline,
     world_p: wgpu::ComputePipeline,
+    /// The multilevel preconditioner's: pw = V P z (its level-0 product), the r·z
+    /// partials after the V-cycle, init and update_yr leaving z to it.
+    world_z: wgpu::ComputePipeline,
+    ml_dot: wgpu::ComputePipeline,
+    ml_start: wgpu::ComputePipeline,
+    update_yr_ml: wgpu::ComputePipeline,
+    init_ml: wgpu::ComputePipeline,
     scalar_alpha: wgpu::ComputePipeline,
     update_yr: [[wgpu::ComputePipeline; 3]; 3],
     scalar_beta: [wgpu::ComputePipeline; 3],
@@ -323,6 +332,10 @@ pub struct DeviceCg {
     /// Iterations recorded into command buffers and status reads of the current solve.
     recorded: Cell<usize>,
     reads: Cell<usize>,
+    /// The multilevel preconditioner's V-cycle, once asked for, and whether its levels
+    /// are those of the last `prepare`'s system.
+    ml: Option<DeviceMultilevel>,
+    ml_ready: bool,
 }
 
 impl DeviceCg {
@@ -434,6 +447,11 @@ impl DeviceCg {
             agg_solve: pipe("agg_solve", 0, 2),
             matvec: pipe("matvec", 0, 0),
             world_p: pipe("world_p", 0, 0),
+            world_z: pipe("world_z", 0, 0),
+            ml_dot: pipe("ml_dot", 3, 0),
+            ml_start: pipe("ml_start", 3, 0),
+            update_yr_ml: pipe("update_yr", 3, 0),
+            init_ml: pipe("init", 3, 0),
             scalar_alpha: pipe("scalar_alpha", 0, 0),
             update_yr: each("update_yr"),
             scalar_beta: both("scalar_beta"),
@@ -510,6 +528,8 @@ impl DeviceCg {
             last_iterations: 0,
             recorded: Cell::new(0),
             reads: Cell::new(0),
+            ml: None,
+            ml_ready: false,
         })
     }
 
@@ -837,7 +857,44 @@ impl DeviceCg {
         self.prepared = Some(frames.id);
         self.galerkin = Galerkin::OnDevice;
         self.agg_ready = false;
+        self.ml_ready = false;
         Ok(())
+    }
+
+    /// The multilevel preconditioner of the system just prepared (built on the host from
+    /// the same H and constraints `frames` were built from: [`Multilevel::new`]),
+    /// uploaded for the iterations with [`Preconditioner::Multilevel`]; call after every
+    /// `prepare`. A hierarchy met before keeps its buffers and only the values move.
+    pub fn set_multilevel(&mut self, ml: &Multilevel, frames: &Frames) -> Result<(), GpuError> {
+        if frames.n_nodes != self.n_nodes {
+            return Err(GpuError::Mismatch(format!(
+                "the constraints have {} nodes, the device PCG {}",
+                frames.n_nodes, self.n_nodes
+            )));
+        }
+        if self.ml.is_none() {
+            self.ml = Some(DeviceMultilevel::new(&self.ctx, self.dim)?);
+        }
+        let finest = Finest {
+            r: &self.buf.r,
+            z: &self.buf.z,
+            q: &self.buf.q,
+            state: &self.buf.state,
+        };
+        if let Some(dm) = self.ml.as_mut() {
+            dm.set(ml, frames, finest)?;
+        }
+        self.ml_ready = true;
+        Ok(())
+    }
+
+    /// Clusters per level of the multilevel preconditioner on the device, finest first
+    /// (empty before [`DeviceCg::set_multilevel`]).
+    pub fn multilevel_clusters(&self) -> Vec<usize> {
+        self.ml
+            .as_ref()
+            .map(DeviceMultilevel::cluster_counts)
+            .unwrap_or_default()
     }
 
     /// E of the aggregates (`prepare` reduced it on the device) read back, pseudo-inverted
@@ -1066,13 +1123,22 @@ impl DeviceCg {
         };
         let tol = check_tol(params.tol)?;
         let max = params.max_iterations;
-        let pre = precond_index(params.preconditioner)?;
-        if params.coarse == CoarseSpace::Aggregates && frames.coarse != CoarseSpace::Aggregates {
+        let (pre, co) = overrides(params, frames)?;
+        if pre != 3
+            && params.coarse == CoarseSpace::Aggregates
+            && frames.coarse != CoarseSpace::Aggregates
+        {
             return Err(GpuError::Mismatch(
                 "the device CG's aggregates need frames built for them (DeviceCg::frames)".into(),
             ));
         }
-        let co = coarse_index(params.coarse, frames);
+        if pre == 3 && !(self.ml_ready && self.ml.as_ref().is_some_and(DeviceMultilevel::is_set)) {
+            return Err(GpuError::Mismatch(
+                "the multilevel preconditioner was not set for this system (call \
+                 set_multilevel after prepare)"
+                    .into(),
+            ));
+        }
         self.check_pinned(frames)?;
         if co == 2 {
             self.upload_aggregate_einv(frames)?;
@@ -1226,6 +1292,13 @@ impl DeviceCg {
         let p = &self.pipes;
         let g0 = &frames.groups[0];
         let l = &self.launches;
+        if pre == 3 {
+            let mut k = vec![(&p.init_ml, l.segments, g0)];
+            k.extend(self.vcycle(frames).into_iter().map(|(_, k)| k));
+            k.push((&p.ml_start, l.segments, g0));
+            k.push((&p.scalar_start[0], ONE, g0));
+            return k;
+        }
         let mut k = vec![(&p.init[co][pre], l.segments, g0)];
         k.extend(self.aggregate_correction(frames, co));
         k.push((&p.scalar_start[co], ONE, g0));
@@ -1259,6 +1332,31 @@ impl DeviceCg {
         }
     }
 
+    /// The dispatches of z = M⁻¹r with the multilevel preconditioner (r and z the PCG's),
+    /// named: the V-cycle's, with level 0's product the PCG's own (pw = V P z, then q = Ĥz).
+    fn vcycle<'a>(&'a self, frames: &'a DeviceFrames) -> Vec<(&'static str, Kernel<'a>)> {
+        let Some(ml) = &self.ml else {
+            return Vec::new();
+        };
+        let mut out = Vec::new();
+        for step in ml.steps() {
+            match step {
+                Step::Kernel(name, pipe, launch, group) => out.push((name, (pipe, launch, group))),
+                Step::FinestProduct => {
+                    out.push((
+                        "ml world_z",
+                        (&self.pipes.world_z, self.launches.nodes, &frames.groups[0]),
+                    ));
+                    out.extend(
+                        Self::per_chunk(&self.pipes.matvec, &self.launches.chunk_segments, frames)
+                            .map(|k| ("ml matvec", k)),
+                    );
+                }
+            }
+        }
+        out
+    }
+
     /// The dispatches of one CG iteration, named.
     fn iteration<'a>(
         &'a self,
@@ -1272,6 +1370,19 @@ impl DeviceCg {
             Self::per_chunk(&p.matvec, &l.chunk_segments, frames)
                 .map(|k| ("matvec", k))
                 .collect();
+        if pre == 3 {
+            one.extend([
+                ("scalar_alpha", (&p.scalar_alpha, ONE, g0)),
+                ("update_yr", (&p.update_yr_ml, l.segments, g0)),
+            ]);
+            one.extend(self.vcycle(frames));
+            one.extend([
+                ("ml_dot", (&p.ml_dot, l.segments, g0)),
+                ("scalar_beta", (&p.scalar_beta[0], ONE, g0)),
+                ("update_p", (&p.update_p[0], l.nodes, g0)),
+            ]);
+            return one;
+        }
         one.extend([
             ("scalar_alpha", (&p.scalar_alpha, ONE, g0)),
             ("update_yr", (&p.update_yr[co][pre], l.segments, g0)),
@@ -1293,10 +1404,7 @@ impl DeviceCg {
         frames: &DeviceFrames,
         params: &DeviceCgParams,
     ) -> Result<IterationProfile, GpuError> {
-        let (pre, co) = (
-            precond_index(params.preconditioner)?,
-            coarse_index(params.coarse, frames),
-        );
+        let (pre, co) = overrides(params, frames)?;
         let dispatches = self
             .iteration(frames, pre, co)
             .into_iter()
@@ -1313,7 +1421,7 @@ impl DeviceCg {
         // matvec: H, its column indices and row pointers, the frames, pw, p, q.
         let matvec = nnz * (8 * d * d + 4) + 4 * (n + 1) + 8 * n + 3 * vec;
         // update_yr: y and r read and written, p, q and the preconditioner read, z written.
-        let minv = [0, vec, 8 * n * d * d][pre];
+        let minv = [0, vec, 8 * n * d * d, 0][pre];
         let update_yr = 7 * vec + minv + 8 * n * u64::from(co == 1);
         // update_p: z and p read, p and pw written, the frames (and each node's aggregate).
         let update_p = 4 * vec + [8 * n, 8 * n, 12 * n][co];
@@ -1322,9 +1430,15 @@ impl DeviceCg {
             // restrict: r, the frames and the node lists; solve: E⁺ and w.
             vec + 12 * n + 8 * (k * k + 2 * k)
         });
+        // The V-cycle: its own kernels, two more level-0 products (pw = V P z first) and
+        // ml_dot (r and z read).
+        let ml = match (&self.ml, pre) {
+            (Some(m), 3) => m.bytes_per_cycle() + 2 * (matvec + 2 * vec + 8 * n) + 2 * vec,
+            _ => 0,
+        };
         Ok(IterationProfile {
             dispatches,
-            bytes: matvec + update_yr + update_p + agg + 2 * partials,
+            bytes: matvec + update_yr + update_p + agg + ml + 2 * partials,
         })
     }
 
@@ -1342,10 +1456,7 @@ impl DeviceCg {
             return Ok(None);
         }
         self.own(frames)?;
-        let (pre, co) = (
-            precond_index(params.preconditioner)?,
-            coarse_index(params.coarse, frames),
-        );
+        let (pre, co) = overrides(params, frames)?;
         if co == 2 {
             self.upload_aggregate_einv(frames)?;
         }
@@ -1504,10 +1615,20 @@ fn precond_index(p: Preconditioner) -> Result<usize, GpuError> {
         Preconditioner::None => Ok(0),
         Preconditioner::Jacobi => Ok(1),
         Preconditioner::BlockJacobi => Ok(2),
-        Preconditioner::Multilevel => {
-            Err(GpuError::Unsupported(crate::gpu::MULTILEVEL_ON_CPU.into()))
-        }
+        Preconditioner::Multilevel => Ok(3),
     }
+}
+
+/// The PRECOND and COARSE overrides of `params` on these frames. The multilevel
+/// preconditioner has coarse levels of its own and takes no coarse space (as on the CPU).
+fn overrides(params: &DeviceCgParams, frames: &DeviceFrames) -> Result<(usize, usize), GpuError> {
+    let pre = precond_index(params.preconditioner)?;
+    let co = if pre == 3 {
+        0
+    } else {
+        coarse_index(params.coarse, frames)
+    };
+    Ok((pre, co))
 }
 
 /// The COARSE override of a coarse space on these frames (aggregates with every node

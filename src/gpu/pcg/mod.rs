@@ -48,6 +48,7 @@
 
 pub mod aggregates;
 mod cg;
+mod multilevel;
 mod solver;
 
 pub use cg::{

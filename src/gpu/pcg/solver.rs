@@ -16,6 +16,9 @@ use crate::gpu::{
 };
 use crate::solve::cg::CgError;
 use crate::solve::coarse::CoarseSpace;
+use crate::solve::multilevel::{Hierarchy, Multilevel};
+use crate::solve::options::Preconditioner;
+use std::sync::Arc;
 use std::time::Instant;
 
 /// Refuses, before anything is allocated, a system whose H and CG buffers exceed the
@@ -54,6 +57,8 @@ pub struct PcgSolver {
     blocks: HostBlocks,
     cg: DeviceCg,
     frames: DeviceFrames,
+    /// The multilevel preconditioner's clusters (H's pattern only: kept across updates).
+    hierarchy: Option<Arc<Hierarchy>>,
     upload_seconds: f64,
     setup_seconds: f64,
 }
@@ -61,7 +66,9 @@ pub struct PcgSolver {
 impl PcgSolver {
     /// Uploads `e`'s H, frames and b̂ and builds the CG. Refuses precisions other than f64,
     /// a system over the device memory and (as the CPU CG) one that a rigid translation
-    /// leaves singular; `solve` refuses the multilevel preconditioner.
+    /// leaves singular. With the multilevel preconditioner the host builds its levels
+    /// (the CPU CG's [`Multilevel`], clusters partitioned once per pattern) for every
+    /// system and uploads them: setup time.
     pub fn new(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<Self, GpuError> {
         if params.precision != Precision::F64 {
             return Err(GpuError::Unsupported(format!(
@@ -88,17 +95,27 @@ impl PcgSolver {
             blocks,
             cg,
             frames,
+            hierarchy: None,
             upload_seconds: t0.elapsed().as_secs_f64(),
             setup_seconds: 0.0,
         };
-        s.prepare()?;
+        s.prepare(e)?;
         Ok(s)
     }
 
     /// b̂ and the preconditioner (and coarse matrix) of the current values on the device.
-    fn prepare(&mut self) -> Result<(), GpuError> {
+    fn prepare(&mut self, e: &Eliminated) -> Result<(), GpuError> {
         let t = Instant::now();
         self.cg.prepare_with_rhs(&self.frames, &self.host.rhs)?;
+        if self.params.preconditioner == Preconditioner::Multilevel {
+            let hierarchy = match self.hierarchy.take() {
+                Some(h) if h.fits(e.h) => h,
+                _ => Arc::new(Hierarchy::new(e.h)),
+            };
+            let ml = Multilevel::new(e, hierarchy.clone());
+            self.hierarchy = Some(hierarchy);
+            self.cg.set_multilevel(&ml, e.frames)?;
+        }
         // The setup kernels' time, not just their recording.
         self.ctx
             .device
@@ -136,7 +153,7 @@ impl PcgSolver {
         self.host.rhs.copy_from_slice(&e.rhs);
         self.host.diag.copy_from_slice(&e.diag);
         self.upload_seconds = t0.elapsed().as_secs_f64();
-        self.prepare()
+        self.prepare(e)
     }
 
     /// Solves Ĥ y = b̂; returns y (frame coordinates), Δx = Δx_p + V y and the report.
@@ -213,7 +230,16 @@ impl PcgSolver {
         let profile = self.cg.iteration_profile(&self.frames, &cg_params)?;
         let bpi = profile.bytes;
         let moved = bpi as f64 * iterations as f64;
+        let levels = self.cg.multilevel_clusters();
         let coarse = match (self.params.coarse, self.frames.aggregate_count()) {
+            _ if self.params.preconditioner == Preconditioner::Multilevel => format!(
+                "the multilevel levels ({} clusters)",
+                levels
+                    .iter()
+                    .map(|c| c.to_string())
+                    .collect::<Vec<_>>()
+                    .join("/")
+            ),
             (CoarseSpace::Aggregates, Some(k)) => format!("aggregates ({k})"),
             (CoarseSpace::Translations, _) if self.cg.translations_inactive() => format!(
                 "{} (inactive: every translation is constrained)",

@@ -15,9 +15,9 @@ use crate::solve::coarse::Aggregation;
 /// it: the input, not the device, is what must change).
 pub use crate::gpu::context::DOES_NOT_FIT;
 
-/// Why a GPU solver refuses the multilevel preconditioner.
+/// Why the f32 and mixed-precision GPU solver refuses the multilevel preconditioner.
 pub const MULTILEVEL_ON_CPU: &str =
-    "the multilevel preconditioner runs in the CPU CG only (the GPU CGs take none, jacobi or block-jacobi)";
+    "the multilevel preconditioner runs in f64 only (the CPU CG and the f64 device PCG); f32 and mixed take none, jacobi or block-jacobi";
 
 // Every buffer the builder makes has the size the one allocator gives it.
 use crate::gpu::context::padded_size;

@@ -22,6 +22,8 @@ use super::linear::LinearStats;
 use super::report::GpuRunReport;
 use super::state::{Contact, State, CCD_FRACTION};
 use super::targets::MovingTargets;
+use crate::core::constraints::Frames;
+use crate::core::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::gpu::pcg::{DeviceCg, DeviceCgParams, DeviceFrames};
 use crate::gpu::{GpuContext, GpuError, GpuOptions, Precision};
 use crate::sim::device::assembly::GpuAssembly;
@@ -30,6 +32,8 @@ use crate::sim::device::newton_ops::{static_projections, MovingTerm, NewtonOps};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
 use crate::sim::energy::{AssemblyWork, InversionLimit, Inverted};
 use crate::sim::scene::Scene;
+use crate::solve::multilevel::{Hierarchy, Multilevel};
+use crate::solve::options::Preconditioner;
 use std::collections::HashMap;
 use std::time::Instant;
 
@@ -53,6 +57,8 @@ pub(super) struct DeviceLoop {
     scratch_v: Vec<f64>,
     /// The host's element buffer of the force balance, kept between steps.
     assembly: AssemblyWork,
+    /// The multilevel preconditioner's clusters (H's pattern only: once per run).
+    hierarchy: Option<std::sync::Arc<Hierarchy>>,
     dim: usize,
 }
 
@@ -173,6 +179,7 @@ impl DeviceLoop {
             scratch: vec![0.0; scene.model.n_nodes * d],
             scratch_v: Vec::new(),
             assembly: AssemblyWork::default(),
+            hierarchy: None,
             dim: d,
         })
     }
@@ -209,6 +216,21 @@ impl DeviceLoop {
 }
 
 impl DeviceLoop {
+    /// The multilevel preconditioner of the system just assembled: H read back, its levels
+    /// built on the host by the CPU CG's code ([`Multilevel::new`]) and uploaded.
+    fn set_multilevel(&mut self, frames: &Frames) -> Result<(), GpuError> {
+        let h = self.asm.read_matrix()?;
+        let hierarchy = match self.hierarchy.take() {
+            Some(hi) if hi.fits(&h) => hi,
+            _ => std::sync::Arc::new(Hierarchy::new(&h)),
+        };
+        let g = vec![0.0; h.n * h.dim];
+        let e = Eliminated::new(&h, &g, frames, ConstrainedDiagonal::Identity);
+        let ml = Multilevel::new(&e, hierarchy.clone());
+        self.hierarchy = Some(hierarchy);
+        self.cg.set_multilevel(&ml, frames)
+    }
+
     /// What a device CG solve cost, as the host loop reports its solves.
     fn stats(info: &crate::gpu::pcg::DeviceCgInfo, t: Instant) -> LinearStats {
         LinearStats {
@@ -335,6 +357,11 @@ impl Backend for DeviceLoop {
             cause: e.to_string(),
         };
         self.cg.prepare(frames).map_err(cg_error)?;
+        if self.params.preconditioner == Preconditioner::Multilevel {
+            self.set_multilevel(&state.frames[snapped])
+                .map_err(cg_error)?;
+        }
+        let frames = &self.frames[snapped];
         let info = self
             .cg
             .iterate_to(frames, &self.params, tolerance)

@@ -150,6 +150,46 @@ pub struct Multilevel {
     dropped: usize,
 }
 
+/// One level of a [`Multilevel`] as the device V-cycle reads it (src/gpu/pcg/multilevel.rs):
+/// the clusters, the matrix, the cluster inverses, the damping and the prolongation to
+/// the next level, borrowed.
+#[derive(Debug, Clone, Copy)]
+pub struct LevelView<'a> {
+    /// Items (nodes at level 0, clusters of the level above deeper down).
+    pub n: usize,
+    /// Cluster of each item, its position in the cluster, the clusters' item ranges and
+    /// the items by cluster.
+    pub of: &'a [u32],
+    pub pos: &'a [u32],
+    pub ptr: &'a [usize],
+    pub items: &'a [u32],
+    /// The level's matrix: block pattern and d×d row-major values (level 0: Ĥ in the
+    /// node frames, with the constrained diagonal).
+    pub row_ptr: &'a [usize],
+    pub col_idx: &'a [usize],
+    pub values: &'a [f64],
+    /// Cluster c's (m×m, symmetric) pseudo-inverse at `inv[inv_start[c]..inv_start[c + 1]]`.
+    pub inv_start: &'a [usize],
+    pub inv: &'a [f64],
+    /// The smoother's damping (1 at the coarsest level, which is solved).
+    pub omega: f64,
+    /// The prolongation to the next level (none at the coarsest).
+    pub to_next: Option<ProlongationView<'a>>,
+}
+
+/// The smoothed prolongation P from one level to the next, borrowed: row i's blocks
+/// `p[p_ptr[i]..p_ptr[i + 1]]` in columns `p_col`, and Pᵀ cluster by cluster (`pt_ptr`;
+/// per block its row item and the block transposed in `pt_values`).
+#[derive(Debug, Clone, Copy)]
+pub struct ProlongationView<'a> {
+    pub p_ptr: &'a [usize],
+    pub p_col: &'a [u32],
+    pub p: &'a [f64],
+    pub pt_ptr: &'a [usize],
+    pub pt: &'a [(u32, u32)],
+    pub pt_values: &'a [f64],
+}
+
 impl Multilevel {
     /// Factors every level of `hierarchy` (built for `e.h`'s pattern) on the system `e`.
     pub fn new(e: &Eliminated, hierarchy: std::sync::Arc<Hierarchy>) -> Self {
@@ -208,6 +248,48 @@ impl Multilevel {
             })
             .collect();
         ml
+    }
+
+    /// The hierarchy these factors were built on.
+    pub fn hierarchy(&self) -> &std::sync::Arc<Hierarchy> {
+        &self.hierarchy
+    }
+
+    /// Dimension d of the nodes.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    /// Every level, finest first, as the device V-cycle reads it.
+    pub fn levels(&self) -> Vec<LevelView<'_>> {
+        let nl = self.hierarchy.levels.len();
+        (0..nl)
+            .map(|l| {
+                let lev = &self.hierarchy.levels[l];
+                let f = &self.factors[l];
+                LevelView {
+                    n: lev.n,
+                    of: &lev.of,
+                    pos: &lev.pos,
+                    ptr: &lev.ptr,
+                    items: &lev.items,
+                    row_ptr: &lev.row_ptr,
+                    col_idx: &lev.col_idx,
+                    values: &self.values[l],
+                    inv_start: &f.start,
+                    inv: &f.factor,
+                    omega: if l + 1 < nl { self.omega[l] } else { 1.0 },
+                    to_next: self.hierarchy.smooth.get(l).map(|sp| ProlongationView {
+                        p_ptr: &sp.p_ptr,
+                        p_col: &sp.p_col,
+                        p: &self.p[l],
+                        pt_ptr: &sp.pt_ptr,
+                        pt: &sp.pt,
+                        pt_values: &self.pt[l],
+                    }),
+                }
+            })
+            .collect()
     }
 
     /// Pivots dropped (singular or indefinite directions), all levels together.

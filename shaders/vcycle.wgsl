@@ -1,0 +1,200 @@
+// The multilevel preconditioner's V-cycle on the device (src/gpu/pcg/multilevel.rs): the
+// CPU's z = M⁻¹r of src/solve/multilevel, level by level, with the factors and matrices
+// the host built for the current system.
+//
+// One bind group per level l: its index arrays (`idx`) and f64 arrays (`vals`), its
+// vectors b (right-hand side), x (correction) and ax (= A_l x, its residual being b − ax)
+// and the next level's b and x. Level 0's b, x and ax are the PCG's r, z and q, and its
+// product is the PCG's own matvec (pcg.wgsl, `world_z` then `matvec`): the operator a
+// device Newton loop reads in place. Per level, down and up:
+//
+//   smooth_pre   x = ω B⁺ b                 (the coarsest level: ω = 1, the solve)
+//   A x          level_ax here, the PCG's product at level 0
+//   restrict_down b' = Pᵀ (b − ax)
+//   …            the level below
+//   prolong_up   x += P x'
+//   A x
+//   smooth_post  x += ω B⁺ (b − ax)
+//
+// B⁺ is the block-diagonal pseudo-inverse of the level's clusters (dense, symmetric,
+// one per cluster). Every kernel writes each output from one invocation summing in a
+// fixed order: no atomics, the same bits on any launch. Once the PCG's stop flag is set
+// every kernel is a no-op, as the PCG's own are.
+
+// Mirrors `VcycleParams` in src/gpu/pcg/multilevel.rs (size-asserted there). Offsets
+// are in u32 words of `idx` and f64 entries of `vals`.
+struct VcycleParams {
+    // Items of this level, clusters of this level (the items of the next).
+    n: u32,
+    clusters: u32,
+    // idx: cluster of each item, position in its cluster, cluster item ranges (clusters
+    // + 1), items by cluster, each cluster's inverse offset in vals (relative to inv_at).
+    of_at: u32,
+    pos_at: u32,
+    ptr_at: u32,
+    items_at: u32,
+    inv_start_at: u32,
+    // idx: the level's matrix pattern (row pointers, columns; levels below the finest).
+    row_at: u32,
+    col_at: u32,
+    // idx: P's rows (pointers, cluster columns) and Pᵀ's (per cluster: pointers, then per
+    // block its row item).
+    p_ptr_at: u32,
+    p_col_at: u32,
+    pt_ptr_at: u32,
+    pt_row_at: u32,
+    // vals: ω, the matrix values, the inverses, P's and Pᵀ's blocks (D×D row-major).
+    omega_at: u32,
+    a_at: u32,
+    inv_at: u32,
+    p_at: u32,
+    pt_at: u32,
+    // 1 where this level has a level below (restrict_down and prolong_up are then defined).
+    has_next: u32,
+    _pad: u32,
+}
+
+override D: u32 = 3u;
+
+@group(0) @binding(0) var<uniform> vp: VcycleParams;
+@group(0) @binding(1) var<storage, read> idx: array<u32>;
+@group(0) @binding(2) var<storage, read> vals: array<real>;
+@group(0) @binding(3) var<storage, read_write> b: array<real>;
+@group(0) @binding(4) var<storage, read_write> x: array<real>;
+@group(0) @binding(5) var<storage, read_write> ax: array<real>;
+@group(0) @binding(6) var<storage, read_write> bn: array<real>;
+@group(0) @binding(7) var<storage, read_write> xn: array<real>;
+// The PCG's state: its stop flag.
+@group(0) @binding(8) var<storage, read> state: array<u32>;
+
+fn halted() -> bool {
+    return state[STATE_DONE] != 0u;
+}
+
+// (B⁺ v)_k for dof k = i·D + a of the level, v = b (post: b − ax): the row of item i's
+// cluster inverse times the cluster's entries, summed item by item in cluster order.
+fn cluster_row(k: u32, post: bool) -> real {
+    let i = k / D;
+    let a = k % D;
+    let c = idx[vp.of_at + i];
+    let t0 = idx[vp.ptr_at + c];
+    let t1 = idx[vp.ptr_at + c + 1u];
+    let m = (t1 - t0) * D;
+    let base = vp.inv_at + idx[vp.inv_start_at + c] + (idx[vp.pos_at + i] * D + a) * m;
+    var s = real(0.0);
+    for (var t = t0; t < t1; t++) {
+        let j = idx[vp.items_at + t];
+        let o = base + (t - t0) * D;
+        for (var e = 0u; e < D; e++) {
+            var v = b[j * D + e];
+            if (post) {
+                v -= ax[j * D + e];
+            }
+            s += vals[o + e] * v;
+        }
+    }
+    return s;
+}
+
+// x = ω B⁺ b.
+@compute @workgroup_size(WG)
+fn smooth_pre(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    if (halted()) {
+        return;
+    }
+    let omega = vals[vp.omega_at];
+    for (var k = grid_index(gid, nwg); k < vp.n * D; k += grid_stride(nwg)) {
+        x[k] = cluster_row(k, false) * omega;
+    }
+}
+
+// x += ω B⁺ (b − ax).
+@compute @workgroup_size(WG)
+fn smooth_post(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    if (halted()) {
+        return;
+    }
+    let omega = vals[vp.omega_at];
+    for (var k = grid_index(gid, nwg); k < vp.n * D; k += grid_stride(nwg)) {
+        x[k] += omega * cluster_row(k, true);
+    }
+}
+
+// ax = A x for a level below the finest (D×D blocks on the level's pattern), each entry
+// summed block by block in column order.
+@compute @workgroup_size(WG)
+fn level_ax(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    if (halted()) {
+        return;
+    }
+    for (var i = grid_index(gid, nwg); i < vp.n; i += grid_stride(nwg)) {
+        var acc3: array<real, 3>;
+        for (var k = idx[vp.row_at + i]; k < idx[vp.row_at + i + 1u]; k++) {
+            let j = idx[vp.col_at + k];
+            let o = vp.a_at + k * D * D;
+            for (var r = 0u; r < D; r++) {
+                var s = vals[o + r * D] * x[j * D];
+                for (var c = 1u; c < D; c++) {
+                    s += vals[o + r * D + c] * x[j * D + c];
+                }
+                acc3[r] += s;
+            }
+        }
+        for (var r = 0u; r < D; r++) {
+            ax[i * D + r] = acc3[r];
+        }
+    }
+}
+
+// b'_c = Σ_i P_icᵀ (b_i − ax_i) over the blocks of cluster c's column of P, by item.
+@compute @workgroup_size(WG)
+fn restrict_down(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    if (halted() || vp.has_next == 0u) {
+        return;
+    }
+    for (var c = grid_index(gid, nwg); c < vp.clusters; c += grid_stride(nwg)) {
+        var o3: array<real, 3>;
+        for (var t = idx[vp.pt_ptr_at + c]; t < idx[vp.pt_ptr_at + c + 1u]; t++) {
+            let i = idx[vp.pt_row_at + t];
+            let o = vp.pt_at + t * D * D;
+            for (var a = 0u; a < D; a++) {
+                var s = real(0.0);
+                for (var k = 0u; k < D; k++) {
+                    s += vals[o + a * D + k] * (b[i * D + k] - ax[i * D + k]);
+                }
+                o3[a] += s;
+            }
+        }
+        for (var a = 0u; a < D; a++) {
+            bn[c * D + a] = o3[a];
+        }
+    }
+}
+
+// x_i += Σ_c P_ic x'_c over row i's blocks of P.
+@compute @workgroup_size(WG)
+fn prolong_up(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    if (halted() || vp.has_next == 0u) {
+        return;
+    }
+    for (var i = grid_index(gid, nwg); i < vp.n; i += grid_stride(nwg)) {
+        var z3: array<real, 3>;
+        for (var a = 0u; a < D; a++) {
+            z3[a] = x[i * D + a];
+        }
+        for (var pk = idx[vp.p_ptr_at + i]; pk < idx[vp.p_ptr_at + i + 1u]; pk++) {
+            let c = idx[vp.p_col_at + pk];
+            let o = vp.p_at + pk * D * D;
+            for (var a = 0u; a < D; a++) {
+                var s = real(0.0);
+                for (var k = 0u; k < D; k++) {
+                    s += vals[o + a * D + k] * xn[c * D + k];
+                }
+                z3[a] += s;
+            }
+        }
+        for (var a = 0u; a < D; a++) {
+            x[i * D + a] = z3[a];
+        }
+    }
+}

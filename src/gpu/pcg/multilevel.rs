@@ -1,0 +1,479 @@
+//! The multilevel preconditioner on the device (shaders/vcycle.wgsl): the CPU CG's
+//! V-cycle ([`crate::solve::multilevel`]) applied as z = M⁻¹r inside the device PCG.
+//!
+//! The host builds the hierarchy (once per pattern) and, for every system, the cluster
+//! inverses, the smoothed prolongations and the coarse matrices: [`Multilevel::new`],
+//! the CPU CG's own code, so both CGs precondition with the same operator. This module
+//! uploads them and records the V-cycle's dispatches; level 0's product is the PCG's own
+//! (H read in place and rotated), so its matrix is never copied. Per V-cycle and level:
+//! two smoothing dispatches, two products, a restriction and a prolongation.
+//!
+//! Why the setup runs on the host: it is the CPU's code and bits (one specification of
+//! the clusters, the pivots dropped and ω), its cost is one pass over H per Newton
+//! iteration, and the iterations it saves are the device's. The device loop reads H back
+//! for it once per system (counted in the run's device-to-host bytes).
+
+use crate::core::constraints::Frames;
+use crate::gpu::kernels::{self, Access, Layout};
+use crate::gpu::{GpuContext, GpuError, Launch};
+use crate::solve::multilevel::{LevelView, Multilevel};
+use std::sync::Arc;
+
+use Access::{Read as R, ReadWrite as W, Uniform as U};
+
+/// Bind group 0 of shaders/vcycle.wgsl.
+pub const VCYCLE: Layout = Layout {
+    file: "vcycle.wgsl",
+    source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/vcycle.wgsl")),
+    bindings: &[
+        ("vp", U),
+        ("idx", R),
+        ("vals", R),
+        ("b", W),
+        ("x", W),
+        ("ax", W),
+        ("bn", W),
+        ("xn", W),
+        ("state", R),
+    ],
+};
+
+/// Workgroup size of the V-cycle's kernels.
+const WORKGROUP: u32 = 64;
+
+/// Offsets of one level's arrays (mirrors `VcycleParams` in the WGSL).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct VcycleParams {
+    n: u32,
+    clusters: u32,
+    of_at: u32,
+    pos_at: u32,
+    ptr_at: u32,
+    items_at: u32,
+    inv_start_at: u32,
+    row_at: u32,
+    col_at: u32,
+    p_ptr_at: u32,
+    p_col_at: u32,
+    pt_ptr_at: u32,
+    pt_row_at: u32,
+    omega_at: u32,
+    a_at: u32,
+    inv_at: u32,
+    p_at: u32,
+    pt_at: u32,
+    has_next: u32,
+    _pad: u32,
+}
+const _: () = assert!(std::mem::size_of::<VcycleParams>() == 80);
+
+/// The pipelines of shaders/vcycle.wgsl.
+struct Pipelines {
+    smooth_pre: wgpu::ComputePipeline,
+    smooth_post: wgpu::ComputePipeline,
+    level_ax: wgpu::ComputePipeline,
+    restrict_down: wgpu::ComputePipeline,
+    prolong_up: wgpu::ComputePipeline,
+}
+
+/// One level on the device.
+struct DeviceLevel {
+    n: usize,
+    clusters: usize,
+    /// Where the values go in `vals` (rewritten per system on the same hierarchy).
+    vals: wgpu::Buffer,
+    vals_len: usize,
+    group: wgpu::BindGroup,
+    /// Kept alive with the bind group: params, idx, and below the finest b, x, ax.
+    _keep: Vec<wgpu::Buffer>,
+}
+
+/// The PCG's buffers level 0 works in: r (its b), z (its x), q (its A x) and the state.
+pub(super) struct Finest<'a> {
+    pub r: &'a wgpu::Buffer,
+    pub z: &'a wgpu::Buffer,
+    pub q: &'a wgpu::Buffer,
+    pub state: &'a wgpu::Buffer,
+}
+
+/// One dispatch of the V-cycle, or level 0's product (recorded by the PCG).
+pub(super) enum Step<'a> {
+    Kernel(
+        &'static str,
+        &'a wgpu::ComputePipeline,
+        Launch,
+        &'a wgpu::BindGroup,
+    ),
+    FinestProduct,
+}
+
+/// The V-cycle's pipelines and every level's buffers for one hierarchy.
+pub(super) struct DeviceMultilevel {
+    ctx: GpuContext,
+    dim: usize,
+    pipes: Pipelines,
+    layout: wgpu::BindGroupLayout,
+    levels: Vec<DeviceLevel>,
+    hierarchy: Option<Arc<crate::solve::multilevel::Hierarchy>>,
+}
+
+/// The index arrays of one level, packed, with their offsets.
+fn pack_indices(v: &LevelView<'_>, finest: bool) -> Result<(Vec<u32>, VcycleParams), GpuError> {
+    let too_big = || {
+        GpuError::Unsupported(
+            "the multilevel preconditioner's arrays exceed the device's u32 indices".into(),
+        )
+    };
+    let u = |x: usize| u32::try_from(x).map_err(|_| too_big());
+    let mut idx: Vec<u32> = Vec::new();
+    let mut p = VcycleParams {
+        n: u(v.n)?,
+        clusters: u(v.ptr.len() - 1)?,
+        ..Default::default()
+    };
+    let put = |idx: &mut Vec<u32>, xs: &mut dyn Iterator<Item = usize>| -> Result<u32, GpuError> {
+        let at = u(idx.len())?;
+        for x in xs {
+            idx.push(u(x)?);
+        }
+        Ok(at)
+    };
+    p.of_at = put(&mut idx, &mut v.of.iter().map(|&x| x as usize))?;
+    p.pos_at = put(&mut idx, &mut v.pos.iter().map(|&x| x as usize))?;
+    p.ptr_at = put(&mut idx, &mut v.ptr.iter().copied())?;
+    p.items_at = put(&mut idx, &mut v.items.iter().map(|&x| x as usize))?;
+    p.inv_start_at = put(&mut idx, &mut v.inv_start.iter().copied())?;
+    if !finest {
+        p.row_at = put(&mut idx, &mut v.row_ptr.iter().copied())?;
+        p.col_at = put(&mut idx, &mut v.col_idx.iter().copied())?;
+    }
+    if let Some(pr) = &v.to_next {
+        p.has_next = 1;
+        p.p_ptr_at = put(&mut idx, &mut pr.p_ptr.iter().copied())?;
+        p.p_col_at = put(&mut idx, &mut pr.p_col.iter().map(|&x| x as usize))?;
+        p.pt_ptr_at = put(&mut idx, &mut pr.pt_ptr.iter().copied())?;
+        p.pt_row_at = put(&mut idx, &mut pr.pt.iter().map(|&(i, _)| i as usize))?;
+    }
+    Ok((idx, p))
+}
+
+/// The f64 arrays of one level (ω, the matrix below the finest, the inverses with level
+/// 0's constrained rows and columns zeroed, P, Pᵀ) at the offsets in `p`.
+fn pack_values(
+    v: &LevelView<'_>,
+    d: usize,
+    mask: Option<&[u8]>,
+    p: &mut VcycleParams,
+) -> Result<Vec<f64>, GpuError> {
+    let too_big = || {
+        GpuError::Unsupported(
+            "the multilevel preconditioner's values exceed the device's u32 indices".into(),
+        )
+    };
+    let u = |x: usize| u32::try_from(x).map_err(|_| too_big());
+    let mut vals = vec![v.omega];
+    p.omega_at = 0;
+    p.a_at = u(vals.len())?;
+    if mask.is_none() {
+        vals.extend_from_slice(v.values);
+    }
+    p.inv_at = u(vals.len())?;
+    let inv_at = vals.len();
+    vals.extend_from_slice(v.inv);
+    // z's constrained components stay zero whatever the residual there: the cluster
+    // inverse couples nothing to them (CPU: r is zero there, so z is too).
+    if let Some(mask) = mask {
+        for c in 0..v.ptr.len() - 1 {
+            let items = &v.items[v.ptr[c]..v.ptr[c + 1]];
+            let m = items.len() * d;
+            let inv = &mut vals[inv_at + v.inv_start[c]..inv_at + v.inv_start[c + 1]];
+            for (pi, &i) in items.iter().enumerate() {
+                for a in 0..d {
+                    if mask[i as usize] & (1 << a) == 0 {
+                        continue;
+                    }
+                    let row = pi * d + a;
+                    for k in 0..m {
+                        inv[row * m + k] = 0.0;
+                        inv[k * m + row] = 0.0;
+                    }
+                }
+            }
+        }
+    }
+    if let Some(pr) = &v.to_next {
+        p.p_at = u(vals.len())?;
+        vals.extend_from_slice(pr.p);
+        p.pt_at = u(vals.len())?;
+        vals.extend_from_slice(pr.pt_values);
+    }
+    u(vals.len())?;
+    Ok(vals)
+}
+
+impl DeviceMultilevel {
+    /// The V-cycle's pipelines for `dim`; levels come with [`DeviceMultilevel::set`].
+    pub(super) fn new(ctx: &GpuContext, dim: usize) -> Result<Self, GpuError> {
+        VCYCLE.check_adapter(ctx)?;
+        let dev = &ctx.device;
+        let module = VCYCLE.module(dev, "f64", "f64", false);
+        let (layout, pl) = VCYCLE.layouts(dev, "vcycle");
+        let pipe = |entry: &str| {
+            let constants = [("D", dim as f64), ("WG", WORKGROUP as f64)];
+            let label = format!("vcycle {entry} ({dim}D)");
+            kernels::pipeline(dev, &pl, &module, entry, &label, &constants)
+        };
+        let pipes = Pipelines {
+            smooth_pre: pipe("smooth_pre"),
+            smooth_post: pipe("smooth_post"),
+            level_ax: pipe("level_ax"),
+            restrict_down: pipe("restrict_down"),
+            prolong_up: pipe("prolong_up"),
+        };
+        ctx.check("building the device V-cycle")?;
+        Ok(DeviceMultilevel {
+            ctx: ctx.clone(),
+            dim,
+            pipes,
+            layout,
+            levels: Vec::new(),
+            hierarchy: None,
+        })
+    }
+
+    /// Uploads `ml`'s levels for the constraint set `frames`: only the values when `ml`
+    /// has the hierarchy of the last call, everything otherwise.
+    pub(super) fn set(
+        &mut self,
+        ml: &Multilevel,
+        frames: &Frames,
+        finest: Finest<'_>,
+    ) -> Result<(), GpuError> {
+        let d = self.dim;
+        if ml.dim() != d {
+            return Err(GpuError::Mismatch(format!(
+                "the multilevel preconditioner is {}D, the device PCG {d}D",
+                ml.dim()
+            )));
+        }
+        let views = ml.levels();
+        if views[0].n != frames.n_nodes {
+            return Err(GpuError::Mismatch(format!(
+                "the multilevel preconditioner has {} nodes, the constraints {}",
+                views[0].n, frames.n_nodes
+            )));
+        }
+        let same = self
+            .hierarchy
+            .as_ref()
+            .is_some_and(|h| Arc::ptr_eq(h, ml.hierarchy()));
+        if same {
+            for (l, v) in views.iter().enumerate() {
+                let mask = (l == 0).then_some(&frames.mask[..]);
+                let (_, mut p) = pack_indices(v, l == 0)?;
+                let vals = pack_values(v, d, mask, &mut p)?;
+                let lev = &self.levels[l];
+                if vals.len() != lev.vals_len {
+                    return Err(GpuError::Mismatch(
+                        "the multilevel values changed size on the same hierarchy".into(),
+                    ));
+                }
+                self.ctx
+                    .write_buffer(&lev.vals, 0, bytemuck::cast_slice(&vals));
+            }
+            return Ok(());
+        }
+        self.levels = self.build(&views, frames, finest)?;
+        self.hierarchy = Some(ml.hierarchy().clone());
+        Ok(())
+    }
+
+    fn build(
+        &self,
+        views: &[LevelView<'_>],
+        frames: &Frames,
+        finest: Finest<'_>,
+    ) -> Result<Vec<DeviceLevel>, GpuError> {
+        let (ctx, d) = (&self.ctx, self.dim);
+        // b, x, ax of every level below the finest, then a spare pair for the coarsest's
+        // (unused) next level.
+        let mut vecs: Vec<[wgpu::Buffer; 3]> = Vec::with_capacity(views.len());
+        for (l, v) in views.iter().enumerate().skip(1) {
+            let bytes = (8 * v.n * d) as u64;
+            let mk = |what: &str| ctx.storage_zeroed(&format!("vcycle level {l} {what}"), bytes);
+            vecs.push([mk("b")?, mk("x")?, mk("ax")?]);
+        }
+        let spare = [
+            ctx.storage_zeroed("vcycle no level below (b)", 16)?,
+            ctx.storage_zeroed("vcycle no level below (x)", 16)?,
+        ];
+        let mut levels = Vec::with_capacity(views.len());
+        for (l, v) in views.iter().enumerate() {
+            let mask = (l == 0).then_some(&frames.mask[..]);
+            let (idx, mut p) = pack_indices(v, l == 0)?;
+            let vals = pack_values(v, d, mask, &mut p)?;
+            let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(&format!("vcycle level {l} params")),
+                contents: bytemuck::bytes_of(&p),
+                usage: wgpu::BufferUsages::UNIFORM,
+            });
+            let idx_buf = ctx.storage_with(
+                &format!("vcycle level {l} indices"),
+                bytemuck::cast_slice(&idx),
+            )?;
+            let vals_buf = ctx.storage_with(
+                &format!("vcycle level {l} values"),
+                bytemuck::cast_slice(&vals),
+            )?;
+            let (b, x, ax) = if l == 0 {
+                (finest.r, finest.z, finest.q)
+            } else {
+                let v = &vecs[l - 1];
+                (&v[0], &v[1], &v[2])
+            };
+            let (bn, xn) = match vecs.get(l) {
+                Some(v) => (&v[0], &v[1]),
+                None => (&spare[0], &spare[1]),
+            };
+            let bufs = [&params, &idx_buf, &vals_buf, b, x, ax, bn, xn, finest.state];
+            let entries: Vec<wgpu::BindGroupEntry> = bufs
+                .iter()
+                .enumerate()
+                .map(|(k, buf)| wgpu::BindGroupEntry {
+                    binding: k as u32,
+                    resource: buf.as_entire_binding(),
+                })
+                .collect();
+            let group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(&format!("vcycle level {l}")),
+                layout: &self.layout,
+                entries: &entries,
+            });
+            let mut keep = vec![params, idx_buf];
+            if l > 0 {
+                keep.extend(vecs[l - 1].iter().cloned());
+            }
+            if l + 1 == views.len() {
+                keep.extend(spare.iter().cloned());
+            }
+            levels.push(DeviceLevel {
+                n: v.n,
+                clusters: v.ptr.len() - 1,
+                vals: vals_buf,
+                vals_len: vals.len(),
+                group,
+                _keep: keep,
+            });
+        }
+        ctx.check("uploading the multilevel preconditioner")?;
+        Ok(levels)
+    }
+
+    /// Whether levels are on the device.
+    pub(super) fn is_set(&self) -> bool {
+        !self.levels.is_empty()
+    }
+
+    /// Clusters per level, finest first.
+    pub(super) fn cluster_counts(&self) -> Vec<usize> {
+        self.levels.iter().map(|l| l.clusters).collect()
+    }
+
+    /// The dispatches of one V-cycle z = M⁻¹r, level 0's products left to the PCG.
+    pub(super) fn steps(&self) -> Vec<Step<'_>> {
+        let limits = self.ctx.launch();
+        let policy = self.ctx.segments();
+        let launch = |items: usize| {
+            policy.launch(
+                &limits,
+                (items as u64).div_ceil(WORKGROUP as u64),
+                WORKGROUP,
+            )
+        };
+        let p = &self.pipes;
+        let d = self.dim;
+        let nl = self.levels.len();
+        let product = |l: usize| -> Step<'_> {
+            if l == 0 {
+                Step::FinestProduct
+            } else {
+                let lev = &self.levels[l];
+                Step::Kernel("ml level_ax", &p.level_ax, launch(lev.n), &lev.group)
+            }
+        };
+        let mut steps = Vec::new();
+        for (l, lev) in self.levels.iter().enumerate() {
+            steps.push(Step::Kernel(
+                "ml smooth_pre",
+                &p.smooth_pre,
+                launch(lev.n * d),
+                &lev.group,
+            ));
+            if l + 1 == nl {
+                break;
+            }
+            steps.push(product(l));
+            steps.push(Step::Kernel(
+                "ml restrict",
+                &p.restrict_down,
+                launch(lev.clusters),
+                &lev.group,
+            ));
+        }
+        for (l, lev) in self.levels.iter().enumerate().rev().skip(1) {
+            steps.push(Step::Kernel(
+                "ml prolong",
+                &p.prolong_up,
+                launch(lev.n),
+                &lev.group,
+            ));
+            steps.push(product(l));
+            steps.push(Step::Kernel(
+                "ml smooth_post",
+                &p.smooth_post,
+                launch(lev.n * d),
+                &lev.group,
+            ));
+        }
+        steps
+    }
+
+    /// Bytes the V-cycle's kernels read or write at the least per application, level 0's
+    /// products excluded (the PCG counts those).
+    pub(super) fn bytes_per_cycle(&self) -> u64 {
+        // Each level's values are read twice (both smoothings read the inverses, the
+        // restriction and prolongation P once each, the products A twice) and its
+        // vectors a few times: the values dominate.
+        self.levels
+            .iter()
+            .map(|l| 16 * l.vals_len as u64 + 8 * 6 * (l.n * self.dim) as u64)
+            .sum()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Bind group 0 is [`VCYCLE`]'s bindings in order and the params struct has Rust's
+    /// size.
+    #[test]
+    fn layout_and_params_match_the_wgsl() {
+        let m = kernels::check::module(&VCYCLE, "f64", "f64", false);
+        kernels::check::bindings_match(&VCYCLE, &m);
+        kernels::check::struct_size(&m, "VcycleParams", std::mem::size_of::<VcycleParams>());
+        for e in [
+            "smooth_pre",
+            "smooth_post",
+            "level_ax",
+            "restrict_down",
+            "prolong_up",
+        ] {
+            assert!(
+                m.entry_points.iter().any(|p| p.name == e),
+                "no entry point {e}"
+            );
+        }
+    }
+}
