@@ -28,6 +28,10 @@
 //! the CPU's function: E⁺ is the same up to a compiler's fused multiply-adds (lavapipe
 //! gives the same bits), held to the same 1e-12.
 //!
+//! The multilevel preconditioner's levels are built on the host from the H read back (as
+//! the device loop builds them); its iterations are held within 10 % of the CPU CG's with
+//! the same levels.
+//!
 //! Every test shares one device (tests/common/gpu.rs); sizes are small for lavapipe.
 
 use rand::rngs::StdRng;
@@ -44,6 +48,7 @@ use stickslip::solve::cg::{CgError, Preconditioner};
 use stickslip::solve::coarse::{
     aggregates_einv_from_blocks, translations_einv_from_blocks, Aggregation, CoarseSpace,
 };
+use stickslip::solve::multilevel::{Hierarchy, Multilevel};
 use stickslip::{LayoutKey, Solver, SolverConfig};
 
 mod common;
@@ -235,20 +240,25 @@ fn compare(ctx: &GpuContext, s: &Scene, bound: Bound) -> Vec<(Preconditioner, Co
         (Preconditioner::BlockJacobi, CoarseSpace::None),
         (Preconditioner::BlockJacobi, CoarseSpace::Translations),
         (Preconditioner::BlockJacobi, CoarseSpace::Aggregates),
+        (Preconditioner::Multilevel, CoarseSpace::None),
     ] {
         let before = ctx.traffic();
-        let info = cg
-            .solve(
-                &frames,
-                &DeviceCgParams {
-                    tol: TOL,
-                    max_iterations: 10_000,
-                    preconditioner: pre,
-                    coarse,
-                    stagnation_window: stickslip::solve::cg::STAGNATION_WINDOW,
-                },
-            )
-            .expect("device CG converges");
+        let params = DeviceCgParams {
+            tol: TOL,
+            max_iterations: 10_000,
+            preconditioner: pre,
+            coarse,
+            stagnation_window: stickslip::solve::cg::STAGNATION_WINDOW,
+        };
+        // The multilevel levels come from the host, built on the H read back, as the
+        // device Newton loop builds them.
+        cg.prepare(&frames).expect("prepare");
+        if pre == Preconditioner::Multilevel {
+            let ml = Multilevel::new(&e, std::sync::Arc::new(Hierarchy::new(&h)));
+            cg.set_multilevel(&ml, &s.frames)
+                .expect("multilevel levels");
+        }
+        let info = cg.iterate(&frames, &params).expect("device CG converges");
         let after = ctx.traffic();
         let dx = cg.read_dx().expect("read dx");
         let diff: Vec<f64> = dx.iter().zip(&dx_ref).map(|(a, b)| a - b).collect();
@@ -370,6 +380,22 @@ fn compare(ctx: &GpuContext, s: &Scene, bound: Bound) -> Vec<(Preconditioner, Co
             "{d}D {pre:?} coarse {}: {gap:e}",
             coarse.name()
         );
+        if pre == Preconditioner::Multilevel {
+            // The CPU CG with the same levels: the same operator up to the order of its
+            // sums, so the iterations agree within 10 %.
+            let mut cpu =
+                Solver::new(SolverConfig::cg().tol(TOL).preconditioner(pre)).expect("the CPU CG");
+            let c = cpu
+                .solve_eliminated(LayoutKey::fresh(), &e)
+                .expect("the CPU CG converges");
+            let ic = c.stats.iterations.expect("iterations");
+            eprintln!("{d}D multilevel: the CPU CG {ic} iterations");
+            assert!(
+                info.iterations.abs_diff(ic) * 10 <= ic,
+                "{d}D multilevel: device {} iterations, CPU {ic}",
+                info.iterations
+            );
+        }
     }
     iterations
 }

@@ -23,6 +23,10 @@
 //! (drop, whose barrier stiffens the contact layer), and Newton takes within 10 % of the
 //! iterations.
 //!
+//! The multilevel preconditioner runs in both loops with the same levels (the device loop
+//! builds them on the host from the H it reads back): there the two loops are compared
+//! with the adaptive tolerance on both sides, to the same 1e-9.
+//!
 //! Also: `twist --size 4` moves less than 1 % of one assembled Hessian's bytes from host
 //! to device per Newton iteration besides the coarse space's E⁺, and the bad-input cases
 //! of the loop.
@@ -229,6 +233,105 @@ fn twist_adaptive_device_loop_matches_cholesky() {
 #[test]
 fn drop_adaptive_device_loop_matches_cholesky() {
     adaptive_against_cholesky("drop", 40, 1e-6);
+}
+
+/// The multilevel preconditioner in both loops (the scene's `[solver] preconditioner =
+/// "multilevel"`, adaptive tolerance on both): the device loop builds the levels on the
+/// host from the H it reads back, with the CPU loop's code, so both loops precondition
+/// with the same operator and make the same decisions. Bounds as in [`compare`]: centre
+/// of mass and reactions within 1e-9 (the solves differ by rounding, then by the
+/// tolerance each meets, 1e-2 to 1e-6 relative, on nearly the same iterates), Newton
+/// iterations equal within 10 %, CG iterations within 5 % over the run.
+fn multilevel_on_both_loops(name: &str, steps: usize) {
+    let text = stickslip::sim::scene::builtin(name).expect("a built-in scene");
+    let file = std::env::temp_dir().join(format!(
+        "stickslip-multilevel-{}-{name}.toml",
+        std::process::id()
+    ));
+    std::fs::write(
+        &file,
+        format!("{text}\n[solver]\npreconditioner = \"multilevel\"\ncoarse = \"none\"\n"),
+    )
+    .expect("scene file");
+    let scene = file.display().to_string();
+    let run_loop = |newton: NewtonLoop| {
+        let out = std::env::temp_dir().join(format!(
+            "stickslip-multilevel-{}-{name}-{}",
+            std::process::id(),
+            newton.name()
+        ));
+        let opts = RunOptions {
+            scene: Some(scene.clone()),
+            out: Some(out.clone()),
+            solver: Some("cg".into()),
+            newton: Some(newton),
+            cg_tolerance: Some(CgTolerance::Adaptive),
+            steps: Some(steps),
+            quiet: true,
+            ..RunOptions::default()
+        };
+        let r = run(&opts);
+        let _ = std::fs::remove_dir_all(&out);
+        r
+    };
+    let gpu = match run_loop(NewtonLoop::Gpu) {
+        Ok(s) => s,
+        Err(RunError::Solve { step: 0, cause, .. }) if cause.contains("cannot start") => {
+            if std::env::var_os("STICKSLIP_REQUIRE_GPU").is_some() {
+                panic!("{name}: STICKSLIP_REQUIRE_GPU is set but the GPU Newton loop cannot start: {cause}");
+            }
+            common::skip(&format!(
+                "SKIP {name}: GPU Newton loop NOT RUN (no adapter): {cause}"
+            ));
+            let _ = std::fs::remove_file(&file);
+            return;
+        }
+        Err(e) => panic!("{name}, multilevel, device loop: {e}"),
+    };
+    let cpu =
+        run_loop(NewtonLoop::Cpu).unwrap_or_else(|e| panic!("{name}, multilevel, CPU loop: {e}"));
+    let _ = std::fs::remove_file(&file);
+    assert_eq!(gpu.records.len(), cpu.records.len(), "{name}: steps");
+    let l = cpu.characteristic_length;
+    let f_scale = cpu
+        .records
+        .iter()
+        .flat_map(|r| r.reaction.iter())
+        .fold(0.0f64, |m, x| m.max(x.abs()));
+    let (mut com, mut reaction) = (0.0f64, 0.0f64);
+    for (g, c) in gpu.records.iter().zip(&cpu.records) {
+        for (a, b) in g.com.iter().zip(&c.com) {
+            com = com.max((a - b).abs() / l);
+        }
+        for (a, b) in g.reaction.iter().zip(&c.reaction) {
+            if f_scale > 0.0 {
+                reaction = reaction.max((a - b).abs() / f_scale);
+            }
+        }
+    }
+    eprintln!(
+        "{name}, multilevel: {steps} steps: Newton {} (device) vs {} (CPU), CG {} vs {}; centre of mass max |Δ|/L = {com:.3e}, reactions max |Δ|/max|R| = {reaction:.3e}",
+        gpu.newton_iterations, cpu.newton_iterations, gpu.linear_iterations, cpu.linear_iterations
+    );
+    assert!(com <= 1e-9, "{name}: centre of mass differs by {com:e}·L");
+    assert!(reaction <= 1e-9, "{name}: reactions differ by {reaction:e}");
+    let ratio = gpu.newton_iterations as f64 / cpu.newton_iterations as f64;
+    assert!((ratio - 1.0).abs() <= 0.1, "{name}: Newton {ratio}");
+    let (gi, ci) = (gpu.linear_iterations as f64, cpu.linear_iterations as f64);
+    assert!(
+        (gi - ci).abs() <= 0.05 * ci,
+        "{name}: {gi} CG iterations on the device loop against the CPU loop's {ci}"
+    );
+}
+
+#[test]
+fn twist_multilevel_on_both_loops() {
+    multilevel_on_both_loops("twist", 10);
+}
+
+#[test]
+fn drop_multilevel_on_both_loops() {
+    multilevel_on_both_loops("drop", 20);
 }
 
 /// Per Newton iteration, what goes to the device is scalars, a few nodes and the coarse
