@@ -1,7 +1,9 @@
 //! Device time per kernel of one f64 CG iteration: the device PCG (`gpu::pcg`, what
 //! `solve --solver gpu --precision f64` and the device Newton loop run) against the
 //! precision kernels' f64 level (`gpu::GpuSolver`), on one generated 3D system with the
-//! realistic constraint mix, without and with the aggregates.
+//! realistic constraint mix, without and with the aggregates; then the device PCG with the
+//! multilevel preconditioner (its V-cycle's kernels by level, the levels built on the
+//! host).
 //!
 //!     cargo run --release --example pcg_kernels -- [NODES] [REPS]
 //!
@@ -11,6 +13,7 @@
 use stickslip::cases::generate::{random_system, SystemSpec};
 use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, KernelTime, PcgSolver};
+use stickslip::solve::cg::Preconditioner;
 use stickslip::solve::coarse::CoarseSpace;
 use stickslip::Precision;
 
@@ -52,5 +55,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             kernels.profile_kernels(reps)?,
         );
     }
+    let p = GpuParams {
+        precision: Precision::F64,
+        tol: 1e-8,
+        preconditioner: Preconditioner::Multilevel,
+        ..Default::default()
+    };
+    let mut pcg = PcgSolver::new(&ctx, &e, &p)?;
+    print("device PCG, multilevel", pcg.profile_kernels(reps)?);
     Ok(())
 }

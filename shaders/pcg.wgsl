@@ -11,7 +11,9 @@
 //   update_yr    y += αp, r −= αq, z = M⁻¹r, r·z and r·r partials
 //   scalar_beta  one workgroup: ρ' = r·z, r·r, stop flags, β = ρ'/ρ, iteration count
 //   update_p     p = z + βp
-// and with the aggregates (COARSE = 2) agg_restrict and agg_solve before scalar_beta.
+// and with the aggregates (COARSE = 2) agg_restrict and agg_solve before scalar_beta;
+// with the multilevel preconditioner (PRECOND = 3) the V-cycle (vcycle.wgsl, world_z and
+// matvec for its level-0 products) and ml_dot between update_yr and scalar_beta.
 // A (re)start is `init` (r = b̂ − q with q = Ĥy, z = M⁻¹r, p = z, partials) and
 // `scalar_start` (then `update_p` with β = 0 under COARSE), whose r·r is the true residual.
 // `prepare` adds `coarse_e` and `coarse_e_sum` (E = ZᵀĤZ of the translations, below) and,
@@ -671,7 +673,7 @@ fn world_z(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
     }
 }
 
-// The r·z partials after the V-cycle (PRECOND = 3); at a start (`START`) also p = z and
+// The r·z partials after the V-cycle (PRECOND = 3); at a start (ml_start) also p = z and
 // pw = V P p.
 fn ml_rz(lid: u32, wid: vec3<u32>, nwg: vec3<u32>, start: bool) {
     for (var s = group_index(wid, nwg); s < params.n_partials; s += group_count(nwg)) {

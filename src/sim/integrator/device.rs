@@ -10,9 +10,12 @@
 //! the loop's own code, on those few entries). Once per step the positions, velocities
 //! and the gradient come back for the output (steps.csv, frames, reactions).
 //!
+//! With the multilevel preconditioner H also comes back once per Newton iteration: the
+//! host builds the levels with the CPU CG's code and uploads them ([`DeviceCg::set_multilevel`]).
+//!
 //! The decisions are the CPU loop's; the arithmetic differs in summation order and in the
-//! CG (the scene's Jacobi or block-Jacobi preconditioner with the translations as coarse
-//! space on the device, against the scene's CPU solver), so trajectories agree to the
+//! CG (the scene's preconditioner and coarse space on the device, against the scene's CPU
+//! solver), so trajectories agree to the
 //! solvers' tolerances, not bit for bit (tests/sim_gpu_newton.rs).
 
 use super::backend::{Backend, EndState, SystemArrays};
