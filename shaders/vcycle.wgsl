@@ -71,29 +71,40 @@ fn halted() -> bool {
     return state[STATE_DONE] != 0u;
 }
 
-// (B⁺ v)_k for dof k = i·D + a of the level, v = b (post: b − ax): the row of item i's
-// cluster inverse times the cluster's entries, summed item by item in cluster order.
-fn cluster_row(k: u32, post: bool) -> real {
-    let i = k / D;
-    let a = k % D;
+// (B⁺ v) at the t-th unknown in cluster order (the items of cluster 0, then of cluster 1,
+// …, D components each), v = b (post: b − ax): the unknown's index in the level's vectors
+// and its value. The sum runs over the cluster's items in order, as the CPU's.
+// Why cluster order: consecutive invocations then read consecutive entries of one
+// cluster's inverse (entry (row, col) is read at col·m + row: the inverse is symmetric,
+// stored both ways bit for bit), which a GPU coalesces; in node order they would belong
+// to unrelated clusters.
+struct Unknown {
+    at: u32,
+    value: real,
+}
+
+fn cluster_row(t: u32, post: bool) -> Unknown {
+    let q = t / D;
+    let a = t % D;
+    let i = idx[vp.items_at + q];
     let c = idx[vp.of_at + i];
     let t0 = idx[vp.ptr_at + c];
     let t1 = idx[vp.ptr_at + c + 1u];
     let m = (t1 - t0) * D;
-    let base = vp.inv_at + idx[vp.inv_start_at + c] + (idx[vp.pos_at + i] * D + a) * m;
+    let base = vp.inv_at + idx[vp.inv_start_at + c] + (q - t0) * D + a;
     var s = real(0.0);
-    for (var t = t0; t < t1; t++) {
-        let j = idx[vp.items_at + t];
-        let o = base + (t - t0) * D;
+    for (var u = t0; u < t1; u++) {
+        let j = idx[vp.items_at + u];
+        let col = (u - t0) * D;
         for (var e = 0u; e < D; e++) {
             var v = b[j * D + e];
             if (post) {
                 v -= ax[j * D + e];
             }
-            s += vals[o + e] * v;
+            s += vals[base + (col + e) * m] * v;
         }
     }
-    return s;
+    return Unknown(i * D + a, s);
 }
 
 // x = ω B⁺ b.
@@ -103,8 +114,9 @@ fn smooth_pre(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
         return;
     }
     let omega = vals[vp.omega_at];
-    for (var k = grid_index(gid, nwg); k < vp.n * D; k += grid_stride(nwg)) {
-        x[k] = cluster_row(k, false) * omega;
+    for (var t = grid_index(gid, nwg); t < vp.n * D; t += grid_stride(nwg)) {
+        let u = cluster_row(t, false);
+        x[u.at] = u.value * omega;
     }
 }
 
@@ -115,8 +127,9 @@ fn smooth_post(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let omega = vals[vp.omega_at];
-    for (var k = grid_index(gid, nwg); k < vp.n * D; k += grid_stride(nwg)) {
-        x[k] += omega * cluster_row(k, true);
+    for (var t = grid_index(gid, nwg); t < vp.n * D; t += grid_stride(nwg)) {
+        let u = cluster_row(t, true);
+        x[u.at] += omega * u.value;
     }
 }
 

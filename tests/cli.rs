@@ -1642,9 +1642,10 @@ fn bench_records_are_this_runs_own() {
 }
 
 /// The multilevel preconditioner solves the worked case on the CPU CG to the oracle's
-/// Δx, and a GPU solver asked for it is refused before any work: one line, exit 2.
+/// Δx, and the GPU solver in f32 asked for it is refused before any work: one line, exit 2
+/// (the f64 device PCG takes it: tests/gpu_multilevel.rs).
 #[test]
-fn multilevel_runs_on_the_cpu_cg_and_the_gpu_refuses_it() {
+fn multilevel_runs_on_the_cpu_cg_and_the_f32_gpu_refuses_it() {
     let c = case("multilevel");
     let o = c.solve(&["--solver", "cg", "--preconditioner", "multilevel"]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
@@ -1661,7 +1662,7 @@ fn multilevel_runs_on_the_cpu_cg_and_the_gpu_refuses_it() {
         "--solver",
         "gpu",
         "--precision",
-        "f64",
+        "f32",
         "--preconditioner",
         "multilevel",
     ]);

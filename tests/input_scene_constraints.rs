@@ -711,19 +711,20 @@ fn many_rows_with_huge_finite_values_keep_their_lift() {
     }
 }
 
-/// The multilevel preconditioner runs in the CPU CG only: a scene that asks for it with
-/// the device Newton loop or the GPU linear solver is refused before any work.
+/// The multilevel preconditioner runs in f64 (the CPU CG, the device PCG): a scene that
+/// asks for it with the GPU linear solver in f32 or mixed precision is refused before any
+/// work.
 #[test]
-fn multilevel_with_a_gpu_solver_is_an_input_error() {
+fn multilevel_with_a_gpu_solver_below_f64_is_an_input_error() {
     let dir = tmpdir("multilevel-gpu");
     for (name, solver) in [
         (
-            "newton",
-            "newton = \"gpu\"\npreconditioner = \"multilevel\"",
+            "f32",
+            "linear = \"gpu\"\nprecision = \"f32\"\npreconditioner = \"multilevel\"",
         ),
         (
-            "linear",
-            "linear = \"gpu\"\npreconditioner = \"multilevel\"",
+            "mixed",
+            "linear = \"gpu\"\nprecision = \"mixed\"\npreconditioner = \"multilevel\"",
         ),
     ] {
         let text = format!("{SCENE_2D}\n[solver]\n{solver}\n");

@@ -100,7 +100,7 @@ class Solver:
             in (0, 1).
         max_iters: CG iteration limit (all restarts together), ≥ 1.
         preconditioner: ``"jacobi"``, ``"block-jacobi"``, ``"none"`` or ``"multilevel"``
-            (``"cg"`` only).
+            (``"cg"``, and ``"gpu"`` in f64).
         coarse: coarse correction added to the preconditioner: ``"aggregates"``,
             ``"translations"`` or ``"none"``.
         error_tol: mixed precision only: after ``tol``, refine until the estimated

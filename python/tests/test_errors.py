@@ -175,9 +175,9 @@ def test_asymmetric_h(system):
         (dict(coarse="amg"),
          "solver config: coarse: unknown coarse space 'amg' (expected none, translations or aggregates)"),
         (dict(solver="cg", error_tol=1e-3), "solver config: error_tol: needs the gpu solver in mixed precision"),
-        (dict(solver="gpu", precision="f64", preconditioner="multilevel"),
-         "solver config: preconditioner: the multilevel preconditioner runs in the CPU CG only "
-         "(the GPU CGs take none, jacobi or block-jacobi)"),
+        (dict(solver="gpu", precision="f32", preconditioner="multilevel"),
+         "solver config: preconditioner: the multilevel preconditioner runs in f64 only "
+         "(the CPU CG and the f64 device PCG); f32 and mixed take none, jacobi or block-jacobi"),
         (dict(constrained_diagonal="zero"),
          "solver config: constrained_diagonal: unknown value 'zero' (expected identity or hessian)"),
     ],

@@ -55,8 +55,8 @@ pub enum Preconditioner {
     BlockJacobi,
     /// One symmetric V-cycle over Ĥ's dense blocks on clusters of about 16 nodes and
     /// coarser levels of the clusters' smoothed translations, down to one cluster (see
-    /// `solve::multilevel`). CPU CG only; its own coarse levels replace the coarse
-    /// space, which it ignores.
+    /// `solve::multilevel`). The CPU CG and the device PCG in f64; its own coarse levels
+    /// replace the coarse space, which it ignores.
     Multilevel,
 }
 

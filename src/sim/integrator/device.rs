@@ -60,8 +60,10 @@ pub(super) struct DeviceLoop {
     scratch_v: Vec<f64>,
     /// The host's element buffer of the force balance, kept between steps.
     assembly: AssemblyWork,
-    /// The multilevel preconditioner's clusters (H's pattern only: once per run).
+    /// The multilevel preconditioner's clusters (H's pattern only: once per run) and the
+    /// host seconds of its setups so far.
     hierarchy: Option<std::sync::Arc<Hierarchy>>,
+    multilevel_seconds: f64,
     dim: usize,
 }
 
@@ -183,6 +185,7 @@ impl DeviceLoop {
             scratch_v: Vec::new(),
             assembly: AssemblyWork::default(),
             hierarchy: None,
+            multilevel_seconds: 0.0,
             dim: d,
         })
     }
@@ -203,6 +206,7 @@ impl DeviceLoop {
             matrix_bytes: self.matrix_bytes,
             coarse_host_to_device_bytes: c.host_to_device_bytes,
             coarse_device_to_host_bytes: c.device_to_host_bytes,
+            multilevel_setup_seconds: self.multilevel_seconds,
             newton_iterations: 0,
         }
     }
@@ -222,6 +226,7 @@ impl DeviceLoop {
     /// The multilevel preconditioner of the system just assembled: H read back, its levels
     /// built on the host by the CPU CG's code ([`Multilevel::new`]) and uploaded.
     fn set_multilevel(&mut self, frames: &Frames) -> Result<(), GpuError> {
+        let t = Instant::now();
         let h = self.asm.read_matrix()?;
         let hierarchy = match self.hierarchy.take() {
             Some(hi) if hi.fits(&h) => hi,
@@ -231,7 +236,9 @@ impl DeviceLoop {
         let e = Eliminated::new(&h, &g, frames, ConstrainedDiagonal::Identity);
         let ml = Multilevel::new(&e, hierarchy.clone());
         self.hierarchy = Some(hierarchy);
-        self.cg.set_multilevel(&ml, frames)
+        self.cg.set_multilevel(&ml, frames)?;
+        self.multilevel_seconds += t.elapsed().as_secs_f64();
+        Ok(())
     }
 
     /// What a device CG solve cost, as the host loop reports its solves.

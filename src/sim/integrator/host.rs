@@ -259,6 +259,7 @@ impl Backend for HostBackend {
             matrix_bytes: (sc.model.pattern.nnz_blocks() * sc.dim * sc.dim * real) as u64,
             coarse_host_to_device_bytes: 0,
             coarse_device_to_host_bytes: 0,
+            multilevel_setup_seconds: 0.0,
             newton_iterations: 0,
         })
     }

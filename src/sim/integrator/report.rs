@@ -86,6 +86,10 @@ pub struct GpuRunReport {
     /// (3·128)² whatever the mesh (0 for the CPU loop and other coarse spaces).
     pub coarse_host_to_device_bytes: u64,
     pub coarse_device_to_host_bytes: u64,
+    /// Host seconds the device loop spent on the multilevel preconditioner's setup (H read
+    /// back, the levels built and uploaded, once per Newton iteration; part of the linear
+    /// seconds; 0 without it and for the CPU loop).
+    pub multilevel_setup_seconds: f64,
     /// Newton iterations of the run (filled in by the driver, which counts them).
     pub newton_iterations: usize,
 }
