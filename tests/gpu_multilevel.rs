@@ -18,7 +18,8 @@
 
 use stickslip::cases::generate::{random_system, SystemSpec};
 use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::gpu::Precision;
+use stickslip::gpu::pcg::multilevel_bytes;
+use stickslip::gpu::{GpuError, GpuParams, PcgSolver, Precision};
 use stickslip::solve::cg::Preconditioner;
 use stickslip::solve::multilevel::Hierarchy;
 use stickslip::{LayoutKey, Solver, SolverConfig};
@@ -90,4 +91,77 @@ fn the_device_v_cycle_takes_the_cpu_cgs_iterations() {
         eprintln!("{dim}D: device PCG with Jacobi and the aggregates: {ij} iterations");
         assert!(id < ij, "{dim}D: multilevel {id} against Jacobi {ij}");
     }
+}
+
+/// The number of bytes a refusal says the system needs.
+fn needed(ctx: &stickslip::gpu::GpuContext, e: &Eliminated, p: &GpuParams) -> u64 {
+    let tiny = GpuParams {
+        memory_limit: Some(16),
+        ..p.clone()
+    };
+    match PcgSolver::new(ctx, e, &tiny) {
+        Err(GpuError::Device(m)) => {
+            assert!(m.contains(stickslip::gpu::DOES_NOT_FIT), "{m}");
+            assert!(!m.contains('\n'));
+            m.split("needs ")
+                .nth(1)
+                .and_then(|t| t.split(' ').next())
+                .and_then(|t| t.parse().ok())
+                .unwrap_or_else(|| panic!("no need in {m}"))
+        }
+        Err(other) => panic!("{other}"),
+        Ok(_) => panic!("accepted a system in 16 bytes"),
+    }
+}
+
+/// The multilevel levels count in the device PCG's memory check before anything is
+/// allocated: with memory for everything else but not for them, Jacobi builds and the
+/// multilevel solver is refused in one line, and the difference between the two needs is
+/// exactly the levels' bytes ([`multilevel_bytes`], the sizes the upload checks it packs).
+#[test]
+fn the_multilevel_levels_count_in_the_memory_check() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = random_system(&SystemSpec::with_nodes(3, 729, 9));
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let jacobi = GpuParams {
+        precision: Precision::F64,
+        ..Default::default()
+    };
+    let multilevel = GpuParams {
+        preconditioner: Preconditioner::Multilevel,
+        ..jacobi.clone()
+    };
+    let (nj, nm) = (needed(ctx, &e, &jacobi), needed(ctx, &e, &multilevel));
+    let levels = multilevel_bytes(ctx, &Hierarchy::new(&s.h).level_sizes(3), 3).expect("fits");
+    eprintln!("needs: Jacobi {nj} bytes, multilevel {nm} ({levels} for the levels)");
+    assert_eq!(nm - nj, levels);
+    let between = GpuParams {
+        memory_limit: Some(nj),
+        ..multilevel.clone()
+    };
+    assert!(PcgSolver::new(
+        ctx,
+        &e,
+        &GpuParams {
+            memory_limit: Some(nj),
+            ..jacobi
+        }
+    )
+    .is_ok());
+    match PcgSolver::new(ctx, &e, &between) {
+        Err(GpuError::Device(m)) => eprintln!("{m}"),
+        Err(other) => panic!("{other}"),
+        Ok(_) => panic!("the levels were not counted"),
+    }
+    // And with room for them it builds and solves.
+    let mut ok = PcgSolver::new(
+        ctx,
+        &e,
+        &GpuParams {
+            memory_limit: Some(nm),
+            ..multilevel
+        },
+    )
+    .expect("fits in what it said it needs");
+    assert!(ok.solve().is_ok());
 }

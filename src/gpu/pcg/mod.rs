@@ -57,4 +57,5 @@ pub use cg::{
     DeviceCg, DeviceCgInfo, DeviceCgParams, DeviceFrames, DispatchRecord, IterationProfile,
     LANCZOS_HIST, PCG,
 };
+pub use multilevel::multilevel_bytes;
 pub use solver::PcgSolver;

@@ -14,9 +14,10 @@
 //! for it once per system (counted in the run's device-to-host bytes).
 
 use crate::core::constraints::Frames;
+use crate::gpu::context::Binding;
 use crate::gpu::kernels::{self, Access, Layout};
 use crate::gpu::{GpuContext, GpuError, Launch};
-use crate::solve::multilevel::{LevelView, Multilevel};
+use crate::solve::multilevel::{LevelSizes, LevelView, Multilevel};
 use std::sync::Arc;
 
 use Access::{Read as R, ReadWrite as W, Uniform as U};
@@ -212,6 +213,31 @@ fn pack_values(
     Ok(vals)
 }
 
+/// The device bytes of the V-cycle's levels of these sizes
+/// ([`crate::solve::multilevel::Hierarchy::level_sizes`]) with `dim` components per item,
+/// each buffer checked against the adapter's limits first: the error names the first
+/// that does not fit. What a caller adds to its memory check before building anything.
+pub fn multilevel_bytes(
+    ctx: &GpuContext,
+    sizes: &[LevelSizes],
+    dim: usize,
+) -> Result<u64, GpuError> {
+    let whole = Binding::Whole(u64::MAX);
+    let mut total = 0;
+    for (l, s) in sizes.iter().enumerate() {
+        let label = |what: &str| format!("vcycle level {l} {what}");
+        total += ctx.checked_size(&label("indices"), 4 * s.index_words as u64, whole)?;
+        total += ctx.checked_size(&label("values"), 8 * s.values as u64, whole)?;
+        // b, x and ax below the finest level (level 0's are the PCG's r, z and q), and the
+        // parameters.
+        if l > 0 {
+            total += 3 * ctx.checked_size(&label("vectors"), 8 * (s.items * dim) as u64, whole)?;
+        }
+        total += std::mem::size_of::<VcycleParams>() as u64;
+    }
+    Ok(total)
+}
+
 impl DeviceMultilevel {
     /// The V-cycle's pipelines for `dim`; levels come with [`DeviceMultilevel::set`].
     pub(super) fn new(ctx: &GpuContext, dim: usize) -> Result<Self, GpuError> {
@@ -284,18 +310,20 @@ impl DeviceMultilevel {
             }
             return Ok(());
         }
-        self.levels = self.build(&views, frames, finest)?;
+        self.levels = self.build(ml.hierarchy(), &views, frames, finest)?;
         self.hierarchy = Some(ml.hierarchy().clone());
         Ok(())
     }
 
     fn build(
         &self,
+        hierarchy: &crate::solve::multilevel::Hierarchy,
         views: &[LevelView<'_>],
         frames: &Frames,
         finest: Finest<'_>,
     ) -> Result<Vec<DeviceLevel>, GpuError> {
         let (ctx, d) = (&self.ctx, self.dim);
+        let sizes = hierarchy.level_sizes(d);
         // b, x, ax of every level below the finest, then a spare pair for the coarsest's
         // (unused) next level.
         let mut vecs: Vec<[wgpu::Buffer; 3]> = Vec::with_capacity(views.len());
@@ -313,6 +341,18 @@ impl DeviceMultilevel {
             let mask = (l == 0).then_some(&frames.mask[..]);
             let (idx, mut p) = pack_indices(v, l == 0)?;
             let vals = pack_values(v, d, mask, &mut p)?;
+            // The sizes the memory checks counted are the sizes packed.
+            let want = sizes[l];
+            if (idx.len(), vals.len()) != (want.index_words, want.values) {
+                return Err(GpuError::Mismatch(format!(
+                    "multilevel level {l}: {} index words and {} values packed, {} and {} \
+                     counted",
+                    idx.len(),
+                    vals.len(),
+                    want.index_words,
+                    want.values
+                )));
+            }
             let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(&format!("vcycle level {l} params")),
                 contents: bytemuck::bytes_of(&p),

@@ -21,10 +21,16 @@ use crate::solve::options::Preconditioner;
 use std::sync::Arc;
 use std::time::Instant;
 
-/// Refuses, before anything is allocated, a system whose H and CG buffers exceed the
-/// device memory in force (the aggregates' index arrays, a few words per node, come on
-/// top).
-fn check_memory(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<(), GpuError> {
+/// Refuses, before anything is allocated, a system whose H, CG buffers and multilevel
+/// levels (`hierarchy`, when asked for) exceed the device memory in force, or one of whose
+/// level buffers exceeds the adapter's limits (the aggregates' index arrays, a few words
+/// per node, come on top).
+fn check_memory(
+    ctx: &GpuContext,
+    e: &Eliminated,
+    params: &GpuParams,
+    hierarchy: Option<&Hierarchy>,
+) -> Result<(), GpuError> {
     let h = e.h;
     let block = 8 * (h.dim * h.dim) as u64;
     let plan = plan_rows(
@@ -45,7 +51,14 @@ fn check_memory(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<
         e.frames.rot_nodes.len(),
         true,
     );
-    ctx.check_fits(values + cg, ctx.memory_in_force(params.memory_limit))
+    let levels = match hierarchy {
+        Some(hi) => super::multilevel_bytes(ctx, &hi.level_sizes(h.dim), h.dim)?,
+        None => 0,
+    };
+    ctx.check_fits(
+        values + cg + levels,
+        ctx.memory_in_force(params.memory_limit),
+    )
 }
 
 /// The device PCG for eliminated systems given on the host (f64 only): built once per
@@ -77,7 +90,10 @@ impl PcgSolver {
             )));
         }
         crate::solve::cg::check_pinned(e)?;
-        check_memory(ctx, e, params)?;
+        // The clusters (H's pattern only) first: their levels count in the memory check.
+        let hierarchy = (params.preconditioner == Preconditioner::Multilevel)
+            .then(|| Arc::new(Hierarchy::new(e.h)));
+        check_memory(ctx, e, params, hierarchy.as_deref())?;
         let t0 = Instant::now();
         let blocks = HostBlocks::upload(ctx, e.h, params.binding_limit)?;
         let cg = DeviceCg::new(ctx, blocks.matrix(), None, true)?;
@@ -95,7 +111,7 @@ impl PcgSolver {
             blocks,
             cg,
             frames,
-            hierarchy: None,
+            hierarchy,
             upload_seconds: t0.elapsed().as_secs_f64(),
             setup_seconds: 0.0,
         };

@@ -136,6 +136,41 @@ pub fn check_capacity(
     }
 }
 
+/// The multilevel preconditioner's clusters of the assembled pattern (built once per run),
+/// refused in one line before any Newton iteration when a level's buffers exceed the
+/// adapter's limits or the levels do not fit beside the loop's buffers.
+fn multilevel_hierarchy(
+    ctx: &GpuContext,
+    scene: &Scene,
+    asm: &GpuAssembly,
+) -> Result<std::sync::Arc<Hierarchy>, InitError> {
+    let d = scene.dim;
+    let (row_ptr, col_idx) = asm.pattern();
+    let pattern = crate::core::sparse::BlockCsr {
+        dim: d,
+        n: row_ptr.len() - 1,
+        row_ptr: row_ptr.to_vec(),
+        col_idx: col_idx.to_vec(),
+        values: Vec::new(),
+    };
+    let hierarchy = Hierarchy::new(&pattern);
+    let bytes = crate::gpu::pcg::multilevel_bytes(ctx, &hierarchy.level_sizes(d), d)
+        .map_err(device_error)?;
+    let need = device_bytes_needed(scene) + bytes;
+    if let Some(have) = ctx.device_memory() {
+        if need > have {
+            return Err(cannot_hold(format!(
+                "the GPU Newton loop needs about {need} bytes of device memory for {} nodes \
+                 with the multilevel preconditioner ({bytes} for its levels), adapter '{}' \
+                 has {have}",
+                scene.model.n_nodes,
+                ctx.adapter_name()
+            )));
+        }
+    }
+    Ok(std::sync::Arc::new(hierarchy))
+}
+
 impl DeviceLoop {
     pub(super) fn new(scene: &Scene, contact: Option<&Contact>) -> Result<Self, InitError> {
         if scene.solver.precision == Precision::F32 {
@@ -163,6 +198,11 @@ impl DeviceLoop {
         let cg = asm.device_cg().map_err(device_error)?;
         let ops = NewtonOps::new(&elements, &asm, cg.dx_buffer()).map_err(device_error)?;
         let d = scene.dim;
+        let hierarchy = if scene.solver.preconditioner == Preconditioner::Multilevel {
+            Some(multilevel_hierarchy(&ctx, scene, &asm)?)
+        } else {
+            None
+        };
         let matrix_bytes = (asm.pattern().1.len() * d * d * 8) as u64;
         Ok(DeviceLoop {
             kinds: elements.kinds(),
@@ -184,7 +224,7 @@ impl DeviceLoop {
             scratch: vec![0.0; scene.model.n_nodes * d],
             scratch_v: Vec::new(),
             assembly: AssemblyWork::default(),
-            hierarchy: None,
+            hierarchy,
             multilevel_seconds: 0.0,
             dim: d,
         })

@@ -121,6 +121,56 @@ impl Hierarchy {
     pub fn cluster_counts(&self) -> Vec<usize> {
         self.levels.iter().map(Level::clusters).collect()
     }
+
+    /// How much each level's arrays hold as the device V-cycle stores them (the arrays of
+    /// [`Multilevel::levels`], src/gpu/pcg/multilevel.rs packs them), for `d` components
+    /// per item: what a device checks against its limits before anything is built.
+    pub fn level_sizes(&self, d: usize) -> Vec<LevelSizes> {
+        self.levels
+            .iter()
+            .enumerate()
+            .map(|(l, lev)| {
+                let (n, nc) = (lev.n, lev.clusters());
+                // of, pos, items; the cluster ranges and the inverses' offsets.
+                let mut index_words = 3 * n + 2 * (nc + 1);
+                // ω and the cluster inverses.
+                let mut values = 1
+                    + (0..nc)
+                        .map(|c| {
+                            let m = (lev.ptr[c + 1] - lev.ptr[c]) * d;
+                            m * m
+                        })
+                        .sum::<usize>();
+                if l > 0 {
+                    // The level's matrix (level 0's is the device PCG's own).
+                    index_words += n + 1 + lev.col_idx.len();
+                    values += lev.col_idx.len() * d * d;
+                }
+                if let Some(sp) = self.smooth.get(l) {
+                    let np = sp.p_col.len();
+                    index_words += (n + 1) + np + (nc + 1) + np;
+                    values += 2 * np * d * d;
+                }
+                LevelSizes {
+                    index_words,
+                    values,
+                    items: n,
+                }
+            })
+            .collect()
+    }
+}
+
+/// The sizes of one level as the device V-cycle stores it ([`Hierarchy::level_sizes`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LevelSizes {
+    /// u32 index words: clusters and items, the matrix pattern below the finest level,
+    /// the prolongation's and its transpose's patterns.
+    pub index_words: usize,
+    /// f64 values: ω, the matrix below the finest level, the cluster inverses, P and Pᵀ.
+    pub values: usize,
+    /// Items of the level (its vectors hold items·d values).
+    pub items: usize,
 }
 
 /// The smoother's damping is ω_l = min([`OMEGA_MAX`], [`OMEGA_LAMBDA`] / λ̂_l): the V-cycle
