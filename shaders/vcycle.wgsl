@@ -28,7 +28,7 @@ struct VcycleParams {
     n: u32,
     clusters: u32,
     // idx: cluster of each item, position in its cluster, cluster item ranges (clusters
-    // + 1), items by cluster, each cluster's inverse offset in vals (relative to inv_at).
+    // + 1), items by cluster, each cluster's inverse offset in the level's inverses.
     of_at: u32,
     pos_at: u32,
     ptr_at: u32,
@@ -43,15 +43,21 @@ struct VcycleParams {
     p_col_at: u32,
     pt_ptr_at: u32,
     pt_row_at: u32,
-    // vals: ω, the matrix values, the inverses, P's and Pᵀ's blocks (D×D row-major).
+    // vals: ω, the matrix values, P's and Pᵀ's blocks (D×D row-major).
     omega_at: u32,
     a_at: u32,
-    inv_at: u32,
     p_at: u32,
     pt_at: u32,
     // 1 where this level has a level below (restrict_down and prolong_up are then defined).
     has_next: u32,
-    _pad: u32,
+    // A smoothing dispatch: its unknowns in cluster order [t_begin, t_end) and where the
+    // `inv` buffer bound with it starts in the level's inverses (those of its clusters).
+    t_begin: u32,
+    t_end: u32,
+    inv_base: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 override D: u32 = 3u;
@@ -66,6 +72,9 @@ override D: u32 = 3u;
 @group(0) @binding(7) var<storage, read_write> xn: array<real>;
 // The PCG's state: its stop flag.
 @group(0) @binding(8) var<storage, read> state: array<u32>;
+// The cluster inverses of one run of consecutive clusters (one storage binding caps each
+// buffer; a smoothing runs once per buffer).
+@group(0) @binding(9) var<storage, read> inv: array<real>;
 
 fn halted() -> bool {
     return state[STATE_DONE] != 0u;
@@ -91,7 +100,7 @@ fn cluster_row(t: u32, post: bool) -> Unknown {
     let t0 = idx[vp.ptr_at + c];
     let t1 = idx[vp.ptr_at + c + 1u];
     let m = (t1 - t0) * D;
-    let base = vp.inv_at + idx[vp.inv_start_at + c] + (q - t0) * D + a;
+    let base = idx[vp.inv_start_at + c] - vp.inv_base + (q - t0) * D + a;
     var s = real(0.0);
     for (var u = t0; u < t1; u++) {
         let j = idx[vp.items_at + u];
@@ -101,7 +110,7 @@ fn cluster_row(t: u32, post: bool) -> Unknown {
             if (post) {
                 v -= ax[j * D + e];
             }
-            s += vals[base + (col + e) * m] * v;
+            s += inv[base + (col + e) * m] * v;
         }
     }
     return Unknown(i * D + a, s);
@@ -114,7 +123,7 @@ fn smooth_pre(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
         return;
     }
     let omega = vals[vp.omega_at];
-    for (var t = grid_index(gid, nwg); t < vp.n * D; t += grid_stride(nwg)) {
+    for (var t = vp.t_begin + grid_index(gid, nwg); t < vp.t_end; t += grid_stride(nwg)) {
         let u = cluster_row(t, false);
         x[u.at] = u.value * omega;
     }
@@ -127,7 +136,7 @@ fn smooth_post(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let omega = vals[vp.omega_at];
-    for (var t = grid_index(gid, nwg); t < vp.n * D; t += grid_stride(nwg)) {
+    for (var t = vp.t_begin + grid_index(gid, nwg); t < vp.t_end; t += grid_stride(nwg)) {
         let u = cluster_row(t, true);
         x[u.at] += omega * u.value;
     }

@@ -132,7 +132,8 @@ fn the_multilevel_levels_count_in_the_memory_check() {
         ..jacobi.clone()
     };
     let (nj, nm) = (needed(ctx, &e, &jacobi), needed(ctx, &e, &multilevel));
-    let levels = multilevel_bytes(ctx, &Hierarchy::new(&s.h).level_sizes(3), 3).expect("fits");
+    let levels =
+        multilevel_bytes(ctx, &Hierarchy::new(&s.h).level_sizes(3), 3, None).expect("fits");
     eprintln!("needs: Jacobi {nj} bytes, multilevel {nm} ({levels} for the levels)");
     assert_eq!(nm - nj, levels);
     let between = GpuParams {
@@ -164,4 +165,40 @@ fn the_multilevel_levels_count_in_the_memory_check() {
     )
     .expect("fits in what it said it needs");
     assert!(ok.solve().is_ok());
+}
+
+/// Cluster inverses over the binding limit go in several buffers of consecutive clusters,
+/// each smoothed by its own dispatch with the same sums: the same iterations and the same
+/// Δx, bit for bit, as one buffer.
+#[test]
+fn split_inverses_give_the_same_bits() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = random_system(&SystemSpec::with_nodes(3, 729, 10));
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let whole = GpuParams {
+        precision: Precision::F64,
+        preconditioner: Preconditioner::Multilevel,
+        tol: TOL,
+        ..Default::default()
+    };
+    let mut one = PcgSolver::new(ctx, &e, &whole).expect("one buffer per level");
+    let a = one.solve().expect("converges");
+    assert!(one.multilevel_inverse_buffers().iter().all(|&b| b == 1));
+    // About a third of level 0's inverses per buffer (and H split too).
+    let level0: usize = Hierarchy::new(&s.h).level_sizes(3)[0].inverses.iter().sum();
+    let split = GpuParams {
+        binding_limit: Some((8 * level0 as u64 / 3).max(8 * 48 * 48)),
+        ..whole
+    };
+    let mut many = PcgSolver::new(ctx, &e, &split).expect("split inverses");
+    let b = many.solve().expect("converges");
+    let buffers = many.multilevel_inverse_buffers();
+    eprintln!(
+        "inverse buffers per level {buffers:?}: {} and {} iterations; {}",
+        a.info.iterations, b.info.iterations, b.info.coarse
+    );
+    assert!(buffers[0] >= 3, "{buffers:?}");
+    assert_eq!(a.info.iterations, b.info.iterations);
+    let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&a.dx), bits(&b.dx));
 }

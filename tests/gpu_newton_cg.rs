@@ -255,7 +255,7 @@ fn compare(ctx: &GpuContext, s: &Scene, bound: Bound) -> Vec<(Preconditioner, Co
         cg.prepare(&frames).expect("prepare");
         if pre == Preconditioner::Multilevel {
             let ml = Multilevel::new(&e, std::sync::Arc::new(Hierarchy::new(&h)));
-            cg.set_multilevel(&ml, &s.frames)
+            cg.set_multilevel(&ml, &s.frames, None)
                 .expect("multilevel levels");
         }
         let info = cg.iterate(&frames, &params).expect("device CG converges");

@@ -865,7 +865,16 @@ impl DeviceCg {
     /// the same H and constraints `frames` were built from: [`Multilevel::new`]),
     /// uploaded for the iterations with [`Preconditioner::Multilevel`]; call after every
     /// `prepare`. A hierarchy met before keeps its buffers and only the values move.
-    pub fn set_multilevel(&mut self, ml: &Multilevel, frames: &Frames) -> Result<(), GpuError> {
+    ///
+    /// The cluster inverses go in buffers of consecutive clusters under the adapter's
+    /// binding limit, lowered to `binding_limit` where given (tests of the split path): the
+    /// smoothings run once per buffer, with the same sums as one buffer.
+    pub fn set_multilevel(
+        &mut self,
+        ml: &Multilevel,
+        frames: &Frames,
+        binding_limit: Option<u64>,
+    ) -> Result<(), GpuError> {
         if frames.n_nodes != self.n_nodes {
             return Err(GpuError::Mismatch(format!(
                 "the constraints have {} nodes, the device PCG {}",
@@ -882,7 +891,7 @@ impl DeviceCg {
             state: &self.buf.state,
         };
         if let Some(dm) = self.ml.as_mut() {
-            dm.set(ml, frames, finest)?;
+            dm.set(ml, frames, finest, binding_limit)?;
         }
         self.ml_ready = true;
         Ok(())
@@ -894,6 +903,15 @@ impl DeviceCg {
         self.ml
             .as_ref()
             .map(DeviceMultilevel::cluster_counts)
+            .unwrap_or_default()
+    }
+
+    /// Buffers of cluster inverses per level of the multilevel preconditioner on the
+    /// device, finest first (empty before [`DeviceCg::set_multilevel`]).
+    pub fn multilevel_inverse_buffers(&self) -> Vec<usize> {
+        self.ml
+            .as_ref()
+            .map(DeviceMultilevel::inverse_chunk_counts)
             .unwrap_or_default()
     }
 

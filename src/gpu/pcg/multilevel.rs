@@ -14,10 +14,12 @@
 //! for it once per system (counted in the run's device-to-host bytes).
 
 use crate::core::constraints::Frames;
+use crate::gpu::blocks::values_limit;
 use crate::gpu::context::Binding;
 use crate::gpu::kernels::{self, Access, Layout};
 use crate::gpu::{GpuContext, GpuError, Launch};
 use crate::solve::multilevel::{LevelSizes, LevelView, Multilevel};
+use std::ops::Range;
 use std::sync::Arc;
 
 use Access::{Read as R, ReadWrite as W, Uniform as U};
@@ -36,13 +38,15 @@ pub const VCYCLE: Layout = Layout {
         ("bn", W),
         ("xn", W),
         ("state", R),
+        ("inv", R),
     ],
 };
 
 /// Workgroup size of the V-cycle's kernels.
 const WORKGROUP: u32 = 64;
 
-/// Offsets of one level's arrays (mirrors `VcycleParams` in the WGSL).
+/// Offsets of one level's arrays and the range of one smoothing dispatch (mirrors
+/// `VcycleParams` in the WGSL).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, bytemuck::Pod, bytemuck::Zeroable)]
 struct VcycleParams {
@@ -61,13 +65,15 @@ struct VcycleParams {
     pt_row_at: u32,
     omega_at: u32,
     a_at: u32,
-    inv_at: u32,
     p_at: u32,
     pt_at: u32,
     has_next: u32,
-    _pad: u32,
+    t_begin: u32,
+    t_end: u32,
+    inv_base: u32,
+    _pad: [u32; 3],
 }
-const _: () = assert!(std::mem::size_of::<VcycleParams>() == 80);
+const _: () = assert!(std::mem::size_of::<VcycleParams>() == 96);
 
 /// The pipelines of shaders/vcycle.wgsl.
 struct Pipelines {
@@ -78,15 +84,28 @@ struct Pipelines {
     prolong_up: wgpu::ComputePipeline,
 }
 
+/// One buffer of cluster inverses: the clusters it holds and its unknowns in cluster
+/// order (what its smoothing dispatch covers).
+struct InverseChunk {
+    clusters: Range<usize>,
+    unknowns: Range<usize>,
+    buffer: wgpu::Buffer,
+}
+
 /// One level on the device.
 struct DeviceLevel {
     n: usize,
     clusters: usize,
-    /// Where the values go in `vals` (rewritten per system on the same hierarchy).
+    /// ω, the matrix below the finest, P and Pᵀ (rewritten per system on the same
+    /// hierarchy), and its length.
     vals: wgpu::Buffer,
     vals_len: usize,
-    group: wgpu::BindGroup,
-    /// Kept alive with the bind group: params, idx, and below the finest b, x, ax.
+    /// The cluster inverses in buffers of consecutive clusters (one storage binding caps
+    /// each).
+    inverses: Vec<InverseChunk>,
+    /// One bind group per inverse chunk (the kernels that do not smooth use the first).
+    groups: Vec<wgpu::BindGroup>,
+    /// Kept alive with the bind groups: params, idx, and below the finest b, x, ax.
     _keep: Vec<wgpu::Buffer>,
 }
 
@@ -116,7 +135,69 @@ pub(super) struct DeviceMultilevel {
     pipes: Pipelines,
     layout: wgpu::BindGroupLayout,
     levels: Vec<DeviceLevel>,
-    hierarchy: Option<Arc<crate::solve::multilevel::Hierarchy>>,
+    /// The hierarchy and binding limit the levels were built for.
+    hierarchy: Option<(Arc<crate::solve::multilevel::Hierarchy>, u64)>,
+}
+
+/// The clusters of each buffer of inverses: runs of consecutive clusters whose values
+/// (`inverses[c]` f64 each) stay within `limit` bytes; the error names the first cluster
+/// whose inverse alone exceeds it.
+fn inverse_chunks(
+    inverses: &[usize],
+    limit: u64,
+    level: usize,
+) -> Result<Vec<Range<usize>>, GpuError> {
+    let per = (limit / 8) as usize;
+    let mut out = Vec::new();
+    let (mut start, mut run) = (0, 0usize);
+    for (c, &v) in inverses.iter().enumerate() {
+        if v > per {
+            return Err(GpuError::Unsupported(format!(
+                "multilevel level {level}: cluster {c}'s inverse takes {} bytes, more than one \
+                 storage binding ({limit} bytes)",
+                8 * v
+            )));
+        }
+        if run + v > per {
+            out.push(start..c);
+            (start, run) = (c, 0);
+        }
+        run += v;
+    }
+    out.push(start..inverses.len());
+    Ok(out)
+}
+
+/// The device bytes of the V-cycle's levels of these sizes
+/// ([`crate::solve::multilevel::Hierarchy::level_sizes`]) with `dim` components per item
+/// and the cluster inverses split under `forced` (or the adapter's binding limit), each
+/// buffer checked against the adapter's limits first: the error names the first that
+/// does not fit. What a caller adds to its memory check before building anything.
+pub fn multilevel_bytes(
+    ctx: &GpuContext,
+    sizes: &[LevelSizes],
+    dim: usize,
+    forced: Option<u64>,
+) -> Result<u64, GpuError> {
+    let whole = Binding::Whole(u64::MAX);
+    let limit = values_limit(ctx, forced);
+    let mut total = 0;
+    for (l, s) in sizes.iter().enumerate() {
+        let label = |what: &str| format!("vcycle level {l} {what}");
+        total += ctx.checked_size(&label("indices"), 4 * s.index_words as u64, whole)?;
+        total += ctx.checked_size(&label("values"), 8 * s.values as u64, whole)?;
+        for r in inverse_chunks(&s.inverses, limit, l)? {
+            let v: usize = s.inverses[r].iter().sum();
+            total += ctx.checked_size(&label("inverses"), 8 * v as u64, whole)?;
+        }
+        // b, x and ax below the finest level (level 0's are the PCG's r, z and q), and the
+        // parameters.
+        if l > 0 {
+            total += 3 * ctx.checked_size(&label("vectors"), 8 * (s.items * dim) as u64, whole)?;
+        }
+        total += std::mem::size_of::<VcycleParams>() as u64;
+    }
+    Ok(total)
 }
 
 /// The index arrays of one level, packed, with their offsets.
@@ -159,12 +240,11 @@ fn pack_indices(v: &LevelView<'_>, finest: bool) -> Result<(Vec<u32>, VcyclePara
     Ok((idx, p))
 }
 
-/// The f64 arrays of one level (ω, the matrix below the finest, the inverses with level
-/// 0's constrained rows and columns zeroed, P, Pᵀ) at the offsets in `p`.
+/// The f64 arrays of one level but its inverses (ω, the matrix below the finest, P, Pᵀ)
+/// at the offsets in `p`.
 fn pack_values(
     v: &LevelView<'_>,
-    d: usize,
-    mask: Option<&[u8]>,
+    finest: bool,
     p: &mut VcycleParams,
 ) -> Result<Vec<f64>, GpuError> {
     let too_big = || {
@@ -176,32 +256,8 @@ fn pack_values(
     let mut vals = vec![v.omega];
     p.omega_at = 0;
     p.a_at = u(vals.len())?;
-    if mask.is_none() {
+    if !finest {
         vals.extend_from_slice(v.values);
-    }
-    p.inv_at = u(vals.len())?;
-    let inv_at = vals.len();
-    vals.extend_from_slice(v.inv);
-    // z's constrained components stay zero whatever the residual there: the cluster
-    // inverse couples nothing to them (CPU: r is zero there, so z is too).
-    if let Some(mask) = mask {
-        for c in 0..v.ptr.len() - 1 {
-            let items = &v.items[v.ptr[c]..v.ptr[c + 1]];
-            let m = items.len() * d;
-            let inv = &mut vals[inv_at + v.inv_start[c]..inv_at + v.inv_start[c + 1]];
-            for (pi, &i) in items.iter().enumerate() {
-                for a in 0..d {
-                    if mask[i as usize] & (1 << a) == 0 {
-                        continue;
-                    }
-                    let row = pi * d + a;
-                    for k in 0..m {
-                        inv[row * m + k] = 0.0;
-                        inv[k * m + row] = 0.0;
-                    }
-                }
-            }
-        }
     }
     if let Some(pr) = &v.to_next {
         p.p_at = u(vals.len())?;
@@ -213,29 +269,37 @@ fn pack_values(
     Ok(vals)
 }
 
-/// The device bytes of the V-cycle's levels of these sizes
-/// ([`crate::solve::multilevel::Hierarchy::level_sizes`]) with `dim` components per item,
-/// each buffer checked against the adapter's limits first: the error names the first
-/// that does not fit. What a caller adds to its memory check before building anything.
-pub fn multilevel_bytes(
-    ctx: &GpuContext,
-    sizes: &[LevelSizes],
-    dim: usize,
-) -> Result<u64, GpuError> {
-    let whole = Binding::Whole(u64::MAX);
-    let mut total = 0;
-    for (l, s) in sizes.iter().enumerate() {
-        let label = |what: &str| format!("vcycle level {l} {what}");
-        total += ctx.checked_size(&label("indices"), 4 * s.index_words as u64, whole)?;
-        total += ctx.checked_size(&label("values"), 8 * s.values as u64, whole)?;
-        // b, x and ax below the finest level (level 0's are the PCG's r, z and q), and the
-        // parameters.
-        if l > 0 {
-            total += 3 * ctx.checked_size(&label("vectors"), 8 * (s.items * dim) as u64, whole)?;
+/// One level's cluster inverses, level 0's constrained rows and columns zeroed (`mask`):
+/// z's constrained components stay zero whatever the residual there (the CPU's r is zero
+/// there, so its z is too).
+fn pack_inverses(v: &LevelView<'_>, d: usize, mask: Option<&[u8]>) -> Result<Vec<f64>, GpuError> {
+    u32::try_from(v.inv.len()).map_err(|_| {
+        GpuError::Unsupported(
+            "the multilevel preconditioner's inverses exceed the device's u32 indices".into(),
+        )
+    })?;
+    let mut inv = v.inv.to_vec();
+    let Some(mask) = mask else {
+        return Ok(inv);
+    };
+    for c in 0..v.ptr.len() - 1 {
+        let items = &v.items[v.ptr[c]..v.ptr[c + 1]];
+        let m = items.len() * d;
+        let block = &mut inv[v.inv_start[c]..v.inv_start[c + 1]];
+        for (pi, &i) in items.iter().enumerate() {
+            for a in 0..d {
+                if mask[i as usize] & (1 << a) == 0 {
+                    continue;
+                }
+                let row = pi * d + a;
+                for k in 0..m {
+                    block[row * m + k] = 0.0;
+                    block[k * m + row] = 0.0;
+                }
+            }
         }
-        total += std::mem::size_of::<VcycleParams>() as u64;
     }
-    Ok(total)
+    Ok(inv)
 }
 
 impl DeviceMultilevel {
@@ -268,13 +332,15 @@ impl DeviceMultilevel {
         })
     }
 
-    /// Uploads `ml`'s levels for the constraint set `frames`: only the values when `ml`
-    /// has the hierarchy of the last call, everything otherwise.
+    /// Uploads `ml`'s levels for the constraint set `frames`, the inverses split under
+    /// `forced` (or the adapter's binding limit): only the values when `ml` has the
+    /// hierarchy of the last call, everything otherwise.
     pub(super) fn set(
         &mut self,
         ml: &Multilevel,
         frames: &Frames,
         finest: Finest<'_>,
+        forced: Option<u64>,
     ) -> Result<(), GpuError> {
         let d = self.dim;
         if ml.dim() != d {
@@ -290,28 +356,35 @@ impl DeviceMultilevel {
                 views[0].n, frames.n_nodes
             )));
         }
+        let limit = values_limit(&self.ctx, forced);
         let same = self
             .hierarchy
             .as_ref()
-            .is_some_and(|h| Arc::ptr_eq(h, ml.hierarchy()));
-        if same {
-            for (l, v) in views.iter().enumerate() {
-                let mask = (l == 0).then_some(&frames.mask[..]);
-                let (_, mut p) = pack_indices(v, l == 0)?;
-                let vals = pack_values(v, d, mask, &mut p)?;
-                let lev = &self.levels[l];
-                if vals.len() != lev.vals_len {
-                    return Err(GpuError::Mismatch(
-                        "the multilevel values changed size on the same hierarchy".into(),
-                    ));
-                }
-                self.ctx
-                    .write_buffer(&lev.vals, 0, bytemuck::cast_slice(&vals));
-            }
+            .is_some_and(|(h, lim)| Arc::ptr_eq(h, ml.hierarchy()) && *lim == limit);
+        if !same {
+            self.levels = self.build(ml.hierarchy(), &views, frames, finest, limit)?;
+            self.hierarchy = Some((ml.hierarchy().clone(), limit));
             return Ok(());
         }
-        self.levels = self.build(ml.hierarchy(), &views, frames, finest)?;
-        self.hierarchy = Some(ml.hierarchy().clone());
+        for (l, v) in views.iter().enumerate() {
+            let mask = (l == 0).then_some(&frames.mask[..]);
+            let (_, mut p) = pack_indices(v, l == 0)?;
+            let vals = pack_values(v, l == 0, &mut p)?;
+            let inv = pack_inverses(v, d, mask)?;
+            let lev = &self.levels[l];
+            if vals.len() != lev.vals_len {
+                return Err(GpuError::Mismatch(
+                    "the multilevel values changed size on the same hierarchy".into(),
+                ));
+            }
+            self.ctx
+                .write_buffer(&lev.vals, 0, bytemuck::cast_slice(&vals));
+            for ch in &lev.inverses {
+                let r = v.inv_start[ch.clusters.start]..v.inv_start[ch.clusters.end];
+                self.ctx
+                    .write_buffer(&ch.buffer, 0, bytemuck::cast_slice(&inv[r]));
+            }
+        }
         Ok(())
     }
 
@@ -321,6 +394,7 @@ impl DeviceMultilevel {
         views: &[LevelView<'_>],
         frames: &Frames,
         finest: Finest<'_>,
+        limit: u64,
     ) -> Result<Vec<DeviceLevel>, GpuError> {
         let (ctx, d) = (&self.ctx, self.dim);
         let sizes = hierarchy.level_sizes(d);
@@ -340,24 +414,23 @@ impl DeviceMultilevel {
         for (l, v) in views.iter().enumerate() {
             let mask = (l == 0).then_some(&frames.mask[..]);
             let (idx, mut p) = pack_indices(v, l == 0)?;
-            let vals = pack_values(v, d, mask, &mut p)?;
+            let vals = pack_values(v, l == 0, &mut p)?;
+            let inv = pack_inverses(v, d, mask)?;
             // The sizes the memory checks counted are the sizes packed.
-            let want = sizes[l];
-            if (idx.len(), vals.len()) != (want.index_words, want.values) {
+            let want = &sizes[l];
+            if (idx.len(), vals.len(), inv.len())
+                != (want.index_words, want.values, want.inverses.iter().sum())
+            {
                 return Err(GpuError::Mismatch(format!(
-                    "multilevel level {l}: {} index words and {} values packed, {} and {} \
-                     counted",
+                    "multilevel level {l}: {} index words, {} values and {} inverse values \
+                     packed, {} and {} counted",
                     idx.len(),
                     vals.len(),
+                    inv.len(),
                     want.index_words,
                     want.values
                 )));
             }
-            let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(&format!("vcycle level {l} params")),
-                contents: bytemuck::bytes_of(&p),
-                usage: wgpu::BufferUsages::UNIFORM,
-            });
             let idx_buf = ctx.storage_with(
                 &format!("vcycle level {l} indices"),
                 bytemuck::cast_slice(&idx),
@@ -366,6 +439,21 @@ impl DeviceMultilevel {
                 &format!("vcycle level {l} values"),
                 bytemuck::cast_slice(&vals),
             )?;
+            let mut inverses = Vec::new();
+            for (k, r) in inverse_chunks(&want.inverses, limit, l)?
+                .into_iter()
+                .enumerate()
+            {
+                let at = v.inv_start[r.start]..v.inv_start[r.end];
+                inverses.push(InverseChunk {
+                    unknowns: v.ptr[r.start] * d..v.ptr[r.end] * d,
+                    buffer: ctx.storage_with(
+                        &format!("vcycle level {l} inverses {k}"),
+                        bytemuck::cast_slice(&inv[at]),
+                    )?,
+                    clusters: r,
+                });
+            }
             let (b, x, ax) = if l == 0 {
                 (finest.r, finest.z, finest.q)
             } else {
@@ -376,21 +464,56 @@ impl DeviceMultilevel {
                 Some(v) => (&v[0], &v[1]),
                 None => (&spare[0], &spare[1]),
             };
-            let bufs = [&params, &idx_buf, &vals_buf, b, x, ax, bn, xn, finest.state];
-            let entries: Vec<wgpu::BindGroupEntry> = bufs
-                .iter()
-                .enumerate()
-                .map(|(k, buf)| wgpu::BindGroupEntry {
-                    binding: k as u32,
-                    resource: buf.as_entire_binding(),
-                })
-                .collect();
-            let group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some(&format!("vcycle level {l}")),
-                layout: &self.layout,
-                entries: &entries,
-            });
-            let mut keep = vec![params, idx_buf];
+            let mut keep = vec![idx_buf.clone()];
+            let mut groups = Vec::with_capacity(inverses.len());
+            for (k, ch) in inverses.iter().enumerate() {
+                let u = |x: usize| {
+                    u32::try_from(x).map_err(|_| {
+                        GpuError::Unsupported(
+                            "the multilevel preconditioner's inverses exceed the device's u32 \
+                             indices"
+                                .into(),
+                        )
+                    })
+                };
+                let pk = VcycleParams {
+                    t_begin: u(ch.unknowns.start)?,
+                    t_end: u(ch.unknowns.end)?,
+                    inv_base: u(v.inv_start[ch.clusters.start])?,
+                    ..p
+                };
+                let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(&format!("vcycle level {l} params {k}")),
+                    contents: bytemuck::bytes_of(&pk),
+                    usage: wgpu::BufferUsages::UNIFORM,
+                });
+                let bufs = [
+                    &params,
+                    &idx_buf,
+                    &vals_buf,
+                    b,
+                    x,
+                    ax,
+                    bn,
+                    xn,
+                    finest.state,
+                    &ch.buffer,
+                ];
+                let entries: Vec<wgpu::BindGroupEntry> = bufs
+                    .iter()
+                    .enumerate()
+                    .map(|(i, buf)| wgpu::BindGroupEntry {
+                        binding: i as u32,
+                        resource: buf.as_entire_binding(),
+                    })
+                    .collect();
+                groups.push(ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some(&format!("vcycle level {l} inverses {k}")),
+                    layout: &self.layout,
+                    entries: &entries,
+                }));
+                keep.push(params);
+            }
             if l > 0 {
                 keep.extend(vecs[l - 1].iter().cloned());
             }
@@ -402,7 +525,8 @@ impl DeviceMultilevel {
                 clusters: v.ptr.len() - 1,
                 vals: vals_buf,
                 vals_len: vals.len(),
-                group,
+                inverses,
+                groups,
                 _keep: keep,
             });
         }
@@ -420,7 +544,13 @@ impl DeviceMultilevel {
         self.levels.iter().map(|l| l.clusters).collect()
     }
 
-    /// The dispatches of one V-cycle z = M⁻¹r, level 0's products left to the PCG.
+    /// Buffers of cluster inverses per level, finest first.
+    pub(super) fn inverse_chunk_counts(&self) -> Vec<usize> {
+        self.levels.iter().map(|l| l.inverses.len()).collect()
+    }
+
+    /// The dispatches of one V-cycle z = M⁻¹r, level 0's products left to the PCG. Each
+    /// smoothing runs once per buffer of inverses, over that buffer's unknowns.
     pub(super) fn steps(&self) -> Vec<Step<'_>> {
         let limits = self.ctx.launch();
         let policy = self.ctx.segments();
@@ -432,24 +562,31 @@ impl DeviceMultilevel {
             )
         };
         let p = &self.pipes;
-        let d = self.dim;
         let nl = self.levels.len();
         let product = |l: usize| -> Step<'_> {
             if l == 0 {
                 Step::FinestProduct
             } else {
                 let lev = &self.levels[l];
-                Step::Kernel("ml level_ax", &p.level_ax, launch(lev.n), &lev.group)
+                Step::Kernel("ml level_ax", &p.level_ax, launch(lev.n), &lev.groups[0])
             }
+        };
+        let smoothing = |l: usize, post: bool| -> Vec<Step<'_>> {
+            let lev = &self.levels[l];
+            let (name, pipe) = if post {
+                ("ml smooth_post", &p.smooth_post)
+            } else {
+                ("ml smooth_pre", &p.smooth_pre)
+            };
+            lev.inverses
+                .iter()
+                .zip(&lev.groups)
+                .map(|(ch, g)| Step::Kernel(name, pipe, launch(ch.unknowns.len()), g))
+                .collect()
         };
         let mut steps = Vec::new();
         for (l, lev) in self.levels.iter().enumerate() {
-            steps.push(Step::Kernel(
-                "ml smooth_pre",
-                &p.smooth_pre,
-                launch(lev.n * d),
-                &lev.group,
-            ));
+            steps.extend(smoothing(l, false));
             if l + 1 == nl {
                 break;
             }
@@ -458,7 +595,7 @@ impl DeviceMultilevel {
                 "ml restrict",
                 &p.restrict_down,
                 launch(lev.clusters),
-                &lev.group,
+                &lev.groups[0],
             ));
         }
         for (l, lev) in self.levels.iter().enumerate().rev().skip(1) {
@@ -466,15 +603,10 @@ impl DeviceMultilevel {
                 "ml prolong",
                 &p.prolong_up,
                 launch(lev.n),
-                &lev.group,
+                &lev.groups[0],
             ));
             steps.push(product(l));
-            steps.push(Step::Kernel(
-                "ml smooth_post",
-                &p.smooth_post,
-                launch(lev.n * d),
-                &lev.group,
-            ));
+            steps.extend(smoothing(l, true));
         }
         steps
     }
@@ -482,12 +614,15 @@ impl DeviceMultilevel {
     /// Bytes the V-cycle's kernels read or write at the least per application, level 0's
     /// products excluded (the PCG counts those).
     pub(super) fn bytes_per_cycle(&self) -> u64 {
-        // Each level's values are read twice (both smoothings read the inverses, the
-        // restriction and prolongation P once each, the products A twice) and its
-        // vectors a few times: the values dominate.
+        // Each level's inverses are read twice (both smoothings), its other values about
+        // twice (the restriction and prolongation read P once each, the products A twice)
+        // and its vectors a few times.
         self.levels
             .iter()
-            .map(|l| 16 * l.vals_len as u64 + 8 * 6 * (l.n * self.dim) as u64)
+            .map(|l| {
+                let inv: u64 = l.inverses.iter().map(|c| c.buffer.size()).sum();
+                2 * inv + 16 * l.vals_len as u64 + 8 * 6 * (l.n * self.dim) as u64
+            })
             .sum()
     }
 }

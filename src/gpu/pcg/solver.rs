@@ -52,7 +52,9 @@ fn check_memory(
         true,
     );
     let levels = match hierarchy {
-        Some(hi) => super::multilevel_bytes(ctx, &hi.level_sizes(h.dim), h.dim)?,
+        Some(hi) => {
+            super::multilevel_bytes(ctx, &hi.level_sizes(h.dim), h.dim, params.binding_limit)?
+        }
         None => 0,
     };
     ctx.check_fits(
@@ -130,7 +132,8 @@ impl PcgSolver {
             };
             let ml = Multilevel::new(e, hierarchy.clone());
             self.hierarchy = Some(hierarchy);
-            self.cg.set_multilevel(&ml, e.frames)?;
+            self.cg
+                .set_multilevel(&ml, e.frames, self.params.binding_limit)?;
         }
         // The setup kernels' time, not just their recording.
         self.ctx
@@ -246,16 +249,25 @@ impl PcgSolver {
         let profile = self.cg.iteration_profile(&self.frames, &cg_params)?;
         let bpi = profile.bytes;
         let moved = bpi as f64 * iterations as f64;
-        let levels = self.cg.multilevel_clusters();
+        let joined = |v: Vec<usize>| {
+            v.iter()
+                .map(|c| c.to_string())
+                .collect::<Vec<_>>()
+                .join("/")
+        };
+        let buffers = self.cg.multilevel_inverse_buffers();
         let coarse = match (self.params.coarse, self.frames.aggregate_count()) {
-            _ if self.params.preconditioner == Preconditioner::Multilevel => format!(
-                "the multilevel levels ({} clusters)",
-                levels
-                    .iter()
-                    .map(|c| c.to_string())
-                    .collect::<Vec<_>>()
-                    .join("/")
-            ),
+            _ if self.params.preconditioner == Preconditioner::Multilevel => {
+                let split = if buffers.iter().any(|&b| b > 1) {
+                    format!("; inverses in {} buffers", joined(buffers))
+                } else {
+                    String::new()
+                };
+                format!(
+                    "the multilevel levels ({} clusters{split})",
+                    joined(self.cg.multilevel_clusters())
+                )
+            }
             (CoarseSpace::Aggregates, Some(k)) => format!("aggregates ({k})"),
             (CoarseSpace::Translations, _) if self.cg.translations_inactive() => format!(
                 "{} (inactive: every translation is constrained)",
@@ -322,6 +334,12 @@ impl PcgSolver {
 
     pub fn adapter_name(&self) -> &str {
         &self.ctx.info.name
+    }
+
+    /// Buffers of cluster inverses per multilevel level, finest first (empty without the
+    /// multilevel preconditioner).
+    pub fn multilevel_inverse_buffers(&self) -> Vec<usize> {
+        self.cg.multilevel_inverse_buffers()
     }
 
     pub fn params(&self) -> &GpuParams {

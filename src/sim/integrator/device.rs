@@ -154,7 +154,7 @@ fn multilevel_hierarchy(
         values: Vec::new(),
     };
     let hierarchy = Hierarchy::new(&pattern);
-    let bytes = crate::gpu::pcg::multilevel_bytes(ctx, &hierarchy.level_sizes(d), d)
+    let bytes = crate::gpu::pcg::multilevel_bytes(ctx, &hierarchy.level_sizes(d), d, None)
         .map_err(device_error)?;
     let need = device_bytes_needed(scene) + bytes;
     if let Some(have) = ctx.device_memory() {
@@ -276,7 +276,7 @@ impl DeviceLoop {
         let e = Eliminated::new(&h, &g, frames, ConstrainedDiagonal::Identity);
         let ml = Multilevel::new(&e, hierarchy.clone());
         self.hierarchy = Some(hierarchy);
-        self.cg.set_multilevel(&ml, frames)?;
+        self.cg.set_multilevel(&ml, frames, None)?;
         self.multilevel_seconds += t.elapsed().as_secs_f64();
         Ok(())
     }

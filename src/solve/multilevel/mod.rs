@@ -133,14 +133,14 @@ impl Hierarchy {
                 let (n, nc) = (lev.n, lev.clusters());
                 // of, pos, items; the cluster ranges and the inverses' offsets.
                 let mut index_words = 3 * n + 2 * (nc + 1);
-                // ω and the cluster inverses.
-                let mut values = 1
-                    + (0..nc)
-                        .map(|c| {
-                            let m = (lev.ptr[c + 1] - lev.ptr[c]) * d;
-                            m * m
-                        })
-                        .sum::<usize>();
+                // ω; the cluster inverses apart.
+                let mut values = 1;
+                let inverses = (0..nc)
+                    .map(|c| {
+                        let m = (lev.ptr[c + 1] - lev.ptr[c]) * d;
+                        m * m
+                    })
+                    .collect();
                 if l > 0 {
                     // The level's matrix (level 0's is the device PCG's own).
                     index_words += n + 1 + lev.col_idx.len();
@@ -154,6 +154,7 @@ impl Hierarchy {
                 LevelSizes {
                     index_words,
                     values,
+                    inverses,
                     items: n,
                 }
             })
@@ -162,13 +163,15 @@ impl Hierarchy {
 }
 
 /// The sizes of one level as the device V-cycle stores it ([`Hierarchy::level_sizes`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub struct LevelSizes {
     /// u32 index words: clusters and items, the matrix pattern below the finest level,
     /// the prolongation's and its transpose's patterns.
     pub index_words: usize,
-    /// f64 values: ω, the matrix below the finest level, the cluster inverses, P and Pᵀ.
+    /// f64 values: ω, the matrix below the finest level, P and Pᵀ.
     pub values: usize,
+    /// f64 values of each cluster's inverse (m² for m unknowns), in cluster order.
+    pub inverses: Vec<usize>,
     /// Items of the level (its vectors hold items·d values).
     pub items: usize,
 }
