@@ -26,7 +26,7 @@ use std::sync::LazyLock;
 use stickslip::app::hard::{self, HardCase, Size};
 use stickslip::core::elimination::Eliminated;
 use stickslip::error::SolveError;
-use stickslip::gpu::{GpuContext, GpuParams, GpuSolver, Precision, SolveOutcome};
+use stickslip::gpu::{GpuContext, GpuParams, GpuSolver, PcgSolver, Precision, SolveOutcome};
 use stickslip::solve::cg::{self, CgError, CgParams, Preconditioner, Scaling};
 use stickslip::solve::coarse::CoarseSpace;
 
@@ -378,6 +378,52 @@ fn gpu_claims_are_honest_and_mixed_reaches_1e_9_when_kappa_at_most_1e10() {
         misses.is_empty(),
         "mixed precision missed 1e-9 on κ ≤ 1e10 cases: {misses:?}"
     );
+}
+
+/// The device PCG (what `solve --solver gpu` runs in f64) on every case: a success is
+/// honest (the same check as the CPU CG's), and a case whose f64 residual floor lies above
+/// tol ends in a stagnation near its floor, not at the iteration limit (each restart from
+/// the true residual that does not improve on the best is the floor).
+#[test]
+fn the_device_pcg_claims_are_honest_and_it_stops_at_its_floor() {
+    let Some((ctx, _guard)) = gpu() else { return };
+    let tol = 1e-10;
+    let limit = 20_000;
+    for p in SUITE.iter() {
+        let e = p.case.eliminated();
+        let params = GpuParams {
+            precision: Precision::F64,
+            tol,
+            max_iters: limit,
+            ..Default::default()
+        };
+        let who = "device PCG f64";
+        let mut solver = PcgSolver::new(ctx, &e, &params).expect("the device PCG builds");
+        match solver.solve() {
+            Ok(SolveOutcome { y, info, .. }) => {
+                let err = check_success(p, &e, who, tol, &y, info.relative_residual);
+                eprintln!(
+                    "{:<28} {who} ok  it {:>6} err {err:9.2e}",
+                    p.case.name, info.iterations
+                );
+            }
+            Err(stickslip::gpu::GpuError::Cg(err)) => {
+                eprintln!("{:<28} {who} ERR {err}", p.case.name);
+                match err {
+                    CgError::Stagnation {
+                        iterations,
+                        relative_residual,
+                        ..
+                    } => {
+                        assert!(relative_residual > tol, "{}: {err}", p.case.name);
+                        assert!(iterations < limit / 10, "{}: {err}", p.case.name);
+                    }
+                    other => panic!("{}: {other}", p.case.name),
+                }
+            }
+            Err(other) => panic!("{}: {other}", p.case.name),
+        }
+    }
 }
 
 #[test]
