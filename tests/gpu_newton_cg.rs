@@ -462,6 +462,46 @@ fn aggregates_need_frames_built_for_them() {
     }
 }
 
+/// The multilevel preconditioner needs its levels for the system just prepared: without
+/// them, and again after the next `prepare`, iterating is a one-line error; with them it
+/// converges.
+#[test]
+fn multilevel_needs_its_levels_after_every_prepare() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = scene(2, 20, true);
+    let (_el, asm) = assembled(ctx, &s, Precision::F64);
+    let mut cg = asm.device_cg().expect("device CG");
+    let frames = cg
+        .frames(&s.frames, CoarseSpace::None)
+        .expect("device frames");
+    let params = DeviceCgParams {
+        tol: TOL,
+        max_iterations: 1_000,
+        preconditioner: Preconditioner::Multilevel,
+        coarse: CoarseSpace::None,
+        stagnation_window: stickslip::solve::cg::STAGNATION_WINDOW,
+    };
+    let refused = |r: Result<stickslip::gpu::pcg::DeviceCgInfo, GpuError>| match r {
+        Err(GpuError::Mismatch(m)) => {
+            assert!(m.contains("set_multilevel") && !m.contains('\n'), "{m}")
+        }
+        other => panic!("multilevel without its levels: {other:?}"),
+    };
+    cg.prepare(&frames).expect("prepare");
+    refused(cg.iterate(&frames, &params));
+    let h = asm.read_matrix().expect("read H");
+    let g = asm.read_gradient().expect("read g");
+    let e = Eliminated::new(&h, &g, &s.frames, ConstrainedDiagonal::Identity);
+    let ml = Multilevel::new(&e, std::sync::Arc::new(Hierarchy::new(&h)));
+    cg.set_multilevel(&ml, &s.frames, None).expect("levels");
+    let info = cg
+        .iterate(&frames, &params)
+        .expect("converges with its levels");
+    assert!(info.relative_residual <= TOL);
+    cg.prepare(&frames).expect("prepare again");
+    refused(cg.iterate(&frames, &params));
+}
+
 /// A vanishing gradient gives Δx = 0 in 0 iterations, even after a non-zero step left
 /// something in the Δx buffer.
 #[test]
