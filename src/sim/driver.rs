@@ -483,7 +483,11 @@ fn build_scene(
         return Err(InputError::new(
             scene.file.clone(),
             "solver.preconditioner",
-            crate::gpu::MULTILEVEL_ON_CPU,
+            format!(
+                "{}; this scene's linear = \"gpu\" runs in {} (set [solver] precision = \"f64\")",
+                crate::gpu::MULTILEVEL_ON_CPU,
+                scene.solver.precision
+            ),
         )
         .into());
     }
