@@ -576,16 +576,9 @@ impl Solver {
         }
         crate::solve::cg::check_pinned(e)?;
         // The clusters depend on H's pattern only (not on the constraints of a layout).
-        let hierarchy = match self.hierarchy.take() {
-            Some(h) if h.fits(e.h) => h,
-            _ => std::sync::Arc::new(Hierarchy::new(e.h)),
-        };
-        let pre = BuiltPreconditioner::multilevel(e, hierarchy.clone()).with_coarse(
-            e,
-            self.cg.coarse,
-            None,
-        );
-        self.hierarchy = Some(hierarchy);
+        let hierarchy = Hierarchy::kept_for(&mut self.hierarchy, e.h);
+        let pre =
+            BuiltPreconditioner::multilevel(e, hierarchy).with_coarse(e, self.cg.coarse, None);
         Ok(crate::solve::cg::solve_with(e, &pre, None, &self.cg)?)
     }
 

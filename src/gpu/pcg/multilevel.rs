@@ -200,14 +200,18 @@ pub fn multilevel_bytes(
     Ok(total)
 }
 
-/// The index arrays of one level, packed, with their offsets.
-fn pack_indices(v: &LevelView<'_>, finest: bool) -> Result<(Vec<u32>, VcycleParams), GpuError> {
-    let too_big = || {
+/// `x` as a u32 index of the device arrays, or the error that the levels exceed them.
+fn index(x: usize) -> Result<u32, GpuError> {
+    u32::try_from(x).map_err(|_| {
         GpuError::Unsupported(
             "the multilevel preconditioner's arrays exceed the device's u32 indices".into(),
         )
-    };
-    let u = |x: usize| u32::try_from(x).map_err(|_| too_big());
+    })
+}
+
+/// The index arrays of one level, packed, with their offsets.
+fn pack_indices(v: &LevelView<'_>, finest: bool) -> Result<(Vec<u32>, VcycleParams), GpuError> {
+    let u = index;
     let mut idx: Vec<u32> = Vec::new();
     let mut p = VcycleParams {
         n: u(v.n)?,
@@ -247,12 +251,7 @@ fn pack_values(
     finest: bool,
     p: &mut VcycleParams,
 ) -> Result<Vec<f64>, GpuError> {
-    let too_big = || {
-        GpuError::Unsupported(
-            "the multilevel preconditioner's values exceed the device's u32 indices".into(),
-        )
-    };
-    let u = |x: usize| u32::try_from(x).map_err(|_| too_big());
+    let u = index;
     let mut vals = vec![v.omega];
     p.omega_at = 0;
     p.a_at = u(vals.len())?;
@@ -273,11 +272,7 @@ fn pack_values(
 /// z's constrained components stay zero whatever the residual there (the CPU's r is zero
 /// there, so its z is too).
 fn pack_inverses(v: &LevelView<'_>, d: usize, mask: Option<&[u8]>) -> Result<Vec<f64>, GpuError> {
-    u32::try_from(v.inv.len()).map_err(|_| {
-        GpuError::Unsupported(
-            "the multilevel preconditioner's inverses exceed the device's u32 indices".into(),
-        )
-    })?;
+    index(v.inv.len())?;
     let mut inv = v.inv.to_vec();
     let Some(mask) = mask else {
         return Ok(inv);
@@ -368,8 +363,8 @@ impl DeviceMultilevel {
         }
         for (l, v) in views.iter().enumerate() {
             let mask = (l == 0).then_some(&frames.mask[..]);
-            let (_, mut p) = pack_indices(v, l == 0)?;
-            let vals = pack_values(v, l == 0, &mut p)?;
+            // The offsets are those of the build: only the values are new.
+            let vals = pack_values(v, l == 0, &mut VcycleParams::default())?;
             let inv = pack_inverses(v, d, mask)?;
             let lev = &self.levels[l];
             if vals.len() != lev.vals_len {
@@ -467,15 +462,7 @@ impl DeviceMultilevel {
             let mut keep = vec![idx_buf.clone()];
             let mut groups = Vec::with_capacity(inverses.len());
             for (k, ch) in inverses.iter().enumerate() {
-                let u = |x: usize| {
-                    u32::try_from(x).map_err(|_| {
-                        GpuError::Unsupported(
-                            "the multilevel preconditioner's inverses exceed the device's u32 \
-                             indices"
-                                .into(),
-                        )
-                    })
-                };
+                let u = index;
                 let pk = VcycleParams {
                     t_begin: u(ch.unknowns.start)?,
                     t_end: u(ch.unknowns.end)?,

@@ -126,12 +126,7 @@ impl PcgSolver {
         let t = Instant::now();
         self.cg.prepare_with_rhs(&self.frames, &self.host.rhs)?;
         if self.params.preconditioner == Preconditioner::Multilevel {
-            let hierarchy = match self.hierarchy.take() {
-                Some(h) if h.fits(e.h) => h,
-                _ => Arc::new(Hierarchy::new(e.h)),
-            };
-            let ml = Multilevel::new(e, hierarchy.clone());
-            self.hierarchy = Some(hierarchy);
+            let ml = Multilevel::new(e, Hierarchy::kept_for(&mut self.hierarchy, e.h));
             self.cg
                 .set_multilevel(&ml, e.frames, self.params.binding_limit)?;
         }

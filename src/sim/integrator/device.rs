@@ -268,14 +268,10 @@ impl DeviceLoop {
     fn set_multilevel(&mut self, frames: &Frames) -> Result<(), GpuError> {
         let t = Instant::now();
         let h = self.asm.read_matrix()?;
-        let hierarchy = match self.hierarchy.take() {
-            Some(hi) if hi.fits(&h) => hi,
-            _ => std::sync::Arc::new(Hierarchy::new(&h)),
-        };
+        let hierarchy = Hierarchy::kept_for(&mut self.hierarchy, &h);
         let g = vec![0.0; h.n * h.dim];
         let e = Eliminated::new(&h, &g, frames, ConstrainedDiagonal::Identity);
-        let ml = Multilevel::new(&e, hierarchy.clone());
-        self.hierarchy = Some(hierarchy);
+        let ml = Multilevel::new(&e, hierarchy);
         self.cg.set_multilevel(&ml, frames, None)?;
         self.multilevel_seconds += t.elapsed().as_secs_f64();
         Ok(())

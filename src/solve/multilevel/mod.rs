@@ -112,6 +112,20 @@ impl Hierarchy {
         }
     }
 
+    /// The hierarchy in `kept` when it was built for `h`'s block pattern, else a new one
+    /// for it; either way also left in `kept` for the next system (once per mesh).
+    pub fn kept_for(
+        kept: &mut Option<std::sync::Arc<Hierarchy>>,
+        h: &BlockCsr,
+    ) -> std::sync::Arc<Hierarchy> {
+        let hierarchy = match kept.take() {
+            Some(hi) if hi.fits(h) => hi,
+            _ => std::sync::Arc::new(Hierarchy::new(h)),
+        };
+        *kept = Some(hierarchy.clone());
+        hierarchy
+    }
+
     /// Whether this hierarchy was built for `h`'s block pattern.
     pub fn fits(&self, h: &BlockCsr) -> bool {
         self.n == h.n && self.levels[0].row_ptr == h.row_ptr && self.levels[0].col_idx == h.col_idx
