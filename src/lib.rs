@@ -115,4 +115,6 @@ pub use engine::solver::{
     LayoutKey, Solution, SolveDetails, SolveSeconds, SolveStats, Solver, SolverConfig, Step,
 };
 pub use error::{Error, InputError, SolveError};
-pub use solve::options::{CholeskyOrdering, CoarseSpace, Precision, Preconditioner, SolverKind};
+pub use solve::options::{
+    CholeskyOrdering, CoarseSpace, MultilevelSetup, Precision, Preconditioner, SolverKind,
+};

@@ -11,6 +11,8 @@ use crate::gpu::{
 };
 use crate::solve::cg::{CgInfo, CgParams, Preconditioner};
 use crate::solve::coarse::CoarseSpace;
+use crate::solve::multilevel::reuse::KeptLevels;
+use crate::solve::options::MultilevelSetup;
 pub use crate::solve::options::SolverKind;
 use crate::solve::oracle::{CholeskyOracle, OracleInfo};
 use crate::solve::ordering::CholeskyOrdering;
@@ -47,6 +49,9 @@ pub struct SolverConfig {
     pub preconditioner: Preconditioner,
     /// Coarse correction of the iterative solvers.
     pub coarse: CoarseSpace,
+    /// When the multilevel preconditioner's levels are rebuilt (CPU CG and the device PCG
+    /// in f64): for every system, or kept across the systems of a Newton solve.
+    pub multilevel_setup: MultilevelSetup,
     /// Mixed precision only: target of the estimated relative error.
     pub error_tol: Option<f64>,
     /// D on constrained components of Ĥ.
@@ -70,6 +75,7 @@ impl std::fmt::Debug for SolverConfig {
             .field("max_iters", &self.max_iters)
             .field("preconditioner", &self.preconditioner)
             .field("coarse", &self.coarse)
+            .field("multilevel_setup", &self.multilevel_setup)
             .field("error_tol", &self.error_tol)
             .field("constrained_diagonal", &self.constrained_diagonal)
             .field("ordering", &self.ordering)
@@ -100,6 +106,7 @@ impl SolverConfig {
             max_iters: DEFAULT_MAX_ITERS,
             preconditioner: Preconditioner::Jacobi,
             coarse: CoarseSpace::default(),
+            multilevel_setup: MultilevelSetup::default(),
             error_tol: None,
             constrained_diagonal: ConstrainedDiagonal::Identity,
             ordering: CholeskyOrdering::Auto,
@@ -146,6 +153,12 @@ impl SolverConfig {
     /// Sets the coarse correction.
     pub fn coarse(mut self, c: CoarseSpace) -> Self {
         self.coarse = c;
+        self
+    }
+
+    /// Sets when the multilevel preconditioner's levels are rebuilt.
+    pub fn multilevel_setup(mut self, s: MultilevelSetup) -> Self {
+        self.multilevel_setup = s;
         self
     }
 
@@ -207,6 +220,7 @@ impl SolverConfig {
             preconditioner: self.preconditioner,
             coarse: self.coarse,
             error_tol: self.error_tol,
+            multilevel_setup: self.multilevel_setup,
             ..GpuParams::default()
         })
     }
@@ -399,8 +413,9 @@ pub struct Solver {
     gpu: Option<GpuContext>,
     /// Most recently used last.
     prepared: Vec<(LayoutKey, Prepared)>,
-    /// The multilevel preconditioner's clusters of the last pattern solved.
-    hierarchy: Option<std::sync::Arc<crate::solve::multilevel::Hierarchy>>,
+    /// The multilevel preconditioner's clusters of the last pattern solved, and its
+    /// levels when they are kept between systems.
+    levels: KeptLevels,
 }
 
 impl Solver {
@@ -429,10 +444,10 @@ impl Solver {
         Ok(Solver {
             cg: config.resolved_cg_params(),
             gpu_params: config.resolved_gpu_params(),
+            levels: KeptLevels::new(config.multilevel_setup),
             config,
             gpu,
             prepared: Vec::new(),
-            hierarchy: None,
         })
     }
 
@@ -566,20 +581,30 @@ impl Solver {
     }
 
     /// The CPU CG; the multilevel preconditioner partitions H's pattern once and keeps the
-    /// clusters while the pattern stays.
+    /// clusters while the pattern stays (and its levels, as the setup says: a solve that
+    /// fails on kept levels runs again on fresh ones).
     fn cg(&mut self, e: &Eliminated) -> Result<(Vec<f64>, crate::solve::cg::CgInfo), Error> {
         use crate::solve::cg::{BuiltPreconditioner, Scaling};
-        use crate::solve::multilevel::Hierarchy;
         if self.cg.preconditioner != Preconditioner::Multilevel || self.cg.scaling != Scaling::None
         {
             return Ok(crate::solve::cg::solve(e, &self.cg)?);
         }
         crate::solve::cg::check_pinned(e)?;
-        // The clusters depend on H's pattern only (not on the constraints of a layout).
-        let hierarchy = Hierarchy::kept_for(&mut self.hierarchy, e.h);
-        let pre =
-            BuiltPreconditioner::multilevel(e, hierarchy).with_coarse(e, self.cg.coarse, None);
-        Ok(crate::solve::cg::solve_with(e, &pre, None, &self.cg)?)
+        loop {
+            let (levels, _) = self.levels.for_system(e);
+            let pre = BuiltPreconditioner::with_levels(levels);
+            match crate::solve::cg::solve_with(e, &pre, None, &self.cg) {
+                Ok((y, info)) => {
+                    self.levels.solved(info.iterations, self.cg.tol);
+                    return Ok((y, info));
+                }
+                Err(err) => {
+                    if !self.levels.failed() {
+                        return Err(err.into());
+                    }
+                }
+            }
+        }
     }
 
     fn cholesky(

@@ -1,6 +1,6 @@
 //! The GPU CG's parameters ([`GpuParams`]) and the kernel-size bounds they refer to.
 
-use crate::solve::options::{CoarseSpace, Precision, Preconditioner};
+use crate::solve::options::{CoarseSpace, MultilevelSetup, Precision, Preconditioner};
 
 /// The f32 difference form of the operator (`GpuParams::f32_difference`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
@@ -38,6 +38,9 @@ pub struct GpuParams {
     /// Limit on CG iterations (all restarts and, for mixed, all inner solves together).
     pub max_iters: usize,
     pub preconditioner: Preconditioner,
+    /// f64 with the multilevel preconditioner: when its levels are rebuilt (for every
+    /// system, or kept across the systems of a Newton solve).
+    pub multilevel_setup: MultilevelSetup,
     /// Stagnation: the recurrence residual has not improved for this many iterations.
     pub stagnation_window: usize,
     /// Restarts from the current iterate when the true residual misses the tolerance.
@@ -115,6 +118,7 @@ impl Default for GpuParams {
             tol: 1e-6,
             max_iters: 10_000,
             preconditioner: Preconditioner::Jacobi,
+            multilevel_setup: MultilevelSetup::default(),
             stagnation_window: crate::solve::cg::STAGNATION_WINDOW,
             max_restarts: 3,
             first_chunk: 8,

@@ -1,8 +1,9 @@
 //! Every user-facing option of the solvers, in one home: which solver
 //! ([`SolverKind`]), the GPU's arithmetic ([`Precision`]), the preconditioner
 //! ([`Preconditioner`]), its coarse space ([`CoarseSpace`]) and the Cholesky oracle's
-//! fill-reducing ordering ([`CholeskyOrdering`]). Each parses from the name the command
-//! line and scene files use and prints as it.
+//! fill-reducing ordering ([`CholeskyOrdering`]) and when the multilevel preconditioner's
+//! levels are rebuilt ([`MultilevelSetup`]). Each parses from the name the command line
+//! and scene files use and prints as it.
 
 /// Arithmetic of the GPU CG.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
@@ -82,6 +83,44 @@ impl std::str::FromStr for Preconditioner {
             "multilevel" => Ok(Preconditioner::Multilevel),
             _ => Err(format!(
                 "unknown preconditioner '{s}' (expected none, jacobi, block-jacobi or multilevel)"
+            )),
+        }
+    }
+}
+
+/// When the multilevel preconditioner's levels (cluster inverses, prolongations, coarse
+/// matrices) are rebuilt for a new system of the same pattern and constraint set.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MultilevelSetup {
+    /// For every system: a solve depends on its own system only.
+    #[default]
+    Every,
+    /// Kept across the systems of a Newton solve: the next system keeps the levels (with
+    /// its own finest matrix and smoothing weight) while its solves take at most
+    /// [`crate::solve::multilevel::reuse::REBUILD_GROWTH`] times the iterations per decade of
+    /// residual reduction of the first solve on them, and rebuilds them when the
+    /// constraint set or the pattern changes or a solve on kept levels fails.
+    Reuse,
+}
+
+impl MultilevelSetup {
+    pub fn name(self) -> &'static str {
+        match self {
+            MultilevelSetup::Every => "every",
+            MultilevelSetup::Reuse => "reuse",
+        }
+    }
+}
+
+impl std::str::FromStr for MultilevelSetup {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "every" => Ok(MultilevelSetup::Every),
+            "reuse" => Ok(MultilevelSetup::Reuse),
+            _ => Err(format!(
+                "unknown multilevel setup '{s}' (expected every or reuse)"
             )),
         }
     }

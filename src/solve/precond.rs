@@ -18,7 +18,7 @@ pub struct BuiltPreconditioner {
     /// The coarse correction added to M⁻¹ (see [`crate::solve::coarse`]).
     coarse: Option<Coarse>,
     /// The multilevel Schwarz factors ([`Preconditioner::Multilevel`]).
-    multilevel: Option<Multilevel>,
+    multilevel: Option<Arc<Multilevel>>,
 }
 
 impl BuiltPreconditioner {
@@ -66,18 +66,24 @@ impl BuiltPreconditioner {
         } else {
             Arc::new(Hierarchy::new(e.h))
         };
+        Self::with_levels(Arc::new(Multilevel::new(e, hierarchy)))
+    }
+
+    /// The multilevel Schwarz preconditioner on levels built (or kept) beforehand
+    /// ([`crate::solve::multilevel::KeptLevels`]).
+    pub fn with_levels(levels: Arc<Multilevel>) -> Self {
         BuiltPreconditioner {
             kind: Preconditioner::Multilevel,
-            dim: e.h.dim,
+            dim: levels.dim(),
             data: Vec::new(),
             coarse: None,
-            multilevel: Some(Multilevel::new(e, hierarchy)),
+            multilevel: Some(levels),
         }
     }
 
     /// The multilevel factors, for [`Preconditioner::Multilevel`].
     pub fn multilevel_factors(&self) -> Option<&Multilevel> {
-        self.multilevel.as_ref()
+        self.multilevel.as_deref()
     }
 
     /// Adds the coarse correction of `space` on `e` (nothing for [`CoarseSpace::None`], or

@@ -897,6 +897,19 @@ impl DeviceCg {
         Ok(())
     }
 
+    /// The kept multilevel levels refreshed for the system just prepared
+    /// ([`crate::solve::multilevel::Multilevel::refresh`]): only their smoothing weights
+    /// move; call after `prepare` instead of [`DeviceCg::set_multilevel`] when the levels
+    /// on the device are `ml`'s.
+    pub fn refresh_multilevel(&mut self, ml: &Multilevel) -> Result<(), GpuError> {
+        let dm = self.ml.as_ref().ok_or_else(|| {
+            GpuError::Mismatch("no multilevel levels on the device to refresh".into())
+        })?;
+        dm.set_omega(ml)?;
+        self.ml_ready = true;
+        Ok(())
+    }
+
     /// Clusters per level of the multilevel preconditioner on the device, finest first
     /// (empty before [`DeviceCg::set_multilevel`]).
     pub fn multilevel_clusters(&self) -> Vec<usize> {

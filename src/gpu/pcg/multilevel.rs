@@ -383,6 +383,27 @@ impl DeviceMultilevel {
         Ok(())
     }
 
+    /// Writes the smoothing weights of `ml`, whose other values are those last uploaded
+    /// ([`crate::solve::multilevel::Multilevel::refresh`] changes only the finest level's
+    /// weight and matrix, and the device reads the PCG's own matrix there).
+    pub(super) fn set_omega(&self, ml: &Multilevel) -> Result<(), GpuError> {
+        let same = self
+            .hierarchy
+            .as_ref()
+            .is_some_and(|(h, _)| Arc::ptr_eq(h, ml.hierarchy()));
+        if !same {
+            return Err(GpuError::Mismatch(
+                "the kept multilevel levels are not those on the device".into(),
+            ));
+        }
+        for (lev, v) in self.levels.iter().zip(ml.levels()) {
+            // ω is the first value of every level (`pack_values`).
+            self.ctx
+                .write_buffer(&lev.vals, 0, bytemuck::cast_slice(&[v.omega]));
+        }
+        Ok(())
+    }
+
     fn build(
         &self,
         hierarchy: &crate::solve::multilevel::Hierarchy,

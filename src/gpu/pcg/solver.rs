@@ -16,7 +16,8 @@ use crate::gpu::{
 };
 use crate::solve::cg::CgError;
 use crate::solve::coarse::CoarseSpace;
-use crate::solve::multilevel::{Hierarchy, Multilevel};
+use crate::solve::multilevel::reuse::{KeptLevels, Levels};
+use crate::solve::multilevel::Hierarchy;
 use crate::solve::options::Preconditioner;
 use std::sync::Arc;
 use std::time::Instant;
@@ -72,8 +73,9 @@ pub struct PcgSolver {
     blocks: HostBlocks,
     cg: DeviceCg,
     frames: DeviceFrames,
-    /// The multilevel preconditioner's clusters (H's pattern only: kept across updates).
-    hierarchy: Option<Arc<Hierarchy>>,
+    /// The multilevel preconditioner's clusters (H's pattern only: kept across updates)
+    /// and its levels (kept or rebuilt as `params.multilevel_setup` says).
+    levels: KeptLevels,
     upload_seconds: f64,
     setup_seconds: f64,
 }
@@ -82,8 +84,9 @@ impl PcgSolver {
     /// Uploads `e`'s H, frames and b̂ and builds the CG. Refuses precisions other than f64,
     /// a system over the device memory and (as the CPU CG) one that a rigid translation
     /// leaves singular. With the multilevel preconditioner the host builds its levels
-    /// (the CPU CG's [`Multilevel`], clusters partitioned once per pattern) for every
-    /// system and uploads them: setup time.
+    /// (the CPU CG's [`crate::solve::multilevel::Multilevel`], clusters partitioned once
+    /// per pattern) and uploads them, for every system or, with
+    /// [`crate::MultilevelSetup::Reuse`], when the kept ones no longer serve: setup time.
     pub fn new(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<Self, GpuError> {
         if params.precision != Precision::F64 {
             return Err(GpuError::Unsupported(format!(
@@ -96,6 +99,10 @@ impl PcgSolver {
         let hierarchy = (params.preconditioner == Preconditioner::Multilevel)
             .then(|| Arc::new(Hierarchy::new(e.h)));
         check_memory(ctx, e, params, hierarchy.as_deref())?;
+        let levels = match hierarchy {
+            Some(h) => KeptLevels::with_hierarchy(params.multilevel_setup, h),
+            None => KeptLevels::new(params.multilevel_setup),
+        };
         let t0 = Instant::now();
         let blocks = HostBlocks::upload(ctx, e.h, params.binding_limit)?;
         let cg = DeviceCg::new(ctx, blocks.matrix(), None, true)?;
@@ -113,7 +120,7 @@ impl PcgSolver {
             blocks,
             cg,
             frames,
-            hierarchy,
+            levels,
             upload_seconds: t0.elapsed().as_secs_f64(),
             setup_seconds: 0.0,
         };
@@ -126,9 +133,7 @@ impl PcgSolver {
         let t = Instant::now();
         self.cg.prepare_with_rhs(&self.frames, &self.host.rhs)?;
         if self.params.preconditioner == Preconditioner::Multilevel {
-            let ml = Multilevel::new(e, Hierarchy::kept_for(&mut self.hierarchy, e.h));
-            self.cg
-                .set_multilevel(&ml, e.frames, self.params.binding_limit)?;
+            self.set_levels(e)?;
         }
         // The setup kernels' time, not just their recording.
         self.ctx
@@ -137,6 +142,19 @@ impl PcgSolver {
             .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))?;
         self.setup_seconds = t.elapsed().as_secs_f64();
         Ok(())
+    }
+
+    /// The multilevel levels for `e` on the device: all of them when built, the finest
+    /// smoothing weight when kept.
+    fn set_levels(&mut self, e: &Eliminated) -> Result<(), GpuError> {
+        let (ml, how) = self.levels.for_system(e);
+        match how {
+            Levels::Built | Levels::Remasked => {
+                self.cg
+                    .set_multilevel(&ml, e.frames, self.params.binding_limit)
+            }
+            Levels::Kept => self.cg.refresh_multilevel(&ml),
+        }
     }
 
     /// Sets the relative residual tolerance of the next solves; refuses a value outside
@@ -170,8 +188,37 @@ impl PcgSolver {
         self.prepare(e)
     }
 
-    /// Solves Ĥ y = b̂; returns y (frame coordinates), Δx = Δx_p + V y and the report.
+    /// Solves Ĥ y = b̂; returns y (frame coordinates), Δx = Δx_p + V y and the report. A
+    /// solve that fails on kept multilevel levels runs again on levels built for it.
     pub fn solve(&mut self) -> Result<SolveOutcome, GpuError> {
+        let multilevel = self.params.preconditioner == Preconditioner::Multilevel;
+        let outcome = match self.solve_once() {
+            Err(_) if multilevel && self.levels.failed() => {
+                let t = Instant::now();
+                let h = match &self.host.op {
+                    HostOp::Blocks(h) => h.clone(),
+                    _ => return Err(GpuError::Mismatch("the device PCG keeps H's blocks".into())),
+                };
+                let frames = self.host.frames.clone();
+                let e = Eliminated {
+                    h: &h,
+                    frames: &frames,
+                    rhs: self.host.rhs.clone(),
+                    diag: self.host.diag.clone(),
+                };
+                self.set_levels(&e)?;
+                self.setup_seconds += t.elapsed().as_secs_f64();
+                self.solve_once()
+            }
+            other => other,
+        }?;
+        if multilevel {
+            self.levels.solved(outcome.info.iterations, self.params.tol);
+        }
+        Ok(outcome)
+    }
+
+    fn solve_once(&mut self) -> Result<SolveOutcome, GpuError> {
         let tol = self.params.tol;
         let bnorm = norm2(&self.host.rhs);
         let mut notes = Vec::new();

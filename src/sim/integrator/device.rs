@@ -35,7 +35,8 @@ use crate::sim::device::newton_ops::{static_projections, MovingTerm, NewtonOps};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
 use crate::sim::energy::{AssemblyWork, InversionLimit, Inverted};
 use crate::sim::scene::Scene;
-use crate::solve::multilevel::{Hierarchy, Multilevel};
+use crate::solve::multilevel::reuse::{KeptLevels, Levels};
+use crate::solve::multilevel::Hierarchy;
 use crate::solve::options::Preconditioner;
 use std::collections::HashMap;
 use std::time::Instant;
@@ -60,9 +61,9 @@ pub(super) struct DeviceLoop {
     scratch_v: Vec<f64>,
     /// The host's element buffer of the force balance, kept between steps.
     assembly: AssemblyWork,
-    /// The multilevel preconditioner's clusters (H's pattern only: once per run) and the
-    /// host seconds of its setups so far.
-    hierarchy: Option<std::sync::Arc<Hierarchy>>,
+    /// The multilevel preconditioner's clusters (H's pattern only: once per run), its
+    /// levels when kept between systems, and the host seconds of its setups so far.
+    levels: KeptLevels,
     multilevel_seconds: f64,
     dim: usize,
 }
@@ -198,10 +199,11 @@ impl DeviceLoop {
         let cg = asm.device_cg().map_err(device_error)?;
         let ops = NewtonOps::new(&elements, &asm, cg.dx_buffer()).map_err(device_error)?;
         let d = scene.dim;
-        let hierarchy = if scene.solver.preconditioner == Preconditioner::Multilevel {
-            Some(multilevel_hierarchy(&ctx, scene, &asm)?)
+        let setup = scene.solver.multilevel_setup;
+        let levels = if scene.solver.preconditioner == Preconditioner::Multilevel {
+            KeptLevels::with_hierarchy(setup, multilevel_hierarchy(&ctx, scene, &asm)?)
         } else {
-            None
+            KeptLevels::new(setup)
         };
         let matrix_bytes = (asm.pattern().1.len() * d * d * 8) as u64;
         Ok(DeviceLoop {
@@ -224,7 +226,7 @@ impl DeviceLoop {
             scratch: vec![0.0; scene.model.n_nodes * d],
             scratch_v: Vec::new(),
             assembly: AssemblyWork::default(),
-            hierarchy,
+            levels,
             multilevel_seconds: 0.0,
             dim: d,
         })
@@ -264,15 +266,18 @@ impl DeviceLoop {
 
 impl DeviceLoop {
     /// The multilevel preconditioner of the system just assembled: H read back, its levels
-    /// built on the host by the CPU CG's code ([`Multilevel::new`]) and uploaded.
+    /// built on the host by the CPU CG's code ([`crate::solve::multilevel::Multilevel`])
+    /// and uploaded, or the kept ones refreshed as the CPU loop does ([`KeptLevels`]).
     fn set_multilevel(&mut self, frames: &Frames) -> Result<(), GpuError> {
         let t = Instant::now();
         let h = self.asm.read_matrix()?;
-        let hierarchy = Hierarchy::kept_for(&mut self.hierarchy, &h);
         let g = vec![0.0; h.n * h.dim];
         let e = Eliminated::new(&h, &g, frames, ConstrainedDiagonal::Identity);
-        let ml = Multilevel::new(&e, hierarchy);
-        self.cg.set_multilevel(&ml, frames, None)?;
+        let (ml, how) = self.levels.for_system(&e);
+        match how {
+            Levels::Built | Levels::Remasked => self.cg.set_multilevel(&ml, frames, None)?,
+            Levels::Kept => self.cg.refresh_multilevel(&ml)?,
+        }
         self.multilevel_seconds += t.elapsed().as_secs_f64();
         Ok(())
     }
@@ -397,21 +402,32 @@ impl Backend for DeviceLoop {
             let f = self.cg.frames(&state.frames[snapped], self.params.coarse)?;
             self.frames.insert(snapped.to_vec(), f);
         }
-        let frames = &self.frames[snapped];
         let cg_error = |e: GpuError| StepError::LinearSolve {
             iteration,
             cause: e.to_string(),
         };
-        self.cg.prepare(frames).map_err(cg_error)?;
-        if self.params.preconditioner == Preconditioner::Multilevel {
-            self.set_multilevel(&state.frames[snapped])
-                .map_err(cg_error)?;
+        let multilevel = self.params.preconditioner == Preconditioner::Multilevel;
+        // The forcing sequence gives one tolerance per system, also to a second try.
+        let mut eta = None;
+        let mut once = |n: f64| *eta.get_or_insert_with(|| tolerance(n));
+        let info = loop {
+            let frames = &self.frames[snapped];
+            self.cg.prepare(frames).map_err(cg_error)?;
+            if multilevel {
+                self.set_multilevel(&state.frames[snapped])
+                    .map_err(cg_error)?;
+            }
+            let frames = &self.frames[snapped];
+            match self.cg.iterate_to(frames, &self.params, &mut once) {
+                Ok(info) => break info,
+                // Kept multilevel levels get one more try on levels built for this system.
+                Err(_) if multilevel && self.levels.failed() => {}
+                Err(e) => return Err(cg_error(e)),
+            }
+        };
+        if multilevel {
+            self.levels.solved(info.iterations, info.tolerance);
         }
-        let frames = &self.frames[snapped];
-        let info = self
-            .cg
-            .iterate_to(frames, &self.params, tolerance)
-            .map_err(cg_error)?;
         Ok(Self::stats(&info, t))
     }
 
@@ -433,6 +449,9 @@ impl Backend for DeviceLoop {
                 iteration,
                 cause: e.to_string(),
             })?;
+        if self.params.preconditioner == Preconditioner::Multilevel {
+            self.levels.solved(info.iterations, info.tolerance);
+        }
         Ok(Self::stats(&info, t))
     }
 

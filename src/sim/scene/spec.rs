@@ -4,6 +4,7 @@
 use crate::gpu::Precision;
 use crate::solve::cg::Preconditioner;
 use crate::solve::coarse::CoarseSpace;
+use crate::solve::options::MultilevelSetup;
 use serde::Deserialize;
 
 // File format (serde). Flat structs with optional fields keep every error's key path exact.
@@ -108,6 +109,11 @@ pub struct SolverSpec {
     pub cg_max_iterations: usize,
     #[serde(default)]
     pub preconditioner: Preconditioner,
+    /// Multilevel: when its levels are rebuilt ("reuse", the default for scenes: kept
+    /// across the Newton systems of the same constraint set while the solves stay fast;
+    /// or "every" system).
+    #[serde(default = "default_multilevel_setup")]
+    pub multilevel_setup: MultilevelSetup,
     /// CG and GPU: coarse correction added to the preconditioner ("aggregates", the
     /// default, "translations" or "none").
     #[serde(default)]
@@ -345,6 +351,7 @@ impl SolverSpec {
         .tol(self.cg_tolerance.loosest())
         .max_iters(self.cg_max_iterations)
         .preconditioner(self.preconditioner)
+        .multilevel_setup(self.multilevel_setup)
         .coarse(self.coarse)
         .ordering(self.ordering)
     }
@@ -358,6 +365,9 @@ fn default_cg_iters() -> usize {
 }
 fn default_precision() -> Precision {
     Precision::Mixed
+}
+fn default_multilevel_setup() -> MultilevelSetup {
+    MultilevelSetup::Reuse
 }
 fn default_newton_tol() -> f64 {
     1e-6
@@ -377,6 +387,7 @@ impl Default for SolverSpec {
             cg_tolerance: CgTolerance::Adaptive,
             cg_max_iterations: default_cg_iters(),
             preconditioner: Preconditioner::default(),
+            multilevel_setup: default_multilevel_setup(),
             coarse: CoarseSpace::default(),
             precision: default_precision(),
             newton_tolerance: default_newton_tol(),

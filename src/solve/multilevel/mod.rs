@@ -23,7 +23,8 @@
 //! deeper levels 1.39×, and smoothing at every level far less.
 //!
 //! The partition ([`Hierarchy`]) depends on H's pattern only and is built once per mesh;
-//! the inverses and matrices ([`Multilevel`]) are rebuilt for every system. Every sum runs
+//! the inverses and matrices ([`Multilevel`]) are built for a system, and either rebuilt
+//! for every system or kept across the systems of a Newton solve (`reuse`). Every sum runs
 //! in a fixed order over a fixed partition, so the bits do not depend on the thread
 //! count.
 //!
@@ -34,6 +35,7 @@
 //! vanishes. A negative pivot (Ĥ indefinite there) is dropped too, so the smoother stays
 //! semidefinite and CG itself reports the negative curvature.
 
+use crate::core::constraints::Frames;
 use crate::core::elimination::Eliminated;
 use crate::core::sparse::BlockCsr;
 use rayon::prelude::*;
@@ -41,6 +43,7 @@ use rayon::prelude::*;
 mod dense;
 mod level;
 mod partition;
+pub mod reuse;
 mod smoothed;
 use dense::block9;
 pub use dense::PIVOT_DROP;
@@ -190,6 +193,17 @@ pub struct LevelSizes {
     pub items: usize,
 }
 
+/// How kept levels serve a constraint set ([`Multilevel::fit`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FramesFit {
+    /// The constraint set they were built for.
+    Same,
+    /// More components constrained, every node in its frame or constrained whole.
+    Masked,
+    /// Another one: build anew.
+    No,
+}
+
 /// The smoother's damping is ω_l = min([`OMEGA_MAX`], [`OMEGA_LAMBDA`] / λ̂_l): the V-cycle
 /// is SPD when ω_l λmax(B_l⁺A_l) < 2, and the estimate λ̂_l (a lower bound, from
 /// [`LAMBDA_STEPS`] power steps) keeps ω_l λmax near 1.3. On the twist systems λ̂ ≈ 2
@@ -215,6 +229,8 @@ pub struct Multilevel {
     pt: Vec<Vec<f64>>,
     /// Pivots dropped, all levels together.
     dropped: usize,
+    /// The constraint set the levels serve (built for, or remasked to).
+    built_for: Frames,
 }
 
 /// One level of a [`Multilevel`] as the device V-cycle reads it (src/gpu/pcg/multilevel.rs):
@@ -303,18 +319,109 @@ impl Multilevel {
             p,
             omega: Vec::new(),
             dropped,
+            built_for: e.frames.clone(),
         };
-        ml.omega = (0..nl)
-            .map(|l| {
-                let lam = ml.lambda_max(l, LAMBDA_STEPS);
-                if lam > 0.0 && lam.is_finite() {
-                    OMEGA_MAX.min(OMEGA_LAMBDA / lam)
-                } else {
-                    OMEGA_MAX
-                }
-            })
-            .collect();
+        ml.omega = (0..nl).map(|l| ml.omega_of(l)).collect();
         ml
+    }
+
+    /// How these levels serve the constraint set of `frames`: as they are (the same
+    /// constrained components in the same node frames), after [`Multilevel::refresh`]
+    /// masks the components `frames` constrains on top (every node keeps its frame, or is
+    /// constrained whole), or not at all.
+    pub fn fit(&self, frames: &Frames) -> FramesFit {
+        let old = &self.built_for;
+        if old.n_nodes != frames.n_nodes || old.dim != frames.dim {
+            return FramesFit::No;
+        }
+        if old.mask == frames.mask
+            && old.rot_index == frames.rot_index
+            && old.rotations == frames.rotations
+        {
+            return FramesFit::Same;
+        }
+        let full = (1u8 << self.dim) - 1;
+        let serves = (0..frames.n_nodes).all(|i| {
+            let (was, now) = (old.mask[i], frames.mask[i]);
+            now & was == was && (now == full || old.rotation(i) == frames.rotation(i))
+        });
+        if serves {
+            FramesFit::Masked
+        } else {
+            FramesFit::No
+        }
+    }
+
+    /// Keeps the levels for a new system `e` of the same pattern whose constraint set
+    /// they fit ([`Multilevel::fit`]): the finest matrix becomes `e`'s Ĥ and its
+    /// smoothing weight ω_0 is estimated again against it; components constrained since
+    /// the build are masked out of the finest cluster inverses (1/D on their diagonal, as
+    /// a build gives) and out of the prolongation's rows, as a build would leave them;
+    /// the coarse matrices stay. The V-cycle stays symmetric and positive definite: the
+    /// coarse correction only adds a semidefinite term, and the smoother is convergent
+    /// while ω_0 λmax(B_0⁺Ĥ) < 2, which the new ω_0 keeps as a fresh build does.
+    pub fn refresh(&mut self, e: &Eliminated) {
+        if self.fit(e.frames) == FramesFit::Masked {
+            self.mask_new(e);
+        }
+        self.values[0] = frame_values(e);
+        if self.hierarchy.levels.len() > 1 {
+            self.omega[0] = self.omega_of(0);
+        }
+    }
+
+    /// Masks the components `e` constrains that the levels' constraint set left free.
+    fn mask_new(&mut self, e: &Eliminated) {
+        let d = self.dim;
+        let dd = d * d;
+        let lev = &self.hierarchy.levels[0];
+        let f = &mut self.factors[0];
+        // Where each P block sits in the restriction's transposed copy.
+        let mut t_of = Vec::new();
+        if let Some(sp) = self.hierarchy.smooth.first() {
+            t_of = vec![0usize; sp.pt.len()];
+            for (t, &(_, pk)) in sp.pt.iter().enumerate() {
+                t_of[pk as usize] = t;
+            }
+        }
+        for i in 0..lev.n {
+            let new = e.frames.mask[i] & !self.built_for.mask[i];
+            if new == 0 {
+                continue;
+            }
+            let c = lev.of[i] as usize;
+            let m = (lev.ptr[c + 1] - lev.ptr[c]) * d;
+            let inv = &mut f.factor[f.start[c]..f.start[c + 1]];
+            for a in (0..d).filter(|a| new & (1 << a) != 0) {
+                let row = lev.pos[i] as usize * d + a;
+                for k in 0..m {
+                    inv[row * m + k] = 0.0;
+                    inv[k * m + row] = 0.0;
+                }
+                let dg = e.diag[i * d + a];
+                inv[row * m + row] = if dg > 0.0 { 1.0 / dg } else { 0.0 };
+                if let Some(sp) = self.hierarchy.smooth.first() {
+                    let (p0, p1) = (sp.p_ptr[i], sp.p_ptr[i + 1]);
+                    for (pk, &t) in (p0..p1).zip(&t_of[p0..p1]) {
+                        self.p[0][pk * dd + a * d..pk * dd + (a + 1) * d].fill(0.0);
+                        for r in 0..d {
+                            self.pt[0][t * dd + r * d + a] = 0.0;
+                        }
+                    }
+                }
+            }
+        }
+        self.built_for = e.frames.clone();
+    }
+
+    /// The smoothing weight of level l from a power estimate of λmax(B_l⁺A_l).
+    fn omega_of(&self, l: usize) -> f64 {
+        let lam = self.lambda_max(l, LAMBDA_STEPS);
+        if lam > 0.0 && lam.is_finite() {
+            OMEGA_MAX.min(OMEGA_LAMBDA / lam)
+        } else {
+            OMEGA_MAX
+        }
     }
 
     /// The hierarchy these factors were built on.

@@ -1,0 +1,222 @@
+//! The levels kept between the systems of a Newton solve ([`MultilevelSetup::Reuse`]).
+//!
+//! Ĥ changes little from one Newton iteration to the next, and the setup of the levels
+//! costs about as much as the 10–20 V-cycles of a solve (BENCHMARKS.md, "The multilevel
+//! preconditioner"). So the levels of one system serve the next ones of the same pattern
+//! and constraint set ([`Multilevel::refresh`]: the finest matrix and its smoothing weight
+//! are the new system's) until a solve on them takes more than [`REBUILD_GROWTH`] times
+//! the iterations per decade of residual reduction of the first solve after the build, or
+//! fails. Every decision comes from iteration counts and tolerances, so the CPU CG and the
+//! device PCG, which take the same iterations, keep and rebuild on the same systems.
+
+use super::{FramesFit, Hierarchy, Multilevel};
+use crate::core::elimination::Eliminated;
+use crate::core::sparse::BlockCsr;
+use crate::solve::options::MultilevelSetup;
+use std::sync::Arc;
+
+/// A solve on kept levels taking more than this many times the iterations per decade of
+/// the first solve on them has the next system rebuild them.
+pub const REBUILD_GROWTH: f64 = 1.5;
+
+/// What [`KeptLevels::for_system`] did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Levels {
+    /// Built for this system.
+    Built,
+    /// Kept from an earlier system of the same constraint set, refreshed for this one
+    /// (only the finest level's matrix and smoothing weight changed).
+    Kept,
+    /// Kept from an earlier system whose constraint set left free some components this
+    /// one constrains: refreshed, and those components masked in the finest level's
+    /// inverses and the prolongation from it.
+    Remasked,
+}
+
+/// The multilevel preconditioner's hierarchy (once per pattern) and, with
+/// [`MultilevelSetup::Reuse`], its levels, across the systems one solver meets.
+#[derive(Debug, Clone)]
+pub struct KeptLevels {
+    setup: MultilevelSetup,
+    hierarchy: Option<Arc<Hierarchy>>,
+    levels: Option<Arc<Multilevel>>,
+    /// Iterations per decade of the first solve on the current levels.
+    fresh_rate: Option<f64>,
+    /// The next system rebuilds the levels.
+    rebuild: bool,
+    last: Levels,
+    builds: usize,
+    kept: usize,
+}
+
+impl KeptLevels {
+    pub fn new(setup: MultilevelSetup) -> Self {
+        KeptLevels {
+            setup,
+            hierarchy: None,
+            levels: None,
+            fresh_rate: None,
+            rebuild: false,
+            last: Levels::Built,
+            builds: 0,
+            kept: 0,
+        }
+    }
+
+    /// Starts from a hierarchy built beforehand (a device checks its memory on it).
+    pub fn with_hierarchy(setup: MultilevelSetup, hierarchy: Arc<Hierarchy>) -> Self {
+        KeptLevels {
+            hierarchy: Some(hierarchy),
+            ..Self::new(setup)
+        }
+    }
+
+    /// The hierarchy of `h`'s pattern: the kept one when it fits, else a new one.
+    pub fn hierarchy_for(&mut self, h: &BlockCsr) -> Arc<Hierarchy> {
+        Hierarchy::kept_for(&mut self.hierarchy, h)
+    }
+
+    /// The levels for the system `e`: kept and refreshed when the setup allows it and
+    /// they fit `e`'s pattern and constraint set, else built.
+    pub fn for_system(&mut self, e: &Eliminated) -> (Arc<Multilevel>, Levels) {
+        let hierarchy = self.hierarchy_for(e.h);
+        if self.setup == MultilevelSetup::Reuse && !self.rebuild {
+            if let Some(ml) = self.levels.as_mut() {
+                let how = match ml.fit(e.frames) {
+                    FramesFit::Same => Some(Levels::Kept),
+                    FramesFit::Masked => Some(Levels::Remasked),
+                    FramesFit::No => None,
+                };
+                if let Some(how) = how.filter(|_| Arc::ptr_eq(ml.hierarchy(), &hierarchy)) {
+                    Arc::make_mut(ml).refresh(e);
+                    self.last = how;
+                    self.kept += 1;
+                    return (ml.clone(), how);
+                }
+            }
+        }
+        let ml = Arc::new(Multilevel::new(e, hierarchy));
+        self.levels = (self.setup == MultilevelSetup::Reuse).then(|| ml.clone());
+        self.rebuild = false;
+        self.fresh_rate = None;
+        self.last = Levels::Built;
+        self.builds += 1;
+        (ml, Levels::Built)
+    }
+
+    /// Records a solve on the current levels: `iterations` to the relative residual
+    /// `tol`. The first solve after a build sets the rate the later ones are held to (a
+    /// solve again on the same system counts as a later one, whether or not it asked
+    /// [`KeptLevels::for_system`] first).
+    pub fn solved(&mut self, iterations: usize, tol: f64) {
+        if self.setup != MultilevelSetup::Reuse || iterations == 0 {
+            return;
+        }
+        let decades = (1.0 / tol).log10().max(0.5);
+        let rate = iterations as f64 / decades;
+        match self.fresh_rate {
+            Some(fresh) => {
+                if rate > REBUILD_GROWTH * fresh {
+                    self.rebuild = true;
+                }
+            }
+            None => self.fresh_rate = Some(rate),
+        }
+    }
+
+    /// A solve on the levels of the last [`KeptLevels::for_system`] failed: the next
+    /// system rebuilds them. True when they were kept levels, so that a solve on fresh
+    /// ones may succeed where it failed.
+    pub fn failed(&mut self) -> bool {
+        self.rebuild = true;
+        self.last != Levels::Built
+    }
+
+    /// Systems whose levels were built, and systems that kept them.
+    pub fn counts(&self) -> (usize, usize) {
+        (self.builds, self.kept)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cases::generate::{random_system, SystemSpec};
+    use crate::core::elimination::ConstrainedDiagonal;
+
+    /// Kept levels serve a scaled system (Ĥ grown 8×, as a penalty doubling three times
+    /// grows its nodes' blocks): the refreshed V-cycle stays symmetric positive definite,
+    /// CG on it converges, and a slow solve or a failure has the next system rebuild.
+    #[test]
+    fn kept_levels_refresh_and_rebuild_when_solves_slow_down() {
+        let s = random_system(&SystemSpec::with_nodes(3, 700, 11));
+        let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Hessian);
+        let mut kept = KeptLevels::new(MultilevelSetup::Reuse);
+        let (first, how) = kept.for_system(&e);
+        assert_eq!(how, Levels::Built);
+        kept.solved(20, 1e-4);
+        let mut h2 = s.h.clone();
+        h2.values.iter_mut().for_each(|v| *v *= 8.0);
+        let e2 = Eliminated::new(&h2, &s.g, &s.frames, ConstrainedDiagonal::Hessian);
+        let (second, how) = kept.for_system(&e2);
+        assert_eq!(how, Levels::Kept);
+        // The same inverses (kept), a new finest matrix and smoothing weight.
+        assert_eq!(first.levels()[0].inv, second.levels()[0].inv);
+        assert_eq!(
+            second.levels()[0].values[0],
+            8.0 * first.levels()[0].values[0]
+        );
+        let n = e2.ndof();
+        let x: Vec<f64> = (0..n).map(|k| ((k * 7919) % 23) as f64 - 11.0).collect();
+        let y: Vec<f64> = (0..n).map(|k| ((k * 104729) % 17) as f64 - 8.0).collect();
+        let (mut mx, mut my) = (vec![0.0; n], vec![0.0; n]);
+        second.apply(&x, &mut mx);
+        second.apply(&y, &mut my);
+        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(u, v)| u * v).sum::<f64>();
+        let mag: f64 = y.iter().zip(&mx).map(|(u, v)| (u * v).abs()).sum();
+        // The same products in two orders: a few ulps of the magnitudes summed.
+        assert!((dot(&y, &mx) - dot(&x, &my)).abs() <= 1e-12 * mag);
+        assert!(dot(&x, &mx) > 0.0 && dot(&y, &my) > 0.0);
+        // 1.4× the fresh rate keeps the levels, 1.6× rebuilds them.
+        kept.solved(28, 1e-4);
+        assert_eq!(kept.for_system(&e2).1, Levels::Kept);
+        kept.solved(32, 1e-4);
+        assert_eq!(kept.for_system(&e2).1, Levels::Built);
+        kept.solved(20, 1e-4);
+        // A failure on kept levels asks for a retry on fresh ones.
+        assert_eq!(kept.for_system(&e).1, Levels::Kept);
+        assert!(kept.failed());
+        assert_eq!(kept.for_system(&e).1, Levels::Built);
+        assert!(!kept.failed());
+        assert_eq!(kept.counts(), (3, 3));
+        // More constrained components mask the kept levels: the V-cycle stays SPD and
+        // leaves them zero; fewer rebuild them.
+        let node = (0..s.frames.n_nodes)
+            .find(|&i| s.frames.mask[i] == 0 && s.frames.rotation(i).is_none())
+            .expect("a free node");
+        assert_eq!(kept.for_system(&e).1, Levels::Built);
+        let mut more = s.frames.clone();
+        more.mask[node] = 0b111;
+        let e3 = Eliminated::new(&s.h, &s.g, &more, ConstrainedDiagonal::Hessian);
+        let (masked, how) = kept.for_system(&e3);
+        assert_eq!(how, Levels::Remasked);
+        let mut r: Vec<f64> = x.clone();
+        for (k, v) in r.iter_mut().enumerate() {
+            if more.mask[k / 3] & (1 << (k % 3)) != 0 {
+                *v = 0.0;
+            }
+        }
+        let (mut mr, mut my) = (vec![0.0; n], vec![0.0; n]);
+        masked.apply(&r, &mut mr);
+        masked.apply(&y, &mut my);
+        assert_eq!(&mr[node * 3..node * 3 + 3], &[0.0; 3]);
+        assert!(dot(&r, &mr) > 0.0);
+        let mag: f64 = y.iter().zip(&mr).map(|(u, v)| (u * v).abs()).sum();
+        assert!((dot(&y, &mr) - dot(&r, &my)).abs() <= 1e-12 * mag);
+        assert_eq!(kept.for_system(&e).1, Levels::Built);
+        let mut every = KeptLevels::new(MultilevelSetup::Every);
+        every.for_system(&e);
+        every.solved(20, 1e-4);
+        assert_eq!(every.for_system(&e).1, Levels::Built);
+    }
+}
