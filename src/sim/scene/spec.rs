@@ -621,6 +621,15 @@ mod tests {
                 .to_string();
             assert!(e.contains("adaptive") || e.contains("auto"), "{bad}: {e}");
         }
+        // Scenes keep the multilevel levels across Newton systems unless told otherwise.
+        assert_eq!(spec.multilevel_setup, MultilevelSetup::Reuse);
+        let spec: SolverSpec = toml::from_str("multilevel_setup = \"every\"").expect("every");
+        assert_eq!(spec.multilevel_setup, MultilevelSetup::Every);
+        assert_eq!(spec.config().multilevel_setup, MultilevelSetup::Every);
+        let e = toml::from_str::<SolverSpec>("multilevel_setup = \"sometimes\"")
+            .expect_err("unknown setup")
+            .to_string();
+        assert!(e.contains("every") && e.contains("reuse"), "{e}");
         assert_eq!("1e-4".parse::<CgTolerance>(), Ok(CgTolerance::Fixed(1e-4)));
         for bad in ["0", "1", "-1e-3", "nan", "loose"] {
             let e = bad.parse::<CgTolerance>().expect_err(bad);
