@@ -392,14 +392,20 @@ const _: fn() = || {
     send::<Solver>();
 };
 
-/// The GPU solver for `e` in the configured precision.
+/// The GPU solver for `e` in the configured precision (the device PCG of every constraint
+/// set on the multilevel clusters of `levels`, partitioned once per pattern).
 fn new_device_solver(
     ctx: &GpuContext,
     e: &Eliminated,
     params: &GpuParams,
+    levels: &mut KeptLevels,
 ) -> Result<Box<dyn DeviceSolver>, crate::gpu::GpuError> {
     Ok(match params.precision {
-        Precision::F64 => Box::new(PcgSolver::new(ctx, e, params)?),
+        Precision::F64 => {
+            let hierarchy = (params.preconditioner == Preconditioner::Multilevel)
+                .then(|| levels.hierarchy_for(e.h));
+            Box::new(PcgSolver::with_hierarchy(ctx, e, params, hierarchy)?)
+        }
         _ => Box::new(GpuSolver::new(ctx, e, params)?),
     })
 }
@@ -644,13 +650,17 @@ impl Solver {
                 match s.update(e).and_then(|()| s.set_tol(self.gpu_params.tol)) {
                     Ok(()) => (s, true),
                     // Another pattern under the same key: build afresh.
-                    Err(crate::gpu::GpuError::Mismatch(_)) => {
-                        (new_device_solver(ctx, e, &self.gpu_params)?, false)
-                    }
+                    Err(crate::gpu::GpuError::Mismatch(_)) => (
+                        new_device_solver(ctx, e, &self.gpu_params, &mut self.levels)?,
+                        false,
+                    ),
                     Err(err) => return Err(err.into()),
                 }
             }
-            _ => (new_device_solver(ctx, e, &self.gpu_params)?, false),
+            _ => (
+                new_device_solver(ctx, e, &self.gpu_params, &mut self.levels)?,
+                false,
+            ),
         };
         let setup = t.elapsed().as_secs_f64();
         let result = solver.solve();

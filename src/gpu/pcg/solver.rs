@@ -88,6 +88,17 @@ impl PcgSolver {
     /// per pattern) and uploads them, for every system or, with
     /// [`crate::MultilevelSetup::Reuse`], when the kept ones no longer serve: setup time.
     pub fn new(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<Self, GpuError> {
+        Self::with_hierarchy(ctx, e, params, None)
+    }
+
+    /// [`PcgSolver::new`] on the multilevel clusters `hierarchy` when they were built for
+    /// `e.h`'s pattern (a solver per constraint set of one mesh partitions it once).
+    pub fn with_hierarchy(
+        ctx: &GpuContext,
+        e: &Eliminated,
+        params: &GpuParams,
+        hierarchy: Option<Arc<Hierarchy>>,
+    ) -> Result<Self, GpuError> {
         if params.precision != Precision::F64 {
             return Err(GpuError::Unsupported(format!(
                 "the device PCG runs in f64, not {}",
@@ -96,8 +107,11 @@ impl PcgSolver {
         }
         crate::solve::cg::check_pinned(e)?;
         // The clusters (H's pattern only) first: their levels count in the memory check.
-        let hierarchy = (params.preconditioner == Preconditioner::Multilevel)
-            .then(|| Arc::new(Hierarchy::new(e.h)));
+        let hierarchy = (params.preconditioner == Preconditioner::Multilevel).then(|| {
+            hierarchy
+                .filter(|h| h.fits(e.h))
+                .unwrap_or_else(|| Arc::new(Hierarchy::new(e.h)))
+        });
         check_memory(ctx, e, params, hierarchy.as_deref())?;
         let levels = match hierarchy {
             Some(h) => KeptLevels::with_hierarchy(params.multilevel_setup, h),
