@@ -355,34 +355,53 @@ enum Prepared {
 }
 
 /// The GPU solvers the engine keeps per layout: the device PCG in f64 (the CG the device
-/// Newton loop runs), the kernels of f32 and mixed precision otherwise.
+/// Newton loop runs), the kernels of f32 and mixed precision otherwise. `levels` are the
+/// multilevel preconditioner's, shared by every layout of the solver (the device PCG's
+/// only).
 trait DeviceSolver: Send {
-    fn update(&mut self, e: &Eliminated) -> Result<(), crate::gpu::GpuError>;
+    fn update(
+        &mut self,
+        e: &Eliminated,
+        levels: &mut KeptLevels,
+    ) -> Result<(), crate::gpu::GpuError>;
     fn set_tol(&mut self, tol: f64) -> Result<(), crate::gpu::GpuError>;
-    fn solve(&mut self) -> Result<crate::gpu::SolveOutcome, crate::gpu::GpuError>;
+    fn solve(
+        &mut self,
+        levels: &mut KeptLevels,
+    ) -> Result<crate::gpu::SolveOutcome, crate::gpu::GpuError>;
 }
 
 impl DeviceSolver for GpuSolver {
-    fn update(&mut self, e: &Eliminated) -> Result<(), crate::gpu::GpuError> {
+    fn update(&mut self, e: &Eliminated, _: &mut KeptLevels) -> Result<(), crate::gpu::GpuError> {
         GpuSolver::update(self, e)
     }
     fn set_tol(&mut self, tol: f64) -> Result<(), crate::gpu::GpuError> {
         GpuSolver::set_tol(self, tol)
     }
-    fn solve(&mut self) -> Result<crate::gpu::SolveOutcome, crate::gpu::GpuError> {
+    fn solve(
+        &mut self,
+        _: &mut KeptLevels,
+    ) -> Result<crate::gpu::SolveOutcome, crate::gpu::GpuError> {
         GpuSolver::solve(self)
     }
 }
 
 impl DeviceSolver for PcgSolver {
-    fn update(&mut self, e: &Eliminated) -> Result<(), crate::gpu::GpuError> {
-        PcgSolver::update(self, e)
+    fn update(
+        &mut self,
+        e: &Eliminated,
+        levels: &mut KeptLevels,
+    ) -> Result<(), crate::gpu::GpuError> {
+        PcgSolver::update_sharing(self, e, levels)
     }
     fn set_tol(&mut self, tol: f64) -> Result<(), crate::gpu::GpuError> {
         PcgSolver::set_tol(self, tol)
     }
-    fn solve(&mut self) -> Result<crate::gpu::SolveOutcome, crate::gpu::GpuError> {
-        PcgSolver::solve(self)
+    fn solve(
+        &mut self,
+        levels: &mut KeptLevels,
+    ) -> Result<crate::gpu::SolveOutcome, crate::gpu::GpuError> {
+        PcgSolver::solve_sharing(self, levels)
     }
 }
 
@@ -392,8 +411,8 @@ const _: fn() = || {
     send::<Solver>();
 };
 
-/// The GPU solver for `e` in the configured precision (the device PCG of every constraint
-/// set on the multilevel clusters of `levels`, partitioned once per pattern).
+/// The GPU solver for `e` in the configured precision (the device PCG on the multilevel
+/// clusters and levels of `levels`, shared by every constraint set of the mesh).
 fn new_device_solver(
     ctx: &GpuContext,
     e: &Eliminated,
@@ -401,11 +420,7 @@ fn new_device_solver(
     levels: &mut KeptLevels,
 ) -> Result<Box<dyn DeviceSolver>, crate::gpu::GpuError> {
     Ok(match params.precision {
-        Precision::F64 => {
-            let hierarchy = (params.preconditioner == Preconditioner::Multilevel)
-                .then(|| levels.hierarchy_for(e.h));
-            Box::new(PcgSolver::with_hierarchy(ctx, e, params, hierarchy)?)
-        }
+        Precision::F64 => Box::new(PcgSolver::sharing(ctx, e, params, levels)?),
         _ => Box::new(GpuSolver::new(ctx, e, params)?),
     })
 }
@@ -647,7 +662,10 @@ impl Solver {
             .ok_or_else(|| Error::Device("the GPU solver has no device".into()))?;
         let (mut solver, reused) = match prepared {
             Some(Prepared::Gpu(mut s)) => {
-                match s.update(e).and_then(|()| s.set_tol(self.gpu_params.tol)) {
+                match s
+                    .update(e, &mut self.levels)
+                    .and_then(|()| s.set_tol(self.gpu_params.tol))
+                {
                     Ok(()) => (s, true),
                     // Another pattern under the same key: build afresh.
                     Err(crate::gpu::GpuError::Mismatch(_)) => (
@@ -663,7 +681,7 @@ impl Solver {
             ),
         };
         let setup = t.elapsed().as_secs_f64();
-        let result = solver.solve();
+        let result = solver.solve(&mut self.levels);
         self.keep_prepared(layout, Prepared::Gpu(solver));
         let crate::gpu::SolveOutcome { y, info, .. } = result?;
         let mut stats = self.stats(

@@ -7,6 +7,7 @@
 //! frames.
 
 use super::cg::{DeviceCg, DeviceCgParams, DeviceFrames};
+use crate::core::constraints::Frames;
 use crate::core::elimination::{norm2, Eliminated};
 use crate::gpu::blocks::{plan_rows, values_limit, HostBlocks};
 use crate::gpu::context::padded_size;
@@ -16,8 +17,8 @@ use crate::gpu::{
 };
 use crate::solve::cg::CgError;
 use crate::solve::coarse::CoarseSpace;
-use crate::solve::multilevel::reuse::{KeptLevels, Levels};
-use crate::solve::multilevel::Hierarchy;
+use crate::solve::multilevel::reuse::KeptLevels;
+use crate::solve::multilevel::{Hierarchy, Multilevel};
 use crate::solve::options::Preconditioner;
 use std::sync::Arc;
 use std::time::Instant;
@@ -76,6 +77,8 @@ pub struct PcgSolver {
     /// The multilevel preconditioner's clusters (H's pattern only: kept across updates)
     /// and its levels (kept or rebuilt as `params.multilevel_setup` says).
     levels: KeptLevels,
+    /// The generation of the multilevel levels on the device ([`Multilevel::generation`]).
+    uploaded: Option<(u64, u32)>,
     upload_seconds: f64,
     setup_seconds: f64,
 }
@@ -88,12 +91,30 @@ impl PcgSolver {
     /// per pattern) and uploads them, for every system or, with
     /// [`crate::MultilevelSetup::Reuse`], when the kept ones no longer serve: setup time.
     pub fn new(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<Self, GpuError> {
-        Self::with_hierarchy(ctx, e, params, None)
+        let mut s = Self::build(ctx, e, params, None)?;
+        s.prepare(e, None)?;
+        Ok(s)
     }
 
-    /// [`PcgSolver::new`] on the multilevel clusters `hierarchy` when they were built for
-    /// `e.h`'s pattern (a solver per constraint set of one mesh partitions it once).
-    pub fn with_hierarchy(
+    /// [`PcgSolver::new`] with the multilevel clusters and levels of `levels`, which the
+    /// solvers of every constraint set of one mesh share (the facade's engine): the mesh
+    /// is partitioned once, and the levels are kept or rebuilt as one sequence decides,
+    /// whichever solver a system goes to. Use [`PcgSolver::update_sharing`] and
+    /// [`PcgSolver::solve_sharing`] with the same `levels` afterwards.
+    pub fn sharing(
+        ctx: &GpuContext,
+        e: &Eliminated,
+        params: &GpuParams,
+        levels: &mut KeptLevels,
+    ) -> Result<Self, GpuError> {
+        let hierarchy = (params.preconditioner == Preconditioner::Multilevel)
+            .then(|| levels.hierarchy_for(e.h));
+        let mut s = Self::build(ctx, e, params, hierarchy)?;
+        s.prepare(e, Some(levels))?;
+        Ok(s)
+    }
+
+    fn build(
         ctx: &GpuContext,
         e: &Eliminated,
         params: &GpuParams,
@@ -127,7 +148,7 @@ impl PcgSolver {
             e.rhs.clone(),
             e.diag.clone(),
         );
-        let mut s = PcgSolver {
+        Ok(PcgSolver {
             ctx: ctx.clone(),
             params: params.clone(),
             host,
@@ -135,19 +156,20 @@ impl PcgSolver {
             cg,
             frames,
             levels,
+            uploaded: None,
             upload_seconds: t0.elapsed().as_secs_f64(),
             setup_seconds: 0.0,
-        };
-        s.prepare(e)?;
-        Ok(s)
+        })
     }
 
-    /// b̂ and the preconditioner (and coarse matrix) of the current values on the device.
-    fn prepare(&mut self, e: &Eliminated) -> Result<(), GpuError> {
+    /// b̂ and the preconditioner (and coarse matrix) of the current values on the device,
+    /// the multilevel levels from `shared` or the solver's own.
+    fn prepare(&mut self, e: &Eliminated, shared: Option<&mut KeptLevels>) -> Result<(), GpuError> {
         let t = Instant::now();
         self.cg.prepare_with_rhs(&self.frames, &self.host.rhs)?;
         if self.params.preconditioner == Preconditioner::Multilevel {
-            self.set_levels(e)?;
+            let (ml, _) = shared.unwrap_or(&mut self.levels).for_system(e);
+            self.upload_levels(&ml, e.frames)?;
         }
         // The setup kernels' time, not just their recording.
         self.ctx
@@ -158,17 +180,20 @@ impl PcgSolver {
         Ok(())
     }
 
-    /// The multilevel levels for `e` on the device: all of them when built, the finest
-    /// smoothing weight when kept.
-    fn set_levels(&mut self, e: &Eliminated) -> Result<(), GpuError> {
-        let (ml, how) = self.levels.for_system(e);
-        match how {
-            Levels::Built | Levels::Remasked => {
-                self.cg
-                    .set_multilevel(&ml, e.frames, self.params.binding_limit)
-            }
-            Levels::Kept => self.cg.refresh_multilevel(&ml),
+    /// The multilevel levels `ml` on the device: only the smoothing weights when the
+    /// device holds this generation of them (kept since this solver last uploaded them),
+    /// every value otherwise.
+    fn upload_levels(&mut self, ml: &Multilevel, frames: &Frames) -> Result<(), GpuError> {
+        let generation = ml.generation();
+        if self.uploaded == Some(generation) {
+            self.cg.refresh_multilevel(ml)?;
+        } else {
+            self.uploaded = None;
+            self.cg
+                .set_multilevel(ml, frames, self.params.binding_limit)?;
         }
+        self.uploaded = Some(generation);
+        Ok(())
     }
 
     /// Sets the relative residual tolerance of the next solves; refuses a value outside
@@ -180,6 +205,22 @@ impl PcgSolver {
 
     /// New values for the same pattern and constraint set (a later Newton iteration).
     pub fn update(&mut self, e: &Eliminated) -> Result<(), GpuError> {
+        self.update_values(e)?;
+        self.prepare(e, None)
+    }
+
+    /// [`PcgSolver::update`] with the levels shared by the solvers of a mesh
+    /// ([`PcgSolver::sharing`]).
+    pub fn update_sharing(
+        &mut self,
+        e: &Eliminated,
+        levels: &mut KeptLevels,
+    ) -> Result<(), GpuError> {
+        self.update_values(e)?;
+        self.prepare(e, Some(levels))
+    }
+
+    fn update_values(&mut self, e: &Eliminated) -> Result<(), GpuError> {
         let t0 = Instant::now();
         let f = &self.host.frames;
         if e.frames.mask != f.mask || e.frames.rot_index != f.rot_index {
@@ -199,15 +240,33 @@ impl PcgSolver {
         self.host.rhs.copy_from_slice(&e.rhs);
         self.host.diag.copy_from_slice(&e.diag);
         self.upload_seconds = t0.elapsed().as_secs_f64();
-        self.prepare(e)
+        Ok(())
     }
 
     /// Solves Ĥ y = b̂; returns y (frame coordinates), Δx = Δx_p + V y and the report. A
     /// solve that fails on kept multilevel levels runs again on levels built for it.
     pub fn solve(&mut self) -> Result<SolveOutcome, GpuError> {
+        self.solve_with_levels(None)
+    }
+
+    /// [`PcgSolver::solve`] with the levels shared by the solvers of a mesh
+    /// ([`PcgSolver::sharing`]).
+    pub fn solve_sharing(&mut self, levels: &mut KeptLevels) -> Result<SolveOutcome, GpuError> {
+        self.solve_with_levels(Some(levels))
+    }
+
+    fn solve_with_levels(
+        &mut self,
+        mut shared: Option<&mut KeptLevels>,
+    ) -> Result<SolveOutcome, GpuError> {
         let multilevel = self.params.preconditioner == Preconditioner::Multilevel;
-        let outcome = match self.solve_once() {
-            Err(_) if multilevel && self.levels.failed() => {
+        let first = self.solve_once();
+        let levels = match shared.as_deref_mut() {
+            Some(l) => l,
+            None => &mut self.levels,
+        };
+        let outcome = match first {
+            Err(_) if multilevel && levels.failed() => {
                 let t = Instant::now();
                 let h = match &self.host.op {
                     HostOp::Blocks(h) => h.clone(),
@@ -220,14 +279,19 @@ impl PcgSolver {
                     rhs: self.host.rhs.clone(),
                     diag: self.host.diag.clone(),
                 };
-                self.set_levels(&e)?;
+                let (ml, _) = levels.for_system(&e);
+                self.upload_levels(&ml, &frames)?;
                 self.setup_seconds += t.elapsed().as_secs_f64();
                 self.solve_once()
             }
             other => other,
         }?;
         if multilevel {
-            self.levels.solved(outcome.info.iterations, self.params.tol);
+            let levels = match shared {
+                Some(l) => l,
+                None => &mut self.levels,
+            };
+            levels.solved(outcome.info.iterations, self.params.tol);
         }
         Ok(outcome)
     }

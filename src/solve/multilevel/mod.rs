@@ -231,7 +231,12 @@ pub struct Multilevel {
     dropped: usize,
     /// The constraint set the levels serve (built for, or remasked to).
     built_for: Frames,
+    /// A number of this build, unique in the process, and the remaskings since.
+    generation: (u64, u32),
 }
+
+/// Numbers the builds of [`Multilevel`] (a device holding a copy tells it from another).
+static BUILDS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
 
 /// One level of a [`Multilevel`] as the device V-cycle reads it (src/gpu/pcg/multilevel.rs):
 /// the clusters, the matrix, the cluster inverses, the damping and the prolongation to
@@ -320,6 +325,7 @@ impl Multilevel {
             omega: Vec::new(),
             dropped,
             built_for: e.frames.clone(),
+            generation: (BUILDS.fetch_add(1, std::sync::atomic::Ordering::Relaxed), 0),
         };
         ml.omega = (0..nl).map(|l| ml.omega_of(l)).collect();
         ml
@@ -412,6 +418,13 @@ impl Multilevel {
             }
         }
         self.built_for = e.frames.clone();
+        self.generation.1 += 1;
+    }
+
+    /// Which values these are: the same generation means the same values but the finest
+    /// level's matrix and smoothing weight ([`Multilevel::refresh`] without new masks).
+    pub fn generation(&self) -> (u64, u32) {
+        self.generation
     }
 
     /// The smoothing weight of level l from a power estimate of λmax(B_l⁺A_l).
