@@ -321,6 +321,18 @@ fn multilevel_on_both_loops(name: &str, steps: usize) {
         (gi - ci).abs() <= 0.05 * ci,
         "{name}: {gi} CG iterations on the device loop against the CPU loop's {ci}"
     );
+    // The scenes keep the levels across Newton systems, and both loops decide alike.
+    let levels = |s: &RunSummary| {
+        let l = s.multilevel_levels.as_ref().expect("multilevel_levels");
+        (l.built, l.kept)
+    };
+    let (gl, cl) = (levels(&gpu), levels(&cpu));
+    eprintln!("{name}: levels (built, kept): device loop {gl:?}, CPU loop {cl:?}");
+    assert!(cl.0 > 0 && cl.1 > 0, "{name}: levels {cl:?}");
+    assert_eq!(
+        gl, cl,
+        "{name}: the loops keep and rebuild the levels alike"
+    );
 }
 
 #[test]

@@ -601,6 +601,12 @@ impl Solver {
         self.prepared.push((layout, p));
     }
 
+    /// Systems so far whose multilevel levels were built, and systems that kept them (the
+    /// CPU CG and the device PCG; both zero for the other solvers and preconditioners).
+    pub fn multilevel_levels(&self) -> (usize, usize) {
+        self.levels.counts()
+    }
+
     /// The CPU CG; the multilevel preconditioner partitions H's pattern once and keeps the
     /// clusters while the pattern stays (and its levels, as the setup says: a solve that
     /// fails on kept levels runs again on fresh ones).

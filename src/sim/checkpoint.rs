@@ -53,6 +53,11 @@ pub struct Tallies {
     /// Systems solved again to the convergence tolerance (inexact Newton).
     #[serde(default)]
     pub linear_resolves: usize,
+    /// Newton systems whose multilevel levels were built, and that kept earlier ones.
+    #[serde(default)]
+    pub multilevel_built: usize,
+    #[serde(default)]
+    pub multilevel_kept: usize,
     pub frames: usize,
     pub ccd_limited: usize,
     /// Smallest node–obstacle distance over the steps so far (contact scenes).

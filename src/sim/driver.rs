@@ -212,6 +212,10 @@ pub struct RunSummary {
     /// Systems solved again to the convergence tolerance because their loosely solved
     /// direction passed the Newton test (adaptive tolerance only).
     pub linear_resolves: usize,
+    /// With the multilevel preconditioner: how its levels were set up over the run's
+    /// Newton systems (absent otherwise).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub multilevel_levels: Option<MultilevelLevels>,
     pub frames: usize,
     pub out_dir: String,
     /// The step this invocation resumed from (`run --resume`); None for a run started
@@ -689,6 +693,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         linear_seconds: 0.0,
         cg_tolerance: scene.solver.cg_tolerance,
         linear_resolves: 0,
+        multilevel_levels: None,
         frames: 0,
         out_dir: out.display().to_string(),
         resumed_from_step: resumed.as_ref().map(|c| c.snapshot.step),
@@ -930,6 +935,15 @@ fn write_system(dir: &mut OutputDir, sys: &NewtonSystem) -> Result<(), String> {
     std::fs::rename(&tmp, &final_dir).map_err(fail)
 }
 
+/// summary.json's `multilevel_levels`: the scene's `multilevel_setup` and the Newton
+/// systems (directions and re-solves) whose levels were built or kept.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct MultilevelLevels {
+    pub setup: crate::solve::options::MultilevelSetup,
+    pub built: usize,
+    pub kept: usize,
+}
+
 /// The summary's counts and histories from the tallies.
 fn fill_summary(run: &Run, stepper: &Stepper, summary: &mut RunSummary) {
     let (scene, t) = (run.scene, &run.tallies);
@@ -937,6 +951,13 @@ fn fill_summary(run: &Run, stepper: &Stepper, summary: &mut RunSummary) {
     summary.linear_iterations = t.linear_iterations;
     summary.linear_seconds = t.linear_seconds;
     summary.linear_resolves = t.linear_resolves;
+    if scene.solver.preconditioner == crate::solve::options::Preconditioner::Multilevel {
+        summary.multilevel_levels = Some(MultilevelLevels {
+            setup: scene.solver.multilevel_setup,
+            built: t.multilevel_built,
+            kept: t.multilevel_kept,
+        });
+    }
     summary.frames = t.frames;
     summary.steps_completed = stepper.step;
     summary.end_time = stepper.t;
@@ -1113,6 +1134,8 @@ fn simulate(
         t.linear_iterations += rep.linear_iterations;
         t.linear_seconds += rep.linear_seconds;
         t.linear_resolves += rep.linear_resolves;
+        t.multilevel_built += rep.multilevel_built;
+        t.multilevel_kept += rep.multilevel_kept;
         t.ccd_limited += rep.ccd_limited;
         for law in &rep.inverted {
             *t.inverted_steps.entry(law.name().to_string()).or_default() += 1;

@@ -129,6 +129,10 @@ pub(super) trait Backend {
     /// The GPU adapter this loop uses, if any.
     fn adapter(&self) -> Option<&str>;
 
+    /// Systems so far whose multilevel levels were built, and systems that kept them
+    /// (both zero without the multilevel preconditioner).
+    fn multilevel_levels(&self) -> (usize, usize);
+
     /// What the GPU moved and stored so far; None without a GPU.
     fn gpu_report(&self, state: &State) -> Option<GpuRunReport>;
 }

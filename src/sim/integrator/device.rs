@@ -329,6 +329,10 @@ impl DeviceLoop {
 }
 
 impl Backend for DeviceLoop {
+    fn multilevel_levels(&self) -> (usize, usize) {
+        self.levels.counts()
+    }
+
     fn begin_step(&mut self, state: &State) -> Result<(), StepError> {
         self.ops.begin_step(state.scene.time_step)?;
         Ok(())
@@ -431,25 +435,33 @@ impl Backend for DeviceLoop {
         Ok(Self::stats(&info, t))
     }
 
-    /// The CG again on the assembly and preconditioner of the last `direction`.
+    /// The CG again on the assembly and preconditioner of the last `direction` (the
+    /// multilevel levels rebuilt first when the CPU loop's solver would rebuild them).
     fn resolve(
         &mut self,
-        _state: &State,
+        state: &State,
         moving: &MovingTargets,
         iteration: usize,
         tol: f64,
     ) -> Result<LinearStats, StepError> {
         let t = Instant::now();
+        let cg_error = |e: GpuError| StepError::LinearSolve {
+            iteration,
+            cause: e.to_string(),
+        };
+        let multilevel = self.params.preconditioner == Preconditioner::Multilevel;
+        if multilevel {
+            if self.levels.rebuild_due() {
+                self.set_multilevel(&state.frames[&moving.snapped])
+                    .map_err(cg_error)?;
+            } else {
+                self.levels.again();
+            }
+        }
         let frames = &self.frames[&moving.snapped];
         let params = DeviceCgParams { tol, ..self.params };
-        let info = self
-            .cg
-            .iterate(frames, &params)
-            .map_err(|e| StepError::LinearSolve {
-                iteration,
-                cause: e.to_string(),
-            })?;
-        if self.params.preconditioner == Preconditioner::Multilevel {
+        let info = self.cg.iterate(frames, &params).map_err(cg_error)?;
+        if multilevel {
             self.levels.solved(info.iterations, info.tolerance);
         }
         Ok(Self::stats(&info, t))

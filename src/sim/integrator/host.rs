@@ -245,6 +245,10 @@ impl Backend for HostBackend {
         self.linear.adapter.as_deref()
     }
 
+    fn multilevel_levels(&self) -> (usize, usize) {
+        self.linear.solver.multilevel_levels()
+    }
+
     fn gpu_report(&self, state: &State) -> Option<GpuRunReport> {
         let t = self.linear.solver.gpu_traffic()?;
         let sc = state.scene;

@@ -16,6 +16,11 @@ pub struct StepReport {
     /// Systems solved again to the convergence tolerance because their loosely solved
     /// direction passed the Newton test (inexact Newton).
     pub linear_resolves: usize,
+    /// Newton systems of the step whose multilevel levels were built, and that kept
+    /// earlier ones (`[solver] multilevel_setup`; zero without the multilevel
+    /// preconditioner).
+    pub multilevel_built: usize,
+    pub multilevel_kept: usize,
     /// k_M at the end of the step (meaningful when the scene has moving conditions).
     pub k_m: f64,
     /// k_M doublings in this step.

@@ -232,7 +232,10 @@ impl<'s> Stepper<'s> {
         };
         self.snap(&mut moving)?;
         // 3. Newton.
+        let levels = self.backend.multilevel_levels();
         self.newton(&mut moving, &mut rep, &mut dump)?;
+        let (built, kept) = self.backend.multilevel_levels();
+        (rep.multilevel_built, rep.multilevel_kept) = (built - levels.0, kept - levels.1);
         // 4. Reactions and contact forces at the converged iterate.
         let end = self.backend.end_step(&self.state)?;
         self.check_inversion(&end.x, &mut rep)?;

@@ -132,6 +132,25 @@ impl KeptLevels {
         self.last != Levels::Built
     }
 
+    /// Whether the next [`KeptLevels::for_system`] rebuilds kept levels that the last
+    /// solves found slow or failed on ([`MultilevelSetup::Reuse`] only): a caller that
+    /// solves a system again without asking (`again`) asks then, to decide as one that
+    /// always asks.
+    pub fn rebuild_due(&self) -> bool {
+        self.setup == MultilevelSetup::Reuse && self.rebuild
+    }
+
+    /// Counts a system solved again on the current levels as they are (a re-solve of the
+    /// last system that did not ask [`KeptLevels::for_system`]) as a caller that asks
+    /// would have it counted: built with [`MultilevelSetup::Every`] (the same levels
+    /// again), kept otherwise.
+    pub fn again(&mut self) {
+        match self.setup {
+            MultilevelSetup::Every => self.builds += 1,
+            MultilevelSetup::Reuse => self.kept += 1,
+        }
+    }
+
     /// Systems whose levels were built, and systems that kept them.
     pub fn counts(&self) -> (usize, usize) {
         (self.builds, self.kept)
@@ -180,8 +199,11 @@ mod tests {
         // 1.4× the fresh rate keeps the levels, 1.6× rebuilds them.
         kept.solved(28, 1e-4);
         assert_eq!(kept.for_system(&e2).1, Levels::Kept);
+        assert!(!kept.rebuild_due());
         kept.solved(32, 1e-4);
+        assert!(kept.rebuild_due());
         assert_eq!(kept.for_system(&e2).1, Levels::Built);
+        assert!(!kept.rebuild_due());
         kept.solved(20, 1e-4);
         // A failure on kept levels asks for a retry on fresh ones.
         assert_eq!(kept.for_system(&e).1, Levels::Kept);
