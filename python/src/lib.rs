@@ -10,12 +10,12 @@ use serde_json::{json, Value};
 use std::sync::Mutex;
 use std::time::Instant;
 use stickslip::core::constraints::node_rows;
+use stickslip::core::sparse::BlockCsr;
 use stickslip::gpu::{GpuContext, GpuOptions};
 use stickslip::io::{bcjson, mtx, one_line};
-use stickslip::core::sparse::BlockCsr;
 use stickslip::{
-    CoarseSpace, ConstrainedDiagonal, Constraint, Error, InputError, Precision, Preconditioner,
-    Problem, SolveDetails, Solver, SolverConfig, SolverKind,
+    CoarseSpace, ConstrainedDiagonal, Constraint, Error, InputError, MultilevelSetup, Precision,
+    Preconditioner, Problem, SolveDetails, Solver, SolverConfig, SolverKind,
 };
 
 pyo3::create_exception!(
@@ -320,7 +320,7 @@ fn constraint_violation(dim: usize, cs: &[Constraint], dx: &[f64]) -> f64 {
 #[pymethods]
 impl Engine {
     #[new]
-    #[pyo3(signature = (solver, precision, tol, max_iters, preconditioner, coarse, error_tol, constrained_diagonal))]
+    #[pyo3(signature = (solver, precision, tol, max_iters, preconditioner, coarse, error_tol, constrained_diagonal, multilevel_setup))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -332,6 +332,7 @@ impl Engine {
         coarse: &str,
         error_tol: Option<f64>,
         constrained_diagonal: &str,
+        multilevel_setup: &str,
     ) -> PyResult<Self> {
         let kind: SolverKind = parse("solver", solver)?;
         let precision: Precision = match precision {
@@ -340,6 +341,7 @@ impl Engine {
         };
         let preconditioner: Preconditioner = parse("preconditioner", preconditioner)?;
         let coarse: CoarseSpace = parse("coarse", coarse)?;
+        let multilevel_setup: MultilevelSetup = parse("multilevel_setup", multilevel_setup)?;
         let constrained_diagonal = match constrained_diagonal {
             "identity" => ConstrainedDiagonal::Identity,
             "hessian" => ConstrainedDiagonal::Hessian,
@@ -360,6 +362,7 @@ impl Engine {
         .max_iters(max_iters)
         .preconditioner(preconditioner)
         .coarse(coarse)
+        .multilevel_setup(multilevel_setup)
         .constrained_diagonal(constrained_diagonal);
         // Checked by Solver::new: a precision other than f64 needs the gpu solver.
         config.precision = precision;

@@ -107,6 +107,11 @@ class Solver:
             relative error is ≤ this.
         constrained_diagonal: D on constrained components of Ĥ: ``"identity"`` or
             ``"hessian"`` (diag(VᵀHV)).
+        multilevel_setup: with ``preconditioner="multilevel"``: ``"every"`` builds its
+            levels for every solve; ``"reuse"`` keeps them for the next systems of the
+            same sparsity pattern (a Newton sequence: refreshed with the new H, rebuilt
+            when the constraints free a component or the solves slow down 1.5×), as
+            scenes do.
 
     A solver keeps the last system it solved. Calling :meth:`solve` again with the same
     constraints and the same sparsity pattern of H (new values, as in the next Newton
@@ -129,12 +134,14 @@ class Solver:
         coarse: str = "aggregates",
         error_tol: Optional[float] = None,
         constrained_diagonal: str = "identity",
+        multilevel_setup: str = "every",
     ):
         for name, value in (
             ("solver", solver),
             ("preconditioner", preconditioner),
             ("coarse", coarse),
             ("constrained_diagonal", constrained_diagonal),
+            ("multilevel_setup", multilevel_setup),
         ):
             if not isinstance(value, str):
                 raise _config_error(name, f"expected a string, found {value!r}")
@@ -156,6 +163,7 @@ class Solver:
             coarse,
             error_tol,
             constrained_diagonal,
+            multilevel_setup,
         )
         self._config = dict(
             solver=solver,
@@ -166,6 +174,7 @@ class Solver:
             coarse=coarse,
             error_tol=error_tol,
             constrained_diagonal=constrained_diagonal,
+            multilevel_setup=multilevel_setup,
         )
 
     @property

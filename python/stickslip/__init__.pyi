@@ -54,6 +54,7 @@ class Solver:
         coarse: str = "aggregates",
         error_tol: Optional[float] = None,
         constrained_diagonal: str = "identity",
+        multilevel_setup: str = "every",
     ) -> None: ...
     @property
     def adapter(self) -> Optional[str]:

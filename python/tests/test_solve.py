@@ -159,6 +159,30 @@ def test_no_constraints():
         assert np.abs(sol.reactions).max() <= 1e-12 * np.abs(g).max()
 
 
+def test_multilevel_levels_kept_across_a_newton_sequence():
+    # A solver that keeps its multilevel levels solves the next system of the pattern
+    # (H grown 4×, as a penalty doubling twice grows it) as accurately as a fresh one;
+    # only the iterations may differ. A bad setup name is a ValueError naming both.
+    dim, n, seed, mass = SHAPES[-1]
+    H, g = random_system(dim, n, seed, mass)
+    cs = every_kind(dim, n, seed)
+    B, p = global_form(dim, n, cs)
+    kept = stickslip.Solver(
+        "cg", preconditioner="multilevel", multilevel_setup="reuse", tol=1e-12
+    )
+    for scale in (1.0, 4.0):
+        dx_ref, _ = kkt(scale * H, g, B, p)
+        sol = kept.solve(scale * H, g, cs, dim=dim)
+        fresh = stickslip.solve(
+            scale * H, g, cs, dim=dim, solver="cg", preconditioner="multilevel", tol=1e-12
+        )
+        assert rel(sol.dx, dx_ref) <= 1e-9
+        assert sol.info["relative_residual"] <= 1e-12
+        assert sol.info["iterations"] >= 1 and fresh.info["iterations"] >= 1
+    with pytest.raises(ValueError, match="every or reuse"):
+        stickslip.Solver("cg", preconditioner="multilevel", multilevel_setup="sometimes")
+
+
 @pytest.mark.parametrize("dim,n,seed,mass", SHAPES)
 def test_multilevel_cg_matches_the_dense_kkt_solve(dim, n, seed, mass):
     # The same bound as Jacobi CG at tol 1e-12 (κ(Ĥ)·tol, see CASES): the preconditioner
