@@ -75,7 +75,7 @@ pub const CHOLESKY_MAX_RESIDUAL: f64 = 1e-8;
 /// backward-stable solve can already be off by a few per cent.
 pub const SINGULAR_KAPPA: f64 = 1.0 / (64.0 * f64::EPSILON);
 /// Refinement steps at most; refinement also stops when a step does not lower the
-/// residual, or once it is below [`REFINED`].
+/// residual, or once it is at the level of rounding (a scaled residual of 1e-14).
 pub const MAX_REFINEMENTS: usize = 10;
 /// Where refinement stops: a residual at the level of rounding.
 const REFINED: f64 = 1e-14;

@@ -70,7 +70,7 @@ impl BuiltPreconditioner {
     }
 
     /// The multilevel Schwarz preconditioner on levels built (or kept) beforehand
-    /// ([`crate::solve::multilevel::KeptLevels`]).
+    /// ([`crate::solve::multilevel::reuse::KeptLevels`]).
     pub fn with_levels(levels: Arc<Multilevel>) -> Self {
         BuiltPreconditioner {
             kind: Preconditioner::Multilevel,

@@ -23,12 +23,12 @@
 //! [`crate::solve::coarse`]: M⁻¹r = M_J⁻¹r + Z E⁺ Zᵀr, Z_i = P_i V_iᵀ. Why: a body that
 //! can translate or slide has Ĥ's smallest eigenvalues on its translations (the mass
 //! term), and a soft one on its smooth modes, which a point-wise preconditioner cannot see.
-//! - [`CoarseSpace::Translations`]: `prepare` reduces E = ZᵀĤZ (D×D) on the device from
+//! - [`crate::solve::coarse::CoarseSpace::Translations`]: `prepare` reduces E = ZᵀĤZ (D×D) on the device from
 //!   the assembled blocks; the first `iterate` reads it back, pseudo-inverts it on the host
 //!   as the CPU does ([`crate::solve::coarse::pseudo_inverse`]) and writes E⁺ back. In the
 //!   iteration Zᵀr rides in the tree of r·z and r·r, and Z E⁺ Zᵀr is added where p is
 //!   updated: no extra dispatch per iteration.
-//! - [`CoarseSpace::Aggregates`] (the CPU loop's default, and so the device loop's): the
+//! - [`crate::solve::coarse::CoarseSpace::Aggregates`] (the CPU loop's default, and so the device loop's): the
 //!   translations of each aggregate of [`crate::solve::coarse::Aggregation`] on H's block
 //!   pattern (frames built for them: [`DeviceCg::frames`], index arrays in
 //!   [`aggregates`]). `prepare` sums E (K×K, K = D·aggregates) on

@@ -140,7 +140,7 @@ impl Barrier {
         n
     }
 
-    /// Per node i, out[i] += scale · Σ_planes ‖∇_i P_b‖: the sizes of the barrier forces
+    /// Per node i, out\[i\] += scale · Σ_planes ‖∇_i P_b‖: the sizes of the barrier forces
     /// before they add up (a node between two planes meets two).
     pub fn add_force_scale(&self, x: &[f64], planes: &[HalfSpace], scale: f64, out: &mut [f64]) {
         self.active(x, planes, |i, j, dist| {

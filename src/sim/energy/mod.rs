@@ -409,7 +409,7 @@ impl Model {
         }
     }
 
-    /// Per node i, out[i] += scale · (Σ_e ‖∇_i Ψ_e(x)‖ + m_i‖g‖): the sizes of the forces
+    /// Per node i, out\[i\] += scale · (Σ_e ‖∇_i Ψ_e(x)‖ + m_i‖g‖): the sizes of the forces
     /// that ∇Ψ sums at the node before they cancel (the force scale of a step's
     /// stationarity test).
     pub fn add_potential_force_scale(

@@ -40,9 +40,9 @@
 //! positive distance from every obstacle; otherwise the scene is rejected naming the node.
 //!
 //! Limits, all checked before anything big is allocated: a name of at most
-//! [`MAX_NAME_BYTES`] bytes; at most [`mesh::MAX_SCENE_NODES_2D`] or
-//! [`mesh::MAX_SCENE_NODES_3D`] nodes over all bodies together (what a run fits in about
-//! 100 GB), and [`mesh::MAX_CHOLESKY_NODES_3D`] for a 3D scene solved by Cholesky (checked
+//! [`MAX_NAME_BYTES`] bytes; at most [`crate::sim::mesh::MAX_SCENE_NODES_2D`] or
+//! [`crate::sim::mesh::MAX_SCENE_NODES_3D`] nodes over all bodies together (what a run fits in about
+//! 100 GB), and [`crate::sim::mesh::MAX_CHOLESKY_NODES_3D`] for a 3D scene solved by Cholesky (checked
 //! when the run starts, after the command line's `--solver` and `--newton`); several
 //! static conditions on one node must agree at the initial configuration
 //! ([`joint_targets`]).
