@@ -864,7 +864,9 @@ impl DeviceCg {
     /// The multilevel preconditioner of the system just prepared (built on the host from
     /// the same H and constraints `frames` were built from: [`Multilevel::new`]),
     /// uploaded for the iterations with [`Preconditioner::Multilevel`]; call after every
-    /// `prepare`. A hierarchy met before keeps its buffers and only the values move.
+    /// `prepare`. A hierarchy met before keeps its buffers and only the values move; the
+    /// same generation of levels ([`Multilevel::generation`]: kept levels refreshed) moves
+    /// only its smoothing weights.
     ///
     /// The cluster inverses go in buffers of consecutive clusters under the adapter's
     /// binding limit, lowered to `binding_limit` where given (tests of the split path): the
@@ -893,19 +895,6 @@ impl DeviceCg {
         if let Some(dm) = self.ml.as_mut() {
             dm.set(ml, frames, finest, binding_limit)?;
         }
-        self.ml_ready = true;
-        Ok(())
-    }
-
-    /// The kept multilevel levels refreshed for the system just prepared
-    /// ([`crate::solve::multilevel::Multilevel::refresh`]): only their smoothing weights
-    /// move; call after `prepare` instead of [`DeviceCg::set_multilevel`] when the levels
-    /// on the device are `ml`'s.
-    pub fn refresh_multilevel(&mut self, ml: &Multilevel) -> Result<(), GpuError> {
-        let dm = self.ml.as_ref().ok_or_else(|| {
-            GpuError::Mismatch("no multilevel levels on the device to refresh".into())
-        })?;
-        dm.set_omega(ml)?;
         self.ml_ready = true;
         Ok(())
     }

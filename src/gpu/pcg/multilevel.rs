@@ -137,6 +137,8 @@ pub(super) struct DeviceMultilevel {
     levels: Vec<DeviceLevel>,
     /// The hierarchy and binding limit the levels were built for.
     hierarchy: Option<(Arc<crate::solve::multilevel::Hierarchy>, u64)>,
+    /// The [`Multilevel::generation`] whose values the levels hold.
+    generation: Option<(u64, u32)>,
 }
 
 /// The clusters of each buffer of inverses: runs of consecutive clusters whose values
@@ -324,12 +326,15 @@ impl DeviceMultilevel {
             layout,
             levels: Vec::new(),
             hierarchy: None,
+            generation: None,
         })
     }
 
     /// Uploads `ml`'s levels for the constraint set `frames`, the inverses split under
-    /// `forced` (or the adapter's binding limit): only the values when `ml` has the
-    /// hierarchy of the last call, everything otherwise.
+    /// `forced` (or the adapter's binding limit): only the smoothing weights when the
+    /// device holds `ml`'s generation (kept levels refreshed without new masks: the rest
+    /// is the same, and the finest matrix is the PCG's own), only the values when `ml`
+    /// has the hierarchy of the last call, everything otherwise.
     pub(super) fn set(
         &mut self,
         ml: &Multilevel,
@@ -356,9 +361,20 @@ impl DeviceMultilevel {
             .hierarchy
             .as_ref()
             .is_some_and(|(h, lim)| Arc::ptr_eq(h, ml.hierarchy()) && *lim == limit);
+        let generation = Some(ml.generation());
+        if same && self.generation == generation {
+            for (lev, v) in self.levels.iter().zip(&views) {
+                // ω is the first value of every level (`pack_values`).
+                self.ctx
+                    .write_buffer(&lev.vals, 0, bytemuck::cast_slice(&[v.omega]));
+            }
+            return Ok(());
+        }
+        self.generation = None;
         if !same {
             self.levels = self.build(ml.hierarchy(), &views, frames, finest, limit)?;
             self.hierarchy = Some((ml.hierarchy().clone(), limit));
+            self.generation = generation;
             return Ok(());
         }
         for (l, v) in views.iter().enumerate() {
@@ -380,27 +396,7 @@ impl DeviceMultilevel {
                     .write_buffer(&ch.buffer, 0, bytemuck::cast_slice(&inv[r]));
             }
         }
-        Ok(())
-    }
-
-    /// Writes the smoothing weights of `ml`, whose other values are those last uploaded
-    /// ([`crate::solve::multilevel::Multilevel::refresh`] changes only the finest level's
-    /// weight and matrix, and the device reads the PCG's own matrix there).
-    pub(super) fn set_omega(&self, ml: &Multilevel) -> Result<(), GpuError> {
-        let same = self
-            .hierarchy
-            .as_ref()
-            .is_some_and(|(h, _)| Arc::ptr_eq(h, ml.hierarchy()));
-        if !same {
-            return Err(GpuError::Mismatch(
-                "the kept multilevel levels are not those on the device".into(),
-            ));
-        }
-        for (lev, v) in self.levels.iter().zip(ml.levels()) {
-            // ω is the first value of every level (`pack_values`).
-            self.ctx
-                .write_buffer(&lev.vals, 0, bytemuck::cast_slice(&[v.omega]));
-        }
+        self.generation = generation;
         Ok(())
     }
 

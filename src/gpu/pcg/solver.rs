@@ -7,7 +7,6 @@
 //! frames.
 
 use super::cg::{DeviceCg, DeviceCgParams, DeviceFrames};
-use crate::core::constraints::Frames;
 use crate::core::elimination::{norm2, Eliminated};
 use crate::gpu::blocks::{plan_rows, values_limit, HostBlocks};
 use crate::gpu::context::padded_size;
@@ -18,7 +17,7 @@ use crate::gpu::{
 use crate::solve::cg::CgError;
 use crate::solve::coarse::CoarseSpace;
 use crate::solve::multilevel::reuse::KeptLevels;
-use crate::solve::multilevel::{Hierarchy, Multilevel};
+use crate::solve::multilevel::Hierarchy;
 use crate::solve::options::Preconditioner;
 use std::sync::Arc;
 use std::time::Instant;
@@ -77,8 +76,6 @@ pub struct PcgSolver {
     /// The multilevel preconditioner's clusters (H's pattern only: kept across updates)
     /// and its levels (kept or rebuilt as `params.multilevel_setup` says).
     levels: KeptLevels,
-    /// The generation of the multilevel levels on the device ([`Multilevel::generation`]).
-    uploaded: Option<(u64, u32)>,
     upload_seconds: f64,
     setup_seconds: f64,
 }
@@ -156,7 +153,6 @@ impl PcgSolver {
             cg,
             frames,
             levels,
-            uploaded: None,
             upload_seconds: t0.elapsed().as_secs_f64(),
             setup_seconds: 0.0,
         })
@@ -169,7 +165,8 @@ impl PcgSolver {
         self.cg.prepare_with_rhs(&self.frames, &self.host.rhs)?;
         if self.params.preconditioner == Preconditioner::Multilevel {
             let (ml, _) = shared.unwrap_or(&mut self.levels).for_system(e);
-            self.upload_levels(&ml, e.frames)?;
+            self.cg
+                .set_multilevel(&ml, e.frames, self.params.binding_limit)?;
         }
         // The setup kernels' time, not just their recording.
         self.ctx
@@ -177,22 +174,6 @@ impl PcgSolver {
             .poll(wgpu::PollType::wait_indefinitely())
             .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))?;
         self.setup_seconds = t.elapsed().as_secs_f64();
-        Ok(())
-    }
-
-    /// The multilevel levels `ml` on the device: only the smoothing weights when the
-    /// device holds this generation of them (kept since this solver last uploaded them),
-    /// every value otherwise.
-    fn upload_levels(&mut self, ml: &Multilevel, frames: &Frames) -> Result<(), GpuError> {
-        let generation = ml.generation();
-        if self.uploaded == Some(generation) {
-            self.cg.refresh_multilevel(ml)?;
-        } else {
-            self.uploaded = None;
-            self.cg
-                .set_multilevel(ml, frames, self.params.binding_limit)?;
-        }
-        self.uploaded = Some(generation);
         Ok(())
     }
 
@@ -280,7 +261,8 @@ impl PcgSolver {
                     diag: self.host.diag.clone(),
                 };
                 let (ml, _) = levels.for_system(&e);
-                self.upload_levels(&ml, &frames)?;
+                self.cg
+                    .set_multilevel(&ml, &frames, self.params.binding_limit)?;
                 self.setup_seconds += t.elapsed().as_secs_f64();
                 self.solve_once()
             }

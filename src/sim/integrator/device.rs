@@ -35,7 +35,7 @@ use crate::sim::device::newton_ops::{static_projections, MovingTerm, NewtonOps};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
 use crate::sim::energy::{AssemblyWork, InversionLimit, Inverted};
 use crate::sim::scene::Scene;
-use crate::solve::multilevel::reuse::{KeptLevels, Levels};
+use crate::solve::multilevel::reuse::KeptLevels;
 use crate::solve::multilevel::Hierarchy;
 use crate::solve::options::Preconditioner;
 use std::collections::HashMap;
@@ -273,11 +273,8 @@ impl DeviceLoop {
         let h = self.asm.read_matrix()?;
         let g = vec![0.0; h.n * h.dim];
         let e = Eliminated::new(&h, &g, frames, ConstrainedDiagonal::Identity);
-        let (ml, how) = self.levels.for_system(&e);
-        match how {
-            Levels::Built | Levels::Remasked => self.cg.set_multilevel(&ml, frames, None)?,
-            Levels::Kept => self.cg.refresh_multilevel(&ml)?,
-        }
+        let (ml, _) = self.levels.for_system(&e);
+        self.cg.set_multilevel(&ml, frames, None)?;
         self.multilevel_seconds += t.elapsed().as_secs_f64();
         Ok(())
     }

@@ -123,16 +123,23 @@ pub(super) struct Factors {
 
 /// Ĥ's stored blocks in the node frames ([`frame_block`]), on H's pattern.
 pub(super) fn frame_values(e: &Eliminated) -> Vec<f64> {
+    let mut v = Vec::new();
+    frame_values_into(e, &mut v);
+    v
+}
+
+/// [`frame_values`] into `v` (resized; its allocation kept, as kept levels refresh it for
+/// every system).
+pub(super) fn frame_values_into(e: &Eliminated, v: &mut Vec<f64>) {
     let h = e.h;
     let dd = h.dim * h.dim;
-    let mut v = vec![0.0; h.values.len()];
-    let rows: Vec<&mut [f64]> = split_rows(&mut v, &h.row_ptr, dd);
+    v.resize(h.values.len(), 0.0);
+    let rows: Vec<&mut [f64]> = split_rows(v, &h.row_ptr, dd);
     rows.into_par_iter().enumerate().for_each(|(i, out)| {
         for (k, o) in (h.row_ptr[i]..h.row_ptr[i + 1]).zip(out.chunks_exact_mut(dd)) {
             frame_block(e, i, k, h.col_idx[k], o);
         }
     });
-    v
 }
 
 /// `v` split at the rows of a block pattern (`per` values per stored block).

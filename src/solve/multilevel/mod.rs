@@ -50,7 +50,8 @@ pub use dense::PIVOT_DROP;
 pub use dense::{cholesky_dropping, inverse_from_factor};
 pub use level::LAMBDA_STEPS;
 use level::{
-    block_matvec, factor_level, frame_values, power_estimate, solve_level, Factors, Level,
+    block_matvec, factor_level, frame_values, frame_values_into, power_estimate, solve_level,
+    Factors, Level,
 };
 use partition::partition;
 pub use partition::CLUSTER_NODES;
@@ -370,7 +371,7 @@ impl Multilevel {
         if self.fit(e.frames) == FramesFit::Masked {
             self.mask_new(e);
         }
-        self.values[0] = frame_values(e);
+        frame_values_into(e, &mut self.values[0]);
         if self.hierarchy.levels.len() > 1 {
             self.omega[0] = self.omega_of(0);
         }
