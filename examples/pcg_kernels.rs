@@ -1,18 +1,20 @@
-//! Device time per kernel of one f64 CG iteration: the device PCG (`gpu::pcg`, what
-//! `solve --solver gpu --precision f64` and the device Newton loop run) against the
-//! precision kernels' f64 level (`gpu::GpuSolver`), on one generated 3D system with the
-//! realistic constraint mix, without and with the aggregates; then the device PCG with the
-//! multilevel preconditioner (its V-cycle's kernels by level, the levels built on the
-//! host).
+//! Device time per kernel of one CG iteration: the device PCG (`gpu::pcg`, what
+//! `solve --solver gpu` runs in f64 and f32, and the device Newton loop in f64) against
+//! the precision kernels (`gpu::GpuSolver`, mixed precision's levels), on one generated 3D
+//! system with the realistic constraint mix, without and with the aggregates; in f64 then
+//! the device PCG with the multilevel preconditioner (its V-cycle's kernels by level, the
+//! levels built on the host); in f32 each with and without the difference form.
 //!
-//!     cargo run --release --example pcg_kernels -- [NODES] [REPS]
+//!     cargo run --release --example pcg_kernels -- [NODES] [REPS] [f64|f32]
 //!
 //! Prints the fastest of REPS timestamped iterations per kernel (default 27,000 nodes, 5
-//! reps). Needs an adapter with SHADER_F64 and TIMESTAMP_QUERY.
+//! reps, f64). Needs an adapter with SHADER_F64 and TIMESTAMP_QUERY.
 
 use stickslip::cases::generate::{random_system, SystemSpec};
 use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolver, KernelTime, PcgSolver};
+use stickslip::gpu::{
+    DifferenceForm, GpuContext, GpuOptions, GpuParams, GpuSolver, KernelTime, PcgSolver,
+};
 use stickslip::solve::cg::Preconditioner;
 use stickslip::solve::coarse::CoarseSpace;
 use stickslip::Precision;
@@ -33,27 +35,39 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
     let nodes: usize = args.next().map_or(Ok(27_000), |a| a.parse())?;
     let reps: usize = args.next().map_or(Ok(5), |a| a.parse())?;
+    let precision: Precision = args.next().map_or(Ok(Precision::F64), |a| a.parse())?;
     let ctx = GpuContext::new(&GpuOptions::default())?;
     let s = random_system(&SystemSpec::with_nodes(3, nodes, 1));
     let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
     println!("{} nodes on {}", nodes, ctx.adapter_name());
+    let forms: &[DifferenceForm] = match precision {
+        Precision::F32 => &[DifferenceForm::On, DifferenceForm::Off],
+        _ => &[DifferenceForm::Off],
+    };
     for coarse in [CoarseSpace::None, CoarseSpace::Aggregates] {
-        let p = GpuParams {
-            precision: Precision::F64,
-            tol: 1e-8,
-            coarse,
-            ..Default::default()
-        };
-        let mut pcg = PcgSolver::new(&ctx, &e, &p)?;
-        print(
-            &format!("device PCG, coarse {}", coarse.name()),
-            pcg.profile_kernels(reps)?,
-        );
-        let mut kernels = GpuSolver::new(&ctx, &e, &p)?;
-        print(
-            &format!("precision kernels f64, coarse {}", coarse.name()),
-            kernels.profile_kernels(reps)?,
-        );
+        for &f32_difference in forms {
+            let p = GpuParams {
+                precision,
+                tol: 1e-8,
+                coarse,
+                f32_difference,
+                ..Default::default()
+            };
+            let what = format!(
+                "{precision}, coarse {}, difference form {f32_difference:?}",
+                coarse.name()
+            );
+            let mut pcg = PcgSolver::new(&ctx, &e, &p)?;
+            print(&format!("device PCG {what}"), pcg.profile_kernels(reps)?);
+            let mut kernels = GpuSolver::new(&ctx, &e, &p)?;
+            print(
+                &format!("precision kernels {what}"),
+                kernels.profile_kernels(reps)?,
+            );
+        }
+    }
+    if precision != Precision::F64 {
+        return Ok(());
     }
     let p = GpuParams {
         precision: Precision::F64,

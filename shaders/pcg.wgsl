@@ -61,6 +61,15 @@ override ITEMS: u32 = 1u;
 // β_{j+1} at SCAL_HIST + 2j + 1; the host cuts the sequence at restarts and estimates
 // κ(M⁻¹Ĥ) from each run (src/solve/cg.rs, lanczos_condition).
 override HIST: u32 = 0u;
+// The difference form of the product (f32 values only, src/gpu/pcg/mod.rs):
+//   (H pw)_i = Σ_j H_ij (pw_j − pw_i) + S_i pw_i,   S_i = Σ_j H_ij (`rowsum`, summed in
+// f64 on the host), each row summed in `acc`. Equal to Σ_j H_ij pw_j in exact arithmetic.
+// Why: rounding H's blocks to f32 breaks H·(translation) = 0 by ε_f32‖H‖, which moves the
+// small eigenvalue of a nearly free body (its mass) by κ·ε_f32; in this form a
+// translation t still maps to S t, and a smooth mode's terms, of size ‖H‖|pw_j − pw_i|,
+// cancel to its small eigenvalue without each being rounded to f32 (the products of two
+// f32 are exact in f64). Taken in the world frame, it holds at rotated nodes too.
+override DIFF: bool = false;
 
 // Mirrors `PcgParams` in src/gpu/pcg/mod.rs (four u32, 16 bytes, size-asserted
 // there).
@@ -145,6 +154,8 @@ const ABS_SUM_SCALE = 0x1p-64;
 // p in the world frame, V P p: what matvec multiplies H's blocks by (written with p, so
 // each node is rotated once per iteration, not once per block that reads it).
 @group(0) @binding(19) var<storage, read_write> pw: array<real>;
+// The difference form's S_i (D² per node, row-major; a placeholder without DIFF).
+@group(0) @binding(20) var<storage, read> rowsum: array<real>;
 
 var<workgroup> wg_flag: u32;
 
@@ -390,6 +401,9 @@ fn precond(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
 // summed in column order. Straight-line vector code: llvmpipe runs loops over
 // dynamically indexed private arrays far slower (2.3× on this product).
 fn hrow3(i: u32) -> vec3<real> {
+    if (DIFF) {
+        return hrow3_difference(i);
+    }
     var s = vec3<real>(real(0.0));
     for (var k = pattern[i]; k < pattern[i + 1u]; k++) {
         let j = pattern[params.col_at + k];
@@ -404,6 +418,9 @@ fn hrow3(i: u32) -> vec3<real> {
 
 // (H pw)_i, D = 2.
 fn hrow2(i: u32) -> vec2<real> {
+    if (DIFF) {
+        return hrow2_difference(i);
+    }
     var s = vec2<real>(real(0.0));
     for (var k = pattern[i]; k < pattern[i + 1u]; k++) {
         let j = pattern[params.col_at + k];
@@ -413,6 +430,44 @@ fn hrow2(i: u32) -> vec2<real> {
         s += vec2<real>(hvals[o + 1u], hvals[o + 3u]) * w.y;
     }
     return s;
+}
+
+// (H pw)_i in the difference form (DIFF), D = 3.
+fn hrow3_difference(i: u32) -> vec3<real> {
+    let wi = vec3<real>(pw[3u * i], pw[3u * i + 1u], pw[3u * i + 2u]);
+    var s = vec3<acc>(acc(0.0));
+    for (var k = pattern[i]; k < pattern[i + 1u]; k++) {
+        let j = pattern[params.col_at + k];
+        let o = (k - params.block_first) * 9u;
+        let w = vec3<real>(pw[3u * j], pw[3u * j + 1u], pw[3u * j + 2u]) - wi;
+        s += vec3<acc>(vec3<real>(hvals[o], hvals[o + 3u], hvals[o + 6u])) * acc(w.x);
+        s += vec3<acc>(vec3<real>(hvals[o + 1u], hvals[o + 4u], hvals[o + 7u])) * acc(w.y);
+        s += vec3<acc>(vec3<real>(hvals[o + 2u], hvals[o + 5u], hvals[o + 8u])) * acc(w.z);
+    }
+    let m = 9u * i;
+    let a = vec3<acc>(wi);
+    s += vec3<acc>(vec3<real>(rowsum[m], rowsum[m + 3u], rowsum[m + 6u])) * a.x;
+    s += vec3<acc>(vec3<real>(rowsum[m + 1u], rowsum[m + 4u], rowsum[m + 7u])) * a.y;
+    s += vec3<acc>(vec3<real>(rowsum[m + 2u], rowsum[m + 5u], rowsum[m + 8u])) * a.z;
+    return vec3<real>(s);
+}
+
+// (H pw)_i in the difference form (DIFF), D = 2.
+fn hrow2_difference(i: u32) -> vec2<real> {
+    let wi = vec2<real>(pw[2u * i], pw[2u * i + 1u]);
+    var s = vec2<acc>(acc(0.0));
+    for (var k = pattern[i]; k < pattern[i + 1u]; k++) {
+        let j = pattern[params.col_at + k];
+        let o = (k - params.block_first) * 4u;
+        let w = vec2<real>(pw[2u * j], pw[2u * j + 1u]) - wi;
+        s += vec2<acc>(vec2<real>(hvals[o], hvals[o + 2u])) * acc(w.x);
+        s += vec2<acc>(vec2<real>(hvals[o + 1u], hvals[o + 3u])) * acc(w.y);
+    }
+    let m = 4u * i;
+    let a = vec2<acc>(wi);
+    s += vec2<acc>(vec2<real>(rowsum[m], rowsum[m + 2u])) * a.x;
+    s += vec2<acc>(vec2<real>(rowsum[m + 1u], rowsum[m + 3u])) * a.y;
+    return vec2<real>(s);
 }
 
 // q = Ĥp = P Vᵀ H V P p + (I − P) p, one invocation per block row, with the p·q partials.

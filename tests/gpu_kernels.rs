@@ -6,7 +6,7 @@ use stickslip::cases::generate::{random_system, SystemSpec};
 use stickslip::cases::springs::MassSpring;
 use stickslip::core::constraints::{Constraint, ConstraintKind, Frames};
 use stickslip::core::elimination::{rotate_blocks, ConstrainedDiagonal, Eliminated};
-use stickslip::gpu::{DifferenceForm, GpuParams, GpuSolver, Precision};
+use stickslip::gpu::{DifferenceForm, GpuParams, GpuSolver, PcgSolver, Precision};
 use stickslip::solve::cg::{BuiltPreconditioner, Preconditioner};
 use stickslip::solve::coarse::CoarseSpace;
 
@@ -151,6 +151,91 @@ fn f32_difference_form_keeps_the_translations() {
     assert!(uses(&e));
     let pinned = stickslip::app::hard::stiffness_contrast(stickslip::app::hard::Size::Ci, 1e4);
     assert_eq!(uses(&pinned.eliminated()), ctx.has_f64());
+}
+
+/// The device PCG's product q = Ĥx (H read in place in the world frame, p rotated at
+/// rotated nodes) against the CPU's Ĥx on random systems with slip nodes, in f64, f32 and
+/// f32 in the difference form. Bounds: f64 to a few roundings of the row sums (1e-13 of
+/// max |Ĥx|); f32 to ε_f32 = 6e-8 per rounding of H, x and the rotations, summed over a
+/// row's few dozen terms of either sign (2e-6, as the precision kernels' bound).
+#[test]
+fn pcg_product_matches_cpu_in_every_precision() {
+    let Some((ctx, _g)) = gpu() else { return };
+    for (dim, seed) in [(2, 1u64), (3, 2), (3, 5)] {
+        let s = random_system(&SystemSpec::small(dim, seed));
+        assert!(s.frames.has_rotation() && s.frames.has_constraints());
+        let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+        let x = test_vector(e.ndof());
+        let mut want = vec![0.0; x.len()];
+        let mut work = vec![0.0; 2 * x.len()];
+        e.apply(&x, &mut want, &mut work);
+        for (prec, tol, diff) in [
+            (Precision::F64, 1e-13, DifferenceForm::Off),
+            (Precision::F32, 2e-6, DifferenceForm::Off),
+            (Precision::F32, 2e-6, DifferenceForm::On),
+        ] {
+            let prm = GpuParams {
+                f32_difference: diff,
+                ..params(prec, Preconditioner::Jacobi)
+            };
+            let mut sol = PcgSolver::new(ctx, &e, &prm).expect("solver");
+            assert_eq!(sol.difference_form(), diff == DifferenceForm::On);
+            let err = max_rel(&sol.apply_operator(&x).expect("product"), &want);
+            eprintln!("{dim}D seed {seed} {prec} {diff:?}: max error {err:.2e}");
+            assert!(err <= tol, "{dim}D seed {seed} {prec} {diff:?}: {err:e}");
+        }
+    }
+}
+
+/// The device PCG's f32 difference form keeps a free body's translations, as the
+/// precision kernels' does (`f32_difference_form_keeps_the_translations`, same bounds):
+/// on kappa-1e6, Ĥt = m t for a translation t; the form maps t to S t (S_i = m I rounded
+/// once to f32), plain f32 blocks miss by ~κ·ε_f32 of m t. Auto turns it on where the
+/// device has f64 sums, and on a free body everywhere.
+#[test]
+fn pcg_f32_difference_form_keeps_the_translations() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let case = stickslip::app::hard::conditioned(stickslip::app::hard::Size::Ci, 1e6, false);
+    let e = case.eliminated();
+    let n = e.ndof();
+    let mut solvers = [DifferenceForm::Off, DifferenceForm::On].map(|diff| {
+        let prm = GpuParams {
+            f32_difference: diff,
+            ..params(Precision::F32, Preconditioner::Jacobi)
+        };
+        PcgSolver::new(ctx, &e, &prm).expect("solver")
+    });
+    for axis in 0..3 {
+        let t: Vec<f64> = (0..n).map(|k| f64::from(k % 3 == axis)).collect();
+        let mut want = vec![0.0; n];
+        let mut work = vec![0.0; 2 * n];
+        e.apply(&t, &mut want, &mut work);
+        let errs = solvers
+            .each_mut()
+            .map(|s| max_rel(&s.apply_operator(&t).expect("product"), &want));
+        eprintln!(
+            "axis {axis}: plain f32 {:.2e}, difference form {:.2e}",
+            errs[0], errs[1]
+        );
+        assert!(
+            errs[1] <= 1e-6,
+            "difference form, axis {axis}: {:e}",
+            errs[1]
+        );
+        assert!(
+            errs[0] >= 1e-3,
+            "plain f32 blocks, axis {axis}: {:e}",
+            errs[0]
+        );
+    }
+    let auto = |e: &Eliminated| {
+        PcgSolver::new(ctx, e, &params(Precision::F32, Preconditioner::Jacobi))
+            .expect("solver")
+            .difference_form()
+    };
+    assert!(auto(&e));
+    let pinned = stickslip::app::hard::stiffness_contrast(stickslip::app::hard::Size::Ci, 1e4);
+    assert_eq!(auto(&pinned.eliminated()), ctx.has_f64());
 }
 
 #[test]

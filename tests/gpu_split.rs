@@ -214,42 +214,44 @@ fn a_system_larger_than_device_memory_is_refused_with_the_exact_need() {
     }
 }
 
-/// The device PCG (what `solve --solver gpu` runs in f64) refuses a system over the device
-/// memory in force before it allocates anything, in one line naming what it needs: more
-/// than H's values alone.
+/// The device PCG (what `solve --solver gpu` runs in f64 and f32) refuses a system over
+/// the device memory in force before it allocates anything, in one line naming what it
+/// needs: more than H's values alone (8 or 4 bytes per entry).
 #[test]
 fn the_device_pcg_refuses_a_system_over_device_memory() {
     let Some((ctx, _g)) = gpu() else { return };
-    if !ctx.has_f64() {
-        eprintln!("SKIP the device PCG: no SHADER_F64");
-        return;
-    }
     let s = random_system(&SystemSpec::with_nodes(3, 1000, 7));
     let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
-    let h_bytes = 8 * s.h.values.len() as u64;
-    let p = GpuParams {
-        precision: Precision::F64,
-        ..Default::default()
-    };
-    assert!(PcgSolver::new(ctx, &e, &p).is_ok());
-    let short = GpuParams {
-        memory_limit: Some(h_bytes),
-        ..p
-    };
-    match PcgSolver::new(ctx, &e, &short) {
-        Err(GpuError::Device(m)) => {
-            assert!(m.contains(stickslip::gpu::DOES_NOT_FIT), "{m}");
-            assert!(!m.contains('\n'));
-            let needed: u64 = m
-                .split("needs ")
-                .nth(1)
-                .and_then(|t| t.split(' ').next())
-                .and_then(|t| t.parse().ok())
-                .unwrap_or_else(|| panic!("no need in {m}"));
-            eprintln!("{m}");
-            assert!(needed > h_bytes, "{needed} ≤ {h_bytes}");
+    for (precision, entry) in [(Precision::F64, 8u64), (Precision::F32, 4)] {
+        if precision == Precision::F64 && !ctx.has_f64() {
+            eprintln!("SKIP the device PCG in f64: no SHADER_F64");
+            continue;
         }
-        Err(other) => panic!("{other}"),
-        Ok(_) => panic!("accepted a system in {h_bytes} bytes"),
+        let h_bytes = entry * s.h.values.len() as u64;
+        let p = GpuParams {
+            precision,
+            ..Default::default()
+        };
+        assert!(PcgSolver::new(ctx, &e, &p).is_ok());
+        let short = GpuParams {
+            memory_limit: Some(h_bytes),
+            ..p
+        };
+        match PcgSolver::new(ctx, &e, &short) {
+            Err(GpuError::Device(m)) => {
+                assert!(m.contains(stickslip::gpu::DOES_NOT_FIT), "{m}");
+                assert!(!m.contains('\n'));
+                let needed: u64 = m
+                    .split("needs ")
+                    .nth(1)
+                    .and_then(|t| t.split(' ').next())
+                    .and_then(|t| t.parse().ok())
+                    .unwrap_or_else(|| panic!("no need in {m}"));
+                eprintln!("{precision}: {m}");
+                assert!(needed > h_bytes, "{precision}: {needed} ≤ {h_bytes}");
+            }
+            Err(other) => panic!("{precision}: {other}"),
+            Ok(_) => panic!("{precision}: accepted a system in {h_bytes} bytes"),
+        }
     }
 }

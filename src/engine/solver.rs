@@ -354,8 +354,8 @@ enum Prepared {
     Gpu(Box<dyn DeviceSolver>),
 }
 
-/// The GPU solvers the engine keeps per layout: the device PCG in f64 (the CG the device
-/// Newton loop runs), the kernels of f32 and mixed precision otherwise. `levels` are the
+/// The GPU solvers the engine keeps per layout: the device PCG in f64 and f32 (the CG the
+/// device Newton loop runs), the kernels of mixed precision otherwise. `levels` are the
 /// multilevel preconditioner's, shared by every layout of the solver (the device PCG's
 /// only).
 trait DeviceSolver: Send {
@@ -411,8 +411,9 @@ const _: fn() = || {
     send::<Solver>();
 };
 
-/// The GPU solver for `e` in the configured precision (the device PCG on the multilevel
-/// clusters and levels of `levels`, shared by every constraint set of the mesh).
+/// The GPU solver for `e` in the configured precision: the device PCG in f64 and f32 (on
+/// the multilevel clusters and levels of `levels`, shared by every constraint set of the
+/// mesh), the precision kernels for mixed precision.
 fn new_device_solver(
     ctx: &GpuContext,
     e: &Eliminated,
@@ -420,8 +421,8 @@ fn new_device_solver(
     levels: &mut KeptLevels,
 ) -> Result<Box<dyn DeviceSolver>, crate::gpu::GpuError> {
     Ok(match params.precision {
-        Precision::F64 => Box::new(PcgSolver::sharing(ctx, e, params, levels)?),
-        _ => Box::new(GpuSolver::new(ctx, e, params)?),
+        Precision::F64 | Precision::F32 => Box::new(PcgSolver::sharing(ctx, e, params, levels)?),
+        Precision::Mixed => Box::new(GpuSolver::new(ctx, e, params)?),
     })
 }
 

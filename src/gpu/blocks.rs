@@ -4,6 +4,7 @@
 //! binding caps a buffer's size. The device assembly of the Newton loop writes its blocks
 //! into such chunks; [`HostBlocks`] uploads a host [`BlockCsr`] into the same layout.
 
+use super::kernels::Real;
 use super::{GpuContext, GpuError};
 use crate::core::sparse::BlockCsr;
 
@@ -118,9 +119,11 @@ pub struct BlockMatrix<'a> {
     pub f64: bool,
 }
 
-/// A host [`BlockCsr`] uploaded in f64 into chunks that fit the device's bindings.
+/// A host [`BlockCsr`] uploaded in f64 or rounded to f32 into chunks that fit the
+/// device's bindings.
 #[derive(Debug)]
 pub struct HostBlocks {
+    real: Real,
     dim: usize,
     row_ptr: Vec<usize>,
     col_idx: Vec<usize>,
@@ -128,17 +131,24 @@ pub struct HostBlocks {
 }
 
 impl HostBlocks {
-    /// Uploads `h`'s values, each chunk at most `values_limit(ctx, forced)` bytes.
-    pub fn upload(ctx: &GpuContext, h: &BlockCsr, forced: Option<u64>) -> Result<Self, GpuError> {
+    /// Uploads `h`'s values as `real`, each chunk at most `values_limit(ctx, forced)`
+    /// bytes.
+    pub fn upload(
+        ctx: &GpuContext,
+        h: &BlockCsr,
+        real: Real,
+        forced: Option<u64>,
+    ) -> Result<Self, GpuError> {
         let chunks = values_chunks(
             ctx,
             &h.row_ptr,
-            8 * (h.dim * h.dim) as u64,
+            real.size() * (h.dim * h.dim) as u64,
             forced,
             "matrix blocks",
-            Some(bytemuck::cast_slice(&h.values)),
+            Some(&real.bytes(&h.values)),
         )?;
         Ok(HostBlocks {
+            real,
             dim: h.dim,
             row_ptr: h.row_ptr.clone(),
             col_idx: h.col_idx.clone(),
@@ -156,7 +166,7 @@ impl HostBlocks {
         let dd = self.dim * self.dim;
         for c in &self.chunks {
             let values = &h.values[c.blocks.start * dd..c.blocks.end * dd];
-            ctx.write_buffer(&c.buffer, 0, bytemuck::cast_slice(values));
+            ctx.write_buffer(&c.buffer, 0, &self.real.bytes(values));
         }
         Ok(())
     }
@@ -168,9 +178,25 @@ impl HostBlocks {
             row_ptr: &self.row_ptr,
             col_idx: &self.col_idx,
             chunks: &self.chunks,
-            f64: true,
+            f64: self.real == Real::F64,
         }
     }
+}
+
+/// The row sums S_i = Σ_j H_ij of a block matrix (d×d per block row, row-major), summed
+/// in f64: what the difference form of an f32 product ([`crate::gpu::pcg`]) adds back.
+pub fn row_sums(h: &BlockCsr) -> Vec<f64> {
+    let dd = h.dim * h.dim;
+    let mut s = vec![0.0; h.n * dd];
+    for i in 0..h.n {
+        let row = &mut s[i * dd..(i + 1) * dd];
+        for k in h.row_ptr[i]..h.row_ptr[i + 1] {
+            for (a, v) in row.iter_mut().zip(&h.values[k * dd..(k + 1) * dd]) {
+                *a += v;
+            }
+        }
+    }
+    s
 }
 
 #[cfg(test)]

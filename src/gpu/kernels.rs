@@ -419,6 +419,51 @@ pub const PRELUDES: [(&str, &str, bool); 5] = [
     ("f64", "f64", false),
 ];
 
+/// A scalar type of a kernel instance (`real` or `acc` of the [`prelude`]), with its
+/// host conversions: values are f64 on the host, rounded to f32 on upload.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Real {
+    F32,
+    F64,
+}
+
+impl Real {
+    pub fn name(self) -> &'static str {
+        match self {
+            Real::F32 => "f32",
+            Real::F64 => "f64",
+        }
+    }
+    pub fn size(self) -> u64 {
+        match self {
+            Real::F32 => 4,
+            Real::F64 => 8,
+        }
+    }
+    /// `v` as this type's little-endian bytes (f64: `v`'s own, not copied).
+    pub fn bytes(self, v: &[f64]) -> std::borrow::Cow<'_, [u8]> {
+        match self {
+            Real::F32 => {
+                let w: Vec<f32> = v.iter().map(|&x| x as f32).collect();
+                std::borrow::Cow::Owned(bytemuck::cast_slice(&w).to_vec())
+            }
+            Real::F64 => std::borrow::Cow::Borrowed(bytemuck::cast_slice(v)),
+        }
+    }
+    pub fn values(self, b: &[u8]) -> Vec<f64> {
+        match self {
+            Real::F32 => b
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64)
+                .collect(),
+            Real::F64 => b
+                .chunks_exact(8)
+                .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
+                .collect(),
+        }
+    }
+}
+
 /// The prelude of a kernel instance: the scalar-type aliases, the block-load type
 /// `blk4` with its `unpack4`, the shared constants and the shared declarations.
 ///

@@ -20,16 +20,41 @@ pub enum DifferenceForm {
     On,
 }
 
+/// Relative move of the softest translation's eigenvalue above which
+/// [`DifferenceForm::Auto`] turns the difference form on for f32 sums.
+const DIFF_AUTO_THRESHOLD: f64 = 1e-3;
+
+impl DifferenceForm {
+    /// Whether an f32 operator of `h` under `frames` takes the difference form, with f64
+    /// sums (`acc_f64`) or f32 ones; `diag_max` is the largest entry of H's diagonal
+    /// blocks.
+    pub fn wanted(
+        self,
+        acc_f64: bool,
+        h: &crate::core::sparse::BlockCsr,
+        frames: &crate::core::constraints::Frames,
+        diag_max: f64,
+    ) -> bool {
+        match self {
+            DifferenceForm::Off => false,
+            DifferenceForm::On => true,
+            DifferenceForm::Auto if acc_f64 => true,
+            DifferenceForm::Auto => crate::solve::coarse::softest_translation(h, frames)
+                .is_some_and(|lz| f64::from(f32::EPSILON) * diag_max > DIFF_AUTO_THRESHOLD * lz),
+        }
+    }
+}
+
 /// Upper bound of the workgroups of the grid-stride CG kernels (`GpuParams::workgroups`),
 /// and so of the partial sums one reduction leaves: the partial-sum buffers hold this many.
 pub const MAX_WORKGROUPS: u32 = 256;
 
-/// Parameters of a GPU solve. In f64 the facade runs the device PCG
+/// Parameters of a GPU solve. In f64 and f32 the facade runs the device PCG
 /// ([`crate::gpu::PcgSolver`]), which takes `tol`, `max_iters`, `preconditioner`,
-/// `coarse`, `stagnation_window` (checked at each status read), `max_restarts` and
-/// `binding_limit`; its workgroups and chunk lengths follow the device's own policy
-/// (`gpu::launch`, `gpu::schedule`). The other fields serve f32 and mixed precision
-/// ([`crate::gpu::GpuSolver`]).
+/// `coarse`, `multilevel_setup`, `stagnation_window` (checked at each status read),
+/// `max_restarts`, `f32_difference`, `binding_limit` and `memory_limit`; its workgroups
+/// and chunk lengths follow the device's own policy (`gpu::launch`, `gpu::schedule`). The
+/// other fields serve mixed precision ([`crate::gpu::GpuSolver`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct GpuParams {
     pub precision: Precision,
@@ -84,10 +109,11 @@ pub struct GpuParams {
     /// Coarse correction added to the preconditioner, in every level (see
     /// [`crate::solve::coarse`]); the same choice as [`crate::solve::cg::CgParams::coarse`].
     pub coarse: CoarseSpace,
-    /// Whether f32 operators of an assembled Ĥ use the difference form
-    /// (`shaders/matvec.wgsl` `DIFF`: node row sums summed in f64), which keeps the
-    /// eigenvalues of the rigid translations that plain f32 rounding perturbs by
-    /// ε_f32·‖Ĥ‖. See [`DifferenceForm`]; f64 operators never use it.
+    /// Whether f32 operators of an assembled Ĥ use the difference form (the device PCG's
+    /// `DIFF` in shaders/pcg.wgsl, in the world frame; mixed precision's in
+    /// shaders/matvec.wgsl, in each node's frame: row sums summed in f64 on the host),
+    /// which keeps the eigenvalues of the rigid translations that plain f32 rounding
+    /// perturbs by ε_f32·‖Ĥ‖. See [`DifferenceForm`]; f64 operators never use it.
     pub f32_difference: DifferenceForm,
     /// Caps the storage binding size the solver assumes (bytes; None: the adapter's
     /// `max_storage_buffer_binding_size`). Per-block arrays larger than the limit are bound

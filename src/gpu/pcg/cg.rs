@@ -3,7 +3,7 @@
 
 use crate::core::constraints::{Frames, NO_ROTATION};
 use crate::gpu::blocks::BlockMatrix;
-use crate::gpu::kernels::{self, slots, Access, Layout};
+use crate::gpu::kernels::{self, slots, Access, Layout, Real};
 use crate::gpu::schedule::{self, ChunkStatus};
 use crate::gpu::{GpuContext, GpuError, KernelTime, Launch, TrafficCount};
 use crate::solve::cg::{CgError, Preconditioner};
@@ -42,6 +42,7 @@ pub const PCG: Layout = Layout {
         ("aggregates", R),
         ("coarse", W),
         ("pw", W),
+        ("rowsum", R),
     ],
 };
 
@@ -68,8 +69,11 @@ const _: () = assert!(std::mem::size_of::<PcgParams>() == 32);
 /// Workgroup size of every kernel.
 const WORKGROUP: u32 = 64;
 
-/// Bytes of the status read back per chunk: the leading `scal` slots then `state`.
-const STATUS_BYTES: u64 = 8 * slots::STATUS_SCAL as u64 + 4 * slots::N_STATE as u64;
+/// Bytes of the status read back per chunk: the leading `scal` slots (`acc`) then
+/// `state`.
+fn status_bytes(acc: Real) -> u64 {
+    acc.size() * slots::STATUS_SCAL as u64 + 4 * slots::N_STATE as u64
+}
 
 /// Iterations of the first chunk, the shortest and the longest chunk
 /// ([`schedule::next_chunk`]).
@@ -101,10 +105,12 @@ pub struct IterationProfile {
 
 /// The bytes of the buffers [`DeviceCg::new`] sizes by the system (one place for both).
 struct Sizes {
-    /// One n·d f64 vector (y, r, z, p, q, pw, b̂, Δx).
+    /// One n·d vector (y, r, z, p, q, pw, b̂, Δx) of `real`.
     vector: u64,
     /// Both preconditioners: the block-Jacobi inverses (n·d²) and the Jacobi diagonal.
     minv: u64,
+    /// The difference form's row sums (n·d², with it; else a placeholder).
+    rowsum: u64,
     /// The partial sums, then the sums carried across each boundary between H's chunks
     /// (one segment straddles it), per invocation.
     partials: u64,
@@ -112,22 +118,64 @@ struct Sizes {
     scal: u64,
 }
 
-/// The f64 vectors of the CG: y, r, z, p, q, pw, b̂ and Δx.
+/// The vectors of the CG: y, r, z, p, q, pw, b̂ and Δx.
 const N_VECTORS: u64 = 8;
 
 impl Sizes {
-    fn new(n: usize, dim: usize, segments: u64, chunks: usize, hist: u32) -> Self {
+    fn new(n: usize, dim: usize, segments: u64, chunks: usize, hist: u32, ty: Scalars) -> Self {
         let nd = (n * dim) as u64;
+        let (rs, acs) = (ty.real.size(), ty.acc.size());
         Sizes {
-            vector: 8 * nd,
-            minv: 8 * (n * dim * dim) as u64 + 8 * nd,
-            partials: 8
+            vector: rs * nd,
+            minv: rs * (n * dim * dim) as u64 + rs * nd,
+            rowsum: if ty.difference {
+                rs * (n * dim * dim) as u64
+            } else {
+                16
+            },
+            partials: acs
                 * (slots::N_PART as u64 * segments
                     + (chunks.saturating_sub(1) as u64)
                         * slots::CARRY_LEN as u64
                         * WORKGROUP as u64),
-            scal: 8 * (slots::SCAL_HIST + 2 * hist) as u64,
+            scal: acs * (slots::SCAL_HIST + 2 * hist) as u64,
         }
+    }
+}
+
+/// The scalar types of one PCG: `real` for H, the frames and the vectors (H's own),
+/// `acc` for every sum and scalar (f64 wherever the device has SHADER_F64), and whether
+/// the product takes the difference form (f32 only; see the module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Scalars {
+    pub real: Real,
+    pub acc: Real,
+    pub difference: bool,
+}
+
+impl Scalars {
+    /// f64 throughout: the Newton loop's.
+    pub const F64: Scalars = Scalars {
+        real: Real::F64,
+        acc: Real::F64,
+        difference: false,
+    };
+
+    /// `real` vectors on `ctx`: f64 sums where it has SHADER_F64, else f32 (refused for
+    /// f64 vectors).
+    pub fn on(ctx: &GpuContext, real: Real, difference: bool) -> Result<Self, GpuError> {
+        let acc = if ctx.has_f64() { Real::F64 } else { Real::F32 };
+        if real == Real::F64 && acc == Real::F32 {
+            return Err(GpuError::Unsupported(format!(
+                "{} has no SHADER_F64: the device PCG cannot run in f64 there",
+                ctx.adapter_name()
+            )));
+        }
+        Ok(Scalars {
+            real,
+            acc,
+            difference: difference && real == Real::F32,
+        })
     }
 }
 
@@ -290,14 +338,18 @@ struct Buffers {
     state: wgpu::Buffer,
     /// `scal` and `state` gathered for one read-back.
     status: wgpu::Buffer,
+    /// The difference form's row sums S_i = Σ_j H_ij (a placeholder without it).
+    rowsum: wgpu::Buffer,
 }
 
-/// The eliminated PCG on a device block matrix, built once per pattern (f64 only).
+/// The eliminated PCG on a device block matrix, built once per pattern, in H's
+/// precision ([`Scalars`]).
 /// Per Newton iteration: [`DeviceCg::solve`] (or [`DeviceCg::prepare`] then
 /// [`DeviceCg::iterate`]) after every `assemble`; Δx is then in [`DeviceCg::dx_buffer`].
 pub struct DeviceCg {
     ctx: GpuContext,
     id: u64,
+    ty: Scalars,
     dim: usize,
     n_nodes: usize,
     /// The launches of every kernel.
@@ -339,24 +391,25 @@ pub struct DeviceCg {
 }
 
 impl DeviceCg {
-    /// Pipelines and buffers for the f64 block matrix `h` (its values are read in place
-    /// by every solve: write new ones there, then [`DeviceCg::prepare`]). `grad` is the
-    /// gradient g from which [`DeviceCg::prepare`] forms b̂ = −P Vᵀ g; without it b̂ is
+    /// Pipelines and buffers for the block matrix `h` (its values are read in place by
+    /// every solve: write new ones there, then [`DeviceCg::prepare`]), in its precision
+    /// with the device's sums ([`Scalars::on`]). `grad` is the gradient g (of H's
+    /// precision) from which [`DeviceCg::prepare`] forms b̂ = −P Vᵀ g; without it b̂ is
     /// given ([`DeviceCg::prepare_with_rhs`]).
     ///
     /// With `lanczos` the CG records its first [`LANCZOS_HIST`] Lanczos coefficient pairs
-    /// for [`DeviceCg::condition_estimate`].
+    /// for [`DeviceCg::condition_estimate`]. With `difference` (f32 values only) the
+    /// product takes the difference form, whose row sums the caller writes
+    /// ([`DeviceCg::write_row_sums`]) with every new H.
     pub fn new(
         ctx: &GpuContext,
         h: BlockMatrix<'_>,
         grad: Option<&wgpu::Buffer>,
         lanczos: bool,
+        difference: bool,
     ) -> Result<Self, GpuError> {
-        if !h.f64 {
-            return Err(GpuError::Unsupported(
-                "the device PCG needs f64 block values, not f32".into(),
-            ));
-        }
+        let real = if h.f64 { Real::F64 } else { Real::F32 };
+        let ty = Scalars::on(ctx, real, difference)?;
         let ctx = ctx.clone();
         let dim = h.dim;
         let (row_ptr, col_idx) = (h.row_ptr, h.col_idx);
@@ -409,7 +462,7 @@ impl DeviceCg {
         // Pipelines.
         let hist = if lanczos { LANCZOS_HIST } else { 0 };
         PCG.check_adapter(&ctx)?;
-        let module = PCG.module(dev, "f64", "f64", false);
+        let module = PCG.module(dev, ty.real.name(), ty.acc.name(), false);
         let (layout, pl) = PCG.layouts(dev, "pcg");
         let pipe = |entry: &str, precond: u32, coarse: u32| {
             // SUM_LANES: scalar_start sums three values in one tree, no kernel more; the
@@ -429,6 +482,7 @@ impl DeviceCg {
                 ("COARSE", coarse as f64),
                 ("ITEMS", policy.items as f64),
                 ("HIST", hist as f64),
+                ("DIFF", f64::from(u8::from(ty.difference))),
             ];
             let label = format!("pcg {entry} ({dim}D, preconditioner {precond}, coarse {coarse})");
             kernels::pipeline(dev, &pl, &module, entry, &label, &constants)
@@ -462,7 +516,7 @@ impl DeviceCg {
         };
 
         // Buffers, limits checked first.
-        let sz = Sizes::new(n, dim, segments, chunks.len(), hist);
+        let sz = Sizes::new(n, dim, segments, chunks.len(), hist, ty);
         let zeroed = |label: &str, bytes: u64| ctx.storage_zeroed(label, bytes);
         let vector = |label: &str| zeroed(label, sz.vector);
         let pattern_buf = ctx.storage_with("pcg pattern", bytemuck::cast_slice(&pattern))?;
@@ -504,12 +558,14 @@ impl DeviceCg {
             partials: zeroed("pcg partial sums", sz.partials)?,
             scal: zeroed("pcg scalars", sz.scal)?,
             state: zeroed("pcg state", 4 * slots::N_STATE as u64)?,
-            status: zeroed("pcg status", STATUS_BYTES)?,
+            status: zeroed("pcg status", status_bytes(ty.acc))?,
+            rowsum: zeroed("pcg row sums of the difference form", sz.rowsum)?,
         };
         ctx.check("building the device PCG")?;
         Ok(DeviceCg {
             id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
             ctx,
+            ty,
             dim,
             n_nodes: n,
             launches,
@@ -536,47 +592,77 @@ impl DeviceCg {
     /// The device memory [`DeviceCg::new`] and [`DeviceCg::frames`] take beside H's values
     /// and the gradient, for `n` block rows and `nnz` blocks in `dim` with H in `chunks`
     /// buffers and `rotated` rotated nodes (the aggregates' index arrays, a few words per
-    /// node, not counted): what a caller adds to H's bytes to refuse a system that does not
-    /// fit before anything is allocated.
+    /// node, not counted), in the precision `ty`: what a caller adds to H's bytes to refuse
+    /// a system that does not fit before anything is allocated.
     pub fn device_bytes(
         ctx: &GpuContext,
         (n, nnz, dim): (usize, usize, usize),
         chunks: usize,
         rotated: usize,
         lanczos: bool,
+        ty: Scalars,
     ) -> u64 {
         let p = crate::gpu::context::padded_size;
         let segments = ctx.segments().segments(n as u64, WORKGROUP);
         let hist = if lanczos { LANCZOS_HIST } else { 0 };
-        let sz = Sizes::new(n, dim, segments, chunks, hist);
+        let sz = Sizes::new(n, dim, segments, chunks, hist, ty);
         let pattern = 4 * (2 * n as u64 + 1 + nnz as u64);
-        let frames = 8 * n as u64 + 8 * (rotated * dim * dim) as u64;
+        let frames = 8 * n as u64 + ty.real.size() * (rotated * dim * dim) as u64;
         p(pattern)
             + N_VECTORS * p(sz.vector)
             + p(sz.minv)
+            + p(sz.rowsum)
             + p(sz.partials)
             + p(sz.scal)
             + p(4 * slots::N_STATE as u64)
-            + p(STATUS_BYTES)
+            + p(status_bytes(ty.acc))
             + chunks as u64 * p(std::mem::size_of::<PcgParams>() as u64)
             + p(frames)
     }
 
-    /// The world-frame Δx of the last successful solve (n·d f64, node-major).
+    /// The world-frame Δx of the last successful solve (n·d `real`, node-major).
     pub fn dx_buffer(&self) -> &wgpu::Buffer {
         &self.buf.dx
     }
 
+    /// The scalar types this PCG runs in.
+    pub fn scalars(&self) -> Scalars {
+        self.ty
+    }
+
     /// Δx read back to the host (a full read-back: for tests and diagnostics, not the loop).
     pub fn read_dx(&self) -> Result<Vec<f64>, GpuError> {
-        let nd = self.n_nodes * self.dim;
-        let bytes = self.ctx.download(
-            &self.buf.dx,
-            0,
-            8 * nd as u64,
-            "reading back the Newton step",
-        )?;
-        Ok(f64s(&bytes))
+        self.read_vector(&self.buf.dx, "reading back the Newton step")
+    }
+
+    /// One n·d `real` vector read back as f64.
+    fn read_vector(&self, buf: &wgpu::Buffer, what: &str) -> Result<Vec<f64>, GpuError> {
+        let nd = (self.n_nodes * self.dim) as u64;
+        let bytes = self.ctx.download(buf, 0, self.ty.real.size() * nd, what)?;
+        Ok(self.ty.real.values(&bytes))
+    }
+
+    /// The difference form's row sums S_i = Σ_j H_ij (node-major, d² per node, row-major,
+    /// summed in f64 from the values just written to H:
+    /// [`crate::gpu::blocks::row_sums`]); refused by a PCG
+    /// built without the form.
+    pub fn write_row_sums(&self, sums: &[f64]) -> Result<(), GpuError> {
+        let d = self.dim;
+        if !self.ty.difference || sums.len() != self.n_nodes * d * d {
+            return Err(GpuError::Mismatch(format!(
+                "row sums: {} values for a PCG {} the difference form on {} nodes",
+                sums.len(),
+                if self.ty.difference {
+                    "with"
+                } else {
+                    "without"
+                },
+                self.n_nodes
+            )));
+        }
+        self.ctx
+            .write_buffer(&self.buf.rowsum, 0, &self.ty.real.bytes(sums));
+        Ok(())
     }
 
     /// κ̃(M⁻¹Ĥ) of the last solve from its Lanczos coefficients (a PCG built with
@@ -587,13 +673,14 @@ impl DeviceCg {
         if n < 2 {
             return Ok(None);
         }
+        let acc = self.ty.acc;
         let bytes = self.ctx.download(
             &self.buf.scal,
-            8 * slots::SCAL_HIST as u64,
-            8 * 2 * n as u64,
+            acc.size() * slots::SCAL_HIST as u64,
+            acc.size() * 2 * n as u64,
             "reading back the Lanczos coefficients",
         )?;
-        let h = f64s(&bytes);
+        let h = acc.values(&bytes);
         let mut ends: Vec<usize> = self.run_starts.iter().skip(1).copied().collect();
         ends.push(self.last_iterations);
         let mut kappa: Option<f64> = None;
@@ -611,16 +698,9 @@ impl DeviceCg {
         Ok(kappa)
     }
 
-    /// The solution y of Ĥ y = b̂ (frame coordinates, n·d f64) read back.
+    /// The solution y of Ĥ y = b̂ (frame coordinates, n·d) read back.
     pub fn read_y(&self) -> Result<Vec<f64>, GpuError> {
-        let nd = self.n_nodes * self.dim;
-        let bytes = self.ctx.download(
-            &self.buf.y,
-            0,
-            8 * nd as u64,
-            "reading back the PCG's solution",
-        )?;
-        Ok(f64s(&bytes))
+        self.read_vector(&self.buf.y, "reading back the PCG's solution")
     }
 
     /// Uploads one constraint set (mask per node, rotation per rotated node) and builds
@@ -669,7 +749,7 @@ impl DeviceCg {
             .storage_with("pcg frames", bytemuck::cast_slice(&frame))?;
         let rot_buf = self
             .ctx
-            .storage_with("pcg rotations", bytemuck::cast_slice(&f.rotations))?;
+            .storage_with("pcg rotations", &self.ty.real.bytes(&f.rotations))?;
         let agg = match coarse {
             CoarseSpace::Aggregates => {
                 let (row_ptr, col_idx) = self.usize_pattern();
@@ -680,7 +760,10 @@ impl DeviceCg {
         let mut agg = agg;
         // The index words live on the device only: taken, not kept on the host.
         let (agg_words, coarse_bytes) = match agg.as_mut() {
-            Some(a) => (std::mem::take(&mut a.words), 8 * a.values as u64),
+            Some(a) => (
+                std::mem::take(&mut a.words),
+                self.ty.acc.size() * a.values as u64,
+            ),
             None => (vec![0u32; 4], 16),
         };
         let agg_buf = self
@@ -690,7 +773,7 @@ impl DeviceCg {
         let b = &self.buf;
         let mut groups = Vec::with_capacity(b.hvals.len());
         for (params, hvals) in b.params.iter().zip(&b.hvals) {
-            let bufs: [&wgpu::Buffer; 20] = [
+            let bufs: [&wgpu::Buffer; 21] = [
                 params,
                 &b.pattern,
                 hvals,
@@ -711,6 +794,7 @@ impl DeviceCg {
                 &agg_buf,
                 &coarse_buf,
                 &b.pw,
+                &b.rowsum,
             ];
             let entries: Vec<wgpu::BindGroupEntry> = bufs
                 .iter()
@@ -831,7 +915,7 @@ impl DeviceCg {
         }
         self.own(frames)?;
         self.ctx
-            .write_buffer(&self.buf.b, 0, bytemuck::cast_slice(rhs));
+            .write_buffer(&self.buf.b, 0, &self.ty.real.bytes(rhs));
         self.prepare_kernels(frames, true)
     }
 
@@ -882,6 +966,11 @@ impl DeviceCg {
                 "the constraints have {} nodes, the device PCG {}",
                 frames.n_nodes, self.n_nodes
             )));
+        }
+        if self.ty != Scalars::F64 {
+            return Err(GpuError::Unsupported(
+                "the multilevel preconditioner runs in f64 only".into(),
+            ));
         }
         if self.ml.is_none() {
             self.ml = Some(DeviceMultilevel::new(&self.ctx, self.dim)?);
@@ -934,13 +1023,14 @@ impl DeviceCg {
         let einv =
             crate::solve::coarse::aggregates_einv_from_galerkin(self.dim, a.count, e, &a.gram)
                 .unwrap_or_else(|| vec![0.0; a.k * a.k]);
+        let acc = self.ty.acc;
         self.ctx.write_buffer(
             &frames.coarse_buf,
-            8 * a.einv_at as u64,
-            bytemuck::cast_slice(&einv),
+            acc.size() * a.einv_at as u64,
+            &acc.bytes(&einv),
         );
-        self.coarse_traffic.device_to_host_bytes += 8 * (a.k * a.k) as u64;
-        self.coarse_traffic.host_to_device_bytes += 8 * einv.len() as u64;
+        self.coarse_traffic.device_to_host_bytes += acc.size() * (a.k * a.k) as u64;
+        self.coarse_traffic.host_to_device_bytes += acc.size() * einv.len() as u64;
         self.agg_ready = true;
         Ok(())
     }
@@ -960,13 +1050,14 @@ impl DeviceCg {
         let d = self.dim;
         let what = "reading back the coarse matrix E = ZᵀĤZ";
         let len = (slots::SCAL_EABS - slots::SCAL_E) as usize + d;
+        let acc = self.ty.acc;
         let bytes = self.ctx.download(
             &self.buf.scal,
-            8 * slots::SCAL_E as u64,
-            8 * len as u64,
+            acc.size() * slots::SCAL_E as u64,
+            acc.size() * len as u64,
             what,
         )?;
-        let v = f64s(&bytes);
+        let v = acc.values(&bytes);
         let mut e = v[..d * d].to_vec();
         let abs = v[(slots::SCAL_EABS - slots::SCAL_E) as usize..].to_vec();
         // As src/solve/coarse.rs: the mean of E and Eᵀ, then the pseudo-inverse.
@@ -1032,7 +1123,7 @@ impl DeviceCg {
         Ok(Some(einv))
     }
 
-    /// `len` f64 of the frames' coarse buffer from f64 index `at`.
+    /// `len` values of the frames' coarse buffer (`acc`) from index `at`.
     fn read_coarse(
         &self,
         frames: &DeviceFrames,
@@ -1040,10 +1131,14 @@ impl DeviceCg {
         len: usize,
         what: &str,
     ) -> Result<Vec<f64>, GpuError> {
-        let bytes = self
-            .ctx
-            .download(&frames.coarse_buf, 8 * at as u64, 8 * len as u64, what)?;
-        Ok(f64s(&bytes))
+        let acc = self.ty.acc;
+        let bytes = self.ctx.download(
+            &frames.coarse_buf,
+            acc.size() * at as u64,
+            acc.size() * len as u64,
+            what,
+        )?;
+        Ok(acc.values(&bytes))
     }
 
     /// Records the status copies (`scal`, `state` into `status`) after the work of `enc`,
@@ -1053,7 +1148,8 @@ impl DeviceCg {
         mut enc: wgpu::CommandEncoder,
         what: &str,
     ) -> Result<ChunkStatus, GpuError> {
-        let sb = 8 * slots::STATUS_SCAL as u64;
+        let acc = self.ty.acc;
+        let sb = acc.size() * slots::STATUS_SCAL as u64;
         enc.copy_buffer_to_buffer(&self.buf.scal, 0, &self.buf.status, 0, sb);
         enc.copy_buffer_to_buffer(
             &self.buf.state,
@@ -1064,9 +1160,11 @@ impl DeviceCg {
         );
         self.ctx.queue.submit([enc.finish()]);
         self.ctx.check(what)?;
-        let bytes = self.ctx.download(&self.buf.status, 0, STATUS_BYTES, what)?;
+        let bytes = self
+            .ctx
+            .download(&self.buf.status, 0, status_bytes(acc), what)?;
         self.reads.set(self.reads.get() + 1);
-        let scal = f64s(&bytes[..sb as usize]);
+        let scal = acc.values(&bytes[..sb as usize]);
         Ok(ChunkStatus::read(
             &scal,
             &schedule::state_words(&bytes[sb as usize..]),
@@ -1181,7 +1279,7 @@ impl DeviceCg {
             }
         }
         self.ctx
-            .write_buffer(&self.buf.scal, 0, bytemuck::cast_slice(&scal));
+            .write_buffer(&self.buf.scal, 0, &self.ty.acc.bytes(&scal));
         self.ctx
             .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
 
@@ -1205,8 +1303,8 @@ impl DeviceCg {
         let tol2 = tol * tol;
         self.ctx.write_buffer(
             &self.buf.scal,
-            8 * slots::SCAL_TOL2 as u64,
-            bytemuck::bytes_of(&tol2),
+            self.ty.acc.size() * slots::SCAL_TOL2 as u64,
+            &self.ty.acc.bytes(&[tol2]),
         );
         let relative = |rr: f64| {
             if bb == 0.0 {
@@ -1291,6 +1389,31 @@ impl DeviceCg {
             rhs_norm,
             tolerance: tol,
         })
+    }
+
+    /// q = Ĥx for a given x (frame coordinates, n·d) with these frames, read back: the
+    /// product every iteration runs, for tests of the operator. Overwrites y (an
+    /// `iterate` starts afresh from y = 0).
+    pub fn apply(&mut self, frames: &DeviceFrames, x: &[f64]) -> Result<Vec<f64>, GpuError> {
+        self.own(frames)?;
+        if x.len() != self.n_nodes * self.dim {
+            return Err(GpuError::Mismatch(format!(
+                "x has {} entries, the system {}",
+                x.len(),
+                self.n_nodes * self.dim
+            )));
+        }
+        self.ctx
+            .write_buffer(&self.buf.y, 0, &self.ty.real.bytes(x));
+        // No stop flag: the product runs.
+        self.ctx
+            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
+        let mut enc = self.encoder("pcg product");
+        let kernels = self.product_of_y(&mut enc, frames);
+        Self::pass(&mut enc, "pcg product", &kernels);
+        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.check("the device PCG's product")?;
+        self.read_vector(&self.buf.q, "reading back the product")
     }
 
     /// q = Ĥy: y copied into p (recorded in `enc`), then the kernels of pw = V P p and the
@@ -1440,19 +1563,26 @@ impl DeviceCg {
             .collect();
         let (n, d) = (self.n_nodes as u64, self.dim as u64);
         let nnz = self.host_pattern[self.n_nodes] as u64;
-        let vec = 8 * n * d;
-        let partials = 8 * self.n_partials as u64;
-        // matvec: H, its column indices and row pointers, the frames, pw, p, q.
-        let matvec = nnz * (8 * d * d + 4) + 4 * (n + 1) + 8 * n + 3 * vec;
+        let rs = self.ty.real.size();
+        let vec = rs * n * d;
+        let partials = self.ty.acc.size() * self.n_partials as u64;
+        // matvec: H, its column indices and row pointers, the frames, pw, p, q (and the
+        // difference form's row sums).
+        let rowsum = if self.ty.difference {
+            rs * n * d * d
+        } else {
+            0
+        };
+        let matvec = nnz * (rs * d * d + 4) + 4 * (n + 1) + 8 * n + 3 * vec + rowsum;
         // update_yr: y and r read and written, p, q and the preconditioner read, z written.
-        let minv = [0, vec, 8 * n * d * d, 0][pre];
+        let minv = [0, vec, rs * n * d * d, 0][pre];
         let update_yr = 7 * vec + minv + 8 * n * u64::from(co == 1);
         // update_p: z and p read, p and pw written, the frames (and each node's aggregate).
         let update_p = 4 * vec + [8 * n, 8 * n, 12 * n][co];
         let agg = frames.agg.as_ref().filter(|_| co == 2).map_or(0, |a| {
             let k = a.k as u64;
             // restrict: r, the frames and the node lists; solve: E⁺ and w.
-            vec + 12 * n + 8 * (k * k + 2 * k)
+            vec + 12 * n + self.ty.acc.size() * (k * k + 2 * k)
         });
         // The V-cycle: its own kernels, two more level-0 products (pw = V P z first) and
         // ml_dot (r and z read).
@@ -1485,8 +1615,11 @@ impl DeviceCg {
             self.upload_aggregate_einv(frames)?;
         }
         // Tolerance 0: no stop flag is ever set, so every dispatch does its work.
-        self.ctx
-            .write_buffer(&self.buf.scal, 0, &[0u8; 8 * slots::SCAL_E as usize]);
+        self.ctx.write_buffer(
+            &self.buf.scal,
+            0,
+            &vec![0u8; (self.ty.acc.size() * slots::SCAL_E as u64) as usize],
+        );
         self.ctx
             .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
         let mut enc = self.encoder("pcg profile start");
@@ -1666,26 +1799,27 @@ fn coarse_index(c: CoarseSpace, frames: &DeviceFrames) -> usize {
     }
 }
 
-/// Little-endian f64s.
-fn f64s(bytes: &[u8]) -> Vec<f64> {
-    bytes
-        .chunks_exact(8)
-        .map(|c| {
-            let mut w = [0u8; 8];
-            w.copy_from_slice(c);
-            f64::from_le_bytes(w)
-        })
-        .collect()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn module() -> naga::Module {
-        let src = format!("{}{}", kernels::prelude("f64", "f64", false), PCG.source);
-        naga::front::wgsl::parse_str(&src)
-            .unwrap_or_else(|e| panic!("pcg.wgsl: {}", e.emit_to_string(&src)))
+        kernels::check::module(&PCG, "f64", "f64", false)
+    }
+
+    /// The shader is well typed in every precision the PCG instantiates: f64, and f32
+    /// vectors with f64 or (a device without SHADER_F64) f32 accumulators.
+    #[test]
+    fn every_precision_parses() {
+        for (real, acc) in [("f64", "f64"), ("f32", "f64"), ("f32", "f32")] {
+            let m = kernels::check::module(&PCG, real, acc, false);
+            naga::valid::Validator::new(
+                naga::valid::ValidationFlags::all(),
+                naga::valid::Capabilities::all(),
+            )
+            .validate(&m)
+            .unwrap_or_else(|e| panic!("pcg.wgsl ({real}/{acc}): {e:?}"));
+        }
     }
 
     /// Bind group 0 is [`PCG`]'s bindings in order with their access, the params

@@ -43,6 +43,16 @@
 //! next chunk's dispatch, so Δx and the iteration count are the same bits however H is
 //! split.
 //!
+//! Precision ([`Scalars`]): H, the frames' rotations and the CG vectors are in H's
+//! precision (`real`: f64, or f32 for `solve --solver gpu --precision f32`), every sum and
+//! scalar in f64 wherever the device has SHADER_F64 (`acc`). An f32 product may take the
+//! difference form (the DIFF override): (H w)_i = Σ_j H_ij (w_j − w_i) + S_i w_i with
+//! w = V P p in the world frame and S_i = Σ_j H_ij summed in f64 on the host
+//! ([`crate::gpu::blocks::row_sums`]), each row summed in `acc`. Rounding H to f32 breaks
+//! H·t = 0 for a rigid translation t by ε_f32‖H‖, which moves a free body's smallest
+//! eigenvalues (its mass term) by κ·ε_f32; in this form a translation still maps to S t,
+//! at rotated nodes too.
+//!
 //! Reductions are segmented ([`crate::gpu::SegmentPolicy`]): one partial per segment of
 //! consecutive nodes, whatever number of workgroups the device's policy launches (one per
 //! segment on a GPU, so the product and the updates run an invocation per node), then one
@@ -55,7 +65,7 @@ mod solver;
 
 pub use cg::{
     DeviceCg, DeviceCgInfo, DeviceCgParams, DeviceFrames, DispatchRecord, IterationProfile,
-    LANCZOS_HIST, PCG,
+    Scalars, LANCZOS_HIST, PCG,
 };
 pub use multilevel::multilevel_bytes;
 pub use solver::PcgSolver;

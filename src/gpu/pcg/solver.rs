@@ -1,16 +1,20 @@
 //! The device PCG on an eliminated system from the host: what `solve --solver gpu` runs
-//! in f64 (through the facade's engine). H is uploaded once per pattern into the block
-//! layout the device assembly writes ([`HostBlocks`]), b̂ with each system; the CG is the
-//! device Newton loop's own ([`DeviceCg`]), so the two give the same iterations and bits
-//! on the same system. The host keeps H in f64 to recompute the true residual from the
-//! downloaded y (success is declared on it) and recovers Δx = Δx_p + V P y with the f64
-//! frames.
+//! in f64 and f32 (through the facade's engine). H is uploaded once per pattern into the
+//! block layout the device assembly writes ([`HostBlocks`]), in f64 or rounded to f32
+//! (with the difference form's row sums, summed in f64, beside it), b̂ with each system;
+//! the CG is the device Newton loop's own ([`DeviceCg`]), so the two give the same
+//! iterations and bits on the same system in f64. The host keeps H in f64 to recompute
+//! the true residual from the downloaded y (success is declared on it) and recovers
+//! Δx = Δx_p + V P y with the f64 frames: an f32 iterate is never rotated by f32 frames,
+//! so the constrained components of Δx are exactly the prescribed ones.
 
-use super::cg::{DeviceCg, DeviceCgParams, DeviceFrames};
+use super::cg::{DeviceCg, DeviceCgParams, DeviceFrames, Scalars};
 use crate::core::elimination::{norm2, Eliminated};
-use crate::gpu::blocks::{plan_rows, values_limit, HostBlocks};
+use crate::gpu::blocks::{plan_rows, row_sums, values_limit, HostBlocks};
 use crate::gpu::context::padded_size;
+use crate::gpu::kernels::Real;
 use crate::gpu::solver::host::{Host, HostOp};
+use crate::gpu::solver::MULTILEVEL_ON_CPU;
 use crate::gpu::{
     GpuContext, GpuError, GpuParams, GpuSolveInfo, Precision, SolveOutcome, StageSeconds,
 };
@@ -31,9 +35,10 @@ fn check_memory(
     e: &Eliminated,
     params: &GpuParams,
     hierarchy: Option<&Hierarchy>,
+    ty: Scalars,
 ) -> Result<(), GpuError> {
     let h = e.h;
-    let block = 8 * (h.dim * h.dim) as u64;
+    let block = ty.real.size() * (h.dim * h.dim) as u64;
     let plan = plan_rows(
         &h.row_ptr,
         block,
@@ -51,6 +56,7 @@ fn check_memory(
         plan.len(),
         e.frames.rot_nodes.len(),
         true,
+        ty,
     );
     let levels = match hierarchy {
         Some(hi) => {
@@ -64,11 +70,17 @@ fn check_memory(
     )
 }
 
-/// The device PCG for eliminated systems given on the host (f64 only): built once per
-/// block pattern and constraint set; [`PcgSolver::update`] writes new values.
+/// The device PCG for eliminated systems given on the host (f64, or f32 with f64 sums
+/// where the device has them): built once per block pattern and constraint set;
+/// [`PcgSolver::update`] writes new values.
 pub struct PcgSolver {
     ctx: GpuContext,
     params: GpuParams,
+    ty: Scalars,
+    /// σ of the right-hand side σb̂ the device iterates on ([`crate::solve::cg::rhs_scale`]:
+    /// a power of two, exact, so f64 gives the same bits as unscaled), y unscaled on
+    /// download: an f32 b̂ then neither over- nor underflows.
+    rhs_scale: f64,
     host: Host,
     blocks: HostBlocks,
     cg: DeviceCg,
@@ -81,8 +93,9 @@ pub struct PcgSolver {
 }
 
 impl PcgSolver {
-    /// Uploads `e`'s H, frames and b̂ and builds the CG. Refuses precisions other than f64,
-    /// a system over the device memory and (as the CPU CG) one that a rigid translation
+    /// Uploads `e`'s H, frames and b̂ and builds the CG. Refuses mixed precision, f64 on
+    /// a device without SHADER_F64, the multilevel preconditioner in f32, a system over
+    /// the device memory and (as the CPU CG) one that a rigid translation
     /// leaves singular. With the multilevel preconditioner the host builds its levels
     /// (the CPU CG's [`crate::solve::multilevel::Multilevel`], clusters partitioned once
     /// per pattern) and uploads them, for every system or, with
@@ -117,37 +130,59 @@ impl PcgSolver {
         params: &GpuParams,
         hierarchy: Option<Arc<Hierarchy>>,
     ) -> Result<Self, GpuError> {
-        if params.precision != Precision::F64 {
-            return Err(GpuError::Unsupported(format!(
-                "the device PCG runs in f64, not {}",
-                params.precision
-            )));
-        }
-        crate::solve::cg::check_pinned(e)?;
-        // The clusters (H's pattern only) first: their levels count in the memory check.
-        let hierarchy = (params.preconditioner == Preconditioner::Multilevel).then(|| {
-            hierarchy
-                .filter(|h| h.fits(e.h))
-                .unwrap_or_else(|| Arc::new(Hierarchy::new(e.h)))
-        });
-        check_memory(ctx, e, params, hierarchy.as_deref())?;
-        let levels = match hierarchy {
-            Some(h) => KeptLevels::with_hierarchy(params.multilevel_setup, h),
-            None => KeptLevels::new(params.multilevel_setup),
+        let real = match params.precision {
+            Precision::F64 if !ctx.has_f64() => {
+                return Err(GpuError::NoF64 {
+                    adapter: ctx.info.name.clone(),
+                    precision: params.precision,
+                })
+            }
+            Precision::F64 => Real::F64,
+            Precision::F32 if params.preconditioner == Preconditioner::Multilevel => {
+                return Err(GpuError::Unsupported(MULTILEVEL_ON_CPU.into()))
+            }
+            Precision::F32 => Real::F32,
+            Precision::Mixed => {
+                return Err(GpuError::Unsupported(
+                    "the device PCG runs in f64 or f32; mixed precision is GpuSolver's".into(),
+                ))
+            }
         };
-        let t0 = Instant::now();
-        let blocks = HostBlocks::upload(ctx, e.h, params.binding_limit)?;
-        let cg = DeviceCg::new(ctx, blocks.matrix(), None, true)?;
-        let frames = cg.frames(e.frames, params.coarse)?;
+        crate::solve::cg::check_pinned(e)?;
         let host = Host::new(
             HostOp::Blocks(e.h.clone()),
             e.frames.clone(),
             e.rhs.clone(),
             e.diag.clone(),
         );
+        let difference = real == Real::F32
+            && params
+                .f32_difference
+                .wanted(ctx.has_f64(), e.h, e.frames, host.diag_max());
+        let ty = Scalars::on(ctx, real, difference)?;
+        // The clusters (H's pattern only) first: their levels count in the memory check.
+        let hierarchy = (params.preconditioner == Preconditioner::Multilevel).then(|| {
+            hierarchy
+                .filter(|h| h.fits(e.h))
+                .unwrap_or_else(|| Arc::new(Hierarchy::new(e.h)))
+        });
+        check_memory(ctx, e, params, hierarchy.as_deref(), ty)?;
+        let levels = match hierarchy {
+            Some(h) => KeptLevels::with_hierarchy(params.multilevel_setup, h),
+            None => KeptLevels::new(params.multilevel_setup),
+        };
+        let t0 = Instant::now();
+        let blocks = HostBlocks::upload(ctx, e.h, ty.real, params.binding_limit)?;
+        let cg = DeviceCg::new(ctx, blocks.matrix(), None, true, ty.difference)?;
+        if ty.difference {
+            cg.write_row_sums(&row_sums(e.h))?;
+        }
+        let frames = cg.frames(e.frames, params.coarse)?;
         Ok(PcgSolver {
             ctx: ctx.clone(),
             params: params.clone(),
+            ty,
+            rhs_scale: 1.0,
             host,
             blocks,
             cg,
@@ -162,7 +197,9 @@ impl PcgSolver {
     /// the multilevel levels from `shared` or the solver's own.
     fn prepare(&mut self, e: &Eliminated, shared: Option<&mut KeptLevels>) -> Result<(), GpuError> {
         let t = Instant::now();
-        self.cg.prepare_with_rhs(&self.frames, &self.host.rhs)?;
+        self.rhs_scale = crate::solve::cg::rhs_scale(norm2(&self.host.rhs));
+        let scaled: Vec<f64> = self.host.rhs.iter().map(|v| v * self.rhs_scale).collect();
+        self.cg.prepare_with_rhs(&self.frames, &scaled)?;
         if self.params.preconditioner == Preconditioner::Multilevel {
             let (ml, _) = shared.unwrap_or(&mut self.levels).for_system(e);
             self.cg
@@ -210,6 +247,9 @@ impl PcgSolver {
             ));
         }
         self.blocks.write(&self.ctx, e.h)?;
+        if self.ty.difference {
+            self.cg.write_row_sums(&row_sums(e.h))?;
+        }
         // New rotations of the same constraint set (a slip plane turned) need new frames.
         if e.frames.rotations != f.rotations {
             self.frames = self.cg.frames(e.frames, self.params.coarse)?;
@@ -241,7 +281,7 @@ impl PcgSolver {
         mut shared: Option<&mut KeptLevels>,
     ) -> Result<SolveOutcome, GpuError> {
         let multilevel = self.params.preconditioner == Preconditioner::Multilevel;
-        let first = self.solve_once();
+        let first = self.solve_once().map_err(|e| self.in_precision(e));
         let levels = match shared.as_deref_mut() {
             Some(l) => l,
             None => &mut self.levels,
@@ -264,7 +304,7 @@ impl PcgSolver {
                 self.cg
                     .set_multilevel(&ml, &frames, self.params.binding_limit)?;
                 self.setup_seconds += t.elapsed().as_secs_f64();
-                self.solve_once()
+                self.solve_once().map_err(|e| self.in_precision(e))
             }
             other => other,
         }?;
@@ -278,10 +318,24 @@ impl PcgSolver {
         Ok(outcome)
     }
 
+    /// An f32 solve's loss of curvature or stagnation is f32's ([`GpuError::InF32`]: f64
+    /// or mixed may still solve the system).
+    fn in_precision(&self, e: GpuError) -> GpuError {
+        match e {
+            GpuError::Cg(
+                c @ (CgError::NonPositiveCurvature { .. } | CgError::Stagnation { .. }),
+            ) if self.ty.real == Real::F32 => GpuError::InF32(c),
+            other => other,
+        }
+    }
+
     fn solve_once(&mut self) -> Result<SolveOutcome, GpuError> {
         let tol = self.params.tol;
         let bnorm = norm2(&self.host.rhs);
         let mut notes = Vec::new();
+        if self.ty.acc == Real::F32 {
+            notes.push("no SHADER_F64: reductions accumulate in f32".to_string());
+        }
         let t0 = Instant::now();
         let cg_params = DeviceCgParams {
             tol,
@@ -324,7 +378,12 @@ impl PcgSolver {
                 kappa = Some(kappa.map_or(k, |c: f64| c.max(k)));
             }
             let td = Instant::now();
-            let y = self.cg.read_y()?;
+            let mut y = self.cg.read_y()?;
+            if self.rhs_scale != 1.0 {
+                for v in &mut y {
+                    *v /= self.rhs_scale;
+                }
+            }
             download += td.elapsed().as_secs_f64();
             let rel = self.host.relative_residual(&y);
             if rel <= tol || bnorm == 0.0 {
@@ -379,9 +438,9 @@ impl PcgSolver {
         };
         let info = GpuSolveInfo {
             adapter: self.ctx.info.name.clone(),
-            precision: Precision::F64,
+            precision: self.params.precision,
             coarse,
-            f32_difference: false,
+            f32_difference: self.ty.difference,
             iterations,
             recorded_iterations: recorded.max(iterations),
             outer_refinements: 0,
@@ -432,6 +491,17 @@ impl PcgSolver {
             stagnation_window: self.params.stagnation_window,
         };
         self.cg.profile_iteration(&self.frames, &params, reps)
+    }
+
+    /// q = Ĥx with the solver's H and constraint frames, read back (the product of every
+    /// iteration; for tests of the operator).
+    pub fn apply_operator(&mut self, x: &[f64]) -> Result<Vec<f64>, GpuError> {
+        self.cg.apply(&self.frames, x)
+    }
+
+    /// Whether the f32 product takes the difference form.
+    pub fn difference_form(&self) -> bool {
+        self.ty.difference
     }
 
     pub fn adapter_name(&self) -> &str {

@@ -10,48 +10,7 @@ use crate::gpu::kernels::{self, Layout};
 use crate::gpu::{GpuContext, GpuError};
 use std::collections::BTreeMap;
 
-/// Scalar type of a kernel instance.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(super) enum Real {
-    F32,
-    F64,
-}
-
-impl Real {
-    pub(super) fn name(self) -> &'static str {
-        match self {
-            Real::F32 => "f32",
-            Real::F64 => "f64",
-        }
-    }
-    pub(super) fn size(self) -> u64 {
-        match self {
-            Real::F32 => 4,
-            Real::F64 => 8,
-        }
-    }
-    pub(super) fn bytes(self, v: &[f64]) -> Vec<u8> {
-        match self {
-            Real::F32 => {
-                let w: Vec<f32> = v.iter().map(|&x| x as f32).collect();
-                bytemuck::cast_slice(&w).to_vec()
-            }
-            Real::F64 => bytemuck::cast_slice(v).to_vec(),
-        }
-    }
-    pub(super) fn values(self, b: &[u8]) -> Vec<f64> {
-        match self {
-            Real::F32 => b
-                .chunks_exact(4)
-                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64)
-                .collect(),
-            Real::F64 => b
-                .chunks_exact(8)
-                .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
-                .collect(),
-        }
-    }
-}
+pub(super) use crate::gpu::kernels::Real;
 
 /// Uniform parameters shared by every kernel (mirrors `struct Params` in
 /// shaders/common.wgsl).

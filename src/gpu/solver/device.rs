@@ -19,10 +19,6 @@ use crate::solve::coarse::{Aggregation, CoarseSpace};
 /// A packed column index holds the column node's mask above bit MASK_SHIFT.
 const MAX_NODES: usize = 1 << MASK_SHIFT;
 
-/// Relative move of the softest translation's eigenvalue above which
-/// [`DifferenceForm::Auto`] turns the difference form on.
-const DIFF_AUTO_THRESHOLD: f64 = 1e-3;
-
 /// Buffers and compiled kernels (with their bind groups) on the device.
 pub(super) struct Device {
     pub(super) dim: usize,
@@ -333,13 +329,7 @@ fn wants_difference_form(host: &Host, choice: DifferenceForm, acc: Real) -> bool
     let HostOp::Blocks(h) = &host.op else {
         return false;
     };
-    match choice {
-        DifferenceForm::Off => false,
-        DifferenceForm::On => true,
-        DifferenceForm::Auto if acc == Real::F64 => true,
-        DifferenceForm::Auto => crate::solve::coarse::softest_translation(h, &host.frames)
-            .is_some_and(|lz| f64::from(f32::EPSILON) * host.diag_max() > DIFF_AUTO_THRESHOLD * lz),
-    }
+    choice.wanted(acc == Real::F64, h, &host.frames, host.diag_max())
 }
 
 fn check_params(ctx: &GpuContext, p: &GpuParams) -> Result<(), GpuError> {

@@ -672,7 +672,7 @@ impl GpuSolver {
             } else {
                 1.0
             };
-            Real::F64.bytes(&[inv, scale / inv])
+            Real::F64.bytes(&[inv, scale / inv]).into_owned()
         };
         let rf = self
             .dev

@@ -820,7 +820,7 @@ impl GpuAssembly {
 
     /// The device PCG on this assembly's H and g (its b̂ formed from g on the device).
     pub fn device_cg(&self) -> Result<crate::gpu::pcg::DeviceCg, GpuError> {
-        crate::gpu::pcg::DeviceCg::new(&self.ctx, self.matrix(), Some(&self.gradient), false)
+        crate::gpu::pcg::DeviceCg::new(&self.ctx, self.matrix(), Some(&self.gradient), false, false)
     }
 
     /// The assembled H as the device PCG reads it.
