@@ -9,7 +9,7 @@
 use stickslip::cases::generate::{random_system, SystemSpec};
 use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::gpu::{
-    GpuError, GpuParams, GpuSolver, PcgSolver, Precision, Resources, SolveOutcome,
+    DifferenceForm, GpuError, GpuParams, GpuSolver, PcgSolver, Precision, Resources, SolveOutcome,
 };
 use stickslip::solve::cg::Preconditioner;
 use stickslip::solve::coarse::CoarseSpace;
@@ -253,5 +253,59 @@ fn the_device_pcg_refuses_a_system_over_device_memory() {
             Err(other) => panic!("{precision}: {other}"),
             Ok(_) => panic!("{precision}: accepted a system in {h_bytes} bytes"),
         }
+    }
+}
+
+/// The device PCG's memory plan is what it allocates, to the byte: the bytes every buffer
+/// of [`PcgSolver::new`] takes (`GpuContext::allocated_bytes`) equal
+/// [`PcgSolver::memory_needed`], in f64 and in f32 with and without the difference form,
+/// with H in one buffer and split over several, with the translations' coarse space and
+/// with the multilevel levels.
+#[test]
+fn the_device_pcgs_memory_plan_is_what_it_allocates() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let s = random_system(&SystemSpec::with_nodes(3, 1000, 7));
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let base = GpuParams {
+        coarse: CoarseSpace::Translations,
+        ..Default::default()
+    };
+    let mut cases = vec![
+        GpuParams {
+            precision: Precision::F32,
+            f32_difference: DifferenceForm::Off,
+            ..base.clone()
+        },
+        GpuParams {
+            precision: Precision::F32,
+            f32_difference: DifferenceForm::On,
+            binding_limit: Some(64 * 1024),
+            ..base.clone()
+        },
+    ];
+    if ctx.has_f64() {
+        cases.push(GpuParams {
+            precision: Precision::F64,
+            ..base.clone()
+        });
+        cases.push(GpuParams {
+            precision: Precision::F64,
+            binding_limit: Some(64 * 1024),
+            coarse: CoarseSpace::None,
+            preconditioner: Preconditioner::Multilevel,
+            ..base.clone()
+        });
+    }
+    for p in &cases {
+        let plan = PcgSolver::memory_needed(ctx, &e, p).expect("a plan");
+        let before = ctx.allocated_bytes();
+        let solver = PcgSolver::new(ctx, &e, p).expect("solver");
+        let allocated = ctx.allocated_bytes() - before;
+        eprintln!(
+            "{} {:?} binding limit {:?} {:?}: plan {plan} B, allocated {allocated} B",
+            p.precision, p.f32_difference, p.binding_limit, p.preconditioner
+        );
+        assert_eq!(allocated, plan);
+        drop(solver);
     }
 }

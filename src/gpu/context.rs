@@ -285,6 +285,8 @@ pub struct GpuContext {
 struct Traffic {
     h2d: AtomicU64,
     d2h: AtomicU64,
+    /// Bytes of every buffer allocated through the context's helpers.
+    allocated: AtomicU64,
 }
 
 /// Bytes moved between host and device since the context was created: every buffer
@@ -416,6 +418,7 @@ impl GpuContext {
         binding: Binding,
     ) -> Result<wgpu::Buffer, GpuError> {
         let size = self.checked_size(label, bytes, binding)?;
+        self.traffic.allocated.fetch_add(size, Ordering::Relaxed);
         Ok(self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size,
@@ -499,6 +502,13 @@ impl GpuContext {
         }
     }
 
+    /// Bytes of every buffer allocated through this context (and its clones) so far,
+    /// staging buffers of read-backs aside: a running total, not lowered when a buffer is
+    /// dropped. What tests hold a memory plan to.
+    pub fn allocated_bytes(&self) -> u64 {
+        self.traffic.allocated.load(Ordering::Relaxed)
+    }
+
     /// `queue.write_buffer`, counted as host-to-device traffic.
     pub(crate) fn write_buffer(&self, buf: &wgpu::Buffer, offset: u64, data: &[u8]) {
         self.traffic
@@ -510,9 +520,9 @@ impl GpuContext {
     /// `device.create_buffer_init`, counted as host-to-device traffic.
     pub(crate) fn buffer_init(&self, desc: &wgpu::util::BufferInitDescriptor) -> wgpu::Buffer {
         use wgpu::util::DeviceExt;
-        self.traffic
-            .h2d
-            .fetch_add(desc.contents.len() as u64, Ordering::Relaxed);
+        let bytes = desc.contents.len() as u64;
+        self.traffic.h2d.fetch_add(bytes, Ordering::Relaxed);
+        self.traffic.allocated.fetch_add(bytes, Ordering::Relaxed);
         self.device.create_buffer_init(desc)
     }
 

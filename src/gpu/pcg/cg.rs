@@ -591,9 +591,10 @@ impl DeviceCg {
 
     /// The device memory [`DeviceCg::new`] and [`DeviceCg::frames`] take beside H's values
     /// and the gradient, for `n` block rows and `nnz` blocks in `dim` with H in `chunks`
-    /// buffers and `rotated` rotated nodes (the aggregates' index arrays, a few words per
-    /// node, not counted), in the precision `ty`: what a caller adds to H's bytes to refuse
-    /// a system that does not fit before anything is allocated.
+    /// buffers and `rotated` rotated nodes (the aggregates' index arrays and values, a few
+    /// words per node, not counted: frames without them take two 16-byte placeholders,
+    /// counted), in the precision `ty`: what a caller adds to H's bytes to refuse a system
+    /// that does not fit before anything is allocated.
     pub fn device_bytes(
         ctx: &GpuContext,
         (n, nnz, dim): (usize, usize, usize),
@@ -607,7 +608,8 @@ impl DeviceCg {
         let hist = if lanczos { LANCZOS_HIST } else { 0 };
         let sz = Sizes::new(n, dim, segments, chunks, hist, ty);
         let pattern = 4 * (2 * n as u64 + 1 + nnz as u64);
-        let frames = 8 * n as u64 + ty.real.size() * (rotated * dim * dim) as u64;
+        // The frame words and the rotations, one buffer each.
+        let frames = p(8 * n as u64) + p(ty.real.size() * (rotated * dim * dim) as u64);
         p(pattern)
             + N_VECTORS * p(sz.vector)
             + p(sz.minv)
@@ -617,7 +619,8 @@ impl DeviceCg {
             + p(4 * slots::N_STATE as u64)
             + p(status_bytes(ty.acc))
             + chunks as u64 * p(std::mem::size_of::<PcgParams>() as u64)
-            + p(frames)
+            + frames
+            + 2 * p(16)
     }
 
     /// The world-frame Δx of the last successful solve (n·d `real`, node-major).

@@ -183,21 +183,22 @@ pub fn multilevel_bytes(
 ) -> Result<u64, GpuError> {
     let whole = Binding::Whole(u64::MAX);
     let limit = values_limit(ctx, forced);
-    let mut total = 0;
+    // The coarsest level's (unused) next level: two 16-byte placeholders.
+    let mut total = 2 * ctx.checked_size("vcycle no level below", 16, whole)?;
     for (l, s) in sizes.iter().enumerate() {
         let label = |what: &str| format!("vcycle level {l} {what}");
         total += ctx.checked_size(&label("indices"), 4 * s.index_words as u64, whole)?;
         total += ctx.checked_size(&label("values"), 8 * s.values as u64, whole)?;
+        // Per buffer of inverses, the inverses and their parameters.
         for r in inverse_chunks(&s.inverses, limit, l)? {
             let v: usize = s.inverses[r].iter().sum();
             total += ctx.checked_size(&label("inverses"), 8 * v as u64, whole)?;
+            total += std::mem::size_of::<VcycleParams>() as u64;
         }
-        // b, x and ax below the finest level (level 0's are the PCG's r, z and q), and the
-        // parameters.
+        // b, x and ax below the finest level (level 0's are the PCG's r, z and q).
         if l > 0 {
             total += 3 * ctx.checked_size(&label("vectors"), 8 * (s.items * dim) as u64, whole)?;
         }
-        total += std::mem::size_of::<VcycleParams>() as u64;
     }
     Ok(total)
 }

@@ -26,6 +26,50 @@ use crate::solve::options::Preconditioner;
 use std::sync::Arc;
 use std::time::Instant;
 
+/// The scalar types of a solve of `e` in `params.precision`: f64, or f32 with the
+/// difference form as `params.f32_difference` decides (refusing mixed precision, f64
+/// without SHADER_F64 and the multilevel preconditioner in f32).
+fn scalars_for(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<Scalars, GpuError> {
+    let real = match params.precision {
+        Precision::F64 if !ctx.has_f64() => {
+            return Err(GpuError::NoF64 {
+                adapter: ctx.info.name.clone(),
+                precision: params.precision,
+            })
+        }
+        Precision::F64 => Real::F64,
+        Precision::F32 if params.preconditioner == Preconditioner::Multilevel => {
+            return Err(GpuError::Unsupported(MULTILEVEL_ON_CPU.into()))
+        }
+        Precision::F32 => Real::F32,
+        Precision::Mixed => {
+            return Err(GpuError::Unsupported(
+                "the device PCG runs in f64 or f32; mixed precision is GpuSolver's".into(),
+            ))
+        }
+    };
+    let difference = real == Real::F32 && {
+        // The largest |diagonal entry| of H decides only on a device without f64 sums.
+        let diag_max = || {
+            let h = e.h;
+            let d = h.dim;
+            (0..h.n)
+                .filter_map(|i| h.diag_index(i))
+                .flat_map(|k| (0..d).map(move |a| h.values[k * d * d + a * d + a].abs()))
+                .filter(|v| v.is_finite())
+                .fold(0.0, f64::max)
+        };
+        let acc_f64 = ctx.has_f64();
+        params.f32_difference.wanted(
+            acc_f64,
+            e.h,
+            e.frames,
+            if acc_f64 { 0.0 } else { diag_max() },
+        )
+    };
+    Scalars::on(ctx, real, difference)
+}
+
 /// Refuses, before anything is allocated, a system whose H, CG buffers and multilevel
 /// levels (`hierarchy`, when asked for) exceed the device memory in force, or one of whose
 /// level buffers exceeds the adapter's limits (the aggregates' index arrays, a few words
@@ -37,6 +81,19 @@ fn check_memory(
     hierarchy: Option<&Hierarchy>,
     ty: Scalars,
 ) -> Result<(), GpuError> {
+    let need = memory_plan(ctx, e, params, hierarchy, ty)?;
+    ctx.check_fits(need, ctx.memory_in_force(params.memory_limit))
+}
+
+/// The bytes [`PcgSolver`] allocates for `e`: H's values, the CG's buffers and frames, the
+/// multilevel levels (`hierarchy`) and nothing else but the aggregates' arrays.
+fn memory_plan(
+    ctx: &GpuContext,
+    e: &Eliminated,
+    params: &GpuParams,
+    hierarchy: Option<&Hierarchy>,
+    ty: Scalars,
+) -> Result<u64, GpuError> {
     let h = e.h;
     let block = ty.real.size() * (h.dim * h.dim) as u64;
     let plan = plan_rows(
@@ -64,10 +121,9 @@ fn check_memory(
         }
         None => 0,
     };
-    ctx.check_fits(
-        values + cg + levels,
-        ctx.memory_in_force(params.memory_limit),
-    )
+    // The gradient's placeholder: b̂ is given.
+    let gradient = padded_size(16);
+    Ok(values + cg + levels + gradient)
 }
 
 /// The device PCG for eliminated systems given on the host (f64, or f32 with f64 sums
@@ -130,24 +186,7 @@ impl PcgSolver {
         params: &GpuParams,
         hierarchy: Option<Arc<Hierarchy>>,
     ) -> Result<Self, GpuError> {
-        let real = match params.precision {
-            Precision::F64 if !ctx.has_f64() => {
-                return Err(GpuError::NoF64 {
-                    adapter: ctx.info.name.clone(),
-                    precision: params.precision,
-                })
-            }
-            Precision::F64 => Real::F64,
-            Precision::F32 if params.preconditioner == Preconditioner::Multilevel => {
-                return Err(GpuError::Unsupported(MULTILEVEL_ON_CPU.into()))
-            }
-            Precision::F32 => Real::F32,
-            Precision::Mixed => {
-                return Err(GpuError::Unsupported(
-                    "the device PCG runs in f64 or f32; mixed precision is GpuSolver's".into(),
-                ))
-            }
-        };
+        let ty = scalars_for(ctx, e, params)?;
         crate::solve::cg::check_pinned(e)?;
         let host = Host::new(
             HostOp::Blocks(e.h.clone()),
@@ -155,11 +194,6 @@ impl PcgSolver {
             e.rhs.clone(),
             e.diag.clone(),
         );
-        let difference = real == Real::F32
-            && params
-                .f32_difference
-                .wanted(ctx.has_f64(), e.h, e.frames, host.diag_max());
-        let ty = Scalars::on(ctx, real, difference)?;
         // The clusters (H's pattern only) first: their levels count in the memory check.
         let hierarchy = (params.preconditioner == Preconditioner::Multilevel).then(|| {
             hierarchy
@@ -212,6 +246,21 @@ impl PcgSolver {
             .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))?;
         self.setup_seconds = t.elapsed().as_secs_f64();
         Ok(())
+    }
+
+    /// The device memory [`PcgSolver::new`] allocates for `e` with `params` (what its
+    /// refusal compares with the memory in force), the aggregates' index arrays and values
+    /// aside: a few words per node. With the multilevel preconditioner this partitions
+    /// the mesh (METIS), as `new` does.
+    pub fn memory_needed(
+        ctx: &GpuContext,
+        e: &Eliminated,
+        params: &GpuParams,
+    ) -> Result<u64, GpuError> {
+        let ty = scalars_for(ctx, e, params)?;
+        let hierarchy =
+            (params.preconditioner == Preconditioner::Multilevel).then(|| Hierarchy::new(e.h));
+        memory_plan(ctx, e, params, hierarchy.as_ref(), ty)
     }
 
     /// Sets the relative residual tolerance of the next solves; refuses a value outside
