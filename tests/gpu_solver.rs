@@ -7,14 +7,12 @@ use stickslip::cases::generate::{random_system, ConstraintMix, SystemSpec};
 use stickslip::cases::springs::MassSpring;
 use stickslip::core::constraints::{Constraint, ConstraintKind, Frames};
 use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::gpu::{
-    DifferenceForm, GpuContext, GpuError, GpuParams, GpuSolver, PcgSolver, Precision, SolveOutcome,
-};
+use stickslip::gpu::{DifferenceForm, GpuError, GpuParams, GpuSolver, Precision, SolveOutcome};
 use stickslip::solve::cg::{CgError, Preconditioner};
 use stickslip::solve::coarse::CoarseSpace;
 
 mod common;
-use common::gpu::gpu;
+use common::gpu::{gpu, Facade};
 
 fn norm(v: &[f64]) -> f64 {
     v.iter().map(|x| x * x).sum::<f64>().sqrt()
@@ -48,39 +46,6 @@ fn constrained_error(f: &Frames, dx: &[f64]) -> f64 {
         }
     }
     worst
-}
-
-/// What `solve --solver gpu` builds for a precision: the device PCG in f64 and f32, the
-/// precision kernels in mixed precision.
-enum Facade {
-    Pcg(Box<PcgSolver>),
-    Kernels(Box<GpuSolver>),
-}
-
-impl Facade {
-    fn new(ctx: &GpuContext, e: &Eliminated, p: &GpuParams) -> Result<Self, GpuError> {
-        Ok(match p.precision {
-            Precision::Mixed => Facade::Kernels(Box::new(GpuSolver::new(ctx, e, p)?)),
-            _ => Facade::Pcg(Box::new(PcgSolver::new(ctx, e, p)?)),
-        })
-    }
-
-    fn solve(&mut self) -> Result<SolveOutcome, GpuError> {
-        match self {
-            Facade::Pcg(s) => s.solve(),
-            Facade::Kernels(s) => s.solve(),
-        }
-    }
-
-    /// Dispatches per CG iteration at most: the PCG's five, two more with the aggregates
-    /// (the default coarse space); the precision kernels' three, one more per extra row
-    /// chunk of the operator.
-    fn dispatch_bound(&self) -> usize {
-        match self {
-            Facade::Pcg(_) => 7,
-            Facade::Kernels(_) => 4,
-        }
-    }
 }
 
 fn params(precision: Precision, tol: f64, pc: Preconditioner) -> GpuParams {
