@@ -26,21 +26,21 @@ const DIFF_AUTO_THRESHOLD: f64 = 1e-3;
 
 impl DifferenceForm {
     /// Whether an f32 operator of `h` under `frames` takes the difference form, with f64
-    /// sums (`acc_f64`) or f32 ones; `diag_max` is the largest entry of H's diagonal
-    /// blocks.
+    /// sums (`acc_f64`) or f32 ones; `diag_max` gives the largest |diagonal entry| of H
+    /// (asked for only with f32 sums and `Auto`).
     pub fn wanted(
         self,
         acc_f64: bool,
         h: &crate::core::sparse::BlockCsr,
         frames: &crate::core::constraints::Frames,
-        diag_max: f64,
+        diag_max: impl FnOnce() -> f64,
     ) -> bool {
         match self {
             DifferenceForm::Off => false,
             DifferenceForm::On => true,
             DifferenceForm::Auto if acc_f64 => true,
             DifferenceForm::Auto => crate::solve::coarse::softest_translation(h, frames)
-                .is_some_and(|lz| f64::from(f32::EPSILON) * diag_max > DIFF_AUTO_THRESHOLD * lz),
+                .is_some_and(|lz| f64::from(f32::EPSILON) * diag_max() > DIFF_AUTO_THRESHOLD * lz),
         }
     }
 }

@@ -13,7 +13,7 @@ use crate::core::elimination::{norm2, Eliminated};
 use crate::gpu::blocks::{plan_rows, row_sums, values_limit, HostBlocks};
 use crate::gpu::context::padded_size;
 use crate::gpu::kernels::Real;
-use crate::gpu::solver::host::{Host, HostOp};
+use crate::gpu::solver::host::{blocks_diag_max, Host, HostOp};
 use crate::gpu::solver::MULTILEVEL_ON_CPU;
 use crate::gpu::{
     GpuContext, GpuError, GpuParams, GpuSolveInfo, Precision, SolveOutcome, StageSeconds,
@@ -48,25 +48,10 @@ fn scalars_for(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<S
             ))
         }
     };
-    let difference = real == Real::F32 && {
-        // The largest |diagonal entry| of H decides only on a device without f64 sums.
-        let diag_max = || {
-            let h = e.h;
-            let d = h.dim;
-            (0..h.n)
-                .filter_map(|i| h.diag_index(i))
-                .flat_map(|k| (0..d).map(move |a| h.values[k * d * d + a * d + a].abs()))
-                .filter(|v| v.is_finite())
-                .fold(0.0, f64::max)
-        };
-        let acc_f64 = ctx.has_f64();
-        params.f32_difference.wanted(
-            acc_f64,
-            e.h,
-            e.frames,
-            if acc_f64 { 0.0 } else { diag_max() },
-        )
-    };
+    let difference = real == Real::F32
+        && params
+            .f32_difference
+            .wanted(ctx.has_f64(), e.h, e.frames, || blocks_diag_max(e.h));
     Scalars::on(ctx, real, difference)
 }
 

@@ -329,7 +329,7 @@ fn wants_difference_form(host: &Host, choice: DifferenceForm, acc: Real) -> bool
     let HostOp::Blocks(h) = &host.op else {
         return false;
     };
-    choice.wanted(acc == Real::F64, h, &host.frames, host.diag_max())
+    choice.wanted(acc == Real::F64, h, &host.frames, || host.diag_max())
 }
 
 fn check_params(ctx: &GpuContext, p: &GpuParams) -> Result<(), GpuError> {

@@ -80,24 +80,17 @@ impl Host {
 
     /// Largest |diagonal entry| of H (its diagonal blocks, before rotation and masking).
     pub(crate) fn diag_max(&self) -> f64 {
-        let (d, blocks): (usize, Vec<f64>) = match &self.op {
-            HostOp::Blocks(h) => {
-                let dd = h.dim * h.dim;
-                let mut v = Vec::with_capacity(h.n * dd);
-                for i in 0..h.n {
-                    if let Some(k) = h.diag_index(i) {
-                        v.extend_from_slice(&h.values[k * dd..(k + 1) * dd]);
-                    }
-                }
-                (h.dim, v)
+        match &self.op {
+            HostOp::Blocks(h) => blocks_diag_max(h),
+            HostOp::Springs(ms) => {
+                let d = ms.dim;
+                spring_diag_blocks(ms, &self.frames)
+                    .chunks_exact(d * d)
+                    .flat_map(|b| (0..d).map(move |a| b[a * d + a].abs()))
+                    .filter(|v| v.is_finite())
+                    .fold(0.0, f64::max)
             }
-            HostOp::Springs(ms) => (ms.dim, spring_diag_blocks(ms, &self.frames)),
-        };
-        blocks
-            .chunks_exact(d * d)
-            .flat_map(|b| (0..d).map(move |a| b[a * d + a].abs()))
-            .filter(|v| v.is_finite())
-            .fold(0.0, f64::max)
+        }
     }
 
     /// ‖b̂ − Ĥy‖ / ‖b̂‖ in f64, as [`Eliminated::relative_residual`].
@@ -233,4 +226,14 @@ pub(crate) fn row_sums(h: &BlockCsr, f: &Frames) -> Vec<f64> {
         }
     }
     out
+}
+
+/// Largest finite |diagonal entry| of a block matrix's diagonal blocks.
+pub(crate) fn blocks_diag_max(h: &BlockCsr) -> f64 {
+    let d = h.dim;
+    (0..h.n)
+        .filter_map(|i| h.diag_index(i))
+        .flat_map(|k| (0..d).map(move |a| h.values[k * d * d + a * d + a].abs()))
+        .filter(|v| v.is_finite())
+        .fold(0.0, f64::max)
 }
