@@ -1,7 +1,8 @@
-//! GPU solver benchmarks (criterion), on a generated 3D system of 20k nodes with slip
-//! nodes (so the rotation kernels run): the masked operator, the rotation on recovery
-//! (V y), the preconditioner build, CG iterations (matvec + fused updates + the two-pass
-//! reductions) and a full f32 solve. Wall times include the host transfers each call
+//! Benchmarks of the precision kernels (criterion; `GpuSolver`, mixed precision's levels:
+//! `solve --solver gpu` runs f32 and f64 on the device PCG), on a generated 3D system of
+//! 20k nodes with slip nodes (so the rotation kernels run): the masked operator, the
+//! rotation on recovery (V y), the preconditioner build, CG iterations (matvec + fused
+//! updates + the two-pass reductions) and a full f32 solve of those kernels. Wall times include the host transfers each call
 //! needs; device-only kernel times come from `GpuSolver::profile_kernels` (examples/
 //! gpu_measure.rs, `stickslip bench`). Skips (with a message) when no adapter exists.
 

@@ -1,4 +1,6 @@
-//! Measures the GPU solver against the CPU CG on a large 3D system:
+//! Measures the precision kernels (`GpuSolver`: mixed precision's f32 and f64 levels;
+//! `solve --solver gpu` runs f32 and f64 on the device PCG, which examples/pcg_kernels.rs
+//! and `stickslip bench` measure) against the CPU CG on a large 3D system:
 //! `cargo run --release --example gpu_measure -- [nodes] [precision] [tol]`.
 
 use std::time::Instant;

@@ -1,4 +1,6 @@
-//! Runs one hard case (src/app/hard.rs) at a grid scale on the GPU: f64 CG and mixed precision,
+//! Runs one hard case (src/app/hard.rs) at a grid scale on the GPU's precision kernels
+//! (`GpuSolver`: f64 CG on mixed precision's f64 level, and mixed precision; `bench --hard`
+//! times the device PCG's f64 against mixed),
 //! each without and with the coarse correction on the translations, solved alternately
 //! (best of `reps` after a warm-up, so machine noise hits every configuration alike):
 //! `cargo run --release --example hard_case -- NAME [scale] [tol] [reps]`.

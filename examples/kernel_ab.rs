@@ -1,6 +1,8 @@
-//! Device time per CG kernel (timestamp queries, best of `reps`) of one generated 3D system
-//! in f64 and f32, with and without the coarse correction and the f32 difference form: what
-//! each option costs per iteration on this adapter.
+//! Device time per CG kernel (timestamp queries, best of `reps`) of the precision kernels
+//! (`GpuSolver`: mixed precision's f32 and f64 levels; the device PCG that `solve --solver
+//! gpu` runs in f32 and f64 is examples/pcg_kernels.rs) on one generated 3D system in f64
+//! and f32, with and without the coarse correction and the f32 difference form: what each
+//! option costs per iteration on this adapter.
 //! `cargo run --release --example kernel_ab -- [nodes] [reps] [realistic|none]` (the
 //! constraint mix: slip nodes with rotations, or no constraints at all), or
 //! `kernel_ab -- NAME:SCALE [reps]` for a hard case of src/app/hard.rs at a grid scale.

@@ -1,5 +1,6 @@
-//! A/B of GPU f64 CG against mixed precision on one generated 3D system, alternating
-//! runs in one process (this machine is noisy):
+//! A/B of the precision kernels' f64 CG (mixed precision's fallback level; `solve --solver
+//! gpu` runs f64 on the device PCG) against mixed precision on one generated 3D system,
+//! alternating runs in one process (this machine is noisy):
 //! `cargo run --release --example mixed_ab -- [nodes] [tol] [reps]`.
 
 use stickslip::cases::generate::{random_system, SystemSpec};
