@@ -129,6 +129,47 @@ fn fifty_random_systems_match_the_dense_reference_in_every_precision() {
     );
 }
 
+/// f32 on the device PCG with every preconditioner it takes and every coarse space, on
+/// 2D and 3D random systems with slip nodes: the host's f64 residual meets tol 1e-6 and Δx
+/// is within 1e-4 of the dense reference (the bound of the fifty systems above: κ of these
+/// systems times a few ε_f32 of H, the rotations and y).
+#[test]
+fn f32_on_the_device_pcg_solves_with_every_preconditioner_and_coarse_space() {
+    let Some((ctx, _g)) = gpu() else { return };
+    let tol = 1e-6;
+    for (dim, seed) in [(2usize, 3u64), (3, 4)] {
+        let s = random_system(&SystemSpec::small(dim, seed));
+        assert!(s.frames.has_rotation());
+        let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+        let (_, dx_ref) = reference(&e);
+        for pc in [Preconditioner::Jacobi, Preconditioner::BlockJacobi] {
+            for coarse in [
+                CoarseSpace::None,
+                CoarseSpace::Translations,
+                CoarseSpace::Aggregates,
+            ] {
+                let p = GpuParams {
+                    coarse,
+                    ..params(Precision::F32, tol, pc)
+                };
+                let out = Facade::new(ctx, &e, &p)
+                    .and_then(|mut sol| sol.solve())
+                    .unwrap_or_else(|err| panic!("{dim}D {pc:?} {coarse:?}: {err}"));
+                let err = rel_err(&out.dx, &dx_ref);
+                eprintln!(
+                    "{dim}D {pc:?} {}: {} iterations, residual {:.2e}, Δx error {err:.2e}",
+                    coarse.name(),
+                    out.info.iterations,
+                    out.info.relative_residual
+                );
+                assert!(out.info.relative_residual <= tol);
+                assert!(e.relative_residual(&out.y) <= tol);
+                assert!(err <= 1e-4, "{dim}D {pc:?} {coarse:?}: Δx error {err:e}");
+            }
+        }
+    }
+}
+
 /// BΔx = p to f64 rounding in every precision, f32 included, on random systems with
 /// rotated slip nodes, near-axis normals, lines, redundant rows and prescribed values.
 ///
