@@ -384,8 +384,8 @@ fn gpu_claims_are_honest_and_mixed_reaches_1e_9_when_kappa_at_most_1e10() {
 
 /// The device PCG (what `solve --solver gpu` runs in f64) on every case: a success is
 /// honest (the same check as the CPU CG's), and a case whose f64 residual floor lies above
-/// tol ends in a stagnation near its floor, not at the iteration limit (each restart from
-/// the true residual that does not improve on the best is the floor).
+/// tol ends in a stagnation near its floor, not at the iteration limit (a restart from the
+/// true residual that does not halve the best after the recurrence met tol is the floor).
 #[test]
 fn the_device_pcg_claims_are_honest_and_it_stops_at_its_floor() {
     let Some((ctx, _guard)) = gpu() else { return };

@@ -81,6 +81,11 @@ const FIRST_CHUNK: usize = 8;
 const MIN_CHUNK: usize = 2;
 const MAX_CHUNK: usize = 256;
 
+/// The factor by which a run whose recurrence met the tolerance must lower the best true
+/// residual before it; less ends the solve in [`CgError::Stagnation`] (see `run`; the
+/// same 2× as mixed precision asks of its f32 segments).
+const MIN_RESTART_GAIN: f64 = 0.5;
+
 /// Identities of every [`DeviceCg`] and [`DeviceFrames`]: frames built for one CG are
 /// refused by another, and `iterate` refuses frames `prepare` did not see.
 static NEXT_ID: AtomicU64 = AtomicU64::new(0);
@@ -219,7 +224,8 @@ pub struct DeviceCgParams {
     /// Stagnation: at least every this many iterations (and sooner when the recurrence
     /// residual has not improved for as long) the true residual is computed and CG
     /// restarts from it; a true residual no smaller than the best before it ends the
-    /// solve in [`CgError::Stagnation`].
+    /// solve in [`CgError::Stagnation`], and so does one not below half the best after a
+    /// run whose recurrence met the tolerance.
     pub stagnation_window: usize,
 }
 
@@ -1343,7 +1349,7 @@ impl DeviceCg {
                 // by rounding: go on iterating.
                 self.clear_flags();
             }
-            self.chunks(frames, (pre, co), params, tol2 * bb, &mut st)?;
+            let ended = self.chunks(frames, (pre, co), params, tol2 * bb, &mut st)?;
             // The true residual at y: q = Ĥy (y copied into p), r = b̂ − q, p = z.
             self.clear_flags();
             let mut enc = self.encoder("pcg true residual");
@@ -1354,10 +1360,16 @@ impl DeviceCg {
             st.error(0)?;
             let rel = relative(st.rr);
             // A run that ends on no better a true residual than the best before it is at
-            // the rounding floor, whether its recurrence met the tolerance (f64's falls on
-            // past the floor) or the stagnation window ended it: another restart would only
-            // repeat it.
-            if rel > tol && rel >= best_true {
+            // the rounding floor, whether its recurrence met the tolerance or the
+            // stagnation window ended it: another restart would only repeat it. A run whose
+            // recurrence met the tolerance must also halve the best: away from the floor
+            // the true residual falls with the recurrence, at the floor it only creeps
+            // (f32's for hundreds of iterations) while the recurrence falls on past it.
+            let gain = match ended {
+                Chunked::Stopped if st.iterations < max => MIN_RESTART_GAIN,
+                _ => 1.0,
+            };
+            if rel > tol && rel >= gain * best_true {
                 return Err(CgError::Stagnation {
                     iterations: st.iterations,
                     relative_residual: rel,
