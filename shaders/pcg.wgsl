@@ -16,6 +16,8 @@
 // matvec for its level-0 products) and ml_dot between update_yr and scalar_beta.
 // A (re)start is `init` (r = b̂ − q with q = Ĥy, z = M⁻¹r, p = z, partials) and
 // `scalar_start` (then `update_p` with β = 0 under COARSE), whose r·r is the true residual.
+// A resumed segment (src/gpu/pcg/cg/segment.rs) keeps p through init, and its update_p
+// forms p = z (+ Zc) + βp with the β of scalar_start.
 // `prepare` adds `coarse_e` and `coarse_e_sum` (E = ZᵀĤZ of the translations, below) and,
 // with the aggregates, `agg_rows` and `agg_e` to `rhs` and `precond`.
 // Once a stop flag is set, every later CG dispatch of the submit is a no-op.
@@ -91,7 +93,8 @@ struct PcgParams {
 // Slots of `scal`, `state` and the partial sums: the one table of both device CGs
 // (`gpu::kernels::slots`, declared by the prelude). This CG uses, in scal: ρ = r·z
 // (scalar_start, scalar_beta), p·q and α (scalar_alpha), β (scalar_beta), r·r of the last
-// reduction, tol² (host), ‖b̂‖² (scalar_start); then (COARSE) c = E⁺Zᵀr, D values
+// reduction, tol² (host), ‖b̂‖² (scalar_start), ρ_prev and the direction scale of a
+// resumed segment (host; scalar_start); then (COARSE) c = E⁺Zᵀr, D values
 // (scalar_beta, scalar_start), E⁺, D² row-major (host), and E = ZᵀĤZ unsymmetrized, D²
 // row-major, then per world axis a 2^-64 · Σ|entries| of the rows of component a of
 // ZᵀĤ's blocks, D values (coarse_e_sum, read back by the host, which asks whether a
@@ -831,10 +834,12 @@ fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid
                 rv[a] = b[k] - q[k];
                 r[k] = rv[a];
             }
-            precondition(i, rv, true, &sums);
+            // A resumed segment keeps p: update_p then forms p = z + βp and writes pw.
+            let fresh = !resuming();
+            precondition(i, rv, fresh, &sums);
             // With COARSE, the update_p that completes p writes pw; with the multilevel
             // preconditioner ml_start does.
-            if (COARSE == 0u && PRECOND != 3u) {
+            if (COARSE == 0u && PRECOND != 3u && fresh) {
                 write_world(i);
             }
         }
@@ -843,9 +848,17 @@ fn init(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid
     }
 }
 
+// A segment that resumes the last one's search direction (a reliable update: the host
+// wrote SCAL_PSCALE > 0 and SCAL_RHO_PREV; see `DeviceCg::segment`).
+fn resuming() -> bool {
+    return scal[SCAL_PSCALE] > acc(0.0);
+}
+
 // After init (one workgroup): ρ, the true r·r and ‖b̂‖²; stops when the true residual
 // meets the tolerance (always when b̂ = 0 and y = 0). With COARSE also c = E⁺Zᵀr (Zᵀr in
 // a second tree), ρ += Zᵀr·c, and β = 0 for the update_p that completes p = z + Zc.
+// Resuming, β = s·ρ/ρ_prev (s = SCAL_PSCALE, the old direction's rescaling, ρ_prev
+// already in the new scaling) for the update_p that forms p = z (+ Zc) + β p_old.
 @compute @workgroup_size(WG)
 fn scalar_start(@builtin(local_invocation_id) lid: vec3<u32>) {
     var v = array<acc, 5>(acc(0.0), acc(0.0), acc(0.0), acc(0.0), acc(0.0));
@@ -880,7 +893,9 @@ fn scalar_start(@builtin(local_invocation_id) lid: vec3<u32>) {
         } else if (COARSE == 2u) {
             rz += wc;
         }
-        if (COARSE != 0u) {
+        if (resuming()) {
+            scal[SCAL_BETA] = scal[SCAL_PSCALE] * rz / scal[SCAL_RHO_PREV];
+        } else if (COARSE != 0u) {
             scal[SCAL_BETA] = acc(0.0);
         }
         scal[SCAL_RHO] = rz;

@@ -24,7 +24,8 @@ pub const COMMON: &str = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shad
 pub mod slots {
     /// ρ = r·z.
     pub const SCAL_RHO: u32 = 0;
-    /// ρ of the previous iteration (`solve`'s CG; the host sets it).
+    /// ρ of the previous iteration (`solve`'s CG; the host sets it), or of the segment a
+    /// device PCG segment resumes (host, rescaled).
     pub const SCAL_RHO_PREV: u32 = 1;
     /// p·q of the last α (the curvature reported when it is not positive).
     pub const SCAL_PQ: u32 = 2;
@@ -33,7 +34,8 @@ pub mod slots {
     pub const SCAL_RR: u32 = 4;
     /// The convergence threshold tol²‖b‖² on r·r (`solve`'s CG; host).
     pub const SCAL_THRESH: u32 = 5;
-    /// The direction scale `init` keeps (`solve`'s CG; host; 0: p = 0).
+    /// The direction scale `init` keeps (`solve`'s CG; host; 0: p = 0), or by which a
+    /// resumed device PCG segment rescales p (host; 0: a fresh start).
     pub const SCAL_PSCALE: u32 = 6;
     /// β of the first update_p of a run (the link of a resumed Lanczos sequence).
     pub const SCAL_BETA0: u32 = 7;

@@ -13,6 +13,9 @@ use crate::solve::cg::CgError;
 pub struct ChunkStatus {
     /// r·r of the last reduction.
     pub rr: f64,
+    /// ρ = r·z of the last iteration that went on (a converged one keeps the ρ its α
+    /// used: what a resumed segment's β divides by).
+    pub rho: f64,
     /// p·q of the last α (the curvature when it was not positive).
     pub pq: f64,
     /// ‖b̂‖² (the device PCG's start; zero in `solve`'s CG).
@@ -33,6 +36,7 @@ impl ChunkStatus {
         let flag = |k: u32| state[k as usize] != 0;
         ChunkStatus {
             rr: scal[slots::SCAL_RR as usize],
+            rho: scal[slots::SCAL_RHO as usize],
             pq: scal[slots::SCAL_PQ as usize],
             bb: scal[slots::SCAL_BB as usize],
             iterations: state[slots::STATE_ITERS as usize] as usize,

@@ -249,6 +249,45 @@ pub struct DeviceCgInfo {
     pub tolerance: f64,
 }
 
+/// How a [`DeviceCg::segment`] starts, always from y = 0 on the b̂ last given.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum SegmentStart {
+    /// p = z (+ the coarse correction): plain CG.
+    Fresh,
+    /// A reliable update: the last segment's search direction goes on, rescaled by
+    /// `pscale` (the old right-hand side's norm over the new one, when each segment solves
+    /// for a unit right-hand side), with β = pscale·ρ/`rho_prev` (`rho_prev` the ρ the last
+    /// α used, times pscale²). Both must be positive and finite.
+    Resume { rho_prev: f64, pscale: f64 },
+}
+
+/// How a [`DeviceCg::segment`] ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SegmentEnd {
+    /// The recurrence residual met the tolerance: p and ρ are those a resume goes on from.
+    Converged,
+    /// The iteration limit.
+    MaxIterations,
+    /// The recurrence residual did not improve for the stagnation window.
+    Stagnated,
+}
+
+/// What a [`DeviceCg::segment`] reports.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SegmentInfo {
+    pub end: SegmentEnd,
+    pub iterations: usize,
+    pub recorded_iterations: usize,
+    pub status_reads: usize,
+    /// The recurrence's relative residual √(r·r)/‖b̂‖ at the end.
+    pub recurrence_residual: f64,
+    /// ρ of the last α: with `end` = Converged, the `rho_prev` of the next resume (before
+    /// its rescaling).
+    pub rho: f64,
+    /// ‖b̂‖.
+    pub rhs_norm: f64,
+}
+
 /// One constraint set on the device (mask and rotation per node) with the bind group that
 /// uses it; built by [`DeviceCg::frames`], valid only with the [`DeviceCg`] that built it.
 pub struct DeviceFrames {
@@ -395,6 +434,8 @@ pub struct DeviceCg {
     ml: Option<DeviceMultilevel>,
     ml_ready: bool,
 }
+
+mod segment;
 
 impl DeviceCg {
     /// Pipelines and buffers for the block matrix `h` (its values are read in place by
@@ -1225,31 +1266,17 @@ impl DeviceCg {
         self.run(frames, params, &mut |_| params.tol, true)
     }
 
-    fn run(
-        &mut self,
-        frames: &DeviceFrames,
-        params: &DeviceCgParams,
-        tolerance: &mut dyn FnMut(f64) -> f64,
-        from_current: bool,
-    ) -> Result<DeviceCgInfo, GpuError> {
+    /// What every run checks and sets up before its start: the frames, the tolerance, the
+    /// preconditioner's state (E⁺ of the translations or the aggregates on the device),
+    /// and the scalars it starts from (written by the caller).
+    fn begin(&mut self, frames: &DeviceFrames, params: &DeviceCgParams) -> Result<Begun, GpuError> {
         self.own(frames)?;
         if self.prepared != Some(frames.id) {
             return Err(GpuError::Mismatch(
                 "the device CG was not prepared with these frames (call prepare first)".into(),
             ));
         }
-        // Written to reject NaN too.
-        let check_tol = |tol: f64| {
-            if tol > 0.0 && tol.is_finite() {
-                Ok(tol)
-            } else {
-                Err(GpuError::Unsupported(format!(
-                    "the CG tolerance must be positive and finite, not {tol}"
-                )))
-            }
-        };
         let tol = check_tol(params.tol)?;
-        let max = params.max_iterations;
         let (pre, co) = overrides(params, frames)?;
         if pre != 3
             && params.coarse == CoarseSpace::Aggregates
@@ -1270,13 +1297,12 @@ impl DeviceCg {
         if co == 2 {
             self.upload_aggregate_einv(frames)?;
         }
-        let tol2 = tol * tol;
         self.recorded.set(0);
         self.reads.set(0);
         // Every slot before E: the scalars, c and E⁺ (zero without the correction, or
         // when every translation is constrained: then c = 0 and so is the correction).
         let mut scal = [0.0f64; slots::SCAL_E as usize];
-        scal[slots::SCAL_TOL2 as usize] = tol2;
+        scal[slots::SCAL_TOL2 as usize] = tol * tol;
         if co == 1 {
             self.read_galerkin()?;
             if let Galerkin::Read {
@@ -1287,6 +1313,18 @@ impl DeviceCg {
                 scal[at..at + einv.len()].copy_from_slice(einv);
             }
         }
+        Ok(Begun { tol, pre, co, scal })
+    }
+
+    fn run(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+        tolerance: &mut dyn FnMut(f64) -> f64,
+        from_current: bool,
+    ) -> Result<DeviceCgInfo, GpuError> {
+        let Begun { pre, co, scal, .. } = self.begin(frames, params)?;
+        let max = params.max_iterations;
         self.ctx
             .write_buffer(&self.buf.scal, 0, &self.ty.acc.bytes(&scal));
         self.ctx
@@ -1801,6 +1839,26 @@ fn overrides(params: &DeviceCgParams, frames: &DeviceFrames) -> Result<(usize, u
         coarse_index(params.coarse, frames)
     };
     Ok((pre, co))
+}
+
+/// A CG tolerance must be positive and finite (written to reject NaN too).
+fn check_tol(tol: f64) -> Result<f64, GpuError> {
+    if tol > 0.0 && tol.is_finite() {
+        Ok(tol)
+    } else {
+        Err(GpuError::Unsupported(format!(
+            "the CG tolerance must be positive and finite, not {tol}"
+        )))
+    }
+}
+
+/// A run's checked setup ([`DeviceCg::begin`]).
+struct Begun {
+    tol: f64,
+    pre: usize,
+    co: usize,
+    /// The scalars before E that the run starts from.
+    scal: [f64; slots::SCAL_E as usize],
 }
 
 /// The COARSE override of a coarse space on these frames (aggregates with every node

@@ -1,0 +1,146 @@
+//! Segments: runs of the device PCG from y = 0 that stop once the recurrence residual
+//! meets the tolerance, with no true-residual check, and keep p and ρ for the next one.
+//! They are the inner solves of reliable updates (as in QUDA's mixed-precision CG): the
+//! caller forms the true residual r in a higher precision, gives r/‖r‖ as the next b̂
+//! ([`DeviceCg::set_rhs`]) and resumes, so CG goes on along its search direction instead
+//! of restarting from p = z.
+
+use super::{
+    Begun, Chunked, DeviceCg, DeviceCgParams, DeviceFrames, SegmentEnd, SegmentInfo, SegmentStart,
+};
+use crate::gpu::kernels::slots;
+use crate::gpu::GpuError;
+
+impl DeviceCg {
+    /// Writes b̂ (frame coordinates, zero in the constrained components, n·d) for the next
+    /// [`DeviceCg::segment`], keeping the preconditioner of the last
+    /// [`DeviceCg::prepare_with_rhs`] with these frames.
+    pub fn set_rhs(&mut self, frames: &DeviceFrames, rhs: &[f64]) -> Result<(), GpuError> {
+        if !self.given_rhs {
+            return Err(GpuError::Mismatch(
+                "this device PCG forms b̂ from its gradient (prepare)".into(),
+            ));
+        }
+        if rhs.len() != self.n_nodes * self.dim {
+            return Err(GpuError::Mismatch(format!(
+                "b̂ has {} entries, the system {}",
+                rhs.len(),
+                self.n_nodes * self.dim
+            )));
+        }
+        self.own(frames)?;
+        if self.prepared != Some(frames.id) {
+            return Err(GpuError::Mismatch(
+                "the device CG was not prepared with these frames (call prepare_with_rhs \
+                 first)"
+                    .into(),
+            ));
+        }
+        self.ctx
+            .write_buffer(&self.buf.b, 0, &self.ty.real.bytes(rhs));
+        Ok(())
+    }
+
+    /// CG from y = 0 on the current b̂ until the recurrence residual √(r·r)/‖b̂‖ meets
+    /// `params.tol`, the iteration limit, or no improvement over a stagnation window; y
+    /// is then [`DeviceCg::read_y`]'s, and after `Converged` p and ρ (in the returned
+    /// info) are those a [`SegmentStart::Resume`] goes on from. Non-positive curvature and
+    /// breakdowns are errors, as in [`DeviceCg::iterate`]. The multilevel preconditioner
+    /// does not resume (its V-cycle forms p itself).
+    pub fn segment(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+        start: SegmentStart,
+    ) -> Result<SegmentInfo, GpuError> {
+        let Begun {
+            tol,
+            pre,
+            co,
+            mut scal,
+        } = self.begin(frames, params)?;
+        let resume = match start {
+            SegmentStart::Fresh => false,
+            SegmentStart::Resume { rho_prev, pscale } => {
+                if pre == 3 {
+                    return Err(GpuError::Unsupported(
+                        "a device PCG segment resumes under Jacobi or block Jacobi, not the \
+                         multilevel preconditioner"
+                            .into(),
+                    ));
+                }
+                let fine = |v: f64| v > 0.0 && v.is_finite();
+                if !(fine(rho_prev) && fine(pscale)) {
+                    return Err(GpuError::Unsupported(format!(
+                        "a resumed segment needs a positive, finite ρ_prev and scale, not \
+                         {rho_prev:e} and {pscale:e}"
+                    )));
+                }
+                scal[slots::SCAL_RHO_PREV as usize] = rho_prev;
+                scal[slots::SCAL_PSCALE as usize] = pscale;
+                true
+            }
+        };
+        let acc = self.ty.acc;
+        self.ctx.write_buffer(&self.buf.scal, 0, &acc.bytes(&scal));
+        self.ctx
+            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
+        let mut enc = self.encoder("pcg segment start");
+        enc.clear_buffer(&self.buf.y, 0, None);
+        enc.clear_buffer(&self.buf.q, 0, None);
+        let mut kernels = self.start(frames, pre, co);
+        // With the coarse correction `start` already ends in update_p; without it, init
+        // left p alone and update_p forms p = z + βp here.
+        if resume && co == 0 {
+            kernels.push((
+                &self.pipes.update_p[0],
+                self.launches.nodes,
+                &frames.groups[0],
+            ));
+        }
+        Self::pass(&mut enc, "pcg segment start", &kernels);
+        let mut st = self.submit_and_read(enc, "starting a device PCG segment")?;
+        st.error(0)?;
+        // Only the start resumes: no later init of this PCG may take p as kept.
+        self.ctx.write_buffer(
+            &self.buf.scal,
+            acc.size() * slots::SCAL_PSCALE as u64,
+            &acc.bytes(&[0.0]),
+        );
+        self.run_starts = vec![0];
+        let bb = st.bb;
+        let mut end = SegmentEnd::Converged;
+        // The recurrence r·r at the last window's end: a window without a fall below it
+        // is stagnation.
+        let mut last_check = st.rr;
+        while !st.converged {
+            match self.chunks(frames, (pre, co), params, tol * tol * bb, &mut st)? {
+                Chunked::Stopped if st.converged => {}
+                Chunked::Stopped => {
+                    end = SegmentEnd::MaxIterations;
+                    break;
+                }
+                Chunked::Check if st.rr < last_check => last_check = st.rr,
+                Chunked::Check => {
+                    end = SegmentEnd::Stagnated;
+                    break;
+                }
+            }
+        }
+        self.last_iterations = st.iterations;
+        let rhs_norm = bb.sqrt();
+        Ok(SegmentInfo {
+            end,
+            iterations: st.iterations,
+            recorded_iterations: self.recorded.get(),
+            status_reads: self.reads.get(),
+            recurrence_residual: if bb == 0.0 {
+                0.0
+            } else {
+                st.rr.sqrt() / rhs_norm
+            },
+            rho: st.rho,
+            rhs_norm,
+        })
+    }
+}
