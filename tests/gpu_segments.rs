@@ -87,7 +87,7 @@ fn refine(
             _ => SegmentStart::Fresh,
         };
         let info = cg
-            .segment(frames, &params(DELTA, coarse), start)
+            .segment(frames, &params(DELTA, coarse), start, None)
             .expect("segment");
         its += info.iterations;
         segments += 1;

@@ -7,12 +7,14 @@ use stickslip::cases::generate::{random_system, ConstraintMix, SystemSpec};
 use stickslip::cases::springs::MassSpring;
 use stickslip::core::constraints::{Constraint, ConstraintKind, Frames};
 use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::gpu::{DifferenceForm, GpuError, GpuParams, GpuSolver, Precision, SolveOutcome};
+use stickslip::gpu::{
+    DifferenceForm, GpuError, GpuParams, GpuSolver, PcgSolver, Precision, SolveOutcome,
+};
 use stickslip::solve::cg::{CgError, Preconditioner};
 use stickslip::solve::coarse::CoarseSpace;
 
 mod common;
-use common::gpu::{gpu, Facade};
+use common::gpu::gpu;
 
 fn norm(v: &[f64]) -> f64 {
     v.iter().map(|x| x * x).sum::<f64>().sqrt()
@@ -86,7 +88,7 @@ fn fifty_random_systems_match_the_dense_reference_in_every_precision() {
             .into_iter()
             .enumerate()
             {
-                let mut sol = Facade::new(ctx, &e, &params(prec, tol, pc)).expect("solver");
+                let mut sol = PcgSolver::new(ctx, &e, &params(prec, tol, pc)).expect("solver");
                 let SolveOutcome { y, dx, info } = sol
                     .solve()
                     .unwrap_or_else(|err| panic!("{dim}D seed {seed} {prec}: {err}"));
@@ -116,9 +118,7 @@ fn fifty_random_systems_match_the_dense_reference_in_every_precision() {
                         }
                     }
                 }
-                assert!(
-                    info.readbacks >= 2 && info.dispatches_per_iteration <= sol.dispatch_bound()
-                );
+                assert!(info.readbacks >= 2 && info.dispatches_per_iteration <= 7);
             }
             count += 1;
         }
@@ -152,7 +152,7 @@ fn f32_on_the_device_pcg_solves_with_every_preconditioner_and_coarse_space() {
                     coarse,
                     ..params(Precision::F32, tol, pc)
                 };
-                let out = Facade::new(ctx, &e, &p)
+                let out = PcgSolver::new(ctx, &e, &p)
                     .and_then(|mut sol| sol.solve())
                     .unwrap_or_else(|err| panic!("{dim}D {pc:?} {coarse:?}: {err}"));
                 let err = rel_err(&out.dx, &dx_ref);
@@ -194,7 +194,7 @@ fn constraints_hold_to_f64_rounding_in_every_precision() {
                 (Precision::F64, 1e-10),
                 (Precision::Mixed, 1e-10),
             ] {
-                let mut sol = Facade::new(ctx, &e, &params(prec, tol, Preconditioner::Jacobi))
+                let mut sol = PcgSolver::new(ctx, &e, &params(prec, tol, Preconditioner::Jacobi))
                     .expect("solver");
                 let SolveOutcome { dx, .. } = sol
                     .solve()
@@ -349,7 +349,7 @@ fn update_reuses_every_buffer_and_solves_the_new_values() {
     let Some((ctx, _g)) = gpu() else { return };
     let mut s = random_system(&SystemSpec::small(3, 12));
     let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
-    let mut sol = GpuSolver::new(
+    let mut sol = PcgSolver::new(
         ctx,
         &e,
         &params(Precision::F64, 1e-12, Preconditioner::BlockJacobi),
@@ -357,7 +357,7 @@ fn update_reuses_every_buffer_and_solves_the_new_values() {
     .expect("solver");
     let SolveOutcome { dx: dx1, .. } = sol.solve().expect("solve");
     assert!(rel_err(&dx1, &reference(&e).1) <= 1e-9);
-    let before = sol.resources().buffers;
+    let before = ctx.allocated_bytes();
     // A "next Newton iteration": new Hessian values on the same pattern, new gradient.
     for (k, v) in s.h.values.iter_mut().enumerate() {
         *v *= 1.0 + 0.1 * ((k % 7) as f64 / 7.0);
@@ -383,11 +383,7 @@ fn update_reuses_every_buffer_and_solves_the_new_values() {
     sol.update(&e2).expect("update");
     let SolveOutcome { dx: dx2, .. } = sol.solve().expect("solve");
     assert!(rel_err(&dx2, &reference(&e2).1) <= 1e-9);
-    assert_eq!(
-        sol.resources().buffers,
-        before,
-        "update must not reallocate"
-    );
+    assert_eq!(ctx.allocated_bytes(), before, "update must not reallocate");
     // A different constraint set is refused.
     let other = random_system(&SystemSpec::small(3, 13));
     if other.h.row_ptr != hsym.row_ptr {
@@ -408,7 +404,7 @@ fn failures_are_errors_never_convergence() {
     let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
     let mut p = params(Precision::F64, 1e-14, Preconditioner::Jacobi);
     p.max_iters = 3;
-    match Facade::new(ctx, &e, &p).expect("solver").solve() {
+    match PcgSolver::new(ctx, &e, &p).expect("solver").solve() {
         Err(GpuError::Cg(CgError::MaxIterations {
             relative_residual,
             iterations,
@@ -422,7 +418,7 @@ fn failures_are_errors_never_convergence() {
     let mut p = params(Precision::F32, 1e-13, Preconditioner::Jacobi);
     p.max_iters = 2_000;
     p.stagnation_window = 50;
-    match Facade::new(ctx, &e, &p).expect("solver").solve() {
+    match PcgSolver::new(ctx, &e, &p).expect("solver").solve() {
         Err(
             GpuError::Cg(CgError::Stagnation { .. } | CgError::MaxIterations { .. })
             | GpuError::InF32(CgError::Stagnation { .. }),
@@ -436,7 +432,7 @@ fn failures_are_errors_never_convergence() {
     s.h.values[k * 4] = -1e3;
     let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
     for prec in [Precision::F32, Precision::F64, Precision::Mixed] {
-        let r = Facade::new(ctx, &e, &params(prec, 1e-8, Preconditioner::None))
+        let r = PcgSolver::new(ctx, &e, &params(prec, 1e-8, Preconditioner::None))
             .expect("solver")
             .solve();
         // f32 reports it as an f32 failure (rounding could cause it there).
@@ -456,7 +452,7 @@ fn solves_are_deterministic() {
     let Some((ctx, _g)) = gpu() else { return };
     let s = random_system(&SystemSpec::small(3, 21));
     let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
-    let mut sol = Facade::new(
+    let mut sol = PcgSolver::new(
         ctx,
         &e,
         &params(Precision::F32, 1e-6, Preconditioner::Jacobi),
@@ -482,13 +478,13 @@ fn a_right_hand_side_at_the_ends_of_the_range_gives_the_same_bits() {
     let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
     for (precision, tol) in [(Precision::F64, 1e-10), (Precision::F32, 1e-5)] {
         let prm = params(precision, tol, Preconditioner::Jacobi);
-        let unit = Facade::new(ctx, &e, &prm)
+        let unit = PcgSolver::new(ctx, &e, &prm)
             .and_then(|mut sol| sol.solve())
             .expect("unit solve");
         for k in [-560i32, 515] {
             let mut es = e.clone();
             es.rhs.iter_mut().for_each(|v| *v *= 2f64.powi(k));
-            let out = Facade::new(ctx, &es, &prm)
+            let out = PcgSolver::new(ctx, &es, &prm)
                 .and_then(|mut sol| sol.solve())
                 .unwrap_or_else(|err| panic!("{precision:?} 2^{k}: {err}"));
             let back: Vec<f64> = out.y.iter().map(|v| v * 2f64.powi(-k)).collect();
@@ -684,20 +680,27 @@ fn blocks_over_the_binding_limit_are_bound_in_pieces_and_per_node_arrays_over_it
 #[test]
 fn mixed_with_the_outer_residual_on_the_host_matches_the_reference() {
     let Some((ctx, _g)) = gpu() else { return };
-    // The path taken when the f64 blocks exceed the buffer size limit, forced on a small system
-    // (the variable is read while the solver is built; the GPU tests are serialized).
+    // The path taken when the f64 level does not fit beside the f32 one, forced on a small
+    // system by a memory limit that holds the f32 level only.
     for (dim, seed) in [(3, 11), (2, 12)] {
         let s = random_system(&SystemSpec::with_nodes(dim, 300, seed));
         let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
-        std::env::set_var("STICKSLIP_MIXED_HOST_RESIDUAL", "1");
-        let built = GpuSolver::new(
+        let p = params(Precision::Mixed, 1e-9, Preconditioner::Jacobi);
+        let f32_only = PcgSolver::memory_needed(
             ctx,
             &e,
-            &params(Precision::Mixed, 1e-9, Preconditioner::Jacobi),
-        );
-        std::env::remove_var("STICKSLIP_MIXED_HOST_RESIDUAL");
-        let mut sol = built.expect("mixed solver");
-        assert!(!sol.resources().has_buffer("blocks_f64"));
+            &GpuParams {
+                precision: Precision::F32,
+                ..p.clone()
+            },
+        )
+        .expect("plan");
+        let limited = GpuParams {
+            memory_limit: Some(f32_only + 4096),
+            ..p
+        };
+        let mut sol = PcgSolver::new(ctx, &e, &limited).expect("mixed solver");
+        assert!(!sol.has_f64_level());
         let SolveOutcome { dx, info, .. } = sol.solve().expect("mixed solve");
         assert!(info.relative_residual <= 1e-9, "{info:?}");
         assert!(info.notes.iter().any(|n| n.contains("host")), "{info:?}");
@@ -708,29 +711,37 @@ fn mixed_with_the_outer_residual_on_the_host_matches_the_reference() {
     }
 }
 
-/// Mixed precision's f64 fallback, triggered deterministically by kappa-1e8-balanced of the
-/// hard suite without the coarse correction and the f32 difference form (the f32 inner CG
-/// meets rounding-made non-positive curvature): the report says why and where, the error meets 1e-9 and the promise κ·(τ + 64ε) of the tolerance,
-/// on the GPU and (forced) on the CPU. The f64 level exists only after a fallback. An
+/// Mixed precision's f64 fallback, triggered deterministically by a balanced free body
+/// with κ = 1e9 (the hard suite's kappa family) without the coarse correction and the f32
+/// difference form: the f32 operator rounds away the mass term that holds Ĥ's smallest
+/// eigenvalues (κ·ε_f32 ≈ 60), and the f32 inner CG meets rounding-made non-positive
+/// curvature. The report says why and where; f64 CG finishes to the same tolerance, so the
+/// error is that of f64 CG alone on the system (within 10×: the warm start changes the
+/// rounding) and within the promise κ·(τ + 64ε); on the GPU and (forced) on the CPU. An
 /// extreme Ĥ scale (the solution ~1e-60 underflows f32) needs no fallback at all.
 #[test]
 fn mixed_falls_back_to_f64_and_says_so() {
     use stickslip::app::hard::{self, Size};
     let Some((ctx, _g)) = gpu() else { return };
-    let case = hard::conditioned(Size::Ci, 1e8, true);
+    let kappa = 1e9;
+    let case = hard::conditioned(Size::Ci, kappa, true);
     let e = case.eliminated();
     let y_ref = hard::reference(&e).expect("reference").y;
-    let kappa = 1e8;
     let tol = 1e-11;
     let promise = 10.0 * kappa * (tol + 64.0 * f64::EPSILON);
-    // Without the coarse correction and the f32 difference form: with the correction (the
-    // default) this case stays in f32, its small eigenvalues being the translations the
-    // correction removes; with the difference form alone the f32 operator keeps them
-    // positive and mixed leaves f32 on its κ̃ estimate instead.
-    // δ = 0.1 (not the default 0.01): the f32 phase then meets the non-positive curvature
-    // sooner. With δ = 0.01 it runs longer on the f32 operator that lost the small
-    // eigenvalues, and f64 CG, warm-started from there, stops at residual 1e-11 with error
-    // 1.7e-8: inside the promise 10κ(tol + 64ε) ≈ 1e-2, above 1e-9.
+    // Without the coarse correction and the f32 difference form: with either, f32 keeps
+    // the mass term. δ = 0.1 (not the default 0.01): shorter segments, the same reason.
+    let f64_err = {
+        let p = GpuParams {
+            coarse: CoarseSpace::None,
+            ..params(Precision::F64, tol, Preconditioner::Jacobi)
+        };
+        let out = PcgSolver::new(ctx, &e, &p)
+            .expect("f64")
+            .solve()
+            .expect("f64 solve");
+        rel_err(&out.y, &y_ref)
+    };
     let no_coarse = GpuParams {
         coarse: CoarseSpace::None,
         f32_difference: DifferenceForm::Off,
@@ -738,14 +749,8 @@ fn mixed_falls_back_to_f64_and_says_so() {
         ..params(Precision::Mixed, tol, Preconditioner::Jacobi)
     };
     for cpu in [false, true] {
-        let mut sol = GpuSolver::new(ctx, &e, &no_coarse).expect("solver");
-        assert!(
-            !sol.resources()
-                .buffers
-                .iter()
-                .any(|b| b.label.starts_with("fallback_")),
-            "the f64 fallback level is built only on first use"
-        );
+        let mut sol = PcgSolver::new(ctx, &e, &no_coarse).expect("solver");
+        assert!(sol.has_f64_level(), "the f64 level fits beside the f32 one");
         sol.force_cpu_fallback(cpu);
         let SolveOutcome { y, info, .. } = sol.solve().expect("mixed with fallback");
         let why = info.fallback.as_deref().expect("fell back");
@@ -760,13 +765,12 @@ fn mixed_falls_back_to_f64_and_says_so() {
         );
         assert!(info.relative_residual <= tol, "{info:?}");
         let err = rel_err(&y, &y_ref);
-        assert!(err <= 1e-9 && err <= promise, "cpu {cpu}: err {err:e}");
-        let gpu_level = sol
-            .resources()
-            .buffers
-            .iter()
-            .any(|b| b.label == "fallback_x_f64");
-        assert_eq!(gpu_level, !cpu);
+        eprintln!("cpu {cpu}: error {err:.2e}, f64 CG alone {f64_err:.2e}");
+        assert!(
+            err <= 10.0 * f64_err && err <= promise,
+            "cpu {cpu}: err {err:e}, f64 CG {f64_err:e}"
+        );
+        assert_eq!(sol.last_fallback(), info.fallback.as_deref());
         // The solver stays usable: a second solve repeats the same result.
         let SolveOutcome {
             y: y2, info: info2, ..
@@ -778,7 +782,7 @@ fn mixed_falls_back_to_f64_and_says_so() {
     let case = hard::scaled(Size::Ci, 1e30, 1e-30);
     let e = case.eliminated();
     let y_ref = hard::reference(&e).expect("reference").y;
-    let mut sol = GpuSolver::new(
+    let mut sol = PcgSolver::new(
         ctx,
         &e,
         &params(Precision::Mixed, tol, Preconditioner::Jacobi),
@@ -794,7 +798,7 @@ fn mixed_falls_back_to_f64_and_says_so() {
     let k = s.h.diag_index(0).expect("diagonal");
     s.h.values[k * 4] = -1e3;
     let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
-    let mut sol = GpuSolver::new(
+    let mut sol = PcgSolver::new(
         ctx,
         &e,
         &params(Precision::Mixed, 1e-8, Preconditioner::None),
@@ -830,7 +834,7 @@ fn mixed_gives_up_f32_within_a_few_chunks_when_kappa_is_beyond_f32() {
                 max_iters: 2_000,
                 ..Default::default()
             };
-            let mut sol = GpuSolver::new(ctx, &e, &prm).expect("solver");
+            let mut sol = PcgSolver::new(ctx, &e, &prm).expect("solver");
             sol.solve()
                 .unwrap_or_else(|err| panic!("seed {seed} {precision}: {err}"))
                 .info
@@ -868,7 +872,7 @@ fn mixed_reliable_updates_cost_about_the_iterations_of_f64_cg() {
     let tol = 1e-10;
     let solve = |prec| {
         let mut sol =
-            GpuSolver::new(ctx, &e, &params(prec, tol, Preconditioner::Jacobi)).expect("solver");
+            PcgSolver::new(ctx, &e, &params(prec, tol, Preconditioner::Jacobi)).expect("solver");
         sol.solve()
             .unwrap_or_else(|err| panic!("{prec}: {err}"))
             .info
@@ -926,7 +930,7 @@ fn error_tol_after_update_uses_the_new_hessian() {
         error_tol: Some(1e-12),
         ..params(Precision::Mixed, 1e-10, Preconditioner::Jacobi)
     };
-    let mut sol = GpuSolver::new(ctx, &e1, &p).expect("solver");
+    let mut sol = PcgSolver::new(ctx, &e1, &p).expect("solver");
     for (k, e) in [&e1, &e2].into_iter().enumerate() {
         if k == 1 {
             sol.update(e).expect("same pattern");
@@ -964,7 +968,7 @@ fn coarse_correction_keeps_mixed_in_f32_on_free_bodies() {
                 max_iters: 20_000,
                 ..params(precision, tol, Preconditioner::Jacobi)
             };
-            let mut sol = GpuSolver::new(ctx, &e, &prm).expect("solver");
+            let mut sol = PcgSolver::new(ctx, &e, &prm).expect("solver");
             sol.solve()
                 .unwrap_or_else(|err| panic!("{} {precision}: {err}", case.name))
                 .info
@@ -1050,7 +1054,7 @@ fn aggregate_coarse_correction_matches_the_cpu_and_keeps_mixed_near_f64() {
                 max_iters: 20_000,
                 ..params(precision, tol, Preconditioner::Jacobi)
             };
-            let mut sol = GpuSolver::new(ctx, e, &prm).expect("solver");
+            let mut sol = PcgSolver::new(ctx, e, &prm).expect("solver");
             sol.solve()
                 .unwrap_or_else(|err| panic!("{name} {precision}: {err}"))
         };

@@ -263,7 +263,7 @@ const KAPPA_TARGET: f64 = 1.001e10;
 const MIXED_ERROR_TOL: f64 = 1e-10;
 
 mod common;
-use common::gpu::{gpu, Facade};
+use common::gpu::gpu;
 
 /// Runs the GPU precisions on every case; returns the mixed-precision misses of the
 /// 1e-9 target on cases with κ ≤ 1e10. Every claimed success is checked against its
@@ -303,7 +303,7 @@ fn gpu_sweep(ctx: &GpuContext) -> Vec<String> {
             let target = error_tol.is_some() && p.kappa <= KAPPA_TARGET;
             // What `solve --solver gpu` runs: the device PCG in f64 and f32, the
             // precision kernels in mixed precision.
-            let mut solver = match Facade::new(ctx, &e, &params) {
+            let mut solver = match PcgSolver::new(ctx, &e, &params) {
                 Ok(s) => s,
                 Err(err) => {
                     eprintln!("{:<28} {who:<26} cannot set up: {err}", p.case.name);
@@ -630,7 +630,7 @@ fn gpu_condition_estimate_matches_cpu_and_steers_mixed() {
                 coarse,
                 ..Default::default()
             };
-            Facade::new(ctx, &e, &params)
+            PcgSolver::new(ctx, &e, &params)
                 .and_then(|mut s| s.solve())
                 .unwrap_or_else(|err| panic!("{name} gpu {precision}: {err}"))
                 .info

@@ -6,9 +6,7 @@ use crate::core::elimination::{reactions, ConstrainedDiagonal, Eliminated};
 pub use crate::core::problem::LayoutKey;
 use crate::core::problem::Problem;
 use crate::error::{Error, InputError, SolveError};
-use crate::gpu::{
-    GpuContext, GpuOptions, GpuParams, GpuSolveInfo, GpuSolver, PcgSolver, Precision,
-};
+use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolveInfo, PcgSolver, Precision};
 use crate::solve::cg::{CgInfo, CgParams, Preconditioner};
 use crate::solve::coarse::CoarseSpace;
 use crate::solve::multilevel::reuse::KeptLevels;
@@ -351,58 +349,9 @@ const KEPT_LAYOUTS: usize = 8;
 
 enum Prepared {
     Cholesky(Box<CholeskyOracle>),
-    Gpu(Box<dyn DeviceSolver>),
-}
-
-/// The GPU solvers the engine keeps per layout: the device PCG in f64 and f32 (the CG the
-/// device Newton loop runs), the kernels of mixed precision otherwise. `levels` are the
-/// multilevel preconditioner's, shared by every layout of the solver (the device PCG's
-/// only).
-trait DeviceSolver: Send {
-    fn update(
-        &mut self,
-        e: &Eliminated,
-        levels: &mut KeptLevels,
-    ) -> Result<(), crate::gpu::GpuError>;
-    fn set_tol(&mut self, tol: f64) -> Result<(), crate::gpu::GpuError>;
-    fn solve(
-        &mut self,
-        levels: &mut KeptLevels,
-    ) -> Result<crate::gpu::SolveOutcome, crate::gpu::GpuError>;
-}
-
-impl DeviceSolver for GpuSolver {
-    fn update(&mut self, e: &Eliminated, _: &mut KeptLevels) -> Result<(), crate::gpu::GpuError> {
-        GpuSolver::update(self, e)
-    }
-    fn set_tol(&mut self, tol: f64) -> Result<(), crate::gpu::GpuError> {
-        GpuSolver::set_tol(self, tol)
-    }
-    fn solve(
-        &mut self,
-        _: &mut KeptLevels,
-    ) -> Result<crate::gpu::SolveOutcome, crate::gpu::GpuError> {
-        GpuSolver::solve(self)
-    }
-}
-
-impl DeviceSolver for PcgSolver {
-    fn update(
-        &mut self,
-        e: &Eliminated,
-        levels: &mut KeptLevels,
-    ) -> Result<(), crate::gpu::GpuError> {
-        PcgSolver::update_sharing(self, e, levels)
-    }
-    fn set_tol(&mut self, tol: f64) -> Result<(), crate::gpu::GpuError> {
-        PcgSolver::set_tol(self, tol)
-    }
-    fn solve(
-        &mut self,
-        levels: &mut KeptLevels,
-    ) -> Result<crate::gpu::SolveOutcome, crate::gpu::GpuError> {
-        PcgSolver::solve_sharing(self, levels)
-    }
+    /// The device PCG, in every precision; its multilevel clusters and levels are the
+    /// engine's `levels`, shared by every constraint set of the mesh.
+    Gpu(Box<PcgSolver>),
 }
 
 // A `Solver` moves between threads (the Python package releases the GIL around solves).
@@ -410,21 +359,6 @@ const _: fn() = || {
     fn send<T: Send>() {}
     send::<Solver>();
 };
-
-/// The GPU solver for `e` in the configured precision: the device PCG in f64 and f32 (on
-/// the multilevel clusters and levels of `levels`, shared by every constraint set of the
-/// mesh), the precision kernels for mixed precision.
-fn new_device_solver(
-    ctx: &GpuContext,
-    e: &Eliminated,
-    params: &GpuParams,
-    levels: &mut KeptLevels,
-) -> Result<Box<dyn DeviceSolver>, crate::gpu::GpuError> {
-    Ok(match params.precision {
-        Precision::F64 | Precision::F32 => Box::new(PcgSolver::sharing(ctx, e, params, levels)?),
-        Precision::Mixed => Box::new(GpuSolver::new(ctx, e, params)?),
-    })
-}
 
 /// Solves [`Problem`]s with one configured solver, keeping what can be reused between
 /// solves of the same layout (Cholesky analysis, GPU buffers and pipelines).
@@ -670,25 +604,35 @@ impl Solver {
         let (mut solver, reused) = match prepared {
             Some(Prepared::Gpu(mut s)) => {
                 match s
-                    .update(e, &mut self.levels)
+                    .update_sharing(e, &mut self.levels)
                     .and_then(|()| s.set_tol(self.gpu_params.tol))
                 {
                     Ok(()) => (s, true),
                     // Another pattern under the same key: build afresh.
                     Err(crate::gpu::GpuError::Mismatch(_)) => (
-                        new_device_solver(ctx, e, &self.gpu_params, &mut self.levels)?,
+                        Box::new(PcgSolver::sharing(
+                            ctx,
+                            e,
+                            &self.gpu_params,
+                            &mut self.levels,
+                        )?),
                         false,
                     ),
                     Err(err) => return Err(err.into()),
                 }
             }
             _ => (
-                new_device_solver(ctx, e, &self.gpu_params, &mut self.levels)?,
+                Box::new(PcgSolver::sharing(
+                    ctx,
+                    e,
+                    &self.gpu_params,
+                    &mut self.levels,
+                )?),
                 false,
             ),
         };
         let setup = t.elapsed().as_secs_f64();
-        let result = solver.solve(&mut self.levels);
+        let result = solver.solve_sharing(&mut self.levels);
         self.keep_prepared(layout, Prepared::Gpu(solver));
         let crate::gpu::SolveOutcome { y, info, .. } = result?;
         let mut stats = self.stats(

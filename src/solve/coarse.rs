@@ -529,7 +529,8 @@ pub fn softest_translation(
 }
 
 /// (E, G) = (Σ_ij Q_i H_ij Q_j, Σ_i Q_i), d×d each, symmetrized.
-fn translations_galerkin_from_blocks(
+/// E = ZᵀĤZ of the whole body's translations (d×d, symmetrized) and G = Σ_i Q_i.
+pub fn translations_galerkin_from_blocks(
     h: &crate::core::sparse::BlockCsr,
     frames: &crate::core::constraints::Frames,
 ) -> (Vec<f64>, Vec<f64>) {

@@ -4,10 +4,7 @@
 //! missing adapter fails the test instead.
 
 use std::sync::{LazyLock, Mutex, MutexGuard};
-use stickslip::core::elimination::Eliminated;
-use stickslip::gpu::{
-    GpuContext, GpuError, GpuOptions, GpuParams, GpuSolver, PcgSolver, Precision, SolveOutcome,
-};
+use stickslip::gpu::{GpuContext, GpuOptions};
 
 static CTX: LazyLock<Option<GpuContext>> = LazyLock::new(|| {
     match GpuContext::new(&GpuOptions::default()) {
@@ -32,37 +29,4 @@ static LOCK: Mutex<()> = Mutex::new(());
 pub fn gpu() -> Option<(&'static GpuContext, MutexGuard<'static, ()>)> {
     let g = LOCK.lock().unwrap_or_else(|p| p.into_inner());
     CTX.as_ref().map(|c| (c, g))
-}
-
-/// What `solve --solver gpu` builds for a precision: the device PCG in f64 and f32, the
-/// precision kernels in mixed precision.
-pub enum Facade {
-    Pcg(Box<PcgSolver>),
-    Kernels(Box<GpuSolver>),
-}
-
-impl Facade {
-    pub fn new(ctx: &GpuContext, e: &Eliminated, p: &GpuParams) -> Result<Self, GpuError> {
-        Ok(match p.precision {
-            Precision::Mixed => Facade::Kernels(Box::new(GpuSolver::new(ctx, e, p)?)),
-            _ => Facade::Pcg(Box::new(PcgSolver::new(ctx, e, p)?)),
-        })
-    }
-
-    pub fn solve(&mut self) -> Result<SolveOutcome, GpuError> {
-        match self {
-            Facade::Pcg(s) => s.solve(),
-            Facade::Kernels(s) => s.solve(),
-        }
-    }
-
-    /// Dispatches per CG iteration at most: the PCG's five, two more with the aggregates
-    /// (the default coarse space); the precision kernels' three, one more per extra row
-    /// chunk of the operator.
-    pub fn dispatch_bound(&self) -> usize {
-        match self {
-            Facade::Pcg(_) => 7,
-            Facade::Kernels(_) => 4,
-        }
-    }
 }

@@ -189,10 +189,19 @@ impl Scalars {
 enum Chunked {
     /// The recurrence met the tolerance, or the iteration limit was reached.
     Stopped,
+    /// The caller's watch asked to stop ([`DeviceCg::segment`]).
+    Watched,
     /// The run reached the stagnation window's length, or its recurrence residual has
     /// not improved for that long: the true residual decides whether CG goes on.
     Check,
 }
+
+/// Looks at a [`DeviceCg::segment`] after each status read, given the iterations so far
+/// and ρ of the segment's start ([`SegmentInfo::start_rho`]); true stops it.
+pub type Watch<'a> = dyn FnMut(&DeviceCg, usize, f64) -> Result<bool, GpuError> + 'a;
+
+/// [`Watch`] inside `chunks`: the iterations so far.
+type ChunkWatch<'a> = dyn FnMut(&DeviceCg, usize) -> Result<bool, GpuError> + 'a;
 
 /// One workgroup (the scalar kernels).
 const ONE: Launch = Launch { x: 1, y: 1 };
@@ -270,6 +279,8 @@ pub enum SegmentEnd {
     MaxIterations,
     /// The recurrence residual did not improve for the stagnation window.
     Stagnated,
+    /// The caller's watch stopped it.
+    Watched,
 }
 
 /// What a [`DeviceCg::segment`] reports.
@@ -284,6 +295,9 @@ pub struct SegmentInfo {
     /// ρ of the last α: with `end` = Converged, the `rho_prev` of the next resume (before
     /// its rescaling).
     pub rho: f64,
+    /// ρ of the start: resumed, start_rho/`rho_prev` is the β that links this segment's
+    /// Lanczos coefficients to the last one's.
+    pub start_rho: f64,
     /// ‖b̂‖.
     pub rhs_norm: f64,
 }
@@ -723,14 +737,7 @@ impl DeviceCg {
         if n < 2 {
             return Ok(None);
         }
-        let acc = self.ty.acc;
-        let bytes = self.ctx.download(
-            &self.buf.scal,
-            acc.size() * slots::SCAL_HIST as u64,
-            acc.size() * 2 * n as u64,
-            "reading back the Lanczos coefficients",
-        )?;
-        let h = acc.values(&bytes);
+        let h = self.lanczos_pairs(n)?;
         let mut ends: Vec<usize> = self.run_starts.iter().skip(1).copied().collect();
         ends.push(self.last_iterations);
         let mut kappa: Option<f64> = None;
@@ -746,6 +753,33 @@ impl DeviceCg {
             }
         }
         Ok(kappa)
+    }
+
+    /// The first `n` (α_j, β_{j+1}) pairs of the current run's Lanczos history,
+    /// interleaved (a PCG built with `lanczos`; at most [`LANCZOS_HIST`]).
+    fn lanczos_pairs(&self, n: usize) -> Result<Vec<f64>, GpuError> {
+        let n = n.min(self.hist as usize);
+        if n == 0 {
+            return Ok(Vec::new());
+        }
+        let acc = self.ty.acc;
+        let bytes = self.ctx.download(
+            &self.buf.scal,
+            acc.size() * slots::SCAL_HIST as u64,
+            acc.size() * 2 * n as u64,
+            "reading back the Lanczos coefficients",
+        )?;
+        Ok(acc.values(&bytes))
+    }
+
+    /// The Lanczos coefficients of the current run's first `iterations` (at most
+    /// [`LANCZOS_HIST`]): α_0..α_{k−1} and β_1..β_{k−1}.
+    pub fn lanczos_history(&self, iterations: usize) -> Result<(Vec<f64>, Vec<f64>), GpuError> {
+        let h = self.lanczos_pairs(iterations)?;
+        let k = h.len() / 2;
+        let alphas = (0..k).map(|j| h[2 * j]).collect();
+        let betas = (0..k.saturating_sub(1)).map(|j| h[2 * j + 1]).collect();
+        Ok((alphas, betas))
     }
 
     /// The solution y of Ĥ y = b̂ (frame coordinates, n·d) read back.
@@ -1123,6 +1157,48 @@ impl DeviceCg {
         Ok(())
     }
 
+    /// The coarse matrix E = ZᵀĤZ of the last `prepare` computed on the host in f64 from
+    /// `h` (the values this PCG holds, before rounding) and the frames `f` these frames
+    /// were built from, in place of the device's reduction: an f32 PCG sums blocks rounded
+    /// to f32, whose rounding (ε_f32‖H‖ per row) swamps a free body's mass term, the very
+    /// part of E the correction is for. The translations' absolute row sums (the check of
+    /// a pinned body) stay the device's. Call after every `prepare`.
+    pub fn set_galerkin_from_host(
+        &mut self,
+        frames: &DeviceFrames,
+        h: &crate::core::sparse::BlockCsr,
+        f: &crate::core::constraints::Frames,
+    ) -> Result<(), GpuError> {
+        self.own(frames)?;
+        if self.prepared != Some(frames.id) {
+            return Err(GpuError::Mismatch(
+                "the device CG was not prepared with these frames (call prepare first)".into(),
+            ));
+        }
+        let d = self.dim;
+        self.read_galerkin()?;
+        if let Galerkin::Read { e, einv, .. } = &mut self.galerkin {
+            let (host_e, _) = crate::solve::coarse::translations_galerkin_from_blocks(h, f);
+            *einv = crate::solve::coarse::pseudo_inverse(d, &host_e);
+            *e = host_e;
+        }
+        if let Some(a) = &frames.agg {
+            let (row_ptr, col_idx) = self.usize_pattern();
+            let agg = crate::solve::coarse::Aggregation::from_pattern(&row_ptr, &col_idx, f);
+            let einv = crate::solve::coarse::aggregates_einv_from_blocks(h, f, &agg)
+                .unwrap_or_else(|| vec![0.0; a.k * a.k]);
+            let acc = self.ty.acc;
+            self.ctx.write_buffer(
+                &frames.coarse_buf,
+                acc.size() * a.einv_at as u64,
+                &acc.bytes(&einv),
+            );
+            self.coarse_traffic.host_to_device_bytes += acc.size() * einv.len() as u64;
+            self.agg_ready = true;
+        }
+        Ok(())
+    }
+
     /// Refuses a system that a rigid translation of the free nodes leaves singular to
     /// working precision, by the CPU CG's test ([`crate::solve::coarse::is_unpinned`]),
     /// with every free node as one group (the CPU tests each connected group).
@@ -1387,7 +1463,7 @@ impl DeviceCg {
                 // by rounding: go on iterating.
                 self.clear_flags();
             }
-            let ended = self.chunks(frames, (pre, co), params, tol2 * bb, &mut st)?;
+            let ended = self.chunks(frames, (pre, co), params, tol2 * bb, &mut st, None)?;
             // The true residual at y: q = Ĥy (y copied into p), r = b̂ − q, p = z.
             self.clear_flags();
             let mut enc = self.encoder("pcg true residual");
@@ -1753,6 +1829,7 @@ impl DeviceCg {
         params: &DeviceCgParams,
         thresh: f64,
         st: &mut ChunkStatus,
+        mut watch: Option<&mut ChunkWatch>,
     ) -> Result<Chunked, GpuError> {
         let mut k = FIRST_CHUNK;
         let max = params.max_iterations;
@@ -1787,6 +1864,11 @@ impl DeviceCg {
             st.error(0)?;
             if st.converged {
                 return Ok(Chunked::Stopped);
+            }
+            if let Some(w) = watch.as_deref_mut() {
+                if w(self, st.iterations)? {
+                    return Ok(Chunked::Watched);
+                }
             }
             if st.rr < best {
                 (best, best_at) = (st.rr, st.iterations);

@@ -65,7 +65,7 @@ mod solver;
 
 pub use cg::{
     DeviceCg, DeviceCgInfo, DeviceCgParams, DeviceFrames, DispatchRecord, IterationProfile,
-    Scalars, SegmentEnd, SegmentInfo, SegmentStart, LANCZOS_HIST, PCG,
+    Scalars, SegmentEnd, SegmentInfo, SegmentStart, Watch, LANCZOS_HIST, PCG,
 };
 pub use multilevel::multilevel_bytes;
 pub use solver::PcgSolver;

@@ -14,7 +14,8 @@ use crate::gpu::blocks::{plan_rows, row_sums, values_limit, HostBlocks};
 use crate::gpu::context::padded_size;
 use crate::gpu::kernels::Real;
 use crate::gpu::solver::host::{blocks_diag_max, Host, HostOp};
-use crate::gpu::solver::MULTILEVEL_ON_CPU;
+use crate::gpu::solver::policy;
+use crate::gpu::solver::{DOES_NOT_FIT, MULTILEVEL_ON_CPU};
 use crate::gpu::{
     GpuContext, GpuError, GpuParams, GpuSolveInfo, Precision, SolveOutcome, StageSeconds,
 };
@@ -25,6 +26,8 @@ use crate::solve::multilevel::Hierarchy;
 use crate::solve::options::Preconditioner;
 use std::sync::Arc;
 use std::time::Instant;
+
+mod mixed;
 
 /// The scalar types of a solve of `e` in `params.precision`: f64, or f32 with the
 /// difference form as `params.f32_difference` decides (refusing mixed precision, f64
@@ -42,11 +45,17 @@ fn scalars_for(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<S
             return Err(GpuError::Unsupported(MULTILEVEL_ON_CPU.into()))
         }
         Precision::F32 => Real::F32,
-        Precision::Mixed => {
-            return Err(GpuError::Unsupported(
-                "the device PCG runs in f64 or f32; mixed precision is GpuSolver's".into(),
-            ))
+        // Mixed: f32 segments, their residual and y in f64 (solver/mixed.rs).
+        Precision::Mixed if !ctx.has_f64() => {
+            return Err(GpuError::NoF64 {
+                adapter: ctx.info.name.clone(),
+                precision: params.precision,
+            })
         }
+        Precision::Mixed if params.preconditioner == Preconditioner::Multilevel => {
+            return Err(GpuError::Unsupported(MULTILEVEL_ON_CPU.into()))
+        }
+        Precision::Mixed => Real::F32,
     };
     let difference = real == Real::F32
         && params
@@ -58,26 +67,29 @@ fn scalars_for(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<S
 /// Refuses, before anything is allocated, a system whose H, CG buffers and multilevel
 /// levels (`hierarchy`, when asked for) exceed the device memory in force, or one of whose
 /// level buffers exceeds the adapter's limits (the aggregates' index arrays, a few words
-/// per node, come on top).
+/// per node, come on top). Returns the bytes planned.
 fn check_memory(
     ctx: &GpuContext,
     e: &Eliminated,
     params: &GpuParams,
     hierarchy: Option<&Hierarchy>,
     ty: Scalars,
-) -> Result<(), GpuError> {
-    let need = memory_plan(ctx, e, params, hierarchy, ty)?;
-    ctx.check_fits(need, ctx.memory_in_force(params.memory_limit))
+) -> Result<u64, GpuError> {
+    let need = memory_plan(ctx, e, params, hierarchy, ty, true)?;
+    ctx.check_fits(need, ctx.memory_in_force(params.memory_limit))?;
+    Ok(need)
 }
 
-/// The bytes [`PcgSolver`] allocates for `e`: H's values, the CG's buffers and frames, the
-/// multilevel levels (`hierarchy`) and nothing else but the aggregates' arrays.
+/// The bytes [`PcgSolver`] allocates for `e` in one precision: H's values, the CG's
+/// buffers (with the Lanczos history where `lanczos`) and frames, the multilevel levels
+/// (`hierarchy`) and nothing else but the aggregates' arrays.
 fn memory_plan(
     ctx: &GpuContext,
     e: &Eliminated,
     params: &GpuParams,
     hierarchy: Option<&Hierarchy>,
     ty: Scalars,
+    lanczos: bool,
 ) -> Result<u64, GpuError> {
     let h = e.h;
     let block = ty.real.size() * (h.dim * h.dim) as u64;
@@ -97,7 +109,7 @@ fn memory_plan(
         (h.n, h.col_idx.len(), h.dim),
         plan.len(),
         e.frames.rot_nodes.len(),
-        true,
+        lanczos,
         ty,
     );
     let levels = match hierarchy {
@@ -131,6 +143,105 @@ pub struct PcgSolver {
     levels: KeptLevels,
     upload_seconds: f64,
     setup_seconds: f64,
+    /// Mixed precision's f64 side (`cg` is then its f32 level); None in f64 and f32.
+    mixed: Option<MixedSide>,
+}
+
+/// What a solve counted, for its report ([`PcgSolver::report`]).
+struct Tally {
+    iterations: usize,
+    recorded: usize,
+    reads: usize,
+    restarts: usize,
+    outer: usize,
+    relative_residual: f64,
+    solve_seconds: f64,
+    download_seconds: f64,
+    condition_estimate: Option<f64>,
+    fallback: Option<String>,
+    error_estimate: Option<f64>,
+}
+
+/// Mixed precision's f64 side ([`Precision::Mixed`]; solver/mixed.rs runs it).
+struct MixedSide {
+    /// Ĥ in f64 on the device: each segment's residual product, the f64 fallback's CG and
+    /// the corrections of extended-precision refinement. None where it does not fit in
+    /// device memory beside the f32 level: the residual is then formed on the host and
+    /// the fallback runs on the CPU.
+    level: Option<F64Level>,
+    /// 2^s: the f32 level holds 2^s Ĥ ([`policy::inner_scale`]).
+    inner_scale: f64,
+    /// Tests: the fallback runs on the CPU even where the f64 level exists.
+    force_cpu_fallback: bool,
+    /// Why the last solve left f32, and where it finished.
+    last_fallback: Option<String>,
+    /// Ĥ assembled for extended refinement's double-double residuals (on first use).
+    assembled: Option<crate::core::sparse::BlockCsr>,
+    /// Why the f64 level is missing.
+    missing: Option<String>,
+}
+
+/// The device PCG in f64 beside mixed precision's f32 level, on the same pattern and
+/// frames, with b̂ scaled by `rhs_scale` (as in f64).
+struct F64Level {
+    blocks: HostBlocks,
+    cg: DeviceCg,
+    frames: DeviceFrames,
+    rhs_scale: f64,
+}
+
+impl MixedSide {
+    /// The f64 level where it fits beside the `planned` bytes of the f32 level.
+    fn new(
+        ctx: &GpuContext,
+        e: &Eliminated,
+        params: &GpuParams,
+        planned: u64,
+        inner_scale: f64,
+    ) -> Result<Self, GpuError> {
+        let need = memory_plan(ctx, e, params, None, Scalars::F64, false);
+        let fits = need.and_then(|need| {
+            ctx.check_fits(planned + need, ctx.memory_in_force(params.memory_limit))
+        });
+        let (level, missing) = match fits {
+            Ok(()) => {
+                let blocks = HostBlocks::upload(ctx, e.h, Real::F64, params.binding_limit)?;
+                let cg = DeviceCg::new(ctx, blocks.matrix(), None, false, false)?;
+                let frames = cg.frames(e.frames, params.coarse)?;
+                let level = F64Level {
+                    blocks,
+                    cg,
+                    frames,
+                    rhs_scale: 1.0,
+                };
+                (Some(level), None)
+            }
+            Err(e @ GpuError::BufferTooLarge { .. }) => (None, Some(e.to_string())),
+            Err(GpuError::Device(m)) if m.contains(DOES_NOT_FIT) => (None, Some(m)),
+            Err(e) => return Err(e),
+        };
+        Ok(MixedSide {
+            level,
+            inner_scale,
+            force_cpu_fallback: false,
+            last_fallback: None,
+            assembled: None,
+            missing,
+        })
+    }
+}
+
+/// H with every value times `s` (a power of two: exact), or H itself for s = 1.
+fn scaled(
+    h: &crate::core::sparse::BlockCsr,
+    s: f64,
+) -> std::borrow::Cow<'_, crate::core::sparse::BlockCsr> {
+    if s == 1.0 {
+        return std::borrow::Cow::Borrowed(h);
+    }
+    let mut m = h.clone();
+    m.values.iter_mut().for_each(|v| *v *= s);
+    std::borrow::Cow::Owned(m)
 }
 
 impl PcgSolver {
@@ -185,19 +296,32 @@ impl PcgSolver {
                 .filter(|h| h.fits(e.h))
                 .unwrap_or_else(|| Arc::new(Hierarchy::new(e.h)))
         });
-        check_memory(ctx, e, params, hierarchy.as_deref(), ty)?;
+        let planned = check_memory(ctx, e, params, hierarchy.as_deref(), ty)?;
         let levels = match hierarchy {
             Some(h) => KeptLevels::with_hierarchy(params.multilevel_setup, h),
             None => KeptLevels::new(params.multilevel_setup),
         };
         let t0 = Instant::now();
-        let blocks = HostBlocks::upload(ctx, e.h, ty.real, params.binding_limit)?;
+        let mixed = params.precision == Precision::Mixed;
+        let inner_scale = if mixed {
+            policy::inner_scale(blocks_diag_max(e.h))
+        } else {
+            1.0
+        };
+        let h = scaled(e.h, inner_scale);
+        let blocks = HostBlocks::upload(ctx, &h, ty.real, params.binding_limit)?;
         let cg = DeviceCg::new(ctx, blocks.matrix(), None, true, ty.difference)?;
         if ty.difference {
-            cg.write_row_sums(&row_sums(e.h))?;
+            cg.write_row_sums(&row_sums(&h))?;
         }
         let frames = cg.frames(e.frames, params.coarse)?;
+        let mixed = if mixed {
+            Some(MixedSide::new(ctx, e, params, planned, inner_scale)?)
+        } else {
+            None
+        };
         Ok(PcgSolver {
+            mixed,
             ctx: ctx.clone(),
             params: params.clone(),
             ty,
@@ -216,9 +340,33 @@ impl PcgSolver {
     /// the multilevel levels from `shared` or the solver's own.
     fn prepare(&mut self, e: &Eliminated, shared: Option<&mut KeptLevels>) -> Result<(), GpuError> {
         let t = Instant::now();
-        self.rhs_scale = crate::solve::cg::rhs_scale(norm2(&self.host.rhs));
-        let scaled: Vec<f64> = self.host.rhs.iter().map(|v| v * self.rhs_scale).collect();
-        self.cg.prepare_with_rhs(&self.frames, &scaled)?;
+        let bn = norm2(&self.host.rhs);
+        let sigma = crate::solve::cg::rhs_scale(bn);
+        let by = |f: f64| -> Vec<f64> { self.host.rhs.iter().map(|v| v * f).collect() };
+        if let Some(m) = &mut self.mixed {
+            // The f32 level solves for unit right-hand sides (each segment writes its
+            // own); the f64 level holds σb̂ as an f64 solve would.
+            let unit = by(if bn > 0.0 { 1.0 / bn } else { 0.0 });
+            let rhs = by(sigma);
+            self.rhs_scale = 1.0;
+            self.cg.prepare_with_rhs(&self.frames, &unit)?;
+            if self.params.coarse != CoarseSpace::None {
+                let h = scaled(e.h, m.inner_scale);
+                self.cg.set_galerkin_from_host(&self.frames, &h, e.frames)?;
+            }
+            if let Some(l) = &mut m.level {
+                l.rhs_scale = sigma;
+                l.cg.prepare_with_rhs(&l.frames, &rhs)?;
+            }
+        } else {
+            self.rhs_scale = sigma;
+            let scaled = by(sigma);
+            self.cg.prepare_with_rhs(&self.frames, &scaled)?;
+            if self.ty.real == Real::F32 && self.params.coarse != CoarseSpace::None {
+                self.cg
+                    .set_galerkin_from_host(&self.frames, e.h, e.frames)?;
+            }
+        }
         if self.params.preconditioner == Preconditioner::Multilevel {
             let (ml, _) = shared.unwrap_or(&mut self.levels).for_system(e);
             self.cg
@@ -245,7 +393,14 @@ impl PcgSolver {
         let ty = scalars_for(ctx, e, params)?;
         let hierarchy =
             (params.preconditioner == Preconditioner::Multilevel).then(|| Hierarchy::new(e.h));
-        memory_plan(ctx, e, params, hierarchy.as_ref(), ty)
+        let own = memory_plan(ctx, e, params, hierarchy.as_ref(), ty, true)?;
+        // Mixed precision adds its f64 level where it fits (see `MixedSide`).
+        let f64_level = if params.precision == Precision::Mixed {
+            memory_plan(ctx, e, params, None, Scalars::F64, false)?
+        } else {
+            0
+        };
+        Ok(own + f64_level)
     }
 
     /// Sets the relative residual tolerance of the next solves; refuses a value outside
@@ -280,13 +435,25 @@ impl PcgSolver {
                 "the constraint set changed; build a new solver".into(),
             ));
         }
-        self.blocks.write(&self.ctx, e.h)?;
+        let s = self.mixed.as_ref().map_or(1.0, |m| m.inner_scale);
+        let h = scaled(e.h, s);
+        self.blocks.write(&self.ctx, &h)?;
         if self.ty.difference {
-            self.cg.write_row_sums(&row_sums(e.h))?;
+            self.cg.write_row_sums(&row_sums(&h))?;
         }
         // New rotations of the same constraint set (a slip plane turned) need new frames.
-        if e.frames.rotations != f.rotations {
+        let turned = e.frames.rotations != f.rotations;
+        if turned {
             self.frames = self.cg.frames(e.frames, self.params.coarse)?;
+        }
+        if let Some(m) = &mut self.mixed {
+            m.assembled = None;
+            if let Some(l) = &mut m.level {
+                l.blocks.write(&self.ctx, e.h)?;
+                if turned {
+                    l.frames = l.cg.frames(e.frames, self.params.coarse)?;
+                }
+            }
         }
         if let HostOp::Blocks(h) = &mut self.host.op {
             h.values.copy_from_slice(&e.h.values);
@@ -314,6 +481,9 @@ impl PcgSolver {
         &mut self,
         mut shared: Option<&mut KeptLevels>,
     ) -> Result<SolveOutcome, GpuError> {
+        if self.mixed.is_some() {
+            return self.solve_mixed();
+        }
         let multilevel = self.params.preconditioner == Preconditioner::Multilevel;
         let first = self.solve_once().map_err(|e| self.in_precision(e));
         let levels = match shared.as_deref_mut() {
@@ -358,7 +528,7 @@ impl PcgSolver {
         match e {
             GpuError::Cg(
                 c @ (CgError::NonPositiveCurvature { .. } | CgError::Stagnation { .. }),
-            ) if self.ty.real == Real::F32 => GpuError::InF32(c),
+            ) if self.params.precision == Precision::F32 => GpuError::InF32(c),
             other => other,
         }
     }
@@ -441,9 +611,37 @@ impl PcgSolver {
         }
         let solve_s = t0.elapsed().as_secs_f64() - download;
         let dx = self.host.recover(&y);
-        let profile = self.cg.iteration_profile(&self.frames, &cg_params)?;
+        let info = self.report(
+            &cg_params,
+            Tally {
+                iterations,
+                recorded,
+                reads,
+                restarts,
+                outer: 0,
+                relative_residual: rel,
+                solve_seconds: solve_s,
+                download_seconds: download,
+                condition_estimate: kappa,
+                fallback: None,
+                error_estimate: None,
+            },
+            notes,
+        )?;
+        Ok(SolveOutcome { y, dx, info })
+    }
+
+    /// The report of a solve: its tally, the iteration's profile (dispatches and the bytes
+    /// it must move, of `cg_params` on the main level), the coarse space as it ran.
+    fn report(
+        &self,
+        cg_params: &DeviceCgParams,
+        t: Tally,
+        notes: Vec<String>,
+    ) -> Result<GpuSolveInfo, GpuError> {
+        let profile = self.cg.iteration_profile(&self.frames, cg_params)?;
         let bpi = profile.bytes;
-        let moved = bpi as f64 * iterations as f64;
+        let moved = bpi as f64 * t.iterations as f64;
         let joined = |v: Vec<usize>| {
             v.iter()
                 .map(|c| c.to_string())
@@ -475,21 +673,21 @@ impl PcgSolver {
             precision: self.params.precision,
             coarse,
             f32_difference: self.ty.difference,
-            iterations,
-            recorded_iterations: recorded.max(iterations),
-            outer_refinements: 0,
-            restarts,
-            relative_residual: rel,
+            iterations: t.iterations,
+            recorded_iterations: t.recorded.max(t.iterations),
+            outer_refinements: t.outer,
+            restarts: t.restarts,
+            relative_residual: t.relative_residual,
             seconds: StageSeconds {
                 upload: self.upload_seconds,
                 setup: self.setup_seconds,
-                solve: solve_s,
-                download,
+                solve: t.solve_seconds,
+                download: t.download_seconds,
             },
             gpu_seconds: None,
             bytes_per_iteration: bpi,
-            achieved_gb_per_s: if solve_s > 0.0 {
-                moved / solve_s / 1e9
+            achieved_gb_per_s: if t.solve_seconds > 0.0 {
+                moved / t.solve_seconds / 1e9
             } else {
                 0.0
             },
@@ -502,13 +700,13 @@ impl PcgSolver {
                 .max()
                 .unwrap_or(1)
                 .min(u32::MAX as u64) as u32,
-            readbacks: reads,
-            fallback: None,
-            error_estimate: None,
-            condition_estimate: kappa,
+            readbacks: t.reads,
+            fallback: t.fallback,
+            error_estimate: t.error_estimate,
+            condition_estimate: t.condition_estimate,
             notes,
         };
-        Ok(SolveOutcome { y, dx, info })
+        Ok(info)
     }
 
     /// Device time of each dispatch of one CG iteration (see

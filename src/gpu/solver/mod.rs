@@ -31,7 +31,7 @@ mod inspect;
 mod levels;
 mod mixed;
 mod plan;
-mod policy;
+pub(crate) mod policy;
 mod run;
 mod setup;
 mod state;

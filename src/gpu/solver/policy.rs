@@ -7,7 +7,7 @@ use crate::gpu::GpuParams;
 /// f32 CG is given up for f64 once κ̃(M⁻¹Ĥ)·ε_f32 exceeds this. There f32 CG's loss of
 /// orthogonality costs more iterations than f32 saves (kappa-1e6, κ̃ε = 0.09: 2.3× f64's
 /// count; needles, 0.014: 1.6×; see STABILITY.md).
-pub(super) const F32_KAPPA_LIMIT: f64 = 0.05;
+pub(crate) const F32_KAPPA_LIMIT: f64 = 0.05;
 
 /// An f32 segment must reduce the f64 residual by at least this factor (2×); less, and
 /// the f32 operator no longer represents Ĥ well enough to make progress.
@@ -15,7 +15,7 @@ const MIN_REDUCTION: f64 = 0.5;
 
 /// Why the f32 phase of a mixed solve ends without convergence.
 #[derive(Debug, Clone, PartialEq)]
-pub(super) enum Stop {
+pub(crate) enum Stop {
     /// Hand the rest of the solve to f64 CG, warm-started from the f64 iterate; the
     /// reason is reported.
     Fallback(String),
@@ -27,7 +27,7 @@ pub(super) enum Stop {
 
 /// The thresholds of a mixed solve (`GpuParams`: tol, inner_tol, max_outer, max_iters).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub(super) struct MixedPolicy {
+pub(crate) struct MixedPolicy {
     tol: f64,
     inner_tol: f64,
     max_outer: usize,
@@ -35,7 +35,7 @@ pub(super) struct MixedPolicy {
 }
 
 impl MixedPolicy {
-    pub(super) fn new(p: &GpuParams) -> Self {
+    pub(crate) fn new(p: &GpuParams) -> Self {
         MixedPolicy {
             tol: p.tol,
             inner_tol: p.inner_tol,
@@ -45,13 +45,13 @@ impl MixedPolicy {
     }
 
     /// Whether the relative f64 residual meets the tolerance.
-    pub(super) fn converged(&self, rel: f64) -> bool {
+    pub(crate) fn converged(&self, rel: f64) -> bool {
         rel <= self.tol
     }
 
     /// Whether the f32 phase stops before outer step `outer + 1`, given the relative f64
     /// residual `rel` now and `prev` before the last segment, after `total` iterations.
-    pub(super) fn before_segment(
+    pub(crate) fn before_segment(
         &self,
         outer: usize,
         total: usize,
@@ -89,7 +89,7 @@ impl MixedPolicy {
     /// that of the whole (the extreme eigenvalues of a tridiagonal's leading submatrices
     /// interlace), so the earlier check gives up f32 only where the check at the segment's
     /// end would have, and sooner.
-    pub(super) fn kappa_verdict(&self, outer: usize, kappa: Option<f64>) -> Option<String> {
+    pub(crate) fn kappa_verdict(&self, outer: usize, kappa: Option<f64>) -> Option<String> {
         let k = kappa?;
         let ke = k * f64::from(f32::EPSILON);
         (ke > F32_KAPPA_LIMIT).then(|| {
@@ -103,7 +103,7 @@ impl MixedPolicy {
 
     /// The f32 CG's stopping threshold on its recurrence residual² for a unit right-hand
     /// side: δ² (a segment ends once the residual has dropped by δ = inner_tol).
-    pub(super) fn inner_threshold(&self) -> f64 {
+    pub(crate) fn inner_threshold(&self) -> f64 {
         self.inner_tol * self.inner_tol
     }
 
@@ -113,7 +113,7 @@ impl MixedPolicy {
     /// predictions. Segments shorten as the kept Krylov space grows (dt-1e2), but a first
     /// segment's late rate can be a slow phase after a fast start (neohookean-nu0.49: 54
     /// iterations, late rate predicting 284).
-    pub(super) fn segment_hint(&self, it: usize, late_rate: Option<f64>) -> usize {
+    pub(crate) fn segment_hint(&self, it: usize, late_rate: Option<f64>) -> usize {
         let by_rate = late_rate.map_or(usize::MAX, |r| {
             (-self.inner_threshold().ln() / r).ceil().min(1e6) as usize
         });
@@ -125,7 +125,7 @@ impl MixedPolicy {
 /// direction is rescaled by `pscale` = ‖r_prev‖/‖r‖ (the ratio of the two unit
 /// normalizations of the right-hand side) and ρ_prev by pscale². None when the new
 /// residual is zero (nothing to continue).
-pub(super) fn resume_scales(rho_prev: f64, rn_prev: f64, rn: f64) -> Option<(f64, f64)> {
+pub(crate) fn resume_scales(rho_prev: f64, rn_prev: f64, rn: f64) -> Option<(f64, f64)> {
     (rn > 0.0).then(|| {
         let ps = rn_prev / rn;
         (rho_prev * ps * ps, ps)
@@ -135,7 +135,7 @@ pub(super) fn resume_scales(rho_prev: f64, rn_prev: f64, rn: f64) -> Option<(f64
 /// The power of two 2^s that brings H's largest diagonal entry to [1, 2) when it lies
 /// outside [2^-20, 2^20] (else 1): the f32 operator of mixed precision holds 2^s·Ĥ, which
 /// is exact in floating point and keeps f32 far from underflow and overflow.
-pub(super) fn inner_scale(diag_max: f64) -> f64 {
+pub(crate) fn inner_scale(diag_max: f64) -> f64 {
     if !(diag_max > 0.0 && diag_max.is_finite()) {
         return 1.0;
     }

@@ -6,7 +6,8 @@
 //! of restarting from p = z.
 
 use super::{
-    Begun, Chunked, DeviceCg, DeviceCgParams, DeviceFrames, SegmentEnd, SegmentInfo, SegmentStart,
+    Begun, ChunkWatch, Chunked, DeviceCg, DeviceCgParams, DeviceFrames, SegmentEnd, SegmentInfo,
+    SegmentStart, Watch,
 };
 use crate::gpu::kernels::slots;
 use crate::gpu::GpuError;
@@ -46,12 +47,15 @@ impl DeviceCg {
     /// is then [`DeviceCg::read_y`]'s, and after `Converged` p and ρ (in the returned
     /// info) are those a [`SegmentStart::Resume`] goes on from. Non-positive curvature and
     /// breakdowns are errors, as in [`DeviceCg::iterate`]. The multilevel preconditioner
-    /// does not resume (its V-cycle forms p itself).
+    /// does not resume (its V-cycle forms p itself). `watch`, where given, looks at the run
+    /// after every status read (with the iterations so far) and may stop it
+    /// (`SegmentEnd::Watched`).
     pub fn segment(
         &mut self,
         frames: &DeviceFrames,
         params: &DeviceCgParams,
         start: SegmentStart,
+        watch: Option<&mut Watch>,
     ) -> Result<SegmentInfo, GpuError> {
         let Begun {
             tol,
@@ -108,13 +112,26 @@ impl DeviceCg {
             &acc.bytes(&[0.0]),
         );
         self.run_starts = vec![0];
+        let start_rho = st.rho;
         let bb = st.bb;
         let mut end = SegmentEnd::Converged;
         // The recurrence r·r at the last window's end: a window without a fall below it
         // is stagnation.
         let mut last_check = st.rr;
+        let mut inner = watch.map(|w| move |cg: &DeviceCg, it: usize| w(cg, it, start_rho));
         while !st.converged {
-            match self.chunks(frames, (pre, co), params, tol * tol * bb, &mut st)? {
+            match self.chunks(
+                frames,
+                (pre, co),
+                params,
+                tol * tol * bb,
+                &mut st,
+                inner.as_mut().map(|w| w as &mut ChunkWatch),
+            )? {
+                Chunked::Watched => {
+                    end = SegmentEnd::Watched;
+                    break;
+                }
                 Chunked::Stopped if st.converged => {}
                 Chunked::Stopped => {
                     end = SegmentEnd::MaxIterations;
@@ -140,7 +157,26 @@ impl DeviceCg {
                 st.rr.sqrt() / rhs_norm
             },
             rho: st.rho,
+            start_rho,
             rhs_norm,
         })
+    }
+}
+
+impl DeviceCg {
+    /// Writes y (frame coordinates, n·d): the start of a following
+    /// [`DeviceCg::iterate_from_current`] (a warm start from an iterate formed elsewhere).
+    pub fn write_y(&mut self, frames: &DeviceFrames, y: &[f64]) -> Result<(), GpuError> {
+        self.own(frames)?;
+        if y.len() != self.n_nodes * self.dim {
+            return Err(GpuError::Mismatch(format!(
+                "y has {} entries, the system {}",
+                y.len(),
+                self.n_nodes * self.dim
+            )));
+        }
+        self.ctx
+            .write_buffer(&self.buf.y, 0, &self.ty.real.bytes(y));
+        Ok(())
     }
 }
