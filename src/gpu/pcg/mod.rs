@@ -61,6 +61,7 @@
 pub mod aggregates;
 mod cg;
 mod multilevel;
+pub mod refine;
 mod solver;
 
 pub use cg::{

@@ -179,6 +179,8 @@ struct MixedSide {
     assembled: Option<crate::core::sparse::BlockCsr>,
     /// Why the f64 level is missing.
     missing: Option<String>,
+    /// The kernels that keep stage 1's y and residual on the device (with the level).
+    refine: Option<super::refine::Refine>,
 }
 
 /// The device PCG in f64 beside mixed precision's f32 level, on the same pattern and
@@ -188,6 +190,8 @@ struct F64Level {
     cg: DeviceCg,
     frames: DeviceFrames,
     rhs_scale: f64,
+    /// Whether its b̂ is σb̂ (extended refinement solves for other right-hand sides).
+    holds_rhs: bool,
 }
 
 impl MixedSide {
@@ -198,6 +202,7 @@ impl MixedSide {
         params: &GpuParams,
         planned: u64,
         inner_scale: f64,
+        f32_level: &DeviceCg,
     ) -> Result<Self, GpuError> {
         let need = memory_plan(ctx, e, params, None, Scalars::F64, false);
         let fits = need.and_then(|need| {
@@ -213,6 +218,7 @@ impl MixedSide {
                     cg,
                     frames,
                     rhs_scale: 1.0,
+                    holds_rhs: false,
                 };
                 (Some(level), None)
             }
@@ -220,8 +226,13 @@ impl MixedSide {
             Err(GpuError::Device(m)) if m.contains(DOES_NOT_FIT) => (None, Some(m)),
             Err(e) => return Err(e),
         };
+        let refine = match &level {
+            Some(l) => Some(super::refine::Refine::new(ctx, &l.cg, f32_level)?),
+            None => None,
+        };
         Ok(MixedSide {
             level,
+            refine,
             inner_scale,
             force_cpu_fallback: false,
             last_fallback: None,
@@ -316,7 +327,7 @@ impl PcgSolver {
         }
         let frames = cg.frames(e.frames, params.coarse)?;
         let mixed = if mixed {
-            Some(MixedSide::new(ctx, e, params, planned, inner_scale)?)
+            Some(MixedSide::new(ctx, e, params, planned, inner_scale, &cg)?)
         } else {
             None
         };
@@ -357,6 +368,7 @@ impl PcgSolver {
             if let Some(l) = &mut m.level {
                 l.rhs_scale = sigma;
                 l.cg.prepare_with_rhs(&l.frames, &rhs)?;
+                l.holds_rhs = true;
             }
         } else {
             self.rhs_scale = sigma;

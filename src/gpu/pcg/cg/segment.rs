@@ -180,3 +180,46 @@ impl DeviceCg {
         Ok(())
     }
 }
+
+impl DeviceCg {
+    /// The true residual r = b̂ − Ĥy of the current y, formed in this PCG's precision by
+    /// the kernels of a restart (left in r, with z and p as a restart leaves them):
+    /// (r·r, ‖b̂‖²) read back with the status. y is unchanged.
+    pub fn residual_norm(
+        &mut self,
+        frames: &DeviceFrames,
+        params: &DeviceCgParams,
+    ) -> Result<(f64, f64), GpuError> {
+        let Begun { pre, co, scal, .. } = self.begin(frames, params)?;
+        let acc = self.ty.acc;
+        self.ctx.write_buffer(&self.buf.scal, 0, &acc.bytes(&scal));
+        self.ctx
+            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
+        let mut enc = self.encoder("pcg residual");
+        let mut kernels = self.product_of_y(&mut enc, frames);
+        kernels.extend(self.start(frames, pre, co));
+        Self::pass(&mut enc, "pcg residual", &kernels);
+        let st = self.submit_and_read(enc, "the device PCG's residual")?;
+        st.error(0)?;
+        Ok((st.rr, st.bb))
+    }
+
+    /// Unknowns (n·d).
+    pub fn n_dofs(&self) -> u64 {
+        (self.n_nodes * self.dim) as u64
+    }
+
+    /// r, b̂ and y on the device (`real`, n·d): for kernels that move vectors between two
+    /// PCGs (mixed precision's refinement, `gpu::pcg::refine`).
+    pub(crate) fn residual_buffer(&self) -> &wgpu::Buffer {
+        &self.buf.r
+    }
+
+    pub(crate) fn rhs_buffer(&self) -> &wgpu::Buffer {
+        &self.buf.b
+    }
+
+    pub(crate) fn y_buffer(&self) -> &wgpu::Buffer {
+        &self.buf.y
+    }
+}

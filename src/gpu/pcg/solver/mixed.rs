@@ -185,20 +185,29 @@ impl PcgSolver {
         }
         let policy = MixedPolicy::new(&self.params);
         let mut c = Count::default();
+        // y on the host where the f64 level is missing; else in that level's y.
         let mut y = vec![0.0; nd];
         if bn == 0.0 {
             notes.push("b̂ = 0: y = 0 without iterating".into());
             return self.finish(t0, c, y, None, None, notes);
+        }
+        let rhs = self.host.rhs.clone();
+        if let Some(l) = &mut self.side_mut().level {
+            l.cg.write_y(&l.frames, &y)?;
+            if !l.holds_rhs {
+                let b: Vec<f64> = rhs.iter().map(|v| v * l.rhs_scale).collect();
+                l.cg.set_rhs(&l.frames, &b)?;
+                l.holds_rhs = true;
+            }
         }
         let mut prev = f64::INFINITY;
         // (ρ of the last α, ‖r‖) of a converged segment: the next one resumes from them.
         let mut keep: Option<(f64, f64)> = None;
         let mut lz = Lanczos::default();
         let reason: String = loop {
-            let r = self.residual(&y, &mut c)?;
-            let rn = norm2(&r);
-            let rel = rn / bn;
+            let (rn, rel) = self.outer_residual(&y, scale, &mut c)?;
             if policy.converged(rel) {
+                let y = self.outer_y(&y, &mut c)?;
                 let true_rel = self.host.relative_residual(&y);
                 if policy.converged(true_rel) {
                     return self.certify_and_finish(t0, c, y, None, notes);
@@ -210,12 +219,14 @@ impl PcgSolver {
             match policy.before_segment(c.outer, c.iterations, rel, prev) {
                 None => {}
                 Some(Stop::Fallback(why)) => {
+                    y = self.outer_y(&y, &mut c)?;
                     if !rel.is_finite() {
                         y.fill(0.0);
                     }
                     break why;
                 }
                 Some(stop) => {
+                    let y = self.outer_y(&y, &mut c)?;
                     let relative_residual = self.host.relative_residual(&y);
                     let iterations = c.iterations;
                     return Err(if stop == Stop::MaxIterations {
@@ -235,8 +246,6 @@ impl PcgSolver {
                 }
             }
             prev = rel;
-            let unit: Vec<f64> = r.iter().map(|v| v / rn).collect();
-            self.cg.set_rhs(&self.frames, &unit)?;
             let start = keep
                 .take()
                 .and_then(|(rho, rn_prev)| resume_scales(rho, rn_prev, rn))
@@ -280,6 +289,7 @@ impl PcgSolver {
                     c.kappa(lz.kappa());
                     if let Some(why) = watched.or_else(|| policy.kappa_verdict(c.outer, lz.kappa()))
                     {
+                        y = self.outer_y(&y, &mut c)?;
                         break why;
                     }
                 }
@@ -291,6 +301,7 @@ impl PcgSolver {
                     c.outer += 1;
                     // y is the last iterate before the rejected step: keep its progress.
                     self.accumulate(&mut y, scale * rn, &mut c)?;
+                    y = self.outer_y(&y, &mut c)?;
                     break format!(
                         "outer step {}: the f32 inner CG met non-positive curvature pᵀĤp = \
                          {curvature:e} at iteration {} (f32 rounding; f64 CG checks Ĥ again)",
@@ -301,6 +312,7 @@ impl PcgSolver {
                 Err(GpuError::Cg(CgError::Breakdown { iteration })) => {
                     c.iterations += iteration;
                     c.outer += 1;
+                    y = self.outer_y(&y, &mut c)?;
                     break format!(
                         "outer step {}: the f32 inner CG broke down (non-finite value) at \
                          iteration {}",
@@ -321,29 +333,44 @@ impl PcgSolver {
         self.mixed.as_ref().expect("a mixed-precision solver")
     }
 
-    /// r = b̂ − Ĥy in f64: the product on the f64 level, or on the host without it.
-    fn residual(&mut self, y: &[f64], c: &mut Count) -> Result<Vec<f64>, GpuError> {
-        let mut q = match &mut self.side_mut().level {
-            Some(l) => {
-                let t = Instant::now();
-                let q = l.cg.apply(&l.frames, y)?;
-                c.download += t.elapsed().as_secs_f64();
-                q
+    /// Stage 1's residual r = b̂ − Ĥy in f64 and the next segment's right-hand side
+    /// r/‖r‖ (with the factor 2^s‖r‖ of the next `accumulate`): on the device, from the
+    /// f64 level's y, where that level exists (two scalars move); else on the host from
+    /// `y`. Returns ‖r‖ (scaled by the f64 level's σ on the device) and ‖r‖/‖b̂‖.
+    fn outer_residual(
+        &mut self,
+        y: &[f64],
+        scale: f64,
+        c: &mut Count,
+    ) -> Result<(f64, f64), GpuError> {
+        let params = self.seg_params(self.params.tol, 0);
+        if let Some(m) = &mut self.mixed {
+            if let (Some(l), Some(refine)) = (&mut m.level, &m.refine) {
+                let (rr, bb) = l.cg.residual_norm(&l.frames, &params)?;
+                c.reads += 1;
+                let rn = rr.max(0.0).sqrt();
+                let rel = if bb > 0.0 { rn / bb.sqrt() } else { 0.0 };
+                refine.scale_rhs(rn, scale)?;
+                return Ok((rn, rel));
             }
-            None => {
-                let mut q = vec![0.0; y.len()];
-                self.host.apply(y, &mut q);
-                q
-            }
-        };
-        for (qk, bk) in q.iter_mut().zip(&self.host.rhs) {
-            *qk = bk - *qk;
         }
-        Ok(q)
+        let mut r = vec![0.0; y.len()];
+        self.host.apply(y, &mut r);
+        for (rk, bk) in r.iter_mut().zip(&self.host.rhs) {
+            *rk = bk - *rk;
+        }
+        let rn = norm2(&r);
+        let unit: Vec<f64> = r.iter().map(|v| v / rn).collect();
+        self.cg.set_rhs(&self.frames, &unit)?;
+        Ok((rn, rn / norm2(&self.host.rhs)))
     }
 
-    /// y += f·d with d the f32 level's iterate.
+    /// y += f·d with d the f32 level's segment solution: on the device (the factor
+    /// `outer_residual` wrote), or on the host.
     fn accumulate(&mut self, y: &mut [f64], f: f64, c: &mut Count) -> Result<(), GpuError> {
+        if let Some(refine) = self.mixed.as_ref().and_then(|m| m.refine.as_ref()) {
+            return refine.accumulate();
+        }
         let t = Instant::now();
         let d = self.cg.read_y()?;
         c.download += t.elapsed().as_secs_f64();
@@ -351,6 +378,15 @@ impl PcgSolver {
             *yk += f * dk;
         }
         Ok(())
+    }
+
+    /// Stage 1's y on the host: read back from the f64 level where it lives there.
+    fn outer_y(&mut self, y: &[f64], c: &mut Count) -> Result<Vec<f64>, GpuError> {
+        if self.side().refine.is_some() {
+            self.f64_iterate(c)
+        } else {
+            Ok(y.to_vec())
+        }
     }
 
     /// Stages 2 and 3: f64 CG from y, and extended refinement if it stagnates.
@@ -441,6 +477,7 @@ impl PcgSolver {
             // Extended refinement may have left another b̂ there.
             let b: Vec<f64> = rhs.iter().map(|v| v * sigma).collect();
             l.cg.set_rhs(&l.frames, &b)?;
+            l.holds_rhs = true;
             let y: Vec<f64> = y0.iter().map(|v| v * sigma).collect();
             l.cg.write_y(&l.frames, &y)?;
         }
@@ -605,6 +642,7 @@ impl PcgSolver {
                     ));
                 };
                 l.cg.set_rhs(&l.frames, &unit)?;
+                l.holds_rhs = false;
                 let info =
                     l.cg.segment(&l.frames, &params, SegmentStart::Fresh, None)
                         .map_err(|e| offset(e, c.iterations))?;
