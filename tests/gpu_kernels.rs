@@ -431,8 +431,9 @@ fn spring_kernel_matches_assembled_operator() {
     }
 }
 
-/// The one block-Jacobi specification on blocks that are not SPD: the device builds, in
-/// f64 and f32, what the CPU's `block_jacobi_inverse` and `jacobi_inverse` give: B⁻¹ where
+/// The one block-Jacobi specification on blocks that are not SPD: the device PCG and the
+/// precision kernels build, in f64 and f32, what the CPU's `block_jacobi_inverse` and
+/// `jacobi_inverse` give: B⁻¹ where
 /// every Cholesky pivot is positive and finite, else the Jacobi diagonal (1/B_aa where
 /// B_aa is positive, else 1). The fallback is a decision, so its pattern must match
 /// exactly; the values agree to a few ulps of the precision (f64: the same operations,
@@ -492,13 +493,29 @@ fn block_jacobi_follows_one_specification_on_blocks_that_are_not_spd() {
             } else {
                 &[(Precision::F32, 4e-7)]
             };
-            for &(prec, ulps) in precisions {
-                let mut sol = GpuSolver::new(ctx, &e, &params(prec, pc)).expect("solver");
-                let got = sol.preconditioner_data().expect("download");
-                assert_eq!(got.len(), want.len());
+            let device_pcg = |prec| -> Vec<f64> {
+                PcgSolver::new(ctx, &e, &params(prec, pc))
+                    .expect("solver")
+                    .preconditioner_data()
+                    .expect("download")
+            };
+            let kernels = |prec| -> Vec<f64> {
+                GpuSolver::new(ctx, &e, &params(prec, pc))
+                    .expect("solver")
+                    .preconditioner_data()
+                    .expect("download")
+            };
+            for (&(prec, ulps), solver, got) in precisions.iter().flat_map(|p| {
+                [
+                    (p, "device PCG", device_pcg(p.0)),
+                    (p, "precision kernels", kernels(p.0)),
+                ]
+            }) {
+                assert_eq!(got.len(), want.len(), "{solver}");
                 let per = want.len() / n;
                 for (i, (g, w)) in got.chunks(per).zip(want.chunks(per)).enumerate() {
-                    let what = format!("{dim}D {pc:?} {prec}: node {i}: {g:?} against {w:?}");
+                    let what =
+                        format!("{solver} {dim}D {pc:?} {prec}: node {i}: {g:?} against {w:?}");
                     // The fallback's pattern: zero where the CPU has zero.
                     let zeros = |v: &[f64]| v.iter().map(|x| *x == 0.0).collect::<Vec<_>>();
                     assert_eq!(zeros(g), zeros(w), "{what}");

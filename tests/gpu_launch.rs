@@ -7,7 +7,7 @@
 
 use stickslip::cases::generate::{random_system, SystemSpec};
 use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::gpu::{GpuParams, GpuSolver, Precision};
+use stickslip::gpu::{GpuParams, GpuSolver, PcgSolver, Precision};
 use stickslip::solve::cg::Preconditioner;
 use stickslip::solve::coarse::CoarseSpace;
 
@@ -18,10 +18,10 @@ fn bits(v: &[f64]) -> Vec<u64> {
     v.iter().map(|x| x.to_bits()).collect()
 }
 
-/// Every GPU CG (2D and 3D; f64, f32, mixed; block-Jacobi and Jacobi with the aggregate
-/// coarse space) with at most 8 workgroups per dimension against the adapter's limit:
-/// the 16 CG reductions run as 8×2, the per-row and per-DOF kernels in two dimensions
-/// and grid-stride.
+/// `solve --solver gpu` in every precision (the device PCG; 2D and 3D; f64, f32, mixed
+/// with its refinement kernels; block-Jacobi and Jacobi with the aggregate coarse space)
+/// with at most 8 workgroups per dimension against the adapter's limit: the segmented
+/// reductions, the per-row and per-DOF kernels run in two dimensions and grid-stride.
 #[test]
 fn a_forced_dispatch_limit_gives_the_same_bits_in_every_solver() {
     let Some((ctx, _g)) = gpu() else { return };
@@ -56,8 +56,8 @@ fn a_forced_dispatch_limit_gives_the_same_bits_in_every_solver() {
                     ..Default::default()
                 };
                 let what = format!("{dim}D {precision} coarse {}", coarse.name());
-                let mut a = GpuSolver::new(ctx, &e, &p).expect("solver builds");
-                let mut b = GpuSolver::new(&forced, &e, &p).expect("forced solver builds");
+                let mut a = PcgSolver::new(ctx, &e, &p).expect("solver builds");
+                let mut b = PcgSolver::new(&forced, &e, &p).expect("forced solver builds");
                 let (ra, rb) = (a.solve().expect("solves"), b.solve().expect("solves"));
                 assert!(ra.info.relative_residual <= tol, "{what}: {:?}", ra.info);
                 assert_eq!(ra.info.iterations, rb.info.iterations, "{what}");

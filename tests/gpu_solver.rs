@@ -899,9 +899,8 @@ fn mixed_reliable_updates_cost_about_the_iterations_of_f64_cg() {
         mixed.outer_refinements
     );
     assert!(mixed.error_estimate.is_none());
-    // Each segment's first chunk is the previous segment's length and the next one is
-    // predicted from the unit starting residual: few iterations recorded past convergence
-    // (71% over before the starting point was given to the predictor).
+    // Each segment's chunks after the first are predicted from its residual's fall (the
+    // chunk schedule of every device CG run): few iterations recorded past convergence.
     eprintln!(
         "mixed recorded {} iterations for {} useful",
         mixed.recorded_iterations, mixed.iterations

@@ -1,9 +1,9 @@
 //! GPU solvers (wgpu) for the eliminated system Ĥ y = b̂ of docs/method.md ("The
-//! eliminated system", "Solvers", "The GPU CG loop"): the device PCG in f64 and f32
+//! eliminated system", "Solvers", "The GPU CG loop"): the device PCG in every precision
 //! ([`pcg`], on any device block matrix: the Newton loop's assembly or an uploaded host H)
-//! and the precision kernels of mixed precision and the matrix-free mass-spring operator
-//! ([`solver`]), over shared device plumbing (context, launches, schedule, slot table, the
-//! scalar types of [`kernels::Real`]).
+//! and the precision kernels of the matrix-free mass-spring operator ([`solver`], which
+//! no solve of the product runs), over shared device plumbing (context, launches,
+//! schedule, slot table, the scalar types of [`kernels::Real`]).
 
 pub mod blocks;
 pub mod context;

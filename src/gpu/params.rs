@@ -49,12 +49,14 @@ impl DifferenceForm {
 /// and so of the partial sums one reduction leaves: the partial-sum buffers hold this many.
 pub const MAX_WORKGROUPS: u32 = 256;
 
-/// Parameters of a GPU solve. In f64 and f32 the facade runs the device PCG
-/// ([`crate::gpu::PcgSolver`]), which takes `tol`, `max_iters`, `preconditioner`,
+/// Parameters of a GPU solve. The facade runs the device PCG ([`crate::gpu::PcgSolver`])
+/// in every precision, which takes `precision`, `tol`, `max_iters`, `preconditioner`,
 /// `coarse`, `multilevel_setup`, `stagnation_window` (checked at each status read),
-/// `max_restarts`, `f32_difference`, `binding_limit` and `memory_limit`; its workgroups
-/// and chunk lengths follow the device's own policy (`gpu::launch`, `gpu::schedule`). The
-/// other fields serve mixed precision ([`crate::gpu::GpuSolver`]).
+/// `max_restarts`, `f32_difference`, `binding_limit`, `memory_limit` and, in mixed
+/// precision, `inner_tol`, `max_outer` and `error_tol`; its workgroups and chunk lengths
+/// follow the device's own policy (`gpu::launch`, `gpu::schedule`). `first_chunk`,
+/// `max_chunk`, `workgroup_size` and `workgroups` serve only the precision kernels
+/// ([`crate::gpu::GpuSolver`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct GpuParams {
     pub precision: Precision,
@@ -110,7 +112,7 @@ pub struct GpuParams {
     /// [`crate::solve::coarse`]); the same choice as [`crate::solve::cg::CgParams::coarse`].
     pub coarse: CoarseSpace,
     /// Whether f32 operators of an assembled Ĥ use the difference form (the device PCG's
-    /// `DIFF` in shaders/pcg.wgsl, in the world frame; mixed precision's in
+    /// `DIFF` in shaders/pcg.wgsl, in the world frame; the precision kernels' in
     /// shaders/matvec.wgsl, in each node's frame: row sums summed in f64 on the host),
     /// which keeps the eigenvalues of the rigid translations that plain f32 rounding
     /// perturbs by ε_f32·‖Ĥ‖. See [`DifferenceForm`]; f64 operators never use it.

@@ -782,6 +782,27 @@ impl DeviceCg {
         Ok((alphas, betas))
     }
 
+    /// The preconditioner the last `prepare` built, read back in the CPU CG's layout
+    /// ([`crate::solve::cg::BuiltPreconditioner::data`]): the Jacobi diagonal (n·d) or the
+    /// block-Jacobi inverses (n·d², row-major per node); empty for none and the multilevel
+    /// preconditioner. For tests of the one block-Jacobi specification.
+    pub fn preconditioner_data(&self, pc: Preconditioner) -> Result<Vec<f64>, GpuError> {
+        let (n, d) = (self.n_nodes, self.dim);
+        let (first, len) = match pc {
+            Preconditioner::Jacobi => (n * d * d, n * d),
+            Preconditioner::BlockJacobi => (0, n * d * d),
+            _ => return Ok(Vec::new()),
+        };
+        let rs = self.ty.real.size();
+        let bytes = self.ctx.download(
+            &self.buf.minv,
+            rs * first as u64,
+            rs * len as u64,
+            "reading back the preconditioner",
+        )?;
+        Ok(self.ty.real.values(&bytes))
+    }
+
     /// The solution y of Ĥ y = b̂ (frame coordinates, n·d) read back.
     pub fn read_y(&self) -> Result<Vec<f64>, GpuError> {
         self.read_vector(&self.buf.y, "reading back the PCG's solution")

@@ -743,6 +743,12 @@ impl PcgSolver {
         self.cg.apply(&self.frames, x)
     }
 
+    /// The preconditioner of the current system as the device built it, in the CPU CG's
+    /// layout (see [`DeviceCg::preconditioner_data`]; mixed: its f32 level's).
+    pub fn preconditioner_data(&self) -> Result<Vec<f64>, GpuError> {
+        self.cg.preconditioner_data(self.params.preconditioner)
+    }
+
     /// Whether the f32 product takes the difference form.
     pub fn difference_form(&self) -> bool {
         self.ty.difference

@@ -1,8 +1,9 @@
-//! Device-resident preconditioned CG in mixed precision, and on the matrix-free
-//! mass-spring operator (docs/method.md, "The GPU CG loop"): its f32 level is mixed
-//! precision's inner CG and its f64 level mixed precision's fallback. f64 and f32 solves
-//! of an assembled system go to the device PCG of [`crate::gpu::pcg`] through the facade;
-//! [`GpuSolver::new`] still takes f32 and f64 on their own, for tests of these kernels.
+//! The precision kernels: device-resident preconditioned CG in f32, f64 and mixed
+//! precision, and on the matrix-free mass-spring operator (docs/method.md, "The GPU CG
+//! loop"). No solve of the product runs them: every precision of an assembled system goes
+//! to the device PCG of [`crate::gpu::pcg`] through the facade. They stay for the
+//! matrix-free operator and for the measurements that compare the two kernel sets; their
+//! host-side pieces (`host`, `policy`, `info`) serve the device PCG too.
 //!
 //! Per iteration three dispatches: `matvec` (q = Ĥp fused with p·q partials), `update_xrz`
 //! (α reduced redundantly per workgroup; x, r, z updated; r·z and r·r partials) and
