@@ -1,5 +1,5 @@
 //! The device PCG on an eliminated system from the host: what `solve --solver gpu` runs
-//! in f64 and f32 (through the facade's engine). H is uploaded once per pattern into the
+//! in every precision (through the facade's engine; mixed precision: solver/mixed.rs). H is uploaded once per pattern into the
 //! block layout the device assembly writes ([`HostBlocks`]), in f64 or rounded to f32
 //! (with the difference form's row sums, summed in f64, beside it), b̂ with each system;
 //! the CG is the device Newton loop's own ([`DeviceCg`]), so the two give the same
@@ -29,9 +29,9 @@ use std::time::Instant;
 
 mod mixed;
 
-/// The scalar types of a solve of `e` in `params.precision`: f64, or f32 with the
-/// difference form as `params.f32_difference` decides (refusing mixed precision, f64
-/// without SHADER_F64 and the multilevel preconditioner in f32).
+/// The scalar types of a solve of `e` in `params.precision` (mixed: of its f32 level):
+/// f64, or f32 with the difference form as `params.f32_difference` decides (refusing f64
+/// and mixed without SHADER_F64 and the multilevel preconditioner in f32 and mixed).
 fn scalars_for(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<Scalars, GpuError> {
     let real = match params.precision {
         Precision::F64 if !ctx.has_f64() => {
@@ -256,8 +256,9 @@ fn scaled(
 }
 
 impl PcgSolver {
-    /// Uploads `e`'s H, frames and b̂ and builds the CG. Refuses mixed precision, f64 on
-    /// a device without SHADER_F64, the multilevel preconditioner in f32, a system over
+    /// Uploads `e`'s H, frames and b̂ and builds the CG (mixed: its f32 level, and the f64
+    /// level where it fits). Refuses f64 and mixed on a device without SHADER_F64, the
+    /// multilevel preconditioner in f32 and mixed, a system over
     /// the device memory and (as the CPU CG) one that a rigid translation
     /// leaves singular. With the multilevel preconditioner the host builds its levels
     /// (the CPU CG's [`crate::solve::multilevel::Multilevel`], clusters partitioned once
