@@ -1006,6 +1006,12 @@ impl DeviceCg {
     /// [`DeviceCg::prepare`] with b̂ given (frame coordinates, zero in the constrained
     /// components, n·d) for a PCG built without a gradient.
     pub fn prepare_with_rhs(&mut self, frames: &DeviceFrames, rhs: &[f64]) -> Result<(), GpuError> {
+        self.write_rhs(frames, rhs)?;
+        self.prepare_kernels(frames, true)
+    }
+
+    /// Writes a given b̂ (refused for a PCG that forms it from its gradient).
+    fn write_rhs(&mut self, frames: &DeviceFrames, rhs: &[f64]) -> Result<(), GpuError> {
         if !self.given_rhs {
             return Err(GpuError::Mismatch(
                 "this device PCG forms b̂ from its gradient (prepare)".into(),
@@ -1021,7 +1027,30 @@ impl DeviceCg {
         self.own(frames)?;
         self.ctx
             .write_buffer(&self.buf.b, 0, &self.ty.real.bytes(rhs));
-        self.prepare_kernels(frames, true)
+        Ok(())
+    }
+
+    /// Refuses frames that the last `prepare` did not see.
+    fn check_prepared(&self, frames: &DeviceFrames) -> Result<(), GpuError> {
+        if self.prepared != Some(frames.id) {
+            return Err(GpuError::Mismatch(
+                "the device CG was not prepared with these frames (call prepare first)".into(),
+            ));
+        }
+        Ok(())
+    }
+
+    /// E⁺ of the aggregates written for the iterations of the current `prepare`.
+    fn write_aggregate_einv(&mut self, frames: &DeviceFrames, einv: &[f64]) {
+        let Some(a) = &frames.agg else { return };
+        let acc = self.ty.acc;
+        self.ctx.write_buffer(
+            &frames.coarse_buf,
+            acc.size() * a.einv_at as u64,
+            &acc.bytes(einv),
+        );
+        self.coarse_traffic.host_to_device_bytes += acc.size() * einv.len() as u64;
+        self.agg_ready = true;
     }
 
     fn prepare_kernels(&mut self, frames: &DeviceFrames, given: bool) -> Result<(), GpuError> {
@@ -1128,15 +1157,8 @@ impl DeviceCg {
         let einv =
             crate::solve::coarse::aggregates_einv_from_galerkin(self.dim, a.count, e, &a.gram)
                 .unwrap_or_else(|| vec![0.0; a.k * a.k]);
-        let acc = self.ty.acc;
-        self.ctx.write_buffer(
-            &frames.coarse_buf,
-            acc.size() * a.einv_at as u64,
-            &acc.bytes(&einv),
-        );
-        self.coarse_traffic.device_to_host_bytes += acc.size() * (a.k * a.k) as u64;
-        self.coarse_traffic.host_to_device_bytes += acc.size() * einv.len() as u64;
-        self.agg_ready = true;
+        self.coarse_traffic.device_to_host_bytes += self.ty.acc.size() * (a.k * a.k) as u64;
+        self.write_aggregate_einv(frames, &einv);
         Ok(())
     }
 
@@ -1191,11 +1213,7 @@ impl DeviceCg {
         f: &crate::core::constraints::Frames,
     ) -> Result<(), GpuError> {
         self.own(frames)?;
-        if self.prepared != Some(frames.id) {
-            return Err(GpuError::Mismatch(
-                "the device CG was not prepared with these frames (call prepare first)".into(),
-            ));
-        }
+        self.check_prepared(frames)?;
         let d = self.dim;
         self.read_galerkin()?;
         if let Galerkin::Read { e, einv, .. } = &mut self.galerkin {
@@ -1208,14 +1226,7 @@ impl DeviceCg {
             let agg = crate::solve::coarse::Aggregation::from_pattern(&row_ptr, &col_idx, f);
             let einv = crate::solve::coarse::aggregates_einv_from_blocks(h, f, &agg)
                 .unwrap_or_else(|| vec![0.0; a.k * a.k]);
-            let acc = self.ty.acc;
-            self.ctx.write_buffer(
-                &frames.coarse_buf,
-                acc.size() * a.einv_at as u64,
-                &acc.bytes(&einv),
-            );
-            self.coarse_traffic.host_to_device_bytes += acc.size() * einv.len() as u64;
-            self.agg_ready = true;
+            self.write_aggregate_einv(frames, &einv);
         }
         Ok(())
     }
@@ -1368,11 +1379,7 @@ impl DeviceCg {
     /// and the scalars it starts from (written by the caller).
     fn begin(&mut self, frames: &DeviceFrames, params: &DeviceCgParams) -> Result<Begun, GpuError> {
         self.own(frames)?;
-        if self.prepared != Some(frames.id) {
-            return Err(GpuError::Mismatch(
-                "the device CG was not prepared with these frames (call prepare first)".into(),
-            ));
-        }
+        self.check_prepared(frames)?;
         let tol = check_tol(params.tol)?;
         let (pre, co) = overrides(params, frames)?;
         if pre != 3

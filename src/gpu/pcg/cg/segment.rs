@@ -17,29 +17,9 @@ impl DeviceCg {
     /// [`DeviceCg::segment`], keeping the preconditioner of the last
     /// [`DeviceCg::prepare_with_rhs`] with these frames.
     pub fn set_rhs(&mut self, frames: &DeviceFrames, rhs: &[f64]) -> Result<(), GpuError> {
-        if !self.given_rhs {
-            return Err(GpuError::Mismatch(
-                "this device PCG forms b̂ from its gradient (prepare)".into(),
-            ));
-        }
-        if rhs.len() != self.n_nodes * self.dim {
-            return Err(GpuError::Mismatch(format!(
-                "b̂ has {} entries, the system {}",
-                rhs.len(),
-                self.n_nodes * self.dim
-            )));
-        }
         self.own(frames)?;
-        if self.prepared != Some(frames.id) {
-            return Err(GpuError::Mismatch(
-                "the device CG was not prepared with these frames (call prepare_with_rhs \
-                 first)"
-                    .into(),
-            ));
-        }
-        self.ctx
-            .write_buffer(&self.buf.b, 0, &self.ty.real.bytes(rhs));
-        Ok(())
+        self.check_prepared(frames)?;
+        self.write_rhs(frames, rhs)
     }
 
     /// CG from y = 0 on the current b̂ until the recurrence residual √(r·r)/‖b̂‖ meets
