@@ -1,13 +1,12 @@
-//! Measures the precision kernels (`GpuSolver`: mixed precision's f32 and f64 levels;
-//! `solve --solver gpu` runs f32 and f64 on the device PCG, which examples/pcg_kernels.rs
-//! and `stickslip bench` measure) against the CPU CG on a large 3D system:
+//! Measures the device PCG (what `solve --solver gpu` runs) against the CPU CG on a large
+//! 3D system:
 //! `cargo run --release --example gpu_measure -- [nodes] [precision] [tol]`.
 
 use std::time::Instant;
 use stickslip::cases::generate::{random_system, SystemSpec};
 use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::gpu::{
-    measure_copy_bandwidth, GpuContext, GpuOptions, GpuParams, GpuSolver, Precision, SolveOutcome,
+    measure_copy_bandwidth, GpuContext, GpuOptions, GpuParams, PcgSolver, Precision, SolveOutcome,
 };
 use stickslip::solve::cg::{self, CgParams, Preconditioner};
 
@@ -45,14 +44,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         tol,
         max_iters: 20_000,
         preconditioner: Preconditioner::Jacobi,
-        workgroup_size: std::env::var("WG")
-            .ok()
-            .and_then(|v| v.parse().ok())
-            .unwrap_or(64),
         ..Default::default()
     };
     let t = Instant::now();
-    let mut sol = GpuSolver::new(&ctx, &e, &params)?;
+    let mut sol = PcgSolver::new(&ctx, &e, &params)?;
     let build = t.elapsed().as_secs_f64();
     if std::env::var("MEASURE_MATVEC").is_ok() {
         // Operator kernel alone (upload of p and download of q included, ~2·dofs·4 bytes).
@@ -107,12 +102,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
     println!("gpu: {}", serde_json::to_string_pretty(&info)?);
     println!("gpu: solver build (pipelines, buffers, upload, setup) {build:.3} s");
-    let r = sol.resources();
     println!(
-        "gpu: {} buffers, {:.1} MiB; dispatches {:?}",
-        r.buffers.len(),
-        r.total_bytes() as f64 / (1 << 20) as f64,
-        r.dispatches
+        "gpu: {:.1} MiB of device memory",
+        PcgSolver::memory_needed(&ctx, &e, &params)? as f64 / (1 << 20) as f64
     );
     if std::env::var("SKIP_CPU").is_ok() {
         return Ok(());

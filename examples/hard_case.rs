@@ -1,18 +1,15 @@
-//! Runs one hard case (src/app/hard.rs) at a grid scale on the GPU's precision kernels
-//! (`GpuSolver`: f64 CG on mixed precision's f64 level, and mixed precision; `bench --hard`
-//! times the device PCG's f64 against mixed),
-//! each without and with the coarse correction on the translations, solved alternately
+//! Runs one hard case (src/app/hard.rs) at a grid scale on the device PCG in f64 and in
+//! mixed precision, each without and with a coarse correction, solved alternately
 //! (best of `reps` after a warm-up, so machine noise hits every configuration alike):
 //! `cargo run --release --example hard_case -- NAME [scale] [tol] [reps]`.
 //! `STICKSLIP_NO_DIFF=1` turns the f32 difference form off (`GpuParams::f32_difference`),
 //! `STICKSLIP_DIFF=1` on for every f32 operator;
 //! `STICKSLIP_INNER_TOL=δ` sets mixed precision's reliable-update factor;
-//! `STICKSLIP_WORKGROUPS=n` the workgroups of the CG kernels (`GpuParams::workgroups`);
 //! `STICKSLIP_COARSE=aggregates` the coarse space of the second pair (default translations),
 //! `STICKSLIP_ONLY_COARSE=1` runs that pair only.
 
 use stickslip::app::hard::{self, Size};
-use stickslip::gpu::{DifferenceForm, GpuContext, GpuOptions, GpuParams, GpuSolver, Precision};
+use stickslip::gpu::{DifferenceForm, GpuContext, GpuOptions, GpuParams, PcgSolver, Precision};
 use stickslip::solve::coarse::CoarseSpace;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -32,9 +29,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(GpuParams::default().inner_tol);
-    let workgroups = std::env::var("STICKSLIP_WORKGROUPS")
-        .ok()
-        .and_then(|s| s.parse().ok());
     let size = Size::from_scale(scale);
     let case = hard::named(size, &name).ok_or_else(|| format!("no hard case named {name}"))?;
     let e = case.eliminated();
@@ -65,10 +59,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             coarse,
             f32_difference: diff_choice,
             inner_tol,
-            workgroups,
             ..Default::default()
         };
-        solvers.push(GpuSolver::new(&ctx, &e, &params)?);
+        solvers.push(PcgSolver::new(&ctx, &e, &params)?);
     }
     let mut best = vec![f64::INFINITY; configs.len()];
     let mut last = vec![None; configs.len()];

@@ -1,12 +1,11 @@
-//! A/B of mixed precision on the device PCG against the device PCG in f64 and against the
-//! precision kernels' mixed precision (`GpuSolver`), on one generated 3D system,
-//! alternating runs in one process (this machine is noisy):
+//! A/B of mixed precision on the device PCG against the device PCG in f64, on one
+//! generated 3D system, alternating runs in one process (this machine is noisy):
 //! `cargo run --release --example mixed_ab -- [nodes] [tol] [reps]`.
 
 use stickslip::cases::generate::{random_system, SystemSpec};
 use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::gpu::{
-    GpuContext, GpuError, GpuOptions, GpuParams, GpuSolveInfo, GpuSolver, PcgSolver, Precision,
+    GpuContext, GpuError, GpuOptions, GpuParams, GpuSolveInfo, PcgSolver, Precision,
 };
 
 type Run<'a> = Box<dyn FnMut() -> Result<GpuSolveInfo, GpuError> + 'a>;
@@ -28,14 +27,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let mut f64_pcg = PcgSolver::new(&ctx, &e, &params(Precision::F64))?;
     let mut mixed_pcg = PcgSolver::new(&ctx, &e, &params(Precision::Mixed))?;
-    let mut mixed_kernels = GpuSolver::new(&ctx, &e, &params(Precision::Mixed))?;
     let mut runs: Vec<(&str, Run)> = vec![
         ("PCG f64", Box::new(|| f64_pcg.solve().map(|o| o.info))),
         ("PCG mixed", Box::new(|| mixed_pcg.solve().map(|o| o.info))),
-        (
-            "kernels mixed",
-            Box::new(|| mixed_kernels.solve().map(|o| o.info)),
-        ),
     ];
     println!(
         "{} nodes, {} dofs, tol {tol:e}, adapter {}",

@@ -1,9 +1,8 @@
-//! Device time per kernel of one CG iteration: the device PCG (`gpu::pcg`, what
-//! `solve --solver gpu` runs in f64 and f32, and the device Newton loop in f64) against
-//! the precision kernels (`gpu::GpuSolver`, mixed precision's levels), on one generated 3D
-//! system with the realistic constraint mix, without and with the aggregates; in f64 then
-//! the device PCG with the multilevel preconditioner (its V-cycle's kernels by level, the
-//! levels built on the host); in f32 each with and without the difference form.
+//! Device time per kernel of one CG iteration of the device PCG (`gpu::pcg`, what
+//! `solve --solver gpu` and the device Newton loop run), on one generated 3D system with
+//! the realistic constraint mix, without and with the aggregates; in f64 then with the
+//! multilevel preconditioner (its V-cycle's kernels by level, the levels built on the
+//! host); in f32 with and without the difference form.
 //!
 //!     cargo run --release --example pcg_kernels -- [NODES] [REPS] [f64|f32]
 //!
@@ -12,9 +11,7 @@
 
 use stickslip::cases::generate::{random_system, SystemSpec};
 use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::gpu::{
-    DifferenceForm, GpuContext, GpuOptions, GpuParams, GpuSolver, KernelTime, PcgSolver,
-};
+use stickslip::gpu::{DifferenceForm, GpuContext, GpuOptions, GpuParams, KernelTime, PcgSolver};
 use stickslip::solve::cg::Preconditioner;
 use stickslip::solve::coarse::CoarseSpace;
 use stickslip::Precision;
@@ -59,11 +56,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             );
             let mut pcg = PcgSolver::new(&ctx, &e, &p)?;
             print(&format!("device PCG {what}"), pcg.profile_kernels(reps)?);
-            let mut kernels = GpuSolver::new(&ctx, &e, &p)?;
-            print(
-                &format!("precision kernels {what}"),
-                kernels.profile_kernels(reps)?,
-            );
         }
     }
     if precision != Precision::F64 {

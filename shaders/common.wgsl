@@ -1,33 +1,9 @@
 // Declarations every stickslip kernel shares, prepended by `gpu::kernels::prelude` after
 // the scalar-type aliases and the shared constants (the slots of `scal`, `state` and the
-// partial sums, COL_BITS, NO_ROTATION, ...: `gpu::kernels::SHARED`). WGSL has no include,
+// partial sums, NO_ROTATION, ...: `gpu::kernels::SHARED`). WGSL has no include,
 // so this is the one copy.
 
-// Uniform parameters of every kernel; mirrors `Params` in src/gpu/solver/builder.rs
-// (four u32, 16 bytes, size-asserted there).
-struct Params {
-    n_nodes: u32,
-    n_rot: u32,
-    n_partials: u32,
-    n_blocks: u32,
-}
-
-// The row range of one dispatch of a kernel that reads per-block arrays (matvec.wgsl,
-// precond.wgsl, rotate_blocks.wgsl); mirrors `ChunkParams` in src/gpu/solver/builder.rs.
-// Why: an array larger than the adapter's storage binding limit is bound in pieces, one
-// per row chunk, each at an offset of the whole buffer: block k of rows row0..row1 is
-// entry k − kbase of the bound piece. A system within the limit is one chunk (0, n, 0).
-// flags: CHUNK_FIRST (no earlier chunk in this product), CHUNK_LAST (no later one).
-struct Chunk {
-    row0: u32,
-    row1: u32,
-    kbase: u32,
-    flags: u32,
-}
-const CHUNK_FIRST: u32 = 1u;
-const CHUNK_LAST: u32 = 2u;
-
-// Workgroup size: a power of two, at most WG_MAX, set per pipeline.
+// Workgroup size: a power of two, set per pipeline.
 override WG: u32 = 64u;
 
 // The workgroup reduction of every kernel: up to five sums at once share one tree (on CPU

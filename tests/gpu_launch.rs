@@ -7,7 +7,7 @@
 
 use stickslip::cases::generate::{random_system, SystemSpec};
 use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::gpu::{GpuParams, GpuSolver, PcgSolver, Precision};
+use stickslip::gpu::{GpuParams, PcgSolver, Precision};
 use stickslip::solve::cg::Preconditioner;
 use stickslip::solve::coarse::CoarseSpace;
 
@@ -72,27 +72,6 @@ fn a_forced_dispatch_limit_gives_the_same_bits_in_every_solver() {
         }
     }
     assert!(cases >= 4);
-}
-
-/// A reduction whose workgroups do not split under the forced limit is refused when the
-/// solver is built, in words, not a device error.
-#[test]
-fn a_reduction_that_cannot_split_is_refused_before_any_work() {
-    let Some((ctx, _g)) = gpu() else { return };
-    let s = random_system(&SystemSpec::with_nodes(3, 1000, 11));
-    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
-    let p = GpuParams {
-        workgroups: Some(13),
-        ..Default::default()
-    };
-    let err = GpuSolver::new(&ctx.with_dispatch_limit(Some(4)), &e, &p)
-        .err()
-        .expect("13 workgroups do not split into 4 × 4");
-    let msg = err.to_string();
-    assert!(
-        msg.contains("13 workgroups") && msg.contains("at most 4"),
-        "{msg}"
-    );
 }
 
 /// The device Newton loop (element terms, assembly, Newton operations, device CG) on a

@@ -1,39 +1,30 @@
-//! Per-block arrays larger than the storage binding limit are bound in row-chunk pieces
-//! and every kernel over them runs once per chunk. `GpuParams::binding_limit` lowers the
-//! limit so that ~1,000-node systems take that path on any adapter; the chunked solve must
-//! equal the one-chunk solve bit for bit: every row is computed by the same operations on
-//! the same values, and each invocation's p·q sum runs over the same rows in the same
-//! order (carried between the chunk dispatches), so the two differ in addresses only.
-//! A system over the device memory is refused before anything is allocated.
+//! H's values larger than the storage binding limit are split into row chunks, one buffer
+//! each, and every kernel that reads them runs once per chunk. `GpuParams::binding_limit`
+//! lowers the limit so that ~1,000-node systems take that path on any adapter; the
+//! chunked solve must equal the one-chunk solve bit for bit: every row is computed by the
+//! same operations on the same values, and a reduction segment cut by a chunk's end
+//! carries each invocation's running sum to the next chunk's dispatch, so the two differ
+//! in addresses only. A system over the device memory is refused before anything is
+//! allocated.
 
 use stickslip::cases::generate::{random_system, SystemSpec};
 use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
-use stickslip::gpu::{
-    DifferenceForm, GpuError, GpuParams, GpuSolver, PcgSolver, Precision, Resources, SolveOutcome,
-};
+use stickslip::gpu::{DifferenceForm, GpuError, GpuParams, PcgSolver, Precision, SolveOutcome};
 use stickslip::solve::cg::Preconditioner;
 use stickslip::solve::coarse::CoarseSpace;
 
 mod common;
 use common::gpu::gpu;
 
-/// Chunks of the operator whose block planes are labelled `blocks_{real}`.
-fn chunks(r: &Resources, real: &str) -> usize {
-    let prefix = format!("blocks_{real}_chunk");
-    r.buffers
-        .iter()
-        .filter(|b| b.label.starts_with(&prefix))
-        .count()
-}
-
+/// The solution and the values chunks (the solver's level, mixed's f64 level).
 fn solve(
     ctx: &stickslip::gpu::GpuContext,
     e: &Eliminated,
     p: &GpuParams,
-) -> (SolveOutcome, Resources) {
-    let mut s = GpuSolver::new(ctx, e, p).expect("solver builds");
+) -> (SolveOutcome, (usize, Option<usize>)) {
+    let mut s = PcgSolver::new(ctx, e, p).expect("solver builds");
     let out = s.solve().expect("solve converges");
-    (out, s.resources())
+    (out, s.values_chunks())
 }
 
 fn bits(v: &[f64]) -> Vec<u64> {
@@ -50,11 +41,8 @@ fn chunked_operators_give_the_one_chunk_solution_bit_for_bit() {
         let s = random_system(&SystemSpec::with_nodes(dim, 1000, 7));
         let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
         assert!(s.frames.has_rotation() && s.frames.has_constraints());
-        // f32 plane a (16 bytes a block) in at least three pieces, f64 in more; the
-        // per-node arrays (here at most the f64 block-Jacobi inverse, d² values a node)
-        // stay whole and must fit.
-        let n = s.frames.n_nodes as u64;
-        let limit = (s.h.nnz_blocks() as u64 * 16 / 3).max(n * (dim * dim) as u64 * 8) / 4 * 4;
+        // f32 values (4d² bytes a block) in at least three pieces, f64 in more.
+        let limit = s.h.nnz_blocks() as u64 * (4 * dim * dim) as u64 / 3 / 16 * 16;
         let precisions: &[Precision] = if ctx.has_f64() {
             &[Precision::F64, Precision::F32, Precision::Mixed]
         } else {
@@ -90,20 +78,12 @@ fn chunked_operators_give_the_one_chunk_solution_bit_for_bit() {
                 let (a, ra) = solve(ctx, &e, &base);
                 let (b, rb) = solve(ctx, &e, &split);
                 let what = format!("{dim}D {precision} coarse {}", coarse.name());
-                let real = if precision == Precision::F64 {
-                    "f64"
-                } else {
-                    "f32"
-                };
-                assert_eq!(chunks(&ra, real), 1, "{what}: one chunk without the cap");
-                assert!(
-                    chunks(&rb, real) >= 3,
-                    "{what}: {} chunks under the cap",
-                    chunks(&rb, real)
-                );
+                assert_eq!(ra.0, 1, "{what}: one chunk without the cap");
+                assert!(ra.1.is_none_or(|c| c == 1), "{what}: {ra:?}");
+                assert!(rb.0 >= 3, "{what}: {} chunks under the cap", rb.0);
                 if precision == Precision::Mixed {
-                    // The f64 operator of the outer residual is chunked too.
-                    assert!(chunks(&rb, "f64") >= 3, "{what}: f64 outer operator");
+                    // The f64 level of the outer residual is split too.
+                    assert!(rb.1.is_some_and(|c| c >= 3), "{what}: f64 level {rb:?}");
                 }
                 assert!(a.info.relative_residual <= tol, "{what}: {a:?}");
                 assert_eq!(a.info.iterations, b.info.iterations, "{what}");
@@ -112,9 +92,7 @@ fn chunked_operators_give_the_one_chunk_solution_bit_for_bit() {
                 assert!(bits(&a.dx) == bits(&b.dx), "{what}: Δx differs");
                 eprintln!(
                     "{what}: {} iterations, rel. residual {:.3e}, {} chunks, bitwise equal",
-                    a.info.iterations,
-                    a.info.relative_residual,
-                    chunks(&rb, real)
+                    a.info.iterations, a.info.relative_residual, rb.0
                 );
                 cases += 1;
             }
@@ -123,41 +101,16 @@ fn chunked_operators_give_the_one_chunk_solution_bit_for_bit() {
     assert!(cases >= 4);
 }
 
-/// Arrays per node stay one binding each: under a cap below them the solver is refused
-/// before any work with the array's name and sizes, not a device failure.
-#[test]
-fn a_binding_limit_below_the_per_node_arrays_is_refused() {
-    let Some((ctx, _g)) = gpu() else { return };
-    let s = random_system(&SystemSpec::with_nodes(3, 1000, 7));
-    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
-    let p = GpuParams {
-        precision: Precision::F32,
-        binding_limit: Some(1024),
-        ..Default::default()
-    };
-    match GpuSolver::new(ctx, &e, &p) {
-        Err(err @ GpuError::BufferTooLarge { .. }) => {
-            let m = err.to_string();
-            assert!(
-                m.contains(stickslip::gpu::DOES_NOT_FIT) && m.contains("1024"),
-                "{m}"
-            );
-        }
-        Err(other) => panic!("unexpected error {other}"),
-        Ok(_) => panic!("a 1024-byte binding limit was accepted"),
-    }
-}
-
-/// The device memory a solver needs is computed before anything is allocated, and is
-/// exactly what it then allocates: with `memory_limit` one byte below the total the
-/// system is refused with one line naming both numbers; at the total it builds.
+/// The device memory a solver needs is computed before anything is allocated
+/// ([`PcgSolver::memory_needed`]): with `memory_limit` at it the solver builds; one byte
+/// below, f64 and f32 are refused with one line naming both numbers, and mixed builds
+/// without its f64 level (its residual then formed on the host).
 #[test]
 fn a_system_larger_than_device_memory_is_refused_with_the_exact_need() {
     let Some((ctx, _g)) = gpu() else { return };
     let s = random_system(&SystemSpec::with_nodes(3, 1000, 7));
     let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
-    let n = s.frames.n_nodes as u64;
-    let split = (s.h.nnz_blocks() as u64 * 16 / 3).max(n * 72) / 4 * 4;
+    let split = s.h.nnz_blocks() as u64 * 36 / 3 / 16 * 16;
     let precisions: &[Precision] = if ctx.has_f64() {
         &[Precision::F64, Precision::F32, Precision::Mixed]
     } else {
@@ -181,21 +134,29 @@ fn a_system_larger_than_device_memory_is_refused_with_the_exact_need() {
                 ..Default::default()
             };
             let what = format!("{precision} {} {pc:?} cap {limit:?}", coarse.name());
-            let total = GpuSolver::new(ctx, &e, &p)
-                .expect("builds")
-                .resources()
-                .total_bytes();
+            let total = PcgSolver::memory_needed(ctx, &e, &p).expect("a plan");
             let tight = GpuParams {
                 memory_limit: Some(total),
                 ..p.clone()
             };
-            assert!(GpuSolver::new(ctx, &e, &tight).is_ok(), "{what}");
+            let built = PcgSolver::new(ctx, &e, &tight).expect("builds at its need");
+            if precision == Precision::Mixed {
+                assert!(built.has_f64_level(), "{what}");
+            }
+            drop(built);
             let short = GpuParams {
                 memory_limit: Some(total - 1),
                 ..p.clone()
             };
-            match GpuSolver::new(ctx, &e, &short) {
-                Err(GpuError::Device(m)) => {
+            match PcgSolver::new(ctx, &e, &short) {
+                Ok(s) if precision == Precision::Mixed => {
+                    assert!(
+                        !s.has_f64_level(),
+                        "{what}: the f64 level in {} bytes",
+                        total - 1
+                    )
+                }
+                Err(GpuError::Device(m)) if precision != Precision::Mixed => {
                     assert!(m.contains(stickslip::gpu::DOES_NOT_FIT), "{what}: {m}");
                     assert!(m.contains(&format!("needs {total} bytes")), "{what}: {m}");
                     assert!(

@@ -301,8 +301,7 @@ fn gpu_sweep(ctx: &GpuContext) -> Vec<String> {
                 None => format!("gpu {precision}+{} tol {tol:e}", coarse.name()),
             };
             let target = error_tol.is_some() && p.kappa <= KAPPA_TARGET;
-            // What `solve --solver gpu` runs: the device PCG in f64 and f32, the
-            // precision kernels in mixed precision.
+            // What `solve --solver gpu` runs: the device PCG in every precision.
             let mut solver = match PcgSolver::new(ctx, &e, &params) {
                 Ok(s) => s,
                 Err(err) => {
@@ -590,7 +589,7 @@ fn projected_element_hessians_are_psd_on_inverted_and_degenerate_elements() {
     }
 }
 
-/// The GPU's κ̃(M⁻¹Ĥ), from the Lanczos coefficients cg.wgsl records, matches the CPU
+/// The GPU's κ̃(M⁻¹Ĥ), from the Lanczos coefficients pcg.wgsl records, matches the CPU
 /// CG's (both f64, Jacobi, one uninterrupted run: the same Ritz values up to rounding in
 /// the coefficients; 2% allows different summation orders in the reductions), and it
 /// steers mixed precision: without the coarse correction f32 is left for f64 where

@@ -21,15 +21,11 @@ fn every_shader_parses_and_validates() {
     let mut checked = 0;
     for path in &files {
         let src = std::fs::read_to_string(path).expect("readable shader");
-        for (real, acc, packed) in stickslip::gpu::kernels::PRELUDES {
-            let full = format!(
-                "{}{}",
-                stickslip::gpu::kernels::prelude(real, acc, packed),
-                src
-            );
+        for (real, acc) in stickslip::gpu::kernels::PRELUDES {
+            let full = format!("{}{}", stickslip::gpu::kernels::prelude(real, acc), src);
             let module = naga::front::wgsl::parse_str(&full).unwrap_or_else(|e| {
                 panic!(
-                    "{} ({real}/{acc}/packed {packed}) does not parse:\n{}",
+                    "{} ({real}/{acc}) does not parse:\n{}",
                     path.display(),
                     e.emit_to_string(&full)
                 )
@@ -37,7 +33,7 @@ fn every_shader_parses_and_validates() {
             let mut v = Validator::new(ValidationFlags::all(), Capabilities::all());
             if let Err(e) = v.validate(&module) {
                 panic!(
-                    "{} ({real}/{acc}/packed {packed}) does not validate:\n{}",
+                    "{} ({real}/{acc}) does not validate:\n{}",
                     path.display(),
                     e.emit_to_string(&full)
                 );

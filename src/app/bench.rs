@@ -351,7 +351,6 @@ fn bench_one(
                     coarse: opts.coarse,
                     ..Default::default()
                 };
-                let workgroup_size = params.workgroup_size as u64;
                 let config = SolverConfig::gpu(precision)
                     .gpu_params(params)
                     .gpu_context(ctx.clone());
@@ -401,7 +400,7 @@ fn bench_one(
                         r.bytes_per_iteration = info.bytes_per_iteration;
                         r.recorded_iterations = Some(info.recorded_iterations);
                         r.dispatches_per_iteration = Some(info.dispatches_per_iteration);
-                        r.threads_per_dispatch = Some(info.workgroups as u64 * workgroup_size);
+                        r.threads_per_dispatch = Some(info.threads_per_dispatch);
                         r.note = info.notes.join("; ");
                     }
                     Err(err) => {

@@ -30,8 +30,7 @@ pub struct RunRecord {
     pub seconds_per_iteration: f64,
     /// Iterations the device recorded (≥ iterations: chunks end past convergence).
     pub recorded_iterations: Option<usize>,
-    /// GPU: dispatches per CG iteration, and invocations each launches (the grid-stride
-    /// kernels' workgroups × workgroup size).
+    /// GPU: dispatches per CG iteration, and the most invocations one of them launches.
     pub dispatches_per_iteration: Option<usize>,
     pub threads_per_dispatch: Option<u64>,
     /// Seconds per iteration over the bandwidth floor (bytes per iteration / copy

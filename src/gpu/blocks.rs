@@ -171,6 +171,11 @@ impl HostBlocks {
         Ok(())
     }
 
+    /// The buffers H's values are split over (one unless they exceed a binding).
+    pub fn chunk_count(&self) -> usize {
+        self.chunks.len()
+    }
+
     /// The uploaded matrix.
     pub fn matrix(&self) -> BlockMatrix<'_> {
         BlockMatrix {

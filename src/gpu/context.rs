@@ -235,19 +235,7 @@ fn rank(a: &wgpu::Adapter) -> (u32, u32) {
     (t, b)
 }
 
-/// How a buffer is bound, which decides the limits it must meet
-/// ([`GpuContext::checked_size`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Binding {
-    /// Bound whole as one storage binding of at most this many bytes (and the adapter's
-    /// limit).
-    Whole(u64),
-    /// Bound in pieces (row chunks) or not as storage: the buffer size limit alone.
-    Pieces,
-}
-
-/// What a refusal for want of device memory says (tests look for it).
-pub const DOES_NOT_FIT: &str = "does not fit on the GPU";
+pub use super::error::DOES_NOT_FIT;
 
 /// The size of every device buffer of `bytes`: at least 16 (bindings must not be empty),
 /// whole 16-byte units ([`GpuContext::checked_size`], and the memory plans before it).
@@ -378,14 +366,10 @@ impl GpuContext {
     }
 
     /// `bytes` padded to a 16-byte multiple (at least 16: bindings must not be empty), or
-    /// the error naming `label` where that exceeds the adapter's buffer size or, for a
-    /// buffer bound as a whole ([`Binding::Whole`]), the storage binding limit in force.
-    pub(crate) fn checked_size(
-        &self,
-        label: &str,
-        bytes: u64,
-        binding: Binding,
-    ) -> Result<u64, GpuError> {
+    /// the error naming `label` where that exceeds the adapter's buffer size or its
+    /// storage binding limit (every buffer is bound whole; H's values come in chunks that
+    /// each meet it: [`crate::gpu::blocks::values_chunks`]).
+    pub(crate) fn checked_size(&self, label: &str, bytes: u64) -> Result<u64, GpuError> {
         let bytes = padded_size(bytes);
         let l = &self.limits;
         let too_large = |limit: u64, what: &'static str| GpuError::BufferTooLarge {
@@ -398,45 +382,34 @@ impl GpuContext {
         if bytes > l.max_buffer_size {
             return Err(too_large(l.max_buffer_size, "buffer"));
         }
-        if let Binding::Whole(limit) = binding {
-            let limit = limit.min(l.max_storage_buffer_binding_size);
-            if bytes > limit {
-                return Err(too_large(limit, "storage binding"));
-            }
+        if bytes > l.max_storage_buffer_binding_size {
+            return Err(too_large(
+                l.max_storage_buffer_binding_size,
+                "storage binding",
+            ));
         }
         Ok(bytes)
     }
 
-    /// A zeroed buffer of at least `bytes`, labelled, its size checked first
-    /// ([`GpuContext::checked_size`]): the one allocation path of every device buffer
-    /// that can grow with the problem.
-    pub(crate) fn zeroed_buffer(
-        &self,
-        label: &str,
-        bytes: u64,
-        usage: wgpu::BufferUsages,
-        binding: Binding,
-    ) -> Result<wgpu::Buffer, GpuError> {
-        let size = self.checked_size(label, bytes, binding)?;
+    /// A zeroed storage buffer (storage, copy source and destination) of at least
+    /// `bytes`, labelled, its size checked first ([`GpuContext::checked_size`]): with
+    /// [`GpuContext::storage_with`], the one allocation path of every device buffer that
+    /// can grow with the problem.
+    pub(crate) fn storage_zeroed(&self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
+        let size = self.checked_size(label, bytes)?;
         self.traffic.allocated.fetch_add(size, Ordering::Relaxed);
         Ok(self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size,
-            usage,
+            usage: STORAGE,
             mapped_at_creation: false,
         }))
     }
 
-    /// A buffer holding `data` (zero-padded to the checked size), labelled, counted as
-    /// host-to-device traffic.
-    pub(crate) fn init_buffer(
-        &self,
-        label: &str,
-        data: &[u8],
-        usage: wgpu::BufferUsages,
-        binding: Binding,
-    ) -> Result<wgpu::Buffer, GpuError> {
-        let size = self.checked_size(label, data.len() as u64, binding)?;
+    /// A storage buffer holding `data` (zero-padded to the checked size), labelled,
+    /// counted as host-to-device traffic.
+    pub(crate) fn storage_with(&self, label: &str, data: &[u8]) -> Result<wgpu::Buffer, GpuError> {
+        let size = self.checked_size(label, data.len() as u64)?;
         let mut padded;
         let contents = if size as usize == data.len() {
             data
@@ -448,21 +421,8 @@ impl GpuContext {
         Ok(self.buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some(label),
             contents,
-            usage,
+            usage: STORAGE,
         }))
-    }
-
-    /// A zeroed storage buffer (storage, copy source and destination) bound whole.
-    // The device Newton loop's (feature `sim`) buffers are its only users.
-    #[cfg_attr(not(feature = "sim"), allow(dead_code))]
-    pub(crate) fn storage_zeroed(&self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
-        self.zeroed_buffer(label, bytes, STORAGE, Binding::Whole(u64::MAX))
-    }
-
-    /// A storage buffer (storage, copy source and destination) holding `data`, bound whole.
-    #[cfg_attr(not(feature = "sim"), allow(dead_code))]
-    pub(crate) fn storage_with(&self, label: &str, data: &[u8]) -> Result<wgpu::Buffer, GpuError> {
-        self.init_buffer(label, data, STORAGE, Binding::Whole(u64::MAX))
     }
 
     /// The policy of segmented reductions on this adapter (`gpu::launch`).
@@ -594,39 +554,22 @@ impl GpuContext {
         self.features.contains(wgpu::Features::SHADER_F64)
     }
 
-    /// 64-bit integers in shaders: f32 matvecs then read their blocks as u64 pairs
-    /// (`gpu::kernels::prelude`).
-    pub fn has_int64(&self) -> bool {
-        self.features.contains(wgpu::Features::SHADER_INT64)
-    }
-
-    /// The same device as an adapter without SHADER_INT64 would be used: f32 matvecs
-    /// read their blocks as `vec4<f32>`. For tests of that path on adapters that have it.
-    pub fn without_int64(&self) -> GpuContext {
-        let mut c = self.clone();
-        c.features.remove(wgpu::Features::SHADER_INT64);
-        c
-    }
-
     /// Whether the adapter is a CPU (lavapipe, WARP, SwiftShader).
     pub fn is_cpu(&self) -> bool {
         self.info.device_type == wgpu::DeviceType::Cpu
     }
 
-    /// The workgroups of the grid-stride CG kernels (`GpuParams::workgroups`): the
-    /// requested number, else 256 on a GPU and 8 per hardware thread (at least 16) on a
-    /// CPU adapter, always within 1..=[`super::MAX_WORKGROUPS`].
-    pub fn workgroups(&self, requested: Option<u32>) -> usize {
-        let n = match requested {
-            Some(n) => n as usize,
-            None if self.is_cpu() => {
-                8 * std::thread::available_parallelism()
-                    .map_or(4, |t| t.get())
-                    .max(2)
-            }
-            None => super::MAX_WORKGROUPS as usize,
-        };
-        n.clamp(1, super::MAX_WORKGROUPS as usize)
+    /// The workgroups of a fixed-tree reduction (the device Newton loop's energy and
+    /// gᵀΔx sums): 256 on a GPU, 8 per hardware thread (at least 16) on a CPU adapter,
+    /// whose barriers cost a coroutine switch per workgroup.
+    pub fn reduction_groups(&self) -> usize {
+        if self.is_cpu() {
+            8 * std::thread::available_parallelism()
+                .map_or(4, |t| t.get())
+                .max(2)
+        } else {
+            256
+        }
     }
 
     /// The device memory in force: the device's (where the backend reports it), or

@@ -4,6 +4,14 @@
 use crate::error::{CgError, Error, InputError, SolveError};
 use crate::solve::options::Precision;
 
+/// What a refusal for want of device memory says (the command line exits 2 on it: the
+/// input, not the device, is what must change; tests look for it).
+pub const DOES_NOT_FIT: &str = "does not fit on the GPU";
+
+/// Why f32 and mixed precision refuse the multilevel preconditioner.
+pub const MULTILEVEL_ON_CPU: &str =
+    "the multilevel preconditioner runs in f64 only (the CPU CG and the f64 device PCG); f32 and mixed take none, jacobi or block-jacobi";
+
 /// Why the GPU solver could not run or did not converge.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum GpuError {
@@ -16,7 +24,7 @@ pub enum GpuError {
         adapter: String,
         precision: Precision,
     },
-    #[error("GPU buffer '{label}' needs {bytes} bytes but adapter '{adapter}' allows at most {limit} bytes per {what}: the system {}", crate::gpu::solver::DOES_NOT_FIT)]
+    #[error("GPU buffer '{label}' needs {bytes} bytes but adapter '{adapter}' allows at most {limit} bytes per {what}: the system {}", DOES_NOT_FIT)]
     BufferTooLarge {
         label: String,
         bytes: u64,

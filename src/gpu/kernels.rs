@@ -8,54 +8,46 @@
 //! declarations every kernel shares (shaders/common.wgsl: the `Params` uniform, the
 //! workgroup size and the one workgroup reduction).
 //!
-//! Each shader's bind group 0 is described once, by a [`Layout`]: the bind-group layout is
-//! built from it and bind groups name their buffers by it (`solver::builder`), and a test
-//! checks the WGSL declarations against it.
+//! Each shader's bind group 0 is described once, by a [`Layout`] beside the Rust struct
+//! that owns the shader's pipelines (`gpu::pcg`, `sim::device`): the bind-group layout is
+//! built from it, and a test beside it checks the WGSL declarations against it
+//! (`kernels::check`, in test builds).
 
 /// Shared declarations, prepended to every kernel by [`prelude`].
 pub const COMMON: &str = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/common.wgsl"));
 
-/// The one slot table of the device CGs' scalar array `scal` (acc), state array `state`
-/// (u32) and partial sums (`partials[slot · G + segment]`): `solve`'s CG (the driver in
-/// src/gpu/solver/run.rs, the kernels in shaders/cg.wgsl, whose header says who writes and
-/// reads each) and the device Newton loop's (src/gpu/pcg/mod.rs,
-/// shaders/pcg.wgsl). The prelude declares every one as a WGSL `const` of the same
-/// name; a slot one CG does not use is simply unused there.
+/// The one slot table of the device PCG's scalar array `scal` (acc), state array `state`
+/// (u32) and partial sums (`partials[slot · G + segment]`): src/gpu/pcg/ drives
+/// shaders/pcg.wgsl, whose header says who writes and reads each. The prelude declares
+/// every one as a WGSL `const` of the same name.
 pub mod slots {
     /// ρ = r·z.
     pub const SCAL_RHO: u32 = 0;
-    /// ρ of the previous iteration (`solve`'s CG; the host sets it), or of the segment a
-    /// device PCG segment resumes (host, rescaled).
+    /// ρ of the segment a device PCG segment resumes (host, rescaled).
     pub const SCAL_RHO_PREV: u32 = 1;
     /// p·q of the last α (the curvature reported when it is not positive).
     pub const SCAL_PQ: u32 = 2;
     pub const SCAL_ALPHA: u32 = 3;
     /// r·r of the last reduction.
     pub const SCAL_RR: u32 = 4;
-    /// The convergence threshold tol²‖b‖² on r·r (`solve`'s CG; host).
-    pub const SCAL_THRESH: u32 = 5;
-    /// The direction scale `init` keeps (`solve`'s CG; host; 0: p = 0), or by which a
-    /// resumed device PCG segment rescales p (host; 0: a fresh start).
-    pub const SCAL_PSCALE: u32 = 6;
-    /// β of the first update_p of a run (the link of a resumed Lanczos sequence).
-    pub const SCAL_BETA0: u32 = 7;
-    /// β (the device PCG's scalar_beta).
-    pub const SCAL_BETA: u32 = 8;
-    /// tol² (host) and ‖b̂‖² (scalar_start): the device PCG's threshold is their product.
-    pub const SCAL_TOL2: u32 = 9;
-    pub const SCAL_BB: u32 = 10;
-    /// The leading slots read back with every status of the device PCG.
+    /// The factor by which a resumed segment rescales p (host; 0: a fresh start).
+    pub const SCAL_PSCALE: u32 = 5;
+    /// β (scalar_beta).
+    pub const SCAL_BETA: u32 = 6;
+    /// tol² (host) and ‖b̂‖² (scalar_start): the threshold on r·r is their product.
+    pub const SCAL_TOL2: u32 = 7;
+    pub const SCAL_BB: u32 = 8;
+    /// The leading slots read back with every status.
     pub const STATUS_SCAL: u32 = 12;
-    /// The coarse correction on the translations (the device PCG): c = E⁺Zᵀr (D values),
+    /// The coarse correction on the translations: c = E⁺Zᵀr (D values),
     /// E⁺ (D², from the host), E = ZᵀĤZ (D², for the host), the rows' absolute sums per
     /// world axis (D, for the host).
     pub const SCAL_C: u32 = 12;
     pub const SCAL_EINV: u32 = 15;
     pub const SCAL_E: u32 = 24;
     pub const SCAL_EABS: u32 = 33;
-    /// First slot of the Lanczos coefficient history (`solve`'s CG): α_j at
-    /// SCAL_HIST + 2j, β_{j+1} at SCAL_HIST + 2j + 1. The slots before it are the fixed
-    /// scalars of either CG.
+    /// First slot of the Lanczos coefficient history: α_j at SCAL_HIST + 2j, β_{j+1} at
+    /// SCAL_HIST + 2j + 1. The slots before it are the fixed scalars.
     pub const SCAL_HIST: u32 = 36;
     /// A converged or stopped CG: every later dispatch of the chunk is a no-op.
     pub const STATE_DONE: u32 = 0;
@@ -69,18 +61,17 @@ pub mod slots {
     /// Length of `state`.
     pub const N_STATE: u32 = 8;
     /// Partial-sum slots: p·q (the product), r·z and r·r (the updates, init), Zᵀr (D
-    /// slots from PART_ZR, with the coarse correction on the translations), ‖b̂‖² (the
-    /// device PCG's rhs), then E (D² slots) and its rows' absolute sums (D slots) of the
-    /// device PCG's coarse_e.
+    /// slots from PART_ZR, with the coarse correction on the translations), ‖b̂‖² (rhs),
+    /// then E (D² slots) and its rows' absolute sums (D slots) of coarse_e.
     pub const PART_PQ: u32 = 0;
     pub const PART_RZ: u32 = 1;
     pub const PART_RR: u32 = 2;
     pub const PART_ZR: u32 = 3;
     pub const PART_BB: u32 = 6;
     pub const PART_E: u32 = 7;
-    /// Partial-sum slots of the device PCG.
+    /// Partial-sum slots.
     pub const N_PART: u32 = 19;
-    /// Where the device PCG's per-invocation sums carried between H's chunks start (×
+    /// Where the per-invocation sums carried between H's chunks start (×
     /// partials per slot), and how many each invocation carries.
     pub const PART_CARRY: u32 = N_PART;
     pub const CARRY_LEN: u32 = 12;
@@ -99,13 +90,6 @@ pub mod slots {
     const _: () = assert!(CARRY_LEN == 12);
 }
 
-/// A packed column index holds the column node's constraint mask in its bits from this
-/// one up (3 bits: d ≤ 3), so the GPU solver takes fewer than 2^29 nodes.
-pub const MASK_SHIFT: u32 = 29;
-
-/// Upper bound of the workgroup size (`GpuParams::workgroup_size`).
-pub const WG_MAX: u32 = 256;
-
 /// The u32 constants every kernel sees under these names (WGSL `const`s in the prelude).
 pub const SHARED: &[(&str, u32)] = &[
     ("SCAL_RHO", slots::SCAL_RHO),
@@ -113,9 +97,7 @@ pub const SHARED: &[(&str, u32)] = &[
     ("SCAL_PQ", slots::SCAL_PQ),
     ("SCAL_ALPHA", slots::SCAL_ALPHA),
     ("SCAL_RR", slots::SCAL_RR),
-    ("SCAL_THRESH", slots::SCAL_THRESH),
     ("SCAL_PSCALE", slots::SCAL_PSCALE),
-    ("SCAL_BETA0", slots::SCAL_BETA0),
     ("SCAL_HIST", slots::SCAL_HIST),
     ("STATE_DONE", slots::STATE_DONE),
     ("STATE_HALT", slots::STATE_HALT),
@@ -137,11 +119,8 @@ pub const SHARED: &[(&str, u32)] = &[
     ("PART_E", slots::PART_E),
     ("PART_CARRY", slots::PART_CARRY),
     ("CARRY_LEN", slots::CARRY_LEN),
-    ("MASK_SHIFT", MASK_SHIFT),
-    ("COL_BITS", (1 << MASK_SHIFT) - 1),
     ("NO_ROTATION", crate::core::constraints::NO_ROTATION),
     ("NO_AGGREGATE", crate::solve::coarse::NO_AGGREGATE),
-    ("WG_MAX", WG_MAX),
 ];
 
 /// How a kernel uses a binding.
@@ -159,8 +138,6 @@ pub struct Layout {
     pub source: &'static str,
     pub bindings: &'static [(&'static str, Access)],
 }
-
-use Access::{Read as R, ReadWrite as W, Uniform as U};
 
 impl Layout {
     /// Storage buffers bound by this shader's kernels.
@@ -226,14 +203,8 @@ impl Layout {
 
     /// This shader's source after the prelude for `real`/`acc`, compiled; labelled
     /// "`file` (`real`/`acc`)".
-    pub fn module(
-        &self,
-        dev: &wgpu::Device,
-        real: &str,
-        acc: &str,
-        packed: bool,
-    ) -> wgpu::ShaderModule {
-        let code = format!("{}{}", prelude(real, acc, packed), self.source);
+    pub fn module(&self, dev: &wgpu::Device, real: &str, acc: &str) -> wgpu::ShaderModule {
+        let code = format!("{}{}", prelude(real, acc), self.source);
         dev.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some(&format!("{} ({real}/{acc})", self.file)),
             source: wgpu::ShaderSource::Wgsl(code.into()),
@@ -264,162 +235,9 @@ pub fn pipeline(
     })
 }
 
-pub const MATVEC: Layout = Layout {
-    file: "matvec.wgsl",
-    source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/matvec.wgsl")),
-    bindings: &[
-        ("params", U),
-        ("row_ptr", R),
-        ("col", R),
-        ("blk_a", R),
-        ("mask", R),
-        ("dvals", R),
-        ("p", R),
-        ("q", W),
-        ("partials", W),
-        ("state", R),
-        ("blk_b", R),
-        ("blk_c", R),
-        ("rowsum", R),
-        ("chunk", U),
-        ("carry", W),
-    ],
-};
-
-pub const SPRINGS: Layout = Layout {
-    file: "springs.wgsl",
-    source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/springs.wgsl")),
-    bindings: &[
-        ("params", U),
-        ("adj_ptr", R),
-        ("adj", R),
-        ("pos", R),
-        ("springs", R),
-        ("mass", R),
-        ("rot_index", R),
-        ("rotations", R),
-        ("mask", R),
-        ("dvals", R),
-        ("p", R),
-        ("q", W),
-        ("partials", W),
-        ("state", R),
-    ],
-};
-
-pub const ROTATE_BLOCKS: Layout = Layout {
-    file: "rotate_blocks.wgsl",
-    source: include_str!(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/shaders/rotate_blocks.wgsl"
-    )),
-    bindings: &[
-        ("params", U),
-        ("rot_index", R),
-        ("rot_nodes", R),
-        ("rotations", R),
-        ("row_ptr", R),
-        ("col", R),
-        ("blk_a", W),
-        ("blk_b", W),
-        ("blk_c", W),
-        ("chunk", U),
-    ],
-};
-
-pub const PRECOND: Layout = Layout {
-    file: "precond.wgsl",
-    source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/precond.wgsl")),
-    bindings: &[
-        ("params", U),
-        ("row_ptr", R),
-        ("col", R),
-        ("blk_a", R),
-        ("mask", R),
-        ("dvals", R),
-        ("minv", W),
-        ("blk_b", R),
-        ("blk_c", R),
-        ("chunk", U),
-    ],
-};
-
-pub const CG: Layout = Layout {
-    file: "cg.wgsl",
-    source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/cg.wgsl")),
-    bindings: &[
-        ("params", U),
-        ("x", W),
-        ("r", W),
-        ("z", W),
-        ("p", W),
-        ("q", R),
-        ("b", R),
-        ("minv", R),
-        ("partials", W),
-        ("scal", W),
-        ("state", W),
-        ("cmask", R),
-        ("rot_index", R),
-        ("rotations", R),
-        ("einv", R),
-        ("agg_of", R),
-        ("wc", R),
-    ],
-};
-
-pub const COARSE: Layout = Layout {
-    file: "coarse.wgsl",
-    source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/coarse.wgsl")),
-    bindings: &[
-        ("params", U),
-        ("r", R),
-        ("state", R),
-        ("cmask", R),
-        ("rot_index", R),
-        ("rotations", R),
-        ("agg_ptr", R),
-        ("agg_nodes", R),
-        ("einv", R),
-        ("wc", W),
-    ],
-};
-
-pub const REFINE: Layout = Layout {
-    file: "refine.wgsl",
-    source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/refine.wgsl")),
-    bindings: &[
-        ("params", U),
-        ("b64", R),
-        ("q64", W),
-        ("rhs32", W),
-        ("partials64", W),
-        ("x32", R),
-        ("y64", W),
-        ("factors", R),
-    ],
-};
-
-/// Every shader file's layout.
-pub const LAYOUTS: [&Layout; 7] = [
-    &MATVEC,
-    &SPRINGS,
-    &ROTATE_BLOCKS,
-    &PRECOND,
-    &CG,
-    &COARSE,
-    &REFINE,
-];
-
-/// The (real, acc, packed) triples the solver instantiates; `packed` is f32 blocks read
-/// as u64 pairs (see [`prelude`]).
-pub const PRELUDES: [(&str, &str, bool); 5] = [
-    ("f32", "f64", false),
-    ("f32", "f32", false),
-    ("f32", "f64", true),
-    ("f32", "f32", true),
-    ("f64", "f64", false),
-];
+/// The (real, acc) pairs the kernels are instantiated with: f32 with f64 or f32 sums,
+/// and f64.
+pub const PRELUDES: [(&str, &str); 3] = [("f32", "f64"), ("f32", "f32"), ("f64", "f64")];
 
 /// A scalar type of a kernel instance (`real` or `acc` of the [`prelude`]), with its
 /// host conversions: values are f64 on the host, rounded to f32 on upload.
@@ -466,30 +284,14 @@ impl Real {
     }
 }
 
-/// The prelude of a kernel instance: the scalar-type aliases, the block-load type
-/// `blk4` with its `unpack4`, the shared constants and the shared declarations.
-///
-/// `packed` (f32 only, needs SHADER_INT64) reads four f32 block entries as two u64:
-/// the bytes are the same as a `vec4<f32>`, so no writer changes. Why: llvmpipe
-/// (lavapipe) loads a storage vector one component at a time in a loop over the SIMD
-/// lanes, whatever the component's width, so halving the components read per block
-/// is what makes an f32 matvec cheaper than an f64 one there; on a GPU both are one
-/// 16-byte load.
-pub fn prelude(real: &str, acc: &str, packed: bool) -> String {
-    let blk = if packed {
-        "alias blk4 = vec2<u64>;\n\
-         fn unpack4(v: vec2<u64>) -> vec4<f32> {\n\
-         \x20   return bitcast<vec4<f32>>(vec4<u32>(u32(v.x), u32(v.x >> 32u), u32(v.y), u32(v.y >> 32u)));\n\
-         }\n"
-            .to_string()
-    } else {
-        format!("alias blk4 = vec4<{real}>;\nfn unpack4(v: vec4<{real}>) -> vec4<{real}> {{ return v; }}\n")
-    };
+/// The prelude of a kernel instance: the scalar-type aliases, the shared constants and
+/// the shared declarations.
+pub fn prelude(real: &str, acc: &str) -> String {
     let consts: String = SHARED
         .iter()
         .map(|(name, v)| format!("const {name}: u32 = {v}u;\n"))
         .collect();
-    format!("alias real = {real};\nalias acc = {acc};\n{blk}{consts}{COMMON}\n")
+    format!("alias real = {real};\nalias acc = {acc};\n{consts}{COMMON}\n")
 }
 
 /// Test helpers shared by every kernel module's layout test: a layout's WGSL parsed with a
@@ -500,8 +302,8 @@ pub(crate) mod check {
     use naga::{AddressSpace, StorageAccess};
 
     /// `layout`'s source after the prelude for `real`/`acc`, parsed (panics naming the file).
-    pub(crate) fn module(layout: &Layout, real: &str, acc: &str, packed: bool) -> naga::Module {
-        let src = format!("{}{}", prelude(real, acc, packed), layout.source);
+    pub(crate) fn module(layout: &Layout, real: &str, acc: &str) -> naga::Module {
+        let src = format!("{}{}", prelude(real, acc), layout.source);
         naga::front::wgsl::parse_str(&src).unwrap_or_else(|e| {
             panic!("{} ({real}/{acc}): {}", layout.file, e.emit_to_string(&src))
         })
@@ -549,53 +351,35 @@ pub(crate) mod check {
             .collect();
         assert_eq!(declared, described, "{}", layout.file);
     }
-}
 
-#[cfg(test)]
-mod tests {
-    use super::check::{bindings_match, module};
-    use super::*;
-
-    /// The WGSL declarations of bind group 0 are the layout's bindings: same indices,
-    /// names and access, nothing more, nothing less.
-    #[test]
-    fn every_layout_matches_its_wgsl_declarations() {
-        for layout in LAYOUTS {
-            bindings_match(layout, &module(layout, "f64", "f64", false));
-        }
-    }
-
-    /// Every shared constant is declared in the prelude with Rust's value, and no kernel
-    /// indexes `scal`, `state` or the partial slots with a bare number.
-    #[test]
-    fn shared_constants_agree_and_no_kernel_uses_bare_slot_numbers() {
-        for layout in LAYOUTS {
-            let m = module(layout, "f32", "f32", false);
-            for (name, want) in SHARED {
-                let (_, c) = m
-                    .constants
-                    .iter()
-                    .find(|(_, c)| c.name.as_deref() == Some(*name))
-                    .unwrap_or_else(|| panic!("{}: no const {name}", layout.file));
-                match m.global_expressions[c.init] {
-                    naga::Expression::Literal(naga::Literal::U32(v)) => {
-                        assert_eq!(v, *want, "{}: {name}", layout.file)
-                    }
-                    ref e => panic!("{}: {name} = {e:?}", layout.file),
+    /// Panics unless `m` (parsed from `layout`) declares every shared constant with Rust's
+    /// value and `layout`'s source indexes `scal`, `state` or the partial slots with no
+    /// bare number.
+    pub(crate) fn shared_constants(layout: &Layout, m: &naga::Module) {
+        for (name, want) in super::SHARED {
+            let (_, c) = m
+                .constants
+                .iter()
+                .find(|(_, c)| c.name.as_deref() == Some(*name))
+                .unwrap_or_else(|| panic!("{}: no const {name}", layout.file));
+            match m.global_expressions[c.init] {
+                naga::Expression::Literal(naga::Literal::U32(v)) => {
+                    assert_eq!(v, *want, "{}: {name}", layout.file)
                 }
+                ref e => panic!("{}: {name} = {e:?}", layout.file),
             }
-            for (k, line) in layout.source.lines().enumerate() {
-                let code = line.split("//").next().unwrap_or_default();
-                for arr in ["scal[", "state[", "reduce_slot("] {
-                    if let Some(at) = code.find(arr) {
-                        let next = code[at + arr.len()..].chars().next();
-                        assert!(
-                            !next.is_some_and(|c| c.is_ascii_digit()),
-                            "{}:{}: a bare slot number: {line}",
-                            layout.file,
-                            k + 1
-                        );
-                    }
+        }
+        for (k, line) in layout.source.lines().enumerate() {
+            let code = line.split("//").next().unwrap_or_default();
+            for arr in ["scal[", "state[", "reduce_slot("] {
+                if let Some(at) = code.find(arr) {
+                    let next = code[at + arr.len()..].chars().next();
+                    assert!(
+                        !next.is_some_and(|c| c.is_ascii_digit()),
+                        "{}:{}: a bare slot number: {line}",
+                        layout.file,
+                        k + 1
+                    );
                 }
             }
         }

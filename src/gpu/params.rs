@@ -45,18 +45,9 @@ impl DifferenceForm {
     }
 }
 
-/// Upper bound of the workgroups of the grid-stride CG kernels (`GpuParams::workgroups`),
-/// and so of the partial sums one reduction leaves: the partial-sum buffers hold this many.
-pub const MAX_WORKGROUPS: u32 = 256;
-
-/// Parameters of a GPU solve. The facade runs the device PCG ([`crate::gpu::PcgSolver`])
-/// in every precision, which takes `precision`, `tol`, `max_iters`, `preconditioner`,
-/// `coarse`, `multilevel_setup`, `stagnation_window` (checked at each status read),
-/// `max_restarts`, `f32_difference`, `binding_limit`, `memory_limit` and, in mixed
-/// precision, `inner_tol`, `max_outer` and `error_tol`; its workgroups and chunk lengths
-/// follow the device's own policy (`gpu::launch`, `gpu::schedule`). `first_chunk`,
-/// `max_chunk`, `workgroup_size` and `workgroups` serve only the precision kernels
-/// ([`crate::gpu::GpuSolver`]).
+/// Parameters of a solve on the device PCG ([`crate::gpu::PcgSolver`], which the facade
+/// runs in every precision). Its workgroups and chunk lengths follow the device's own
+/// policy (`gpu::launch`, `gpu::schedule`), not parameters.
 #[derive(Debug, Clone, PartialEq)]
 pub struct GpuParams {
     pub precision: Precision,
@@ -72,23 +63,6 @@ pub struct GpuParams {
     pub stagnation_window: usize,
     /// Restarts from the current iterate when the true residual misses the tolerance.
     pub max_restarts: usize,
-    /// Iterations recorded in the first submit; later chunks follow the predicted
-    /// iterations left to the tolerance (at most doubling each time, at least
-    /// `first_chunk / 4`, rounded up).
-    pub first_chunk: usize,
-    /// Cap of the iterations per submit (and per status read-back).
-    pub max_chunk: usize,
-    /// Workgroup size (power of two, 32..=256).
-    pub workgroup_size: u32,
-    /// Workgroups of the grid-stride CG kernels (matvec, update_xrz, update_p), which is
-    /// also the number of partial sums each reduction leaves; fewer when the system has
-    /// fewer workgroups' worth of nodes; 1..=[`MAX_WORKGROUPS`]. None: 256 on a GPU; on a
-    /// CPU adapter (lavapipe)
-    /// 8 per hardware thread. Why fewer there: every workgroup of the update
-    /// kernels re-reduces all partials through barrier trees, and llvmpipe runs barriers
-    /// as coroutine switches, about 4 µs per workgroup and kernel; with 256 workgroups
-    /// that was 40% of an f64 CG iteration at 27k nodes on a 2-core machine.
-    pub workgroups: Option<u32>,
     /// Mixed: reliable-update factor δ. The f32 CG's recurrence residual is replaced by
     /// the true residual, recomputed in f64, each time it has dropped by δ (CG then goes on
     /// with its search direction kept). Smaller δ means fewer f64 products but more drift
@@ -111,15 +85,13 @@ pub struct GpuParams {
     /// Coarse correction added to the preconditioner, in every level (see
     /// [`crate::solve::coarse`]); the same choice as [`crate::solve::cg::CgParams::coarse`].
     pub coarse: CoarseSpace,
-    /// Whether f32 operators of an assembled Ĥ use the difference form (the device PCG's
-    /// `DIFF` in shaders/pcg.wgsl, in the world frame; the precision kernels' in
-    /// shaders/matvec.wgsl, in each node's frame: row sums summed in f64 on the host),
-    /// which keeps the eigenvalues of the rigid translations that plain f32 rounding
+    /// Whether f32 operators use the difference form (`DIFF` in shaders/pcg.wgsl, in the
+    /// world frame, with row sums summed in f64 on the host), which keeps the eigenvalues of the rigid translations that plain f32 rounding
     /// perturbs by ε_f32·‖Ĥ‖. See [`DifferenceForm`]; f64 operators never use it.
     pub f32_difference: DifferenceForm,
     /// Caps the storage binding size the solver assumes (bytes; None: the adapter's
-    /// `max_storage_buffer_binding_size`). Per-block arrays larger than the limit are bound
-    /// in row-chunk pieces; a lower cap makes small systems take that path (tests).
+    /// `max_storage_buffer_binding_size`). H's values are split into row chunks that each
+    /// fit it; a lower cap makes small systems take that path (tests).
     #[doc(hidden)]
     pub binding_limit: Option<u64>,
     /// Caps the device memory the solver assumes (bytes; None: the device's). A system
@@ -149,10 +121,6 @@ impl Default for GpuParams {
             multilevel_setup: MultilevelSetup::default(),
             stagnation_window: crate::solve::cg::STAGNATION_WINDOW,
             max_restarts: 3,
-            first_chunk: 8,
-            max_chunk: 256,
-            workgroup_size: 64,
-            workgroups: None,
             inner_tol: 0.01,
             max_outer: 200,
             error_tol: None,

@@ -77,7 +77,7 @@ fn status_bytes(acc: Real) -> u64 {
 
 /// Iterations of the first chunk, the shortest and the longest chunk
 /// ([`schedule::next_chunk`]).
-const FIRST_CHUNK: usize = 8;
+pub(crate) const FIRST_CHUNK: usize = 8;
 const MIN_CHUNK: usize = 2;
 const MAX_CHUNK: usize = 256;
 
@@ -523,7 +523,7 @@ impl DeviceCg {
         // Pipelines.
         let hist = if lanczos { LANCZOS_HIST } else { 0 };
         PCG.check_adapter(&ctx)?;
-        let module = PCG.module(dev, ty.real.name(), ty.acc.name(), false);
+        let module = PCG.module(dev, ty.real.name(), ty.acc.name());
         let (layout, pl) = PCG.layouts(dev, "pcg");
         let pipe = |entry: &str, precond: u32, coarse: u32| {
             // SUM_LANES: scalar_start sums three values in one tree, no kernel more; the
@@ -1987,7 +1987,7 @@ mod tests {
     use super::*;
 
     fn module() -> naga::Module {
-        kernels::check::module(&PCG, "f64", "f64", false)
+        kernels::check::module(&PCG, "f64", "f64")
     }
 
     /// The shader is well typed in every precision the PCG instantiates: f64, and f32
@@ -1995,7 +1995,7 @@ mod tests {
     #[test]
     fn every_precision_parses() {
         for (real, acc) in [("f64", "f64"), ("f32", "f64"), ("f32", "f32")] {
-            let m = kernels::check::module(&PCG, real, acc, false);
+            let m = kernels::check::module(&PCG, real, acc);
             naga::valid::Validator::new(
                 naga::valid::ValidationFlags::all(),
                 naga::valid::Capabilities::all(),
@@ -2012,6 +2012,7 @@ mod tests {
     fn layout_params_and_headers_match_the_wgsl() {
         let m = module();
         kernels::check::bindings_match(&PCG, &m);
+        kernels::check::shared_constants(&PCG, &m);
         kernels::check::struct_size(&m, "PcgParams", std::mem::size_of::<PcgParams>());
         use aggregates::header as h;
         let agg = [

@@ -60,7 +60,9 @@
 
 pub mod aggregates;
 mod cg;
+mod host;
 mod multilevel;
+mod policy;
 pub mod refine;
 mod solver;
 

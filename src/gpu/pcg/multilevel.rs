@@ -15,7 +15,6 @@
 
 use crate::core::constraints::Frames;
 use crate::gpu::blocks::values_limit;
-use crate::gpu::context::Binding;
 use crate::gpu::kernels::{self, Access, Layout};
 use crate::gpu::{GpuContext, GpuError, Launch};
 use crate::solve::multilevel::{LevelSizes, LevelView, Multilevel};
@@ -181,23 +180,22 @@ pub fn multilevel_bytes(
     dim: usize,
     forced: Option<u64>,
 ) -> Result<u64, GpuError> {
-    let whole = Binding::Whole(u64::MAX);
     let limit = values_limit(ctx, forced);
     // The coarsest level's (unused) next level: two 16-byte placeholders.
-    let mut total = 2 * ctx.checked_size("vcycle no level below", 16, whole)?;
+    let mut total = 2 * ctx.checked_size("vcycle no level below", 16)?;
     for (l, s) in sizes.iter().enumerate() {
         let label = |what: &str| format!("vcycle level {l} {what}");
-        total += ctx.checked_size(&label("indices"), 4 * s.index_words as u64, whole)?;
-        total += ctx.checked_size(&label("values"), 8 * s.values as u64, whole)?;
+        total += ctx.checked_size(&label("indices"), 4 * s.index_words as u64)?;
+        total += ctx.checked_size(&label("values"), 8 * s.values as u64)?;
         // Per buffer of inverses, the inverses and their parameters.
         for r in inverse_chunks(&s.inverses, limit, l)? {
             let v: usize = s.inverses[r].iter().sum();
-            total += ctx.checked_size(&label("inverses"), 8 * v as u64, whole)?;
+            total += ctx.checked_size(&label("inverses"), 8 * v as u64)?;
             total += std::mem::size_of::<VcycleParams>() as u64;
         }
         // b, x and ax below the finest level (level 0's are the PCG's r, z and q).
         if l > 0 {
-            total += 3 * ctx.checked_size(&label("vectors"), 8 * (s.items * dim) as u64, whole)?;
+            total += 3 * ctx.checked_size(&label("vectors"), 8 * (s.items * dim) as u64)?;
         }
     }
     Ok(total)
@@ -305,7 +303,7 @@ impl DeviceMultilevel {
     pub(super) fn new(ctx: &GpuContext, dim: usize) -> Result<Self, GpuError> {
         VCYCLE.check_adapter(ctx)?;
         let dev = &ctx.device;
-        let module = VCYCLE.module(dev, "f64", "f64", false);
+        let module = VCYCLE.module(dev, "f64", "f64");
         let (layout, pl) = VCYCLE.layouts(dev, "vcycle");
         let pipe = |entry: &str| {
             let constants = [("D", dim as f64), ("WG", WORKGROUP as f64)];
@@ -640,8 +638,9 @@ mod tests {
     /// size.
     #[test]
     fn layout_and_params_match_the_wgsl() {
-        let m = kernels::check::module(&VCYCLE, "f64", "f64", false);
+        let m = kernels::check::module(&VCYCLE, "f64", "f64");
         kernels::check::bindings_match(&VCYCLE, &m);
+        kernels::check::shared_constants(&VCYCLE, &m);
         kernels::check::struct_size(&m, "VcycleParams", std::mem::size_of::<VcycleParams>());
         for e in [
             "smooth_pre",

@@ -65,7 +65,7 @@ impl Refine {
         }
         let dev = &ctx.device;
         MIXED.check_adapter(ctx)?;
-        let module = MIXED.module(dev, "f64", "f64", false);
+        let module = MIXED.module(dev, "f64", "f64");
         let (layout, pl) = MIXED.layouts(dev, "mixed");
         let pipe = |entry: &str| {
             kernels::pipeline(
@@ -169,8 +169,9 @@ mod tests {
 
     #[test]
     fn layout_and_params_match_the_wgsl() {
-        let m = kernels::check::module(&MIXED, "f64", "f64", false);
+        let m = kernels::check::module(&MIXED, "f64", "f64");
         kernels::check::bindings_match(&MIXED, &m);
+        kernels::check::shared_constants(&MIXED, &m);
         kernels::check::struct_size(&m, "MixedParams", std::mem::size_of::<MixedParams>());
     }
 }

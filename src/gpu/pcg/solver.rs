@@ -9,13 +9,13 @@
 //! so the constrained components of Δx are exactly the prescribed ones.
 
 use super::cg::{DeviceCg, DeviceCgParams, DeviceFrames, Scalars};
+use super::host::{blocks_diag_max, Host};
+use super::policy;
 use crate::core::elimination::{norm2, Eliminated};
 use crate::gpu::blocks::{plan_rows, row_sums, values_limit, HostBlocks};
 use crate::gpu::context::padded_size;
+use crate::gpu::error::{DOES_NOT_FIT, MULTILEVEL_ON_CPU};
 use crate::gpu::kernels::Real;
-use crate::gpu::solver::host::{blocks_diag_max, Host, HostOp};
-use crate::gpu::solver::policy;
-use crate::gpu::solver::{DOES_NOT_FIT, MULTILEVEL_ON_CPU};
 use crate::gpu::{
     GpuContext, GpuError, GpuParams, GpuSolveInfo, Precision, SolveOutcome, StageSeconds,
 };
@@ -264,6 +264,9 @@ impl PcgSolver {
     /// (the CPU CG's [`crate::solve::multilevel::Multilevel`], clusters partitioned once
     /// per pattern) and uploads them, for every system or, with
     /// [`crate::MultilevelSetup::Reuse`], when the kept ones no longer serve: setup time.
+    /// The device puts D = I on the constrained components whatever `e.diag` holds: b̂,
+    /// and so r, z and p, vanish there, so y is the same; the host's true residual uses
+    /// `e.diag`.
     pub fn new(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<Self, GpuError> {
         let mut s = Self::build(ctx, e, params, None)?;
         s.prepare(e, None)?;
@@ -296,12 +299,7 @@ impl PcgSolver {
     ) -> Result<Self, GpuError> {
         let ty = scalars_for(ctx, e, params)?;
         crate::solve::cg::check_pinned(e)?;
-        let host = Host::new(
-            HostOp::Blocks(e.h.clone()),
-            e.frames.clone(),
-            e.rhs.clone(),
-            e.diag.clone(),
-        );
+        let host = Host::new(e.h.clone(), e.frames.clone(), e.rhs.clone(), e.diag.clone());
         // The clusters (H's pattern only) first: their levels count in the memory check.
         let hierarchy = (params.preconditioner == Preconditioner::Multilevel).then(|| {
             hierarchy
@@ -468,9 +466,7 @@ impl PcgSolver {
                 }
             }
         }
-        if let HostOp::Blocks(h) = &mut self.host.op {
-            h.values.copy_from_slice(&e.h.values);
-        }
+        self.host.h.values.copy_from_slice(&e.h.values);
         self.host.frames = e.frames.clone();
         self.host.rhs.copy_from_slice(&e.rhs);
         self.host.diag.copy_from_slice(&e.diag);
@@ -506,20 +502,10 @@ impl PcgSolver {
         let outcome = match first {
             Err(_) if multilevel && levels.failed() => {
                 let t = Instant::now();
-                let h = match &self.host.op {
-                    HostOp::Blocks(h) => h.clone(),
-                    _ => return Err(GpuError::Mismatch("the device PCG keeps H's blocks".into())),
-                };
-                let frames = self.host.frames.clone();
-                let e = Eliminated {
-                    h: &h,
-                    frames: &frames,
-                    rhs: self.host.rhs.clone(),
-                    diag: self.host.diag.clone(),
-                };
+                let e = self.host.eliminated();
                 let (ml, _) = levels.for_system(&e);
                 self.cg
-                    .set_multilevel(&ml, &frames, self.params.binding_limit)?;
+                    .set_multilevel(&ml, &self.host.frames, self.params.binding_limit)?;
                 self.setup_seconds += t.elapsed().as_secs_f64();
                 self.solve_once().map_err(|e| self.in_precision(e))
             }
@@ -713,6 +699,12 @@ impl PcgSolver {
                 .max()
                 .unwrap_or(1)
                 .min(u32::MAX as u64) as u32,
+            threads_per_dispatch: profile
+                .dispatches
+                .iter()
+                .map(|d| d.threads)
+                .max()
+                .unwrap_or(0),
             readbacks: t.reads,
             fallback: t.fallback,
             error_estimate: t.error_estimate,
@@ -748,6 +740,17 @@ impl PcgSolver {
     /// layout (see [`DeviceCg::preconditioner_data`]; mixed: its f32 level's).
     pub fn preconditioner_data(&self) -> Result<Vec<f64>, GpuError> {
         self.cg.preconditioner_data(self.params.preconditioner)
+    }
+
+    /// The buffers H's values are split over on the device, one per row chunk (each within
+    /// a storage binding): the solver's own level's, and mixed precision's f64 level's
+    /// where it has one.
+    pub fn values_chunks(&self) -> (usize, Option<usize>) {
+        let f64_level = self.mixed.as_ref().and_then(|m| m.level.as_ref());
+        (
+            self.blocks.chunk_count(),
+            f64_level.map(|l| l.blocks.chunk_count()),
+        )
     }
 
     /// Whether the f32 product takes the difference form.

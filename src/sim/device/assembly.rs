@@ -283,7 +283,7 @@ impl GpuAssembly {
         // Pipelines.
         let real = if f64 { "f64" } else { "f32" };
         ASSEMBLE.check_adapter(&ctx)?;
-        let module = ASSEMBLE.module(dev, real, real, false);
+        let module = ASSEMBLE.module(dev, real, real);
         let (layout, pl) = ASSEMBLE.layouts(dev, "assembly");
         let constants = [("D", dim as f64), ("WG", WORKGROUP as f64)];
         let pipelines: Vec<_> = ENTRIES
@@ -979,8 +979,9 @@ mod tests {
     /// exists.
     #[test]
     fn layout_and_params_match_the_wgsl() {
-        let m = kernels::check::module(&ASSEMBLE, "f64", "f64", false);
+        let m = kernels::check::module(&ASSEMBLE, "f64", "f64");
         kernels::check::bindings_match(&ASSEMBLE, &m);
+        kernels::check::shared_constants(&ASSEMBLE, &m);
         kernels::check::struct_size(&m, "AssemblyParams", std::mem::size_of::<AssemblyParams>());
         for e in ENTRIES {
             assert!(

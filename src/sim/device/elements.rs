@@ -189,7 +189,7 @@ impl ElementKernels {
         let dev = &ctx.device;
         let real = real_name(f64);
         ELEMENTS.check_adapter(ctx)?;
-        let module = ELEMENTS.module(dev, real, real, false);
+        let module = ELEMENTS.module(dev, real, real);
         let (layout, pl) = ELEMENTS.layouts(dev, "elements");
         // Unit roundoff of the real type: exact powers of two, so exact as f32 too.
         let eps = if f64 {
@@ -821,8 +821,9 @@ mod tests {
     /// their access; and `ElementParams` is four u32 in WGSL as in Rust.
     #[test]
     fn layout_and_params_match_the_wgsl() {
-        let m = kernels::check::module(&ELEMENTS, "f64", "f64", false);
+        let m = kernels::check::module(&ELEMENTS, "f64", "f64");
         kernels::check::bindings_match(&ELEMENTS, &m);
+        kernels::check::shared_constants(&ELEMENTS, &m);
         let (_, ty) = m
             .types
             .iter()

@@ -389,7 +389,7 @@ impl NewtonOps {
             .collect::<Result<_, _>>()?;
         let dev = &ctx.device;
         NEWTON_OPS.check_adapter(&ctx)?;
-        let module = NEWTON_OPS.module(dev, "f64", "f64", false);
+        let module = NEWTON_OPS.module(dev, "f64", "f64");
         let (layout, pl) = NEWTON_OPS.layouts(dev, "newton ops");
         let constants = [("D", d as f64), ("WG", WG as f64)];
         let pipelines: Vec<_> = ENTRIES
@@ -402,7 +402,7 @@ impl NewtonOps {
         let kinds = elements.kinds();
         let t = kinds.len();
         let groups = ctx
-            .workgroups(None)
+            .reduction_groups()
             .min(MAX_REDUCE_GROUPS)
             .min(n.max(1).div_ceil(WG as usize).next_power_of_two())
             .max(1);
@@ -1102,8 +1102,9 @@ mod tests {
     /// their access; `OpsParams` is four u32 in WGSL as in Rust; every entry point exists.
     #[test]
     fn layout_and_params_match_the_wgsl() {
-        let m = kernels::check::module(&NEWTON_OPS, "f64", "f64", false);
+        let m = kernels::check::module(&NEWTON_OPS, "f64", "f64");
         kernels::check::bindings_match(&NEWTON_OPS, &m);
+        kernels::check::shared_constants(&NEWTON_OPS, &m);
         let (_, ty) = m
             .types
             .iter()

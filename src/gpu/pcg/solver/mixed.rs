@@ -14,10 +14,9 @@
 //! [`DeviceCg::segment`]: crate::gpu::pcg::DeviceCg::segment
 
 use super::{PcgSolver, Tally};
-use crate::core::elimination::{norm2, Eliminated};
+use crate::core::elimination::norm2;
+use crate::gpu::pcg::policy::{resume_scales, MixedPolicy, Stop};
 use crate::gpu::pcg::{DeviceCg, DeviceCgParams, SegmentEnd, SegmentStart, LANCZOS_HIST};
-use crate::gpu::solver::host::HostOp;
-use crate::gpu::solver::policy::{resume_scales, MixedPolicy, Stop};
 use crate::gpu::{GpuError, SolveOutcome};
 use crate::solve::cg::{lanczos_condition, CgError};
 use std::time::Instant;
@@ -519,17 +518,7 @@ impl PcgSolver {
     /// Stage 2 on the CPU: `cg::solve_with` from y0.
     fn fallback_cpu(&mut self, y0: &[f64], c: &mut Count) -> Result<Vec<f64>, GpuError> {
         let done = c.iterations;
-        let HostOp::Blocks(h) = &self.host.op else {
-            return Err(GpuError::Unsupported(
-                "the CPU fallback of mixed precision needs an assembled Hessian".into(),
-            ));
-        };
-        let e = Eliminated {
-            h,
-            frames: &self.host.frames,
-            rhs: self.host.rhs.clone(),
-            diag: self.host.diag.clone(),
-        };
+        let e = self.host.eliminated();
         let pc = self.params.preconditioner;
         let pre = crate::solve::cg::BuiltPreconditioner::new(&e, pc).with_coarse(
             &e,
@@ -605,17 +594,7 @@ impl PcgSolver {
         let tol = self.params.tol;
         let bn = norm2(&self.host.rhs);
         if self.side().assembled.is_none() {
-            let HostOp::Blocks(h) = &self.host.op else {
-                return Err(GpuError::Unsupported(
-                    "extended-precision refinement needs an assembled Hessian".into(),
-                ));
-            };
-            let e = Eliminated {
-                h,
-                frames: &self.host.frames,
-                rhs: Vec::new(),
-                diag: self.host.diag.clone(),
-            };
+            let e = self.host.eliminated();
             let a = e.assemble();
             self.side_mut().assembled = Some(a);
         }

@@ -100,25 +100,6 @@ impl MixedPolicy {
             )
         })
     }
-
-    /// The f32 CG's stopping threshold on its recurrence residual² for a unit right-hand
-    /// side: δ² (a segment ends once the residual has dropped by δ = inner_tol).
-    pub(crate) fn inner_threshold(&self) -> f64 {
-        self.inner_tol * self.inner_tol
-    }
-
-    /// The next segment's length, its first chunk (one status read-back per segment
-    /// instead of a doubling series), after a converged segment of `it` iterations whose
-    /// late fall of ln r·r per iteration was `late_rate`: the shorter of the two
-    /// predictions. Segments shorten as the kept Krylov space grows (dt-1e2), but a first
-    /// segment's late rate can be a slow phase after a fast start (neohookean-nu0.49: 54
-    /// iterations, late rate predicting 284).
-    pub(crate) fn segment_hint(&self, it: usize, late_rate: Option<f64>) -> usize {
-        let by_rate = late_rate.map_or(usize::MAX, |r| {
-            (-self.inner_threshold().ln() / r).ceil().min(1e6) as usize
-        });
-        it.min(by_rate).max(1)
-    }
 }
 
 /// How a converged segment's CG goes on in the next one (a reliable update): its search
@@ -196,12 +177,12 @@ mod tests {
     fn a_24_dof_system_with_kappa_1e8_leaves_f32_within_three_status_reads() {
         // Eigenvalues log-spaced over [1, 1e8] (24 DOFs; Jacobi leaves such a spectrum
         // about where it is when the eigenvectors are spread over every DOF). The status
-        // reads of a segment come after chunks of 8, 16, 32 iterations (`first_chunk`,
+        // reads of a segment come after chunks of 8, 16, 32 iterations (the first chunk,
         // doubling while the rate is unknown): by the third read, 56 iterations, the
         // estimate shows κ̃·ε_f32 above the limit, so f32 is given up there, not after the
         // segment's 1,700 or more iterations.
         let lam: Vec<f64> = (0..24).map(|k| 1e8f64.powf(k as f64 / 23.0)).collect();
-        let first = GpuParams::default().first_chunk;
+        let first = super::super::cg::FIRST_CHUNK;
         let reads = [first, 3 * first, 7 * first];
         let verdicts: Vec<Option<String>> = reads
             .iter()
@@ -256,16 +237,6 @@ mod tests {
         );
         assert_eq!(p.before_segment(10, 500, 1e-3, 1.0), Some(Stop::MaxOuter));
         assert!(p.converged(1e-8) && !p.converged(1.1e-8));
-    }
-
-    #[test]
-    fn segment_hints_take_the_shorter_prediction() {
-        let p = policy();
-        // δ = 0.01: ln(1e4) = 9.2 to fall; at 0.5 per iteration 19 iterations.
-        assert_eq!(p.segment_hint(54, Some(0.5)), 19);
-        assert_eq!(p.segment_hint(12, Some(0.5)), 12);
-        assert_eq!(p.segment_hint(30, None), 30);
-        assert_eq!(p.segment_hint(0, None), 1);
     }
 
     #[test]

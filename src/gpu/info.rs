@@ -1,51 +1,9 @@
-//! The public report types: what a solve did (`GpuSolveInfo`, `StageSeconds`), what the
-//! solver allocated, compiled and dispatched (`Resources`, `BufferRecord`,
-//! `KernelRecord`) and kernel timings (`KernelTime`).
+//! The public report types: what a solve did (`GpuSolveInfo`, `StageSeconds`) and kernel
+//! timings (`KernelTime`).
 
 use crate::gpu::Precision;
-use std::collections::BTreeMap;
 
-/// One allocated buffer.
-#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
-pub struct BufferRecord {
-    pub label: String,
-    pub bytes: u64,
-}
-
-/// One compiled kernel instance.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct KernelRecord {
-    pub name: String,
-    pub entry: String,
-    pub real: String,
-    pub acc: String,
-    /// f32 blocks read as u64 pairs (`gpu::kernels::prelude`; f32 with SHADER_INT64).
-    pub packed: bool,
-    pub constants: Vec<(String, f64)>,
-}
-
-/// What the solver allocated, compiled and dispatched: "model only what a scene needs".
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct Resources {
-    pub buffers: Vec<BufferRecord>,
-    pub kernels: Vec<KernelRecord>,
-    /// Dispatches recorded per kernel name since the solver was built.
-    pub dispatches: BTreeMap<String, u64>,
-}
-
-impl Resources {
-    pub fn has_buffer(&self, label: &str) -> bool {
-        self.buffers.iter().any(|b| b.label == label)
-    }
-    pub fn dispatches_of(&self, name: &str) -> u64 {
-        self.dispatches.get(name).copied().unwrap_or(0)
-    }
-    pub fn total_bytes(&self) -> u64 {
-        self.buffers.iter().map(|b| b.bytes).sum()
-    }
-}
-
-/// Device time of one kernel (see `GpuSolver::profile_kernels`).
+/// Device time of one kernel (see [`crate::gpu::PcgSolver::profile_kernels`]).
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct KernelTime {
     pub name: String,
@@ -79,10 +37,9 @@ pub struct GpuSolveInfo {
     pub precision: Precision,
     /// The coarse correction added to the preconditioner ("aggregates (count)",
     /// "translations" or "none", with a remark when every translation is constrained and
-    /// the correction adds nothing; matrix-free springs get "translations" for
-    /// aggregates, whose E needs H's blocks).
+    /// the correction adds nothing).
     pub coarse: String,
-    /// Whether the f32 operator ran in difference form (f32 and mixed, assembled Ĥ).
+    /// Whether the f32 operator ran in difference form (f32 and mixed).
     pub f32_difference: bool,
     /// CG iterations, all restarts and inner solves together.
     pub iterations: usize,
@@ -105,17 +62,19 @@ pub struct GpuSolveInfo {
     /// The same over gpu_seconds.
     pub achieved_gb_per_s_gpu: Option<f64>,
     pub dispatches_per_iteration: usize,
-    /// Workgroups of each CG kernel dispatch (`GpuParams::workgroups`, at most one per
-    /// `workgroup_size` nodes).
+    /// The most workgroups of one dispatch of a CG iteration (the device's launch policy,
+    /// [`crate::gpu::launch`]).
     pub workgroups: u32,
+    /// The most invocations of one dispatch of a CG iteration.
+    pub threads_per_dispatch: u64,
     /// Status and result read-backs of this solve.
     pub readbacks: usize,
     /// Mixed: why the solve fell back to f64 CG and where that ran (None: it did not).
     pub fallback: Option<String>,
     /// Mixed, when extended-precision refinement ran (f64 CG stagnated above `tol`, or
     /// `error_tol` was set): its estimate of the relative error ‖y − y*‖/‖y*‖, y* the exact
-    /// solution of Ĥ as assembled in f64 on the host (the device's rotated blocks and the
-    /// matrix-free residual round differently: their solutions differ by about κε). After a
+    /// solution of Ĥ as assembled in f64 on the host (the device's product rounds
+    /// differently: the two solutions differ by about κε). After a
     /// stagnation, success was claimed on this estimate being ≤ min(tol, error_tol),
     /// because the f64 residual cannot resolve `tol` (its rounding floor ε‖Ĥ‖‖y‖/‖b̂‖ is
     /// above it), so `relative_residual` may exceed `tol`. It is an estimate from the
