@@ -2,6 +2,8 @@
 //! command line share one device.
 
 use super::GpuError;
+use std::any::Any;
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
@@ -267,6 +269,9 @@ pub struct GpuContext {
     dispatch_limit: Option<u32>,
     /// Workgroups of every segmented reduction (`with_reduction_workgroups`).
     reduction_workgroups: Option<u64>,
+    /// Device objects built once per key and shared by the context's clones
+    /// ([`GpuContext::cached`]).
+    built: Arc<Mutex<HashMap<String, Arc<dyn Any + Send + Sync>>>>,
 }
 
 #[derive(Default)]
@@ -354,6 +359,7 @@ impl GpuContext {
             traffic: Arc::default(),
             dispatch_limit: forced_dispatch_limit()?,
             reduction_workgroups: None,
+            built: Arc::default(),
         })
     }
 
@@ -433,6 +439,28 @@ impl GpuContext {
             p.workgroups = super::SegmentWorkgroups::Exactly(w);
         }
         p
+    }
+
+    /// What `build` makes, built the first time `key` is asked for on this device and
+    /// shared afterwards (compiled pipelines: compiling the device PCG's again for every
+    /// solver cost about 0.5 s on lavapipe). `key` must name everything the object depends
+    /// on; a build that leaves a device error behind is an error and is not kept.
+    pub(crate) fn cached<T: Any + Send + Sync>(
+        &self,
+        key: &str,
+        build: impl FnOnce() -> T,
+    ) -> Result<Arc<T>, GpuError> {
+        let mut built = self
+            .built
+            .lock()
+            .map_err(|_| GpuError::Device("the cache of built kernels is poisoned".into()))?;
+        if let Some(t) = built.get(key).and_then(|b| b.clone().downcast::<T>().ok()) {
+            return Ok(t);
+        }
+        let t = Arc::new(build());
+        self.check(key)?;
+        built.insert(key.to_string(), t.clone());
+        Ok(t)
     }
 
     /// The same device with exactly `workgroups` workgroups in every segmented reduction

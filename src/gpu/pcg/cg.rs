@@ -10,6 +10,7 @@ use crate::solve::cg::{CgError, Preconditioner};
 use crate::solve::coarse::CoarseSpace;
 use std::cell::Cell;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 
 use Access::{Read as R, ReadWrite as W, Uniform as U};
 
@@ -359,6 +360,71 @@ struct Pipelines {
     recover: wgpu::ComputePipeline,
 }
 
+/// The bind group layout of shaders/pcg.wgsl and every pipeline of one specialization:
+/// what [`DeviceCg::new`] takes from the device's cache ([`GpuContext::cached`]).
+struct Kernels {
+    layout: wgpu::BindGroupLayout,
+    pipes: Pipelines,
+}
+
+impl Kernels {
+    fn build(dev: &wgpu::Device, ty: Scalars, dim: usize, items: u32, hist: u32) -> Kernels {
+        let module = PCG.module(dev, ty.real.name(), ty.acc.name());
+        let (layout, pl) = PCG.layouts(dev, "pcg");
+        let pipe = |entry: &str, precond: u32, coarse: u32| {
+            // SUM_LANES: scalar_start sums three values in one tree, no kernel more; the
+            // translations' correction sums r·z, r·r and Zᵀr (2 + D) in one, coarse_e E's
+            // D² in trees of five.
+            let wide = coarse == 1 || entry.starts_with("coarse_e");
+            let lanes = match (wide, dim) {
+                (false, _) => 3.0,
+                (true, 3) => 5.0,
+                (true, _) => 4.0,
+            };
+            let constants = [
+                ("D", dim as f64),
+                ("WG", WORKGROUP as f64),
+                ("SUM_LANES", lanes),
+                ("PRECOND", precond as f64),
+                ("COARSE", coarse as f64),
+                ("ITEMS", items as f64),
+                ("HIST", hist as f64),
+                ("DIFF", f64::from(u8::from(ty.difference))),
+            ];
+            let label = format!("pcg {entry} ({dim}D, preconditioner {precond}, coarse {coarse})");
+            kernels::pipeline(dev, &pl, &module, entry, &label, &constants)
+        };
+        let both = |entry: &str| [0, 1, 2].map(|c| pipe(entry, 0, c));
+        let each = |entry: &str| [0, 1, 2].map(|c| [0, 1, 2].map(|k| pipe(entry, k, c)));
+        let pipes = Pipelines {
+            rhs: pipe("rhs", 0, 0),
+            rhs_given: pipe("rhs_given", 0, 0),
+            precond: pipe("precond", 0, 0),
+            coarse_e: pipe("coarse_e", 0, 0),
+            coarse_e_sum: pipe("coarse_e_sum", 0, 0),
+            agg_rows: pipe("agg_rows", 0, 2),
+            agg_e: pipe("agg_e", 0, 2),
+            agg_restrict: pipe("agg_restrict", 0, 2),
+            agg_solve: pipe("agg_solve", 0, 2),
+            matvec: pipe("matvec", 0, 0),
+            world_p: pipe("world_p", 0, 0),
+            world_z: pipe("world_z", 0, 0),
+            ml_dot: pipe("ml_dot", 3, 0),
+            ml_start: pipe("ml_start", 3, 0),
+            update_yr_ml: pipe("update_yr", 3, 0),
+            init_ml: pipe("init", 3, 0),
+            scalar_alpha: pipe("scalar_alpha", 0, 0),
+            update_yr: each("update_yr"),
+            scalar_beta: both("scalar_beta"),
+            update_p: both("update_p"),
+            init: each("init"),
+            scalar_start: both("scalar_start"),
+            recover: pipe("recover", 0, 0),
+        };
+        Kernels { layout, pipes }
+    }
+}
+
 /// E of the translations for the last `prepare`.
 #[derive(Debug, Clone)]
 enum Galerkin {
@@ -415,8 +481,9 @@ pub struct DeviceCg {
     launches: Launches,
     /// Partial sums per reduction (its segments).
     n_partials: u32,
-    layout: wgpu::BindGroupLayout,
-    pipes: Pipelines,
+    /// The bind group layout and pipelines, shared with every device PCG of the same
+    /// specialization on this device.
+    kernels: Arc<Kernels>,
     buf: Buffers,
     /// The frames `prepare` last built b̂ and the preconditioner for.
     prepared: Option<u64>,
@@ -520,61 +587,17 @@ impl DeviceCg {
             nodes: policy.launch(&limits, (n as u64).div_ceil(WORKGROUP as u64), WORKGROUP),
         };
 
-        // Pipelines.
+        // Pipelines, compiled once per device and specialization.
         let hist = if lanczos { LANCZOS_HIST } else { 0 };
         PCG.check_adapter(&ctx)?;
-        let module = PCG.module(dev, ty.real.name(), ty.acc.name());
-        let (layout, pl) = PCG.layouts(dev, "pcg");
-        let pipe = |entry: &str, precond: u32, coarse: u32| {
-            // SUM_LANES: scalar_start sums three values in one tree, no kernel more; the
-            // translations' correction sums r·z, r·r and Zᵀr (2 + D) in one, coarse_e E's
-            // D² in trees of five.
-            let wide = coarse == 1 || entry.starts_with("coarse_e");
-            let lanes = match (wide, dim) {
-                (false, _) => 3.0,
-                (true, 3) => 5.0,
-                (true, _) => 4.0,
-            };
-            let constants = [
-                ("D", dim as f64),
-                ("WG", WORKGROUP as f64),
-                ("SUM_LANES", lanes),
-                ("PRECOND", precond as f64),
-                ("COARSE", coarse as f64),
-                ("ITEMS", policy.items as f64),
-                ("HIST", hist as f64),
-                ("DIFF", f64::from(u8::from(ty.difference))),
-            ];
-            let label = format!("pcg {entry} ({dim}D, preconditioner {precond}, coarse {coarse})");
-            kernels::pipeline(dev, &pl, &module, entry, &label, &constants)
-        };
-        let both = |entry: &str| [0, 1, 2].map(|c| pipe(entry, 0, c));
-        let each = |entry: &str| [0, 1, 2].map(|c| [0, 1, 2].map(|k| pipe(entry, k, c)));
-        let pipes = Pipelines {
-            rhs: pipe("rhs", 0, 0),
-            rhs_given: pipe("rhs_given", 0, 0),
-            precond: pipe("precond", 0, 0),
-            coarse_e: pipe("coarse_e", 0, 0),
-            coarse_e_sum: pipe("coarse_e_sum", 0, 0),
-            agg_rows: pipe("agg_rows", 0, 2),
-            agg_e: pipe("agg_e", 0, 2),
-            agg_restrict: pipe("agg_restrict", 0, 2),
-            agg_solve: pipe("agg_solve", 0, 2),
-            matvec: pipe("matvec", 0, 0),
-            world_p: pipe("world_p", 0, 0),
-            world_z: pipe("world_z", 0, 0),
-            ml_dot: pipe("ml_dot", 3, 0),
-            ml_start: pipe("ml_start", 3, 0),
-            update_yr_ml: pipe("update_yr", 3, 0),
-            init_ml: pipe("init", 3, 0),
-            scalar_alpha: pipe("scalar_alpha", 0, 0),
-            update_yr: each("update_yr"),
-            scalar_beta: both("scalar_beta"),
-            update_p: both("update_p"),
-            init: each("init"),
-            scalar_start: both("scalar_start"),
-            recover: pipe("recover", 0, 0),
-        };
+        let key = format!(
+            "pcg pipelines: {}/{}, difference {}, {dim}D, {} items, history {hist}",
+            ty.real.name(),
+            ty.acc.name(),
+            ty.difference,
+            policy.items
+        );
+        let kernels = ctx.cached(&key, || Kernels::build(dev, ty, dim, policy.items, hist))?;
 
         // Buffers, limits checked first.
         let sz = Sizes::new(n, dim, segments, chunks.len(), hist, ty);
@@ -631,8 +654,7 @@ impl DeviceCg {
             n_nodes: n,
             launches,
             n_partials,
-            layout,
-            pipes,
+            kernels,
             buf,
             prepared: None,
             galerkin: Galerkin::OnDevice,
@@ -914,7 +936,7 @@ impl DeviceCg {
                     .device
                     .create_bind_group(&wgpu::BindGroupDescriptor {
                         label: Some("pcg bind group"),
-                        layout: &self.layout,
+                        layout: &self.kernels.layout,
                         entries: &entries,
                     }),
             );
@@ -1057,7 +1079,7 @@ impl DeviceCg {
         self.own(frames)?;
         let mut enc = self.encoder("pcg prepare");
         let l = &self.launches;
-        let p = &self.pipes;
+        let p = &self.kernels.pipes;
         let g0 = &frames.groups[0];
         let rhs = if given { &p.rhs_given } else { &p.rhs };
         let mut kernels: Vec<Kernel> = vec![(rhs, l.segments, g0)];
@@ -1532,7 +1554,11 @@ impl DeviceCg {
             Self::pass(
                 &mut enc,
                 "pcg recovery",
-                &[(&self.pipes.recover, self.launches.nodes, &frames.groups[0])],
+                &[(
+                    &self.kernels.pipes.recover,
+                    self.launches.nodes,
+                    &frames.groups[0],
+                )],
             );
             self.ctx.queue.submit([enc.finish()]);
             self.ctx.check("recovering the device Newton step")?;
@@ -1581,9 +1607,13 @@ impl DeviceCg {
         frames: &'a DeviceFrames,
     ) -> Vec<Kernel<'a>> {
         enc.copy_buffer_to_buffer(&self.buf.y, 0, &self.buf.p, 0, None);
-        let mut k = vec![(&self.pipes.world_p, self.launches.nodes, &frames.groups[0])];
+        let mut k = vec![(
+            &self.kernels.pipes.world_p,
+            self.launches.nodes,
+            &frames.groups[0],
+        )];
         k.extend(Self::per_chunk(
-            &self.pipes.matvec,
+            &self.kernels.pipes.matvec,
             &self.launches.chunk_segments,
             frames,
         ));
@@ -1593,7 +1623,7 @@ impl DeviceCg {
     /// The kernels of a (re)start from the q = Ĥy in `q`: r, z, p, ρ and the true r·r; with
     /// the coarse correction `update_p` (β = 0) then completes p = z + Z E⁺Zᵀr.
     fn start<'a>(&'a self, frames: &'a DeviceFrames, pre: usize, co: usize) -> Vec<Kernel<'a>> {
-        let p = &self.pipes;
+        let p = &self.kernels.pipes;
         let g0 = &frames.groups[0];
         let l = &self.launches;
         if pre == 3 {
@@ -1615,7 +1645,7 @@ impl DeviceCg {
     /// With the aggregates (`co` = 2): w = Zᵀr (a workgroup per aggregate) and c = E⁺w (a
     /// workgroup per coarse row).
     fn aggregate_correction<'a>(&'a self, frames: &'a DeviceFrames, co: usize) -> Vec<Kernel<'a>> {
-        let (p, limits) = (&self.pipes, self.ctx.launch());
+        let (p, limits) = (&self.kernels.pipes, self.ctx.launch());
         // A workgroup per aggregate (coarse row) on a GPU; a CPU adapter's few loop over
         // them, each still summed by one workgroup in the same order.
         let policy = self.ctx.segments();
@@ -1649,11 +1679,19 @@ impl DeviceCg {
                 Step::FinestProduct => {
                     out.push((
                         "ml world_z",
-                        (&self.pipes.world_z, self.launches.nodes, &frames.groups[0]),
+                        (
+                            &self.kernels.pipes.world_z,
+                            self.launches.nodes,
+                            &frames.groups[0],
+                        ),
                     ));
                     out.extend(
-                        Self::per_chunk(&self.pipes.matvec, &self.launches.chunk_segments, frames)
-                            .map(|k| ("ml matvec", k)),
+                        Self::per_chunk(
+                            &self.kernels.pipes.matvec,
+                            &self.launches.chunk_segments,
+                            frames,
+                        )
+                        .map(|k| ("ml matvec", k)),
                     );
                 }
             }
@@ -1668,7 +1706,7 @@ impl DeviceCg {
         pre: usize,
         co: usize,
     ) -> Vec<(&'static str, Kernel<'a>)> {
-        let (p, l) = (&self.pipes, &self.launches);
+        let (p, l) = (&self.kernels.pipes, &self.launches);
         let g0 = &frames.groups[0];
         let mut one: Vec<(&'static str, Kernel)> =
             Self::per_chunk(&p.matvec, &l.chunk_segments, frames)

@@ -77,7 +77,7 @@ impl DeviceCg {
         // left p alone and update_p forms p = z + βp here.
         if resume && co == 0 {
             kernels.push((
-                &self.pipes.update_p[0],
+                &self.kernels.pipes.update_p[0],
                 self.launches.nodes,
                 &frames.groups[0],
             ));
