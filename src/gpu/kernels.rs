@@ -235,6 +235,28 @@ pub fn pipeline(
     })
 }
 
+/// A bind group of `layout` binding `buffers` whole, in `@binding` order.
+pub fn bind_group(
+    dev: &wgpu::Device,
+    layout: &wgpu::BindGroupLayout,
+    label: &str,
+    buffers: &[&wgpu::Buffer],
+) -> wgpu::BindGroup {
+    let entries: Vec<wgpu::BindGroupEntry> = buffers
+        .iter()
+        .enumerate()
+        .map(|(i, b)| wgpu::BindGroupEntry {
+            binding: i as u32,
+            resource: b.as_entire_binding(),
+        })
+        .collect();
+    dev.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some(label),
+        layout,
+        entries: &entries,
+    })
+}
+
 /// The (real, acc) pairs the kernels are instantiated with: f32 with f64 or f32 sums,
 /// and f64.
 pub const PRELUDES: [(&str, &str); 3] = [("f32", "f64"), ("f32", "f32"), ("f64", "f64")];
@@ -309,6 +331,29 @@ pub(crate) mod check {
         })
     }
 
+    /// `layout`'s f64 module, checked as every layout's test checks it: its bind group 0
+    /// ([`bindings_match`]), the shared constants ([`shared_constants`]), the params
+    /// struct `params` of `size` bytes ([`struct_size`]) and the `entries`.
+    pub(crate) fn layout(
+        layout: &Layout,
+        params: &str,
+        size: usize,
+        entries: &[&str],
+    ) -> naga::Module {
+        let m = module(layout, "f64", "f64");
+        bindings_match(layout, &m);
+        shared_constants(layout, &m);
+        struct_size(&m, params, size);
+        for e in entries {
+            assert!(
+                m.entry_points.iter().any(|p| p.name == *e),
+                "{}: no entry point {e}",
+                layout.file
+            );
+        }
+        m
+    }
+
     /// Panics unless `m` declares a struct `name` of `size` bytes (a Rust `Pod` mirror).
     pub(crate) fn struct_size(m: &naga::Module, name: &str, size: usize) {
         let (_, ty) = m
@@ -319,6 +364,24 @@ pub(crate) mod check {
         match &ty.inner {
             naga::TypeInner::Struct { span, .. } => assert_eq!(*span as usize, size, "{name}"),
             other => panic!("{name} is {other:?}"),
+        }
+    }
+
+    /// The member names of `m`'s struct `name` (panics without it).
+    pub(crate) fn struct_members<'m>(m: &'m naga::Module, name: &str) -> Vec<&'m str> {
+        match m
+            .types
+            .iter()
+            .find(|(_, t)| t.name.as_deref() == Some(name))
+        {
+            Some((
+                _,
+                naga::Type {
+                    inner: naga::TypeInner::Struct { members, .. },
+                    ..
+                },
+            )) => members.iter().filter_map(|m| m.name.as_deref()).collect(),
+            other => panic!("no struct {name}: {other:?}"),
         }
     }
 

@@ -923,23 +923,12 @@ impl DeviceCg {
                 &b.pw,
                 &b.rowsum,
             ];
-            let entries: Vec<wgpu::BindGroupEntry> = bufs
-                .iter()
-                .enumerate()
-                .map(|(i, b)| wgpu::BindGroupEntry {
-                    binding: i as u32,
-                    resource: b.as_entire_binding(),
-                })
-                .collect();
-            groups.push(
-                self.ctx
-                    .device
-                    .create_bind_group(&wgpu::BindGroupDescriptor {
-                        label: Some("pcg bind group"),
-                        layout: &self.kernels.layout,
-                        entries: &entries,
-                    }),
-            );
+            groups.push(kernels::bind_group(
+                &self.ctx.device,
+                &self.kernels.layout,
+                "pcg bind group",
+                &bufs,
+            ));
         }
         self.ctx.check("uploading the constraint frames")?;
         Ok(DeviceFrames {
@@ -2024,10 +2013,6 @@ fn coarse_index(c: CoarseSpace, frames: &DeviceFrames) -> usize {
 mod tests {
     use super::*;
 
-    fn module() -> naga::Module {
-        kernels::check::module(&PCG, "f64", "f64")
-    }
-
     /// The shader is well typed in every precision the PCG instantiates: f64, and f32
     /// vectors with f64 or (a device without SHADER_F64) f32 accumulators.
     #[test]
@@ -2048,10 +2033,7 @@ mod tests {
     /// CG's slots come from the prelude, `gpu::kernels::slots`).
     #[test]
     fn layout_params_and_headers_match_the_wgsl() {
-        let m = module();
-        kernels::check::bindings_match(&PCG, &m);
-        kernels::check::shared_constants(&PCG, &m);
-        kernels::check::struct_size(&m, "PcgParams", std::mem::size_of::<PcgParams>());
+        let m = kernels::check::layout(&PCG, "PcgParams", std::mem::size_of::<PcgParams>(), &[]);
         use aggregates::header as h;
         let agg = [
             ("AGG_COUNT", h::COUNT),

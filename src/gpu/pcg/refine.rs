@@ -97,19 +97,7 @@ impl Refine {
             f64_level.y_buffer(),
             &factors,
         ];
-        let entries: Vec<wgpu::BindGroupEntry> = bufs
-            .iter()
-            .enumerate()
-            .map(|(i, b)| wgpu::BindGroupEntry {
-                binding: i as u32,
-                resource: b.as_entire_binding(),
-            })
-            .collect();
-        let group = dev.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("mixed bind group"),
-            layout: &layout,
-            entries: &entries,
-        });
+        let group = kernels::bind_group(dev, &layout, "mixed bind group", &bufs);
         let s = Refine {
             ctx: ctx.clone(),
             scale_rhs: pipe("scale_rhs"),
@@ -169,9 +157,7 @@ mod tests {
 
     #[test]
     fn layout_and_params_match_the_wgsl() {
-        let m = kernels::check::module(&MIXED, "f64", "f64");
-        kernels::check::bindings_match(&MIXED, &m);
-        kernels::check::shared_constants(&MIXED, &m);
-        kernels::check::struct_size(&m, "MixedParams", std::mem::size_of::<MixedParams>());
+        let size = std::mem::size_of::<MixedParams>();
+        kernels::check::layout(&MIXED, "MixedParams", size, &["scale_rhs", "accumulate"]);
     }
 }

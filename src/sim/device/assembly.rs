@@ -378,19 +378,12 @@ impl GpuAssembly {
             let bufs: [&wgpu::Buffer; 8] = [
                 &params, b.offsets, b.gather, b.src, &coef, b.x, b.nodes, b.out,
             ];
-            let entries: Vec<wgpu::BindGroupEntry> = bufs
-                .iter()
-                .enumerate()
-                .map(|(i, b)| wgpu::BindGroupEntry {
-                    binding: i as u32,
-                    resource: b.as_entire_binding(),
-                })
-                .collect();
-            let group = dev.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some(&format!("{} bind group", ENTRIES[entry as usize])),
-                layout: &layout,
-                entries: &entries,
-            });
+            let group = kernels::bind_group(
+                dev,
+                &layout,
+                &format!("{} bind group", ENTRIES[entry as usize]),
+                &bufs,
+            );
             Pass {
                 entry,
                 count,
@@ -979,16 +972,8 @@ mod tests {
     /// exists.
     #[test]
     fn layout_and_params_match_the_wgsl() {
-        let m = kernels::check::module(&ASSEMBLE, "f64", "f64");
-        kernels::check::bindings_match(&ASSEMBLE, &m);
-        kernels::check::shared_constants(&ASSEMBLE, &m);
-        kernels::check::struct_size(&m, "AssemblyParams", std::mem::size_of::<AssemblyParams>());
-        for e in ENTRIES {
-            assert!(
-                m.entry_points.iter().any(|p| p.name == e),
-                "no entry point {e}"
-            );
-        }
+        let size = std::mem::size_of::<AssemblyParams>();
+        kernels::check::layout(&ASSEMBLE, "AssemblyParams", size, &ENTRIES);
     }
 
     /// Gather lists keep element order within a block and cover every (element, a, b)

@@ -288,22 +288,12 @@ impl Binder {
             &self.result,
             var.node_vals.unwrap_or(&dm.node_vals),
         ];
-        let entries: Vec<wgpu::BindGroupEntry> = bufs
-            .iter()
-            .enumerate()
-            .map(|(i, b)| wgpu::BindGroupEntry {
-                binding: i as u32,
-                resource: b.as_entire_binding(),
-            })
-            .collect();
-        let group = self
-            .ctx
-            .device
-            .create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some(&format!("newton {label} bind group")),
-                layout: &self.layout,
-                entries: &entries,
-            });
+        let group = kernels::bind_group(
+            &self.ctx.device,
+            &self.layout,
+            &format!("newton {label} bind group"),
+            &bufs,
+        );
         Op {
             entry,
             params,
@@ -1102,28 +1092,12 @@ mod tests {
     /// their access; `OpsParams` is four u32 in WGSL as in Rust; every entry point exists.
     #[test]
     fn layout_and_params_match_the_wgsl() {
-        let m = kernels::check::module(&NEWTON_OPS, "f64", "f64");
-        kernels::check::bindings_match(&NEWTON_OPS, &m);
-        kernels::check::shared_constants(&NEWTON_OPS, &m);
-        let (_, ty) = m
-            .types
-            .iter()
-            .find(|(_, t)| t.name.as_deref() == Some("OpsParams"))
-            .expect("struct OpsParams");
-        match &ty.inner {
-            naga::TypeInner::Struct { members, span } => {
-                assert_eq!(*span as usize, std::mem::size_of::<OpsParams>());
-                let names: Vec<_> = members.iter().filter_map(|m| m.name.as_deref()).collect();
-                assert_eq!(names, ["count", "mode", "slot", "aux"]);
-            }
-            other => panic!("OpsParams is {other:?}"),
-        }
-        for e in ENTRIES {
-            assert!(
-                m.entry_points.iter().any(|p| p.name == e),
-                "no entry point {e}"
-            );
-        }
+        let size = std::mem::size_of::<OpsParams>();
+        let m = kernels::check::layout(&NEWTON_OPS, "OpsParams", size, &ENTRIES);
+        assert_eq!(
+            kernels::check::struct_members(&m, "OpsParams"),
+            ["count", "mode", "slot", "aux"]
+        );
         // The shader's constants are the host's.
         for (name, want) in [
             ("MODE_ENERGY", MODE_ENERGY),
