@@ -259,16 +259,16 @@ fn zc(i: u32, c: array<real, 3>) -> array<real, 3> {
     return w;
 }
 
-// c = E⁺ Zᵀr into scal (lane 0 of a one-workgroup kernel); returns Zᵀr·c, the coarse
-// share of ρ = r·M⁻¹r.
-fn coarse_c(zr: array<acc, 3>) -> acc {
+// c = E⁺ Zᵀr (COARSE = 1, E⁺ from the host in scal); returns Zᵀr·c, the coarse share of
+// ρ = r·M⁻¹r.
+fn coarse_c(zr: array<acc, 3>, c: ptr<function, array<acc, 3>>) -> acc {
     var wc = acc(0.0);
     for (var a = 0u; a < D; a++) {
         var s = acc(0.0);
         for (var b = 0u; b < D; b++) {
             s += scal[SCAL_EINV + a * D + b] * zr[b];
         }
-        scal[SCAL_C + a] = s;
+        (*c)[a] = s;
         wc += zr[a] * s;
     }
     return wc;
@@ -543,17 +543,22 @@ fn matvec(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) w
     }
 }
 
-// α = ρ / p·q (one workgroup); a non-positive p·q halts, a NaN one is a breakdown.
-@compute @workgroup_size(WG)
-fn scalar_alpha(@builtin(local_invocation_id) lid: vec3<u32>) {
-    if (stopped(lid.x)) {
-        return;
-    }
-    let pq = reduce_slot(PART_PQ, lid.x);
-    if (lid.x == 0u) {
+// α = ρ / p·q from the product's partials, summed by every workgroup of update_yr in the
+// same fixed order (the same bits everywhere), so no one-workgroup kernel and no wait sits
+// between the product and the updates. A non-positive p·q halts, a NaN one is a breakdown:
+// every workgroup sees it and returns; the first also raises the flags. Returns α, or a
+// negative value when the iteration stops here. The first workgroup also keeps p·q, α and
+// the ρ this α used (SCAL_RHO_OLD: update_p's β divides by it, while its first workgroup
+// replaces SCAL_RHO).
+fn fused_alpha(lid: u32, first: bool) -> acc {
+    let pq = reduce_slot(PART_PQ, lid);
+    let rho = scal[SCAL_RHO];
+    let go = pq > acc(0.0);
+    if (first && lid == 0u) {
         scal[SCAL_PQ] = pq;
-        if (pq > acc(0.0)) {
-            scal[SCAL_ALPHA] = scal[SCAL_RHO] / pq;
+        if (go) {
+            scal[SCAL_ALPHA] = rho / pq;
+            scal[SCAL_RHO_OLD] = rho;
         } else {
             state[STATE_DONE] = 1u;
             if (pq <= acc(0.0)) {
@@ -563,6 +568,10 @@ fn scalar_alpha(@builtin(local_invocation_id) lid: vec3<u32>) {
             }
         }
     }
+    if (!go) {
+        return acc(-1.0);
+    }
+    return rho / pq;
 }
 
 // The r·z and r·r partials of one workgroup and, with COARSE, those of Zᵀr (one tree).
@@ -606,13 +615,17 @@ fn precondition(i: u32, rv: array<real, 3>, start: bool, sums: ptr<function, arr
     }
 }
 
-// y += αp, r −= αq, z = M⁻¹r, with the r·z and r·r partials.
+// α (fused_alpha), then y += αp, r −= αq, z = M⁻¹r, with the r·z and r·r partials.
 @compute @workgroup_size(WG)
 fn update_yr(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     if (stopped(lid.x)) {
         return;
     }
-    let alpha = real(scal[SCAL_ALPHA]);
+    let a = fused_alpha(lid.x, group_index(wid, nwg) == 0u);
+    if (a < acc(0.0)) {
+        return;
+    }
+    let alpha = real(a);
     for (var s = group_index(wid, nwg); s < params.n_partials; s += group_count(nwg)) {
         var sums: array<acc, 5>;
         for (var m = 0u; m < ITEMS; m++) {
@@ -634,14 +647,14 @@ fn update_yr(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id
     }
 }
 
-// ρ' = r·z (with COARSE r·M_J⁻¹r + Zᵀr·c, and c = E⁺Zᵀr) and r·r (one workgroup); stops
-// on r·r ≤ tol²‖b̂‖² (the recurrence residual) or a non-finite value, else β = ρ'/ρ.
-// Counts the iteration.
-@compute @workgroup_size(WG)
-fn scalar_beta(@builtin(local_invocation_id) lid: vec3<u32>) {
-    if (stopped(lid.x)) {
-        return;
-    }
+// ρ' = r·z (with COARSE r·M_J⁻¹r + Zᵀr·c, and c = E⁺Zᵀr) and r·r from update_yr's
+// partials (ml_dot's r·z under the multilevel preconditioner), summed by every workgroup
+// of update_p in the same fixed order. Stops on r·r ≤ tol²‖b̂‖² (the recurrence residual)
+// or a non-finite value, else β = ρ'/ρ with ρ the one α used (SCAL_RHO_OLD). The first
+// workgroup counts the iteration, records the Lanczos pair and keeps r·r, β, ρ' and c.
+// Returns β (every workgroup, uniform) and c in `c` (COARSE = 1), or a negative β when
+// the run stops here.
+fn fused_beta(lid: u32, first: bool, c: ptr<function, array<acc, 3>>) -> acc {
     var v = array<acc, 5>(acc(0.0), acc(0.0), acc(0.0), acc(0.0), acc(0.0));
     let np = params.n_partials;
     var n = 2u;
@@ -649,9 +662,9 @@ fn scalar_beta(@builtin(local_invocation_id) lid: vec3<u32>) {
         n = 2u + D;
     } else if (COARSE == 2u) {
         n = 3u;
-        v[2] = agg_wc(lid.x);
+        v[2] = agg_wc(lid);
     }
-    for (var t = lid.x; t < np; t += WG) {
+    for (var t = lid; t < np; t += WG) {
         v[0] += partials[PART_RZ * np + t];
         v[1] += partials[PART_RR * np + t];
         if (COARSE == 1u) {
@@ -660,36 +673,48 @@ fn scalar_beta(@builtin(local_invocation_id) lid: vec3<u32>) {
             }
         }
     }
-    let s = workgroup_sum_uniform(lid.x, v, n);
-    if (lid.x == 0u) {
-        var rz = s[0];
-        let rr = s[1];
-        if (COARSE == 1u) {
-            rz += coarse_c(array<acc, 3>(s[2], s[3], s[4]));
-        } else if (COARSE == 2u) {
-            rz += s[2];
-        }
+    let s = workgroup_sum_uniform(lid, v, n);
+    var rz = s[0];
+    let rr = s[1];
+    if (COARSE == 1u) {
+        rz += coarse_c(array<acc, 3>(s[2], s[3], s[4]), c);
+    } else if (COARSE == 2u) {
+        rz += s[2];
+    }
+    // NaN fails every comparison: a non-finite ρ or r·r is a breakdown.
+    let broken = !(rz >= acc(0.0)) || !(rr >= acc(0.0));
+    let converged = !broken && rr <= scal[SCAL_TOL2] * scal[SCAL_BB];
+    let beta = rz / scal[SCAL_RHO_OLD];
+    if (first && lid == 0u) {
         let it = state[STATE_ITERS];
         state[STATE_ITERS] = it + 1u;
         if (it < HIST) {
             scal[SCAL_HIST + 2u * it] = scal[SCAL_ALPHA];
         }
         scal[SCAL_RR] = rr;
-        // NaN fails every comparison: a non-finite ρ or r·r is a breakdown.
-        if (!(rz >= acc(0.0)) || !(rr >= acc(0.0))) {
+        if (COARSE == 1u) {
+            for (var a = 0u; a < D; a++) {
+                scal[SCAL_C + a] = (*c)[a];
+            }
+        }
+        if (broken) {
             state[STATE_DONE] = 1u;
             state[STATE_BREAKDOWN] = 1u;
-        } else if (rr <= scal[SCAL_TOL2] * scal[SCAL_BB]) {
+        } else if (converged) {
             state[STATE_DONE] = 1u;
             state[STATE_CONVERGED] = 1u;
         } else {
-            scal[SCAL_BETA] = rz / scal[SCAL_RHO];
+            scal[SCAL_BETA] = beta;
             scal[SCAL_RHO] = rz;
             if (it < HIST) {
-                scal[SCAL_HIST + 2u * it + 1u] = scal[SCAL_BETA];
+                scal[SCAL_HIST + 2u * it + 1u] = beta;
             }
         }
     }
+    if (broken || converged) {
+        return acc(-1.0);
+    }
+    return beta;
 }
 
 // pw_i = V_i P_i p_i, from the p_i this invocation has just written.
@@ -774,15 +799,10 @@ fn ml_start(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
 }
 
 // p = z + βp (and pw); with COARSE p = (z + Zc) + βp, the preconditioned residual
-// completed.
-@compute @workgroup_size(WG)
-fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    if (stopped(lid.x)) {
-        return;
-    }
-    let beta = real(scal[SCAL_BETA]);
+// completed. `c` is c = E⁺Zᵀr under COARSE = 1 (the aggregates' c is in `coarse`).
+fn new_direction(lid: u32, wid: vec3<u32>, nwg: vec3<u32>, beta: real, c1: array<acc, 3>) {
     if (COARSE == 0u) {
-        for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += grid_stride(nwg)) {
+        for (var i = group_index(wid, nwg) * WG + lid; i < params.n_nodes; i += grid_stride(nwg)) {
             for (var a = 0u; a < D; a++) {
                 let k = i * D + a;
                 p[k] = z[k] + beta * p[k];
@@ -794,10 +814,10 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
     var c: array<real, 3>;
     if (COARSE == 1u) {
         for (var a = 0u; a < D; a++) {
-            c[a] = real(scal[SCAL_C + a]);
+            c[a] = real(c1[a]);
         }
     }
-    for (var i = group_index(wid, nwg) * WG + lid.x; i < params.n_nodes; i += grid_stride(nwg)) {
+    for (var i = group_index(wid, nwg) * WG + lid; i < params.n_nodes; i += grid_stride(nwg)) {
         if (COARSE == 2u) {
             let ag = aggregates[aggregates[AGG_OF] + i];
             for (var a = 0u; a < D; a++) {
@@ -814,6 +834,36 @@ fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id)
         }
         write_world(i);
     }
+}
+
+// The iteration's last dispatch: β (fused_beta), then p = z (+ Zc) + βp and pw.
+@compute @workgroup_size(WG)
+fn update_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    if (stopped(lid.x)) {
+        return;
+    }
+    var c: array<acc, 3>;
+    let beta = fused_beta(lid.x, group_index(wid, nwg) == 0u, &c);
+    if (beta < acc(0.0)) {
+        return;
+    }
+    new_direction(lid.x, wid, nwg, real(beta), c);
+}
+
+// After scalar_start: p = z (+ Zc) + βp with the β and c scalar_start left in scal (β = 0
+// at a fresh start under COARSE, a resumed segment's β otherwise).
+@compute @workgroup_size(WG)
+fn start_p(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    if (stopped(lid.x)) {
+        return;
+    }
+    var c: array<acc, 3>;
+    if (COARSE == 1u) {
+        for (var a = 0u; a < D; a++) {
+            c[a] = scal[SCAL_C + a];
+        }
+    }
+    new_direction(lid.x, wid, nwg, real(scal[SCAL_BETA]), c);
 }
 
 // A (re)start from y, with q = Ĥy already in q: r = b̂ − q, z = M⁻¹r, p = z, and the r·z
@@ -889,7 +939,11 @@ fn scalar_start(@builtin(local_invocation_id) lid: vec3<u32>) {
         let rr = s[1];
         let bb = s[2];
         if (COARSE == 1u) {
-            rz += coarse_c(zr);
+            var c: array<acc, 3>;
+            rz += coarse_c(zr, &c);
+            for (var a = 0u; a < D; a++) {
+                scal[SCAL_C + a] = c[a];
+            }
         } else if (COARSE == 2u) {
             rz += wc;
         }

@@ -32,11 +32,13 @@ pub mod slots {
     pub const SCAL_RR: u32 = 4;
     /// The factor by which a resumed segment rescales p (host; 0: a fresh start).
     pub const SCAL_PSCALE: u32 = 5;
-    /// β (scalar_beta).
+    /// β (update_p; scalar_start at a start).
     pub const SCAL_BETA: u32 = 6;
     /// tol² (host) and ‖b̂‖² (scalar_start): the threshold on r·r is their product.
     pub const SCAL_TOL2: u32 = 7;
     pub const SCAL_BB: u32 = 8;
+    /// The ρ the last α used (update_yr), what update_p's β divides by.
+    pub const SCAL_RHO_OLD: u32 = 9;
     /// The leading slots read back with every status.
     pub const STATUS_SCAL: u32 = 12;
     /// The coarse correction on the translations: c = E⁺Zᵀr (D values),
@@ -77,7 +79,8 @@ pub mod slots {
     pub const CARRY_LEN: u32 = 12;
 
     // The slot ranges do not overlap (D ≤ 3).
-    const _: () = assert!(SCAL_BB < STATUS_SCAL && STATUS_SCAL <= SCAL_C);
+    const _: () =
+        assert!(SCAL_BB < SCAL_RHO_OLD && SCAL_RHO_OLD < STATUS_SCAL && STATUS_SCAL <= SCAL_C);
     const _: () = assert!(
         SCAL_C + 3 <= SCAL_EINV
             && SCAL_EINV + 9 <= SCAL_E
@@ -111,6 +114,7 @@ pub const SHARED: &[(&str, u32)] = &[
     ("SCAL_BETA", slots::SCAL_BETA),
     ("SCAL_TOL2", slots::SCAL_TOL2),
     ("SCAL_BB", slots::SCAL_BB),
+    ("SCAL_RHO_OLD", slots::SCAL_RHO_OLD),
     ("SCAL_C", slots::SCAL_C),
     ("SCAL_EINV", slots::SCAL_EINV),
     ("SCAL_E", slots::SCAL_E),

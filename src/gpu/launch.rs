@@ -177,6 +177,18 @@ impl SegmentPolicy {
         items.div_ceil(wg as u64 * self.items.max(1) as u64).max(1)
     }
 
+    /// The launch of a segmented kernel over `segments` segments whose every workgroup
+    /// also sums all the partials of an earlier reduction (the device PCG's fused scalar
+    /// kernels, `update_yr` and `update_p`): at most `cap` workgroups, each looping over
+    /// segments, so that redundant work grows with the partials, not with their square.
+    /// The partials themselves are per segment, so the bits do not change.
+    pub fn launch_capped(&self, limits: &LaunchLimits, segments: u64, cap: u64, wg: u32) -> Launch {
+        match self.workgroups {
+            SegmentWorkgroups::Exactly(_) => self.launch(limits, segments, wg),
+            _ => self.launch(limits, segments.min(cap.max(1)), wg),
+        }
+    }
+
     /// The launch of a segmented kernel over `segments` segments.
     pub fn launch(&self, limits: &LaunchLimits, segments: u64, wg: u32) -> Launch {
         let groups = match self.workgroups {

@@ -70,6 +70,12 @@ const _: () = assert!(std::mem::size_of::<PcgParams>() == 32);
 /// Workgroup size of every kernel.
 const WORKGROUP: u32 = 64;
 
+/// Workgroups of the kernels that sum every partial of the reduction before them
+/// (update_yr sums the product's p·q for α, update_p the updates' r·z and r·r for β):
+/// each of them reads all n/64 partials (on a GPU), so their count bounds that redundant
+/// work, while 2,048 workgroups of 64 invocations still fill a large GPU.
+const FUSED_GROUPS: u64 = 2048;
+
 /// Bytes of the status read back per chunk: the leading `scal` slots (`acc`) then
 /// `state`.
 fn status_bytes(acc: Real) -> u64 {
@@ -209,8 +215,11 @@ const ONE: Launch = Launch { x: 1, y: 1 };
 
 /// The launches of the CG's kernels, from the device's limits and segment policy.
 struct Launches {
-    /// The segmented reductions over every node (rhs, init, update_yr).
+    /// The segmented reductions over every node (rhs, init, ml_dot).
     segments: Launch,
+    /// The kernels that sum every partial of the reduction before them (update_yr,
+    /// update_p, start_p): at most [`FUSED_GROUPS`] workgroups.
+    fused: Launch,
     /// Per values chunk of H: its segmented reductions (matvec, coarse_e) and its
     /// per-row kernels (precond, agg_rows).
     chunk_segments: Vec<Launch>,
@@ -351,10 +360,9 @@ struct Pipelines {
     ml_start: wgpu::ComputePipeline,
     update_yr_ml: wgpu::ComputePipeline,
     init_ml: wgpu::ComputePipeline,
-    scalar_alpha: wgpu::ComputePipeline,
     update_yr: [[wgpu::ComputePipeline; 3]; 3],
-    scalar_beta: [wgpu::ComputePipeline; 3],
     update_p: [wgpu::ComputePipeline; 3],
+    start_p: [wgpu::ComputePipeline; 3],
     init: [[wgpu::ComputePipeline; 3]; 3],
     scalar_start: [wgpu::ComputePipeline; 3],
     recover: wgpu::ComputePipeline,
@@ -413,10 +421,9 @@ impl Kernels {
             ml_start: pipe("ml_start", 3, 0),
             update_yr_ml: pipe("update_yr", 3, 0),
             init_ml: pipe("init", 3, 0),
-            scalar_alpha: pipe("scalar_alpha", 0, 0),
             update_yr: each("update_yr"),
-            scalar_beta: both("scalar_beta"),
             update_p: both("update_p"),
+            start_p: both("start_p"),
             init: each("init"),
             scalar_start: both("scalar_start"),
             recover: pipe("recover", 0, 0),
@@ -572,6 +579,7 @@ impl DeviceCg {
         let seg_len = (WORKGROUP * policy.items) as usize;
         let launches = Launches {
             segments: policy.launch(&limits, segments, WORKGROUP),
+            fused: policy.launch_capped(&limits, segments, FUSED_GROUPS, WORKGROUP),
             chunk_segments: chunks
                 .iter()
                 .map(|c| {
@@ -1626,7 +1634,7 @@ impl DeviceCg {
         k.extend(self.aggregate_correction(frames, co));
         k.push((&p.scalar_start[co], ONE, g0));
         if co != 0 {
-            k.push((&p.update_p[co], l.nodes, g0));
+            k.push((&p.start_p[co], l.fused, g0));
         }
         k
     }
@@ -1702,28 +1710,18 @@ impl DeviceCg {
                 .map(|k| ("matvec", k))
                 .collect();
         if pre == 3 {
-            one.extend([
-                ("scalar_alpha", (&p.scalar_alpha, ONE, g0)),
-                ("update_yr", (&p.update_yr_ml, l.segments, g0)),
-            ]);
+            one.push(("update_yr", (&p.update_yr_ml, l.fused, g0)));
             one.extend(self.vcycle(frames));
             one.extend([
                 ("ml_dot", (&p.ml_dot, l.segments, g0)),
-                ("scalar_beta", (&p.scalar_beta[0], ONE, g0)),
-                ("update_p", (&p.update_p[0], l.nodes, g0)),
+                ("update_p", (&p.update_p[0], l.fused, g0)),
             ]);
             return one;
         }
-        one.extend([
-            ("scalar_alpha", (&p.scalar_alpha, ONE, g0)),
-            ("update_yr", (&p.update_yr[co][pre], l.segments, g0)),
-        ]);
+        one.push(("update_yr", (&p.update_yr[co][pre], l.fused, g0)));
         let agg = self.aggregate_correction(frames, co);
         one.extend(["agg_restrict", "agg_solve"].into_iter().zip(agg));
-        one.extend([
-            ("scalar_beta", (&p.scalar_beta[co], ONE, g0)),
-            ("update_p", (&p.update_p[co], l.nodes, g0)),
-        ]);
+        one.push(("update_p", (&p.update_p[co], l.fused, g0)));
         one
     }
 
@@ -2066,10 +2064,9 @@ mod tests {
             "rhs",
             "precond",
             "matvec",
-            "scalar_alpha",
             "update_yr",
-            "scalar_beta",
             "update_p",
+            "start_p",
             "init",
             "scalar_start",
             "recover",

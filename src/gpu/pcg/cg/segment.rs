@@ -73,12 +73,12 @@ impl DeviceCg {
         enc.clear_buffer(&self.buf.y, 0, None);
         enc.clear_buffer(&self.buf.q, 0, None);
         let mut kernels = self.start(frames, pre, co);
-        // With the coarse correction `start` already ends in update_p; without it, init
-        // left p alone and update_p forms p = z + βp here.
+        // With the coarse correction `start` already ends in start_p; without it, init
+        // left p alone and start_p forms p = z + βp here.
         if resume && co == 0 {
             kernels.push((
-                &self.kernels.pipes.update_p[0],
-                self.launches.nodes,
+                &self.kernels.pipes.start_p[0],
+                self.launches.fused,
                 &frames.groups[0],
             ));
         }
