@@ -278,6 +278,8 @@ pub struct GpuContext {
 struct Traffic {
     h2d: AtomicU64,
     d2h: AtomicU64,
+    /// Waits of the host on the device (read-backs and explicit waits).
+    syncs: AtomicU64,
     /// Bytes of every buffer allocated through the context's helpers.
     allocated: AtomicU64,
 }
@@ -288,6 +290,8 @@ struct Traffic {
 pub struct TrafficCount {
     pub host_to_device_bytes: u64,
     pub device_to_host_bytes: u64,
+    /// Every wait of the host on the device: each read-back and each explicit wait.
+    pub host_syncs: u64,
 }
 
 impl std::fmt::Debug for GpuContext {
@@ -487,6 +491,7 @@ impl GpuContext {
         TrafficCount {
             host_to_device_bytes: self.traffic.h2d.load(Ordering::Relaxed),
             device_to_host_bytes: self.traffic.d2h.load(Ordering::Relaxed),
+            host_syncs: self.traffic.syncs.load(Ordering::Relaxed),
         }
     }
 
@@ -530,28 +535,45 @@ impl GpuContext {
         bytes: u64,
         what: &str,
     ) -> Result<Vec<u8>, GpuError> {
-        if bytes == 0 {
-            return Ok(Vec::new());
+        let mut v = self.download_many(&[(buf, offset, bytes)], what)?;
+        Ok(v.pop().unwrap_or_default())
+    }
+
+    /// Several ranges (buffer, offset, bytes) copied into one staging buffer after the
+    /// work submitted so far and read back with one wait, in order: a status read and
+    /// what rides along with it. Each range as [`GpuContext::download`] takes it.
+    pub(crate) fn download_many(
+        &self,
+        ranges: &[(&wgpu::Buffer, u64, u64)],
+        what: &str,
+    ) -> Result<Vec<Vec<u8>>, GpuError> {
+        let sizes: Vec<u64> = ranges.iter().map(|r| r.2.div_ceil(4) * 4).collect();
+        let total: u64 = sizes.iter().sum();
+        if total == 0 {
+            return Ok(ranges.iter().map(|_| Vec::new()).collect());
         }
-        let size = bytes.div_ceil(4) * 4;
         let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(what),
-            size,
+            size: total,
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
         let mut enc = self
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(what) });
-        enc.copy_buffer_to_buffer(buf, offset, &staging, 0, size);
+        let mut at = 0;
+        for (&(buf, offset, _), &size) in ranges.iter().zip(&sizes) {
+            if size > 0 {
+                enc.copy_buffer_to_buffer(buf, offset, &staging, at, size);
+            }
+            at += size;
+        }
         self.queue.submit([enc.finish()]);
         let (tx, rx) = std::sync::mpsc::channel();
         staging.map_async(wgpu::MapMode::Read, .., move |r| {
             let _ = tx.send(r);
         });
-        self.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))?;
+        self.wait(what)?;
         rx.recv()
             .map_err(|_| GpuError::Device("buffer mapping was dropped".into()))?
             .map_err(|e| GpuError::Device(format!("mapping a read-back buffer: {e}")))?;
@@ -560,9 +582,25 @@ impl GpuContext {
             .map_err(|e| GpuError::Device(format!("reading a mapped buffer: {e}")))?
             .to_vec();
         staging.unmap();
-        self.note_download(size);
+        self.note_download(total);
         self.check(what)?;
-        Ok(v[..bytes as usize].to_vec())
+        let mut out = Vec::with_capacity(ranges.len());
+        let mut at = 0usize;
+        for (r, &size) in ranges.iter().zip(&sizes) {
+            out.push(v[at..at + r.2 as usize].to_vec());
+            at += size as usize;
+        }
+        Ok(out)
+    }
+
+    /// Waits until the device has finished the work submitted so far (counted as a host
+    /// sync).
+    pub(crate) fn wait(&self, what: &str) -> Result<(), GpuError> {
+        self.traffic.syncs.fetch_add(1, Ordering::Relaxed);
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Device(format!("{what}: waiting for the GPU: {e}")))?;
+        Ok(())
     }
 
     pub fn adapter_name(&self) -> &str {

@@ -18,50 +18,75 @@ pub const COMMON: &str = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shad
 
 /// The one slot table of the device PCG's scalar array `scal` (acc), state array `state`
 /// (u32) and partial sums (`partials[slot · G + segment]`): src/gpu/pcg/ drives
-/// shaders/pcg.wgsl, whose header says who writes and reads each. The prelude declares
-/// every one as a WGSL `const` of the same name.
+/// shaders/pcg_*.wgsl; each slot below says who writes and who reads it. The prelude
+/// declares every one as a WGSL `const` of the same name.
 pub mod slots {
-    /// ρ = r·z.
+    /// ρ = r·z: scalar_start, update_p's first workgroup; read by update_yr.
     pub const SCAL_RHO: u32 = 0;
-    /// ρ of the segment a device PCG segment resumes (host, rescaled).
+    /// ρ of the segment a device PCG segment resumes (host, rescaled; scalar_start).
     pub const SCAL_RHO_PREV: u32 = 1;
-    /// p·q of the last α (the curvature reported when it is not positive).
+    /// p·q of the last α (the curvature reported when it is not positive): update_yr.
     pub const SCAL_PQ: u32 = 2;
+    /// α: update_yr's first workgroup (the Lanczos history's).
     pub const SCAL_ALPHA: u32 = 3;
-    /// r·r of the last reduction.
+    /// r·r of the last reduction: update_p, scalar_start (the true residual).
     pub const SCAL_RR: u32 = 4;
     /// The factor by which a resumed segment rescales p (host; 0: a fresh start).
     pub const SCAL_PSCALE: u32 = 5;
-    /// β (update_p; scalar_start at a start).
+    /// β: update_p's first workgroup; scalar_start for start_p.
     pub const SCAL_BETA: u32 = 6;
-    /// tol² (host) and ‖b̂‖² (scalar_start): the threshold on r·r is their product.
+    /// tol² (host, or scalar_start from the rule) and ‖b̂‖² (scalar_start): the
+    /// threshold on r·r is their product.
     pub const SCAL_TOL2: u32 = 7;
     pub const SCAL_BB: u32 = 8;
     /// The ρ the last α used (update_yr), what update_p's β divides by.
     pub const SCAL_RHO_OLD: u32 = 9;
-    /// The leading slots read back with every status.
-    pub const STATUS_SCAL: u32 = 12;
-    /// The coarse correction on the translations: c = E⁺Zᵀr (D values),
-    /// E⁺ (D², from the host), E = ZᵀĤZ (D², for the host), the rows' absolute sums per
-    /// world axis (D, for the host).
+    /// The relative tolerance of the solve (host, or scalar_start from the rule).
+    pub const SCAL_ETA: u32 = 10;
+    /// 1 while the tolerance rule (SCAL_RULE_*) is still to be evaluated by the next
+    /// start (host; scalar_start clears it).
+    pub const SCAL_RULE_ON: u32 = 11;
+    /// The coarse correction on the translations: c = E⁺Zᵀr (D values: update_p,
+    /// scalar_start), E⁺ (D², from the host), E = ZᵀĤZ unsymmetrized (D², row-major:
+    /// coarse_e_sum), per world axis 2^-64 · Σ|entries| of the rows of component a of
+    /// ZᵀĤ's blocks (D: coarse_e_sum). E and its sums are read with every status (the
+    /// host asks whether a translation is pinned by nothing).
     pub const SCAL_C: u32 = 12;
     pub const SCAL_EINV: u32 = 15;
     pub const SCAL_E: u32 = 24;
     pub const SCAL_EABS: u32 = 33;
+    /// The slots read back with every status: everything before this.
+    pub const STATUS_SCAL: u32 = 36;
+    /// The tolerance rule (host; src/solve/tolerance.rs, `ToleranceRule::Ratio`): ‖b̂‖
+    /// of the previous system, γ, the guard (0: none), η_lo, η_hi.
+    pub const SCAL_RULE_PREV: u32 = 36;
+    pub const SCAL_RULE_GAMMA: u32 = 37;
+    pub const SCAL_RULE_GUARD: u32 = 38;
+    pub const SCAL_RULE_LO: u32 = 39;
+    pub const SCAL_RULE_HI: u32 = 40;
     /// First slot of the Lanczos coefficient history: α_j at SCAL_HIST + 2j, β_{j+1} at
-    /// SCAL_HIST + 2j + 1. The slots before it are the fixed scalars.
-    pub const SCAL_HIST: u32 = 36;
-    /// A converged or stopped CG: every later dispatch of the chunk is a no-op.
+    /// SCAL_HIST + 2j + 1 (update_p's first workgroup). The slots before it are the
+    /// fixed scalars.
+    pub const SCAL_HIST: u32 = 48;
+    /// A converged or stopped CG: every later iteration dispatch of the submit is a
+    /// no-op.
     pub const STATE_DONE: u32 = 0;
     /// Non-positive curvature met.
     pub const STATE_HALT: u32 = 1;
+    /// The recurrence residual met the tolerance (or a start's true residual did).
     pub const STATE_CONVERGED: u32 = 2;
     /// A non-finite ρ or r·r.
     pub const STATE_BREAKDOWN: u32 = 3;
-    /// Iterations done. The four flags come before it, so that clearing them keeps it.
-    pub const STATE_ITERS: u32 = 4;
+    /// The true residual of the converged recurrence has been computed (`verified`).
+    pub const STATE_VERIFIED: u32 = 4;
+    /// ... and met the tolerance: the verified `recover` has formed Δx.
+    pub const STATE_TRUE_OK: u32 = 5;
+    /// The flags: the words before this, cleared together by the host.
+    pub const STATE_FLAGS: u32 = 8;
+    /// Iterations done (update_p's first workgroup).
+    pub const STATE_ITERS: u32 = 8;
     /// Length of `state`.
-    pub const N_STATE: u32 = 8;
+    pub const N_STATE: u32 = 12;
     /// Partial-sum slots: p·q (the product), r·z and r·r (the updates, init), Zᵀr (D
     /// slots from PART_ZR, with the coarse correction on the translations), ‖b̂‖² (rhs),
     /// then E (D² slots) and its rows' absolute sums (D slots) of coarse_e.
@@ -79,14 +104,16 @@ pub mod slots {
     pub const CARRY_LEN: u32 = 12;
 
     // The slot ranges do not overlap (D ≤ 3).
-    const _: () =
-        assert!(SCAL_BB < SCAL_RHO_OLD && SCAL_RHO_OLD < STATUS_SCAL && STATUS_SCAL <= SCAL_C);
+    const _: () = assert!(SCAL_RULE_ON < SCAL_C);
     const _: () = assert!(
         SCAL_C + 3 <= SCAL_EINV
             && SCAL_EINV + 9 <= SCAL_E
             && SCAL_E + 9 <= SCAL_EABS
-            && SCAL_EABS + 3 <= SCAL_HIST
+            && SCAL_EABS + 3 <= STATUS_SCAL
+            && STATUS_SCAL <= SCAL_RULE_PREV
+            && SCAL_RULE_HI < SCAL_HIST
     );
+    const _: () = assert!(STATE_TRUE_OK < STATE_FLAGS && STATE_FLAGS <= STATE_ITERS);
     const _: () = assert!(STATE_ITERS < N_STATE);
     const _: () = assert!(PART_ZR + 3 <= PART_BB && PART_BB < PART_E && PART_E + 12 <= N_PART);
     // coarse_e carries E and the absolute sums.
@@ -115,6 +142,15 @@ pub const SHARED: &[(&str, u32)] = &[
     ("SCAL_TOL2", slots::SCAL_TOL2),
     ("SCAL_BB", slots::SCAL_BB),
     ("SCAL_RHO_OLD", slots::SCAL_RHO_OLD),
+    ("SCAL_ETA", slots::SCAL_ETA),
+    ("SCAL_RULE_ON", slots::SCAL_RULE_ON),
+    ("SCAL_RULE_PREV", slots::SCAL_RULE_PREV),
+    ("SCAL_RULE_GAMMA", slots::SCAL_RULE_GAMMA),
+    ("SCAL_RULE_GUARD", slots::SCAL_RULE_GUARD),
+    ("SCAL_RULE_LO", slots::SCAL_RULE_LO),
+    ("SCAL_RULE_HI", slots::SCAL_RULE_HI),
+    ("STATE_VERIFIED", slots::STATE_VERIFIED),
+    ("STATE_TRUE_OK", slots::STATE_TRUE_OK),
     ("SCAL_C", slots::SCAL_C),
     ("SCAL_EINV", slots::SCAL_EINV),
     ("SCAL_E", slots::SCAL_E),

@@ -20,7 +20,18 @@ pub struct ChunkStatus {
     pub bb: f64,
     /// Iterations of this run.
     pub iterations: usize,
+    /// The relative tolerance the solve runs to (set by the host, or by the device from
+    /// the tolerance rule at the first start).
+    pub eta: f64,
     pub converged: bool,
+    /// The chunk's verification computed the true residual of the converged recurrence
+    /// (then `rr` is the true r·r) ...
+    pub verified: bool,
+    /// ... and it met the tolerance on the device: Δx was recovered in the same submit.
+    pub true_ok: bool,
+    /// E = ZᵀĤZ of the translations (D², row-major, unsymmetrized: the first D² of 9)
+    /// and its rows' absolute sums (from entry 9), as `prepare` left them.
+    pub coarse: [f64; 12],
     /// Non-positive curvature met.
     pub halt: bool,
     /// A non-finite ρ or r·r.
@@ -38,7 +49,11 @@ impl ChunkStatus {
             pq: scal[slots::SCAL_PQ as usize],
             bb: scal[slots::SCAL_BB as usize],
             iterations: state[slots::STATE_ITERS as usize] as usize,
+            eta: scal[slots::SCAL_ETA as usize],
             converged: flag(slots::STATE_CONVERGED),
+            verified: flag(slots::STATE_VERIFIED),
+            true_ok: flag(slots::STATE_TRUE_OK),
+            coarse: std::array::from_fn(|k| scal[slots::SCAL_E as usize + k]),
             halt: flag(slots::STATE_HALT),
             breakdown: flag(slots::STATE_BREAKDOWN),
         }

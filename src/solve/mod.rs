@@ -11,3 +11,4 @@ pub mod options;
 pub mod oracle;
 pub mod ordering;
 pub mod precond;
+pub mod tolerance;

@@ -68,7 +68,8 @@ mod solver;
 
 pub use cg::{
     DeviceCg, DeviceCgInfo, DeviceCgParams, DeviceFrames, DispatchRecord, IterationProfile,
-    Scalars, SegmentEnd, SegmentInfo, SegmentStart, Watch, LANCZOS_HIST, PCG,
+    Scalars, SegmentEnd, SegmentInfo, SegmentStart, Tail, Watch, LANCZOS_HIST, PCG_COARSE,
+    PCG_PRODUCT, PCG_UPDATE,
 };
 pub use multilevel::multilevel_bytes;
 pub use solver::PcgSolver;

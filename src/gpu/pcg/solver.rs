@@ -384,10 +384,7 @@ impl PcgSolver {
                 .set_multilevel(&ml, e.frames, self.params.binding_limit)?;
         }
         // The setup kernels' time, not just their recording.
-        self.ctx
-            .device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))?;
+        self.ctx.wait("the PCG's setup")?;
         self.setup_seconds = t.elapsed().as_secs_f64();
         Ok(())
     }

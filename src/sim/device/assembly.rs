@@ -917,10 +917,7 @@ impl GpuAssembly {
 
     /// Waits until the device has finished all submitted work.
     pub fn wait(&self) -> Result<(), GpuError> {
-        self.ctx
-            .device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))?;
+        self.ctx.wait("the assembly")?;
         self.ctx.check("waiting for the assembly")
     }
 

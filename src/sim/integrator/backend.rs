@@ -7,6 +7,7 @@
 
 use super::balance::ForceBalance;
 use super::error::StepError;
+use super::forcing::Forcing;
 use super::linear::LinearStats;
 use super::report::GpuRunReport;
 use super::state::State;
@@ -56,14 +57,14 @@ pub(super) trait Backend {
 
     /// ∇E, ∇²E and the eliminated solve for the constraint set of `moving` (its frames
     /// are built) at the current iterate: Δx is kept for the line search. `iteration`
-    /// (from 1) names it in errors; `tolerance` maps ‖b̂‖ to the iterative solver's
-    /// relative residual tolerance (the forcing sequence).
+    /// (from 1) names it in errors; `forcing` gives the iterative solver's relative
+    /// residual tolerance as a rule of ‖b̂‖ and remembers the system solved.
     fn direction(
         &mut self,
         state: &State,
         moving: &MovingTargets,
         iteration: usize,
-        tolerance: &mut dyn FnMut(f64) -> f64,
+        forcing: &mut Forcing,
     ) -> Result<LinearStats, StepError>;
 
     /// Solves the system of the last [`Backend::direction`] again to the relative

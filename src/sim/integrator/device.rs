@@ -21,6 +21,7 @@
 use super::backend::{Backend, EndState, SystemArrays};
 use super::balance::{force_balance, ForceBalance};
 use super::error::{InitError, StepError};
+use super::forcing::Forcing;
 use super::linear::LinearStats;
 use super::report::GpuRunReport;
 use super::state::{Contact, State, CCD_FRACTION};
@@ -38,6 +39,7 @@ use crate::sim::scene::Scene;
 use crate::solve::multilevel::reuse::KeptLevels;
 use crate::solve::multilevel::Hierarchy;
 use crate::solve::options::Preconditioner;
+use crate::solve::tolerance::ToleranceRule;
 use std::collections::HashMap;
 use std::time::Instant;
 
@@ -249,6 +251,7 @@ impl DeviceLoop {
             coarse_host_to_device_bytes: c.host_to_device_bytes,
             coarse_device_to_host_bytes: c.device_to_host_bytes,
             multilevel_setup_seconds: self.multilevel_seconds,
+            host_syncs: t.host_syncs,
             newton_iterations: 0,
         }
     }
@@ -385,7 +388,7 @@ impl Backend for DeviceLoop {
         state: &State,
         moving: &MovingTargets,
         iteration: usize,
-        tolerance: &mut dyn FnMut(f64) -> f64,
+        forcing: &mut Forcing,
     ) -> Result<LinearStats, StepError> {
         let t = Instant::now();
         let snapped = &moving.snapped;
@@ -408,9 +411,9 @@ impl Backend for DeviceLoop {
             cause: e.to_string(),
         };
         let multilevel = self.params.preconditioner == Preconditioner::Multilevel;
-        // The forcing sequence gives one tolerance per system, also to a second try.
-        let mut eta = None;
-        let mut once = |n: f64| *eta.get_or_insert_with(|| tolerance(n));
+        // The forcing sequence's rule, evaluated on the device where ‖b̂‖ is formed; a
+        // second try keeps the tolerance of the first.
+        let mut rule = forcing.rule();
         let info = loop {
             let frames = &self.frames[snapped];
             self.cg.prepare(frames).map_err(cg_error)?;
@@ -419,16 +422,21 @@ impl Backend for DeviceLoop {
                     .map_err(cg_error)?;
             }
             let frames = &self.frames[snapped];
-            match self.cg.iterate_to(frames, &self.params, &mut once) {
-                Ok(info) => break info,
+            match self.cg.iterate_with(frames, &self.params, rule, None) {
+                Ok((info, _)) => break info,
                 // Kept multilevel levels get one more try on levels built for this system.
-                Err(_) if multilevel && self.levels.failed() => {}
+                Err(_) if multilevel && self.levels.failed() => {
+                    if let Some(eta) = self.cg.last_tolerance() {
+                        rule = ToleranceRule::Fixed(eta);
+                    }
+                }
                 Err(e) => return Err(cg_error(e)),
             }
         };
         if multilevel {
             self.levels.solved(info.iterations, info.tolerance);
         }
+        forcing.record(info.rhs_norm, info.tolerance);
         Ok(Self::stats(&info, t))
     }
 

@@ -28,11 +28,10 @@
 //! fixed `cg_tolerance` solves every system to it.
 
 use crate::sim::scene::CgTolerance;
+use crate::solve::tolerance::ToleranceRule;
 
 /// γ of the forcing sequence.
 const GAMMA: f64 = 0.9;
-/// The exponent of Eisenstat and Walker's second choice.
-const EXPONENT: f64 = 2.0;
 /// The safeguard applies when γ η_{k−1}^2 exceeds this.
 const SAFEGUARD: f64 = 0.1;
 
@@ -92,31 +91,39 @@ impl Forcing {
     /// The tolerance of a system whose right-hand side has norm `rhs_norm`; the sequence
     /// remembers it for the next.
     pub fn tolerance(&mut self, rhs_norm: f64) -> f64 {
+        let eta = self.rule().eval(rhs_norm);
+        self.record(rhs_norm, eta);
+        eta
+    }
+
+    /// The next system's tolerance as a rule of its ‖b̂‖ ([`Forcing::tolerance`] is its
+    /// value, remembered): what a device solve evaluates where ‖b̂‖ is formed.
+    pub fn rule(&self) -> ToleranceRule {
         let (lo, hi) = (self.policy.tightest(), self.policy.loosest());
-        let eta = match (self.policy, self.previous) {
-            (CgTolerance::Fixed(t), _) => t,
-            (CgTolerance::Adaptive, None) => match self.last_first_step {
+        match (self.policy, self.previous) {
+            (CgTolerance::Fixed(t), _) => ToleranceRule::Fixed(t),
+            (CgTolerance::Adaptive, None) => ToleranceRule::Fixed(match self.last_first_step {
                 // A NaN (a zero first step) keeps η_max through `clamp`'s NaN check below.
                 Some(s) if s > 0.0 => (0.5 * self.test / s).clamp(lo, hi),
                 _ => hi,
-            },
+            }),
             (CgTolerance::Adaptive, Some((prev_norm, prev_eta))) => {
-                let ratio = rhs_norm / prev_norm;
-                let mut eta = GAMMA * ratio.powf(EXPONENT);
-                let guard = GAMMA * prev_eta.powf(EXPONENT);
-                if guard > SAFEGUARD {
-                    eta = eta.max(guard);
-                }
-                // A NaN ratio (‖b̂‖ = 0 twice) keeps the loosest: nothing is left to solve.
-                if eta.is_nan() {
-                    hi
-                } else {
-                    eta.clamp(lo, hi)
+                let guard = GAMMA * (prev_eta * prev_eta);
+                ToleranceRule::Ratio {
+                    prev_norm,
+                    gamma: GAMMA,
+                    guard: if guard > SAFEGUARD { guard } else { 0.0 },
+                    lo,
+                    hi,
                 }
             }
-        };
+        }
+    }
+
+    /// Remembers the system just solved: its ‖b̂‖ and the tolerance it was solved to
+    /// (the value of [`Forcing::rule`] at it).
+    pub fn record(&mut self, rhs_norm: f64, eta: f64) {
         self.previous = Some((rhs_norm, eta));
-        eta
     }
 
     /// The tolerance a direction must have been solved to for the step to be declared

@@ -5,6 +5,7 @@
 use super::backend::{Backend, EndState, SystemArrays};
 use super::balance::{force_balance, ForceBalance};
 use super::error::{InitError, StepError};
+use super::forcing::Forcing;
 use super::linear::{LinearSolver, LinearStats};
 use super::report::GpuRunReport;
 use super::state::{State, CCD_FRACTION};
@@ -116,7 +117,7 @@ impl Backend for HostBackend {
         state: &State,
         moving: &MovingTargets,
         iteration: usize,
-        tolerance: &mut dyn FnMut(f64) -> f64,
+        forcing: &mut Forcing,
     ) -> Result<LinearStats, StepError> {
         gradient(
             state,
@@ -141,7 +142,7 @@ impl Backend for HostBackend {
                 });
             }
         }
-        self.solve(state, moving, iteration, tolerance)
+        self.solve(state, moving, iteration, &mut |n| forcing.tolerance(n))
     }
 
     fn resolve(
@@ -264,6 +265,7 @@ impl Backend for HostBackend {
             coarse_host_to_device_bytes: 0,
             coarse_device_to_host_bytes: 0,
             multilevel_setup_seconds: 0.0,
+            host_syncs: t.host_syncs,
             newton_iterations: 0,
         })
     }

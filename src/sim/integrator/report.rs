@@ -95,6 +95,9 @@ pub struct GpuRunReport {
     /// back, the levels built and uploaded, once per Newton iteration; part of the linear
     /// seconds; 0 without it and for the CPU loop).
     pub multilevel_setup_seconds: f64,
+    /// Every wait of the host on the device (read-backs and explicit waits), set-up
+    /// included.
+    pub host_syncs: u64,
     /// Newton iterations of the run (filled in by the driver, which counts them).
     pub newton_iterations: usize,
 }

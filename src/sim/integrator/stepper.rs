@@ -377,7 +377,7 @@ impl<'s> Stepper<'s> {
             self.state.build_frames(&moving.snapped)?;
             let stats = self
                 .backend
-                .direction(&self.state, moving, iter, &mut |n| forcing.tolerance(n))?;
+                .direction(&self.state, moving, iter, &mut forcing)?;
             rep.add_solve(&stats);
             let mut last = stats;
             let mut dmax = self.max_abs_dx(iter)?;

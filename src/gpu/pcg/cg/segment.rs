@@ -5,9 +5,10 @@
 //! ([`DeviceCg::set_rhs`]) and resumes, so CG goes on along its search direction instead
 //! of restarting from p = z.
 
+use super::run::RunTrack;
 use super::{
-    Begun, ChunkWatch, Chunked, DeviceCg, DeviceCgParams, DeviceFrames, SegmentEnd, SegmentInfo,
-    SegmentStart, Watch,
+    Begun, ChunkWatch, Chunked, Co, DeviceCg, DeviceCgParams, DeviceFrames, Mode, Pre, SegmentEnd,
+    SegmentInfo, SegmentStart, Watch,
 };
 use crate::gpu::kernels::slots;
 use crate::gpu::GpuError;
@@ -46,7 +47,7 @@ impl DeviceCg {
         let resume = match start {
             SegmentStart::Fresh => false,
             SegmentStart::Resume { rho_prev, pscale } => {
-                if pre == 3 {
+                if pre == Pre::Multilevel {
                     return Err(GpuError::Unsupported(
                         "a device PCG segment resumes under Jacobi or block Jacobi, not the \
                          multilevel preconditioner"
@@ -72,18 +73,20 @@ impl DeviceCg {
         let mut enc = self.encoder("pcg segment start");
         enc.clear_buffer(&self.buf.y, 0, None);
         enc.clear_buffer(&self.buf.q, 0, None);
-        let mut kernels = self.start(frames, pre, co);
+        let mut kernels = self.start(frames, pre, co, Mode::Iterate);
         // With the coarse correction `start` already ends in start_p; without it, init
         // left p alone and start_p forms p = z + βp here.
-        if resume && co == 0 {
-            kernels.push((
-                &self.kernels.pipes.start_p[0],
-                self.launches.fused,
-                &frames.groups[0],
-            ));
+        if resume && co == Co::None {
+            let sp = self
+                .kernels
+                .update
+                .start_p(&self.ctx.device, co, Mode::Iterate);
+            kernels.push((sp, self.launches.fused, &frames.groups[0]));
         }
         Self::pass(&mut enc, "pcg segment start", &kernels);
-        let mut st = self.submit_and_read(enc, "starting a device PCG segment")?;
+        let (mut st, _) = self.submit_and_read(enc, &[], "starting a device PCG segment")?;
+        self.galerkin_from_status(&st);
+        self.check_pinned(frames)?;
         st.error(0)?;
         // Only the start resumes: no later init of this PCG may take p as kept.
         self.ctx.write_buffer(
@@ -99,13 +102,19 @@ impl DeviceCg {
         // is stagnation.
         let mut last_check = st.rr;
         let mut inner = watch.map(|w| move |cg: &DeviceCg, it: usize| w(cg, it, start_rho));
+        let mut bytes = Vec::new();
         while !st.converged {
-            match self.chunks(
+            let mut track = RunTrack::new(st.iterations, st.rr);
+            track.verify = false;
+            match self.chunks_watched(
                 frames,
                 (pre, co),
                 params,
                 tol * tol * bb,
                 &mut st,
+                None,
+                &mut bytes,
+                &mut track,
                 inner.as_mut().map(|w| w as &mut ChunkWatch),
             )? {
                 Chunked::Watched => {
@@ -176,10 +185,12 @@ impl DeviceCg {
         self.ctx
             .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
         let mut enc = self.encoder("pcg residual");
-        let mut kernels = self.product_of_y(&mut enc, frames);
-        kernels.extend(self.start(frames, pre, co));
+        let mut kernels = self.product_of_y(frames, Mode::Iterate);
+        kernels.extend(self.start(frames, pre, co, Mode::Iterate));
         Self::pass(&mut enc, "pcg residual", &kernels);
-        let st = self.submit_and_read(enc, "the device PCG's residual")?;
+        let (st, _) = self.submit_and_read(enc, &[], "the device PCG's residual")?;
+        self.galerkin_from_status(&st);
+        self.check_pinned(frames)?;
         st.error(0)?;
         Ok((st.rr, st.bb))
     }

@@ -1,0 +1,179 @@
+//! A constraint set on the device: per node its mask and rotation, the aggregates of the
+//! coarse space, and the bind groups that use them.
+
+use super::{DeviceCg, NEXT_ID};
+use crate::core::constraints::{Frames, NO_ROTATION};
+use crate::gpu::kernels;
+use crate::gpu::GpuError;
+use crate::solve::coarse::CoarseSpace;
+use std::sync::atomic::Ordering;
+
+use super::super::aggregates::{self, AggregateIndex};
+
+/// One constraint set on the device (mask and rotation per node) with the bind group that
+/// uses it; built by [`DeviceCg::frames`], valid only with the [`DeviceCg`] that built it.
+pub struct DeviceFrames {
+    pub(super) owner: u64,
+    /// Its own identity: `iterate` needs the frames `prepare` used.
+    pub(super) id: u64,
+    /// One bind group per values chunk of H (the kernels that do not read H use the
+    /// first).
+    pub(super) groups: Vec<wgpu::BindGroup>,
+    /// G = ZᵀZ of the translations of every node with a free component, the first such
+    /// node and their count (src/solve/coarse.rs, `translation_gram`): with the E and
+    /// absolute row sums `prepare` reduces, whether a translation is pinned by nothing.
+    pub(super) gram: (Vec<f64>, usize, usize),
+    /// The coarse space these frames were built for.
+    pub(super) coarse: CoarseSpace,
+    /// With `Aggregates`: the aggregate index (`None` when every node is fixed).
+    pub(super) agg: Option<AggregateIndex>,
+    /// Kept alive with the bind groups.
+    pub(super) _frame: wgpu::Buffer,
+    pub(super) _rotations: wgpu::Buffer,
+    pub(super) _aggregates: wgpu::Buffer,
+    /// The aggregate coarse space's f64 data (shaders/pcg.wgsl, `coarse`).
+    pub(super) coarse_buf: wgpu::Buffer,
+}
+
+impl DeviceCg {
+    /// Uploads one constraint set (mask per node, rotation per rotated node) and builds
+    /// its bind group, once: callers keep it for as long as the constraints hold. With
+    /// `coarse` = `Aggregates` also the aggregates of the pattern and their index arrays
+    /// ([`aggregates`]); frames built for another coarse space refuse it in `iterate`.
+    /// Refuses frames of another mesh and prescribed (non-zero) constraint values, which
+    /// a Newton step never has.
+    pub fn frames(&self, f: &Frames, coarse: CoarseSpace) -> Result<DeviceFrames, GpuError> {
+        let (n, d) = (self.n_nodes, self.dim);
+        if f.dim != d || f.n_nodes != n {
+            return Err(GpuError::Mismatch(format!(
+                "the constraints are for {} nodes in {}D, the mesh has {n} in {d}D",
+                f.n_nodes, f.dim
+            )));
+        }
+        if !f.homogeneous && !self.given_rhs {
+            return Err(GpuError::Unsupported(
+                "the device PCG forms b̂ from a gradient for homogeneous constraints only \
+                 (a Newton step prescribes no displacement)"
+                    .into(),
+            ));
+        }
+        if f.mask.len() != n
+            || f.rot_index.len() != n
+            || f.rotations.len() != d * d * f.rot_nodes.len()
+        {
+            return Err(GpuError::Mismatch(
+                "the constraint frames' arrays disagree with their node count".into(),
+            ));
+        }
+        let mut frame = Vec::with_capacity(2 * n);
+        for i in 0..n {
+            let ri = f.rot_index[i];
+            if ri != NO_ROTATION && ri as usize >= f.rot_nodes.len() {
+                return Err(GpuError::Mismatch(format!(
+                    "node {i} names rotation {ri} of {}",
+                    f.rot_nodes.len()
+                )));
+            }
+            frame.push(f.mask[i] as u32);
+            frame.push(ri);
+        }
+        let frame_buf = self
+            .ctx
+            .storage_with("pcg frames", bytemuck::cast_slice(&frame))?;
+        let rot_buf = self
+            .ctx
+            .storage_with("pcg rotations", &self.ty.real.bytes(&f.rotations))?;
+        let agg = match coarse {
+            CoarseSpace::Aggregates => {
+                let (row_ptr, col_idx) = self.usize_pattern();
+                aggregates::aggregate_index(&row_ptr, &col_idx, f)?
+            }
+            _ => None,
+        };
+        let mut agg = agg;
+        // The index words live on the device only: taken, not kept on the host.
+        let (agg_words, coarse_bytes) = match agg.as_mut() {
+            Some(a) => (
+                std::mem::take(&mut a.words),
+                self.ty.acc.size() * a.values as u64,
+            ),
+            None => (vec![0u32; 4], 16),
+        };
+        let agg_buf = self
+            .ctx
+            .storage_with("pcg aggregates", bytemuck::cast_slice(&agg_words))?;
+        let coarse_buf = self.ctx.storage_zeroed("pcg coarse space", coarse_bytes)?;
+        let b = &self.buf;
+        let mut groups = Vec::with_capacity(b.hvals.len());
+        for (params, hvals) in b.params.iter().zip(&b.hvals) {
+            let bufs: [&wgpu::Buffer; 21] = [
+                params,
+                &b.pattern,
+                hvals,
+                &b.grad,
+                &frame_buf,
+                &rot_buf,
+                &b.y,
+                &b.r,
+                &b.z,
+                &b.p,
+                &b.q,
+                &b.b,
+                &b.minv,
+                &b.dx,
+                &b.partials,
+                &b.scal,
+                &b.state,
+                &agg_buf,
+                &coarse_buf,
+                &b.pw,
+                &b.rowsum,
+            ];
+            groups.push(kernels::bind_group(
+                &self.ctx.device,
+                &self.kernels.layout,
+                "pcg bind group",
+                &bufs,
+            ));
+        }
+        self.ctx.check("uploading the constraint frames")?;
+        Ok(DeviceFrames {
+            owner: self.id,
+            id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
+            groups,
+            gram: crate::solve::coarse::translation_gram(f),
+            coarse,
+            agg,
+            _frame: frame_buf,
+            _rotations: rot_buf,
+            _aggregates: agg_buf,
+            coarse_buf,
+        })
+    }
+    /// The block pattern's row pointers and column indices as `usize` (from the uploaded
+    /// u32 copy; only while aggregates are built).
+    pub(super) fn usize_pattern(&self) -> (Vec<usize>, Vec<usize>) {
+        let n = self.n_nodes;
+        let p = &self.host_pattern;
+        let row_ptr: Vec<usize> = p[..=n].iter().map(|&v| v as usize).collect();
+        let nnz = row_ptr[n];
+        let col_idx = p[n + 1..n + 1 + nnz].iter().map(|&v| v as usize).collect();
+        (row_ptr, col_idx)
+    }
+    pub(super) fn own(&self, frames: &DeviceFrames) -> Result<(), GpuError> {
+        if frames.owner != self.id {
+            return Err(GpuError::Mismatch(
+                "these device frames were built by another device CG".into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl DeviceFrames {
+    /// The number of aggregates of the coarse space these frames were built for (`None`
+    /// without the aggregates, or when every node is fixed).
+    pub fn aggregate_count(&self) -> Option<usize> {
+        self.agg.as_ref().map(|a| a.count)
+    }
+}
