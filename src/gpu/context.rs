@@ -1,11 +1,13 @@
 //! Adapter choice and device creation, separate from any work so that tests and the
 //! command line share one device.
 
+use super::profile::{Phase, Profile, Profiler, Timing, QUERIES};
 use super::GpuError;
 use std::any::Any;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
+use std::time::Instant;
 
 /// How to pick the adapter. `Default` reads `WGPU_ADAPTER_NAME` (a case-insensitive
 /// substring of the adapter name) and `WGPU_BACKEND` (e.g. `vulkan`, `gl`).
@@ -272,6 +274,58 @@ pub struct GpuContext {
     /// Device objects built once per key and shared by the context's clones
     /// ([`GpuContext::cached`]).
     built: Arc<Mutex<HashMap<String, Arc<dyn Any + Send + Sync>>>>,
+    /// Where the run's seconds go (shared by the context's clones).
+    profiler: Arc<Mutex<Profiler>>,
+}
+
+/// Leaves the phase [`GpuContext::phase`] opened when dropped.
+pub struct PhaseGuard {
+    profiler: Arc<Mutex<Profiler>>,
+}
+
+impl Drop for PhaseGuard {
+    fn drop(&mut self) {
+        if let Ok(mut p) = self.profiler.lock() {
+            p.leave();
+        }
+    }
+}
+
+/// A compute pass begun by [`GpuContext::compute_pass`]: its dispatches are counted.
+pub(crate) struct Pass<'e> {
+    cp: wgpu::ComputePass<'e>,
+    profiler: Arc<Mutex<Profiler>>,
+    dispatches: u64,
+}
+
+impl Pass<'_> {
+    pub fn set_pipeline(&mut self, pipeline: &wgpu::ComputePipeline) {
+        self.cp.set_pipeline(pipeline);
+    }
+
+    pub fn set_bind_group(&mut self, index: u32, group: &wgpu::BindGroup) {
+        self.cp.set_bind_group(index, group, &[]);
+    }
+
+    pub fn dispatch(&mut self, launch: super::Launch) {
+        self.dispatches += 1;
+        launch.dispatch(&mut self.cp);
+    }
+
+    /// A dispatch whose workgroup counts a kernel wrote into `args` at `offset` (three
+    /// u32): what gated work uses.
+    pub fn dispatch_indirect(&mut self, args: &wgpu::Buffer, offset: u64) {
+        self.dispatches += 1;
+        self.cp.dispatch_workgroups_indirect(args, offset);
+    }
+}
+
+impl Drop for Pass<'_> {
+    fn drop(&mut self) {
+        if let Ok(mut p) = self.profiler.lock() {
+            p.dispatches += self.dispatches;
+        }
+    }
 }
 
 #[derive(Default)]
@@ -352,7 +406,24 @@ impl GpuContext {
                 v.push(e.to_string());
             }
         }));
+        let timing = features
+            .contains(wgpu::Features::TIMESTAMP_QUERY)
+            .then(|| Timing {
+                set: device.create_query_set(&wgpu::QuerySetDescriptor {
+                    label: Some("stickslip pass timestamps"),
+                    ty: wgpu::QueryType::Timestamp,
+                    count: QUERIES,
+                }),
+                resolve: device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("stickslip pass timestamps resolved"),
+                    size: 8 * QUERIES as u64,
+                    usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                    mapped_at_creation: false,
+                }),
+                period: queue.get_timestamp_period() as f64 * 1e-9,
+            });
         Ok(GpuContext {
+            profiler: Arc::new(Mutex::new(Profiler::new(timing))),
             report: report(&adapter),
             info: adapter.get_info(),
             device,
@@ -504,10 +575,70 @@ impl GpuContext {
 
     /// `queue.write_buffer`, counted as host-to-device traffic.
     pub(crate) fn write_buffer(&self, buf: &wgpu::Buffer, offset: u64, data: &[u8]) {
+        let _uploading = self.phase(Phase::Uploads);
         self.traffic
             .h2d
             .fetch_add(data.len() as u64, Ordering::Relaxed);
         self.queue.write_buffer(buf, offset, data);
+    }
+
+    /// Opens `phase` on the host until the guard is dropped: the host's time meanwhile is
+    /// charged to it (see [`crate::gpu::profile`]).
+    pub fn phase(&self, phase: Phase) -> PhaseGuard {
+        self.with_profiler(|p| p.enter(phase));
+        PhaseGuard {
+            profiler: self.profiler.clone(),
+        }
+    }
+
+    /// Charges `seconds` spent before this context existed to `phase` (a run's set-up).
+    pub fn add_phase_seconds(&self, phase: Phase, seconds: f64) {
+        self.with_profiler(|p| p.add(phase, seconds));
+    }
+
+    /// The run's profile so far.
+    pub fn profile(&self) -> Profile {
+        self.with_profiler(|p| p.snapshot()).unwrap_or_default()
+    }
+
+    fn with_profiler<T>(&self, f: impl FnOnce(&mut Profiler) -> T) -> Option<T> {
+        // A poisoned profiler only loses the profile, never the run.
+        self.profiler.lock().ok().map(|mut p| f(&mut p))
+    }
+
+    /// A compute pass on `enc` labelled `label`, its work counted under `phase` (None:
+    /// the phase open on the host) and timed where the adapter has timestamp queries.
+    /// Every compute pass of the crate is begun here.
+    pub(crate) fn compute_pass<'e>(
+        &self,
+        enc: &'e mut wgpu::CommandEncoder,
+        label: &str,
+        phase: Option<Phase>,
+    ) -> Pass<'e> {
+        let (query, set) = self
+            .with_profiler(|p| {
+                let phase = phase.unwrap_or_else(|| p.current());
+                let q = p.pass(phase);
+                (q, p.timing.as_ref().map(|t| t.set.clone()))
+            })
+            .unwrap_or((None, None));
+        let timestamp_writes = match (query, &set) {
+            (Some(q), Some(set)) => Some(wgpu::ComputePassTimestampWrites {
+                query_set: set,
+                beginning_of_pass_write_index: Some(q),
+                end_of_pass_write_index: Some(q + 1),
+            }),
+            _ => None,
+        };
+        let cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(label),
+            timestamp_writes,
+        });
+        Pass {
+            cp,
+            profiler: self.profiler.clone(),
+            dispatches: 0,
+        }
     }
 
     /// `device.create_buffer_init`, counted as host-to-device traffic.
@@ -548,10 +679,14 @@ impl GpuContext {
         what: &str,
     ) -> Result<Vec<Vec<u8>>, GpuError> {
         let sizes: Vec<u64> = ranges.iter().map(|r| r.2.div_ceil(4) * 4).collect();
-        let total: u64 = sizes.iter().sum();
-        if total == 0 {
+        let data: u64 = sizes.iter().sum();
+        if data == 0 {
             return Ok(ranges.iter().map(|_| Vec::new()).collect());
         }
+        let timed = self
+            .with_profiler(|p| p.pending_queries())
+            .filter(|&q| q > 0);
+        let total = data + 8 * timed.unwrap_or(0) as u64;
         let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(what),
             size: total,
@@ -567,6 +702,20 @@ impl GpuContext {
                 enc.copy_buffer_to_buffer(buf, offset, &staging, at, size);
             }
             at += size;
+        }
+        // The timestamps of the passes since the last read ride along.
+        if let Some(q) = timed {
+            if let Some(t) = self
+                .with_profiler(|p| {
+                    p.timing
+                        .as_ref()
+                        .map(|t| (t.set.clone(), t.resolve.clone()))
+                })
+                .flatten()
+            {
+                enc.resolve_query_set(&t.0, 0..q, &t.1, 0);
+                enc.copy_buffer_to_buffer(&t.1, 0, &staging, at, 8 * q as u64);
+            }
         }
         self.queue.submit([enc.finish()]);
         let (tx, rx) = std::sync::mpsc::channel();
@@ -584,6 +733,16 @@ impl GpuContext {
         staging.unmap();
         self.note_download(total);
         self.check(what)?;
+        if timed.is_some() {
+            let ticks: Vec<u64> = v[data as usize..]
+                .chunks_exact(8)
+                .map(|c| u64::from_le_bytes(c.try_into().unwrap_or([0; 8])))
+                .collect();
+            self.with_profiler(|p| {
+                let period = p.timing.as_ref().map_or(0.0, |t| t.period);
+                p.resolved(&ticks, period)
+            });
+        }
         let mut out = Vec::with_capacity(ranges.len());
         let mut at = 0usize;
         for (r, &size) in ranges.iter().zip(&sizes) {
@@ -593,14 +752,26 @@ impl GpuContext {
         Ok(out)
     }
 
+    /// Submits `enc`'s commands. A driver that blocks in the submit (one that runs the
+    /// work on the host, as lavapipe does) spends that time on the device's work: the
+    /// profile counts it as waiting, not as the phase open on the host.
+    pub(crate) fn submit(&self, enc: wgpu::CommandEncoder) {
+        let t = Instant::now();
+        self.queue.submit([enc.finish()]);
+        self.with_profiler(|p| p.blocked(t.elapsed().as_secs_f64()));
+    }
+
     /// Waits until the device has finished the work submitted so far (counted as a host
     /// sync).
     pub(crate) fn wait(&self, what: &str) -> Result<(), GpuError> {
         self.traffic.syncs.fetch_add(1, Ordering::Relaxed);
-        self.device
+        let t = Instant::now();
+        let r = self
+            .device
             .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Device(format!("{what}: waiting for the GPU: {e}")))?;
-        Ok(())
+            .map_err(|e| GpuError::Device(format!("{what}: waiting for the GPU: {e}")));
+        self.with_profiler(|p| p.waited(t.elapsed().as_secs_f64()));
+        r.map(|_| ())
     }
 
     pub fn adapter_name(&self) -> &str {

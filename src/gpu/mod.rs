@@ -12,13 +12,15 @@ pub mod kernels;
 pub mod launch;
 pub mod params;
 pub mod pcg;
+pub mod profile;
 pub mod schedule;
 
 pub use context::{
     adapter_name_mismatch, list_adapters, measure_copy_bandwidth, no_adapter_message,
-    AdapterReport, GpuContext, GpuOptions, TrafficCount,
+    AdapterReport, GpuContext, GpuOptions, PhaseGuard, TrafficCount,
 };
 pub use info::{GpuSolveInfo, KernelTime, SolveOutcome, StageSeconds};
+pub use profile::{Phase, Profile};
 
 pub use error::{GpuError, DOES_NOT_FIT, MULTILEVEL_ON_CPU};
 pub use launch::{Launch, LaunchLimits, SegmentPolicy, SegmentWorkgroups};

@@ -13,6 +13,7 @@
 //!    end ([`crate::sim::checkpoint`]): `run --resume DIR` continues from it.
 
 use crate::error::InputError;
+use crate::gpu::Phase;
 use crate::io::files::{Named, OutputDir};
 use crate::sim::checkpoint::{self, Checkpoint, StartOptions, Tallies};
 use crate::sim::integrator::{
@@ -717,6 +718,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
     };
     let result = match stepper {
         Ok(mut stepper) => {
+            stepper.started_at(wall);
             summary.adapter = stepper.adapter().map(str::to_string);
             summary.newton_tolerance = stepper.newton_tol;
             let r = match &resumed {
@@ -827,6 +829,7 @@ impl Run<'_> {
         stepper: &Stepper,
         summary: &mut RunSummary,
     ) -> Result<(), RunError> {
+        let _output = stepper.phase(Phase::Output);
         let t = Instant::now();
         let path = dir
             .record(checkpoint::FILE_NAME)
@@ -862,6 +865,7 @@ fn write_frame(
     s: &Stepper,
     tallies: &mut Tallies,
 ) -> Result<(), RunError> {
+    let _output = s.phase(Phase::Output);
     if !scene.output.vtk {
         return Ok(());
     }
@@ -1166,9 +1170,11 @@ fn simulate(
                 ),
             });
         }
+        let output = stepper.phase(Phase::Output);
         csv.row(&r).map_err(|e| out_err(&csv_path, e))?;
         fold_min(t, &r);
         summary.records.push(r);
+        drop(output);
         if stepper.step % scene.output.every == 0 || stepper.step == scene.steps {
             write_frame(scene, dir, stepper, &mut run.tallies)?;
         }
@@ -1176,9 +1182,11 @@ fn simulate(
         if stepper.step % checkpoint_every == 0 || stepper.step == scene.steps || signal != 0 {
             run.checkpoint(dir, stepper, summary)?;
         }
+        let output = stepper.phase(Phase::Output);
         fill_summary(run, stepper, summary);
         summary.wall_seconds = run.tallies.wall_seconds + run.wall.elapsed().as_secs_f64();
         write_summary(dir, summary)?;
+        drop(output);
         if signal != 0 {
             bar.abandon();
             return Err(RunError::Interrupted {

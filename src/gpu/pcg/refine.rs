@@ -65,6 +65,7 @@ impl Refine {
         }
         let dev = &ctx.device;
         MIXED.check_adapter(ctx)?;
+        let _compiling = ctx.phase(crate::gpu::Phase::PipelineCreation);
         let module = MIXED.module(dev, "f64", "f64");
         let (layout, pl) = MIXED.layouts(dev, "mixed");
         let pipe = |entry: &str| {
@@ -117,18 +118,12 @@ impl Refine {
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) });
         {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some(label),
-                timestamp_writes: None,
-            });
+            let mut pass = self.ctx.compute_pass(&mut enc, label, None);
             pass.set_pipeline(pipeline);
-            pass.set_bind_group(0, &self.group, &[]);
-            self.ctx
-                .launch()
-                .grid(self.n_dofs, WORKGROUP)
-                .dispatch(&mut pass);
+            pass.set_bind_group(0, &self.group);
+            pass.dispatch(self.ctx.launch().grid(self.n_dofs, WORKGROUP));
         }
-        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.submit(enc);
         self.ctx.check(label)
     }
 

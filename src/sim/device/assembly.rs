@@ -30,7 +30,7 @@ use super::elements::{GpuElements, TermKind, WORKGROUP};
 use crate::core::sparse::BlockCsr;
 use crate::gpu::blocks::{values_chunks, BlockMatrix, ValuesChunk};
 use crate::gpu::kernels::{self, Access, Layout};
-use crate::gpu::{GpuContext, GpuError};
+use crate::gpu::{GpuContext, GpuError, Phase};
 use crate::sim::energy::Model;
 
 use Access::{Read as R, ReadWrite as W, Uniform as U};
@@ -283,6 +283,7 @@ impl GpuAssembly {
         // Pipelines.
         let real = if f64 { "f64" } else { "f32" };
         ASSEMBLE.check_adapter(&ctx)?;
+        let compiling = ctx.phase(Phase::PipelineCreation);
         let module = ASSEMBLE.module(dev, real, real);
         let (layout, pl) = ASSEMBLE.layouts(dev, "assembly");
         let constants = [("D", dim as f64), ("WG", WORKGROUP as f64)];
@@ -293,6 +294,7 @@ impl GpuAssembly {
                 kernels::pipeline(dev, &pl, &module, e, &label, &constants)
             })
             .collect();
+        drop(compiling);
 
         // Buffers, limits checked first.
         let init = |label: &str, data: &[u8]| ctx.storage_with(label, data);
@@ -864,18 +866,15 @@ impl GpuAssembly {
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) });
         {
-            let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some(label),
-                timestamp_writes: None,
-            });
+            let mut cp = self.ctx.compute_pass(&mut enc, label, None);
             for p in passes.iter().filter(|p| p.count > 0) {
                 cp.set_pipeline(&self.pipelines[p.entry as usize]);
-                cp.set_bind_group(0, &p.group, &[]);
+                cp.set_bind_group(0, &p.group);
                 // Grid-stride kernels: one invocation per item up to the limits.
-                launch.grid(p.count as u64, WORKGROUP).dispatch(&mut cp);
+                cp.dispatch(launch.grid(p.count as u64, WORKGROUP));
             }
         }
-        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.submit(enc);
         self.ctx.check(label)
     }
 

@@ -37,7 +37,7 @@
 //! f64 needs SHADER_F64; f32 runs the same source with `real = f32`.
 
 use crate::gpu::kernels::{self, Access, Layout};
-use crate::gpu::{GpuContext, GpuError, Precision};
+use crate::gpu::{GpuContext, GpuError, Phase, Precision};
 use crate::sim::energy::barrier::{Barrier, HalfSpace};
 use crate::sim::energy::{ElementSet, Law, Model};
 
@@ -189,6 +189,7 @@ impl ElementKernels {
         let dev = &ctx.device;
         let real = real_name(f64);
         ELEMENTS.check_adapter(ctx)?;
+        let compiling = ctx.phase(Phase::PipelineCreation);
         let module = ELEMENTS.module(dev, real, real);
         let (layout, pl) = ELEMENTS.layouts(dev, "elements");
         // Unit roundoff of the real type: exact powers of two, so exact as f32 too.
@@ -205,6 +206,7 @@ impl ElementKernels {
                 kernels::pipeline(dev, &pl, &module, k.entry(), &label, &constants)
             })
             .collect();
+        drop(compiling);
         ctx.check("building the element kernels")?;
         Ok(ElementKernels {
             dim,
@@ -741,18 +743,15 @@ impl GpuElements {
             label: Some("elements evaluate"),
         });
         {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("elements pass"),
-                timestamp_writes: None,
-            });
+            let mut pass = self.ctx.compute_pass(&mut enc, "elements pass", None);
             for t in self.terms.iter().filter(|t| t.count > 0) {
                 pass.set_pipeline(&self.kernels.pipelines[t.kind.index()]);
-                pass.set_bind_group(0, &t.group, &[]);
+                pass.set_bind_group(0, &t.group);
                 // Grid-stride kernels: one invocation per element or node up to the limits.
-                launch.grid(t.count as u64, WORKGROUP).dispatch(&mut pass);
+                pass.dispatch(launch.grid(t.count as u64, WORKGROUP));
             }
         }
-        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.submit(enc);
         self.ctx.check("evaluating the element terms")
     }
 

@@ -15,7 +15,7 @@
 #![cfg(feature = "sim")]
 
 use crate::gpu::kernels::{self, Access, Layout};
-use crate::gpu::{GpuContext, GpuError};
+use crate::gpu::{GpuContext, GpuError, Phase};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::elements::{from_bytes, to_bytes, GpuElements, TermKind};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
@@ -379,6 +379,7 @@ impl NewtonOps {
             .collect::<Result<_, _>>()?;
         let dev = &ctx.device;
         NEWTON_OPS.check_adapter(&ctx)?;
+        let compiling = ctx.phase(Phase::PipelineCreation);
         let module = NEWTON_OPS.module(dev, "f64", "f64");
         let (layout, pl) = NEWTON_OPS.layouts(dev, "newton ops");
         let constants = [("D", d as f64), ("WG", WG as f64)];
@@ -389,6 +390,7 @@ impl NewtonOps {
                 kernels::pipeline(dev, &pl, &module, e, &label, &constants)
             })
             .collect();
+        drop(compiling);
         let kinds = elements.kinds();
         let t = kinds.len();
         let groups = ctx
@@ -536,20 +538,17 @@ impl NewtonOps {
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) });
         {
-            let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some(label),
-                timestamp_writes: None,
-            });
+            let mut cp = self.ctx.compute_pass(&mut enc, label, None);
             for (op, groups) in ops.iter().filter(|(_, g)| *g > 0) {
                 cp.set_pipeline(&self.pipelines[op.entry as usize]);
-                cp.set_bind_group(0, &op.group, &[]);
+                cp.set_bind_group(0, &op.group);
                 // Reductions get exactly their workgroups (checked when built); the
                 // grid-stride kernels any layout of about as many.
-                launch.reduction(*groups as u32, WG).dispatch(&mut cp);
+                cp.dispatch(launch.reduction(*groups as u32, WG));
             }
         }
         after(&mut enc);
-        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.submit(enc);
         self.ctx.check(label)
     }
 

@@ -12,6 +12,7 @@ use super::linear::LinearStats;
 use super::report::GpuRunReport;
 use super::state::State;
 use super::targets::MovingTargets;
+use crate::gpu::{Phase, PhaseGuard};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
 use crate::sim::energy::{InversionLimit, Inverted};
 
@@ -129,6 +130,15 @@ pub(super) trait Backend {
 
     /// The GPU adapter this loop uses, if any.
     fn adapter(&self) -> Option<&str>;
+
+    /// Opens `phase` of the device's profile until the guard drops (`None`: no device
+    /// profile).
+    fn phase(&self, _phase: Phase) -> Option<PhaseGuard> {
+        None
+    }
+
+    /// The run began at `run_start`: the time before the device existed is its set-up.
+    fn started_at(&self, _run_start: std::time::Instant) {}
 
     /// Systems so far whose multilevel levels were built, and systems that kept them
     /// (both zero without the multilevel preconditioner).

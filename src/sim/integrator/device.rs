@@ -29,7 +29,7 @@ use super::targets::MovingTargets;
 use crate::core::constraints::Frames;
 use crate::core::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::gpu::pcg::{DeviceCg, DeviceCgParams, DeviceFrames};
-use crate::gpu::{GpuContext, GpuError, GpuOptions, Precision};
+use crate::gpu::{GpuContext, GpuError, GpuOptions, Phase, PhaseGuard, Precision};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::elements::{GpuElements, TermKind};
 use crate::sim::device::newton_ops::{static_projections, MovingTerm, NewtonOps};
@@ -185,6 +185,7 @@ impl DeviceLoop {
         }
         let ctx = GpuContext::new(&GpuOptions::default())
             .map_err(|e| InitError::Solver(format!("the GPU Newton loop cannot start: {e}")))?;
+        let _setup = ctx.phase(Phase::Setup);
         check_capacity(
             scene,
             ctx.adapter_name(),
@@ -242,6 +243,7 @@ impl DeviceLoop {
     pub(super) fn report(&self) -> GpuRunReport {
         let t = self.ctx.traffic();
         let c = self.cg.coarse_traffic();
+        let prof = self.ctx.profile();
         GpuRunReport {
             adapter: self.ctx.adapter_name().to_string(),
             precision: "f64".into(),
@@ -251,7 +253,10 @@ impl DeviceLoop {
             coarse_host_to_device_bytes: c.host_to_device_bytes,
             coarse_device_to_host_bytes: c.device_to_host_bytes,
             multilevel_setup_seconds: self.multilevel_seconds,
-            host_syncs: t.host_syncs,
+            host_syncs: prof.host_syncs,
+            dispatches: prof.dispatches,
+            phases: prof.phases,
+            device_seconds: prof.device_seconds,
             newton_iterations: 0,
         }
     }
@@ -334,11 +339,13 @@ impl Backend for DeviceLoop {
     }
 
     fn begin_step(&mut self, state: &State) -> Result<(), StepError> {
+        let _phase = self.ctx.phase(Phase::HostDecisions);
         self.ops.begin_step(state.scene.time_step)?;
         Ok(())
     }
 
     fn positions(&mut self, nodes: Option<&[usize]>) -> Result<&mut [f64], StepError> {
+        let _phase = self.ctx.phase(Phase::HostDecisions);
         match nodes {
             Some(nodes) => {
                 let d = self.dim;
@@ -354,6 +361,7 @@ impl Backend for DeviceLoop {
     }
 
     fn write_positions(&mut self, nodes: Option<&[usize]>) -> Result<(), StepError> {
+        let _phase = self.ctx.phase(Phase::Uploads);
         match nodes {
             Some(nodes) => {
                 let d = self.dim;
@@ -369,11 +377,13 @@ impl Backend for DeviceLoop {
     }
 
     fn set_planes(&mut self, planes: &[HalfSpace]) -> Result<(), StepError> {
+        let _phase = self.ctx.phase(Phase::Uploads);
         self.elements.set_planes(planes)?;
         Ok(())
     }
 
     fn min_distance(&mut self, state: &State) -> Result<(f64, usize, usize), StepError> {
+        let _phase = self.ctx.phase(Phase::LineSearch);
         let c = state
             .contact
             .as_ref()
@@ -392,7 +402,11 @@ impl Backend for DeviceLoop {
     ) -> Result<LinearStats, StepError> {
         let t = Instant::now();
         let snapped = &moving.snapped;
-        self.elements.evaluate(true)?;
+        {
+            let _phase = self.ctx.phase(Phase::ElementTerms);
+            self.elements.evaluate(true)?;
+        }
+        let assembling = self.ctx.phase(Phase::Assembly);
         self.asm.assemble()?;
         let terms = Self::moving_terms(state, moving);
         if self.moving.as_ref() != Some(&terms) {
@@ -400,6 +414,8 @@ impl Backend for DeviceLoop {
             self.moving = Some(terms);
         }
         self.ops.add_moving()?;
+        drop(assembling);
+        let _eliminating = self.ctx.phase(Phase::Elimination);
         // Gradient and Hessian, as the host loop counts them.
         state.count_barrier(2);
         if !self.frames.contains_key(snapped) {
@@ -418,10 +434,12 @@ impl Backend for DeviceLoop {
             let frames = &self.frames[snapped];
             self.cg.prepare(frames).map_err(cg_error)?;
             if multilevel {
+                let _phase = self.ctx.phase(Phase::PreconditionerSetup);
                 self.set_multilevel(&state.frames[snapped])
                     .map_err(cg_error)?;
             }
             let frames = &self.frames[snapped];
+            let _solving = self.ctx.phase(Phase::Cg);
             match self.cg.iterate_with(frames, &self.params, rule, None) {
                 Ok((info, _)) => break info,
                 // Kept multilevel levels get one more try on levels built for this system.
@@ -450,6 +468,7 @@ impl Backend for DeviceLoop {
         tol: f64,
     ) -> Result<LinearStats, StepError> {
         let t = Instant::now();
+        let _phase = self.ctx.phase(Phase::Cg);
         let cg_error = |e: GpuError| StepError::LinearSolve {
             iteration,
             cause: e.to_string(),
@@ -457,6 +476,7 @@ impl Backend for DeviceLoop {
         let multilevel = self.params.preconditioner == Preconditioner::Multilevel;
         if multilevel {
             if self.levels.rebuild_due() {
+                let _setup = self.ctx.phase(Phase::PreconditionerSetup);
                 self.set_multilevel(&state.frames[&moving.snapped])
                     .map_err(cg_error)?;
             } else {
@@ -474,6 +494,7 @@ impl Backend for DeviceLoop {
 
     /// Read back whole: for `run --dump-systems`, not the loop.
     fn system(&mut self) -> Result<SystemArrays, StepError> {
+        let _phase = self.ctx.phase(Phase::Output);
         let h = self.asm.read_matrix()?;
         let g = self.asm.read_gradient()?;
         let dx = self.cg.read_dx()?;
@@ -482,6 +503,7 @@ impl Backend for DeviceLoop {
     }
 
     fn max_abs_dx(&mut self) -> Result<f64, StepError> {
+        let _phase = self.ctx.phase(Phase::LineSearch);
         Ok(self.ops.max_abs_dx()?)
     }
 
@@ -492,6 +514,7 @@ impl Backend for DeviceLoop {
         state: &State,
         snapped: &[bool],
     ) -> Result<ForceBalance, StepError> {
+        let _phase = self.ctx.phase(Phase::HostDecisions);
         let h = state.scene.time_step;
         let (x, _) = self.ops.read_state()?;
         let g = self.ops.read_gradient()?;
@@ -520,6 +543,7 @@ impl Backend for DeviceLoop {
         _moving: &MovingTargets,
         _trial: bool,
     ) -> Result<f64, StepError> {
+        let _phase = self.ctx.phase(Phase::LineSearch);
         let h2 = state.scene.time_step * state.scene.time_step;
         self.elements.evaluate_energy()?;
         let terms = self.ops.energy_terms()?;
@@ -545,10 +569,12 @@ impl Backend for DeviceLoop {
     }
 
     fn slope(&mut self) -> Result<f64, StepError> {
+        let _phase = self.ctx.phase(Phase::LineSearch);
         Ok(self.ops.dot_gradient_dx()?)
     }
 
     fn ccd(&mut self, state: &State) -> Result<Ccd, StepError> {
+        let _phase = self.ctx.phase(Phase::LineSearch);
         let c = state
             .contact
             .as_ref()
@@ -564,21 +590,25 @@ impl Backend for DeviceLoop {
         state: &State,
         max: f64,
     ) -> Result<Result<Option<InversionLimit>, Inverted>, StepError> {
+        let _phase = self.ctx.phase(Phase::InversionBound);
         let (x, dx) = self.ops.read_positions_and_direction()?;
         Ok(state.scene.model.inversion_bound(&x, &dx, max))
     }
 
     fn set_trial(&mut self, alpha: f64) -> Result<(), StepError> {
+        let _phase = self.ctx.phase(Phase::LineSearch);
         self.ops.set_trial(alpha)?;
         Ok(())
     }
 
     fn accept(&mut self) -> Result<(), StepError> {
+        let _phase = self.ctx.phase(Phase::LineSearch);
         self.ops.accept()?;
         Ok(())
     }
 
     fn end_step(&mut self, state: &State) -> Result<EndState, StepError> {
+        let _phase = self.ctx.phase(Phase::Output);
         self.ops.end_step(state.scene.time_step)?;
         let (x, v) = self.ops.read_state()?;
         let g = self.ops.read_gradient()?;
@@ -586,12 +616,24 @@ impl Backend for DeviceLoop {
     }
 
     fn restore(&mut self, state: &State) -> Result<(), StepError> {
+        let _phase = self.ctx.phase(Phase::Uploads);
         self.ops.set_state(&state.x, &state.v)?;
         Ok(())
     }
 
     fn adapter(&self) -> Option<&str> {
         Some(self.adapter_name())
+    }
+
+    fn phase(&self, phase: Phase) -> Option<PhaseGuard> {
+        Some(self.ctx.phase(phase))
+    }
+
+    fn started_at(&self, run_start: Instant) {
+        // The time before the device existed: the scene, the mesh, the host's set-up.
+        let profiled = self.ctx.profile().wall_seconds;
+        let before = run_start.elapsed().as_secs_f64() - profiled;
+        self.ctx.add_phase_seconds(Phase::Setup, before.max(0.0));
     }
 
     fn gpu_report(&self, _state: &State) -> Option<GpuRunReport> {

@@ -266,6 +266,9 @@ impl Backend for HostBackend {
             coarse_device_to_host_bytes: 0,
             multilevel_setup_seconds: 0.0,
             host_syncs: t.host_syncs,
+            dispatches: 0,
+            phases: Vec::new(),
+            device_seconds: Vec::new(),
             newton_iterations: 0,
         })
     }

@@ -1,6 +1,8 @@
 //! What a step did ([`StepReport`]), what the contact code did over a run
 //! ([`ContactCounters`]) and what the GPU moved and stored ([`GpuRunReport`]).
 
+use crate::gpu::Phase;
+
 /// What one step did.
 #[derive(Debug, Clone, Default, serde::Serialize)]
 pub struct StepReport {
@@ -98,6 +100,26 @@ pub struct GpuRunReport {
     /// Every wait of the host on the device (read-backs and explicit waits), set-up
     /// included.
     pub host_syncs: u64,
+    /// Compute dispatches recorded (gated and no-op ones included).
+    pub dispatches: u64,
+    /// Wall seconds per phase of the device loop (`gpu::profile`), summing to the run's
+    /// wall time (empty for the CPU loop).
+    #[serde(serialize_with = "phase_map")]
+    pub phases: Vec<(Phase, f64)>,
+    /// Device seconds per phase from timestamp queries (empty where the adapter has
+    /// none).
+    #[serde(serialize_with = "phase_map")]
+    pub device_seconds: Vec<(Phase, f64)>,
     /// Newton iterations of the run (filled in by the driver, which counts them).
     pub newton_iterations: usize,
+}
+
+/// Phases as a JSON object in their order, name to seconds.
+fn phase_map<S: serde::Serializer>(v: &[(Phase, f64)], s: S) -> Result<S::Ok, S::Error> {
+    use serde::ser::SerializeMap;
+    let mut m = s.serialize_map(Some(v.len()))?;
+    for (p, secs) in v {
+        m.serialize_entry(p.name(), secs)?;
+    }
+    m.end()
 }

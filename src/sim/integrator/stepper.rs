@@ -171,6 +171,17 @@ impl<'s> Stepper<'s> {
         self.backend.adapter()
     }
 
+    /// Opens `phase` of the device loop's profile until the guard drops (`None` without
+    /// one).
+    pub fn phase(&self, phase: crate::gpu::Phase) -> Option<crate::gpu::PhaseGuard> {
+        self.backend.phase(phase)
+    }
+
+    /// The run began at `run_start` (its set-up before the device existed is profiled).
+    pub fn started_at(&self, run_start: std::time::Instant) {
+        self.backend.started_at(run_start);
+    }
+
     /// What the GPU did so far: the device loop's report, or for the host loop with
     /// `linear = "gpu"` the linear solver's traffic and operator size; None for a run
     /// without a GPU. `newton_iterations` is left for the caller, who counts them.

@@ -8,6 +8,7 @@
 
 use super::Scalars;
 use crate::gpu::kernels::{self, Access, Layout};
+use crate::gpu::{GpuContext, Phase};
 use std::sync::OnceLock;
 
 use Access::{Read as R, ReadWrite as W, Uniform as U};
@@ -154,7 +155,7 @@ impl Family {
     /// The pipeline of `entry` for (pre, co, mode), compiled the first time.
     fn get(
         &self,
-        dev: &wgpu::Device,
+        ctx: &GpuContext,
         entry: &'static str,
         pre: Pre,
         co: Co,
@@ -167,7 +168,10 @@ impl Family {
             .unwrap_or_else(|| panic!("{} has no entry point {entry}", self.layout.file))
             .1;
         cells[variant(pre, co, mode)]
-            .get_or_init(|| self.build(dev, entry, pre, co, mode))
+            .get_or_init(|| {
+                let _compiling = ctx.phase(Phase::PipelineCreation);
+                self.build(&ctx.device, entry, pre, co, mode)
+            })
             .clone()
     }
 
@@ -298,79 +302,79 @@ impl Kernels {
 use Mode::Iterate;
 
 impl ProductKernels {
-    pub fn matvec(&self, dev: &wgpu::Device, mode: Mode) -> wgpu::ComputePipeline {
-        self.0.get(dev, "matvec", Pre::None, Co::None, mode)
+    pub fn matvec(&self, ctx: &GpuContext, mode: Mode) -> wgpu::ComputePipeline {
+        self.0.get(ctx, "matvec", Pre::None, Co::None, mode)
     }
-    pub fn world_y(&self, dev: &wgpu::Device, mode: Mode) -> wgpu::ComputePipeline {
-        self.0.get(dev, "world_y", Pre::None, Co::None, mode)
+    pub fn world_y(&self, ctx: &GpuContext, mode: Mode) -> wgpu::ComputePipeline {
+        self.0.get(ctx, "world_y", Pre::None, Co::None, mode)
     }
-    pub fn world_z(&self, dev: &wgpu::Device) -> wgpu::ComputePipeline {
-        self.0.get(dev, "world_z", Pre::None, Co::None, Iterate)
+    pub fn world_z(&self, ctx: &GpuContext) -> wgpu::ComputePipeline {
+        self.0.get(ctx, "world_z", Pre::None, Co::None, Iterate)
     }
     /// `Verify`: only where the last verification met the tolerance.
-    pub fn recover(&self, dev: &wgpu::Device, mode: Mode) -> wgpu::ComputePipeline {
-        self.0.get(dev, "recover", Pre::None, Co::None, mode)
+    pub fn recover(&self, ctx: &GpuContext, mode: Mode) -> wgpu::ComputePipeline {
+        self.0.get(ctx, "recover", Pre::None, Co::None, mode)
     }
 }
 
 impl UpdateKernels {
-    pub fn rhs(&self, dev: &wgpu::Device, given: bool) -> wgpu::ComputePipeline {
+    pub fn rhs(&self, ctx: &GpuContext, given: bool) -> wgpu::ComputePipeline {
         let entry = if given { "rhs_given" } else { "rhs" };
-        self.0.get(dev, entry, Pre::None, Co::None, Iterate)
+        self.0.get(ctx, entry, Pre::None, Co::None, Iterate)
     }
-    pub fn precond(&self, dev: &wgpu::Device) -> wgpu::ComputePipeline {
-        self.0.get(dev, "precond", Pre::None, Co::None, Iterate)
+    pub fn precond(&self, ctx: &GpuContext) -> wgpu::ComputePipeline {
+        self.0.get(ctx, "precond", Pre::None, Co::None, Iterate)
     }
-    pub fn init(&self, dev: &wgpu::Device, pre: Pre, co: Co, mode: Mode) -> wgpu::ComputePipeline {
-        self.0.get(dev, "init", pre, co, mode)
+    pub fn init(&self, ctx: &GpuContext, pre: Pre, co: Co, mode: Mode) -> wgpu::ComputePipeline {
+        self.0.get(ctx, "init", pre, co, mode)
     }
-    pub fn scalar_start(&self, dev: &wgpu::Device, co: Co, mode: Mode) -> wgpu::ComputePipeline {
-        self.0.get(dev, "scalar_start", Pre::None, co, mode)
+    pub fn scalar_start(&self, ctx: &GpuContext, co: Co, mode: Mode) -> wgpu::ComputePipeline {
+        self.0.get(ctx, "scalar_start", Pre::None, co, mode)
     }
-    pub fn update_yr(&self, dev: &wgpu::Device, pre: Pre, co: Co) -> wgpu::ComputePipeline {
-        self.0.get(dev, "update_yr", pre, co, Iterate)
+    pub fn update_yr(&self, ctx: &GpuContext, pre: Pre, co: Co) -> wgpu::ComputePipeline {
+        self.0.get(ctx, "update_yr", pre, co, Iterate)
     }
-    pub fn update_p(&self, dev: &wgpu::Device, co: Co) -> wgpu::ComputePipeline {
-        self.0.get(dev, "update_p", Pre::None, co, Iterate)
+    pub fn update_p(&self, ctx: &GpuContext, co: Co) -> wgpu::ComputePipeline {
+        self.0.get(ctx, "update_p", Pre::None, co, Iterate)
     }
-    pub fn start_p(&self, dev: &wgpu::Device, co: Co, mode: Mode) -> wgpu::ComputePipeline {
-        self.0.get(dev, "start_p", Pre::None, co, mode)
+    pub fn start_p(&self, ctx: &GpuContext, co: Co, mode: Mode) -> wgpu::ComputePipeline {
+        self.0.get(ctx, "start_p", Pre::None, co, mode)
     }
-    pub fn ml_dot(&self, dev: &wgpu::Device) -> wgpu::ComputePipeline {
+    pub fn ml_dot(&self, ctx: &GpuContext) -> wgpu::ComputePipeline {
         self.0
-            .get(dev, "ml_dot", Pre::Multilevel, Co::None, Iterate)
+            .get(ctx, "ml_dot", Pre::Multilevel, Co::None, Iterate)
     }
-    pub fn ml_start(&self, dev: &wgpu::Device, mode: Mode) -> wgpu::ComputePipeline {
-        self.0.get(dev, "ml_start", Pre::Multilevel, Co::None, mode)
+    pub fn ml_start(&self, ctx: &GpuContext, mode: Mode) -> wgpu::ComputePipeline {
+        self.0.get(ctx, "ml_start", Pre::Multilevel, Co::None, mode)
     }
-    pub fn verified(&self, dev: &wgpu::Device) -> wgpu::ComputePipeline {
+    pub fn verified(&self, ctx: &GpuContext) -> wgpu::ComputePipeline {
         self.0
-            .get(dev, "verified", Pre::None, Co::None, Mode::Verify)
+            .get(ctx, "verified", Pre::None, Co::None, Mode::Verify)
     }
 }
 
 impl CoarseKernels {
-    pub fn coarse_e(&self, dev: &wgpu::Device) -> wgpu::ComputePipeline {
-        self.0.get(dev, "coarse_e", Pre::None, Co::None, Iterate)
+    pub fn coarse_e(&self, ctx: &GpuContext) -> wgpu::ComputePipeline {
+        self.0.get(ctx, "coarse_e", Pre::None, Co::None, Iterate)
     }
-    pub fn coarse_e_sum(&self, dev: &wgpu::Device) -> wgpu::ComputePipeline {
+    pub fn coarse_e_sum(&self, ctx: &GpuContext) -> wgpu::ComputePipeline {
         self.0
-            .get(dev, "coarse_e_sum", Pre::None, Co::None, Iterate)
+            .get(ctx, "coarse_e_sum", Pre::None, Co::None, Iterate)
     }
-    pub fn agg_rows(&self, dev: &wgpu::Device) -> wgpu::ComputePipeline {
+    pub fn agg_rows(&self, ctx: &GpuContext) -> wgpu::ComputePipeline {
         self.0
-            .get(dev, "agg_rows", Pre::None, Co::Aggregates, Iterate)
+            .get(ctx, "agg_rows", Pre::None, Co::Aggregates, Iterate)
     }
-    pub fn agg_e(&self, dev: &wgpu::Device) -> wgpu::ComputePipeline {
-        self.0.get(dev, "agg_e", Pre::None, Co::Aggregates, Iterate)
+    pub fn agg_e(&self, ctx: &GpuContext) -> wgpu::ComputePipeline {
+        self.0.get(ctx, "agg_e", Pre::None, Co::Aggregates, Iterate)
     }
-    pub fn agg_restrict(&self, dev: &wgpu::Device, mode: Mode) -> wgpu::ComputePipeline {
+    pub fn agg_restrict(&self, ctx: &GpuContext, mode: Mode) -> wgpu::ComputePipeline {
         self.0
-            .get(dev, "agg_restrict", Pre::None, Co::Aggregates, mode)
+            .get(ctx, "agg_restrict", Pre::None, Co::Aggregates, mode)
     }
-    pub fn agg_solve(&self, dev: &wgpu::Device, mode: Mode) -> wgpu::ComputePipeline {
+    pub fn agg_solve(&self, ctx: &GpuContext, mode: Mode) -> wgpu::ComputePipeline {
         self.0
-            .get(dev, "agg_solve", Pre::None, Co::Aggregates, mode)
+            .get(ctx, "agg_solve", Pre::None, Co::Aggregates, mode)
     }
 }
 

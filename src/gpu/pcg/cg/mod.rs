@@ -12,7 +12,7 @@
 
 use crate::gpu::blocks::BlockMatrix;
 use crate::gpu::kernels::{slots, Real};
-use crate::gpu::{GpuContext, GpuError, Launch, TrafficCount};
+use crate::gpu::{GpuContext, GpuError, Launch, Phase, TrafficCount};
 use crate::solve::cg::Preconditioner;
 use crate::solve::coarse::CoarseSpace;
 use std::cell::Cell;
@@ -696,20 +696,24 @@ impl DeviceCg {
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
     }
-    /// Records `kernels` (pipeline, workgroups, bind group) in one compute pass.
-    pub(super) fn pass(enc: &mut wgpu::CommandEncoder, label: &str, kernels: &[Kernel]) {
-        let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some(label),
-            timestamp_writes: None,
-        });
+    /// Records `kernels` (pipeline, workgroups, bind group) in one compute pass of
+    /// `phase`.
+    pub(super) fn pass(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        label: &str,
+        phase: Phase,
+        kernels: &[Kernel],
+    ) {
+        let mut cp = self.ctx.compute_pass(enc, label, Some(phase));
         let mut bound: Option<&wgpu::BindGroup> = None;
         for (pipe, launch, group) in kernels {
             if bound.is_none_or(|b| !std::ptr::eq(b, *group)) {
-                cp.set_bind_group(0, *group, &[]);
+                cp.set_bind_group(0, group);
                 bound = Some(group);
             }
             cp.set_pipeline(pipe);
-            launch.dispatch(&mut cp);
+            cp.dispatch(*launch);
         }
     }
 
@@ -781,7 +785,7 @@ impl DeviceCg {
         let mut enc = self.encoder("pcg prepare");
         let l = &self.launches;
         let (up, co) = (&self.kernels.update, &self.kernels.coarse);
-        let dev = &self.ctx.device;
+        let dev = &self.ctx;
         let g0 = &frames.groups[0];
         let mut kernels: Vec<Kernel> = vec![(up.rhs(dev, given), l.segments, g0)];
         kernels.extend(Self::per_chunk(up.precond(dev), &l.chunk_rows, frames));
@@ -792,8 +796,8 @@ impl DeviceCg {
             let e = self.ctx.launch().grid((a.k * a.k) as u64, WORKGROUP);
             kernels.push((co.agg_e(dev), e, g0));
         }
-        Self::pass(&mut enc, "pcg prepare", &kernels);
-        self.ctx.queue.submit([enc.finish()]);
+        self.pass(&mut enc, "pcg prepare", Phase::Elimination, &kernels);
+        self.ctx.submit(enc);
         self.ctx.check("preparing the device PCG")?;
         self.prepared = Some(frames.id);
         self.galerkin = Galerkin::OnDevice;

@@ -96,21 +96,21 @@ impl DeviceCg {
         let mut enc = self.encoder("pcg profile start");
         enc.clear_buffer(&self.buf.y, 0, None);
         enc.clear_buffer(&self.buf.q, 0, None);
-        Self::pass(
+        self.pass(
             &mut enc,
             "pcg profile start",
+            Phase::Cg,
             &self.start(frames, pre, co, Mode::Iterate),
         );
         self.ctx.queue.submit([enc.finish()]);
         let one = self.iteration(frames, pre, co);
         let n_q = 2 * one.len() as u32;
-        let dev = &self.ctx.device;
-        let set = dev.create_query_set(&wgpu::QuerySetDescriptor {
+        let set = self.ctx.device.create_query_set(&wgpu::QuerySetDescriptor {
             label: Some("pcg profile timestamps"),
             ty: wgpu::QueryType::Timestamp,
             count: n_q,
         });
-        let resolve = dev.create_buffer(&wgpu::BufferDescriptor {
+        let resolve = self.ctx.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("pcg profile resolve"),
             size: 8 * n_q as u64,
             usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,

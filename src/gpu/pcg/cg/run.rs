@@ -47,7 +47,7 @@ impl DeviceCg {
             sb,
             4 * slots::N_STATE as u64,
         );
-        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.submit(enc);
         self.ctx.check(what)?;
         let mut ranges = vec![(&self.buf.status, 0, status_bytes(acc))];
         ranges.extend_from_slice(extra);
@@ -245,7 +245,7 @@ impl DeviceCg {
             enc.clear_buffer(&self.buf.q, 0, None);
         }
         kernels.extend(self.start(frames, pre, co, Mode::Iterate));
-        Self::pass(&mut enc, "pcg start", &kernels);
+        self.pass(&mut enc, "pcg start", Phase::Cg, &kernels);
         let first = self.first_chunk(max);
         let (mut st, mut bytes) = self.chunk_submit(enc, frames, (pre, co), first, tail, true)?;
         self.galerkin_from_status(&st);
@@ -306,7 +306,7 @@ impl DeviceCg {
                 let mut enc = self.encoder("pcg true residual");
                 let mut kernels = self.product_of_y(frames, Mode::Iterate);
                 kernels.extend(self.start(frames, pre, co, Mode::Iterate));
-                Self::pass(&mut enc, "pcg true residual", &kernels);
+                self.pass(&mut enc, "pcg true residual", Phase::Cg, &kernels);
                 (st, bytes) = self.submit_and_read(enc, &[], "the device PCG's true residual")?;
                 st.error(0)?;
             }
@@ -359,16 +359,14 @@ impl DeviceCg {
             // The host's quotient met the tolerance where the device's did not (rounding):
             // Δx was not recovered with the status.
             let mut enc = self.encoder("pcg recovery");
-            let recover = self
-                .kernels
-                .product
-                .recover(&self.ctx.device, Mode::Iterate);
-            Self::pass(
+            let recover = self.kernels.product.recover(&self.ctx, Mode::Iterate);
+            self.pass(
                 &mut enc,
                 "pcg recovery",
+                Phase::Cg,
                 &[(recover, self.launches.nodes, &frames.groups[0])],
             );
-            self.ctx.queue.submit([enc.finish()]);
+            self.ctx.submit(enc);
             self.ctx.check("recovering the device Newton step")?;
         }
         Ok((
@@ -409,13 +407,13 @@ impl DeviceCg {
             kernels.extend(self.product_of_y(frames, Mode::Verify));
             kernels.extend(self.start(frames, pre, co, Mode::Verify));
             let up = &self.kernels.update;
-            kernels.push((up.verified(&self.ctx.device), ONE, &frames.groups[0]));
+            kernels.push((up.verified(&self.ctx), ONE, &frames.groups[0]));
             if !self.given_rhs {
-                let recover = self.kernels.product.recover(&self.ctx.device, Mode::Verify);
+                let recover = self.kernels.product.recover(&self.ctx, Mode::Verify);
                 kernels.push((recover, self.launches.nodes, &frames.groups[0]));
             }
         }
-        Self::pass(&mut enc, "pcg chunk", &kernels);
+        self.pass(&mut enc, "pcg chunk", Phase::Cg, &kernels);
         let reads: &[(&wgpu::Buffer, u64, u64)] = match tail {
             Some(t) => {
                 (t.record)(&mut enc);
@@ -445,8 +443,8 @@ impl DeviceCg {
             .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
         let mut enc = self.encoder("pcg product");
         let kernels = self.product_of_y(frames, Mode::Iterate);
-        Self::pass(&mut enc, "pcg product", &kernels);
-        self.ctx.queue.submit([enc.finish()]);
+        self.pass(&mut enc, "pcg product", Phase::Cg, &kernels);
+        self.ctx.submit(enc);
         self.ctx.check("the device PCG's product")?;
         self.read_vector(&self.buf.q, "reading back the product")
     }
@@ -458,7 +456,7 @@ impl DeviceCg {
         mode: Mode,
     ) -> Vec<Kernel<'a>> {
         let pr = &self.kernels.product;
-        let dev = &self.ctx.device;
+        let dev = &self.ctx;
         let mut k = vec![(
             pr.world_y(dev, mode),
             self.launches.nodes,
@@ -482,7 +480,7 @@ impl DeviceCg {
         mode: Mode,
     ) -> Vec<Kernel<'a>> {
         let up = &self.kernels.update;
-        let dev = &self.ctx.device;
+        let dev = &self.ctx;
         let g0 = &frames.groups[0];
         let l = &self.launches;
         if pre == Pre::Multilevel {
@@ -510,7 +508,7 @@ impl DeviceCg {
         mode: Mode,
     ) -> Vec<Kernel<'a>> {
         let (cp, limits) = (&self.kernels.coarse, self.ctx.launch());
-        let dev = &self.ctx.device;
+        let dev = &self.ctx;
         // A workgroup per aggregate (coarse row) on a GPU; a CPU adapter's few loop over
         // them, each still summed by one workgroup in the same order.
         let policy = self.ctx.segments();
@@ -541,7 +539,7 @@ impl DeviceCg {
             return Vec::new();
         };
         let pr = &self.kernels.product;
-        let dev = &self.ctx.device;
+        let dev = &self.ctx;
         let mut out = Vec::new();
         for step in ml.steps() {
             match step {
@@ -575,7 +573,7 @@ impl DeviceCg {
         co: Co,
     ) -> Vec<(&'static str, Kernel<'a>)> {
         let (pr, up) = (&self.kernels.product, &self.kernels.update);
-        let dev = &self.ctx.device;
+        let dev = &self.ctx;
         let l = &self.launches;
         let g0 = &frames.groups[0];
         let mut one: Vec<(&'static str, Kernel)> =

@@ -11,7 +11,7 @@ use super::{
     SegmentInfo, SegmentStart, Watch,
 };
 use crate::gpu::kernels::slots;
-use crate::gpu::GpuError;
+use crate::gpu::{GpuError, Phase};
 
 impl DeviceCg {
     /// Writes b̂ (frame coordinates, zero in the constrained components, n·d) for the next
@@ -77,13 +77,10 @@ impl DeviceCg {
         // With the coarse correction `start` already ends in start_p; without it, init
         // left p alone and start_p forms p = z + βp here.
         if resume && co == Co::None {
-            let sp = self
-                .kernels
-                .update
-                .start_p(&self.ctx.device, co, Mode::Iterate);
+            let sp = self.kernels.update.start_p(&self.ctx, co, Mode::Iterate);
             kernels.push((sp, self.launches.fused, &frames.groups[0]));
         }
-        Self::pass(&mut enc, "pcg segment start", &kernels);
+        self.pass(&mut enc, "pcg segment start", Phase::Cg, &kernels);
         let (mut st, _) = self.submit_and_read(enc, &[], "starting a device PCG segment")?;
         self.galerkin_from_status(&st);
         self.check_pinned(frames)?;
@@ -187,7 +184,7 @@ impl DeviceCg {
         let mut enc = self.encoder("pcg residual");
         let mut kernels = self.product_of_y(frames, Mode::Iterate);
         kernels.extend(self.start(frames, pre, co, Mode::Iterate));
-        Self::pass(&mut enc, "pcg residual", &kernels);
+        self.pass(&mut enc, "pcg residual", Phase::Cg, &kernels);
         let (st, _) = self.submit_and_read(enc, &[], "the device PCG's residual")?;
         self.galerkin_from_status(&st);
         self.check_pinned(frames)?;
