@@ -168,3 +168,77 @@ fn block_jacobi_inverse(h: array<real, 9>, d: u32) -> array<real, 9> {
     }
     return out;
 }
+
+// Natural logarithm in `real` (Vulkan's log is f32-only): the element kernels' energies and
+// the force balance's barrier forces.
+const LN2_HI = 0.693147180369123816490;
+const LN2_LO = 1.90821492927058770002e-10;
+const SQRT2 = 1.41421356237309504880;
+
+// 2 atanh(t) = ln((1 + t)/(1 − t)) for |t| ≤ 0.172, by its series to t^23 (the next term
+// is below 2^-60 relative).
+fn ln_series(t: real) -> real {
+    let t2 = t * t;
+    var p = real(1.0) / real(23.0);
+    for (var k = 21; k >= 3; k -= 2) {
+        p = p * t2 + real(1.0) / real(k);
+    }
+    return real(2.0) * t * (p * t2 + real(1.0));
+}
+
+// ln x for finite x > 0: x = 2^e m with m in [1/√2, √2] by exact power-of-two scaling,
+// ln m = 2 atanh((m − 1)/(m + 1)), ln 2 split in two so that e·ln 2 keeps full precision.
+fn ln(x: real) -> real {
+    var m = x;
+    var e = real(0.0);
+    let big = real(4294967296.0);
+    for (var i = 0; i < 40 && m > big; i++) {
+        m = m / big;
+        e += real(32.0);
+    }
+    for (var i = 0; i < 40 && m < real(1.0) / big; i++) {
+        m = m * big;
+        e -= real(32.0);
+    }
+    for (var i = 0; i < 40 && m > real(SQRT2); i++) {
+        m = m * real(0.5);
+        e += real(1.0);
+    }
+    for (var i = 0; i < 40 && m < real(0.5) * real(SQRT2); i++) {
+        m = m * real(2.0);
+        e -= real(1.0);
+    }
+    return e * real(LN2_HI) + (ln_series((m - real(1.0)) / (m + real(1.0))) + e * real(LN2_LO));
+}
+
+// The determinant and the cofactor matrix (∂det/∂F) of the d×d row-major matrix in the
+// first d² entries of f, d = 2 or 3: the neo-Hookean elements' J and ∂J/∂F, and the
+// inversion bound's det(Ds + αΔDs) (src/sim/energy/neohookean.rs, `det` and `cofactor`).
+fn det_of(f: array<real, 9>, d: u32) -> real {
+    if (d == 2u) {
+        return f[0] * f[3] - f[1] * f[2];
+    }
+    return f[0] * (f[4] * f[8] - f[5] * f[7]) - f[1] * (f[3] * f[8] - f[5] * f[6])
+        + f[2] * (f[3] * f[7] - f[4] * f[6]);
+}
+
+fn cofactor_of(f: array<real, 9>, d: u32) -> array<real, 9> {
+    var c = array<real, 9>();
+    if (d == 2u) {
+        c[0] = f[3];
+        c[1] = -f[2];
+        c[2] = -f[1];
+        c[3] = f[0];
+        return c;
+    }
+    for (var i = 0u; i < 3u; i++) {
+        for (var j = 0u; j < 3u; j++) {
+            let i1 = (i + 1u) % 3u;
+            let i2 = (i + 2u) % 3u;
+            let j1 = (j + 1u) % 3u;
+            let j2 = (j + 2u) % 3u;
+            c[i * 3u + j] = f[i1 * 3u + j1] * f[i2 * 3u + j2] - f[i1 * 3u + j2] * f[i2 * 3u + j1];
+        }
+    }
+    return c;
+}

@@ -12,7 +12,8 @@
 // - spring_elements: k/(2 l₀)(l − l₀)², transverse stiffness clamped at zero.
 // - inertia_nodes, gravity_nodes, barrier_nodes: per node; gravity has no Hessian.
 // `params.project` = 0 keeps every eigenvalue (the unprojected Hessian, for tests).
-// Vulkan's log is f32-only, so logarithms are computed here (ln, ln1p) in `real`.
+// Vulkan's log is f32-only: logarithms are computed in `real` (ln in shaders/common.wgsl, ln1p
+// here).
 
 override D: u32 = 3u;
 // Unit roundoff of `real` (2^-52 for f64, 2^-23 for f32; both exact in f32), set per
@@ -59,46 +60,6 @@ struct ElementParams {
 // elements: 1 where J ≤ 0 (energy +∞ there; WGSL has no portable infinity, so the host
 // reads this instead).
 @group(0) @binding(9) var<storage, read_write> flags: array<u32>;
-
-const LN2_HI = 0.693147180369123816490;
-const LN2_LO = 1.90821492927058770002e-10;
-const SQRT2 = 1.41421356237309504880;
-
-// 2 atanh(t) = ln((1 + t)/(1 − t)) for |t| ≤ 0.172, by its series to t^23 (the next term
-// is below 2^-60 relative).
-fn ln_series(t: real) -> real {
-    let t2 = t * t;
-    var p = real(1.0) / real(23.0);
-    for (var k = 21; k >= 3; k -= 2) {
-        p = p * t2 + real(1.0) / real(k);
-    }
-    return real(2.0) * t * (p * t2 + real(1.0));
-}
-
-// ln x for finite x > 0: x = 2^e m with m in [1/√2, √2] by exact power-of-two scaling,
-// ln m = 2 atanh((m − 1)/(m + 1)), ln 2 split in two so that e·ln 2 keeps full precision.
-fn ln(x: real) -> real {
-    var m = x;
-    var e = real(0.0);
-    let big = real(4294967296.0);
-    for (var i = 0; i < 40 && m > big; i++) {
-        m = m / big;
-        e += real(32.0);
-    }
-    for (var i = 0; i < 40 && m < real(1.0) / big; i++) {
-        m = m * big;
-        e -= real(32.0);
-    }
-    for (var i = 0; i < 40 && m > real(SQRT2); i++) {
-        m = m * real(0.5);
-        e += real(1.0);
-    }
-    for (var i = 0; i < 40 && m < real(0.5) * real(SQRT2); i++) {
-        m = m * real(2.0);
-        e -= real(1.0);
-    }
-    return e * real(LN2_HI) + (ln_series((m - real(1.0)) / (m + real(1.0))) + e * real(LN2_LO));
-}
 
 // ln(1 + x) for x > −1, accurate relative to the result also for small x.
 fn ln1p(x: real) -> real {
@@ -336,36 +297,6 @@ fn sym_eigen(a: array<real, 9>) -> Eigen {
     return out;
 }
 
-fn det_f(f: array<real, 9>) -> real {
-    if (D == 2u) {
-        return f[0] * f[3] - f[1] * f[2];
-    }
-    return f[0] * (f[4] * f[8] - f[5] * f[7]) - f[1] * (f[3] * f[8] - f[5] * f[6])
-        + f[2] * (f[3] * f[7] - f[4] * f[6]);
-}
-
-// ∂J/∂F, the cofactor matrix.
-fn cofactor(f: array<real, 9>) -> array<real, 9> {
-    var c = array<real, 9>();
-    if (D == 2u) {
-        c[0] = f[3];
-        c[1] = -f[2];
-        c[2] = -f[1];
-        c[3] = f[0];
-        return c;
-    }
-    for (var i = 0u; i < 3u; i++) {
-        for (var j = 0u; j < 3u; j++) {
-            let i1 = (i + 1u) % 3u;
-            let i2 = (i + 2u) % 3u;
-            let j1 = (j + 1u) % 3u;
-            let j2 = (j + 2u) % 3u;
-            c[i * 3u + j] = f[i1 * 3u + j1] * f[i2 * 3u + j2] - f[i1 * 3u + j2] * f[i2 * 3u + j1];
-        }
-    }
-    return c;
-}
-
 fn clamp_mode(l: real) -> real {
     if (params.project != 0u) {
         return max(l, real(0.0));
@@ -445,7 +376,7 @@ fn neohookean_element(e: u32) {
             }
         }
     }
-    let jac = det_f(f);
+    let jac = det_of(f, D);
     if (classical) {
         // J ≤ 0: +∞, said by the flag; the outputs are zeros.
         let inverted = !(jac > real(0.0));
@@ -480,7 +411,7 @@ fn neohookean_element(e: u32) {
     }
     // P = s F + t cof(F): classical s = μ, t = (λ ln J − μ)/J; stable s = μ − μ/(I_C + 1),
     // t = λ (J − α).
-    let cof = cofactor(f);
+    let cof = cofactor_of(f, D);
     var s = mu - mu / (ic + real(1.0));
     var t = lam * (jac - alpha);
     if (classical) {

@@ -348,10 +348,14 @@ fn drop_multilevel_on_both_loops() {
 /// Per Newton iteration, what goes to the device is scalars, a few nodes and the coarse
 /// space's E⁺: over the whole run (set-up included) at most 1 % of one assembled Hessian
 /// per iteration besides E⁺, and E⁺ at most one (3·128)² f64 matrix per iteration, a
-/// bound that does not grow with the mesh.
+/// bound that does not grow with the mesh. What comes back besides E and the state read
+/// once per step (x and v at its start for the classical law's inversion check, x, v and
+/// ∇E at its end: 5·n·d f64) is at most 1 % of the matrix per iteration too: no vector of
+/// size n comes back per iteration (one is 2.5 % of the matrix here).
 #[test]
 fn twist_size_4_moves_scalars_not_matrices() {
-    let Some(gpu) = gpu_run("twist", 50, Some(4.0)) else {
+    let steps = 50;
+    let Some(gpu) = gpu_run("twist", steps, Some(4.0)) else {
         return;
     };
     let g = gpu.gpu.expect("gpu report");
@@ -367,6 +371,17 @@ fn twist_size_4_moves_scalars_not_matrices() {
     assert!(
         ratio <= 0.01,
         "host→device per Newton iteration is {ratio} of the matrix besides E⁺"
+    );
+    let state = (steps * 5 * gpu.nodes * 3 * 8) as u64;
+    let back = (g.device_to_host_bytes - g.coarse_device_to_host_bytes - state) as f64 / its;
+    eprintln!(
+        "twist --size 4: device→host besides E and the state once per step: {back:.0} B per \
+         iteration ({:.4} of the matrix)",
+        back / g.matrix_bytes as f64
+    );
+    assert!(
+        back <= 0.01 * g.matrix_bytes as f64,
+        "device→host per Newton iteration is {back} B besides E and the per-step state"
     );
     let most = 8.0 * (3.0 * stickslip::solve::coarse::MAX_AGGREGATES as f64).powi(2);
     assert!(

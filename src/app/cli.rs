@@ -1388,4 +1388,3 @@ mod tests {
         assert_eq!(solve_error(lost).exit_code(), 1);
     }
 }
-

@@ -186,6 +186,16 @@ pub fn set_gathers(
     ))
 }
 
+/// One element term's node gather lists on the device: per node i, `entries[offsets[i] ..
+/// offsets[i + 1]]` are the offsets e·nl + a·d, in element order, of its entries in the
+/// term's per-element gradient buffer ([`GpuElements::term_buffers`]).
+pub struct NodeGather {
+    /// The element term, in [`GpuElements::kinds`] order.
+    pub term: usize,
+    pub offsets: wgpu::Buffer,
+    pub entries: wgpu::Buffer,
+}
+
 /// The Newton system's assembly and products on the device for one mesh: pattern, gather
 /// lists and bind groups built once; per Newton iteration [`GpuAssembly::assemble`] after
 /// [`GpuElements::evaluate`].
@@ -207,6 +217,8 @@ pub struct GpuAssembly {
     gradient_passes: Vec<Pass>,
     matvec_passes: Vec<Pass>,
     matfree_passes: Vec<Pass>,
+    /// The element terms' node gather lists, in term order.
+    node_gathers: Vec<NodeGather>,
     /// Bytes the two products read and write per call (see [`ProductBytes`]).
     bytes: ProductBytes,
 }
@@ -461,6 +473,7 @@ impl GpuAssembly {
         let mut matfree_passes = Vec::new();
         let mut matfree_nodes = Vec::new();
         let mut set_passes = Vec::new();
+        let mut node_gathers = Vec::new();
         let mut mf_bytes = 0u64;
         // Index into model.sets of the current element term (advanced by each first chunk).
         let mut set: Option<usize> = None;
@@ -521,6 +534,11 @@ impl GpuAssembly {
                         &format!("{label} element nodes"),
                         bytemuck::cast_slice(&u32s(&idx)?),
                     )?;
+                    node_gathers.push(NodeGather {
+                        term: t,
+                        offsets: n_off.clone(),
+                        entries: n_ent.clone(),
+                    });
                     let hess =
                         hess.ok_or_else(|| GpuError::Mismatch(format!("set {k} has no Hessian")))?;
                     // Matrix-free reads per product: every element Hessian entry once, the
@@ -796,6 +814,7 @@ impl GpuAssembly {
             gradient_passes,
             matvec_passes,
             matfree_passes,
+            node_gathers,
             bytes,
         })
     }
@@ -832,6 +851,11 @@ impl GpuAssembly {
     /// The assembled gradient (node-major, `real`).
     pub fn gradient_buffer(&self) -> &wgpu::Buffer {
         &self.gradient
+    }
+
+    /// The element terms' node gather lists (the gradient's), in term order.
+    pub fn node_gathers(&self) -> &[NodeGather] {
+        &self.node_gathers
     }
 
     /// The block pattern: row pointers and column indices (the CPU's `BlockCsr` order).

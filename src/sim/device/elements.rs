@@ -83,7 +83,10 @@ pub const WORKGROUP: u32 = 64;
 
 /// Reals per half-space in the constants buffer (normal xyz, offset, d̂, κ), after the
 /// three gravity entries.
-const PLANE_STRIDE: usize = 6;
+pub(crate) const PLANE_STRIDE: usize = 6;
+
+/// Reals per neo-Hookean element of the rest data after its Dm⁻¹: volume, μ, λ, law.
+pub(crate) const NH_REST_EXTRA: usize = 4;
 const GRAVITY_SLOTS: usize = 3;
 
 /// One energy term of a scene on the device.
@@ -240,6 +243,8 @@ struct Term {
     gradient: wgpu::Buffer,
     hessian: Option<wgpu::Buffer>,
     flags: Option<wgpu::Buffer>,
+    /// Element chunks: their node indices and rest data (None for node terms).
+    mesh: Option<(wgpu::Buffer, wgpu::Buffer)>,
 }
 
 /// One term's outputs read back to the host (f64 whatever the device precision).
@@ -268,6 +273,8 @@ pub struct GpuElements {
     x: wgpu::Buffer,
     x_tilde: wgpu::Buffer,
     consts: wgpu::Buffer,
+    /// Per node (lumped mass, contact weight).
+    node_data: wgpu::Buffer,
     terms: Vec<Term>,
 }
 
@@ -443,7 +450,7 @@ impl GpuElements {
         let mut data: Vec<TermData> = Vec::new();
         for (k, s) in model.sets.iter().enumerate() {
             let (kind, stride) = match s {
-                ElementSet::NeoHookean(_) => (TermKind::NeoHookean, d * d + 4),
+                ElementSet::NeoHookean(_) => (TermKind::NeoHookean, d * d + NH_REST_EXTRA),
                 ElementSet::Springs(_) => (TermKind::Springs, 2),
             };
             let arity = s.arity();
@@ -597,6 +604,7 @@ impl GpuElements {
                 gradient,
                 hessian,
                 flags,
+                mesh: t.nodes.clone().zip(t.rest.clone()),
             });
         }
         ctx.check("uploading the element data")?;
@@ -609,6 +617,7 @@ impl GpuElements {
             x,
             x_tilde,
             consts,
+            node_data,
             terms,
         })
     }
@@ -641,6 +650,26 @@ impl GpuElements {
     /// Hessian buffer (None for gravity): the inputs of a device assembly.
     pub fn term_buffers(&self, t: usize) -> Option<(&wgpu::Buffer, Option<&wgpu::Buffer>)> {
         self.terms.get(t).map(|t| (&t.gradient, t.hessian.as_ref()))
+    }
+
+    /// Term `t`'s (in [`GpuElements::kinds`] order) element-to-node indices (u32, nodes per
+    /// element each) and rest data (neohookean: Dm⁻¹, rest volume, μ, λ, law per element;
+    /// springs: l₀, k), for the elements of its chunk; None for node terms.
+    pub fn term_mesh(&self, t: usize) -> Option<(&wgpu::Buffer, &wgpu::Buffer)> {
+        self.terms
+            .get(t)
+            .and_then(|t| t.mesh.as_ref().map(|(n, r)| (n, r)))
+    }
+
+    /// Per node (lumped mass, contact weight), `real`, for every node of the mesh.
+    pub fn node_data_buffer(&self) -> &wgpu::Buffer {
+        &self.node_data
+    }
+
+    /// The constants every term reads (`real`): the gravity (3 entries), then per
+    /// half-space its normal (3), offset, d̂ and κ.
+    pub fn constants_buffer(&self) -> &wgpu::Buffer {
+        &self.consts
     }
 
     /// The positions buffer every term reads (node-major, `real`): a device Newton loop

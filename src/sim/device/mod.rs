@@ -1,8 +1,10 @@
 //! The Newton step's device operators: element energies, gradients and projected
 //! Hessians ([`elements`]), their assembly into block rows ([`assembly`], which the device PCG of
-//! [`crate::gpu::pcg`] reads in place) and the loop's vector operations, reductions and
-//! per-node updates ([`newton_ops`]).
+//! [`crate::gpu::pcg`] reads in place), the loop's vector operations, reductions and
+//! per-node updates ([`newton_ops`]) and its checks reduced to scalars: the inversion bound
+//! and the force balance ([`checks`]).
 
 pub mod assembly;
+pub mod checks;
 pub mod elements;
 pub mod newton_ops;

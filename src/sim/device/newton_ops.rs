@@ -327,6 +327,10 @@ fn slot_count(terms: usize) -> usize {
     terms + 5
 }
 
+/// Result slots after this module's, for the loop's checks ([`crate::sim::device::checks`]),
+/// so that every scalar result of a Newton iteration lies in one buffer.
+pub const CHECK_SLOTS: usize = 2;
+
 impl NewtonOps {
     /// Builds the pipelines, state buffers and bind groups for the terms of `elements`,
     /// their assembly `asm` and the direction buffer `dx` (n·d f64, world frame).
@@ -410,7 +414,7 @@ impl NewtonOps {
         let scal = ctx.storage_with("newton scalars", &to_bytes(true, &scal_init))?;
         let slots = slot_count(t) as u64;
         let partials = zeroed("newton partial reductions", slots * groups as u64 * 32)?;
-        let result = zeroed("newton reductions", slots * 32)?;
+        let result = zeroed("newton reductions", (slots + CHECK_SLOTS as u64) * 32)?;
         let dummies = Dummies {
             src: zeroed("newton unused energies", 16)?,
             flags: zeroed("newton unused flags", 16)?,
@@ -757,18 +761,6 @@ impl NewtonOps {
         self.run("newton end step", &[(&self.end, Self::grid(nd))], |_| {})
     }
 
-    /// The current iterate x and the Newton direction Δx (full downloads, n·d f64 each).
-    pub fn read_positions_and_direction(&self) -> Result<(Vec<f64>, Vec<f64>), GpuError> {
-        let nb = self.nd_bytes();
-        let x = self
-            .ctx
-            .download(&self.binder.x, 0, nb, "reading the positions")?;
-        let dx = self
-            .ctx
-            .download(&self.binder.dx, 0, nb, "reading the Newton direction")?;
-        Ok((from_bytes(true, &x), from_bytes(true, &dx)))
-    }
-
     /// The assembled gradient (full download, for the reactions at the end of a step).
     pub fn read_gradient(&self) -> Result<Vec<f64>, GpuError> {
         let b = self.ctx.download(
@@ -1070,6 +1062,25 @@ impl NewtonOps {
             self.ctx.write_buffer(&self.binder.pos, off, &b);
         }
         Ok(())
+    }
+
+    /// The accepted iterate x (node-major f64) and the Newton direction Δx it was built
+    /// with.
+    pub fn iterate_buffers(&self) -> (&wgpu::Buffer, &wgpu::Buffer) {
+        (&self.binder.x, &self.binder.dx)
+    }
+
+    /// Every scalar result of the loop, one vec4<f64> (32 bytes) per slot: this module's
+    /// (per element term its energy, then g·Δx, ‖Δx‖∞, CCD, smallest distance, moving
+    /// energy) and from [`NewtonOps::check_slots`] on the checks'.
+    pub fn result_buffer(&self) -> &wgpu::Buffer {
+        &self.binder.result
+    }
+
+    /// The [`CHECK_SLOTS`] result slots reserved for the checks.
+    pub fn check_slots(&self) -> std::ops::Range<usize> {
+        let s = slot_count(self.energy.len());
+        s..s + CHECK_SLOTS
     }
 
     /// The context the operations run on.

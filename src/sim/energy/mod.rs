@@ -613,8 +613,9 @@ impl Model {
 
     /// The largest step along Δx from x before an element of the classical law inverts:
     /// the smallest root α ∈ (0, `max`] of det F(x + αΔx) = 0 over those elements
-    /// ([`NeoHookean::inversion_bound`]), with its (set, element); None when none inverts
-    /// on (0, `max`]. Err names an element already inverted at x.
+    /// ([`NeoHookean::inversion_bound`]), with its (set, element), the first in (set,
+    /// element) order on ties; None when none inverts on (0, `max`]. Err names an element
+    /// already inverted at x, the first in that order.
     pub fn inversion_bound(
         &self,
         x: &[f64],
@@ -629,18 +630,16 @@ impl Model {
             if nh.law != Law::NeoHookean {
                 continue;
             }
-            let limit = best.map_or(max, |b| b.alpha);
+            // Only a root below the earlier sets' bound counts (and is the new bound).
             if let Some((alpha, e)) = nh
-                .inversion_bound(x, dx, limit)
+                .inversion_bound_below(x, dx, max, best.map(|b| b.alpha))
                 .map_err(|(element, j)| Inverted { set: k, element, j })?
             {
-                if best.is_none_or(|b| alpha < b.alpha) {
-                    best = Some(InversionLimit {
-                        alpha,
-                        set: k,
-                        element: e,
-                    });
-                }
+                best = Some(InversionLimit {
+                    alpha,
+                    set: k,
+                    element: e,
+                });
             }
         }
         Ok(best)

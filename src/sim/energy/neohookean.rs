@@ -444,11 +444,29 @@ impl NeoHookean {
     /// with det Dm > 0, so the root is that of det(Ds + αΔDs), a polynomial of degree d in
     /// α ([`first_root`]). Err((element, J)) when an element is already inverted at x
     /// (J ≤ 0), the first one in element order.
+    ///
+    /// Every element's root is [`first_root`] on the whole (0, `max`], and the bound is the
+    /// first strict minimum in element order: what each element contributes does not
+    /// depend on the others, so a parallel reduction (the device loop's,
+    /// `sim::device::checks`) finds the same element and the same bits.
     pub fn inversion_bound(
         &self,
         x: &[f64],
         dx: &[f64],
         max: f64,
+    ) -> Result<Option<(f64, usize)>, (usize, f64)> {
+        self.inversion_bound_below(x, dx, max, None)
+    }
+
+    /// [`NeoHookean::inversion_bound`] counting only a root below `below` (the bound of the
+    /// element sets before this one): an element whose root is known to lie at or above
+    /// the bound so far is not bisected further ([`root_below`]).
+    pub(super) fn inversion_bound_below(
+        &self,
+        x: &[f64],
+        dx: &[f64],
+        max: f64,
+        below: Option<f64>,
     ) -> Result<Option<(f64, usize)>, (usize, f64)> {
         let d = self.dim;
         let rest_factor = if d == 2 { 2.0 } else { 6.0 };
@@ -467,11 +485,8 @@ impl NeoHookean {
             if c[0].is_nan() || c[0] <= 0.0 {
                 return Err((e, c[0] / (rest_factor * self.volume[e])));
             }
-            let limit = best.map_or(max, |(r, _)| r);
-            if let Some(r) = first_root(&c, limit) {
-                if best.is_none_or(|(b, _)| r < b) {
-                    best = Some((r, e));
-                }
+            if let Some(r) = root_below(&c, max, best.map(|(r, _)| r).or(below)) {
+                best = Some((r, e));
             }
         }
         Ok(best)
@@ -502,6 +517,15 @@ pub fn det_polynomial(d: usize, a: &[f64], b: &[f64]) -> [f64; 4] {
 /// coefficients may vanish (a quadratic, linear or constant p). None when p > 0 at every
 /// cut and at `max`.
 pub fn first_root(c: &[f64; 4], max: f64) -> Option<f64> {
+    root_below(c, max, None)
+}
+
+/// [`first_root`] of `c` on (0, `max`] when it is below `stop`, else None. The search is
+/// [`first_root`]'s, ended early once the root is known to lie above `stop` (the bracket's
+/// left end reached it: the root returned is always right of that end), so whatever it
+/// returns is [`first_root`]'s value, bit for bit.
+fn root_below(c: &[f64; 4], max: f64, stop: Option<f64>) -> Option<f64> {
+    let beyond = |v: f64| stop.is_some_and(|s| v >= s);
     let p = |a: f64| ((c[3] * a + c[2]) * a + c[1]) * a + c[0];
     let mut cuts = [max; 3];
     let mut n = 0;
@@ -518,12 +542,18 @@ pub fn first_root(c: &[f64; 4], max: f64) -> Option<f64> {
     cuts[n] = max;
     let mut lo = 0.0f64;
     for &hi in &cuts[..=n] {
+        if beyond(lo) {
+            return None;
+        }
         if p(hi) <= 0.0 {
             let mut hi = hi;
             loop {
+                if beyond(lo) {
+                    return None;
+                }
                 let mid = 0.5 * (lo + hi);
                 if mid <= lo || mid >= hi {
-                    return Some(hi);
+                    return (!beyond(hi)).then_some(hi);
                 }
                 if p(mid) > 0.0 {
                     lo = mid;
@@ -909,6 +939,73 @@ mod tests {
             let mut flipped = id.clone();
             flipped[0] = -1.0;
             assert_eq!(nh.density(&flipped), f64::INFINITY);
+        }
+    }
+
+    /// Over a mesh the bound is the first strict minimum, in element order, of every
+    /// element's own [`first_root`] on (0, max]: the search cut short by the bound so far
+    /// ([`root_below`]) never changes a root nor the element, ties included (a uniform
+    /// deformation gives every element the same root up to rounding).
+    #[test]
+    fn inversion_bound_is_the_first_minimum_of_the_elements_roots() {
+        let mut rng = StdRng::seed_from_u64(17);
+        let max = 1.0 / 0.9;
+        for d in [2, 3] {
+            let mesh = if d == 2 {
+                crate::sim::mesh::rectangle(2, [1.0, 0.5], [6, 3])
+            } else {
+                crate::sim::mesh::cuboid([1.0, 0.4, 0.4], [4, 2, 2])
+            };
+            let nh = NeoHookean::new(&mesh, 1e5, 0.3, Law::NeoHookean).expect("valid mesh");
+            let n = mesh.x.len() / d;
+            let mut rooted = 0;
+            for t in 0..60 {
+                let (x, dx): (Vec<f64>, Vec<f64>) = if t % 3 == 0 {
+                    // Uniform: x = X, Δx = G X.
+                    let g: Vec<f64> = (0..d * d).map(|_| rng.random_range(-2.0..1.0)).collect();
+                    let dx = (0..n * d)
+                        .map(|k| {
+                            let (i, a) = (k / d, k % d);
+                            (0..d).map(|b| g[a * d + b] * mesh.x[i * d + b]).sum()
+                        })
+                        .collect();
+                    (mesh.x.clone(), dx)
+                } else {
+                    let size = 10f64.powf(rng.random_range(-3.0..0.0));
+                    let x = mesh
+                        .x
+                        .iter()
+                        .map(|v| v + rng.random_range(-0.02..0.02))
+                        .collect();
+                    let dx = (0..n * d)
+                        .map(|_| size * rng.random_range(-1.0..1.0))
+                        .collect();
+                    (x, dx)
+                };
+                let got = nh.inversion_bound(&x, &dx, max).expect("not inverted");
+                let mut want: Option<(f64, usize)> = None;
+                for (e, el) in nh.elements.iter().enumerate() {
+                    let mut a = [0.0; 9];
+                    let mut b = [0.0; 9];
+                    for k in 1..=d {
+                        for i in 0..d {
+                            a[i * d + k - 1] = x[el[k] * d + i] - x[el[0] * d + i];
+                            b[i * d + k - 1] = dx[el[k] * d + i] - dx[el[0] * d + i];
+                        }
+                    }
+                    let c = det_polynomial(d, &a[..d * d], &b[..d * d]);
+                    if let Some(r) = first_root(&c, max) {
+                        if want.is_none_or(|(w, _)| r < w) {
+                            want = Some((r, e));
+                        }
+                        let stop = rng.random_range(0.0..max);
+                        assert_eq!(root_below(&c, max, Some(stop)), (r < stop).then_some(r));
+                    }
+                }
+                assert_eq!(got, want, "{d}D case {t}");
+                rooted += got.is_some() as usize;
+            }
+            assert!(rooted > 20, "{d}D: only {rooted} cases with a root");
         }
     }
 

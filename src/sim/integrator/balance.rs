@@ -9,7 +9,8 @@
 
 use super::state::State;
 use crate::core::constraints::Frames;
-use crate::sim::energy::AssemblyWork;
+use crate::sim::energy::barrier::{Barrier, HalfSpace};
+use crate::sim::energy::{AssemblyWork, Model};
 
 // A step's iterate is stationary when its largest unbalanced free force is at most
 // `[solver] force_tolerance` (default 1e-4) of the step's force scale
@@ -60,9 +61,29 @@ pub(super) fn force_balance(
     work: &mut AssemblyWork,
 ) -> ForceBalance {
     let sc = state.scene;
-    let d = sc.dim;
-    let n = sc.model.n_nodes;
-    let h2 = sc.time_step * sc.time_step;
+    let contact = state.contact.as_ref().map(|c| (&c.barrier, &c.planes[..]));
+    force_balance_of(&sc.model, contact, sc.time_step, x, xt, g, frames, work)
+}
+
+/// [`ForceBalance`] of the iterate x of a step of length `h` of `model` (with `contact`:
+/// the barrier and its half-spaces), x̃ its inertial target, g = ∇E(x) without penalty
+/// terms, under the constraint set `frames`. The residual's node is the first strict
+/// maximum in node order (node 0 when every residual is zero); NaN entries count for
+/// nothing, as in `f64::max`.
+#[allow(clippy::too_many_arguments)]
+pub fn force_balance_of(
+    model: &Model,
+    contact: Option<(&Barrier, &[HalfSpace])>,
+    h: f64,
+    x: &[f64],
+    xt: &[f64],
+    g: &[f64],
+    frames: &Frames,
+    work: &mut AssemblyWork,
+) -> ForceBalance {
+    let d = model.dim;
+    let n = model.n_nodes;
+    let h2 = h * h;
     let mut free = vec![0.0; n * d];
     frames.to_frame(g, &mut free);
     frames.apply_mask(&mut free);
@@ -76,14 +97,14 @@ pub(super) fn force_balance(
                 |best, (i, r)| if r > best.1 { (i, r) } else { best },
             );
     let mut sizes = vec![0.0; n];
-    sc.model.add_potential_force_scale(x, h2, &mut sizes, work);
-    if let Some(c) = &state.contact {
-        c.barrier.add_force_scale(x, &c.planes, h2, &mut sizes);
+    model.add_potential_force_scale(x, h2, &mut sizes, work);
+    if let Some((barrier, planes)) = contact {
+        barrier.add_force_scale(x, planes, h2, &mut sizes);
     }
     let mut inertia = [0.0; 3];
     for (i, s) in sizes.iter_mut().enumerate() {
         for a in 0..d {
-            inertia[a] = sc.model.mass[i] * (x[i * d + a] - xt[i * d + a]);
+            inertia[a] = model.mass[i] * (x[i * d + a] - xt[i * d + a]);
         }
         *s += norm(&inertia[..d]);
     }

@@ -19,7 +19,7 @@
 //! solvers' tolerances, not bit for bit (tests/sim_gpu_newton.rs).
 
 use super::backend::{Backend, EndState, SystemArrays};
-use super::balance::{force_balance, ForceBalance};
+use super::balance::ForceBalance;
 use super::error::{InitError, StepError};
 use super::forcing::Forcing;
 use super::linear::LinearStats;
@@ -31,10 +31,11 @@ use crate::core::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::gpu::pcg::{DeviceCg, DeviceCgParams, DeviceFrames};
 use crate::gpu::{GpuContext, GpuError, GpuOptions, Phase, PhaseGuard, Precision};
 use crate::sim::device::assembly::GpuAssembly;
+use crate::sim::device::checks::{BalanceFrames, NewtonChecks};
 use crate::sim::device::elements::{GpuElements, TermKind};
 use crate::sim::device::newton_ops::{static_projections, MovingTerm, NewtonOps};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
-use crate::sim::energy::{AssemblyWork, InversionLimit, Inverted};
+use crate::sim::energy::{InversionLimit, Inverted};
 use crate::sim::scene::Scene;
 use crate::solve::multilevel::reuse::KeptLevels;
 use crate::solve::multilevel::Hierarchy;
@@ -61,8 +62,10 @@ pub(super) struct DeviceLoop {
     scratch: Vec<f64>,
     /// The velocities read with every position (kept to write the state back whole).
     scratch_v: Vec<f64>,
-    /// The host's element buffer of the force balance, kept between steps.
-    assembly: AssemblyWork,
+    /// The inversion bound and the force balance, reduced on the device.
+    checks: NewtonChecks,
+    /// The constraint frames of the force balance per constraint set (as `frames`).
+    balance_frames: HashMap<Vec<bool>, BalanceFrames>,
     /// The multilevel preconditioner's clusters (H's pattern only: once per run), its
     /// levels when kept between systems, and the host seconds of its setups so far.
     levels: KeptLevels,
@@ -201,6 +204,8 @@ impl DeviceLoop {
         asm.set_scale(h * h);
         let cg = asm.device_cg().map_err(device_error)?;
         let ops = NewtonOps::new(&elements, &asm, cg.dx_buffer()).map_err(device_error)?;
+        let checks =
+            NewtonChecks::new(&elements, &asm, &ops, &scene.model).map_err(device_error)?;
         let d = scene.dim;
         let setup = scene.solver.multilevel_setup;
         let levels = if scene.solver.preconditioner == Preconditioner::Multilevel {
@@ -228,7 +233,8 @@ impl DeviceLoop {
             moving: None,
             scratch: vec![0.0; scene.model.n_nodes * d],
             scratch_v: Vec::new(),
-            assembly: AssemblyWork::default(),
+            checks,
+            balance_frames: HashMap::new(),
             levels,
             multilevel_seconds: 0.0,
             dim: d,
@@ -507,31 +513,21 @@ impl Backend for DeviceLoop {
         Ok(self.ops.max_abs_dx()?)
     }
 
-    /// Reads back x and ∇E and asks the host's test, on x̃ = xⁿ + h vⁿ as the device
-    /// formed it.
+    /// The force balance of x under the constraint set `snapped`, reduced on the device
+    /// ([`NewtonChecks::force_balance`]: 32 bytes read back) from the ∇E and element
+    /// gradients of the last `direction`, at x, and x̃ = xⁿ + h vⁿ as the device formed it.
     fn force_balance(
         &mut self,
         state: &State,
         snapped: &[bool],
     ) -> Result<ForceBalance, StepError> {
         let _phase = self.ctx.phase(Phase::HostDecisions);
-        let h = state.scene.time_step;
-        let (x, _) = self.ops.read_state()?;
-        let g = self.ops.read_gradient()?;
-        let xt: Vec<f64> = state
-            .x
-            .iter()
-            .zip(&state.v)
-            .map(|(x, v)| x + h * v)
-            .collect();
-        Ok(force_balance(
-            state,
-            &x,
-            &xt,
-            &g,
-            &state.frames[snapped],
-            &mut self.assembly,
-        ))
+        if !self.balance_frames.contains_key(snapped) {
+            let f = self.checks.frames(&state.frames[snapped])?;
+            self.balance_frames.insert(snapped.to_vec(), f);
+        }
+        let frames = &self.balance_frames[snapped];
+        Ok(self.checks.force_balance(frames, state.scene.time_step)?)
     }
 
     /// E at the evaluation positions (the current iterate, or the trial one after
@@ -582,17 +578,16 @@ impl Backend for DeviceLoop {
         Ok(self.ops.ccd(&c.planes, CCD_FRACTION)?)
     }
 
-    /// x and Δx are read back whole (2·n·d f64) and the bound computed on the host with
-    /// the host backend's function: exact, and the same numbers on both loops; one
-    /// download per line search of a scene with classical neo-Hookean elements.
+    /// The bound of the step Δx from x, reduced on the device with the host's root search
+    /// element by element ([`NewtonChecks::inversion_bound`]: 32 bytes read back): the host
+    /// backend's numbers wherever the driver rounds as written (lavapipe: bit for bit).
     fn inversion_bound(
         &mut self,
-        state: &State,
+        _state: &State,
         max: f64,
     ) -> Result<Result<Option<InversionLimit>, Inverted>, StepError> {
         let _phase = self.ctx.phase(Phase::InversionBound);
-        let (x, dx) = self.ops.read_positions_and_direction()?;
-        Ok(state.scene.model.inversion_bound(&x, &dx, max))
+        Ok(self.checks.inversion_bound(max)?)
     }
 
     fn set_trial(&mut self, alpha: f64) -> Result<(), StepError> {

@@ -76,6 +76,7 @@ mod state;
 mod stepper;
 mod targets;
 
+pub use balance::{force_balance_of, ForceBalance, POSITION_ULPS};
 pub use device::{check_capacity, device_bytes_needed};
 pub use dump::{NewtonSystem, StepSelection, SystemSink};
 pub use error::{InitError, StepError};
