@@ -4,7 +4,8 @@
 // - begin_step: xn = x, x̃ = x + h v (x unprojected, as the CPU's start of step);
 //   project_static: x_i = P_i x_i + c_i for each listed node; the host then copies x to the
 //   evaluation positions `pos`.
-// - trial: pos = x + α Δx; end_step: v = (x − xn)/h; gather_nodes: x of listed nodes.
+// - trial: pos = x + α Δx (α from a result slot); step_bound: the line search's first α
+//   from the CCD and inversion bounds' slots; end_step: v = (x − xn)/h; gather_nodes: x of listed nodes.
 // - add_moving: per unsnapped moving node, g += k m r − P(√m λ) and H_ii += k m P.
 // - reduce / finish: deterministic two-pass reductions. `reduce` runs a fixed number of
 //   workgroups; each invocation combines its grid-stride items in index order, each
@@ -40,9 +41,9 @@ const MODE_MOVING_ENERGY: u32 = 5u;
 
 // Slots of `scal`; half-space j (normal xyz, offset) at S_PLANES + 4j.
 const S_H: u32 = 0u;
-const S_ALPHA: u32 = 1u;
-const S_FRACTION: u32 = 2u;
-const S_INF: u32 = 3u;
+const S_FRACTION: u32 = 1u;
+const S_INF: u32 = 2u;
+const S_INV_FRACTION: u32 = 3u;
 const S_PLANES: u32 = 4u;
 
 // Reals per static projection (P row-major 3×3, c) and per moving term (see ops.rs).
@@ -111,12 +112,40 @@ fn project_static(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     }
 }
 
+// pos = x + α Δx with α in result[params.slot] (the host's, or step_bound's).
 @compute @workgroup_size(WG)
 fn trial(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let alpha = scal[S_ALPHA];
+    let alpha = result[params.slot].x;
     for (var k = grid_index(gid, nwg); k < params.count; k += grid_stride(nwg)) {
         pos[k] = x[k] + alpha * dx[k];
     }
+}
+
+// The line search's first step α_C as src/sim/integrator/stepper.rs (`line_search`)
+// takes it, into result[params.slot].x (one invocation): the CCD bound of result[mode]
+// (aux bit 0; else 1), NaN and negative ones 0 as `Ccd` reads them, lowered to
+// INVERSION_FRACTION (scal[S_INV_FRACTION]) of the first inverting step of
+// result[count] (aux bit 1) where it has one and no element is already inverted.
+@compute @workgroup_size(WG)
+fn step_bound(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x != 0u) {
+        return;
+    }
+    var alpha = real(1.0);
+    if ((params.aux & 1u) != 0u) {
+        let c = result[params.mode].x;
+        alpha = select(real(0.0), c, c > real(0.0));
+    }
+    if ((params.aux & 2u) != 0u) {
+        let inv = result[params.count];
+        if (inv.z >= real(NO_INDEX) && inv.y < real(NO_INDEX)) {
+            let b = scal[S_INV_FRACTION] * inv.x;
+            if (b < alpha) {
+                alpha = b;
+            }
+        }
+    }
+    result[params.slot] = vec4<real>(alpha, real(0.0), real(0.0), real(0.0));
 }
 
 @compute @workgroup_size(WG)

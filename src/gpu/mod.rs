@@ -7,6 +7,7 @@
 pub mod blocks;
 pub mod context;
 pub mod error;
+pub mod gate;
 pub mod info;
 pub mod kernels;
 pub mod launch;

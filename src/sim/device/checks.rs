@@ -35,6 +35,7 @@
 #![cfg(feature = "sim")]
 
 use crate::core::constraints::{Frames, NO_ROTATION};
+use crate::gpu::gate::Dispatch;
 use crate::gpu::kernels::{self, Access, Layout};
 use crate::gpu::{GpuContext, GpuError};
 use crate::sim::device::assembly::GpuAssembly;
@@ -504,20 +505,30 @@ impl NewtonChecks {
         self.slot + 1
     }
 
+    /// `ops` as dispatches, in order.
+    fn dispatches(&self, ops: &[&Op]) -> Vec<Dispatch> {
+        let launch = self.ctx.launch();
+        ops.iter()
+            .map(|op| Dispatch {
+                pipeline: self.pipelines[op.entry as usize].clone(),
+                group: op.group.clone(),
+                launch: match op.entry {
+                    // Reductions get exactly their workgroups (checked when built).
+                    Entry::Reduce => launch.reduction(self.groups as u32, WG),
+                    Entry::Finish => launch.reduction(1, WG),
+                    Entry::SizesInit | Entry::SizesAdd => launch.grid(op.count as u64, WG),
+                },
+            })
+            .collect()
+    }
+
     /// Records `ops` in one compute pass of `enc`.
     fn record(&self, enc: &mut wgpu::CommandEncoder, label: &str, ops: &[&Op]) {
-        let launch = self.ctx.launch();
         let mut cp = self.ctx.compute_pass(enc, label, None);
-        for op in ops {
-            cp.set_pipeline(&self.pipelines[op.entry as usize]);
-            cp.set_bind_group(0, &op.group);
-            let l = match op.entry {
-                // Reductions get exactly their workgroups (checked when built).
-                Entry::Reduce => launch.reduction(self.groups as u32, WG),
-                Entry::Finish => launch.reduction(1, WG),
-                Entry::SizesInit | Entry::SizesAdd => launch.grid(op.count as u64, WG),
-            };
-            cp.dispatch(l);
+        for d in self.dispatches(ops) {
+            cp.set_pipeline(&d.pipeline);
+            cp.set_bind_group(0, &d.group);
+            cp.dispatch(d.launch);
         }
     }
 
@@ -529,10 +540,19 @@ impl NewtonChecks {
     /// Records the inversion bound of the step Δx from the accepted iterate x over
     /// (0, `max`] (as `Model::inversion_bound`) into [`NewtonChecks::inversion_slot`].
     pub fn record_inversion_bound(&self, enc: &mut wgpu::CommandEncoder, max: f64) {
-        self.write_scalar(S_MAX, max);
         let mut ops: Vec<&Op> = self.inversion.iter().collect();
         ops.push(&self.inversion_finish);
+        self.write_scalar(S_MAX, max);
         self.record(enc, "newton inversion bound", &ops);
+    }
+
+    /// The dispatches of [`NewtonChecks::record_inversion_bound`] (its bound `max`
+    /// written for the next submit), for a caller that records them itself.
+    pub fn inversion_dispatches(&self, max: f64) -> Vec<Dispatch> {
+        let mut ops: Vec<&Op> = self.inversion.iter().collect();
+        ops.push(&self.inversion_finish);
+        self.write_scalar(S_MAX, max);
+        self.dispatches(&ops)
     }
 
     /// (set, element) of a global element index lane.
@@ -678,6 +698,23 @@ impl NewtonChecks {
         frames: &BalanceFrames,
         h: f64,
     ) -> Result<(), GpuError> {
+        let d = self.balance_dispatches(frames, h)?;
+        let mut cp = self.ctx.compute_pass(enc, "newton force balance", None);
+        for d in d {
+            cp.set_pipeline(&d.pipeline);
+            cp.set_bind_group(0, &d.group);
+            cp.dispatch(d.launch);
+        }
+        Ok(())
+    }
+
+    /// The dispatches of [`NewtonChecks::record_force_balance`] (its h² written for the
+    /// next submit), for a caller that records them itself.
+    pub fn balance_dispatches(
+        &self,
+        frames: &BalanceFrames,
+        h: f64,
+    ) -> Result<Vec<Dispatch>, GpuError> {
         if frames.owner != self.id {
             return Err(GpuError::Mismatch(
                 "constraint frames built for other Newton checks".into(),
@@ -687,8 +724,7 @@ impl NewtonChecks {
         let mut ops = vec![&self.sizes_init];
         ops.extend(self.sizes_add.iter());
         ops.extend([&frames.reduce, &self.balance_finish]);
-        self.record(enc, "newton force balance", &ops);
-        Ok(())
+        Ok(self.dispatches(&ops))
     }
 
     /// The force balance from the four f64 of its result slot.

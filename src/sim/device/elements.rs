@@ -36,6 +36,7 @@
 //!
 //! f64 needs SHADER_F64; f32 runs the same source with `real = f32`.
 
+use crate::gpu::gate::Dispatch;
 use crate::gpu::kernels::{self, Access, Layout};
 use crate::gpu::{GpuContext, GpuError, Phase, Precision};
 use crate::sim::energy::barrier::{Barrier, HalfSpace};
@@ -755,7 +756,29 @@ impl GpuElements {
     }
 
     fn dispatch(&self, project: bool, energy_only: bool) -> Result<(), GpuError> {
-        let dev = &self.ctx.device;
+        let work = self.dispatches(project, energy_only);
+        let mut enc = self
+            .ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("elements evaluate"),
+            });
+        {
+            let mut pass = self.ctx.compute_pass(&mut enc, "elements pass", None);
+            for d in work {
+                pass.set_pipeline(&d.pipeline);
+                pass.set_bind_group(0, &d.group);
+                pass.dispatch(d.launch);
+            }
+        }
+        self.ctx.submit(enc);
+        self.ctx.check("evaluating the element terms")
+    }
+
+    /// The dispatches of an evaluation (its parameters written for the next submit), for
+    /// a caller that records them itself; [`GpuElements::evaluate_energy`]'s with
+    /// `energy_only`.
+    pub fn dispatches(&self, project: bool, energy_only: bool) -> Vec<Dispatch> {
         let launch = self.ctx.launch();
         for t in &self.terms {
             let p = ElementParams {
@@ -768,20 +791,16 @@ impl GpuElements {
             };
             self.ctx.write_buffer(&t.params, 0, bytemuck::bytes_of(&p));
         }
-        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("elements evaluate"),
-        });
-        {
-            let mut pass = self.ctx.compute_pass(&mut enc, "elements pass", None);
-            for t in self.terms.iter().filter(|t| t.count > 0) {
-                pass.set_pipeline(&self.kernels.pipelines[t.kind.index()]);
-                pass.set_bind_group(0, &t.group);
+        self.terms
+            .iter()
+            .filter(|t| t.count > 0)
+            .map(|t| Dispatch {
+                pipeline: self.kernels.pipelines[t.kind.index()].clone(),
+                group: t.group.clone(),
                 // Grid-stride kernels: one invocation per element or node up to the limits.
-                pass.dispatch(launch.grid(t.count as u64, WORKGROUP));
-            }
-        }
-        self.ctx.submit(enc);
-        self.ctx.check("evaluating the element terms")
+                launch: launch.grid(t.count as u64, WORKGROUP),
+            })
+            .collect()
     }
 
     /// Reads every term's outputs back (for tests and inspection; a device Newton loop

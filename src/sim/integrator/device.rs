@@ -24,17 +24,19 @@ use super::error::{InitError, StepError};
 use super::forcing::Forcing;
 use super::linear::LinearStats;
 use super::report::GpuRunReport;
-use super::state::{Contact, State, CCD_FRACTION};
+use super::state::{Contact, State, CCD_FRACTION, INVERSION_FRACTION};
 use super::targets::MovingTargets;
 use crate::core::constraints::Frames;
 use crate::core::elimination::{ConstrainedDiagonal, Eliminated};
-use crate::gpu::pcg::{DeviceCg, DeviceCgParams, DeviceFrames};
+use crate::gpu::pcg::{DeviceCg, DeviceCgParams, DeviceFrames, Tail};
 use crate::gpu::{GpuContext, GpuError, GpuOptions, Phase, PhaseGuard, Precision};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::checks::{BalanceFrames, NewtonChecks};
 use crate::sim::device::elements::{GpuElements, TermKind};
+use crate::sim::device::line_search::{LineScalars, LineSearchTail, TailInputs};
 use crate::sim::device::newton_ops::{static_projections, MovingTerm, NewtonOps};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
+use crate::sim::energy::Law;
 use crate::sim::energy::{InversionLimit, Inverted};
 use crate::sim::scene::Scene;
 use crate::solve::multilevel::reuse::KeptLevels;
@@ -66,6 +68,14 @@ pub(super) struct DeviceLoop {
     checks: NewtonChecks,
     /// The constraint frames of the force balance per constraint set (as `frames`).
     balance_frames: HashMap<Vec<bool>, BalanceFrames>,
+    /// The line search's first trial, recorded with every chunk of the CG, and what it
+    /// found for the last direction (until the iterate changes).
+    tail: LineSearchTail,
+    first_trial: Option<LineScalars>,
+    /// The evaluation positions may hold a trial point rather than x ...
+    at_trial: bool,
+    /// ... and hold the first trial's, which the loop asked for.
+    trial_is_first: bool,
     /// The multilevel preconditioner's clusters (H's pattern only: once per run), its
     /// levels when kept between systems, and the host seconds of its setups so far.
     levels: KeptLevels,
@@ -206,6 +216,7 @@ impl DeviceLoop {
         let ops = NewtonOps::new(&elements, &asm, cg.dx_buffer()).map_err(device_error)?;
         let checks =
             NewtonChecks::new(&elements, &asm, &ops, &scene.model).map_err(device_error)?;
+        let tail = LineSearchTail::new(&ctx, cg.state_buffer()).map_err(device_error)?;
         let d = scene.dim;
         let setup = scene.solver.multilevel_setup;
         let levels = if scene.solver.preconditioner == Preconditioner::Multilevel {
@@ -235,6 +246,10 @@ impl DeviceLoop {
             scratch_v: Vec::new(),
             checks,
             balance_frames: HashMap::new(),
+            tail,
+            first_trial: None,
+            at_trial: false,
+            trial_is_first: false,
             levels,
             multilevel_seconds: 0.0,
             dim: d,
@@ -293,6 +308,77 @@ impl DeviceLoop {
         Ok(())
     }
 
+    /// The evaluation positions back at x where a trial left them elsewhere; whether they
+    /// were.
+    fn at_x(&mut self) -> Result<bool, GpuError> {
+        let moved = self.at_trial;
+        if moved {
+            self.ops.reset_trial()?;
+        }
+        self.at_trial = false;
+        self.trial_is_first = false;
+        Ok(moved)
+    }
+
+    /// The CG on the system prepared for the constraint set `snapped`, to the tolerance of
+    /// `rule`, with the line search's first trial recorded after every chunk; what that
+    /// found is kept where the solve ended in a chunk whose verification ran it.
+    fn solve_with_first_trial(
+        &mut self,
+        state: &State,
+        snapped: &[bool],
+        params: DeviceCgParams,
+        rule: ToleranceRule,
+    ) -> Result<crate::gpu::pcg::DeviceCgInfo, GpuError> {
+        if !self.balance_frames.contains_key(snapped) {
+            let f = self.checks.frames(&state.frames[snapped])?;
+            self.balance_frames.insert(snapped.to_vec(), f);
+        }
+        let sc = state.scene;
+        let inp = TailInputs {
+            ops: &self.ops,
+            checks: &self.checks,
+            elements: &self.elements,
+            ccd: state
+                .contact
+                .as_ref()
+                .map(|c| (&c.planes[..], CCD_FRACTION)),
+            inversion: sc
+                .model
+                .has_law(Law::NeoHookean)
+                .then_some((1.0 / INVERSION_FRACTION, INVERSION_FRACTION)),
+            balance: Some((&self.balance_frames[snapped], sc.time_step)),
+        };
+        let tail = &self.tail;
+        let record = |enc: &mut wgpu::CommandEncoder| tail.record(enc, &inp);
+        let result = self.ops.result_buffer();
+        let (at_x, at_x_bytes) = self.ops.energy_at_x_buffer();
+        let read = [
+            (result, 0, 32 * self.ops.result_slots() as u64),
+            (at_x, 0, at_x_bytes),
+        ];
+        let frames = &self.frames[snapped];
+        // The trial may run in any chunk whose verification met the tolerance.
+        self.at_trial = true;
+        let (info, bytes) = self.cg.iterate_with(
+            frames,
+            &params,
+            rule,
+            Some(&Tail {
+                record: &record,
+                read: &read,
+            }),
+        )?;
+        if let Some([result, at_x]) = bytes.as_deref() {
+            let (result, at_x) = (
+                NewtonOps::result_values(result),
+                NewtonOps::result_values(at_x),
+            );
+            self.first_trial = Some(LineSearchTail::decode(&inp, &result, &at_x)?);
+        }
+        Ok(info)
+    }
+
     /// What a device CG solve cost, as the host loop reports its solves.
     fn stats(info: &crate::gpu::pcg::DeviceCgInfo, t: Instant) -> LinearStats {
         LinearStats {
@@ -345,6 +431,9 @@ impl Backend for DeviceLoop {
     }
 
     fn begin_step(&mut self, state: &State) -> Result<(), StepError> {
+        self.first_trial = None;
+        self.at_trial = false;
+        self.trial_is_first = false;
         let _phase = self.ctx.phase(Phase::HostDecisions);
         self.ops.begin_step(state.scene.time_step)?;
         Ok(())
@@ -408,6 +497,8 @@ impl Backend for DeviceLoop {
     ) -> Result<LinearStats, StepError> {
         let t = Instant::now();
         let snapped = &moving.snapped;
+        self.at_x()?;
+        self.first_trial = None;
         {
             let _phase = self.ctx.phase(Phase::ElementTerms);
             self.elements.evaluate(true)?;
@@ -444,10 +535,9 @@ impl Backend for DeviceLoop {
                 self.set_multilevel(&state.frames[snapped])
                     .map_err(cg_error)?;
             }
-            let frames = &self.frames[snapped];
             let _solving = self.ctx.phase(Phase::Cg);
-            match self.cg.iterate_with(frames, &self.params, rule, None) {
-                Ok((info, _)) => break info,
+            match self.solve_with_first_trial(state, snapped, self.params, rule) {
+                Ok(info) => break info,
                 // Kept multilevel levels get one more try on levels built for this system.
                 Err(_) if multilevel && self.levels.failed() => {
                     if let Some(eta) = self.cg.last_tolerance() {
@@ -489,9 +579,15 @@ impl Backend for DeviceLoop {
                 self.levels.again();
             }
         }
-        let frames = &self.frames[&moving.snapped];
+        // The first trial sums E at x from the element energies: bring them back to x.
+        if self.at_x()? {
+            self.elements.evaluate_energy()?;
+        }
+        self.first_trial = None;
         let params = DeviceCgParams { tol, ..self.params };
-        let info = self.cg.iterate(frames, &params).map_err(cg_error)?;
+        let info = self
+            .solve_with_first_trial(state, &moving.snapped, params, ToleranceRule::Fixed(tol))
+            .map_err(cg_error)?;
         if multilevel {
             self.levels.solved(info.iterations, info.tolerance);
         }
@@ -509,6 +605,9 @@ impl Backend for DeviceLoop {
     }
 
     fn max_abs_dx(&mut self) -> Result<f64, StepError> {
+        if let Some(f) = &self.first_trial {
+            return Ok(f.dmax);
+        }
         let _phase = self.ctx.phase(Phase::LineSearch);
         Ok(self.ops.max_abs_dx()?)
     }
@@ -521,6 +620,9 @@ impl Backend for DeviceLoop {
         state: &State,
         snapped: &[bool],
     ) -> Result<ForceBalance, StepError> {
+        if let Some(b) = self.first_trial.as_ref().and_then(|f| f.balance) {
+            return Ok(b);
+        }
         let _phase = self.ctx.phase(Phase::HostDecisions);
         if !self.balance_frames.contains_key(snapped) {
             let f = self.checks.frames(&state.frames[snapped])?;
@@ -537,12 +639,33 @@ impl Backend for DeviceLoop {
         &mut self,
         state: &State,
         _moving: &MovingTargets,
-        _trial: bool,
+        trial: bool,
     ) -> Result<f64, StepError> {
         let _phase = self.ctx.phase(Phase::LineSearch);
         let h2 = state.scene.time_step * state.scene.time_step;
-        self.elements.evaluate_energy()?;
-        let terms = self.ops.energy_terms()?;
+        let known = match (&self.first_trial, trial) {
+            (Some(f), false) => Some((f.terms_at_x.clone(), f.moving_at_x)),
+            (Some(f), true) if self.trial_is_first => {
+                Some((f.terms_at_trial.clone(), f.moving_at_trial))
+            }
+            _ => None,
+        };
+        let (terms, moving_energy) = match known {
+            Some(k) => k,
+            None => {
+                if !trial {
+                    self.at_x()?;
+                }
+                self.elements.evaluate_energy()?;
+                let terms = self.ops.energy_terms()?;
+                let m = if self.moving.as_ref().is_some_and(|m| !m.is_empty()) {
+                    self.ops.moving_energy()?
+                } else {
+                    0.0
+                };
+                (terms, m)
+            }
+        };
         let mut inertia = 0.0;
         let mut potential = 0.0;
         let mut barrier = 0.0;
@@ -555,7 +678,7 @@ impl Backend for DeviceLoop {
         }
         let mut e = inertia + h2 * potential;
         if self.moving.as_ref().is_some_and(|m| !m.is_empty()) {
-            e += self.ops.moving_energy()?;
+            e += moving_energy;
         }
         if state.contact.is_some() {
             state.count_barrier(1);
@@ -565,11 +688,17 @@ impl Backend for DeviceLoop {
     }
 
     fn slope(&mut self) -> Result<f64, StepError> {
+        if let Some(f) = &self.first_trial {
+            return Ok(f.slope);
+        }
         let _phase = self.ctx.phase(Phase::LineSearch);
         Ok(self.ops.dot_gradient_dx()?)
     }
 
     fn ccd(&mut self, state: &State) -> Result<Ccd, StepError> {
+        if let Some(c) = self.first_trial.as_ref().and_then(|f| f.ccd) {
+            return Ok(c);
+        }
         let _phase = self.ctx.phase(Phase::LineSearch);
         let c = state
             .contact
@@ -586,31 +715,50 @@ impl Backend for DeviceLoop {
         _state: &State,
         max: f64,
     ) -> Result<Result<Option<InversionLimit>, Inverted>, StepError> {
+        if let Some(b) = self.first_trial.as_ref().and_then(|f| f.inversion) {
+            return Ok(b);
+        }
         let _phase = self.ctx.phase(Phase::InversionBound);
         Ok(self.checks.inversion_bound(max)?)
     }
 
     fn set_trial(&mut self, alpha: f64) -> Result<(), StepError> {
-        let _phase = self.ctx.phase(Phase::LineSearch);
-        self.ops.set_trial(alpha)?;
+        // The first trial's point is where the device left the positions.
+        self.trial_is_first = self
+            .first_trial
+            .as_ref()
+            .is_some_and(|f| f.alpha.to_bits() == alpha.to_bits());
+        if !self.trial_is_first {
+            let _phase = self.ctx.phase(Phase::LineSearch);
+            self.ops.set_trial(alpha)?;
+        }
+        self.at_trial = true;
         Ok(())
     }
 
     fn accept(&mut self) -> Result<(), StepError> {
         let _phase = self.ctx.phase(Phase::LineSearch);
         self.ops.accept()?;
+        self.first_trial = None;
+        self.at_trial = false;
+        self.trial_is_first = false;
         Ok(())
     }
 
     fn end_step(&mut self, state: &State) -> Result<EndState, StepError> {
+        self.first_trial = None;
+        self.at_trial = false;
+        self.trial_is_first = false;
         let _phase = self.ctx.phase(Phase::Output);
         self.ops.end_step(state.scene.time_step)?;
-        let (x, v) = self.ops.read_state()?;
-        let g = self.ops.read_gradient()?;
+        let [x, v, g] = self.ops.read_state_and_gradient()?;
         Ok(EndState { x, v, g })
     }
 
     fn restore(&mut self, state: &State) -> Result<(), StepError> {
+        self.first_trial = None;
+        self.at_trial = false;
+        self.trial_is_first = false;
         let _phase = self.ctx.phase(Phase::Uploads);
         self.ops.set_state(&state.x, &state.v)?;
         Ok(())

@@ -72,6 +72,10 @@ fn status_bytes(acc: Real) -> u64 {
 /// Iterations of the first chunk, the shortest and the longest chunk
 /// ([`schedule::next_chunk`]).
 pub(crate) const FIRST_CHUNK: usize = 8;
+/// The first chunk of a PCG's first solve, and how many solves back the first chunk of
+/// the next one looks ([`DeviceCg::first_chunk`]).
+const FIRST_CHUNK_SOLVE: usize = 32;
+const RECENT_SOLVES: usize = 4;
 const MIN_CHUNK: usize = 2;
 const MAX_CHUNK: usize = 256;
 
@@ -374,6 +378,8 @@ pub struct DeviceCg {
     last_iterations: usize,
     /// The tolerance the last solve ran to, once its first status was read.
     last_eta: Option<f64>,
+    /// The iterations of the last few solves (the next one's first chunk).
+    recent: std::collections::VecDeque<usize>,
     /// Iterations recorded into command buffers and status reads of the current solve.
     recorded: Cell<usize>,
     reads: Cell<usize>,
@@ -538,6 +544,7 @@ impl DeviceCg {
             run_starts: Vec::new(),
             last_iterations: 0,
             last_eta: None,
+            recent: std::collections::VecDeque::new(),
             recorded: Cell::new(0),
             reads: Cell::new(0),
             ml: None,

@@ -20,7 +20,7 @@ use crate::solve::tolerance::ToleranceRule;
 /// Its kernels must do nothing unless the chunk's verification met the tolerance
 /// (STATE_TRUE_OK of [`DeviceCg::state_buffer`]), since most chunks end unconverged.
 pub struct Tail<'a> {
-    pub record: &'a dyn Fn(&mut wgpu::CommandEncoder),
+    pub record: &'a dyn Fn(&mut wgpu::CommandEncoder) -> Result<(), GpuError>,
     pub read: &'a [(&'a wgpu::Buffer, u64, u64)],
 }
 
@@ -200,13 +200,15 @@ impl DeviceCg {
             .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
     }
 
-    /// The first chunk of a solve: as long as the last solve took, a quarter more (Newton
-    /// systems change little from one to the next; an iteration recorded past the stop
-    /// costs a no-op dispatch, a chunk too short a round trip), within the chunk bounds.
+    /// The first chunk of a solve: as long as the longest of the last few solves took, a
+    /// quarter more ([`FIRST_CHUNK_SOLVE`] for a PCG's first solve). Newton's systems
+    /// change little from one to the next, but the forcing sequence's tolerances do, and a
+    /// loose solve says little about the tight one after it; an iteration recorded past the
+    /// stop costs a no-op dispatch, a chunk too short a round trip.
     pub(super) fn first_chunk(&self, max: usize) -> usize {
-        let k = match self.last_iterations {
-            0 => FIRST_CHUNK,
-            n => n + n / 4 + 2,
+        let k = match self.recent.iter().max() {
+            None => FIRST_CHUNK_SOLVE,
+            Some(&n) => n + n / 4 + 2,
         };
         k.clamp(FIRST_CHUNK, MAX_CHUNK).min(max)
     }
@@ -354,6 +356,10 @@ impl DeviceCg {
             track = RunTrack::new(st.iterations, st.rr);
         }
         self.last_iterations = st.iterations;
+        if self.recent.len() == RECENT_SOLVES {
+            self.recent.pop_front();
+        }
+        self.recent.push_back(st.iterations);
         let answered = st.true_ok;
         if !answered && !self.given_rhs {
             // The host's quotient met the tolerance where the device's did not (rounding):
@@ -416,7 +422,7 @@ impl DeviceCg {
         self.pass(&mut enc, "pcg chunk", Phase::Cg, &kernels);
         let reads: &[(&wgpu::Buffer, u64, u64)] = match tail {
             Some(t) => {
-                (t.record)(&mut enc);
+                (t.record)(&mut enc)?;
                 t.read
             }
             None => &[],

@@ -21,6 +21,8 @@ use crate::sim::device::elements::{from_bytes, to_bytes, GpuElements, TermKind};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
 use crate::sim::scene::{joint_targets, BcShape, Scene};
 
+mod tail;
+
 use Access::{Read as R, ReadWrite as W, Uniform as U};
 
 /// Bind group 0 of shaders/newton_ops.wgsl, shared by all its entry points.
@@ -72,9 +74,9 @@ const MODE_MOVING_ENERGY: u32 = 5;
 
 /// Slots of the scalar buffer (`S_*` in the shader); half-space j at S_PLANES + 4j.
 const S_H: usize = 0;
-const S_ALPHA: usize = 1;
-const S_FRACTION: usize = 2;
-const S_INF: usize = 3;
+const S_FRACTION: usize = 1;
+const S_INF: usize = 2;
+const S_INV_FRACTION: usize = 3;
 const S_PLANES: usize = 4;
 
 /// Reals per static projection and per moving term, u32 per moving term (shader).
@@ -92,7 +94,7 @@ const WG: u32 = 64;
 const MAX_REDUCE_GROUPS: usize = 64;
 
 /// Entry points, in the order of [`Entry`].
-const ENTRIES: [&str; 8] = [
+const ENTRIES: [&str; 9] = [
     "begin_step",
     "project_static",
     "trial",
@@ -101,6 +103,7 @@ const ENTRIES: [&str; 8] = [
     "add_moving",
     "reduce",
     "finish",
+    "step_bound",
 ];
 
 #[derive(Clone, Copy)]
@@ -113,6 +116,7 @@ enum Entry {
     AddMoving = 5,
     Reduce = 6,
     Finish = 7,
+    StepBound = 8,
 }
 
 /// One unsnapped moving node's penalty: ½ k_M m ‖r‖² − √m λ·r with r the node's offset
@@ -224,6 +228,8 @@ pub struct NewtonOps {
     binder: Binder,
     begin: Op,
     trial: Op,
+    /// The line search's first α from the bounds (`tail`).
+    step_bound: Op,
     end: Op,
     /// Per term: its energy reduction; then the finish of them all.
     energy: Vec<Op>,
@@ -238,6 +244,9 @@ pub struct NewtonOps {
     /// Moving terms: count, tables, the H/g update per values chunk, energy ops.
     moving: Option<(usize, Table, Table, Vec<Op>, Op, Op)>,
     nodes: Option<(usize, Table, Table, Op)>,
+    /// E's per-term sums and the moving energy at x, kept while a trial's reuse the
+    /// result slots (`tail`).
+    energy_at_x: wgpu::Buffer,
 }
 
 /// Builds ops: the layout and the buffers every bind group shares (own state, the
@@ -414,7 +423,9 @@ impl NewtonOps {
         let scal = ctx.storage_with("newton scalars", &to_bytes(true, &scal_init))?;
         let slots = slot_count(t) as u64;
         let partials = zeroed("newton partial reductions", slots * groups as u64 * 32)?;
-        let result = zeroed("newton reductions", (slots + CHECK_SLOTS as u64) * 32)?;
+        let all_slots = slots + (CHECK_SLOTS + tail::tail_slots(t)) as u64;
+        let result = zeroed("newton reductions", all_slots * 32)?;
+        let energy_at_x = zeroed("newton energy at x", (t as u64 + 1) * 32)?;
         let dummies = Dummies {
             src: zeroed("newton unused energies", 16)?,
             flags: zeroed("newton unused flags", 16)?,
@@ -452,7 +463,14 @@ impl NewtonOps {
         let b = &binder;
         let none = Varying::default();
         let begin = b.op("begin step", Entry::BeginStep, p(ndof, 0, 0, 0), none);
-        let trial = b.op("trial", Entry::Trial, p(ndof, 0, 0, 0), none);
+        let alpha_slot = slot_count(t) + CHECK_SLOTS;
+        let trial = b.op("trial", Entry::Trial, p(ndof, 0, alpha_slot, 0), none);
+        let step_bound = b.op(
+            "step bound",
+            Entry::StepBound,
+            p(slot_count(t), (t + 2) as u32, alpha_slot, 0),
+            none,
+        );
         let end = b.op("end step", Entry::EndStep, p(ndof, 0, 0, 0), none);
         let mut energy = Vec::with_capacity(t);
         let mut term_counts = Vec::with_capacity(t);
@@ -507,6 +525,7 @@ impl NewtonOps {
             binder,
             begin,
             trial,
+            step_bound,
             end,
             energy,
             energy_finish,
@@ -517,6 +536,7 @@ impl NewtonOps {
             proj: None,
             moving: None,
             nodes: None,
+            energy_at_x,
         })
     }
 
@@ -606,14 +626,30 @@ impl NewtonOps {
 
     /// The state x, v (full download, for output).
     pub fn read_state(&self) -> Result<(Vec<f64>, Vec<f64>), GpuError> {
+        let [x, v] = self.read_whole([&self.binder.x, &self.binder.v], "reading the state")?;
+        Ok((x, v))
+    }
+
+    /// x, v and the gradient in one read-back (the end of a step's output).
+    pub fn read_state_and_gradient(&self) -> Result<[Vec<f64>; 3], GpuError> {
+        let b = &self.binder;
+        self.read_whole([&b.x, &b.v, &b.grad], "reading the state and the gradient")
+    }
+
+    /// Whole n·d f64 vectors, read back with one wait.
+    fn read_whole<const K: usize>(
+        &self,
+        bufs: [&wgpu::Buffer; K],
+        what: &str,
+    ) -> Result<[Vec<f64>; K], GpuError> {
         let nb = self.nd_bytes();
-        let x = self
-            .ctx
-            .download(&self.binder.x, 0, nb, "reading the positions")?;
-        let v = self
-            .ctx
-            .download(&self.binder.v, 0, nb, "reading the velocities")?;
-        Ok((from_bytes(true, &x), from_bytes(true, &v)))
+        let ranges: Vec<(&wgpu::Buffer, u64, u64)> = bufs.iter().map(|&b| (b, 0, nb)).collect();
+        let bytes = self.ctx.download_many(&ranges, what)?;
+        let mut out: [Vec<f64>; K] = std::array::from_fn(|_| Vec::new());
+        for (o, b) in out.iter_mut().zip(&bytes) {
+            *o = from_bytes(true, b);
+        }
+        Ok(out)
     }
 
     /// The static projections applied by [`NewtonOps::begin_step`] (uploaded once; each
@@ -741,9 +777,17 @@ impl NewtonOps {
 
     /// Evaluation positions = x + α Δx.
     pub fn set_trial(&self, alpha: f64) -> Result<(), GpuError> {
-        self.write_scalars(S_ALPHA, &[alpha]);
+        self.write_alpha(alpha);
         let nd = self.n_nodes * self.dim;
         self.run("newton trial", &[(&self.trial, Self::grid(nd))], |_| {})
+    }
+
+    /// The evaluation positions = x (undoing a trial).
+    pub fn reset_trial(&self) -> Result<(), GpuError> {
+        let nb = self.nd_bytes();
+        self.run("newton reset trial", &[], |enc| {
+            enc.copy_buffer_to_buffer(&self.binder.x, 0, &self.binder.pos, 0, nb)
+        })
     }
 
     /// x = the evaluation positions.
@@ -1117,7 +1161,7 @@ mod tests {
             ("MODE_MIN_DISTANCE", MODE_MIN_DISTANCE),
             ("MODE_MOVING_ENERGY", MODE_MOVING_ENERGY),
             ("S_H", S_H as u32),
-            ("S_ALPHA", S_ALPHA as u32),
+            ("S_INV_FRACTION", S_INV_FRACTION as u32),
             ("S_FRACTION", S_FRACTION as u32),
             ("S_INF", S_INF as u32),
             ("S_PLANES", S_PLANES as u32),
