@@ -15,8 +15,10 @@ use std::sync::Arc;
 use Access::{Read as R, ReadWrite as W, Uniform as U};
 
 use super::aggregates::{self, AggregateIndex};
-use super::multilevel::{DeviceMultilevel, Finest, Step};
-use crate::solve::multilevel::Multilevel;
+use super::mlsetup::{FinestMatrix, FramesOnDevice};
+use super::multilevel::{DeviceMultilevel, Finest, LevelValues, Step};
+use crate::solve::multilevel::reuse::Levels;
+use crate::solve::multilevel::{Hierarchy, Multilevel};
 
 /// Bind group 0 of shaders/pcg.wgsl, shared by all its entry points.
 pub const PCG: Layout = Layout {
@@ -320,12 +322,24 @@ pub struct DeviceFrames {
     coarse: CoarseSpace,
     /// With `Aggregates`: the aggregate index (`None` when every node is fixed).
     agg: Option<AggregateIndex>,
-    /// Kept alive with the bind groups.
+    /// Bound by its bind groups and by the multilevel setup's
+    /// ([`DeviceFrames::on_device`]).
     _frame: wgpu::Buffer,
     _rotations: wgpu::Buffer,
     _aggregates: wgpu::Buffer,
     /// The aggregate coarse space's f64 data (shaders/pcg.wgsl, `coarse`).
     coarse_buf: wgpu::Buffer,
+}
+
+impl DeviceFrames {
+    /// The frame words and rotations as the multilevel setup binds them.
+    fn on_device(&self) -> FramesOnDevice<'_> {
+        FramesOnDevice {
+            id: self.id,
+            frame: &self._frame,
+            rotations: &self._rotations,
+        }
+    }
 }
 
 /// The pipelines of shaders/pcg.wgsl; those the coarse correction changes once per
@@ -447,6 +461,8 @@ struct Buffers {
     params: Vec<wgpu::Buffer>,
     pattern: wgpu::Buffer,
     hvals: Vec<wgpu::Buffer>,
+    /// Each values chunk's rows and blocks (the multilevel setup reads H by them).
+    hruns: Vec<crate::gpu::blocks::RowRun>,
     grad: wgpu::Buffer,
     y: wgpu::Buffer,
     r: wgpu::Buffer,
@@ -626,6 +642,10 @@ impl DeviceCg {
             params,
             pattern: pattern_buf,
             hvals: chunks.iter().map(|c| c.buffer.clone()).collect(),
+            hruns: chunks
+                .iter()
+                .map(|c| (c.rows.clone(), c.blocks.clone()))
+                .collect(),
             grad: match grad {
                 Some(g) => g.clone(),
                 None => zeroed("pcg gradient (b̂ is given)", 16)?,
@@ -1112,6 +1132,23 @@ impl DeviceCg {
                 frames.n_nodes, self.n_nodes
             )));
         }
+        self.ensure_multilevel()?;
+        let Some(dm) = self.ml.as_mut() else {
+            return Ok(());
+        };
+        let finest = Finest {
+            r: &self.buf.r,
+            z: &self.buf.z,
+            q: &self.buf.q,
+            state: &self.buf.state,
+        };
+        dm.set(ml, frames, finest, binding_limit)?;
+        self.ml_ready = true;
+        Ok(())
+    }
+
+    /// The device V-cycle, made the first time (f64 only).
+    fn ensure_multilevel(&mut self) -> Result<(), GpuError> {
         if self.ty != Scalars::F64 {
             return Err(GpuError::Unsupported(
                 "the multilevel preconditioner runs in f64 only".into(),
@@ -1120,17 +1157,58 @@ impl DeviceCg {
         if self.ml.is_none() {
             self.ml = Some(DeviceMultilevel::new(&self.ctx, self.dim)?);
         }
-        let finest = Finest {
-            r: &self.buf.r,
-            z: &self.buf.z,
-            q: &self.buf.q,
-            state: &self.buf.state,
-        };
-        if let Some(dm) = self.ml.as_mut() {
-            dm.set(ml, frames, finest, binding_limit)?;
+        Ok(())
+    }
+
+    /// The multilevel preconditioner of the system just prepared, built on the device from
+    /// the H this PCG reads and the constraint set of `frames`, or the kept levels
+    /// refreshed, as `how` says ([`crate::solve::multilevel::reuse::KeptLevels::plan`]):
+    /// src/gpu/pcg/mlsetup.rs. Nothing of the system's size crosses the bus. Call after
+    /// every `prepare`, as [`DeviceCg::set_multilevel`]; `binding_limit` as there.
+    pub fn set_multilevel_on_device(
+        &mut self,
+        hierarchy: &Arc<Hierarchy>,
+        frames: &DeviceFrames,
+        how: Levels,
+        binding_limit: Option<u64>,
+    ) -> Result<(), GpuError> {
+        self.own(frames)?;
+        let (n, nnz) = (self.n_nodes, self.host_pattern[self.n_nodes] as usize);
+        if hierarchy.cluster_counts().is_empty() || hierarchy.patterns()[0].n != n {
+            return Err(GpuError::Mismatch(format!(
+                "the multilevel hierarchy is not of this PCG's {n} nodes"
+            )));
         }
+        self.ensure_multilevel()?;
+        let (Some(dm), b) = (self.ml.as_mut(), &self.buf) else {
+            return Ok(());
+        };
+        let matrix = FinestMatrix {
+            pattern: &b.pattern,
+            col_at: (n + 1) as u32,
+            diag_at: (n + 1 + nnz) as u32,
+            chunks: b.hvals.iter().zip(b.hruns.iter().cloned()).collect(),
+            frames: frames.on_device(),
+        };
+        let finest = Finest {
+            r: &b.r,
+            z: &b.z,
+            q: &b.q,
+            state: &b.state,
+        };
+        dm.compute(hierarchy, how, finest, &matrix, binding_limit)?;
         self.ml_ready = true;
         Ok(())
+    }
+
+    /// The multilevel levels on the device, read back: ω, the coarse matrices, the
+    /// cluster inverses (level 0's with the constrained rows and columns zero), P and Pᵀ
+    /// per level (tests and diagnostics; empty before the levels are set).
+    pub fn read_multilevel(&self) -> Result<Vec<LevelValues>, GpuError> {
+        match &self.ml {
+            Some(dm) => dm.read_levels(),
+            None => Ok(Vec::new()),
+        }
     }
 
     /// Clusters per level of the multilevel preconditioner on the device, finest first

@@ -61,6 +61,7 @@
 pub mod aggregates;
 mod cg;
 mod host;
+mod mlsetup;
 mod multilevel;
 mod policy;
 pub mod refine;
@@ -70,5 +71,6 @@ pub use cg::{
     DeviceCg, DeviceCgInfo, DeviceCgParams, DeviceFrames, DispatchRecord, IterationProfile,
     Scalars, SegmentEnd, SegmentInfo, SegmentStart, Watch, LANCZOS_HIST, PCG,
 };
-pub use multilevel::multilevel_bytes;
+pub use mlsetup::multilevel_setup_bytes;
+pub use multilevel::{multilevel_bytes, LevelValues};
 pub use solver::PcgSolver;

@@ -10,8 +10,11 @@
 //! the loop's own code, on those few entries). Once per step the positions, velocities
 //! and the gradient come back for the output (steps.csv, frames, reactions).
 //!
-//! With the multilevel preconditioner H also comes back once per Newton iteration: the
-//! host builds the levels with the CPU CG's code and uploads them ([`DeviceCg::set_multilevel`]).
+//! The multilevel preconditioner's levels are built and refreshed on the device from the
+//! H it assembled ([`DeviceCg::set_multilevel_on_device`], src/gpu/pcg/mlsetup.rs): the host
+//! partitions the mesh once per run and asks [`KeptLevels::plan`], the CPU loop's decision,
+//! whether to build, keep or remask the levels of each system; no byte moves for them per
+//! Newton iteration.
 //!
 //! The decisions are the CPU loop's; the arithmetic differs in summation order and in the
 //! CG (the scene's preconditioner and coarse space on the device, against the scene's CPU
@@ -25,10 +28,8 @@ use super::linear::LinearStats;
 use super::report::GpuRunReport;
 use super::state::{Contact, State, CCD_FRACTION};
 use super::targets::MovingTargets;
-use crate::core::constraints::Frames;
-use crate::core::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::gpu::pcg::{DeviceCg, DeviceCgParams, DeviceFrames};
-use crate::gpu::{GpuContext, GpuError, GpuOptions, Precision};
+use crate::gpu::{GpuContext, GpuError, GpuOptions, Precision, TrafficCount};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::elements::{GpuElements, TermKind};
 use crate::sim::device::newton_ops::{static_projections, MovingTerm, NewtonOps};
@@ -61,10 +62,13 @@ pub(super) struct DeviceLoop {
     scratch_v: Vec<f64>,
     /// The host's element buffer of the force balance, kept between steps.
     assembly: AssemblyWork,
-    /// The multilevel preconditioner's clusters (H's pattern only: once per run), its
-    /// levels when kept between systems, and the host seconds of its setups so far.
+    /// The multilevel preconditioner's clusters (H's pattern only: once per run), the
+    /// decisions on its levels (built, kept or remasked per system, as the CPU loop's),
+    /// and the host seconds and bytes of its setups so far.
+    hierarchy: Option<std::sync::Arc<Hierarchy>>,
     levels: KeptLevels,
     multilevel_seconds: f64,
+    multilevel_traffic: TrafficCount,
     dim: usize,
 }
 
@@ -138,8 +142,9 @@ pub fn check_capacity(
 }
 
 /// The multilevel preconditioner's clusters of the assembled pattern (built once per run),
-/// refused in one line before any Newton iteration when a level's buffers exceed the
-/// adapter's limits or the levels do not fit beside the loop's buffers.
+/// refused in one line before any Newton iteration when a buffer of the levels or of their
+/// setup on the device exceeds the adapter's limits or they do not fit beside the loop's
+/// buffers.
 fn multilevel_hierarchy(
     ctx: &GpuContext,
     scene: &Scene,
@@ -155,14 +160,20 @@ fn multilevel_hierarchy(
         values: Vec::new(),
     };
     let hierarchy = Hierarchy::new(&pattern);
+    let chunks = asm.values_chunks().len();
     let bytes = crate::gpu::pcg::multilevel_bytes(ctx, &hierarchy.level_sizes(d), d, None)
+        .and_then(|levels| {
+            let setup = crate::gpu::pcg::multilevel_setup_bytes(ctx, &hierarchy, d, chunks, None)?;
+            Ok(levels + setup)
+        })
         .map_err(device_error)?;
     let need = device_bytes_needed(scene) + bytes;
     if let Some(have) = ctx.device_memory() {
         if need > have {
             return Err(cannot_hold(format!(
                 "the GPU Newton loop needs about {need} bytes of device memory for {} nodes \
-                 with the multilevel preconditioner ({bytes} for its levels), adapter '{}' \
+                 with the multilevel preconditioner ({bytes} for its levels and their setup), \
+                 adapter '{}' \
                  has {have}",
                 scene.model.n_nodes,
                 ctx.adapter_name()
@@ -200,10 +211,14 @@ impl DeviceLoop {
         let ops = NewtonOps::new(&elements, &asm, cg.dx_buffer()).map_err(device_error)?;
         let d = scene.dim;
         let setup = scene.solver.multilevel_setup;
-        let levels = if scene.solver.preconditioner == Preconditioner::Multilevel {
-            KeptLevels::with_hierarchy(setup, multilevel_hierarchy(&ctx, scene, &asm)?)
+        let hierarchy = if scene.solver.preconditioner == Preconditioner::Multilevel {
+            Some(multilevel_hierarchy(&ctx, scene, &asm)?)
         } else {
-            KeptLevels::new(setup)
+            None
+        };
+        let levels = match &hierarchy {
+            Some(h) => KeptLevels::with_hierarchy(setup, h.clone()),
+            None => KeptLevels::new(setup),
         };
         let matrix_bytes = (asm.pattern().1.len() * d * d * 8) as u64;
         Ok(DeviceLoop {
@@ -226,8 +241,10 @@ impl DeviceLoop {
             scratch: vec![0.0; scene.model.n_nodes * d],
             scratch_v: Vec::new(),
             assembly: AssemblyWork::default(),
+            hierarchy,
             levels,
             multilevel_seconds: 0.0,
+            multilevel_traffic: TrafficCount::default(),
             dim: d,
         })
     }
@@ -249,6 +266,8 @@ impl DeviceLoop {
             coarse_host_to_device_bytes: c.host_to_device_bytes,
             coarse_device_to_host_bytes: c.device_to_host_bytes,
             multilevel_setup_seconds: self.multilevel_seconds,
+            multilevel_host_to_device_bytes: self.multilevel_traffic.host_to_device_bytes,
+            multilevel_device_to_host_bytes: self.multilevel_traffic.device_to_host_bytes,
             newton_iterations: 0,
         }
     }
@@ -265,16 +284,24 @@ impl DeviceLoop {
 }
 
 impl DeviceLoop {
-    /// The multilevel preconditioner of the system just assembled: H read back, its levels
-    /// built on the host by the CPU CG's code ([`crate::solve::multilevel::Multilevel`])
-    /// and uploaded, or the kept ones refreshed as the CPU loop does ([`KeptLevels`]).
-    fn set_multilevel(&mut self, frames: &Frames) -> Result<(), GpuError> {
+    /// The multilevel preconditioner of the system just assembled and prepared with the
+    /// constraint set `snapped`: [`KeptLevels::plan`] decides as the CPU loop does, the
+    /// device builds, keeps or remasks the levels from its own H. Its host seconds and
+    /// the context's bytes moved meanwhile are counted for the report.
+    fn set_multilevel(&mut self, state: &State, snapped: &[bool]) -> Result<(), GpuError> {
         let t = Instant::now();
-        let h = self.asm.read_matrix()?;
-        let g = vec![0.0; h.n * h.dim];
-        let e = Eliminated::new(&h, &g, frames, ConstrainedDiagonal::Identity);
-        let (ml, _) = self.levels.for_system(&e);
-        self.cg.set_multilevel(&ml, frames, None)?;
+        let before = self.ctx.traffic();
+        let hierarchy = self.hierarchy.clone().ok_or_else(|| {
+            GpuError::Mismatch("the multilevel preconditioner has no hierarchy".into())
+        })?;
+        let how = self.levels.plan(&hierarchy, &state.frames[snapped]);
+        let frames = &self.frames[snapped];
+        self.cg
+            .set_multilevel_on_device(&hierarchy, frames, how, None)?;
+        let after = self.ctx.traffic();
+        let m = &mut self.multilevel_traffic;
+        m.host_to_device_bytes += after.host_to_device_bytes - before.host_to_device_bytes;
+        m.device_to_host_bytes += after.device_to_host_bytes - before.device_to_host_bytes;
         self.multilevel_seconds += t.elapsed().as_secs_f64();
         Ok(())
     }
@@ -415,8 +442,7 @@ impl Backend for DeviceLoop {
             let frames = &self.frames[snapped];
             self.cg.prepare(frames).map_err(cg_error)?;
             if multilevel {
-                self.set_multilevel(&state.frames[snapped])
-                    .map_err(cg_error)?;
+                self.set_multilevel(state, snapped).map_err(cg_error)?;
             }
             let frames = &self.frames[snapped];
             match self.cg.iterate_to(frames, &self.params, &mut once) {
@@ -449,7 +475,7 @@ impl Backend for DeviceLoop {
         let multilevel = self.params.preconditioner == Preconditioner::Multilevel;
         if multilevel {
             if self.levels.rebuild_due() {
-                self.set_multilevel(&state.frames[&moving.snapped])
+                self.set_multilevel(state, &moving.snapped)
                     .map_err(cg_error)?;
             } else {
                 self.levels.again();

@@ -264,6 +264,8 @@ impl Backend for HostBackend {
             coarse_host_to_device_bytes: 0,
             coarse_device_to_host_bytes: 0,
             multilevel_setup_seconds: 0.0,
+            multilevel_host_to_device_bytes: 0,
+            multilevel_device_to_host_bytes: 0,
             newton_iterations: 0,
         })
     }
