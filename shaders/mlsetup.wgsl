@@ -97,9 +97,9 @@ struct SetupParams {
     part_at: u32,
     scal_at: u32,
     segments: u32,
-    // P's blocks.
+    // P's blocks; the level's index (where its smoother's λ̂ is kept).
     p_blocks: u32,
-    _pad0: u32,
+    level: u32,
     _pad1: u32,
     _pad2: u32,
 }
@@ -108,7 +108,7 @@ override D: u32 = 3u;
 
 const NO_BLOCK: u32 = 0xffffffffu;
 // Scalars in work[scal_at..]: λ̂, a stop flag (the CPU's break), x·Ax, y·Ax, max|y|, ‖y‖,
-// the prolongation's ω.
+// the prolongation's ω; from SC_LEVELS on, each level's smoother λ̂ (read back by tests).
 const SC_LAM: u32 = 0u;
 const SC_STOP: u32 = 1u;
 const SC_XAX: u32 = 2u;
@@ -116,6 +116,7 @@ const SC_YAX: u32 = 3u;
 const SC_MAX: u32 = 4u;
 const SC_NRM: u32 = 5u;
 const SC_OMEGA_P: u32 = 6u;
+const SC_LEVELS: u32 = 8u;
 
 @group(0) @binding(0) var<uniform> sp: SetupParams;
 @group(0) @binding(1) var<storage, read> idx: array<u32>;
@@ -914,6 +915,7 @@ fn omega_prolong() {
 // λ̂), as Multilevel::omega_of, where the V-cycle reads it.
 @compute @workgroup_size(1)
 fn omega_smooth() {
+    work[sp.scal_at + SC_LEVELS + sp.level] = work[sp.scal_at + SC_LAM];
     var omega = real(sp.omega_max);
     if (lambda_usable()) {
         omega = min(real(sp.omega_max), real(sp.omega_lambda) / work[sp.scal_at + SC_LAM]);

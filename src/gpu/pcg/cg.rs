@@ -15,10 +15,8 @@ use std::sync::Arc;
 use Access::{Read as R, ReadWrite as W, Uniform as U};
 
 use super::aggregates::{self, AggregateIndex};
-use super::mlsetup::{FinestMatrix, FramesOnDevice};
-use super::multilevel::{DeviceMultilevel, Finest, LevelValues, Step};
-use crate::solve::multilevel::reuse::Levels;
-use crate::solve::multilevel::{Hierarchy, Multilevel};
+use super::multilevel::{DeviceMultilevel, Finest, Step};
+use crate::solve::multilevel::Multilevel;
 
 /// Bind group 0 of shaders/pcg.wgsl, shared by all its entry points.
 pub const PCG: Layout = Layout {
@@ -322,24 +320,12 @@ pub struct DeviceFrames {
     coarse: CoarseSpace,
     /// With `Aggregates`: the aggregate index (`None` when every node is fixed).
     agg: Option<AggregateIndex>,
-    /// Bound by its bind groups and by the multilevel setup's
-    /// ([`DeviceFrames::on_device`]).
+    /// Kept alive with the bind groups (and bound by the multilevel setup's: cg/levels.rs).
     _frame: wgpu::Buffer,
     _rotations: wgpu::Buffer,
     _aggregates: wgpu::Buffer,
     /// The aggregate coarse space's f64 data (shaders/pcg.wgsl, `coarse`).
     coarse_buf: wgpu::Buffer,
-}
-
-impl DeviceFrames {
-    /// The frame words and rotations as the multilevel setup binds them.
-    fn on_device(&self) -> FramesOnDevice<'_> {
-        FramesOnDevice {
-            id: self.id,
-            frame: &self._frame,
-            rotations: &self._rotations,
-        }
-    }
 }
 
 /// The pipelines of shaders/pcg.wgsl; those the coarse correction changes once per
@@ -532,6 +518,7 @@ pub struct DeviceCg {
     ml_ready: bool,
 }
 
+mod levels;
 mod segment;
 
 impl DeviceCg {
@@ -1132,23 +1119,6 @@ impl DeviceCg {
                 frames.n_nodes, self.n_nodes
             )));
         }
-        self.ensure_multilevel()?;
-        let Some(dm) = self.ml.as_mut() else {
-            return Ok(());
-        };
-        let finest = Finest {
-            r: &self.buf.r,
-            z: &self.buf.z,
-            q: &self.buf.q,
-            state: &self.buf.state,
-        };
-        dm.set(ml, frames, finest, binding_limit)?;
-        self.ml_ready = true;
-        Ok(())
-    }
-
-    /// The device V-cycle, made the first time (f64 only).
-    fn ensure_multilevel(&mut self) -> Result<(), GpuError> {
         if self.ty != Scalars::F64 {
             return Err(GpuError::Unsupported(
                 "the multilevel preconditioner runs in f64 only".into(),
@@ -1157,58 +1127,17 @@ impl DeviceCg {
         if self.ml.is_none() {
             self.ml = Some(DeviceMultilevel::new(&self.ctx, self.dim)?);
         }
-        Ok(())
-    }
-
-    /// The multilevel preconditioner of the system just prepared, built on the device from
-    /// the H this PCG reads and the constraint set of `frames`, or the kept levels
-    /// refreshed, as `how` says ([`crate::solve::multilevel::reuse::KeptLevels::plan`]):
-    /// src/gpu/pcg/mlsetup.rs. Nothing of the system's size crosses the bus. Call after
-    /// every `prepare`, as [`DeviceCg::set_multilevel`]; `binding_limit` as there.
-    pub fn set_multilevel_on_device(
-        &mut self,
-        hierarchy: &Arc<Hierarchy>,
-        frames: &DeviceFrames,
-        how: Levels,
-        binding_limit: Option<u64>,
-    ) -> Result<(), GpuError> {
-        self.own(frames)?;
-        let (n, nnz) = (self.n_nodes, self.host_pattern[self.n_nodes] as usize);
-        if hierarchy.cluster_counts().is_empty() || hierarchy.patterns()[0].n != n {
-            return Err(GpuError::Mismatch(format!(
-                "the multilevel hierarchy is not of this PCG's {n} nodes"
-            )));
-        }
-        self.ensure_multilevel()?;
-        let (Some(dm), b) = (self.ml.as_mut(), &self.buf) else {
-            return Ok(());
-        };
-        let matrix = FinestMatrix {
-            pattern: &b.pattern,
-            col_at: (n + 1) as u32,
-            diag_at: (n + 1 + nnz) as u32,
-            chunks: b.hvals.iter().zip(b.hruns.iter().cloned()).collect(),
-            frames: frames.on_device(),
-        };
         let finest = Finest {
-            r: &b.r,
-            z: &b.z,
-            q: &b.q,
-            state: &b.state,
+            r: &self.buf.r,
+            z: &self.buf.z,
+            q: &self.buf.q,
+            state: &self.buf.state,
         };
-        dm.compute(hierarchy, how, finest, &matrix, binding_limit)?;
+        if let Some(dm) = self.ml.as_mut() {
+            dm.set(ml, frames, finest, binding_limit)?;
+        }
         self.ml_ready = true;
         Ok(())
-    }
-
-    /// The multilevel levels on the device, read back: ω, the coarse matrices, the
-    /// cluster inverses (level 0's with the constrained rows and columns zero), P and Pᵀ
-    /// per level (tests and diagnostics; empty before the levels are set).
-    pub fn read_multilevel(&self) -> Result<Vec<LevelValues>, GpuError> {
-        match &self.ml {
-            Some(dm) => dm.read_levels(),
-            None => Ok(Vec::new()),
-        }
     }
 
     /// Clusters per level of the multilevel preconditioner on the device, finest first

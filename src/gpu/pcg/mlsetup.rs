@@ -57,7 +57,8 @@ pub const MLSETUP: Layout = Layout {
 
 /// No block: a coarse item without a diagonal block (mirrors `NO_BLOCK` in the WGSL).
 const NO_BLOCK: u32 = u32::MAX;
-/// Scalars of the power iteration in the scratch (the WGSL's `SC_*`).
+/// Scalars of the power iteration in the scratch (the WGSL's `SC_*`), before each
+/// level's smoother λ̂ (from `SC_LEVELS`).
 const SCALARS: usize = 8;
 /// Partial-sum slots per segment (x·Ax, y·Ax, max |y|, Σ(y/s)²).
 const PARTIAL_SLOTS: usize = 4;
@@ -116,7 +117,8 @@ struct SetupParams {
     scal_at: u32,
     segments: u32,
     p_blocks: u32,
-    _pad: [u32; 3],
+    level: u32,
+    _pad: [u32; 2],
 }
 const _: () = assert!(std::mem::size_of::<SetupParams>() == 224);
 
@@ -302,7 +304,7 @@ impl WorkLayout {
             y_at,
             part_at,
             scal_at,
-            len: scal_at + SCALARS,
+            len: scal_at + SCALARS + patterns.len(),
         }
     }
 }
@@ -369,6 +371,8 @@ pub(super) struct DeviceSetup {
     kernels: Arc<SetupKernels>,
     levels: Vec<SetupLevel>,
     work: wgpu::Buffer,
+    /// Where the smoothers' λ̂ are in the scratch (f64 entries).
+    lambdas_at: usize,
     segments: Vec<usize>,
     /// Bound where a level has no such array (read-only and read-write bindings).
     none_r: wgpu::Buffer,
@@ -442,6 +446,7 @@ impl DeviceSetup {
                 .collect(),
             levels: out,
             work: work_buf,
+            lambdas_at: work.scal_at + SCALARS,
             none_r,
             none_w,
             finest_groups: HashMap::new(),
@@ -519,6 +524,7 @@ impl DeviceSetup {
             scal_at: u(work.scal_at)?,
             segments: u(segments)?,
             p_blocks: u(x.p_blocks)?,
+            level: u(l)?,
             ..Default::default()
         };
         // Level 0 per chunk of H (its rows and first block), deeper levels one run.
@@ -676,6 +682,19 @@ impl DeviceSetup {
         self.ctx.queue.submit([enc.finish()]);
         self.ctx
             .check("building the multilevel levels on the device")
+    }
+
+    /// The smoothers' λ̂ of the last build or refresh, per level below the coarsest (read
+    /// back: tests and diagnostics).
+    pub(super) fn lambdas(&self) -> Result<Vec<f64>, GpuError> {
+        let n = self.levels.len().saturating_sub(1);
+        let bytes = self.ctx.download(
+            &self.work,
+            8 * self.lambdas_at as u64,
+            8 * n as u64,
+            "reading back the multilevel power estimates",
+        )?;
+        Ok(bytemuck::pod_collect_to_vec(&bytes))
     }
 
     /// Level `l`'s bind groups: level 0's of the current constraint set, or its own.
@@ -925,6 +944,7 @@ mod tests {
             other => panic!("{name}: {other:?}"),
         };
         assert_eq!(constant("NO_BLOCK"), NO_BLOCK);
+        assert_eq!(constant("SC_LEVELS") as usize, SCALARS);
         for name in [
             "SC_LAM",
             "SC_STOP",

@@ -1,17 +1,20 @@
 //! The multilevel preconditioner on the device (shaders/vcycle.wgsl): the CPU CG's
 //! V-cycle ([`crate::solve::multilevel`]) applied as z = M⁻¹r inside the device PCG.
 //!
-//! The host builds the hierarchy (once per pattern) and, for every system, the cluster
-//! inverses, the smoothed prolongations and the coarse matrices: [`Multilevel::new`],
-//! the CPU CG's own code, so both CGs precondition with the same operator. This module
-//! uploads them and records the V-cycle's dispatches; level 0's product is the PCG's own
-//! (H read in place and rotated), so its matrix is never copied. Per V-cycle and level:
-//! two smoothing dispatches, two products, a restriction and a prolongation.
+//! The levels' buffers are made once per hierarchy (a mesh): each level's index arrays
+//! (clusters, patterns) uploaded, its values (ω, the coarse matrix, P, Pᵀ) and cluster
+//! inverses allocated. Their values come from one of two places:
+//! - the device itself ([`DeviceMultilevel::compute`], src/gpu/pcg/mlsetup.rs), which
+//!   builds or refreshes them from the H the PCG holds: what the device Newton loop does,
+//!   with nothing of the mesh's size crossing the bus per Newton iteration;
+//! - a [`Multilevel`] built on the host by the CPU CG's code, uploaded
+//!   ([`DeviceMultilevel::set`]): what `solve --solver gpu` and the benches do, since they
+//!   hold H on the host anyway. Kept levels of the same generation move only their ω.
 //!
-//! Why the setup runs on the host: it is the CPU's code and bits (one specification of
-//! the clusters, the pivots dropped and ω), its cost is one pass over H per Newton
-//! iteration, and the iterations it saves are the device's. The device loop reads H back
-//! for it once per system (counted in the run's device-to-host bytes).
+//! Either way the values are the CPU's operator (the same clusters, pivots dropped and
+//! ω, to rounding). This module records the V-cycle's dispatches; level 0's product is
+//! the PCG's own (H read in place and rotated), so its matrix is never copied. Per V-cycle
+//! and level: two smoothing dispatches, two products, a restriction and a prolongation.
 
 use super::mlsetup::{DeviceSetup, FinestMatrix};
 use crate::core::constraints::Frames;
@@ -149,9 +152,12 @@ enum Source {
 /// One level's values on the device, read back ([`DeviceMultilevel::read_levels`]): the
 /// arrays of [`LevelView`] in its layouts (ω; the matrix, empty at level 0, whose matrix is
 /// the PCG's; the cluster inverses, level 0's with the constrained rows and columns zero;
-/// P and Pᵀ, empty at the coarsest level).
+/// P and Pᵀ, empty at the coarsest level), and where the device built the levels, the
+/// power estimate λ̂ of λmax(B⁺A) that ω comes from (the last one made: a kept level's
+/// is the estimate of its build, level 0's that of the last refresh).
 #[derive(Debug, Clone)]
 pub struct LevelValues {
+    pub lambda: Option<f64>,
     pub omega: f64,
     pub matrix: Vec<f64>,
     pub inverses: Vec<f64>,
@@ -509,6 +515,10 @@ impl DeviceMultilevel {
 
     /// Every level's values as the V-cycle reads them, read back (tests and diagnostics).
     pub(super) fn read_levels(&self) -> Result<Vec<LevelValues>, GpuError> {
+        let lambdas = match (&self.setup, self.source) {
+            (Some(setup), Source::Device) => setup.lambdas()?,
+            _ => Vec::new(),
+        };
         let mut out = Vec::with_capacity(self.levels.len());
         for (l, lev) in self.levels.iter().enumerate() {
             let what = format!("reading back multilevel level {l}");
@@ -526,6 +536,7 @@ impl DeviceMultilevel {
             let (a, pa, pta) = (p.a_at as usize, p.p_at as usize, p.pt_at as usize);
             let next = p.has_next != 0;
             out.push(LevelValues {
+                lambda: lambdas.get(l).copied(),
                 omega: vals[0],
                 matrix: vals[a..if next { pa } else { vals.len() }].to_vec(),
                 inverses,
