@@ -280,4 +280,49 @@ mod tests {
         every.solved(20, 1e-4);
         assert_eq!(every.for_system(&e).1, Levels::Built);
     }
+
+    /// The decision alone ([`KeptLevels::plan`], what the device loop asks) is the host
+    /// builder's ([`KeptLevels::for_system`]) system by system: through keeps, a slow
+    /// solve, a grown constraint set, a failure and a constraint set the levels do not
+    /// serve, with the same counts.
+    #[test]
+    fn the_plan_decides_as_the_host_builder() {
+        let s = random_system(&SystemSpec::with_nodes(3, 400, 12));
+        let hier = Arc::new(Hierarchy::new(&s.h));
+        let node = (0..s.frames.n_nodes)
+            .find(|&i| s.frames.mask[i] == 0 && s.frames.rotation(i).is_none())
+            .expect("a free node");
+        let mut more = s.frames.clone();
+        more.mask[node] = 0b111;
+        let mut host = KeptLevels::with_hierarchy(MultilevelSetup::Reuse, hier.clone());
+        let mut dev = KeptLevels::with_hierarchy(MultilevelSetup::Reuse, hier.clone());
+        // (constraint set, iterations of the solve or None for a failure, the decision).
+        let f = &s.frames;
+        let sequence = [
+            (f, Some(20), Levels::Built),
+            (f, Some(28), Levels::Kept),
+            (f, Some(32), Levels::Kept),
+            (f, Some(20), Levels::Built),
+            (&more, None, Levels::Remasked),
+            (&more, Some(20), Levels::Built),
+            (f, Some(20), Levels::Built),
+            (f, Some(20), Levels::Kept),
+        ];
+        for (k, (frames, solve, want)) in sequence.into_iter().enumerate() {
+            let e = Eliminated::new(&s.h, &s.g, frames, ConstrainedDiagonal::Identity);
+            let built = host.for_system(&e).1;
+            let planned = dev.plan(&hier, frames);
+            assert_eq!((built, planned), (want, want), "system {k}");
+            match solve {
+                Some(iterations) => {
+                    host.solved(iterations, 1e-4);
+                    dev.solved(iterations, 1e-4);
+                }
+                None => assert_eq!(host.failed(), dev.failed()),
+            }
+            assert_eq!(host.rebuild_due(), dev.rebuild_due(), "system {k}");
+        }
+        assert_eq!(host.counts(), dev.counts());
+        assert_eq!(host.counts(), (4, 4));
+    }
 }
