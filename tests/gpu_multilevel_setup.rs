@@ -24,6 +24,10 @@
 //! On lavapipe, which rounds each f64 operation as the host does, level 0's inverses (H's
 //! blocks through the same operations in the same order) are held to the last bit.
 //!
+//! The device memory the levels and their setup take is what the memory checks count
+//! before anything is built ([`multilevel_bytes`], [`multilevel_setup_bytes`]), split
+//! buffers included.
+//!
 //! Every test shares one device (tests/common/gpu.rs); sizes are small for lavapipe.
 
 use std::sync::Arc;
@@ -33,7 +37,9 @@ use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
 use stickslip::core::sparse::BlockCsr;
 use stickslip::gpu::blocks::HostBlocks;
 use stickslip::gpu::kernels::Real;
-use stickslip::gpu::pcg::{DeviceCg, DeviceFrames, LevelValues};
+use stickslip::gpu::pcg::{
+    multilevel_bytes, multilevel_setup_bytes, DeviceCg, DeviceFrames, LevelValues,
+};
 use stickslip::gpu::{CoarseSpace, GpuContext};
 use stickslip::solve::multilevel::reuse::Levels;
 use stickslip::solve::multilevel::{Hierarchy, LevelView, Multilevel, LAMBDA_STEPS};
@@ -236,10 +242,14 @@ fn device_built_levels_equal_the_host_built_ones() {
         let mut host = Multilevel::new(&e, hier.clone());
         let blocks = HostBlocks::upload(ctx, &s.h, Real::F64, None).expect("upload");
         let (mut cg, frames) = device(ctx, &blocks, f);
-        let t0 = ctx.traffic();
+        let (t0, a0) = (ctx.traffic(), ctx.allocated_bytes());
         cg.set_multilevel_on_device(&hier, &frames, Levels::Built, None)
             .expect("built on the device");
-        let t1 = ctx.traffic();
+        let (t1, a1) = (ctx.traffic(), ctx.allocated_bytes());
+        // The device memory the first build took is what the memory checks count.
+        let planned = multilevel_bytes(ctx, &hier.level_sizes(dim), dim, None).expect("fits")
+            + multilevel_setup_bytes(ctx, &hier, dim, blocks.chunk_count(), None).expect("fits");
+        assert_eq!(a1 - a0, planned, "{dim}D: allocated against planned");
         let built = cg.read_multilevel().expect("read back");
         compare(&format!("{dim}D built"), &host, &built, f, exact);
 
@@ -339,8 +349,16 @@ fn split_buffers_give_the_same_levels() {
     let run = |forced: Option<u64>| {
         let blocks = HostBlocks::upload(ctx, &s.h, Real::F64, forced).expect("upload");
         let (mut cg, frames) = device(ctx, &blocks, f);
+        let a0 = ctx.allocated_bytes();
         cg.set_multilevel_on_device(&hier, &frames, Levels::Built, forced)
             .expect("built on the device");
+        let planned = multilevel_bytes(ctx, &hier.level_sizes(3), 3, forced).expect("fits")
+            + multilevel_setup_bytes(ctx, &hier, 3, blocks.chunk_count(), forced).expect("fits");
+        assert_eq!(
+            ctx.allocated_bytes() - a0,
+            planned,
+            "allocated against planned"
+        );
         let built = cg.read_multilevel().expect("read back");
         blocks.write(ctx, &h2).expect("new values");
         cg.set_multilevel_on_device(&hier, &frames, Levels::Kept, forced)

@@ -149,7 +149,7 @@ enum Source {
     Device,
 }
 
-/// One level's values on the device, read back ([`DeviceMultilevel::read_levels`]): the
+/// One level's values on the device, read back ([`super::DeviceCg::read_multilevel`]): the
 /// arrays of [`LevelView`] in its layouts (ω; the matrix, empty at level 0, whose matrix is
 /// the PCG's; the cluster inverses, level 0's with the constrained rows and columns zero;
 /// P and Pᵀ, empty at the coarsest level), and where the device built the levels, the
