@@ -10,7 +10,8 @@
 // values (`vals`: ω, A_l below the finest, P_l, P_lᵀ) and level l + 1's (`nidx`, `nvals`,
 // where A_{l+1} goes), the finest matrix (the PCG's `pattern`, a chunk of H in `hvals`,
 // the constraint frames), one buffer of l's cluster inverses (`inv`) and the scratch
-// `work` (D_i⁻¹, Q = A P, the power iteration's vectors, partial sums and scalars).
+// `work` (D_i⁻¹, the power iteration's vectors, partial sums and scalars) and Q = A P
+// (`qv`).
 //
 // Level 0's matrix is Ĥ in the node frames, P VᵀHV P + (I − P), each block formed from
 // H's where it is read (frame_block): it is never stored. The kernels that read it run
@@ -87,10 +88,9 @@ struct SetupParams {
     t_begin: u32,
     t_end: u32,
     inv_base: u32,
-    // work: D_i⁻¹, Q, the power iteration's x, A x and y, its partials (segments per
-    // slot) and scalars.
+    // work: D_i⁻¹, the power iteration's x, A x and y, its partials (segments per slot)
+    // and scalars.
     dinv_at: u32,
-    q_at: u32,
     x_at: u32,
     ax_at: u32,
     y_at: u32,
@@ -102,6 +102,7 @@ struct SetupParams {
     level: u32,
     _pad1: u32,
     _pad2: u32,
+    _pad3: u32,
 }
 
 override D: u32 = 3u;
@@ -132,6 +133,8 @@ const SC_LEVELS: u32 = 8u;
 @group(0) @binding(9) var<storage, read> rotations: array<real>;
 @group(0) @binding(10) var<storage, read_write> inv: array<real>;
 @group(0) @binding(11) var<storage, read_write> work: array<real>;
+// Q = A P on Q's pattern (its own buffer: the largest of the setup's arrays).
+@group(0) @binding(12) var<storage, read_write> qv: array<real>;
 
 fn finite(v: real) -> bool {
     return abs(v) <= real(sp.finite_max);
@@ -445,7 +448,7 @@ fn q_values(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
         let q0 = sidx[sp.q_ptr_at + i];
         let q1 = sidx[sp.q_ptr_at + i + 1u];
         for (var e = q0 * dd; e < q1 * dd; e++) {
-            work[sp.q_at + e] = real(0.0);
+            qv[e] = real(0.0);
         }
         for (var k = row_start(i); k < row_start(i + 1u); k++) {
             let j = col(k);
@@ -456,9 +459,9 @@ fn q_values(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
                     pb[e] = vals[sp.p_at + pk * dd + e];
                 }
                 let m = mul(h, pb);
-                let o = sp.q_at + q_slot(q0, q1, idx[sp.p_col_at + pk]) * dd;
+                let o = q_slot(q0, q1, idx[sp.p_col_at + pk]) * dd;
                 for (var e = 0u; e < dd; e++) {
-                    work[o + e] = work[o + e] + m[e];
+                    qv[o + e] = qv[o + e] + m[e];
                 }
             }
         }
@@ -485,7 +488,7 @@ fn galerkin(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
                     for (var cc = 0u; cc < D; cc++) {
                         var s = real(0.0);
                         for (var k = 0u; k < D; k++) {
-                            s += vals[sp.p_at + pk * dd + k * D + r] * work[sp.q_at + qk * dd + k * D + cc];
+                            s += vals[sp.p_at + pk * dd + k * D + r] * qv[qk * dd + k * D + cc];
                         }
                         nvals[o + r * D + cc] = nvals[o + r * D + cc] + s;
                     }

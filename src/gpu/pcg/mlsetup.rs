@@ -52,6 +52,7 @@ pub const MLSETUP: Layout = Layout {
         ("rotations", R),
         ("inv", W),
         ("work", W),
+        ("qv", W),
     ],
 };
 
@@ -109,7 +110,6 @@ struct SetupParams {
     t_end: u32,
     inv_base: u32,
     dinv_at: u32,
-    q_at: u32,
     x_at: u32,
     ax_at: u32,
     y_at: u32,
@@ -118,7 +118,7 @@ struct SetupParams {
     segments: u32,
     p_blocks: u32,
     level: u32,
-    _pad: [u32; 2],
+    _pad: [u32; 3],
 }
 const _: () = assert!(std::mem::size_of::<SetupParams>() == 224);
 
@@ -270,17 +270,17 @@ impl LevelIndex {
 }
 
 /// Where the scratch's arrays start (f64 entries), shared by every level (the levels are
-/// built one after another), and its length.
+/// built one after another), its length and Q's (its own buffer, the largest array).
 #[derive(Debug, Clone, Copy)]
 struct WorkLayout {
     dinv_at: usize,
-    q_at: usize,
     x_at: usize,
     ax_at: usize,
     y_at: usize,
     part_at: usize,
     scal_at: usize,
     len: usize,
+    q_len: usize,
 }
 
 impl WorkLayout {
@@ -290,28 +290,27 @@ impl WorkLayout {
         let q = indices.iter().map(|x| x.q_blocks).max().unwrap_or(0);
         let segments = n.div_ceil(WORKGROUP as usize).max(1);
         let dinv_at = 0;
-        let q_at = dinv_at + n * d * d;
-        let x_at = q_at + q * d * d;
+        let x_at = dinv_at + n * d * d;
         let ax_at = x_at + n * d;
         let y_at = ax_at + n * d;
         let part_at = y_at + n * d;
         let scal_at = part_at + PARTIAL_SLOTS * segments;
         WorkLayout {
             dinv_at,
-            q_at,
             x_at,
             ax_at,
             y_at,
             part_at,
             scal_at,
             len: scal_at + SCALARS + patterns.len(),
+            q_len: q * d * d,
         }
     }
 }
 
 /// The device bytes the setup takes beside the levels ([`super::multilevel_bytes`]) for
 /// `hierarchy` in `dim`, with H in `h_chunks` buffers and the inverses split under
-/// `forced` (or the adapter's binding limit): its index words, its scratch, the
+/// `forced` (or the adapter's binding limit): its index words, its scratch and Q, the
 /// parameters of its dispatches and two placeholders, each buffer checked against the
 /// adapter's limits (the error names the first that does not fit). What a caller adds to
 /// its memory check before building anything.
@@ -333,6 +332,7 @@ pub fn multilevel_setup_bytes(
     let sizes = hierarchy.level_sizes(dim);
     let mut total = 2 * ctx.checked_size("mlsetup placeholder", 16)?;
     total += ctx.checked_size("mlsetup scratch", 8 * work.len as u64)?;
+    total += ctx.checked_size("mlsetup Q = A P", 8 * work.q_len as u64)?;
     let param = std::mem::size_of::<SetupParams>() as u64;
     for (l, (x, s)) in indices.iter().zip(&sizes).enumerate() {
         total += ctx.checked_size(
@@ -371,6 +371,7 @@ pub(super) struct DeviceSetup {
     kernels: Arc<SetupKernels>,
     levels: Vec<SetupLevel>,
     work: wgpu::Buffer,
+    q: wgpu::Buffer,
     /// Where the smoothers' λ̂ are in the scratch (f64 entries).
     lambdas_at: usize,
     segments: Vec<usize>,
@@ -431,6 +432,7 @@ impl DeviceSetup {
         let none_r = ctx.storage_zeroed("mlsetup no array (read)", 16)?;
         let none_w = ctx.storage_zeroed("mlsetup no array (written)", 16)?;
         let work_buf = ctx.storage_zeroed("mlsetup scratch", 8 * work.len as u64)?;
+        let q = ctx.storage_zeroed("mlsetup Q = A P", 8 * work.q_len as u64)?;
         let mut out = Vec::with_capacity(levels.len());
         for (l, x) in indices.iter().enumerate() {
             let level = Self::level(ctx, l, levels, x, &work, matrix)?;
@@ -446,6 +448,7 @@ impl DeviceSetup {
                 .collect(),
             levels: out,
             work: work_buf,
+            q,
             lambdas_at: work.scal_at + SCALARS,
             none_r,
             none_w,
@@ -516,7 +519,6 @@ impl DeviceSetup {
             h_col_at: matrix.col_at,
             h_diag_at: matrix.diag_at,
             dinv_at: u(work.dinv_at)?,
-            q_at: u(work.q_at)?,
             x_at: u(work.x_at)?,
             ax_at: u(work.ax_at)?,
             y_at: u(work.y_at)?,
@@ -604,7 +606,7 @@ impl DeviceSetup {
                     .map(|(k, (params, ch))| {
                         let bufs = [
                             params, &lev.idx, &me.sidx, nidx, &lev.vals, nvals, pattern, hvals,
-                            frame, rotations, &ch.buffer, &self.work,
+                            frame, rotations, &ch.buffer, &self.work, &self.q,
                         ];
                         kernels::bind_group(
                             &self.ctx.device,
@@ -920,7 +922,6 @@ mod tests {
                 "t_end",
                 "inv_base",
                 "dinv_at",
-                "q_at",
                 "x_at",
                 "ax_at",
                 "y_at",
@@ -928,9 +929,10 @@ mod tests {
                 "scal_at",
                 "segments",
                 "p_blocks",
-                "_pad0",
+                "level",
                 "_pad1",
                 "_pad2",
+                "_pad3",
             ]
         );
         // The shader's sentinel and scalar slots are the host's.
