@@ -391,7 +391,8 @@ enum Estimate {
     Smoother,
 }
 
-/// Recorded dispatches: a name, the pipeline, the launch and the bind group.
+/// Recorded dispatches: a name (the pass's debug marker), the pipeline, the launch and the
+/// bind group.
 type Dispatches<'a> = Vec<(
     &'static str,
     &'a wgpu::ComputePipeline,
@@ -675,7 +676,8 @@ impl DeviceSetup {
                 label: Some("mlsetup"),
                 timestamp_writes: None,
             });
-            for (_, pipe, launch, group) in &rec {
+            for (name, pipe, launch, group) in &rec {
+                cp.insert_debug_marker(name);
                 cp.set_bind_group(0, *group, &[]);
                 cp.set_pipeline(pipe);
                 launch.dispatch(&mut cp);

@@ -173,8 +173,7 @@ fn multilevel_hierarchy(
             return Err(cannot_hold(format!(
                 "the GPU Newton loop needs about {need} bytes of device memory for {} nodes \
                  with the multilevel preconditioner ({bytes} for its levels and their setup), \
-                 adapter '{}' \
-                 has {have}",
+                 adapter '{}' has {have}",
                 scene.model.n_nodes,
                 ctx.adapter_name()
             )));
