@@ -1,6 +1,6 @@
 // The multilevel preconditioner's V-cycle on the device (src/gpu/pcg/multilevel.rs): the
 // CPU's z = M⁻¹r of src/solve/multilevel, level by level, with the factors and matrices
-// the host built for the current system.
+// built for the current system (on the device, mlsetup.wgsl, or on the host).
 //
 // One bind group per level l: its index arrays (`idx`) and f64 arrays (`vals`), its
 // vectors b (right-hand side), x (correction) and ax (= A_l x, its residual being b − ax)

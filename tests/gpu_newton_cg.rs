@@ -28,9 +28,10 @@
 //! the CPU's function: E⁺ is the same up to a compiler's fused multiply-adds (lavapipe
 //! gives the same bits), held to the same 1e-12.
 //!
-//! The multilevel preconditioner's levels are built on the host from the H read back (as
-//! the device loop builds them); its iterations are held within 10 % of the CPU CG's with
-//! the same levels.
+//! The multilevel preconditioner's levels are built on the device from the assembled H
+//! (as the device loop builds them: tests/gpu_multilevel_setup.rs holds them to the
+//! host's); its iterations are held within 10 % of the CPU CG's, and to those of `solve`'s
+//! device PCG with levels built on the host.
 //!
 //! Every test shares one device (tests/common/gpu.rs); sizes are small for lavapipe.
 
@@ -48,6 +49,7 @@ use stickslip::solve::cg::{CgError, Preconditioner};
 use stickslip::solve::coarse::{
     aggregates_einv_from_blocks, translations_einv_from_blocks, Aggregation, CoarseSpace,
 };
+use stickslip::solve::multilevel::reuse::Levels;
 use stickslip::solve::multilevel::{Hierarchy, Multilevel};
 use stickslip::{LayoutKey, Solver, SolverConfig};
 
@@ -250,12 +252,12 @@ fn compare(ctx: &GpuContext, s: &Scene, bound: Bound) -> Vec<(Preconditioner, Co
             coarse,
             stagnation_window: stickslip::solve::cg::STAGNATION_WINDOW,
         };
-        // The multilevel levels come from the host, built on the H read back, as the
-        // device Newton loop builds them.
+        // The multilevel levels built on the device from the assembled H, as the device
+        // Newton loop builds them.
         cg.prepare(&frames).expect("prepare");
         if pre == Preconditioner::Multilevel {
-            let ml = Multilevel::new(&e, std::sync::Arc::new(Hierarchy::new(&h)));
-            cg.set_multilevel(&ml, &s.frames, None)
+            let hier = std::sync::Arc::new(Hierarchy::new(&h));
+            cg.set_multilevel_on_device(&hier, &frames, Levels::Built, None)
                 .expect("multilevel levels");
         }
         let info = cg.iterate(&frames, &params).expect("device CG converges");
@@ -350,8 +352,9 @@ fn compare(ctx: &GpuContext, s: &Scene, bound: Bound) -> Vec<(Preconditioner, Co
         // `solve --solver gpu` (the facade's engine, f64) on the same eliminated system,
         // with the same preconditioner, coarse space and tolerance. It runs the same device
         // PCG on H uploaded into the assembly's block layout, with b̂ formed on the host
-        // (the same f64 operations in another order: a few ulps): the same stopping
-        // iteration, and Δx within 1e-12 relative (κ·ulps of b̂, far below it here).
+        // and the multilevel levels built there (the same f64 operations in another order:
+        // a few ulps): the same stopping iteration, and Δx within 1e-12 relative (κ·ulps
+        // of b̂ and of the preconditioner, far below it here).
         let mut solver = Solver::new(
             SolverConfig::gpu(Precision::F64)
                 .tol(TOL)
@@ -463,8 +466,8 @@ fn aggregates_need_frames_built_for_them() {
 }
 
 /// The multilevel preconditioner needs its levels for the system just prepared: without
-/// them, and again after the next `prepare`, iterating is a one-line error; with them it
-/// converges.
+/// them, and again after the next `prepare`, iterating is a one-line error; with them
+/// (built on the host or on the device) it converges.
 #[test]
 fn multilevel_needs_its_levels_after_every_prepare() {
     let Some((ctx, _g)) = gpu() else { return };
@@ -494,6 +497,16 @@ fn multilevel_needs_its_levels_after_every_prepare() {
     let e = Eliminated::new(&h, &g, &s.frames, ConstrainedDiagonal::Identity);
     let ml = Multilevel::new(&e, std::sync::Arc::new(Hierarchy::new(&h)));
     cg.set_multilevel(&ml, &s.frames, None).expect("levels");
+    let info = cg
+        .iterate(&frames, &params)
+        .expect("converges with its levels");
+    assert!(info.relative_residual <= TOL);
+    cg.prepare(&frames).expect("prepare again");
+    refused(cg.iterate(&frames, &params));
+    // The same with the levels built on the device.
+    let hier = std::sync::Arc::new(Hierarchy::new(&h));
+    cg.set_multilevel_on_device(&hier, &frames, Levels::Built, None)
+        .expect("levels on the device");
     let info = cg
         .iterate(&frames, &params)
         .expect("converges with its levels");

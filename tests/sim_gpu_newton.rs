@@ -345,6 +345,76 @@ fn drop_multilevel_on_both_loops() {
     multilevel_on_both_loops("drop", 20);
 }
 
+/// The device loop builds the multilevel levels on the device: their setup moves nothing
+/// per Newton iteration. Over 1 and over 4 steps of twist with the multilevel
+/// preconditioner nothing of it comes back, and what goes to the device (the levels'
+/// index arrays and the setup's dispatch parameters, once per run) is the same number of
+/// bytes however many systems were built or kept.
+#[test]
+fn multilevel_setup_moves_nothing_per_newton_iteration() {
+    let text = stickslip::sim::scene::builtin("twist").expect("a built-in scene");
+    let file = std::env::temp_dir().join(format!(
+        "stickslip-multilevel-traffic-{}.toml",
+        std::process::id()
+    ));
+    std::fs::write(
+        &file,
+        format!("{text}\n[solver]\npreconditioner = \"multilevel\"\ncoarse = \"none\"\n"),
+    )
+    .expect("scene file");
+    let run_steps = |steps: usize| {
+        let out = std::env::temp_dir().join(format!(
+            "stickslip-multilevel-traffic-{}-{steps}",
+            std::process::id()
+        ));
+        let opts = RunOptions {
+            scene: Some(file.display().to_string()),
+            out: Some(out.clone()),
+            solver: Some("cg".into()),
+            newton: Some(NewtonLoop::Gpu),
+            steps: Some(steps),
+            quiet: true,
+            ..RunOptions::default()
+        };
+        let r = run(&opts);
+        let _ = std::fs::remove_dir_all(&out);
+        gpu_or_skip("twist", r)
+    };
+    let (Some(one), Some(four)) = (run_steps(1), run_steps(4)) else {
+        let _ = std::fs::remove_file(&file);
+        return;
+    };
+    let _ = std::fs::remove_file(&file);
+    let systems = |s: &RunSummary| {
+        let l = s.multilevel_levels.as_ref().expect("multilevel_levels");
+        l.built + l.kept
+    };
+    let (g1, g4) = (
+        one.gpu.clone().expect("gpu report"),
+        four.gpu.clone().expect("gpu report"),
+    );
+    eprintln!(
+        "twist, multilevel setup: 1 step: {} systems, {} B to the device, {} B back; 4 steps: \
+         {} systems, {} B, {} B (of {} B and {} B in all)",
+        systems(&one),
+        g1.multilevel_host_to_device_bytes,
+        g1.multilevel_device_to_host_bytes,
+        systems(&four),
+        g4.multilevel_host_to_device_bytes,
+        g4.multilevel_device_to_host_bytes,
+        g4.host_to_device_bytes,
+        g4.device_to_host_bytes
+    );
+    assert!(systems(&four) > systems(&one));
+    assert_eq!(g1.multilevel_device_to_host_bytes, 0);
+    assert_eq!(g4.multilevel_device_to_host_bytes, 0);
+    assert!(g1.multilevel_host_to_device_bytes > 0);
+    assert_eq!(
+        g4.multilevel_host_to_device_bytes,
+        g1.multilevel_host_to_device_bytes
+    );
+}
+
 /// Per Newton iteration, what goes to the device is scalars, a few nodes and the coarse
 /// space's E⁺: over the whole run (set-up included) at most 1 % of one assembled Hessian
 /// per iteration besides E⁺, and E⁺ at most one (3·128)² f64 matrix per iteration, a

@@ -307,6 +307,10 @@ impl Pass<'_> {
         self.cp.set_bind_group(index, group, &[]);
     }
 
+    pub fn insert_debug_marker(&mut self, label: &str) {
+        self.cp.insert_debug_marker(label);
+    }
+
     pub fn dispatch(&mut self, launch: super::Launch) {
         self.dispatches += 1;
         launch.dispatch(&mut self.cp);
@@ -532,7 +536,10 @@ impl GpuContext {
         if let Some(t) = built.get(key).and_then(|b| b.clone().downcast::<T>().ok()) {
             return Ok(t);
         }
-        let t = Arc::new(build());
+        let t = {
+            let _compiling = self.phase(Phase::PipelineCreation);
+            Arc::new(build())
+        };
         self.check(key)?;
         built.insert(key.to_string(), t.clone());
         Ok(t)

@@ -18,8 +18,9 @@
 //! same inputs give the same y bit for bit.
 //!
 //! The preconditioner is the multilevel V-cycle of [`crate::solve::multilevel`] (levels
-//! built on the host, applied by shaders/vcycle.wgsl between `update_yr` and `ml_dot`:
-//! [`DeviceCg::set_multilevel`]), or Jacobi or block Jacobi plus a coarse correction of
+//! built on the device from the H it holds, [`DeviceCg::set_multilevel_on_device`], or on
+//! the host and uploaded, [`DeviceCg::set_multilevel`]; applied by shaders/vcycle.wgsl
+//! between `update_yr` and `ml_dot`), or Jacobi or block Jacobi plus a coarse correction of
 //! [`crate::solve::coarse`]: M⁻¹r = M_J⁻¹r + Z E⁺ Zᵀr, Z_i = P_i V_iᵀ. Why: a body that
 //! can translate or slide has Ĥ's smallest eigenvalues on its translations (the mass
 //! term), and a soft one on its smooth modes, which a point-wise preconditioner cannot see.
@@ -61,6 +62,7 @@
 pub mod aggregates;
 mod cg;
 mod host;
+mod mlsetup;
 mod multilevel;
 mod policy;
 pub mod refine;
@@ -71,5 +73,6 @@ pub use cg::{
     Scalars, SegmentEnd, SegmentInfo, SegmentStart, Tail, Watch, LANCZOS_HIST, PCG_COARSE,
     PCG_PRODUCT, PCG_UPDATE,
 };
-pub use multilevel::multilevel_bytes;
+pub use mlsetup::multilevel_setup_bytes;
+pub use multilevel::{multilevel_bytes, LevelValues};
 pub use solver::PcgSolver;

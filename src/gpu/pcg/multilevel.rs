@@ -1,23 +1,28 @@
 //! The multilevel preconditioner on the device (shaders/vcycle.wgsl): the CPU CG's
 //! V-cycle ([`crate::solve::multilevel`]) applied as z = M⁻¹r inside the device PCG.
 //!
-//! The host builds the hierarchy (once per pattern) and, for every system, the cluster
-//! inverses, the smoothed prolongations and the coarse matrices: [`Multilevel::new`],
-//! the CPU CG's own code, so both CGs precondition with the same operator. This module
-//! uploads them and records the V-cycle's dispatches; level 0's product is the PCG's own
-//! (H read in place and rotated), so its matrix is never copied. Per V-cycle and level:
-//! two smoothing dispatches, two products, a restriction and a prolongation.
+//! The levels' buffers are made once per hierarchy (a mesh): each level's index arrays
+//! (clusters, patterns) uploaded, its values (ω, the coarse matrix, P, Pᵀ) and cluster
+//! inverses allocated. Their values come from one of two places:
+//! - the device itself ([`DeviceMultilevel::compute`], src/gpu/pcg/mlsetup.rs), which
+//!   builds or refreshes them from the H the PCG holds: what the device Newton loop does,
+//!   with nothing of the mesh's size crossing the bus per Newton iteration;
+//! - a [`Multilevel`] built on the host by the CPU CG's code, uploaded
+//!   ([`DeviceMultilevel::set`]): what `solve --solver gpu` and the benches do, since they
+//!   hold H on the host anyway. Kept levels of the same generation move only their ω.
 //!
-//! Why the setup runs on the host: it is the CPU's code and bits (one specification of
-//! the clusters, the pivots dropped and ω), its cost is one pass over H per Newton
-//! iteration, and the iterations it saves are the device's. The device loop reads H back
-//! for it once per system (counted in the run's device-to-host bytes).
+//! Either way the values are the CPU's operator (the same clusters, pivots dropped and
+//! ω, to rounding). This module records the V-cycle's dispatches; level 0's product is
+//! the PCG's own (H read in place and rotated), so its matrix is never copied. Per V-cycle
+//! and level: two smoothing dispatches, two products, a restriction and a prolongation.
 
+use super::mlsetup::{DeviceSetup, FinestMatrix};
 use crate::core::constraints::Frames;
 use crate::gpu::blocks::values_limit;
 use crate::gpu::kernels::{self, Access, Layout};
 use crate::gpu::{GpuContext, GpuError, Launch};
-use crate::solve::multilevel::{LevelSizes, LevelView, Multilevel};
+use crate::solve::multilevel::reuse::Levels;
+use crate::solve::multilevel::{Hierarchy, LevelPattern, LevelSizes, LevelView, Multilevel};
 use std::ops::Range;
 use std::sync::Arc;
 
@@ -42,35 +47,35 @@ pub const VCYCLE: Layout = Layout {
 };
 
 /// Workgroup size of the V-cycle's kernels.
-const WORKGROUP: u32 = 64;
+pub(super) const WORKGROUP: u32 = 64;
 
 /// Offsets of one level's arrays and the range of one smoothing dispatch (mirrors
 /// `VcycleParams` in the WGSL).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, bytemuck::Pod, bytemuck::Zeroable)]
-struct VcycleParams {
-    n: u32,
-    clusters: u32,
-    of_at: u32,
-    pos_at: u32,
-    ptr_at: u32,
-    items_at: u32,
-    inv_start_at: u32,
-    row_at: u32,
-    col_at: u32,
-    p_ptr_at: u32,
-    p_col_at: u32,
-    pt_ptr_at: u32,
-    pt_row_at: u32,
-    omega_at: u32,
-    a_at: u32,
-    p_at: u32,
-    pt_at: u32,
-    has_next: u32,
-    t_begin: u32,
-    t_end: u32,
-    inv_base: u32,
-    _pad: [u32; 3],
+pub(super) struct VcycleParams {
+    pub(super) n: u32,
+    pub(super) clusters: u32,
+    pub(super) of_at: u32,
+    pub(super) pos_at: u32,
+    pub(super) ptr_at: u32,
+    pub(super) items_at: u32,
+    pub(super) inv_start_at: u32,
+    pub(super) row_at: u32,
+    pub(super) col_at: u32,
+    pub(super) p_ptr_at: u32,
+    pub(super) p_col_at: u32,
+    pub(super) pt_ptr_at: u32,
+    pub(super) pt_row_at: u32,
+    pub(super) omega_at: u32,
+    pub(super) a_at: u32,
+    pub(super) p_at: u32,
+    pub(super) pt_at: u32,
+    pub(super) has_next: u32,
+    pub(super) t_begin: u32,
+    pub(super) t_end: u32,
+    pub(super) inv_base: u32,
+    pub(super) _pad: [u32; 3],
 }
 const _: () = assert!(std::mem::size_of::<VcycleParams>() == 96);
 
@@ -83,28 +88,34 @@ struct Pipelines {
     prolong_up: wgpu::ComputePipeline,
 }
 
-/// One buffer of cluster inverses: the clusters it holds and its unknowns in cluster
-/// order (what its smoothing dispatch covers).
-struct InverseChunk {
-    clusters: Range<usize>,
-    unknowns: Range<usize>,
-    buffer: wgpu::Buffer,
+/// One buffer of cluster inverses: the clusters it holds, where its values start in the
+/// level's inverses and its unknowns in cluster order (what its smoothing dispatch covers).
+pub(super) struct InverseChunk {
+    pub(super) clusters: Range<usize>,
+    pub(super) base: usize,
+    pub(super) unknowns: Range<usize>,
+    /// Its values (its buffer may be padded beyond them).
+    pub(super) len: usize,
+    pub(super) buffer: wgpu::Buffer,
 }
 
 /// One level on the device.
-struct DeviceLevel {
-    n: usize,
-    clusters: usize,
+pub(super) struct DeviceLevel {
+    pub(super) n: usize,
+    pub(super) clusters: usize,
+    /// The index arrays and their offsets (`params`, also those of `vals`).
+    pub(super) idx: wgpu::Buffer,
+    pub(super) params: VcycleParams,
     /// ω, the matrix below the finest, P and Pᵀ (rewritten per system on the same
     /// hierarchy), and its length.
-    vals: wgpu::Buffer,
+    pub(super) vals: wgpu::Buffer,
     vals_len: usize,
     /// The cluster inverses in buffers of consecutive clusters (one storage binding caps
     /// each).
-    inverses: Vec<InverseChunk>,
+    pub(super) inverses: Vec<InverseChunk>,
     /// One bind group per inverse chunk (the kernels that do not smooth use the first).
     groups: Vec<wgpu::BindGroup>,
-    /// Kept alive with the bind groups: params, idx, and below the finest b, x, ax.
+    /// Kept alive with the bind groups: params, and below the finest b, x, ax.
     _keep: Vec<wgpu::Buffer>,
 }
 
@@ -127,23 +138,50 @@ pub(super) enum Step<'a> {
     FinestProduct,
 }
 
+/// Whose values the levels on the device hold.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Source {
+    /// None yet: the levels' buffers were just made for a hierarchy.
+    Empty,
+    /// A host-built [`Multilevel`] of this [`Multilevel::generation`], uploaded.
+    Host((u64, u32)),
+    /// Built on the device from the H it holds ([`DeviceSetup`]).
+    Device,
+}
+
+/// One level's values on the device, read back ([`super::DeviceCg::read_multilevel`]): the
+/// arrays of [`LevelView`] in its layouts (ω; the matrix, empty at level 0, whose matrix is
+/// the PCG's; the cluster inverses, level 0's with the constrained rows and columns zero;
+/// P and Pᵀ, empty at the coarsest level), and where the device built the levels, the
+/// power estimate λ̂ of λmax(B⁺A) that ω comes from (the last one made: a kept level's
+/// is the estimate of its build, level 0's that of the last refresh).
+#[derive(Debug, Clone)]
+pub struct LevelValues {
+    pub lambda: Option<f64>,
+    pub omega: f64,
+    pub matrix: Vec<f64>,
+    pub inverses: Vec<f64>,
+    pub p: Vec<f64>,
+    pub pt: Vec<f64>,
+}
+
 /// The V-cycle's pipelines and every level's buffers for one hierarchy.
 pub(super) struct DeviceMultilevel {
     ctx: GpuContext,
     dim: usize,
-    pipes: Pipelines,
-    layout: wgpu::BindGroupLayout,
+    kernels: Arc<VcycleKernels>,
     levels: Vec<DeviceLevel>,
     /// The hierarchy and binding limit the levels were built for.
-    hierarchy: Option<(Arc<crate::solve::multilevel::Hierarchy>, u64)>,
-    /// The [`Multilevel::generation`] whose values the levels hold.
-    generation: Option<(u64, u32)>,
+    hierarchy: Option<(Arc<Hierarchy>, u64)>,
+    source: Source,
+    /// The kernels and buffers that build the levels on the device, once asked for.
+    setup: Option<DeviceSetup>,
 }
 
 /// The clusters of each buffer of inverses: runs of consecutive clusters whose values
 /// (`inverses[c]` f64 each) stay within `limit` bytes; the error names the first cluster
 /// whose inverse alone exceeds it.
-fn inverse_chunks(
+pub(super) fn inverse_chunks(
     inverses: &[usize],
     limit: u64,
     level: usize,
@@ -202,7 +240,7 @@ pub fn multilevel_bytes(
 }
 
 /// `x` as a u32 index of the device arrays, or the error that the levels exceed them.
-fn index(x: usize) -> Result<u32, GpuError> {
+pub(super) fn index(x: usize) -> Result<u32, GpuError> {
     u32::try_from(x).map_err(|_| {
         GpuError::Unsupported(
             "the multilevel preconditioner's arrays exceed the device's u32 indices".into(),
@@ -210,8 +248,27 @@ fn index(x: usize) -> Result<u32, GpuError> {
     })
 }
 
-/// The index arrays of one level, packed, with their offsets.
-fn pack_indices(v: &LevelView<'_>, finest: bool) -> Result<(Vec<u32>, VcycleParams), GpuError> {
+/// Where each cluster's inverse starts in its level's inverses (m² values for m = d·|c|
+/// unknowns), and their total at the end: the layout the host's factors have too.
+pub(super) fn inverse_starts(ptr: &[usize], d: usize) -> Vec<usize> {
+    let mut start = Vec::with_capacity(ptr.len());
+    let mut total = 0;
+    start.push(0);
+    for w in ptr.windows(2) {
+        let m = (w[1] - w[0]) * d;
+        total += m * m;
+        start.push(total);
+    }
+    start
+}
+
+/// The index arrays of one level, packed, with their offsets (in `idx` words and, for the
+/// f64 arrays, in `vals` entries: ω, the matrix below the finest level, P, Pᵀ).
+fn pack_indices(
+    v: &LevelPattern<'_>,
+    d: usize,
+    finest: bool,
+) -> Result<(Vec<u32>, VcycleParams), GpuError> {
     let u = index;
     let mut idx: Vec<u32> = Vec::new();
     let mut p = VcycleParams {
@@ -230,10 +287,16 @@ fn pack_indices(v: &LevelView<'_>, finest: bool) -> Result<(Vec<u32>, VcyclePara
     p.pos_at = put(&mut idx, &mut v.pos.iter().map(|&x| x as usize))?;
     p.ptr_at = put(&mut idx, &mut v.ptr.iter().copied())?;
     p.items_at = put(&mut idx, &mut v.items.iter().map(|&x| x as usize))?;
-    p.inv_start_at = put(&mut idx, &mut v.inv_start.iter().copied())?;
+    p.inv_start_at = put(&mut idx, &mut inverse_starts(v.ptr, d).into_iter())?;
+    let dd = d * d;
+    // ω first, then the matrix below the finest level (level 0's is the PCG's own).
+    let mut vals = 1usize;
+    p.omega_at = 0;
+    p.a_at = u(vals)?;
     if !finest {
         p.row_at = put(&mut idx, &mut v.row_ptr.iter().copied())?;
         p.col_at = put(&mut idx, &mut v.col_idx.iter().copied())?;
+        vals += v.col_idx.len() * dd;
     }
     if let Some(pr) = &v.to_next {
         p.has_next = 1;
@@ -241,32 +304,27 @@ fn pack_indices(v: &LevelView<'_>, finest: bool) -> Result<(Vec<u32>, VcyclePara
         p.p_col_at = put(&mut idx, &mut pr.p_col.iter().map(|&x| x as usize))?;
         p.pt_ptr_at = put(&mut idx, &mut pr.pt_ptr.iter().copied())?;
         p.pt_row_at = put(&mut idx, &mut pr.pt.iter().map(|&(i, _)| i as usize))?;
+        p.p_at = u(vals)?;
+        vals += pr.p_col.len() * dd;
+        p.pt_at = u(vals)?;
+        vals += pr.p_col.len() * dd;
     }
+    u(vals)?;
     Ok((idx, p))
 }
 
-/// The f64 arrays of one level but its inverses (ω, the matrix below the finest, P, Pᵀ)
-/// at the offsets in `p`.
-fn pack_values(
-    v: &LevelView<'_>,
-    finest: bool,
-    p: &mut VcycleParams,
-) -> Result<Vec<f64>, GpuError> {
-    let u = index;
+/// The f64 arrays of one level but its inverses (ω, the matrix below the finest, P, Pᵀ),
+/// in the order of the offsets [`pack_indices`] gives.
+fn pack_values(v: &LevelView<'_>, finest: bool) -> Vec<f64> {
     let mut vals = vec![v.omega];
-    p.omega_at = 0;
-    p.a_at = u(vals.len())?;
     if !finest {
         vals.extend_from_slice(v.values);
     }
     if let Some(pr) = &v.to_next {
-        p.p_at = u(vals.len())?;
         vals.extend_from_slice(pr.p);
-        p.pt_at = u(vals.len())?;
         vals.extend_from_slice(pr.pt_values);
     }
-    u(vals.len())?;
-    Ok(vals)
+    vals
 }
 
 /// One level's cluster inverses, level 0's constrained rows and columns zeroed (`mask`):
@@ -298,42 +356,76 @@ fn pack_inverses(v: &LevelView<'_>, d: usize, mask: Option<&[u8]>) -> Result<Vec
     Ok(inv)
 }
 
+/// The bind group layout and pipelines of shaders/vcycle.wgsl for one dimension, built
+/// once per device ([`GpuContext::cached`]).
+struct VcycleKernels {
+    layout: wgpu::BindGroupLayout,
+    pipes: Pipelines,
+}
+
 impl DeviceMultilevel {
-    /// The V-cycle's pipelines for `dim`; levels come with [`DeviceMultilevel::set`].
+    /// The V-cycle's pipelines for `dim`; levels come with [`DeviceMultilevel::set`] or
+    /// [`DeviceMultilevel::compute`].
     pub(super) fn new(ctx: &GpuContext, dim: usize) -> Result<Self, GpuError> {
         VCYCLE.check_adapter(ctx)?;
         let dev = &ctx.device;
-        let module = VCYCLE.module(dev, "f64", "f64");
-        let (layout, pl) = VCYCLE.layouts(dev, "vcycle");
-        let pipe = |entry: &str| {
-            let constants = [("D", dim as f64), ("WG", WORKGROUP as f64)];
-            let label = format!("vcycle {entry} ({dim}D)");
-            kernels::pipeline(dev, &pl, &module, entry, &label, &constants)
-        };
-        let pipes = Pipelines {
-            smooth_pre: pipe("smooth_pre"),
-            smooth_post: pipe("smooth_post"),
-            level_ax: pipe("level_ax"),
-            restrict_down: pipe("restrict_down"),
-            prolong_up: pipe("prolong_up"),
-        };
-        ctx.check("building the device V-cycle")?;
+        let kernels = ctx.cached(&format!("vcycle pipelines: {dim}D"), || {
+            let module = VCYCLE.module(dev, "f64", "f64");
+            let (layout, pl) = VCYCLE.layouts(dev, "vcycle");
+            let pipe = |entry: &str| {
+                let constants = [("D", dim as f64), ("WG", WORKGROUP as f64)];
+                let label = format!("vcycle {entry} ({dim}D)");
+                kernels::pipeline(dev, &pl, &module, entry, &label, &constants)
+            };
+            let pipes = Pipelines {
+                smooth_pre: pipe("smooth_pre"),
+                smooth_post: pipe("smooth_post"),
+                level_ax: pipe("level_ax"),
+                restrict_down: pipe("restrict_down"),
+                prolong_up: pipe("prolong_up"),
+            };
+            VcycleKernels { layout, pipes }
+        })?;
         Ok(DeviceMultilevel {
             ctx: ctx.clone(),
             dim,
-            pipes,
-            layout,
+            kernels,
             levels: Vec::new(),
             hierarchy: None,
-            generation: None,
+            source: Source::Empty,
+            setup: None,
         })
+    }
+
+    /// Makes the levels' buffers for `hierarchy` under the binding limit `limit` unless
+    /// they are there; true when they were made (their values then are none yet).
+    fn ensure_levels(
+        &mut self,
+        hierarchy: &Arc<Hierarchy>,
+        finest: Finest<'_>,
+        limit: u64,
+    ) -> Result<bool, GpuError> {
+        let same = self
+            .hierarchy
+            .as_ref()
+            .is_some_and(|(h, lim)| Arc::ptr_eq(h, hierarchy) && *lim == limit);
+        if same {
+            return Ok(false);
+        }
+        self.levels = Vec::new();
+        self.setup = None;
+        self.source = Source::Empty;
+        self.hierarchy = None;
+        self.levels = self.build(hierarchy, finest, limit)?;
+        self.hierarchy = Some((hierarchy.clone(), limit));
+        Ok(true)
     }
 
     /// Uploads `ml`'s levels for the constraint set `frames`, the inverses split under
     /// `forced` (or the adapter's binding limit): only the smoothing weights when the
     /// device holds `ml`'s generation (kept levels refreshed without new masks: the rest
-    /// is the same, and the finest matrix is the PCG's own), only the values when `ml`
-    /// has the hierarchy of the last call, everything otherwise.
+    /// is the same, and the finest matrix is the PCG's own), the values otherwise (the
+    /// buffers made first when `ml`'s hierarchy is not the last call's).
     pub(super) fn set(
         &mut self,
         ml: &Multilevel,
@@ -356,35 +448,25 @@ impl DeviceMultilevel {
             )));
         }
         let limit = values_limit(&self.ctx, forced);
-        let same = self
-            .hierarchy
-            .as_ref()
-            .is_some_and(|(h, lim)| Arc::ptr_eq(h, ml.hierarchy()) && *lim == limit);
-        let generation = Some(ml.generation());
-        if same && self.generation == generation {
+        self.ensure_levels(ml.hierarchy(), finest, limit)?;
+        let generation = Source::Host(ml.generation());
+        if self.source == generation {
             for (lev, v) in self.levels.iter().zip(&views) {
-                // ω is the first value of every level (`pack_values`).
+                // ω is the first value of every level (`pack_indices`).
                 self.ctx
                     .write_buffer(&lev.vals, 0, bytemuck::cast_slice(&[v.omega]));
             }
             return Ok(());
         }
-        self.generation = None;
-        if !same {
-            self.levels = self.build(ml.hierarchy(), &views, frames, finest, limit)?;
-            self.hierarchy = Some((ml.hierarchy().clone(), limit));
-            self.generation = generation;
-            return Ok(());
-        }
+        self.source = Source::Empty;
         for (l, v) in views.iter().enumerate() {
             let mask = (l == 0).then_some(&frames.mask[..]);
-            // The offsets are those of the build: only the values are new.
-            let vals = pack_values(v, l == 0, &mut VcycleParams::default())?;
+            let vals = pack_values(v, l == 0);
             let inv = pack_inverses(v, d, mask)?;
             let lev = &self.levels[l];
-            if vals.len() != lev.vals_len {
+            if vals.len() != lev.vals_len || v.inv_start != inverse_starts(v.ptr, d) {
                 return Err(GpuError::Mismatch(
-                    "the multilevel values changed size on the same hierarchy".into(),
+                    "the multilevel values do not have the layout of their hierarchy".into(),
                 ));
             }
             self.ctx
@@ -395,24 +477,99 @@ impl DeviceMultilevel {
                     .write_buffer(&ch.buffer, 0, bytemuck::cast_slice(&inv[r]));
             }
         }
-        self.generation = generation;
+        self.source = generation;
         Ok(())
     }
 
+    /// Builds or refreshes the levels on the device as `how` says
+    /// ([`crate::solve::multilevel::reuse::KeptLevels::plan`]), from the H the PCG holds
+    /// (`matrix`) and the constraint set of `frames`: nothing of the mesh's size crosses
+    /// the bus (module docs of src/gpu/pcg/mlsetup.rs). Kept or remasked levels must be
+    /// the device's own, on the same hierarchy.
+    pub(super) fn compute(
+        &mut self,
+        hierarchy: &Arc<Hierarchy>,
+        how: Levels,
+        finest: Finest<'_>,
+        matrix: &FinestMatrix<'_>,
+        forced: Option<u64>,
+    ) -> Result<(), GpuError> {
+        let limit = values_limit(&self.ctx, forced);
+        let fresh = self.ensure_levels(hierarchy, finest, limit)?;
+        if how != Levels::Built && (fresh || self.source != Source::Device) {
+            return Err(GpuError::Mismatch(
+                "kept multilevel levels that the device did not build".into(),
+            ));
+        }
+        if self.setup.is_none() {
+            let setup = DeviceSetup::new(&self.ctx, self.dim, hierarchy, &self.levels, matrix)?;
+            self.setup = Some(setup);
+        }
+        self.source = Source::Empty;
+        if let Some(setup) = self.setup.as_mut() {
+            setup.run(&self.levels, how, matrix)?;
+        }
+        self.source = Source::Device;
+        Ok(())
+    }
+
+    /// Every level's values as the V-cycle reads them, read back (tests and diagnostics).
+    pub(super) fn read_levels(&self) -> Result<Vec<LevelValues>, GpuError> {
+        let lambdas = match (&self.setup, self.source) {
+            (Some(setup), Source::Device) => setup.lambdas()?,
+            _ => Vec::new(),
+        };
+        let mut out = Vec::with_capacity(self.levels.len());
+        for (l, lev) in self.levels.iter().enumerate() {
+            let what = format!("reading back multilevel level {l}");
+            let f64s = |b: Vec<u8>| -> Vec<f64> { bytemuck::pod_collect_to_vec(&b) };
+            let vals = f64s(
+                self.ctx
+                    .download(&lev.vals, 0, 8 * lev.vals_len as u64, &what)?,
+            );
+            let mut inverses = Vec::new();
+            for ch in &lev.inverses {
+                let bytes = 8 * ch.len as u64;
+                inverses.extend(f64s(self.ctx.download(&ch.buffer, 0, bytes, &what)?));
+            }
+            let p = &lev.params;
+            let (a, pa, pta) = (p.a_at as usize, p.p_at as usize, p.pt_at as usize);
+            let next = p.has_next != 0;
+            out.push(LevelValues {
+                lambda: lambdas.get(l).copied(),
+                omega: vals[0],
+                matrix: vals[a..if next { pa } else { vals.len() }].to_vec(),
+                inverses,
+                p: if next {
+                    vals[pa..pta].to_vec()
+                } else {
+                    Vec::new()
+                },
+                pt: if next {
+                    vals[pta..].to_vec()
+                } else {
+                    Vec::new()
+                },
+            });
+        }
+        Ok(out)
+    }
+
+    /// The levels' buffers for `hierarchy` (values zero but the coarsest level's ω, 1)
+    /// and the V-cycle's bind groups over them.
     fn build(
         &self,
-        hierarchy: &crate::solve::multilevel::Hierarchy,
-        views: &[LevelView<'_>],
-        frames: &Frames,
+        hierarchy: &Hierarchy,
         finest: Finest<'_>,
         limit: u64,
     ) -> Result<Vec<DeviceLevel>, GpuError> {
         let (ctx, d) = (&self.ctx, self.dim);
         let sizes = hierarchy.level_sizes(d);
+        let patterns = hierarchy.patterns();
         // b, x, ax of every level below the finest, then a spare pair for the coarsest's
         // (unused) next level.
-        let mut vecs: Vec<[wgpu::Buffer; 3]> = Vec::with_capacity(views.len());
-        for (l, v) in views.iter().enumerate().skip(1) {
+        let mut vecs: Vec<[wgpu::Buffer; 3]> = Vec::with_capacity(patterns.len());
+        for (l, v) in patterns.iter().enumerate().skip(1) {
             let bytes = (8 * v.n * d) as u64;
             let mk = |what: &str| ctx.storage_zeroed(&format!("vcycle level {l} {what}"), bytes);
             vecs.push([mk("b")?, mk("x")?, mk("ax")?]);
@@ -421,23 +578,21 @@ impl DeviceMultilevel {
             ctx.storage_zeroed("vcycle no level below (b)", 16)?,
             ctx.storage_zeroed("vcycle no level below (x)", 16)?,
         ];
-        let mut levels = Vec::with_capacity(views.len());
-        for (l, v) in views.iter().enumerate() {
-            let mask = (l == 0).then_some(&frames.mask[..]);
-            let (idx, mut p) = pack_indices(v, l == 0)?;
-            let vals = pack_values(v, l == 0, &mut p)?;
-            let inv = pack_inverses(v, d, mask)?;
+        let mut levels = Vec::with_capacity(patterns.len());
+        for (l, v) in patterns.iter().enumerate() {
+            let (idx, p) = pack_indices(v, d, l == 0)?;
+            let vals_len = self.values_len(v, l == 0);
+            let starts = inverse_starts(v.ptr, d);
             // The sizes the memory checks counted are the sizes packed.
             let want = &sizes[l];
-            if (idx.len(), vals.len(), inv.len())
+            if (idx.len(), vals_len, starts[starts.len() - 1])
                 != (want.index_words, want.values, want.inverses.iter().sum())
             {
                 return Err(GpuError::Mismatch(format!(
-                    "multilevel level {l}: {} index words, {} values and {} inverse values \
-                     packed, {} and {} counted",
+                    "multilevel level {l}: {} index words, {vals_len} values and {} inverse \
+                     values packed, {} and {} counted",
                     idx.len(),
-                    vals.len(),
-                    inv.len(),
+                    starts[starts.len() - 1],
                     want.index_words,
                     want.values
                 )));
@@ -446,21 +601,25 @@ impl DeviceMultilevel {
                 &format!("vcycle level {l} indices"),
                 bytemuck::cast_slice(&idx),
             )?;
-            let vals_buf = ctx.storage_with(
-                &format!("vcycle level {l} values"),
-                bytemuck::cast_slice(&vals),
-            )?;
+            let vals_buf =
+                ctx.storage_zeroed(&format!("vcycle level {l} values"), 8 * vals_len as u64)?;
+            if l + 1 == patterns.len() {
+                // The coarsest level is solved: ω = 1 (`LevelView::omega`).
+                ctx.write_buffer(&vals_buf, 0, bytemuck::cast_slice(&[1.0f64]));
+            }
             let mut inverses = Vec::new();
             for (k, r) in inverse_chunks(&want.inverses, limit, l)?
                 .into_iter()
                 .enumerate()
             {
-                let at = v.inv_start[r.start]..v.inv_start[r.end];
+                let at = starts[r.start]..starts[r.end];
                 inverses.push(InverseChunk {
                     unknowns: v.ptr[r.start] * d..v.ptr[r.end] * d,
-                    buffer: ctx.storage_with(
+                    base: at.start,
+                    len: at.len(),
+                    buffer: ctx.storage_zeroed(
                         &format!("vcycle level {l} inverses {k}"),
-                        bytemuck::cast_slice(&inv[at]),
+                        8 * at.len() as u64,
                     )?,
                     clusters: r,
                 });
@@ -475,14 +634,14 @@ impl DeviceMultilevel {
                 Some(v) => (&v[0], &v[1]),
                 None => (&spare[0], &spare[1]),
             };
-            let mut keep = vec![idx_buf.clone()];
+            let mut keep = Vec::new();
             let mut groups = Vec::with_capacity(inverses.len());
             for (k, ch) in inverses.iter().enumerate() {
                 let u = index;
                 let pk = VcycleParams {
                     t_begin: u(ch.unknowns.start)?,
                     t_end: u(ch.unknowns.end)?,
-                    inv_base: u(v.inv_start[ch.clusters.start])?,
+                    inv_base: u(ch.base)?,
                     ..p
                 };
                 let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -504,7 +663,7 @@ impl DeviceMultilevel {
                 ];
                 groups.push(kernels::bind_group(
                     &ctx.device,
-                    &self.layout,
+                    &self.kernels.layout,
                     &format!("vcycle level {l} inverses {k}"),
                     &bufs,
                 ));
@@ -513,21 +672,32 @@ impl DeviceMultilevel {
             if l > 0 {
                 keep.extend(vecs[l - 1].iter().cloned());
             }
-            if l + 1 == views.len() {
+            if l + 1 == patterns.len() {
                 keep.extend(spare.iter().cloned());
             }
             levels.push(DeviceLevel {
                 n: v.n,
                 clusters: v.ptr.len() - 1,
+                idx: idx_buf,
+                params: p,
                 vals: vals_buf,
-                vals_len: vals.len(),
+                vals_len,
                 inverses,
                 groups,
                 _keep: keep,
             });
         }
-        ctx.check("uploading the multilevel preconditioner")?;
+        ctx.check("making the multilevel preconditioner's buffers")?;
         Ok(levels)
+    }
+
+    /// The f64 values of one level but its inverses (ω, the matrix below the finest, P
+    /// and Pᵀ).
+    fn values_len(&self, v: &LevelPattern<'_>, finest: bool) -> usize {
+        let dd = self.dim * self.dim;
+        let a = if finest { 0 } else { v.col_idx.len() * dd };
+        let p = v.to_next.map_or(0, |pr| 2 * pr.p_col.len() * dd);
+        1 + a + p
     }
 
     /// Whether levels are on the device.
@@ -557,7 +727,7 @@ impl DeviceMultilevel {
                 WORKGROUP,
             )
         };
-        let p = &self.pipes;
+        let p = &self.kernels.pipes;
         let nl = self.levels.len();
         let product = |l: usize| -> Step<'_> {
             if l == 0 {

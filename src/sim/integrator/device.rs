@@ -10,8 +10,11 @@
 //! the loop's own code, on those few entries). Once per step the positions, velocities
 //! and the gradient come back for the output (steps.csv, frames, reactions).
 //!
-//! With the multilevel preconditioner H also comes back once per Newton iteration: the
-//! host builds the levels with the CPU CG's code and uploads them ([`DeviceCg::set_multilevel`]).
+//! The multilevel preconditioner's levels are built and refreshed on the device from the
+//! H it assembled ([`DeviceCg::set_multilevel_on_device`], src/gpu/pcg/mlsetup.rs): the host
+//! partitions the mesh once per run and asks [`KeptLevels::plan`], the CPU loop's decision,
+//! whether to build, keep or remask the levels of each system; no byte moves for them per
+//! Newton iteration.
 //!
 //! The decisions are the CPU loop's; the arithmetic differs in summation order and in the
 //! CG (the scene's preconditioner and coarse space on the device, against the scene's CPU
@@ -26,10 +29,8 @@ use super::linear::LinearStats;
 use super::report::GpuRunReport;
 use super::state::{Contact, State, CCD_FRACTION, INVERSION_FRACTION};
 use super::targets::MovingTargets;
-use crate::core::constraints::Frames;
-use crate::core::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::gpu::pcg::{DeviceCg, DeviceCgParams, DeviceFrames, Tail};
-use crate::gpu::{GpuContext, GpuError, GpuOptions, Phase, PhaseGuard, Precision};
+use crate::gpu::{GpuContext, GpuError, GpuOptions, Phase, PhaseGuard, Precision, TrafficCount};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::checks::{BalanceFrames, NewtonChecks};
 use crate::sim::device::elements::{GpuElements, TermKind};
@@ -76,10 +77,13 @@ pub(super) struct DeviceLoop {
     at_trial: bool,
     /// ... and hold the first trial's, which the loop asked for.
     trial_is_first: bool,
-    /// The multilevel preconditioner's clusters (H's pattern only: once per run), its
-    /// levels when kept between systems, and the host seconds of its setups so far.
+    /// The multilevel preconditioner's clusters (H's pattern only: once per run), the
+    /// decisions on its levels (built, kept or remasked per system, as the CPU loop's),
+    /// and the host seconds and bytes of its setups so far.
+    hierarchy: Option<std::sync::Arc<Hierarchy>>,
     levels: KeptLevels,
     multilevel_seconds: f64,
+    multilevel_traffic: TrafficCount,
     dim: usize,
 }
 
@@ -153,8 +157,9 @@ pub fn check_capacity(
 }
 
 /// The multilevel preconditioner's clusters of the assembled pattern (built once per run),
-/// refused in one line before any Newton iteration when a level's buffers exceed the
-/// adapter's limits or the levels do not fit beside the loop's buffers.
+/// refused in one line before any Newton iteration when a buffer of the levels or of their
+/// setup on the device exceeds the adapter's limits or they do not fit beside the loop's
+/// buffers.
 fn multilevel_hierarchy(
     ctx: &GpuContext,
     scene: &Scene,
@@ -170,15 +175,20 @@ fn multilevel_hierarchy(
         values: Vec::new(),
     };
     let hierarchy = Hierarchy::new(&pattern);
+    let chunks = asm.values_chunks().len();
     let bytes = crate::gpu::pcg::multilevel_bytes(ctx, &hierarchy.level_sizes(d), d, None)
+        .and_then(|levels| {
+            let setup = crate::gpu::pcg::multilevel_setup_bytes(ctx, &hierarchy, d, chunks, None)?;
+            Ok(levels + setup)
+        })
         .map_err(device_error)?;
     let need = device_bytes_needed(scene) + bytes;
     if let Some(have) = ctx.device_memory() {
         if need > have {
             return Err(cannot_hold(format!(
                 "the GPU Newton loop needs about {need} bytes of device memory for {} nodes \
-                 with the multilevel preconditioner ({bytes} for its levels), adapter '{}' \
-                 has {have}",
+                 with the multilevel preconditioner ({bytes} for its levels and their setup), \
+                 adapter '{}' has {have}",
                 scene.model.n_nodes,
                 ctx.adapter_name()
             )));
@@ -219,10 +229,14 @@ impl DeviceLoop {
         let tail = LineSearchTail::new(&ctx, cg.state_buffer()).map_err(device_error)?;
         let d = scene.dim;
         let setup = scene.solver.multilevel_setup;
-        let levels = if scene.solver.preconditioner == Preconditioner::Multilevel {
-            KeptLevels::with_hierarchy(setup, multilevel_hierarchy(&ctx, scene, &asm)?)
+        let hierarchy = if scene.solver.preconditioner == Preconditioner::Multilevel {
+            Some(multilevel_hierarchy(&ctx, scene, &asm)?)
         } else {
-            KeptLevels::new(setup)
+            None
+        };
+        let levels = match &hierarchy {
+            Some(h) => KeptLevels::with_hierarchy(setup, h.clone()),
+            None => KeptLevels::new(setup),
         };
         let matrix_bytes = (asm.pattern().1.len() * d * d * 8) as u64;
         Ok(DeviceLoop {
@@ -250,8 +264,10 @@ impl DeviceLoop {
             first_trial: None,
             at_trial: false,
             trial_is_first: false,
+            hierarchy,
             levels,
             multilevel_seconds: 0.0,
+            multilevel_traffic: TrafficCount::default(),
             dim: d,
         })
     }
@@ -278,6 +294,8 @@ impl DeviceLoop {
             dispatches: prof.dispatches,
             phases: prof.phases,
             device_seconds: prof.device_seconds,
+            multilevel_host_to_device_bytes: self.multilevel_traffic.host_to_device_bytes,
+            multilevel_device_to_host_bytes: self.multilevel_traffic.device_to_host_bytes,
             newton_iterations: 0,
         }
     }
@@ -294,16 +312,24 @@ impl DeviceLoop {
 }
 
 impl DeviceLoop {
-    /// The multilevel preconditioner of the system just assembled: H read back, its levels
-    /// built on the host by the CPU CG's code ([`crate::solve::multilevel::Multilevel`])
-    /// and uploaded, or the kept ones refreshed as the CPU loop does ([`KeptLevels`]).
-    fn set_multilevel(&mut self, frames: &Frames) -> Result<(), GpuError> {
+    /// The multilevel preconditioner of the system just assembled and prepared with the
+    /// constraint set `snapped`: [`KeptLevels::plan`] decides as the CPU loop does, the
+    /// device builds, keeps or remasks the levels from its own H. Its host seconds and
+    /// the context's bytes moved meanwhile are counted for the report.
+    fn set_multilevel(&mut self, state: &State, snapped: &[bool]) -> Result<(), GpuError> {
         let t = Instant::now();
-        let h = self.asm.read_matrix()?;
-        let g = vec![0.0; h.n * h.dim];
-        let e = Eliminated::new(&h, &g, frames, ConstrainedDiagonal::Identity);
-        let (ml, _) = self.levels.for_system(&e);
-        self.cg.set_multilevel(&ml, frames, None)?;
+        let before = self.ctx.traffic();
+        let hierarchy = self.hierarchy.clone().ok_or_else(|| {
+            GpuError::Mismatch("the multilevel preconditioner has no hierarchy".into())
+        })?;
+        let how = self.levels.plan(&hierarchy, &state.frames[snapped]);
+        let frames = &self.frames[snapped];
+        self.cg
+            .set_multilevel_on_device(&hierarchy, frames, how, None)?;
+        let after = self.ctx.traffic();
+        let m = &mut self.multilevel_traffic;
+        m.host_to_device_bytes += after.host_to_device_bytes - before.host_to_device_bytes;
+        m.device_to_host_bytes += after.device_to_host_bytes - before.device_to_host_bytes;
         self.multilevel_seconds += t.elapsed().as_secs_f64();
         Ok(())
     }
@@ -532,8 +558,7 @@ impl Backend for DeviceLoop {
             self.cg.prepare(frames).map_err(cg_error)?;
             if multilevel {
                 let _phase = self.ctx.phase(Phase::PreconditionerSetup);
-                self.set_multilevel(&state.frames[snapped])
-                    .map_err(cg_error)?;
+                self.set_multilevel(state, snapped).map_err(cg_error)?;
             }
             let _solving = self.ctx.phase(Phase::Cg);
             match self.solve_with_first_trial(state, snapped, self.params, rule) {
@@ -573,7 +598,7 @@ impl Backend for DeviceLoop {
         if multilevel {
             if self.levels.rebuild_due() {
                 let _setup = self.ctx.phase(Phase::PreconditionerSetup);
-                self.set_multilevel(&state.frames[&moving.snapped])
+                self.set_multilevel(state, &moving.snapped)
                     .map_err(cg_error)?;
             } else {
                 self.levels.again();

@@ -269,6 +269,8 @@ impl Backend for HostBackend {
             dispatches: 0,
             phases: Vec::new(),
             device_seconds: Vec::new(),
+            multilevel_host_to_device_bytes: 0,
+            multilevel_device_to_host_bytes: 0,
             newton_iterations: 0,
         })
     }

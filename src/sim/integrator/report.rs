@@ -93,9 +93,9 @@ pub struct GpuRunReport {
     /// (3·128)² whatever the mesh (0 for the CPU loop and other coarse spaces).
     pub coarse_host_to_device_bytes: u64,
     pub coarse_device_to_host_bytes: u64,
-    /// Host seconds the device loop spent on the multilevel preconditioner's setup (H read
-    /// back, the levels built and uploaded, once per Newton iteration; part of the linear
-    /// seconds; 0 without it and for the CPU loop).
+    /// Host seconds the device loop spent on the multilevel preconditioner's setup (the
+    /// decision and the recording of the device's setup kernels, once per Newton
+    /// iteration; part of the linear seconds; 0 without it and for the CPU loop).
     pub multilevel_setup_seconds: f64,
     /// Every wait of the host on the device (read-backs and explicit waits), set-up
     /// included.
@@ -110,6 +110,11 @@ pub struct GpuRunReport {
     /// none).
     #[serde(serialize_with = "phase_map")]
     pub device_seconds: Vec<(Phase, f64)>,
+    /// Of the totals, the multilevel preconditioner's setup: the levels' index words and
+    /// the setup's dispatch parameters once per run, nothing per Newton iteration (0
+    /// without it and for the CPU loop).
+    pub multilevel_host_to_device_bytes: u64,
+    pub multilevel_device_to_host_bytes: u64,
     /// Newton iterations of the run (filled in by the driver, which counts them).
     pub newton_iterations: usize,
 }

@@ -135,6 +135,32 @@ impl Hierarchy {
         self.n == h.n && self.levels[0].row_ptr == h.row_ptr && self.levels[0].col_idx == h.col_idx
     }
 
+    /// Every level's clusters and patterns, finest first: what a device builds the
+    /// levels' values on ([`Multilevel::levels`] has the same with the values).
+    pub fn patterns(&self) -> Vec<LevelPattern<'_>> {
+        self.levels
+            .iter()
+            .enumerate()
+            .map(|(l, lev)| LevelPattern {
+                n: lev.n,
+                of: &lev.of,
+                pos: &lev.pos,
+                ptr: &lev.ptr,
+                items: &lev.items,
+                row_ptr: &lev.row_ptr,
+                col_idx: &lev.col_idx,
+                to_next: self.smooth.get(l).map(|sp| SmoothView {
+                    p_ptr: &sp.p_ptr,
+                    p_col: &sp.p_col,
+                    q_ptr: &sp.q_ptr,
+                    q_col: &sp.q_col,
+                    pt_ptr: &sp.pt_ptr,
+                    pt: &sp.pt,
+                }),
+            })
+            .collect()
+    }
+
     /// Clusters per level, finest first.
     pub fn cluster_counts(&self) -> Vec<usize> {
         self.levels.iter().map(Level::clusters).collect()
@@ -194,7 +220,40 @@ pub struct LevelSizes {
     pub items: usize,
 }
 
-/// How kept levels serve a constraint set ([`Multilevel::fit`]).
+/// One level of a [`Hierarchy`], borrowed: its clusters and the patterns of its matrix
+/// and of the smoothed prolongation to the next level (no values).
+#[derive(Debug, Clone, Copy)]
+pub struct LevelPattern<'a> {
+    /// Items (nodes at level 0, clusters of the level above deeper down).
+    pub n: usize,
+    /// Cluster of each item, its position in the cluster, the clusters' item ranges and
+    /// the items by cluster.
+    pub of: &'a [u32],
+    pub pos: &'a [u32],
+    pub ptr: &'a [usize],
+    pub items: &'a [u32],
+    /// The level's matrix's block pattern (level 0: H's).
+    pub row_ptr: &'a [usize],
+    pub col_idx: &'a [usize],
+    /// The patterns of the prolongation to the next level (none at the coarsest).
+    pub to_next: Option<SmoothView<'a>>,
+}
+
+/// The patterns of one smoothed prolongation P, of Q = A P and of Pᵀ, borrowed: P's row i
+/// holds blocks `p_ptr[i]..p_ptr[i + 1]` in cluster columns `p_col`, Q's the same with
+/// `q_ptr`/`q_col`, and cluster c's column of P is `pt[pt_ptr[c]..pt_ptr[c + 1]]` as
+/// (row item, block index in P) by row: the order the Galerkin sum takes them in.
+#[derive(Debug, Clone, Copy)]
+pub struct SmoothView<'a> {
+    pub p_ptr: &'a [usize],
+    pub p_col: &'a [u32],
+    pub q_ptr: &'a [usize],
+    pub q_col: &'a [u32],
+    pub pt_ptr: &'a [usize],
+    pub pt: &'a [(u32, u32)],
+}
+
+/// How kept levels serve a constraint set ([`Multilevel::fit`], [`frames_fit`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum FramesFit {
     /// The constraint set they were built for.
@@ -203,6 +262,29 @@ pub enum FramesFit {
     Masked,
     /// Another one: build anew.
     No,
+}
+
+/// How levels built for (or remasked to) the constraint set `old` serve `new`: as they
+/// are (the same constrained components in the same node frames), after masking the
+/// components `new` constrains on top (every node keeps its frame, or is constrained
+/// whole), or not at all.
+pub fn frames_fit(old: &Frames, new: &Frames) -> FramesFit {
+    if old.n_nodes != new.n_nodes || old.dim != new.dim {
+        return FramesFit::No;
+    }
+    if old.mask == new.mask && old.rot_index == new.rot_index && old.rotations == new.rotations {
+        return FramesFit::Same;
+    }
+    let full = (1u8 << new.dim) - 1;
+    let serves = (0..new.n_nodes).all(|i| {
+        let (was, now) = (old.mask[i], new.mask[i]);
+        now & was == was && (now == full || old.rotation(i) == new.rotation(i))
+    });
+    if serves {
+        FramesFit::Masked
+    } else {
+        FramesFit::No
+    }
 }
 
 /// The smoother's damping is ω_l = min([`OMEGA_MAX`], [`OMEGA_LAMBDA`] / λ̂_l): the V-cycle
@@ -337,26 +419,7 @@ impl Multilevel {
     /// masks the components `frames` constrains on top (every node keeps its frame, or is
     /// constrained whole), or not at all.
     pub fn fit(&self, frames: &Frames) -> FramesFit {
-        let old = &self.built_for;
-        if old.n_nodes != frames.n_nodes || old.dim != frames.dim {
-            return FramesFit::No;
-        }
-        if old.mask == frames.mask
-            && old.rot_index == frames.rot_index
-            && old.rotations == frames.rotations
-        {
-            return FramesFit::Same;
-        }
-        let full = (1u8 << self.dim) - 1;
-        let serves = (0..frames.n_nodes).all(|i| {
-            let (was, now) = (old.mask[i], frames.mask[i]);
-            now & was == was && (now == full || old.rotation(i) == frames.rotation(i))
-        });
-        if serves {
-            FramesFit::Masked
-        } else {
-            FramesFit::No
-        }
+        frames_fit(&self.built_for, frames)
     }
 
     /// Keeps the levels for a new system `e` of the same pattern whose constraint set

@@ -6,10 +6,17 @@
 //! and constraint set ([`Multilevel::refresh`]: the finest matrix and its smoothing weight
 //! are the new system's) until a solve on them takes more than [`REBUILD_GROWTH`] times
 //! the iterations per decade of residual reduction of the first solve after the build, or
-//! fails. Every decision comes from iteration counts and tolerances, so the CPU CG and the
-//! device PCG, which take the same iterations, keep and rebuild on the same systems.
+//! fails. Every decision comes from iteration counts, tolerances and constraint sets, so
+//! the CPU CG and the device PCG, which take the same iterations, keep and rebuild on the
+//! same systems.
+//!
+//! The decision ([`KeptLevels::plan`]) is apart from the building: the CPU CG's solver and
+//! `solve --solver gpu` build on the host ([`KeptLevels::for_system`]), the device Newton
+//! loop asks only for the decision and carries it out on the device
+//! (src/gpu/pcg/mlsetup.rs).
 
-use super::{FramesFit, Hierarchy, Multilevel};
+use super::{frames_fit, FramesFit, Hierarchy, Multilevel};
+use crate::core::constraints::Frames;
 use crate::core::elimination::Eliminated;
 use crate::core::sparse::BlockCsr;
 use crate::solve::options::MultilevelSetup;
@@ -19,7 +26,7 @@ use std::sync::Arc;
 /// the first solve on them has the next system rebuild them.
 pub const REBUILD_GROWTH: f64 = 1.5;
 
-/// What [`KeptLevels::for_system`] did.
+/// What [`KeptLevels::plan`] decided (and [`KeptLevels::for_system`] did).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Levels {
     /// Built for this system.
@@ -39,7 +46,11 @@ pub enum Levels {
 pub struct KeptLevels {
     setup: MultilevelSetup,
     hierarchy: Option<Arc<Hierarchy>>,
+    /// The levels built on the host ([`KeptLevels::for_system`]), when kept.
     levels: Option<Arc<Multilevel>>,
+    /// The hierarchy and the constraint set the current levels were built on (or
+    /// remasked to), when they may be kept.
+    serving: Option<(Arc<Hierarchy>, Frames)>,
     /// Iterations per decade of the first solve on the current levels.
     fresh_rate: Option<f64>,
     /// The next system rebuilds the levels.
@@ -55,6 +66,7 @@ impl KeptLevels {
             setup,
             hierarchy: None,
             levels: None,
+            serving: None,
             fresh_rate: None,
             rebuild: false,
             last: Levels::Built,
@@ -76,31 +88,58 @@ impl KeptLevels {
         Hierarchy::kept_for(&mut self.hierarchy, h)
     }
 
-    /// The levels for the system `e`: kept and refreshed when the setup allows it and
-    /// they fit `e`'s pattern and constraint set, else built.
-    pub fn for_system(&mut self, e: &Eliminated) -> (Arc<Multilevel>, Levels) {
-        let hierarchy = self.hierarchy_for(e.h);
-        if self.setup == MultilevelSetup::Reuse && !self.rebuild {
-            if let Some(ml) = self.levels.as_mut() {
-                let how = match ml.fit(e.frames) {
+    /// Decides the levels of the next system, on the hierarchy `hierarchy` with the
+    /// constraint set `frames`, and counts it: [`Levels::Kept`] or [`Levels::Remasked`]
+    /// when the setup keeps levels, no rebuild is due and the current levels were built
+    /// on `hierarchy` for a constraint set that `frames` leaves alone or masks further
+    /// ([`frames_fit`]); [`Levels::Built`] otherwise. The caller builds or refreshes the
+    /// levels accordingly (the device Newton loop on the device).
+    pub fn plan(&mut self, hierarchy: &Arc<Hierarchy>, frames: &Frames) -> Levels {
+        self.decide(hierarchy, frames, true)
+    }
+
+    /// [`KeptLevels::plan`], keeping levels only where `can_keep` (the caller holds them).
+    fn decide(&mut self, hierarchy: &Arc<Hierarchy>, frames: &Frames, can_keep: bool) -> Levels {
+        if can_keep && self.setup == MultilevelSetup::Reuse && !self.rebuild {
+            let how = self.serving.as_ref().and_then(|(h, served)| {
+                if !Arc::ptr_eq(h, hierarchy) {
+                    return None;
+                }
+                match frames_fit(served, frames) {
                     FramesFit::Same => Some(Levels::Kept),
                     FramesFit::Masked => Some(Levels::Remasked),
                     FramesFit::No => None,
-                };
-                if let Some(how) = how.filter(|_| Arc::ptr_eq(ml.hierarchy(), &hierarchy)) {
-                    Arc::make_mut(ml).refresh(e);
-                    self.last = how;
-                    self.kept += 1;
-                    return (ml.clone(), how);
                 }
+            });
+            if let Some(how) = how {
+                if how == Levels::Remasked {
+                    self.serving = Some((hierarchy.clone(), frames.clone()));
+                }
+                self.last = how;
+                self.kept += 1;
+                return how;
             }
         }
-        let ml = Arc::new(Multilevel::new(e, hierarchy));
-        self.levels = (self.setup == MultilevelSetup::Reuse).then(|| ml.clone());
+        self.serving =
+            (self.setup == MultilevelSetup::Reuse).then(|| (hierarchy.clone(), frames.clone()));
         self.rebuild = false;
         self.fresh_rate = None;
         self.last = Levels::Built;
         self.builds += 1;
+        Levels::Built
+    }
+
+    /// The levels for the system `e`, built on the host: kept and refreshed when
+    /// [`KeptLevels::plan`] keeps them, else built.
+    pub fn for_system(&mut self, e: &Eliminated) -> (Arc<Multilevel>, Levels) {
+        let hierarchy = self.hierarchy_for(e.h);
+        let how = self.decide(&hierarchy, e.frames, self.levels.is_some());
+        if let Some(ml) = self.levels.as_mut().filter(|_| how != Levels::Built) {
+            Arc::make_mut(ml).refresh(e);
+            return (ml.clone(), how);
+        }
+        let ml = Arc::new(Multilevel::new(e, hierarchy));
+        self.levels = (self.setup == MultilevelSetup::Reuse).then(|| ml.clone());
         (ml, Levels::Built)
     }
 
@@ -240,5 +279,50 @@ mod tests {
         every.for_system(&e);
         every.solved(20, 1e-4);
         assert_eq!(every.for_system(&e).1, Levels::Built);
+    }
+
+    /// The decision alone ([`KeptLevels::plan`], what the device loop asks) is the host
+    /// builder's ([`KeptLevels::for_system`]) system by system: through keeps, a slow
+    /// solve, a grown constraint set, a failure and a constraint set the levels do not
+    /// serve, with the same counts.
+    #[test]
+    fn the_plan_decides_as_the_host_builder() {
+        let s = random_system(&SystemSpec::with_nodes(3, 400, 12));
+        let hier = Arc::new(Hierarchy::new(&s.h));
+        let node = (0..s.frames.n_nodes)
+            .find(|&i| s.frames.mask[i] == 0 && s.frames.rotation(i).is_none())
+            .expect("a free node");
+        let mut more = s.frames.clone();
+        more.mask[node] = 0b111;
+        let mut host = KeptLevels::with_hierarchy(MultilevelSetup::Reuse, hier.clone());
+        let mut dev = KeptLevels::with_hierarchy(MultilevelSetup::Reuse, hier.clone());
+        // (constraint set, iterations of the solve or None for a failure, the decision).
+        let f = &s.frames;
+        let sequence = [
+            (f, Some(20), Levels::Built),
+            (f, Some(28), Levels::Kept),
+            (f, Some(32), Levels::Kept),
+            (f, Some(20), Levels::Built),
+            (&more, None, Levels::Remasked),
+            (&more, Some(20), Levels::Built),
+            (f, Some(20), Levels::Built),
+            (f, Some(20), Levels::Kept),
+        ];
+        for (k, (frames, solve, want)) in sequence.into_iter().enumerate() {
+            let e = Eliminated::new(&s.h, &s.g, frames, ConstrainedDiagonal::Identity);
+            let built = host.for_system(&e).1;
+            let planned = dev.plan(&hier, frames);
+            assert_eq!((built, planned), (want, want), "system {k}");
+            match solve {
+                Some(iterations) => {
+                    host.solved(iterations, 1e-4);
+                    dev.solved(iterations, 1e-4);
+                }
+                None => assert_eq!(host.failed(), dev.failed()),
+            }
+            assert_eq!(host.rebuild_due(), dev.rebuild_due(), "system {k}");
+        }
+        assert_eq!(host.counts(), dev.counts());
+        assert_eq!(host.counts(), (4, 4));
     }
 }

@@ -27,7 +27,7 @@ pub struct DeviceFrames {
     pub(super) coarse: CoarseSpace,
     /// With `Aggregates`: the aggregate index (`None` when every node is fixed).
     pub(super) agg: Option<AggregateIndex>,
-    /// Kept alive with the bind groups.
+    /// Kept alive with the bind groups (and bound by the multilevel setup's: cg/levels.rs).
     pub(super) _frame: wgpu::Buffer,
     pub(super) _rotations: wgpu::Buffer,
     pub(super) _aggregates: wgpu::Buffer,

@@ -24,6 +24,7 @@ use super::multilevel::DeviceMultilevel;
 mod coarse;
 mod frames;
 mod kernels;
+mod levels;
 mod profile;
 mod run;
 mod segment;
@@ -316,6 +317,8 @@ struct Buffers {
     params: Vec<wgpu::Buffer>,
     pattern: wgpu::Buffer,
     hvals: Vec<wgpu::Buffer>,
+    /// Each values chunk's rows and blocks (the multilevel setup reads H by them).
+    hruns: Vec<crate::gpu::blocks::RowRun>,
     grad: wgpu::Buffer,
     y: wgpu::Buffer,
     r: wgpu::Buffer,
@@ -504,6 +507,10 @@ impl DeviceCg {
             params,
             pattern: pattern_buf,
             hvals: chunks.iter().map(|c| c.buffer.clone()).collect(),
+            hruns: chunks
+                .iter()
+                .map(|c| (c.rows.clone(), c.blocks.clone()))
+                .collect(),
             grad: match grad {
                 Some(g) => g.clone(),
                 None => zeroed("pcg gradient (b̂ is given)", 16)?,
