@@ -58,6 +58,12 @@ pub mod slots {
     pub const STATE_BREAKDOWN: u32 = 3;
     /// Iterations done. The four flags come before it, so that clearing them keeps it.
     pub const STATE_ITERS: u32 = 4;
+    /// Set by `prepare` (shaders/coarse_factor.wgsl) when the aggregates' coarse matrix
+    /// has a pivot that is not positive and finite: E⁺ must come from the host. Read back
+    /// with every status; a run's start leaves it (it zeroes the STATE_RESET slots before).
+    pub const STATE_COARSE_FAILED: u32 = 7;
+    /// The slots a run zeroes at its start: all before STATE_COARSE_FAILED.
+    pub const STATE_RESET: u32 = STATE_COARSE_FAILED;
     /// Length of `state`.
     pub const N_STATE: u32 = 8;
     /// Partial-sum slots: p·q (the product), r·z and r·r (the updates, init), Zᵀr (D
@@ -84,7 +90,7 @@ pub mod slots {
             && SCAL_E + 9 <= SCAL_EABS
             && SCAL_EABS + 3 <= SCAL_HIST
     );
-    const _: () = assert!(STATE_ITERS < N_STATE);
+    const _: () = assert!(STATE_ITERS < STATE_RESET && STATE_COARSE_FAILED + 1 == N_STATE);
     const _: () = assert!(PART_ZR + 3 <= PART_BB && PART_BB < PART_E && PART_E + 12 <= N_PART);
     // coarse_e carries E and the absolute sums.
     const _: () = assert!(CARRY_LEN == 12);
@@ -104,6 +110,7 @@ pub const SHARED: &[(&str, u32)] = &[
     ("STATE_ITERS", slots::STATE_ITERS),
     ("STATE_CONVERGED", slots::STATE_CONVERGED),
     ("STATE_BREAKDOWN", slots::STATE_BREAKDOWN),
+    ("STATE_COARSE_FAILED", slots::STATE_COARSE_FAILED),
     ("PART_PQ", slots::PART_PQ),
     ("PART_RZ", slots::PART_RZ),
     ("PART_RR", slots::PART_RR),

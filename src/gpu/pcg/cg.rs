@@ -15,6 +15,7 @@ use std::sync::Arc;
 use Access::{Read as R, ReadWrite as W, Uniform as U};
 
 use super::aggregates::{self, AggregateIndex};
+use super::coarse_factor::CoarseFactor;
 use super::multilevel::{DeviceMultilevel, Finest, Step};
 use crate::solve::multilevel::Multilevel;
 
@@ -326,6 +327,8 @@ pub struct DeviceFrames {
     _aggregates: wgpu::Buffer,
     /// The aggregate coarse space's f64 data (shaders/pcg.wgsl, `coarse`).
     coarse_buf: wgpu::Buffer,
+    /// With the aggregates: the kernels that form E⁺ from E in `prepare`.
+    factor: Option<CoarseFactor>,
 }
 
 /// The pipelines of shaders/pcg.wgsl; those the coarse correction changes once per
@@ -489,11 +492,9 @@ pub struct DeviceCg {
     prepared: Option<u64>,
     /// E of that `prepare`.
     galerkin: Galerkin,
-    /// Whether E⁺ of the aggregates is on the device for that `prepare`.
-    agg_ready: bool,
     /// Bytes of the aggregates' E read back and E⁺ written so far (a part of the
-    /// context's traffic: (D·aggregates)² values each way per `prepare`, whatever the
-    /// mesh).
+    /// context's traffic: none where `prepare` forms E⁺ on the device, (D·aggregates)²
+    /// values each way per fallback and per E⁺ from the host, whatever the mesh).
     coarse_traffic: TrafficCount,
     /// The pattern as uploaded (row pointers, column indices, diagonal blocks), for the
     /// aggregates of [`DeviceCg::frames`].
@@ -516,6 +517,7 @@ pub struct DeviceCg {
     ml_ready: bool,
 }
 
+mod coarse_start;
 mod segment;
 
 impl DeviceCg {
@@ -658,7 +660,6 @@ impl DeviceCg {
             buf,
             prepared: None,
             galerkin: Galerkin::OnDevice,
-            agg_ready: false,
             coarse_traffic: TrafficCount::default(),
             host_pattern: pattern,
             given_rhs: grad.is_none(),
@@ -897,6 +898,17 @@ impl DeviceCg {
             .ctx
             .storage_with("pcg aggregates", bytemuck::cast_slice(&agg_words))?;
         let coarse_buf = self.ctx.storage_zeroed("pcg coarse space", coarse_bytes)?;
+        let factor = match &agg {
+            Some(a) => Some(CoarseFactor::new(
+                &self.ctx,
+                d,
+                self.ty.acc,
+                a,
+                &coarse_buf,
+                &self.buf.state,
+            )?),
+            None => None,
+        };
         let b = &self.buf;
         let mut groups = Vec::with_capacity(b.hvals.len());
         for (params, hvals) in b.params.iter().zip(&b.hvals) {
@@ -942,6 +954,7 @@ impl DeviceCg {
             _rotations: rot_buf,
             _aggregates: agg_buf,
             coarse_buf,
+            factor,
         })
     }
 
@@ -1051,7 +1064,8 @@ impl DeviceCg {
         Ok(())
     }
 
-    /// E⁺ of the aggregates written for the iterations of the current `prepare`.
+    /// E⁺ of the aggregates written from the host for the iterations of the current
+    /// `prepare`, in place of the device's (whose failure flag it clears).
     fn write_aggregate_einv(&mut self, frames: &DeviceFrames, einv: &[f64]) {
         let Some(a) = &frames.agg else { return };
         let acc = self.ty.acc;
@@ -1060,8 +1074,12 @@ impl DeviceCg {
             acc.size() * a.einv_at as u64,
             &acc.bytes(einv),
         );
+        self.ctx.write_buffer(
+            &self.buf.state,
+            4 * slots::STATE_COARSE_FAILED as u64,
+            &[0u8; 4],
+        );
         self.coarse_traffic.host_to_device_bytes += acc.size() * einv.len() as u64;
-        self.agg_ready = true;
     }
 
     fn prepare_kernels(&mut self, frames: &DeviceFrames, given: bool) -> Result<(), GpuError> {
@@ -1071,6 +1089,9 @@ impl DeviceCg {
         let p = &self.kernels.pipes;
         let g0 = &frames.groups[0];
         let rhs = if given { &p.rhs_given } else { &p.rhs };
+        // The failure flag belongs to this prepare (the factorization sets it).
+        let flag = 4 * slots::STATE_COARSE_FAILED as u64;
+        enc.clear_buffer(&self.buf.state, flag, Some(4));
         let mut kernels: Vec<Kernel> = vec![(rhs, l.segments, g0)];
         kernels.extend(Self::per_chunk(&p.precond, &l.chunk_rows, frames));
         kernels.extend(Self::per_chunk(&p.coarse_e, &l.chunk_segments, frames));
@@ -1080,12 +1101,14 @@ impl DeviceCg {
             let e = self.ctx.launch().grid((a.k * a.k) as u64, WORKGROUP);
             kernels.push((&p.agg_e, e, g0));
         }
+        if let Some(f) = &frames.factor {
+            kernels.extend(f.kernels());
+        }
         Self::pass(&mut enc, "pcg prepare", &kernels);
         self.ctx.queue.submit([enc.finish()]);
         self.ctx.check("preparing the device PCG")?;
         self.prepared = Some(frames.id);
         self.galerkin = Galerkin::OnDevice;
-        self.agg_ready = false;
         self.ml_ready = false;
         Ok(())
     }
@@ -1151,12 +1174,13 @@ impl DeviceCg {
             .unwrap_or_default()
     }
 
-    /// E of the aggregates (`prepare` reduced it on the device) read back, pseudo-inverted
-    /// on the host as the CPU does ([`crate::solve::coarse::aggregates_einv_from_galerkin`])
-    /// and E⁺ written back (zero where E has no usable part: no correction then); once per
-    /// `prepare`.
+    /// The fallback where `prepare` could not factor E of the aggregates on the device:
+    /// E read back, pseudo-inverted on the host as the CPU does
+    /// ([`crate::solve::coarse::aggregates_einv_from_galerkin`], whose fallback is the
+    /// eigen pseudo-inverse of the whole of E) and E⁺ written back (zero where E has no
+    /// usable part: no correction then).
     fn upload_aggregate_einv(&mut self, frames: &DeviceFrames) -> Result<(), GpuError> {
-        let Some(a) = frames.agg.as_ref().filter(|_| !self.agg_ready) else {
+        let Some(a) = frames.agg.as_ref() else {
             return Ok(());
         };
         let e = self.read_coarse(
@@ -1276,8 +1300,9 @@ impl DeviceCg {
         matches!(self.galerkin, Galerkin::Read { einv: None, .. })
     }
 
-    /// E⁺ of the aggregates (K×K, row-major) as the last `iterate` with them wrote it;
-    /// `None` for frames without aggregates. For tests and diagnostics (a read-back).
+    /// E⁺ of the aggregates (K×K, row-major) as the last `prepare` formed it (or the
+    /// host's, after a fallback or [`DeviceCg::set_galerkin_from_host`]); `None` for
+    /// frames without aggregates. For tests and diagnostics (a read-back).
     pub fn aggregate_einv(&self, frames: &DeviceFrames) -> Result<Option<Vec<f64>>, GpuError> {
         self.own(frames)?;
         let Some(a) = &frames.agg else {
@@ -1409,9 +1434,6 @@ impl DeviceCg {
             ));
         }
         self.check_pinned(frames)?;
-        if co == 2 {
-            self.upload_aggregate_einv(frames)?;
-        }
         self.recorded.set(0);
         self.reads.set(0);
         // Every slot before E: the scalars, c and E⁺ (zero without the correction, or
@@ -1442,21 +1464,23 @@ impl DeviceCg {
         let max = params.max_iterations;
         self.ctx
             .write_buffer(&self.buf.scal, 0, &self.ty.acc.bytes(&scal));
-        self.ctx
-            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
+        self.clear_state();
 
         // Start: from y = 0, so q = Ĥy = 0 without a product, or from the current y.
-        let mut enc = self.encoder("pcg start");
-        let mut kernels: Vec<Kernel> = Vec::new();
-        if from_current {
-            kernels.extend(self.product_of_y(&mut enc, frames));
-        } else {
-            enc.clear_buffer(&self.buf.y, 0, None);
-            enc.clear_buffer(&self.buf.q, 0, None);
-        }
-        kernels.extend(self.start(frames, pre, co));
-        Self::pass(&mut enc, "pcg start", &kernels);
-        let mut st = self.submit_and_read(enc, "starting the device PCG")?;
+        let record = |cg: &DeviceCg| {
+            let mut enc = cg.encoder("pcg start");
+            let mut kernels: Vec<Kernel> = Vec::new();
+            if from_current {
+                kernels.extend(cg.product_of_y(&mut enc, frames));
+            } else {
+                enc.clear_buffer(&cg.buf.y, 0, None);
+                enc.clear_buffer(&cg.buf.q, 0, None);
+            }
+            kernels.extend(cg.start(frames, pre, co));
+            Self::pass(&mut enc, "pcg start", &kernels);
+            enc
+        };
+        let mut st = self.start_status(frames, co, "starting the device PCG", &record)?;
         st.error(0)?;
         self.run_starts = vec![0];
         let bb = st.bb;
@@ -1578,8 +1602,7 @@ impl DeviceCg {
         self.ctx
             .write_buffer(&self.buf.y, 0, &self.ty.real.bytes(x));
         // No stop flag: the product runs.
-        self.ctx
-            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
+        self.clear_state();
         let mut enc = self.encoder("pcg product");
         let kernels = self.product_of_y(&mut enc, frames);
         Self::pass(&mut enc, "pcg product", &kernels);
@@ -1795,7 +1818,14 @@ impl DeviceCg {
         }
         self.own(frames)?;
         let (pre, co) = overrides(params, frames)?;
-        if co == 2 {
+        // No start status here: the flag is read on its own (a diagnostic's wait).
+        let state = self.ctx.download(
+            &self.buf.state,
+            0,
+            4 * slots::N_STATE as u64,
+            "reading the PCG state",
+        )?;
+        if co == 2 && schedule::state_words(&state)[slots::STATE_COARSE_FAILED as usize] != 0 {
             self.upload_aggregate_einv(frames)?;
         }
         // Tolerance 0: no stop flag is ever set, so every dispatch does its work.
@@ -1804,8 +1834,7 @@ impl DeviceCg {
             0,
             &vec![0u8; (self.ty.acc.size() * slots::SCAL_E as u64) as usize],
         );
-        self.ctx
-            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
+        self.clear_state();
         let mut enc = self.encoder("pcg profile start");
         enc.clear_buffer(&self.buf.y, 0, None);
         enc.clear_buffer(&self.buf.q, 0, None);

@@ -67,23 +67,25 @@ impl DeviceCg {
         };
         let acc = self.ty.acc;
         self.ctx.write_buffer(&self.buf.scal, 0, &acc.bytes(&scal));
-        self.ctx
-            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
-        let mut enc = self.encoder("pcg segment start");
-        enc.clear_buffer(&self.buf.y, 0, None);
-        enc.clear_buffer(&self.buf.q, 0, None);
-        let mut kernels = self.start(frames, pre, co);
-        // With the coarse correction `start` already ends in update_p; without it, init
-        // left p alone and update_p forms p = z + βp here.
-        if resume && co == 0 {
-            kernels.push((
-                &self.kernels.pipes.update_p[0],
-                self.launches.nodes,
-                &frames.groups[0],
-            ));
-        }
-        Self::pass(&mut enc, "pcg segment start", &kernels);
-        let mut st = self.submit_and_read(enc, "starting a device PCG segment")?;
+        self.clear_state();
+        let record = |cg: &DeviceCg| {
+            let mut enc = cg.encoder("pcg segment start");
+            enc.clear_buffer(&cg.buf.y, 0, None);
+            enc.clear_buffer(&cg.buf.q, 0, None);
+            let mut kernels = cg.start(frames, pre, co);
+            // With the coarse correction `start` already ends in update_p; without it,
+            // init left p alone and update_p forms p = z + βp here.
+            if resume && co == 0 {
+                kernels.push((
+                    &cg.kernels.pipes.update_p[0],
+                    cg.launches.nodes,
+                    &frames.groups[0],
+                ));
+            }
+            Self::pass(&mut enc, "pcg segment start", &kernels);
+            enc
+        };
+        let mut st = self.start_status(frames, co, "starting a device PCG segment", &record)?;
         st.error(0)?;
         // Only the start resumes: no later init of this PCG may take p as kept.
         self.ctx.write_buffer(
@@ -173,13 +175,15 @@ impl DeviceCg {
         let Begun { pre, co, scal, .. } = self.begin(frames, params)?;
         let acc = self.ty.acc;
         self.ctx.write_buffer(&self.buf.scal, 0, &acc.bytes(&scal));
-        self.ctx
-            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
-        let mut enc = self.encoder("pcg residual");
-        let mut kernels = self.product_of_y(&mut enc, frames);
-        kernels.extend(self.start(frames, pre, co));
-        Self::pass(&mut enc, "pcg residual", &kernels);
-        let st = self.submit_and_read(enc, "the device PCG's residual")?;
+        self.clear_state();
+        let record = |cg: &DeviceCg| {
+            let mut enc = cg.encoder("pcg residual");
+            let mut kernels = cg.product_of_y(&mut enc, frames);
+            kernels.extend(cg.start(frames, pre, co));
+            Self::pass(&mut enc, "pcg residual", &kernels);
+            enc
+        };
+        let st = self.start_status(frames, co, "the device PCG's residual", &record)?;
         st.error(0)?;
         Ok((st.rr, st.bb))
     }
