@@ -4,7 +4,7 @@
 //   agg_er      Er = Wᵀ sym(E) W            a grid, one invocation per entry (p ≥ q)
 //   agg_chol    Er = L Lᵀ in place          one workgroup, column by column: the column
 //                                           scaled, then the trailing update in parallel
-//   agg_linv    X = L⁻¹                      a workgroup per column of X, row by row
+//   agg_linv    X = L⁻¹                      a grid, one invocation per column of X
 //   agg_cinv    C = XᵀX = Er⁻¹               a grid, one invocation per entry (p ≥ q)
 //   agg_expand  E⁺ = W C Wᵀ                  a grid, one invocation per entry (r ≥ c),
 //                                           written at (r, c) and (c, r)
@@ -18,9 +18,8 @@
 // writes E⁺ itself (src/gpu/pcg/cg.rs, `upload_aggregate_einv`).
 //
 // Storage (`work`, acc): W (m columns of D values), then three m×m row-major matrices:
-// Er and L in place (lower triangle); X, strictly below the diagonal its running sums
-// and X transposed on and above it (X_ic at (c, i): a column's sums and the finished rows
-// of other columns never share an entry); C (lower triangle).
+// Er and L in place (lower triangle); X transposed (X_ic at (c, i), upper triangle: a
+// column of X is a contiguous row); C (lower triangle).
 
 // Mirrors `FactorParams` in src/gpu/pcg/coarse_factor.rs (size-asserted there).
 struct FactorParams {
@@ -129,32 +128,21 @@ fn agg_chol(@builtin(local_invocation_id) lid: vec3<u32>) {
     }
 }
 
-// Column c of X = L⁻¹, right-looking: at row j every invocation forms X_jc (the same
-// bits; the first stores it), and the rows below subtract L_ij·X_jc from their running
-// sums (started from 0 at j = c); one barrier per row.
+// Column c of X = L⁻¹ per invocation, row by row (each row's sum in the specification's
+// order): no barrier, and the chain of a column is its m − c rows.
 @compute @workgroup_size(WG)
-fn agg_linv(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+fn agg_linv(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let m = fp.m;
     let l = fp.l_at;
     let x = fp.x_at;
-    for (var c = group_index(wid, nwg); c < m; c += group_count(nwg)) {
-        for (var j = c; j < m; j++) {
-            var t = acc(1.0);
-            if (j != c) {
-                t = work[x + j * m + c];
+    for (var c = grid_index(gid, nwg); c < m; c += grid_stride(nwg)) {
+        work[x + c * m + c] = acc(1.0) / work[l + c * m + c];
+        for (var i = c + 1u; i < m; i++) {
+            var t = acc(0.0);
+            for (var j = c; j < i; j++) {
+                t = t - work[l + i * m + j] * work[x + c * m + j];
             }
-            let xj = t / work[l + j * m + j];
-            for (var i = j + 1u + lid.x; i < m; i += WG) {
-                var s = acc(0.0);
-                if (j != c) {
-                    s = work[x + i * m + c];
-                }
-                work[x + i * m + c] = s - work[l + i * m + j] * xj;
-            }
-            if (lid.x == 0u) {
-                work[x + c * m + j] = xj;
-            }
-            storageBarrier();
+            work[x + c * m + i] = t / work[l + i * m + i];
         }
     }
 }

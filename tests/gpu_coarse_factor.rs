@@ -9,7 +9,8 @@
 //! Systems: generated grids (`random_system`, the realistic mix: a sticky face, a
 //! prescribed face, a tilted slip plane (rotated frames) and line slips), and the same
 //! grids with every free node on one tilted plane (every aggregate loses a translation:
-//! W narrower than E); several aggregates each; sizes small for lavapipe.
+//! W narrower than E); several aggregates each; sizes small for lavapipe, one with 168
+//! columns of W (the factorization's loops then run many rows per invocation).
 
 use stickslip::cases::generate::{random_system, GeneratedSystem, SystemSpec};
 use stickslip::core::constraints::{Constraint, Frames};
@@ -117,7 +118,8 @@ fn reference(d: usize, count: usize, e: &[f64], gram: &[f64]) -> (Vec<f64>, f64)
 fn device_einv_is_the_host_specification_bit_for_bit() {
     let Some((ctx, _g)) = gpu() else { return };
     let cases = [
-        (2, 900, 3u64, false),
+        (3, 4096, 11u64, false),
+        (2, 900, 3, false),
         (3, 512, 4, false),
         (3, 729, 7, false),
     ]

@@ -12,8 +12,9 @@
 //! by forming E⁺ itself (`DeviceCg::upload_aggregate_einv`).
 //!
 //! Layout: the factorization is one workgroup (it is a chain of K steps; its trailing
-//! updates are spread over the workgroup's invocations); the triangular inverse is a
-//! workgroup per column; the products are grids with an invocation per entry.
+//! updates are spread over the workgroup's invocations); the triangular inverse is an
+//! invocation per column (columns are independent; a column's chain is its rows); the
+//! products are grids with an invocation per entry.
 
 use super::aggregates::AggregateIndex;
 use crate::gpu::kernels::{self, Access, Layout, Real};
@@ -39,11 +40,25 @@ pub const COARSE_FACTOR: Layout = Layout {
     ],
 };
 
-/// Workgroup size of the grids and of the per-column inverse.
+/// Workgroup size of the grids.
 const WORKGROUP: u32 = 64;
-/// Workgroup size of the one-workgroup factorization: its trailing update has up to K²/2
-/// entries per step, so a wide workgroup shortens the chain on a GPU.
-const FACTOR_WORKGROUP: u32 = 256;
+
+/// Workgroup size of the one-workgroup factorization: on a GPU a wide one (its trailing
+/// update has up to K²/2 entries per step); on a CPU adapter, where each barrier costs a
+/// coroutine switch per SIMD batch of invocations, [`FACTOR_WG_CPU`].
+fn factor_workgroup(ctx: &GpuContext) -> u32 {
+    if ctx.is_cpu() {
+        FACTOR_WG_CPU
+    } else {
+        256
+    }
+}
+
+/// 64: no slower than 16 or 256 on lavapipe (the machine's noise hides the rest). Not 8
+/// or fewer: a workgroup of one lavapipe SIMD batch gave wrong factors at K = 168 (every
+/// entry; right at K ≤ 27), where 16 and more give the specification's bits
+/// (tests/gpu_coarse_factor.rs).
+const FACTOR_WG_CPU: u32 = 64;
 
 /// Offsets and sizes of one aggregate coarse space (mirrors `FactorParams` in the WGSL).
 #[repr(C)]
@@ -74,7 +89,7 @@ struct Pipelines {
 }
 
 impl Pipelines {
-    fn build(dev: &wgpu::Device, dim: usize, acc: Real) -> Self {
+    fn build(dev: &wgpu::Device, dim: usize, acc: Real, factor_wg: u32) -> Self {
         // The shader has no `real` data; the prelude wants one.
         let module = COARSE_FACTOR.module(dev, acc.name(), acc.name());
         let (layout, pl) = COARSE_FACTOR.layouts(dev, "coarse factor");
@@ -85,7 +100,7 @@ impl Pipelines {
         };
         Pipelines {
             er: pipe("agg_er", WORKGROUP),
-            chol: pipe("agg_chol", FACTOR_WORKGROUP),
+            chol: pipe("agg_chol", factor_wg),
             linv: pipe("agg_linv", WORKGROUP),
             cinv: pipe("agg_cinv", WORKGROUP),
             expand: pipe("agg_expand", WORKGROUP),
@@ -150,8 +165,12 @@ impl CoarseFactor {
         let work =
             ctx.storage_zeroed("coarse factor work", acc.size() * (w_len + 3 * mm) as u64)?;
         ctx.write_buffer(&work, 0, &acc.bytes(&basis.values));
-        let key = format!("coarse factor pipelines: {dim}D, {}", acc.name());
-        let pipes = ctx.cached(&key, || Pipelines::build(&ctx.device, dim, acc))?;
+        let factor_wg = factor_workgroup(ctx);
+        let key = format!(
+            "coarse factor pipelines: {dim}D, {}, factor workgroup {factor_wg}",
+            acc.name()
+        );
+        let pipes = ctx.cached(&key, || Pipelines::build(&ctx.device, dim, acc, factor_wg))?;
         let group = kernels::bind_group(
             &ctx.device,
             &pipes.layout,
@@ -159,8 +178,6 @@ impl CoarseFactor {
             &[&params, coarse, &idx, &work, state],
         );
         let limits = ctx.launch();
-        // One workgroup per column of X on a GPU; a CPU adapter's few loop over them.
-        let columns = ctx.segments().launch(&limits, m.max(1) as u64, WORKGROUP);
         let entries = |n: usize| limits.grid(n.max(1) as u64, WORKGROUP);
         ctx.check("building the aggregates' coarse factorization")?;
         Ok(CoarseFactor {
@@ -169,7 +186,7 @@ impl CoarseFactor {
             launches: [
                 entries(mm),
                 Launch { x: 1, y: 1 },
-                columns,
+                entries(m),
                 entries(mm),
                 entries(index.k * index.k),
             ],
