@@ -51,7 +51,8 @@ override PRECOND: u32 = 1u;
 // 1: E⁺ (D×D, from the host) is in `scal`; update_yr and init sum Zᵀr in the tree of
 // r·M_J⁻¹r and r·r; scalar_beta and scalar_start form c = E⁺Zᵀr and ρ = r·M_J⁻¹r + Zᵀr·c;
 // update_p adds Z_i c to p. No dispatch in the iteration.
-// 2: E⁺ (K×K, K = D·aggregates, from the host) is in `coarse`; after update_yr (init)
+// 2: E⁺ (K×K, K = D·aggregates, formed by coarse_factor.wgsl in `prepare`, or by the host
+// where that fails) is in `coarse`; after update_yr (init)
 // agg_restrict forms w = Zᵀr (a workgroup per aggregate) and agg_solve c = E⁺w (a
 // workgroup per coarse row); scalar_beta (scalar_start) adds w·c to ρ and update_p adds
 // Z_i c_{aggregate of i} to p. Two dispatches per iteration.
@@ -1161,7 +1162,7 @@ fn agg_rows(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
     }
 }
 
-// E (K×K, row-major, not symmetrized: the host does that): entry (a·D + x, b·D + y) sums
+// E (K×K, row-major, not symmetrized: coarse_factor.wgsl does that): entry (a·D + x, b·D + y) sums
 // component (x, y) of the slots of aggregate pair (a, b) in row order, as the CPU adds
 // them. One invocation per entry.
 @compute @workgroup_size(WG)

@@ -1818,15 +1818,14 @@ impl DeviceCg {
         }
         self.own(frames)?;
         let (pre, co) = overrides(params, frames)?;
-        // No start status here: the flag is read on its own (a diagnostic's wait).
-        let state = self.ctx.download(
-            &self.buf.state,
-            0,
-            4 * slots::N_STATE as u64,
-            "reading the PCG state",
-        )?;
-        if co == 2 && schedule::state_words(&state)[slots::STATE_COARSE_FAILED as usize] != 0 {
-            self.upload_aggregate_einv(frames)?;
+        if co == 2 {
+            // No start status here: the factorization's flag is read on its own.
+            let flag = 4 * slots::STATE_COARSE_FAILED as u64;
+            let what = "reading the coarse factorization's flag";
+            let word = self.ctx.download(&self.buf.state, flag, 4, what)?;
+            if schedule::state_words(&word)[0] != 0 {
+                self.upload_aggregate_einv(frames)?;
+            }
         }
         // Tolerance 0: no stop flag is ever set, so every dispatch does its work.
         self.ctx.write_buffer(
