@@ -169,7 +169,7 @@ fn agg_rows(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
     }
 }
 
-// E (K×K, row-major, not symmetrized: the host does that): entry (a·D + x, b·D + y) sums
+// E (K×K, row-major, not symmetrized: coarse_factor.wgsl does that): entry (a·D + x, b·D + y) sums
 // component (x, y) of the slots of aggregate pair (a, b) in row order, as the CPU adds
 // them. One invocation per entry.
 @compute @workgroup_size(WG)

@@ -62,16 +62,17 @@ override PRECOND: u32 = 1u;
 // slide has Ĥ's smallest eigenvalues on its translations (the mass term), and a soft
 // body's on its smooth modes, which M_J cannot see.
 // 1: E⁺ (D×D, from the host) is in `scal`; update_yr and init sum Zᵀr in the tree of
-// r·M_J⁻¹r and r·r; scalar_beta and scalar_start form c = E⁺Zᵀr and ρ = r·M_J⁻¹r + Zᵀr·c;
-// update_p adds Z_i c to p. No dispatch in the iteration.
-// 2: E⁺ (K×K, K = D·aggregates, from the host) is in `coarse`; after update_yr (init)
+// r·M_J⁻¹r and r·r; update_p and scalar_start form c = E⁺Zᵀr and ρ = r·M_J⁻¹r + Zᵀr·c;
+// update_p (start_p) adds Z_i c to p. No dispatch in the iteration.
+// 2: E⁺ (K×K, K = D·aggregates, formed by coarse_factor.wgsl in `prepare`, or by the host
+// where that fails) is in `coarse`; after update_yr (init)
 // agg_restrict forms w = Zᵀr (a workgroup per aggregate) and agg_solve c = E⁺w (a
-// workgroup per coarse row); scalar_beta (scalar_start) adds w·c to ρ and update_p adds
-// Z_i c_{aggregate of i} to p. Two dispatches per iteration.
+// workgroup per coarse row); update_p (scalar_start) adds w·c to ρ and update_p (start_p)
+// adds Z_i c_{aggregate of i} to p. Two dispatches per iteration.
 override COARSE: u32 = 0u;
 // Nodes per invocation within a segment (the device's SegmentPolicy).
 override ITEMS: u32 = 1u;
-// Lanczos coefficients recorded (0: none): scalar_beta of iteration j < HIST (counted from
+// Lanczos coefficients recorded (0: none): update_p of iteration j < HIST (counted from
 // the solve's start, restarts included) writes α_j at SCAL_HIST + 2j and, when CG goes on,
 // β_{j+1} at SCAL_HIST + 2j + 1; the host cuts the sequence at restarts and estimates
 // κ(M⁻¹Ĥ) from each run (src/solve/cg.rs, lanczos_condition).

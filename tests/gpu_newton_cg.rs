@@ -24,9 +24,9 @@
 //! function: the two E⁺ differ by the rounding of the sums over the rows (a few ulps of E
 //! times κ(E), a d×d matrix), required ≤ 1e-12 relative (Frobenius). With the aggregates
 //! the device sums E in the CPU's order (`galerkin_from_blocks`: per row and column
-//! aggregate, then per aggregate pair in row order) and the host pseudo-inverts it with
-//! the CPU's function: E⁺ is the same up to a compiler's fused multiply-adds (lavapipe
-//! gives the same bits), held to the same 1e-12.
+//! aggregate, then per aggregate pair in row order) and forms E⁺ from it by the CPU's
+//! operations (shaders/coarse_factor.wgsl): E⁺ is the same up to a compiler's fused
+//! multiply-adds (lavapipe gives the same bits), held to the same 1e-12.
 //!
 //! The multilevel preconditioner's levels are built on the device from the assembled H
 //! (as the device loop builds them: tests/gpu_multilevel_setup.rs holds them to the

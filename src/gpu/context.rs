@@ -582,6 +582,7 @@ impl GpuContext {
 
     /// `queue.write_buffer`, counted as host-to-device traffic.
     pub(crate) fn write_buffer(&self, buf: &wgpu::Buffer, offset: u64, data: &[u8]) {
+        self.with_profiler(|p| p.moved(data.len() as u64, 0));
         let _uploading = self.phase(Phase::Uploads);
         self.traffic
             .h2d
@@ -652,6 +653,7 @@ impl GpuContext {
     pub(crate) fn buffer_init(&self, desc: &wgpu::util::BufferInitDescriptor) -> wgpu::Buffer {
         use wgpu::util::DeviceExt;
         let bytes = desc.contents.len() as u64;
+        self.with_profiler(|p| p.moved(bytes, 0));
         self.traffic.h2d.fetch_add(bytes, Ordering::Relaxed);
         self.traffic.allocated.fetch_add(bytes, Ordering::Relaxed);
         self.device.create_buffer_init(desc)
@@ -659,6 +661,7 @@ impl GpuContext {
 
     /// Counts `bytes` read back to the host.
     pub(crate) fn note_download(&self, bytes: u64) {
+        self.with_profiler(|p| p.moved(0, bytes));
         self.traffic.d2h.fetch_add(bytes, Ordering::Relaxed);
     }
 

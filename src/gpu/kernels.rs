@@ -81,8 +81,12 @@ pub mod slots {
     pub const STATE_VERIFIED: u32 = 4;
     /// ... and met the tolerance: the verified `recover` has formed Δx.
     pub const STATE_TRUE_OK: u32 = 5;
-    /// The flags: the words before this, cleared together by the host.
-    pub const STATE_FLAGS: u32 = 8;
+    /// The run's flags: the words before this, cleared together by the host.
+    pub const STATE_FLAGS: u32 = 6;
+    /// Set by `prepare` (shaders/coarse_factor.wgsl) when the aggregates' coarse matrix
+    /// has a pivot that is not positive and finite: E⁺ must come from the host. Read back
+    /// with every status; a run's start leaves it (it zeroes the other words).
+    pub const STATE_COARSE_FAILED: u32 = 6;
     /// Iterations done (update_p's first workgroup).
     pub const STATE_ITERS: u32 = 8;
     /// Length of `state`.
@@ -113,8 +117,8 @@ pub mod slots {
             && STATUS_SCAL <= SCAL_RULE_PREV
             && SCAL_RULE_HI < SCAL_HIST
     );
-    const _: () = assert!(STATE_TRUE_OK < STATE_FLAGS && STATE_FLAGS <= STATE_ITERS);
-    const _: () = assert!(STATE_ITERS < N_STATE);
+    const _: () = assert!(STATE_TRUE_OK < STATE_FLAGS && STATE_FLAGS <= STATE_COARSE_FAILED);
+    const _: () = assert!(STATE_COARSE_FAILED < STATE_ITERS && STATE_ITERS < N_STATE);
     const _: () = assert!(PART_ZR + 3 <= PART_BB && PART_BB < PART_E && PART_E + 12 <= N_PART);
     // coarse_e carries E and the absolute sums.
     const _: () = assert!(CARRY_LEN == 12);
@@ -134,6 +138,7 @@ pub const SHARED: &[(&str, u32)] = &[
     ("STATE_ITERS", slots::STATE_ITERS),
     ("STATE_CONVERGED", slots::STATE_CONVERGED),
     ("STATE_BREAKDOWN", slots::STATE_BREAKDOWN),
+    ("STATE_COARSE_FAILED", slots::STATE_COARSE_FAILED),
     ("PART_PQ", slots::PART_PQ),
     ("PART_RZ", slots::PART_RZ),
     ("PART_RR", slots::PART_RR),

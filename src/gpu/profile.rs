@@ -108,6 +108,9 @@ pub struct Profile {
     pub dispatches: u64,
     /// The wall seconds the phases cover.
     pub wall_seconds: f64,
+    /// Bytes moved host to device and device to host while each phase was open on the
+    /// host (a write counted in the phase that asked for it, not in `Uploads`).
+    pub bytes: Vec<(Phase, [u64; 2])>,
 }
 
 impl Profile {
@@ -117,6 +120,15 @@ impl Profile {
         v.sort_by(|a, b| b.1.total_cmp(&a.1));
         v.truncate(k);
         v
+    }
+
+    /// Bytes (host to device, device to host) moved outside the run's set-up, pipeline
+    /// creation and per-step output: what the Newton iterations moved.
+    pub fn iteration_bytes(&self) -> [u64; 2] {
+        self.bytes
+            .iter()
+            .filter(|(p, _)| !matches!(p, Phase::Setup | Phase::PipelineCreation | Phase::Output))
+            .fold([0, 0], |a, (_, b)| [a[0] + b[0], a[1] + b[1]])
     }
 
     /// The seconds of `phase`.
@@ -140,6 +152,7 @@ pub(crate) struct Profiler {
     wall: [f64; N],
     device: [f64; N],
     pub(crate) syncs: u64,
+    bytes: [[u64; 2]; N],
     pub(crate) passes: u64,
     pub(crate) dispatches: u64,
     /// Passes recorded since the last resolution: their phase and first query index.
@@ -166,6 +179,7 @@ impl Profiler {
             wall: [0.0; N],
             device: [0.0; N],
             syncs: 0,
+            bytes: [[0; 2]; N],
             passes: 0,
             dispatches: 0,
             pending: Vec::new(),
@@ -203,6 +217,13 @@ impl Profiler {
     /// charged to `phase`.
     pub(crate) fn add(&mut self, phase: Phase, seconds: f64) {
         self.wall[phase.index()] += seconds;
+    }
+
+    /// Bytes moved while the phase open on the host is open.
+    pub(crate) fn moved(&mut self, h2d: u64, d2h: u64) {
+        let k = self.current().index();
+        self.bytes[k][0] += h2d;
+        self.bytes[k][1] += d2h;
     }
 
     /// The phase open on the host (what a pass recorded now belongs to unless it says).
@@ -287,6 +308,10 @@ impl Profiler {
                 Vec::new()
             },
             host_syncs: self.syncs,
+            bytes: Phase::ALL
+                .iter()
+                .map(|&p| (p, self.bytes[p.index()]))
+                .collect(),
             passes: self.passes,
             dispatches: self.dispatches,
             wall_seconds: now.duration_since(self.start).as_secs_f64() + wall[Phase::Setup.index()],

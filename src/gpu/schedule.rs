@@ -36,6 +36,9 @@ pub struct ChunkStatus {
     pub halt: bool,
     /// A non-finite ρ or r·r.
     pub breakdown: bool,
+    /// `prepare` could not factor the aggregates' coarse matrix on the device (a pivot not
+    /// positive and finite): E⁺ must come from the host.
+    pub coarse_failed: bool,
 }
 
 impl ChunkStatus {
@@ -56,6 +59,7 @@ impl ChunkStatus {
             coarse: std::array::from_fn(|k| scal[slots::SCAL_E as usize + k]),
             halt: flag(slots::STATE_HALT),
             breakdown: flag(slots::STATE_BREAKDOWN),
+            coarse_failed: flag(slots::STATE_COARSE_FAILED),
         }
     }
 
@@ -159,8 +163,11 @@ mod tests {
         state[slots::STATE_ITERS as usize] = 7;
         let st = ChunkStatus::read(&scal, &state);
         assert_eq!((st.rr, st.pq, st.bb, st.iterations), (2.0, -3.0, 5.0, 7));
-        assert!(!st.converged && !st.halt && !st.breakdown);
+        assert!(!st.converged && !st.halt && !st.breakdown && !st.coarse_failed);
         assert!(st.error(10).is_ok());
+        state[slots::STATE_COARSE_FAILED as usize] = 1;
+        let st = ChunkStatus::read(&scal, &state);
+        assert!(st.coarse_failed && st.error(10).is_ok());
         state[slots::STATE_HALT as usize] = 1;
         match ChunkStatus::read(&scal, &state).error(10) {
             Err(CgError::NonPositiveCurvature {

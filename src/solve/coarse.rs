@@ -12,6 +12,11 @@
 //! multiply-adds per component and iteration, and keeps M⁻¹ symmetric positive definite
 //! (E⁺ is positive semidefinite), so CG's theory is untouched.
 
+mod einv;
+pub use einv::{
+    aggregates_einv_from_galerkin, aggregates_einv_with_basis, AggregateBasis, NotPositive,
+};
+
 /// A built coarse correction: Z node by node and E⁺. Z_i = s_i⁻¹ P_i V_iᵀ (s_i the node
 /// scale of an equilibrated system, else 1). Applying it is one dense pass over r and one
 /// over z as if every Z_i were s_i⁻¹·I, then a fix-up at the masked or rotated nodes only:
@@ -638,8 +643,9 @@ fn galerkin_from_blocks(
 /// each update), k×k. E's null space is that of Z, aggregate by aggregate (the
 /// translations an aggregate's constraints remove: the null space of G_a), so
 /// E⁺ = W (WᵀEW)⁻¹ Wᵀ with W the range of each G_a; WᵀEW is SPD for an SPD Ĥ and is
-/// inverted by Cholesky (the eigen-decomposition of the whole of E is the fallback).
-/// `None` when no translation is free or E is not finite.
+/// inverted by Cholesky ([`aggregates_einv_from_galerkin`], the device PCG's
+/// specification too; the eigen-decomposition of the whole of E is the fallback). `None`
+/// when no translation is free or E is not finite.
 pub fn aggregates_einv_from_blocks(
     h: &crate::core::sparse::BlockCsr,
     frames: &crate::core::constraints::Frames,
@@ -677,73 +683,6 @@ pub fn aggregate_projections(
         symmetrize(d, ga);
     }
     g
-}
-
-/// E⁺ of the aggregates' translations from E = ZᵀĤZ (k×k row-major, k = d·count;
-/// symmetrized here) and G of [`aggregate_projections`]: the pseudo-inverse on the range
-/// of each G_a, as [`aggregates_einv_from_blocks`] (which computes E on the host; the
-/// device PCG reduces it on the device).
-pub fn aggregates_einv_from_galerkin(
-    d: usize,
-    count: usize,
-    mut e: Vec<f64>,
-    g: &[f64],
-) -> Option<Vec<f64>> {
-    let k = d * count;
-    if e.len() != k * k || g.len() != count * d * d {
-        return None;
-    }
-    symmetrize(k, &mut e);
-    if e.iter().chain(g).any(|v| !v.is_finite()) {
-        return None;
-    }
-    // W: (aggregate, unit vector in its d translations) per kept direction.
-    let mut w: Vec<(usize, [f64; 3])> = Vec::new();
-    for (a, ga) in g.chunks_exact(d * d).enumerate() {
-        let eig = nalgebra::SymmetricEigen::new(nalgebra::DMatrix::from_row_slice(d, d, ga));
-        let lmax = eig.eigenvalues.iter().copied().fold(0.0, f64::max);
-        for (j, &l) in eig.eigenvalues.iter().enumerate() {
-            if l > PINV_RTOL * lmax {
-                let mut v = [0.0; 3];
-                for (x, vx) in v.iter_mut().enumerate().take(d) {
-                    *vx = eig.eigenvectors[(x, j)];
-                }
-                w.push((a, v));
-            }
-        }
-    }
-    let m = w.len();
-    if m == 0 {
-        return None;
-    }
-    let mut er = nalgebra::DMatrix::<f64>::zeros(m, m);
-    for (p, (a, u)) in w.iter().enumerate() {
-        for (qi, (b, v)) in w.iter().enumerate() {
-            let mut s = 0.0;
-            for x in 0..d {
-                for y in 0..d {
-                    s += u[x] * e[(a * d + x) * k + b * d + y] * v[y];
-                }
-            }
-            er[(p, qi)] = s;
-        }
-    }
-    let Some(chol) = er.cholesky() else {
-        return pseudo_inverse(k, &e);
-    };
-    let inv = chol.inverse();
-    let mut out = vec![0.0; k * k];
-    for (p, (a, u)) in w.iter().enumerate() {
-        for (qi, (b, v)) in w.iter().enumerate() {
-            let c = inv[(p, qi)];
-            for x in 0..d {
-                for y in 0..d {
-                    out[(a * d + x) * k + b * d + y] += u[x] * c * v[y];
-                }
-            }
-        }
-    }
-    Some(out)
 }
 
 fn mat_mul(d: usize, a: &[f64], b: &[f64], out: &mut [f64]) {

@@ -33,7 +33,10 @@
 //!   translations of each aggregate of [`crate::solve::coarse::Aggregation`] on H's block
 //!   pattern (frames built for them: [`DeviceCg::frames`], index arrays in
 //!   [`aggregates`]). `prepare` sums E (K×K, K = D·aggregates) on
-//!   the device in the CPU's order; the first `iterate` reads it back and writes E⁺ from
+//!   the device in the CPU's order and forms E⁺ there too (`coarse_factor`: the
+//!   operations of [`crate::solve::coarse::aggregates_einv_with_basis`], so the CPU CG's
+//!   bits); only where E has a pivot that is not positive and finite does the first
+//!   `iterate` read E back and write E⁺ from
 //!   [`crate::solve::coarse::aggregates_einv_from_galerkin`]. Per iteration two more
 //!   dispatches: w = Zᵀr (a workgroup per aggregate) and c = E⁺w.
 //!
@@ -61,6 +64,7 @@
 
 pub mod aggregates;
 mod cg;
+mod coarse_factor;
 mod host;
 mod mlsetup;
 mod multilevel;

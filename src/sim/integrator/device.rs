@@ -292,8 +292,11 @@ impl DeviceLoop {
             multilevel_setup_seconds: self.multilevel_seconds,
             host_syncs: prof.host_syncs,
             dispatches: prof.dispatches,
+            iteration_host_to_device_bytes: prof.iteration_bytes()[0],
+            iteration_device_to_host_bytes: prof.iteration_bytes()[1],
             phases: prof.phases,
             device_seconds: prof.device_seconds,
+            phase_bytes: prof.bytes.clone(),
             multilevel_host_to_device_bytes: self.multilevel_traffic.host_to_device_bytes,
             multilevel_device_to_host_bytes: self.multilevel_traffic.device_to_host_bytes,
             newton_iterations: 0,
@@ -420,6 +423,7 @@ impl DeviceLoop {
     pub(super) fn start(state: &State) -> Result<Self, InitError> {
         let sc = state.scene;
         let mut dl = DeviceLoop::new(sc, state.contact.as_ref())?;
+        let _setup = dl.ctx.phase(Phase::Setup);
         let projections = static_projections(sc).map_err(|problem| InitError::Input {
             entry: "boundary".into(),
             problem,
@@ -466,7 +470,11 @@ impl Backend for DeviceLoop {
     }
 
     fn positions(&mut self, nodes: Option<&[usize]>) -> Result<&mut [f64], StepError> {
-        let _phase = self.ctx.phase(Phase::HostDecisions);
+        // A few nodes are the loop's decisions; the whole state is a step's own read.
+        let _phase = self.ctx.phase(match nodes {
+            Some(_) => Phase::HostDecisions,
+            None => Phase::Output,
+        });
         match nodes {
             Some(nodes) => {
                 let d = self.dim;
@@ -482,7 +490,10 @@ impl Backend for DeviceLoop {
     }
 
     fn write_positions(&mut self, nodes: Option<&[usize]>) -> Result<(), StepError> {
-        let _phase = self.ctx.phase(Phase::Uploads);
+        let _phase = self.ctx.phase(match nodes {
+            Some(_) => Phase::HostDecisions,
+            None => Phase::Output,
+        });
         match nodes {
             Some(nodes) => {
                 let d = self.dim;
@@ -784,7 +795,7 @@ impl Backend for DeviceLoop {
         self.first_trial = None;
         self.at_trial = false;
         self.trial_is_first = false;
-        let _phase = self.ctx.phase(Phase::Uploads);
+        let _phase = self.ctx.phase(Phase::Setup);
         self.ops.set_state(&state.x, &state.v)?;
         Ok(())
     }

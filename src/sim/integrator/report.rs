@@ -102,6 +102,11 @@ pub struct GpuRunReport {
     pub host_syncs: u64,
     /// Compute dispatches recorded (gated and no-op ones included).
     pub dispatches: u64,
+    /// Of the totals, what moved during the Newton iterations: outside the set-up, the
+    /// pipelines' creation and the per-step reads and writes of the state (the steps'
+    /// output; `gpu::profile::Profile::iteration_bytes`); 0 for the CPU loop.
+    pub iteration_host_to_device_bytes: u64,
+    pub iteration_device_to_host_bytes: u64,
     /// Wall seconds per phase of the device loop (`gpu::profile`), summing to the run's
     /// wall time (empty for the CPU loop).
     #[serde(serialize_with = "phase_map")]
@@ -110,6 +115,9 @@ pub struct GpuRunReport {
     /// none).
     #[serde(serialize_with = "phase_map")]
     pub device_seconds: Vec<(Phase, f64)>,
+    /// Bytes [host to device, device to host] moved while each phase was open.
+    #[serde(serialize_with = "phase_map")]
+    pub phase_bytes: Vec<(Phase, [u64; 2])>,
     /// Of the totals, the multilevel preconditioner's setup: the levels' index words and
     /// the setup's dispatch parameters once per run, nothing per Newton iteration (0
     /// without it and for the CPU loop).
@@ -120,7 +128,10 @@ pub struct GpuRunReport {
 }
 
 /// Phases as a JSON object in their order, name to seconds.
-fn phase_map<S: serde::Serializer>(v: &[(Phase, f64)], s: S) -> Result<S::Ok, S::Error> {
+fn phase_map<S: serde::Serializer, T: serde::Serialize>(
+    v: &[(Phase, T)],
+    s: S,
+) -> Result<S::Ok, S::Error> {
     use serde::ser::SerializeMap;
     let mut m = s.serialize_map(Some(v.len()))?;
     for (p, secs) in v {

@@ -29,7 +29,8 @@ pub(super) enum Galerkin {
 }
 
 impl DeviceCg {
-    /// E⁺ of the aggregates written for the iterations of the current `prepare`.
+    /// E⁺ of the aggregates written from the host for the iterations of the current
+    /// `prepare`, in place of the device's (whose failure flag it clears).
     pub(super) fn write_aggregate_einv(&mut self, frames: &DeviceFrames, einv: &[f64]) {
         let Some(a) = &frames.agg else { return };
         let acc = self.ty.acc;
@@ -38,8 +39,12 @@ impl DeviceCg {
             acc.size() * a.einv_at as u64,
             &acc.bytes(einv),
         );
+        self.ctx.write_buffer(
+            &self.buf.state,
+            4 * slots::STATE_COARSE_FAILED as u64,
+            &[0u8; 4],
+        );
         self.coarse_traffic.host_to_device_bytes += acc.size() * einv.len() as u64;
-        self.agg_ready = true;
     }
     /// The multilevel preconditioner of the system just prepared (built on the host from
     /// the same H and constraints `frames` were built from: [`Multilevel::new`]),
@@ -99,12 +104,13 @@ impl DeviceCg {
             .map(DeviceMultilevel::inverse_chunk_counts)
             .unwrap_or_default()
     }
-    /// E of the aggregates (`prepare` reduced it on the device) read back, pseudo-inverted
-    /// on the host as the CPU does ([`crate::solve::coarse::aggregates_einv_from_galerkin`])
-    /// and E⁺ written back (zero where E has no usable part: no correction then); once per
-    /// `prepare`.
+    /// The fallback where `prepare` could not factor E of the aggregates on the device:
+    /// E read back, pseudo-inverted on the host as the CPU does
+    /// ([`crate::solve::coarse::aggregates_einv_from_galerkin`], whose fallback is the
+    /// eigen pseudo-inverse of the whole of E) and E⁺ written back (zero where E has no
+    /// usable part: no correction then).
     pub(super) fn upload_aggregate_einv(&mut self, frames: &DeviceFrames) -> Result<(), GpuError> {
-        let Some(a) = frames.agg.as_ref().filter(|_| !self.agg_ready) else {
+        let Some(a) = frames.agg.as_ref() else {
             return Ok(());
         };
         let e = self.read_coarse(

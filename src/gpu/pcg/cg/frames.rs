@@ -9,6 +9,7 @@ use crate::solve::coarse::CoarseSpace;
 use std::sync::atomic::Ordering;
 
 use super::super::aggregates::{self, AggregateIndex};
+use super::super::coarse_factor::CoarseFactor;
 
 /// One constraint set on the device (mask and rotation per node) with the bind group that
 /// uses it; built by [`DeviceCg::frames`], valid only with the [`DeviceCg`] that built it.
@@ -31,8 +32,10 @@ pub struct DeviceFrames {
     pub(super) _frame: wgpu::Buffer,
     pub(super) _rotations: wgpu::Buffer,
     pub(super) _aggregates: wgpu::Buffer,
-    /// The aggregate coarse space's f64 data (shaders/pcg.wgsl, `coarse`).
+    /// The aggregate coarse space's f64 data (shaders/pcg_coarse.wgsl, `coarse`).
     pub(super) coarse_buf: wgpu::Buffer,
+    /// With the aggregates: the kernels that form E⁺ from E in `prepare`.
+    pub(super) factor: Option<CoarseFactor>,
 }
 
 impl DeviceCg {
@@ -103,6 +106,17 @@ impl DeviceCg {
             .ctx
             .storage_with("pcg aggregates", bytemuck::cast_slice(&agg_words))?;
         let coarse_buf = self.ctx.storage_zeroed("pcg coarse space", coarse_bytes)?;
+        let factor = match &agg {
+            Some(a) => Some(CoarseFactor::new(
+                &self.ctx,
+                d,
+                self.ty.acc,
+                a,
+                &coarse_buf,
+                &self.buf.state,
+            )?),
+            None => None,
+        };
         let b = &self.buf;
         let mut groups = Vec::with_capacity(b.hvals.len());
         for (params, hvals) in b.params.iter().zip(&b.hvals) {
@@ -148,6 +162,7 @@ impl DeviceCg {
             _rotations: rot_buf,
             _aggregates: agg_buf,
             coarse_buf,
+            factor,
         })
     }
     /// The block pattern's row pointers and column indices as `usize` (from the uploaded

@@ -22,6 +22,7 @@ use std::sync::Arc;
 use super::multilevel::DeviceMultilevel;
 
 mod coarse;
+mod coarse_start;
 mod frames;
 mod kernels;
 mod levels;
@@ -361,8 +362,6 @@ pub struct DeviceCg {
     prepared: Option<u64>,
     /// E of that `prepare`.
     galerkin: Galerkin,
-    /// Whether E⁺ of the aggregates is on the device for that `prepare`.
-    agg_ready: bool,
     /// Bytes of the aggregates' E read back and E⁺ written so far (a part of the
     /// context's traffic: (D·aggregates)² values each way per `prepare`, whatever the
     /// mesh).
@@ -543,7 +542,6 @@ impl DeviceCg {
             buf,
             prepared: None,
             galerkin: Galerkin::OnDevice,
-            agg_ready: false,
             coarse_traffic: TrafficCount::default(),
             host_pattern: pattern,
             given_rhs: grad.is_none(),
@@ -801,6 +799,9 @@ impl DeviceCg {
         let (up, co) = (&self.kernels.update, &self.kernels.coarse);
         let dev = &self.ctx;
         let g0 = &frames.groups[0];
+        // The failure flag belongs to this prepare (the factorization sets it).
+        let flag = 4 * slots::STATE_COARSE_FAILED as u64;
+        enc.clear_buffer(&self.buf.state, flag, Some(4));
         let mut kernels: Vec<Kernel> = vec![(up.rhs(dev, given), l.segments, g0)];
         kernels.extend(Self::per_chunk(up.precond(dev), &l.chunk_rows, frames));
         kernels.extend(Self::per_chunk(co.coarse_e(dev), &l.chunk_segments, frames));
@@ -810,12 +811,14 @@ impl DeviceCg {
             let e = self.ctx.launch().grid((a.k * a.k) as u64, WORKGROUP);
             kernels.push((co.agg_e(dev), e, g0));
         }
+        if let Some(f) = &frames.factor {
+            kernels.extend(f.kernels().map(|(p, l, g)| (p.clone(), l, g)));
+        }
         self.pass(&mut enc, "pcg prepare", Phase::Elimination, &kernels);
         self.ctx.submit(enc);
         self.ctx.check("preparing the device PCG")?;
         self.prepared = Some(frames.id);
         self.galerkin = Galerkin::OnDevice;
-        self.agg_ready = false;
         self.ml_ready = false;
         Ok(())
     }

@@ -83,7 +83,13 @@ impl DeviceCg {
         self.own(frames)?;
         let (pre, co) = overrides(params, frames);
         if co == Co::Aggregates {
-            self.upload_aggregate_einv(frames)?;
+            // No start status here: the factorization's flag is read on its own.
+            let flag = 4 * slots::STATE_COARSE_FAILED as u64;
+            let what = "reading the coarse factorization's flag";
+            let word = self.ctx.download(&self.buf.state, flag, 4, what)?;
+            if crate::gpu::schedule::state_words(&word)[0] != 0 {
+                self.upload_aggregate_einv(frames)?;
+            }
         }
         // Tolerance 0: no stop flag is ever set, so every dispatch does its work.
         self.ctx.write_buffer(
@@ -91,8 +97,7 @@ impl DeviceCg {
             0,
             &vec![0u8; (self.ty.acc.size() * slots::SCAL_E as u64) as usize],
         );
-        self.ctx
-            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
+        self.clear_state();
         let mut enc = self.encoder("pcg profile start");
         enc.clear_buffer(&self.buf.y, 0, None);
         enc.clear_buffer(&self.buf.q, 0, None);

@@ -151,9 +151,6 @@ impl DeviceCg {
                     .into(),
             ));
         }
-        if co == Co::Aggregates {
-            self.upload_aggregate_einv(frames)?;
-        }
         self.recorded.set(0);
         self.reads.set(0);
         // Every slot before E: the scalars, c and E⁺ (zero without the correction, or
@@ -196,8 +193,7 @@ impl DeviceCg {
             );
         }
         self.ctx.write_buffer(&self.buf.scal, 0, &acc.bytes(scal));
-        self.ctx
-            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
+        self.clear_state();
     }
 
     /// The first chunk of a solve: as long as the longest of the last few solves took, a
@@ -237,19 +233,15 @@ impl DeviceCg {
         self.write_start(&mut begun.scal, rule);
 
         // Start (from y = 0, so q = Ĥy = 0 without a product, or from the current y) and
-        // the first chunk, in one submit.
-        let mut enc = self.encoder("pcg start");
-        let mut kernels: Vec<Kernel> = Vec::new();
-        if from_current {
-            kernels.extend(self.product_of_y(frames, Mode::Iterate));
-        } else {
-            enc.clear_buffer(&self.buf.y, 0, None);
-            enc.clear_buffer(&self.buf.q, 0, None);
-        }
-        kernels.extend(self.start(frames, pre, co, Mode::Iterate));
-        self.pass(&mut enc, "pcg start", Phase::Cg, &kernels);
+        // the first chunk, in one submit; again where the status shows that E⁺ of the
+        // aggregates had to come from the host.
         let first = self.first_chunk(max);
-        let (mut st, mut bytes) = self.chunk_submit(enc, frames, (pre, co), first, tail, true)?;
+        let (mut st, mut bytes) =
+            self.start_and_chunk(frames, (pre, co), first, tail, from_current)?;
+        if self.coarse_fallback(&st, frames, co)? {
+            self.write_start(&mut begun.scal, rule);
+            (st, bytes) = self.start_and_chunk(frames, (pre, co), first, tail, from_current)?;
+        }
         self.galerkin_from_status(&st);
         self.check_pinned(frames)?;
         st.error(0)?;
@@ -389,6 +381,29 @@ impl DeviceCg {
         ))
     }
 
+    /// The start of a run and its first chunk of `k` iterations, in one submit (one
+    /// wait).
+    fn start_and_chunk(
+        &self,
+        frames: &DeviceFrames,
+        (pre, co): (Pre, Co),
+        k: usize,
+        tail: Option<&Tail>,
+        from_current: bool,
+    ) -> Result<(ChunkStatus, TailBytes), GpuError> {
+        let mut enc = self.encoder("pcg start");
+        let mut kernels: Vec<Kernel> = Vec::new();
+        if from_current {
+            kernels.extend(self.product_of_y(frames, Mode::Iterate));
+        } else {
+            enc.clear_buffer(&self.buf.y, 0, None);
+            enc.clear_buffer(&self.buf.q, 0, None);
+        }
+        kernels.extend(self.start(frames, pre, co, Mode::Iterate));
+        self.pass(&mut enc, "pcg start", Phase::Cg, &kernels);
+        self.chunk_submit(enc, frames, (pre, co), k, tail, true)
+    }
+
     /// Records `k` iterations after the work in `enc`, the chunk's verification (with
     /// `verify`), Δx's recovery where it met the tolerance and the `tail`, then submits
     /// and reads the status (one wait).
@@ -445,8 +460,7 @@ impl DeviceCg {
         self.ctx
             .write_buffer(&self.buf.y, 0, &self.ty.real.bytes(x));
         // No stop flag: the product runs.
-        self.ctx
-            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
+        self.clear_state();
         let mut enc = self.encoder("pcg product");
         let kernels = self.product_of_y(frames, Mode::Iterate);
         self.pass(&mut enc, "pcg product", Phase::Cg, &kernels);

@@ -68,20 +68,22 @@ impl DeviceCg {
         };
         let acc = self.ty.acc;
         self.ctx.write_buffer(&self.buf.scal, 0, &acc.bytes(&scal));
-        self.ctx
-            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
-        let mut enc = self.encoder("pcg segment start");
-        enc.clear_buffer(&self.buf.y, 0, None);
-        enc.clear_buffer(&self.buf.q, 0, None);
-        let mut kernels = self.start(frames, pre, co, Mode::Iterate);
-        // With the coarse correction `start` already ends in start_p; without it, init
-        // left p alone and start_p forms p = z + βp here.
-        if resume && co == Co::None {
-            let sp = self.kernels.update.start_p(&self.ctx, co, Mode::Iterate);
-            kernels.push((sp, self.launches.fused, &frames.groups[0]));
-        }
-        self.pass(&mut enc, "pcg segment start", Phase::Cg, &kernels);
-        let (mut st, _) = self.submit_and_read(enc, &[], "starting a device PCG segment")?;
+        self.clear_state();
+        let record = |cg: &DeviceCg| {
+            let mut enc = cg.encoder("pcg segment start");
+            enc.clear_buffer(&cg.buf.y, 0, None);
+            enc.clear_buffer(&cg.buf.q, 0, None);
+            let mut kernels = cg.start(frames, pre, co, Mode::Iterate);
+            // With the coarse correction `start` already ends in start_p; without it,
+            // init left p alone and start_p forms p = z + βp here.
+            if resume && co == Co::None {
+                let sp = cg.kernels.update.start_p(&cg.ctx, co, Mode::Iterate);
+                kernels.push((sp, cg.launches.fused, &frames.groups[0]));
+            }
+            cg.pass(&mut enc, "pcg segment start", Phase::Cg, &kernels);
+            enc
+        };
+        let mut st = self.start_status(frames, co, "starting a device PCG segment", &record)?;
         self.galerkin_from_status(&st);
         self.check_pinned(frames)?;
         st.error(0)?;
@@ -179,13 +181,15 @@ impl DeviceCg {
         let Begun { pre, co, scal, .. } = self.begin(frames, params)?;
         let acc = self.ty.acc;
         self.ctx.write_buffer(&self.buf.scal, 0, &acc.bytes(&scal));
-        self.ctx
-            .write_buffer(&self.buf.state, 0, &[0u8; 4 * slots::N_STATE as usize]);
-        let mut enc = self.encoder("pcg residual");
-        let mut kernels = self.product_of_y(frames, Mode::Iterate);
-        kernels.extend(self.start(frames, pre, co, Mode::Iterate));
-        self.pass(&mut enc, "pcg residual", Phase::Cg, &kernels);
-        let (st, _) = self.submit_and_read(enc, &[], "the device PCG's residual")?;
+        self.clear_state();
+        let record = |cg: &DeviceCg| {
+            let mut enc = cg.encoder("pcg residual");
+            let mut kernels = cg.product_of_y(frames, Mode::Iterate);
+            kernels.extend(cg.start(frames, pre, co, Mode::Iterate));
+            cg.pass(&mut enc, "pcg residual", Phase::Cg, &kernels);
+            enc
+        };
+        let st = self.start_status(frames, co, "the device PCG's residual", &record)?;
         self.galerkin_from_status(&st);
         self.check_pinned(frames)?;
         st.error(0)?;
