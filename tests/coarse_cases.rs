@@ -5,7 +5,7 @@ use stickslip::core::constraints::{Constraint, ConstraintKind, Frames};
 use stickslip::core::sparse::BlockCsr;
 use stickslip::solve::coarse::{
     softest_translation, softest_translations, Aggregation, CoarseSpace, MAX_AGGREGATES,
-    NO_AGGREGATE, UNPINNED_EPS,
+    UNPINNED_EPS,
 };
 
 /// tᵀĤt/tᵀt of the softest translation in units of ε·(row size), over all groups.
@@ -134,29 +134,26 @@ fn softest_translation_is_the_mass_of_a_free_body() {
     assert!(lp > 1e3 * m, "{lp:e}");
 }
 
-/// Every free node in exactly one connected aggregate, fully constrained nodes in none,
-/// at most MAX_AGGREGATES (also when the free nodes are scattered), and the node lists
-/// the GPU reads agree with the map.
+/// Every node in exactly one connected aggregate, constrained or not (the aggregates are
+/// the pattern's, one aggregation for every constraint set), at most MAX_AGGREGATES, and
+/// the node lists the GPU reads agree with the map.
 #[test]
-fn aggregation_partitions_the_free_nodes_into_connected_aggregates() {
+fn aggregation_partitions_every_node_into_connected_aggregates() {
     use stickslip::app::hard::{self, Size};
     for case in [
         hard::time_step(Size::Scale(3), 1e2),
         hard::mostly_constrained(Size::Scale(2)),
     ] {
-        let (h, f) = (&case.h, &case.frames);
-        let a = Aggregation::build(h, f);
+        let h = &case.h;
+        let a = Aggregation::build(h);
         assert!(a.count >= 1 && a.count <= MAX_AGGREGATES, "{}", a.count);
-        let full = (1u8 << h.dim) - 1;
         for i in 0..h.n {
-            let fixed = f.mask[i] & full == full;
-            assert_eq!(
-                a.of_node[i] == NO_AGGREGATE,
-                fixed,
-                "{} node {i}",
-                case.name
+            assert!(
+                (a.of_node[i] as usize) < a.count,
+                "{} node {i}: {}",
+                case.name,
+                a.of_node[i]
             );
-            assert!(fixed || (a.of_node[i] as usize) < a.count);
         }
         let (ptr, nodes) = a.lists();
         assert_eq!(ptr.len(), a.count + 1);
@@ -164,27 +161,20 @@ fn aggregation_partitions_the_free_nodes_into_connected_aggregates() {
             let members = &nodes[ptr[g] as usize..ptr[g + 1] as usize];
             assert!(!members.is_empty(), "{}: aggregate {g} empty", case.name);
             assert!(members.iter().all(|&i| a.of_node[i as usize] == g as u32));
-            // Connected through Ĥ's graph (the grouping of isolated leftovers
-            // above MAX_AGGREGATES is the exception, not reached on the grid case).
-            if case.name.starts_with("dt-") {
-                let mut seen = vec![members[0] as usize];
-                let mut k = 0;
-                while k < seen.len() {
-                    let i = seen[k];
-                    k += 1;
-                    for &j in &h.col_idx[h.row_ptr[i]..h.row_ptr[i + 1]] {
-                        if a.of_node[j] == g as u32 && !seen.contains(&j) {
-                            seen.push(j);
-                        }
+            let mut seen = vec![members[0] as usize];
+            let mut k = 0;
+            while k < seen.len() {
+                let i = seen[k];
+                k += 1;
+                for &j in &h.col_idx[h.row_ptr[i]..h.row_ptr[i + 1]] {
+                    if a.of_node[j] == g as u32 && !seen.contains(&j) {
+                        seen.push(j);
                     }
                 }
-                assert_eq!(seen.len(), members.len(), "aggregate {g} not connected");
             }
+            assert_eq!(seen.len(), members.len(), "aggregate {g} not connected");
         }
-        assert_eq!(
-            nodes.len(),
-            a.of_node.iter().filter(|&&g| g != NO_AGGREGATE).count()
-        );
+        assert_eq!(nodes.len(), h.n);
     }
 }
 

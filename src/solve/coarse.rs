@@ -47,7 +47,8 @@ pub const NO_AGGREGATE: u32 = u32::MAX;
 /// A partition of the nodes into connected aggregates, from the graph of Ĥ's blocks.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Aggregation {
-    /// The aggregate of each node, [`NO_AGGREGATE`] for a fully constrained node.
+    /// The aggregate of each node ([`NO_AGGREGATE`]: none, as [`Aggregation::single`]
+    /// leaves a fully constrained node).
     pub of_node: Vec<u32>,
     /// The number of aggregates.
     pub count: usize,
@@ -55,34 +56,29 @@ pub struct Aggregation {
 
 impl Aggregation {
     /// Greedy breadth-first aggregation: each aggregate grows from a seed over unassigned
-    /// neighbours until it holds `target` = max([`AGGREGATE_NODES`], free nodes /
+    /// neighbours until it holds `target` = max([`AGGREGATE_NODES`], nodes /
     /// [`MAX_AGGREGATES`]) nodes; the next seed is taken from the last aggregates' unassigned
     /// neighbours, so aggregates tile the mesh in a wave (compact, like cubes of 4³ nodes on
     /// a hexahedral grid), and an aggregate left below target/4 is merged into the neighbour
-    /// it shares the most edges with. Deterministic (node order only). Fully constrained
-    /// nodes are left out: their Z_i is zero.
-    pub fn build(
-        h: &crate::core::sparse::BlockCsr,
-        frames: &crate::core::constraints::Frames,
-    ) -> Self {
-        Self::from_pattern(&h.row_ptr, &h.col_idx, frames)
+    /// it shares the most edges with. Deterministic (node order only).
+    ///
+    /// Every node joins an aggregate, constrained or not: a fully constrained node's Z_i is
+    /// zero, so it adds nothing to Zᵀr or E, and an aggregate of such nodes only has an
+    /// empty range of its translations' Gram matrix (no column of W). So the aggregates
+    /// depend on H's pattern alone: one aggregation serves every constraint set of a mesh
+    /// (a Newton loop's moving nodes snap without re-aggregating, and the device uploads
+    /// the aggregates' index arrays once).
+    pub fn build(h: &crate::core::sparse::BlockCsr) -> Self {
+        Self::from_pattern(&h.row_ptr, &h.col_idx)
     }
 
     /// [`Aggregation::build`] on a block pattern given by its row pointers and column
     /// indices (the device assembly's, which has no host values).
-    pub fn from_pattern(
-        row_ptr: &[usize],
-        col_idx: &[usize],
-        frames: &crate::core::constraints::Frames,
-    ) -> Self {
+    pub fn from_pattern(row_ptr: &[usize], col_idx: &[usize]) -> Self {
         use std::collections::VecDeque;
         let n = row_ptr.len().saturating_sub(1);
-        let full = (1u32 << frames.dim) - 1;
-        let free: Vec<bool> = (0..n)
-            .map(|i| u32::from(frames.mask[i]) & full != full)
-            .collect();
-        let n_free = free.iter().filter(|f| **f).count();
-        let target = AGGREGATE_NODES.max(n_free.div_ceil(MAX_AGGREGATES));
+        let free = vec![true; n];
+        let target = AGGREGATE_NODES.max(n.div_ceil(MAX_AGGREGATES));
         let neighbours = |i: usize| col_idx[row_ptr[i]..row_ptr[i + 1]].iter().copied();
         let mut of = vec![NO_AGGREGATE; n];
         let mut sizes: Vec<usize> = Vec::new();
@@ -296,7 +292,7 @@ impl Coarse {
         frames: &crate::core::constraints::Frames,
         node_scale: Option<&[f64]>,
     ) -> Option<Self> {
-        let agg = Aggregation::build(h, frames);
+        let agg = Aggregation::build(h);
         let inv_scale = inverse_scale(node_scale);
         let einv = aggregates_einv(h, frames, &agg, inv_scale.as_deref())?;
         Some(Coarse {

@@ -62,7 +62,7 @@ pub fn aggregate_index(
 ) -> Result<Option<AggregateIndex>, GpuError> {
     let n = row_ptr.len().saturating_sub(1);
     let d = frames.dim;
-    let agg = Aggregation::from_pattern(row_ptr, col_idx, frames);
+    let agg = Aggregation::from_pattern(row_ptr, col_idx);
     if agg.count == 0 {
         return Ok(None);
     }

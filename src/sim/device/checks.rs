@@ -661,6 +661,18 @@ impl NewtonChecks {
         let rot_buf = self
             .ctx
             .storage_with("newton checks rotations", &to_bytes(true, &f.rotations))?;
+        self.frames_from(&frame_buf, &rot_buf)
+    }
+
+    /// [`NewtonChecks::frames`] on buffers already on the device in its layout (the
+    /// device PCG's: [`crate::gpu::pcg::DeviceFrames::buffers`], f64 rotations), so a
+    /// constraint set is uploaded once for both.
+    pub fn frames_from(
+        &self,
+        frame_buf: &wgpu::Buffer,
+        rot_buf: &wgpu::Buffer,
+    ) -> Result<BalanceFrames, GpuError> {
+        let n = self.n_nodes;
         let reduce = self.binder.op(
             "balance",
             Entry::Reduce,
@@ -674,17 +686,17 @@ impl NewtonChecks {
             ),
             self.groups,
             Varying {
-                frame: Some(&frame_buf),
-                rotations: Some(&rot_buf),
+                frame: Some(frame_buf),
+                rotations: Some(rot_buf),
                 ..Varying::default()
             },
         );
-        self.ctx.check("uploading the constraint frames")?;
+        self.ctx.check("binding the constraint frames")?;
         Ok(BalanceFrames {
             owner: self.id,
             reduce,
-            _frame: frame_buf,
-            _rotations: rot_buf,
+            _frame: frame_buf.clone(),
+            _rotations: rot_buf.clone(),
         })
     }
 

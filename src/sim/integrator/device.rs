@@ -360,7 +360,8 @@ impl DeviceLoop {
         rule: ToleranceRule,
     ) -> Result<crate::gpu::pcg::DeviceCgInfo, GpuError> {
         if !self.balance_frames.contains_key(snapped) {
-            let f = self.checks.frames(&state.frames[snapped])?;
+            let (frame, rotations) = self.frames[snapped].buffers();
+            let f = self.checks.frames_from(frame, rotations)?;
             self.balance_frames.insert(snapped.to_vec(), f);
         }
         let sc = state.scene;
@@ -553,6 +554,9 @@ impl Backend for DeviceLoop {
         // Gradient and Hessian, as the host loop counts them.
         state.count_barrier(2);
         if !self.frames.contains_key(snapped) {
+            // The first constraint set also uploads the mesh's aggregate index: set-up.
+            let first = self.frames.is_empty();
+            let _phase = first.then(|| self.ctx.phase(Phase::Setup));
             let f = self.cg.frames(&state.frames[snapped], self.params.coarse)?;
             self.frames.insert(snapped.to_vec(), f);
         }
@@ -568,7 +572,14 @@ impl Backend for DeviceLoop {
             let frames = &self.frames[snapped];
             self.cg.prepare(frames).map_err(cg_error)?;
             if multilevel {
-                let _phase = self.ctx.phase(Phase::PreconditionerSetup);
+                // The first build also uploads the hierarchy's index arrays: set-up.
+                let first = self.levels.counts() == (0, 0);
+                let phase = if first {
+                    Phase::Setup
+                } else {
+                    Phase::PreconditionerSetup
+                };
+                let _phase = self.ctx.phase(phase);
                 self.set_multilevel(state, snapped).map_err(cg_error)?;
             }
             let _solving = self.ctx.phase(Phase::Cg);

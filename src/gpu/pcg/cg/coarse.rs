@@ -200,7 +200,7 @@ impl DeviceCg {
         }
         if let Some(a) = &frames.agg {
             let (row_ptr, col_idx) = self.usize_pattern();
-            let agg = crate::solve::coarse::Aggregation::from_pattern(&row_ptr, &col_idx, f);
+            let agg = crate::solve::coarse::Aggregation::from_pattern(&row_ptr, &col_idx);
             let einv = crate::solve::coarse::aggregates_einv_from_blocks(h, f, &agg)
                 .unwrap_or_else(|| vec![0.0; a.k * a.k]);
             self.write_aggregate_einv(frames, &einv);

@@ -38,7 +38,80 @@ pub struct DeviceFrames {
     pub(super) factor: Option<CoarseFactor>,
 }
 
+/// What the last constraint set uploaded, kept so that the next one uploads only what
+/// differs: a Newton loop's constraint sets differ in the few moving nodes that snapped,
+/// the aggregates depend on H's pattern alone, and rotations rarely change.
+#[derive(Default)]
+pub(super) struct Uploaded {
+    frame: Option<(Vec<u32>, wgpu::Buffer)>,
+    rotations: Option<(Vec<u8>, wgpu::Buffer)>,
+    aggregates: Option<(Vec<u8>, wgpu::Buffer)>,
+}
+
+/// The arrays a constraint set shares with the last one where their contents are equal.
+#[derive(Clone, Copy)]
+enum Shared {
+    Rotations,
+    Aggregates,
+}
+
 impl DeviceCg {
+    /// The frame words (mask, rotation index per node) in a buffer of their own: a copy of
+    /// the last set's on the device with the words that differ written over it (a few
+    /// moving nodes), or uploaded whole the first time.
+    fn upload_frame_words(&self, words: &[u32]) -> Result<wgpu::Buffer, GpuError> {
+        let mut up = self.uploaded.borrow_mut();
+        let bytes = 4 * words.len() as u64;
+        let buf = match up.frame.as_ref().filter(|(w, _)| w.len() == words.len()) {
+            None => self
+                .ctx
+                .storage_with("pcg frames", bytemuck::cast_slice(words))?,
+            Some((last, last_buf)) => {
+                let buf = self.ctx.storage_zeroed("pcg frames", bytes)?;
+                let mut enc = self.encoder("pcg frames from the last set");
+                enc.copy_buffer_to_buffer(last_buf, 0, &buf, 0, bytes);
+                self.ctx.submit(enc);
+                // Runs of differing words, each written after the copy.
+                let mut k = 0;
+                while k < words.len() {
+                    if words[k] == last[k] {
+                        k += 1;
+                        continue;
+                    }
+                    let start = k;
+                    while k < words.len() && words[k] != last[k] {
+                        k += 1;
+                    }
+                    self.ctx.write_buffer(
+                        &buf,
+                        4 * start as u64,
+                        bytemuck::cast_slice(&words[start..k]),
+                    );
+                }
+                buf
+            }
+        };
+        up.frame = Some((words.to_vec(), buf.clone()));
+        Ok(buf)
+    }
+
+    /// `data` in a buffer, shared with the last set's where equal.
+    fn upload_shared(&self, what: Shared, data: &[u8]) -> Result<wgpu::Buffer, GpuError> {
+        let mut up = self.uploaded.borrow_mut();
+        let (slot, label) = match what {
+            Shared::Rotations => (&mut up.rotations, "pcg rotations"),
+            Shared::Aggregates => (&mut up.aggregates, "pcg aggregates"),
+        };
+        if let Some((last, buf)) = slot.as_ref() {
+            if last[..] == data[..] {
+                return Ok(buf.clone());
+            }
+        }
+        let buf = self.ctx.storage_with(label, data)?;
+        *slot = Some((data.to_vec(), buf.clone()));
+        Ok(buf)
+    }
+
     /// Uploads one constraint set (mask per node, rotation per rotated node) and builds
     /// its bind group, once: callers keep it for as long as the constraints hold. With
     /// `coarse` = `Aggregates` also the aggregates of the pattern and their index arrays
@@ -80,12 +153,8 @@ impl DeviceCg {
             frame.push(f.mask[i] as u32);
             frame.push(ri);
         }
-        let frame_buf = self
-            .ctx
-            .storage_with("pcg frames", bytemuck::cast_slice(&frame))?;
-        let rot_buf = self
-            .ctx
-            .storage_with("pcg rotations", &self.ty.real.bytes(&f.rotations))?;
+        let frame_buf = self.upload_frame_words(&frame)?;
+        let rot_buf = self.upload_shared(Shared::Rotations, &self.ty.real.bytes(&f.rotations))?;
         let agg = match coarse {
             CoarseSpace::Aggregates => {
                 let (row_ptr, col_idx) = self.usize_pattern();
@@ -102,9 +171,7 @@ impl DeviceCg {
             ),
             None => (vec![0u32; 4], 16),
         };
-        let agg_buf = self
-            .ctx
-            .storage_with("pcg aggregates", bytemuck::cast_slice(&agg_words))?;
+        let agg_buf = self.upload_shared(Shared::Aggregates, bytemuck::cast_slice(&agg_words))?;
         let coarse_buf = self.ctx.storage_zeroed("pcg coarse space", coarse_bytes)?;
         let factor = match &agg {
             Some(a) => Some(CoarseFactor::new(
@@ -186,6 +253,13 @@ impl DeviceCg {
 }
 
 impl DeviceFrames {
+    /// The frame words (mask and rotation index per node, u32 pairs) and the rotations
+    /// (d×d per rotated node, row-major, in the PCG's precision), for kernels of other
+    /// modules that read the same constraint set.
+    pub fn buffers(&self) -> (&wgpu::Buffer, &wgpu::Buffer) {
+        (&self._frame, &self._rotations)
+    }
+
     /// The number of aggregates of the coarse space these frames were built for (`None`
     /// without the aggregates, or when every node is fixed).
     pub fn aggregate_count(&self) -> Option<usize> {

@@ -382,6 +382,8 @@ pub struct DeviceCg {
     last_eta: Option<f64>,
     /// The iterations of the last few solves (the next one's first chunk).
     recent: std::collections::VecDeque<usize>,
+    /// What the last constraint set uploaded ([`DeviceCg::frames`]).
+    uploaded: std::cell::RefCell<frames::Uploaded>,
     /// Iterations recorded into command buffers and status reads of the current solve.
     recorded: Cell<usize>,
     reads: Cell<usize>,
@@ -550,6 +552,7 @@ impl DeviceCg {
             last_iterations: 0,
             last_eta: None,
             recent: std::collections::VecDeque::new(),
+            uploaded: Default::default(),
             recorded: Cell::new(0),
             reads: Cell::new(0),
             ml: None,
