@@ -18,7 +18,7 @@ fn main() {
             continue;
         }
         let e = case.eliminated();
-        let agg = Aggregation::build(&case.h, &case.frames);
+        let agg = Aggregation::build(&case.h);
         let mut its = Vec::new();
         let mut secs = Vec::new();
         for coarse in [

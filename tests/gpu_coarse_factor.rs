@@ -134,7 +134,7 @@ fn device_einv_is_the_host_specification_bit_for_bit() {
             fixed > 0 && s.frames.has_rotation(),
             "{dim}D: sticky and rotated nodes"
         );
-        let agg = Aggregation::build(&s.h, &s.frames);
+        let agg = Aggregation::build(&s.h);
         assert!(agg.count >= 4, "{dim}D: {} aggregates", agg.count);
         let (_b, mut cg, frames) = prepared(ctx, &s, &s.h);
         let e_dev = cg
@@ -271,7 +271,7 @@ fn indefinite_coarse_matrix_falls_back_to_the_host_once() {
     let Some((ctx, _g)) = gpu() else { return };
     for (dim, nodes, seed) in [(2, 400, 5u64), (3, 343, 6)] {
         let s = random_system(&SystemSpec::with_nodes(dim, nodes, seed));
-        let agg = Aggregation::build(&s.h, &s.frames);
+        let agg = Aggregation::build(&s.h);
         let gram = aggregate_projections(&s.frames, &agg);
         let k = dim * agg.count;
         let e_cpu = {

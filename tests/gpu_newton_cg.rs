@@ -221,7 +221,7 @@ fn compare(ctx: &GpuContext, s: &Scene, bound: Bound) -> Vec<(Preconditioner, Co
     }
 
     let einv_cpu = translations_einv_from_blocks(&h, &s.frames).expect("free translations");
-    let agg = Aggregation::build(&h, &s.frames);
+    let agg = Aggregation::build(&h);
     let agg_einv_cpu =
         aggregates_einv_from_blocks(&h, &s.frames, &agg).expect("free aggregate translations");
     let mut cg = asm.device_cg().expect("device CG");
