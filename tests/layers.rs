@@ -912,3 +912,68 @@ fn a_facade_that_only_reexports_makes_no_cycle() {
     ]);
     assert!(check(&sources).is_empty(), "{:?}", check(&sources));
 }
+
+/// The calls that move bytes between host and device, wait on it, submit work or begin a
+/// compute pass. `gpu::context` wraps each once (`write_buffer`, `buffer_init`,
+/// `download_many`, `wait`, `submit`, `compute_pass`), counting the bytes and waits and
+/// timing the passes for the run's profile; anywhere else they would move or wait unseen.
+const RAW_DEVICE_CALLS: [&str; 6] = [
+    "queue.write_buffer(",
+    "create_buffer_init(",
+    "map_async(",
+    ".poll(",
+    "queue.submit(",
+    "begin_compute_pass(",
+];
+
+/// Where a raw call stands outside the context on purpose: the device CG's per-kernel
+/// timing writes its own timestamps around each dispatch (a measurement, its reads counted
+/// through the context).
+const RAW_ALLOWED: [(&str, &str); 1] = [("gpu/pcg/cg/profile.rs", "begin_compute_pass(")];
+
+/// Every raw device call in `sources` outside gpu/context.rs and the allowed ones, as
+/// "file:line: call" (comments do not count).
+fn raw_device_calls(sources: &[(String, String)]) -> Vec<String> {
+    let mut out = Vec::new();
+    for (rel, src) in sources {
+        if rel == "gpu/context.rs" {
+            continue;
+        }
+        for (k, line) in src.lines().enumerate() {
+            let code = line.split("//").next().unwrap_or_default();
+            for call in RAW_DEVICE_CALLS {
+                let allowed = RAW_ALLOWED.iter().any(|&(f, c)| f == rel && c == call);
+                if code.contains(call) && !allowed {
+                    out.push(format!("{rel}:{}: {call}", k + 1));
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Every transfer, wait, submit and compute pass of the library goes through the
+/// context, so `gpu.host_to_device_bytes`, `device_to_host_bytes`, `host_syncs` and the
+/// profile's phases see all of them.
+#[test]
+fn every_transfer_and_wait_goes_through_the_counted_context() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let raw = raw_device_calls(&read_tree(&src));
+    assert!(
+        raw.is_empty(),
+        "device calls outside gpu::context:\n  {}",
+        raw.join("\n  ")
+    );
+}
+
+#[test]
+fn detects_a_raw_device_call_but_not_one_in_a_comment() {
+    let files = tree(&[
+        ("gpu/context.rs", "fn w(&self) { self.queue.write_buffer(b, 0, d); }"),
+        (
+            "sim/device/ops.rs",
+            "// self.ctx.queue.submit([enc.finish()]);\nfn f() { ctx.queue.submit([e]); }",
+        ),
+    ]);
+    assert_eq!(raw_device_calls(&files), ["sim/device/ops.rs:2: queue.submit("]);
+}

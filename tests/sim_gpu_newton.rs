@@ -465,6 +465,99 @@ fn twist_size_4_moves_scalars_not_matrices() {
     );
 }
 
+/// `run SCENE --size 2 --steps 3 --newton gpu` with the scene's own settings (`extra`
+/// appended to its text when given), or None (skipped loudly) without an adapter.
+fn loop_run(name: &str, extra: Option<&str>) -> Option<RunSummary> {
+    let tag = if extra.is_some() { "extra" } else { "plain" };
+    let dir = std::env::temp_dir().join(format!(
+        "stickslip-gpu-traffic-{}-{name}-{tag}",
+        std::process::id()
+    ));
+    std::fs::create_dir_all(&dir).expect("temp folder");
+    let scene = match extra {
+        Some(extra) => {
+            let text = stickslip::sim::scene::builtin(name).expect("a built-in scene");
+            let file = dir.join(format!("{name}.toml"));
+            std::fs::write(&file, format!("{text}\n{extra}\n")).expect("scene file");
+            file.display().to_string()
+        }
+        None => name.to_string(),
+    };
+    let opts = RunOptions {
+        scene: Some(scene),
+        out: Some(dir.join("out")),
+        newton: Some(NewtonLoop::Gpu),
+        steps: Some(3),
+        size: Some(2.0),
+        quiet: true,
+        ..RunOptions::default()
+    };
+    let r = run(&opts);
+    let _ = std::fs::remove_dir_all(&dir);
+    gpu_or_skip(name, r)
+}
+
+/// Per Newton iteration nothing of size n crosses the bus: with the classical neo-Hookean
+/// law (the inversion bound), moving boundaries (twist, compress), the barrier and CCD
+/// (drop) and the multilevel preconditioner (twist), the bytes each way while the Newton
+/// iterations run (the run's set-up, the pipelines' creation and the per-step reads and
+/// writes of the state aside: `gpu.iteration_*_bytes`, counted by the context through
+/// which every transfer passes, tests/layers.rs) stay within 2 KiB + 8·d bytes per moving
+/// node per Newton iteration. The loop waits on the device at most once per 16 CG
+/// iterations on twist, and its profile accounts for its wall time: the phases sum to
+/// `wall_seconds` within 5 % (the time before the first phase opens and after the last
+/// snapshot is all that is left out).
+#[test]
+fn newton_iterations_move_scalars_and_the_phases_account_for_the_wall_time() {
+    let cases: [(&str, Option<&str>); 4] = [
+        ("twist", None),
+        ("compress", None),
+        ("drop", None),
+        (
+            "twist",
+            Some("[solver]\npreconditioner = \"multilevel\"\ncoarse = \"none\""),
+        ),
+    ];
+    for (name, extra) in cases {
+        let Some(s) = loop_run(name, extra) else {
+            return;
+        };
+        let g = s.gpu.as_ref().expect("gpu report");
+        let its = g.newton_iterations as f64;
+        let moving = s.moving_boundary.as_ref().map_or(0, |m| m.moving_nodes);
+        let allowance = 2048.0 + 8.0 * (s.dimension * moving) as f64;
+        let up = g.iteration_host_to_device_bytes as f64 / its;
+        let down = g.iteration_device_to_host_bytes as f64 / its;
+        let phases: f64 = g.phases.iter().map(|(_, v)| v).sum();
+        let per_sync = s.linear_iterations as f64 / g.host_syncs as f64;
+        eprintln!(
+            "{name}{}: {} Newton, {} CG iterations; per Newton iteration {up:.0} B up, \
+             {down:.0} B down (allowance {allowance:.0} B, {moving} moving nodes); {} host \
+             waits ({per_sync:.1} CG iterations each); phases {phases:.3} s of {:.3} s",
+            if extra.is_some() { " (multilevel)" } else { "" },
+            g.newton_iterations,
+            s.linear_iterations,
+            g.host_syncs,
+            s.wall_seconds
+        );
+        assert!(up <= allowance, "{name}: {up} B per Newton iteration to the device");
+        assert!(down <= allowance, "{name}: {down} B per Newton iteration back");
+        assert!(
+            (phases - s.wall_seconds).abs() <= 0.05 * s.wall_seconds,
+            "{name}: phases {phases} s, wall {} s",
+            s.wall_seconds
+        );
+        if name == "twist" && extra.is_none() {
+            assert!(
+                16 * g.host_syncs as usize <= s.linear_iterations,
+                "twist: {} waits for {} CG iterations",
+                g.host_syncs,
+                s.linear_iterations
+            );
+        }
+    }
+}
+
 /// The device loop runs in f64 only: a scene asking for it in f32 is refused before any
 /// device work, as an input error on `solver.newton` (exit 2), in one line. Needs no GPU.
 #[test]

@@ -31,7 +31,7 @@ use crate::core::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::core::sparse::BlockCsr;
 use crate::error::InputError;
 use crate::gpu::pcg::{DeviceCg, DeviceCgParams, DeviceFrames};
-use crate::gpu::{GpuContext, GpuOptions, Precision};
+use crate::gpu::{GpuContext, GpuOptions, Phase, Precision};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::elements::GpuElements;
 use crate::sim::device::newton_ops::NewtonOps;
@@ -292,6 +292,10 @@ pub struct SizeRecord {
     pub cpu_check: Option<CpuCheck>,
     pub gpu_cg: Option<GpuCgRecord>,
     pub gpu_assembly_difference: Option<AssemblyDifference>,
+    /// The device side's profile over its warm-up and repetitions: wall seconds per phase
+    /// (the device loop's phases, `gpu::profile`), device seconds from timestamps, host
+    /// waits, passes and dispatches.
+    pub gpu_profile: Option<crate::gpu::Profile>,
     /// Peak resident memory of the process after this size (VmHWM), bytes.
     pub peak_rss_bytes: u64,
 }
@@ -555,7 +559,11 @@ impl GpuSide {
 
     /// Phase 1: the element terms (PSD-projected) and the assembly of H and g, waited for.
     fn assemble(&mut self) -> Result<Option<()>, String> {
+        let ctx = self.elements.context().clone();
+        let terms = ctx.phase(Phase::ElementTerms);
         self.elements.evaluate(true).map_err(|e| e.to_string())?;
+        drop(terms);
+        let _assembly = ctx.phase(Phase::Assembly);
         self.assembly.assemble().map_err(|e| e.to_string())?;
         self.assembly.wait().map_err(|e| e.to_string())?;
         Ok(Some(()))
@@ -565,6 +573,7 @@ impl GpuSide {
     /// and the node frames (uploaded once, as the loop keeps them per constraint set),
     /// waited for.
     fn eliminate(&mut self) -> Result<Option<()>, String> {
+        let _phase = self.elements.context().phase(Phase::Elimination);
         self.cg.prepare(&self.frames).map_err(|e| e.to_string())?;
         self.assembly.wait().map_err(|e| e.to_string())?;
         Ok(Some(()))
@@ -573,6 +582,7 @@ impl GpuSide {
     /// Phase 3: the device CG to [`CG_TOL`] (block-Jacobi), the true residual and
     /// Δx = V P y (its last status read waits for the device).
     fn solve(&mut self) -> Result<Option<()>, String> {
+        let _phase = self.elements.context().phase(Phase::Cg);
         let info = self
             .cg
             .iterate(&self.frames, &GPU_CG)
@@ -602,6 +612,7 @@ impl GpuSide {
     /// copies them the other way), so that the next repetition assembles at x again.
     fn line_search(&mut self) -> Result<Option<()>, String> {
         let err = |e: crate::gpu::GpuError| e.to_string();
+        let _phase = self.elements.context().phase(Phase::LineSearch);
         self.ops.set_trial(1.0).map_err(err)?;
         self.elements.evaluate_energy().map_err(err)?;
         let terms = self.ops.energy_terms().map_err(err)?;
@@ -772,6 +783,7 @@ fn bench_size(
         cpu_check: None,
         gpu_cg: None,
         gpu_assembly_difference: None,
+        gpu_profile: None,
         peak_rss_bytes: 0,
     };
     let not_run = |r: &mut SizeRecord, why: String| {
@@ -845,6 +857,7 @@ fn bench_size(
         None => rec.gpu.note = "not run: --no-gpu".into(),
         Some(ctx) => {
             bar.set_message(format!("{nodes} nodes: GPU"));
+            let before = ctx.profile();
             let run = GpuSide::new(ctx, &scene, &x, &xt, &frames).and_then(|mut side| {
                 let phases = run_gpu(&mut side, reps)?;
                 let diff = match &cpu_system {
@@ -854,6 +867,7 @@ fn bench_size(
                 let cg = phases.solve.map(|secs| side.cg_record(secs)).transpose()?;
                 Ok((phases, diff, cg))
             });
+            rec.gpu_profile = Some(ctx.profile().since(&before));
             match run {
                 Ok((phases, diff, cg)) => {
                     rec.gpu.ran = true;
@@ -990,6 +1004,20 @@ pub fn summary_text(report: &NewtonReport) -> String {
             s.push_str(&format!(
                 "{:>21}GPU assembly vs CPU: H {:.1e}, g {:.1e} (max |Δ| / max |CPU|)\n",
                 "", d.hessian, d.gradient
+            ));
+        }
+        if let Some(p) = &r.gpu_profile {
+            let largest: Vec<String> = p
+                .largest(3)
+                .iter()
+                .map(|(ph, secs)| format!("{} {secs:.3e} s", ph.name().replace('_', " ")))
+                .collect();
+            s.push_str(&format!(
+                "{:>21}GPU phases: {}; {} host waits, {} dispatches\n",
+                "",
+                largest.join(", "),
+                p.host_syncs,
+                p.dispatches
             ));
         }
         for (side, rec) in [("CPU", &r.cpu), ("GPU", &r.gpu)] {

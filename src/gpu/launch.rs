@@ -140,7 +140,7 @@ pub enum SegmentWorkgroups {
     Exactly(u64),
 }
 
-/// The device policy of segmented reductions (shaders/pcg.wgsl): the items are cut
+/// The device policy of segmented reductions (shaders/pcg_*.wgsl): the items are cut
 /// into segments of `WG · items` consecutive items; invocation `lid` of the workgroup
 /// that takes segment s sums items s·WG·items + lid + m·WG (m = 0, 1, …) in that order,
 /// then one tree per segment writes segment s's partial, and a one-workgroup kernel

@@ -85,7 +85,7 @@ pub struct GpuParams {
     /// Coarse correction added to the preconditioner, in every level (see
     /// [`crate::solve::coarse`]); the same choice as [`crate::solve::cg::CgParams::coarse`].
     pub coarse: CoarseSpace,
-    /// Whether f32 operators use the difference form (`DIFF` in shaders/pcg.wgsl, in the
+    /// Whether f32 operators use the difference form (`DIFF` in shaders/pcg_common.wgsl, in the
     /// world frame, with row sums summed in f64 on the host), which keeps the eigenvalues of the rigid translations that plain f32 rounding
     /// perturbs by ε_f32·‖Ĥ‖. See [`DifferenceForm`]; f64 operators never use it.
     pub f32_difference: DifferenceForm,

@@ -97,9 +97,11 @@ const N: usize = Phase::ALL.len();
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct Profile {
     /// Wall seconds per phase (summing to the profiled wall time).
+    #[serde(serialize_with = "phase_map")]
     pub phases: Vec<(Phase, f64)>,
     /// Device seconds per phase as the timestamps measured them (empty without
     /// TIMESTAMP_QUERY).
+    #[serde(serialize_with = "phase_map")]
     pub device_seconds: Vec<(Phase, f64)>,
     /// Host waits on the device.
     pub host_syncs: u64,
@@ -110,7 +112,21 @@ pub struct Profile {
     pub wall_seconds: f64,
     /// Bytes moved host to device and device to host while each phase was open on the
     /// host (a write counted in the phase that asked for it, not in `Uploads`).
+    #[serde(serialize_with = "phase_map")]
     pub bytes: Vec<(Phase, [u64; 2])>,
+}
+
+/// Phases as a JSON object in their order, name to value.
+pub fn phase_map<S: serde::Serializer, T: serde::Serialize>(
+    v: &[(Phase, T)],
+    s: S,
+) -> Result<S::Ok, S::Error> {
+    use serde::ser::SerializeMap;
+    let mut m = s.serialize_map(Some(v.len()))?;
+    for (p, value) in v {
+        m.serialize_entry(p.name(), value)?;
+    }
+    m.end()
 }
 
 impl Profile {
@@ -129,6 +145,38 @@ impl Profile {
             .iter()
             .filter(|(p, _)| !matches!(p, Phase::Setup | Phase::PipelineCreation | Phase::Output))
             .fold([0, 0], |a, (_, b)| [a[0] + b[0], a[1] + b[1]])
+    }
+
+    /// What happened between `earlier` (a profile of the same context) and this one.
+    pub fn since(&self, earlier: &Profile) -> Profile {
+        let sub = |a: &[(Phase, f64)], b: &[(Phase, f64)]| -> Vec<(Phase, f64)> {
+            a.iter()
+                .map(|&(p, s)| {
+                    let before = b.iter().find(|(q, _)| *q == p).map_or(0.0, |(_, v)| *v);
+                    (p, s - before)
+                })
+                .collect()
+        };
+        Profile {
+            phases: sub(&self.phases, &earlier.phases),
+            device_seconds: sub(&self.device_seconds, &earlier.device_seconds),
+            host_syncs: self.host_syncs - earlier.host_syncs,
+            passes: self.passes - earlier.passes,
+            dispatches: self.dispatches - earlier.dispatches,
+            wall_seconds: self.wall_seconds - earlier.wall_seconds,
+            bytes: self
+                .bytes
+                .iter()
+                .map(|&(p, [h, d])| {
+                    let before = earlier
+                        .bytes
+                        .iter()
+                        .find(|(q, _)| *q == p)
+                        .map_or([0, 0], |(_, v)| *v);
+                    (p, [h - before[0], d - before[1]])
+                })
+                .collect(),
+        }
     }
 
     /// The seconds of `phase`.

@@ -1,4 +1,4 @@
-//! The device PCG (shaders/pcg.wgsl): the eliminated system of
+//! The device PCG (shaders/pcg_*.wgsl): the eliminated system of
 //! [`crate::core::elimination`] solved where its block matrix lies,
 //!
 //! ```text
@@ -10,12 +10,13 @@
 //! part), and `solve --solver gpu`, which uploads H ([`crate::gpu::blocks::HostBlocks`])
 //! and b̂ (with the lift of prescribed values in it) and recovers Δx on the host. H is
 //! read in place: the product q = Ĥp is one invocation per block row, rotating only at
-//! rotated nodes. CG scalars stay on the device: per iteration five dispatches (product
-//! with p·q partials, a one-workgroup α kernel, the y/r/z update with r·z and r·r
-//! partials, a one-workgroup β kernel, the p update; seven with the aggregates), many
-//! iterations per submit, and one small status read-back (the scalars and flags, 128
-//! bytes) per chunk. Every reduction has a fixed number of partials and a fixed order: the
-//! same inputs give the same y bit for bit.
+//! rotated nodes. CG scalars stay on the device: per iteration three dispatches (the
+//! product with its p·q partials; α fused with the y/r/z update and its r·z and r·r
+//! partials; β fused with the p update; five with the aggregates), many iterations per
+//! submit, each chunk ending in its verification (the true residual once the recurrence
+//! has met the tolerance, and Δx where it holds), and one small status read-back (the
+//! scalars and flags, 336 bytes) per chunk. Every reduction has a fixed number of partials
+//! and a fixed order: the same inputs give the same y bit for bit.
 //!
 //! The preconditioner is the multilevel V-cycle of [`crate::solve::multilevel`] (levels
 //! built on the device from the H it holds, [`DeviceCg::set_multilevel_on_device`], or on

@@ -1,6 +1,7 @@
 //! What a step did ([`StepReport`]), what the contact code did over a run
 //! ([`ContactCounters`]) and what the GPU moved and stored ([`GpuRunReport`]).
 
+use crate::gpu::profile::phase_map;
 use crate::gpu::Phase;
 
 /// What one step did.
@@ -125,17 +126,4 @@ pub struct GpuRunReport {
     pub multilevel_device_to_host_bytes: u64,
     /// Newton iterations of the run (filled in by the driver, which counts them).
     pub newton_iterations: usize,
-}
-
-/// Phases as a JSON object in their order, name to seconds.
-fn phase_map<S: serde::Serializer, T: serde::Serialize>(
-    v: &[(Phase, T)],
-    s: S,
-) -> Result<S::Ok, S::Error> {
-    use serde::ser::SerializeMap;
-    let mut m = s.serialize_map(Some(v.len()))?;
-    for (p, secs) in v {
-        m.serialize_entry(p.name(), secs)?;
-    }
-    m.end()
 }

@@ -107,7 +107,7 @@ impl DeviceCg {
             Phase::Cg,
             &self.start(frames, pre, co, Mode::Iterate),
         );
-        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.submit(enc);
         let one = self.iteration(frames, pre, co);
         let n_q = 2 * one.len() as u32;
         let set = self.ctx.device.create_query_set(&wgpu::QuerySetDescriptor {
@@ -140,7 +140,7 @@ impl DeviceCg {
                 launch.dispatch(&mut cp);
             }
             enc.resolve_query_set(&set, 0..n_q, &resolve, 0);
-            self.ctx.queue.submit([enc.finish()]);
+            self.ctx.submit(enc);
             let bytes =
                 self.ctx
                     .download(&resolve, 0, 8 * n_q as u64, "reading back timestamps")?;
