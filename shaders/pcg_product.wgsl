@@ -160,7 +160,11 @@ fn world_y(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(global_invocat
 // and throw-away p·q partials the V-cycle reads before the next iteration's product).
 @compute @workgroup_size(WG)
 fn world_z(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    if (state[STATE_DONE] != 0u) {
+    var off = state[STATE_DONE] != 0u;
+    if (VERIFY) {
+        off = !verifying();
+    }
+    if (off) {
         return;
     }
     for (var i = grid_index(gid, nwg); i < params.n_nodes; i += grid_stride(nwg)) {

@@ -61,6 +61,9 @@ struct VcycleParams {
 }
 
 override D: u32 = 3u;
+// The kernels of a chunk's verification (src/gpu/pcg/cg/run.rs): they run while the PCG
+// verifies a converged recurrence, not while it iterates.
+override VERIFY: bool = false;
 
 @group(0) @binding(0) var<uniform> vp: VcycleParams;
 @group(0) @binding(1) var<storage, read> idx: array<u32>;
@@ -76,7 +79,14 @@ override D: u32 = 3u;
 // buffer; a smoothing runs once per buffer).
 @group(0) @binding(9) var<storage, read> inv: array<real>;
 
+// Whether this dispatch does nothing: once the PCG's stop flag is set (VERIFY: unless the
+// PCG is verifying a converged recurrence, whose restart applies the V-cycle too).
 fn halted() -> bool {
+    if (VERIFY) {
+        return !(state[STATE_DONE] != 0u && state[STATE_CONVERGED] != 0u
+            && state[STATE_VERIFIED] == 0u && state[STATE_HALT] == 0u
+            && state[STATE_BREAKDOWN] == 0u);
+    }
     return state[STATE_DONE] != 0u;
 }
 

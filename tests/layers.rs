@@ -969,11 +969,17 @@ fn every_transfer_and_wait_goes_through_the_counted_context() {
 #[test]
 fn detects_a_raw_device_call_but_not_one_in_a_comment() {
     let files = tree(&[
-        ("gpu/context.rs", "fn w(&self) { self.queue.write_buffer(b, 0, d); }"),
+        (
+            "gpu/context.rs",
+            "fn w(&self) { self.queue.write_buffer(b, 0, d); }",
+        ),
         (
             "sim/device/ops.rs",
             "// self.ctx.queue.submit([enc.finish()]);\nfn f() { ctx.queue.submit([e]); }",
         ),
     ]);
-    assert_eq!(raw_device_calls(&files), ["sim/device/ops.rs:2: queue.submit("]);
+    assert_eq!(
+        raw_device_calls(&files),
+        ["sim/device/ops.rs:2: queue.submit("]
+    );
 }

@@ -540,8 +540,14 @@ fn newton_iterations_move_scalars_and_the_phases_account_for_the_wall_time() {
             g.host_syncs,
             s.wall_seconds
         );
-        assert!(up <= allowance, "{name}: {up} B per Newton iteration to the device");
-        assert!(down <= allowance, "{name}: {down} B per Newton iteration back");
+        assert!(
+            up <= allowance,
+            "{name}: {up} B per Newton iteration to the device"
+        );
+        assert!(
+            down <= allowance,
+            "{name}: {down} B per Newton iteration back"
+        );
         assert!(
             (phases - s.wall_seconds).abs() <= 0.05 * s.wall_seconds,
             "{name}: phases {phases} s, wall {} s",

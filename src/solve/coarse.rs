@@ -14,8 +14,10 @@
 
 mod einv;
 pub use einv::{
-    aggregates_einv_from_galerkin, aggregates_einv_with_basis, AggregateBasis, NotPositive,
+    aggregates_einv_from_galerkin, aggregates_einv_with_basis, pseudo_inverse, AggregateBasis,
+    NotPositive,
 };
+use einv::{symmetrize, PINV_RTOL};
 
 /// A built coarse correction: Z node by node and E⁺. Z_i = s_i⁻¹ P_i V_iᵀ (s_i the node
 /// scale of an equilibrated system, else 1). Applying it is one dense pass over r and one
@@ -242,10 +244,6 @@ fn node_basis(frames: &crate::core::constraints::Frames, i: usize) -> Option<[f6
     }
     Some(m)
 }
-
-/// Relative size below which an eigenvalue of E counts as zero (a translation whose
-/// every component is constrained: its column of Z vanishes).
-const PINV_RTOL: f64 = 1e-12;
 
 /// The nodes whose Z_i is not the identity (constrained or rotated), with Z_i.
 fn special_nodes(frames: &crate::core::constraints::Frames) -> Vec<(usize, [f64; 9])> {
@@ -689,16 +687,6 @@ fn mat_mul(d: usize, a: &[f64], b: &[f64], out: &mut [f64]) {
     }
 }
 
-fn symmetrize(k: usize, e: &mut [f64]) {
-    for a in 0..k {
-        for b in 0..a {
-            let m = 0.5 * (e[a * k + b] + e[b * k + a]);
-            e[a * k + b] = m;
-            e[b * k + a] = m;
-        }
-    }
-}
-
 /// E = ZᵀĤZ, symmetrized.
 fn galerkin(basis: &[Vec<f64>], apply: &mut impl FnMut(&[f64], &mut [f64])) -> Vec<f64> {
     let k = basis.len();
@@ -713,34 +701,6 @@ fn galerkin(basis: &[Vec<f64>], apply: &mut impl FnMut(&[f64], &mut [f64])) -> V
     }
     symmetrize(k, &mut e);
     e
-}
-
-/// The pseudo-inverse of the symmetric k×k `e` over its eigenvalues above
-/// PINV_RTOL·λ_max (negative ones, which an SPD Ĥ cannot give, are dropped too, so the
-/// result is positive semidefinite). `None` when nothing is left or `e` is not finite.
-pub fn pseudo_inverse(k: usize, e: &[f64]) -> Option<Vec<f64>> {
-    if e.iter().any(|v| !v.is_finite()) {
-        return None;
-    }
-    let m = nalgebra::DMatrix::from_row_slice(k, k, e);
-    let eig = nalgebra::SymmetricEigen::new(m);
-    let lmax = eig.eigenvalues.iter().copied().fold(0.0, f64::max);
-    if lmax <= 0.0 || !lmax.is_finite() {
-        return None;
-    }
-    let mut out = vec![0.0; k * k];
-    for (j, &l) in eig.eigenvalues.iter().enumerate() {
-        if l <= PINV_RTOL * lmax {
-            continue;
-        }
-        let v = eig.eigenvectors.column(j);
-        for a in 0..k {
-            for b in 0..k {
-                out[a * k + b] += v[a] * v[b] / l;
-            }
-        }
-    }
-    Some(out)
 }
 
 /// How far below the rows of Ĥ a rigid translation's stiffness may fall before it counts

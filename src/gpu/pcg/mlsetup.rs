@@ -22,7 +22,7 @@
 //! partials per segment of items, one workgroup over the partials) rather than the CPU's
 //! sequential one. tests/gpu_multilevel_setup.rs holds the two to stated tolerances.
 
-use super::multilevel::{index, inverse_chunks, DeviceLevel, WORKGROUP};
+use super::mllevels::{index, inverse_chunks, DeviceLevel, WORKGROUP};
 use crate::gpu::blocks::{values_limit, RowRun};
 use crate::gpu::kernels::{self, Access, Layout};
 use crate::gpu::{GpuContext, GpuError, Launch};

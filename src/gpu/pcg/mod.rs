@@ -67,6 +67,7 @@ pub mod aggregates;
 mod cg;
 mod coarse_factor;
 mod host;
+mod mllevels;
 mod mlsetup;
 mod multilevel;
 mod policy;

@@ -16,6 +16,9 @@
 //! the PCG's own (H read in place and rotated), so its matrix is never copied. Per V-cycle
 //! and level: two smoothing dispatches, two products, a restriction and a prolongation.
 
+use super::mllevels::{
+    index, inverse_chunks, inverse_starts, DeviceLevel, InverseChunk, VcycleParams, WORKGROUP,
+};
 use super::mlsetup::{DeviceSetup, FinestMatrix};
 use crate::core::constraints::Frames;
 use crate::gpu::blocks::values_limit;
@@ -23,7 +26,6 @@ use crate::gpu::kernels::{self, Access, Layout};
 use crate::gpu::{GpuContext, GpuError, Launch};
 use crate::solve::multilevel::reuse::Levels;
 use crate::solve::multilevel::{Hierarchy, LevelPattern, LevelSizes, LevelView, Multilevel};
-use std::ops::Range;
 use std::sync::Arc;
 
 use Access::{Read as R, ReadWrite as W, Uniform as U};
@@ -46,39 +48,6 @@ pub const VCYCLE: Layout = Layout {
     ],
 };
 
-/// Workgroup size of the V-cycle's kernels.
-pub(super) const WORKGROUP: u32 = 64;
-
-/// Offsets of one level's arrays and the range of one smoothing dispatch (mirrors
-/// `VcycleParams` in the WGSL).
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Default, bytemuck::Pod, bytemuck::Zeroable)]
-pub(super) struct VcycleParams {
-    pub(super) n: u32,
-    pub(super) clusters: u32,
-    pub(super) of_at: u32,
-    pub(super) pos_at: u32,
-    pub(super) ptr_at: u32,
-    pub(super) items_at: u32,
-    pub(super) inv_start_at: u32,
-    pub(super) row_at: u32,
-    pub(super) col_at: u32,
-    pub(super) p_ptr_at: u32,
-    pub(super) p_col_at: u32,
-    pub(super) pt_ptr_at: u32,
-    pub(super) pt_row_at: u32,
-    pub(super) omega_at: u32,
-    pub(super) a_at: u32,
-    pub(super) p_at: u32,
-    pub(super) pt_at: u32,
-    pub(super) has_next: u32,
-    pub(super) t_begin: u32,
-    pub(super) t_end: u32,
-    pub(super) inv_base: u32,
-    pub(super) _pad: [u32; 3],
-}
-const _: () = assert!(std::mem::size_of::<VcycleParams>() == 96);
-
 /// The pipelines of shaders/vcycle.wgsl.
 struct Pipelines {
     smooth_pre: wgpu::ComputePipeline,
@@ -86,37 +55,6 @@ struct Pipelines {
     level_ax: wgpu::ComputePipeline,
     restrict_down: wgpu::ComputePipeline,
     prolong_up: wgpu::ComputePipeline,
-}
-
-/// One buffer of cluster inverses: the clusters it holds, where its values start in the
-/// level's inverses and its unknowns in cluster order (what its smoothing dispatch covers).
-pub(super) struct InverseChunk {
-    pub(super) clusters: Range<usize>,
-    pub(super) base: usize,
-    pub(super) unknowns: Range<usize>,
-    /// Its values (its buffer may be padded beyond them).
-    pub(super) len: usize,
-    pub(super) buffer: wgpu::Buffer,
-}
-
-/// One level on the device.
-pub(super) struct DeviceLevel {
-    pub(super) n: usize,
-    pub(super) clusters: usize,
-    /// The index arrays and their offsets (`params`, also those of `vals`).
-    pub(super) idx: wgpu::Buffer,
-    pub(super) params: VcycleParams,
-    /// ω, the matrix below the finest, P and Pᵀ (rewritten per system on the same
-    /// hierarchy), and its length.
-    pub(super) vals: wgpu::Buffer,
-    vals_len: usize,
-    /// The cluster inverses in buffers of consecutive clusters (one storage binding caps
-    /// each).
-    pub(super) inverses: Vec<InverseChunk>,
-    /// One bind group per inverse chunk (the kernels that do not smooth use the first).
-    groups: Vec<wgpu::BindGroup>,
-    /// Kept alive with the bind groups: params, and below the finest b, x, ax.
-    _keep: Vec<wgpu::Buffer>,
 }
 
 /// The PCG's buffers level 0 works in: r (its b), z (its x), q (its A x) and the state.
@@ -178,35 +116,6 @@ pub(super) struct DeviceMultilevel {
     setup: Option<DeviceSetup>,
 }
 
-/// The clusters of each buffer of inverses: runs of consecutive clusters whose values
-/// (`inverses[c]` f64 each) stay within `limit` bytes; the error names the first cluster
-/// whose inverse alone exceeds it.
-pub(super) fn inverse_chunks(
-    inverses: &[usize],
-    limit: u64,
-    level: usize,
-) -> Result<Vec<Range<usize>>, GpuError> {
-    let per = (limit / 8) as usize;
-    let mut out = Vec::new();
-    let (mut start, mut run) = (0, 0usize);
-    for (c, &v) in inverses.iter().enumerate() {
-        if v > per {
-            return Err(GpuError::Unsupported(format!(
-                "multilevel level {level}: cluster {c}'s inverse takes {} bytes, more than one \
-                 storage binding ({limit} bytes)",
-                8 * v
-            )));
-        }
-        if run + v > per {
-            out.push(start..c);
-            (start, run) = (c, 0);
-        }
-        run += v;
-    }
-    out.push(start..inverses.len());
-    Ok(out)
-}
-
 /// The device bytes of the V-cycle's levels of these sizes
 /// ([`crate::solve::multilevel::Hierarchy::level_sizes`]) with `dim` components per item
 /// and the cluster inverses split under `forced` (or the adapter's binding limit), each
@@ -237,29 +146,6 @@ pub fn multilevel_bytes(
         }
     }
     Ok(total)
-}
-
-/// `x` as a u32 index of the device arrays, or the error that the levels exceed them.
-pub(super) fn index(x: usize) -> Result<u32, GpuError> {
-    u32::try_from(x).map_err(|_| {
-        GpuError::Unsupported(
-            "the multilevel preconditioner's arrays exceed the device's u32 indices".into(),
-        )
-    })
-}
-
-/// Where each cluster's inverse starts in its level's inverses (m² values for m = d·|c|
-/// unknowns), and their total at the end: the layout the host's factors have too.
-pub(super) fn inverse_starts(ptr: &[usize], d: usize) -> Vec<usize> {
-    let mut start = Vec::with_capacity(ptr.len());
-    let mut total = 0;
-    start.push(0);
-    for w in ptr.windows(2) {
-        let m = (w[1] - w[0]) * d;
-        total += m * m;
-        start.push(total);
-    }
-    start
 }
 
 /// The index arrays of one level, packed, with their offsets (in `idx` words and, for the
@@ -360,7 +246,9 @@ fn pack_inverses(v: &LevelView<'_>, d: usize, mask: Option<&[u8]>) -> Result<Vec
 /// once per device ([`GpuContext::cached`]).
 struct VcycleKernels {
     layout: wgpu::BindGroupLayout,
+    /// In the iterations, and in a chunk's verification (the VERIFY override).
     pipes: Pipelines,
+    verify: Pipelines,
 }
 
 impl DeviceMultilevel {
@@ -372,19 +260,29 @@ impl DeviceMultilevel {
         let kernels = ctx.cached(&format!("vcycle pipelines: {dim}D"), || {
             let module = VCYCLE.module(dev, "f64", "f64");
             let (layout, pl) = VCYCLE.layouts(dev, "vcycle");
-            let pipe = |entry: &str| {
-                let constants = [("D", dim as f64), ("WG", WORKGROUP as f64)];
-                let label = format!("vcycle {entry} ({dim}D)");
-                kernels::pipeline(dev, &pl, &module, entry, &label, &constants)
+            let pipes = |verify: bool| {
+                let pipe = |entry: &str| {
+                    let constants = [
+                        ("D", dim as f64),
+                        ("WG", WORKGROUP as f64),
+                        ("VERIFY", f64::from(u8::from(verify))),
+                    ];
+                    let label = format!("vcycle {entry} ({dim}D, verify {verify})");
+                    kernels::pipeline(dev, &pl, &module, entry, &label, &constants)
+                };
+                Pipelines {
+                    smooth_pre: pipe("smooth_pre"),
+                    smooth_post: pipe("smooth_post"),
+                    level_ax: pipe("level_ax"),
+                    restrict_down: pipe("restrict_down"),
+                    prolong_up: pipe("prolong_up"),
+                }
             };
-            let pipes = Pipelines {
-                smooth_pre: pipe("smooth_pre"),
-                smooth_post: pipe("smooth_post"),
-                level_ax: pipe("level_ax"),
-                restrict_down: pipe("restrict_down"),
-                prolong_up: pipe("prolong_up"),
-            };
-            VcycleKernels { layout, pipes }
+            VcycleKernels {
+                layout,
+                pipes: pipes(false),
+                verify: pipes(true),
+            }
         })?;
         Ok(DeviceMultilevel {
             ctx: ctx.clone(),
@@ -716,8 +614,10 @@ impl DeviceMultilevel {
     }
 
     /// The dispatches of one V-cycle z = M⁻¹r, level 0's products left to the PCG. Each
-    /// smoothing runs once per buffer of inverses, over that buffer's unknowns.
-    pub(super) fn steps(&self) -> Vec<Step<'_>> {
+    /// smoothing runs once per buffer of inverses, over that buffer's unknowns. With
+    /// `verify` the kernels of a chunk's verification, which run only while the PCG checks
+    /// a converged recurrence's true residual.
+    pub(super) fn steps(&self, verify: bool) -> Vec<Step<'_>> {
         let limits = self.ctx.launch();
         let policy = self.ctx.segments();
         let launch = |items: usize| {
@@ -727,7 +627,11 @@ impl DeviceMultilevel {
                 WORKGROUP,
             )
         };
-        let p = &self.kernels.pipes;
+        let p = if verify {
+            &self.kernels.verify
+        } else {
+            &self.kernels.pipes
+        };
         let nl = self.levels.len();
         let product = |l: usize| -> Step<'_> {
             if l == 0 {

@@ -14,14 +14,12 @@
 //!
 //! with sym(E) = (E + Eᵀ)/2. Er is SPD when Ĥ is SPD on the coarse space; a pivot that is
 //! not positive and finite means it is not, and the caller falls back to the eigen
-//! pseudo-inverse of the whole of sym(E) ([`super::pseudo_inverse`]).
+//! pseudo-inverse of the whole of sym(E) ([`pseudo_inverse`]).
 //!
 //! The order of every sum is fixed (ascending indices, starting from 0), products are
 //! evaluated left to right, and only the lower triangles of Er, L, X and C are formed; E⁺
 //! is formed for r ≥ c and mirrored, so it is symmetric bit for bit (the device reads its
 //! rows as columns).
-
-use super::PINV_RTOL;
 
 /// W of [`aggregates_einv_from_galerkin`]: per aggregate the eigenvectors of G_a kept
 /// (unit length, d values each), its columns consecutive and in aggregate order.
@@ -217,9 +215,51 @@ pub fn aggregates_einv_from_galerkin(
     }
     aggregates_einv_with_basis(k, &e, &w).ok().or_else(|| {
         let mut es = e;
-        super::symmetrize(k, &mut es);
-        super::pseudo_inverse(k, &es)
+        symmetrize(k, &mut es);
+        pseudo_inverse(k, &es)
     })
+}
+
+/// Relative size below which an eigenvalue of E counts as zero (a translation whose
+/// every component is constrained: its column of Z vanishes).
+pub(super) const PINV_RTOL: f64 = 1e-12;
+
+pub(super) fn symmetrize(k: usize, e: &mut [f64]) {
+    for a in 0..k {
+        for b in 0..a {
+            let m = 0.5 * (e[a * k + b] + e[b * k + a]);
+            e[a * k + b] = m;
+            e[b * k + a] = m;
+        }
+    }
+}
+
+/// The pseudo-inverse of the symmetric k×k `e` over its eigenvalues above
+/// PINV_RTOL·λ_max (negative ones, which an SPD Ĥ cannot give, are dropped too, so the
+/// result is positive semidefinite). `None` when nothing is left or `e` is not finite.
+pub fn pseudo_inverse(k: usize, e: &[f64]) -> Option<Vec<f64>> {
+    if e.iter().any(|v| !v.is_finite()) {
+        return None;
+    }
+    let m = nalgebra::DMatrix::from_row_slice(k, k, e);
+    let eig = nalgebra::SymmetricEigen::new(m);
+    let lmax = eig.eigenvalues.iter().copied().fold(0.0, f64::max);
+    if lmax <= 0.0 || !lmax.is_finite() {
+        return None;
+    }
+    let mut out = vec![0.0; k * k];
+    for (j, &l) in eig.eigenvalues.iter().enumerate() {
+        if l <= PINV_RTOL * lmax {
+            continue;
+        }
+        let v = eig.eigenvectors.column(j);
+        for a in 0..k {
+            for b in 0..k {
+                out[a * k + b] += v[a] * v[b] / l;
+            }
+        }
+    }
+    Some(out)
 }
 
 #[cfg(test)]
@@ -316,10 +356,10 @@ mod tests {
         let wm = basis_matrix(&w, k);
         let p = &wm * wm.transpose();
         let mut es = e.clone();
-        super::super::symmetrize(k, &mut es);
+        super::symmetrize(k, &mut es);
         let pep = &p * nalgebra::DMatrix::from_row_slice(k, k, &es) * &p;
         let pep: Vec<f64> = (0..k * k).map(|t| pep[(t / k, t % k)]).collect();
-        let want = super::super::pseudo_inverse(k, &pep).expect("modes");
+        let want = super::pseudo_inverse(k, &pep).expect("modes");
         let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         for (x, y) in got.iter().zip(&want) {
             assert!((x - y).abs() <= 1e-12 * scale, "{x:e} vs {y:e}");
@@ -342,7 +382,7 @@ mod tests {
         // Er − s·I: E − s·WWᵀ with s midway between Er's extreme eigenvalues.
         let wm = basis_matrix(&w, k);
         let mut es = e.clone();
-        super::super::symmetrize(k, &mut es);
+        super::symmetrize(k, &mut es);
         let er = wm.transpose() * nalgebra::DMatrix::from_row_slice(k, k, &es) * &wm;
         let ev = nalgebra::SymmetricEigen::new(er).eigenvalues;
         let s = 0.5 * (ev.min() + ev.max());
@@ -360,8 +400,8 @@ mod tests {
         let err = aggregates_einv_with_basis(k, &e, &w).expect_err("indefinite");
         assert!(err.pivot <= 0.0, "{err:?}");
         let mut es = e.clone();
-        super::super::symmetrize(k, &mut es);
-        let want = super::super::pseudo_inverse(k, &es).expect("positive part");
+        super::symmetrize(k, &mut es);
+        let want = super::pseudo_inverse(k, &es).expect("positive part");
         let got = aggregates_einv_from_galerkin(d, count, e.clone(), &g).expect("fallback");
         assert_eq!(got, want);
         e[5] = f64::NAN;

@@ -2,7 +2,7 @@
 //! pseudo-inverse for the translations' correction, the check of an unpinned body), the
 //! aggregates' E⁺, and the multilevel preconditioner's levels.
 
-use super::{DeviceCg, DeviceFrames, Scalars};
+use super::{DeviceCg, DeviceFrames, Galerkin, Scalars};
 use crate::core::constraints::Frames;
 use crate::gpu::kernels::slots;
 use crate::gpu::schedule::ChunkStatus;
@@ -11,22 +11,6 @@ use crate::solve::cg::CgError;
 use crate::solve::multilevel::Multilevel;
 
 use super::super::multilevel::{DeviceMultilevel, Finest};
-
-/// E of the translations for the last `prepare`.
-#[derive(Debug, Clone)]
-pub(super) enum Galerkin {
-    /// Reduced on the device (in `scal`), not read back yet.
-    OnDevice,
-    /// Read back and symmetrized (D², row-major) with its pseudo-inverse, `None` when
-    /// every translation is constrained or E is not finite (no correction then, as on
-    /// the CPU).
-    Read {
-        e: Vec<f64>,
-        /// 2^-64 · Σ |entries| of the rows of each world axis (D).
-        abs: Vec<f64>,
-        einv: Option<Vec<f64>>,
-    },
-}
 
 impl DeviceCg {
     /// E⁺ of the aggregates written from the host for the iterations of the current

@@ -1,52 +1,15 @@
 //! A constraint set on the device: per node its mask and rotation, the aggregates of the
 //! coarse space, and the bind groups that use them.
 
-use super::{DeviceCg, NEXT_ID};
+use super::{DeviceCg, DeviceFrames, NEXT_ID};
 use crate::core::constraints::{Frames, NO_ROTATION};
 use crate::gpu::kernels;
 use crate::gpu::GpuError;
 use crate::solve::coarse::CoarseSpace;
 use std::sync::atomic::Ordering;
 
-use super::super::aggregates::{self, AggregateIndex};
+use super::super::aggregates;
 use super::super::coarse_factor::CoarseFactor;
-
-/// One constraint set on the device (mask and rotation per node) with the bind group that
-/// uses it; built by [`DeviceCg::frames`], valid only with the [`DeviceCg`] that built it.
-pub struct DeviceFrames {
-    pub(super) owner: u64,
-    /// Its own identity: `iterate` needs the frames `prepare` used.
-    pub(super) id: u64,
-    /// One bind group per values chunk of H (the kernels that do not read H use the
-    /// first).
-    pub(super) groups: Vec<wgpu::BindGroup>,
-    /// G = ZᵀZ of the translations of every node with a free component, the first such
-    /// node and their count (src/solve/coarse.rs, `translation_gram`): with the E and
-    /// absolute row sums `prepare` reduces, whether a translation is pinned by nothing.
-    pub(super) gram: (Vec<f64>, usize, usize),
-    /// The coarse space these frames were built for.
-    pub(super) coarse: CoarseSpace,
-    /// With `Aggregates`: the aggregate index (`None` when every node is fixed).
-    pub(super) agg: Option<AggregateIndex>,
-    /// Kept alive with the bind groups (and bound by the multilevel setup's: cg/levels.rs).
-    pub(super) _frame: wgpu::Buffer,
-    pub(super) _rotations: wgpu::Buffer,
-    pub(super) _aggregates: wgpu::Buffer,
-    /// The aggregate coarse space's f64 data (shaders/pcg_coarse.wgsl, `coarse`).
-    pub(super) coarse_buf: wgpu::Buffer,
-    /// With the aggregates: the kernels that form E⁺ from E in `prepare`.
-    pub(super) factor: Option<CoarseFactor>,
-}
-
-/// What the last constraint set uploaded, kept so that the next one uploads only what
-/// differs: a Newton loop's constraint sets differ in the few moving nodes that snapped,
-/// the aggregates depend on H's pattern alone, and rotations rarely change.
-#[derive(Default)]
-pub(super) struct Uploaded {
-    frame: Option<(Vec<u32>, wgpu::Buffer)>,
-    rotations: Option<(Vec<u8>, wgpu::Buffer)>,
-    aggregates: Option<(Vec<u8>, wgpu::Buffer)>,
-}
 
 /// The arrays a constraint set shares with the last one where their contents are equal.
 #[derive(Clone, Copy)]

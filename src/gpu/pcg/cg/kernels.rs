@@ -6,12 +6,66 @@
 //! first time a solve asks for them: a solve with Jacobi and the aggregates compiles the
 //! dozen it runs, not every combination.
 
-use super::Scalars;
-use crate::gpu::kernels::{self, Access, Layout};
-use crate::gpu::{GpuContext, Phase};
+use crate::gpu::kernels::{self, Access, Layout, Real};
+use crate::gpu::{GpuContext, GpuError, Phase};
 use std::sync::OnceLock;
 
 use Access::{Read as R, ReadWrite as W, Uniform as U};
+
+/// Uniform parameters of every kernel (mirrors `PcgParams` in the WGSL).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(super) struct PcgParams {
+    pub(super) n_nodes: u32,
+    pub(super) n_partials: u32,
+    pub(super) col_at: u32,
+    pub(super) diag_at: u32,
+    /// The values chunk of the dispatch: rows, first block, index.
+    pub(super) row_begin: u32,
+    pub(super) row_end: u32,
+    pub(super) block_first: u32,
+    pub(super) chunk: u32,
+}
+const _: () = assert!(std::mem::size_of::<PcgParams>() == 32);
+
+/// Workgroup size of every kernel.
+pub(super) const WORKGROUP: u32 = 64;
+
+/// The scalar types of one PCG: `real` for H, the frames and the vectors (H's own),
+/// `acc` for every sum and scalar (f64 wherever the device has SHADER_F64), and whether
+/// the product takes the difference form (f32 only; see the module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Scalars {
+    pub real: Real,
+    pub acc: Real,
+    pub difference: bool,
+}
+
+impl Scalars {
+    /// f64 throughout: the Newton loop's.
+    pub const F64: Scalars = Scalars {
+        real: Real::F64,
+        acc: Real::F64,
+        difference: false,
+    };
+
+    /// `real` vectors on `ctx`: f64 sums where it has SHADER_F64, else f32 (refused for
+    /// f64 vectors).
+    pub fn on(ctx: &GpuContext, real: Real, difference: bool) -> Result<Self, GpuError> {
+        let acc = if ctx.has_f64() { Real::F64 } else { Real::F32 };
+        if real == Real::F64 && acc == Real::F32 {
+            return Err(GpuError::Unsupported(format!(
+                "{} has no SHADER_F64: the device PCG cannot run in f64 there",
+                ctx.adapter_name()
+            )));
+        }
+        Ok(Scalars {
+            real,
+            acc,
+            difference: difference && real == Real::F32,
+        })
+    }
+}
 
 /// Bind group 0 of every PCG shader file (shaders/pcg_common.wgsl declares it).
 const BINDINGS: &[(&str, Access)] = &[
@@ -194,7 +248,7 @@ impl Family {
         };
         let constants = [
             ("D", self.dim as f64),
-            ("WG", super::WORKGROUP as f64),
+            ("WG", WORKGROUP as f64),
             ("SUM_LANES", lanes),
             ("PRECOND", pre.code() as f64),
             ("COARSE", co.code() as f64),
@@ -308,8 +362,8 @@ impl ProductKernels {
     pub fn world_y(&self, ctx: &GpuContext, mode: Mode) -> wgpu::ComputePipeline {
         self.0.get(ctx, "world_y", Pre::None, Co::None, mode)
     }
-    pub fn world_z(&self, ctx: &GpuContext) -> wgpu::ComputePipeline {
-        self.0.get(ctx, "world_z", Pre::None, Co::None, Iterate)
+    pub fn world_z(&self, ctx: &GpuContext, mode: Mode) -> wgpu::ComputePipeline {
+        self.0.get(ctx, "world_z", Pre::None, Co::None, mode)
     }
     /// `Verify`: only where the last verification met the tolerance.
     pub fn recover(&self, ctx: &GpuContext, mode: Mode) -> wgpu::ComputePipeline {
@@ -413,7 +467,7 @@ mod tests {
     #[test]
     fn layouts_params_entries_and_headers_match_the_wgsl() {
         use crate::gpu::pcg::aggregates::header as h;
-        let size = std::mem::size_of::<super::super::PcgParams>();
+        let size = std::mem::size_of::<PcgParams>();
         for (layout, entries) in FAMILIES {
             let m = check::layout(layout, "PcgParams", size, entries);
             let agg = [

@@ -30,34 +30,14 @@ mod profile;
 mod run;
 mod segment;
 
-use coarse::Galerkin;
-pub use frames::DeviceFrames;
-use kernels::{Co, Kernels, Mode, Pre, Spec};
-pub use kernels::{PCG_COARSE, PCG_PRODUCT, PCG_UPDATE};
-pub use run::Tail;
+use super::aggregates::AggregateIndex;
+use super::coarse_factor::CoarseFactor;
+use kernels::{Co, Kernels, Mode, PcgParams, Pre, Spec, WORKGROUP};
+pub use kernels::{Scalars, PCG_COARSE, PCG_PRODUCT, PCG_UPDATE};
 
 /// Lanczos coefficient pairs a PCG built with history records per solve (the HIST
 /// override): enough for κ̃ on any solve that converges in reasonable time.
 pub const LANCZOS_HIST: u32 = 1024;
-
-/// Uniform parameters of every kernel (mirrors `PcgParams` in the WGSL).
-#[repr(C)]
-#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-pub(super) struct PcgParams {
-    n_nodes: u32,
-    n_partials: u32,
-    col_at: u32,
-    diag_at: u32,
-    /// The values chunk of the dispatch: rows, first block, index.
-    row_begin: u32,
-    row_end: u32,
-    block_first: u32,
-    chunk: u32,
-}
-const _: () = assert!(std::mem::size_of::<PcgParams>() == 32);
-
-/// Workgroup size of every kernel.
-const WORKGROUP: u32 = 64;
 
 /// Workgroups of the kernels that sum every partial of the reduction before them
 /// (update_yr sums the product's p·q for α, update_p the updates' r·z and r·r for β):
@@ -152,42 +132,6 @@ impl Sizes {
                         * WORKGROUP as u64),
             scal: acs * (slots::SCAL_HIST + 2 * hist) as u64,
         }
-    }
-}
-
-/// The scalar types of one PCG: `real` for H, the frames and the vectors (H's own),
-/// `acc` for every sum and scalar (f64 wherever the device has SHADER_F64), and whether
-/// the product takes the difference form (f32 only; see the module docs).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Scalars {
-    pub real: Real,
-    pub acc: Real,
-    pub difference: bool,
-}
-
-impl Scalars {
-    /// f64 throughout: the Newton loop's.
-    pub const F64: Scalars = Scalars {
-        real: Real::F64,
-        acc: Real::F64,
-        difference: false,
-    };
-
-    /// `real` vectors on `ctx`: f64 sums where it has SHADER_F64, else f32 (refused for
-    /// f64 vectors).
-    pub fn on(ctx: &GpuContext, real: Real, difference: bool) -> Result<Self, GpuError> {
-        let acc = if ctx.has_f64() { Real::F64 } else { Real::F32 };
-        if real == Real::F64 && acc == Real::F32 {
-            return Err(GpuError::Unsupported(format!(
-                "{} has no SHADER_F64: the device PCG cannot run in f64 there",
-                ctx.adapter_name()
-            )));
-        }
-        Ok(Scalars {
-            real,
-            acc,
-            difference: difference && real == Real::F32,
-        })
     }
 }
 
@@ -312,6 +256,73 @@ pub struct SegmentInfo {
     pub rhs_norm: f64,
 }
 
+/// One constraint set on the device (mask and rotation per node) with the bind group that
+/// uses it; built by [`DeviceCg::frames`], valid only with the [`DeviceCg`] that built it.
+pub struct DeviceFrames {
+    pub(super) owner: u64,
+    /// Its own identity: `iterate` needs the frames `prepare` used.
+    pub(super) id: u64,
+    /// One bind group per values chunk of H (the kernels that do not read H use the
+    /// first).
+    pub(super) groups: Vec<wgpu::BindGroup>,
+    /// G = ZᵀZ of the translations of every node with a free component, the first such
+    /// node and their count (src/solve/coarse.rs, `translation_gram`): with the E and
+    /// absolute row sums `prepare` reduces, whether a translation is pinned by nothing.
+    pub(super) gram: (Vec<f64>, usize, usize),
+    /// The coarse space these frames were built for.
+    pub(super) coarse: CoarseSpace,
+    /// With `Aggregates`: the aggregate index (`None` when every node is fixed).
+    pub(super) agg: Option<AggregateIndex>,
+    /// Kept alive with the bind groups (and bound by the multilevel setup's: cg/levels.rs).
+    pub(super) _frame: wgpu::Buffer,
+    pub(super) _rotations: wgpu::Buffer,
+    pub(super) _aggregates: wgpu::Buffer,
+    /// The aggregate coarse space's f64 data (shaders/pcg_coarse.wgsl, `coarse`).
+    pub(super) coarse_buf: wgpu::Buffer,
+    /// With the aggregates: the kernels that form E⁺ from E in `prepare`.
+    pub(super) factor: Option<CoarseFactor>,
+}
+
+/// What the last constraint set uploaded, kept so that the next one uploads only what
+/// differs: a Newton loop's constraint sets differ in the few moving nodes that snapped,
+/// the aggregates depend on H's pattern alone, and rotations rarely change.
+#[derive(Default)]
+pub(super) struct Uploaded {
+    pub(super) frame: Option<(Vec<u32>, wgpu::Buffer)>,
+    pub(super) rotations: Option<(Vec<u8>, wgpu::Buffer)>,
+    pub(super) aggregates: Option<(Vec<u8>, wgpu::Buffer)>,
+}
+
+/// E of the translations for the last `prepare`.
+#[derive(Debug, Clone)]
+pub(super) enum Galerkin {
+    /// Reduced on the device (in `scal`), not read back yet.
+    OnDevice,
+    /// Read back and symmetrized (D², row-major) with its pseudo-inverse, `None` when
+    /// every translation is constrained or E is not finite (no correction then, as on
+    /// the CPU).
+    Read {
+        e: Vec<f64>,
+        /// 2^-64 · Σ |entries| of the rows of each world axis (D).
+        abs: Vec<f64>,
+        einv: Option<Vec<f64>>,
+    },
+}
+
+/// What a caller records after every chunk of a solve (after its verification and Δx's
+/// recovery, in the same submit) and reads back with every status: the work that needs
+/// the solution, done without another round trip when the solve succeeds in the chunk.
+/// Its kernels must do nothing unless the chunk's verification met the tolerance
+/// (STATE_TRUE_OK of [`DeviceCg::state_buffer`]), since most chunks end unconverged.
+pub struct Tail<'a> {
+    pub record: &'a dyn Fn(&mut wgpu::CommandEncoder) -> Result<(), GpuError>,
+    pub read: &'a [(&'a wgpu::Buffer, u64, u64)],
+}
+
+/// The bytes of a tail's ranges read with the status of the chunk whose verification met
+/// the tolerance (the solve's answer).
+pub type TailBytes = Vec<Vec<u8>>;
+
 /// The device buffers of the CG (all f64 vectors are n·d, node-major).
 struct Buffers {
     /// Per values chunk of H: its parameters and its values.
@@ -383,7 +394,7 @@ pub struct DeviceCg {
     /// The iterations of the last few solves (the next one's first chunk).
     recent: std::collections::VecDeque<usize>,
     /// What the last constraint set uploaded ([`DeviceCg::frames`]).
-    uploaded: std::cell::RefCell<frames::Uploaded>,
+    uploaded: std::cell::RefCell<Uploaded>,
     /// Iterations recorded into command buffers and status reads of the current solve.
     recorded: Cell<usize>,
     reads: Cell<usize>,

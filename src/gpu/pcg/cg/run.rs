@@ -14,20 +14,6 @@ use crate::gpu::schedule::{self, ChunkStatus};
 use crate::solve::cg::CgError;
 use crate::solve::tolerance::ToleranceRule;
 
-/// What a caller records after every chunk of a solve (after its verification and Δx's
-/// recovery, in the same submit) and reads back with every status: the work that needs
-/// the solution, done without another round trip when the solve succeeds in the chunk.
-/// Its kernels must do nothing unless the chunk's verification met the tolerance
-/// (STATE_TRUE_OK of [`DeviceCg::state_buffer`]), since most chunks end unconverged.
-pub struct Tail<'a> {
-    pub record: &'a dyn Fn(&mut wgpu::CommandEncoder) -> Result<(), GpuError>,
-    pub read: &'a [(&'a wgpu::Buffer, u64, u64)],
-}
-
-/// The bytes of a tail's ranges read with the status of the chunk whose verification met
-/// the tolerance (the solve's answer).
-pub type TailBytes = Vec<Vec<u8>>;
-
 impl DeviceCg {
     /// Records the status copies (`scal`, `state` into `status`) after the work of `enc`,
     /// submits, and reads the status back with `extra` (one wait).
@@ -296,13 +282,7 @@ impl DeviceCg {
             if !st.verified {
                 // The run stopped without a verification (the window or the limit, or the
                 // multilevel preconditioner's runs): the true residual at y.
-                self.clear_flags();
-                let mut enc = self.encoder("pcg true residual");
-                let mut kernels = self.product_of_y(frames, Mode::Iterate);
-                kernels.extend(self.start(frames, pre, co, Mode::Iterate));
-                self.pass(&mut enc, "pcg true residual", Phase::Cg, &kernels);
-                (st, bytes) = self.submit_and_read(enc, &[], "the device PCG's true residual")?;
-                st.error(0)?;
+                (st, bytes) = self.true_residual(frames, (pre, co))?;
             }
             let rel = relative(st.rr);
             // A run that ends on no better a true residual than the best before it is at
@@ -347,26 +327,7 @@ impl DeviceCg {
             (st.converged, st.verified, st.true_ok) = (false, false, false);
             track = RunTrack::new(st.iterations, st.rr);
         }
-        self.last_iterations = st.iterations;
-        if self.recent.len() == RECENT_SOLVES {
-            self.recent.pop_front();
-        }
-        self.recent.push_back(st.iterations);
-        let answered = st.true_ok;
-        if !answered && !self.given_rhs {
-            // The host's quotient met the tolerance where the device's did not (rounding):
-            // Δx was not recovered with the status.
-            let mut enc = self.encoder("pcg recovery");
-            let recover = self.kernels.product.recover(&self.ctx, Mode::Iterate);
-            self.pass(
-                &mut enc,
-                "pcg recovery",
-                Phase::Cg,
-                &[(recover, self.launches.nodes, &frames.groups[0])],
-            );
-            self.ctx.submit(enc);
-            self.ctx.check("recovering the device Newton step")?;
-        }
+        let answered = self.finish(frames, &st)?;
         Ok((
             DeviceCgInfo {
                 iterations: st.iterations,
@@ -379,6 +340,47 @@ impl DeviceCg {
             },
             (answered && tail.is_some()).then_some(bytes),
         ))
+    }
+
+    /// The true residual at y (q = Ĥy, then a restart's kernels), read with the status.
+    fn true_residual(
+        &self,
+        frames: &DeviceFrames,
+        (pre, co): (Pre, Co),
+    ) -> Result<(ChunkStatus, TailBytes), GpuError> {
+        self.clear_flags();
+        let mut enc = self.encoder("pcg true residual");
+        let mut kernels = self.product_of_y(frames, Mode::Iterate);
+        kernels.extend(self.start(frames, pre, co, Mode::Iterate));
+        self.pass(&mut enc, "pcg true residual", Phase::Cg, &kernels);
+        let (st, bytes) = self.submit_and_read(enc, &[], "the device PCG's true residual")?;
+        st.error(0)?;
+        Ok((st, bytes))
+    }
+
+    /// A solve that met its tolerance with the status `st`: its iterations remembered for
+    /// the next first chunk, and Δx recovered where the chunk's verification did not
+    /// (the host's quotient met the tolerance where the device's missed it by rounding).
+    /// Whether the verification had recovered it (and the tail run on it).
+    fn finish(&mut self, frames: &DeviceFrames, st: &ChunkStatus) -> Result<bool, GpuError> {
+        self.last_iterations = st.iterations;
+        if self.recent.len() == RECENT_SOLVES {
+            self.recent.pop_front();
+        }
+        self.recent.push_back(st.iterations);
+        if !st.true_ok && !self.given_rhs {
+            let mut enc = self.encoder("pcg recovery");
+            let recover = self.kernels.product.recover(&self.ctx, Mode::Iterate);
+            self.pass(
+                &mut enc,
+                "pcg recovery",
+                Phase::Cg,
+                &[(recover, self.launches.nodes, &frames.groups[0])],
+            );
+            self.ctx.submit(enc);
+            self.ctx.check("recovering the device Newton step")?;
+        }
+        Ok(st.true_ok)
     }
 
     /// The start of a run and its first chunk of `k` iterations, in one submit (one
@@ -422,9 +424,7 @@ impl DeviceCg {
             kernels.extend(one.iter().map(|(_, kern)| kern.clone()));
         }
         self.recorded.set(self.recorded.get() + k);
-        // The multilevel preconditioner's V-cycle stops with the CG's flag, so its runs
-        // are checked by a submit of their own.
-        if verify && pre != Pre::Multilevel {
+        if verify {
             kernels.extend(self.product_of_y(frames, Mode::Verify));
             kernels.extend(self.start(frames, pre, co, Mode::Verify));
             let up = &self.kernels.update;
@@ -505,7 +505,7 @@ impl DeviceCg {
         let l = &self.launches;
         if pre == Pre::Multilevel {
             let mut k = vec![(up.init(dev, pre, Co::None, mode), l.segments, g0)];
-            k.extend(self.vcycle(frames).into_iter().map(|(_, k)| k));
+            k.extend(self.vcycle(frames, mode).into_iter().map(|(_, k)| k));
             k.push((up.ml_start(dev, mode), l.segments, g0));
             k.push((up.scalar_start(dev, Co::None, mode), ONE, g0));
             return k;
@@ -554,6 +554,7 @@ impl DeviceCg {
     pub(super) fn vcycle<'a>(
         &'a self,
         frames: &'a DeviceFrames,
+        mode: Mode,
     ) -> Vec<(&'static str, Kernel<'a>)> {
         let Some(ml) = &self.ml else {
             return Vec::new();
@@ -561,7 +562,7 @@ impl DeviceCg {
         let pr = &self.kernels.product;
         let dev = &self.ctx;
         let mut out = Vec::new();
-        for step in ml.steps() {
+        for step in ml.steps(mode == Mode::Verify) {
             match step {
                 Step::Kernel(name, pipe, launch, group) => {
                     out.push((name, (pipe.clone(), launch, group)))
@@ -569,11 +570,15 @@ impl DeviceCg {
                 Step::FinestProduct => {
                     out.push((
                         "ml world_z",
-                        (pr.world_z(dev), self.launches.nodes, &frames.groups[0]),
+                        (
+                            pr.world_z(dev, mode),
+                            self.launches.nodes,
+                            &frames.groups[0],
+                        ),
                     ));
                     out.extend(
                         Self::per_chunk(
-                            pr.matvec(dev, Mode::Iterate),
+                            pr.matvec(dev, mode),
                             &self.launches.chunk_segments,
                             frames,
                         )
@@ -602,7 +607,7 @@ impl DeviceCg {
                 .collect();
         one.push(("update_yr", (up.update_yr(dev, pre, co), l.fused, g0)));
         if pre == Pre::Multilevel {
-            one.extend(self.vcycle(frames));
+            one.extend(self.vcycle(frames, Mode::Iterate));
             one.push(("ml_dot", (up.ml_dot(dev), l.segments, g0)));
         }
         let agg = self.aggregate_correction(frames, co, Mode::Iterate);

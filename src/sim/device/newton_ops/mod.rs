@@ -339,6 +339,8 @@ fn slot_count(terms: usize) -> usize {
 /// Result slots after this module's, for the loop's checks ([`crate::sim::device::checks`]),
 /// so that every scalar result of a Newton iteration lies in one buffer.
 pub const CHECK_SLOTS: usize = 2;
+/// Result slots after the checks': the line search's first trial's α (`tail`).
+const TAIL_SLOTS: usize = 1;
 
 impl NewtonOps {
     /// Builds the pipelines, state buffers and bind groups for the terms of `elements`,
@@ -423,7 +425,7 @@ impl NewtonOps {
         let scal = ctx.storage_with("newton scalars", &to_bytes(true, &scal_init))?;
         let slots = slot_count(t) as u64;
         let partials = zeroed("newton partial reductions", slots * groups as u64 * 32)?;
-        let all_slots = slots + (CHECK_SLOTS + tail::tail_slots(t)) as u64;
+        let all_slots = slots + (CHECK_SLOTS + TAIL_SLOTS) as u64;
         let result = zeroed("newton reductions", all_slots * 32)?;
         let energy_at_x = zeroed("newton energy at x", (t as u64 + 1) * 32)?;
         let dummies = Dummies {

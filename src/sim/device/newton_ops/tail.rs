@@ -3,16 +3,13 @@
 //! result slots they leave, and the trial's own slots (α, and E at x kept before the
 //! trial's sums overwrite it).
 
-use super::{slot_count, NewtonOps, Op, CHECK_SLOTS, NO_INDEX, S_FRACTION, S_INV_FRACTION};
+use super::{
+    slot_count, NewtonOps, Op, CHECK_SLOTS, NO_INDEX, S_FRACTION, S_INV_FRACTION, TAIL_SLOTS,
+};
 use crate::gpu::gate::Dispatch;
 use crate::gpu::GpuError;
 use crate::sim::device::elements::to_bytes;
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
-
-/// Result slots after the checks': the trial's α.
-pub(super) fn tail_slots(_terms: usize) -> usize {
-    1
-}
 
 impl NewtonOps {
     /// The slot of the trial's α (`trial` reads it; `step_bound` or the host writes it).
@@ -22,7 +19,7 @@ impl NewtonOps {
 
     /// Every result slot (what a caller reads back whole).
     pub fn result_slots(&self) -> usize {
-        self.alpha_slot() + 1
+        self.alpha_slot() + TAIL_SLOTS
     }
 
     /// The per-term energy sums and the moving energy at x, copied out of the result slots
