@@ -3,6 +3,9 @@
 
 use naga::valid::{Capabilities, ValidationFlags, Validator};
 
+/// The head of every pcg_*.wgsl.
+const PCG_COMMON: &str = "pcg_common.wgsl";
+
 #[test]
 fn every_shader_parses_and_validates() {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("shaders");
@@ -10,8 +13,12 @@ fn every_shader_parses_and_validates() {
         .expect("shaders/ exists")
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| p.extension().is_some_and(|x| x == "wgsl"))
-        // common.wgsl is part of the prelude: it is validated inside every kernel below.
-        .filter(|p| p.file_name().is_some_and(|n| n != "common.wgsl"))
+        // common.wgsl is part of the prelude and pcg_common.wgsl heads every pcg_*.wgsl:
+        // each is validated inside the kernels that include it.
+        .filter(|p| {
+            p.file_name()
+                .is_some_and(|n| n != "common.wgsl" && n != PCG_COMMON)
+        })
         .collect();
     files.sort();
     assert!(
@@ -20,7 +27,16 @@ fn every_shader_parses_and_validates() {
     );
     let mut checked = 0;
     for path in &files {
-        let src = std::fs::read_to_string(path).expect("readable shader");
+        let mut src = std::fs::read_to_string(path).expect("readable shader");
+        // The PCG's shader files share one bind group and its helpers (gpu::pcg's
+        // `pcg_source!` prepends them the same way).
+        if path
+            .file_name()
+            .and_then(|n| n.to_str())
+            .is_some_and(|n| n.starts_with("pcg_"))
+        {
+            src = std::fs::read_to_string(dir.join(PCG_COMMON)).expect("readable shader") + &src;
+        }
         for (real, acc) in stickslip::gpu::kernels::PRELUDES {
             let full = format!("{}{}", stickslip::gpu::kernels::prelude(real, acc), src);
             let module = naga::front::wgsl::parse_str(&full).unwrap_or_else(|e| {
