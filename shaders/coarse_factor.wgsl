@@ -1,5 +1,5 @@
 // E⁺ of the aggregates' translations formed on the device (src/gpu/pcg/coarse_factor.rs)
-// from the E = ZᵀĤZ that pcg.wgsl's agg_e reduced, recorded after it by `prepare`:
+// from the E = ZᵀĤZ that pcg_coarse.wgsl's agg_e reduced, recorded after it by `prepare`:
 //
 //   agg_er      Er = Wᵀ sym(E) W            a grid, one invocation per entry (p ≥ q)
 //   agg_chol    Er = L Lᵀ in place          one workgroup, column by column: the column
@@ -43,7 +43,7 @@ struct FactorParams {
 override D: u32 = 3u;
 
 @group(0) @binding(0) var<uniform> fp: FactorParams;
-// The PCG's aggregate data (pcg.wgsl, `coarse`): E read, E⁺ written.
+// The PCG's aggregate data (pcg_common.wgsl, `coarse`): E read, E⁺ written.
 @group(0) @binding(1) var<storage, read_write> coarse: array<acc>;
 // W's columns per aggregate (count + 1 offsets), then the aggregate of each column.
 @group(0) @binding(2) var<storage, read> basis: array<u32>;

@@ -5,7 +5,7 @@
 // One bind group per level l: its index arrays (`idx`) and f64 arrays (`vals`), its
 // vectors b (right-hand side), x (correction) and ax (= A_l x, its residual being b − ax)
 // and the next level's b and x. Level 0's b, x and ax are the PCG's r, z and q, and its
-// product is the PCG's own matvec (pcg.wgsl, `world_z` then `matvec`): the operator a
+// product is the PCG's own matvec (pcg_product.wgsl, `world_z` then `matvec`): the operator a
 // device Newton loop reads in place. Per level, down and up:
 //
 //   smooth_pre   x = ω B⁺ b                 (the coarsest level: ω = 1, the solve)
