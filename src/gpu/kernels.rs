@@ -246,6 +246,33 @@ impl Layout {
         (layout, pl)
     }
 
+    /// This shader's bind group layout and a pipeline per entry point of `entries` (in
+    /// that order), all with the override `constants`: the adapter checked first, the
+    /// compile counted as pipeline creation in the run's profile. Labels read
+    /// "`name` `entry` (`real`)".
+    pub fn pipelines(
+        &self,
+        ctx: &super::GpuContext,
+        (real, acc): (&str, &str),
+        name: &str,
+        entries: &[&str],
+        constants: &[(&str, f64)],
+    ) -> Result<(wgpu::BindGroupLayout, Vec<wgpu::ComputePipeline>), super::GpuError> {
+        self.check_adapter(ctx)?;
+        let _compiling = ctx.phase(super::Phase::PipelineCreation);
+        let dev = &ctx.device;
+        let module = self.module(dev, real, acc);
+        let (layout, pl) = self.layouts(dev, name);
+        let pipelines = entries
+            .iter()
+            .map(|e| {
+                let label = format!("{name} {e} ({real})");
+                pipeline(dev, &pl, &module, e, &label, constants)
+            })
+            .collect();
+        Ok((layout, pipelines))
+    }
+
     /// This shader's source after the prelude for `real`/`acc`, compiled; labelled
     /// "`file` (`real`/`acc`)".
     pub fn module(&self, dev: &wgpu::Device, real: &str, acc: &str) -> wgpu::ShaderModule {

@@ -66,6 +66,7 @@
 pub mod aggregates;
 mod cg;
 mod coarse_factor;
+mod frame_layout;
 mod host;
 mod mllevels;
 mod mlsetup;
@@ -79,6 +80,7 @@ pub use cg::{
     Scalars, SegmentEnd, SegmentInfo, SegmentStart, Tail, Watch, LANCZOS_HIST, PCG_COARSE,
     PCG_PRODUCT, PCG_UPDATE,
 };
+pub use frame_layout::frame_words;
 pub use mlsetup::multilevel_setup_bytes;
 pub use multilevel::{multilevel_bytes, LevelValues};
 pub use solver::PcgSolver;

@@ -30,7 +30,7 @@ use super::elements::{GpuElements, TermKind, WORKGROUP};
 use crate::core::sparse::BlockCsr;
 use crate::gpu::blocks::{values_chunks, BlockMatrix, ValuesChunk};
 use crate::gpu::kernels::{self, Access, Layout};
-use crate::gpu::{GpuContext, GpuError, Phase};
+use crate::gpu::{GpuContext, GpuError};
 use crate::sim::energy::Model;
 
 use Access::{Read as R, ReadWrite as W, Uniform as U};
@@ -294,19 +294,13 @@ impl GpuAssembly {
 
         // Pipelines.
         let real = if f64 { "f64" } else { "f32" };
-        ASSEMBLE.check_adapter(&ctx)?;
-        let compiling = ctx.phase(Phase::PipelineCreation);
-        let module = ASSEMBLE.module(dev, real, real);
-        let (layout, pl) = ASSEMBLE.layouts(dev, "assembly");
-        let constants = [("D", dim as f64), ("WG", WORKGROUP as f64)];
-        let pipelines: Vec<_> = ENTRIES
-            .iter()
-            .map(|e| {
-                let label = format!("{e} ({dim}D, {real})");
-                kernels::pipeline(dev, &pl, &module, e, &label, &constants)
-            })
-            .collect();
-        drop(compiling);
+        let (layout, pipelines) = ASSEMBLE.pipelines(
+            &ctx,
+            (real, real),
+            &format!("assembly {dim}D"),
+            &ENTRIES,
+            &[("D", dim as f64), ("WG", WORKGROUP as f64)],
+        )?;
 
         // Buffers, limits checked first.
         let init = |label: &str, data: &[u8]| ctx.storage_with(label, data);

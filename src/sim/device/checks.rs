@@ -34,13 +34,14 @@
 
 #![cfg(feature = "sim")]
 
-use crate::core::constraints::{Frames, NO_ROTATION};
+use crate::core::constraints::Frames;
 use crate::gpu::gate::Dispatch;
 use crate::gpu::kernels::{self, Access, Layout};
+use crate::gpu::pcg::frame_words;
 use crate::gpu::{GpuContext, GpuError};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::elements::{from_bytes, to_bytes, GpuElements, TermKind};
-use crate::sim::device::newton_ops::NewtonOps;
+use crate::sim::device::newton_ops::{reduce_groups, NewtonOps, NO_INDEX, WG};
 use crate::sim::energy::{ElementSet, InversionLimit, Inverted, Law, Model};
 use crate::sim::integrator::ForceBalance;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -100,15 +101,6 @@ const S_H2: usize = 1;
 const S_GNORM: usize = 2;
 const S_INF: usize = 3;
 const N_SCAL: usize = 4;
-
-/// "No index" of a result lane (`NO_INDEX` in the shader).
-pub const NO_INDEX: f64 = 4503599627370496.0;
-
-/// Workgroup size of every kernel here.
-const WG: u32 = 64;
-
-/// Upper bound of the reduction workgroups.
-const MAX_REDUCE_GROUPS: usize = 64;
 
 /// Entry points, in the order of [`Entry`].
 const ENTRIES: [&str; 4] = ["sizes_init", "sizes_add", "reduce", "finish"];
@@ -326,31 +318,18 @@ impl NewtonChecks {
             )));
         }
         let (chunks, sets) = element_sets(elements, model)?;
-        let dev = &ctx.device;
-        NEWTON_CHECKS.check_adapter(&ctx)?;
-        let compiling = ctx.phase(crate::gpu::Phase::PipelineCreation);
-        let module = NEWTON_CHECKS.module(dev, "f64", "f64");
-        let (layout, pl) = NEWTON_CHECKS.layouts(dev, "newton checks");
-        let constants = [("D", d as f64), ("WG", WG as f64)];
-        let pipelines: Vec<_> = ENTRIES
-            .iter()
-            .map(|e| {
-                let label = format!("newton checks {e} ({d}D)");
-                kernels::pipeline(dev, &pl, &module, e, &label, &constants)
-            })
-            .collect();
-        drop(compiling);
+        let (layout, pipelines) = NEWTON_CHECKS.pipelines(
+            &ctx,
+            ("f64", "f64"),
+            &format!("newton checks {d}D"),
+            &ENTRIES,
+            &[("D", d as f64), ("WG", WG as f64)],
+        )?;
         let largest = chunks
             .iter()
             .filter_map(|&(t, _)| elements.term_range(t).map(|r| r.len()))
             .fold(n, usize::max);
-        let groups = ctx
-            .reduction_groups()
-            .min(MAX_REDUCE_GROUPS)
-            .min(largest.max(1).div_ceil(WG as usize).next_power_of_two())
-            .max(1);
-        ctx.launch()
-            .require_exact(groups as u32, "the Newton loop's checks")?;
+        let groups = reduce_groups(&ctx, largest, "the Newton loop's checks")?;
         let inv_chunks: Vec<(usize, usize)> =
             chunks.iter().copied().filter(|c| sets[c.1].2).collect();
         // Partials: a row per classical chunk, then the force balance's.
@@ -633,28 +612,13 @@ impl NewtonChecks {
     /// the force balance under it.
     pub fn frames(&self, f: &Frames) -> Result<BalanceFrames, GpuError> {
         let (n, d) = (self.n_nodes, self.dim);
-        if f.dim != d
-            || f.n_nodes != n
-            || f.mask.len() != n
-            || f.rot_index.len() != n
-            || f.rotations.len() != d * d * f.rot_nodes.len()
-        {
+        if f.dim != d || f.n_nodes != n {
             return Err(GpuError::Mismatch(format!(
                 "the constraint frames are for {} nodes in {}D, the mesh has {n} in {d}D",
                 f.n_nodes, f.dim
             )));
         }
-        let mut frame = Vec::with_capacity(2 * n);
-        for i in 0..n {
-            let ri = f.rot_index[i];
-            if ri != NO_ROTATION && ri as usize >= f.rot_nodes.len() {
-                return Err(GpuError::Mismatch(format!(
-                    "node {i} names rotation {ri} of {}",
-                    f.rot_nodes.len()
-                )));
-            }
-            frame.extend_from_slice(&[f.mask[i] as u32, ri]);
-        }
+        let frame = frame_words(f)?;
         let frame_buf = self
             .ctx
             .storage_with("newton checks frames", bytemuck::cast_slice(&frame))?;

@@ -38,7 +38,7 @@
 
 use crate::gpu::gate::Dispatch;
 use crate::gpu::kernels::{self, Access, Layout};
-use crate::gpu::{GpuContext, GpuError, Phase, Precision};
+use crate::gpu::{GpuContext, GpuError, Precision};
 use crate::sim::energy::barrier::{Barrier, HalfSpace};
 use crate::sim::energy::{ElementSet, Law, Model};
 
@@ -190,27 +190,21 @@ impl ElementKernels {
                 precision,
             });
         }
-        let dev = &ctx.device;
         let real = real_name(f64);
-        ELEMENTS.check_adapter(ctx)?;
-        let compiling = ctx.phase(Phase::PipelineCreation);
-        let module = ELEMENTS.module(dev, real, real);
-        let (layout, pl) = ELEMENTS.layouts(dev, "elements");
         // Unit roundoff of the real type: exact powers of two, so exact as f32 too.
         let eps = if f64 {
             f64::EPSILON
         } else {
             f32::EPSILON as f64
         };
-        let constants = [("D", dim as f64), ("WG", WORKGROUP as f64), ("EPS", eps)];
-        let pipelines = TermKind::ALL
-            .iter()
-            .map(|k| {
-                let label = format!("{} ({dim}D, {real})", k.entry());
-                kernels::pipeline(dev, &pl, &module, k.entry(), &label, &constants)
-            })
-            .collect();
-        drop(compiling);
+        let entries: Vec<&str> = TermKind::ALL.iter().map(|k| k.entry()).collect();
+        let (layout, pipelines) = ELEMENTS.pipelines(
+            ctx,
+            (real, real),
+            &format!("elements {dim}D"),
+            &entries,
+            &[("D", dim as f64), ("WG", WORKGROUP as f64), ("EPS", eps)],
+        )?;
         ctx.check("building the element kernels")?;
         Ok(ElementKernels {
             dim,

@@ -472,16 +472,7 @@ impl NeoHookean {
         let rest_factor = if d == 2 { 2.0 } else { 6.0 };
         let mut best: Option<(f64, usize)> = None;
         for (e, el) in self.elements.iter().enumerate() {
-            // Ds and ΔDs, row-major: column a − 1 is node a minus node 0.
-            let mut a = [0.0; 9];
-            let mut b = [0.0; 9];
-            for k in 1..=d {
-                for i in 0..d {
-                    a[i * d + k - 1] = x[el[k] * d + i] - x[el[0] * d + i];
-                    b[i * d + k - 1] = dx[el[k] * d + i] - dx[el[0] * d + i];
-                }
-            }
-            let c = det_polynomial(d, &a[..d * d], &b[..d * d]);
+            let c = step_det_polynomial(d, el, x, dx);
             if c[0].is_nan() || c[0] <= 0.0 {
                 return Err((e, c[0] / (rest_factor * self.volume[e])));
             }
@@ -491,6 +482,20 @@ impl NeoHookean {
         }
         Ok(best)
     }
+}
+
+/// det(Ds + α ΔDs) of element `el` (node indices) at positions `x` along the step `dx`
+/// ([`det_polynomial`]); Ds and ΔDs row-major, column a − 1 node a minus node 0.
+fn step_det_polynomial(d: usize, el: &[usize], x: &[f64], dx: &[f64]) -> [f64; 4] {
+    let mut a = [0.0; 9];
+    let mut b = [0.0; 9];
+    for k in 1..=d {
+        for i in 0..d {
+            a[i * d + k - 1] = x[el[k] * d + i] - x[el[0] * d + i];
+            b[i * d + k - 1] = dx[el[k] * d + i] - dx[el[0] * d + i];
+        }
+    }
+    det_polynomial(d, &a[..d * d], &b[..d * d])
 }
 
 /// det(A + αB) = c_0 + c_1 α + c_2 α² + c_3 α³ for d×d row-major A, B (d = 2: c_3 = 0):
@@ -985,15 +990,7 @@ mod tests {
                 let got = nh.inversion_bound(&x, &dx, max).expect("not inverted");
                 let mut want: Option<(f64, usize)> = None;
                 for (e, el) in nh.elements.iter().enumerate() {
-                    let mut a = [0.0; 9];
-                    let mut b = [0.0; 9];
-                    for k in 1..=d {
-                        for i in 0..d {
-                            a[i * d + k - 1] = x[el[k] * d + i] - x[el[0] * d + i];
-                            b[i * d + k - 1] = dx[el[k] * d + i] - dx[el[0] * d + i];
-                        }
-                    }
-                    let c = det_polynomial(d, &a[..d * d], &b[..d * d]);
+                    let c = step_det_polynomial(d, el, &x, &dx);
                     if let Some(r) = first_root(&c, max) {
                         if want.is_none_or(|(w, _)| r < w) {
                             want = Some((r, e));

@@ -349,6 +349,23 @@ impl DeviceLoop {
         Ok(moved)
     }
 
+    /// The force balance's binding of the constraint set `snapped`, made once: on the
+    /// PCG's frame buffers where that set has them, else uploaded.
+    fn bind_balance_frames(&mut self, state: &State, snapped: &[bool]) -> Result<(), GpuError> {
+        if self.balance_frames.contains_key(snapped) {
+            return Ok(());
+        }
+        let f = match self.frames.get(snapped) {
+            Some(pcg) => {
+                let (frame, rotations) = pcg.buffers();
+                self.checks.frames_from(frame, rotations)?
+            }
+            None => self.checks.frames(&state.frames[snapped])?,
+        };
+        self.balance_frames.insert(snapped.to_vec(), f);
+        Ok(())
+    }
+
     /// The CG on the system prepared for the constraint set `snapped`, to the tolerance of
     /// `rule`, with the line search's first trial recorded after every chunk; what that
     /// found is kept where the solve ended in a chunk whose verification ran it.
@@ -359,11 +376,7 @@ impl DeviceLoop {
         params: DeviceCgParams,
         rule: ToleranceRule,
     ) -> Result<crate::gpu::pcg::DeviceCgInfo, GpuError> {
-        if !self.balance_frames.contains_key(snapped) {
-            let (frame, rotations) = self.frames[snapped].buffers();
-            let f = self.checks.frames_from(frame, rotations)?;
-            self.balance_frames.insert(snapped.to_vec(), f);
-        }
+        self.bind_balance_frames(state, snapped)?;
         let sc = state.scene;
         let inp = TailInputs {
             ops: &self.ops,
@@ -671,10 +684,7 @@ impl Backend for DeviceLoop {
             return Ok(b);
         }
         let _phase = self.ctx.phase(Phase::HostDecisions);
-        if !self.balance_frames.contains_key(snapped) {
-            let f = self.checks.frames(&state.frames[snapped])?;
-            self.balance_frames.insert(snapped.to_vec(), f);
-        }
+        self.bind_balance_frames(state, snapped)?;
         let frames = &self.balance_frames[snapped];
         Ok(self.checks.force_balance(frames, state.scene.time_step)?)
     }

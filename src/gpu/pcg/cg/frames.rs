@@ -1,8 +1,9 @@
 //! A constraint set on the device: per node its mask and rotation, the aggregates of the
 //! coarse space, and the bind groups that use them.
 
+use super::super::frame_layout::frame_words;
 use super::{DeviceCg, DeviceFrames, NEXT_ID};
-use crate::core::constraints::{Frames, NO_ROTATION};
+use crate::core::constraints::Frames;
 use crate::gpu::kernels;
 use crate::gpu::GpuError;
 use crate::solve::coarse::CoarseSpace;
@@ -96,26 +97,7 @@ impl DeviceCg {
                     .into(),
             ));
         }
-        if f.mask.len() != n
-            || f.rot_index.len() != n
-            || f.rotations.len() != d * d * f.rot_nodes.len()
-        {
-            return Err(GpuError::Mismatch(
-                "the constraint frames' arrays disagree with their node count".into(),
-            ));
-        }
-        let mut frame = Vec::with_capacity(2 * n);
-        for i in 0..n {
-            let ri = f.rot_index[i];
-            if ri != NO_ROTATION && ri as usize >= f.rot_nodes.len() {
-                return Err(GpuError::Mismatch(format!(
-                    "node {i} names rotation {ri} of {}",
-                    f.rot_nodes.len()
-                )));
-            }
-            frame.push(f.mask[i] as u32);
-            frame.push(ri);
-        }
+        let frame = frame_words(f)?;
         let frame_buf = self.upload_frame_words(&frame)?;
         let rot_buf = self.upload_shared(Shared::Rotations, &self.ty.real.bytes(&f.rotations))?;
         let agg = match coarse {

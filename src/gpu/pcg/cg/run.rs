@@ -277,11 +277,12 @@ impl DeviceCg {
                     tail,
                     &mut bytes,
                     &mut track,
+                    None,
                 )?;
             }
             if !st.verified {
-                // The run stopped without a verification (the window or the limit, or the
-                // multilevel preconditioner's runs): the true residual at y.
+                // The run stopped without a verification (the window or the limit): the
+                // true residual at y.
                 (st, bytes) = self.true_residual(frames, (pre, co))?;
             }
             let rel = relative(st.rr);
@@ -621,34 +622,9 @@ impl DeviceCg {
     /// `params.max_iterations` are done in all, or the stagnation window asks for the true
     /// residual; `st` is the last status, `bytes` the tail's bytes read with it and
     /// `track` the run so far.
+    /// A `watch` may stop the run after any status read.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn chunks(
-        &self,
-        frames: &DeviceFrames,
-        (pre, co): (Pre, Co),
-        params: &DeviceCgParams,
-        thresh: f64,
-        st: &mut ChunkStatus,
-        tail: Option<&Tail>,
-        bytes: &mut TailBytes,
-        track: &mut RunTrack,
-    ) -> Result<Chunked, GpuError> {
-        self.chunks_watched(
-            frames,
-            (pre, co),
-            params,
-            thresh,
-            st,
-            tail,
-            bytes,
-            track,
-            None,
-        )
-    }
-
-    /// [`DeviceCg::chunks`] with a `watch` that may stop the run after any status read.
-    #[allow(clippy::too_many_arguments)]
-    pub(super) fn chunks_watched(
         &self,
         frames: &DeviceFrames,
         (pre, co): (Pre, Co),

@@ -105,7 +105,7 @@ impl DeviceCg {
         while !st.converged {
             let mut track = RunTrack::new(st.iterations, st.rr);
             track.verify = false;
-            match self.chunks_watched(
+            match self.chunks(
                 frames,
                 (pre, co),
                 params,

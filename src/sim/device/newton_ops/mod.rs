@@ -15,7 +15,7 @@
 #![cfg(feature = "sim")]
 
 use crate::gpu::kernels::{self, Access, Layout};
-use crate::gpu::{GpuContext, GpuError, Phase};
+use crate::gpu::{GpuContext, GpuError};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::elements::{from_bytes, to_bytes, GpuElements, TermKind};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
@@ -84,14 +84,28 @@ const PROJ_STRIDE: usize = 12;
 const MOVING_STRIDE: usize = 12;
 const MOVING_INDEX_STRIDE: usize = 4;
 
-/// "No index" of an arg-min (`NO_INDEX` in the shader).
-const NO_INDEX: f64 = 4503599627370496.0;
+/// "No index" of a result lane (`NO_INDEX` in the shaders of the loop's operations and
+/// checks): larger than every node, plane or element index, exact in f32 and f64.
+pub(crate) const NO_INDEX: f64 = 4503599627370496.0;
 
-/// Workgroup size of every kernel here.
-const WG: u32 = 64;
+/// Workgroup size of every kernel of the loop's operations and checks.
+pub(crate) const WG: u32 = 64;
 
 /// Upper bound of the reduction workgroups.
 const MAX_REDUCE_GROUPS: usize = 64;
+
+/// The workgroups of a two-pass reduction over `items`, the same for every dispatch of
+/// it (a fixed tree, so the sums keep their bits): the adapter's count, at most 64 and
+/// no more than the items fill; refused where the adapter cannot launch them all at once.
+pub(crate) fn reduce_groups(ctx: &GpuContext, items: usize, what: &str) -> Result<usize, GpuError> {
+    let groups = ctx
+        .reduction_groups()
+        .min(MAX_REDUCE_GROUPS)
+        .min(items.max(1).div_ceil(WG as usize).next_power_of_two())
+        .max(1);
+    ctx.launch().require_exact(groups as u32, what)?;
+    Ok(groups)
+}
 
 /// Entry points, in the order of [`Entry`].
 const ENTRIES: [&str; 9] = [
@@ -392,29 +406,16 @@ impl NewtonOps {
                     .ok_or_else(|| GpuError::Mismatch(format!("block {k} in no values chunk")))
             })
             .collect::<Result<_, _>>()?;
-        let dev = &ctx.device;
-        NEWTON_OPS.check_adapter(&ctx)?;
-        let compiling = ctx.phase(Phase::PipelineCreation);
-        let module = NEWTON_OPS.module(dev, "f64", "f64");
-        let (layout, pl) = NEWTON_OPS.layouts(dev, "newton ops");
-        let constants = [("D", d as f64), ("WG", WG as f64)];
-        let pipelines: Vec<_> = ENTRIES
-            .iter()
-            .map(|e| {
-                let label = format!("newton ops {e} ({d}D)");
-                kernels::pipeline(dev, &pl, &module, e, &label, &constants)
-            })
-            .collect();
-        drop(compiling);
+        let (layout, pipelines) = NEWTON_OPS.pipelines(
+            &ctx,
+            ("f64", "f64"),
+            &format!("newton ops {d}D"),
+            &ENTRIES,
+            &[("D", d as f64), ("WG", WG as f64)],
+        )?;
         let kinds = elements.kinds();
         let t = kinds.len();
-        let groups = ctx
-            .reduction_groups()
-            .min(MAX_REDUCE_GROUPS)
-            .min(n.max(1).div_ceil(WG as usize).next_power_of_two())
-            .max(1);
-        ctx.launch()
-            .require_exact(groups as u32, "the Newton loop's reductions")?;
+        let groups = reduce_groups(&ctx, n, "the Newton loop's reductions")?;
         let zeroed = |label: &str, bytes: u64| ctx.storage_zeroed(label, bytes);
         let x = zeroed("newton x", nd * 8)?;
         let xn = zeroed("newton xn", nd * 8)?;
