@@ -2,7 +2,7 @@
 //! modules of its own layer or of the layers below it, and no two modules import each other,
 //! directly or through others (test modules inside a file count as that file).
 //!
-//! Layers, lowest first (README, "Layers of the crate"):
+//! Layers, lowest first (docs/architecture.md, "Layers of the crate"):
 //!
 //! | layer | folders                          |
 //! |-------|----------------------------------|

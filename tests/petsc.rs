@@ -1,4 +1,4 @@
-//! Round trip through PETSc over MPI (README.md, "Beyond one machine"): a 3D system of
+//! Round trip through PETSc over MPI (docs/embedding.md, "Beyond one machine"): a 3D system of
 //! 50,653 nodes with sticky, plane and line constraints is exported, solved by PETSc
 //! (CG + point-block Jacobi, rtol 1e-12) on 2 MPI ranks, recovered, and compared with the
 //! Cholesky oracle.

@@ -625,7 +625,7 @@ fn write_outputs(report: &BenchReport, dir: &Path) -> std::io::Result<()> {
     Ok(())
 }
 
-/// `stickslip bench --hard`: the hard-case table (src/hard.rs) for STABILITY.md, and GPU
+/// `stickslip bench --hard`: the hard-case table (src/app/hard.rs) for STABILITY.md, and GPU
 /// f64 against mixed precision on larger hard cases. Writes hard.md and hard.json to `out`.
 pub fn run_hard(
     out: Option<&Path>,

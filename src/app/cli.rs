@@ -1,4 +1,4 @@
-//! The command line (README.md, "Usage"): `solve`, `generate`, `info`, `run`, `bench`,
+//! The command line (docs/cli.md): `solve`, `generate`, `info`, `run`, `bench`,
 //! `export` and `recover`. `main.rs` only calls [`main`].
 //!
 //! Exit codes: 0 success; 1 a solve failed (H not positive definite on the free
@@ -75,7 +75,7 @@ pub struct BenchArgs {
     pub out: Option<PathBuf>,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Run the hard-case stability suite instead (src/hard.rs): writes hard.md/hard.json.
+    /// Run the hard-case stability suite instead (src/app/hard.rs): writes hard.md/hard.json.
     #[arg(long)]
     pub hard: bool,
     /// With --hard: grid scale of the larger cases timing GPU f64 against mixed (1 to 20;
@@ -252,7 +252,7 @@ pub struct SystemArgs {
     /// g: Matrix Market array (or coordinate) real, dn × 1.
     #[arg(long, value_name = "g.mtx")]
     pub gradient: String,
-    /// Per-node constraints as JSON (README.md, "Constraint JSON").
+    /// Per-node constraints as JSON (docs/formats.md, "Constraint JSON").
     #[arg(long, value_name = "bc.json")]
     pub constraints: Option<String>,
     /// Global constraints B Δx = p: Matrix Market coordinate, m × dn, each row on one node.
@@ -292,8 +292,8 @@ pub struct SolveArgs {
     pub preconditioner: Preconditioner,
     /// Iterative solvers: coarse correction added to the preconditioner: aggregates (the
     /// translations of each aggregate of about 64 nodes, at most 128 aggregates: a body's
-    /// smooth modes), translations (the d rigid translations only) or none; see README
-    /// "Solver options".
+    /// smooth modes), translations (the d rigid translations only) or none; see
+    /// docs/coarse.md.
     #[arg(long, default_value = "aggregates")]
     pub coarse: CoarseSpace,
     /// The diagonal D on constrained components of Ĥ.

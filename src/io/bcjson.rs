@@ -1,4 +1,4 @@
-//! Constraint input: the per-node JSON of README.md, "Constraint JSON" (`bc.json`), and
+//! Constraint input: the per-node JSON of docs/formats.md, "Constraint JSON" (`bc.json`), and
 //! the global form B Δx = p (B.mtx with optional p.mtx) where every row of B touches one
 //! node.
 //!
@@ -660,7 +660,7 @@ fn json_vec(v: &[f64]) -> Value {
     Value::Array(v.iter().map(|&x| Value::from(x)).collect())
 }
 
-/// One constraint as the JSON object of README.md, "Constraint JSON".
+/// One constraint as the JSON object of docs/formats.md, "Constraint JSON".
 pub fn constraint_to_json(c: &Constraint) -> Value {
     let mut o = Map::new();
     o.insert("node".into(), Value::from(c.node));
