@@ -1,0 +1,591 @@
+//! The documents name only what exists: every repository path in README.md,
+//! BENCHMARKS.md, STABILITY.md and docs/**/*.md (markdown links, and paths in backticks and
+//! code blocks under src/, tests/, docs/, scripts/ and the other top folders) is on disk;
+//! every `stickslip SUBCOMMAND --option` they name (in code blocks and backticks) is a
+//! subcommand and option of the command line's clap definition; every scene key in the
+//! tables of docs/scenes.md is a key the scene parser knows.
+//!
+//! docs/lab/ holds dated records of runs as they were made: only their markdown links are
+//! checked (navigation), not the commands and paths of their date.
+//!
+//! The checkers take the text; the `detects_*` tests feed them a broken path, an unknown
+//! subcommand, an unknown option and an unknown scene key and expect each to be reported.
+#![cfg(feature = "cli")]
+
+use clap::CommandFactory;
+use std::path::{Path, PathBuf};
+
+/// Top folders whose paths a document may name in backticks or code blocks.
+const REPO_DIRS: [&str; 11] = [
+    "src/",
+    "tests/",
+    "docs/",
+    "scripts/",
+    "benches/",
+    "python/",
+    "examples/",
+    "scenes/",
+    "shaders/",
+    ".ci/",
+    "fuzz/",
+];
+
+/// One broken reference: the document, its line (1-based) and what is wrong.
+#[derive(Debug, Clone, PartialEq)]
+struct Problem {
+    doc: String,
+    line: usize,
+    what: String,
+}
+
+impl std::fmt::Display for Problem {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}:{}: {}", self.doc, self.line, self.what)
+    }
+}
+
+/// A piece of code in a document: an inline backtick span or one logical line of a code
+/// block (lines continued with `\` joined), with the line it starts on.
+#[derive(Debug, Clone)]
+struct Code {
+    line: usize,
+    text: String,
+    inline: bool,
+}
+
+/// Inline code spans and code-block lines of a markdown text. Fenced blocks (```) and
+/// lines indented by four spaces outside lists count as code blocks.
+fn code_pieces(text: &str) -> Vec<Code> {
+    let mut out = Vec::new();
+    let mut fenced = false;
+    let mut pending: Option<Code> = None;
+    for (i, raw) in text.lines().enumerate() {
+        let line = i + 1;
+        let trimmed = raw.trim_start();
+        if trimmed.starts_with("```") {
+            fenced = !fenced;
+            continue;
+        }
+        let block = fenced
+            || pending.is_some()
+            || (raw.starts_with("    ") && !trimmed.starts_with(['-', '*', '|']));
+        if block {
+            let (body, continued) = match raw.trim_end().strip_suffix('\\') {
+                Some(b) => (b, true),
+                None => (raw, false),
+            };
+            let piece = match pending.take() {
+                Some(mut p) => {
+                    p.text.push(' ');
+                    p.text.push_str(body.trim());
+                    p
+                }
+                None => Code {
+                    line,
+                    text: body.trim().to_string(),
+                    inline: false,
+                },
+            };
+            if continued {
+                pending = Some(piece);
+            } else {
+                out.push(piece);
+            }
+            continue;
+        }
+        if let Some(p) = pending.take() {
+            out.push(p);
+        }
+        let mut rest = raw;
+        while let Some(start) = rest.find('`') {
+            let ticks = rest[start..].chars().take_while(|&c| c == '`').count();
+            let fence = &rest[start..start + ticks];
+            let after = &rest[start + ticks..];
+            match after.find(fence) {
+                Some(end) => {
+                    out.push(Code {
+                        line,
+                        text: after[..end].trim().to_string(),
+                        inline: true,
+                    });
+                    rest = &after[end + ticks..];
+                }
+                None => break,
+            }
+        }
+    }
+    if let Some(p) = pending {
+        out.push(p);
+    }
+    out
+}
+
+/// Targets of markdown links `[text](target)` with their lines: relative paths only
+/// (no URL, no in-page anchor), the `#anchor` cut off.
+fn link_targets(text: &str) -> Vec<(usize, String)> {
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let mut rest = line;
+        while let Some(p) = rest.find("](") {
+            let after = &rest[p + 2..];
+            let Some(end) = after.find(')') else { break };
+            let target = after[..end].trim();
+            rest = &after[end..];
+            if target.is_empty()
+                || target.starts_with('#')
+                || target.contains("://")
+                || target.starts_with("mailto:")
+            {
+                continue;
+            }
+            let path = target.split('#').next().unwrap_or(target);
+            out.push((i + 1, path.to_string()));
+        }
+    }
+    out
+}
+
+/// Repository paths named in a piece of code: tokens that start with one of [`REPO_DIRS`]
+/// (or `./` then one of them), without placeholders or globs.
+fn repo_paths(code: &str) -> Vec<String> {
+    let mut out = Vec::new();
+    for tok in code.split(|c: char| c.is_whitespace() || "()[]\"',;`=".contains(c)) {
+        let tok = tok.trim_start_matches("./");
+        let tok = tok.trim_end_matches(['.', ':', ',']);
+        if !REPO_DIRS.iter().any(|d| tok.starts_with(d)) {
+            continue;
+        }
+        if tok.contains(['*', '<', '>', '{', '}', '$', '…']) || tok.contains("..") {
+            continue;
+        }
+        out.push(tok.to_string());
+    }
+    out
+}
+
+/// Broken paths of one document: markdown links relative to the document's folder, and
+/// (`code_paths`) repository paths in code relative to the repository root.
+fn check_paths(doc: &str, text: &str, root: &Path, code_paths: bool) -> Vec<Problem> {
+    let mut out = Vec::new();
+    let dir = root.join(doc);
+    let dir = dir.parent().unwrap_or(root);
+    for (line, target) in link_targets(text) {
+        if !dir.join(&target).exists() {
+            out.push(Problem {
+                doc: doc.to_string(),
+                line,
+                what: format!("link target `{target}` does not exist"),
+            });
+        }
+    }
+    if code_paths {
+        for piece in code_pieces(text) {
+            for p in repo_paths(&piece.text) {
+                if !root.join(&p).exists() {
+                    out.push(Problem {
+                        doc: doc.to_string(),
+                        line: piece.line,
+                        what: format!("path `{p}` does not exist"),
+                    });
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Whether a token names the binary: `stickslip` or a path ending in `/stickslip`.
+fn is_binary(tok: &str) -> bool {
+    tok == "stickslip"
+        || (tok.ends_with("/stickslip")
+            && tok
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || "/._-".contains(c)))
+}
+
+/// Where a command line of the binary starts in `toks`: the index of its first argument
+/// after `stickslip` or after `cargo run ... --` (not `--example`/`--bench`), or, for an
+/// inline span (`inline_sub`), a span that starts with a subcommand followed by an option.
+fn command_starts(toks: &[&str], subcommands: &[String], inline_sub: bool) -> Vec<usize> {
+    let mut starts = Vec::new();
+    for (i, t) in toks.iter().enumerate() {
+        if is_binary(t) && i + 1 < toks.len() && !toks[i + 1].starts_with("--stickslip") {
+            starts.push(i + 1);
+        }
+        if *t == "cargo" && toks.get(i + 1) == Some(&"run") {
+            let tail = &toks[i + 2..];
+            let end = tail
+                .iter()
+                .position(|t| is_separator(t))
+                .unwrap_or(tail.len());
+            let tail = &tail[..end];
+            if tail
+                .iter()
+                .any(|t| *t == "--example" || *t == "--bench" || *t == "--bin")
+            {
+                continue;
+            }
+            if let Some(k) = tail.iter().position(|t| *t == "--") {
+                if k + 1 < tail.len() {
+                    starts.push(i + 2 + k + 1);
+                }
+            }
+        }
+    }
+    if inline_sub
+        && starts.is_empty()
+        && toks.len() >= 2
+        && subcommands.iter().any(|s| s == toks[0])
+        && toks[1].starts_with("--")
+    {
+        starts.push(0);
+    }
+    starts
+}
+
+/// Shell punctuation that ends a command line.
+fn is_separator(t: &str) -> bool {
+    matches!(t, "|" | "||" | "&&" | ";" | ">" | ">>" | "2>&1") || t.starts_with('#')
+}
+
+/// Subcommands and long options the documents may name, from the clap definition.
+struct CliSpec {
+    cmd: clap::Command,
+}
+
+impl CliSpec {
+    fn new() -> Self {
+        let mut cmd = stickslip::app::cli::Cli::command();
+        cmd.build();
+        CliSpec { cmd }
+    }
+
+    fn subcommand_names(&self) -> Vec<String> {
+        self.cmd
+            .get_subcommands()
+            .map(|c| c.get_name().to_string())
+            .filter(|n| n != "help")
+            .collect()
+    }
+}
+
+/// Long options of a command (globals propagated by `build`), plus help and version.
+fn long_options(cmd: &clap::Command) -> Vec<String> {
+    let mut v: Vec<String> = cmd
+        .get_arguments()
+        .flat_map(|a| {
+            let mut names: Vec<String> = a.get_long().map(str::to_string).into_iter().collect();
+            names.extend(
+                a.get_all_aliases()
+                    .unwrap_or_default()
+                    .iter()
+                    .map(|s| s.to_string()),
+            );
+            names
+        })
+        .collect();
+    v.extend(["help".to_string(), "version".to_string()]);
+    v
+}
+
+/// Unknown subcommands and options in the command lines of one document.
+fn check_commands(doc: &str, text: &str, cli: &CliSpec) -> Vec<Problem> {
+    let subs = cli.subcommand_names();
+    let mut out = Vec::new();
+    for piece in code_pieces(text) {
+        let toks: Vec<&str> = piece.text.split_whitespace().collect();
+        for start in command_starts(&toks, &subs, piece.inline) {
+            let mut cmd = &cli.cmd;
+            let mut path = vec!["stickslip".to_string()];
+            let mut k = start;
+            let mut unknown_sub = false;
+            // Walk down the subcommands the line names.
+            while let Some(t) = toks.get(k) {
+                if t.starts_with('-') || is_separator(t) {
+                    break;
+                }
+                match cmd.find_subcommand(t) {
+                    Some(sub) => {
+                        cmd = sub;
+                        path.push(t.to_string());
+                        k += 1;
+                    }
+                    None => {
+                        let word = t.trim_end_matches(['.', ',', ':', ')']);
+                        let looks_like_sub = cmd.has_subcommands()
+                            && path.len() == 1
+                            && !word.is_empty()
+                            && word.chars().all(|c| c.is_ascii_lowercase() || c == '-');
+                        if looks_like_sub {
+                            unknown_sub = true;
+                            out.push(Problem {
+                                doc: doc.to_string(),
+                                line: piece.line,
+                                what: format!("`stickslip {word}` is not a subcommand"),
+                            });
+                        }
+                        break;
+                    }
+                }
+            }
+            if unknown_sub {
+                continue;
+            }
+            let longs = long_options(cmd);
+            for t in &toks[k..] {
+                if is_separator(t) {
+                    break;
+                }
+                let Some(name) = t.strip_prefix("--") else {
+                    continue;
+                };
+                let name = name.split('=').next().unwrap_or(name);
+                let name = name.trim_end_matches(|c: char| !c.is_ascii_alphanumeric());
+                if name.is_empty() || !name.starts_with(|c: char| c.is_ascii_lowercase()) {
+                    continue;
+                }
+                if !longs.iter().any(|l| l == name) {
+                    out.push(Problem {
+                        doc: doc.to_string(),
+                        line: piece.line,
+                        what: format!("`{} --{name}` is not an option", path.join(" ")),
+                    });
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Scene keys in the first column of the tables whose header's first cell is `key`:
+/// (line, table or `""` for the top level, whether it is an array of tables, key).
+fn scene_keys(text: &str) -> Vec<(usize, String, bool, String)> {
+    let mut out = Vec::new();
+    let mut in_table = false;
+    for (i, line) in text.lines().enumerate() {
+        let t = line.trim();
+        if !t.starts_with('|') {
+            in_table = false;
+            continue;
+        }
+        let first = t.trim_matches('|').split('|').next().unwrap_or("").trim();
+        if !in_table {
+            in_table = first == "key";
+            continue;
+        }
+        if first.chars().all(|c| c == '-' || c == ':') {
+            continue;
+        }
+        for piece in code_pieces(first) {
+            let s = piece.text.trim();
+            let (table, array, key) = if let Some(r) = s.strip_prefix("[[") {
+                match r.split_once("]]") {
+                    Some((tb, k)) => (tb.trim(), true, k.trim()),
+                    None => continue,
+                }
+            } else if let Some(r) = s.strip_prefix('[') {
+                match r.split_once(']') {
+                    Some((tb, k)) => (tb.trim(), false, k.trim()),
+                    None => continue,
+                }
+            } else {
+                ("", false, s)
+            };
+            out.push((i + 1, table.to_string(), array, key.to_string()));
+        }
+    }
+    out
+}
+
+/// A scene that parses, bodies last so that a key can be added to its body.
+const MINIMAL_SCENE: &str = r#"dimension = 2
+time_step = 0.01
+steps = 1
+
+[[bodies]]
+mesh = { kind = "rectangle", size = [1.0, 1.0], cells = [2, 2] }
+material = { model = "neo-hookean", young = 1e5, poisson = 0.3, density = 1000.0 }
+"#;
+
+/// Whether the scene parser rejects `key` in `table` as unknown. The key is given a
+/// string value: a known key may then fail on its type or on a duplicate, which is not
+/// what this asks.
+fn scene_key_unknown(table: &str, array: bool, key: &str) -> bool {
+    let line = format!("{key} = \"x\"\n");
+    let text = match (table, array) {
+        ("", _) => format!("{line}{MINIMAL_SCENE}"),
+        ("bodies", true) => format!("{MINIMAL_SCENE}{line}"),
+        (t, true) => format!("{MINIMAL_SCENE}\n[[{t}]]\n{line}"),
+        (t, false) => format!("{MINIMAL_SCENE}\n[{t}]\n{line}"),
+    };
+    match stickslip::sim::scene::parse(&text, "probe.toml", 1.0) {
+        Ok(_) => false,
+        Err(e) => {
+            let msg = e.to_string();
+            msg.contains("unknown field")
+        }
+    }
+}
+
+/// Scene keys of docs/scenes.md's tables that the parser does not know.
+fn check_scene_keys(doc: &str, text: &str) -> Vec<Problem> {
+    let mut out = Vec::new();
+    for (line, table, array, key) in scene_keys(text) {
+        if scene_key_unknown(&table, array, &key) {
+            let shown = match (table.as_str(), array) {
+                ("", _) => key.clone(),
+                (t, true) => format!("[[{t}]] {key}"),
+                (t, false) => format!("[{t}] {key}"),
+            };
+            out.push(Problem {
+                doc: doc.to_string(),
+                line,
+                what: format!("scene key `{shown}` is not in the scene schema"),
+            });
+        }
+    }
+    out
+}
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// The documents, relative to the root: the top-level ones and every .md under docs/.
+fn documents(root: &Path) -> Vec<String> {
+    let mut docs: Vec<String> = ["README.md", "BENCHMARKS.md", "STABILITY.md"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    let mut stack = vec![root.join("docs")];
+    while let Some(dir) = stack.pop() {
+        let Ok(entries) = std::fs::read_dir(&dir) else {
+            continue;
+        };
+        for e in entries.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if p.extension().is_some_and(|x| x == "md") {
+                if let Ok(rel) = p.strip_prefix(root) {
+                    docs.push(rel.to_string_lossy().replace('\\', "/"));
+                }
+            }
+        }
+    }
+    docs.sort();
+    docs
+}
+
+fn is_lab(doc: &str) -> bool {
+    doc.starts_with("docs/lab/")
+}
+
+#[test]
+fn every_document_names_what_exists() {
+    let root = root();
+    let cli = CliSpec::new();
+    let mut problems = Vec::new();
+    let docs = documents(&root);
+    assert!(docs.len() > 5, "found only {docs:?}");
+    for doc in &docs {
+        let text = std::fs::read_to_string(root.join(doc))
+            .unwrap_or_else(|e| panic!("{doc}: cannot read: {e}"));
+        problems.extend(check_paths(doc, &text, &root, !is_lab(doc)));
+        if !is_lab(doc) {
+            problems.extend(check_commands(doc, &text, &cli));
+        }
+        if doc == "docs/scenes.md" {
+            let keys = scene_keys(&text);
+            assert!(keys.len() > 20, "docs/scenes.md: found only {keys:?}");
+            problems.extend(check_scene_keys(doc, &text));
+        }
+    }
+    let list: Vec<String> = problems.iter().map(|p| p.to_string()).collect();
+    assert!(
+        list.is_empty(),
+        "{} broken references:\n{}",
+        list.len(),
+        list.join("\n")
+    );
+}
+
+#[test]
+fn every_subcommand_has_a_section_in_cli_md() {
+    let text = std::fs::read_to_string(root().join("docs/cli.md")).expect("docs/cli.md");
+    let headings: Vec<&str> = text.lines().filter(|l| l.starts_with('#')).collect();
+    for sub in CliSpec::new().subcommand_names() {
+        let name = format!("`stickslip {sub}`");
+        assert!(
+            headings.iter().any(|h| h.contains(&name)),
+            "docs/cli.md has no section headed {name}"
+        );
+    }
+}
+
+#[test]
+fn detects_a_broken_path() {
+    let text = "See [the method](method.md) and [gone](nowhere.md).\n\n\
+                The CG is in `src/solve/cg.rs`; the old one was `src/solve/no_such_file.rs`.\n\n    \
+                scripts/petsc_solve.py ex\n    python scripts/not_a_script.py ex\n";
+    let p = check_paths("docs/probe.md", text, &root(), true);
+    let what: Vec<&str> = p.iter().map(|p| p.what.as_str()).collect();
+    assert_eq!(
+        what,
+        [
+            "link target `nowhere.md` does not exist",
+            "path `src/solve/no_such_file.rs` does not exist",
+            "path `scripts/not_a_script.py` does not exist",
+        ],
+        "{p:?}"
+    );
+    assert_eq!(p[0].line, 1);
+    assert_eq!(p[2].line, 6);
+}
+
+#[test]
+fn detects_an_unknown_subcommand_and_option() {
+    let cli = CliSpec::new();
+    let text = "Run `stickslip run twist --size 2 --no-such-option 3`.\n\n    \
+                stickslip solve --hessian H.mtx \\\n        --gradient g.mtx --tolerence 1e-8\n    \
+                cargo run --release -- bench --quick --fast\n    stickslip frobnicate --x\n\n\
+                As `solve --coarse none` or `run --frames 3`.\n";
+    let p = check_commands("docs/probe.md", text, &cli);
+    let what: Vec<&str> = p.iter().map(|p| p.what.as_str()).collect();
+    assert_eq!(
+        what,
+        [
+            "`stickslip run --no-such-option` is not an option",
+            "`stickslip solve --tolerence` is not an option",
+            "`stickslip bench --fast` is not an option",
+            "`stickslip frobnicate` is not a subcommand",
+            "`stickslip run --frames` is not an option",
+        ],
+        "{p:?}"
+    );
+    assert_eq!(p[1].line, 3);
+}
+
+#[test]
+fn detects_an_unknown_scene_key() {
+    let text = "| key | meaning |\n|---|---|\n\
+                | `dimension` | 2 or 3 |\n\
+                | `steps` / `end_time` | one of them |\n\
+                | `[solver] cg_tolerance` | tolerance |\n\
+                | `[solver] cg_tolerence` | misspelt |\n\
+                | `[[bodies]] velocity` | initial velocity |\n\
+                | `[[boundary]] kind` | sticky, plane, line |\n\
+                | `[[boundary]] speed` | not a key |\n\
+                | `frames` | not a key |\n";
+    let p = check_scene_keys("docs/scenes.md", text);
+    let what: Vec<&str> = p.iter().map(|p| p.what.as_str()).collect();
+    assert_eq!(
+        what,
+        [
+            "scene key `[solver] cg_tolerence` is not in the scene schema",
+            "scene key `[[boundary]] speed` is not in the scene schema",
+            "scene key `frames` is not in the scene schema",
+        ],
+        "{p:?}"
+    );
+}
