@@ -4,7 +4,7 @@
 //!
 //!     cargo run --release --example assembly_gpu -- [cells per side] [f32|f64] [reps]
 //!
-//! (cells per side k: (k+1)³ nodes, 6k³ tetrahedra.) Numbers for BENCHMARKS.md.
+//! (cells per side k: (k+1)³ nodes, 6k³ tetrahedra.) Numbers for docs/design/device-assembly.md.
 
 use std::time::Instant;
 use stickslip::gpu::{GpuContext, GpuOptions, Precision};

@@ -33,8 +33,8 @@
 #   GPU_EVAL_ALLOW_CPU     1: accept a CPU adapter on Vulkan (a rehearsal on lavapipe)
 #   GPU_EVAL_LIMITS        seconds per step: tests,ladder,newton,twist,hard,cupy; 0 skips
 #                          [60,150,90,40,60,60 / 0,240,120,30,0,180]
-# The limits against what the first NVIDIA H100 run took (BENCHMARKS.md, "On a real
-# GPU"; 16 cores): by default tests 15 s, ladder to 1M nodes 91 s, bench --newton to 100k
+# The limits against what the first NVIDIA H100 run took (docs/lab/2026-11-25-h100.md;
+# 16 cores): by default tests 15 s, ladder to 1M nodes 91 s, bench --newton to 100k
 # 7 s, twist at size 6 4 s, bench --hard at scale 2 24 s, CuPy at 100k 25 s (166 s in
 # all, limits 460 s); with --large the 3M ladder 177 s, the 1M Newton step 77 s, twist
 # at size 10 12 s, CuPy at 1M ~60 s (generation and export) + ~3 x 30 s (reading the
