@@ -3,13 +3,17 @@
 //! code blocks under src/, tests/, docs/, scripts/ and the other top folders) is on disk;
 //! every `stickslip SUBCOMMAND --option` they name (in code blocks and backticks) is a
 //! subcommand and option of the command line's clap definition; every scene key in the
-//! tables of docs/scenes.md is a key the scene parser knows.
+//! tables of docs/scenes.md is a key the scene parser knows; every reference to a section
+//! of a document (`DOC.md, "Section"`), in the documents and in the sources under
+//! src/, tests/, examples/, benches/, scripts/, python/ and .ci/, names a heading (or a
+//! paragraph opening in bold) of that document.
 //!
 //! docs/lab/ holds dated records of runs as they were made: only their markdown links are
 //! checked (navigation), not the commands and paths of their date.
 //!
 //! The checkers take the text; the `detects_*` tests feed them a broken path, an unknown
-//! subcommand, an unknown option and an unknown scene key and expect each to be reported.
+//! subcommand, an unknown option, an unknown scene key and a missing section and expect
+//! each to be reported.
 #![cfg(feature = "cli")]
 
 use clap::CommandFactory;
@@ -447,6 +451,128 @@ fn check_scene_keys(doc: &str, text: &str) -> Vec<Problem> {
     out
 }
 
+/// A document's text with each line's comment marker (`//!`, `///`, `//`, `#`) taken off
+/// for source files, the lines joined by spaces, and the byte offset where each line starts.
+fn joined(text: &str, source: bool) -> (String, Vec<usize>) {
+    let mut out = String::new();
+    let mut starts = Vec::new();
+    for line in text.lines() {
+        starts.push(out.len());
+        let mut l = line.trim();
+        if source {
+            for m in ["//!", "///", "//", "#"] {
+                if let Some(r) = l.strip_prefix(m) {
+                    l = r.trim_start();
+                    break;
+                }
+            }
+        }
+        out.push_str(l);
+        out.push(' ');
+    }
+    (out, starts)
+}
+
+/// References to a section of a markdown file: `FILE.md, "Section"`, `FILE.md "Section"`,
+/// `FILE.md ("Section")` and `[..](FILE.md), "Section"`, as (line, file, section).
+fn section_refs(text: &str, source: bool) -> Vec<(usize, String, String)> {
+    let (t, starts) = joined(text, source);
+    let mut out = Vec::new();
+    let mut from = 0;
+    while let Some(k) = t[from..].find(".md") {
+        let end = from + k + 3;
+        from = end;
+        let start = t[..end - 3]
+            .rfind(|c: char| !(c.is_ascii_alphanumeric() || "_./-".contains(c)))
+            .map_or(0, |i| i + 1);
+        let file = &t[start..end];
+        if file.len() <= 3 {
+            continue;
+        }
+        let rest = t[end..].trim_start_matches(')');
+        let quoted = [", \"", " \"", " (\""]
+            .iter()
+            .find_map(|p| rest.strip_prefix(p));
+        let Some(q) = quoted else { continue };
+        let Some(close) = q.find('"') else { continue };
+        let section = q[..close].trim();
+        if section.is_empty() || section.len() > 120 {
+            continue;
+        }
+        let line = starts.partition_point(|&s| s <= start);
+        out.push((line, file.to_string(), section.to_string()));
+    }
+    out
+}
+
+/// Whether a markdown text has a heading, or a paragraph opening in bold, that holds
+/// `section` (case aside).
+fn has_section(text: &str, section: &str) -> bool {
+    let want = section.to_lowercase();
+    text.lines().any(|l| {
+        let l = l.trim_start();
+        (l.starts_with('#') || l.starts_with("**")) && l.to_lowercase().contains(&want)
+    })
+}
+
+/// References to sections that the named file does not have. `doc` is the referring file
+/// (relative to `root`): a name resolves against its folder, then against the root.
+fn check_sections(doc: &str, text: &str, root: &Path) -> Vec<Problem> {
+    let source = !doc.ends_with(".md");
+    let dir = root.join(doc);
+    let dir = dir.parent().unwrap_or(root).to_path_buf();
+    let mut out = Vec::new();
+    for (line, file, section) in section_refs(text, source) {
+        let target = [dir.join(&file), root.join(&file)]
+            .into_iter()
+            .find(|p| p.is_file());
+        let Some(target) = target else { continue };
+        let Ok(body) = std::fs::read_to_string(&target) else {
+            continue;
+        };
+        if !has_section(&body, &section) {
+            out.push(Problem {
+                doc: doc.to_string(),
+                line,
+                what: format!("{file} has no section \"{section}\""),
+            });
+        }
+    }
+    out
+}
+
+/// Source files that may name a document's section: every file under these folders.
+fn source_files(root: &Path) -> Vec<String> {
+    let mut files = Vec::new();
+    let mut stack: Vec<PathBuf> = [
+        "src", "tests", "examples", "benches", "scripts", "python", ".ci",
+    ]
+    .iter()
+    .map(|d| root.join(d))
+    .collect();
+    while let Some(dir) = stack.pop() {
+        let Ok(entries) = std::fs::read_dir(&dir) else {
+            continue;
+        };
+        for e in entries.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if p
+                .extension()
+                .is_some_and(|x| ["rs", "py", "sh", "wgsl", "toml"].iter().any(|e| x == *e))
+                || p.file_name().is_some_and(|n| n == "run")
+            {
+                if let Ok(rel) = p.strip_prefix(root) {
+                    files.push(rel.to_string_lossy().replace('\\', "/"));
+                }
+            }
+        }
+    }
+    files.sort();
+    files
+}
+
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
@@ -495,11 +621,20 @@ fn every_document_names_what_exists() {
         if !is_lab(doc) {
             problems.extend(check_commands(doc, &text, &cli));
         }
+        if !is_lab(doc) {
+            problems.extend(check_sections(doc, &text, &root));
+        }
         if doc == "docs/scenes.md" {
             let keys = scene_keys(&text);
             assert!(keys.len() > 20, "docs/scenes.md: found only {keys:?}");
             problems.extend(check_scene_keys(doc, &text));
         }
+    }
+    for file in source_files(&root) {
+        let Ok(text) = std::fs::read_to_string(root.join(&file)) else {
+            continue;
+        };
+        problems.extend(check_sections(&file, &text, &root));
     }
     let list: Vec<String> = problems.iter().map(|p| p.to_string()).collect();
     assert!(
@@ -588,4 +723,21 @@ fn detects_an_unknown_scene_key() {
         ],
         "{p:?}"
     );
+}
+
+#[test]
+fn detects_a_reference_to_a_missing_section() {
+    let md = "See [cli.md](cli.md), \"Exit codes\", and method.md, \"The\nno such section\".\n";
+    let p = check_sections("docs/probe.md", md, &root());
+    let what: Vec<&str> = p.iter().map(|p| p.what.as_str()).collect();
+    assert_eq!(
+        what,
+        ["method.md has no section \"The no such section\""],
+        "{p:?}"
+    );
+    assert_eq!(p[0].line, 1);
+    let rs = "//! The CG (BENCHMARKS.md, \"CPU CG against\n//! SciPy's Jacobi CG\") and docs/method.md (\"Nowhere\").\n";
+    let p = check_sections("src/probe.rs", rs, &root());
+    let what: Vec<&str> = p.iter().map(|p| p.what.as_str()).collect();
+    assert_eq!(what, ["docs/method.md has no section \"Nowhere\""], "{p:?}");
 }
