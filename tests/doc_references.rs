@@ -3,7 +3,8 @@
 //! code blocks under src/, tests/, docs/, scripts/ and the other top folders) is on disk;
 //! every `stickslip SUBCOMMAND --option` they name (in code blocks and backticks) is a
 //! subcommand and option of the command line's clap definition; every scene key in the
-//! tables of docs/scenes.md is a key the scene parser knows; every reference to a section
+//! tables of docs/scenes.md is a key the scene parser knows; every whole scene (a ```toml
+//! block that sets `dimension`) parses; every reference to a section
 //! of a document (`DOC.md, "Section"`), in the documents and in the sources under
 //! src/, tests/, examples/, benches/, scripts/, python/ and .ci/, names a heading (or a
 //! paragraph opening in bold) of that document.
@@ -12,7 +13,8 @@
 //! checked (navigation), not the commands and paths of their date.
 //!
 //! The checkers take the text; the `detects_*` tests feed them a broken path, an unknown
-//! subcommand, an unknown option, an unknown scene key and a missing section and expect
+//! subcommand, an unknown option, an unknown scene key, a missing section and a scene that
+//! does not parse and expect
 //! each to be reported.
 #![cfg(feature = "cli")]
 
@@ -573,6 +575,51 @@ fn source_files(root: &Path) -> Vec<String> {
     files
 }
 
+/// Whole scenes in a document: the ```toml code blocks that set `dimension`, with the line
+/// each starts on.
+fn toml_scenes(text: &str) -> Vec<(usize, String)> {
+    let mut out = Vec::new();
+    let mut block: Option<(usize, String)> = None;
+    for (i, line) in text.lines().enumerate() {
+        let t = line.trim_start();
+        match block.as_mut() {
+            None if t.starts_with("```toml") => block = Some((i + 2, String::new())),
+            Some(_) if t.starts_with("```") => {
+                if let Some((line, body)) = block.take() {
+                    if body
+                        .lines()
+                        .any(|l| l.trim_start().starts_with("dimension"))
+                    {
+                        out.push((line, body));
+                    }
+                }
+            }
+            Some((_, body)) => {
+                body.push_str(line);
+                body.push('\n');
+            }
+            None => {}
+        }
+    }
+    out
+}
+
+/// Whole scenes of a document that the scene parser refuses, with its message.
+fn check_toml_scenes(doc: &str, text: &str) -> Vec<Problem> {
+    toml_scenes(text)
+        .into_iter()
+        .filter_map(|(line, body)| {
+            stickslip::sim::scene::parse(&body, "scene.toml", 1.0)
+                .err()
+                .map(|e| Problem {
+                    doc: doc.to_string(),
+                    line,
+                    what: format!("the scene does not parse: {e}"),
+                })
+        })
+        .collect()
+}
+
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
@@ -623,6 +670,7 @@ fn every_document_names_what_exists() {
         }
         if !is_lab(doc) {
             problems.extend(check_sections(doc, &text, &root));
+            problems.extend(check_toml_scenes(doc, &text));
         }
         if doc == "docs/scenes.md" {
             let keys = scene_keys(&text);
@@ -740,4 +788,17 @@ fn detects_a_reference_to_a_missing_section() {
     let p = check_sections("src/probe.rs", rs, &root());
     let what: Vec<&str> = p.iter().map(|p| p.what.as_str()).collect();
     assert_eq!(what, ["docs/method.md has no section \"Nowhere\""], "{p:?}");
+}
+
+#[test]
+fn detects_a_scene_that_does_not_parse() {
+    let ok = "dimension = 2\ntime_step = 0.01\nsteps = 1\n[[bodies]]\n\
+              mesh = { kind = \"rectangle\", size = [1.0, 1.0], cells = [2, 2] }\n\
+              material = { model = \"neo-hookean\", young = 1e5, poisson = 0.3, density = 1.0 }\n";
+    let bad = ok.replace("time_step", "timestep");
+    let text = format!("A scene:\n\n```toml\n{ok}```\n\nAnother:\n\n```toml\n{bad}```\n");
+    let p = check_toml_scenes("docs/probe.md", &text);
+    assert_eq!(p.len(), 1, "{p:?}");
+    assert_eq!(p[0].line, 15);
+    assert!(p[0].what.contains("timestep"), "{p:?}");
 }
