@@ -3,7 +3,8 @@
 //! code blocks under src/, tests/, docs/, scripts/ and the other top folders) is on disk;
 //! every `stickslip SUBCOMMAND --option` they name (in code blocks and backticks) is a
 //! subcommand and option of the command line's clap definition; every scene key in the
-//! tables of docs/scenes.md is a key the scene parser knows; every whole scene (a ```toml
+//! tables of docs/scenes.md is a key the scene parser knows, and every key it knows has a
+//! row there; every whole scene (a ```toml
 //! block that sets `dimension`) parses; every reference to a section
 //! of a document (`DOC.md, "Section"`), in the documents and in the sources under
 //! src/, tests/, examples/, benches/, scripts/, python/ and .ci/, names a heading (or a
@@ -433,6 +434,42 @@ fn scene_key_unknown(table: &str, array: bool, key: &str) -> bool {
     }
 }
 
+/// The keys the scene parser accepts in `table` (`""`: the top level), read from its
+/// message for an unknown key ("unknown field `…`, expected one of `a`, `b`, …").
+fn schema_keys(table: &str, array: bool) -> Vec<String> {
+    let probe = "zz_not_a_key";
+    let line = format!("{probe} = 1\n");
+    let text = match (table, array) {
+        ("", _) => format!("{line}{MINIMAL_SCENE}"),
+        ("bodies", true) => format!("{MINIMAL_SCENE}{line}"),
+        (t, true) => format!("{MINIMAL_SCENE}\n[[{t}]]\n{line}"),
+        (t, false) => format!("{MINIMAL_SCENE}\n[{t}]\n{line}"),
+    };
+    let Err(e) = stickslip::sim::scene::parse(&text, "probe.toml", 1.0) else {
+        return Vec::new();
+    };
+    let msg = e.to_string();
+    let Some(list) = msg.split("expected").nth(1) else {
+        return Vec::new();
+    };
+    list.split('`')
+        .skip(1)
+        .step_by(2)
+        .map(str::to_string)
+        .collect()
+}
+
+/// The tables of a scene file, as docs/scenes.md names them.
+const SCENE_TABLES: [(&str, bool); 7] = [
+    ("", false),
+    ("output", false),
+    ("solver", false),
+    ("moving", false),
+    ("bodies", true),
+    ("boundary", true),
+    ("obstacle", true),
+];
+
 /// Scene keys of docs/scenes.md's tables that the parser does not know.
 fn check_scene_keys(doc: &str, text: &str) -> Vec<Problem> {
     let mut out = Vec::new();
@@ -704,6 +741,38 @@ fn every_subcommand_has_a_section_in_cli_md() {
             "docs/cli.md has no section headed {name}"
         );
     }
+}
+
+#[test]
+fn every_scene_key_has_a_row_in_scenes_md() {
+    let text = std::fs::read_to_string(root().join("docs/scenes.md")).expect("docs/scenes.md");
+    let rows: Vec<(String, bool, String)> = scene_keys(&text)
+        .into_iter()
+        .map(|(_, t, a, k)| (t, a, k))
+        .collect();
+    let mut missing = Vec::new();
+    for (table, array) in SCENE_TABLES {
+        let keys = schema_keys(table, array);
+        assert!(!keys.is_empty(), "no keys read for table {table:?}");
+        for key in keys {
+            if !rows
+                .iter()
+                .any(|(t, a, k)| t == table && *a == array && *k == key)
+            {
+                missing.push(match (table, array) {
+                    ("", _) => key,
+                    (t, true) => format!("[[{t}]] {key}"),
+                    (t, false) => format!("[{t}] {key}"),
+                });
+            }
+        }
+    }
+    // The top level's tables are the sections of the key table, not rows of their own.
+    missing.retain(|k| !SCENE_TABLES.iter().any(|(t, _)| !t.is_empty() && k == t));
+    assert!(
+        missing.is_empty(),
+        "docs/scenes.md has no row for {missing:?}"
+    );
 }
 
 #[test]
