@@ -1,9 +1,9 @@
 // Gather assembly of the Newton system from the per-element arrays of elements.wgsl, and
 // two products with it: the assembled block matrix's and a matrix-free one over the
 // element Hessians. One invocation per output block or node, each summing its own
-// contributions in a fixed order (src/gpu/assembly.rs builds the gather lists on the
+// contributions in a fixed order (src/sim/device/assembly.rs builds the gather lists on the
 // host): no atomics, the same result on every run and in the CPU's order
-// (src/energy: inertia, then the element sets in order with their elements in order, then
+// (src/sim/energy: inertia, then the element sets in order with their elements in order, then
 // the node terms).
 //
 // H = M + s·(Σ_sets K_e + B), g = M(x − x̃) + s·(Σ_sets g_e + g_gravity + g_barrier),
@@ -24,7 +24,7 @@
 
 override D: u32 = 3u;
 
-// Mirrors `AssemblyParams` in src/gpu/assembly.rs (eight u32, 32 bytes, size-asserted there).
+// Mirrors `AssemblyParams` in src/sim/device/assembly.rs (eight u32, 32 bytes, size-asserted there).
 struct AssemblyParams {
     // Output blocks or nodes of the dispatch.
     count: u32,

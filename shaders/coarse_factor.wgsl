@@ -15,7 +15,7 @@
 // agg_chol sets state[STATE_COARSE_FAILED] (0 or 1, every prepare) when a pivot is not
 // positive and finite (Ĥ indefinite on the coarse space); agg_cinv and agg_expand then
 // write nothing and zeros, and the host, which reads the flag with the start's status,
-// writes E⁺ itself (src/gpu/pcg/cg.rs, `upload_aggregate_einv`).
+// writes E⁺ itself (src/gpu/pcg/cg/coarse.rs, `upload_aggregate_einv`).
 //
 // Storage (`work`, acc): W (m columns of D values), then three m×m row-major matrices:
 // Er and L in place (lower triangle); X transposed (X_ic at (c, i), upper triangle: a

@@ -1,6 +1,6 @@
 // Per-element (and per-node) energies, gradients and Hessians of the incremental potential
-// (src/energy), one invocation per element or node, written to per-element arrays that a
-// device assembly scatters later (src/gpu/elements.rs has the layouts):
+// (src/sim/energy), one invocation per element or node, written to per-element arrays that a
+// device assembly scatters later (src/sim/device/elements.rs has the layouts):
 //   energy[e], gradient[e·nl + a·D + c], hessian[e·nl² + (a·D + c)·nl + b·D + k],
 // nl = (nodes per element)·D, node-major and row-major like the CPU's element buffers.
 //
@@ -20,7 +20,7 @@ override D: u32 = 3u;
 // pipeline: the Jacobi sweeps stop at it.
 override EPS: f32 = 2.220446049250313e-16;
 
-// Mirrors `ElementParams` in src/gpu/elements.rs (eight u32, 32 bytes, size-asserted there).
+// Mirrors `ElementParams` in src/sim/device/elements.rs (eight u32, 32 bytes, size-asserted there).
 struct ElementParams {
     // Elements or nodes of the dispatch.
     count: u32,

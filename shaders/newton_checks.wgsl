@@ -85,7 +85,7 @@ const NO_INDEX: f32 = 4503599627370496.0;
 // Per node: the sizes of its potential forces (unscaled).
 @group(0) @binding(15) var<storage, read_write> sizes: array<real>;
 @group(0) @binding(16) var<storage, read_write> partials: array<vec4<real>>;
-// The loop's scalar results (src/sim/device/newton_ops.rs), one vec4 per slot.
+// The loop's scalar results (src/sim/device/newton_ops/mod.rs), one vec4 per slot.
 @group(0) @binding(17) var<storage, read_write> result: array<vec4<real>>;
 
 var<workgroup> wg_red: array<vec4<real>, WG>;

@@ -1,5 +1,5 @@
 // The device Newton loop's vector operations, reductions and per-node updates
-// (src/sim/device/newton_ops.rs), the device side of the CPU's `Stepper` (src/sim/integrator/stepper.rs):
+// (src/sim/device/newton_ops/mod.rs), the device side of the CPU's `Stepper` (src/sim/integrator/stepper.rs):
 //
 // - begin_step: xn = x, x̃ = x + h v (x unprojected, as the CPU's start of step);
 //   project_static: x_i = P_i x_i + c_i for each listed node; the host then copies x to the
@@ -20,7 +20,7 @@
 override D: u32 = 3u;
 // WG (the workgroup size) comes with the prelude (shaders/common.wgsl).
 
-// Mirrors `OpsParams` in src/sim/device/newton_ops.rs (four u32, 16 bytes, size-asserted there).
+// Mirrors `OpsParams` in src/sim/device/newton_ops/mod.rs (four u32, 16 bytes, size-asserted there).
 struct OpsParams {
     // Items of the dispatch (DOFs, nodes, entries, terms; `finish`: partials per slot).
     count: u32,

@@ -372,7 +372,7 @@ fn all_fixed(i: u32) -> bool {
 }
 
 // Q_i = Z_iᵀZ_i = V_i P_i V_iᵀ, row-major: Q_ab = Σ_c over the free frame components of
-// V_ac V_bc (V = I at unrotated nodes), in the order src/coarse.rs sums it.
+// V_ac V_bc (V = I at unrotated nodes), in the order src/solve/coarse.rs sums it.
 fn proj(i: u32) -> array<real, 9> {
     let ri = rot_of(i);
     var o: array<real, 9>;

@@ -79,10 +79,10 @@
 //! | 0 | [`error`] | the error types (a leaf) |
 //! | 1 | [`core`] | constraints → per-node frames V_i, masks and the lift Δx_p; the eliminated system Ĥ y = b̂; block-sparse H; the constrained [`Problem`] |
 //! | 1 | [`io`], [`cases`] | Matrix Market and bc.json readers and writers; seeded random systems and mass-spring operators |
-//! | 2 | [`solve`] | the sparse Cholesky oracle and its orderings, f64 PCG, coarse spaces, every option enum |
-//! | 3 | [`gpu`] | device plumbing and the device PCG (no simulation types) |
+//! | 2 | [`solve`] | the sparse Cholesky oracle and its orderings, f64 PCG, its preconditioners, coarse spaces and the multilevel preconditioner, every option enum |
+//! | 3 | [`gpu`] | device plumbing and the device PCG in every precision, with its coarse spaces and multilevel levels (no simulation types) |
 //! | 4 | [`engine`] | the [`Solver`] behind this facade, dispatching to the oracle, the CPU CG or the GPU CG |
-//! | 5 | `sim` | meshes, energies, scenes, the Newton loop and its device operators (feature `sim`, on by default) |
+//! | 5 | `sim` | meshes, energies, scenes, the Newton loop and its device operators, the `run` driver, its output files and checkpoints (feature `sim`, on by default) |
 //! | 6 | `app` | the `stickslip` command line, benchmarks, hard cases, plots, reports (feature `cli`) |
 //!
 //! docs/method.md gives the method; docs/architecture.md, "Layers of the crate", the layers.

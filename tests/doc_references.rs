@@ -1,22 +1,24 @@
-//! The documents name only what exists: every repository path in README.md,
-//! BENCHMARKS.md, STABILITY.md and docs/**/*.md (markdown links, and paths in backticks and
-//! code blocks under src/, tests/, docs/, scripts/ and the other top folders) is on disk;
-//! every `stickslip SUBCOMMAND --option` they name (in code blocks and backticks) is a
-//! subcommand and option of the command line's clap definition; every scene key in the
-//! tables of docs/scenes.md is a key the scene parser knows, and every key it knows has a
-//! row there; every whole scene (a ```toml
-//! block that sets `dimension`) parses; every reference to a section
-//! of a document (`DOC.md, "Section"`), in the documents and in the sources under
-//! src/, tests/, examples/, benches/, scripts/, python/ and .ci/, names a heading (or a
-//! paragraph opening in bold) of that document.
+//! The documents name only what exists:
+//!
+//! - every repository path in README.md, BENCHMARKS.md, STABILITY.md and docs/**/*.md
+//!   (markdown links, and paths under src/, tests/, docs/, scripts/ and the other top
+//!   folders in backticks and code blocks) is on disk, and so is every such path named in
+//!   the sources (src/, tests/, examples/, benches/, scripts/, python/, .ci/, shaders/);
+//! - every `stickslip SUBCOMMAND --option` the documents name (in code blocks and
+//!   backticks) is a subcommand and option of the command line's clap definition, and
+//!   every subcommand has a section in docs/cli.md;
+//! - every scene key in the tables of docs/scenes.md is a key the scene parser knows,
+//!   every key it knows has a row there, and every whole scene a document shows (a toml
+//!   code block that sets `dimension`) parses;
+//! - every reference to a section of a document (`DOC.md, "Section"`), in the documents
+//!   and the sources, names a heading (or a paragraph opening in bold) of that document.
 //!
 //! docs/lab/ holds dated records of runs as they were made: only their markdown links are
 //! checked (navigation), not the commands and paths of their date.
 //!
 //! The checkers take the text; the `detects_*` tests feed them a broken path, an unknown
 //! subcommand, an unknown option, an unknown scene key, a missing section and a scene that
-//! does not parse and expect
-//! each to be reported.
+//! does not parse, and expect each to be reported.
 #![cfg(feature = "cli")]
 
 use clap::CommandFactory;
@@ -195,6 +197,23 @@ fn check_paths(doc: &str, text: &str, root: &Path, code_paths: bool) -> Vec<Prob
                         what: format!("path `{p}` does not exist"),
                     });
                 }
+            }
+        }
+    }
+    out
+}
+
+/// Repository paths named in a source file (its comments and strings) that do not exist.
+fn check_source_paths(file: &str, text: &str, root: &Path) -> Vec<Problem> {
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        for p in repo_paths(line) {
+            if !root.join(&p).exists() {
+                out.push(Problem {
+                    doc: file.to_string(),
+                    line: i + 1,
+                    what: format!("path `{p}` does not exist"),
+                });
             }
         }
     }
@@ -584,7 +603,7 @@ fn check_sections(doc: &str, text: &str, root: &Path) -> Vec<Problem> {
 fn source_files(root: &Path) -> Vec<String> {
     let mut files = Vec::new();
     let mut stack: Vec<PathBuf> = [
-        "src", "tests", "examples", "benches", "scripts", "python", ".ci",
+        "src", "tests", "examples", "benches", "scripts", "python", ".ci", "shaders",
     ]
     .iter()
     .map(|d| root.join(d))
@@ -720,6 +739,10 @@ fn every_document_names_what_exists() {
             continue;
         };
         problems.extend(check_sections(&file, &text, &root));
+        // This file's own tests name broken paths on purpose.
+        if file != "tests/doc_references.rs" {
+            problems.extend(check_source_paths(&file, &text, &root));
+        }
     }
     let list: Vec<String> = problems.iter().map(|p| p.to_string()).collect();
     assert!(
@@ -793,6 +816,12 @@ fn detects_a_broken_path() {
     );
     assert_eq!(p[0].line, 1);
     assert_eq!(p[2].line, 6);
+    let src = "//! The device side of `Stepper` (src/sim/integrator/stepper.rs,\n\
+               //! shaders/newton_ops.wgsl); the CPU's in src/integrator.rs.\n";
+    let p = check_source_paths("src/probe.rs", src, &root());
+    let what: Vec<&str> = p.iter().map(|p| p.what.as_str()).collect();
+    assert_eq!(what, ["path `src/integrator.rs` does not exist"], "{p:?}");
+    assert_eq!(p[0].line, 2);
 }
 
 #[test]

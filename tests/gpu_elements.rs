@@ -1,6 +1,6 @@
 //! Element energies, gradients and Hessians on the GPU (shaders/elements.wgsl through
-//! `gpu::elements`) against the CPU's (src/energy), term by term, in 2D and 3D, in f64
-//! and f32, for well-shaped, nearly flat and inverted elements, elements with repeated
+//! `sim::device::elements`) against the CPU's (src/sim/energy), term by term, in 2D and 3D,
+//! in f64 and f32, for well-shaped, nearly flat and inverted elements, elements with repeated
 //! singular values, collapsed ones (F = 0 or nearly rank one), and, in f64, slivers that
 //! are flat already at rest. Every projected neo-Hookean Hessian is also compared with the
 //! numerical projection of ∂²Ψ/∂F² (SymmetricEigen), the reference where the CPU's analytic

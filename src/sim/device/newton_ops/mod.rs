@@ -1,7 +1,7 @@
 //! The device Newton loop's vector operations, reductions and per-node updates
-//! (shaders/newton_ops.wgsl): the device side of the CPU's `Stepper` (src/integrator.rs)
-//! around the element terms ([`GpuElements`]), their assembly ([`GpuAssembly`]) and the
-//! linear solve's Δx.
+//! (shaders/newton_ops.wgsl): the device side of the CPU's `Stepper`
+//! (src/sim/integrator/stepper.rs) around the element terms ([`GpuElements`]), their
+//! assembly ([`GpuAssembly`]) and the linear solve's Δx.
 //!
 //! [`NewtonOps`] owns the accepted iterate x, the start of step xⁿ and the velocity v;
 //! [`GpuElements::positions_buffer`] holds the point being evaluated (the iterate or a line
