@@ -2,8 +2,9 @@
 //!
 //! - every repository path in README.md, BENCHMARKS.md, STABILITY.md and docs/**/*.md
 //!   (markdown links, and paths under src/, tests/, docs/, scripts/ and the other top
-//!   folders in backticks and code blocks) is on disk, and so is every such path named in
-//!   the sources (src/, tests/, examples/, benches/, scripts/, python/, .ci/, shaders/);
+//!   folders, in backticks, code blocks and prose) is on disk, and so is every such path
+//!   named in the sources (src/, tests/, examples/, benches/, scripts/, python/, .ci/,
+//!   shaders/);
 //! - every `stickslip SUBCOMMAND --option` the documents name (in code blocks and
 //!   backticks) is a subcommand and option of the command line's clap definition, and
 //!   every subcommand has a section in docs/cli.md;
@@ -173,7 +174,7 @@ fn repo_paths(code: &str) -> Vec<String> {
 }
 
 /// Broken paths of one document: markdown links relative to the document's folder, and
-/// (`code_paths`) repository paths in code relative to the repository root.
+/// (`code_paths`) repository paths in code and prose relative to the repository root.
 fn check_paths(doc: &str, text: &str, root: &Path, code_paths: bool) -> Vec<Problem> {
     let mut out = Vec::new();
     let dir = root.join(doc);
@@ -188,12 +189,19 @@ fn check_paths(doc: &str, text: &str, root: &Path, code_paths: bool) -> Vec<Prob
         }
     }
     if code_paths {
-        for piece in code_pieces(text) {
-            for p in repo_paths(&piece.text) {
-                if !root.join(&p).exists() {
+        // Code first (a code block's continued line counts once), then the prose lines.
+        let mut seen = std::collections::BTreeSet::new();
+        let pieces = code_pieces(text).into_iter().map(|c| (c.line, c.text));
+        let lines = text
+            .lines()
+            .enumerate()
+            .map(|(i, l)| (i + 1, l.to_string()));
+        for (line, t) in pieces.chain(lines) {
+            for p in repo_paths(&t) {
+                if !root.join(&p).exists() && seen.insert((line, p.clone())) {
                     out.push(Problem {
                         doc: doc.to_string(),
-                        line: piece.line,
+                        line,
                         what: format!("path `{p}` does not exist"),
                     });
                 }
