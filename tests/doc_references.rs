@@ -1,13 +1,14 @@
 //! The documents name only what exists:
 //!
-//! - every repository path in README.md, BENCHMARKS.md, STABILITY.md and docs/**/*.md
-//!   (markdown links, and paths under src/, tests/, docs/, scripts/ and the other top
-//!   folders, in backticks, code blocks and prose) is on disk, and so is every such path
-//!   named in the sources (src/, tests/, examples/, benches/, scripts/, python/, .ci/,
-//!   shaders/);
+//! - every repository path in README.md, BENCHMARKS.md, STABILITY.md, python/README.md
+//!   and docs/**/*.md (markdown links, and paths under src/, tests/, docs/, scripts/ and
+//!   the other top folders, in backticks, code blocks and prose) is on disk, and so is
+//!   every such path named in the sources (src/, tests/, examples/, benches/, scripts/,
+//!   python/, .ci/, shaders/);
 //! - every `stickslip SUBCOMMAND --option` the documents name (in code blocks and
 //!   backticks) is a subcommand and option of the command line's clap definition, and
-//!   every subcommand has a section in docs/cli.md;
+//!   every subcommand has a section in docs/cli.md; every `cargo … --example/--bench/--test
+//!   NAME` names a file of examples/, benches/ or tests/;
 //! - every scene key in the tables of docs/scenes.md is a key the scene parser knows,
 //!   every key it knows has a row there, and every whole scene a document shows (a toml
 //!   code block that sets `dimension`) parses;
@@ -18,8 +19,8 @@
 //! checked (navigation), not the commands and paths of their date.
 //!
 //! The checkers take the text; the `detects_*` tests feed them a broken path, an unknown
-//! subcommand, an unknown option, an unknown scene key, a missing section and a scene that
-//! does not parse, and expect each to be reported.
+//! subcommand, an unknown option, a missing cargo target, an unknown scene key, a missing
+//! section and a scene that does not parse, and expect each to be reported.
 #![cfg(feature = "cli")]
 
 use clap::CommandFactory;
@@ -221,6 +222,43 @@ fn check_source_paths(file: &str, text: &str, root: &Path) -> Vec<Problem> {
                     doc: file.to_string(),
                     line: i + 1,
                     what: format!("path `{p}` does not exist"),
+                });
+            }
+        }
+    }
+    out
+}
+
+/// Cargo targets named in a document's code that do not exist: `--example NAME`,
+/// `--bench NAME` and `--test NAME` need examples/NAME.rs, benches/NAME.rs and
+/// tests/NAME.rs.
+fn check_cargo_targets(doc: &str, text: &str, root: &Path) -> Vec<Problem> {
+    let mut out = Vec::new();
+    for piece in code_pieces(text) {
+        let toks: Vec<&str> = piece.text.split_whitespace().collect();
+        if !toks.contains(&"cargo") {
+            continue;
+        }
+        for w in toks.windows(2) {
+            let folder = match w[0] {
+                "--example" => "examples",
+                "--bench" => "benches",
+                "--test" => "tests",
+                _ => continue,
+            };
+            let name = w[1].trim_end_matches(|c: char| !(c.is_ascii_alphanumeric() || c == '_'));
+            if name.is_empty()
+                || name.starts_with('-')
+                || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+            {
+                continue;
+            }
+            let file = format!("{folder}/{name}.rs");
+            if !root.join(&file).exists() {
+                out.push(Problem {
+                    doc: doc.to_string(),
+                    line: piece.line,
+                    what: format!("`{} {name}`: {file} does not exist", w[0]),
                 });
             }
         }
@@ -690,10 +728,15 @@ fn root() -> PathBuf {
 
 /// The documents, relative to the root: the top-level ones and every .md under docs/.
 fn documents(root: &Path) -> Vec<String> {
-    let mut docs: Vec<String> = ["README.md", "BENCHMARKS.md", "STABILITY.md"]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
+    let mut docs: Vec<String> = [
+        "README.md",
+        "BENCHMARKS.md",
+        "STABILITY.md",
+        "python/README.md",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
     let mut stack = vec![root.join("docs")];
     while let Some(dir) = stack.pop() {
         let Ok(entries) = std::fs::read_dir(&dir) else {
@@ -731,6 +774,7 @@ fn every_document_names_what_exists() {
         problems.extend(check_paths(doc, &text, &root, !is_lab(doc)));
         if !is_lab(doc) {
             problems.extend(check_commands(doc, &text, &cli));
+            problems.extend(check_cargo_targets(doc, &text, &root));
         }
         if !is_lab(doc) {
             problems.extend(check_sections(doc, &text, &root));
@@ -853,6 +897,19 @@ fn detects_an_unknown_subcommand_and_option() {
         "{p:?}"
     );
     assert_eq!(p[1].line, 3);
+    let text = "    cargo run --release --example gpu_measure -- 216000\n    \
+                cargo run --release --example no_such_example\n    \
+                cargo test --release --test layers --test no_such_test\n";
+    let p = check_cargo_targets("docs/probe.md", text, &root());
+    let what: Vec<&str> = p.iter().map(|p| p.what.as_str()).collect();
+    assert_eq!(
+        what,
+        [
+            "`--example no_such_example`: examples/no_such_example.rs does not exist",
+            "`--test no_such_test`: tests/no_such_test.rs does not exist",
+        ],
+        "{p:?}"
+    );
 }
 
 #[test]
