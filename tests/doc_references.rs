@@ -180,18 +180,20 @@ fn check_paths(doc: &str, text: &str, root: &Path, code_paths: bool) -> Vec<Prob
     let mut out = Vec::new();
     let dir = root.join(doc);
     let dir = dir.parent().unwrap_or(root);
-    for (line, target) in link_targets(text) {
-        if !dir.join(&target).exists() {
+    let links = link_targets(text);
+    for (line, target) in &links {
+        if !dir.join(target).exists() {
             out.push(Problem {
                 doc: doc.to_string(),
-                line,
+                line: *line,
                 what: format!("link target `{target}` does not exist"),
             });
         }
     }
     if code_paths {
         // Code first (a code block's continued line counts once), then the prose lines.
-        let mut seen = std::collections::BTreeSet::new();
+        // A link's target was checked above, relative to the document.
+        let mut seen: std::collections::BTreeSet<(usize, String)> = links.iter().cloned().collect();
         let pieces = code_pieces(text).into_iter().map(|c| (c.line, c.text));
         let lines = text
             .lines()
