@@ -1112,7 +1112,8 @@ fn bench_systems(dir: &Path, a: &BenchArgs, quiet: bool) -> Result<(), CliError>
             );
         }
     };
-    let records = bs::run(dir, a.no_gpu, &mut progress).map_err(CliError::Failed)?;
+    bs::check_all(&found)?;
+    let records = bs::run(dir, &found, a.no_gpu, &mut progress)?;
     if let Some(out) = &a.out {
         let json = serde_json::json!({
             "command": std::env::args().collect::<Vec<_>>().join(" "),
@@ -1123,9 +1124,8 @@ fn bench_systems(dir: &Path, a: &BenchArgs, quiet: bool) -> Result<(), CliError>
         crate::io::files::write_atomic_bytes(&path, json.to_string().as_bytes())
             .map_err(|e| write_failed(&path.display().to_string(), e))?;
     }
-    if !quiet {
-        print!("{}", bs::table(&records));
-    }
+    // The table is the result, on stdout: --quiet silences only the progress lines.
+    print!("{}", bs::table(&records));
     Ok(())
 }
 
