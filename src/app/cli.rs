@@ -513,6 +513,9 @@ fn dispatch(cli: &Cli) -> Result<(), CliError> {
             let r = solve(a)?;
             if !cli.quiet {
                 eprintln!("{}", r.summary());
+                if let Some(w) = r.condition_warning(a.tol) {
+                    eprintln!("{w}");
+                }
             }
             Ok(())
         }
@@ -800,6 +803,7 @@ pub fn solve(args: &SolveArgs) -> Result<Report, CliError> {
                 tol: args.tol,
                 max_iters,
                 restarts: info.restarts,
+                condition_estimate: info.condition_estimate,
             });
         }
         SolveDetails::Gpu(info) => {
