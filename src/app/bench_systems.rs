@@ -9,9 +9,10 @@
 //! multilevel levels) and solve are timed
 //! apart, with the iterations and the true relative residual beside them.
 
-use crate::app::cli::{read_system, CliError, SystemArgs};
+use crate::app::system_files::{read_system, SystemFiles};
 use crate::core::problem::Problem;
 use crate::engine::solver::{Solver, SolverConfig};
+use crate::error::InputError;
 use crate::solve::options::{CoarseSpace, Precision, Preconditioner};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -117,9 +118,9 @@ fn solvers(no_gpu: bool) -> Vec<(String, SolverConfig)> {
 
 /// Reads one captured system with `solve`'s reader and checks: the same one-line input
 /// error (exit 2, naming the file) on a malformed one.
-pub fn read(dir: &Path) -> Result<Problem, CliError> {
+pub fn read(dir: &Path) -> Result<Problem, InputError> {
     let s = |f: &str| dir.join(f).display().to_string();
-    let args = SystemArgs {
+    let files = SystemFiles {
         hessian: s("H.mtx"),
         gradient: s("g.mtx"),
         constraints: Some(s("bc.json")),
@@ -127,7 +128,7 @@ pub fn read(dir: &Path) -> Result<Problem, CliError> {
         constraint_values: None,
         dim: None,
     };
-    let sys = read_system(&args)?;
+    let sys = read_system(&files)?;
     Ok(Problem::from_checked_parts(
         sys.h,
         sys.g,
@@ -138,7 +139,7 @@ pub fn read(dir: &Path) -> Result<Problem, CliError> {
 
 /// Reads every system before any is timed, so that a malformed one fails the bench at
 /// once rather than after the others' timings.
-pub fn check_all(systems: &[PathBuf]) -> Result<(), CliError> {
+pub fn check_all(systems: &[PathBuf]) -> Result<(), InputError> {
     for sys in systems {
         read(sys)?;
     }
@@ -152,7 +153,7 @@ pub fn run(
     systems: &[PathBuf],
     no_gpu: bool,
     progress: &mut dyn FnMut(&SystemRecord),
-) -> Result<Vec<SystemRecord>, CliError> {
+) -> Result<Vec<SystemRecord>, InputError> {
     let mut out = Vec::new();
     for sys in systems {
         let problem = read(sys)?;

@@ -11,3 +11,4 @@ pub mod export;
 pub mod hard;
 mod plots;
 mod report;
+pub mod system_files;
