@@ -43,9 +43,14 @@ pub fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
             Some(c) => vec![c],
             None => vec![CoarseSpace::Aggregates, CoarseSpace::Translations],
         };
-        let md =
-            crate::app::bench::run_hard(a.out.as_deref(), a.no_gpu, a.hard_scale, &coarse, quiet)
-                .map_err(|e| CliError::Failed(format!("bench --hard: {e}")))?;
+        let md = crate::app::bench::hard_suite::run_hard(
+            a.out.as_deref(),
+            a.no_gpu,
+            a.hard_scale,
+            &coarse,
+            quiet,
+        )
+        .map_err(|e| CliError::Failed(format!("bench --hard: {e}")))?;
         if !quiet {
             println!("{md}");
         }
@@ -67,7 +72,7 @@ pub fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
         )
         .into());
     }
-    let opts = crate::app::bench::BenchOptions {
+    let opts = crate::app::bench::ladder::BenchOptions {
         quick: a.quick,
         sizes: a.sizes.clone(),
         dims: a.dims.clone(),
@@ -80,19 +85,22 @@ pub fn bench(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
         ordering: a.ordering,
     };
     let command: Vec<String> = std::env::args().collect();
-    let report = crate::app::bench::run(&opts, &command.join(" ")).map_err(|e| match e {
-        crate::app::bench::BenchError::Io(m) => CliError::Failed(m),
-        crate::app::bench::BenchError::Solve(m) => CliError::Failed(format!("bench: {m}")),
-    })?;
+    let report =
+        crate::app::bench::ladder::run(&opts, &command.join(" ")).map_err(|e| match e {
+            crate::app::bench::ladder::BenchError::Io(m) => CliError::Failed(m),
+            crate::app::bench::ladder::BenchError::Solve(m) => {
+                CliError::Failed(format!("bench: {m}"))
+            }
+        })?;
     if !quiet {
-        println!("{}", crate::app::bench::summary_text(&report));
+        println!("{}", crate::app::bench::tables::summary_text(&report));
     }
     Ok(())
 }
 
-/// `stickslip bench --systems DIR`: see [`crate::app::bench_systems`].
+/// `stickslip bench --systems DIR`: see [`crate::app::bench::systems`].
 fn bench_systems(dir: &Path, a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
-    use crate::app::bench_systems as bs;
+    use crate::app::bench::systems as bs;
     let shown = dir.display().to_string();
     if !dir.is_dir() {
         return Err(InputError::new(&shown, "--systems", "is not a folder").into());
@@ -142,9 +150,9 @@ fn bench_systems(dir: &Path, a: &BenchArgs, quiet: bool) -> Result<(), CliError>
     Ok(())
 }
 
-/// `stickslip bench --newton`: see [`crate::app::bench_newton`].
+/// `stickslip bench --newton`: see [`crate::app::bench::newton`].
 fn bench_newton(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
-    let opts = crate::app::bench_newton::NewtonOptions {
+    let opts = crate::app::bench::newton::NewtonOptions {
         quick: a.quick,
         sizes: a.sizes.clone(),
         no_gpu: a.no_gpu,
@@ -152,14 +160,15 @@ fn bench_newton(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
         out: a.out.clone(),
         quiet,
     };
-    crate::app::bench_newton::plan(&opts)?;
+    crate::app::bench::newton::plan(&opts)?;
     let command: Vec<String> = std::env::args().collect();
-    let report = crate::app::bench_newton::run(&opts, &command.join(" ")).map_err(|e| match e {
-        crate::app::bench_newton::NewtonBenchError::Gpu(m) => CliError::Failed(m),
-        crate::app::bench_newton::NewtonBenchError::Io(m) => CliError::Failed(m),
-    })?;
+    let report =
+        crate::app::bench::newton::run(&opts, &command.join(" ")).map_err(|e| match e {
+            crate::app::bench::newton::NewtonBenchError::Gpu(m) => CliError::Failed(m),
+            crate::app::bench::newton::NewtonBenchError::Io(m) => CliError::Failed(m),
+        })?;
     if !quiet {
-        print!("{}", crate::app::bench_newton::summary_text(&report));
+        print!("{}", crate::app::bench::newton::summary_text(&report));
     }
     Ok(())
 }

@@ -737,7 +737,7 @@ pub fn run(opts: &NewtonOptions, command: &str) -> Result<NewtonReport, NewtonBe
         bar.set_message(format!("{} nodes", box_nodes(k)));
         let rec = bench_size(k, reps, ctx.as_ref(), &bar, opts.quiet);
         say(&bar, opts.quiet, &size_line(&rec));
-        crate::app::bench_report::append_record(opts.out.as_deref(), "records.jsonl", &rec);
+        crate::app::bench::record::append_record(opts.out.as_deref(), "records.jsonl", &rec);
         report.sizes.push(rec);
         bar.inc(1);
     }
@@ -793,7 +793,7 @@ fn bench_size(
         } else {
             r.gpu.note = "not run: --no-gpu".into();
         }
-        r.peak_rss_bytes = crate::app::bench::peak_rss_bytes();
+        r.peak_rss_bytes = crate::app::bench::measure::peak_rss_bytes();
     };
     // Memory: the scene first (both sides need it), then the CPU side's own buffers.
     let avail = memory_available();
@@ -900,7 +900,7 @@ fn bench_size(
         line_search: ratio(g.line_search, c.line_search),
     };
     rec.ratio_total = ratio(rec.gpu.total_seconds, rec.cpu.total_seconds);
-    rec.peak_rss_bytes = crate::app::bench::peak_rss_bytes();
+    rec.peak_rss_bytes = crate::app::bench::measure::peak_rss_bytes();
     rec
 }
 
@@ -1096,7 +1096,7 @@ fn write_outputs(report: &NewtonReport, dir: &Path) -> std::io::Result<()> {
             }
         }
     }
-    crate::app::plots::log_log_plot(
+    crate::app::bench::plots::log_log_plot(
         &dir.join("newton_phases.svg"),
         "one Newton iteration: seconds per phase",
         "nodes",
