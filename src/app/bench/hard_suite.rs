@@ -11,7 +11,7 @@ use crate::gpu::{GpuContext, GpuOptions};
 use crate::solve::coarse::CoarseSpace;
 use std::path::Path;
 
-/// `stickslip bench --hard`: the hard-case table (src/app/hard.rs) for STABILITY.md, and GPU
+/// `stickslip bench --hard`: the hard-case table (src/app/bench/hard.rs) for STABILITY.md, and GPU
 /// f64 against mixed precision on larger hard cases. Writes hard.md and hard.json to `out`.
 pub fn run_hard(
     out: Option<&Path>,

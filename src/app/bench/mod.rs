@@ -17,6 +17,7 @@ pub mod hard_suite;
 pub mod ladder;
 pub mod measure;
 pub mod newton;
+pub mod newton_report;
 mod plots;
 pub mod record;
 pub mod systems;

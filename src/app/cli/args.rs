@@ -64,7 +64,7 @@ pub struct BenchArgs {
     pub out: Option<PathBuf>,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Run the hard-case stability suite instead (src/app/hard.rs): writes hard.md/hard.json.
+    /// Run the hard-case stability suite instead (src/app/bench/hard.rs): writes hard.md/hard.json.
     #[arg(long)]
     pub hard: bool,
     /// With --hard: grid scale of the larger cases timing GPU f64 against mixed (1 to 20;

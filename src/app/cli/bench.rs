@@ -168,7 +168,10 @@ fn bench_newton(a: &BenchArgs, quiet: bool) -> Result<(), CliError> {
             crate::app::bench::newton::NewtonBenchError::Io(m) => CliError::Failed(m),
         })?;
     if !quiet {
-        print!("{}", crate::app::bench::newton::summary_text(&report));
+        print!(
+            "{}",
+            crate::app::bench::newton_report::summary_text(&report)
+        );
     }
     Ok(())
 }
