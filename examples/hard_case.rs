@@ -1,4 +1,4 @@
-//! Runs one hard case (src/app/hard.rs) at a grid scale on the device PCG in f64 and in
+//! Runs one hard case (src/app/bench/hard.rs) at a grid scale on the device PCG in f64 and in
 //! mixed precision, each without and with a coarse correction, solved alternately
 //! (best of `reps` after a warm-up, so machine noise hits every configuration alike):
 //! `cargo run --release --example hard_case -- NAME [scale] [tol] [reps]`.

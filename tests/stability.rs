@@ -1,4 +1,4 @@
-//! Numerical stability over the hard-case suite (src/app/hard.rs, STABILITY.md).
+//! Numerical stability over the hard-case suite (src/app/bench/hard.rs, STABILITY.md).
 //!
 //! # What a solver promises
 //!

@@ -504,6 +504,7 @@ impl Engine {
                     "tol": self.tol,
                     "max_iters": self.max_iters,
                     "restarts": c.restarts,
+                    "condition_estimate": c.condition_estimate,
                 });
             }
             SolveDetails::Gpu(gi) => {

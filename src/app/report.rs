@@ -61,6 +61,9 @@ pub struct CgReport {
     pub tol: f64,
     pub max_iters: usize,
     pub restarts: usize,
+    /// κ̃(M⁻¹Ĥ) from the CG's Lanczos coefficients (extreme Ritz values: a lower bound
+    /// that tightens as CG runs); null when CG ran fewer than 2 iterations.
+    pub condition_estimate: Option<f64>,
 }
 
 /// Everything report.json holds.
@@ -117,7 +120,38 @@ pub struct Files {
     pub reactions: Option<String>,
 }
 
+/// Above this κ̃·tol a CG's residual tolerance no longer bounds the error of Δx to a
+/// useful size (‖y − y*‖/‖y*‖ ≤ κ·‖r‖/‖b̂‖): 1 % error.
+pub const CONDITION_WARNING: f64 = 1e-2;
+
 impl Report {
+    /// κ̃(M⁻¹Ĥ) of an iterative solve: the CPU CG's, or the device CG's where it
+    /// provides one and does not estimate the error itself.
+    pub fn condition_estimate(&self) -> Option<f64> {
+        match (&self.cg, &self.gpu) {
+            (Some(cg), _) => cg.condition_estimate,
+            // Mixed precision with refinement estimates the error itself.
+            (None, Some(gpu)) if gpu.get("error_estimate").is_some_and(|e| !e.is_null()) => None,
+            (None, Some(gpu)) => gpu.get("condition_estimate").and_then(|v| v.as_f64()),
+            (None, None) => None,
+        }
+    }
+
+    /// A line for stderr when κ̃·tol exceeds [`CONDITION_WARNING`]: the residual met the
+    /// tolerance, but the answer may still be far from the solution.
+    pub fn condition_warning(&self, tol: f64) -> Option<String> {
+        let kappa = self.condition_estimate()?;
+        let bound = kappa * tol;
+        (bound > CONDITION_WARNING).then(|| {
+            format!(
+                "warning: the CG's condition estimate κ̃(M⁻¹Ĥ) ≈ {kappa:.1e} times --tol {tol:.1e} \
+                 is {bound:.1e} > {CONDITION_WARNING:.0e}: the residual met the tolerance, but \
+                 the relative error of Δx is bounded only by about that or more (κ̃ \
+                 underestimates κ); check Δx against --solver cholesky, or rescale the system"
+            )
+        })
+    }
+
     /// One line for stderr.
     pub fn summary(&self) -> String {
         let iters = match self.iterations {
@@ -148,8 +182,13 @@ impl Report {
             .map_or(String::new(), |c| {
                 format!(" (scaled {:.2e})", c.scaled_residual)
             });
+        let kappa = self
+            .cg
+            .as_ref()
+            .and_then(|c| c.condition_estimate)
+            .map_or(String::new(), |k| format!(", condition estimate {k:.1e}"));
         format!(
-            "stickslip: {} {}{adapter}: {} nodes, {} free + {} constrained dofs{iters}, relative residual {:.2e}{scaled}{est}, solve {:.3} s, total {:.3} s",
+            "stickslip: {} {}{adapter}: {} nodes, {} free + {} constrained dofs{iters}, relative residual {:.2e}{scaled}{est}{kappa}, solve {:.3} s, total {:.3} s",
             self.solver,
             self.precision,
             self.nodes,

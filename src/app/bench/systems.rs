@@ -9,10 +9,10 @@
 //! multilevel levels) and solve are timed
 //! apart, with the iterations and the true relative residual beside them.
 
-use crate::core::constraints::Constraint;
+use crate::app::system_files::{read_system, SystemFiles};
 use crate::core::problem::Problem;
 use crate::engine::solver::{Solver, SolverConfig};
-use crate::io::{bcjson, mtx};
+use crate::error::InputError;
 use crate::solve::options::{CoarseSpace, Precision, Preconditioner};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -116,36 +116,46 @@ fn solvers(no_gpu: bool) -> Vec<(String, SolverConfig)> {
         .collect()
 }
 
-/// Reads one captured system: one line naming the file on a bad one.
-fn read(dir: &Path) -> Result<Problem, String> {
+/// Reads one captured system with `solve`'s reader and checks: the same one-line input
+/// error (exit 2, naming the file) on a malformed one.
+pub fn read(dir: &Path) -> Result<Problem, InputError> {
     let s = |f: &str| dir.join(f).display().to_string();
-    let bc = bcjson::read(&s("bc.json"), None).map_err(|e| e.to_string())?;
-    let dim = bc
-        .dim
-        .ok_or_else(|| format!("{}: \"dim\" is missing", s("bc.json")))?;
-    let h = mtx::read_hessian(&s("H.mtx"), dim).map_err(|e| e.to_string())?;
-    let g = mtx::read_vector(&s("g.mtx"), "g", Some((h.ndof(), "the rows of H")))
-        .map_err(|e| e.to_string())?;
-    let cs: Vec<Constraint> = bc.constraints;
-    Problem::from_blocks(h, g, &cs).map_err(|e| format!("{}: {e}", dir.display()))
+    let files = SystemFiles {
+        hessian: s("H.mtx"),
+        gradient: s("g.mtx"),
+        constraints: Some(s("bc.json")),
+        constraint_matrix: None,
+        constraint_values: None,
+        dim: None,
+    };
+    let sys = read_system(&files)?;
+    Ok(Problem::from_checked_parts(
+        sys.h,
+        sys.g,
+        sys.constraints,
+        sys.frames,
+    ))
 }
 
-/// Runs every solver on every system under `dir`; `progress` sees each record as it
-/// finishes.
+/// Reads every system before any is timed, so that a malformed one fails the bench at
+/// once rather than after the others' timings.
+pub fn check_all(systems: &[PathBuf]) -> Result<(), InputError> {
+    for sys in systems {
+        read(sys)?;
+    }
+    Ok(())
+}
+
+/// Runs every solver on every system of `systems` (found by [`find_systems`] under
+/// `dir`, checked by [`check_all`]); `progress` sees each record as it finishes.
 pub fn run(
     dir: &Path,
+    systems: &[PathBuf],
     no_gpu: bool,
     progress: &mut dyn FnMut(&SystemRecord),
-) -> Result<Vec<SystemRecord>, String> {
-    let systems = find_systems(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
-    if systems.is_empty() {
-        return Err(format!(
-            "{}: no system (a folder with H.mtx, g.mtx and bc.json) below it",
-            dir.display()
-        ));
-    }
+) -> Result<Vec<SystemRecord>, InputError> {
     let mut out = Vec::new();
-    for sys in &systems {
+    for sys in systems {
         let problem = read(sys)?;
         let name = match sys.strip_prefix(dir) {
             Ok(rel) if !rel.as_os_str().is_empty() => rel.display().to_string(),

@@ -1,7 +1,7 @@
 //! SVG plots of the benchmark, drawn with plotters' SVG backend (text is written as SVG
 //! `<text>`, so no system fonts are needed).
 
-use crate::app::bench_report::BenchReport;
+use crate::app::bench::record::BenchReport;
 use plotters::prelude::*;
 use std::path::Path;
 

@@ -1,0 +1,92 @@
+//! `stickslip run`: a simulation, stopped cleanly by SIGINT or SIGTERM.
+
+use crate::app::cli::args::RunArgs;
+use crate::app::cli::error::CliError;
+
+/// `stickslip run`: see [`crate::sim::driver`].
+pub fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
+    let opts = crate::sim::driver::RunOptions {
+        scene: a.scene.clone(),
+        out: a.out.clone(),
+        solver: a.solver.map(|s| s.name().to_string()),
+        size: a.size,
+        steps: a.steps,
+        quiet,
+        overwrite: a.overwrite,
+        ordering: a.ordering,
+        newton: a.newton,
+        cg_tolerance: a.cg_tolerance,
+        dump_systems: a.dump_systems.clone(),
+        end_time: a.end_time,
+        resume: a.resume.clone(),
+    };
+    stop_after_the_step_on_signals();
+    match crate::sim::driver::run(&opts) {
+        Ok(summary) => {
+            if !quiet {
+                eprintln!(
+                    "{}: {} steps of {} s on {} nodes with {}{} in {:.2} s ({} Newton, {} linear iterations); output in {}",
+                    summary.scene,
+                    summary.steps,
+                    summary.time_step,
+                    summary.nodes,
+                    summary.solver,
+                    summary
+                        .linear_choice
+                        .as_ref()
+                        .map_or(String::new(), |r| format!(" ({r})")),
+                    summary.wall_seconds,
+                    summary.newton_iterations,
+                    summary.linear_iterations,
+                    summary.out_dir
+                );
+                if let Some(g) = summary.gpu.as_ref().filter(|g| !g.phases.is_empty()) {
+                    eprintln!("{}", largest_phases(&g.phases, summary.wall_seconds));
+                }
+            }
+            Ok(())
+        }
+        Err(crate::sim::driver::RunError::Input(e)) => Err(CliError::Input(e)),
+        Err(e @ crate::sim::driver::RunError::Interrupted { .. }) => Err(CliError::Interrupted {
+            code: u8::try_from(e.exit_code()).unwrap_or(1),
+            message: e.to_string(),
+        }),
+        Err(e) => Err(CliError::Failed(e.to_string())),
+    }
+}
+
+/// SIGINT and SIGTERM end a run after the step it is in, with a checkpoint there; a second
+/// one ends it at once (the handler restores the default action).
+fn stop_after_the_step_on_signals() {
+    #[cfg(unix)]
+    {
+        extern "C" fn on_signal(sig: libc::c_int) {
+            crate::sim::driver::request_interrupt(sig);
+            // SAFETY: signal(2) is async-signal-safe; it restores the default action.
+            unsafe {
+                libc::signal(sig, libc::SIG_DFL);
+            }
+        }
+        let handler = on_signal as extern "C" fn(libc::c_int) as libc::sighandler_t;
+        // SAFETY: installs a handler that only stores an atomic and calls signal(2).
+        unsafe {
+            libc::signal(libc::SIGINT, handler);
+            libc::signal(libc::SIGTERM, handler);
+        }
+    }
+}
+
+/// The three phases of a device run with the most wall seconds, in one line.
+fn largest_phases(phases: &[(crate::gpu::Phase, f64)], wall: f64) -> String {
+    let mut v = phases.to_vec();
+    v.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let parts: Vec<String> = v
+        .iter()
+        .take(3)
+        .map(|(p, s)| {
+            let share = if wall > 0.0 { 100.0 * s / wall } else { 0.0 };
+            format!("{} {s:.2} s ({share:.0} %)", p.name().replace('_', " "))
+        })
+        .collect();
+    format!("largest phases: {}", parts.join(", "))
+}
