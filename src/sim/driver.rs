@@ -21,7 +21,10 @@ use crate::sim::integrator::{
 };
 use crate::sim::memory::SceneTooLarge;
 use crate::sim::output::{write_vtk, StepRecord, StepsCsv};
-use crate::sim::scene::{self, LinearKind, LoadError, MovingSpec, Scene};
+use crate::sim::scene::{self, LinearKind, LoadError, Scene};
+pub use crate::sim::summary::{
+    ContactSummary, MovingSummary, MultilevelLevels, RunStatus, RunSummary,
+};
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicI32, Ordering};
@@ -129,122 +132,6 @@ impl RunError {
             _ => 1,
         }
     }
-}
-
-/// Moving-boundary history of a run.
-#[derive(Debug, Clone, serde::Serialize)]
-pub struct MovingSummary {
-    pub settings: MovingSpec,
-    pub moving_nodes: usize,
-    pub k_m_start: f64,
-    pub k_m_final: f64,
-    pub k_m_doublings: usize,
-    /// (step, k_M) at every step where k_M changed.
-    pub k_m_history: Vec<(usize, f64)>,
-    /// Per step: the Newton iteration at which every moving node was eliminated.
-    pub eliminated_at_iteration: Vec<usize>,
-    /// First step at which the moving nodes were all satisfied at the start of the step
-    /// (pure elimination, no penalty iteration), if any.
-    pub first_step_eliminated_at_start: Option<usize>,
-    /// Every step ended with every moving node on its target and eliminated.
-    pub all_eliminated_every_step: bool,
-}
-
-/// Contact history of a run (scenes with obstacles).
-#[derive(Debug, Clone, serde::Serialize)]
-pub struct ContactSummary {
-    pub obstacles: usize,
-    /// Per obstacle: d̂ (m) and κ (Pa) as resolved (defaults filled in).
-    pub dhat: Vec<f64>,
-    pub kappa: Vec<f64>,
-    /// Smallest node–obstacle signed distance over every Newton iterate of the run.
-    pub min_distance: f64,
-    /// Line searches cut by the CCD bound (α_C < 1).
-    pub ccd_limited_line_searches: usize,
-    /// Summed contact force at the end (newtons).
-    pub final_contact_force: Vec<f64>,
-}
-
-/// How far a run got, as summary.json says it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
-#[serde(rename_all = "lowercase")]
-pub enum RunStatus {
-    Running,
-    Complete,
-    Failed,
-    /// Stopped by SIGINT or SIGTERM after a completed step, with a checkpoint there.
-    Interrupted,
-}
-
-/// What a run did (summary.json holds everything but the per-step records and state).
-#[derive(Debug, Clone, serde::Serialize)]
-pub struct RunSummary {
-    /// `running` while the run goes (rewritten after every step), then `complete`,
-    /// `failed` or `interrupted`.
-    pub status: RunStatus,
-    /// Why the run failed (the command's error line), for `failed`.
-    pub message: Option<String>,
-    pub scene: String,
-    pub file: String,
-    pub dimension: usize,
-    pub nodes: usize,
-    pub elements: usize,
-    pub total_mass: f64,
-    pub time_step: f64,
-    pub gravity: Vec<f64>,
-    /// Steps asked for.
-    pub steps: usize,
-    /// Steps finished (equal to `steps` when complete).
-    pub steps_completed: usize,
-    pub end_time: f64,
-    pub wall_seconds: f64,
-    pub solver: String,
-    /// Why `[solver] linear = "auto"` chose `solver` (None for an explicit choice).
-    pub linear_choice: Option<String>,
-    pub adapter: Option<String>,
-    pub characteristic_length: f64,
-    /// Newton stops when ‖Δx‖∞/h is below this (m/s).
-    pub newton_tolerance: f64,
-    pub newton_iterations: usize,
-    pub linear_iterations: usize,
-    pub linear_seconds: f64,
-    /// The CG tolerance policy of the Newton systems: "adaptive" or the fixed number.
-    pub cg_tolerance: crate::sim::scene::CgTolerance,
-    /// Systems solved again to the convergence tolerance because their loosely solved
-    /// direction passed the Newton test (adaptive tolerance only).
-    pub linear_resolves: usize,
-    /// With the multilevel preconditioner: how its levels were set up over the run's
-    /// Newton systems (absent otherwise).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub multilevel_levels: Option<MultilevelLevels>,
-    pub frames: usize,
-    pub out_dir: String,
-    /// The step this invocation resumed from (`run --resume`); None for a run started
-    /// from step 0.
-    pub resumed_from_step: Option<usize>,
-    /// Checkpoints are written every this many steps (and at the last step).
-    pub checkpoint_every: usize,
-    /// Wall time spent writing checkpoints, over every invocation of the run.
-    pub checkpoint_seconds: f64,
-    pub moving_boundary: Option<MovingSummary>,
-    /// Per neo-Hookean law of the scene (by its scene name, e.g. "stable-neo-hookean"):
-    /// the steps that ended with an inverted element (J ≤ 0). The classical law's line
-    /// search keeps its elements' J positive, so its count stays 0.
-    pub inverted_steps: std::collections::BTreeMap<String, usize>,
-    /// What the contact code did: all zero for a scene without obstacles.
-    pub contact_counters: ContactCounters,
-    /// Contact history; None for a scene without obstacles.
-    pub contact: Option<ContactSummary>,
-    /// The GPU Newton loop's adapter, precision and host↔device traffic (totals over the
-    /// run); absent for a run with the CPU loop.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub gpu: Option<crate::sim::integrator::GpuRunReport>,
-    #[serde(skip)]
-    pub records: Vec<StepRecord>,
-    #[serde(skip)]
-    pub final_positions: Vec<f64>,
-    #[serde(skip)]
-    pub final_velocities: Vec<f64>,
 }
 
 /// Loads a scene by path or built-in name, applying the size option.
@@ -507,115 +394,47 @@ fn build_scene(
     Ok(scene)
 }
 
-/// The options that cannot change on a resume (the checkpoint holds them).
-fn refuse_with_resume(opts: &RunOptions) -> Result<(), RunError> {
-    let fixed = [
-        ("a scene", opts.scene.is_some()),
-        ("--out", opts.out.is_some()),
-        ("--solver", opts.solver.is_some()),
-        ("--size", opts.size.is_some()),
-        ("--ordering", opts.ordering.is_some()),
-        ("--newton", opts.newton.is_some()),
-        ("--cg-tolerance", opts.cg_tolerance.is_some()),
-        ("--overwrite", opts.overwrite),
-    ];
-    for (what, given) in fixed {
-        if given {
-            return Err(InputError::new(
-                "--resume",
-                "",
-                format!(
-                    "takes its scene and options from the checkpoint: {what} cannot be given \
-                     with it (only --steps or --end-time)"
-                ),
-            )
-            .into());
-        }
-    }
-    Ok(())
-}
-
-/// Checks a checkpoint against the scene rebuilt from it, before anything in the folder
-/// changes: the same fingerprint, and steps beyond the checkpoint's.
-fn check_resume(ck: &Checkpoint, scene: &Scene, dir: &Path) -> Result<(), RunError> {
-    let file = dir.join(checkpoint::FILE_NAME).display().to_string();
-    let fp = checkpoint::fingerprint(scene);
-    if fp != ck.fingerprint {
-        return Err(InputError::new(
-            &file,
-            "",
-            format!(
-                "was written for another scene (fingerprint {} here, {fp} for {} now): the \
-                 scene file or what it reads changed since the run started",
-                ck.fingerprint, ck.options.scene
-            ),
-        )
-        .into());
-    }
-    if scene.steps <= ck.snapshot.step {
-        return Err(InputError::new(
-            &file,
-            "",
-            format!(
-                "the run has done {} of {} steps; give --steps or --end-time beyond step {}",
-                ck.snapshot.step, scene.steps, ck.snapshot.step
-            ),
-        )
-        .into());
-    }
-    Ok(())
-}
-
 /// Runs a scene to the end, or resumes one. One call: parse, simulate, write.
 ///
-/// The output folder is checked before the scene is read when `out` is given; it is
-/// created, locked and cleared of what its previous run wrote once the scene has been
-/// read and checked. summary.json is written at the start and after every step with
-/// `"status": "running"`, and at the end with `"complete"`, `"interrupted"`, or
-/// `"failed"` and the message. With `resume`, every refusal (no checkpoint, another
-/// scene, a corrupt file, a folder another process holds) comes before anything in the
-/// folder changes; then steps.csv rows and frames after the checkpoint are removed and
-/// the run goes on, appending.
+/// Every input and resource check comes before anything in the output folder changes:
+/// the folder itself (when `out` is given, before the scene is read), the scene and the
+/// options, the stepper's own checks (static conditions, the GPU adapter and its
+/// capacity) and, with `resume`, the checkpoint (readable, of this scene, of the folder's
+/// run). Then the folder is created, locked and cleared of what its previous run wrote
+/// (resuming: brought back to the checkpoint's step). summary.json is written at the
+/// start and after every step with `"status": "running"`, and at the end with
+/// `"complete"`, `"interrupted"`, or `"failed"` and the message. A resume of a run whose
+/// steps are all done finishes it.
 pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
     let wall = Instant::now();
     let resumed = match &opts.resume {
         Some(dir) => {
-            refuse_with_resume(opts)?;
+            crate::sim::resume::refuse_options(opts)?;
             Some(checkpoint::read(dir)?)
         }
         None => None,
     };
-    let start = match &resumed {
-        Some(ck) => ck.options.clone(),
-        None => StartOptions {
-            scene: opts.scene.clone().unwrap_or_else(|| "default".into()),
-            size: opts.size.unwrap_or(1.0),
-            solver: opts.solver.clone(),
-            ordering: opts.ordering,
-            newton: opts.newton,
-            cg_tolerance: opts.cg_tolerance,
-        },
-    };
+    let start = start_options(opts, resumed.as_ref());
     // An output folder that cannot be used fails before the scene is read; it is
-    // created (and taken) once the scene has passed its checks.
+    // created (and taken) once every check has passed.
     if let (Some(d), None) = (&opts.out, &resumed) {
         open_out(d, Some(&start.scene), "--out", opts.overwrite, true)?;
     }
     // 1–3. Scene, boundary conditions and forms.
-    let steps = opts.steps.or(resumed.as_ref().map(|c| c.steps));
-    let steps = if opts.end_time.is_some() {
-        opts.steps
-    } else {
-        steps
+    let steps = match opts.end_time {
+        Some(_) => opts.steps,
+        None => opts.steps.or(resumed.as_ref().map(|c| c.steps)),
     };
     let scene = build_scene(&start, steps, opts.end_time)?;
-    if let Some(sel) = &opts.dump_systems {
+    if let Some(sel) = &start.dump_systems {
         sel.check(scene.steps)
             .map_err(|p| InputError::new("--dump-systems", "", p))?;
     }
-    if let (Some(ck), Some(dir)) = (&resumed, &opts.resume) {
-        check_resume(ck, &scene, dir)?;
-    }
+    let kept_rows = match (&resumed, &opts.resume) {
+        (Some(ck), Some(dir)) => Some(crate::sim::resume::check(ck, &scene, dir)?),
+        _ => None,
+    };
+    let mut stepper = open_stepper(&scene, resumed.as_ref(), wall)?;
     let (out, option) = match &opts.resume {
         Some(d) => (d.clone(), "--resume"),
         None => (
@@ -628,123 +447,55 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
     let Some(mut dir) = open_out(&out, Some(&start.scene), option, opts.overwrite, false)? else {
         unreachable!("open_out returns the folder unless check_only")
     };
-
-    let stepper = Stepper::new(&scene).map_err(|e| match e {
-        InitError::Input { entry, problem } => {
-            RunError::Input(InputError::new(scene.file.clone(), entry, problem))
+    let fingerprint = checkpoint::fingerprint(&scene);
+    let mut tallies = Tallies {
+        all_eliminated_every_step: true,
+        ..Tallies::default()
+    };
+    let run_id = match (&resumed, &kept_rows) {
+        (Some(ck), Some(kept)) => {
+            tallies = ck.tallies.clone();
+            let step = ck.snapshot.step;
+            crate::sim::resume::prepare(&mut dir, &scene, step, kept, &mut tallies)?;
+            ck.identity.run_id.clone()
         }
-        InitError::Solver(cause) => RunError::Solve {
-            step: 0,
-            time: 0.0,
-            cause,
-        },
-        InitError::Memory(e) => RunError::Memory(SceneTooLarge {
-            scene: scene.name.clone(),
-            error: e.with_nodes(scene.model.n_nodes),
-        }),
-    });
-    // From here on the folder is this run's: the previous run's files go (or, resuming,
-    // what came after the checkpoint), and summary.json always says how far the run got.
-    let prepared = match &resumed {
-        Some(ck) => prepare_resume(&mut dir, &scene, ck),
-        None => dir.clean().map_err(|e| RunError::Output {
-            path: out.display().to_string(),
-            cause: format!("cannot clear the previous run's files: {e}"),
-        }),
+        _ => {
+            dir.clean().map_err(|e| RunError::Output {
+                path: out.display().to_string(),
+                cause: format!("cannot clear the previous run's files: {e}"),
+            })?;
+            checkpoint::new_run_id(&fingerprint)
+        }
     };
-    prepared?;
-    let tallies = resumed
-        .as_ref()
-        .map(|c| c.tallies.clone())
-        .unwrap_or(Tallies {
-            all_eliminated_every_step: true,
-            ..Tallies::default()
-        });
-    let mut summary = RunSummary {
-        status: RunStatus::Running,
-        message: None,
-        scene: scene.name.clone(),
-        file: scene.file.clone(),
-        dimension: scene.dim,
-        nodes: scene.model.n_nodes,
-        elements: scene.cells.iter().map(|b| b.cells.len()).sum(),
-        total_mass: scene.model.total_mass(),
-        time_step: scene.time_step,
-        gravity: scene.gravity.clone(),
-        steps: scene.steps,
-        steps_completed: 0,
-        end_time: 0.0,
-        wall_seconds: 0.0,
-        solver: match scene.solver.newton {
-            crate::sim::scene::NewtonLoop::Gpu => "newton-gpu".to_string(),
-            crate::sim::scene::NewtonLoop::Cpu => scene.solver.linear.to_string(),
-        },
-        linear_choice: match scene.solver.newton {
-            crate::sim::scene::NewtonLoop::Gpu => None,
-            crate::sim::scene::NewtonLoop::Cpu => scene
-                .solver
-                .linear_choice
-                .reason(scene.dim, scene.model.n_nodes),
-        },
-        adapter: None,
-        characteristic_length: scene.characteristic_length,
-        newton_tolerance: 0.0,
-        newton_iterations: 0,
-        linear_iterations: 0,
-        linear_seconds: 0.0,
-        cg_tolerance: scene.solver.cg_tolerance,
-        linear_resolves: 0,
-        multilevel_levels: None,
-        frames: 0,
-        out_dir: out.display().to_string(),
-        resumed_from_step: resumed.as_ref().map(|c| c.snapshot.step),
-        checkpoint_every: scene.output.checkpoint_every.unwrap_or(scene.output.every),
-        checkpoint_seconds: 0.0,
-        moving_boundary: None,
-        inverted_steps: Default::default(),
-        contact_counters: ContactCounters::default(),
-        contact: None,
-        gpu: None,
-        records: Vec::new(),
-        final_positions: Vec::new(),
-        final_velocities: Vec::new(),
-    };
+    // From here on summary.json always says how far the run got.
+    let mut summary = new_summary(&scene, &out, run_id.clone());
+    summary.resumed_from_step = resumed.as_ref().map(|c| c.snapshot.step);
+    summary.adapter = stepper.adapter().map(str::to_string);
+    summary.newton_tolerance = stepper.newton_tol;
+    summary.end_time = stepper.t;
+    summary.steps_completed = stepper.step;
     let mut this_run = Run {
         scene: &scene,
-        fingerprint: checkpoint::fingerprint(&scene),
-        start,
+        fingerprint,
+        run_id,
+        start: StartOptions {
+            scene: stored_scene(&start.scene),
+            ..start
+        },
         tallies,
         wall,
     };
-    let result = match stepper {
-        Ok(mut stepper) => {
-            stepper.started_at(wall);
-            summary.adapter = stepper.adapter().map(str::to_string);
-            summary.newton_tolerance = stepper.newton_tol;
-            let r = match &resumed {
-                Some(ck) => stepper.restore(&ck.snapshot).map_err(|e| RunError::Solve {
-                    step: ck.snapshot.step,
-                    time: ck.snapshot.t,
-                    cause: e.to_string(),
-                }),
-                None => Ok(()),
-            };
-            summary.end_time = stepper.t;
-            summary.steps_completed = stepper.step;
-            let r = r
-                .and_then(|_| write_summary(&mut dir, &summary))
-                .and_then(|_| simulate(&mut this_run, opts, &mut stepper, &mut dir, &mut summary));
-            summary.contact_counters = stepper.contact_counters();
-            summary.gpu = stepper.gpu_report().map(|mut g| {
-                g.newton_iterations = summary.newton_iterations;
-                g
-            });
-            summary.final_positions = stepper.x.clone();
-            summary.final_velocities = stepper.v.clone();
-            r
-        }
-        Err(e) => Err(e),
-    };
+    let result = write_summary(&mut dir, &summary)
+        .and_then(|_| simulate(&mut this_run, opts, &mut stepper, &mut dir, &mut summary));
+    summary.contact_counters = stepper.contact_counters();
+    summary.gpu = stepper.gpu_report().map(|mut g| {
+        g.newton_iterations = summary.newton_iterations;
+        g.host_to_device_bytes += this_run.tallies.host_to_device_bytes;
+        g.device_to_host_bytes += this_run.tallies.device_to_host_bytes;
+        g
+    });
+    summary.final_positions = stepper.x.clone();
+    summary.final_velocities = stepper.v.clone();
     summary.wall_seconds = this_run.tallies.wall_seconds + wall.elapsed().as_secs_f64();
     match result {
         Ok(()) => {
@@ -765,49 +516,126 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
     }
 }
 
-/// A resumed run's folder: the manifest continues, steps.csv keeps its header and the
-/// rows up to the checkpoint's step (a partial last row is dropped), and the frames after
-/// it go, with the checkpoint step's own frame when it was written only because that step
-/// was the last one.
-fn prepare_resume(dir: &mut OutputDir, scene: &Scene, ck: &Checkpoint) -> Result<(), RunError> {
-    let step = ck.snapshot.step;
-    let out_err = |path: &Path, cause: String| RunError::Output {
-        path: path.display().to_string(),
-        cause,
-    };
-    dir.resume()
-        .map_err(|e| out_err(dir.path(), e.to_string()))?;
-    let csv = dir.path().join("steps.csv");
-    let text = std::fs::read_to_string(&csv).map_err(|e| out_err(&csv, e.to_string()))?;
-    let kept = crate::sim::output::rows_up_to(&text, step).ok_or_else(|| {
-        out_err(
-            &csv,
-            format!("holds fewer rows than the checkpoint's {step} steps"),
-        )
-    })?;
-    crate::io::files::write_atomic_bytes(&csv, kept.as_bytes())
-        .map_err(|e| out_err(&csv, e.to_string()))?;
-    let frames = dir.path().join("frames");
-    let every = scene.output.every;
-    let prefix = format!("{}_", scene.name);
-    if let Ok(entries) = std::fs::read_dir(&frames) {
-        for e in entries.flatten() {
-            let name = e.file_name().to_string_lossy().into_owned();
-            let Some(n) = name
-                .strip_prefix(&prefix)
-                .and_then(|r| r.strip_suffix(".vtk"))
-                .and_then(|r| r.parse::<usize>().ok())
-            else {
-                continue;
-            };
-            let last_only = n == step && n % every != 0 && n != 0;
-            if n > step || last_only {
-                std::fs::remove_file(e.path())
-                    .map_err(|err| out_err(&e.path(), err.to_string()))?;
-            }
+/// The options the run starts from: a new run's, or the checkpoint's (with the steps to
+/// dump replaced when `--dump-systems` is given with `--resume`).
+fn start_options(opts: &RunOptions, resumed: Option<&Checkpoint>) -> StartOptions {
+    match resumed {
+        Some(ck) => StartOptions {
+            dump_systems: opts
+                .dump_systems
+                .clone()
+                .or_else(|| ck.options.dump_systems.clone()),
+            ..ck.options.clone()
+        },
+        None => StartOptions {
+            scene: opts.scene.clone().unwrap_or_else(|| "default".into()),
+            size: opts.size.unwrap_or(1.0),
+            solver: opts.solver.clone(),
+            ordering: opts.ordering,
+            newton: opts.newton,
+            cg_tolerance: opts.cg_tolerance,
+            dump_systems: opts.dump_systems.clone(),
+        },
+    }
+}
+
+/// The scene as the checkpoint keeps it: a file by its absolute path (a resume may run
+/// in another working directory), a built-in scene by its name.
+fn stored_scene(scene: &str) -> String {
+    let p = Path::new(scene);
+    if p.is_file() {
+        if let Ok(abs) = std::path::absolute(p) {
+            return abs.display().to_string();
         }
     }
-    Ok(())
+    scene.to_string()
+}
+
+/// The stepper of `scene` (its checks: static conditions, the GPU adapter and its
+/// capacity), restored to the checkpoint's state when resuming.
+fn open_stepper<'s>(
+    scene: &'s Scene,
+    resumed: Option<&Checkpoint>,
+    wall: Instant,
+) -> Result<Stepper<'s>, RunError> {
+    let mut stepper = Stepper::new(scene).map_err(|e| match e {
+        InitError::Input { entry, problem } => {
+            RunError::Input(InputError::new(scene.file.clone(), entry, problem))
+        }
+        InitError::Solver(cause) => RunError::Solve {
+            step: 0,
+            time: 0.0,
+            cause,
+        },
+        InitError::Memory(e) => RunError::Memory(SceneTooLarge {
+            scene: scene.name.clone(),
+            error: e.with_nodes(scene.model.n_nodes),
+        }),
+    })?;
+    stepper.started_at(wall);
+    if let Some(ck) = resumed {
+        stepper.restore(&ck.snapshot).map_err(|e| RunError::Solve {
+            step: ck.snapshot.step,
+            time: ck.snapshot.t,
+            cause: e.to_string(),
+        })?;
+    }
+    Ok(stepper)
+}
+
+/// summary.json at the start of a run (status `running`, nothing done yet).
+fn new_summary(scene: &Scene, out: &Path, run_id: String) -> RunSummary {
+    use crate::sim::scene::NewtonLoop;
+    RunSummary {
+        status: RunStatus::Running,
+        message: None,
+        run_id,
+        scene: scene.name.clone(),
+        file: scene.file.clone(),
+        dimension: scene.dim,
+        nodes: scene.model.n_nodes,
+        elements: scene.cells.iter().map(|b| b.cells.len()).sum(),
+        total_mass: scene.model.total_mass(),
+        time_step: scene.time_step,
+        gravity: scene.gravity.clone(),
+        steps: scene.steps,
+        steps_completed: 0,
+        end_time: 0.0,
+        wall_seconds: 0.0,
+        solver: match scene.solver.newton {
+            NewtonLoop::Gpu => "newton-gpu".to_string(),
+            NewtonLoop::Cpu => scene.solver.linear.to_string(),
+        },
+        linear_choice: match scene.solver.newton {
+            NewtonLoop::Gpu => None,
+            NewtonLoop::Cpu => scene
+                .solver
+                .linear_choice
+                .reason(scene.dim, scene.model.n_nodes),
+        },
+        adapter: None,
+        characteristic_length: scene.characteristic_length,
+        newton_tolerance: 0.0,
+        newton_iterations: 0,
+        linear_iterations: 0,
+        linear_seconds: 0.0,
+        cg_tolerance: scene.solver.cg_tolerance,
+        linear_resolves: 0,
+        multilevel_levels: None,
+        frames: 0,
+        out_dir: out.display().to_string(),
+        resumed_from_step: None,
+        checkpoint_every: scene.output.checkpoint_every.unwrap_or(scene.output.every),
+        checkpoint_seconds: 0.0,
+        moving_boundary: None,
+        inverted_steps: Default::default(),
+        contact_counters: ContactCounters::default(),
+        contact: None,
+        gpu: None,
+        records: Vec::new(),
+        final_positions: Vec::new(),
+        final_velocities: Vec::new(),
+    }
 }
 
 /// What the time loop carries besides the stepper: the run's identity for its
@@ -815,18 +643,22 @@ fn prepare_resume(dir: &mut OutputDir, scene: &Scene, ck: &Checkpoint) -> Result
 struct Run<'a> {
     scene: &'a Scene,
     fingerprint: String,
+    run_id: String,
     start: StartOptions,
+    /// What the run's earlier invocations and this one's steps so far add up to.
     tallies: Tallies,
     /// Start of this invocation.
     wall: Instant,
 }
 
 impl Run<'_> {
-    /// Writes the checkpoint of the stepper's last completed step.
+    /// Writes the checkpoint of the stepper's last completed step; `steps_digest`: of
+    /// steps.csv up to it.
     fn checkpoint(
         &mut self,
         dir: &mut OutputDir,
         stepper: &Stepper,
+        steps_digest: String,
         summary: &mut RunSummary,
     ) -> Result<(), RunError> {
         let _output = stepper.phase(Phase::Output);
@@ -839,9 +671,18 @@ impl Run<'_> {
             })?;
         let mut tallies = self.tallies.clone();
         tallies.wall_seconds += self.wall.elapsed().as_secs_f64();
+        if let Some(g) = stepper.gpu_report() {
+            tallies.host_to_device_bytes += g.host_to_device_bytes;
+            tallies.device_to_host_bytes += g.device_to_host_bytes;
+        }
+        let identity = checkpoint::RunIdentity {
+            run_id: self.run_id.clone(),
+            steps_digest,
+        };
         checkpoint::write(
             dir.path(),
             &self.fingerprint,
+            &identity,
             &self.start,
             self.scene.steps,
             &stepper.snapshot(),
@@ -937,15 +778,6 @@ fn write_system(dir: &mut OutputDir, sys: &NewtonSystem) -> Result<(), String> {
         std::fs::remove_dir_all(&final_dir).map_err(fail)?;
     }
     std::fs::rename(&tmp, &final_dir).map_err(fail)
-}
-
-/// summary.json's `multilevel_levels`: the scene's `multilevel_setup` and the Newton
-/// systems (directions and re-solves) whose levels were built or kept.
-#[derive(Debug, Clone, serde::Serialize)]
-pub struct MultilevelLevels {
-    pub setup: crate::solve::options::MultilevelSetup,
-    pub built: usize,
-    pub kept: usize,
 }
 
 /// The summary's counts and histories from the tallies.
@@ -1090,7 +922,7 @@ fn simulate(
         run.tallies.k_m_history = vec![(0, stepper.k_m)];
         fill_summary(run, stepper, summary);
         // A run killed before its first periodic checkpoint resumes from step 0.
-        run.checkpoint(dir, stepper, summary)?;
+        run.checkpoint(dir, stepper, csv.digest(), summary)?;
     }
     fill_summary(run, stepper, summary);
 
@@ -1112,7 +944,8 @@ fn simulate(
     while stepper.step < scene.steps {
         let next = stepper.step + 1;
         let mut sink = |sys: NewtonSystem| write_system(dir, &sys);
-        let dump: Option<SystemSink> = opts
+        let dump: Option<SystemSink> = run
+            .start
             .dump_systems
             .as_ref()
             .filter(|sel| sel.contains(next))
@@ -1180,7 +1013,7 @@ fn simulate(
         }
         let signal = INTERRUPT.load(Ordering::SeqCst);
         if stepper.step % checkpoint_every == 0 || stepper.step == scene.steps || signal != 0 {
-            run.checkpoint(dir, stepper, summary)?;
+            run.checkpoint(dir, stepper, csv.digest(), summary)?;
         }
         let output = stepper.phase(Phase::Output);
         fill_summary(run, stepper, summary);

@@ -12,4 +12,6 @@ pub mod integrator;
 pub mod memory;
 pub mod mesh;
 mod output;
+mod resume;
 pub mod scene;
+mod summary;
