@@ -210,6 +210,112 @@ fn killed_device_loop_runs_resume_to_the_same_bits() {
     assert!(resumed >= 1, "no kill landed inside the run");
 }
 
+/// Every dumped Newton system under `dir/systems` (relative path, bytes), sorted.
+fn systems(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let root = dir.join("systems");
+    let mut out = Vec::new();
+    let mut stack = vec![root.clone()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).expect("systems").flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                let rel = p.strip_prefix(&root).expect("inside").display().to_string();
+                out.push((rel, std::fs::read(&p).expect("system file")));
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+/// A run that dumps its Newton systems, killed at seeded points (inside a step's dump,
+/// when the kill lands there), resumes to the same steps.csv, frames and dumped systems.
+#[test]
+fn killed_runs_dumping_systems_resume_to_the_same_bits() {
+    let args = [
+        "run",
+        "twist",
+        "--steps",
+        "12",
+        "--solver",
+        "cg",
+        "--dump-systems",
+        "all",
+    ];
+    let (reference, _) = reference_run(&args, "dump-ref");
+    let want = systems(&reference);
+    assert!(!want.is_empty(), "the reference dumped no system");
+    let mut rng = Rng(0x5eed_0003);
+    let mut resumed = 0;
+    for k in 0..2 {
+        let dir = tmpdir("dump-kill").join("run");
+        let (rows, extra) = (1 + rng.below(9) as usize, rng.below(20));
+        eprintln!("twist --dump-systems all: SIGKILL after {rows} steps and {extra} ms");
+        let what = format!("dump kill {k}");
+        let from = kill_and_resume(&args, &dir, &reference, rows, extra, &what);
+        resumed += from.is_some_and(|s| s < 12) as usize;
+        let got = systems(&dir);
+        let names = |v: &[(String, Vec<u8>)]| v.iter().map(|f| f.0.clone()).collect::<Vec<_>>();
+        assert_eq!(names(&got), names(&want), "{what}: dumped files");
+        assert!(got == want, "{what}: dumped systems differ");
+    }
+    assert!(resumed >= 1, "no kill landed inside the run");
+}
+
+/// The device loop's host↔device byte totals in summary.json cover every invocation of
+/// a resumed run: at least the first part's totals plus what the steps after the resume
+/// move in an uninterrupted run (the traffic of steps 3–4 is the difference of a 4-step
+/// and a 2-step run: the steps are the same bits, so the same transfers).
+#[test]
+fn device_traffic_totals_cover_every_invocation() {
+    let base = ["run", "drop", "--newton", "gpu", "--steps"];
+    let bytes = |dir: &Path| {
+        let sm = summary(dir);
+        let g = &sm["gpu"];
+        (
+            g["host_to_device_bytes"]
+                .as_u64()
+                .expect("host_to_device_bytes"),
+            g["device_to_host_bytes"]
+                .as_u64()
+                .expect("device_to_host_bytes"),
+        )
+    };
+    let root = tmpdir("traffic");
+    let mut totals = Vec::new();
+    for steps in ["2", "4"] {
+        let dir = root.join(format!("steps-{steps}"));
+        let mut a = base.to_vec();
+        let d = s(&dir);
+        a.extend([steps, "--out", &d, "-q"]);
+        let o = run(&a);
+        if !o.status.success() {
+            let e = stderr(&o);
+            if e.contains("cannot start") && std::env::var_os("STICKSLIP_REQUIRE_GPU").is_none() {
+                common::skip(&format!("SKIP device_traffic_totals_cover_every_invocation: GPU Newton loop NOT RUN (no adapter): {e}"));
+                return;
+            }
+            panic!("drop with the device loop: {e}");
+        }
+        totals.push(bytes(&dir));
+    }
+    let (two, four) = (totals[0], totals[1]);
+    let dir = root.join("steps-2");
+    let d = s(&dir);
+    ok(
+        &run(&["run", "--resume", &d, "--steps", "4", "-q"]),
+        "resume to 4",
+    );
+    let resumed = bytes(&dir);
+    assert!(
+        resumed.0 >= two.0 + (four.0 - two.0) && resumed.1 >= two.1 + (four.1 - two.1),
+        "resumed totals {resumed:?}, first part {two:?}, uninterrupted 4 steps {four:?}"
+    );
+    let _ = std::fs::remove_dir_all(&root);
+}
+
 /// A run resumed from its last step with a larger --steps equals the longer run.
 #[test]
 fn a_finished_run_goes_further_with_more_steps() {
