@@ -35,6 +35,10 @@ fn tree(dir: &Path) -> Vec<(PathBuf, Option<Vec<u8>>)> {
     v
 }
 
+/// What a case is, its scene, its extra options, its environment and its exit code.
+type Case = (&'static str, String, &'static [&'static str], Env, i32);
+type Env = &'static [(&'static str, &'static str)];
+
 #[test]
 fn bad_scenes_and_missing_adapters_leave_the_folder_as_it_was() {
     let dir = tmpdir("keep");
@@ -59,7 +63,7 @@ fn bad_scenes_and_missing_adapters_leave_the_folder_as_it_was() {
 
     let far = "\n[[boundary]]\nkind = \"plane\"\nnormal = [0.0, 1.0]\noffset = -1.0\n\
                region = { box = { min = [-0.1, -0.01], max = [1.1, 0.01] } }\n";
-    let cases: [(&str, String, &[&str], &[(&str, &str)], i32); 5] = [
+    let cases: [Case; 5] = [
         (
             "unknown key",
             base.replace("time_step = 0.01", "time_step = 0.01\nwobble = 3"),
@@ -95,6 +99,7 @@ fn bad_scenes_and_missing_adapters_leave_the_folder_as_it_was() {
         ),
     ];
     for (what, text, extra, env, code) in cases {
+        let (extra, env): (&[&str], &[(&str, &str)]) = (extra, env);
         let sc = dir.join("bad.toml");
         std::fs::write(&sc, &text).expect("scene");
         let mut c = Command::new(BIN);

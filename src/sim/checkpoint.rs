@@ -42,7 +42,7 @@ pub struct StartOptions {
     /// finds it) or built-in name.
     pub scene: String,
     pub size: f64,
-    pub solver: Option<String>,
+    pub solver: Option<crate::sim::scene::LinearKind>,
     pub ordering: Option<crate::CholeskyOrdering>,
     pub newton: Option<crate::sim::scene::NewtonLoop>,
     pub cg_tolerance: Option<crate::sim::scene::CgTolerance>,
@@ -382,7 +382,7 @@ mod tests {
         StartOptions {
             scene: "twist".into(),
             size: 1.0,
-            solver: Some("cg".into()),
+            solver: Some(crate::sim::scene::LinearKind::Cg),
             ordering: None,
             newton: None,
             cg_tolerance: None,

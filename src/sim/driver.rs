@@ -37,8 +37,8 @@ pub struct RunOptions {
     pub scene: Option<String>,
     /// Output folder; None: `out/<scene name>`.
     pub out: Option<PathBuf>,
-    /// Overrides the scene's linear solver: cholesky | cg | gpu.
-    pub solver: Option<String>,
+    /// Overrides the scene's linear solver.
+    pub solver: Option<LinearKind>,
     /// Mesh resolution multiplier (default 1).
     pub size: Option<f64>,
     /// Overrides the number of steps.
@@ -297,10 +297,8 @@ fn build_scene(
         LoadError::Input(e) => RunError::Input(e),
         LoadError::Memory(m) => RunError::Memory(m),
     })?;
-    if let Some(s) = &start.solver {
-        scene.solver.linear = s
-            .parse::<LinearKind>()
-            .map_err(|e| InputError::new("--solver", "", e))?;
+    if let Some(s) = start.solver {
+        scene.solver.linear = s;
         scene.solver.linear_choice = crate::sim::scene::LinearChoice::of(scene.solver.linear);
     }
     if let Some(o) = start.ordering {
@@ -530,7 +528,7 @@ fn start_options(opts: &RunOptions, resumed: Option<&Checkpoint>) -> StartOption
         None => StartOptions {
             scene: opts.scene.clone().unwrap_or_else(|| "default".into()),
             size: opts.size.unwrap_or(1.0),
-            solver: opts.solver.clone(),
+            solver: opts.solver,
             ordering: opts.ordering,
             newton: opts.newton,
             cg_tolerance: opts.cg_tolerance,
