@@ -5,7 +5,8 @@
 use crate::error::InputError;
 use crate::io::files::OutputDir;
 use crate::sim::checkpoint::{self, Checkpoint, Tallies};
-use crate::sim::driver::{RunError, RunOptions};
+use crate::sim::run_error::RunError;
+use crate::sim::run_options::RunOptions;
 use crate::sim::scene::Scene;
 use std::path::Path;
 
