@@ -73,6 +73,57 @@ fn assert_same_run(reference: &Path, resumed: &Path, what: &str) {
     }
 }
 
+/// frames.pvd lists exactly the frames on disk, in step order, each with the simulated
+/// time its title line gives (the same f64).
+fn assert_collection_lists_frames(dir: &Path, what: &str) {
+    let text = std::fs::read_to_string(dir.join("frames.pvd")).expect("frames.pvd");
+    assert!(
+        text.starts_with("<?xml") && text.trim_end().ends_with("</VTKFile>"),
+        "{what}: {text}"
+    );
+    let attr = |line: &str, name: &str| -> String {
+        let key = format!("{name}=\"");
+        let at = line.find(&key).expect("attribute") + key.len();
+        line[at..].split('"').next().expect("value").to_string()
+    };
+    let listed: Vec<(String, f64)> = text
+        .lines()
+        .filter(|l| l.contains("<DataSet"))
+        .map(|l| {
+            let t = attr(l, "timestep").parse().expect("a time");
+            (attr(l, "file"), t)
+        })
+        .collect();
+    let on_disk: Vec<(String, f64)> = frames(dir)
+        .iter()
+        .map(|(name, bytes)| {
+            let title = String::from_utf8_lossy(bytes)
+                .lines()
+                .nth(1)
+                .expect("title")
+                .to_string();
+            let t = title
+                .rsplit_once(" t = ")
+                .expect("time")
+                .1
+                .parse()
+                .expect("t");
+            (format!("frames/{name}"), t)
+        })
+        .collect();
+    assert_eq!(
+        listed.len(),
+        on_disk.len(),
+        "{what}: {listed:?} vs {on_disk:?}"
+    );
+    for (a, b) in listed.iter().zip(&on_disk) {
+        assert!(
+            a.0 == b.0 && a.1.to_bits() == b.1.to_bits(),
+            "{what}: {a:?} vs {b:?}"
+        );
+    }
+}
+
 fn summary(dir: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).expect("summary"))
         .expect("summary.json parses")
@@ -132,6 +183,8 @@ fn kill_and_resume(
     assert!(from.is_some(), "{what}: {sm}");
     eprintln!("{what}: resumed from step {from:?}");
     assert_same_run(reference, dir, what);
+    assert_collection_lists_frames(reference, what);
+    assert_collection_lists_frames(dir, what);
     from
 }
 

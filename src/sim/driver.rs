@@ -38,11 +38,12 @@ use std::time::Instant;
 
 /// What `run` writes in its output folder (what the folder's previous run of `run` wrote
 /// is removed before a new run writes).
-pub const OUTPUT_NAMES: [&str; 4] = [
+pub const OUTPUT_NAMES: [&str; 5] = [
     "steps.csv",
     "summary.json",
     checkpoint::FILE_NAME,
     "frames/*.vtk",
+    crate::sim::output::FRAMES_COLLECTION,
 ];
 
 /// Takes the output folder for this run (see [`crate::io::files::OutputDir`]); with
@@ -126,11 +127,12 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         all_eliminated_every_step: true,
         ..Tallies::default()
     };
+    let mut frames = Vec::new();
     let run_id = match (&resumed, &kept_rows) {
         (Some(ck), Some(kept)) => {
             tallies = ck.tallies.clone();
             let step = ck.snapshot.step;
-            crate::sim::resume::prepare(&mut dir, &scene, step, kept, &mut tallies)?;
+            frames = crate::sim::resume::prepare(&mut dir, &scene, step, kept, &mut tallies)?;
             ck.identity.run_id.clone()
         }
         _ => {
@@ -157,6 +159,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
             ..start
         },
         tallies,
+        frames,
         wall,
     };
     let result = write_summary(&mut dir, &summary)

@@ -92,6 +92,36 @@ pub fn write_vtk(
     crate::io::files::write_atomic_bytes(path, s.as_bytes())
 }
 
+/// The ParaView collection of a run's frames, in its output folder: each frame with its
+/// simulated time, so that ParaView's time slider shows seconds.
+pub const FRAMES_COLLECTION: &str = "frames.pvd";
+
+/// Writes a ParaView collection (PVD) of `frames`: (file relative to the collection,
+/// simulated time in seconds), each time in its shortest round-trip form.
+pub fn write_pvd(w: &mut impl Write, frames: &[(String, f64)]) -> std::io::Result<()> {
+    let mut s = String::from(
+        "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\">\n  <Collection>\n",
+    );
+    for (file, t) in frames {
+        let file = file
+            .replace('&', "&amp;")
+            .replace('"', "&quot;")
+            .replace('<', "&lt;");
+        let _ = writeln!(s, "    <DataSet timestep=\"{t:?}\" file=\"{file}\"/>");
+    }
+    s.push_str("  </Collection>\n</VTKFile>\n");
+    w.write_all(s.as_bytes())
+}
+
+/// The simulated time in a frame's title line (`stickslip NAME step S t = T`, the second
+/// line of the file), None when it has none.
+pub fn frame_time(path: &Path) -> Option<f64> {
+    use std::io::BufRead as _;
+    let f = File::open(path).ok()?;
+    let title = std::io::BufReader::new(f).lines().nth(1)?.ok()?;
+    title.rsplit_once(" t = ")?.1.trim().parse().ok()
+}
+
 /// One row of steps.csv.
 #[derive(Debug, Clone, Default, serde::Serialize)]
 pub struct StepRecord {

@@ -106,14 +106,16 @@ pub fn check(ck: &Checkpoint, scene: &Scene, dir: &Path) -> Result<String, RunEr
 /// frames after the step go, with the step's own frame when it was written only because
 /// that step was the last one and the run now goes further (and `tallies` stops counting
 /// it); the dumped systems of the steps after it go (a dump the run was killed in is
-/// partial; the resumed run dumps those steps again).
+/// partial; the resumed run dumps those steps again). Returns the frames kept (file
+/// relative to the folder, simulated time from its title), by step, and frames.pvd lists
+/// them.
 pub fn prepare(
     dir: &mut OutputDir,
     scene: &Scene,
     step: usize,
     kept: &str,
     tallies: &mut Tallies,
-) -> Result<(), RunError> {
+) -> Result<Vec<(String, f64)>, RunError> {
     let out_err = |path: &Path, cause: String| RunError::Output {
         path: path.display().to_string(),
         cause,
@@ -143,14 +145,26 @@ pub fn prepare(
     let every = scene.output.every;
     let goes_further = scene.steps > step;
     let frames = dir.path().join("frames");
-    for (n, path) in numbered(&frames, &format!("{}_", scene.name), ".vtk") {
+    let mut on_disk = numbered(&frames, &format!("{}_", scene.name), ".vtk");
+    on_disk.sort();
+    let (mut listed, mut removed) = (Vec::new(), Vec::new());
+    for (n, path) in on_disk {
         let last_only = n == step && n % every != 0 && n != 0 && goes_further;
         if n > step || last_only {
-            std::fs::remove_file(&path).map_err(|e| out_err(&path, e.to_string()))?;
+            removed.push(path);
             if last_only {
                 tallies.frames = tallies.frames.saturating_sub(1);
             }
+        } else if let Some(t) = crate::sim::output::frame_time(&path) {
+            listed.push((format!("frames/{}_{n:05}.vtk", scene.name), t));
         }
+    }
+    // frames.pvd first: killed here, it lists no frame that is gone.
+    if scene.output.vtk {
+        crate::sim::time_loop::write_collection(dir, &listed)?;
+    }
+    for path in removed {
+        std::fs::remove_file(&path).map_err(|e| out_err(&path, e.to_string()))?;
     }
     let systems = dir.path().join("systems");
     for (n, path) in numbered(&systems, "step_", "") {
@@ -158,5 +172,5 @@ pub fn prepare(
             std::fs::remove_dir_all(&path).map_err(|e| out_err(&path, e.to_string()))?;
         }
     }
-    Ok(())
+    Ok(listed)
 }

@@ -7,7 +7,7 @@ use crate::gpu::Phase;
 use crate::io::files::OutputDir;
 use crate::sim::checkpoint::{self, StartOptions, Tallies};
 use crate::sim::integrator::{NewtonSystem, StepError, StepReport, Stepper, SystemSink};
-use crate::sim::output::{write_vtk, StepRecord, StepsCsv};
+use crate::sim::output::{write_pvd, write_vtk, StepRecord, StepsCsv, FRAMES_COLLECTION};
 use crate::sim::run_error::RunError;
 use crate::sim::run_options::RunOptions;
 use crate::sim::scene::Scene;
@@ -54,6 +54,9 @@ pub(crate) struct Run<'a> {
     pub start: StartOptions,
     /// What the run's earlier invocations and this one's steps so far add up to.
     pub tallies: Tallies,
+    /// The run's frames on disk (file relative to the folder, simulated time), in the
+    /// order written: what frames.pvd lists.
+    pub frames: Vec<(String, f64)>,
     /// Start of this invocation.
     pub wall: Instant,
 }
@@ -107,12 +110,8 @@ impl Run<'_> {
 }
 
 /// Writes one VTK frame (when the scene asks for frames).
-fn write_frame(
-    scene: &Scene,
-    dir: &mut OutputDir,
-    s: &Stepper,
-    tallies: &mut Tallies,
-) -> Result<(), RunError> {
+fn write_frame(run: &mut Run, dir: &mut OutputDir, s: &Stepper) -> Result<(), RunError> {
+    let scene = run.scene;
     let _output = s.phase(Phase::Output);
     if !scene.output.vtk {
         return Ok(());
@@ -128,7 +127,23 @@ fn write_frame(
         path: path.display().to_string(),
         cause: e.to_string(),
     })?;
-    tallies.frames += 1;
+    run.tallies.frames += 1;
+    run.frames.push((rel, s.t));
+    write_collection(dir, &run.frames)
+}
+
+/// Writes frames.pvd, the ParaView collection of `frames` (file, simulated time),
+/// atomically.
+pub(crate) fn write_collection(
+    dir: &mut OutputDir,
+    frames: &[(String, f64)],
+) -> Result<(), RunError> {
+    let path = dir.path().join(FRAMES_COLLECTION);
+    dir.write(FRAMES_COLLECTION, |w| write_pvd(w, frames))
+        .map_err(|e| RunError::Output {
+            path: path.display().to_string(),
+            cause: e.to_string(),
+        })?;
     Ok(())
 }
 
@@ -288,7 +303,7 @@ pub(crate) fn simulate(
         csv.row(&first).map_err(|e| out_err(&csv_path, e))?;
         fold_min(&mut run.tallies, &first);
         summary.records.push(first);
-        write_frame(scene, dir, stepper, &mut run.tallies)?;
+        write_frame(run, dir, stepper)?;
         run.tallies.k_m_history = vec![(0, stepper.k_m)];
         fill_summary(run, stepper, summary);
         // A run killed before its first periodic checkpoint resumes from step 0.
@@ -354,7 +369,7 @@ pub(crate) fn simulate(
         summary.records.push(r);
         drop(output);
         if stepper.step % scene.output.every == 0 || stepper.step == scene.steps {
-            write_frame(scene, dir, stepper, &mut run.tallies)?;
+            write_frame(run, dir, stepper)?;
         }
         let signal = INTERRUPT.load(Ordering::SeqCst);
         if stepper.step % checkpoint_every == 0 || stepper.step == scene.steps || signal != 0 {
