@@ -27,7 +27,7 @@ fn dump_run(
     let opts = RunOptions {
         scene: Some(scene.into()),
         out: Some(out.clone()),
-        solver: Some(solver.into()),
+        solver: Some(solver.parse().expect("a solver name")),
         newton: Some(newton),
         steps: Some(steps),
         dump_systems: Some(dump.parse::<StepSelection>().expect("selection")),

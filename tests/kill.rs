@@ -263,6 +263,17 @@ fn killed_runs_leave_complete_files_and_say_so() {
                     b.starts_with(b"stickslip-checkpoint\n"),
                     "kill {k}: checkpoint"
                 );
+            } else if name == "frames.pvd" {
+                // Replaced by rename: whole, and it lists no frame that is not there.
+                let text = std::fs::read_to_string(&f).expect("frames.pvd");
+                assert!(
+                    text.trim_end().ends_with("</VTKFile>"),
+                    "kill {k}: frames.pvd"
+                );
+                for listed in text.split("file=\"").skip(1) {
+                    let rel = listed.split('"').next().expect("file");
+                    assert!(out.join(rel).is_file(), "kill {k}: {rel} listed, absent");
+                }
             } else {
                 assert!(
                     name == "steps.csv" || name == "summary.json",

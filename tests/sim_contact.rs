@@ -38,7 +38,7 @@ fn run_opts(
     let opts = RunOptions {
         scene: Some(scene.into()),
         out: Some(out.clone()),
-        solver: solver.map(|s| s.to_string()),
+        solver: solver.map(|s| s.parse().expect("a solver name")),
         steps,
         quiet: true,
         ..RunOptions::default()

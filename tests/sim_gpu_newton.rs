@@ -67,7 +67,7 @@ fn run_with(
     let opts = RunOptions {
         scene: Some(name.into()),
         out: Some(out.clone()),
-        solver: Some(solver.into()),
+        solver: Some(solver.parse().expect("a solver name")),
         newton: Some(newton),
         cg_tolerance: Some(tol),
         steps: Some(steps),
@@ -272,7 +272,7 @@ fn multilevel_on_both_loops(name: &str, steps: usize) {
         let opts = RunOptions {
             scene: Some(scene.clone()),
             out: Some(out.clone()),
-            solver: Some("cg".into()),
+            solver: Some(stickslip::SolverKind::Cg),
             newton: Some(newton),
             cg_tolerance: Some(CgTolerance::Adaptive),
             steps: Some(steps),
@@ -370,7 +370,7 @@ fn multilevel_setup_moves_nothing_per_newton_iteration() {
         let opts = RunOptions {
             scene: Some(file.display().to_string()),
             out: Some(out.clone()),
-            solver: Some("cg".into()),
+            solver: Some(stickslip::SolverKind::Cg),
             newton: Some(NewtonLoop::Gpu),
             steps: Some(steps),
             quiet: true,

@@ -47,7 +47,7 @@ fn run_scene(
     let opts = RunOptions {
         scene: Some(scene.into()),
         out: Some(out.clone()),
-        solver: Some("cg".into()),
+        solver: Some(stickslip::SolverKind::Cg),
         newton: Some(newton),
         size,
         steps,

@@ -18,7 +18,7 @@ fn run_with(name: &str, solver: &str, steps: usize) -> Result<RunSummary, RunErr
     let opts = RunOptions {
         scene: Some(name.into()),
         out: Some(out.clone()),
-        solver: Some(solver.into()),
+        solver: Some(solver.parse().expect("a solver name")),
         steps: Some(steps),
         quiet: true,
         ..RunOptions::default()

@@ -33,7 +33,7 @@ fn run_modified(
     let opts = RunOptions {
         scene: Some(file.display().to_string()),
         out: Some(dir.join("out")),
-        solver: Some(solver.into()),
+        solver: Some(solver.parse().expect("a solver name")),
         steps: Some(steps),
         quiet: true,
         ..RunOptions::default()

@@ -15,7 +15,7 @@ fn run_on(threads: usize, scene: &str, size: f64, steps: usize) -> (Vec<String>,
     let opts = RunOptions {
         scene: Some(scene.into()),
         out: Some(out.clone()),
-        solver: Some("cg".into()),
+        solver: Some(stickslip::SolverKind::Cg),
         size: Some(size),
         steps: Some(steps),
         quiet: true,

@@ -433,6 +433,24 @@ impl OutputDir {
                 std::fs::remove_file(&p)?;
             }
         }
+        self.remove_temporaries();
+        let mpath = self.dir.join(manifest_name(&self.command));
+        let mut m = File::create(&mpath)?;
+        writeln!(
+            m,
+            "# files `stickslip {}` wrote in this folder; its next run here removes them",
+            self.command
+        )?;
+        self.manifest = Some(m);
+        self.previous.clear();
+        self.strays.clear();
+        Ok(())
+    }
+
+    /// Removes the temporary files of atomic writes ([`write_atomic`]) that a killed run
+    /// left beside the command's output names (best effort: one that cannot be removed
+    /// stays, and is removed next time).
+    pub fn remove_temporaries(&self) {
         for pat in &self.patterns {
             let (sub, _) = split_pattern(pat);
             let folder = self.dir.join(sub);
@@ -450,17 +468,6 @@ impl OutputDir {
                 }
             }
         }
-        let mpath = self.dir.join(manifest_name(&self.command));
-        let mut m = File::create(&mpath)?;
-        writeln!(
-            m,
-            "# files `stickslip {}` wrote in this folder; its next run here removes them",
-            self.command
-        )?;
-        self.manifest = Some(m);
-        self.previous.clear();
-        self.strays.clear();
-        Ok(())
     }
 
     /// Continues the previous run's manifest instead of [`OutputDir::clean`] (a resumed

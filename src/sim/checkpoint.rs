@@ -11,9 +11,12 @@
 //! ```
 //!
 //! The header holds the format version, the stickslip version, the fingerprint of the
-//! resolved scene (every resolved value but the number of steps), the options the run was
-//! started with (so a resume rebuilds the same scene), the stepper's scalars and the
-//! run's tallies. f64 values in the JSON header round-trip exactly.
+//! resolved scene (every resolved value but the number of steps), the run's identity (an
+//! id that its summary.json repeats, and the digest of its steps.csv up to the
+//! checkpoint's step: a checkpoint copied into another run's folder does not fit it), the
+//! options the run was started with (so a resume rebuilds the same scene and writes the
+//! same outputs), the stepper's scalars and the run's tallies. f64 values in the JSON
+//! header round-trip exactly.
 
 use crate::error::InputError;
 use crate::sim::integrator::{ContactCounters, Snapshot};
@@ -24,24 +27,27 @@ use std::path::Path;
 pub const FILE_NAME: &str = "checkpoint.bin";
 
 /// The format this build writes and reads.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 
 const MAGIC: &[u8] = b"stickslip-checkpoint\n";
 
 /// Largest header accepted (a corrupt length must not make us allocate terabytes).
 const MAX_HEADER_BYTES: u64 = 1 << 30;
 
-/// The options a run was started with that shape its scene (what `--resume` reuses).
+/// The options a run was started with that shape its scene and its outputs (what
+/// `--resume` reuses).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct StartOptions {
-    /// The scene file or built-in name.
+    /// The scene file (an absolute path, so that a resume from another working directory
+    /// finds it) or built-in name.
     pub scene: String,
     pub size: f64,
-    pub solver: Option<String>,
+    pub solver: Option<crate::sim::scene::LinearKind>,
     pub ordering: Option<crate::CholeskyOrdering>,
     pub newton: Option<crate::sim::scene::NewtonLoop>,
-    #[serde(default)]
     pub cg_tolerance: Option<crate::sim::scene::CgTolerance>,
+    /// The steps whose Newton systems the run dumps (`--dump-systems`).
+    pub dump_systems: Option<crate::sim::integrator::StepSelection>,
 }
 
 /// The run's tallies at the checkpoint (what summary.json adds up over the steps).
@@ -68,6 +74,10 @@ pub struct Tallies {
     pub eliminated_at_iteration: Vec<usize>,
     pub first_step_eliminated_at_start: Option<usize>,
     pub all_eliminated_every_step: bool,
+    /// Bytes the device Newton loop moved host → device and back over the run's
+    /// invocations so far (zero for the CPU loop).
+    pub host_to_device_bytes: u64,
+    pub device_to_host_bytes: u64,
     /// Wall time of the run's invocations so far, and of their checkpoint writes.
     pub wall_seconds: f64,
     pub checkpoint_seconds: f64,
@@ -82,6 +92,10 @@ struct Header {
     format: u32,
     stickslip: String,
     fingerprint: String,
+    /// The run's id (summary.json's `run_id`).
+    run_id: String,
+    /// The digest of steps.csv's bytes up to the checkpoint's step.
+    steps_digest: String,
     options: StartOptions,
     /// Steps the run was asked for.
     steps: usize,
@@ -102,21 +116,41 @@ struct Header {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Checkpoint {
     pub fingerprint: String,
+    pub identity: RunIdentity,
     pub options: StartOptions,
     pub steps: usize,
     pub snapshot: Snapshot,
     pub tallies: Tallies,
 }
 
-/// FNV-1a, 64 bits: the checksum of the file and the scene's fingerprint.
-#[derive(Clone, Copy)]
-struct Fnv(u64);
+/// What ties a checkpoint to its run: the run's id, which its summary.json repeats, and
+/// the digest of its steps.csv up to the checkpoint's step ([`Fnv::hex`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RunIdentity {
+    pub run_id: String,
+    pub steps_digest: String,
+}
+
+/// FNV-1a, 64 bits: the checksum of the file, the scene's fingerprint and the digest of
+/// steps.csv.
+#[derive(Debug, Clone, Copy)]
+pub struct Fnv(u64);
+
+impl Default for Fnv {
+    fn default() -> Self {
+        Self::new()
+    }
+}
 
 impl Fnv {
-    fn new() -> Self {
+    pub fn new() -> Self {
         Fnv(0xcbf2_9ce4_8422_2325)
     }
-    fn update(&mut self, bytes: &[u8]) {
+    /// The digest so far, as 16 hex digits.
+    pub fn hex(&self) -> String {
+        format!("{:016x}", self.0)
+    }
+    pub fn update(&mut self, bytes: &[u8]) {
         for &b in bytes {
             self.0 ^= b as u64;
             self.0 = self.0.wrapping_mul(0x0000_0100_0000_01b3);
@@ -158,10 +192,24 @@ pub fn fingerprint(scene: &Scene) -> String {
     format!("{:016x}", h.0)
 }
 
+/// A new run's id: distinct for runs started at different times or by different
+/// processes (the time in nanoseconds and the process id, digested).
+pub fn new_run_id(fingerprint: &str) -> String {
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos());
+    let mut h = Fnv::new();
+    h.update(&nanos.to_le_bytes());
+    h.update(&std::process::id().to_le_bytes());
+    h.update(fingerprint.as_bytes());
+    h.hex()
+}
+
 /// Writes the checkpoint of `snap` into `dir` atomically.
 pub fn write(
     dir: &Path,
     fingerprint: &str,
+    identity: &RunIdentity,
     options: &StartOptions,
     steps: usize,
     snap: &Snapshot,
@@ -177,6 +225,8 @@ pub fn write(
         format: FORMAT_VERSION,
         stickslip: env!("CARGO_PKG_VERSION").to_string(),
         fingerprint: fingerprint.to_string(),
+        run_id: identity.run_id.clone(),
+        steps_digest: identity.steps_digest.clone(),
         options: options.clone(),
         steps,
         step: snap.step,
@@ -294,6 +344,10 @@ pub fn read(dir: &Path) -> Result<Checkpoint, InputError> {
     };
     Ok(Checkpoint {
         fingerprint: header.fingerprint,
+        identity: RunIdentity {
+            run_id: header.run_id,
+            steps_digest: header.steps_digest,
+        },
         options: header.options,
         steps: header.steps,
         snapshot,
@@ -328,10 +382,18 @@ mod tests {
         StartOptions {
             scene: "twist".into(),
             size: 1.0,
-            solver: Some("cg".into()),
+            solver: Some(crate::sim::scene::LinearKind::Cg),
             ordering: None,
             newton: None,
             cg_tolerance: None,
+            dump_systems: Some(crate::sim::integrator::StepSelection::All),
+        }
+    }
+
+    fn identity() -> RunIdentity {
+        RunIdentity {
+            run_id: "0123456789abcdef".into(),
+            steps_digest: "fedcba9876543210".into(),
         }
     }
 
@@ -350,12 +412,13 @@ mod tests {
             min_distance: Some(1e-9 / 3.0),
             ..Tallies::default()
         };
-        write(&d, "abc", &options(), 20, &snap(), &tallies).expect("write");
+        write(&d, "abc", &identity(), &options(), 20, &snap(), &tallies).expect("write");
         let c = read(&d).expect("read");
         assert_eq!(c.snapshot, snap());
         assert_eq!(c.tallies, tallies);
         assert_eq!((c.fingerprint.as_str(), c.steps), ("abc", 20));
         assert_eq!(c.options, options());
+        assert_eq!(c.identity, identity());
         // Bitwise, -0.0 included (PartialEq would take 0.0 for it).
         assert_eq!(c.snapshot.x[1].to_bits(), (-0.0f64).to_bits());
         let _ = std::fs::remove_dir_all(&d);
@@ -366,7 +429,16 @@ mod tests {
         let d = tmp("faults");
         let e = read(&d).expect_err("none");
         assert!(e.to_string().contains("no checkpoint here"), "{e}");
-        write(&d, "abc", &options(), 20, &snap(), &Tallies::default()).expect("write");
+        write(
+            &d,
+            "abc",
+            &identity(),
+            &options(),
+            20,
+            &snap(),
+            &Tallies::default(),
+        )
+        .expect("write");
         let p = d.join(FILE_NAME);
         let good = std::fs::read(&p).expect("bytes");
         for (what, bytes) in [
@@ -389,7 +461,8 @@ mod tests {
         }
         // Another format version, with a valid checksum.
         let mut b = good.clone();
-        let key = b"\"format\":1";
+        let key = format!("\"format\":{FORMAT_VERSION}");
+        let key = key.as_bytes();
         let k = b
             .windows(key.len())
             .position(|w| w == key)

@@ -20,6 +20,7 @@
 //! snapped and eliminated (0: at the start of the step). Numbers are written with 17
 //! significant digits so differences of momenta keep their precision.
 
+use crate::sim::checkpoint::Fnv;
 use crate::sim::scene::Scene;
 use std::fmt::Write as _;
 use std::fs::File;
@@ -91,6 +92,36 @@ pub fn write_vtk(
     crate::io::files::write_atomic_bytes(path, s.as_bytes())
 }
 
+/// The ParaView collection of a run's frames, in its output folder: each frame with its
+/// simulated time, so that ParaView's time slider shows seconds.
+pub const FRAMES_COLLECTION: &str = "frames.pvd";
+
+/// Writes a ParaView collection (PVD) of `frames`: (file relative to the collection,
+/// simulated time in seconds), each time in its shortest round-trip form.
+pub fn write_pvd(w: &mut impl Write, frames: &[(String, f64)]) -> std::io::Result<()> {
+    let mut s = String::from(
+        "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\">\n  <Collection>\n",
+    );
+    for (file, t) in frames {
+        let file = file
+            .replace('&', "&amp;")
+            .replace('"', "&quot;")
+            .replace('<', "&lt;");
+        let _ = writeln!(s, "    <DataSet timestep=\"{t:?}\" file=\"{file}\"/>");
+    }
+    s.push_str("  </Collection>\n</VTKFile>\n");
+    w.write_all(s.as_bytes())
+}
+
+/// The simulated time in a frame's title line (`stickslip NAME step S t = T`, the second
+/// line of the file), None when it has none.
+pub fn frame_time(path: &Path) -> Option<f64> {
+    use std::io::BufRead as _;
+    let f = File::open(path).ok()?;
+    let title = std::io::BufReader::new(f).lines().nth(1)?.ok()?;
+    title.rsplit_once(" t = ")?.1.trim().parse().ok()
+}
+
 /// One row of steps.csv.
 #[derive(Debug, Clone, Default, serde::Serialize)]
 pub struct StepRecord {
@@ -126,12 +157,14 @@ pub struct StepRecord {
 }
 
 /// The steps.csv writer: unbuffered, one `write` per row, so a killed run leaves every
-/// completed step on disk and no partial row.
+/// completed step on disk and no partial row. It keeps the digest of the bytes written
+/// (the file's, from its first byte), which a checkpoint records as the run's identity.
 pub struct StepsCsv {
     w: File,
     moving: bool,
     contact: bool,
     solid: bool,
+    digest: Fnv,
 }
 
 impl StepsCsv {
@@ -166,23 +199,35 @@ impl StepsCsv {
         h.push_str(",cg_tol_loosest,cg_tol_tightest,linear_resolves,force_residual");
         h.push('\n');
         w.write_all(h.as_bytes())?;
+        let mut digest = Fnv::new();
+        digest.update(h.as_bytes());
         Ok(StepsCsv {
             w,
             moving,
             contact,
             solid,
+            digest,
         })
     }
 
-    /// Continues a steps.csv that holds the header and the rows so far (a resumed run).
+    /// Continues a steps.csv that holds the header and the rows so far (a resumed run),
+    /// its whole text read back for the digest.
     pub fn append(path: &Path, moving: bool, contact: bool, solid: bool) -> std::io::Result<Self> {
+        let mut digest = Fnv::new();
+        digest.update(&std::fs::read(path)?);
         let w = std::fs::OpenOptions::new().append(true).open(path)?;
         Ok(StepsCsv {
             w,
             moving,
             contact,
             solid,
+            digest,
         })
+    }
+
+    /// The digest of the file's bytes so far.
+    pub fn digest(&self) -> String {
+        self.digest.hex()
     }
 
     pub fn row(&mut self, r: &StepRecord) -> std::io::Result<()> {
@@ -216,12 +261,21 @@ impl StepsCsv {
         let _ = write!(s, ",{}", r.linear_resolves);
         let _ = write!(s, ",{:.3e}", r.force_residual.unwrap_or(0.0));
         s.push('\n');
-        self.w.write_all(s.as_bytes())
+        self.w.write_all(s.as_bytes())?;
+        self.digest.update(s.as_bytes());
+        Ok(())
     }
 
     pub fn finish(mut self) -> std::io::Result<()> {
         self.w.flush()
     }
+}
+
+/// The digest of a steps.csv's text, as [`StepsCsv::digest`] gives it.
+pub fn steps_digest(text: &str) -> String {
+    let mut d = Fnv::new();
+    d.update(text.as_bytes());
+    d.hex()
 }
 
 /// The header and the whole rows of a steps.csv up to step `last` (rows after it, and a

@@ -377,7 +377,9 @@ pub struct RunArgs {
     /// Continue the run in DIR from its last checkpoint (checkpoint.bin): steps.csv rows
     /// and frames after it are removed, then the run goes on, appending, with the same
     /// bits as a run that was never stopped. The scene and its options come from the
-    /// checkpoint; only --steps or --end-time (to go further) may be given.
+    /// checkpoint; only --steps or --end-time (to go further), --dump-systems (the steps
+    /// dumped from the resume on), --threads and --quiet may be given. A run whose steps
+    /// are all done is finished (its summary marked complete).
     #[arg(long, value_name = "DIR")]
     pub resume: Option<PathBuf>,
 }

@@ -8,7 +8,7 @@ pub fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
     let opts = crate::sim::driver::RunOptions {
         scene: a.scene.clone(),
         out: a.out.clone(),
-        solver: a.solver.map(|s| s.name().to_string()),
+        solver: a.solver,
         size: a.size,
         steps: a.steps,
         quiet,

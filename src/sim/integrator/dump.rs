@@ -7,7 +7,9 @@ use crate::core::sparse::BlockCsr;
 use std::collections::BTreeSet;
 
 /// Which steps' systems to dump: `all`, or a comma-separated list of step numbers (from 1).
-#[derive(Debug, Clone, PartialEq, Eq)]
+/// A checkpoint holds it, so that a resumed run dumps the steps its first part was asked to.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum StepSelection {
     All,
     Steps(BTreeSet<usize>),
