@@ -1,5 +1,10 @@
 //! Errors. Bad input is an [`InputError`] that names the file, the entry and the fault;
-//! the command line prints it on one line and exits with code 2.
+//! the command line prints it on one line and exits with code 2. A GPU failure is a
+//! [`GpuError`], kept typed through the facade's [`Error`].
+
+pub mod gpu;
+
+pub use gpu::{GpuError, DOES_NOT_FIT};
 
 use std::fmt;
 
@@ -53,9 +58,10 @@ pub enum SolveError {
     /// A CG solver failed; the message says how.
     #[error("{0}")]
     Cg(#[from] CgError),
-    /// A GPU failure (no adapter, out of memory, a device error).
+    /// A GPU solve that ran and did not converge; on the command line also a device
+    /// failure met while solving.
     #[error("{0}")]
-    Gpu(String),
+    Gpu(GpuError),
     /// A Cholesky solve whose residual stayed above its bound after refinement, on a
     /// DĤD singular to working precision: no f64 answer can be trusted.
     #[error("the eliminated Hessian is singular to working precision: κ(DĤD) ≈ {condition_estimate:.1e} ≥ 1/(64ε) (D: Ĥ's diagonal to the −½), and the Cholesky solve's residual ‖D(b̂ − Ĥy)‖/‖Db̂‖ stayed at {scaled_residual:.3e} after {refinements} refinement steps")]
@@ -87,9 +93,23 @@ pub enum Error {
     #[error(transparent)]
     Solve(#[from] SolveError),
     /// The GPU cannot run this solve: no adapter, no SHADER_F64 for f64 or mixed, a
-    /// system larger than the device allows, or a device failure.
-    #[error("{0}")]
-    Device(String),
+    /// system larger than the device allows ([`GpuError::does_not_fit`]), or a device
+    /// failure.
+    #[error(transparent)]
+    Gpu(GpuError),
+}
+
+/// A GPU error where it belongs: a CG that ran and did not converge is the system's
+/// fault ([`Error::Solve`]), an update that does not match the solver's system is the
+/// caller's ([`Error::Input`]), the rest is the device's ([`Error::Gpu`]).
+impl From<GpuError> for Error {
+    fn from(e: GpuError) -> Self {
+        match e {
+            GpuError::Cg(_) | GpuError::InF32(_) => Error::Solve(SolveError::Gpu(e)),
+            GpuError::Mismatch(_) => Error::Input(InputError::new("problem", "", e.to_string())),
+            _ => Error::Gpu(e),
+        }
+    }
 }
 
 impl From<CgError> for Error {

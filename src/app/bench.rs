@@ -372,7 +372,7 @@ fn bench_one(
                     }
                     Ok(_) => continue,
                     // The device could not take this system or precision: no further tolerance will run.
-                    Err(crate::Error::Device(err)) => {
+                    Err(crate::Error::Gpu(err)) => {
                         r.note = format!("not run: {err}");
                         say(bar, opts.quiet, &line(&r));
                         crate::app::bench_report::append_record(

@@ -636,7 +636,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         InitError::Solver(cause) => RunError::Solve {
             step: 0,
             time: 0.0,
-            cause,
+            cause: cause.to_string(),
         },
         InitError::Memory(e) => RunError::Memory(SceneTooLarge {
             scene: scene.name.clone(),

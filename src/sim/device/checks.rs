@@ -536,7 +536,7 @@ impl NewtonChecks {
 
     /// (set, element) of a global element index lane.
     fn element(&self, lane: f64) -> Result<(usize, usize), GpuError> {
-        let bad = || GpuError::Device(format!("the inversion bound names element {lane}"));
+        let bad = || GpuError::Internal(format!("the inversion bound names element {lane}"));
         if !(lane >= 0.0 && lane.fract() == 0.0 && lane < NO_INDEX) {
             return Err(bad());
         }
@@ -713,7 +713,7 @@ impl NewtonChecks {
         };
         let node = if node < NO_INDEX {
             if !(node >= 0.0 && node.fract() == 0.0 && (node as usize) < self.n_nodes) {
-                return Err(GpuError::Device(format!(
+                return Err(GpuError::Internal(format!(
                     "the force balance names node {node}"
                 )));
             }

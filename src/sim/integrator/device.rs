@@ -96,12 +96,16 @@ fn cannot_hold(problem: String) -> InitError {
 }
 
 fn device_error(e: GpuError) -> InitError {
-    match e {
-        GpuError::BufferTooLarge { .. } | GpuError::Unsupported(_) => {
-            cannot_hold(format!("the GPU Newton loop cannot hold this scene: {e}"))
-        }
-        other => InitError::Solver(format!("the GPU Newton loop cannot start: {other}")),
+    if e.does_not_fit() || matches!(e, GpuError::Unsupported(_)) {
+        cannot_hold(format!("the GPU Newton loop cannot hold this scene: {e}"))
+    } else {
+        start_failed(e)
     }
+}
+
+/// Why the device loop cannot start, kept typed: the device's error under the loop's name.
+fn start_failed(e: GpuError) -> InitError {
+    InitError::Solver(crate::Error::Gpu(e.cannot_start("GPU Newton loop")))
 }
 
 /// Device bytes the loop allocates for `scene` (element outputs, assembly, CG and loop
@@ -206,8 +210,7 @@ impl DeviceLoop {
                     .into(),
             ));
         }
-        let ctx = GpuContext::new(&GpuOptions::default())
-            .map_err(|e| InitError::Solver(format!("the GPU Newton loop cannot start: {e}")))?;
+        let ctx = GpuContext::new(&GpuOptions::default()).map_err(start_failed)?;
         let _setup = ctx.phase(Phase::Setup);
         check_capacity(
             scene,
@@ -442,9 +445,10 @@ impl DeviceLoop {
             entry: "boundary".into(),
             problem,
         })?;
-        let init = |e: GpuError| InitError::Solver(format!("the GPU Newton loop: {e}"));
-        dl.ops.set_static_projections(&projections).map_err(init)?;
-        dl.ops.set_state(&state.x, &state.v).map_err(init)?;
+        dl.ops
+            .set_static_projections(&projections)
+            .map_err(start_failed)?;
+        dl.ops.set_state(&state.x, &state.v).map_err(start_failed)?;
         Ok(dl)
     }
 

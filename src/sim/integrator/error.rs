@@ -10,8 +10,9 @@ use crate::sim::memory::AllocError;
 pub enum InitError {
     /// The scene's conditions are inconsistent; `entry` names the scene entry.
     Input { entry: String, problem: String },
-    /// The linear solver cannot start.
-    Solver(String),
+    /// The linear solver or the device loop cannot start (no adapter, no SHADER_F64, a
+    /// device failure); the error keeps its kind ([`crate::Error::Gpu`] for the device).
+    Solver(crate::Error),
     /// The system refused an allocation of the scene's size.
     Memory(AllocError),
 }

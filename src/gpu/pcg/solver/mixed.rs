@@ -445,7 +445,7 @@ impl PcgSolver {
     /// The f64 level's y, unscaled.
     fn f64_iterate(&mut self, c: &mut Count) -> Result<Vec<f64>, GpuError> {
         let Some(l) = &self.side().level else {
-            return Err(GpuError::Device(
+            return Err(GpuError::Internal(
                 "mixed precision's f64 level is missing".into(),
             ));
         };
@@ -468,7 +468,7 @@ impl PcgSolver {
         let mut restarts = 0usize;
         {
             let Some(l) = &mut self.side_mut().level else {
-                return Err(GpuError::Device(
+                return Err(GpuError::Internal(
                     "mixed precision's f64 level is missing".into(),
                 ));
             };
@@ -484,7 +484,7 @@ impl PcgSolver {
             run.max_iterations = max_iters.saturating_sub(done + its);
             let info = {
                 let Some(l) = &mut self.side_mut().level else {
-                    return Err(GpuError::Device(
+                    return Err(GpuError::Internal(
                         "mixed precision's f64 level is missing".into(),
                     ));
                 };
@@ -616,7 +616,7 @@ impl PcgSolver {
             let params = self.seg_params(INNER_TOL, c.iterations);
             let (info, x) = {
                 let Some(l) = &mut self.side_mut().level else {
-                    return Err(GpuError::Device(
+                    return Err(GpuError::Internal(
                         "mixed precision's f64 level is missing".into(),
                     ));
                 };

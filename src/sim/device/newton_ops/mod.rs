@@ -1060,7 +1060,7 @@ impl NewtonOps {
             self.nodes = Some((cap, index, vals, op));
         }
         let Some((_, index, vals, op)) = &self.nodes else {
-            return Err(GpuError::Device("node list buffers missing".into()));
+            return Err(GpuError::Internal("node list buffers missing".into()));
         };
         self.ctx
             .write_buffer(&index.buf, 0, bytemuck::cast_slice(&idx));
