@@ -673,19 +673,24 @@ impl GpuContext {
         bytes: u64,
         what: &str,
     ) -> Result<Vec<u8>, GpuError> {
-        let mut v = self.download_many(&[(buf, offset, bytes)], what)?;
+        let range = ReadRange {
+            buffer: buf,
+            offset,
+            bytes,
+        };
+        let mut v = self.download_many(&[range], what)?;
         Ok(v.pop().unwrap_or_default())
     }
 
-    /// Several ranges (buffer, offset, bytes) copied into one staging buffer after the
-    /// work submitted so far and read back with one wait, in order: a status read and
-    /// what rides along with it. Each range as [`GpuContext::download`] takes it.
+    /// Several ranges copied into one staging buffer after the work submitted so far and
+    /// read back with one wait, in order: a status read and what rides along with it.
+    /// Each range as [`GpuContext::download`] takes it.
     pub(crate) fn download_many(
         &self,
-        ranges: &[(&wgpu::Buffer, u64, u64)],
+        ranges: &[ReadRange],
         what: &str,
     ) -> Result<Vec<Vec<u8>>, GpuError> {
-        let sizes: Vec<u64> = ranges.iter().map(|r| r.2.div_ceil(4) * 4).collect();
+        let sizes: Vec<u64> = ranges.iter().map(|r| r.bytes.div_ceil(4) * 4).collect();
         let data: u64 = sizes.iter().sum();
         if data == 0 {
             return Ok(ranges.iter().map(|_| Vec::new()).collect());
@@ -704,7 +709,15 @@ impl GpuContext {
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(what) });
         let mut at = 0;
-        for (&(buf, offset, _), &size) in ranges.iter().zip(&sizes) {
+        for (
+            &ReadRange {
+                buffer: buf,
+                offset,
+                ..
+            },
+            &size,
+        ) in ranges.iter().zip(&sizes)
+        {
             if size > 0 {
                 enc.copy_buffer_to_buffer(buf, offset, &staging, at, size);
             }
@@ -753,7 +766,7 @@ impl GpuContext {
         let mut out = Vec::with_capacity(ranges.len());
         let mut at = 0usize;
         for (r, &size) in ranges.iter().zip(&sizes) {
-            out.push(v[at..at + r.2 as usize].to_vec());
+            out.push(v[at..at + r.bytes as usize].to_vec());
             at += size as usize;
         }
         Ok(out)
@@ -861,6 +874,16 @@ impl GpuContext {
             })
         }
     }
+}
+
+/// One range of a device buffer to read back ([`GpuContext::download_many`]).
+#[derive(Debug, Clone, Copy)]
+pub struct ReadRange<'a> {
+    pub buffer: &'a wgpu::Buffer,
+    /// Its first byte.
+    pub offset: u64,
+    /// Its length in bytes.
+    pub bytes: u64,
 }
 
 /// A read-back that failed while `what` (mapping or reading a staging buffer).

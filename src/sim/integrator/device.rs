@@ -30,7 +30,9 @@ use super::report::GpuRunReport;
 use super::state::{Contact, State, CCD_FRACTION, INVERSION_FRACTION};
 use super::targets::MovingTargets;
 use crate::gpu::pcg::{DeviceCg, DeviceCgParams, DeviceFrames, Tail};
-use crate::gpu::{GpuContext, GpuError, GpuOptions, Phase, PhaseGuard, Precision, TrafficCount};
+use crate::gpu::{
+    GpuContext, GpuError, GpuOptions, Phase, PhaseGuard, Precision, ReadRange, TrafficCount,
+};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::checks::{BalanceFrames, NewtonChecks};
 use crate::sim::device::elements::{GpuElements, TermKind};
@@ -400,8 +402,16 @@ impl DeviceLoop {
         let result = self.ops.result_buffer();
         let (at_x, at_x_bytes) = self.ops.energy_at_x_buffer();
         let read = [
-            (result, 0, 32 * self.ops.result_slots() as u64),
-            (at_x, 0, at_x_bytes),
+            ReadRange {
+                buffer: result,
+                offset: 0,
+                bytes: 32 * self.ops.result_slots() as u64,
+            },
+            ReadRange {
+                buffer: at_x,
+                offset: 0,
+                bytes: at_x_bytes,
+            },
         ];
         let frames = &self.frames[snapped];
         // The trial may run in any chunk whose verification met the tolerance.

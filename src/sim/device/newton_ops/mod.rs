@@ -15,7 +15,7 @@
 #![cfg(feature = "sim")]
 
 use crate::gpu::kernels::{self, Access, Layout};
-use crate::gpu::{GpuContext, GpuError};
+use crate::gpu::{GpuContext, GpuError, ReadRange};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::elements::{from_bytes, to_bytes, GpuElements, TermKind};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
@@ -146,8 +146,14 @@ pub struct MovingTerm {
     pub sqrt_m_lambda: [f64; 3],
 }
 
-/// A node's static projection x_i ↦ P x_i + c (P row-major 3×3, its d×d corner used).
-pub type StaticProjection = (usize, [f64; 9], [f64; 3]);
+/// A node's static projection x_i ↦ P x_i + c.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StaticProjection {
+    pub node: usize,
+    /// P, row-major 3×3 (its d×d corner used).
+    pub p: [f64; 9],
+    pub c: [f64; 3],
+}
 
 /// The static projections of a scene's start of step, as `Stepper` applies them: a node
 /// with one static condition onto its set (sticky: P = 0, c = anchor; plane: P = I − nnᵀ,
@@ -189,7 +195,7 @@ pub fn static_projections(scene: &Scene) -> Result<Vec<StaticProjection>, String
                 }
             }
         }
-        out.push((b.node, p, c));
+        out.push(StaticProjection { node: b.node, p, c });
     }
     for j in &joint {
         let mut p = [0.0; 9];
@@ -204,7 +210,7 @@ pub fn static_projections(scene: &Scene) -> Result<Vec<StaticProjection>, String
         for a in 0..3 {
             c[a] = j.point[a] - (0..3).map(|k| p[a * 3 + k] * j.point[k]).sum::<f64>();
         }
-        out.push((j.node, p, c));
+        out.push(StaticProjection { node: j.node, p, c });
     }
     Ok(out)
 }
@@ -252,15 +258,43 @@ pub struct NewtonOps {
     max_abs: (Op, Op),
     ccd: (Op, Op),
     min_distance: (Op, Op),
-    /// Static projections (entries, their op); moving terms (terms, ops: add, reduce,
-    /// finish); node lists (capacity in nodes, table, op).
-    proj: Option<(usize, Table, Table, Op)>,
-    /// Moving terms: count, tables, the H/g update per values chunk, energy ops.
-    moving: Option<(usize, Table, Table, Vec<Op>, Op, Op)>,
-    nodes: Option<(usize, Table, Table, Op)>,
+    proj: Option<StaticProjections>,
+    moving: Option<MovingTerms>,
+    nodes: Option<NodeList>,
     /// E's per-term sums and the moving energy at x, kept while a trial's reuse the
     /// result slots (`tail`).
     energy_at_x: wgpu::Buffer,
+}
+
+/// The static projections [`NewtonOps::begin_step`] applies.
+struct StaticProjections {
+    /// How many (one per node).
+    count: usize,
+    /// Each projection's P and c, and its node: bound by `op`, kept while it is.
+    _values: Table,
+    _index: Table,
+    op: Op,
+}
+
+/// The moving terms: their tables and the ops that add them to g and H and sum their
+/// energy.
+struct MovingTerms {
+    count: usize,
+    values: Table,
+    index: Table,
+    /// The H/g update, one per values chunk of H.
+    adds: Vec<Op>,
+    energy: Op,
+    energy_finish: Op,
+}
+
+/// The node list [`NewtonOps::read_nodes`] gathers into, grown to powers of two.
+struct NodeList {
+    /// Capacity in nodes.
+    capacity: usize,
+    index: Table,
+    values: Table,
+    gather: Op,
 }
 
 /// Builds ops: the layout and the buffers every bind group shares (own state, the
@@ -646,7 +680,14 @@ impl NewtonOps {
         what: &str,
     ) -> Result<[Vec<f64>; K], GpuError> {
         let nb = self.nd_bytes();
-        let ranges: Vec<(&wgpu::Buffer, u64, u64)> = bufs.iter().map(|&b| (b, 0, nb)).collect();
+        let ranges: Vec<ReadRange> = bufs
+            .iter()
+            .map(|&buffer| ReadRange {
+                buffer,
+                offset: 0,
+                bytes: nb,
+            })
+            .collect();
         let bytes = self.ctx.download_many(&ranges, what)?;
         let mut out: [Vec<f64>; K] = std::array::from_fn(|_| Vec::new());
         for (o, b) in out.iter_mut().zip(&bytes) {
@@ -658,11 +699,11 @@ impl NewtonOps {
     /// The static projections applied by [`NewtonOps::begin_step`] (uploaded once; each
     /// node at most once).
     pub fn set_static_projections(&mut self, proj: &[StaticProjection]) -> Result<(), GpuError> {
-        let nodes = self.node_indices(proj.iter().map(|p| p.0), "static projection")?;
+        let nodes = self.node_indices(proj.iter().map(|p| p.node), "static projection")?;
         let mut table = Vec::with_capacity(proj.len() * PROJ_STRIDE);
-        for (_, p, c) in proj {
-            table.extend_from_slice(p);
-            table.extend_from_slice(c);
+        for p in proj {
+            table.extend_from_slice(&p.p);
+            table.extend_from_slice(&p.c);
         }
         let values = self.table("newton static projections", &to_bytes(true, &table))?;
         let index = self.table(
@@ -682,7 +723,12 @@ impl NewtonOps {
                 ..Varying::default()
             },
         );
-        self.proj = Some((proj.len(), values, index, op));
+        self.proj = Some(StaticProjections {
+            count: proj.len(),
+            _values: values,
+            _index: index,
+            op,
+        });
         Ok(())
     }
 
@@ -725,8 +771,8 @@ impl NewtonOps {
         self.write_scalars(S_H, &[h]);
         let nd = self.n_nodes * self.dim;
         let mut ops = vec![(&self.begin, Self::grid(nd))];
-        if let Some((count, _, _, op)) = &self.proj {
-            ops.push((op, Self::grid(*count)));
+        if let Some(p) = &self.proj {
+            ops.push((&p.op, Self::grid(p.count)));
         }
         let nb = self.nd_bytes();
         self.run("newton begin step", &ops, |enc| {
@@ -923,15 +969,15 @@ impl NewtonOps {
         };
         // Reuse the buffers (and bind groups) while the new data fits.
         let groups = self.groups;
-        if let Some((c, values, idx, adds, red, fin)) = &mut self.moving {
+        if let Some(m) = &mut self.moving {
             let vb = to_bytes(true, &table);
             let ib: &[u8] = bytemuck::cast_slice(&index);
-            if vb.len() as u64 <= values.bytes && ib.len() as u64 <= idx.bytes {
+            if vb.len() as u64 <= m.values.bytes && ib.len() as u64 <= m.index.bytes {
                 let ctx = &self.binder.ctx;
-                ctx.write_buffer(&values.buf, 0, &vb);
-                ctx.write_buffer(&idx.buf, 0, ib);
-                *c = count;
-                for (ch, add) in adds.iter().enumerate() {
+                ctx.write_buffer(&m.values.buf, 0, &vb);
+                ctx.write_buffer(&m.index.buf, 0, ib);
+                m.count = count;
+                for (ch, add) in m.adds.iter().enumerate() {
                     let q = OpsParams {
                         aux: ch as u32,
                         ..p(0, count)
@@ -939,8 +985,8 @@ impl NewtonOps {
                     ctx.write_buffer(&add.params, 0, bytemuck::bytes_of(&q));
                 }
                 for (op, q) in [
-                    (&*red, p(MODE_MOVING_ENERGY, count)),
-                    (&*fin, p(MODE_MOVING_ENERGY, groups)),
+                    (&m.energy, p(MODE_MOVING_ENERGY, count)),
+                    (&m.energy_finish, p(MODE_MOVING_ENERGY, groups)),
                 ] {
                     ctx.write_buffer(&op.params, 0, bytemuck::bytes_of(&q));
                 }
@@ -988,7 +1034,14 @@ impl NewtonOps {
             p(MODE_MOVING_ENERGY, self.groups),
             var,
         );
-        self.moving = Some((count, values, idx, adds, red, fin));
+        self.moving = Some(MovingTerms {
+            count,
+            values,
+            index: idx,
+            adds,
+            energy: red,
+            energy_finish: fin,
+        });
         Ok(())
     }
 
@@ -996,9 +1049,9 @@ impl NewtonOps {
     /// nodes' diagonal blocks of H (k m P), at the evaluation positions; after
     /// [`GpuAssembly::assemble`].
     pub fn add_moving(&self) -> Result<(), GpuError> {
-        if let Some((count, _, _, adds, _, _)) = &self.moving {
-            let grid = Self::grid(*count);
-            let ops: Vec<_> = adds.iter().map(|a| (a, grid)).collect();
+        if let Some(m) = &self.moving {
+            let grid = Self::grid(m.count);
+            let ops: Vec<_> = m.adds.iter().map(|a| (a, grid)).collect();
             self.run("newton add moving", &ops, |_| {})?;
         }
         Ok(())
@@ -1007,15 +1060,15 @@ impl NewtonOps {
     /// Σ ½ k m ‖r‖² − √m λ·r over the moving terms at the evaluation positions (0 without
     /// any).
     pub fn moving_energy(&self) -> Result<f64, GpuError> {
-        let Some((count, _, _, _, red, fin)) = &self.moving else {
+        let Some(m) = &self.moving else {
             return Ok(0.0);
         };
-        if *count == 0 {
+        if m.count == 0 {
             return Ok(0.0);
         }
         self.run(
             "newton moving energy",
-            &[(red, self.groups), (fin, 1)],
+            &[(&m.energy, self.groups), (&m.energy_finish, 1)],
             |_| {},
         )?;
         Ok(self.read_result(slot_count(self.energy.len()) - 1, 1)?[0])
@@ -1042,7 +1095,7 @@ impl NewtonOps {
         let fits = self
             .nodes
             .as_ref()
-            .is_some_and(|(cap, ..)| *cap >= nodes.len());
+            .is_some_and(|list| list.capacity >= nodes.len());
         if !fits {
             let cap = nodes.len().next_power_of_two();
             let index = self.table("newton node list", &vec![0u8; cap * 4])?;
@@ -1057,9 +1110,20 @@ impl NewtonOps {
                     ..Varying::default()
                 },
             );
-            self.nodes = Some((cap, index, vals, op));
+            self.nodes = Some(NodeList {
+                capacity: cap,
+                index,
+                values: vals,
+                gather: op,
+            });
         }
-        let Some((_, index, vals, op)) = &self.nodes else {
+        let Some(NodeList {
+            index,
+            values: vals,
+            gather: op,
+            ..
+        }) = &self.nodes
+        else {
             return Err(GpuError::Internal("node list buffers missing".into()));
         };
         self.ctx
