@@ -231,6 +231,9 @@ pub struct NewtonChecks {
     slot: usize,
 }
 
+/// An element chunk's term and the index of its set.
+type TermSet = (usize, usize);
+
 /// Where one element set of the model lies among all the model's elements.
 #[derive(Debug, Clone, Copy)]
 struct SetSpan {
@@ -247,7 +250,7 @@ struct SetSpan {
 fn element_sets(
     elements: &GpuElements,
     model: &Model,
-) -> Result<(Vec<(usize, usize)>, Vec<SetSpan>), GpuError> {
+) -> Result<(Vec<TermSet>, Vec<SetSpan>), GpuError> {
     let mut chunks = Vec::new();
     let mut set: Option<usize> = None;
     for (t, kind) in elements.kinds().iter().enumerate() {
