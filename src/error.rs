@@ -1,5 +1,6 @@
 //! Errors. Bad input is an [`InputError`] that names the file, the entry and the fault;
-//! the command line prints it on one line and exits with code 2.
+//! the command line prints it on one line and exits with code 2. A GPU failure is a
+//! [`GpuError`], kept typed through the facade's [`Error`].
 
 use std::fmt;
 
@@ -53,9 +54,10 @@ pub enum SolveError {
     /// A CG solver failed; the message says how.
     #[error("{0}")]
     Cg(#[from] CgError),
-    /// A GPU failure (no adapter, out of memory, a device error).
+    /// A GPU solve that ran and did not converge; on the command line also a device
+    /// failure met while solving.
     #[error("{0}")]
-    Gpu(String),
+    Gpu(GpuError),
     /// A Cholesky solve whose residual stayed above its bound after refinement, on a
     /// DĤD singular to working precision: no f64 answer can be trusted.
     #[error("the eliminated Hessian is singular to working precision: κ(DĤD) ≈ {condition_estimate:.1e} ≥ 1/(64ε) (D: Ĥ's diagonal to the −½), and the Cholesky solve's residual ‖D(b̂ − Ĥy)‖/‖Db̂‖ stayed at {scaled_residual:.3e} after {refinements} refinement steps")]
@@ -87,9 +89,23 @@ pub enum Error {
     #[error(transparent)]
     Solve(#[from] SolveError),
     /// The GPU cannot run this solve: no adapter, no SHADER_F64 for f64 or mixed, a
-    /// system larger than the device allows, or a device failure.
-    #[error("{0}")]
-    Device(String),
+    /// system larger than the device allows ([`GpuError::does_not_fit`]), or a device
+    /// failure.
+    #[error(transparent)]
+    Gpu(GpuError),
+}
+
+/// A GPU error where it belongs: a CG that ran and did not converge is the system's
+/// fault ([`Error::Solve`]), an update that does not match the solver's system is the
+/// caller's ([`Error::Input`]), the rest is the device's ([`Error::Gpu`]).
+impl From<GpuError> for Error {
+    fn from(e: GpuError) -> Self {
+        match e {
+            GpuError::Cg(_) | GpuError::InF32(_) => Error::Solve(SolveError::Gpu(e)),
+            GpuError::Mismatch(_) => Error::Input(InputError::new("problem", "", e.to_string())),
+            _ => Error::Gpu(e),
+        }
+    }
 }
 
 impl From<CgError> for Error {
@@ -174,6 +190,110 @@ impl std::fmt::Display for Unpinned {
             self.stiffness,
             self.row_scale
         )
+    }
+}
+
+// Why a GPU solve could not run or did not converge. It sits with the facade's Error,
+// which holds it typed, so that a caller tells "does not fit" from "device lost" by its
+// variant, never by its text.
+
+/// What a refusal for want of device memory says (the command line exits 2 on it: the
+/// input, not the device, is what must change).
+pub const DOES_NOT_FIT: &str = "does not fit on the GPU";
+
+/// Why the GPU solver could not run or did not converge.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GpuError {
+    /// No adapter matches: none at all, or `WGPU_ADAPTER_NAME` names none (the message
+    /// lists the adapters there are).
+    #[error("{0}")]
+    NoAdapter(String),
+    /// The adapter refused to open a device.
+    #[error("GPU device error: {0}")]
+    RequestDevice(String),
+    /// A solver could not open its device: `what` names the solver ("GPU solver", "GPU
+    /// Newton loop"), `cause` is why (no adapter, no device, a bad setting).
+    #[error("the {what} cannot start: {cause}")]
+    CannotStart {
+        what: &'static str,
+        cause: Box<GpuError>,
+    },
+    /// A device setting from the environment is malformed.
+    #[error("GPU device error: {var}={value}: expected a whole number of at least {min}")]
+    BadSetting {
+        var: &'static str,
+        value: String,
+        min: u32,
+    },
+    /// f64 or mixed precision on an adapter without SHADER_F64.
+    #[error("precision {precision} needs SHADER_F64, which adapter '{adapter}' does not offer (use --precision f32)")]
+    NoF64 {
+        adapter: String,
+        precision: &'static str,
+    },
+    /// One buffer larger than the adapter allows per buffer or per storage binding.
+    #[error("GPU buffer '{label}' needs {bytes} bytes but adapter '{adapter}' allows at most {limit} bytes per {what}: the system {}", DOES_NOT_FIT)]
+    BufferTooLarge {
+        label: String,
+        bytes: u64,
+        limit: u64,
+        what: &'static str,
+        adapter: String,
+    },
+    /// The system's buffers together need more device memory than the device has (or
+    /// than `GpuParams::memory_limit` allows).
+    #[error("the system {}: it needs {need} bytes of device memory and adapter '{adapter}' has {limit} bytes", DOES_NOT_FIT)]
+    DoesNotFit {
+        need: u64,
+        limit: u64,
+        adapter: String,
+    },
+    /// The device reported an error (a validation error, out of memory) during `what`.
+    #[error("GPU device error: {what}: {message}")]
+    Validation { what: String, message: String },
+    /// Waiting for the device failed during `what`: the device was lost or timed out.
+    #[error("GPU device error: {what}: waiting for the GPU: {cause}")]
+    Lost { what: String, cause: String },
+    /// A read-back buffer could not be mapped or read.
+    #[error("GPU device error: {what}: {cause}")]
+    ReadBack { what: &'static str, cause: String },
+    /// A lock shared with the device's callbacks or another thread was poisoned by a
+    /// panic there; `lock` names what it guards.
+    #[error("GPU device error: {lock} was poisoned by a panic in another thread")]
+    Poisoned { lock: &'static str },
+    /// The device's results break an invariant of the code that reads them (a bug in
+    /// the solver, not a fault of the input).
+    #[error("GPU device error: {0}")]
+    Internal(String),
+    #[error("the GPU solver does not support this system: {0}")]
+    Unsupported(String),
+    #[error("update does not match the solver's system: {0}")]
+    Mismatch(String),
+    #[error(transparent)]
+    Cg(#[from] CgError),
+    /// A CG failure in f32 arithmetic: on an ill-conditioned system rounding alone can
+    /// produce non-positive curvature or stagnation, so the message says so.
+    #[error("{0} — in f32 arithmetic, where rounding on an ill-conditioned system can cause this; --precision mixed or f64 tells the two apart")]
+    InF32(CgError),
+}
+
+impl GpuError {
+    /// Whether the system is too large for the device (one buffer, or all of them): the
+    /// input must change, not the device.
+    pub fn does_not_fit(&self) -> bool {
+        match self {
+            GpuError::BufferTooLarge { .. } | GpuError::DoesNotFit { .. } => true,
+            GpuError::CannotStart { cause, .. } => cause.does_not_fit(),
+            _ => false,
+        }
+    }
+
+    /// `self` as the reason the solver `what` cannot start.
+    pub fn cannot_start(self, what: &'static str) -> GpuError {
+        GpuError::CannotStart {
+            what,
+            cause: Box::new(self),
+        }
     }
 }
 

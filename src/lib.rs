@@ -46,7 +46,7 @@
 //! // The GPU in mixed precision where a GPU with SHADER_F64 exists, CPU CG otherwise.
 //! let mut solver = match Solver::new(SolverConfig::gpu(Precision::Mixed).tol(1e-8)) {
 //!     Ok(s) => s,
-//!     Err(Error::Device(why)) => {
+//!     Err(Error::Gpu(why)) => {
 //!         eprintln!("no GPU ({why}); solving on the CPU");
 //!         Solver::new(SolverConfig::cg().tol(1e-8))?
 //!     }

@@ -190,3 +190,40 @@ fn bad_configurations_and_unsolvable_systems_are_errors() {
         other => panic!("expected a solve error, got {other:?}"),
     }
 }
+
+/// A system larger than the device memory in force is refused through the facade as the
+/// typed [`GpuError::DoesNotFit`], carrying the bytes the solve needs (what the device
+/// PCG's memory plan counts) and the bytes in force; with exactly that many bytes the
+/// same solve runs.
+#[test]
+fn a_system_over_the_device_memory_is_a_typed_does_not_fit() {
+    use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
+    use stickslip::gpu::{GpuError, GpuParams, PcgSolver};
+    let Some((ctx, _g)) = common::gpu::gpu() else {
+        return;
+    };
+    let s = random_system(&SystemSpec::small(3, 5));
+    let problem = Problem::from_triplets(3, s.h.n, &triplets(&s.h), &s.g, &s.constraints)
+        .expect("a generated system is valid");
+    let params = |memory_limit| GpuParams {
+        precision: Precision::F32,
+        memory_limit: Some(memory_limit),
+        ..GpuParams::default()
+    };
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let planned = PcgSolver::memory_needed(ctx, &e, &params(u64::MAX)).expect("a plan");
+    let config = |limit| {
+        SolverConfig::gpu(Precision::F32)
+            .gpu_params(params(limit))
+            .gpu_context(ctx.clone())
+    };
+    let mut small = Solver::new(config(planned - 1)).expect("the solver starts");
+    match small.solve(&problem) {
+        Err(Error::Gpu(GpuError::DoesNotFit { need, limit, .. })) => {
+            assert_eq!((need, limit), (planned, planned - 1));
+        }
+        other => panic!("expected DoesNotFit, got {other:?}"),
+    }
+    let mut exact = Solver::new(config(planned)).expect("the solver starts");
+    assert!(exact.solve(&problem).is_ok());
+}

@@ -100,14 +100,10 @@ fn needed(ctx: &stickslip::gpu::GpuContext, e: &Eliminated, p: &GpuParams) -> u6
         ..p.clone()
     };
     match PcgSolver::new(ctx, e, &tiny) {
-        Err(GpuError::Device(m)) => {
-            assert!(m.contains(stickslip::gpu::DOES_NOT_FIT), "{m}");
-            assert!(!m.contains('\n'));
-            m.split("needs ")
-                .nth(1)
-                .and_then(|t| t.split(' ').next())
-                .and_then(|t| t.parse().ok())
-                .unwrap_or_else(|| panic!("no need in {m}"))
+        Err(e @ GpuError::DoesNotFit { need, limit, .. }) => {
+            assert!(!e.to_string().contains('\n'), "{e}");
+            assert_eq!(limit, 16, "{e}");
+            need
         }
         Err(other) => panic!("{other}"),
         Ok(_) => panic!("accepted a system in 16 bytes"),
@@ -150,7 +146,7 @@ fn the_multilevel_levels_count_in_the_memory_check() {
     )
     .is_ok());
     match PcgSolver::new(ctx, &e, &between) {
-        Err(GpuError::Device(m)) => eprintln!("{m}"),
+        Err(e @ GpuError::DoesNotFit { .. }) => eprintln!("{e}"),
         Err(other) => panic!("{other}"),
         Ok(_) => panic!("the levels were not counted"),
     }

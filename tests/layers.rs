@@ -70,7 +70,21 @@ enum Tok {
 /// Tokens of `src` with comments, string/char literals and attributes' contents kept out
 /// of the way (an attribute's paths, e.g. `#[cfg(feature = "sim")]`, name no modules).
 fn lex(src: &str) -> Vec<Tok> {
+    lex_lines(src).into_iter().map(|(t, _)| t).collect()
+}
+
+/// [`lex`]'s tokens, each with the line (from 1) it starts on.
+fn lex_lines(src: &str) -> Vec<(Tok, usize)> {
     let b: Vec<char> = src.chars().collect();
+    // The line of each character, so a token's line costs nothing to find.
+    let mut line_at = Vec::with_capacity(b.len());
+    let mut line = 1;
+    for &c in &b {
+        line_at.push(line);
+        if c == '\n' {
+            line += 1;
+        }
+    }
     let mut out = Vec::new();
     let mut i = 0;
     while i < b.len() {
@@ -192,33 +206,35 @@ fn lex(src: &str) -> Vec<Tok> {
             }
             let word: String = b[start..i].iter().collect();
             let word = word.strip_prefix("r#").map(str::to_string).unwrap_or(word);
-            out.push(Tok::Ident(word));
+            out.push((Tok::Ident(word), line_at[start]));
             continue;
         }
         if c.is_ascii_digit() {
+            let start = i;
             while i < b.len() && (b[i].is_alphanumeric() || b[i] == '_' || b[i] == '.') {
                 if b[i] == '.' && !b.get(i + 1).is_some_and(|d| d.is_ascii_digit()) {
                     break;
                 }
                 i += 1;
             }
-            out.push(Tok::Other('0'));
+            out.push((Tok::Other('0'), line_at[start]));
             continue;
         }
         if c == ':' && b.get(i + 1) == Some(&':') {
-            out.push(Tok::PathSep);
+            out.push((Tok::PathSep, line_at[i]));
             i += 2;
             continue;
         }
         if !c.is_whitespace() {
-            out.push(match c {
+            let tok = match c {
                 '{' => Tok::Open,
                 '}' => Tok::Close,
                 ',' => Tok::Comma,
                 ';' => Tok::Semi,
                 '*' => Tok::Star,
                 other => Tok::Other(other),
-            });
+            };
+            out.push((tok, line_at[i]));
         }
         i += 1;
     }
@@ -604,7 +620,8 @@ fn name(m: &[String]) -> String {
     }
 }
 
-/// Every violation: upward imports, then cycles (strongly connected components).
+/// Every violation: upward imports, then cycles among modules and among top-level modules
+/// (strongly connected components).
 fn check(sources: &[(String, String)]) -> Vec<String> {
     let tree = Tree::new(sources);
     let edges = tree.edges();
@@ -670,6 +687,51 @@ fn check(sources: &[(String, String)]) -> Vec<String> {
             members.sort();
             problems.push(format!(
                 "import cycle: {} [{} modules import each other: {}]",
+                steps.join(", "),
+                comp.len(),
+                members.join(", ")
+            ));
+        }
+    }
+    problems.extend(top_level_cycles(&edges));
+    problems
+}
+
+/// Cycles among the top-level modules (`core -> cases -> core`), which no two files need
+/// to close: a test module of `core` naming `cases` while `cases` names `core` is one.
+fn top_level_cycles(edges: &BTreeMap<(Vec<String>, Vec<String>), String>) -> Vec<String> {
+    let mut tops: BTreeSet<&String> = BTreeSet::new();
+    for (from, to) in edges.keys() {
+        tops.extend(from.first());
+        tops.extend(to.first());
+    }
+    let tops: Vec<&String> = tops.into_iter().collect();
+    let index: BTreeMap<&String, usize> = tops.iter().enumerate().map(|(i, t)| (*t, i)).collect();
+    let mut adj = vec![Vec::new(); tops.len()];
+    // One example import per top-level edge, the first in path order.
+    let mut example: BTreeMap<(usize, usize), String> = BTreeMap::new();
+    for ((from, to), ex) in edges {
+        let (Some(f), Some(t)) = (from.first(), to.first()) else {
+            continue;
+        };
+        let (a, b) = (index[f], index[t]);
+        if a != b && !adj[a].contains(&b) {
+            adj[a].push(b);
+            example.insert((a, b), format!("{} -> {} (`{ex}`)", name(from), name(to)));
+        }
+    }
+    let mut problems = Vec::new();
+    for comp in strongly_connected(&adj) {
+        if comp.len() > 1 {
+            let cycle = shortest_cycle(&adj, &comp);
+            let steps: Vec<String> = cycle
+                .windows(2)
+                .map(|w| example[&(w[0], w[1])].clone())
+                .collect();
+            let mut members: Vec<&str> = comp.iter().map(|&i| tops[i].as_str()).collect();
+            members.sort();
+            problems.push(format!(
+                "top-level import cycle: {} [{} top-level modules import each other: {}]",
                 steps.join(", "),
                 comp.len(),
                 members.join(", ")
@@ -981,5 +1043,176 @@ fn detects_a_raw_device_call_but_not_one_in_a_comment() {
     assert_eq!(
         raw_device_calls(&files),
         ["sim/device/ops.rs:2: queue.submit("]
+    );
+}
+
+#[test]
+fn detects_a_top_level_cycle_through_a_test_module() {
+    let sources = tree(&[
+        ("lib.rs", "pub mod core; pub mod cases;"),
+        ("core/mod.rs", "pub mod elimination; pub mod sparse;"),
+        ("core/sparse.rs", "pub struct BlockCsr;"),
+        (
+            "core/elimination.rs",
+            "pub fn apply() {}\n#[cfg(test)]\nmod tests { use crate::cases::generate::random; }",
+        ),
+        ("cases/mod.rs", "pub mod generate;"),
+        (
+            "cases/generate.rs",
+            "use crate::core::sparse::BlockCsr; pub fn random() -> BlockCsr { BlockCsr }",
+        ),
+    ]);
+    let problems = check(&sources);
+    assert_eq!(problems.len(), 1, "{problems:?}");
+    assert!(
+        problems[0].contains("2 top-level modules import each other: cases, core"),
+        "{problems:?}"
+    );
+    assert!(
+        problems[0].contains("core::elimination -> cases::generate"),
+        "{problems:?}"
+    );
+}
+
+// ---------------------------------------------------------------------------------------
+// Sizes: functions and files short enough to read whole.
+// ---------------------------------------------------------------------------------------
+
+/// The most lines a function of `src/` may span, from its `fn` line to its closing brace.
+const MAX_FUNCTION_LINES: usize = 150;
+
+/// The most lines a file of `src/` may hold.
+const MAX_FILE_LINES: usize = 1200;
+
+/// Every function in `src` (one file) with its name, first line and line count, found by
+/// matching braces over [`lex_lines`]'s tokens, so braces in comments, strings and char
+/// literals do not count. A function is `fn name` up to its body's closing brace; a
+/// declaration without a body (`fn f();` in a trait) is none.
+fn function_spans(src: &str) -> Vec<(String, usize, usize)> {
+    let toks = lex_lines(src);
+    let mut out = Vec::new();
+    for (k, (tok, line)) in toks.iter().enumerate() {
+        let (Tok::Ident(kw), Some((Tok::Ident(name), _))) = (tok, toks.get(k + 1)) else {
+            continue;
+        };
+        if kw != "fn" {
+            continue;
+        }
+        // The body opens at the first `{` outside the signature's brackets; a `;` there
+        // (outside `[T; N]`) ends a bodiless declaration.
+        let mut nest = 0i64;
+        let mut open = None;
+        for (j, (t, _)) in toks.iter().enumerate().skip(k + 2) {
+            match t {
+                Tok::Other('(') | Tok::Other('[') => nest += 1,
+                Tok::Other(')') | Tok::Other(']') => nest -= 1,
+                Tok::Semi if nest == 0 => break,
+                Tok::Open if nest == 0 => {
+                    open = Some(j);
+                    break;
+                }
+                _ => {}
+            }
+        }
+        let Some(open) = open else { continue };
+        let mut depth = 0usize;
+        for (t, end) in &toks[open..] {
+            match t {
+                Tok::Open => depth += 1,
+                Tok::Close => {
+                    depth -= 1;
+                    if depth == 0 {
+                        out.push((name.clone(), *line, end - line + 1));
+                        break;
+                    }
+                }
+                _ => {}
+            }
+        }
+    }
+    out
+}
+
+/// Every function longer than [`MAX_FUNCTION_LINES`] and every file longer than
+/// [`MAX_FILE_LINES`], as "file:line: fn name: N lines" and "file: N lines".
+fn oversized(sources: &[(String, String)]) -> Vec<String> {
+    let mut out = Vec::new();
+    for (rel, src) in sources {
+        let lines = src.lines().count();
+        if lines > MAX_FILE_LINES {
+            out.push(format!("{rel}: {lines} lines (at most {MAX_FILE_LINES})"));
+        }
+        for (name, line, len) in function_spans(src) {
+            if len > MAX_FUNCTION_LINES {
+                out.push(format!(
+                    "{rel}:{line}: fn {name}: {len} lines (at most {MAX_FUNCTION_LINES})"
+                ));
+            }
+        }
+    }
+    out
+}
+
+/// No function of the library is longer than [`MAX_FUNCTION_LINES`] and no file longer
+/// than [`MAX_FILE_LINES`]: each can be read whole before it is changed.
+#[test]
+fn no_function_or_file_of_the_library_is_too_long() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let long = oversized(&read_tree(&src));
+    assert!(
+        long.is_empty(),
+        "{} function(s) or file(s) too long:\n  {}",
+        long.len(),
+        long.join("\n  ")
+    );
+}
+
+#[test]
+fn measures_functions_by_their_braces_not_those_in_comments_strings_or_chars() {
+    let src = "\
+trait T {
+    fn declared(&self, a: [u8; 3]);
+}
+fn short(a: [u8; 2]) -> usize {
+    // a } in a comment
+    let s = \"}}}\"; /* { */
+    let c = '}';
+    let r = r#\"{\"#;
+    a.len() + s.len() + r.len() + (c as usize)
+}
+fn outer<'a>(x: &'a str) -> impl Fn() + 'a {
+    fn inner() {}
+    move || {
+        inner();
+        let _ = x;
+    }
+}
+";
+    assert_eq!(
+        function_spans(src),
+        [
+            ("short".to_string(), 4, 7),
+            ("outer".to_string(), 11, 7),
+            ("inner".to_string(), 12, 1),
+        ]
+    );
+    let body: String = (0..MAX_FUNCTION_LINES - 2).map(|_| "    f();\n").collect();
+    let at_limit = format!("fn fits() {{\n{body}}}\n");
+    let over = format!("fn over() {{\n{body}    f();\n}}\n");
+    let files = tree(&[("a.rs", at_limit.as_str()), ("b.rs", over.as_str())]);
+    assert_eq!(
+        oversized(&files),
+        [format!(
+            "b.rs:1: fn over: {} lines (at most {MAX_FUNCTION_LINES})",
+            MAX_FUNCTION_LINES + 1
+        )]
+    );
+    let long_file = "\n".repeat(MAX_FILE_LINES + 1);
+    assert_eq!(
+        oversized(&tree(&[("c.rs", long_file.as_str())])),
+        [format!(
+            "c.rs: {} lines (at most {MAX_FILE_LINES})",
+            MAX_FILE_LINES + 1
+        )]
     );
 }

@@ -11,7 +11,7 @@ use std::sync::Mutex;
 use std::time::Instant;
 use stickslip::core::constraints::node_rows;
 use stickslip::core::sparse::BlockCsr;
-use stickslip::gpu::{GpuContext, GpuOptions};
+use stickslip::gpu::{GpuContext, GpuError, GpuOptions};
 use stickslip::io::{bcjson, mtx, one_line};
 use stickslip::{
     CoarseSpace, ConstrainedDiagonal, Constraint, Error, InputError, MultilevelSetup, Precision,
@@ -38,7 +38,7 @@ fn to_py(e: Error) -> PyErr {
     match e {
         Error::Input(e) => PyValueError::new_err(e.to_string()),
         Error::Solve(e) => SolveError::new_err(one_line(&e.to_string(), 2000)),
-        Error::Device(m) => DeviceError::new_err(one_line(&m, 2000)),
+        Error::Gpu(e) => DeviceError::new_err(one_line(&e.to_string(), 2000)),
     }
 }
 
@@ -269,12 +269,16 @@ fn shared_gpu() -> Result<GpuContext, Error> {
     static GPU: Mutex<Option<GpuContext>> = Mutex::new(None);
     let mut slot = GPU
         .lock()
-        .map_err(|_| Error::Device("the GPU device failed in another thread".into()))?;
+        .map_err(|_| {
+            Error::Gpu(GpuError::Poisoned {
+                lock: "the shared GPU device",
+            })
+        })?;
     if let Some(ctx) = slot.as_ref() {
         return Ok(ctx.clone());
     }
     let ctx = GpuContext::new(&GpuOptions::default())
-        .map_err(|e| Error::Device(format!("the GPU solver cannot start: {e}")))?;
+        .map_err(|e| Error::Gpu(e.cannot_start("GPU solver")))?;
     *slot = Some(ctx.clone());
     Ok(ctx)
 }

@@ -319,35 +319,3 @@ pub fn rotated_diagonal(h: &BlockCsr, f: &Frames) -> Vec<f64> {
 
 /// The scaled Euclidean norm, re-exported from the crate's linear-algebra helpers.
 pub use crate::core::linalg::norm2;
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::cases::generate::{random_system, SystemSpec};
-
-    #[test]
-    fn matrix_free_apply_equals_assembled_product() {
-        for (dim, seed) in [(2, 1u64), (3, 2), (3, 3)] {
-            let s = random_system(&SystemSpec::small(dim, seed));
-            let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
-            let a = e.assemble();
-            let n = s.h.ndof();
-            let y: Vec<f64> = (0..n).map(|k| ((k * 7919) % 13) as f64 - 6.0).collect();
-            let mut o1 = vec![0.0; n];
-            let mut o2 = vec![0.0; n];
-            let mut w = vec![0.0; 2 * n];
-            e.apply(&y, &mut o1, &mut w);
-            a.matvec(&y, &mut o2);
-            let scale = norm2(&o1);
-            for k in 0..n {
-                assert!(
-                    (o1[k] - o2[k]).abs() <= 1e-13 * scale,
-                    "{k}: {} vs {}",
-                    o1[k],
-                    o2[k]
-                );
-            }
-            assert!(a.check_symmetric().is_ok());
-        }
-    }
-}

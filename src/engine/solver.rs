@@ -6,7 +6,7 @@ use crate::core::elimination::{reactions, ConstrainedDiagonal, Eliminated};
 pub use crate::core::problem::LayoutKey;
 use crate::core::problem::Problem;
 use crate::error::{Error, InputError, SolveError};
-use crate::gpu::{GpuContext, GpuOptions, GpuParams, GpuSolveInfo, PcgSolver, Precision};
+use crate::gpu::{GpuContext, GpuError, GpuOptions, GpuParams, GpuSolveInfo, PcgSolver, Precision};
 use crate::solve::cg::{CgInfo, CgParams, Preconditioner};
 use crate::solve::coarse::CoarseSpace;
 use crate::solve::multilevel::reuse::KeptLevels;
@@ -377,22 +377,22 @@ pub struct Solver {
 impl Solver {
     /// Checks the configuration and, for the GPU solver, opens the device (or takes the
     /// configured one). Fails with [`Error::Input`] for a bad configuration and
-    /// [`Error::Device`] when no suitable GPU is there.
+    /// [`Error::Gpu`] when no suitable GPU is there.
     pub fn new(config: SolverConfig) -> Result<Self, Error> {
         config.validate()?;
         let gpu = match (config.kind, &config.gpu_context) {
             (SolverKind::Gpu, Some(ctx)) => Some(ctx.clone()),
             (SolverKind::Gpu, None) => Some(
                 GpuContext::new(&GpuOptions::default())
-                    .map_err(|e| Error::Device(format!("the GPU solver cannot start: {e}")))?,
+                    .map_err(|e| Error::Gpu(e.cannot_start("GPU solver")))?,
             ),
             _ => None,
         };
         if let Some(ctx) = &gpu {
             if config.precision != Precision::F32 && !ctx.has_f64() {
-                return Err(crate::gpu::GpuError::NoF64 {
+                return Err(GpuError::NoF64 {
                     adapter: ctx.adapter_name().to_string(),
-                    precision: config.precision,
+                    precision: config.precision.name(),
                 }
                 .into());
             }
@@ -600,7 +600,7 @@ impl Solver {
         let ctx = self
             .gpu
             .as_ref()
-            .ok_or_else(|| Error::Device("the GPU solver has no device".into()))?;
+            .ok_or_else(|| Error::Gpu(GpuError::Internal("the GPU solver has no device".into())))?;
         let (mut solver, reused) = match prepared {
             Some(Prepared::Gpu(mut s)) => {
                 match s
@@ -609,7 +609,7 @@ impl Solver {
                 {
                     Ok(()) => (s, true),
                     // Another pattern under the same key: build afresh.
-                    Err(crate::gpu::GpuError::Mismatch(_)) => (
+                    Err(GpuError::Mismatch(_)) => (
                         Box::new(PcgSolver::sharing(
                             ctx,
                             e,

@@ -210,12 +210,10 @@ fn forced_dispatch_limit() -> Result<Option<u32>, GpuError> {
             .ok()
             .filter(|&n| n >= super::launch::MIN_DISPATCH_LIMIT)
             .map(Some)
-            .ok_or_else(|| {
-                GpuError::Device(format!(
-                    "{var}={}: expected a whole number of at least {}",
-                    crate::io::one_line(&v, 40),
-                    super::launch::MIN_DISPATCH_LIMIT
-                ))
+            .ok_or_else(|| GpuError::BadSetting {
+                var,
+                value: crate::io::one_line(&v, 40),
+                min: super::launch::MIN_DISPATCH_LIMIT,
             }),
         _ => Ok(None),
     }
@@ -402,7 +400,7 @@ impl GpuContext {
             memory_hints: wgpu::MemoryHints::Performance,
             trace: wgpu::Trace::Off,
         }))
-        .map_err(|e| GpuError::Device(e.to_string()))?;
+        .map_err(|e| GpuError::RequestDevice(e.to_string()))?;
         let errors: Arc<Mutex<Vec<String>>> = Arc::default();
         let sink = errors.clone();
         device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
@@ -529,10 +527,9 @@ impl GpuContext {
         key: &str,
         build: impl FnOnce() -> T,
     ) -> Result<Arc<T>, GpuError> {
-        let mut built = self
-            .built
-            .lock()
-            .map_err(|_| GpuError::Device("the cache of built kernels is poisoned".into()))?;
+        let mut built = self.built.lock().map_err(|_| GpuError::Poisoned {
+            lock: "the cache of built kernels",
+        })?;
         if let Some(t) = built.get(key).and_then(|b| b.clone().downcast::<T>().ok()) {
             return Ok(t);
         }
@@ -676,19 +673,24 @@ impl GpuContext {
         bytes: u64,
         what: &str,
     ) -> Result<Vec<u8>, GpuError> {
-        let mut v = self.download_many(&[(buf, offset, bytes)], what)?;
+        let range = ReadRange {
+            buffer: buf,
+            offset,
+            bytes,
+        };
+        let mut v = self.download_many(&[range], what)?;
         Ok(v.pop().unwrap_or_default())
     }
 
-    /// Several ranges (buffer, offset, bytes) copied into one staging buffer after the
-    /// work submitted so far and read back with one wait, in order: a status read and
-    /// what rides along with it. Each range as [`GpuContext::download`] takes it.
+    /// Several ranges copied into one staging buffer after the work submitted so far and
+    /// read back with one wait, in order: a status read and what rides along with it.
+    /// Each range as [`GpuContext::download`] takes it.
     pub(crate) fn download_many(
         &self,
-        ranges: &[(&wgpu::Buffer, u64, u64)],
+        ranges: &[ReadRange],
         what: &str,
     ) -> Result<Vec<Vec<u8>>, GpuError> {
-        let sizes: Vec<u64> = ranges.iter().map(|r| r.2.div_ceil(4) * 4).collect();
+        let sizes: Vec<u64> = ranges.iter().map(|r| r.bytes.div_ceil(4) * 4).collect();
         let data: u64 = sizes.iter().sum();
         if data == 0 {
             return Ok(ranges.iter().map(|_| Vec::new()).collect());
@@ -707,7 +709,15 @@ impl GpuContext {
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(what) });
         let mut at = 0;
-        for (&(buf, offset, _), &size) in ranges.iter().zip(&sizes) {
+        for (
+            &ReadRange {
+                buffer: buf,
+                offset,
+                ..
+            },
+            &size,
+        ) in ranges.iter().zip(&sizes)
+        {
             if size > 0 {
                 enc.copy_buffer_to_buffer(buf, offset, &staging, at, size);
             }
@@ -734,11 +744,11 @@ impl GpuContext {
         });
         self.wait(what)?;
         rx.recv()
-            .map_err(|_| GpuError::Device("buffer mapping was dropped".into()))?
-            .map_err(|e| GpuError::Device(format!("mapping a read-back buffer: {e}")))?;
+            .map_err(|_| read_back("mapping a read-back buffer", "the mapping was dropped"))?
+            .map_err(|e| read_back("mapping a read-back buffer", e))?;
         let v = staging
             .get_mapped_range(..)
-            .map_err(|e| GpuError::Device(format!("reading a mapped buffer: {e}")))?
+            .map_err(|e| read_back("reading a mapped buffer", e))?
             .to_vec();
         staging.unmap();
         self.note_download(total);
@@ -756,7 +766,7 @@ impl GpuContext {
         let mut out = Vec::with_capacity(ranges.len());
         let mut at = 0usize;
         for (r, &size) in ranges.iter().zip(&sizes) {
-            out.push(v[at..at + r.2 as usize].to_vec());
+            out.push(v[at..at + r.bytes as usize].to_vec());
             at += size as usize;
         }
         Ok(out)
@@ -779,7 +789,10 @@ impl GpuContext {
         let r = self
             .device
             .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Device(format!("{what}: waiting for the GPU: {e}")));
+            .map_err(|e| GpuError::Lost {
+                what: what.to_string(),
+                cause: e.to_string(),
+            });
         self.with_profiler(|p| p.waited(t.elapsed().as_secs_f64()));
         r.map(|_| ())
     }
@@ -832,11 +845,11 @@ impl GpuContext {
     /// needed and the bytes the device has. `memory` None: the device's size is unknown.
     pub(crate) fn check_fits(&self, needed: u64, memory: Option<u64>) -> Result<(), GpuError> {
         match memory {
-            Some(m) if needed > m => Err(GpuError::Device(format!(
-                "the system {DOES_NOT_FIT}: it needs {needed} bytes of device memory and \
-                 adapter '{}' has {m} bytes",
-                self.info.name
-            ))),
+            Some(m) if needed > m => Err(GpuError::DoesNotFit {
+                need: needed,
+                limit: m,
+                adapter: self.info.name.clone(),
+            }),
             _ => Ok(()),
         }
     }
@@ -847,17 +860,37 @@ impl GpuContext {
 
     /// Fails with the first device error recorded since the last check.
     pub(crate) fn check(&self, what: &str) -> Result<(), GpuError> {
-        let mut v = self
-            .errors
-            .lock()
-            .map_err(|_| GpuError::Device("error log poisoned".into()))?;
+        let mut v = self.errors.lock().map_err(|_| GpuError::Poisoned {
+            lock: "the device's error log",
+        })?;
         if v.is_empty() {
             Ok(())
         } else {
             let msg = v.join("; ");
             v.clear();
-            Err(GpuError::Device(format!("{what}: {msg}")))
+            Err(GpuError::Validation {
+                what: what.to_string(),
+                message: msg,
+            })
         }
+    }
+}
+
+/// One range of a device buffer to read back ([`GpuContext::download_many`]).
+#[derive(Debug, Clone, Copy)]
+pub struct ReadRange<'a> {
+    pub buffer: &'a wgpu::Buffer,
+    /// Its first byte.
+    pub offset: u64,
+    /// Its length in bytes.
+    pub bytes: u64,
+}
+
+/// A read-back that failed while `what` (mapping or reading a staging buffer).
+fn read_back(what: &'static str, cause: impl std::fmt::Display) -> GpuError {
+    GpuError::ReadBack {
+        what,
+        cause: cause.to_string(),
     }
 }
 
@@ -891,7 +924,10 @@ pub fn measure_copy_bandwidth(ctx: &GpuContext) -> Result<f64, GpuError> {
     let wait = || {
         dev.poll(wgpu::PollType::wait_indefinitely())
             .map(|_| ())
-            .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))
+            .map_err(|e| GpuError::Lost {
+                what: "measuring the copy bandwidth".into(),
+                cause: e.to_string(),
+            })
     };
     wait()?;
     let ts = ctx.has_timestamps();
@@ -950,11 +986,11 @@ pub fn measure_copy_bandwidth(ctx: &GpuContext) -> Result<f64, GpuError> {
             });
             wait()?;
             rx.recv()
-                .map_err(|_| GpuError::Device("buffer mapping was dropped".into()))?
-                .map_err(|e| GpuError::Device(format!("mapping timestamps: {e}")))?;
+                .map_err(|_| read_back("mapping timestamps", "the mapping was dropped"))?
+                .map_err(|e| read_back("mapping timestamps", e))?;
             let v: Vec<u8> = staging
                 .get_mapped_range(0..16)
-                .map_err(|e| GpuError::Device(format!("reading timestamps: {e}")))?
+                .map_err(|e| read_back("reading timestamps", e))?
                 .to_vec();
             staging.unmap();
             let t0 = u64::from_le_bytes(v[0..8].try_into().expect("8 bytes"));

@@ -18,7 +18,7 @@ pub mod schedule;
 
 pub use context::{
     adapter_name_mismatch, list_adapters, measure_copy_bandwidth, no_adapter_message,
-    AdapterReport, GpuContext, GpuOptions, PhaseGuard, TrafficCount,
+    AdapterReport, GpuContext, GpuOptions, PhaseGuard, ReadRange, TrafficCount,
 };
 pub use info::{GpuSolveInfo, KernelTime, SolveOutcome, StageSeconds};
 pub use profile::{Phase, Profile};

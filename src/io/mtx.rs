@@ -276,6 +276,57 @@ pub fn parse(file: &str, text: &str) -> Result<Coo, InputError> {
     parse_checked(file, text, |_| Ok(()))
 }
 
+/// A value token of line `line`: a finite or infinite f64, but not one cut short after
+/// its decimal point.
+fn parse_value(file: &str, line: usize, tok: &str) -> Result<f64, InputError> {
+    // "4." reads as 4 (in Rust and C alike), but in a data file it is most often a
+    // number cut short by a write that stopped mid-way: refused.
+    if tok.ends_with('.') {
+        return Err(err(
+            file,
+            format!("line {line}"),
+            format!(
+                "'{}' is not a complete number (no digit after the decimal point; \
+                 was the file cut short?)",
+                quote(tok)
+            ),
+        ));
+    }
+    tok.parse::<f64>().map_err(|_| {
+        err(
+            file,
+            format!("line {line}"),
+            format!("cannot read '{}' as a number", quote(tok)),
+        )
+    })
+}
+
+/// A 1-based `what` (row, column) index token of line `line`, in 1..=n, made 0-based.
+fn parse_index(
+    file: &str,
+    line: usize,
+    tok: &str,
+    n: usize,
+    what: &str,
+) -> Result<usize, InputError> {
+    match tok.parse::<usize>() {
+        Ok(i) if i >= 1 && i <= n => Ok(i - 1),
+        Ok(i) => Err(err(
+            file,
+            format!("line {line}"),
+            format!("{what} index {i} is out of range 1..={n}"),
+        )),
+        Err(_) => Err(err(
+            file,
+            format!("line {line}"),
+            format!(
+                "cannot read {what} index '{}' as a positive integer",
+                quote(tok)
+            ),
+        )),
+    }
+}
+
 /// [`parse`], calling `check` on the header before any entry is read or stored, so that
 /// a size line the other inputs contradict is refused before it costs anything.
 pub fn parse_checked(
@@ -306,28 +357,7 @@ pub fn parse_checked(
     entries
         .try_reserve_exact(want)
         .map_err(|_| super::out_of_memory(file, "the entries", want * 24))?;
-    let value = |line: usize, tok: &str| -> Result<f64, InputError> {
-        // "4." reads as 4 (in Rust and C alike), but in a data file it is most often a
-        // number cut short by a write that stopped mid-way: refused.
-        if tok.ends_with('.') {
-            return Err(err(
-                file,
-                format!("line {line}"),
-                format!(
-                    "'{}' is not a complete number (no digit after the decimal point; \
-                     was the file cut short?)",
-                    quote(tok)
-                ),
-            ));
-        }
-        tok.parse::<f64>().map_err(|_| {
-            err(
-                file,
-                format!("line {line}"),
-                format!("cannot read '{}' as a number", quote(tok)),
-            )
-        })
-    };
+    let value = |line: usize, tok: &str| parse_value(file, line, tok);
     if coordinate {
         for (ln, l) in data {
             let mut it = l.split_ascii_whitespace();
@@ -342,24 +372,7 @@ pub fn parse_checked(
                     ),
                 ));
             };
-            let idx = |t: &str, n: usize, what: &str| -> Result<usize, InputError> {
-                match t.parse::<usize>() {
-                    Ok(i) if i >= 1 && i <= n => Ok(i - 1),
-                    Ok(i) => Err(err(
-                        file,
-                        format!("line {ln}"),
-                        format!("{what} index {i} is out of range 1..={n}"),
-                    )),
-                    Err(_) => Err(err(
-                        file,
-                        format!("line {ln}"),
-                        format!(
-                            "cannot read {what} index '{}' as a positive integer",
-                            quote(t)
-                        ),
-                    )),
-                }
-            };
+            let idx = |t: &str, n: usize, what: &str| parse_index(file, ln, t, n, what);
             let r = idx(a, nrows, "row")?;
             let c = idx(b, ncols, "column")?;
             let v = value(ln, v)?;

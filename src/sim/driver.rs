@@ -242,7 +242,7 @@ fn open_stepper<'s>(
         InitError::Solver(cause) => RunError::Solve {
             step: 0,
             time: 0.0,
-            cause,
+            cause: cause.to_string(),
         },
         InitError::Memory(e) => RunError::Memory(SceneTooLarge {
             scene: scene.name.clone(),

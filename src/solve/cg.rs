@@ -106,6 +106,21 @@ pub struct CgInfo {
     /// Whether the solve ran on the equilibrated system.
     pub scaled: bool,
 }
+
+impl CgInfo {
+    /// Nothing done yet: no iteration, no restart, no estimate.
+    fn zero() -> Self {
+        CgInfo {
+            iterations: 0,
+            relative_residual: 0.0,
+            restarts: 0,
+            residual_replacements: 0,
+            condition_estimate: None,
+            conjugacy_loss: 0.0,
+            scaled: false,
+        }
+    }
+}
 pub use crate::error::CgError;
 
 /// Refuses a system whose Ĥ is singular by a rigid translation that nothing pins (see
@@ -423,6 +438,64 @@ fn pcg_core(
     (y, res)
 }
 
+/// ‖b − Ĥy‖/‖b‖ with Ĥy bitwise equal to Eliminated::apply (through the world copy w
+/// of y where the product gathers one); leaves the residual in r.
+fn true_relative_residual(
+    fz: &Fused,
+    world: bool,
+    b: &[f64],
+    bnorm: f64,
+    y: &[f64],
+    r: &mut [f64],
+    w: &mut [f64],
+) -> f64 {
+    if world {
+        fz.world(y, w);
+        fz.product(y, w, None, r);
+    } else {
+        fz.product(y, y, None, r);
+    }
+    for (ri, bi) in r.iter_mut().zip(b) {
+        *ri = bi - *ri;
+    }
+    norm2(r) / bnorm
+}
+
+/// ‖r‖/‖b‖ from rᵀr where the sum of squares neither overflows nor underflows.
+fn recurrence_residual(rr: f64, r: &[f64], bnorm: f64) -> f64 {
+    if rr.is_finite() && rr > 1e-200 {
+        rr.sqrt() / bnorm
+    } else {
+        norm2(r) / bnorm
+    }
+}
+
+/// Why CG must stop at `iteration` with curvature pᵀĤp = `pq` and rᵀz = `rz`: a
+/// non-finite value, or non-positive curvature.
+fn curvature_fault(pq: f64, rz: f64, iteration: usize) -> Option<CgError> {
+    if !pq.is_finite() || !rz.is_finite() {
+        return Some(CgError::Breakdown { iteration });
+    }
+    if pq <= 0.0 {
+        return Some(CgError::NonPositiveCurvature {
+            iteration,
+            curvature: pq,
+        });
+    }
+    None
+}
+
+/// The cycle's Lanczos condition estimate (its β's up to one fewer than its α's) merged
+/// into `info`'s: the largest of the cycles.
+fn merge_condition_estimate(info: &mut CgInfo, alphas: &[f64], betas: &[f64]) {
+    if let Some(k) = lanczos_condition(
+        alphas,
+        &betas[..betas.len().min(alphas.len().saturating_sub(1))],
+    ) {
+        info.condition_estimate = Some(info.condition_estimate.map_or(k, |c: f64| c.max(k)));
+    }
+}
+
 /// PCG on Ĥ y = b̂ as given (see [`pcg_core`] for the scaling of b̂).
 fn pcg_unit(
     e: &Eliminated,
@@ -437,15 +510,7 @@ fn pcg_unit(
         Some(v) => v.to_vec(),
         None => vec![0.0; n],
     };
-    let mut info = CgInfo {
-        iterations: 0,
-        relative_residual: 0.0,
-        restarts: 0,
-        residual_replacements: 0,
-        condition_estimate: None,
-        conjugacy_loss: 0.0,
-        scaled: false,
-    };
+    let mut info = CgInfo::zero();
     if bnorm == 0.0 {
         // Ĥ is SPD, so the solution is exactly zero.
         return (vec![0.0; n], Ok(info));
@@ -462,27 +527,10 @@ fn pcg_unit(
     // w = V P p (what the product gathers); also scratch for the true residual's V P y.
     let mut w = vec![0.0; if world { n } else { 0 }];
     let mut iterations = 0usize;
-    // ‖b − Ĥy‖/‖b‖ with Ĥy bitwise equal to Eliminated::apply; leaves the residual in r.
     let true_residual = |fz: &Fused, y: &[f64], r: &mut [f64], w: &mut [f64]| -> f64 {
-        if world {
-            fz.world(y, w);
-            fz.product(y, w, None, r);
-        } else {
-            fz.product(y, y, None, r);
-        }
-        for (ri, bi) in r.iter_mut().zip(b) {
-            *ri = bi - *ri;
-        }
-        norm2(r) / bnorm
+        true_relative_residual(fz, world, b, bnorm, y, r, w)
     };
-    // ‖r‖/‖b‖ from rᵀr where the sum of squares neither overflows nor underflows.
-    let recurrence = |rr: f64, r: &[f64]| -> f64 {
-        if rr.is_finite() && rr > 1e-200 {
-            rr.sqrt() / bnorm
-        } else {
-            norm2(r) / bnorm
-        }
-    };
+    let recurrence = |rr: f64, r: &[f64]| recurrence_residual(rr, r, bnorm);
     // Lanczos coefficients of the current cycle (for the condition estimate).
     let mut alphas: Vec<f64> = Vec::new();
     let mut betas: Vec<f64> = Vec::new();
@@ -526,22 +574,8 @@ fn pcg_unit(
             let prev = (pq_prev > 0.0).then_some(&p_prev[..]);
             let (pq, ppq) = fz.product(&p, src, prev, &mut q);
             iterations += 1;
-            if !pq.is_finite() || !rz.is_finite() {
-                return (
-                    y,
-                    Err(CgError::Breakdown {
-                        iteration: iterations,
-                    }),
-                );
-            }
-            if pq <= 0.0 {
-                return (
-                    y,
-                    Err(CgError::NonPositiveCurvature {
-                        iteration: iterations,
-                        curvature: pq,
-                    }),
-                );
+            if let Some(fault) = curvature_fault(pq, rz, iterations) {
+                return (y, Err(fault));
             }
             if pq_prev > 0.0 {
                 let c = ppq.abs() / (pq * pq_prev).sqrt();
@@ -592,12 +626,7 @@ fn pcg_unit(
             fz.direction(Some(beta), &r, &p, &mut p_prev, world.then_some(&mut w[..]));
             std::mem::swap(&mut p, &mut p_prev);
         }
-        if let Some(k) = estimate(
-            &alphas,
-            &betas[..betas.len().min(alphas.len().saturating_sub(1))],
-        ) {
-            info.condition_estimate = Some(info.condition_estimate.map_or(k, |c: f64| c.max(k)));
-        }
+        merge_condition_estimate(&mut info, &alphas, &betas);
         // The recurrence says converged (or stagnated): check the truth.
         let rel_true = true_residual(&fz, &y, &mut r, &mut w);
         if rel_true <= params.tol {

@@ -885,9 +885,19 @@ pub fn is_unpinned(t: &Unpinned) -> bool {
     t.stiffness.abs() <= UNPINNED_EPS * f64::EPSILON * t.row_scale
 }
 
-/// G = ZᵀZ = Σ_i Q_i over the nodes with a free component (d×d, row-major), the first of
-/// them and their count: the translations of every free node as one group.
-pub fn translation_gram(frames: &crate::core::constraints::Frames) -> (Vec<f64>, usize, usize) {
+/// The translations of every free node as one group: G = ZᵀZ and the nodes it covers.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TranslationGram {
+    /// G = ZᵀZ = Σ_i Q_i over the nodes with a free component (d×d, row-major).
+    pub g: Vec<f64>,
+    /// The first node with a free component (`usize::MAX` when none has one).
+    pub first: usize,
+    /// The number of nodes with a free component.
+    pub count: usize,
+}
+
+/// G = ZᵀZ of the translations of every node with a free component, as one group.
+pub fn translation_gram(frames: &crate::core::constraints::Frames) -> TranslationGram {
     let d = frames.dim;
     let full = (1u8 << d) - 1;
     let mut g = vec![0.0; d * d];
@@ -900,7 +910,7 @@ pub fn translation_gram(frames: &crate::core::constraints::Frames) -> (Vec<f64>,
         count += 1;
         add_projection(d, q, &mut g);
     }
-    (g, first, count)
+    TranslationGram { g, first, count }
 }
 
 /// The smallest Rayleigh quotient vᵀEv/vᵀGv over range(G) (d×d symmetric E, G) and its

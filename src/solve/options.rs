@@ -19,13 +19,20 @@ pub enum Precision {
     Mixed,
 }
 
-impl std::fmt::Display for Precision {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
+impl Precision {
+    /// The name used in scene files, options and messages.
+    pub fn name(self) -> &'static str {
+        match self {
             Precision::F32 => "f32",
             Precision::F64 => "f64",
             Precision::Mixed => "mixed",
-        })
+        }
+    }
+}
+
+impl std::fmt::Display for Precision {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
     }
 }
 

@@ -346,7 +346,9 @@ fn gpu_rows(c: &CaseRows, ctx: &crate::gpu::GpuContext, e: &Eliminated, rows: &m
             .gpu_context(ctx.clone());
         let res = solve_once(config, e).and_then(|step| match step.stats.details {
             SolveDetails::Gpu(info) => Ok((step.y, *info)),
-            _ => Err(crate::Error::Device("not a GPU solve".into())),
+            _ => Err(crate::Error::Gpu(crate::gpu::GpuError::Internal(
+                "not a GPU solve".into(),
+            ))),
         });
         match res {
             Ok((y, info)) => rows.push(

@@ -401,7 +401,7 @@ fn time_gpu_cg(
                 }
                 Ok(_) => continue,
                 // The device could not take this system or precision: no further tolerance will run.
-                Err(crate::Error::Device(err)) => {
+                Err(crate::Error::Gpu(err)) => {
                     r.note = format!("not run: {err}");
                     size.record(report, r);
                     break;

@@ -48,10 +48,10 @@ pub fn solve_error(e: Error) -> CliError {
         Error::Input(e) => CliError::Input(e),
         Error::Solve(e) => CliError::Solve(e),
         // A system too large for the device: the input must change, not the device.
-        Error::Device(msg) if msg.contains(crate::gpu::DOES_NOT_FIT) => {
-            CliError::Input(InputError::new("--solver gpu", "", msg))
+        Error::Gpu(e) if e.does_not_fit() => {
+            CliError::Input(InputError::new("--solver gpu", "", e.to_string()))
         }
-        Error::Device(msg) => CliError::Solve(SolveError::Gpu(msg)),
+        Error::Gpu(e) => CliError::Solve(SolveError::Gpu(e)),
     }
 }
 
@@ -63,13 +63,16 @@ mod tests {
     /// failures exit 1.
     #[test]
     fn a_system_too_large_for_the_device_exits_2() {
-        let big = Error::Device(format!(
-            "the GPU solver cannot start: the system {}: it needs 9 bytes of device memory \
-             and adapter 'a' has 8 bytes",
-            crate::gpu::DOES_NOT_FIT
-        ));
+        let big = Error::Gpu(crate::gpu::GpuError::DoesNotFit {
+            need: 9,
+            limit: 8,
+            adapter: "a".into(),
+        });
         assert_eq!(solve_error(big).exit_code(), 2);
-        let lost = Error::Device("waiting for the GPU: device lost".into());
+        let lost = Error::Gpu(crate::gpu::GpuError::Lost {
+            what: "solving".into(),
+            cause: "device lost".into(),
+        });
         assert_eq!(solve_error(lost).exit_code(), 1);
     }
 }

@@ -14,7 +14,7 @@ use super::policy;
 use crate::core::elimination::{norm2, Eliminated};
 use crate::gpu::blocks::{plan_rows, row_sums, values_limit, HostBlocks};
 use crate::gpu::context::padded_size;
-use crate::gpu::error::{DOES_NOT_FIT, MULTILEVEL_ON_CPU};
+use crate::gpu::error::MULTILEVEL_ON_CPU;
 use crate::gpu::kernels::Real;
 use crate::gpu::{
     GpuContext, GpuError, GpuParams, GpuSolveInfo, Precision, SolveOutcome, StageSeconds,
@@ -37,7 +37,7 @@ fn scalars_for(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<S
         Precision::F64 if !ctx.has_f64() => {
             return Err(GpuError::NoF64 {
                 adapter: ctx.info.name.clone(),
-                precision: params.precision,
+                precision: params.precision.name(),
             })
         }
         Precision::F64 => Real::F64,
@@ -49,7 +49,7 @@ fn scalars_for(ctx: &GpuContext, e: &Eliminated, params: &GpuParams) -> Result<S
         Precision::Mixed if !ctx.has_f64() => {
             return Err(GpuError::NoF64 {
                 adapter: ctx.info.name.clone(),
-                precision: params.precision,
+                precision: params.precision.name(),
             })
         }
         Precision::Mixed if params.preconditioner == Preconditioner::Multilevel => {
@@ -222,8 +222,7 @@ impl MixedSide {
                 };
                 (Some(level), None)
             }
-            Err(e @ GpuError::BufferTooLarge { .. }) => (None, Some(e.to_string())),
-            Err(GpuError::Device(m)) if m.contains(DOES_NOT_FIT) => (None, Some(m)),
+            Err(e) if e.does_not_fit() => (None, Some(e.to_string())),
             Err(e) => return Err(e),
         };
         let refine = match &level {

@@ -218,9 +218,8 @@ pub struct NewtonChecks {
     /// Reduction workgroups (one partial each).
     groups: usize,
     binder: Binder,
-    /// Per element set: its global index of element 0, its length, whether it follows
-    /// the classical law.
-    sets: Vec<(usize, usize, bool)>,
+    /// Per element set of the model, in order.
+    sets: Vec<SetSpan>,
     /// One reduction per chunk of classical neo-Hookean elements, then their finish.
     inversion: Vec<Op>,
     inversion_finish: Op,
@@ -232,14 +231,26 @@ pub struct NewtonChecks {
     slot: usize,
 }
 
+/// An element chunk's term and the index of its set.
+type TermSet = (usize, usize);
+
+/// Where one element set of the model lies among all the model's elements.
+#[derive(Debug, Clone, Copy)]
+struct SetSpan {
+    /// The global index of the set's element 0.
+    first: usize,
+    /// Its element count.
+    len: usize,
+    /// Whether it follows the classical neo-Hookean law (the inversion bound's sets).
+    classical: bool,
+}
+
 /// Per element chunk of `elements` (built from `model`) its term and set, and per element
-/// set of `model` its global index of element 0, its length and whether it follows the
-/// classical law.
-#[allow(clippy::type_complexity)]
+/// set of `model` its span.
 fn element_sets(
     elements: &GpuElements,
     model: &Model,
-) -> Result<(Vec<(usize, usize)>, Vec<(usize, usize, bool)>), GpuError> {
+) -> Result<(Vec<TermSet>, Vec<SetSpan>), GpuError> {
     let mut chunks = Vec::new();
     let mut set: Option<usize> = None;
     for (t, kind) in elements.kinds().iter().enumerate() {
@@ -268,7 +279,11 @@ fn element_sets(
     let mut base = 0usize;
     for s in &model.sets {
         let classical = matches!(s, ElementSet::NeoHookean(nh) if nh.law == Law::NeoHookean);
-        sets.push((base, s.len(), classical));
+        sets.push(SetSpan {
+            first: base,
+            len: s.len(),
+            classical,
+        });
         base += s.len();
     }
     if u32::try_from(base).is_err() {
@@ -330,8 +345,11 @@ impl NewtonChecks {
             .filter_map(|&(t, _)| elements.term_range(t).map(|r| r.len()))
             .fold(n, usize::max);
         let groups = reduce_groups(&ctx, largest, "the Newton loop's checks")?;
-        let inv_chunks: Vec<(usize, usize)> =
-            chunks.iter().copied().filter(|c| sets[c.1].2).collect();
+        let inv_chunks: Vec<(usize, usize)> = chunks
+            .iter()
+            .copied()
+            .filter(|c| sets[c.1].classical)
+            .collect();
         // Partials: a row per classical chunk, then the force balance's.
         let rows = inv_chunks.len() + 1;
         let gnorm = model
@@ -412,7 +430,7 @@ impl NewtonChecks {
         binder: &Binder,
         elements: &GpuElements,
         chunks: &[(usize, usize)],
-        sets: &[(usize, usize, bool)],
+        sets: &[SetSpan],
         (groups, slot): (usize, usize),
     ) -> Result<Vec<Op>, GpuError> {
         let mut out = Vec::with_capacity(chunks.len());
@@ -423,7 +441,7 @@ impl NewtonChecks {
             let (nodes, rest) = elements
                 .term_mesh(t)
                 .ok_or_else(|| GpuError::Mismatch(format!("element term {t} has no mesh")))?;
-            let first = sets[k].0 + r.start;
+            let first = sets[k].first + r.start;
             let p = CheckParams::new(r.len(), MODE_INVERSION, slot, row, first, 0);
             out.push(binder.op(
                 &format!("inversion of term {t}"),
@@ -536,14 +554,14 @@ impl NewtonChecks {
 
     /// (set, element) of a global element index lane.
     fn element(&self, lane: f64) -> Result<(usize, usize), GpuError> {
-        let bad = || GpuError::Device(format!("the inversion bound names element {lane}"));
+        let bad = || GpuError::Internal(format!("the inversion bound names element {lane}"));
         if !(lane >= 0.0 && lane.fract() == 0.0 && lane < NO_INDEX) {
             return Err(bad());
         }
         let g = lane as usize;
-        let k = self.sets.partition_point(|s| s.0 <= g).checked_sub(1);
+        let k = self.sets.partition_point(|s| s.first <= g).checked_sub(1);
         match k.map(|k| (k, self.sets[k])) {
-            Some((k, (base, len, true))) if g - base < len => Ok((k, g - base)),
+            Some((k, s)) if s.classical && g - s.first < s.len => Ok((k, g - s.first)),
             _ => Err(bad()),
         }
     }
@@ -713,7 +731,7 @@ impl NewtonChecks {
         };
         let node = if node < NO_INDEX {
             if !(node >= 0.0 && node.fract() == 0.0 && (node as usize) < self.n_nodes) {
-                return Err(GpuError::Device(format!(
+                return Err(GpuError::Internal(format!(
                     "the force balance names node {node}"
                 )));
             }

@@ -187,7 +187,7 @@ impl ElementKernels {
         if f64 && !ctx.has_f64() {
             return Err(GpuError::NoF64 {
                 adapter: ctx.adapter_name().to_string(),
-                precision,
+                precision: precision.name(),
             });
         }
         let real = real_name(f64);

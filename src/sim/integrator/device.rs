@@ -30,12 +30,15 @@ use super::report::GpuRunReport;
 use super::state::{Contact, State, CCD_FRACTION, INVERSION_FRACTION};
 use super::targets::MovingTargets;
 use crate::gpu::pcg::{DeviceCg, DeviceCgParams, DeviceFrames, Tail};
-use crate::gpu::{GpuContext, GpuError, GpuOptions, Phase, PhaseGuard, Precision, TrafficCount};
+use crate::gpu::{
+    GpuContext, GpuError, GpuOptions, Phase, PhaseGuard, Precision, ReadRange, TrafficCount,
+};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::checks::{BalanceFrames, NewtonChecks};
 use crate::sim::device::elements::{GpuElements, TermKind};
 use crate::sim::device::line_search::{LineScalars, LineSearchTail, TailInputs};
-use crate::sim::device::newton_ops::{static_projections, MovingTerm, NewtonOps};
+use crate::sim::device::newton_ops::conditions::{static_projections, MovingTerm};
+use crate::sim::device::newton_ops::NewtonOps;
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
 use crate::sim::energy::Law;
 use crate::sim::energy::{InversionLimit, Inverted};
@@ -96,12 +99,16 @@ fn cannot_hold(problem: String) -> InitError {
 }
 
 fn device_error(e: GpuError) -> InitError {
-    match e {
-        GpuError::BufferTooLarge { .. } | GpuError::Unsupported(_) => {
-            cannot_hold(format!("the GPU Newton loop cannot hold this scene: {e}"))
-        }
-        other => InitError::Solver(format!("the GPU Newton loop cannot start: {other}")),
+    if e.does_not_fit() || matches!(e, GpuError::Unsupported(_)) {
+        cannot_hold(format!("the GPU Newton loop cannot hold this scene: {e}"))
+    } else {
+        start_failed(e)
     }
+}
+
+/// Why the device loop cannot start, kept typed: the device's error under the loop's name.
+fn start_failed(e: GpuError) -> InitError {
+    InitError::Solver(crate::Error::Gpu(e.cannot_start("GPU Newton loop")))
 }
 
 /// Device bytes the loop allocates for `scene` (element outputs, assembly, CG and loop
@@ -206,8 +213,7 @@ impl DeviceLoop {
                     .into(),
             ));
         }
-        let ctx = GpuContext::new(&GpuOptions::default())
-            .map_err(|e| InitError::Solver(format!("the GPU Newton loop cannot start: {e}")))?;
+        let ctx = GpuContext::new(&GpuOptions::default()).map_err(start_failed)?;
         let _setup = ctx.phase(Phase::Setup);
         check_capacity(
             scene,
@@ -397,8 +403,16 @@ impl DeviceLoop {
         let result = self.ops.result_buffer();
         let (at_x, at_x_bytes) = self.ops.energy_at_x_buffer();
         let read = [
-            (result, 0, 32 * self.ops.result_slots() as u64),
-            (at_x, 0, at_x_bytes),
+            ReadRange {
+                buffer: result,
+                offset: 0,
+                bytes: 32 * self.ops.result_slots() as u64,
+            },
+            ReadRange {
+                buffer: at_x,
+                offset: 0,
+                bytes: at_x_bytes,
+            },
         ];
         let frames = &self.frames[snapped];
         // The trial may run in any chunk whose verification met the tolerance.
@@ -442,9 +456,10 @@ impl DeviceLoop {
             entry: "boundary".into(),
             problem,
         })?;
-        let init = |e: GpuError| InitError::Solver(format!("the GPU Newton loop: {e}"));
-        dl.ops.set_static_projections(&projections).map_err(init)?;
-        dl.ops.set_state(&state.x, &state.v).map_err(init)?;
+        dl.ops
+            .set_static_projections(&projections)
+            .map_err(start_failed)?;
+        dl.ops.set_state(&state.x, &state.v).map_err(start_failed)?;
         Ok(dl)
     }
 

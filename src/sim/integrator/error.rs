@@ -10,8 +10,9 @@ use crate::sim::memory::AllocError;
 pub enum InitError {
     /// The scene's conditions are inconsistent; `entry` names the scene entry.
     Input { entry: String, problem: String },
-    /// The linear solver cannot start.
-    Solver(String),
+    /// The linear solver or the device loop cannot start (no adapter, no SHADER_F64, a
+    /// device failure); the error keeps its kind ([`crate::Error::Gpu`] for the device).
+    Solver(crate::Error),
     /// The system refused an allocation of the scene's size.
     Memory(AllocError),
 }
@@ -25,10 +26,8 @@ pub enum StepError {
         /// k_M and the moving nodes still off target; None for a scene without moving
         /// boundaries.
         moving: Option<(f64, usize)>,
-        /// When the last iterate passed ‖Δx‖∞/h < tol but did not balance its forces:
-        /// the node, its unbalanced force (N), that force over the step's force scale and
-        /// the force tolerance.
-        unbalanced: Option<(usize, f64, f64, f64)>,
+        /// When the last iterate passed ‖Δx‖∞/h < tol but did not balance its forces.
+        unbalanced: Option<Unbalanced>,
     },
     #[error("the Newton direction is not finite at iteration {iteration}")]
     DirectionNotFinite { iteration: usize },
@@ -103,9 +102,27 @@ fn inverted_when(iteration: usize) -> String {
     }
 }
 
-fn unbalanced_state(unbalanced: &Option<(usize, f64, f64, f64)>) -> String {
+/// The forces a Newton iterate left unbalanced although its steps were short.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Unbalanced {
+    /// The node with the largest unbalanced force on its free components.
+    pub node: usize,
+    /// That force (N).
+    pub force: f64,
+    /// That force over the step's force scale.
+    pub ratio: f64,
+    /// The scene's force tolerance on `ratio`.
+    pub tol: f64,
+}
+
+fn unbalanced_state(unbalanced: &Option<Unbalanced>) -> String {
     match unbalanced {
-        Some((node, force, ratio, tol)) => format!(
+        Some(Unbalanced {
+            node,
+            force,
+            ratio,
+            tol,
+        }) => format!(
             "; its steps there are short but the forces do not balance: {force:.3e} N on \
              node {node}'s free components, {ratio:.1e} of the step's force scale \
              (force_tolerance {tol:e})"

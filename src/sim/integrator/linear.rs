@@ -35,8 +35,8 @@ pub struct LinearSolver {
 }
 
 impl LinearSolver {
-    pub fn new(spec: &SolverSpec) -> Result<Self, String> {
-        let solver = Solver::new(spec.config()).map_err(|e| e.to_string())?;
+    pub fn new(spec: &SolverSpec) -> Result<Self, crate::Error> {
+        let solver = Solver::new(spec.config())?;
         Ok(LinearSolver {
             kind: spec.linear,
             adapter: solver.adapter().map(str::to_string),

@@ -79,7 +79,7 @@ mod targets;
 pub use balance::{force_balance_of, ForceBalance, POSITION_ULPS};
 pub use device::{check_capacity, device_bytes_needed};
 pub use dump::{NewtonSystem, StepSelection, SystemSink};
-pub use error::{InitError, StepError};
+pub use error::{InitError, StepError, Unbalanced};
 pub use linear::{LinearSolver, LinearStats, CHOLESKY_MAX_RESIDUAL};
 pub use report::{ContactCounters, GpuRunReport, StepReport};
 pub use state::{Snapshot, State, CCD_FRACTION, INVERSION_FRACTION, STATIC_PROJECTION_FRACTION};

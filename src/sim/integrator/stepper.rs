@@ -5,7 +5,7 @@ use super::backend::Backend;
 use super::balance::ForceBalance;
 use super::device::DeviceLoop;
 use super::dump::{NewtonSystem, SystemSink};
-use super::error::{InitError, StepError};
+use super::error::{InitError, StepError, Unbalanced};
 use super::forcing::Forcing;
 use super::host::HostBackend;
 use super::report::{GpuRunReport, StepReport};
@@ -363,13 +363,11 @@ impl<'s> Stepper<'s> {
                             moving.snapped.iter().filter(|s| !**s).count(),
                         )
                     }),
-                    unbalanced: unbalanced.map(|b| {
-                        (
-                            b.node,
-                            b.residual / (h * h),
-                            b.residual / b.scale,
-                            sc.solver.force_tolerance,
-                        )
+                    unbalanced: unbalanced.map(|b| Unbalanced {
+                        node: b.node,
+                        force: b.residual / (h * h),
+                        ratio: b.residual / b.scale,
+                        tol: sc.solver.force_tolerance,
                     }),
                 });
             }

@@ -60,7 +60,7 @@ fn run() -> Result<(), String> {
     ];
     let gpu_ok = match Solver::new(SolverConfig::gpu(Precision::F64)) {
         Ok(_) => true,
-        Err(Error::Device(why)) => {
+        Err(Error::Gpu(why)) => {
             if std::env::var("STICKSLIP_REQUIRE_GPU").is_ok_and(|v| v == "1") {
                 return Err(format!("STICKSLIP_REQUIRE_GPU=1 but the GPU solver cannot start: {why}"));
             }

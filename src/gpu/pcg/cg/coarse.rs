@@ -195,12 +195,14 @@ impl DeviceCg {
     /// working precision, by the CPU CG's test ([`crate::solve::coarse::is_unpinned`]),
     /// with every free node as one group (the CPU tests each connected group).
     pub(super) fn check_pinned(&mut self, frames: &DeviceFrames) -> Result<(), GpuError> {
-        let (g, first, count) = &frames.gram;
-        if *count == 0 {
+        let gram = &frames.gram;
+        if gram.count == 0 {
             return Ok(());
         }
         if let Galerkin::Read { e, abs, .. } = &self.galerkin {
-            let t = crate::solve::coarse::group_translation(self.dim, e, g, abs, *first, *count);
+            let t = crate::solve::coarse::group_translation(
+                self.dim, e, &gram.g, abs, gram.first, gram.count,
+            );
             if let Some(t) = t.filter(crate::solve::coarse::is_unpinned) {
                 return Err(CgError::Unpinned(t).into());
             }

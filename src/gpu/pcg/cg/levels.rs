@@ -50,7 +50,7 @@ impl DeviceCg {
             self.ml = Some(DeviceMultilevel::new(&self.ctx, self.dim)?);
         }
         let (Some(dm), b) = (self.ml.as_mut(), &self.buf) else {
-            return Err(GpuError::Device("the device V-cycle was not made".into()));
+            return Err(GpuError::Internal("the device V-cycle was not made".into()));
         };
         let too_big = || GpuError::Unsupported("H exceeds the device's u32 indices".into());
         let matrix = FinestMatrix {

@@ -10,9 +10,9 @@
 //! - `segment`: runs that resume a search direction (mixed precision's reliable updates);
 //! - `profile`: what one iteration dispatches and moves, and its kernels' device times.
 
-use crate::gpu::blocks::BlockMatrix;
+use crate::gpu::blocks::{BlockMatrix, ValuesChunk};
 use crate::gpu::kernels::{slots, Real};
-use crate::gpu::{GpuContext, GpuError, Launch, Phase, TrafficCount};
+use crate::gpu::{GpuContext, GpuError, Launch, Phase, ReadRange, TrafficCount};
 use crate::solve::cg::Preconditioner;
 use crate::solve::coarse::CoarseSpace;
 use std::cell::Cell;
@@ -265,10 +265,10 @@ pub struct DeviceFrames {
     /// One bind group per values chunk of H (the kernels that do not read H use the
     /// first).
     pub(super) groups: Vec<wgpu::BindGroup>,
-    /// G = ZᵀZ of the translations of every node with a free component, the first such
-    /// node and their count (src/solve/coarse.rs, `translation_gram`): with the E and
-    /// absolute row sums `prepare` reduces, whether a translation is pinned by nothing.
-    pub(super) gram: (Vec<f64>, usize, usize),
+    /// G = ZᵀZ of the translations of every node with a free component (src/solve/coarse.rs,
+    /// `translation_gram`): with the E and absolute row sums `prepare` reduces, whether a
+    /// translation is pinned by nothing.
+    pub(super) gram: crate::solve::coarse::TranslationGram,
     /// The coarse space these frames were built for.
     pub(super) coarse: CoarseSpace,
     /// With `Aggregates`: the aggregate index (`None` when every node is fixed).
@@ -316,7 +316,7 @@ pub(super) enum Galerkin {
 /// (STATE_TRUE_OK of [`DeviceCg::state_buffer`]), since most chunks end unconverged.
 pub struct Tail<'a> {
     pub record: &'a dyn Fn(&mut wgpu::CommandEncoder) -> Result<(), GpuError>,
-    pub read: &'a [(&'a wgpu::Buffer, u64, u64)],
+    pub read: &'a [ReadRange<'a>],
 }
 
 /// The bytes of a tail's ranges read with the status of the chunk whose verification met
@@ -404,6 +404,71 @@ pub struct DeviceCg {
     ml_ready: bool,
 }
 
+/// A pattern index past the device CG's u32 words.
+fn too_big(what: &str) -> GpuError {
+    GpuError::Unsupported(format!("the {what} exceed the device CG's u32 indices"))
+}
+
+/// H's pattern as the device CG reads it: row pointers, column indices, then per node
+/// the index of its diagonal block, all u32, with where the columns and the diagonals
+/// start.
+struct PatternWords {
+    words: Vec<u32>,
+    col_at: u32,
+    diag_at: u32,
+}
+
+impl PatternWords {
+    fn new(row_ptr: &[usize], col_idx: &[usize]) -> Result<Self, GpuError> {
+        let n = row_ptr.len().saturating_sub(1);
+        let nnz = col_idx.len();
+        let mut words: Vec<u32> = Vec::with_capacity(2 * n + 1 + nnz);
+        for &v in row_ptr.iter().chain(col_idx) {
+            words.push(u32::try_from(v).map_err(|_| too_big("block indices"))?);
+        }
+        for i in 0..n {
+            let row = &col_idx[row_ptr[i]..row_ptr[i + 1]];
+            let k = row
+                .iter()
+                .position(|&j| j == i)
+                .ok_or_else(|| GpuError::Mismatch(format!("node {i} has no diagonal block")))?;
+            words.push(u32::try_from(row_ptr[i] + k).map_err(|_| too_big("block indices"))?);
+        }
+        Ok(PatternWords {
+            words,
+            col_at: u32::try_from(n + 1).map_err(|_| too_big("nodes"))?,
+            diag_at: u32::try_from(n + 1 + nnz).map_err(|_| too_big("blocks"))?,
+        })
+    }
+}
+
+impl Launches {
+    /// The launches of `n` nodes in `segments` reduction segments, with H's values in
+    /// `chunks`, as the device's segment policy and limits allow.
+    fn new(ctx: &GpuContext, n: usize, segments: u64, chunks: &[ValuesChunk]) -> Self {
+        let policy = ctx.segments();
+        let limits = ctx.launch();
+        let seg_len = (WORKGROUP * policy.items) as usize;
+        Launches {
+            segments: policy.launch(&limits, segments, WORKGROUP),
+            fused: policy.launch_capped(&limits, segments, FUSED_GROUPS, WORKGROUP),
+            chunk_segments: chunks
+                .iter()
+                .map(|c| {
+                    let s = c.rows.end.div_ceil(seg_len) - c.rows.start / seg_len;
+                    policy.launch(&limits, s as u64, WORKGROUP)
+                })
+                .collect(),
+            chunk_rows: chunks
+                .iter()
+                .map(|c| limits.grid(c.rows.len() as u64, WORKGROUP))
+                .collect(),
+            // An invocation per node on a GPU; a CPU adapter's few workgroups loop.
+            nodes: policy.launch(&limits, (n as u64).div_ceil(WORKGROUP as u64), WORKGROUP),
+        }
+    }
+}
+
 impl DeviceCg {
     /// Pipelines and buffers for the block matrix `h` (its values are read in place by
     /// every solve: write new ones there, then [`DeviceCg::prepare`]), in its precision
@@ -428,51 +493,19 @@ impl DeviceCg {
         let dim = h.dim;
         let (row_ptr, col_idx) = (h.row_ptr, h.col_idx);
         let n = row_ptr.len().saturating_sub(1);
-        let nnz = col_idx.len();
         let dev = &ctx.device;
 
-        // The pattern as u32: row pointers, column indices, per node its diagonal block.
-        let too_big = |what: &str| {
-            GpuError::Unsupported(format!("the {what} exceed the device CG's u32 indices"))
-        };
-        let mut pattern: Vec<u32> = Vec::with_capacity(2 * n + 1 + nnz);
-        for &v in row_ptr.iter().chain(col_idx) {
-            pattern.push(u32::try_from(v).map_err(|_| too_big("block indices"))?);
-        }
-        for i in 0..n {
-            let row = &col_idx[row_ptr[i]..row_ptr[i + 1]];
-            let k = row
-                .iter()
-                .position(|&j| j == i)
-                .ok_or_else(|| GpuError::Mismatch(format!("node {i} has no diagonal block")))?;
-            pattern.push(u32::try_from(row_ptr[i] + k).map_err(|_| too_big("block indices"))?);
-        }
-        let col_at = u32::try_from(n + 1).map_err(|_| too_big("nodes"))?;
-        let diag_at = u32::try_from(n + 1 + nnz).map_err(|_| too_big("blocks"))?;
+        let PatternWords {
+            words: pattern,
+            col_at,
+            diag_at,
+        } = PatternWords::new(row_ptr, col_idx)?;
         // The segmented reductions: partials per segment, workgroups by the device.
         let policy = ctx.segments();
-        let limits = ctx.launch();
         let segments = policy.segments(n as u64, WORKGROUP);
         let n_partials = u32::try_from(segments).map_err(|_| too_big("nodes"))?;
         let chunks = h.chunks;
-        let seg_len = (WORKGROUP * policy.items) as usize;
-        let launches = Launches {
-            segments: policy.launch(&limits, segments, WORKGROUP),
-            fused: policy.launch_capped(&limits, segments, FUSED_GROUPS, WORKGROUP),
-            chunk_segments: chunks
-                .iter()
-                .map(|c| {
-                    let s = c.rows.end.div_ceil(seg_len) - c.rows.start / seg_len;
-                    policy.launch(&limits, s as u64, WORKGROUP)
-                })
-                .collect(),
-            chunk_rows: chunks
-                .iter()
-                .map(|c| limits.grid(c.rows.len() as u64, WORKGROUP))
-                .collect(),
-            // An invocation per node on a GPU; a CPU adapter's few workgroups loop.
-            nodes: policy.launch(&limits, (n as u64).div_ceil(WORKGROUP as u64), WORKGROUP),
-        };
+        let launches = Launches::new(&ctx, n, segments, chunks);
 
         // Pipelines, compiled once per device and specialization.
         let hist = if lanczos { LANCZOS_HIST } else { 0 };

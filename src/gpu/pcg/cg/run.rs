@@ -20,7 +20,7 @@ impl DeviceCg {
     pub(super) fn submit_and_read(
         &self,
         mut enc: wgpu::CommandEncoder,
-        extra: &[(&wgpu::Buffer, u64, u64)],
+        extra: &[ReadRange],
         what: &str,
     ) -> Result<(ChunkStatus, TailBytes), GpuError> {
         let acc = self.ty.acc;
@@ -35,7 +35,11 @@ impl DeviceCg {
         );
         self.ctx.submit(enc);
         self.ctx.check(what)?;
-        let mut ranges = vec![(&self.buf.status, 0, status_bytes(acc))];
+        let mut ranges = vec![ReadRange {
+            buffer: &self.buf.status,
+            offset: 0,
+            bytes: status_bytes(acc),
+        }];
         ranges.extend_from_slice(extra);
         let mut bytes = self.ctx.download_many(&ranges, what)?;
         let tail = bytes.split_off(1);
@@ -436,7 +440,7 @@ impl DeviceCg {
             }
         }
         self.pass(&mut enc, "pcg chunk", Phase::Cg, &kernels);
-        let reads: &[(&wgpu::Buffer, u64, u64)] = match tail {
+        let reads: &[ReadRange] = match tail {
             Some(t) => {
                 (t.record)(&mut enc)?;
                 t.read

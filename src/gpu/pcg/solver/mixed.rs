@@ -147,6 +147,25 @@ fn offset(e: GpuError, done: usize) -> GpuError {
     })
 }
 
+/// The error of a mixed solve stopped by its policy at `iterations` with the host's
+/// `relative_residual`: the iteration limit, or stagnation.
+fn stopped(stop: Stop, iterations: usize, relative_residual: f64, tol: f64) -> GpuError {
+    if stop == Stop::MaxIterations {
+        CgError::MaxIterations {
+            iterations,
+            relative_residual,
+            tol,
+        }
+    } else {
+        CgError::Stagnation {
+            iterations,
+            relative_residual,
+            tol,
+        }
+    }
+    .into()
+}
+
 impl PcgSolver {
     fn seg_params(&self, tol: f64, done: usize) -> DeviceCgParams {
         DeviceCgParams {
@@ -158,11 +177,9 @@ impl PcgSolver {
         }
     }
 
-    pub(super) fn solve_mixed(&mut self) -> Result<SolveOutcome, GpuError> {
-        let t0 = Instant::now();
-        let tol = self.params.tol;
-        let bn = norm2(&self.host.rhs);
-        let nd = self.host.ndof();
+    /// Clears the last fallback and returns the f32 operator's scale with the notes that
+    /// say how this solve is set up (no f64 level, a scaled operator).
+    fn start_mixed(&mut self) -> (f64, Vec<String>) {
         let mut notes = Vec::new();
         let (scale, missing) = {
             let side = self.side_mut();
@@ -182,6 +199,15 @@ impl PcgSolver {
                 scale.log2()
             ));
         }
+        (scale, notes)
+    }
+
+    pub(super) fn solve_mixed(&mut self) -> Result<SolveOutcome, GpuError> {
+        let t0 = Instant::now();
+        let tol = self.params.tol;
+        let bn = norm2(&self.host.rhs);
+        let nd = self.host.ndof();
+        let (scale, mut notes) = self.start_mixed();
         let policy = MixedPolicy::new(&self.params);
         let mut c = Count::default();
         // y on the host where the f64 level is missing; else in that level's y.
@@ -227,21 +253,7 @@ impl PcgSolver {
                 Some(stop) => {
                     let y = self.outer_y(&y, &mut c)?;
                     let relative_residual = self.host.relative_residual(&y);
-                    let iterations = c.iterations;
-                    return Err(if stop == Stop::MaxIterations {
-                        CgError::MaxIterations {
-                            iterations,
-                            relative_residual,
-                            tol,
-                        }
-                    } else {
-                        CgError::Stagnation {
-                            iterations,
-                            relative_residual,
-                            tol,
-                        }
-                    }
-                    .into());
+                    return Err(stopped(stop, c.iterations, relative_residual, tol));
                 }
             }
             prev = rel;
@@ -445,7 +457,7 @@ impl PcgSolver {
     /// The f64 level's y, unscaled.
     fn f64_iterate(&mut self, c: &mut Count) -> Result<Vec<f64>, GpuError> {
         let Some(l) = &self.side().level else {
-            return Err(GpuError::Device(
+            return Err(GpuError::Internal(
                 "mixed precision's f64 level is missing".into(),
             ));
         };
@@ -468,7 +480,7 @@ impl PcgSolver {
         let mut restarts = 0usize;
         {
             let Some(l) = &mut self.side_mut().level else {
-                return Err(GpuError::Device(
+                return Err(GpuError::Internal(
                     "mixed precision's f64 level is missing".into(),
                 ));
             };
@@ -484,7 +496,7 @@ impl PcgSolver {
             run.max_iterations = max_iters.saturating_sub(done + its);
             let info = {
                 let Some(l) = &mut self.side_mut().level else {
-                    return Err(GpuError::Device(
+                    return Err(GpuError::Internal(
                         "mixed precision's f64 level is missing".into(),
                     ));
                 };
@@ -616,7 +628,7 @@ impl PcgSolver {
             let params = self.seg_params(INNER_TOL, c.iterations);
             let (info, x) = {
                 let Some(l) = &mut self.side_mut().level else {
-                    return Err(GpuError::Device(
+                    return Err(GpuError::Internal(
                         "mixed precision's f64 level is missing".into(),
                     ));
                 };

@@ -50,9 +50,10 @@ impl NewtonOps {
     /// The moving nodes' penalty energy (none without unsnapped moving nodes).
     pub fn moving_energy_dispatches(&self) -> Vec<Dispatch> {
         match &self.moving {
-            Some((count, _, _, _, red, fin)) if *count > 0 => {
-                vec![self.dispatch(red, self.groups), self.dispatch(fin, 1)]
-            }
+            Some(m) if m.count > 0 => vec![
+                self.dispatch(&m.energy, self.groups),
+                self.dispatch(&m.energy_finish, 1),
+            ],
             _ => Vec::new(),
         }
     }
@@ -132,7 +133,7 @@ impl NewtonOps {
     /// The moving energy at x (from the copies) and at the trial point (0 without
     /// unsnapped moving nodes).
     pub fn decode_moving_energies(&self, result: &[f64], at_x: &[f64]) -> (f64, f64) {
-        let active = matches!(&self.moving, Some((count, ..)) if *count > 0);
+        let active = self.moving.as_ref().is_some_and(|m| m.count > 0);
         if !active {
             return (0.0, 0.0);
         }
