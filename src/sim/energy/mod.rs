@@ -12,6 +12,7 @@ pub mod barrier;
 pub mod eigensystem;
 pub mod gravity;
 pub mod inertia;
+pub mod kernels;
 pub mod neohookean;
 pub mod spring;
 
@@ -88,14 +89,49 @@ impl ElementSet {
     pub fn energy(&self, x: &[f64], e: usize) -> f64 {
         match self {
             ElementSet::Springs(s) => s.element_energy(x, e),
-            ElementSet::NeoHookean(s) => s.element_energy(x, e),
+            ElementSet::NeoHookean(s) => s.element_energy_fast(x, e),
         }
     }
 
     pub fn gradient(&self, x: &[f64], e: usize, out: &mut [f64]) {
         match self {
             ElementSet::Springs(s) => s.element_gradient(x, e, out),
-            ElementSet::NeoHookean(s) => s.element_gradient(x, e, out),
+            ElementSet::NeoHookean(s) => s.element_gradient_fast(x, e, out),
+        }
+    }
+
+    /// The Hessians of the elements `first..` as their upper node blocks, one element
+    /// after another filling `out` ([`ElementSet::hessian_blocks`] of each).
+    pub fn hessian_blocks_run(&self, x: &[f64], first: usize, project: bool, out: &mut [f64]) {
+        match self {
+            ElementSet::NeoHookean(s) => s.element_hessian_blocks_run(x, first, project, out),
+            ElementSet::Springs(_) => {
+                let size = self.arity() * (self.arity() + 1) / 2 * self.dim_of() * self.dim_of();
+                for (k, o) in out.chunks_exact_mut(size).enumerate() {
+                    self.hessian_blocks(x, first + k, project, o);
+                }
+            }
+        }
+    }
+
+    fn dim_of(&self) -> usize {
+        match self {
+            ElementSet::Springs(s) => s.dim,
+            ElementSet::NeoHookean(s) => s.dim,
+        }
+    }
+
+    /// The Hessian of element e as its upper node blocks (a ≤ b, each d×d row-major), the
+    /// slots of the assembly's element buffer.
+    pub fn hessian_blocks(&self, x: &[f64], e: usize, project: bool, out: &mut [f64]) {
+        match self {
+            ElementSet::Springs(s) => {
+                let mut m = [0.0f64; 36];
+                let nl = 2 * s.dim;
+                s.element_hessian(x, e, project, &mut m[..nl * nl]);
+                kernels::upper_blocks_of(s.dim, 2, &m[..nl * nl], out);
+            }
+            ElementSet::NeoHookean(s) => s.element_hessian_blocks(x, e, project, out),
         }
     }
 
@@ -111,6 +147,10 @@ impl ElementSet {
 /// depend on the thread count) and each one is reduced in element order, so energies,
 /// gradients and Hessians come out bitwise the same on any number of threads.
 const CHUNK: usize = 1024;
+
+/// Element blocks (d×d) of the Hessian assembly's element buffer: one pass of the
+/// assembly computes at most this many (19 MB in 3D) before they are gathered.
+const HESS_BUFFER_BLOCKS: usize = 1 << 18;
 
 /// Blocks (of the Hessian) or nodes (of the gradient) per task of the parallel gathers.
 const GATHER_CHUNK: usize = 4096;
@@ -285,6 +325,8 @@ impl Gather {
 pub struct AssemblyWork {
     hess: Vec<f64>,
     grad: Vec<f64>,
+    /// Per block of the Hessian: its next gather entry in the current assembly.
+    cursor: Vec<usize>,
 }
 
 /// Mass, gravity and elastic elements of a whole scene, with the Hessian's block pattern.
@@ -469,9 +511,13 @@ impl Model {
         self.add_potential_hessian_with(x, scale, project, h, &mut AssemblyWork::default());
     }
 
-    /// [`Model::add_potential_hessian`] with the element buffer kept in `work`: element
-    /// matrices in parallel (their upper node blocks), then each block of `h` gathers its
-    /// elements' blocks in element order, through the map built with the model. No
+    /// [`Model::add_potential_hessian`] with the element buffer kept in `work`, in passes
+    /// over at most [`HESS_BUFFER_BLOCKS`] element blocks: each pass computes its
+    /// elements' matrices in parallel (their upper node blocks), then every block of `h`
+    /// in the rows those elements touch adds the pass's contributions in element order
+    /// (through the map built with the model, from where the last pass left it). Each
+    /// block thus sums its elements one by one in (set, element) order whatever the
+    /// passes and threads, and the element buffer is bounded whatever the mesh. No
     /// sorting, searching or allocation once `work` has its size.
     pub fn add_potential_hessian_with(
         &self,
@@ -484,60 +530,75 @@ impl Model {
         let d = self.dim;
         let dd = d * d;
         let gt = &self.gather;
-        assert_eq!(
-            h.nnz_blocks(),
-            self.pattern.nnz_blocks(),
-            "h must have the model's pattern"
-        );
-        let slots: usize = self
+        let nb = self.pattern.nnz_blocks();
+        assert_eq!(h.nnz_blocks(), nb, "h must have the model's pattern");
+        let pass = |s: &ElementSet| {
+            let np = s.arity() * (s.arity() + 1) / 2;
+            (HESS_BUFFER_BLOCKS / np / CHUNK).max(1) * CHUNK
+        };
+        let buffer = self
             .sets
             .iter()
-            .map(|s| s.len() * s.arity() * (s.arity() + 1) / 2)
-            .sum();
-        work.hess.resize(slots * dd, 0.0);
+            .map(|s| pass(s).min(s.len()) * s.arity() * (s.arity() + 1) / 2)
+            .max()
+            .unwrap_or(0);
+        work.hess.resize(buffer * dd, 0.0);
+        work.cursor.clear();
+        work.cursor.extend_from_slice(&gt.hess_ptr[..nb]);
         for (s, &base) in self.sets.iter().zip(&gt.hess_base) {
-            let ar = s.arity();
-            let nl = ar * d;
-            let np = ar * (ar + 1) / 2;
-            work.hess[base * dd..(base + s.len() * np) * dd]
-                .par_chunks_mut(CHUNK * np * dd)
-                .enumerate()
-                .for_each(|(c, buf)| {
-                    let mut m = [0.0f64; 144];
-                    for (k, b) in buf.chunks_exact_mut(np * dd).enumerate() {
-                        s.hessian(x, c * CHUNK + k, project, &mut m[..nl * nl]);
-                        for (p, (a, bb)) in upper_pairs(ar).enumerate() {
-                            let blk = &mut b[p * dd..(p + 1) * dd];
-                            for r in 0..d {
-                                for cc in 0..d {
-                                    blk[r * d + cc] = m[(a * d + r) * nl + bb * d + cc];
-                                }
-                            }
-                        }
-                    }
-                });
-        }
-        let buf = &work.hess;
-        h.values
-            .par_chunks_mut(dd)
-            .enumerate()
-            .with_min_len(GATHER_CHUNK)
-            .for_each(|(k, blk)| {
-                for &src in &gt.hess_src[gt.hess_ptr[k]..gt.hess_ptr[k + 1]] {
-                    let m = &buf[(src >> 1) * dd..((src >> 1) + 1) * dd];
-                    if src & 1 == 0 {
-                        for (v, mv) in blk.iter_mut().zip(m) {
-                            *v += scale * mv;
-                        }
-                    } else {
-                        for r in 0..d {
-                            for c in 0..d {
-                                blk[r * d + c] += scale * m[c * d + r];
-                            }
-                        }
+            let np = s.arity() * (s.arity() + 1) / 2;
+            let per_pass = pass(s);
+            for e0 in (0..s.len()).step_by(per_pass) {
+                let e1 = (e0 + per_pass).min(s.len());
+                let (lo, hi) = (base + e0 * np, base + e1 * np);
+                let buf = &mut work.hess[..(hi - lo) * dd];
+                buf.par_chunks_mut(CHUNK * np * dd)
+                    .enumerate()
+                    .for_each(|(c, b)| s.hessian_blocks_run(x, e0 + c * CHUNK, project, b));
+                // The rows the pass's elements touch: a block's slots belong to elements
+                // holding its row's node.
+                let (mut rlo, mut rhi) = (usize::MAX, 0);
+                for e in e0..e1 {
+                    for &a in s.nodes(e) {
+                        rlo = rlo.min(a);
+                        rhi = rhi.max(a);
                     }
                 }
-            });
+                if rlo > rhi {
+                    continue;
+                }
+                let (k0, k1) = (self.pattern.row_ptr[rlo], self.pattern.row_ptr[rhi + 1]);
+                let buf = &work.hess[..(hi - lo) * dd];
+                h.values[k0 * dd..k1 * dd]
+                    .par_chunks_mut(dd)
+                    .zip(work.cursor[k0..k1].par_iter_mut())
+                    .enumerate()
+                    .with_min_len(GATHER_CHUNK)
+                    .for_each(|(i, (blk, cur))| {
+                        let end = gt.hess_ptr[k0 + i + 1];
+                        while *cur < end {
+                            let src = gt.hess_src[*cur];
+                            let slot = src >> 1;
+                            if slot >= hi {
+                                break;
+                            }
+                            let m = &buf[(slot - lo) * dd..(slot - lo + 1) * dd];
+                            if src & 1 == 0 {
+                                for (v, mv) in blk.iter_mut().zip(m) {
+                                    *v += scale * mv;
+                                }
+                            } else {
+                                for r in 0..d {
+                                    for c in 0..d {
+                                        blk[r * d + c] += scale * m[c * d + r];
+                                    }
+                                }
+                            }
+                            *cur += 1;
+                        }
+                    });
+            }
+        }
     }
 
     /// h += M (the lumped mass on the diagonal blocks).
