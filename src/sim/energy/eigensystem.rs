@@ -231,6 +231,23 @@ pub fn projected_element_blocks<const D: usize, const NL: usize, const NM: usize
     out: &mut [f64],
 ) {
     let (lw, w) = modes::<NL, NM>(D, u, v, h, scaling, g, scale);
+    // Every sum Σ_k lw[i][k] w[j][k] in k order, a whole row j = 0..NL at a time (the
+    // row's sums side by side: SIMD across j, each one still added in k order).
+    let mut wt = [[0.0f64; NL]; NM];
+    for (j, row) in w.iter().enumerate() {
+        for k in 0..NM {
+            wt[k][j] = row[k];
+        }
+    }
+    let mut full = [[0.0f64; NL]; NL];
+    for (i, acc) in full.iter_mut().enumerate() {
+        for k in 0..NM {
+            let l = lw[i][k];
+            for j in 0..NL {
+                acc[j] += l * wt[k][j];
+            }
+        }
+    }
     let mut slot = 0;
     for a in 0..=D {
         for b in a..=D {
@@ -239,11 +256,8 @@ pub fn projected_element_blocks<const D: usize, const NL: usize, const NM: usize
                 let i = a * D + r;
                 for c in 0..D {
                     let j = b * D + c;
-                    blk[r * D + c] = if i <= j {
-                        mode_dot(&lw[i], &w[j])
-                    } else {
-                        mode_dot(&lw[j], &w[i])
-                    };
+                    // The reference sums the upper triangle and mirrors it.
+                    blk[r * D + c] = if i <= j { full[i][j] } else { full[j][i] };
                 }
             }
             slot += 1;
@@ -406,17 +420,22 @@ pub fn symmetric_eigen3_lanes(
             let apq = a[p][q];
             let go: [bool; L] = std::array::from_fn(|l| active[l] && apq[l] != 0.0);
             let tau: [f64; L] = std::array::from_fn(|l| (a[q][q][l] - a[p][p][l]) / (2.0 * apq[l]));
-            let t: [f64; L] = std::array::from_fn(|l| {
-                let tau = tau[l];
-                let root = (1.0 + tau * tau).sqrt();
-                if tau.abs() > 1e150 {
-                    0.5 / tau
-                } else if tau >= 0.0 {
-                    1.0 / (tau + root)
-                } else {
-                    -1.0 / (-tau + root)
-                }
-            });
+            // The reference's three quotients as one: its numerator and denominator
+            // picked per lane (no branch), then divided.
+            let root: [f64; L] = std::array::from_fn(|l| (1.0 + tau[l] * tau[l]).sqrt());
+            let big: [bool; L] = std::array::from_fn(|l| tau[l].abs() > 1e150);
+            let pos: [bool; L] = std::array::from_fn(|l| tau[l] >= 0.0);
+            let den = pick(
+                big,
+                tau,
+                pick(
+                    pos,
+                    std::array::from_fn(|l| tau[l] + root[l]),
+                    std::array::from_fn(|l| -tau[l] + root[l]),
+                ),
+            );
+            let num = pick(big, [0.5; L], pick(pos, [1.0; L], [-1.0; L]));
+            let t: [f64; L] = std::array::from_fn(|l| num[l] / den[l]);
             let c: [f64; L] = std::array::from_fn(|l| 1.0 / (1.0 + t[l] * t[l]).sqrt());
             let s: [f64; L] = std::array::from_fn(|l| t[l] * c[l]);
             let r = 3 - p - q;
