@@ -149,8 +149,12 @@ impl ElementSet {
 const CHUNK: usize = 1024;
 
 /// Element blocks (d×d) of the Hessian assembly's element buffer: one pass of the
-/// assembly computes at most this many (19 MB in 3D) before they are gathered.
-const HESS_BUFFER_BLOCKS: usize = 1 << 18;
+/// assembly computes at most this many (4.7 MB in 3D) before they are gathered.
+const HESS_BUFFER_BLOCKS: usize = 1 << 16;
+
+/// Element node vectors (d entries) of the gradient's element buffer: one pass computes
+/// at most this many before they are gathered.
+const GRAD_BUFFER_NODES: usize = 1 << 16;
 
 /// Blocks (of the Hessian) or nodes (of the gradient) per task of the parallel gathers.
 const GATHER_CHUNK: usize = 4096;
@@ -167,10 +171,10 @@ struct Gather {
     /// Hessian: block k of the pattern sums the slots `hess_src[hess_ptr[k]..hess_ptr[k+1]]`;
     /// a slot is stored as 2·slot + t, t = 1 when it is read transposed (a > b).
     hess_ptr: Vec<usize>,
-    hess_src: Vec<usize>,
+    hess_src: Vec<u32>,
     /// Gradient: node i sums the slots `grad_src[grad_ptr[i]..grad_ptr[i+1]]`.
     grad_ptr: Vec<usize>,
-    grad_src: Vec<usize>,
+    grad_src: Vec<u32>,
 }
 
 /// The Hessian's block pattern: every node's diagonal block and the blocks of every
@@ -280,8 +284,18 @@ impl Gather {
         hess_ptr.copy_from_slice(&hess_count);
         let mut grad_ptr = try_vec(n + 1, 0usize, WHAT)?;
         grad_ptr.copy_from_slice(&grad_count);
-        let mut hess_src = try_vec(hess_ptr[nb], 0usize, WHAT)?;
-        let mut grad_src = try_vec(grad_ptr[n], 0usize, WHAT)?;
+        // Slots are stored as u32 (half the table): 2·slot + 1 must fit, and so must the
+        // table's length (at most 2·slots), which holds below 2³¹ element blocks, far
+        // beyond any mesh whose blocks fit in memory.
+        if 2 * hs + 1 > u32::MAX as usize {
+            return Err(AllocError {
+                what: WHAT.to_string(),
+                bytes: (hs as u64).saturating_mul(8),
+                nodes: None,
+            });
+        }
+        let mut hess_src = try_vec(hess_ptr[nb], 0u32, WHAT)?;
+        let mut grad_src = try_vec(grad_ptr[n], 0u32, WHAT)?;
         // Filled in set and element order: each block's (node's) list is in the order of
         // the sequential loop.
         let (mut hnext, mut gnext) = (hess_count, grad_count);
@@ -293,16 +307,16 @@ impl Gather {
                 for (p, (a, b)) in upper_pairs(ar).enumerate() {
                     let slot = hess_base[si] + e * np + p;
                     let k = pattern.find(nodes[a], nodes[b]).expect("pattern pair");
-                    hess_src[hnext[k]] = 2 * slot;
+                    hess_src[hnext[k]] = (2 * slot) as u32;
                     hnext[k] += 1;
                     if a != b {
                         let k = pattern.find(nodes[b], nodes[a]).expect("pattern pair");
-                        hess_src[hnext[k]] = 2 * slot + 1;
+                        hess_src[hnext[k]] = (2 * slot + 1) as u32;
                         hnext[k] += 1;
                     }
                 }
                 for (a, &node) in nodes.iter().enumerate() {
-                    grad_src[gnext[node]] = grad_base[si] + e * ar + a;
+                    grad_src[gnext[node]] = (grad_base[si] + e * ar + a) as u32;
                     gnext[node] += 1;
                 }
             }
@@ -325,8 +339,13 @@ impl Gather {
 pub struct AssemblyWork {
     hess: Vec<f64>,
     grad: Vec<f64>,
-    /// Per block of the Hessian: its next gather entry in the current assembly.
-    cursor: Vec<usize>,
+    /// Per block of the Hessian: its next gather entry in the current assembly (u32:
+    /// the gather tables' entries fit, [`Gather::new`]).
+    cursor: Vec<u32>,
+    /// Per node: its next gradient gather entry in the current pass.
+    grad_cursor: Vec<usize>,
+    /// Per node: the force scale's running sums.
+    sums: Vec<f64>,
 }
 
 /// Mass, gravity and elastic elements of a whole scene, with the Hessian's block pattern.
@@ -423,7 +442,7 @@ impl Model {
 
     /// [`Model::add_potential_gradient`] with the element buffer kept in `work`: element
     /// gradients in parallel, then each node gathers its elements' entries in element
-    /// order.
+    /// order, in bounded passes ([`Model::gradient_passes`]).
     pub fn add_potential_gradient_with(
         &self,
         x: &[f64],
@@ -432,20 +451,11 @@ impl Model {
         work: &mut AssemblyWork,
     ) {
         let d = self.dim;
-        let gt = &self.gather;
-        self.element_gradients(x, work);
-        let buf = &work.grad;
-        out[..self.n_nodes * d]
-            .par_chunks_mut(d)
-            .enumerate()
-            .with_min_len(GATHER_CHUNK)
-            .for_each(|(i, o)| {
-                for &slot in &gt.grad_src[gt.grad_ptr[i]..gt.grad_ptr[i + 1]] {
-                    for c in 0..d {
-                        o[c] += scale * buf[slot * d + c];
-                    }
-                }
-            });
+        self.gradient_passes(x, work, &mut out[..self.n_nodes * d], d, |o, g| {
+            for c in 0..d {
+                o[c] += scale * g[c];
+            }
+        });
         if let Some(g) = &self.gravity {
             gravity::add_gradient(&self.mass, d, g, scale, out);
         }
@@ -461,47 +471,93 @@ impl Model {
         out: &mut [f64],
         work: &mut AssemblyWork,
     ) {
-        let d = self.dim;
-        let gt = &self.gather;
-        self.element_gradients(x, work);
-        let buf = &work.grad;
         let gnorm = self
             .gravity
             .as_ref()
             .map_or(0.0, |g| g.iter().map(|v| v * v).sum::<f64>().sqrt());
-        out[..self.n_nodes]
-            .par_iter_mut()
-            .enumerate()
-            .with_min_len(GATHER_CHUNK)
-            .for_each(|(i, o)| {
-                let mut s = self.mass[i] * gnorm;
-                for &slot in &gt.grad_src[gt.grad_ptr[i]..gt.grad_ptr[i + 1]] {
-                    s += buf[slot * d..(slot + 1) * d]
-                        .iter()
-                        .map(|v| v * v)
-                        .sum::<f64>()
-                        .sqrt();
-                }
-                *o += scale * s;
-            });
+        // Each node's sum starts at its weight and adds its elements' norms in order.
+        let mut sums = std::mem::take(&mut work.sums);
+        sums.clear();
+        sums.extend(self.mass.iter().map(|m| m * gnorm));
+        self.gradient_passes(x, work, &mut sums, 1, |o, g| {
+            o[0] += g.iter().map(|v| v * v).sum::<f64>().sqrt();
+        });
+        for (o, s) in out[..self.n_nodes].iter_mut().zip(&sums) {
+            *o += scale * s;
+        }
+        work.sums = sums;
     }
 
-    /// Every element's gradient into `work.grad`, in parallel, in the gather's slots.
-    fn element_gradients(&self, x: &[f64], work: &mut AssemblyWork) {
+    /// The element gradients at x, in passes over at most [`GRAD_BUFFER_NODES`] element
+    /// node vectors: each pass computes its elements' gradients in parallel, then each
+    /// node touched by them (its `per_node` entries of `out`) takes `add` of each of its
+    /// element vectors (d entries), in (set, element) order across the passes. The
+    /// element buffer is bounded whatever the mesh, and every node sees the same
+    /// sequence of `add`s whatever the passes and threads.
+    fn gradient_passes(
+        &self,
+        x: &[f64],
+        work: &mut AssemblyWork,
+        out: &mut [f64],
+        per_node: usize,
+        add: impl Fn(&mut [f64], &[f64]) + Sync,
+    ) {
         let d = self.dim;
         let gt = &self.gather;
-        let total = gt.grad_ptr[self.n_nodes];
-        work.grad.resize(total * d, 0.0);
+        let pass = |s: &ElementSet| (GRAD_BUFFER_NODES / s.arity() / CHUNK).max(1) * CHUNK;
+        let buffer = self
+            .sets
+            .iter()
+            .map(|s| pass(s).min(s.len()) * s.arity())
+            .max()
+            .unwrap_or(0);
+        work.grad.resize(buffer * d, 0.0);
+        work.grad_cursor.clear();
+        work.grad_cursor
+            .extend_from_slice(&gt.grad_ptr[..self.n_nodes]);
         for (s, &base) in self.sets.iter().zip(&gt.grad_base) {
-            let nl = s.arity() * d;
-            work.grad[base * d..(base + s.len() * s.arity()) * d]
-                .par_chunks_mut(CHUNK * nl)
-                .enumerate()
-                .for_each(|(c, buf)| {
-                    for (k, b) in buf.chunks_exact_mut(nl).enumerate() {
-                        s.gradient(x, c * CHUNK + k, b);
+            let ar = s.arity();
+            let nl = ar * d;
+            let per_pass = pass(s);
+            for e0 in (0..s.len()).step_by(per_pass) {
+                let e1 = (e0 + per_pass).min(s.len());
+                let (lo, hi) = (base + e0 * ar, base + e1 * ar);
+                work.grad[..(hi - lo) * d]
+                    .par_chunks_mut(CHUNK * nl)
+                    .enumerate()
+                    .for_each(|(c, buf)| {
+                        for (k, b) in buf.chunks_exact_mut(nl).enumerate() {
+                            s.gradient(x, e0 + c * CHUNK + k, b);
+                        }
+                    });
+                let (mut rlo, mut rhi) = (usize::MAX, 0);
+                for e in e0..e1 {
+                    for &a in s.nodes(e) {
+                        rlo = rlo.min(a);
+                        rhi = rhi.max(a);
                     }
-                });
+                }
+                if rlo > rhi {
+                    continue;
+                }
+                let buf = &work.grad[..(hi - lo) * d];
+                out[rlo * per_node..(rhi + 1) * per_node]
+                    .par_chunks_mut(per_node)
+                    .zip(work.grad_cursor[rlo..=rhi].par_iter_mut())
+                    .enumerate()
+                    .with_min_len(GATHER_CHUNK)
+                    .for_each(|(i, (o, cur))| {
+                        let end = gt.grad_ptr[rlo + i + 1];
+                        while *cur < end {
+                            let slot = gt.grad_src[*cur] as usize;
+                            if slot >= hi {
+                                break;
+                            }
+                            add(o, &buf[(slot - lo) * d..(slot - lo + 1) * d]);
+                            *cur += 1;
+                        }
+                    });
+            }
         }
     }
 
@@ -544,7 +600,8 @@ impl Model {
             .unwrap_or(0);
         work.hess.resize(buffer * dd, 0.0);
         work.cursor.clear();
-        work.cursor.extend_from_slice(&gt.hess_ptr[..nb]);
+        work.cursor
+            .extend(gt.hess_ptr[..nb].iter().map(|&p| p as u32));
         for (s, &base) in self.sets.iter().zip(&gt.hess_base) {
             let np = s.arity() * (s.arity() + 1) / 2;
             let per_pass = pass(s);
@@ -576,8 +633,8 @@ impl Model {
                     .with_min_len(GATHER_CHUNK)
                     .for_each(|(i, (blk, cur))| {
                         let end = gt.hess_ptr[k0 + i + 1];
-                        while *cur < end {
-                            let src = gt.hess_src[*cur];
+                        while (*cur as usize) < end {
+                            let src = gt.hess_src[*cur as usize] as usize;
                             let slot = src >> 1;
                             if slot >= hi {
                                 break;
@@ -725,5 +782,79 @@ impl Model {
             col_idx,
             values,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::rngs::StdRng;
+    use rand::{Rng, SeedableRng};
+
+    /// The assembly in passes (a mesh of several passes, both laws, 2D and 3D) against
+    /// the plainest one: every element's full reference matrix (and gradient) added into
+    /// its blocks (nodes) one element after another. Equal bit for bit: each block sums
+    /// the same terms in the same order.
+    #[test]
+    fn assembly_in_passes_equals_the_sequential_sum_bit_for_bit() {
+        let mut rng = StdRng::seed_from_u64(3);
+        for d in [2, 3] {
+            let mesh = if d == 2 {
+                crate::sim::mesh::rectangle(2, [1.0, 1.0], [120, 120])
+            } else {
+                crate::sim::mesh::cuboid([1.0, 1.0, 1.0], [14, 14, 14])
+            };
+            for law in [Law::NeoHookean, Law::StableNeoHookean] {
+                let nh = NeoHookean::new(&mesh, 1e5, 0.4, law).expect("valid mesh");
+                let np = (d + 1) * (d + 2) / 2;
+                assert!(
+                    nh.elements.len() * np > 2 * HESS_BUFFER_BLOCKS,
+                    "several passes"
+                );
+                let n = mesh.x.len() / d;
+                let model = Model::new(d, vec![1.0; n], None, vec![ElementSet::NeoHookean(nh)]);
+                let x: Vec<f64> = mesh
+                    .x
+                    .iter()
+                    .map(|v| 1.1 * v + rng.random_range(-0.004..0.004))
+                    .collect();
+                let scale = 0.37;
+                let mut h = model.zero_matrix();
+                let mut work = AssemblyWork::default();
+                model.add_potential_hessian_with(&x, scale, true, &mut h, &mut work);
+                let mut g = vec![0.0; n * d];
+                model.add_potential_gradient_with(&x, scale, &mut g, &mut work);
+                let mut want_h = model.zero_matrix();
+                let mut want_g = vec![0.0; n * d];
+                let s = &model.sets[0];
+                let nl = (d + 1) * d;
+                let (mut m, mut ge) = (vec![0.0; nl * nl], vec![0.0; nl]);
+                for e in 0..s.len() {
+                    let ElementSet::NeoHookean(nh) = s else {
+                        unreachable!("one neo-Hookean set")
+                    };
+                    nh.element_hessian(&x, e, true, &mut m);
+                    nh.element_gradient(&x, e, &mut ge);
+                    let nodes = s.nodes(e);
+                    for (a, &na) in nodes.iter().enumerate() {
+                        for c in 0..d {
+                            want_g[na * d + c] += scale * ge[a * d + c];
+                        }
+                        for (b, &nb) in nodes.iter().enumerate() {
+                            let k = want_h.find(na, nb).expect("pattern pair");
+                            for r in 0..d {
+                                for c in 0..d {
+                                    want_h.values[k * d * d + r * d + c] +=
+                                        scale * m[(a * d + r) * nl + b * d + c];
+                                }
+                            }
+                        }
+                    }
+                }
+                let bits = |v: &[f64]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
+                assert!(bits(&h.values) == bits(&want_h.values), "{d}D {law:?}: H");
+                assert!(bits(&g) == bits(&want_g), "{d}D {law:?}: gradient");
+            }
+        }
     }
 }
