@@ -142,7 +142,7 @@ pub fn assemble(
 
 /// Eigenvalues and eigenvectors (columns: vecs[a][k] is component a of vector k) of the
 /// symmetric d×d block.
-fn scaling_eigen(d: usize, a: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
+pub fn scaling_eigen(d: usize, a: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
     if d == 3 {
         return symmetric_eigen3(a);
     }
@@ -192,6 +192,93 @@ fn modes_into<const NL: usize, const NM: usize>(
     scale: f64,
     out: &mut [f64],
 ) {
+    let (vals, vecs) = scaling_eigen(d, &h.a);
+    let (lw, w) = modes::<NL, NM>(d, u, v, h, (&vals, &vecs), g, scale);
+    let out = &mut out[..NL * NL];
+    for i in 0..NL {
+        for j in i..NL {
+            let s = mode_dot(&lw[i], &w[j]);
+            out[i * NL + j] = s;
+            out[j * NL + i] = s;
+        }
+    }
+}
+
+/// Σ_k lw_k w_k in k order: one entry of the element Hessian.
+#[inline(always)]
+fn mode_dot<const NM: usize>(lw: &[f64; NM], w: &[f64; NM]) -> f64 {
+    let mut s = 0.0;
+    for k in 0..NM {
+        s += lw[k] * w[k];
+    }
+    s
+}
+
+/// The element Hessian of [`projected_element_hessian`] written as its upper node blocks
+/// (a ≤ b, in `upper_pairs` order, each D×D row-major; the element's slots of the
+/// assembly's buffer), with D fixed. Each entry is the same sum, in the same order, as
+/// the full matrix's (a diagonal block's lower entries are its upper ones mirrored), so
+/// the blocks equal those of [`projected_element_hessian`] bit for bit.
+/// `scaling` holds the eigenpairs of the d×d block `h.a` (as `scaling_eigen` returns them).
+#[inline(always)]
+pub fn projected_element_blocks<const D: usize, const NL: usize, const NM: usize>(
+    u: &[f64; 9],
+    v: &[f64; 9],
+    h: &SingularValueHessian,
+    scaling: (&[f64; 3], &[[f64; 3]; 3]),
+    g: &[f64],
+    scale: f64,
+    out: &mut [f64],
+) {
+    let (lw, w) = modes::<NL, NM>(D, u, v, h, scaling, g, scale);
+    // Every sum Σ_k lw[i][k] w[j][k] in k order, a whole row j = 0..NL at a time (the
+    // row's sums side by side: SIMD across j, each one still added in k order).
+    let mut wt = [[0.0f64; NL]; NM];
+    for (j, row) in w.iter().enumerate() {
+        for k in 0..NM {
+            wt[k][j] = row[k];
+        }
+    }
+    let mut full = [[0.0f64; NL]; NL];
+    for (i, acc) in full.iter_mut().enumerate() {
+        for k in 0..NM {
+            let l = lw[i][k];
+            for j in 0..NL {
+                acc[j] += l * wt[k][j];
+            }
+        }
+    }
+    let mut slot = 0;
+    for a in 0..=D {
+        for b in a..=D {
+            let blk = &mut out[slot * D * D..(slot + 1) * D * D];
+            for r in 0..D {
+                let i = a * D + r;
+                for c in 0..D {
+                    let j = b * D + c;
+                    // The reference sums the upper triangle and mirrors it.
+                    blk[r * D + c] = if i <= j { full[i][j] } else { full[j][i] };
+                }
+            }
+            slot += 1;
+        }
+    }
+}
+
+/// The modes of the element Hessian Σ_k max(λ_k, 0)·scale·w_k w_kᵀ: w[i][k], entry i of
+/// w_k, and lw[i][k] = max(λ_k, 0)·scale·w[i][k]. A clamped mode has zero weight (it adds
+/// exact zeros).
+#[inline(always)]
+#[allow(clippy::type_complexity)]
+fn modes<const NL: usize, const NM: usize>(
+    d: usize,
+    u: &[f64; 9],
+    v: &[f64; 9],
+    h: &SingularValueHessian,
+    (vals, vecs): (&[f64; 3], &[[f64; 3]; 3]),
+    g: &[f64],
+    scale: f64,
+) -> ([[f64; NM]; NL], [[f64; NM]; NL]) {
     let nn = d + 1;
     // gv[a][q] = Σ_j G[a][j] V[j][q].
     let mut gv = [[0.0f64; 3]; 4];
@@ -200,13 +287,10 @@ fn modes_into<const NL: usize, const NM: usize>(
             *e = (0..d).map(|j| g[a * d + j] * v[j * d + q]).sum();
         }
     }
-    // w[i][k]: entry i of w_k; lw[i][k] = max(λ_k, 0)·scale·w[i][k]. A clamped mode has
-    // zero weight (it adds exact zeros).
     let mut w = [[0.0f64; NM]; NL];
     let mut lw = [[0.0f64; NM]; NL];
     let mut lam = [0.0f64; NM];
     // Scaling modes: M = diag(e_k), w[(a, c)] = Σ_p U_cp e_k[p] gv[a][p].
-    let (vals, vecs) = scaling_eigen(d, &h.a);
     for k in 0..d {
         lam[k] = vals[k].max(0.0) * scale;
         for a in 0..nn {
@@ -236,17 +320,7 @@ fn modes_into<const NL: usize, const NM: usize>(
             lrow[k] = lam[k] * wrow[k];
         }
     }
-    let out = &mut out[..NL * NL];
-    for i in 0..NL {
-        for j in i..NL {
-            let mut s = 0.0;
-            for k in 0..NM {
-                s += lw[i][k] * w[j][k];
-            }
-            out[i * NL + j] = s;
-            out[j * NL + i] = s;
-        }
-    }
+    (lw, w)
 }
 
 /// Eigenpairs of a symmetric 3×3 matrix by cyclic Jacobi rotations (Golub and Van Loan,
@@ -303,19 +377,133 @@ pub fn symmetric_eigen3(m: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
     ([a[0][0], a[1][1], a[2][2]], v)
 }
 
+/// Lanes of [`symmetric_eigen3_lanes`]: elements whose eigenproblems run side by side.
+pub const LANES: usize = 4;
+
+/// [`symmetric_eigen3`] of [`LANES`] matrices at once, laid out lane-innermost
+/// (`m[r][c][lane]`), so that the rotations of independent matrices overlap (and map to
+/// SIMD lanes). Every lane runs the same operations in the same order as
+/// [`symmetric_eigen3`] on its own matrix; where that one skips a rotation or stops
+/// sweeping, the lane keeps its values (an exact select), so each lane's result equals
+/// [`symmetric_eigen3`]'s bit for bit.
+#[inline(always)]
+#[allow(clippy::type_complexity)]
+pub fn symmetric_eigen3_lanes(
+    m: &[[[f64; LANES]; 3]; 3],
+) -> ([[f64; LANES]; 3], [[[f64; LANES]; 3]; 3]) {
+    const L: usize = LANES;
+    let pick = |c: [bool; L], x: [f64; L], y: [f64; L]| -> [f64; L] {
+        std::array::from_fn(|l| if c[l] { x[l] } else { y[l] })
+    };
+    let mut a: [[[f64; L]; 3]; 3] =
+        std::array::from_fn(|r| std::array::from_fn(|c| if c >= r { m[r][c] } else { m[c][r] }));
+    let mut v = [[[0.0; L]; 3]; 3];
+    for (k, row) in v.iter_mut().enumerate() {
+        row[k] = [1.0; L];
+    }
+    let tiny: [f64; L] = std::array::from_fn(|l| {
+        let norm2: f64 = a.iter().flatten().map(|x| x[l] * x[l]).sum();
+        0.25 * f64::EPSILON * f64::EPSILON * norm2
+    });
+    let mut active = [true; L];
+    for _sweep in 0..32 {
+        for l in 0..L {
+            let off = a[0][1][l] * a[0][1][l] + a[0][2][l] * a[0][2][l] + a[1][2][l] * a[1][2][l];
+            if off.is_nan() || off <= tiny[l] {
+                active[l] = false;
+            }
+        }
+        if !active.iter().any(|&x| x) {
+            break;
+        }
+        for (p, q) in [(0, 1), (0, 2), (1, 2)] {
+            let apq = a[p][q];
+            let go: [bool; L] = std::array::from_fn(|l| active[l] && apq[l] != 0.0);
+            let tau: [f64; L] = std::array::from_fn(|l| (a[q][q][l] - a[p][p][l]) / (2.0 * apq[l]));
+            // The reference's three quotients as one: its numerator and denominator
+            // picked per lane (no branch), then divided.
+            let root: [f64; L] = std::array::from_fn(|l| (1.0 + tau[l] * tau[l]).sqrt());
+            let big: [bool; L] = std::array::from_fn(|l| tau[l].abs() > 1e150);
+            let pos: [bool; L] = std::array::from_fn(|l| tau[l] >= 0.0);
+            let den = pick(
+                big,
+                tau,
+                pick(
+                    pos,
+                    std::array::from_fn(|l| tau[l] + root[l]),
+                    std::array::from_fn(|l| -tau[l] + root[l]),
+                ),
+            );
+            let num = pick(big, [0.5; L], pick(pos, [1.0; L], [-1.0; L]));
+            let t: [f64; L] = std::array::from_fn(|l| num[l] / den[l]);
+            let c: [f64; L] = std::array::from_fn(|l| 1.0 / (1.0 + t[l] * t[l]).sqrt());
+            let s: [f64; L] = std::array::from_fn(|l| t[l] * c[l]);
+            let r = 3 - p - q;
+            a[p][p] = pick(
+                go,
+                std::array::from_fn(|l| a[p][p][l] - t[l] * apq[l]),
+                a[p][p],
+            );
+            a[q][q] = pick(
+                go,
+                std::array::from_fn(|l| a[q][q][l] + t[l] * apq[l]),
+                a[q][q],
+            );
+            a[p][q] = pick(go, [0.0; L], a[p][q]);
+            a[q][p] = pick(go, [0.0; L], a[q][p]);
+            let (arp, arq) = (a[r][p], a[r][q]);
+            a[r][p] = pick(
+                go,
+                std::array::from_fn(|l| c[l] * arp[l] - s[l] * arq[l]),
+                arp,
+            );
+            a[r][q] = pick(
+                go,
+                std::array::from_fn(|l| s[l] * arp[l] + c[l] * arq[l]),
+                arq,
+            );
+            a[p][r] = a[r][p];
+            a[q][r] = a[r][q];
+            for row in v.iter_mut() {
+                let (vp, vq) = (row[p], row[q]);
+                row[p] = pick(go, std::array::from_fn(|l| c[l] * vp[l] - s[l] * vq[l]), vp);
+                row[q] = pick(go, std::array::from_fn(|l| s[l] * vp[l] + c[l] * vq[l]), vq);
+            }
+        }
+    }
+    ([a[0][0], a[1][1], a[2][2]], v)
+}
+
 /// 3D [`signed_svd`]: V from the eigenvectors of FᵀF ([`symmetric_eigen3`]), sorted by
 /// decreasing eigenvalue and made a rotation; B = F V; U by Gram–Schmidt on B's columns
 /// (u₃ = u₁ × u₂, so U is a rotation) and σ_k = u_kᵀ b_k, the last one signed. A
 /// vanishing column (a flat or collapsed element) takes any unit vector orthogonal to the
 /// others: its singular value is zero, so F = U diag(σ) Vᵀ holds whatever it is.
 fn signed_svd3(f: &[f64]) -> ([f64; 9], [f64; 3], [f64; 9]) {
+    let (lam, ev) = symmetric_eigen3(&gram3(f));
+    signed_svd3_from_eigen(f, &lam, &ev)
+}
+
+/// FᵀF of a row-major 3×3 F.
+#[inline(always)]
+pub fn gram3(f: &[f64]) -> [[f64; 3]; 3] {
     let mut ata = [[0.0f64; 3]; 3];
     for (r, row) in ata.iter_mut().enumerate() {
         for (c, e) in row.iter_mut().enumerate() {
             *e = (0..3).map(|k| f[k * 3 + r] * f[k * 3 + c]).sum();
         }
     }
-    let (lam, ev) = symmetric_eigen3(&ata);
+    ata
+}
+
+/// [`signed_svd`] of a 3×3 F from the eigenpairs of FᵀF ([`gram3`],
+/// [`symmetric_eigen3`]).
+#[inline(always)]
+pub fn signed_svd3_from_eigen(
+    f: &[f64],
+    lam: &[f64; 3],
+    ev: &[[f64; 3]; 3],
+) -> ([f64; 9], [f64; 3], [f64; 9]) {
     let mut order = [0usize, 1, 2];
     order.sort_by(|&i, &j| lam[j].total_cmp(&lam[i]));
     let mut v = [0.0f64; 9];
