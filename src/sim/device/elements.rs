@@ -328,6 +328,335 @@ fn plan_chunks(len: usize, item_bytes: u64, limit: u64) -> Option<Vec<std::ops::
     )
 }
 
+/// The buffers every term reads (positions, inertia target, constants, node data), with
+/// the values they were built from.
+struct SharedBuffers {
+    gravity: [f64; 3],
+    n_planes: usize,
+    x: wgpu::Buffer,
+    x_tilde: wgpu::Buffer,
+    consts: wgpu::Buffer,
+    node_data: wgpu::Buffer,
+}
+
+impl SharedBuffers {
+    /// Checks the model against the kernels and the barrier, and uploads the mesh-wide
+    /// data.
+    fn allocate(
+        ctx: &GpuContext,
+        kernels: &ElementKernels,
+        model: &Model,
+        barrier: Option<(&Barrier, &[HalfSpace])>,
+    ) -> Result<Self, GpuError> {
+        let d = model.dim;
+        if kernels.dim != d {
+            return Err(GpuError::Mismatch(format!(
+                "element kernels are {}D, the model {d}D",
+                kernels.dim
+            )));
+        }
+        let n = model.n_nodes;
+        // Shader indices are u32: the largest is an entry of a chunk's per-element Hessian,
+        // which the binding limit keeps below 2³²/4; node coordinates are checked here.
+        if n.checked_mul(d).is_none_or(|v| v > u32::MAX as usize) {
+            return Err(GpuError::Unsupported(format!(
+                "{n} nodes exceed the element kernels' u32 indices"
+            )));
+        }
+        let f64 = kernels.f64;
+        let rs = if f64 { 8u64 } else { 4 };
+        let a = Alloc { ctx };
+        let x = a.zeroed("elements positions", (n * d) as u64 * rs)?;
+        let x_tilde = a.zeroed("elements inertia target", (n * d) as u64 * rs)?;
+        let mut gravity = [0.0; 3];
+        if let Some(g) = &model.gravity {
+            gravity[..d].copy_from_slice(&g[..d]);
+        }
+        let planes: &[HalfSpace] = barrier.map_or(&[], |b| b.1);
+        let consts = a.init(
+            "elements constants",
+            &to_bytes(f64, &constants(&gravity, planes)),
+        )?;
+        let weight: Vec<f64> = match barrier {
+            Some((b, _)) => {
+                if b.weight.len() != n || b.dim != d {
+                    return Err(GpuError::Mismatch(format!(
+                        "the barrier has {} {}D nodes, the model {n} {d}D",
+                        b.weight.len(),
+                        b.dim
+                    )));
+                }
+                b.weight.clone()
+            }
+            None => vec![0.0; n],
+        };
+        let node_data: Vec<f64> = (0..n).flat_map(|i| [model.mass[i], weight[i]]).collect();
+        let node_data = a.init("elements node data", &to_bytes(f64, &node_data))?;
+        Ok(SharedBuffers {
+            gravity,
+            n_planes: planes.len(),
+            x,
+            x_tilde,
+            consts,
+            node_data,
+        })
+    }
+
+    /// Allocates one term's (or chunk's) parameters and outputs and binds them with its
+    /// inputs and the shared buffers.
+    fn bind(
+        &self,
+        ctx: &GpuContext,
+        kernels: &ElementKernels,
+        t: TermData,
+    ) -> Result<Term, GpuError> {
+        let rs = if kernels.f64 { 8u64 } else { 4 };
+        let a = Alloc { ctx };
+        let label = &t.label;
+        let params = ElementParams {
+            count: t.count as u32,
+            project: 1,
+            n_planes: self.n_planes as u32,
+            energy_only: 0,
+            first: t.first as u32,
+            pad: [0; 3],
+        };
+        let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(&format!("{label} params")),
+            contents: bytemuck::bytes_of(&params),
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        });
+        let energy = a.zeroed(&format!("{label} energy"), t.count as u64 * rs)?;
+        let gradient = a.zeroed(
+            &format!("{label} gradient"),
+            (t.count * t.grad_len) as u64 * rs,
+        )?;
+        let hessian = (t.hess_len > 0)
+            .then(|| {
+                a.zeroed(
+                    &format!("{label} hessian"),
+                    (t.count * t.hess_len) as u64 * rs,
+                )
+            })
+            .transpose()?;
+        let flags = t
+            .flagged
+            .then(|| a.zeroed(&format!("{label} flags"), t.count as u64 * 4))
+            .transpose()?;
+        // Bindings the entry point never touches still need a buffer: small ones of
+        // their own, so no buffer is bound both read-only and writable.
+        let unused_read = a.zeroed(&format!("{label} unused input"), 16)?;
+        let unused_hessian = a.zeroed(&format!("{label} unused hessian"), 16)?;
+        let unused_flags = a.zeroed(&format!("{label} unused flags"), 16)?;
+        let rest = t
+            .rest
+            .as_ref()
+            .or(t.shared_rest)
+            .ok_or_else(|| GpuError::Mismatch(format!("{label} has no rest data")))?;
+        let bufs: [&wgpu::Buffer; 10] = [
+            &params,
+            &self.x,
+            t.nodes.as_ref().unwrap_or(&unused_read),
+            rest,
+            &self.consts,
+            &self.x_tilde,
+            &energy,
+            &gradient,
+            hessian.as_ref().unwrap_or(&unused_hessian),
+            flags.as_ref().unwrap_or(&unused_flags),
+        ];
+        let group = kernels::bind_group(
+            &ctx.device,
+            &kernels.layout,
+            &format!("{label} bind group"),
+            &bufs,
+        );
+        Ok(Term {
+            kind: t.kind,
+            first: t.first,
+            count: t.count,
+            grad_len: t.grad_len,
+            hess_len: t.hess_len,
+            params,
+            group,
+            energy,
+            gradient,
+            hessian,
+            flags,
+            mesh: t.nodes.clone().zip(t.rest.clone()),
+        })
+    }
+}
+
+/// Splits the element sets and node terms into chunks within the binding cap, uploading
+/// each element chunk's node indices and rest data.
+struct ChunkPlanner<'a> {
+    ctx: &'a GpuContext,
+    d: usize,
+    f64: bool,
+    /// Bytes per real.
+    rs: u64,
+    /// The cap on one chunk's arrays: the adapter's binding and buffer limits, or less.
+    limit: u64,
+}
+
+impl<'a> ChunkPlanner<'a> {
+    fn new(
+        ctx: &'a GpuContext,
+        kernels: &ElementKernels,
+        d: usize,
+        binding_limit: Option<u64>,
+    ) -> Self {
+        let l = &ctx.limits;
+        let limit = l
+            .max_storage_buffer_binding_size
+            .min(l.max_buffer_size)
+            .min(binding_limit.unwrap_or(u64::MAX));
+        ChunkPlanner {
+            ctx,
+            d,
+            f64: kernels.f64,
+            rs: if kernels.f64 { 8 } else { 4 },
+            limit,
+        }
+    }
+
+    /// [`plan_chunks`] under the cap, with an error naming the term when one item exceeds
+    /// it.
+    fn ranges(
+        &self,
+        label: &str,
+        len: usize,
+        item_bytes: u64,
+    ) -> Result<Vec<std::ops::Range<usize>>, GpuError> {
+        plan_chunks(len, item_bytes, self.limit).ok_or_else(|| GpuError::BufferTooLarge {
+            label: format!("{label} (one item)"),
+            bytes: item_bytes,
+            limit: self.limit,
+            what: "storage binding",
+            adapter: self.ctx.adapter_name().to_string(),
+        })
+    }
+
+    /// Element sets: per chunk its node indices and rest data.
+    fn element_chunks<'b>(&self, model: &Model) -> Result<Vec<TermData<'b>>, GpuError> {
+        let (d, rs) = (self.d, self.rs);
+        let a = Alloc { ctx: self.ctx };
+        let mut data: Vec<TermData> = Vec::new();
+        for (k, s) in model.sets.iter().enumerate() {
+            let (kind, stride) = match s {
+                ElementSet::NeoHookean(_) => (TermKind::NeoHookean, d * d + NH_REST_EXTRA),
+                ElementSet::Springs(_) => (TermKind::Springs, 2),
+            };
+            let arity = s.arity();
+            let nl = arity * d;
+            // The largest per-element array: the Hessian, unless a tiny element has more
+            // rest data or node indices than Hessian entries.
+            let item_bytes = [nl * nl, nl, stride, 1]
+                .iter()
+                .map(|&v| v as u64 * rs)
+                .chain([arity as u64 * 4])
+                .max()
+                .unwrap_or(0);
+            let base = format!("elements set {k}");
+            let ranges = self.ranges(&base, s.len(), item_bytes)?;
+            for (c, r) in ranges.iter().enumerate() {
+                let rest = rest_data(s, r.clone(), d, stride);
+                let idx: Vec<u32> = r
+                    .clone()
+                    .flat_map(|e| s.nodes(e).iter().map(|&v| v as u32))
+                    .collect();
+                let label = chunk_label(&base, c, ranges.len());
+                let nodes = a.init(&format!("{label} nodes"), bytemuck::cast_slice(&idx))?;
+                let rest = a.init(&format!("{label} rest"), &to_bytes(self.f64, &rest))?;
+                data.push(TermData {
+                    kind,
+                    label,
+                    first: r.start,
+                    count: r.len(),
+                    nodes: Some(nodes),
+                    rest: Some(rest),
+                    shared_rest: None,
+                    grad_len: nl,
+                    hess_len: nl * nl,
+                    flagged: matches!(s, ElementSet::NeoHookean(nh) if nh.law == Law::NeoHookean),
+                });
+            }
+        }
+        Ok(data)
+    }
+
+    /// Node terms: chunks of consecutive nodes, all reading the whole mesh's node data.
+    fn node_chunks<'b>(
+        &self,
+        model: &Model,
+        with_barrier: bool,
+        node_data: &'b wgpu::Buffer,
+    ) -> Result<Vec<TermData<'b>>, GpuError> {
+        let (d, rs, n) = (self.d, self.rs, model.n_nodes);
+        let mut node_terms = vec![(TermKind::Inertia, "elements inertia", d * d)];
+        if model.gravity.is_some() {
+            node_terms.push((TermKind::Gravity, "elements gravity", 0));
+        }
+        if with_barrier {
+            node_terms.push((TermKind::Barrier, "elements barrier", d * d));
+        }
+        let mut data = Vec::new();
+        for (kind, base, hess_len) in node_terms {
+            let item_bytes = (hess_len.max(d) as u64 * rs).max(4);
+            let ranges = self.ranges(base, n, item_bytes)?;
+            for (c, r) in ranges.iter().enumerate() {
+                data.push(TermData {
+                    kind,
+                    label: chunk_label(base, c, ranges.len()),
+                    first: r.start,
+                    count: r.len(),
+                    nodes: None,
+                    rest: None,
+                    shared_rest: Some(node_data),
+                    grad_len: d,
+                    hess_len,
+                    flagged: kind == TermKind::Barrier,
+                });
+            }
+        }
+        Ok(data)
+    }
+}
+
+/// A chunk's label: the term's own when it is not split.
+fn chunk_label(base: &str, c: usize, chunks: usize) -> String {
+    if chunks == 1 {
+        base.to_string()
+    } else {
+        format!("{base} chunk {c}")
+    }
+}
+
+/// The rest data of elements `r` of set `s`, `stride` reals each (neo-Hookean: Dm⁻¹,
+/// volume, μ, λ, law; springs: rest length, stiffness).
+fn rest_data(s: &ElementSet, r: std::ops::Range<usize>, d: usize, stride: usize) -> Vec<f64> {
+    let mut rest = Vec::with_capacity(r.len() * stride);
+    match s {
+        ElementSet::NeoHookean(nh) => {
+            for e in r.clone() {
+                // Rows 1..=d of the shape gradients are Dm⁻¹.
+                rest.extend_from_slice(&nh.grads(e)[d..]);
+                let law = match nh.law {
+                    Law::NeoHookean => 1.0,
+                    Law::StableNeoHookean => 0.0,
+                };
+                rest.extend_from_slice(&[nh.volume[e], nh.mu, nh.lambda, law]);
+            }
+        }
+        ElementSet::Springs(sp) => {
+            rest.extend(sp.rest[r.clone()].iter().flat_map(|&l| [l, sp.stiffness]))
+        }
+    }
+    debug_assert_eq!(rest.len(), r.len() * stride);
+    rest
+}
+
 impl GpuElements {
     /// Uploads the mesh data of `model` (every element set, the lumped masses and the
     /// gravity) and, with `barrier`, the contact weights and the half-spaces (their number
@@ -375,244 +704,25 @@ impl GpuElements {
         barrier: Option<(&Barrier, &[HalfSpace])>,
         binding_limit: Option<u64>,
     ) -> Result<Self, GpuError> {
-        let d = model.dim;
-        if kernels.dim != d {
-            return Err(GpuError::Mismatch(format!(
-                "element kernels are {}D, the model {d}D",
-                kernels.dim
-            )));
-        }
-        let n = model.n_nodes;
-        // Shader indices are u32: the largest is an entry of a chunk's per-element Hessian,
-        // which the binding limit keeps below 2³²/4; node coordinates are checked here.
-        if n.checked_mul(d).is_none_or(|v| v > u32::MAX as usize) {
-            return Err(GpuError::Unsupported(format!(
-                "{n} nodes exceed the element kernels' u32 indices"
-            )));
-        }
-        let f64 = kernels.f64;
-        let rs = if f64 { 8u64 } else { 4 };
-        let a = Alloc { ctx };
-        let x = a.zeroed("elements positions", (n * d) as u64 * rs)?;
-        let x_tilde = a.zeroed("elements inertia target", (n * d) as u64 * rs)?;
-        let mut gravity = [0.0; 3];
-        if let Some(g) = &model.gravity {
-            gravity[..d].copy_from_slice(&g[..d]);
-        }
-        let planes: &[HalfSpace] = barrier.map_or(&[], |b| b.1);
-        let consts = a.init(
-            "elements constants",
-            &to_bytes(f64, &constants(&gravity, planes)),
-        )?;
-        let weight: Vec<f64> = match barrier {
-            Some((b, _)) => {
-                if b.weight.len() != n || b.dim != d {
-                    return Err(GpuError::Mismatch(format!(
-                        "the barrier has {} {}D nodes, the model {n} {d}D",
-                        b.weight.len(),
-                        b.dim
-                    )));
-                }
-                b.weight.clone()
-            }
-            None => vec![0.0; n],
-        };
-        let node_data: Vec<f64> = (0..n).flat_map(|i| [model.mass[i], weight[i]]).collect();
-        let node_data = a.init("elements node data", &to_bytes(f64, &node_data))?;
-        // The cap on one chunk's arrays: the adapter's binding and buffer limits, or less.
-        let l = &ctx.limits;
-        let limit = l
-            .max_storage_buffer_binding_size
-            .min(l.max_buffer_size)
-            .min(binding_limit.unwrap_or(u64::MAX));
-        let chunks_of = |label: &str, len: usize, item_bytes: u64| {
-            plan_chunks(len, item_bytes, limit).ok_or_else(|| GpuError::BufferTooLarge {
-                label: format!("{label} (one item)"),
-                bytes: item_bytes,
-                limit,
-                what: "storage binding",
-                adapter: ctx.adapter_name().to_string(),
-            })
-        };
-        let chunk_label = |base: &str, c: usize, chunks: usize| {
-            if chunks == 1 {
-                base.to_string()
-            } else {
-                format!("{base} chunk {c}")
-            }
-        };
-        // Element sets: per chunk its node indices and rest data.
-        let mut data: Vec<TermData> = Vec::new();
-        for (k, s) in model.sets.iter().enumerate() {
-            let (kind, stride) = match s {
-                ElementSet::NeoHookean(_) => (TermKind::NeoHookean, d * d + NH_REST_EXTRA),
-                ElementSet::Springs(_) => (TermKind::Springs, 2),
-            };
-            let arity = s.arity();
-            let nl = arity * d;
-            // The largest per-element array: the Hessian, unless a tiny element has more
-            // rest data or node indices than Hessian entries.
-            let item_bytes = [nl * nl, nl, stride, 1]
-                .iter()
-                .map(|&v| v as u64 * rs)
-                .chain([arity as u64 * 4])
-                .max()
-                .unwrap_or(0);
-            let base = format!("elements set {k}");
-            let ranges = chunks_of(&base, s.len(), item_bytes)?;
-            for (c, r) in ranges.iter().enumerate() {
-                let mut rest = Vec::with_capacity(r.len() * stride);
-                match s {
-                    ElementSet::NeoHookean(nh) => {
-                        for e in r.clone() {
-                            // Rows 1..=d of the shape gradients are Dm⁻¹.
-                            rest.extend_from_slice(&nh.grads(e)[d..]);
-                            let law = match nh.law {
-                                Law::NeoHookean => 1.0,
-                                Law::StableNeoHookean => 0.0,
-                            };
-                            rest.extend_from_slice(&[nh.volume[e], nh.mu, nh.lambda, law]);
-                        }
-                    }
-                    ElementSet::Springs(sp) => {
-                        rest.extend(sp.rest[r.clone()].iter().flat_map(|&l| [l, sp.stiffness]))
-                    }
-                }
-                debug_assert_eq!(rest.len(), r.len() * stride);
-                let idx: Vec<u32> = r
-                    .clone()
-                    .flat_map(|e| s.nodes(e).iter().map(|&v| v as u32))
-                    .collect();
-                let label = chunk_label(&base, c, ranges.len());
-                let nodes = a.init(&format!("{label} nodes"), bytemuck::cast_slice(&idx))?;
-                let rest = a.init(&format!("{label} rest"), &to_bytes(f64, &rest))?;
-                data.push(TermData {
-                    kind,
-                    label,
-                    first: r.start,
-                    count: r.len(),
-                    nodes: Some(nodes),
-                    rest: Some(rest),
-                    shared_rest: None,
-                    grad_len: nl,
-                    hess_len: nl * nl,
-                    flagged: matches!(s, ElementSet::NeoHookean(nh) if nh.law == Law::NeoHookean),
-                });
-            }
-        }
-        // Node terms: chunks of consecutive nodes, all reading the whole mesh's node data.
-        let mut node_terms = vec![(TermKind::Inertia, "elements inertia", d * d)];
-        if model.gravity.is_some() {
-            node_terms.push((TermKind::Gravity, "elements gravity", 0));
-        }
-        if barrier.is_some() {
-            node_terms.push((TermKind::Barrier, "elements barrier", d * d));
-        }
-        for (kind, base, hess_len) in node_terms {
-            let item_bytes = (hess_len.max(d) as u64 * rs).max(4);
-            let ranges = chunks_of(base, n, item_bytes)?;
-            for (c, r) in ranges.iter().enumerate() {
-                data.push(TermData {
-                    kind,
-                    label: chunk_label(base, c, ranges.len()),
-                    first: r.start,
-                    count: r.len(),
-                    nodes: None,
-                    rest: None,
-                    shared_rest: Some(&node_data),
-                    grad_len: d,
-                    hess_len,
-                    flagged: kind == TermKind::Barrier,
-                });
-            }
-        }
+        let shared = SharedBuffers::allocate(ctx, kernels, model, barrier)?;
+        let planner = ChunkPlanner::new(ctx, kernels, model.dim, binding_limit);
+        let mut data = planner.element_chunks(model)?;
+        data.extend(planner.node_chunks(model, barrier.is_some(), &shared.node_data)?);
         let mut terms = Vec::with_capacity(data.len());
         for t in data {
-            let label = &t.label;
-            let params = ElementParams {
-                count: t.count as u32,
-                project: 1,
-                n_planes: planes.len() as u32,
-                energy_only: 0,
-                first: t.first as u32,
-                pad: [0; 3],
-            };
-            let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(&format!("{label} params")),
-                contents: bytemuck::bytes_of(&params),
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            });
-            let energy = a.zeroed(&format!("{label} energy"), t.count as u64 * rs)?;
-            let gradient = a.zeroed(
-                &format!("{label} gradient"),
-                (t.count * t.grad_len) as u64 * rs,
-            )?;
-            let hessian = (t.hess_len > 0)
-                .then(|| {
-                    a.zeroed(
-                        &format!("{label} hessian"),
-                        (t.count * t.hess_len) as u64 * rs,
-                    )
-                })
-                .transpose()?;
-            let flags = t
-                .flagged
-                .then(|| a.zeroed(&format!("{label} flags"), t.count as u64 * 4))
-                .transpose()?;
-            // Bindings the entry point never touches still need a buffer: small ones of
-            // their own, so no buffer is bound both read-only and writable.
-            let unused_read = a.zeroed(&format!("{label} unused input"), 16)?;
-            let unused_hessian = a.zeroed(&format!("{label} unused hessian"), 16)?;
-            let unused_flags = a.zeroed(&format!("{label} unused flags"), 16)?;
-            let rest = t
-                .rest
-                .as_ref()
-                .or(t.shared_rest)
-                .ok_or_else(|| GpuError::Mismatch(format!("{label} has no rest data")))?;
-            let bufs: [&wgpu::Buffer; 10] = [
-                &params,
-                &x,
-                t.nodes.as_ref().unwrap_or(&unused_read),
-                rest,
-                &consts,
-                &x_tilde,
-                &energy,
-                &gradient,
-                hessian.as_ref().unwrap_or(&unused_hessian),
-                flags.as_ref().unwrap_or(&unused_flags),
-            ];
-            let group = kernels::bind_group(
-                &ctx.device,
-                &kernels.layout,
-                &format!("{label} bind group"),
-                &bufs,
-            );
-            terms.push(Term {
-                kind: t.kind,
-                first: t.first,
-                count: t.count,
-                grad_len: t.grad_len,
-                hess_len: t.hess_len,
-                params,
-                group,
-                energy,
-                gradient,
-                hessian,
-                flags,
-                mesh: t.nodes.clone().zip(t.rest.clone()),
-            });
+            terms.push(shared.bind(ctx, kernels, t)?);
         }
         ctx.check("uploading the element data")?;
         Ok(GpuElements {
             ctx: ctx.clone(),
             kernels: kernels.clone(),
-            n_nodes: n,
-            n_planes: planes.len(),
-            gravity,
-            x,
-            x_tilde,
-            consts,
-            node_data,
+            n_nodes: model.n_nodes,
+            n_planes: shared.n_planes,
+            gravity: shared.gravity,
+            x: shared.x,
+            x_tilde: shared.x_tilde,
+            consts: shared.consts,
+            node_data: shared.node_data,
             terms,
         })
     }

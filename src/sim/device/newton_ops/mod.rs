@@ -309,14 +309,44 @@ pub const CHECK_SLOTS: usize = 2;
 /// Result slots after the checks': the line search's first trial's α (`tail`).
 const TAIL_SLOTS: usize = 1;
 
-impl NewtonOps {
-    /// Builds the pipelines, state buffers and bind groups for the terms of `elements`,
-    /// their assembly `asm` and the direction buffer `dx` (n·d f64, world frame).
-    pub fn new(
-        elements: &GpuElements,
-        asm: &GpuAssembly,
-        dx: &wgpu::Buffer,
-    ) -> Result<Self, GpuError> {
+/// What [`NewtonOps::new`] checks and compiles before it allocates: the sizes, every
+/// node's diagonal block, the pipelines and the reduction workgroups.
+struct OpsPlan {
+    ctx: GpuContext,
+    d: usize,
+    n: usize,
+    n_planes: usize,
+    /// Per node: its diagonal block as (values chunk, block within the chunk).
+    diag: Vec<(u32, u32)>,
+    layout: wgpu::BindGroupLayout,
+    pipelines: Vec<wgpu::ComputePipeline>,
+    kinds: Vec<TermKind>,
+    groups: usize,
+}
+
+/// The buffers [`NewtonOps`] owns: those every op binds, and E's sums at x.
+struct OpsBuffers {
+    binder: Binder,
+    energy_at_x: wgpu::Buffer,
+}
+
+/// The ops built once in [`NewtonOps::new`] (see its fields).
+struct FixedOps {
+    begin: Op,
+    trial: Op,
+    step_bound: Op,
+    end: Op,
+    energy: Vec<Op>,
+    term_counts: Vec<usize>,
+    energy_finish: Op,
+    dot: (Op, Op),
+    max_abs: (Op, Op),
+    ccd: (Op, Op),
+    min_distance: (Op, Op),
+}
+
+impl OpsPlan {
+    fn new(elements: &GpuElements, asm: &GpuAssembly, dx: &wgpu::Buffer) -> Result<Self, GpuError> {
         let ctx = elements.context().clone();
         if !elements.kernels().is_f64() {
             return Err(GpuError::Unsupported(
@@ -367,18 +397,40 @@ impl NewtonOps {
             &[("D", d as f64), ("WG", WG as f64)],
         )?;
         let kinds = elements.kinds();
-        let t = kinds.len();
         let groups = reduce_groups(&ctx, n, "the Newton loop's reductions")?;
+        Ok(OpsPlan {
+            ctx,
+            d,
+            n,
+            n_planes: elements.n_planes(),
+            diag,
+            layout,
+            pipelines,
+            kinds,
+            groups,
+        })
+    }
+
+    /// Allocates the state, scalar and reduction buffers and gathers those of the element
+    /// terms, the assembly and Δx that every op binds.
+    fn allocate(
+        &self,
+        elements: &GpuElements,
+        asm: &GpuAssembly,
+        dx: &wgpu::Buffer,
+    ) -> Result<OpsBuffers, GpuError> {
+        let ctx = &self.ctx;
+        let nd = (self.n * self.d) as u64;
+        let t = self.kinds.len();
         let zeroed = |label: &str, bytes: u64| ctx.storage_zeroed(label, bytes);
         let x = zeroed("newton x", nd * 8)?;
         let xn = zeroed("newton xn", nd * 8)?;
         let v = zeroed("newton v", nd * 8)?;
-        let n_planes = elements.n_planes();
-        let mut scal_init = vec![0.0; S_PLANES + 4 * n_planes.max(1)];
+        let mut scal_init = vec![0.0; S_PLANES + 4 * self.n_planes.max(1)];
         scal_init[S_INF] = f64::INFINITY;
         let scal = ctx.storage_with("newton scalars", &to_bytes(true, &scal_init))?;
         let slots = slot_count(t) as u64;
-        let partials = zeroed("newton partial reductions", slots * groups as u64 * 32)?;
+        let partials = zeroed("newton partial reductions", slots * self.groups as u64 * 32)?;
         let all_slots = slots + (CHECK_SLOTS + TAIL_SLOTS) as u64;
         let result = zeroed("newton reductions", all_slots * 32)?;
         let energy_at_x = zeroed("newton energy at x", (t as u64 + 1) * 32)?;
@@ -391,7 +443,7 @@ impl NewtonOps {
         };
         let binder = Binder {
             ctx: ctx.clone(),
-            layout,
+            layout: self.layout.clone(),
             scal,
             x,
             xn,
@@ -409,14 +461,23 @@ impl NewtonOps {
             result,
             dummies,
         };
-        let ndof = n * d;
+        Ok(OpsBuffers {
+            binder,
+            energy_at_x,
+        })
+    }
+
+    /// Builds the ops of every step: its begin and end, the trial point, the step bound,
+    /// the per-term energy reductions and the scalar reductions.
+    fn bind(&self, b: &Binder, elements: &GpuElements) -> Result<FixedOps, GpuError> {
+        let (n, t, groups) = (self.n, self.kinds.len(), self.groups);
+        let ndof = n * self.d;
         let p = |count: usize, mode: u32, slot: usize, aux: u32| OpsParams {
             count: count as u32,
             mode,
             slot: slot as u32,
             aux,
         };
-        let b = &binder;
         let none = Varying::default();
         let begin = b.op("begin step", Entry::BeginStep, p(ndof, 0, 0, 0), none);
         let alpha_slot = slot_count(t) + CHECK_SLOTS;
@@ -463,32 +524,59 @@ impl NewtonOps {
                 ),
             )
         };
-        let dot = pair("g·dx", ndof, MODE_DOT, t, 0);
-        let max_abs = pair("max |dx|", ndof, MODE_MAX_ABS, t + 1, 0);
-        let ccd = pair("ccd", n, MODE_CCD, t + 2, n_planes as u32);
-        let min_distance = pair("min distance", n, MODE_MIN_DISTANCE, t + 3, n_planes as u32);
-        ctx.check("building the Newton operations")?;
-        Ok(NewtonOps {
-            ctx,
-            dim: d,
-            n_nodes: n,
-            n_planes,
-            kinds,
-            term_counts,
-            diag,
-            pipelines,
-            groups,
-            binder,
+        let n_planes = self.n_planes as u32;
+        Ok(FixedOps {
             begin,
             trial,
             step_bound,
             end,
             energy,
+            term_counts,
             energy_finish,
-            dot,
-            max_abs,
-            ccd,
-            min_distance,
+            dot: pair("g·dx", ndof, MODE_DOT, t, 0),
+            max_abs: pair("max |dx|", ndof, MODE_MAX_ABS, t + 1, 0),
+            ccd: pair("ccd", n, MODE_CCD, t + 2, n_planes),
+            min_distance: pair("min distance", n, MODE_MIN_DISTANCE, t + 3, n_planes),
+        })
+    }
+}
+
+impl NewtonOps {
+    /// Builds the pipelines, state buffers and bind groups for the terms of `elements`,
+    /// their assembly `asm` and the direction buffer `dx` (n·d f64, world frame).
+    pub fn new(
+        elements: &GpuElements,
+        asm: &GpuAssembly,
+        dx: &wgpu::Buffer,
+    ) -> Result<Self, GpuError> {
+        let plan = OpsPlan::new(elements, asm, dx)?;
+        let OpsBuffers {
+            binder,
+            energy_at_x,
+        } = plan.allocate(elements, asm, dx)?;
+        let ops = plan.bind(&binder, elements)?;
+        plan.ctx.check("building the Newton operations")?;
+        Ok(NewtonOps {
+            ctx: plan.ctx,
+            dim: plan.d,
+            n_nodes: plan.n,
+            n_planes: plan.n_planes,
+            kinds: plan.kinds,
+            term_counts: ops.term_counts,
+            diag: plan.diag,
+            pipelines: plan.pipelines,
+            groups: plan.groups,
+            binder,
+            begin: ops.begin,
+            trial: ops.trial,
+            step_bound: ops.step_bound,
+            end: ops.end,
+            energy: ops.energy,
+            energy_finish: ops.energy_finish,
+            dot: ops.dot,
+            max_abs: ops.max_abs,
+            ccd: ops.ccd,
+            min_distance: ops.min_distance,
             proj: None,
             moving: None,
             nodes: None,
