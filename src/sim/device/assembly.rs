@@ -25,13 +25,17 @@
 //! and per-block gather lists (4 bytes per block or entry) stay whole and are refused by
 //! name when they exceed a binding.
 
+mod plan;
+
 use super::elements::{from_bytes, to_bytes};
-use super::elements::{GpuElements, TermKind, WORKGROUP};
+use super::elements::{GpuElements, WORKGROUP};
 use crate::core::sparse::BlockCsr;
 use crate::gpu::blocks::{values_chunks, BlockMatrix, ValuesChunk};
 use crate::gpu::kernels::{self, Access, Layout};
 use crate::gpu::{GpuContext, GpuError};
 use crate::sim::energy::Model;
+pub use plan::{set_gathers, Gather, ProductBytes};
+use plan::{AssemblyPlan, SetPlan, TermData};
 
 use Access::{Read as R, ReadWrite as W, Uniform as U};
 
@@ -72,9 +76,6 @@ struct AssemblyParams {
 }
 const _: () = assert!(std::mem::size_of::<AssemblyParams>() == 32);
 
-/// Marks a block that is not on the diagonal (`NONE` in the shader).
-const NONE: u32 = u32::MAX;
-
 /// Entry points, in the order of [`GpuAssembly`]'s pipelines.
 const ENTRIES: [&str; 11] = [
     "blocks_init",
@@ -114,78 +115,6 @@ struct Pass {
     _params: wgpu::Buffer,
 }
 
-/// For each output item (block or node), the `src` offsets of its contributions.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Gather {
-    pub offsets: Vec<u32>,
-    pub entries: Vec<u32>,
-}
-
-impl Gather {
-    /// Groups (item, offset) pairs by item, keeping their order within an item.
-    fn from_pairs(items: usize, pairs: &[(usize, u32)]) -> Self {
-        let mut offsets = vec![0u32; items + 1];
-        for &(k, _) in pairs {
-            offsets[k + 1] += 1;
-        }
-        for k in 0..items {
-            offsets[k + 1] += offsets[k];
-        }
-        let mut next: Vec<u32> = offsets[..items].to_vec();
-        let mut entries = vec![0u32; pairs.len()];
-        for &(k, v) in pairs {
-            entries[next[k] as usize] = v;
-            next[k] += 1;
-        }
-        Gather { offsets, entries }
-    }
-}
-
-/// The gather lists of one element set: per block of `pattern` the offsets e·nl² +
-/// a·d·nl + b·d of the element sub-blocks (a, b) adding to it, and per node the offsets
-/// e·nl + a·d of the element gradient entries; both in element order, like the CPU's
-/// scatter (`Model::add_potential_hessian`).
-pub fn set_gathers(
-    pattern: &BlockCsr,
-    dim: usize,
-    nodes: impl Fn(usize) -> Vec<usize>,
-    len: usize,
-    arity: usize,
-) -> Result<(Gather, Gather), GpuError> {
-    let nl = arity * dim;
-    let too_big = || {
-        GpuError::Unsupported(format!(
-            "{len} elements of {arity} nodes exceed the assembly's u32 offsets"
-        ))
-    };
-    if len
-        .checked_mul(nl * nl)
-        .is_none_or(|v| v > u32::MAX as usize)
-    {
-        return Err(too_big());
-    }
-    let mut block_pairs = Vec::with_capacity(len * arity * arity);
-    let mut node_pairs = Vec::with_capacity(len * arity);
-    for e in 0..len {
-        let en = nodes(e);
-        for (a, &na) in en.iter().enumerate() {
-            for (b, &nb) in en.iter().enumerate() {
-                let k = pattern.find(na, nb).ok_or_else(|| {
-                    GpuError::Mismatch(format!(
-                        "element {e} couples nodes {na} and {nb} outside the Hessian pattern"
-                    ))
-                })?;
-                block_pairs.push((k, (e * nl * nl + a * dim * nl + b * dim) as u32));
-            }
-            node_pairs.push((na, (e * nl + a * dim) as u32));
-        }
-    }
-    Ok((
-        Gather::from_pairs(pattern.nnz_blocks(), &block_pairs),
-        Gather::from_pairs(pattern.n, &node_pairs),
-    ))
-}
-
 /// One element term's node gather lists on the device: per node i, `entries[offsets[i] ..
 /// offsets[i + 1]]` are the offsets e·nl + a·d, in element order, of its entries in the
 /// term's per-element gradient buffer ([`GpuElements::term_buffers`]).
@@ -223,14 +152,6 @@ pub struct GpuAssembly {
     bytes: ProductBytes,
 }
 
-/// Device memory traffic of one product y = H x, counted from the data each reads once
-/// (vectors x counted once, as if cached) and the y it writes.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ProductBytes {
-    pub assembled: u64,
-    pub matrix_free: u64,
-}
-
 impl GpuAssembly {
     /// Builds the pattern, gather lists, buffers and bind groups for the terms of
     /// `elements`, which must have been built from `model`.
@@ -256,44 +177,9 @@ impl GpuAssembly {
         binding_limit: Option<u64>,
     ) -> Result<Self, GpuError> {
         let ctx = elements.context().clone();
-        let dim = elements.kernels().dim();
-        let f64 = elements.kernels().is_f64();
-        if model.dim != dim {
-            return Err(GpuError::Mismatch(format!(
-                "the element terms are {dim}D, the model {}D",
-                model.dim
-            )));
-        }
-        let kinds = elements.kinds();
-        let mut ranges = Vec::with_capacity(kinds.len());
-        for t in 0..kinds.len() {
-            ranges.push(
-                elements
-                    .term_range(t)
-                    .ok_or_else(|| GpuError::Mismatch(format!("no element term {t}")))?,
-            );
-        }
-        // A set's first chunk starts at element 0; its other chunks follow it.
-        let n_sets = kinds
-            .iter()
-            .zip(&ranges)
-            .filter(|(k, r)| matches!(k, TermKind::NeoHookean | TermKind::Springs) && r.start == 0)
-            .count();
-        if n_sets != model.sets.len() {
-            return Err(GpuError::Mismatch(format!(
-                "{n_sets} element sets on the device, {} in the model",
-                model.sets.len()
-            )));
-        }
-        let pattern = &model.pattern;
-        let n = model.n_nodes;
-        let nb = pattern.nnz_blocks();
-        let dd = dim * dim;
-        let rs = if f64 { 8u64 } else { 4 };
-        let dev = &ctx.device;
-
-        // Pipelines.
-        let real = if f64 { "f64" } else { "f32" };
+        let plan = AssemblyPlan::new(elements, model)?;
+        let dim = plan.dim;
+        let real = if plan.f64 { "f64" } else { "f32" };
         let (layout, pipelines) = ASSEMBLE.pipelines(
             &ctx,
             (real, real),
@@ -301,502 +187,31 @@ impl GpuAssembly {
             &ENTRIES,
             &[("D", dim as f64), ("WG", WORKGROUP as f64)],
         )?;
-
-        // Buffers, limits checked first.
-        let init = |label: &str, data: &[u8]| ctx.storage_with(label, data);
-        let zeroed = |label: &str, bytes: u64| ctx.storage_zeroed(label, bytes);
-        let u32s = |v: &[usize]| -> Result<Vec<u32>, GpuError> {
-            v.iter()
-                .map(|&k| {
-                    u32::try_from(k).map_err(|_| {
-                        GpuError::Unsupported(format!("index {k} exceeds the assembly's u32"))
-                    })
-                })
-                .collect()
-        };
-        // The assembled values: one buffer per run of rows that fits one binding.
-        let values = values_chunks(
-            &ctx,
-            &pattern.row_ptr,
-            dd as u64 * rs,
-            binding_limit,
-            "assembly blocks",
-            None,
-        )?;
-        let single = values.len() == 1;
-        let gradient = zeroed("assembly gradient", (n * dim) as u64 * rs)?;
-        let x = zeroed("assembly product input", (n * dim) as u64 * rs)?;
-        let y_assembled = zeroed("assembly assembled product", (n * dim) as u64 * rs)?;
-        let y_matrix_free = zeroed("assembly matrix-free product", (n * dim) as u64 * rs)?;
-        let coef = init("assembly factors", &to_bytes(f64, &[1.0, 0.0]))?;
-        let row_ptr = init(
-            "assembly row pointers",
-            bytemuck::cast_slice(&u32s(&pattern.row_ptr)?),
-        )?;
-        let col_idx = init(
-            "assembly column indices",
-            bytemuck::cast_slice(&u32s(&pattern.col_idx)?),
-        )?;
-        let diag_list: Vec<u32> = (0..n)
-            .map(|i| {
-                pattern
-                    .diag_index(i)
-                    .map(|k| k as u32)
-                    .ok_or_else(|| GpuError::Mismatch(format!("node {i} has no diagonal block")))
-            })
-            .collect::<Result<_, _>>()?;
-        let diag = init("assembly diagonal blocks", bytemuck::cast_slice(&diag_list))?;
-        let dummy_u32 = zeroed("assembly unused indices", 16)?;
-        let dummy_real = zeroed("assembly unused reals", 16)?;
-
-        // Bind groups: one per pass.
-        struct Binds<'a> {
-            offsets: &'a wgpu::Buffer,
-            gather: &'a wgpu::Buffer,
-            src: &'a wgpu::Buffer,
-            x: &'a wgpu::Buffer,
-            nodes: &'a wgpu::Buffer,
-            out: &'a wgpu::Buffer,
+        let buffers = AssemblyBuffers::allocate(&ctx, &plan, &model.pattern, binding_limit)?;
+        let passes = Binder {
+            ctx: &ctx,
+            layout: &layout,
+            buf: &buffers,
+            plan: &plan,
         }
-        // `at`: (block_first, src_first) of a values chunk's pass.
-        let pass_at = |entry: Entry,
-                       count: usize,
-                       first: usize,
-                       at: (usize, usize),
-                       nl: usize,
-                       arity: usize,
-                       coef_slot: u32,
-                       b: Binds|
-         -> Pass {
-            let p = AssemblyParams {
-                count: count as u32,
-                nl: nl as u32,
-                arity: arity as u32,
-                coef_slot,
-                first: first as u32,
-                block_first: at.0 as u32,
-                src_first: at.1 as u32,
-                pad: 0,
-            };
-            let params = ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(&format!("{} params", ENTRIES[entry as usize])),
-                contents: bytemuck::bytes_of(&p),
-                usage: wgpu::BufferUsages::UNIFORM,
-            });
-            let bufs: [&wgpu::Buffer; 8] = [
-                &params, b.offsets, b.gather, b.src, &coef, b.x, b.nodes, b.out,
-            ];
-            let group = kernels::bind_group(
-                dev,
-                &layout,
-                &format!("{} bind group", ENTRIES[entry as usize]),
-                &bufs,
-            );
-            Pass {
-                entry,
-                count,
-                group,
-                _params: params,
-            }
-        };
-        let pass =
-            |entry: Entry,
-             count: usize,
-             first: usize,
-             nl: usize,
-             arity: usize,
-             coef_slot: u32,
-             b: Binds|
-             -> Pass { pass_at(entry, count, first, (0, 0), nl, arity, coef_slot, b) };
-        // A node term's pass on the diagonal blocks of nodes `r` (the term chunk's items
-        // from 0), once per values chunk holding some of them, each with its nodes'
-        // diagonal blocks relative to the chunk.
-        let node_block_passes = |entry: Entry,
-                                 label: &str,
-                                 r: &std::ops::Range<usize>,
-                                 coef_slot: u32,
-                                 src: &wgpu::Buffer|
-         -> Result<Vec<Pass>, GpuError> {
-            let mut out = Vec::new();
-            for c in &values {
-                let (s, e) = (r.start.max(c.rows.start), r.end.min(c.rows.end));
-                if s >= e {
-                    continue;
-                }
-                let list: Vec<u32> = diag_list
-                    .get(s..e)
-                    .ok_or_else(|| {
-                        GpuError::Mismatch(format!("{label} covers nodes {r:?} of {n}"))
-                    })?
-                    .iter()
-                    .map(|&k| k - c.blocks.start as u32)
-                    .collect();
-                let own;
-                let d = if single && (s, e) == (0, n) {
-                    &diag
-                } else {
-                    own = init(
-                        &format!("{label} diagonal blocks of nodes {s}..{e}"),
-                        bytemuck::cast_slice(&list),
-                    )?;
-                    &own
-                };
-                out.push(pass_at(
-                    entry,
-                    e - s,
-                    s,
-                    (c.blocks.start, s - r.start),
-                    0,
-                    1,
-                    coef_slot,
-                    Binds {
-                        offsets: &dummy_u32,
-                        gather: d,
-                        src,
-                        x: &dummy_real,
-                        nodes: &dummy_u32,
-                        out: &c.buffer,
-                    },
-                ));
-            }
-            Ok(out)
-        };
-
-        let mut hessian_passes = Vec::new();
-        let mut gradient_passes = Vec::new();
-        let mut matfree_passes = Vec::new();
-        let mut matfree_nodes = Vec::new();
-        let mut set_passes = Vec::new();
-        let mut node_gathers = Vec::new();
-        let mut mf_bytes = 0u64;
-        // Index into model.sets of the current element term (advanced by each first chunk).
-        let mut set: Option<usize> = None;
-        for (t, (kind, r)) in kinds.iter().zip(&ranges).enumerate() {
-            let (grad, hess) = elements
-                .term_buffers(t)
-                .ok_or_else(|| GpuError::Mismatch(format!("no element term {t}")))?;
-            let len = r.len();
-            match kind {
-                TermKind::NeoHookean | TermKind::Springs => {
-                    if r.start == 0 {
-                        set = Some(set.map_or(0, |k| k + 1));
-                    }
-                    let k = set.ok_or_else(|| {
-                        GpuError::Mismatch(format!(
-                            "element term {t} starts at element {}",
-                            r.start
-                        ))
-                    })?;
-                    let s = model
-                        .sets
-                        .get(k)
-                        .ok_or_else(|| GpuError::Mismatch(format!("no element set {k}")))?;
-                    if r.end > s.len() {
-                        return Err(GpuError::Mismatch(format!(
-                            "element term {t} covers elements {r:?} of set {k}'s {}",
-                            s.len()
-                        )));
-                    }
-                    let arity = s.arity();
-                    let nl = arity * dim;
-                    // Offsets relative to the chunk's own arrays, elements in order.
-                    let (bg, ng) =
-                        set_gathers(pattern, dim, |e| s.nodes(r.start + e).to_vec(), len, arity)?;
-                    let idx: Vec<usize> = r.clone().flat_map(|e| s.nodes(e).to_vec()).collect();
-                    let label = if r.start == 0 && r.end == s.len() {
-                        format!("assembly set {k}")
-                    } else {
-                        format!("assembly set {k} elements {}..{}", r.start, r.end)
-                    };
-                    let b_off = init(
-                        &format!("{label} block offsets"),
-                        bytemuck::cast_slice(&bg.offsets),
-                    )?;
-                    let b_ent = init(
-                        &format!("{label} block entries"),
-                        bytemuck::cast_slice(&bg.entries),
-                    )?;
-                    let n_off = init(
-                        &format!("{label} node offsets"),
-                        bytemuck::cast_slice(&ng.offsets),
-                    )?;
-                    let n_ent = init(
-                        &format!("{label} node entries"),
-                        bytemuck::cast_slice(&ng.entries),
-                    )?;
-                    let nodes = init(
-                        &format!("{label} element nodes"),
-                        bytemuck::cast_slice(&u32s(&idx)?),
-                    )?;
-                    node_gathers.push(NodeGather {
-                        term: t,
-                        offsets: n_off.clone(),
-                        entries: n_ent.clone(),
-                    });
-                    let hess =
-                        hess.ok_or_else(|| GpuError::Mismatch(format!("set {k} has no Hessian")))?;
-                    // Matrix-free reads per product: every element Hessian entry once, the
-                    // node lists, and each element's node indices once per its node.
-                    mf_bytes += (len * nl * nl) as u64 * rs
-                        + 4 * (ng.offsets.len() + ng.entries.len()) as u64
-                        + 4 * (len * arity * arity) as u64;
-                    set_passes.push((
-                        values
-                            .iter()
-                            .map(|c| {
-                                pass_at(
-                                    Entry::BlocksAddElements,
-                                    c.blocks.len(),
-                                    0,
-                                    (c.blocks.start, 0),
-                                    nl,
-                                    arity,
-                                    1,
-                                    Binds {
-                                        offsets: &b_off,
-                                        gather: &b_ent,
-                                        src: hess,
-                                        x: &dummy_real,
-                                        nodes: &dummy_u32,
-                                        out: &c.buffer,
-                                    },
-                                )
-                            })
-                            .collect::<Vec<_>>(),
-                        pass(
-                            Entry::GradAddElements,
-                            n,
-                            0,
-                            nl,
-                            arity,
-                            1,
-                            Binds {
-                                offsets: &n_off,
-                                gather: &n_ent,
-                                src: grad,
-                                x: &dummy_real,
-                                nodes: &dummy_u32,
-                                out: &gradient,
-                            },
-                        ),
-                        pass(
-                            Entry::MatfreeAddElements,
-                            n,
-                            0,
-                            nl,
-                            arity,
-                            1,
-                            Binds {
-                                offsets: &n_off,
-                                gather: &n_ent,
-                                src: hess,
-                                x: &x,
-                                nodes: &nodes,
-                                out: &y_matrix_free,
-                            },
-                        ),
-                    ));
-                }
-                TermKind::Inertia => {
-                    let hess =
-                        hess.ok_or_else(|| GpuError::Mismatch("inertia has no Hessian".into()))?;
-                    if r.start == 0 {
-                        // The first chunk initializes every block: its nodes' diagonal
-                        // blocks to their inertia, all others (including later chunks'
-                        // nodes, set below) to zero.
-                        let mut block_node = vec![NONE; nb];
-                        for (i, &k) in diag_list[..r.end.min(n)].iter().enumerate() {
-                            block_node[k as usize] = i as u32;
-                        }
-                        let block_node =
-                            init("assembly block nodes", bytemuck::cast_slice(&block_node))?;
-                        for c in &values {
-                            hessian_passes.push(pass_at(
-                                Entry::BlocksInit,
-                                c.blocks.len(),
-                                0,
-                                (c.blocks.start, 0),
-                                0,
-                                1,
-                                0,
-                                Binds {
-                                    offsets: &dummy_u32,
-                                    gather: &block_node,
-                                    src: hess,
-                                    x: &dummy_real,
-                                    nodes: &dummy_u32,
-                                    out: &c.buffer,
-                                },
-                            ));
-                        }
-                    } else {
-                        hessian_passes.extend(node_block_passes(
-                            Entry::BlocksSetNodes,
-                            "assembly inertia chunk",
-                            r,
-                            0,
-                            hess,
-                        )?);
-                    }
-                    gradient_passes.push(pass(
-                        Entry::GradInit,
-                        len,
-                        r.start,
-                        0,
-                        1,
-                        0,
-                        Binds {
-                            offsets: &dummy_u32,
-                            gather: &dummy_u32,
-                            src: grad,
-                            x: &dummy_real,
-                            nodes: &dummy_u32,
-                            out: &gradient,
-                        },
-                    ));
-                    matfree_passes.push(pass(
-                        Entry::MatfreeInit,
-                        len,
-                        r.start,
-                        0,
-                        1,
-                        0,
-                        Binds {
-                            offsets: &dummy_u32,
-                            gather: &dummy_u32,
-                            src: hess,
-                            x: &x,
-                            nodes: &dummy_u32,
-                            out: &y_matrix_free,
-                        },
-                    ));
-                    mf_bytes += (len * dd) as u64 * rs;
-                }
-                TermKind::Gravity => {
-                    matfree_nodes.push((
-                        None,
-                        pass(
-                            Entry::GradAddNodes,
-                            len,
-                            r.start,
-                            0,
-                            1,
-                            1,
-                            Binds {
-                                offsets: &dummy_u32,
-                                gather: &dummy_u32,
-                                src: grad,
-                                x: &dummy_real,
-                                nodes: &dummy_u32,
-                                out: &gradient,
-                            },
-                        ),
-                    ));
-                }
-                TermKind::Barrier => {
-                    let hess = hess
-                        .ok_or_else(|| GpuError::Mismatch("the barrier has no Hessian".into()))?;
-                    matfree_nodes.push((
-                        Some((
-                            node_block_passes(
-                                Entry::BlocksAddNodes,
-                                "assembly barrier chunk",
-                                r,
-                                1,
-                                hess,
-                            )?,
-                            pass(
-                                Entry::MatfreeAddNodes,
-                                len,
-                                r.start,
-                                0,
-                                1,
-                                1,
-                                Binds {
-                                    offsets: &dummy_u32,
-                                    gather: &dummy_u32,
-                                    src: hess,
-                                    x: &x,
-                                    nodes: &dummy_u32,
-                                    out: &y_matrix_free,
-                                },
-                            ),
-                        )),
-                        pass(
-                            Entry::GradAddNodes,
-                            len,
-                            r.start,
-                            0,
-                            1,
-                            1,
-                            Binds {
-                                offsets: &dummy_u32,
-                                gather: &dummy_u32,
-                                src: grad,
-                                x: &dummy_real,
-                                nodes: &dummy_u32,
-                                out: &gradient,
-                            },
-                        ),
-                    ));
-                    mf_bytes += (len * dd) as u64 * rs;
-                }
-            }
-        }
-        if hessian_passes.is_empty() {
-            return Err(GpuError::Mismatch(
-                "the element terms have no inertia".into(),
-            ));
-        }
-        // Order: inertia, the sets, then gravity and barrier.
-        for (h, g, m) in set_passes {
-            hessian_passes.extend(h);
-            gradient_passes.push(g);
-            matfree_passes.push(m);
-        }
-        for (hm, g) in matfree_nodes {
-            if let Some((h, m)) = hm {
-                hessian_passes.extend(h);
-                matfree_passes.push(m);
-            }
-            gradient_passes.push(g);
-        }
-        // One product pass per values chunk, over its rows (no sum crosses a row).
-        let matvec_passes: Vec<Pass> = values
-            .iter()
-            .map(|c| {
-                pass_at(
-                    Entry::MatvecBlocks,
-                    c.rows.len(),
-                    c.rows.start,
-                    (c.blocks.start, 0),
-                    0,
-                    1,
-                    0,
-                    Binds {
-                        offsets: &row_ptr,
-                        gather: &col_idx,
-                        src: &c.buffer,
-                        x: &x,
-                        nodes: &dummy_u32,
-                        out: &y_assembled,
-                    },
-                )
-            })
-            .collect();
-        let vec_bytes = 2 * (n * dim) as u64 * rs;
-        let bytes = ProductBytes {
-            assembled: (nb * dd) as u64 * rs + 4 * (nb + n + 1) as u64 + vec_bytes,
-            matrix_free: mf_bytes + vec_bytes,
-        };
+        .bind(elements)?;
         ctx.check("building the device assembly")?;
+        let AssemblyBuffers {
+            values,
+            gradient,
+            x,
+            y_assembled,
+            y_matrix_free,
+            coef,
+            ..
+        } = buffers;
         Ok(GpuAssembly {
             ctx,
             dim,
-            f64,
-            n_nodes: n,
-            row_ptr: pattern.row_ptr.clone(),
-            col_idx: pattern.col_idx.clone(),
+            f64: plan.f64,
+            n_nodes: plan.n,
+            row_ptr: model.pattern.row_ptr.clone(),
+            col_idx: model.pattern.col_idx.clone(),
             pipelines,
             coef,
             values,
@@ -804,12 +219,12 @@ impl GpuAssembly {
             x,
             y_assembled,
             y_matrix_free,
-            hessian_passes,
-            gradient_passes,
-            matvec_passes,
-            matfree_passes,
-            node_gathers,
-            bytes,
+            hessian_passes: passes.hessian,
+            gradient_passes: passes.gradient,
+            matvec_passes: passes.matvec,
+            matfree_passes: passes.matfree,
+            node_gathers: passes.node_gathers,
+            bytes: plan.bytes,
         })
     }
 
@@ -974,6 +389,489 @@ impl GpuAssembly {
             .ctx
             .download(buf, 0, bytes, "reading back the assembly")?;
         Ok(from_bytes(self.f64, &v))
+    }
+}
+
+/// The buffers every pass shares, allocated (limits checked first) in this order.
+struct AssemblyBuffers {
+    /// The assembled values: one buffer per run of rows that fits one binding.
+    values: Vec<ValuesChunk>,
+    gradient: wgpu::Buffer,
+    x: wgpu::Buffer,
+    y_assembled: wgpu::Buffer,
+    y_matrix_free: wgpu::Buffer,
+    coef: wgpu::Buffer,
+    row_ptr: wgpu::Buffer,
+    col_idx: wgpu::Buffer,
+    diag: wgpu::Buffer,
+    dummy_u32: wgpu::Buffer,
+    dummy_real: wgpu::Buffer,
+}
+
+impl AssemblyBuffers {
+    fn allocate(
+        ctx: &GpuContext,
+        plan: &AssemblyPlan,
+        pattern: &BlockCsr,
+        binding_limit: Option<u64>,
+    ) -> Result<Self, GpuError> {
+        let (n, dim, rs) = (plan.n, plan.dim, plan.rs);
+        let init = |label: &str, data: &[u8]| ctx.storage_with(label, data);
+        let zeroed = |label: &str, bytes: u64| ctx.storage_zeroed(label, bytes);
+        let values = values_chunks(
+            ctx,
+            &pattern.row_ptr,
+            (dim * dim) as u64 * rs,
+            binding_limit,
+            "assembly blocks",
+            None,
+        )?;
+        Ok(AssemblyBuffers {
+            values,
+            gradient: zeroed("assembly gradient", (n * dim) as u64 * rs)?,
+            x: zeroed("assembly product input", (n * dim) as u64 * rs)?,
+            y_assembled: zeroed("assembly assembled product", (n * dim) as u64 * rs)?,
+            y_matrix_free: zeroed("assembly matrix-free product", (n * dim) as u64 * rs)?,
+            coef: init("assembly factors", &to_bytes(plan.f64, &[1.0, 0.0]))?,
+            row_ptr: init("assembly row pointers", bytemuck::cast_slice(&plan.row_ptr))?,
+            col_idx: init(
+                "assembly column indices",
+                bytemuck::cast_slice(&plan.col_idx),
+            )?,
+            diag: init("assembly diagonal blocks", bytemuck::cast_slice(&plan.diag))?,
+            dummy_u32: zeroed("assembly unused indices", 16)?,
+            dummy_real: zeroed("assembly unused reals", 16)?,
+        })
+    }
+}
+
+/// The items of one dispatch, [`AssemblyParams`] before the cast to u32.
+struct Dispatch {
+    entry: Entry,
+    count: usize,
+    first: usize,
+    /// (block_first, src_first) of a values chunk's pass.
+    at: (usize, usize),
+    nl: usize,
+    arity: usize,
+    coef_slot: u32,
+}
+
+impl Dispatch {
+    /// A pass over `count` nodes from `first`, outside the values chunks.
+    fn nodes(entry: Entry, count: usize, first: usize, coef_slot: u32) -> Self {
+        Dispatch {
+            entry,
+            count,
+            first,
+            at: (0, 0),
+            nl: 0,
+            arity: 1,
+            coef_slot,
+        }
+    }
+}
+
+/// The buffers bound to one pass besides its parameters and the factors.
+struct Binds<'a> {
+    offsets: &'a wgpu::Buffer,
+    gather: &'a wgpu::Buffer,
+    src: &'a wgpu::Buffer,
+    x: &'a wgpu::Buffer,
+    nodes: &'a wgpu::Buffer,
+    out: &'a wgpu::Buffer,
+}
+
+/// The passes of the four operations, each list in its order of dispatch.
+struct AssemblyPasses {
+    hessian: Vec<Pass>,
+    gradient: Vec<Pass>,
+    matvec: Vec<Pass>,
+    matfree: Vec<Pass>,
+    node_gathers: Vec<NodeGather>,
+}
+
+/// A set chunk's passes: on each values chunk, on the gradient, on the matrix-free product.
+type SetPasses = (Vec<Pass>, Pass, Pass);
+
+/// A node term's passes: on the blocks and the matrix-free product (the barrier's; none
+/// for gravity), and on the gradient.
+type NodePasses = (Option<(Vec<Pass>, Pass)>, Pass);
+
+/// Builds the passes' parameters and bind groups over the shared buffers, uploading each
+/// term's own buffers as it reaches it.
+struct Binder<'a> {
+    ctx: &'a GpuContext,
+    layout: &'a wgpu::BindGroupLayout,
+    buf: &'a AssemblyBuffers,
+    plan: &'a AssemblyPlan,
+}
+
+impl Binder<'_> {
+    fn pass(&self, d: Dispatch, b: Binds) -> Pass {
+        let p = AssemblyParams {
+            count: d.count as u32,
+            nl: d.nl as u32,
+            arity: d.arity as u32,
+            coef_slot: d.coef_slot,
+            first: d.first as u32,
+            block_first: d.at.0 as u32,
+            src_first: d.at.1 as u32,
+            pad: 0,
+        };
+        let params = self.ctx.buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(&format!("{} params", ENTRIES[d.entry as usize])),
+            contents: bytemuck::bytes_of(&p),
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
+        let bufs: [&wgpu::Buffer; 8] = [
+            &params,
+            b.offsets,
+            b.gather,
+            b.src,
+            &self.buf.coef,
+            b.x,
+            b.nodes,
+            b.out,
+        ];
+        let group = kernels::bind_group(
+            &self.ctx.device,
+            self.layout,
+            &format!("{} bind group", ENTRIES[d.entry as usize]),
+            &bufs,
+        );
+        Pass {
+            entry: d.entry,
+            count: d.count,
+            group,
+            _params: params,
+        }
+    }
+
+    /// Binds for a pass on node arrays only: no gather lists, element nodes or input.
+    fn node_binds<'b>(&'b self, src: &'b wgpu::Buffer, out: &'b wgpu::Buffer) -> Binds<'b> {
+        Binds {
+            offsets: &self.buf.dummy_u32,
+            gather: &self.buf.dummy_u32,
+            src,
+            x: &self.buf.dummy_real,
+            nodes: &self.buf.dummy_u32,
+            out,
+        }
+    }
+
+    /// All passes, in the CPU's order of summation: inertia, the sets, then gravity and
+    /// barrier.
+    fn bind(&self, elements: &GpuElements) -> Result<AssemblyPasses, GpuError> {
+        let buf = self.buf;
+        let mut hessian = Vec::new();
+        let mut gradient = Vec::new();
+        let mut matfree = Vec::new();
+        let mut matfree_nodes: Vec<NodePasses> = Vec::new();
+        let mut set_passes: Vec<SetPasses> = Vec::new();
+        let mut node_gathers = Vec::new();
+        for term in &self.plan.terms {
+            let t = term.t;
+            let (grad, hess) = elements
+                .term_buffers(t)
+                .ok_or_else(|| GpuError::Mismatch(format!("no element term {t}")))?;
+            let (r, len) = (&term.range, term.range.len());
+            match &term.data {
+                TermData::Set(s) => {
+                    let (passes, node_gather) = self.set_passes(t, s, grad, hess)?;
+                    node_gathers.push(node_gather);
+                    set_passes.push(passes);
+                }
+                TermData::Inertia { block_node } => {
+                    let hess =
+                        hess.ok_or_else(|| GpuError::Mismatch("inertia has no Hessian".into()))?;
+                    hessian.extend(self.inertia_block_passes(r, block_node.as_deref(), hess)?);
+                    gradient.push(self.pass(
+                        Dispatch::nodes(Entry::GradInit, len, r.start, 0),
+                        self.node_binds(grad, &buf.gradient),
+                    ));
+                    matfree.push(self.pass(
+                        Dispatch::nodes(Entry::MatfreeInit, len, r.start, 0),
+                        Binds {
+                            x: &buf.x,
+                            ..self.node_binds(hess, &buf.y_matrix_free)
+                        },
+                    ));
+                }
+                TermData::Gravity => {
+                    matfree_nodes.push((
+                        None,
+                        self.pass(
+                            Dispatch::nodes(Entry::GradAddNodes, len, r.start, 1),
+                            self.node_binds(grad, &buf.gradient),
+                        ),
+                    ));
+                }
+                TermData::Barrier => {
+                    let hess = hess
+                        .ok_or_else(|| GpuError::Mismatch("the barrier has no Hessian".into()))?;
+                    let blocks = self.node_block_passes(
+                        Entry::BlocksAddNodes,
+                        "assembly barrier chunk",
+                        r,
+                        1,
+                        hess,
+                    )?;
+                    let product = self.pass(
+                        Dispatch::nodes(Entry::MatfreeAddNodes, len, r.start, 1),
+                        Binds {
+                            x: &buf.x,
+                            ..self.node_binds(hess, &buf.y_matrix_free)
+                        },
+                    );
+                    let grad = self.pass(
+                        Dispatch::nodes(Entry::GradAddNodes, len, r.start, 1),
+                        self.node_binds(grad, &buf.gradient),
+                    );
+                    matfree_nodes.push((Some((blocks, product)), grad));
+                }
+            }
+        }
+        if hessian.is_empty() {
+            return Err(GpuError::Mismatch(
+                "the element terms have no inertia".into(),
+            ));
+        }
+        for (h, g, m) in set_passes {
+            hessian.extend(h);
+            gradient.push(g);
+            matfree.push(m);
+        }
+        for (hm, g) in matfree_nodes {
+            if let Some((h, m)) = hm {
+                hessian.extend(h);
+                matfree.push(m);
+            }
+            gradient.push(g);
+        }
+        // One product pass per values chunk, over its rows (no sum crosses a row).
+        let matvec = buf
+            .values
+            .iter()
+            .map(|c| {
+                self.pass(
+                    Dispatch {
+                        entry: Entry::MatvecBlocks,
+                        count: c.rows.len(),
+                        first: c.rows.start,
+                        at: (c.blocks.start, 0),
+                        nl: 0,
+                        arity: 1,
+                        coef_slot: 0,
+                    },
+                    Binds {
+                        offsets: &buf.row_ptr,
+                        gather: &buf.col_idx,
+                        src: &c.buffer,
+                        x: &buf.x,
+                        nodes: &buf.dummy_u32,
+                        out: &buf.y_assembled,
+                    },
+                )
+            })
+            .collect();
+        Ok(AssemblyPasses {
+            hessian,
+            gradient,
+            matvec,
+            matfree,
+            node_gathers,
+        })
+    }
+
+    /// Uploads a set chunk's gather lists and element nodes, and binds its passes.
+    fn set_passes(
+        &self,
+        t: usize,
+        s: &SetPlan,
+        grad: &wgpu::Buffer,
+        hess: Option<&wgpu::Buffer>,
+    ) -> Result<(SetPasses, NodeGather), GpuError> {
+        let (buf, label) = (self.buf, &s.label);
+        let init = |suffix: &str, data: &[u32]| {
+            self.ctx
+                .storage_with(&format!("{label} {suffix}"), bytemuck::cast_slice(data))
+        };
+        let b_off = init("block offsets", &s.blocks.offsets)?;
+        let b_ent = init("block entries", &s.blocks.entries)?;
+        let n_off = init("node offsets", &s.nodes.offsets)?;
+        let n_ent = init("node entries", &s.nodes.entries)?;
+        let nodes = init("element nodes", &s.element_nodes)?;
+        let node_gather = NodeGather {
+            term: t,
+            offsets: n_off.clone(),
+            entries: n_ent.clone(),
+        };
+        let k = s.k;
+        let hess = hess.ok_or_else(|| GpuError::Mismatch(format!("set {k} has no Hessian")))?;
+        let (nl, arity) = (s.nl, s.arity);
+        let blocks = buf
+            .values
+            .iter()
+            .map(|c| {
+                self.pass(
+                    Dispatch {
+                        entry: Entry::BlocksAddElements,
+                        count: c.blocks.len(),
+                        first: 0,
+                        at: (c.blocks.start, 0),
+                        nl,
+                        arity,
+                        coef_slot: 1,
+                    },
+                    Binds {
+                        offsets: &b_off,
+                        gather: &b_ent,
+                        src: hess,
+                        x: &buf.dummy_real,
+                        nodes: &buf.dummy_u32,
+                        out: &c.buffer,
+                    },
+                )
+            })
+            .collect::<Vec<_>>();
+        let over_nodes = |entry| Dispatch {
+            entry,
+            count: self.plan.n,
+            first: 0,
+            at: (0, 0),
+            nl,
+            arity,
+            coef_slot: 1,
+        };
+        let grad = self.pass(
+            over_nodes(Entry::GradAddElements),
+            Binds {
+                offsets: &n_off,
+                gather: &n_ent,
+                src: grad,
+                x: &buf.dummy_real,
+                nodes: &buf.dummy_u32,
+                out: &buf.gradient,
+            },
+        );
+        let product = self.pass(
+            over_nodes(Entry::MatfreeAddElements),
+            Binds {
+                offsets: &n_off,
+                gather: &n_ent,
+                src: hess,
+                x: &buf.x,
+                nodes: &nodes,
+                out: &buf.y_matrix_free,
+            },
+        );
+        Ok(((blocks, grad, product), node_gather))
+    }
+
+    /// The inertia chunk's block passes: the first chunk (`block_node` given) initializes
+    /// every block, its nodes' diagonal blocks to their inertia and all others (including
+    /// later chunks' nodes, set by theirs) to zero.
+    fn inertia_block_passes(
+        &self,
+        r: &std::ops::Range<usize>,
+        block_node: Option<&[u32]>,
+        hess: &wgpu::Buffer,
+    ) -> Result<Vec<Pass>, GpuError> {
+        let Some(block_node) = block_node else {
+            return self.node_block_passes(
+                Entry::BlocksSetNodes,
+                "assembly inertia chunk",
+                r,
+                0,
+                hess,
+            );
+        };
+        let buf = self.buf;
+        let block_node = self
+            .ctx
+            .storage_with("assembly block nodes", bytemuck::cast_slice(block_node))?;
+        Ok(buf
+            .values
+            .iter()
+            .map(|c| {
+                self.pass(
+                    Dispatch {
+                        entry: Entry::BlocksInit,
+                        count: c.blocks.len(),
+                        first: 0,
+                        at: (c.blocks.start, 0),
+                        nl: 0,
+                        arity: 1,
+                        coef_slot: 0,
+                    },
+                    Binds {
+                        offsets: &buf.dummy_u32,
+                        gather: &block_node,
+                        src: hess,
+                        x: &buf.dummy_real,
+                        nodes: &buf.dummy_u32,
+                        out: &c.buffer,
+                    },
+                )
+            })
+            .collect())
+    }
+
+    /// A node term's pass on the diagonal blocks of nodes `r` (the term chunk's items from
+    /// 0), once per values chunk holding some of them, each with its nodes' diagonal
+    /// blocks relative to the chunk.
+    fn node_block_passes(
+        &self,
+        entry: Entry,
+        label: &str,
+        r: &std::ops::Range<usize>,
+        coef_slot: u32,
+        src: &wgpu::Buffer,
+    ) -> Result<Vec<Pass>, GpuError> {
+        let (buf, n) = (self.buf, self.plan.n);
+        let single = buf.values.len() == 1;
+        let mut out = Vec::new();
+        for c in &buf.values {
+            let (s, e) = (r.start.max(c.rows.start), r.end.min(c.rows.end));
+            if s >= e {
+                continue;
+            }
+            let list: Vec<u32> = self
+                .plan
+                .diag
+                .get(s..e)
+                .ok_or_else(|| GpuError::Mismatch(format!("{label} covers nodes {r:?} of {n}")))?
+                .iter()
+                .map(|&k| k - c.blocks.start as u32)
+                .collect();
+            let own;
+            let d = if single && (s, e) == (0, n) {
+                &buf.diag
+            } else {
+                own = self.ctx.storage_with(
+                    &format!("{label} diagonal blocks of nodes {s}..{e}"),
+                    bytemuck::cast_slice(&list),
+                )?;
+                &own
+            };
+            out.push(self.pass(
+                Dispatch {
+                    entry,
+                    count: e - s,
+                    first: s,
+                    at: (c.blocks.start, s - r.start),
+                    nl: 0,
+                    arity: 1,
+                    coef_slot,
+                },
+                Binds {
+                    gather: d,
+                    ..self.node_binds(src, &c.buffer)
+                },
+            ));
+        }
+        Ok(out)
     }
 }
 
