@@ -25,27 +25,28 @@ use std::time::Instant;
 ///
 /// | field | default | used by | meaning |
 /// |---|---|---|---|
-/// | `kind` | (constructor) | all | which solver |
-/// | `precision` | f64; the argument of `gpu(..)` | gpu | arithmetic of the GPU CG: f32, f64 (needs SHADER_F64) or mixed (f32 CG with f64 reliable updates; needs SHADER_F64) |
-/// | `tol` | 1e-8 | cg, gpu | stop at ‖b̂ − Ĥy‖/‖b̂‖ ≤ tol, the true residual recomputed in f64; in (0, 1) |
-/// | `max_iters` | 10 000 | cg, gpu | CG iteration limit (all restarts together); ≥ 1 |
-/// | `preconditioner` | Jacobi | cg, gpu | Jacobi, block-Jacobi (d×d node blocks) or none |
-/// | `coarse` | aggregates | cg, gpu | coarse correction added to the preconditioner (docs/coarse.md) |
-/// | `error_tol` | none | gpu mixed | after `tol`, refine until the estimated relative error ≤ this |
+/// | `kind` | the constructor | all | `cholesky()`, `cg()`, `gpu(precision)` |
+/// | `precision` | f64 (CPU); the argument of `gpu(..)` | gpu | f32, f64 or mixed; f64 and mixed need SHADER_F64 |
+/// | `tol` | 1e-8 | cg, gpu | stop at ‖b̂ − Ĥy‖/‖b̂‖ ≤ tol (true residual, f64); in (0, 1) |
+/// | `max_iters` | 10 000 | cg, gpu | iteration limit; ≥ 1 |
+/// | `preconditioner` | jacobi | cg, gpu | jacobi, block-jacobi, none, multilevel (cg, and gpu in f64) |
+/// | `coarse` | aggregates | cg, gpu | coarse correction (docs/coarse.md) |
+/// | `multilevel_setup` | every | cg, gpu f64 | `MultilevelSetup::Every` builds the multilevel levels for every solve; `Reuse` keeps them across the solves of a Newton sequence (as scenes do: `[solver] multilevel_setup`) |
+/// | `error_tol` | none | gpu mixed | refine until the estimated relative error ≤ this |
 /// | `constrained_diagonal` | identity | all | D on constrained components: identity or diag(VᵀHV) |
-/// | `ordering` | auto | cholesky | fill-reducing ordering: auto, amd or nested-dissection ([`CholeskyOrdering`]) |
-/// | `multilevel_setup` | every | cg, gpu f64 | multilevel preconditioner: levels rebuilt for every system or kept across a Newton solve |
-/// | `cg_tuning.stagnation_window` | 1 000 | cg | restart when the recurrence residual has not improved for this many iterations |
-/// | `cg_tuning.max_restarts` | 3 | cg | restarts from the true residual |
-/// | `cg_tuning.check_every` | 64 | cg | iterations between true-residual checks (0: only at convergence) |
-/// | `cg_tuning.scaling` | none | cg | diagonal equilibration ([`Scaling`]) |
-/// | `gpu_tuning.stagnation_window` | 1 000 | gpu | as for cg |
-/// | `gpu_tuning.max_restarts` | 3 | gpu | as for cg |
-/// | `gpu_tuning.inner_tol` | 1e-2 | gpu mixed | reliable-update factor δ |
-/// | `gpu_tuning.max_outer` | 200 | gpu mixed | limit on reliable updates |
-/// | `gpu_tuning.f32_difference` | auto | gpu f32, mixed | difference form of the f32 operator ([`DifferenceForm`]) |
-/// | `gpu_tuning.binding_limit`, `memory_limit` | none | gpu | caps on the device's binding size and memory (tests) |
-/// | `gpu_context` | none | gpu | a device to share (tests, several solvers); none: the default adapter (`WGPU_ADAPTER_NAME`, `WGPU_BACKEND` choose) |
+/// | `ordering` | auto | cholesky | fill-reducing ordering: auto, amd or nested-dissection (`CholeskyOrdering`; as `solve --ordering`) |
+/// | `cg_tuning` | `CgTuning::default()` | cg | what only the CPU CG has: |
+/// | `.stagnation_window` | 1 000 | cg | restart from the true residual when the best recurrence residual has not improved for this many iterations |
+/// | `.max_restarts` | 3 | cg | restarts allowed |
+/// | `.check_every` | 64 | cg | iterations between true-residual checks (0: only at convergence) |
+/// | `.scaling` | none | cg | diagonal equilibration (`Scaling::NodeDiagonal`) |
+/// | `gpu_tuning` | `GpuTuning::default()` | gpu | what only the GPU CG has: |
+/// | `.stagnation_window`, `.max_restarts` | 1 000, 3 | gpu | as for cg |
+/// | `.inner_tol` | 1e-2 | gpu mixed | reliable-update factor δ |
+/// | `.max_outer` | 200 | gpu mixed | limit on reliable updates |
+/// | `.f32_difference` | auto | gpu f32, mixed | difference form of the f32 operator (`DifferenceForm`) |
+/// | `.binding_limit`, `.memory_limit` | none | gpu | caps on the binding size and device memory the solver assumes (tests) |
+/// | `gpu_context` | none | gpu | a device to share; none opens the default adapter |
 #[derive(Clone)]
 pub struct SolverConfig {
     /// Which solver runs.
