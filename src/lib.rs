@@ -113,7 +113,8 @@ pub use crate::core::constraints::Constraint;
 pub use crate::core::elimination::ConstrainedDiagonal;
 pub use crate::core::problem::Problem;
 pub use engine::solver::{
-    LayoutKey, Solution, SolveDetails, SolveSeconds, SolveStats, Solver, SolverConfig, Step,
+    CgTuning, GpuTuning, LayoutKey, Solution, SolveDetails, SolveSeconds, SolveStats, Solver,
+    SolverConfig, Step,
 };
 pub use error::{Error, InputError, SolveError};
 pub use solve::options::{

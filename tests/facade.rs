@@ -14,7 +14,8 @@ use common::kkt::{dense_kkt, global_b};
 use nalgebra::DVector;
 use stickslip::cases::generate::{random_system, SystemSpec};
 use stickslip::{
-    Constraint, Error, Precision, Problem, SolveDetails, Solver, SolverConfig, SolverKind,
+    CgTuning, Constraint, Error, GpuTuning, Precision, Problem, SolveDetails, Solver, SolverConfig,
+    SolverKind,
 };
 
 /// H's stored entries as triplets (both triangles).
@@ -198,25 +199,26 @@ fn bad_configurations_and_unsolvable_systems_are_errors() {
 #[test]
 fn a_system_over_the_device_memory_is_a_typed_does_not_fit() {
     use stickslip::core::elimination::{ConstrainedDiagonal, Eliminated};
-    use stickslip::gpu::{GpuError, GpuParams, PcgSolver};
+    use stickslip::gpu::{GpuError, PcgSolver};
     let Some((ctx, _g)) = common::gpu::gpu() else {
         return;
     };
     let s = random_system(&SystemSpec::small(3, 5));
     let problem = Problem::from_triplets(3, s.h.n, &triplets(&s.h), &s.g, &s.constraints)
         .expect("a generated system is valid");
-    let params = |memory_limit| GpuParams {
-        precision: Precision::F32,
-        memory_limit: Some(memory_limit),
-        ..GpuParams::default()
-    };
-    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
-    let planned = PcgSolver::memory_needed(ctx, &e, &params(u64::MAX)).expect("a plan");
+    // f32 resolves a relative residual of 1e-6, not the default 1e-8.
     let config = |limit| {
         SolverConfig::gpu(Precision::F32)
-            .gpu_params(params(limit))
+            .tol(1e-6)
+            .gpu_tuning(GpuTuning {
+                memory_limit: Some(limit),
+                ..GpuTuning::default()
+            })
             .gpu_context(ctx.clone())
     };
+    let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Identity);
+    let planned =
+        PcgSolver::memory_needed(ctx, &e, &config(u64::MAX).gpu_params()).expect("a plan");
     let mut small = Solver::new(config(planned - 1)).expect("the solver starts");
     match small.solve(&problem) {
         Err(Error::Gpu(GpuError::DoesNotFit { need, limit, .. })) => {
@@ -226,4 +228,107 @@ fn a_system_over_the_device_memory_is_a_typed_does_not_fit() {
     }
     let mut exact = Solver::new(config(planned)).expect("the solver starts");
     assert!(exact.solve(&problem).is_ok());
+}
+
+/// The CPU CG's iterations, relative residual and whether it ran equilibrated.
+fn cg_run(config: SolverConfig, problem: &Problem) -> Result<(usize, f64, bool), Error> {
+    let sol = Solver::new(config)?.solve(problem)?;
+    match sol.stats.details {
+        SolveDetails::Cg(info) => Ok((info.iterations, info.relative_residual, info.scaled)),
+        other => panic!("expected a CPU CG report, got {other:?}"),
+    }
+}
+
+/// A setting given once reaches the CPU CG that runs, in whatever order the builder gets
+/// it beside a custom [`CgTuning`]: the tolerance (a loose one stops earlier than a tight
+/// one, each met), the iteration limit (a limit of 2 stops the solve there) and the tuning
+/// itself (equilibration, which the report shows).
+#[test]
+fn shared_settings_and_the_cg_tuning_both_reach_the_cpu_cg() {
+    use stickslip::solve::cg::Scaling;
+    let s = random_system(&SystemSpec::small(3, 21));
+    let problem = Problem::from_triplets(3, s.h.n, &triplets(&s.h), &s.g, &s.constraints)
+        .expect("a generated system is valid");
+    let tuning = CgTuning {
+        scaling: Scaling::NodeDiagonal,
+        check_every: 8,
+        ..CgTuning::default()
+    };
+    let (loose_its, loose_res, loose_scaled) =
+        cg_run(SolverConfig::cg().tol(1e-3).cg_tuning(tuning), &problem).expect("solves");
+    let (tight_its, tight_res, tight_scaled) =
+        cg_run(SolverConfig::cg().cg_tuning(tuning).tol(1e-12), &problem).expect("solves");
+    assert!(
+        loose_scaled && tight_scaled,
+        "the tuning's equilibration ran"
+    );
+    assert!(loose_res <= 1e-3, "loose: residual {loose_res:e} > 1e-3");
+    assert!(tight_res <= 1e-12, "tight: residual {tight_res:e} > 1e-12");
+    assert!(
+        loose_its < tight_its,
+        "tol 1e-3 took {loose_its} iterations, tol 1e-12 {tight_its}"
+    );
+    let limited = cg_run(
+        SolverConfig::cg().cg_tuning(tuning).tol(1e-12).max_iters(2),
+        &problem,
+    );
+    match limited {
+        Err(e) => assert!(e.to_string().contains("iteration limit 2"), "{e}"),
+        Ok((its, res, _)) => panic!("max_iters 2 was not in force: {its} iterations, {res:e}"),
+    }
+    // The tolerance a running solver is given replaces the configured one.
+    let mut solver = Solver::new(SolverConfig::cg().tol(1e-3).cg_tuning(tuning)).expect("starts");
+    solver.set_tol(1e-12).expect("a valid tolerance");
+    let sol = solver.solve(&problem).expect("solves");
+    assert!(sol.stats.relative_residual <= 1e-12);
+    assert_eq!(sol.stats.iterations, Some(tight_its));
+}
+
+/// A setting given once reaches the GPU CG that runs beside a custom [`GpuTuning`]: the
+/// tolerance (met, and a loose one stops earlier) and the tuning's f32 difference form,
+/// which the report shows in both settings.
+#[test]
+fn shared_settings_and_the_gpu_tuning_both_reach_the_gpu_cg() {
+    use stickslip::gpu::DifferenceForm;
+    let Some((ctx, _g)) = common::gpu::gpu() else {
+        return;
+    };
+    let s = random_system(&SystemSpec::small(3, 21));
+    let problem = Problem::from_triplets(3, s.h.n, &triplets(&s.h), &s.g, &s.constraints)
+        .expect("a generated system is valid");
+    let run = |config: SolverConfig| {
+        let sol = Solver::new(config.gpu_context(ctx.clone()))
+            .and_then(|mut s| s.solve(&problem))
+            .expect("solves");
+        match sol.stats.details {
+            SolveDetails::Gpu(info) => *info,
+            other => panic!("expected a GPU report, got {other:?}"),
+        }
+    };
+    for (form, on) in [(DifferenceForm::On, true), (DifferenceForm::Off, false)] {
+        let tuning = GpuTuning {
+            f32_difference: form,
+            ..GpuTuning::default()
+        };
+        let loose = run(SolverConfig::gpu(Precision::F32)
+            .tol(1e-2)
+            .gpu_tuning(tuning));
+        let tight = run(SolverConfig::gpu(Precision::F32)
+            .gpu_tuning(tuning)
+            .tol(1e-5));
+        for (info, tol) in [(&loose, 1e-2), (&tight, 1e-5)] {
+            assert_eq!(info.f32_difference, on, "{form:?} at tol {tol:e}");
+            assert!(
+                info.relative_residual <= tol,
+                "{form:?}: residual {:e} > {tol:e}",
+                info.relative_residual
+            );
+        }
+        assert!(
+            loose.iterations < tight.iterations,
+            "{form:?}: tol 1e-2 took {} iterations, tol 1e-5 {}",
+            loose.iterations,
+            tight.iterations
+        );
+    }
 }

@@ -6,8 +6,9 @@ use crate::core::elimination::{reactions, ConstrainedDiagonal, Eliminated};
 pub use crate::core::problem::LayoutKey;
 use crate::core::problem::Problem;
 use crate::error::{Error, InputError, SolveError};
+use crate::gpu::DifferenceForm;
 use crate::gpu::{GpuContext, GpuError, GpuOptions, GpuParams, GpuSolveInfo, PcgSolver, Precision};
-use crate::solve::cg::{CgInfo, CgParams, Preconditioner};
+use crate::solve::cg::{CgInfo, CgParams, Preconditioner, Scaling};
 use crate::solve::coarse::CoarseSpace;
 use crate::solve::multilevel::reuse::KeptLevels;
 use crate::solve::options::MultilevelSetup;
@@ -18,21 +19,34 @@ use std::time::Instant;
 
 /// How a [`Solver`] solves. Build it with [`SolverConfig::cholesky`],
 /// [`SolverConfig::cg`] or [`SolverConfig::gpu`] and adjust it with the builder methods.
+/// Each setting has one place: the settings the solvers share are fields here, and
+/// [`CgTuning`] and [`GpuTuning`] hold only what one backend alone has. The solver runs
+/// with [`SolverConfig::cg_params`] or [`SolverConfig::gpu_params`], both formed from these.
 ///
 /// | field | default | used by | meaning |
 /// |---|---|---|---|
-/// | `kind` | (constructor) | all | which solver |
-/// | `precision` | f64; the argument of `gpu(..)` | gpu | arithmetic of the GPU CG: f32, f64 (needs SHADER_F64) or mixed (f32 CG with f64 reliable updates; needs SHADER_F64) |
-/// | `tol` | 1e-8 | cg, gpu | stop at ‖b̂ − Ĥy‖/‖b̂‖ ≤ tol, the true residual recomputed in f64; in (0, 1) |
-/// | `max_iters` | 10 000 | cg, gpu | CG iteration limit (all restarts together); ≥ 1 |
-/// | `preconditioner` | Jacobi | cg, gpu | Jacobi, block-Jacobi (d×d node blocks) or none |
-/// | `coarse` | aggregates | cg, gpu | coarse correction added to the preconditioner (docs/coarse.md) |
-/// | `error_tol` | none | gpu mixed | after `tol`, refine until the estimated relative error ≤ this |
+/// | `kind` | the constructor | all | `cholesky()`, `cg()`, `gpu(precision)` |
+/// | `precision` | f64 (CPU); the argument of `gpu(..)` | gpu | f32, f64 or mixed; f64 and mixed need SHADER_F64 |
+/// | `tol` | 1e-8 | cg, gpu | stop at ‖b̂ − Ĥy‖/‖b̂‖ ≤ tol (true residual, f64); in (0, 1) |
+/// | `max_iters` | 10 000 | cg, gpu | iteration limit; ≥ 1 |
+/// | `preconditioner` | jacobi | cg, gpu | jacobi, block-jacobi, none, multilevel (cg, and gpu in f64) |
+/// | `coarse` | aggregates | cg, gpu | coarse correction (docs/coarse.md) |
+/// | `multilevel_setup` | every | cg, gpu f64 | `MultilevelSetup::Every` builds the multilevel levels for every solve; `Reuse` keeps them across the solves of a Newton sequence (as scenes do: `[solver] multilevel_setup`) |
+/// | `error_tol` | none | gpu mixed | refine until the estimated relative error ≤ this |
 /// | `constrained_diagonal` | identity | all | D on constrained components: identity or diag(VᵀHV) |
-/// | `ordering` | auto | cholesky | fill-reducing ordering: auto, amd or nested-dissection ([`CholeskyOrdering`]) |
-/// | `cg_params` | none | cg | every CPU CG parameter ([`CgParams`]), replacing the fields above |
-/// | `gpu_params` | none | gpu | every GPU parameter ([`GpuParams`]), replacing the fields above |
-/// | `gpu_context` | none | gpu | a device to share (tests, several solvers); none: the default adapter (`WGPU_ADAPTER_NAME`, `WGPU_BACKEND` choose) |
+/// | `ordering` | auto | cholesky | fill-reducing ordering: auto, amd or nested-dissection (`CholeskyOrdering`; as `solve --ordering`) |
+/// | `cg_tuning` | `CgTuning::default()` | cg | what only the CPU CG has: |
+/// | `.stagnation_window` | 1 000 | cg | restart from the true residual when the best recurrence residual has not improved for this many iterations |
+/// | `.max_restarts` | 3 | cg | restarts allowed |
+/// | `.check_every` | 64 | cg | iterations between true-residual checks (0: only at convergence) |
+/// | `.scaling` | none | cg | diagonal equilibration (`Scaling::NodeDiagonal`) |
+/// | `gpu_tuning` | `GpuTuning::default()` | gpu | what only the GPU CG has: |
+/// | `.stagnation_window`, `.max_restarts` | 1 000, 3 | gpu | as for cg |
+/// | `.inner_tol` | 1e-2 | gpu mixed | reliable-update factor δ |
+/// | `.max_outer` | 200 | gpu mixed | limit on reliable updates |
+/// | `.f32_difference` | auto | gpu f32, mixed | difference form of the f32 operator (`DifferenceForm`) |
+/// | `.binding_limit`, `.memory_limit` | none | gpu | caps on the binding size and device memory the solver assumes (tests) |
+/// | `gpu_context` | none | gpu | a device to share; none opens the default adapter |
 #[derive(Clone)]
 pub struct SolverConfig {
     /// Which solver runs.
@@ -56,10 +70,10 @@ pub struct SolverConfig {
     pub constrained_diagonal: ConstrainedDiagonal,
     /// Fill-reducing ordering of the Cholesky analysis.
     pub ordering: CholeskyOrdering,
-    /// Every CPU CG parameter, replacing the common fields above when set.
-    pub cg_params: Option<CgParams>,
-    /// Every GPU parameter, replacing the common fields above when set.
-    pub gpu_params: Option<GpuParams>,
+    /// What only the CPU CG has.
+    pub cg_tuning: CgTuning,
+    /// What only the GPU CG has.
+    pub gpu_tuning: GpuTuning,
     /// The GPU device to use; none: the default adapter.
     pub gpu_context: Option<GpuContext>,
 }
@@ -77,8 +91,8 @@ impl std::fmt::Debug for SolverConfig {
             .field("error_tol", &self.error_tol)
             .field("constrained_diagonal", &self.constrained_diagonal)
             .field("ordering", &self.ordering)
-            .field("cg_params", &self.cg_params)
-            .field("gpu_params", &self.gpu_params)
+            .field("cg_tuning", &self.cg_tuning)
+            .field("gpu_tuning", &self.gpu_tuning)
             .field(
                 "gpu_context",
                 &self
@@ -108,8 +122,8 @@ impl SolverConfig {
             error_tol: None,
             constrained_diagonal: ConstrainedDiagonal::Identity,
             ordering: CholeskyOrdering::Auto,
-            cg_params: None,
-            gpu_params: None,
+            cg_tuning: CgTuning::default(),
+            gpu_tuning: GpuTuning::default(),
             gpu_context: None,
         }
     }
@@ -178,17 +192,15 @@ impl SolverConfig {
         self
     }
 
-    /// Every CPU CG parameter (replaces tol, max_iters, preconditioner and coarse).
-    pub fn cg_params(mut self, p: CgParams) -> Self {
-        self.cg_params = Some(p);
+    /// Sets what only the CPU CG has (the shared settings stay as set).
+    pub fn cg_tuning(mut self, t: CgTuning) -> Self {
+        self.cg_tuning = t;
         self
     }
 
-    /// Every GPU parameter (replaces precision, tol, max_iters, preconditioner, coarse and
-    /// error_tol).
-    pub fn gpu_params(mut self, p: GpuParams) -> Self {
-        self.precision = p.precision;
-        self.gpu_params = Some(p);
+    /// Sets what only the GPU CG has (the shared settings stay as set).
+    pub fn gpu_tuning(mut self, t: GpuTuning) -> Self {
+        self.gpu_tuning = t;
         self
     }
 
@@ -198,29 +210,56 @@ impl SolverConfig {
         self
     }
 
-    /// The CPU CG parameters this configuration runs with.
-    pub fn resolved_cg_params(&self) -> CgParams {
-        self.cg_params.clone().unwrap_or(CgParams {
+    /// The CPU CG parameters this configuration runs with: the shared settings and
+    /// [`CgTuning`].
+    pub fn cg_params(&self) -> CgParams {
+        // No `..Default`: a new CgParams field has to be given its one place here.
+        let CgTuning {
+            stagnation_window,
+            max_restarts,
+            check_every,
+            scaling,
+        } = self.cg_tuning;
+        CgParams {
             tol: self.tol,
             max_iters: self.max_iters,
             preconditioner: self.preconditioner,
             coarse: self.coarse,
-            ..CgParams::default()
-        })
+            stagnation_window,
+            max_restarts,
+            check_every,
+            scaling,
+        }
     }
 
-    /// The GPU parameters this configuration runs with.
-    pub fn resolved_gpu_params(&self) -> GpuParams {
-        self.gpu_params.clone().unwrap_or(GpuParams {
+    /// The GPU parameters this configuration runs with: the shared settings and
+    /// [`GpuTuning`].
+    pub fn gpu_params(&self) -> GpuParams {
+        let GpuTuning {
+            stagnation_window,
+            max_restarts,
+            inner_tol,
+            max_outer,
+            f32_difference,
+            binding_limit,
+            memory_limit,
+        } = self.gpu_tuning;
+        GpuParams {
             precision: self.precision,
             tol: self.tol,
             max_iters: self.max_iters,
             preconditioner: self.preconditioner,
-            coarse: self.coarse,
-            error_tol: self.error_tol,
             multilevel_setup: self.multilevel_setup,
-            ..GpuParams::default()
-        })
+            error_tol: self.error_tol,
+            coarse: self.coarse,
+            stagnation_window,
+            max_restarts,
+            inner_tol,
+            max_outer,
+            f32_difference,
+            binding_limit,
+            memory_limit,
+        }
     }
 
     /// Checks the fields the chosen solver uses.
@@ -246,16 +285,7 @@ impl SolverConfig {
         {
             return bad("preconditioner", crate::gpu::MULTILEVEL_ON_CPU.into());
         }
-        let (tol, max_iters, error_tol) = match self.kind {
-            SolverKind::Gpu => {
-                let p = self.resolved_gpu_params();
-                (p.tol, p.max_iters, p.error_tol)
-            }
-            _ => {
-                let p = self.resolved_cg_params();
-                (p.tol, p.max_iters, self.error_tol)
-            }
-        };
+        let (tol, max_iters, error_tol) = (self.tol, self.max_iters, self.error_tol);
         if !(tol > 0.0 && tol < 1.0) {
             return bad("tol", format!("must lie in (0, 1), got {tol}"));
         }
@@ -274,6 +304,69 @@ impl SolverConfig {
             }
         }
         Ok(())
+    }
+}
+
+/// What only the CPU CG has; the settings it shares with the GPU CG are
+/// [`SolverConfig`]'s fields. Defaults in [`SolverConfig`]'s table (those of [`CgParams`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CgTuning {
+    /// Restart when the best recurrence residual has not improved for this many iterations.
+    pub stagnation_window: usize,
+    /// Restarts allowed from the true residual.
+    pub max_restarts: usize,
+    /// Iterations between true-residual checks (0: only at convergence).
+    pub check_every: usize,
+    /// Diagonal equilibration.
+    pub scaling: Scaling,
+}
+
+impl Default for CgTuning {
+    fn default() -> Self {
+        let p = CgParams::default();
+        CgTuning {
+            stagnation_window: p.stagnation_window,
+            max_restarts: p.max_restarts,
+            check_every: p.check_every,
+            scaling: p.scaling,
+        }
+    }
+}
+
+/// What only the GPU CG has; the settings it shares with the CPU CG are [`SolverConfig`]'s
+/// fields. Defaults in [`SolverConfig`]'s table (those of [`GpuParams`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GpuTuning {
+    /// Restart when the recurrence residual has not improved for this many iterations.
+    pub stagnation_window: usize,
+    /// Restarts allowed from the current iterate.
+    pub max_restarts: usize,
+    /// Mixed: reliable-update factor δ ([`GpuParams::inner_tol`]).
+    pub inner_tol: f64,
+    /// Mixed: limit on outer steps (reliable updates).
+    pub max_outer: usize,
+    /// Whether f32 operators use the difference form.
+    pub f32_difference: DifferenceForm,
+    /// Caps the storage binding size the solver assumes (bytes; tests).
+    #[doc(hidden)]
+    pub binding_limit: Option<u64>,
+    /// Caps the device memory the solver assumes (bytes; tests).
+    #[doc(hidden)]
+    pub memory_limit: Option<u64>,
+}
+
+impl Default for GpuTuning {
+    fn default() -> Self {
+        let p = GpuParams::default();
+        GpuTuning {
+            stagnation_window: p.stagnation_window,
+            max_restarts: p.max_restarts,
+            inner_tol: p.inner_tol,
+            max_outer: p.max_outer,
+            f32_difference: p.f32_difference,
+            binding_limit: p.binding_limit,
+            memory_limit: p.memory_limit,
+        }
     }
 }
 
@@ -364,8 +457,6 @@ const _: fn() = || {
 /// solves of the same layout (Cholesky analysis, GPU buffers and pipelines).
 pub struct Solver {
     config: SolverConfig,
-    cg: CgParams,
-    gpu_params: GpuParams,
     gpu: Option<GpuContext>,
     /// Most recently used last.
     prepared: Vec<(LayoutKey, Prepared)>,
@@ -398,8 +489,6 @@ impl Solver {
             }
         }
         Ok(Solver {
-            cg: config.resolved_cg_params(),
-            gpu_params: config.resolved_gpu_params(),
             levels: KeptLevels::new(config.multilevel_setup),
             config,
             gpu,
@@ -425,8 +514,6 @@ impl Solver {
             .into());
         }
         self.config.tol = tol;
-        self.cg.tol = tol;
-        self.gpu_params.tol = tol;
         Ok(())
     }
 
@@ -546,18 +633,18 @@ impl Solver {
     /// clusters while the pattern stays (and its levels, as the setup says: a solve that
     /// fails on kept levels runs again on fresh ones).
     fn cg(&mut self, e: &Eliminated) -> Result<(Vec<f64>, crate::solve::cg::CgInfo), Error> {
-        use crate::solve::cg::{BuiltPreconditioner, Scaling};
-        if self.cg.preconditioner != Preconditioner::Multilevel || self.cg.scaling != Scaling::None
-        {
-            return Ok(crate::solve::cg::solve(e, &self.cg)?);
+        use crate::solve::cg::BuiltPreconditioner;
+        let params = self.config.cg_params();
+        if params.preconditioner != Preconditioner::Multilevel || params.scaling != Scaling::None {
+            return Ok(crate::solve::cg::solve(e, &params)?);
         }
         crate::solve::cg::check_pinned(e)?;
         loop {
             let (levels, _) = self.levels.for_system(e);
             let pre = BuiltPreconditioner::with_levels(levels);
-            match crate::solve::cg::solve_with(e, &pre, None, &self.cg) {
+            match crate::solve::cg::solve_with(e, &pre, None, &params) {
                 Ok((y, info)) => {
-                    self.levels.solved(info.iterations, self.cg.tol);
+                    self.levels.solved(info.iterations, params.tol);
                     return Ok((y, info));
                 }
                 Err(err) => {
@@ -601,33 +688,24 @@ impl Solver {
             .gpu
             .as_ref()
             .ok_or_else(|| Error::Gpu(GpuError::Internal("the GPU solver has no device".into())))?;
+        let params = self.config.gpu_params();
         let (mut solver, reused) = match prepared {
             Some(Prepared::Gpu(mut s)) => {
                 match s
                     .update_sharing(e, &mut self.levels)
-                    .and_then(|()| s.set_tol(self.gpu_params.tol))
+                    .and_then(|()| s.set_tol(params.tol))
                 {
                     Ok(()) => (s, true),
                     // Another pattern under the same key: build afresh.
                     Err(GpuError::Mismatch(_)) => (
-                        Box::new(PcgSolver::sharing(
-                            ctx,
-                            e,
-                            &self.gpu_params,
-                            &mut self.levels,
-                        )?),
+                        Box::new(PcgSolver::sharing(ctx, e, &params, &mut self.levels)?),
                         false,
                     ),
                     Err(err) => return Err(err.into()),
                 }
             }
             _ => (
-                Box::new(PcgSolver::sharing(
-                    ctx,
-                    e,
-                    &self.gpu_params,
-                    &mut self.levels,
-                )?),
+                Box::new(PcgSolver::sharing(ctx, e, &params, &mut self.levels)?),
                 false,
             ),
         };

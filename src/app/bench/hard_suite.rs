@@ -199,9 +199,9 @@ impl CaseRows<'_> {
 
 /// Cholesky, then the CPU CG with each preconditioner and coarse correction, to 1e-10.
 fn cpu_rows(c: &CaseRows, e: &Eliminated, rows: &mut Vec<TableRow>) {
-    use crate::solve::cg::{CgParams, Preconditioner, Scaling};
+    use crate::solve::cg::{Preconditioner, Scaling};
     use crate::solve::coarse::CoarseSpace;
-    use crate::{SolveDetails, SolverConfig, Step};
+    use crate::{CgTuning, SolveDetails, SolverConfig, Step};
     use std::time::Instant;
     let t = Instant::now();
     match solve_once(SolverConfig::cholesky(), e) {
@@ -264,16 +264,17 @@ fn cpu_rows(c: &CaseRows, e: &Eliminated, rows: &mut Vec<TableRow>) {
         ),
     ] {
         let tol = 1e-10;
-        let params = CgParams {
-            tol,
-            max_iters: 20_000,
-            preconditioner: pc,
-            scaling,
-            coarse,
-            ..Default::default()
-        };
+        let config = SolverConfig::cg()
+            .tol(tol)
+            .max_iters(20_000)
+            .preconditioner(pc)
+            .coarse(coarse)
+            .cg_tuning(CgTuning {
+                scaling,
+                ..CgTuning::default()
+            });
         let t = Instant::now();
-        match solve_once(SolverConfig::cg().cg_params(params), e) {
+        match solve_once(config, e) {
             Ok(Step { y, stats, .. }) => rows.push(
                 c.row(
                     name,
@@ -306,7 +307,7 @@ fn cpu_rows(c: &CaseRows, e: &Eliminated, rows: &mut Vec<TableRow>) {
 /// The GPU CG in each precision (mixed also with each coarse correction and with
 /// extended-precision refinement).
 fn gpu_rows(c: &CaseRows, ctx: &crate::gpu::GpuContext, e: &Eliminated, rows: &mut Vec<TableRow>) {
-    use crate::gpu::{GpuParams, Precision};
+    use crate::gpu::Precision;
     use crate::solve::coarse::CoarseSpace;
     use crate::{SolveDetails, SolverConfig};
     use std::time::Instant;
@@ -323,14 +324,6 @@ fn gpu_rows(c: &CaseRows, ctx: &crate::gpu::GpuContext, e: &Eliminated, rows: &m
             CoarseSpace::Aggregates,
         ),
     ] {
-        let params = GpuParams {
-            precision,
-            tol,
-            max_iters: 20_000,
-            error_tol,
-            coarse,
-            ..Default::default()
-        };
         let suffix = match coarse {
             CoarseSpace::None => " no coarse",
             CoarseSpace::Translations => " translations",
@@ -341,9 +334,12 @@ fn gpu_rows(c: &CaseRows, ctx: &crate::gpu::GpuContext, e: &Eliminated, rows: &m
             None => format!("gpu {precision}{suffix}"),
         };
         let t = Instant::now();
-        let config = SolverConfig::gpu(precision)
-            .gpu_params(params)
+        let mut config = SolverConfig::gpu(precision)
+            .tol(tol)
+            .max_iters(20_000)
+            .coarse(coarse)
             .gpu_context(ctx.clone());
+        config.error_tol = error_tol;
         let res = solve_once(config, e).and_then(|step| match step.stats.details {
             SolveDetails::Gpu(info) => Ok((step.y, *info)),
             _ => Err(crate::Error::Gpu(crate::gpu::GpuError::Internal(
@@ -447,7 +443,7 @@ pub fn mixed_speed(
     cantilevers_twice: bool,
     progress: &mut dyn FnMut(&SpeedRow),
 ) -> Result<Vec<SpeedRow>, String> {
-    use crate::gpu::{GpuParams, Precision};
+    use crate::gpu::Precision;
     use crate::{LayoutKey, SolveDetails, Solver, SolverConfig};
     // The two cantilever cases have a sixth of the others' DOFs at one grid scale, so they
     // run at twice the scale too: every case then has an instance of 81k–107k DOFs at
@@ -479,15 +475,10 @@ pub fn mixed_speed(
         let mut solvers: Vec<Option<Solver>> = [Precision::F64, Precision::Mixed]
             .into_iter()
             .map(|precision| {
-                let params = GpuParams {
-                    precision,
-                    tol,
-                    max_iters: 50_000,
-                    coarse,
-                    ..Default::default()
-                };
                 let config = SolverConfig::gpu(precision)
-                    .gpu_params(params)
+                    .tol(tol)
+                    .max_iters(50_000)
+                    .coarse(coarse)
                     .gpu_context(ctx.clone());
                 // The warm-up solve (rep 0) builds the device buffers; later reps reuse them.
                 Solver::new(config).ok()

@@ -15,7 +15,7 @@ use crate::app::bench::tables::{derive_tables, write_outputs};
 use crate::cases::generate::{random_system, SystemSpec};
 use crate::core::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::core::linalg::relative_error;
-use crate::gpu::{GpuContext, GpuOptions, GpuParams, Precision};
+use crate::gpu::{GpuContext, GpuOptions, Precision};
 use crate::solve::cg::{self, BuiltPreconditioner, CgParams, Preconditioner};
 use crate::solve::coarse::CoarseSpace;
 use crate::{LayoutKey, SolveDetails, SolveStats, Solver, SolverConfig, Step};
@@ -372,16 +372,11 @@ fn time_gpu_cg(
                 // f32 cannot resolve a residual below its unit round-off.
                 continue;
             }
-            let params = GpuParams {
-                precision,
-                tol,
-                max_iters: 50_000,
-                preconditioner: Preconditioner::Jacobi,
-                coarse: size.opts.coarse,
-                ..Default::default()
-            };
             let config = SolverConfig::gpu(precision)
-                .gpu_params(params)
+                .tol(tol)
+                .max_iters(50_000)
+                .preconditioner(Preconditioner::Jacobi)
+                .coarse(size.opts.coarse)
                 .gpu_context(ctx.clone());
             let solved =
                 Solver::new(config).and_then(|mut s| s.solve_eliminated(LayoutKey::fresh(), e));
