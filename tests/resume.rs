@@ -599,3 +599,59 @@ fn a_restored_stepper_continues_with_the_same_bits() {
     assert!(e.to_string().contains("entries"), "{e}");
     assert_eq!(c.snapshot(), before);
 }
+
+/// With the multilevel preconditioner keeping its levels across Newton systems
+/// (`multilevel_setup = "reuse"`), a run stopped at step 4 and resumed to step 10 gives
+/// the bits of the run that went to step 10 at once: on the CPU CG and on the device loop.
+#[test]
+fn runs_keeping_multilevel_levels_resume_to_the_same_bits() {
+    let root = tmpdir("multilevel-reuse");
+    let scene = root.join("hanging.toml");
+    let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/hanging.toml"))
+        .expect("hanging.toml");
+    assert!(
+        !text.contains("[solver]"),
+        "hanging.toml has its own [solver]"
+    );
+    let solver = "[solver]\npreconditioner = \"multilevel\"\nmultilevel_setup = \"reuse\"\n";
+    std::fs::write(&scene, format!("{text}\n{solver}")).expect("write the scene");
+    let sc = s(&scene);
+    for (newton, extra) in [("cpu", ["--solver", "cg"]), ("gpu", ["--newton", "gpu"])] {
+        let reference = root.join(format!("reference-{newton}"));
+        let r = s(&reference);
+        let mut a = vec!["run", &sc, "--steps", "10", "--out", &r, "-q"];
+        a.extend(extra);
+        let o = run(&a);
+        if !o.status.success() {
+            let e = stderr(&o);
+            if newton == "gpu"
+                && e.contains("cannot start")
+                && std::env::var_os("STICKSLIP_REQUIRE_GPU").is_none()
+            {
+                common::skip(&format!("SKIP runs_keeping_multilevel_levels_resume_to_the_same_bits: GPU Newton loop NOT RUN (no adapter): {e}"));
+                return;
+            }
+            panic!("hanging with --newton {newton}: {e}");
+        }
+        let levels = &summary(&reference)["multilevel_levels"];
+        assert!(
+            levels["kept"].as_u64().is_some_and(|k| k > 0),
+            "--newton {newton}: no levels were kept: {levels}"
+        );
+        let dir = root.join(format!("resumed-{newton}"));
+        let d = s(&dir);
+        let mut a = vec!["run", &sc, "--steps", "4", "--out", &d, "-q"];
+        a.extend(extra);
+        ok(&run(&a), "4 steps");
+        ok(
+            &run(&["run", "--resume", &d, "--steps", "10", "-q"]),
+            "resume",
+        );
+        assert_eq!(summary(&dir)["resumed_from_step"], 4);
+        assert_same_run(
+            &reference,
+            &dir,
+            &format!("multilevel reuse, --newton {newton}"),
+        );
+    }
+}

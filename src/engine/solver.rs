@@ -629,6 +629,13 @@ impl Solver {
         self.levels.counts()
     }
 
+    /// The next system begins a new Newton solve (a simulation step): the multilevel
+    /// preconditioner's kept levels (`multilevel_setup = "reuse"`) are rebuilt for it, so
+    /// that the solve does not depend on the systems before it.
+    pub fn new_newton_solve(&mut self) {
+        self.levels.new_newton_solve();
+    }
+
     /// The CPU CG; the multilevel preconditioner partitions H's pattern once and keeps the
     /// clusters while the pattern stays (and its levels, as the setup says: a solve that
     /// fails on kept levels runs again on fresh ones).

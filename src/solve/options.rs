@@ -107,7 +107,9 @@ pub enum MultilevelSetup {
     /// its own finest matrix and smoothing weight) while its solves take at most
     /// [`crate::solve::multilevel::reuse::REBUILD_GROWTH`] times the iterations per decade of
     /// residual reduction of the first solve on them, and rebuilds them when the
-    /// constraint set or the pattern changes or a solve on kept levels fails.
+    /// constraint set or the pattern changes or a solve on kept levels fails. A
+    /// simulation step is one Newton solve ([`crate::Solver::new_newton_solve`]): its first
+    /// system builds the levels.
     Reuse,
 }
 

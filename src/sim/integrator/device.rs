@@ -493,6 +493,8 @@ impl Backend for DeviceLoop {
         self.first_trial = None;
         self.at_trial = false;
         self.trial_is_first = false;
+        // A step's levels depend on its own systems only: a resume rebuilds them as here.
+        self.levels.new_newton_solve();
         let _phase = self.ctx.phase(Phase::HostDecisions);
         self.ops.begin_step(state.scene.time_step)?;
         Ok(())

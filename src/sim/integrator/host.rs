@@ -84,6 +84,8 @@ impl HostBackend {
 
 impl Backend for HostBackend {
     fn begin_step(&mut self, state: &State) -> Result<(), StepError> {
+        // A step's levels depend on its own systems only: a resume rebuilds them as here.
+        self.linear.solver.new_newton_solve();
         let h = state.scene.time_step;
         self.xn.clone_from(&state.x);
         self.x.clone_from(&state.x);

@@ -110,8 +110,8 @@ pub struct SolverSpec {
     #[serde(default)]
     pub preconditioner: Preconditioner,
     /// Multilevel: when its levels are rebuilt ("reuse", the default for scenes: kept
-    /// across the Newton systems of the same constraint set while the solves stay fast;
-    /// or "every" system).
+    /// across the Newton systems of a step with the same constraint set while the solves
+    /// stay fast; or "every" system).
     #[serde(default = "default_multilevel_setup")]
     pub multilevel_setup: MultilevelSetup,
     /// CG and GPU: coarse correction added to the preconditioner ("aggregates", the

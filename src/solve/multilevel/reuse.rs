@@ -6,9 +6,11 @@
 //! and constraint set ([`Multilevel::refresh`]: the finest matrix and its smoothing weight
 //! are the new system's) until a solve on them takes more than [`REBUILD_GROWTH`] times
 //! the iterations per decade of residual reduction of the first solve after the build, or
-//! fails. Every decision comes from iteration counts, tolerances and constraint sets, so
-//! the CPU CG and the device PCG, which take the same iterations, keep and rebuild on the
-//! same systems.
+//! fails, or a new Newton solve begins ([`KeptLevels::new_newton_solve`]: a simulation
+//! step's first system builds its own levels, so that a run resumed at a step boundary
+//! decides and builds as the run that went through it). Every decision comes from
+//! iteration counts, tolerances and constraint sets, so the CPU CG and the device PCG,
+//! which take the same iterations, keep and rebuild on the same systems.
 //!
 //! The decision ([`KeptLevels::plan`]) is apart from the building: the CPU CG's solver and
 //! `solve --solver gpu` build on the host ([`KeptLevels::for_system`]), the device Newton
@@ -141,6 +143,15 @@ impl KeptLevels {
         let ml = Arc::new(Multilevel::new(e, hierarchy));
         self.levels = (self.setup == MultilevelSetup::Reuse).then(|| ml.clone());
         (ml, Levels::Built)
+    }
+
+    /// A new Newton solve begins: its first system builds its levels
+    /// ([`MultilevelSetup::Reuse`]; nothing changes with [`MultilevelSetup::Every`]). The
+    /// levels then depend only on the systems of this solve, never on earlier ones.
+    pub fn new_newton_solve(&mut self) {
+        if self.setup == MultilevelSetup::Reuse {
+            self.rebuild = true;
+        }
     }
 
     /// Records a solve on the current levels: `iterations` to the relative residual
