@@ -157,8 +157,8 @@ pub fn steps_svg(c: &StepColumns) -> Result<String, StepsPlotError> {
         let panels = root.split_evenly((3, 1));
         energy_panel(&panels[0], c, steps.clone())?;
         let iterations = [
-            ("Newton iterations", NEWTON, &c.newton_iterations),
-            ("CG iterations", CG, &c.linear_iterations),
+            ("Newton iterations", NEWTON, &c.newton_iterations[..]),
+            ("CG iterations", CG, &c.linear_iterations[..]),
         ];
         log_panel(
             &panels[1],
@@ -168,8 +168,8 @@ pub fn steps_svg(c: &StepColumns) -> Result<String, StepsPlotError> {
             steps.clone(),
         )?;
         let tolerances = [
-            ("cg_tol_loosest", LOOSEST, &c.cg_tol_loosest),
-            ("cg_tol_tightest", TIGHTEST, &c.cg_tol_tightest),
+            ("cg_tol_loosest", LOOSEST, &c.cg_tol_loosest[..]),
+            ("cg_tol_tightest", TIGHTEST, &c.cg_tol_tightest[..]),
         ];
         log_panel(&panels[2], "CG tolerances", &tolerances, c, steps)?;
         root.present().map_err(draw_err)?;
@@ -211,16 +211,19 @@ fn energy_panel(
     Ok(())
 }
 
+/// A series of a log panel: its label, colour and (step, value) points.
+type Series<'a> = (&'a str, RGBColor, Vec<(f64, f64)>);
+
 /// A panel of positive per-step series on a log axis, lines only (the energy panel's
 /// markers are the plot's one point per row).
 fn log_panel(
     area: &DrawingArea<SVGBackend, Shift>,
     caption: &str,
-    series: &[(&str, RGBColor, &Vec<f64>)],
+    series: &[(&str, RGBColor, &[f64])],
     c: &StepColumns,
     steps: Range<f64>,
 ) -> Result<(), StepsPlotError> {
-    let pts: Vec<(&str, RGBColor, Vec<(f64, f64)>)> = series
+    let pts: Vec<Series> = series
         .iter()
         .map(|(name, color, v)| (*name, *color, positive(&c.step, v)))
         .collect();
