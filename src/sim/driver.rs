@@ -11,7 +11,8 @@
 //!    center of mass, energy, and 7. output: frames every k steps, one steps.csv row per
 //!    step (written as it happens), summary.json after every step (`running`), a
 //!    checkpoint every `[output] checkpoint_every` steps and at the end
-//!    ([`crate::sim::checkpoint`]): in [`crate::sim::time_loop`];
+//!    ([`crate::sim::checkpoint`]) and, given a [`StepsPlot`], steps.svg redrawn from
+//!    steps.csv: in [`crate::sim::time_loop`];
 //!
 //! and this module runs them: the options, the output folder (taken once every check has
 //! passed), the stepper, and summary.json at the end (`complete`, `failed` or

@@ -1,6 +1,7 @@
 //! Steps 5–7 of `stickslip run` ([`crate::sim::driver`]): the time loop (each step's
 //! Newton solve), the recovered quantities of each step, and the outputs written as the
-//! run goes: steps.csv rows, frames, dumped Newton systems, checkpoints and summary.json.
+//! run goes: steps.csv rows, frames, dumped Newton systems, checkpoints, steps.svg and
+//! summary.json.
 
 use crate::error::InputError;
 use crate::gpu::Phase;
