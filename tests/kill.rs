@@ -274,6 +274,13 @@ fn killed_runs_leave_complete_files_and_say_so() {
                     let rel = listed.split('"').next().expect("file");
                     assert!(out.join(rel).is_file(), "kill {k}: {rel} listed, absent");
                 }
+            } else if name == "steps.svg" {
+                // Replaced by rename: whole (tests/steps_plot.rs parses it).
+                let text = std::fs::read_to_string(&f).expect("steps.svg");
+                assert!(
+                    text.starts_with("<svg") && text.trim_end().ends_with("</svg>"),
+                    "kill {k}: steps.svg"
+                );
             } else {
                 assert!(
                     name == "steps.csv" || name == "summary.json",

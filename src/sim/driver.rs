@@ -11,7 +11,8 @@
 //!    center of mass, energy, and 7. output: frames every k steps, one steps.csv row per
 //!    step (written as it happens), summary.json after every step (`running`), a
 //!    checkpoint every `[output] checkpoint_every` steps and at the end
-//!    ([`crate::sim::checkpoint`]): in [`crate::sim::time_loop`];
+//!    ([`crate::sim::checkpoint`]) and, given a [`StepsPlot`], steps.svg redrawn from
+//!    steps.csv: in [`crate::sim::time_loop`];
 //!
 //! and this module runs them: the options, the output folder (taken once every check has
 //! passed), the stepper, and summary.json at the end (`complete`, `failed` or
@@ -24,22 +25,23 @@ use crate::sim::checkpoint::{self, Checkpoint, StartOptions, Tallies};
 use crate::sim::integrator::{ContactCounters, InitError, Stepper};
 use crate::sim::memory::SceneTooLarge;
 pub use crate::sim::run_error::RunError;
-pub use crate::sim::run_options::RunOptions;
+pub use crate::sim::run_options::{RunOptions, StepsPlot};
 use crate::sim::scene::Scene;
 use crate::sim::scene_setup::build_scene;
 pub use crate::sim::scene_setup::{load_scene, open_scene, MAX_SYSTEM_ENTRY};
 pub use crate::sim::summary::{
     ContactSummary, MovingSummary, MultilevelLevels, RunStatus, RunSummary,
 };
-pub use crate::sim::time_loop::{request_interrupt, SYSTEM_FILES};
+pub use crate::sim::time_loop::{request_interrupt, STEPS_PLOT, SYSTEM_FILES};
 use crate::sim::time_loop::{simulate, write_summary, Run};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// What `run` writes in its output folder (what the folder's previous run of `run` wrote
 /// is removed before a new run writes).
-pub const OUTPUT_NAMES: [&str; 5] = [
+pub const OUTPUT_NAMES: [&str; 6] = [
     "steps.csv",
+    STEPS_PLOT,
     "summary.json",
     checkpoint::FILE_NAME,
     "frames/*.vtk",
@@ -161,6 +163,8 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         tallies,
         frames,
         wall,
+        plot: opts.steps_plot.clone(),
+        plot_due: None,
     };
     let result = write_summary(&mut dir, &summary)
         .and_then(|_| simulate(&mut this_run, opts, &mut stepper, &mut dir, &mut summary));
@@ -187,6 +191,10 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
             };
             summary.message = Some(e.to_string());
             // The run's own error is the one to report; a failure to record it is not.
+            // An interrupted run drew its plot with its last checkpoint.
+            if !matches!(e, RunError::Interrupted { .. }) {
+                let _ = this_run.draw_plot(&mut dir, &stepper, true);
+            }
             let _ = write_summary(&mut dir, &summary);
             Err(e)
         }

@@ -2,6 +2,21 @@
 
 use crate::sim::scene::LinearKind;
 use std::path::PathBuf;
+use std::sync::Arc;
+
+/// Draws steps.svg from steps.csv's whole text: supplied by the command line (whose
+/// plotting library the simulation layer does not link); the run writes what it returns
+/// atomically beside steps.csv.
+pub trait StepsPlot: Send + Sync {
+    /// The SVG text of the steps in `steps_csv` (steps.csv's header and rows).
+    fn draw(&self, steps_csv: &str) -> Result<String, Box<dyn std::error::Error + Send + Sync>>;
+}
+
+impl std::fmt::Debug for dyn StepsPlot {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("StepsPlot")
+    }
+}
 
 /// What `stickslip run` was asked.
 #[derive(Debug, Clone, Default)]
@@ -35,4 +50,7 @@ pub struct RunOptions {
     /// Continue the run in this folder from its checkpoint (the scene and its options
     /// come from the checkpoint; `steps` or `end_time` may extend it).
     pub resume: Option<PathBuf>,
+    /// Draws steps.svg at the start, at checkpoints (at most a small share of the run's
+    /// time), and when the run ends, is interrupted or fails; None: no steps.svg.
+    pub steps_plot: Option<Arc<dyn StepsPlot>>,
 }

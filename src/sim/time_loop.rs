@@ -1,6 +1,7 @@
 //! Steps 5–7 of `stickslip run` ([`crate::sim::driver`]): the time loop (each step's
 //! Newton solve), the recovered quantities of each step, and the outputs written as the
-//! run goes: steps.csv rows, frames, dumped Newton systems, checkpoints and summary.json.
+//! run goes: steps.csv rows, frames, dumped Newton systems, checkpoints, steps.svg and
+//! summary.json.
 
 use crate::error::InputError;
 use crate::gpu::Phase;
@@ -9,13 +10,21 @@ use crate::sim::checkpoint::{self, StartOptions, Tallies};
 use crate::sim::integrator::{NewtonSystem, StepError, StepReport, Stepper, SystemSink};
 use crate::sim::output::{write_pvd, write_vtk, StepRecord, StepsCsv, FRAMES_COLLECTION};
 use crate::sim::run_error::RunError;
-use crate::sim::run_options::RunOptions;
+use crate::sim::run_options::{RunOptions, StepsPlot};
 use crate::sim::scene::Scene;
 use crate::sim::summary::{ContactSummary, MovingSummary, MultilevelLevels, RunSummary};
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicI32, Ordering};
-use std::time::Instant;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// The plot of steps.csv that the run keeps beside it (see [`StepsPlot`]).
+pub const STEPS_PLOT: &str = "steps.svg";
+
+/// After a drawing of steps.svg that took d, the next one at a checkpoint waits at least
+/// this many times d: redrawing a long run's whole history takes at most 5 % of its time.
+const PLOT_WAIT_FACTOR: u32 = 19;
 
 /// The first non-finite entry of a step's state or record, if any, as "what (value)".
 fn non_finite(s: &Stepper, r: &StepRecord) -> Option<String> {
@@ -59,6 +68,10 @@ pub(crate) struct Run<'a> {
     pub frames: Vec<(String, f64)>,
     /// Start of this invocation.
     pub wall: Instant,
+    /// Draws steps.svg; None: the run keeps no plot.
+    pub plot: Option<Arc<dyn StepsPlot>>,
+    /// The earliest time of the next drawing at a checkpoint (None: at the next one).
+    pub plot_due: Option<Instant>,
 }
 
 impl Run<'_> {
@@ -105,6 +118,41 @@ impl Run<'_> {
         let spent = t.elapsed().as_secs_f64();
         self.tallies.checkpoint_seconds += spent;
         summary.checkpoint_seconds = self.tallies.checkpoint_seconds;
+        Ok(())
+    }
+
+    /// Redraws steps.svg from the whole of steps.csv and writes it atomically (when the
+    /// run has a plot); `always`: whatever the time since the last drawing (the start,
+    /// the end, an interruption, a failure), otherwise only once it is due.
+    pub(crate) fn draw_plot(
+        &mut self,
+        dir: &mut OutputDir,
+        stepper: &Stepper,
+        always: bool,
+    ) -> Result<(), RunError> {
+        let Some(plot) = self.plot.clone() else {
+            return Ok(());
+        };
+        let now = Instant::now();
+        if !always && self.plot_due.is_some_and(|due| now < due) {
+            return Ok(());
+        }
+        let _output = stepper.phase(Phase::Output);
+        let csv_path = dir.path().join("steps.csv");
+        let text = std::fs::read_to_string(&csv_path).map_err(|e| RunError::Output {
+            path: csv_path.display().to_string(),
+            cause: e.to_string(),
+        })?;
+        let svg_path = dir.path().join(STEPS_PLOT);
+        let fail = |cause: String| RunError::Output {
+            path: svg_path.display().to_string(),
+            cause,
+        };
+        let svg = plot.draw(&text).map_err(|e| fail(e.to_string()))?;
+        dir.write(STEPS_PLOT, |w| w.write_all(svg.as_bytes()))
+            .map_err(|e| fail(e.to_string()))?;
+        let spent = now.elapsed().max(Duration::from_micros(1));
+        self.plot_due = Some(Instant::now() + spent * PLOT_WAIT_FACTOR);
         Ok(())
     }
 }
@@ -309,6 +357,8 @@ pub(crate) fn simulate(
         // A run killed before its first periodic checkpoint resumes from step 0.
         run.checkpoint(dir, stepper, csv.digest(), summary)?;
     }
+    // A resumed run's plot is redrawn from the steps.csv it continues.
+    run.draw_plot(dir, stepper, true)?;
     fill_summary(run, stepper, summary);
 
     let bar = if opts.quiet {
@@ -372,8 +422,10 @@ pub(crate) fn simulate(
             write_frame(run, dir, stepper)?;
         }
         let signal = INTERRUPT.load(Ordering::SeqCst);
-        if stepper.step % checkpoint_every == 0 || stepper.step == scene.steps || signal != 0 {
+        let last = stepper.step == scene.steps;
+        if stepper.step % checkpoint_every == 0 || last || signal != 0 {
             run.checkpoint(dir, stepper, csv.digest(), summary)?;
+            run.draw_plot(dir, stepper, last || signal != 0)?;
         }
         let output = stepper.phase(Phase::Output);
         fill_summary(run, stepper, summary);

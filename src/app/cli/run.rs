@@ -19,6 +19,7 @@ pub fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
         dump_systems: a.dump_systems.clone(),
         end_time: a.end_time,
         resume: a.resume.clone(),
+        steps_plot: Some(std::sync::Arc::new(crate::app::steps_plot::StepsSvg)),
     };
     stop_after_the_step_on_signals();
     match crate::sim::driver::run(&opts) {
