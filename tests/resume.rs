@@ -602,7 +602,8 @@ fn a_restored_stepper_continues_with_the_same_bits() {
 
 /// With the multilevel preconditioner keeping its levels across Newton systems
 /// (`multilevel_setup = "reuse"`), a run stopped at step 4 and resumed to step 10 gives
-/// the bits of the run that went to step 10 at once: on the CPU CG and on the device loop.
+/// the bits of the run that went to step 10 at once, and so does one killed at a seeded
+/// point: on the CPU CG and on the device loop.
 #[test]
 fn runs_keeping_multilevel_levels_resume_to_the_same_bits() {
     let root = tmpdir("multilevel-reuse");
@@ -616,6 +617,8 @@ fn runs_keeping_multilevel_levels_resume_to_the_same_bits() {
     let solver = "[solver]\npreconditioner = \"multilevel\"\nmultilevel_setup = \"reuse\"\n";
     std::fs::write(&scene, format!("{text}\n{solver}")).expect("write the scene");
     let sc = s(&scene);
+    let mut rng = Rng(0x5eed_0004);
+    let mut inside = 0;
     for (newton, extra) in [("cpu", ["--solver", "cg"]), ("gpu", ["--newton", "gpu"])] {
         let reference = root.join(format!("reference-{newton}"));
         let r = s(&reference);
@@ -653,5 +656,14 @@ fn runs_keeping_multilevel_levels_resume_to_the_same_bits() {
             &dir,
             &format!("multilevel reuse, --newton {newton}"),
         );
+        // Killed at a seeded point rather than stopped at a step.
+        let (rows, wait) = (1 + rng.below(6) as usize, rng.below(20));
+        let mut a = vec!["run", &sc, "--steps", "10"];
+        a.extend(extra);
+        let what = format!("multilevel reuse, --newton {newton}, SIGKILL after {rows} steps");
+        let killed = root.join(format!("killed-{newton}"));
+        let from = kill_and_resume(&a, &killed, &reference, rows, wait, &what);
+        inside += from.is_some_and(|s| s < 10) as usize;
     }
+    assert!(inside >= 1, "no kill landed inside a run");
 }
