@@ -876,7 +876,7 @@ impl GpuContext {
     }
 }
 
-/// One range of a device buffer to read back ([`GpuContext::download_many`]).
+/// One range of a device buffer to read back (`GpuContext::download_many`).
 #[derive(Debug, Clone, Copy)]
 pub struct ReadRange<'a> {
     pub buffer: &'a wgpu::Buffer,

@@ -1,11 +1,11 @@
 //! Where a device run's seconds go: every second of the host's wall time attributed to one
 //! [`Phase`], every compute pass and dispatch counted, every wait on the device counted.
 //!
-//! The host's time belongs to the innermost phase open on it ([`GpuContext::phase`]; the
+//! The host's time belongs to the innermost phase open on it (`GpuContext::phase`; the
 //! bottom one is [`Phase::HostDecisions`]), so the phases partition the wall time. Time
 //! the host spends waiting on the device is split among the device phases whose passes
 //! ran since the last wait, by their device time from timestamp queries written around
-//! every compute pass ([`GpuContext::compute_pass`]) where the adapter has them: each
+//! every compute pass (`GpuContext::compute_pass`) where the adapter has them: each
 //! phase gets its device time, scaled down when the device ran longer than the host
 //! waited (it worked while the host did), and what the wait has left over is the round
 //! trip itself ([`Phase::ReadBacks`]). Without timestamp queries the whole wait is
@@ -13,7 +13,7 @@
 //! ([`Profile::device_seconds`]).
 //!
 //! The timestamps ride with the read-backs the work makes anyway: pending queries are
-//! resolved into the staging buffer of the next read ([`GpuContext::download_many`]).
+//! resolved into the staging buffer of the next read (`GpuContext::download_many`).
 
 use std::time::Instant;
 

@@ -5,19 +5,19 @@
 //! 1. scene (file or built-in name), 2. mesh, materials and masses, 3. boundary conditions
 //!    (regions → per-node sticky / plane / line, moving or not), 4. forms: inertia,
 //!    gravity, elasticity, penalties ([`crate::sim::energy`]): read, resolved and checked
-//!    in [`crate::sim::scene_setup`];
+//!    in `sim::scene_setup`;
 //! 5. solve loop: each step projects, then runs Newton with the eliminated solve
 //!    ([`crate::sim::integrator`]), 6. recover: velocities, reaction forces, momentum,
 //!    center of mass, energy, and 7. output: frames every k steps, one steps.csv row per
 //!    step (written as it happens), summary.json after every step (`running`), a
 //!    checkpoint every `[output] checkpoint_every` steps and at the end
 //!    ([`crate::sim::checkpoint`]) and, given a [`StepsPlot`], steps.svg redrawn from
-//!    steps.csv: in [`crate::sim::time_loop`];
+//!    steps.csv: in `sim::time_loop`;
 //!
 //! and this module runs them: the options, the output folder (taken once every check has
 //! passed), the stepper, and summary.json at the end (`complete`, `failed` or
 //! `interrupted`). `run --resume DIR` continues a run from its checkpoint
-//! ([`crate::sim::resume`]).
+//! (`sim::resume`).
 
 use crate::error::InputError;
 use crate::io::files::{Named, OutputDir};

@@ -13,7 +13,7 @@
 //! turns the four f64 of that slot into the host's type; and the one-call form (records,
 //! submits, reads the one slot, decodes) is what the loop uses.
 //!
-//! Result slots, one vec4<f64> (32 bytes) each, from [`NewtonOps::check_slots`]`.start`:
+//! Result slots, one `vec4<f64>` (32 bytes) each, from [`NewtonOps::check_slots`]`.start`:
 //!
 //! | slot | lanes                                                                  |
 //! |------|------------------------------------------------------------------------|
@@ -21,7 +21,7 @@
 //! | +1   | force balance: residual, its node, scale, x_max                        |
 //!
 //! Element indices are global over the model's element sets (set k's element e is
-//! Σ_{j<k} len_j + e), and [`NO_INDEX`] (2⁵²) stands for none.
+//! Σ_{j<k} len_j + e), and `NO_INDEX` (2⁵²) stands for none.
 //!
 //! The host's functions are reproduced operation by operation in the same order (the root
 //! search of every element, the per-node sums in the host's element order); every

@@ -140,7 +140,7 @@ pub fn assemble(
     }
 }
 
-/// Eigenvalues and eigenvectors (columns: vecs[a][k] is component a of vector k) of the
+/// Eigenvalues and eigenvectors (columns: `vecs[a][k]` is component a of vector k) of the
 /// symmetric d×d block.
 pub fn scaling_eigen(d: usize, a: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
     if d == 3 {

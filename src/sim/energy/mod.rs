@@ -442,7 +442,7 @@ impl Model {
 
     /// [`Model::add_potential_gradient`] with the element buffer kept in `work`: element
     /// gradients in parallel, then each node gathers its elements' entries in element
-    /// order, in bounded passes ([`Model::gradient_passes`]).
+    /// order, in bounded passes (`Model::gradient_passes`).
     pub fn add_potential_gradient_with(
         &self,
         x: &[f64],
@@ -568,7 +568,7 @@ impl Model {
     }
 
     /// [`Model::add_potential_hessian`] with the element buffer kept in `work`, in passes
-    /// over at most [`HESS_BUFFER_BLOCKS`] element blocks: each pass computes its
+    /// over at most `HESS_BUFFER_BLOCKS` element blocks: each pass computes its
     /// elements' matrices in parallel (their upper node blocks), then every block of `h`
     /// in the rows those elements touch adds the pass's contributions in element order
     /// (through the map built with the model, from where the last pass left it). Each

@@ -32,7 +32,7 @@ impl DeviceCg {
     }
     /// The multilevel preconditioner of the system just prepared (built on the host from
     /// the same H and constraints `frames` were built from: [`Multilevel::new`]),
-    /// uploaded for the iterations with [`Preconditioner::Multilevel`]; call after every
+    /// uploaded for the iterations with `Preconditioner::Multilevel`; call after every
     /// `prepare`. A hierarchy met before keeps its buffers and only the values move; the
     /// same generation of levels ([`Multilevel::generation`]: kept levels refreshed) moves
     /// only its smoothing weights.
@@ -111,7 +111,7 @@ impl DeviceCg {
         Ok(())
     }
     /// The aggregates' E and E⁺ moved between host and device so far (part of the
-    /// context's [`GpuContext::traffic`]).
+    /// context's `GpuContext::traffic`).
     pub fn coarse_traffic(&self) -> TrafficCount {
         self.coarse_traffic
     }

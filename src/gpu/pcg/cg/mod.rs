@@ -62,7 +62,7 @@ const MIN_CHUNK: usize = 2;
 const MAX_CHUNK: usize = 256;
 
 /// The factor by which a run whose recurrence met the tolerance must lower the best true
-/// residual before it; less ends the solve in [`CgError::Stagnation`] (see `run`; the
+/// residual before it; less ends the solve in `CgError::Stagnation` (see `run`; the
 /// same 2× as mixed precision asks of its f32 segments).
 const MIN_RESTART_GAIN: f64 = 0.5;
 
@@ -187,7 +187,7 @@ pub struct DeviceCgParams {
     /// Stagnation: at least every this many iterations (and sooner when the recurrence
     /// residual has not improved for as long) the true residual is computed and CG
     /// restarts from it; a true residual no smaller than the best before it ends the
-    /// solve in [`CgError::Stagnation`], and so does one not below half the best after a
+    /// solve in `CgError::Stagnation`, and so does one not below half the best after a
     /// run whose recurrence met the tolerance.
     pub stagnation_window: usize,
 }

@@ -892,7 +892,7 @@ impl NewtonOps {
         (&self.binder.x, &self.binder.dx)
     }
 
-    /// Every scalar result of the loop, one vec4<f64> (32 bytes) per slot: this module's
+    /// Every scalar result of the loop, one `vec4<f64>` (32 bytes) per slot: this module's
     /// (per element term its energy, then g·Δx, ‖Δx‖∞, CCD, smallest distance, moving
     /// energy) and from [`NewtonOps::check_slots`] on the checks'.
     pub fn result_buffer(&self) -> &wgpu::Buffer {
