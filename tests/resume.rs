@@ -11,7 +11,7 @@ use std::process::{Child, Output};
 use std::time::{Duration, Instant, SystemTime};
 
 mod common;
-use common::cli::{assert_input_error, run, stderr, tmpdir, Rng};
+use common::cli::{assert_input_error, run, stderr, steps_without_timing, summary, tmpdir, Rng};
 
 fn s(p: &Path) -> String {
     p.to_str().expect("utf-8 path").to_string()
@@ -23,19 +23,6 @@ fn spawn(args: &[&str]) -> Child {
 
 fn ok(o: &Output, what: &str) {
     assert!(o.status.success(), "{what}: {}", stderr(o));
-}
-
-/// steps.csv without its timing column (linear_seconds, the fifth).
-fn steps_without_timing(dir: &Path) -> Vec<String> {
-    std::fs::read_to_string(dir.join("steps.csv"))
-        .expect("steps.csv")
-        .lines()
-        .map(|l| {
-            let mut f: Vec<&str> = l.split(',').collect();
-            f.remove(4);
-            f.join(",")
-        })
-        .collect()
 }
 
 /// Every frame, by name.
@@ -122,11 +109,6 @@ fn assert_collection_lists_frames(dir: &Path, what: &str) {
             "{what}: {a:?} vs {b:?}"
         );
     }
-}
-
-fn summary(dir: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).expect("summary"))
-        .expect("summary.json parses")
 }
 
 /// Waits until the run has written its first checkpoint (or has ended).

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 mod common;
-use common::cli::{assert_input_error, run, stderr, tmpdir, BIN};
+use common::cli::{assert_input_error, run, stderr, steps_without_timing, summary, tmpdir, BIN};
 
 fn s(p: &Path) -> String {
     p.to_str().expect("utf-8 path").to_string()
@@ -53,24 +53,6 @@ fn tree(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
     walk(dir, dir, &mut v);
     v.sort();
     v
-}
-
-fn summary(dir: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).expect("summary"))
-        .expect("summary.json parses")
-}
-
-/// steps.csv without its timing column (linear_seconds, the fifth).
-fn steps_without_timing(dir: &Path) -> Vec<String> {
-    std::fs::read_to_string(dir.join("steps.csv"))
-        .expect("steps.csv")
-        .lines()
-        .map(|l| {
-            let mut f: Vec<&str> = l.split(',').collect();
-            f.remove(4);
-            f.join(",")
-        })
-        .collect()
 }
 
 fn frame_names(dir: &Path) -> Vec<String> {

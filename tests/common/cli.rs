@@ -82,3 +82,22 @@ pub fn spawn(args: &[&str], keep_stderr: bool) -> std::process::Child {
         .spawn()
         .expect("spawn stickslip")
 }
+
+/// A run folder's summary.json.
+pub fn summary(dir: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).expect("summary"))
+        .expect("summary.json parses")
+}
+
+/// A run folder's steps.csv without its timing column (linear_seconds, the fifth).
+pub fn steps_without_timing(dir: &Path) -> Vec<String> {
+    std::fs::read_to_string(dir.join("steps.csv"))
+        .expect("steps.csv")
+        .lines()
+        .map(|l| {
+            let mut f: Vec<&str> = l.split(',').collect();
+            f.remove(4);
+            f.join(",")
+        })
+        .collect()
+}

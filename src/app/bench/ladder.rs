@@ -9,7 +9,9 @@
 //! error against the reference; derive the tables (which solver reaches a given error
 //! first, time per iteration, the log-log scaling slope).
 
-use crate::app::bench::measure::{cpu_cg_bytes_per_iteration, cpu_copy_bandwidth, peak_rss_bytes};
+use crate::app::bench::measure::{
+    cpu_cg_bytes_per_iteration, cpu_copy_bandwidth, peak_rss_bytes, say,
+};
 pub use crate::app::bench::record::{BenchReport, CholeskyRecord, RunRecord, ScalingFit, Winner};
 use crate::app::bench::tables::{derive_tables, write_outputs};
 use crate::cases::generate::{random_system, SystemSpec};
@@ -429,19 +431,6 @@ fn time_gpu_cg(
             finish_record(&mut r, bytes, report.gpu_copy_gb_per_s.unwrap_or(f64::NAN));
             size.record(report, r);
         }
-    }
-}
-
-/// One line per finished run: above the progress bar on a terminal, plain on stderr
-/// otherwise (indicatif hides its bar, and its println, when stderr is not a terminal).
-fn say(bar: &indicatif::ProgressBar, quiet: bool, text: &str) {
-    if quiet {
-        return;
-    }
-    if bar.is_hidden() {
-        eprintln!("{text}");
-    } else {
-        bar.println(text);
     }
 }
 

@@ -42,3 +42,16 @@ pub fn cpu_cg_bytes_per_iteration(e: &Eliminated) -> u64 {
         h.values.len() as u64 * 8 + h.col_idx.len() as u64 * idx + h.row_ptr.len() as u64 * idx;
     matrix + 18 * h.ndof() as u64 * 8
 }
+
+/// One line per finished run: above the progress bar on a terminal, plain on stderr
+/// otherwise (indicatif hides its bar, and its println, when stderr is not a terminal).
+pub(super) fn say(bar: &indicatif::ProgressBar, quiet: bool, text: &str) {
+    if quiet {
+        return;
+    }
+    if bar.is_hidden() {
+        eprintln!("{text}");
+    } else {
+        bar.println(text);
+    }
+}

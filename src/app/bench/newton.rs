@@ -26,6 +26,7 @@
 //! Every phase runs once as a warm-up, then `reps` times; a phase's time is the median of
 //! those. A side's total is the sum of its four medians, absent when a phase is.
 
+use crate::app::bench::measure::say;
 use crate::app::bench::newton_report::{
     size_line, write_outputs, AssemblyDifference, CpuCheck, GpuCgRecord, Machine, NewtonReport,
     Phases, SideRecord, SizeRecord,
@@ -628,18 +629,6 @@ pub fn run(opts: &NewtonOptions, command: &str) -> Result<NewtonReport, NewtonBe
             .map_err(|e| NewtonBenchError::Io(format!("{}: {e}", dir.display())))?;
     }
     Ok(report)
-}
-
-/// A line above the progress bar on a terminal, plain on stderr otherwise.
-fn say(bar: &indicatif::ProgressBar, quiet: bool, text: &str) {
-    if quiet {
-        return;
-    }
-    if bar.is_hidden() {
-        eprintln!("{text}");
-    } else {
-        bar.println(text);
-    }
 }
 
 fn bench_size(
