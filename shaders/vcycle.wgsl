@@ -90,52 +90,57 @@ fn halted() -> bool {
     return state[STATE_DONE] != 0u;
 }
 
-// (B⁺ v) at the t-th unknown in cluster order (the items of cluster 0, then of cluster 1,
-// …, D components each), v = b (post: b − ax): the unknown's index in the level's vectors
-// and its value. The sum runs over the cluster's items in order, as the CPU's.
-// Why cluster order: consecutive invocations then read consecutive entries of one
+// (B⁺ v) at the q-th item in cluster order (the items of cluster 0, then of cluster 1,
+// …), v = b (post: b − ax): the item and its D values. Each value sums over the cluster's
+// unknowns in order, as the CPU's. One invocation forms an item's D rows together, so each
+// entry of v it reads serves D rows: on a CPU adapter, where every load is a per-lane
+// gather, loads are what a smoothing costs.
+// Why cluster order: consecutive invocations then read neighbouring entries of one
 // cluster's inverse (entry (row, col) is read at col·m + row: the inverse is symmetric,
 // stored both ways bit for bit), which a GPU coalesces; in node order they would belong
 // to unrelated clusters.
-struct Unknown {
-    at: u32,
-    value: real,
+struct Item {
+    node: u32,
+    value: array<real, 3>,
 }
 
-fn cluster_row(t: u32, post: bool) -> Unknown {
-    let q = t / D;
-    let a = t % D;
+fn cluster_rows(q: u32, post: bool) -> Item {
     let i = idx[vp.items_at + q];
     let c = idx[vp.of_at + i];
     let t0 = idx[vp.ptr_at + c];
     let t1 = idx[vp.ptr_at + c + 1u];
     let m = (t1 - t0) * D;
-    let base = idx[vp.inv_start_at + c] - vp.inv_base + (q - t0) * D + a;
-    var s = real(0.0);
+    let base = idx[vp.inv_start_at + c] - vp.inv_base + (q - t0) * D;
+    var s: array<real, 3>;
     for (var u = t0; u < t1; u++) {
         let j = idx[vp.items_at + u];
-        let col = (u - t0) * D;
+        let col = base + (u - t0) * D * m;
         for (var e = 0u; e < D; e++) {
             var v = b[j * D + e];
             if (post) {
                 v -= ax[j * D + e];
             }
-            s += inv[base + (col + e) * m] * v;
+            let o = col + e * m;
+            for (var a = 0u; a < D; a++) {
+                s[a] += inv[o + a] * v;
+            }
         }
     }
-    return Unknown(i * D + a, s);
+    return Item(i, s);
 }
 
-// x = ω B⁺ b.
+// x = ω B⁺ b, over the items of this dispatch's unknowns [t_begin, t_end) (whole clusters).
 @compute @workgroup_size(WG)
 fn smooth_pre(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     if (halted()) {
         return;
     }
     let omega = vals[vp.omega_at];
-    for (var t = vp.t_begin + grid_index(gid, nwg); t < vp.t_end; t += grid_stride(nwg)) {
-        let u = cluster_row(t, false);
-        x[u.at] = u.value * omega;
+    for (var q = vp.t_begin / D + grid_index(gid, nwg); q < vp.t_end / D; q += grid_stride(nwg)) {
+        let r = cluster_rows(q, false);
+        for (var a = 0u; a < D; a++) {
+            x[r.node * D + a] = r.value[a] * omega;
+        }
     }
 }
 
@@ -146,9 +151,11 @@ fn smooth_post(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let omega = vals[vp.omega_at];
-    for (var t = vp.t_begin + grid_index(gid, nwg); t < vp.t_end; t += grid_stride(nwg)) {
-        let u = cluster_row(t, true);
-        x[u.at] += omega * u.value;
+    for (var q = vp.t_begin / D + grid_index(gid, nwg); q < vp.t_end / D; q += grid_stride(nwg)) {
+        let r = cluster_rows(q, true);
+        for (var a = 0u; a < D; a++) {
+            x[r.node * D + a] += omega * r.value[a];
+        }
     }
 }
 
@@ -164,10 +171,15 @@ fn level_ax(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
         for (var k = idx[vp.row_at + i]; k < idx[vp.row_at + i + 1u]; k++) {
             let j = idx[vp.col_at + k];
             let o = vp.a_at + k * D * D;
+            // x_j read once for the block's D rows (each load is a gather on a CPU adapter).
+            var xj: array<real, 3>;
+            for (var c = 0u; c < D; c++) {
+                xj[c] = x[j * D + c];
+            }
             for (var r = 0u; r < D; r++) {
-                var s = vals[o + r * D] * x[j * D];
+                var s = vals[o + r * D] * xj[0];
                 for (var c = 1u; c < D; c++) {
-                    s += vals[o + r * D + c] * x[j * D + c];
+                    s += vals[o + r * D + c] * xj[c];
                 }
                 acc3[r] += s;
             }
@@ -189,10 +201,15 @@ fn restrict_down(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
         for (var t = idx[vp.pt_ptr_at + c]; t < idx[vp.pt_ptr_at + c + 1u]; t++) {
             let i = idx[vp.pt_row_at + t];
             let o = vp.pt_at + t * D * D;
+            // The residual at item i, formed once for the block's D rows.
+            var ri: array<real, 3>;
+            for (var k = 0u; k < D; k++) {
+                ri[k] = b[i * D + k] - ax[i * D + k];
+            }
             for (var a = 0u; a < D; a++) {
                 var s = real(0.0);
                 for (var k = 0u; k < D; k++) {
-                    s += vals[o + a * D + k] * (b[i * D + k] - ax[i * D + k]);
+                    s += vals[o + a * D + k] * ri[k];
                 }
                 o3[a] += s;
             }
@@ -217,10 +234,14 @@ fn prolong_up(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
         for (var pk = idx[vp.p_ptr_at + i]; pk < idx[vp.p_ptr_at + i + 1u]; pk++) {
             let c = idx[vp.p_col_at + pk];
             let o = vp.p_at + pk * D * D;
+            var xc: array<real, 3>;
+            for (var k = 0u; k < D; k++) {
+                xc[k] = xn[c * D + k];
+            }
             for (var a = 0u; a < D; a++) {
                 var s = real(0.0);
                 for (var k = 0u; k < D; k++) {
-                    s += vals[o + a * D + k] * xn[c * D + k];
+                    s += vals[o + a * D + k] * xc[k];
                 }
                 z3[a] += s;
             }

@@ -132,6 +132,31 @@ pub fn next_chunk(
     (take as usize).clamp(floor, grow)
 }
 
+/// The dispatches a PCG's first solve records before its first status read: 32
+/// iterations of Jacobi with the aggregates (five dispatches each). An iteration recorded
+/// past convergence costs its dispatches, gated or not, so an iteration of more
+/// dispatches (the multilevel V-cycle's 25) is worth a shorter first chunk: the status
+/// read after it predicts the rest from the fall of the residual ([`next_chunk`]).
+pub const FIRST_SOLVE_DISPATCHES: usize = 160;
+
+/// Iterations of a solve's first chunk, for an iteration of `dispatches` dispatches: as
+/// long as the longest recent solve took (`recent_longest`), a quarter more (Newton's
+/// systems change little from one to the next, the forcing sequence's tolerances do), or
+/// without one, [`FIRST_SOLVE_DISPATCHES`] worth of iterations, at most `first_solve`;
+/// within [floor, cap], and at most `max` (the solve's iteration limit).
+pub fn first_chunk(
+    recent_longest: Option<usize>,
+    dispatches: usize,
+    (floor, first_solve, cap): (usize, usize, usize),
+    max: usize,
+) -> usize {
+    let k = match recent_longest {
+        Some(n) => n + n / 4 + 2,
+        None => (FIRST_SOLVE_DISPATCHES / dispatches.max(1)).min(first_solve),
+    };
+    k.clamp(floor, cap.max(floor)).min(max)
+}
+
 /// The fall of ln r·r per iteration over the later half of a status history: early CG
 /// iterations are not representative, and a single chunk's rate is noisy (the CG residual
 /// is not monotone). None without two points or without a fall.
@@ -148,7 +173,7 @@ const SHORT_PREDICTION: f64 = 8.0;
 
 #[cfg(test)]
 mod tests {
-    use super::{next_chunk, slots, ChunkStatus};
+    use super::{first_chunk, next_chunk, slots, ChunkStatus, FIRST_SOLVE_DISPATCHES};
     use crate::solve::cg::CgError;
 
     /// The slots are read where the table puts them, and a flag becomes its error with the
@@ -206,5 +231,31 @@ mod tests {
         // A bump over the later half: the fall since the first read, 0.05 per iteration.
         let bump = [(0, 0.0), (10, -2.0), (20, -1.5), (30, -1.5)];
         assert_eq!(next_chunk(&bump, (-2.0f64).exp(), 10, 2, 256), 8);
+    }
+    /// A first solve's first chunk holds about as many dispatches whatever an iteration
+    /// dispatches (within the bounds); a later one follows the recent solves alone.
+    #[test]
+    fn first_chunks_are_sized_by_the_dispatches_of_an_iteration() {
+        let b = (8, 32, 256);
+        // Jacobi (three dispatches) and Jacobi with the aggregates (five): the first-solve
+        // length; the multilevel V-cycle (25): the floor.
+        assert_eq!(first_chunk(None, 3, b, 1000), 32);
+        assert_eq!(first_chunk(None, 5, b, 1000), 32);
+        assert_eq!(first_chunk(None, 25, b, 1000), 8);
+        // Between the bounds the dispatches recorded stay within an iteration's of the
+        // budget.
+        for d in [6, 8, 10, 12, 16] {
+            let k = first_chunk(None, d, b, 1000);
+            assert!(k < 32 && k > 8, "{d} dispatches: {k}");
+            assert!(k * d <= FIRST_SOLVE_DISPATCHES && (k + 1) * d > FIRST_SOLVE_DISPATCHES);
+        }
+        // Learned from recent solves: a quarter more plus two, whatever the dispatches.
+        assert_eq!(first_chunk(Some(15), 25, b, 1000), 20);
+        assert_eq!(first_chunk(Some(15), 5, b, 1000), 20);
+        assert_eq!(first_chunk(Some(1), 25, b, 1000), 8);
+        assert_eq!(first_chunk(Some(400), 5, b, 1000), 256);
+        // Never past the solve's limit, and no division by zero dispatches.
+        assert_eq!(first_chunk(None, 5, b, 5), 5);
+        assert_eq!(first_chunk(None, 0, b, 1000), 32);
     }
 }

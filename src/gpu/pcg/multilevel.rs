@@ -614,7 +614,7 @@ impl DeviceMultilevel {
     }
 
     /// The dispatches of one V-cycle z = M⁻¹r, level 0's products left to the PCG. Each
-    /// smoothing runs once per buffer of inverses, over that buffer's unknowns. With
+    /// smoothing runs once per buffer of inverses, over that buffer's items. With
     /// `verify` the kernels of a chunk's verification, which run only while the PCG checks
     /// a converged recurrence's true residual.
     pub(super) fn steps(&self, verify: bool) -> Vec<Step<'_>> {
@@ -651,7 +651,11 @@ impl DeviceMultilevel {
             lev.inverses
                 .iter()
                 .zip(&lev.groups)
-                .map(|(ch, g)| Step::Kernel(name, pipe, launch(ch.unknowns.len()), g))
+                .map(|(ch, g)| {
+                    // One invocation per item: its D rows of the cluster's inverse.
+                    let items = ch.unknowns.len() / self.dim;
+                    Step::Kernel(name, pipe, launch(items), g)
+                })
                 .collect()
         };
         let mut steps = Vec::new();

@@ -54,7 +54,7 @@ fn status_bytes(acc: Real) -> u64 {
 /// Iterations of the first chunk, the shortest and the longest chunk
 /// ([`schedule::next_chunk`]).
 pub(crate) const FIRST_CHUNK: usize = 8;
-/// The first chunk of a PCG's first solve, and how many solves back the first chunk of
+/// The longest first chunk of a PCG's first solve, and how many solves back the first chunk of
 /// the next one looks ([`DeviceCg::first_chunk`]).
 const FIRST_CHUNK_SOLVE: usize = 32;
 const RECENT_SOLVES: usize = 4;

@@ -186,17 +186,15 @@ impl DeviceCg {
         self.clear_state();
     }
 
-    /// The first chunk of a solve: as long as the longest of the last few solves took, a
-    /// quarter more ([`FIRST_CHUNK_SOLVE`] for a PCG's first solve). Newton's systems
-    /// change little from one to the next, but the forcing sequence's tolerances do, and a
-    /// loose solve says little about the tight one after it; an iteration recorded past the
-    /// stop costs a no-op dispatch, a chunk too short a round trip.
-    pub(super) fn first_chunk(&self, max: usize) -> usize {
-        let k = match self.recent.iter().max() {
-            None => FIRST_CHUNK_SOLVE,
-            Some(&n) => n + n / 4 + 2,
-        };
-        k.clamp(FIRST_CHUNK, MAX_CHUNK).min(max)
+    /// The first chunk of a solve of `dispatches` dispatches per iteration
+    /// ([`schedule::first_chunk`]): as long as the longest of the last few solves took, a
+    /// quarter more, or for a PCG's first solve as many iterations as
+    /// [`schedule::FIRST_SOLVE_DISPATCHES`] pays for, at most [`FIRST_CHUNK_SOLVE`]. A loose
+    /// solve says little about the tight one after it; an iteration recorded past the stop
+    /// costs its dispatches as no-ops, a chunk too short a round trip.
+    pub(super) fn first_chunk(&self, max: usize, dispatches: usize) -> usize {
+        let bounds = (FIRST_CHUNK, FIRST_CHUNK_SOLVE, MAX_CHUNK);
+        schedule::first_chunk(self.recent.iter().max().copied(), dispatches, bounds, max)
     }
 
     pub(super) fn run(
@@ -225,7 +223,7 @@ impl DeviceCg {
         // Start (from y = 0, so q = Ĥy = 0 without a product, or from the current y) and
         // the first chunk, in one submit; again where the status shows that E⁺ of the
         // aggregates had to come from the host.
-        let first = self.first_chunk(max);
+        let first = self.first_chunk(max, self.iteration(frames, pre, co).len());
         let (mut st, mut bytes) =
             self.start_and_chunk(frames, (pre, co), first, tail, from_current)?;
         if self.coarse_fallback(&st, frames, co)? {
