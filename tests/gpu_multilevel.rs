@@ -179,7 +179,18 @@ fn split_inverses_give_the_same_bits() {
     };
     let mut one = PcgSolver::new(ctx, &e, &whole).expect("one buffer per level");
     let a = one.solve().expect("converges");
-    assert!(one.multilevel_inverse_buffers().iter().all(|&b| b == 1));
+    let levels = one.multilevel_inverse_buffers();
+    assert!(levels.iter().all(|&b| b == 1));
+    // An iteration's dispatches: the PCG's product, its two updates and the r·z partials
+    // (4), then the V-cycle: level 0's two smoothings, restriction, prolongation and two
+    // products of two dispatches each (`world_z`, `matvec`: 8), six per level between it
+    // and the coarsest, and the coarsest's solve (1).
+    assert!(levels.len() >= 3, "{levels:?}");
+    assert_eq!(
+        a.info.dispatches_per_iteration,
+        4 + 8 + 6 * (levels.len() - 2) + 1,
+        "levels {levels:?}"
+    );
     // About a third of level 0's inverses per buffer (and H split too).
     let level0: usize = Hierarchy::new(&s.h).level_sizes(3)[0].inverses.iter().sum();
     let split = GpuParams {
