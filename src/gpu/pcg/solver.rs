@@ -382,6 +382,12 @@ impl PcgSolver {
             self.cg
                 .set_multilevel(&ml, e.frames, self.params.binding_limit)?;
         }
+        if self.mixed.is_none() {
+            // The solve's pipelines are compiled here, in the setup, not inside the first
+            // solve's seconds (a no-op once compiled).
+            self.cg
+                .compile_solve_pipelines(&self.frames, &self.cg_params());
+        }
         // The setup kernels' time, not just their recording.
         self.ctx.wait("the PCG's setup")?;
         self.setup_seconds = t.elapsed().as_secs_f64();
@@ -528,6 +534,17 @@ impl PcgSolver {
         }
     }
 
+    /// The device CG's parameters of a solve.
+    fn cg_params(&self) -> DeviceCgParams {
+        DeviceCgParams {
+            tol: self.params.tol,
+            max_iterations: self.params.max_iters,
+            preconditioner: self.params.preconditioner,
+            coarse: self.params.coarse,
+            stagnation_window: self.params.stagnation_window,
+        }
+    }
+
     fn solve_once(&mut self) -> Result<SolveOutcome, GpuError> {
         let tol = self.params.tol;
         let bnorm = norm2(&self.host.rhs);
@@ -536,13 +553,7 @@ impl PcgSolver {
             notes.push("no SHADER_F64: reductions accumulate in f32".to_string());
         }
         let t0 = Instant::now();
-        let cg_params = DeviceCgParams {
-            tol,
-            max_iterations: self.params.max_iters,
-            preconditioner: self.params.preconditioner,
-            coarse: self.params.coarse,
-            stagnation_window: self.params.stagnation_window,
-        };
+        let cg_params = self.cg_params();
         let (mut iterations, mut restarts, mut recorded, mut reads) = (0, 0, 0, 0);
         let mut download = 0.0;
         let mut kappa: Option<f64> = None;

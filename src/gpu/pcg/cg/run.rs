@@ -472,6 +472,20 @@ impl DeviceCg {
         self.read_vector(&self.buf.q, "reading back the product")
     }
 
+    /// Compiles the pipelines a solve with these frames and parameters records (each is
+    /// compiled the first time a solve asks for it), for a caller that counts compiling
+    /// as setup rather than as its first solve's time.
+    pub fn compile_solve_pipelines(&self, frames: &DeviceFrames, params: &DeviceCgParams) {
+        let (pre, co) = overrides(params, frames);
+        let _ = self.iteration(frames, pre, co);
+        for mode in [Mode::Iterate, Mode::Verify] {
+            let _ = self.start(frames, pre, co, mode);
+            let _ = self.product_of_y(frames, mode);
+        }
+        let _ = self.kernels.update.verified(&self.ctx);
+        let _ = self.kernels.product.recover(&self.ctx, Mode::Verify);
+    }
+
     /// q = Ĥy: p = y and pw = V P y, then the product (`Verify`: only while verifying).
     pub(super) fn product_of_y<'a>(
         &'a self,
