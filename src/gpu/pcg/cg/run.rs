@@ -2,7 +2,8 @@
 //! its verification, one status read per chunk, restarts from the true residual.
 //!
 //! A solve's first submit holds its start, a first chunk as long as the last solve took
-//! (a quarter more), that chunk's verification and Δx's recovery, and what the caller
+//! (a quarter more; a first solve's, as many iterations as 160 dispatches make:
+//! [`schedule::first_chunk`]), that chunk's verification and Δx's recovery, and what the caller
 //! wants done once the solve has succeeded ([`Tail`]); the tolerance, where it depends on
 //! ‖b̂‖, is evaluated on the device at the start ([`ToleranceRule`]). So a solve that
 //! converges within its first chunk waits on the device once. Iterations recorded past
@@ -75,8 +76,9 @@ impl DeviceCg {
     /// residual is computed in f64 on the device (q = Ĥy, r = b̂ − q), by the chunk's
     /// verification in the same submit; if it misses, CG restarts from y with that
     /// residual. Iterations are recorded in chunks, one status read-back each (the first
-    /// as long as the last solve, then as many as the residual's rate of fall predicts, at
-    /// least 2, at most double the last and 256: [`schedule::next_chunk`]).
+    /// as long as the last solve or sized by an iteration's dispatches, then as many as
+    /// the residual's rate of fall predicts, at least 2, at most double the last and 256:
+    /// [`schedule::next_chunk`]).
     pub fn iterate(
         &mut self,
         frames: &DeviceFrames,
