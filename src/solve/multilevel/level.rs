@@ -265,7 +265,8 @@ pub(super) fn symmetric_f32(d: usize, lev: &Level, mirror: &[u32], a: &[f64], ou
             let other = &a[t * dd..(t + 1) * dd];
             for r in 0..d {
                 for c in 0..d {
-                    let upper = i < j || (i == j && r <= c);
+                    // An off-diagonal block without a stored partner keeps its own.
+                    let upper = i < j || (i == j && r <= c) || (i != j && t == k);
                     let v = if upper {
                         own[r * d + c]
                     } else {
@@ -287,8 +288,8 @@ pub(super) fn mirror_blocks(lev: &Level) -> Vec<u32> {
             (lev.row_ptr[i]..lev.row_ptr[i + 1]).map(move |k| {
                 let j = lev.col_idx[k];
                 let row = &lev.col_idx[lev.row_ptr[j]..lev.row_ptr[j + 1]];
-                // A symmetric pattern stores (j, i); k itself otherwise keeps the rounding
-                // well defined.
+                // Every level's pattern is symmetric (both triangles stored); k itself
+                // where (j, i) is missing.
                 row.binary_search(&i).map_or(k, |t| lev.row_ptr[j] + t) as u32
             })
         })
