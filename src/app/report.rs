@@ -7,7 +7,8 @@ use serde::Serialize;
 pub struct Seconds {
     /// Reading and validating H, g and the constraints.
     pub read: f64,
-    /// Frames (per-node bases, ranks, lift) and the eliminated right-hand side.
+    /// Frames (per-node bases, ranks, lift) and the eliminated right-hand side; with the
+    /// CPU CG's multilevel preconditioner also its clusters and levels.
     pub setup: f64,
     /// The solver call (for cholesky: symbolic + numeric + triangular solves).
     pub solve: f64,

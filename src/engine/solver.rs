@@ -373,7 +373,8 @@ impl Default for GpuTuning {
 /// Wall time of one solve, in seconds.
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
 pub struct SolveSeconds {
-    /// Forming b̂ and D, plus the analysis or device upload of a new layout.
+    /// Forming b̂ and D, plus the analysis or device upload of a new layout, or the CPU
+    /// CG's multilevel clusters and levels.
     pub setup: f64,
     /// The solve proper (factorization and triangular solves, or CG).
     pub solve: f64,
@@ -568,13 +569,14 @@ impl Solver {
         let (y, mut stats) = match self.config.kind {
             SolverKind::Cholesky => self.cholesky(layout, e)?,
             SolverKind::Cg => {
-                let (y, info) = self.cg(e)?;
-                let stats = self.stats(
+                let (y, info, levels_s) = self.cg(e)?;
+                let mut stats = self.stats(
                     Some(info.iterations),
                     info.relative_residual,
                     false,
                     SolveDetails::Cg(info),
                 );
+                stats.seconds.setup = levels_s;
                 (y, stats)
             }
             SolverKind::Gpu => self.gpu(layout, e)?,
@@ -638,21 +640,26 @@ impl Solver {
 
     /// The CPU CG; the multilevel preconditioner partitions H's pattern once and keeps the
     /// clusters while the pattern stays (and its levels, as the setup says: a solve that
-    /// fails on kept levels runs again on fresh ones).
-    fn cg(&mut self, e: &Eliminated) -> Result<(Vec<f64>, crate::solve::cg::CgInfo), Error> {
+    /// fails on kept levels runs again on fresh ones). Also returns the seconds spent on
+    /// the multilevel preconditioner's clusters and levels (0 for the others).
+    fn cg(&mut self, e: &Eliminated) -> Result<(Vec<f64>, crate::solve::cg::CgInfo, f64), Error> {
         use crate::solve::cg::BuiltPreconditioner;
         let params = self.config.cg_params();
         if params.preconditioner != Preconditioner::Multilevel || params.scaling != Scaling::None {
-            return Ok(crate::solve::cg::solve(e, &params)?);
+            let (y, info) = crate::solve::cg::solve(e, &params)?;
+            return Ok((y, info, 0.0));
         }
         crate::solve::cg::check_pinned(e)?;
+        let mut levels_s = 0.0;
         loop {
+            let t = Instant::now();
             let (levels, _) = self.levels.for_system(e);
+            levels_s += t.elapsed().as_secs_f64();
             let pre = BuiltPreconditioner::with_levels(levels);
             match crate::solve::cg::solve_with(e, &pre, None, &params) {
                 Ok((y, info)) => {
                     self.levels.solved(info.iterations, params.tol);
-                    return Ok((y, info));
+                    return Ok((y, info, levels_s));
                 }
                 Err(err) => {
                     if !self.levels.failed() {

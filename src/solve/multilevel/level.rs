@@ -2,8 +2,9 @@
 //! them (the product, the cluster blocks' inverses and their application, the Galerkin
 //! sum into the next level).
 
-use super::dense::cholesky_dropping;
-use super::dense::inverse_from_factor;
+use super::dense::{
+    apply_packed, cholesky_dropping, explicit_inverse, factor_inverse, pack_lower_f32, packed_len,
+};
 use crate::core::elimination::{rotate_block, Eliminated};
 use rayon::prelude::*;
 
@@ -26,6 +27,8 @@ pub(super) struct Level {
     /// The matrix of this level's items (level 0: H's own pattern).
     pub(super) row_ptr: Vec<usize>,
     pub(super) col_idx: Vec<usize>,
+    /// `col_idx` in u32: what the products read (half the index bytes).
+    pub(super) col32: Vec<u32>,
 }
 
 impl Level {
@@ -100,6 +103,7 @@ impl Level {
                 pos[i as usize] = p as u32;
             }
         }
+        let col32 = col_idx.iter().map(|&j| j as u32).collect();
         Level {
             n,
             of,
@@ -108,17 +112,23 @@ impl Level {
             items,
             row_ptr,
             col_idx,
+            col32,
         }
     }
 }
 
-/// One level's cluster inverses: cluster c's (L Lᵀ)⁺ (m×m with m = d·|c|, symmetric) at
-/// `factor[start[c]..]`. An explicit inverse applies as one dense product, which
-/// vectorises (two triangular sweeps with the factor would not).
+/// One level's cluster blocks, in two forms. The V-cycle of the CPU CG applies cluster
+/// c's G = L⁺ (the inverse of its dropping Cholesky factor, lower triangular, rounded to
+/// f32, packed row by row at `g[g_start[c]..]`) as GᵀG: a quarter of an f64 explicit
+/// inverse's bytes, and semidefinite whatever the rounding ([`apply_packed`]). The
+/// explicit (L Lᵀ)⁺ = XᵀX in f64 (m×m with m = d·|c|, symmetric, at `factor[start[c]..]`)
+/// is what the device V-cycle holds ([`super::LevelView`]).
 #[derive(Debug, Clone)]
 pub(super) struct Factors {
     pub(super) start: Vec<usize>,
     pub(super) factor: Vec<f64>,
+    pub(super) g_start: Vec<usize>,
+    pub(super) g: Vec<f32>,
 }
 
 /// Ĥ's stored blocks in the node frames ([`frame_block`]), on H's pattern.
@@ -143,7 +153,7 @@ pub(super) fn frame_values_into(e: &Eliminated, v: &mut Vec<f64>) {
 }
 
 /// `v` split at the rows of a block pattern (`per` values per stored block).
-fn split_rows<'v>(mut v: &'v mut [f64], row_ptr: &[usize], per: usize) -> Vec<&'v mut [f64]> {
+fn split_rows<'v, T>(mut v: &'v mut [T], row_ptr: &[usize], per: usize) -> Vec<&'v mut [T]> {
     let mut out = Vec::with_capacity(row_ptr.len().saturating_sub(1));
     for w in row_ptr.windows(2) {
         let (a, rest) = std::mem::take(&mut v).split_at_mut((w[1] - w[0]) * per);
@@ -153,42 +163,137 @@ fn split_rows<'v>(mut v: &'v mut [f64], row_ptr: &[usize], per: usize) -> Vec<&'
     out
 }
 
-/// y = A x for a level's matrix (d×d row-major blocks on the level's pattern).
-pub(super) fn block_matvec(d: usize, lev: &Level, a: &[f64], x: &[f64], y: &mut [f64]) {
-    match d {
-        2 => block_matvec_d::<2, 4>(lev, a, x, y),
-        _ => block_matvec_d::<3, 9>(lev, a, x, y),
-    }
-}
-
-fn block_matvec_d<const D: usize, const DD: usize>(
+/// y = A x for a level's matrix (d×d row-major blocks on the level's pattern, in f64 or
+/// f32), every sum in f64.
+pub(super) fn block_matvec<T: Copy + Into<f64> + Sync>(
+    d: usize,
     lev: &Level,
-    a: &[f64],
+    a: &[T],
     x: &[f64],
     y: &mut [f64],
 ) {
-    let (row_ptr, col_idx) = (&lev.row_ptr, &lev.col_idx);
+    match d {
+        2 => block_matvec_d::<T, 2, 4>(lev, a, None, x, y),
+        _ => block_matvec_d::<T, 3, 9>(lev, a, None, x, y),
+    }
+}
+
+/// res = b − A x for a level's matrix, in one pass ([`block_matvec`]'s sums).
+pub(super) fn block_residual<T: Copy + Into<f64> + Sync>(
+    d: usize,
+    lev: &Level,
+    a: &[T],
+    b: &[f64],
+    x: &[f64],
+    res: &mut [f64],
+) {
+    match d {
+        2 => block_matvec_d::<T, 2, 4>(lev, a, Some(b), x, res),
+        _ => block_matvec_d::<T, 3, 9>(lev, a, Some(b), x, res),
+    }
+}
+
+/// y = A x, or y = b − A x with `b`.
+fn block_matvec_d<T: Copy + Into<f64> + Sync, const D: usize, const DD: usize>(
+    lev: &Level,
+    a: &[T],
+    b: Option<&[f64]>,
+    x: &[f64],
+    y: &mut [f64],
+) {
     y.par_chunks_mut(D * 64)
         .enumerate()
         .for_each(|(chunk, ys)| {
-            for (r0, yi) in ys.chunks_exact_mut(D).enumerate() {
-                let i = chunk * 64 + r0;
-                let mut acc = [0.0f64; D];
-                let (rs, re) = (row_ptr[i], row_ptr[i + 1]);
-                for (b, &j) in a[rs * DD..re * DD].chunks_exact(DD).zip(&col_idx[rs..re]) {
-                    let xj: &[f64; D] = x[j * D..j * D + D].try_into().expect("D values");
-                    let b: &[f64; DD] = b.try_into().expect("D·D values");
-                    for r in 0..D {
-                        let mut s = b[r * D] * xj[0];
-                        for c in 1..D {
-                            s += b[r * D + c] * xj[c];
-                        }
-                        acc[r] += s;
-                    }
-                }
-                yi.copy_from_slice(&acc);
-            }
+            block_rows::<T, D, DD>(lev, a, b, x, chunk * 64, ys);
         });
+}
+
+/// Rows `first..` of y = A x (or b − A x) into `ys`.
+fn block_rows<T: Copy + Into<f64>, const D: usize, const DD: usize>(
+    lev: &Level,
+    a: &[T],
+    b: Option<&[f64]>,
+    x: &[f64],
+    first: usize,
+    ys: &mut [f64],
+) {
+    let (row_ptr, col_idx) = (&lev.row_ptr, &lev.col32);
+    for (r0, yi) in ys.chunks_exact_mut(D).enumerate() {
+        let i = first + r0;
+        let mut acc = [0.0f64; D];
+        let (rs, re) = (row_ptr[i], row_ptr[i + 1]);
+        for (blk, &j) in a[rs * DD..re * DD].chunks_exact(DD).zip(&col_idx[rs..re]) {
+            let j = j as usize;
+            let xj: &[f64; D] = x[j * D..j * D + D].try_into().expect("D values");
+            let blk: &[T; DD] = blk.try_into().expect("D·D values");
+            for r in 0..D {
+                let mut s = blk[r * D].into() * xj[0];
+                for c in 1..D {
+                    s += blk[r * D + c].into() * xj[c];
+                }
+                acc[r] += s;
+            }
+        }
+        match b {
+            Some(b) => {
+                for r in 0..D {
+                    yi[r] = b[i * D + r] - acc[r];
+                }
+            }
+            None => yi.copy_from_slice(&acc),
+        }
+    }
+}
+
+/// Each stored block's d×d values rounded to f32, from the values of whichever of (i, j)
+/// and (j, i) has the smaller row (its transpose for the other; a diagonal block from its
+/// upper triangle): the rounded matrix is exactly symmetric, as the V-cycle's symmetry
+/// needs, even where the f64 one is symmetric only to its roundings. `mirror[k]` is the
+/// index of block k's transposed partner.
+pub(super) fn symmetric_f32(d: usize, lev: &Level, mirror: &[u32], a: &[f64], out: &mut Vec<f32>) {
+    let dd = d * d;
+    out.resize(a.len(), 0.0);
+    let rows: Vec<&mut [f32]> = split_rows(out, &lev.row_ptr, dd);
+    rows.into_par_iter().enumerate().for_each(|(i, o)| {
+        let (rs, re) = (lev.row_ptr[i], lev.row_ptr[i + 1]);
+        for ((k, &j), ob) in (rs..re)
+            .zip(&lev.col_idx[rs..re])
+            .zip(o.chunks_exact_mut(dd))
+        {
+            let own = &a[k * dd..(k + 1) * dd];
+            let t = mirror[k] as usize;
+            let other = &a[t * dd..(t + 1) * dd];
+            for r in 0..d {
+                for c in 0..d {
+                    // An off-diagonal block without a stored partner keeps its own.
+                    let upper = i < j || (i == j && r <= c) || (i != j && t == k);
+                    let v = if upper {
+                        own[r * d + c]
+                    } else {
+                        other[c * d + r]
+                    };
+                    ob[r * d + c] = v as f32;
+                }
+            }
+        }
+    });
+}
+
+/// For each stored block k = (i, j) of a level's pattern (both triangles stored), the
+/// index of block (j, i).
+pub(super) fn mirror_blocks(lev: &Level) -> Vec<u32> {
+    (0..lev.n)
+        .into_par_iter()
+        .flat_map_iter(|i| {
+            (lev.row_ptr[i]..lev.row_ptr[i + 1]).map(move |k| {
+                let j = lev.col_idx[k];
+                let row = &lev.col_idx[lev.row_ptr[j]..lev.row_ptr[j + 1]];
+                // Every level's pattern is symmetric (both triangles stored); k itself
+                // where (j, i) is missing.
+                row.binary_search(&i).map_or(k, |t| lev.row_ptr[j] + t) as u32
+            })
+        })
+        .collect()
 }
 
 /// Ĥ_ij for stored block k = (i, j): P_i V_iᵀ H_ij V_j P_j, with D on the constrained
@@ -222,25 +327,26 @@ pub(super) fn factor_level(
 ) -> (Factors, usize) {
     let nc = lev.clusters();
     let mut start = Vec::with_capacity(nc + 1);
-    let mut total = 0;
+    let mut g_start = Vec::with_capacity(nc + 1);
+    let (mut total, mut g_total) = (0, 0);
     for c in 0..nc {
         start.push(total);
+        g_start.push(g_total);
         let m = (lev.ptr[c + 1] - lev.ptr[c]) * d;
         total += m * m;
+        g_total += packed_len(m);
     }
     start.push(total);
+    g_start.push(g_total);
     let mut factor = vec![0.0; total];
-    let mut parts: Vec<&mut [f64]> = Vec::with_capacity(nc);
-    let mut rest: &mut [f64] = &mut factor;
-    for c in 0..nc {
-        let (a, b) = std::mem::take(&mut rest).split_at_mut(start[c + 1] - start[c]);
-        parts.push(a);
-        rest = b;
-    }
+    let mut g = vec![0.0f32; g_total];
+    let parts = split_at_starts(&mut factor, &start);
+    let g_parts = split_at_starts(&mut g, &g_start);
     let dropped: usize = parts
         .into_par_iter()
+        .zip(g_parts)
         .enumerate()
-        .map(|(c, a)| {
+        .map(|(c, (a, gc))| {
             let items = &lev.items[lev.ptr[c]..lev.ptr[c + 1]];
             let m = items.len() * d;
             let mut b = [0.0f64; 9];
@@ -261,12 +367,82 @@ pub(super) fn factor_level(
                 }
             }
             let dropped = cholesky_dropping(m, a);
-            let inv = inverse_from_factor(m, a);
-            a.copy_from_slice(&inv);
+            let x = factor_inverse(m, a);
+            pack_lower_f32(m, &x, gc);
+            a.copy_from_slice(&explicit_inverse(m, &x));
             dropped
         })
         .sum();
-    (Factors { start, factor }, dropped)
+    (
+        Factors {
+            start,
+            factor,
+            g_start,
+            g,
+        },
+        dropped,
+    )
+}
+
+/// `v` split at `start` (ascending offsets, the last one its length).
+fn split_at_starts<'v, T>(mut v: &'v mut [T], start: &[usize]) -> Vec<&'v mut [T]> {
+    let mut parts = Vec::with_capacity(start.len().saturating_sub(1));
+    for w in start.windows(2) {
+        let (a, b) = std::mem::take(&mut v).split_at_mut(w[1] - w[0]);
+        parts.push(a);
+        v = b;
+    }
+    parts
+}
+
+/// out = scale · GᵀG src over a level's clusters (the f32 factor form of B⁺, [`Factors`]),
+/// or out += that with `add`: each cluster's items gathered into its own slice of a
+/// cluster-ordered scratch, applied there ([`apply_packed`]), then scattered back. `tmp`
+/// is the scratch (resized to three values per unknown: the gathered source, G src and
+/// the result).
+#[allow(clippy::too_many_arguments)]
+pub(super) fn smooth_level(
+    lev: &Level,
+    d: usize,
+    f: &Factors,
+    scale: f64,
+    add: bool,
+    src: &[f64],
+    out: &mut [f64],
+    tmp: &mut Vec<f64>,
+) {
+    tmp.resize(3 * lev.n * d, 0.0);
+    let parts = split_rows(tmp, &lev.ptr, 3 * d);
+    parts
+        .into_par_iter()
+        .with_min_len(8)
+        .enumerate()
+        .for_each(|(c, buf)| {
+            let items = &lev.items[lev.ptr[c]..lev.ptr[c + 1]];
+            let m = items.len() * d;
+            let (r, rest) = buf.split_at_mut(m);
+            let (y, z) = rest.split_at_mut(m);
+            for (rp, &i) in r.chunks_exact_mut(d).zip(items) {
+                let i = i as usize;
+                rp.copy_from_slice(&src[i * d..(i + 1) * d]);
+            }
+            apply_packed(&f.g[f.g_start[c]..f.g_start[c + 1]], r, z, y);
+        });
+    let tmp = &tmp[..];
+    out.par_chunks_mut(d)
+        .with_min_len(256)
+        .enumerate()
+        .for_each(|(i, o)| {
+            let c = lev.of[i] as usize;
+            let m = (lev.ptr[c + 1] - lev.ptr[c]) * d;
+            let at = 3 * lev.ptr[c] * d + 2 * m + lev.pos[i] as usize * d;
+            let z = &tmp[at..at + d];
+            if add {
+                o.iter_mut().zip(z).for_each(|(v, w)| *v += scale * w);
+            } else {
+                o.iter_mut().zip(z).for_each(|(v, w)| *v = scale * w);
+            }
+        });
 }
 
 /// out = B⁺ src over a level's clusters: each cluster's items gathered into its own

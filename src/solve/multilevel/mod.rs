@@ -16,6 +16,14 @@
 //! same symmetric step, so M⁻¹ is symmetric, and positive definite while
 //! ω λmax(B_l⁺A_l) < 2: ω_l comes from a power estimate of that λmax ([`OMEGA_MAX`]).
 //!
+//! The CPU V-cycle reads f32 copies (`CycleLevel`): every level's matrix (level 0: Ĥ in
+//! the node frames; the CG's own product with Ĥ stays f64), P and Pᵀ, and each cluster
+//! block as its factor inverse G = L⁺ packed by rows and applied as GᵀG, with every sum in
+//! f64. A V-cycle is bound by the bytes it reads, and these are about a third of f64
+//! explicit inverses' and matrices'; the iterations stay those of the f64 cycle
+//! (docs/design/multilevel.md). The f64 matrices and explicit inverses stay too: they are
+//! what the device V-cycle uploads ([`Multilevel::levels`]).
+//!
 //! Why this design (BENCHMARKS.md, "The multilevel preconditioner", has the numbers): on
 //! the twist systems the additive sum of the levels' block inverses (MAS) took about
 //! 2.5× the V-cycle's iterations; piecewise-constant levels grew 1.6× in iterations per
@@ -38,7 +46,6 @@
 use crate::core::constraints::Frames;
 use crate::core::elimination::Eliminated;
 use crate::core::sparse::BlockCsr;
-use rayon::prelude::*;
 
 mod dense;
 mod level;
@@ -50,8 +57,8 @@ pub use dense::PIVOT_DROP;
 pub use dense::{cholesky_dropping, inverse_from_factor};
 pub use level::LAMBDA_STEPS;
 use level::{
-    block_matvec, factor_level, frame_values, frame_values_into, power_estimate, solve_level,
-    Factors, Level,
+    block_matvec, block_residual, factor_level, frame_values, frame_values_into, mirror_blocks,
+    power_estimate, smooth_level, solve_level, symmetric_f32, Factors, Level,
 };
 use partition::partition;
 pub use partition::CLUSTER_NODES;
@@ -63,9 +70,8 @@ struct LevelWork {
     /// The restricted right-hand side and the correction (levels below the finest).
     b: Vec<f64>,
     x: Vec<f64>,
-    /// The residual, the post-smoothing step and the cluster-ordered copy.
+    /// The residual and the smoother's cluster-ordered scratch.
     res: Vec<f64>,
-    s: Vec<f64>,
     tmp: Vec<f64>,
 }
 
@@ -84,6 +90,8 @@ pub struct Hierarchy {
     /// The smoothed prolongation's patterns from each level to the next (one fewer than
     /// the levels).
     smooth: Vec<SmoothPattern>,
+    /// Per level, each stored block's transposed partner ([`level::mirror_blocks`]).
+    mirror: Vec<Vec<u32>>,
 }
 
 impl Hierarchy {
@@ -109,10 +117,12 @@ impl Hierarchy {
             smooth.push(sp);
             levels.push(level);
         }
+        let mirror = levels.iter().map(mirror_blocks).collect();
         Hierarchy {
             n: h.n,
             levels,
             smooth,
+            mirror,
         }
     }
 
@@ -304,18 +314,36 @@ pub struct Multilevel {
     /// Each level's matrix values (level 0: Ĥ's blocks in the node frames), on the
     /// level's pattern.
     values: Vec<Vec<f64>>,
-    /// The smoother's damping per level.
-    omega: Vec<f64>,
+    /// The smoother's damping per level for the levels as [`Multilevel::levels`] gives
+    /// them (f64 explicit inverses and matrices), estimated when first asked.
+    view_omega: std::sync::OnceLock<Vec<f64>>,
     /// Each level's smoothed prolongation, on `hierarchy.smooth`'s patterns.
     p: Vec<Vec<f64>>,
     /// P's blocks transposed, in the restriction's order.
     pt: Vec<Vec<f64>>,
+    /// What the CPU V-cycle reads ([`CycleLevel`]), per level.
+    cycle: Vec<CycleLevel>,
     /// Pivots dropped, all levels together.
     dropped: usize,
     /// The constraint set the levels serve (built for, or remasked to).
     built_for: Frames,
     /// A number of this build, unique in the process, and the remaskings since.
     generation: (u64, u32),
+}
+
+/// One level as the CPU V-cycle reads it: the matrix, P and Pᵀ rounded to f32 (every sum
+/// with them in f64), the cluster blocks in their f32 factor form ([`Factors`]) and the
+/// damping estimated against exactly these. A V-cycle moves mostly these bytes; rounding
+/// them to f32 changes the preconditioner, not the system CG solves (its own product is
+/// f64), and keeps it symmetric (the matrices are rounded symmetric, Pᵀ is P's transpose
+/// exactly) and positive definite (GᵀG cannot turn indefinite; ω from the rounded
+/// operator).
+#[derive(Debug, Clone)]
+struct CycleLevel {
+    values: Vec<f32>,
+    p: Vec<f32>,
+    pt: Vec<f32>,
+    omega: f64,
 }
 
 /// Numbers the builds of [`Multilevel`] (a device holding a copy tells it from another).
@@ -392,11 +420,32 @@ impl Multilevel {
             factors.push(fac);
             dropped += drop;
         }
-        let pt = hierarchy
+        let pt: Vec<Vec<f64>> = hierarchy
             .smooth
             .iter()
             .zip(&p)
             .map(|(sp, pv)| sp.transpose(d, pv))
+            .collect();
+        let cycle = (0..nl)
+            .map(|l| {
+                let mut v32 = Vec::new();
+                symmetric_f32(
+                    d,
+                    &hierarchy.levels[l],
+                    &hierarchy.mirror[l],
+                    &values[l],
+                    &mut v32,
+                );
+                let f32s = |v: Option<&Vec<f64>>| {
+                    v.map_or(Vec::new(), |v| v.iter().map(|&x| x as f32).collect())
+                };
+                CycleLevel {
+                    values: v32,
+                    p: f32s(p.get(l)),
+                    pt: f32s(pt.get(l)),
+                    omega: 1.0,
+                }
+            })
             .collect();
         let mut ml = Multilevel {
             dim: d,
@@ -405,12 +454,15 @@ impl Multilevel {
             values,
             pt,
             p,
-            omega: Vec::new(),
+            view_omega: std::sync::OnceLock::new(),
+            cycle,
             dropped,
             built_for: e.frames.clone(),
             generation: (BUILDS.fetch_add(1, std::sync::atomic::Ordering::Relaxed), 0),
         };
-        ml.omega = (0..nl).map(|l| ml.omega_of(l)).collect();
+        for l in 0..nl.saturating_sub(1) {
+            ml.cycle[l].omega = ml.cycle_omega(l);
+        }
         ml
     }
 
@@ -425,7 +477,7 @@ impl Multilevel {
     /// Keeps the levels for a new system `e` of the same pattern whose constraint set
     /// they fit ([`Multilevel::fit`]): the finest matrix becomes `e`'s Ĥ and its
     /// smoothing weight ω_0 is estimated again against it; components constrained since
-    /// the build are masked out of the finest cluster inverses (1/D on their diagonal, as
+    /// the build are masked out of the finest cluster blocks (1/D on their diagonal, as
     /// a build gives) and out of the prolongation's rows, as a build would leave them;
     /// the coarse matrices stay. The V-cycle stays symmetric and positive definite: the
     /// coarse correction only adds a semidefinite term, and the smoother is convergent
@@ -435,8 +487,17 @@ impl Multilevel {
             self.mask_new(e);
         }
         frame_values_into(e, &mut self.values[0]);
+        let (d, hi) = (self.dim, &self.hierarchy);
+        symmetric_f32(
+            d,
+            &hi.levels[0],
+            &hi.mirror[0],
+            &self.values[0],
+            &mut self.cycle[0].values,
+        );
+        self.view_omega = std::sync::OnceLock::new();
         if self.hierarchy.levels.len() > 1 {
-            self.omega[0] = self.omega_of(0);
+            self.cycle[0].omega = self.cycle_omega(0);
         }
     }
 
@@ -462,6 +523,7 @@ impl Multilevel {
             let c = lev.of[i] as usize;
             let m = (lev.ptr[c + 1] - lev.ptr[c]) * d;
             let inv = &mut f.factor[f.start[c]..f.start[c + 1]];
+            let g = &mut f.g[f.g_start[c]..f.g_start[c + 1]];
             for a in (0..d).filter(|a| new & (1 << a) != 0) {
                 let row = lev.pos[i] as usize * d + a;
                 for k in 0..m {
@@ -470,12 +532,32 @@ impl Multilevel {
                 }
                 let dg = e.diag[i * d + a];
                 inv[row * m + row] = if dg > 0.0 { 1.0 / dg } else { 0.0 };
+                // The factor form G (packed rows, row k from offset k(k+1)/2): row and
+                // column `row` zeroed, 1/√D on the diagonal, as a build gives a component
+                // whose block row is D alone. GᵀG is semidefinite whatever G holds, and
+                // the component decouples with 1/D; on the others G keeps a lower
+                // triangle with the kept pivots' non-zero diagonals, so GᵀG stays
+                // definite on the same components: a valid cluster block (the inverse of
+                // the masked block exactly when `row` is the cluster's last component).
+                let at = row * (row + 1) / 2;
+                g[at..at + row].fill(0.0);
+                for k in row + 1..m {
+                    g[k * (k + 1) / 2 + row] = 0.0;
+                }
+                g[at + row] = if dg > 0.0 {
+                    (1.0 / dg.sqrt()) as f32
+                } else {
+                    0.0
+                };
                 if let Some(sp) = self.hierarchy.smooth.first() {
                     let (p0, p1) = (sp.p_ptr[i], sp.p_ptr[i + 1]);
+                    let cy = &mut self.cycle[0];
                     for (pk, &t) in (p0..p1).zip(&t_of[p0..p1]) {
                         self.p[0][pk * dd + a * d..pk * dd + (a + 1) * d].fill(0.0);
+                        cy.p[pk * dd + a * d..pk * dd + (a + 1) * d].fill(0.0);
                         for r in 0..d {
                             self.pt[0][t * dd + r * d + a] = 0.0;
+                            cy.pt[t * dd + r * d + a] = 0.0;
                         }
                     }
                 }
@@ -491,14 +573,23 @@ impl Multilevel {
         self.generation
     }
 
-    /// The smoothing weight of level l from a power estimate of λmax(B_l⁺A_l).
+    /// The smoothing weight of level l from a power estimate of λmax(B_l⁺A_l) with the
+    /// levels as [`Multilevel::levels`] gives them.
     fn omega_of(&self, l: usize) -> f64 {
-        let lam = self.lambda_max(l, LAMBDA_STEPS);
-        if lam > 0.0 && lam.is_finite() {
-            OMEGA_MAX.min(OMEGA_LAMBDA / lam)
-        } else {
-            OMEGA_MAX
-        }
+        omega_for(self.lambda_max(l, LAMBDA_STEPS))
+    }
+
+    /// The smoothing weight of level l for the CPU V-cycle: a power estimate of
+    /// λmax(B_l⁺A_l) with what the cycle applies ([`CycleLevel`]).
+    fn cycle_omega(&self, l: usize) -> f64 {
+        let d = self.dim;
+        let lev = &self.hierarchy.levels[l];
+        let a = &self.cycle[l].values;
+        let mut tmp = Vec::new();
+        omega_for(power_estimate(lev.n * d, LAMBDA_STEPS, |x, ax, y| {
+            block_matvec(d, lev, a, x, ax);
+            smooth_level(lev, d, &self.factors[l], 1.0, false, ax, y, &mut tmp);
+        }))
     }
 
     /// The hierarchy these factors were built on.
@@ -511,9 +602,14 @@ impl Multilevel {
         self.dim
     }
 
-    /// Every level, finest first, as the device V-cycle reads it.
+    /// Every level, finest first, as the device V-cycle reads it: f64 matrices and
+    /// explicit cluster inverses, and the damping estimated against those (once, when
+    /// first asked after a build or a refresh).
     pub fn levels(&self) -> Vec<LevelView<'_>> {
         let nl = self.hierarchy.levels.len();
+        let omega = self
+            .view_omega
+            .get_or_init(|| (0..nl).map(|l| self.omega_of(l)).collect());
         (0..nl)
             .map(|l| {
                 let lev = &self.hierarchy.levels[l];
@@ -529,7 +625,7 @@ impl Multilevel {
                     values: &self.values[l],
                     inv_start: &f.start,
                     inv: &f.factor,
-                    omega: if l + 1 < nl { self.omega[l] } else { 1.0 },
+                    omega: if l + 1 < nl { omega[l] } else { 1.0 },
                     to_next: self.hierarchy.smooth.get(l).map(|sp| ProlongationView {
                         p_ptr: &sp.p_ptr,
                         p_col: &sp.p_col,
@@ -548,7 +644,8 @@ impl Multilevel {
         self.dropped
     }
 
-    /// Power-iteration estimate of λmax(B_l⁺A_l) after `steps` products (a lower bound).
+    /// Power-iteration estimate of λmax(B_l⁺A_l) after `steps` products (a lower bound),
+    /// with the levels as [`Multilevel::levels`] gives them.
     pub fn lambda_max(&self, l: usize, steps: usize) -> f64 {
         let d = self.dim;
         let lev = &self.hierarchy.levels[l];
@@ -573,8 +670,7 @@ impl Multilevel {
                         b: vec![0.0; n],
                         x: vec![0.0; n],
                         res: vec![0.0; n],
-                        s: vec![0.0; n],
-                        tmp: vec![0.0; n],
+                        tmp: vec![0.0; 3 * n],
                     }
                 })
                 .collect(),
@@ -594,46 +690,46 @@ impl Multilevel {
 
     /// x = one symmetric V-cycle on level l for the right-hand side b: smooth
     /// (x = ω B⁺b), correct from the level below with the restricted residual, smooth
-    /// again; the coarsest level is solved with its single cluster.
-    /// `work[0]` is level l's (its `res`, `s`, `tmp`), `work[1]` the next level's (its
-    /// `b` and `x` receive the restricted residual and the correction).
+    /// again; the coarsest level is solved with its single cluster. Everything read is
+    /// the level's [`CycleLevel`].
+    /// `work[0]` is level l's (its `res`, `tmp`), `work[1]` the next level's (its `b` and
+    /// `x` receive the restricted residual and the correction).
     fn vcycle(&self, l: usize, b: &[f64], x: &mut [f64], work: &mut [LevelWork]) {
         let d = self.dim;
         let lev = &self.hierarchy.levels[l];
+        let cy = &self.cycle[l];
+        let f = &self.factors[l];
         let Some((w, below)) = work.split_first_mut() else {
             return;
         };
-        solve_level(lev, d, &self.factors[l], b, x, &mut w.tmp);
         let Some(next) = below.first_mut() else {
+            smooth_level(lev, d, f, 1.0, false, b, x, &mut w.tmp);
             return;
         };
-        let omega = self.omega[l];
-        x.par_iter_mut().for_each(|v| *v *= omega);
+        smooth_level(lev, d, f, cy.omega, false, b, x, &mut w.tmp);
         let res = &mut w.res;
-        self.residual(l, b, x, res);
+        block_residual(d, lev, &cy.values, b, x, res);
         // The next level's vectors leave `below` while it recurses (a move, no copy).
         let mut bc = std::mem::take(&mut next.b);
         let mut xc = std::mem::take(&mut next.x);
-        bc.iter_mut().for_each(|v| *v = 0.0);
         let sp = &self.hierarchy.smooth[l];
-        sp.restrict(d, &self.pt[l], res, &mut bc);
+        sp.restrict(d, &cy.pt, res, &mut bc);
         self.vcycle(l + 1, &bc, &mut xc, below);
-        sp.prolong_add(d, &self.p[l], &xc, x);
-        self.residual(l, b, x, res);
-        solve_level(lev, d, &self.factors[l], res, &mut w.s, &mut w.tmp);
-        x.par_iter_mut()
-            .zip(&w.s)
-            .for_each(|(xi, si)| *xi += omega * si);
+        sp.prolong_add(d, &cy.p, &xc, x);
+        block_residual(d, lev, &cy.values, b, x, res);
+        smooth_level(lev, d, f, cy.omega, true, res, x, &mut w.tmp);
         let next = &mut below[0];
         next.b = bc;
         next.x = xc;
     }
+}
 
-    /// res = b − A_l x.
-    fn residual(&self, l: usize, b: &[f64], x: &[f64], res: &mut [f64]) {
-        let lev = &self.hierarchy.levels[l];
-        block_matvec(self.dim, lev, &self.values[l], x, res);
-        res.par_iter_mut().zip(b).for_each(|(r, bi)| *r = bi - *r);
+/// ω = min([`OMEGA_MAX`], [`OMEGA_LAMBDA`] / λ̂), [`OMEGA_MAX`] without a usable λ̂.
+fn omega_for(lam: f64) -> f64 {
+    if lam > 0.0 && lam.is_finite() {
+        OMEGA_MAX.min(OMEGA_LAMBDA / lam)
+    } else {
+        OMEGA_MAX
     }
 }
 
@@ -642,6 +738,77 @@ mod tests {
     use super::*;
     use crate::cases::generate::{random_system, SystemSpec};
     use crate::core::elimination::ConstrainedDiagonal;
+
+    /// yᵀM⁻¹x = xᵀM⁻¹y and xᵀM⁻¹x > 0 on two fixed vectors. The cycle's f32 matrices are
+    /// exactly symmetric and its Pᵀ exactly P's transpose, so as a linear map of the
+    /// stored numbers M⁻¹ is symmetric, and only the f64 sums' roundings separate the two
+    /// sides: a few ulps of the magnitudes summed.
+    fn assert_symmetric_positive(m: &Multilevel, n: usize, what: &str) {
+        let x: Vec<f64> = (0..n).map(|k| ((k * 7919) % 23) as f64 - 11.0).collect();
+        let y: Vec<f64> = (0..n).map(|k| ((k * 104729) % 17) as f64 - 8.0).collect();
+        let (mut mx, mut my) = (vec![0.0; n], vec![0.0; n]);
+        m.apply(&x, &mut mx);
+        m.apply(&y, &mut my);
+        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(u, v)| u * v).sum::<f64>();
+        let (a, b) = (dot(&y, &mx), dot(&x, &my));
+        let mag: f64 = y.iter().zip(&mx).map(|(u, v)| (u * v).abs()).sum();
+        assert!((a - b).abs() <= 1e-12 * mag, "{what}: {a} vs {b}");
+        assert!(
+            dot(&x, &mx) > 0.0 && dot(&y, &my) > 0.0,
+            "{what}: not positive"
+        );
+    }
+
+    /// Kept levels remasked for a constraint set with a free node made sticky and a
+    /// plane-slip node given a second constrained direction stay symmetric and positive
+    /// definite, and the masked components decouple: M⁻¹ e_a is a multiple of e_a there.
+    #[test]
+    fn remasked_levels_stay_symmetric_and_positive_definite() {
+        for (dim, nodes, seed) in [(3, 900, 5u64), (2, 1200, 6)] {
+            let s = random_system(&SystemSpec::with_nodes(dim, nodes, seed));
+            let f = &s.frames;
+            let e = Eliminated::new(&s.h, &s.g, f, ConstrainedDiagonal::Identity);
+            let mut m = Multilevel::new(&e, std::sync::Arc::new(Hierarchy::new(&s.h)));
+            let full = (1u8 << dim) - 1;
+            let mut more = f.clone();
+            let free = (0..f.n_nodes)
+                .find(|&i| f.mask[i] == 0 && f.rotation(i).is_none())
+                .expect("a free node");
+            more.mask[free] = full;
+            let slip = (0..f.n_nodes).find(|&i| f.rotation(i).is_some() && f.mask[i] == 1);
+            if let (Some(i), 3) = (slip, dim) {
+                more.mask[i] |= 0b010;
+            }
+            let e2 = Eliminated::new(&s.h, &s.g, &more, ConstrainedDiagonal::Identity);
+            assert_eq!(m.fit(&more), FramesFit::Masked);
+            m.refresh(&e2);
+            let n = e2.ndof();
+            assert_symmetric_positive(&m, n, &format!("{dim}D remasked"));
+            for a in 0..dim {
+                let k = free * dim + a;
+                let mut ek = vec![0.0; n];
+                ek[k] = 1.0;
+                let mut z = vec![0.0; n];
+                m.apply(&ek, &mut z);
+                // Smoothing gives ω/D, the residual (1 − ω) e_a restricts to nothing (P's
+                // row zero), smoothing again adds ω(1 − ω)/D.
+                let om = m.cycle[0].omega;
+                let want = (2.0 * om - om * om) / e2.diag[k];
+                // 1/√D rounded to f32 and squared: a relative 2·2⁻²⁴ or so.
+                assert!(
+                    (z[k] - want).abs() <= 1e-6 * want,
+                    "{dim}D: {} vs {want}",
+                    z[k]
+                );
+                let off = z
+                    .iter()
+                    .enumerate()
+                    .filter(|&(t, _)| t != k)
+                    .fold(0.0f64, |w, (_, v)| w.max(v.abs()));
+                assert_eq!(off, 0.0, "{dim}D: the masked component couples");
+            }
+        }
+    }
 
     #[test]
     fn the_preconditioner_is_symmetric_and_positive_definite() {
@@ -656,19 +823,7 @@ mod tests {
             );
             assert_eq!(*hier.cluster_counts().last().unwrap(), 1);
             let m = Multilevel::new(&e, hier);
-            let n = e.ndof();
-            let x: Vec<f64> = (0..n).map(|k| ((k * 7919) % 23) as f64 - 11.0).collect();
-            let y: Vec<f64> = (0..n).map(|k| ((k * 104729) % 17) as f64 - 8.0).collect();
-            let (mut mx, mut my) = (vec![0.0; n], vec![0.0; n]);
-            m.apply(&x, &mut mx);
-            m.apply(&y, &mut my);
-            let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(u, v)| u * v).sum::<f64>();
-            let (a, b) = (dot(&y, &mx), dot(&x, &my));
-            // Both sides sum the same products in different orders: a few ulps of the
-            // magnitudes summed.
-            let mag: f64 = y.iter().zip(&mx).map(|(u, v)| (u * v).abs()).sum();
-            assert!((a - b).abs() <= 1e-12 * mag, "{a} vs {b}");
-            assert!(dot(&x, &mx) > 0.0 && dot(&y, &my) > 0.0);
+            assert_symmetric_positive(&m, e.ndof(), &format!("{dim}D"));
         }
     }
 

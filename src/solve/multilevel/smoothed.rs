@@ -229,7 +229,13 @@ impl SmoothPattern {
     }
 
     /// out_c = Σ_i P_icᵀ r_i (d values per cluster), `pt_values` from [`Self::transpose`].
-    pub fn restrict(&self, d: usize, pt_values: &[f64], r: &[f64], out: &mut [f64]) {
+    pub fn restrict<T: Copy + Into<f64> + Sync>(
+        &self,
+        d: usize,
+        pt_values: &[T],
+        r: &[f64],
+        out: &mut [f64],
+    ) {
         let dd = d * d;
         out.par_chunks_mut(d).enumerate().for_each(|(c, o)| {
             o.iter_mut().for_each(|v| *v = 0.0);
@@ -239,7 +245,7 @@ impl SmoothPattern {
                 for a in 0..d {
                     let mut s = 0.0;
                     for k in 0..d {
-                        s += pb[a * d + k] * r[i * d + k];
+                        s += pb[a * d + k].into() * r[i * d + k];
                     }
                     o[a] += s;
                 }
@@ -248,7 +254,13 @@ impl SmoothPattern {
     }
 
     /// z_i += Σ_c P_ic x_c.
-    pub fn prolong_add(&self, d: usize, p: &[f64], x: &[f64], z: &mut [f64]) {
+    pub fn prolong_add<T: Copy + Into<f64> + Sync>(
+        &self,
+        d: usize,
+        p: &[T],
+        x: &[f64],
+        z: &mut [f64],
+    ) {
         let dd = d * d;
         z.par_chunks_mut(d)
             .with_min_len(64)
@@ -260,7 +272,7 @@ impl SmoothPattern {
                     for a in 0..d {
                         let mut s = 0.0;
                         for k in 0..d {
-                            s += pb[a * d + k] * x[c * d + k];
+                            s += pb[a * d + k].into() * x[c * d + k];
                         }
                         zi[a] += s;
                     }
