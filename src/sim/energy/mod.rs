@@ -17,7 +17,9 @@ pub mod neohookean;
 pub mod spring;
 
 use crate::core::sparse::BlockCsr;
+use crate::gpu::Phase;
 use crate::sim::memory::{try_vec, AllocError};
+use crate::sim::phases::{self, HostPhases};
 use rayon::prelude::*;
 
 pub use eigensystem::project_psd;
@@ -63,7 +65,7 @@ impl ElementSet {
     pub fn len(&self) -> usize {
         match self {
             ElementSet::Springs(s) => s.edges.len(),
-            ElementSet::NeoHookean(s) => s.elements.len(),
+            ElementSet::NeoHookean(s) => s.len(),
         }
     }
 
@@ -74,7 +76,7 @@ impl ElementSet {
     pub fn nodes(&self, e: usize) -> &[usize] {
         match self {
             ElementSet::Springs(s) => &s.edges[e],
-            ElementSet::NeoHookean(s) => &s.elements[e],
+            ElementSet::NeoHookean(s) => s.nodes(e),
         }
     }
 
@@ -178,7 +180,7 @@ struct Gather {
 }
 
 /// The Hessian's block pattern: every node's diagonal block and the blocks of every
-/// element's node pairs, columns sorted, values zero; built in flat arrays allocated
+/// element's node pairs, columns sorted, no values; built in flat arrays allocated
 /// fallibly.
 fn block_pattern(dim: usize, n: usize, sets: &[ElementSet]) -> Result<BlockCsr, AllocError> {
     const WHAT: &str = "the Hessian's block pattern";
@@ -232,13 +234,12 @@ fn block_pattern(dim: usize, n: usize, sets: &[ElementSet]) -> Result<BlockCsr, 
     drop(ptr);
     cols.truncate(w);
     cols.shrink_to_fit();
-    let values = try_vec(w * dim * dim, 0.0, "the Hessian")?;
     Ok(BlockCsr {
         dim,
         n,
         row_ptr,
         col_idx: cols,
-        values,
+        values: Vec::new(),
     })
 }
 
@@ -346,6 +347,19 @@ pub struct AssemblyWork {
     grad_cursor: Vec<usize>,
     /// Per node: the force scale's running sums.
     sums: Vec<f64>,
+    /// The run's profile: the element passes are timed as `element_terms`, the gathers
+    /// as `assembly` (None: nothing is timed).
+    pub phases: Option<HostPhases>,
+}
+
+impl AssemblyWork {
+    /// Empty buffers whose passes are timed on `phases`.
+    pub fn timed(phases: HostPhases) -> Self {
+        AssemblyWork {
+            phases: Some(phases),
+            ..AssemblyWork::default()
+        }
+    }
 }
 
 /// Mass, gravity and elastic elements of a whole scene, with the Hessian's block pattern.
@@ -360,7 +374,8 @@ pub struct Model {
     pub sets: Vec<ElementSet>,
     /// Element-to-block and element-to-node maps of the assembly.
     gather: Gather,
-    /// The Hessian's block pattern (diagonal of every node plus element couplings).
+    /// The Hessian's block pattern (diagonal of every node plus element couplings):
+    /// `row_ptr` and `col_idx` only, `values` empty ([`Model::zero_matrix`] has them).
     pub pattern: BlockCsr,
 }
 
@@ -522,6 +537,7 @@ impl Model {
             for e0 in (0..s.len()).step_by(per_pass) {
                 let e1 = (e0 + per_pass).min(s.len());
                 let (lo, hi) = (base + e0 * ar, base + e1 * ar);
+                let elements = phases::open(work.phases.as_ref(), Phase::ElementTerms);
                 work.grad[..(hi - lo) * d]
                     .par_chunks_mut(CHUNK * nl)
                     .enumerate()
@@ -530,6 +546,8 @@ impl Model {
                             s.gradient(x, e0 + c * CHUNK + k, b);
                         }
                     });
+                drop(elements);
+                let _gather = phases::open(work.phases.as_ref(), Phase::Assembly);
                 let (mut rlo, mut rhi) = (usize::MAX, 0);
                 for e in e0..e1 {
                     for &a in s.nodes(e) {
@@ -608,10 +626,13 @@ impl Model {
             for e0 in (0..s.len()).step_by(per_pass) {
                 let e1 = (e0 + per_pass).min(s.len());
                 let (lo, hi) = (base + e0 * np, base + e1 * np);
+                let elements = phases::open(work.phases.as_ref(), Phase::ElementTerms);
                 let buf = &mut work.hess[..(hi - lo) * dd];
                 buf.par_chunks_mut(CHUNK * np * dd)
                     .enumerate()
                     .for_each(|(c, b)| s.hessian_blocks_run(x, e0 + c * CHUNK, project, b));
+                drop(elements);
+                let _gather = phases::open(work.phases.as_ref(), Phase::Assembly);
                 // The rows the pass's elements touch: a block's slots belong to elements
                 // holding its row's node.
                 let (mut rlo, mut rhi) = (usize::MAX, 0);
@@ -714,7 +735,7 @@ impl Model {
             let ElementSet::NeoHookean(nh) = s else {
                 continue;
             };
-            for e in 0..nh.elements.len() {
+            for e in 0..nh.len() {
                 let j = nh.volume_ratio(after, e);
                 if (j.is_nan() || j <= 0.0) && nh.volume_ratio(before, e) > 0.0 {
                     return Some(MinVolumeRatio {
@@ -764,7 +785,8 @@ impl Model {
     }
 
     pub fn zero_matrix(&self) -> BlockCsr {
-        self.pattern.clone()
+        self.try_zero_matrix()
+            .unwrap_or_else(|e| crate::sim::memory::abort_on(&e))
     }
 
     /// [`Model::zero_matrix`], allocated fallibly (Err: the bytes of the Hessian).
@@ -774,7 +796,7 @@ impl Model {
         row_ptr.copy_from_slice(&p.row_ptr);
         let mut col_idx = try_vec(p.col_idx.len(), 0usize, "the Hessian")?;
         col_idx.copy_from_slice(&p.col_idx);
-        let values = try_vec(p.values.len(), 0.0, "the Hessian")?;
+        let values = try_vec(p.nnz_blocks() * p.dim * p.dim, 0.0, "the Hessian")?;
         Ok(BlockCsr {
             dim: p.dim,
             n: p.n,
@@ -807,10 +829,7 @@ mod tests {
             for law in [Law::NeoHookean, Law::StableNeoHookean] {
                 let nh = NeoHookean::new(&mesh, 1e5, 0.4, law).expect("valid mesh");
                 let np = (d + 1) * (d + 2) / 2;
-                assert!(
-                    nh.elements.len() * np > 2 * HESS_BUFFER_BLOCKS,
-                    "several passes"
-                );
+                assert!(nh.len() * np > 2 * HESS_BUFFER_BLOCKS, "several passes");
                 let n = mesh.x.len() / d;
                 let model = Model::new(d, vec![1.0; n], None, vec![ElementSet::NeoHookean(nh)]);
                 let x: Vec<f64> = mesh

@@ -63,7 +63,9 @@ pub struct Coefficients {
 pub struct NeoHookean {
     pub dim: usize,
     pub law: Law,
-    pub elements: Vec<Vec<usize>>,
+    /// Per element its d+1 nodes, element after element (one flat array: no heap block
+    /// per element).
+    nodes: Vec<usize>,
     /// Per element: the gradients of the d+1 barycentric shape functions in the rest
     /// shape, G[a][j] (node a, axis j), flattened (d+1)·d.
     shape_grads: Vec<f64>,
@@ -153,7 +155,7 @@ impl NeoHookean {
         let mut s = NeoHookean {
             dim: d,
             law,
-            elements: mesh.elements.clone(),
+            nodes: mesh.elements.iter().flatten().copied().collect(),
             shape_grads,
             volume,
             mu,
@@ -169,6 +171,31 @@ impl NeoHookean {
         Ok(s)
     }
 
+    /// Elements in the set.
+    pub fn len(&self) -> usize {
+        self.volume.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.volume.is_empty()
+    }
+
+    /// The d+1 nodes of element e.
+    pub fn nodes(&self, e: usize) -> &[usize] {
+        let k = self.dim + 1;
+        &self.nodes[e * k..(e + 1) * k]
+    }
+
+    /// Every element's nodes, element after element.
+    pub fn all_nodes(&self) -> impl Iterator<Item = &[usize]> {
+        self.nodes.chunks_exact(self.dim + 1)
+    }
+
+    /// Adds `offset` to every node index (the body's first node in the scene).
+    pub fn shift_nodes(&mut self, offset: usize) {
+        self.nodes.iter_mut().for_each(|v| *v += offset);
+    }
+
     /// Shape-function gradients of element e in the rest shape, `G[a][j]` flattened
     /// (d+1)·d: rows 1..=d are Dm⁻¹, row 0 minus their sum.
     pub fn grads(&self, e: usize) -> &[f64] {
@@ -181,7 +208,7 @@ impl NeoHookean {
         let d = self.dim;
         let g = self.grads(e);
         f[..d * d].iter_mut().for_each(|v| *v = 0.0);
-        for (a, &node) in self.elements[e].iter().enumerate() {
+        for (a, &node) in self.nodes(e).iter().enumerate() {
             for i in 0..d {
                 let xi = x[node * d + i];
                 for j in 0..d {
@@ -429,7 +456,7 @@ impl NeoHookean {
     /// None without elements.
     pub fn min_volume_ratio(&self, x: &[f64]) -> Option<(f64, usize)> {
         let mut best: Option<(f64, usize)> = None;
-        for e in 0..self.elements.len() {
+        for e in 0..self.len() {
             let j = self.volume_ratio(x, e);
             if best.is_none_or(|(b, _)| j < b || j.is_nan()) {
                 best = Some((j, e));
@@ -471,7 +498,7 @@ impl NeoHookean {
         let d = self.dim;
         let rest_factor = if d == 2 { 2.0 } else { 6.0 };
         let mut best: Option<(f64, usize)> = None;
-        for (e, el) in self.elements.iter().enumerate() {
+        for (e, el) in self.all_nodes().enumerate() {
             let c = step_det_polynomial(d, el, x, dx);
             if c[0].is_nan() || c[0] <= 0.0 {
                 return Err((e, c[0] / (rest_factor * self.volume[e])));
@@ -989,7 +1016,7 @@ mod tests {
                 };
                 let got = nh.inversion_bound(&x, &dx, max).expect("not inverted");
                 let mut want: Option<(f64, usize)> = None;
-                for (e, el) in nh.elements.iter().enumerate() {
+                for (e, el) in nh.all_nodes().enumerate() {
                     let c = step_det_polynomial(d, el, &x, &dx);
                     if let Some(r) = first_root(&c, max) {
                         if want.is_none_or(|(w, _)| r < w) {
