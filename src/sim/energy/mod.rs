@@ -148,7 +148,7 @@ impl ElementSet {
 /// Elements per task of the parallel element loops. The chunks are fixed (they do not
 /// depend on the thread count) and each one is reduced in element order, so energies,
 /// gradients and Hessians come out bitwise the same on any number of threads.
-const CHUNK: usize = 1024;
+pub(crate) const CHUNK: usize = 1024;
 
 /// Element blocks (d×d) of the Hessian assembly's element buffer: one pass of the
 /// assembly computes at most this many (4.7 MB in 3D) before they are gathered.
@@ -160,6 +160,91 @@ const GRAD_BUFFER_NODES: usize = 1 << 16;
 
 /// Blocks (of the Hessian) or nodes (of the gradient) per task of the parallel gathers.
 const GATHER_CHUNK: usize = 4096;
+
+/// What a block of the Hessian starts from when the assembly first reaches it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum BlockStart {
+    /// Its values (the assembly adds to h).
+    Values,
+    /// Zero, plus the node's lumped mass on a diagonal block (h = M + the elements).
+    Mass,
+}
+
+/// One pass's gather into the blocks `k0..` of h: the pass's element blocks `buf` are
+/// the slots `lo..hi`.
+struct GatherPass<'a> {
+    model: &'a Model,
+    k0: usize,
+    buf: &'a [f64],
+    lo: usize,
+    hi: usize,
+    scale: f64,
+    start: BlockStart,
+}
+
+impl GatherPass<'_> {
+    /// Every block of `values` (its cursor in `cursor`) adds the pass's slots in its
+    /// gather list, in order, in registers: the block is read and written once per pass
+    /// (and not read on its first pass with [`BlockStart::Mass`]). The same sums in the
+    /// same order as adding each slot into h, hence the same bits.
+    fn run<const D: usize>(&self, values: &mut [f64], cursor: &mut [u32]) {
+        let gt = &self.model.gather;
+        let col_idx = &self.model.pattern.col_idx;
+        let (lo, hi, scale, buf) = (self.lo, self.hi, self.scale, self.buf);
+        values
+            .par_chunks_mut(D * D)
+            .zip(cursor.par_iter_mut())
+            .enumerate()
+            .with_min_len(GATHER_CHUNK)
+            .for_each(|(i, (blk, cur))| {
+                let k = self.k0 + i;
+                let end = gt.hess_ptr[k + 1];
+                let mut c = *cur as usize;
+                if c >= end || (gt.hess_src[c] as usize >> 1) >= hi {
+                    return;
+                }
+                let mut acc = [[0.0f64; D]; D];
+                if self.start == BlockStart::Mass && c == gt.hess_ptr[k] {
+                    let j = col_idx[k];
+                    if gt.diag[j] == k {
+                        for (a, row) in acc.iter_mut().enumerate() {
+                            row[a] = 0.0 + self.model.mass[j];
+                        }
+                    }
+                } else {
+                    for (r, row) in acc.iter_mut().enumerate() {
+                        row.copy_from_slice(&blk[r * D..(r + 1) * D]);
+                    }
+                }
+                while c < end {
+                    let src = gt.hess_src[c] as usize;
+                    let slot = src >> 1;
+                    if slot >= hi {
+                        break;
+                    }
+                    let m = &buf[(slot - lo) * D * D..(slot - lo + 1) * D * D];
+                    if src & 1 == 0 {
+                        for (r, row) in acc.iter_mut().enumerate() {
+                            for (cc, v) in row.iter_mut().enumerate() {
+                                *v += scale * m[r * D + cc];
+                            }
+                        }
+                    } else {
+                        for (r, row) in acc.iter_mut().enumerate() {
+                            for (cc, v) in row.iter_mut().enumerate() {
+                                *v += scale * m[cc * D + r];
+                            }
+                        }
+                    }
+                    c += 1;
+                }
+                for (r, row) in acc.iter().enumerate() {
+                    blk[r * D..(r + 1) * D].copy_from_slice(row);
+                }
+                *cur = c as u32;
+            });
+    }
+}
 
 /// Where every element's contributions go, built once per model: per block of the
 /// Hessian's pattern (and per node of the gradient) the element slots that add into it,
@@ -177,6 +262,8 @@ struct Gather {
     /// Gradient: node i sums the slots `grad_src[grad_ptr[i]..grad_ptr[i+1]]`.
     grad_ptr: Vec<usize>,
     grad_src: Vec<u32>,
+    /// Per node: its diagonal block in the pattern.
+    diag: Vec<usize>,
 }
 
 /// The Hessian's block pattern: every node's diagonal block and the blocks of every
@@ -322,6 +409,12 @@ impl Gather {
                 }
             }
         }
+        let mut diag = try_vec(n, 0usize, WHAT)?;
+        for (i, k) in diag.iter_mut().enumerate() {
+            *k = pattern
+                .diag_index(i)
+                .expect("every node has a diagonal block");
+        }
         Ok(Gather {
             hess_base,
             grad_base,
@@ -329,6 +422,7 @@ impl Gather {
             hess_src,
             grad_ptr,
             grad_src,
+            diag,
         })
     }
 }
@@ -601,6 +695,43 @@ impl Model {
         h: &mut BlockCsr,
         work: &mut AssemblyWork,
     ) {
+        self.hessian_passes(x, scale, project, h, work, BlockStart::Values);
+    }
+
+    /// h = M + scale·∇²Ψ(x) on the model's pattern: the bits of zeroing h, then
+    /// [`Model::add_mass`], then [`Model::add_potential_hessian_with`], in one pass over h
+    /// (each block starts from zero and its mass where the assembly first reaches it).
+    pub fn mass_and_potential_hessian_with(
+        &self,
+        x: &[f64],
+        scale: f64,
+        project: bool,
+        h: &mut BlockCsr,
+        work: &mut AssemblyWork,
+    ) {
+        self.hessian_passes(x, scale, project, h, work, BlockStart::Mass);
+        // Blocks no element reaches (nodes of no element) hold their mass alone.
+        let (d, gt) = (self.dim, &self.gather);
+        for (i, &k) in gt.diag.iter().enumerate() {
+            if gt.hess_ptr[k] == gt.hess_ptr[k + 1] {
+                let blk = &mut h.values[k * d * d..(k + 1) * d * d];
+                blk.iter_mut().for_each(|v| *v = 0.0);
+                for a in 0..d {
+                    blk[a * d + a] = 0.0 + self.mass[i];
+                }
+            }
+        }
+    }
+
+    fn hessian_passes(
+        &self,
+        x: &[f64],
+        scale: f64,
+        project: bool,
+        h: &mut BlockCsr,
+        work: &mut AssemblyWork,
+        start: BlockStart,
+    ) {
         let d = self.dim;
         let dd = d * d;
         let gt = &self.gather;
@@ -646,35 +777,21 @@ impl Model {
                     continue;
                 }
                 let (k0, k1) = (self.pattern.row_ptr[rlo], self.pattern.row_ptr[rhi + 1]);
-                let buf = &work.hess[..(hi - lo) * dd];
-                h.values[k0 * dd..k1 * dd]
-                    .par_chunks_mut(dd)
-                    .zip(work.cursor[k0..k1].par_iter_mut())
-                    .enumerate()
-                    .with_min_len(GATHER_CHUNK)
-                    .for_each(|(i, (blk, cur))| {
-                        let end = gt.hess_ptr[k0 + i + 1];
-                        while (*cur as usize) < end {
-                            let src = gt.hess_src[*cur as usize] as usize;
-                            let slot = src >> 1;
-                            if slot >= hi {
-                                break;
-                            }
-                            let m = &buf[(slot - lo) * dd..(slot - lo + 1) * dd];
-                            if src & 1 == 0 {
-                                for (v, mv) in blk.iter_mut().zip(m) {
-                                    *v += scale * mv;
-                                }
-                            } else {
-                                for r in 0..d {
-                                    for c in 0..d {
-                                        blk[r * d + c] += scale * m[c * d + r];
-                                    }
-                                }
-                            }
-                            *cur += 1;
-                        }
-                    });
+                let g = GatherPass {
+                    model: self,
+                    k0,
+                    buf: &work.hess[..(hi - lo) * dd],
+                    lo,
+                    hi,
+                    scale,
+                    start,
+                };
+                let (values, cursor) = (&mut h.values[k0 * dd..k1 * dd], &mut work.cursor[k0..k1]);
+                match d {
+                    2 => g.run::<2>(values, cursor),
+                    3 => g.run::<3>(values, cursor),
+                    _ => unreachable!("a model is 2D or 3D"),
+                }
             }
         }
     }
@@ -812,6 +929,51 @@ mod tests {
     use super::*;
     use rand::rngs::StdRng;
     use rand::{Rng, SeedableRng};
+
+    /// h = M + scale·∇²Ψ in one pass over h gives the bits of zeroing h, adding the mass,
+    /// then adding the elements, on meshes of several passes in 2D and 3D with a node of
+    /// no element (its block holds its mass alone) and masses that differ per node; and
+    /// it overwrites whatever h held.
+    #[test]
+    fn mass_and_hessian_in_one_pass_equal_the_three_passes_bit_for_bit() {
+        let mut rng = StdRng::seed_from_u64(5);
+        for d in [2, 3] {
+            let mesh = if d == 2 {
+                crate::sim::mesh::rectangle(2, [1.0, 1.0], [90, 90])
+            } else {
+                crate::sim::mesh::cuboid([1.0, 1.0, 1.0], [12, 12, 12])
+            };
+            let nh = NeoHookean::new(&mesh, 1e5, 0.4, Law::NeoHookean).expect("valid mesh");
+            // One node beyond the mesh, in no element.
+            let n = mesh.x.len() / d + 1;
+            let mass: Vec<f64> = (0..n).map(|_| rng.random_range(0.5..2.0)).collect();
+            let model = Model::new(d, mass, None, vec![ElementSet::NeoHookean(nh)]);
+            let mut x: Vec<f64> = mesh
+                .x
+                .iter()
+                .map(|v| 1.1 * v + rng.random_range(-0.004..0.004))
+                .collect();
+            x.extend(std::iter::repeat_n(2.0, d));
+            let scale = 0.37;
+            let mut want = model.zero_matrix();
+            model.add_mass(&mut want);
+            let mut work = AssemblyWork::default();
+            model.add_potential_hessian_with(&x, scale, true, &mut want, &mut work);
+            let mut got = model.zero_matrix();
+            got.values
+                .iter_mut()
+                .for_each(|v| *v = rng.random_range(-1.0..1.0));
+            model.mass_and_potential_hessian_with(&x, scale, true, &mut got, &mut work);
+            let bits = |v: &[f64]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
+            assert!(bits(&got.values) == bits(&want.values), "{d}D");
+            let k = got.diag_index(n - 1).expect("diagonal block");
+            assert_eq!(
+                got.values[k * d * d],
+                model.mass[n - 1],
+                "{d}D: the lone node"
+            );
+        }
+    }
 
     /// The assembly in passes (a mesh of several passes, both laws, 2D and 3D) against
     /// the plainest one: every element's full reference matrix (and gradient) added into

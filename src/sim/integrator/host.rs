@@ -409,10 +409,8 @@ fn hessian(
     let d = sc.dim;
     let h = sc.time_step;
     let assembling = phases.open(Phase::Assembly);
-    hmat.values.iter_mut().for_each(|v| *v = 0.0);
-    sc.model.add_mass(hmat);
     sc.model
-        .add_potential_hessian_with(x, h * h, true, hmat, assembly);
+        .mass_and_potential_hessian_with(x, h * h, true, hmat, assembly);
     drop(assembling);
     let moving_terms = phases.open(Phase::MovingBoundary);
     for (j, &k) in state.moving_bcs.iter().enumerate() {
