@@ -364,7 +364,6 @@ pub(crate) fn simulate(
     run.draw_plot(dir, stepper, true)?;
     fill_summary(run, stepper, summary);
     drop(output);
-
     let bar = if opts.quiet {
         indicatif::ProgressBar::hidden()
     } else {

@@ -148,7 +148,7 @@ impl ElementSet {
 /// Elements per task of the parallel element loops. The chunks are fixed (they do not
 /// depend on the thread count) and each one is reduced in element order, so energies,
 /// gradients and Hessians come out bitwise the same on any number of threads.
-pub(crate) const CHUNK: usize = 1024;
+const CHUNK: usize = 1024;
 
 /// Element blocks (d×d) of the Hessian assembly's element buffer: one pass of the
 /// assembly computes at most this many (4.7 MB in 3D) before they are gathered.
@@ -929,6 +929,88 @@ mod tests {
     use super::*;
     use rand::rngs::StdRng;
     use rand::{Rng, SeedableRng};
+
+    /// On a mesh of many chunks of elements (10,368 tetrahedra, the scans run in
+    /// parallel chunks): the inversion bound is the first strict minimum of the elements'
+    /// roots in element order, an inverted element is the first one in that order, and the
+    /// smallest J is the first minimum (the last NaN when there is one), as sequential
+    /// scans find them.
+    #[test]
+    fn chunked_scans_find_what_a_sequential_scan_finds() {
+        let mut rng = StdRng::seed_from_u64(29);
+        let mesh = crate::sim::mesh::cuboid([1.0, 1.0, 1.0], [12, 12, 12]);
+        let nh = NeoHookean::new(&mesh, 1e5, 0.3, Law::NeoHookean).expect("valid mesh");
+        assert!(nh.len() > 8 * neohookean::SCAN_CHUNK, "several chunks");
+        let max = 1.0 / 0.9;
+        let sequential_bound = |x: &[f64], dx: &[f64]| {
+            let mut want: Option<(f64, usize)> = None;
+            for (e, el) in nh.all_nodes().enumerate() {
+                let c = neohookean::step_det_polynomial(3, el, x, dx);
+                if c[0].is_nan() || c[0] <= 0.0 {
+                    return Err(e);
+                }
+                if let Some(r) = neohookean::first_root(&c, max) {
+                    if want.is_none_or(|(w, _)| r < w) {
+                        want = Some((r, e));
+                    }
+                }
+            }
+            Ok(want)
+        };
+        let sequential_min = |x: &[f64]| {
+            let mut best: Option<(f64, usize)> = None;
+            for e in 0..nh.len() {
+                let j = nh.volume_ratio(x, e);
+                if best.is_none_or(|(b, _)| j < b || j.is_nan()) {
+                    best = Some((j, e));
+                }
+            }
+            best
+        };
+        let bits = |v: Option<(f64, usize)>| v.map(|(r, e)| (r.to_bits(), e));
+        let mut rooted = 0;
+        for t in 0..8 {
+            let size = 10f64.powf(rng.random_range(-2.0..-0.5));
+            let x: Vec<f64> = mesh
+                .x
+                .iter()
+                .map(|v| v + rng.random_range(-0.01..0.01))
+                .collect();
+            let dx: Vec<f64> = (0..x.len())
+                .map(|_| size * rng.random_range(-1.0..1.0))
+                .collect();
+            let got = nh.inversion_bound(&x, &dx, max).map_err(|(e, _)| e);
+            let want = sequential_bound(&x, &dx);
+            assert_eq!(got.map(bits), want.map(bits), "case {t}");
+            rooted += matches!(got, Ok(Some(_))) as usize;
+            assert_eq!(
+                bits(nh.min_volume_ratio(&x)),
+                bits(sequential_min(&x)),
+                "case {t}"
+            );
+        }
+        assert!(rooted >= 2, "only {rooted} cases with a root");
+        // Two inverted elements in different chunks: the first one is named. Two NaN
+        // volume ratios: the last one is the smallest.
+        let mut x = mesh.x.clone();
+        let late = nh.nodes(7 * neohookean::SCAN_CHUNK + 5)[0];
+        let early = nh.nodes(3 * neohookean::SCAN_CHUNK + 2)[0];
+        for node in [late, early] {
+            x[node * 3 + 2] += 5.0;
+        }
+        let dx = vec![0.0; x.len()];
+        assert_eq!(
+            nh.inversion_bound(&x, &dx, max).map_err(|(e, _)| e),
+            sequential_bound(&x, &dx)
+        );
+        assert!(nh.inversion_bound(&x, &dx, max).is_err());
+        let mut y = mesh.x.clone();
+        y[early * 3] = f64::NAN;
+        y[late * 3] = f64::NAN;
+        let got = nh.min_volume_ratio(&y).expect("elements");
+        assert!(got.0.is_nan());
+        assert_eq!(bits(Some(got)), bits(sequential_min(&y)));
+    }
 
     /// h = M + scale·∇²Ψ in one pass over h gives the bits of zeroing h, adding the mass,
     /// then adding the elements, on meshes of several passes in 2D and 3D with a node of

@@ -26,7 +26,6 @@
 //! through the same analytic eigensystem for both.
 
 use super::eigensystem::{self, SingularValueHessian, PAIRS};
-use super::CHUNK;
 use crate::sim::mesh::Mesh;
 use rayon::prelude::*;
 
@@ -85,6 +84,10 @@ pub fn lame(young: f64, poisson: f64) -> (f64, f64) {
     let lambda = young * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson));
     (mu, lambda)
 }
+
+/// Elements per task of the parallel scans (J, the inversion bound): fixed, so the
+/// element they find does not depend on the thread count.
+pub(super) const SCAN_CHUNK: usize = 1024;
 
 /// An element whose rest volume is at most this fraction of (longest edge from its first
 /// node)^d is degenerate: 64ε, rounding of the edge vectors' products.
@@ -467,10 +470,10 @@ impl NeoHookean {
                 best
             }
         };
-        let chunks: Vec<Option<(f64, usize)>> = (0..self.len().div_ceil(CHUNK))
+        let chunks: Vec<Option<(f64, usize)>> = (0..self.len().div_ceil(SCAN_CHUNK))
             .into_par_iter()
             .map(|c| {
-                (c * CHUNK..((c + 1) * CHUNK).min(self.len()))
+                (c * SCAN_CHUNK..((c + 1) * SCAN_CHUNK).min(self.len()))
                     .fold(None, |best, e| keep(best, (self.volume_ratio(x, e), e)))
             })
             .collect();
@@ -513,11 +516,11 @@ impl NeoHookean {
         // counts only below the bound so far: the first strict minimum (and the first
         // inverted element) in element order, whatever the threads.
         type Chunk = Result<Option<(f64, usize)>, (usize, f64)>;
-        let chunks: Vec<Chunk> = (0..self.len().div_ceil(CHUNK))
+        let chunks: Vec<Chunk> = (0..self.len().div_ceil(SCAN_CHUNK))
             .into_par_iter()
             .map(|k| {
                 let mut best: Option<(f64, usize)> = None;
-                for e in k * CHUNK..((k + 1) * CHUNK).min(self.len()) {
+                for e in k * SCAN_CHUNK..((k + 1) * SCAN_CHUNK).min(self.len()) {
                     let c = step_det_polynomial(d, self.nodes(e), x, dx);
                     if c[0].is_nan() || c[0] <= 0.0 {
                         return Err((e, c[0] / (rest_factor * self.volume[e])));
@@ -543,7 +546,7 @@ impl NeoHookean {
 
 /// det(Ds + α ΔDs) of element `el` (node indices) at positions `x` along the step `dx`
 /// ([`det_polynomial`]); Ds and ΔDs row-major, column a − 1 node a minus node 0.
-fn step_det_polynomial(d: usize, el: &[usize], x: &[f64], dx: &[f64]) -> [f64; 4] {
+pub(super) fn step_det_polynomial(d: usize, el: &[usize], x: &[f64], dx: &[f64]) -> [f64; 4] {
     let mut a = [0.0; 9];
     let mut b = [0.0; 9];
     for k in 1..=d {
@@ -1061,88 +1064,6 @@ mod tests {
             }
             assert!(rooted > 20, "{d}D: only {rooted} cases with a root");
         }
-    }
-
-    /// On a mesh of many chunks of elements (10,368 tetrahedra, the scans run in
-    /// parallel chunks): the inversion bound is the first strict minimum of the elements'
-    /// roots in element order, an inverted element is the first one in that order, and the
-    /// smallest J is the first minimum (the last NaN when there is one), as sequential
-    /// scans find them.
-    #[test]
-    fn chunked_scans_find_what_a_sequential_scan_finds() {
-        let mut rng = StdRng::seed_from_u64(29);
-        let mesh = crate::sim::mesh::cuboid([1.0, 1.0, 1.0], [12, 12, 12]);
-        let nh = NeoHookean::new(&mesh, 1e5, 0.3, Law::NeoHookean).expect("valid mesh");
-        assert!(nh.len() > 8 * CHUNK, "several chunks");
-        let max = 1.0 / 0.9;
-        let sequential_bound = |x: &[f64], dx: &[f64]| {
-            let mut want: Option<(f64, usize)> = None;
-            for (e, el) in nh.all_nodes().enumerate() {
-                let c = step_det_polynomial(3, el, x, dx);
-                if c[0].is_nan() || c[0] <= 0.0 {
-                    return Err(e);
-                }
-                if let Some(r) = first_root(&c, max) {
-                    if want.is_none_or(|(w, _)| r < w) {
-                        want = Some((r, e));
-                    }
-                }
-            }
-            Ok(want)
-        };
-        let sequential_min = |x: &[f64]| {
-            let mut best: Option<(f64, usize)> = None;
-            for e in 0..nh.len() {
-                let j = nh.volume_ratio(x, e);
-                if best.is_none_or(|(b, _)| j < b || j.is_nan()) {
-                    best = Some((j, e));
-                }
-            }
-            best
-        };
-        let bits = |v: Option<(f64, usize)>| v.map(|(r, e)| (r.to_bits(), e));
-        let mut rooted = 0;
-        for t in 0..8 {
-            let size = 10f64.powf(rng.random_range(-2.0..-0.5));
-            let x: Vec<f64> = mesh
-                .x
-                .iter()
-                .map(|v| v + rng.random_range(-0.01..0.01))
-                .collect();
-            let dx: Vec<f64> = (0..x.len())
-                .map(|_| size * rng.random_range(-1.0..1.0))
-                .collect();
-            let got = nh.inversion_bound(&x, &dx, max).map_err(|(e, _)| e);
-            let want = sequential_bound(&x, &dx);
-            assert_eq!(got.map(bits), want.map(bits), "case {t}");
-            rooted += matches!(got, Ok(Some(_))) as usize;
-            assert_eq!(
-                bits(nh.min_volume_ratio(&x)),
-                bits(sequential_min(&x)),
-                "case {t}"
-            );
-        }
-        assert!(rooted >= 2, "only {rooted} cases with a root");
-        // Two inverted elements in different chunks: the first one is named. Two NaN
-        // volume ratios: the last one is the smallest.
-        let mut x = mesh.x.clone();
-        let late = nh.nodes(7 * CHUNK + 5)[0];
-        let early = nh.nodes(3 * CHUNK + 2)[0];
-        for node in [late, early] {
-            x[node * 3 + 2] += 5.0;
-        }
-        let dx = vec![0.0; x.len()];
-        assert_eq!(
-            nh.inversion_bound(&x, &dx, max).map_err(|(e, _)| e),
-            sequential_bound(&x, &dx)
-        );
-        assert!(nh.inversion_bound(&x, &dx, max).is_err());
-        let mut y = mesh.x.clone();
-        y[early * 3] = f64::NAN;
-        y[late * 3] = f64::NAN;
-        let got = nh.min_volume_ratio(&y).expect("elements");
-        assert!(got.0.is_nan());
-        assert_eq!(bits(Some(got)), bits(sequential_min(&y)));
     }
 
     /// det(Ds + αΔDs) = 0 by its polynomial: the bound is the exact root to rounding,
