@@ -9,6 +9,7 @@
 //! locking, no sorting, and a sum order that does not depend on the thread count.
 
 pub mod barrier;
+pub mod digest;
 pub mod eigensystem;
 pub mod gravity;
 pub mod inertia;
@@ -22,6 +23,7 @@ use crate::sim::memory::{try_vec, AllocError};
 use crate::sim::phases::{self, HostPhases};
 use rayon::prelude::*;
 
+pub use digest::{digest_f64s, digest_usizes};
 pub use eigensystem::project_psd;
 pub use neohookean::{Law, NeoHookean};
 pub use spring::Springs;
@@ -511,6 +513,38 @@ impl Model {
 
     pub fn ndof(&self) -> usize {
         self.dim * self.n_nodes
+    }
+
+    /// Feeds every value the model's terms depend on to `out` (numbers by their bits):
+    /// the sizes, masses, gravity and each element set. The block pattern and the gather
+    /// tables follow from the sets' elements.
+    pub fn digest(&self, out: &mut dyn FnMut(&[u8])) {
+        digest_usizes(out, &[self.dim, self.n_nodes, self.sets.len()]);
+        digest_f64s(out, &self.mass);
+        match &self.gravity {
+            Some(g) => {
+                out(b"gravity");
+                digest_f64s(out, g);
+            }
+            None => out(b"no gravity"),
+        }
+        for s in &self.sets {
+            match s {
+                ElementSet::Springs(sp) => {
+                    out(b"springs");
+                    digest_usizes(out, &[sp.dim, sp.edges.len()]);
+                    for e in &sp.edges {
+                        digest_usizes(out, e);
+                    }
+                    digest_f64s(out, &sp.rest);
+                    digest_f64s(out, &[sp.stiffness]);
+                }
+                ElementSet::NeoHookean(nh) => {
+                    out(nh.law.name().as_bytes());
+                    nh.digest(out);
+                }
+            }
+        }
     }
 
     pub fn total_mass(&self) -> f64 {

@@ -25,6 +25,7 @@
 //! scalar coefficients of I_C and J ([`NeoHookean::coefficients`]); the PSD projection runs
 //! through the same analytic eigensystem for both.
 
+use super::digest::{digest_f64s, digest_usizes};
 use super::eigensystem::{self, SingularValueHessian, PAIRS};
 use crate::sim::mesh::Mesh;
 use rayon::prelude::*;
@@ -194,6 +195,16 @@ impl NeoHookean {
     /// Every element's nodes, element after element.
     pub fn all_nodes(&self) -> impl Iterator<Item = &[usize]> {
         self.nodes.chunks_exact(self.dim + 1)
+    }
+
+    /// Feeds the set's values to `out` ([`super::Model::digest`]).
+    pub fn digest(&self, out: &mut dyn FnMut(&[u8])) {
+        digest_usizes(out, &[self.dim]);
+        digest_usizes(out, &self.nodes);
+        digest_f64s(out, &self.shape_grads);
+        digest_f64s(out, &self.volume);
+        let scalars = [self.mu, self.lambda, self.alpha, self.rest_density];
+        digest_f64s(out, &scalars);
     }
 
     /// Adds `offset` to every node index (the body's first node in the scene).
