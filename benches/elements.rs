@@ -36,7 +36,7 @@ fn bench_hessians(c: &mut Criterion) {
         let (m, x) = deformed(d);
         for law in [Law::NeoHookean, Law::StableNeoHookean] {
             let nh = NeoHookean::new(&m, 1e5, 0.45, law).expect("valid mesh");
-            let n = nh.elements.len();
+            let n = nh.len();
             let nl = (d + 1) * d;
             let np = (d + 1) * (d + 2) / 2;
             let mut full = vec![0.0; nl * nl];

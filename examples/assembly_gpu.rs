@@ -49,7 +49,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .collect();
     let nh =
         NeoHookean::new(&m, 1e5, 0.4, Law::StableNeoHookean).map_err(|e| format!("mesh: {e}"))?;
-    let ne = nh.elements.len();
+    let ne = nh.len();
     let model = Model::new(
         3,
         m.lumped_masses(1e3),

@@ -359,7 +359,7 @@ fn numeric_projection(s: &Scene, xe: &[f64]) -> Vec<f64> {
     let d = nh.dim;
     let (dd, nl) = (d * d, (d + 1) * d);
     let mut out = Vec::new();
-    for e in 0..nh.elements.len() {
+    for e in 0..nh.len() {
         let mut f = [0.0; 9];
         nh.deformation_gradient(xe, e, &mut f);
         let mut h = vec![0.0; dd * dd];

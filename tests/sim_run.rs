@@ -171,3 +171,81 @@ fn bad_scene_files_are_input_errors_naming_the_key() {
     assert!(matches!(run(&opts), Err(RunError::Input(_))));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The CPU loop's summary.json `phases` account for the run's wall time outside the
+/// linear solve: measured against the driver's own clock (`wall_seconds` −
+/// `linear_seconds`), the named phases (all but `host_decisions`) hold at least 95 % of
+/// it, on a scene with moving boundaries and classical neo-Hookean elements (twist) and
+/// one with obstacles (crush). Ratios only: nothing depends on the machine's speed.
+#[test]
+fn cpu_phases_account_for_the_time_outside_the_solve() {
+    let want = [
+        "setup",
+        "element_terms",
+        "assembly",
+        "elimination",
+        "contact",
+        "moving_boundary",
+        "inversion_bound",
+        "line_search",
+        "checks",
+        "output",
+        "host_decisions",
+    ];
+    for (scene, busy) in [
+        (
+            "twist",
+            &["element_terms", "moving_boundary", "inversion_bound"][..],
+        ),
+        ("crush", &["element_terms", "contact", "line_search"][..]),
+    ] {
+        let out = std::env::temp_dir().join(format!(
+            "stickslip-sim-run-phases-{scene}-{}",
+            std::process::id()
+        ));
+        let opts = RunOptions {
+            scene: Some(scene.into()),
+            out: Some(out.clone()),
+            steps: Some(2),
+            solver: Some(stickslip::SolverKind::Cg),
+            quiet: true,
+            ..RunOptions::default()
+        };
+        run(&opts).unwrap_or_else(|e| panic!("{scene}: {e}"));
+        let json: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(out.join("summary.json")).expect("summary"),
+        )
+        .expect("json");
+        let p = &json["phases"];
+        let num = |v: &serde_json::Value| v.as_f64().expect("a number");
+        let seconds = p["seconds"].as_object().expect("phases.seconds");
+        let mut keys: Vec<&str> = seconds.keys().map(String::as_str).collect();
+        let mut want = want.to_vec();
+        keys.sort_unstable();
+        want.sort_unstable();
+        assert_eq!(keys, want, "{scene}");
+        for b in busy {
+            assert!(num(&seconds[*b]) > 0.0, "{scene}: {b} never timed: {p}");
+        }
+        let total: f64 = seconds.values().map(num).sum();
+        let outside = num(&p["outside_solve_seconds"]);
+        // The phases partition the profile's time; the sum is exact to rounding.
+        assert!((total - outside).abs() <= 1e-9 * outside, "{scene}: {p}");
+        let named = total - num(&seconds["host_decisions"]);
+        assert!(num(&p["accounted_fraction"]) >= 0.95, "{scene}: {p}");
+        // Against the driver's clock: the summary's wall time and the solver's own
+        // linear seconds, taken independently of the profile.
+        let wall = num(&json["wall_seconds"]);
+        let linear = num(&json["linear_seconds"]);
+        assert!(
+            named / (wall - linear) >= 0.95,
+            "{scene}: named phases {named} s of {} s outside the solve: {p}",
+            wall - linear
+        );
+        assert!(
+            (num(&p["wall_seconds"]) - wall).abs() <= 0.05 * wall,
+            "{scene}: profiled {p} against wall {wall}"
+        );
+        let _ = std::fs::remove_dir_all(&out);
+    }
+}

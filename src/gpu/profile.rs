@@ -42,7 +42,18 @@ pub enum Phase {
     LineSearch,
     /// The step bound before an element inverts.
     InversionBound,
-    /// The Newton loop's own logic on the host.
+    /// The barrier terms and the CCD bound against the obstacles' half-spaces, and the
+    /// obstacles' distances (the CPU loop).
+    Contact,
+    /// The moving boundaries' penalty terms, snapping and penalty updates (the CPU loop).
+    MovingBoundary,
+    /// The force balance and the step's checks: finite systems, volume ratios, reactions
+    /// (the CPU loop).
+    Checks,
+    /// The CPU loop's linear solve of the eliminated system, whichever solver (what
+    /// summary.json's `linear_seconds` counts).
+    LinearSolve,
+    /// The Newton loop's own logic on the host, and whatever no other phase covers.
     HostDecisions,
     /// Waiting on the device beyond the device time of the work waited for.
     ReadBacks,
@@ -51,7 +62,7 @@ pub enum Phase {
 }
 
 impl Phase {
-    pub const ALL: [Phase; 13] = [
+    pub const ALL: [Phase; 17] = [
         Phase::Setup,
         Phase::PipelineCreation,
         Phase::Uploads,
@@ -62,6 +73,10 @@ impl Phase {
         Phase::Cg,
         Phase::LineSearch,
         Phase::InversionBound,
+        Phase::Contact,
+        Phase::MovingBoundary,
+        Phase::Checks,
+        Phase::LinearSolve,
         Phase::HostDecisions,
         Phase::ReadBacks,
         Phase::Output,
@@ -80,6 +95,10 @@ impl Phase {
             Phase::Cg => "cg",
             Phase::LineSearch => "line_search",
             Phase::InversionBound => "inversion_bound",
+            Phase::Contact => "contact",
+            Phase::MovingBoundary => "moving_boundary",
+            Phase::Checks => "checks",
+            Phase::LinearSolve => "linear_solve",
             Phase::HostDecisions => "host_decisions",
             Phase::ReadBacks => "read_backs",
             Phase::Output => "output",

@@ -20,6 +20,7 @@
 //! (`sim::resume`).
 
 use crate::error::InputError;
+use crate::gpu::Phase;
 use crate::io::files::{Named, OutputDir};
 use crate::sim::checkpoint::{self, Checkpoint, StartOptions, Tallies};
 use crate::sim::integrator::{ContactCounters, InitError, Stepper};
@@ -30,7 +31,8 @@ use crate::sim::scene::Scene;
 use crate::sim::scene_setup::build_scene;
 pub use crate::sim::scene_setup::{load_scene, open_scene, MAX_SYSTEM_ENTRY};
 pub use crate::sim::summary::{
-    ContactSummary, MovingSummary, MultilevelLevels, RunStatus, RunSummary,
+    ContactSummary, MovingSummary, MultilevelLevels, PhaseSummary, RunStatus, RunSummary,
+    CPU_PHASES,
 };
 pub use crate::sim::time_loop::{request_interrupt, STEPS_PLOT, SYSTEM_FILES};
 use crate::sim::time_loop::{simulate, write_summary, Run};
@@ -112,6 +114,8 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         _ => None,
     };
     let mut stepper = open_stepper(&scene, resumed.as_ref(), wall)?;
+    // The folder, the fingerprint and a resume's preparation are the run's set-up.
+    let setup = stepper.phase(Phase::Setup);
     let (out, option) = match &opts.resume {
         Some(d) => (d.clone(), "--resume"),
         None => (
@@ -166,6 +170,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
         plot: opts.steps_plot.clone(),
         plot_due: None,
     };
+    drop(setup);
     let result = write_summary(&mut dir, &summary)
         .and_then(|_| simulate(&mut this_run, opts, &mut stepper, &mut dir, &mut summary));
     summary.contact_counters = stepper.contact_counters();
@@ -178,6 +183,7 @@ pub fn run(opts: &RunOptions) -> Result<RunSummary, RunError> {
     summary.final_positions = stepper.x.clone();
     summary.final_velocities = stepper.v.clone();
     summary.wall_seconds = this_run.tallies.wall_seconds + wall.elapsed().as_secs_f64();
+    summary.phases = stepper.host_profile().map(|p| PhaseSummary::of(&p));
     match result {
         Ok(()) => {
             summary.status = RunStatus::Complete;
@@ -258,6 +264,7 @@ fn open_stepper<'s>(
         }),
     })?;
     stepper.started_at(wall);
+    let _setup = stepper.phase(Phase::Setup);
     if let Some(ck) = resumed {
         stepper.restore(&ck.snapshot).map_err(|e| RunError::Solve {
             step: ck.snapshot.step,
@@ -279,7 +286,7 @@ fn new_summary(scene: &Scene, out: &Path, run_id: String) -> RunSummary {
         file: scene.file.clone(),
         dimension: scene.dim,
         nodes: scene.model.n_nodes,
-        elements: scene.cells.iter().map(|b| b.cells.len()).sum(),
+        elements: scene.cells.iter().map(|b| b.len()).sum(),
         total_mass: scene.model.total_mass(),
         time_step: scene.time_step,
         gravity: scene.gravity.clone(),
@@ -316,6 +323,7 @@ fn new_summary(scene: &Scene, out: &Path, run_id: String) -> RunSummary {
         inverted_steps: Default::default(),
         contact_counters: ContactCounters::default(),
         contact: None,
+        phases: None,
         gpu: None,
         records: Vec::new(),
         final_positions: Vec::new(),

@@ -12,6 +12,7 @@ pub mod integrator;
 pub mod memory;
 pub mod mesh;
 mod output;
+pub mod phases;
 mod resume;
 mod run_error;
 mod run_options;

@@ -52,15 +52,15 @@ pub fn write_vtk(
     for i in 0..n {
         vec3(&mut s, x, i);
     }
-    let ncells: usize = scene.cells.iter().map(|b| b.cells.len()).sum();
+    let ncells: usize = scene.cells.iter().map(|b| b.len()).sum();
     let size: usize = scene
         .cells
         .iter()
-        .map(|b| b.cells.iter().map(|c| c.len() + 1).sum::<usize>())
+        .map(|b| b.len() * (b.kind.nodes() + 1))
         .sum();
     let _ = writeln!(s, "CELLS {ncells} {size}");
     for b in &scene.cells {
-        for c in &b.cells {
+        for c in b.cells() {
             let _ = write!(s, "{}", c.len());
             for i in c {
                 let _ = write!(s, " {i}");
@@ -70,7 +70,7 @@ pub fn write_vtk(
     }
     let _ = writeln!(s, "CELL_TYPES {ncells}");
     for b in &scene.cells {
-        for _ in &b.cells {
+        for _ in 0..b.len() {
             let _ = writeln!(s, "{}", b.kind.vtk_type());
         }
     }

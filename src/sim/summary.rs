@@ -1,6 +1,7 @@
 //! summary.json: what a run of `stickslip run` did, rewritten after every step (`running`)
 //! and at the end (`complete`, `failed` or `interrupted`).
 
+use crate::gpu::{Phase, Profile};
 use crate::sim::integrator::ContactCounters;
 use crate::sim::output::StepRecord;
 use crate::sim::scene::MovingSpec;
@@ -112,6 +113,10 @@ pub struct RunSummary {
     pub contact_counters: ContactCounters,
     /// Contact history; None for a scene without obstacles.
     pub contact: Option<ContactSummary>,
+    /// Where the CPU Newton loop's seconds went, by phase (this invocation); absent for
+    /// the device loop, whose phases are in `gpu`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub phases: Option<PhaseSummary>,
     /// The GPU Newton loop's adapter, precision and host↔device traffic (totals over the
     /// run); absent for a run with the CPU loop.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -131,4 +136,90 @@ pub struct MultilevelLevels {
     pub setup: crate::solve::options::MultilevelSetup,
     pub built: usize,
     pub kept: usize,
+}
+
+/// summary.json's `phases`: the CPU loop's wall seconds of this invocation by phase
+/// ([`crate::sim::phases`]), the linear solve apart.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct PhaseSummary {
+    /// Wall seconds from the invocation's start to this summary.
+    pub wall_seconds: f64,
+    /// Of them, in the linear solve (`linear_seconds` of this invocation, as the
+    /// profile times it).
+    pub linear_solve_seconds: f64,
+    /// `wall_seconds − linear_solve_seconds`.
+    pub outside_solve_seconds: f64,
+    /// The seconds outside the solve by phase; they sum to `outside_solve_seconds`.
+    #[serde(serialize_with = "crate::gpu::profile::phase_map")]
+    pub seconds: Vec<(Phase, f64)>,
+    /// The share of `outside_solve_seconds` in a named phase (every one but
+    /// `host_decisions`, the loop's own logic and whatever no phase covers).
+    pub accounted_fraction: f64,
+}
+
+/// The phases a CPU run reports outside the linear solve, in summary.json's order.
+pub const CPU_PHASES: [Phase; 11] = [
+    Phase::Setup,
+    Phase::ElementTerms,
+    Phase::Assembly,
+    Phase::Elimination,
+    Phase::Contact,
+    Phase::MovingBoundary,
+    Phase::InversionBound,
+    Phase::LineSearch,
+    Phase::Checks,
+    Phase::Output,
+    Phase::HostDecisions,
+];
+
+impl PhaseSummary {
+    /// The summary of a CPU loop's profile. Phases the CPU loop never opens (the
+    /// device's) count as `host_decisions`.
+    pub fn of(p: &Profile) -> Self {
+        let linear = p.seconds(Phase::LinearSolve);
+        let outside = p.wall_seconds - linear;
+        let mut seconds: Vec<(Phase, f64)> =
+            CPU_PHASES.iter().map(|&q| (q, p.seconds(q))).collect();
+        let elsewhere: f64 = p
+            .phases
+            .iter()
+            .filter(|(q, _)| *q != Phase::LinearSolve && !CPU_PHASES.contains(q))
+            .map(|(_, s)| s)
+            .sum();
+        if let Some(last) = seconds.last_mut() {
+            last.1 += elsewhere;
+        }
+        let named: f64 = seconds
+            .iter()
+            .filter(|(q, _)| *q != Phase::HostDecisions)
+            .map(|(_, s)| s)
+            .sum();
+        PhaseSummary {
+            wall_seconds: p.wall_seconds,
+            linear_solve_seconds: linear,
+            outside_solve_seconds: outside,
+            accounted_fraction: if outside > 0.0 { named / outside } else { 1.0 },
+            seconds,
+        }
+    }
+
+    /// One line: the seconds outside the solve and the three largest phases.
+    pub fn line(&self) -> String {
+        let mut v = self.seconds.clone();
+        v.sort_by(|a, b| b.1.total_cmp(&a.1));
+        let out = self.outside_solve_seconds;
+        let parts: Vec<String> = v
+            .iter()
+            .take(3)
+            .map(|(p, s)| {
+                let share = if out > 0.0 { 100.0 * s / out } else { 0.0 };
+                format!("{} {s:.2} s ({share:.0} %)", p.name().replace('_', " "))
+            })
+            .collect();
+        format!(
+            "outside the linear solve: {out:.2} s of {:.2} s; largest phases: {}",
+            self.wall_seconds,
+            parts.join(", ")
+        )
+    }
 }

@@ -12,7 +12,9 @@ use crate::sim::output::{write_pvd, write_vtk, StepRecord, StepsCsv, FRAMES_COLL
 use crate::sim::run_error::RunError;
 use crate::sim::run_options::{RunOptions, StepsPlot};
 use crate::sim::scene::Scene;
-use crate::sim::summary::{ContactSummary, MovingSummary, MultilevelLevels, RunSummary};
+use crate::sim::summary::{
+    ContactSummary, MovingSummary, MultilevelLevels, PhaseSummary, RunSummary,
+};
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicI32, Ordering};
@@ -315,6 +317,7 @@ pub(crate) fn simulate(
         path: path.display().to_string(),
         cause: e.to_string(),
     };
+    let output = stepper.phase(Phase::Output);
     let frames_dir = dir.path().join("frames");
     std::fs::create_dir_all(&frames_dir).map_err(|e| out_err(&frames_dir, e))?;
     let csv_path = dir
@@ -360,7 +363,7 @@ pub(crate) fn simulate(
     // A resumed run's plot is redrawn from the steps.csv it continues.
     run.draw_plot(dir, stepper, true)?;
     fill_summary(run, stepper, summary);
-
+    drop(output);
     let bar = if opts.quiet {
         indicatif::ProgressBar::hidden()
     } else {
@@ -402,6 +405,7 @@ pub(crate) fn simulate(
             },
         })?;
         add_step(&mut run.tallies, &rep, stepper.has_moving());
+        let output = stepper.phase(Phase::Output);
         let r = record(stepper, Some(&rep));
         if let Some(what) = non_finite(stepper, &r) {
             return Err(RunError::Solve {
@@ -413,7 +417,6 @@ pub(crate) fn simulate(
                 ),
             });
         }
-        let output = stepper.phase(Phase::Output);
         csv.row(&r).map_err(|e| out_err(&csv_path, e))?;
         fold_min(&mut run.tallies, &r);
         summary.records.push(r);
@@ -430,6 +433,7 @@ pub(crate) fn simulate(
         let output = stepper.phase(Phase::Output);
         fill_summary(run, stepper, summary);
         summary.wall_seconds = run.tallies.wall_seconds + run.wall.elapsed().as_secs_f64();
+        summary.phases = stepper.host_profile().map(|p| PhaseSummary::of(&p));
         write_summary(dir, summary)?;
         drop(output);
         if signal != 0 {
@@ -447,6 +451,7 @@ pub(crate) fn simulate(
         bar.inc(1);
     }
     bar.finish_and_clear();
+    let _output = stepper.phase(Phase::Output);
     csv.finish().map_err(|e| out_err(&csv_path, e))?;
     Ok(())
 }

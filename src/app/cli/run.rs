@@ -44,6 +44,9 @@ pub fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
                 if let Some(g) = summary.gpu.as_ref().filter(|g| !g.phases.is_empty()) {
                     eprintln!("{}", largest_phases(&g.phases, summary.wall_seconds));
                 }
+                if let Some(p) = &summary.phases {
+                    eprintln!("{}", p.line());
+                }
             }
             Ok(())
         }

@@ -16,7 +16,7 @@ impl NeoHookean {
     #[inline(always)]
     fn deformation_gradient_fixed<const D: usize>(&self, x: &[f64], e: usize) -> [f64; 9] {
         let g = self.grads(e);
-        let nodes = &self.elements[e];
+        let nodes = self.nodes(e);
         let mut f = [0.0f64; 9];
         for a in 0..=D {
             let node = nodes[a];
@@ -324,7 +324,7 @@ mod tests {
                 let (nh, x) = deformed(d, law, &mut rng);
                 let nl = (d + 1) * d;
                 let np = (d + 1) * (d + 2) / 2;
-                for e in 0..nh.elements.len() {
+                for e in 0..nh.len() {
                     inverted += (nh.volume_ratio(&x, e) <= 0.0) as usize;
                     for project in [true, false] {
                         let mut full = vec![0.0; nl * nl];
@@ -343,7 +343,7 @@ mod tests {
                         // from every start: lanes, spare lanes and the tail.
                         let size = np * d * d;
                         for first in 0..3 {
-                            for n in 0..=(2 * LANES + 1).min(nh.elements.len() - first) {
+                            for n in 0..=(2 * LANES + 1).min(nh.len() - first) {
                                 let mut run = vec![0.0; n * size];
                                 nh.element_hessian_blocks_run(&x, first, true, &mut run);
                                 for (k, got) in run.chunks_exact(size).enumerate() {

@@ -25,8 +25,10 @@
 //! scalar coefficients of I_C and J ([`NeoHookean::coefficients`]); the PSD projection runs
 //! through the same analytic eigensystem for both.
 
+use super::digest::{digest_f64s, digest_usizes};
 use super::eigensystem::{self, SingularValueHessian, PAIRS};
 use crate::sim::mesh::Mesh;
+use rayon::prelude::*;
 
 /// Which neo-Hookean law a body follows (the scene's `material.model`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize)]
@@ -63,7 +65,9 @@ pub struct Coefficients {
 pub struct NeoHookean {
     pub dim: usize,
     pub law: Law,
-    pub elements: Vec<Vec<usize>>,
+    /// Per element its d+1 nodes, element after element (one flat array: no heap block
+    /// per element).
+    nodes: Vec<usize>,
     /// Per element: the gradients of the d+1 barycentric shape functions in the rest
     /// shape, G[a][j] (node a, axis j), flattened (d+1)·d.
     shape_grads: Vec<f64>,
@@ -81,6 +85,10 @@ pub fn lame(young: f64, poisson: f64) -> (f64, f64) {
     let lambda = young * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson));
     (mu, lambda)
 }
+
+/// Elements per task of the parallel scans (J, the inversion bound): fixed, so the
+/// element they find does not depend on the thread count.
+pub(super) const SCAN_CHUNK: usize = 1024;
 
 /// An element whose rest volume is at most this fraction of (longest edge from its first
 /// node)^d is degenerate: 64ε, rounding of the edge vectors' products.
@@ -153,7 +161,7 @@ impl NeoHookean {
         let mut s = NeoHookean {
             dim: d,
             law,
-            elements: mesh.elements.clone(),
+            nodes: mesh.elements.iter().flatten().copied().collect(),
             shape_grads,
             volume,
             mu,
@@ -169,6 +177,41 @@ impl NeoHookean {
         Ok(s)
     }
 
+    /// Elements in the set.
+    pub fn len(&self) -> usize {
+        self.volume.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.volume.is_empty()
+    }
+
+    /// The d+1 nodes of element e.
+    pub fn nodes(&self, e: usize) -> &[usize] {
+        let k = self.dim + 1;
+        &self.nodes[e * k..(e + 1) * k]
+    }
+
+    /// Every element's nodes, element after element.
+    pub fn all_nodes(&self) -> impl Iterator<Item = &[usize]> {
+        self.nodes.chunks_exact(self.dim + 1)
+    }
+
+    /// Feeds the set's values to `out` ([`super::Model::digest`]).
+    pub fn digest(&self, out: &mut dyn FnMut(&[u8])) {
+        digest_usizes(out, &[self.dim]);
+        digest_usizes(out, &self.nodes);
+        digest_f64s(out, &self.shape_grads);
+        digest_f64s(out, &self.volume);
+        let scalars = [self.mu, self.lambda, self.alpha, self.rest_density];
+        digest_f64s(out, &scalars);
+    }
+
+    /// Adds `offset` to every node index (the body's first node in the scene).
+    pub fn shift_nodes(&mut self, offset: usize) {
+        self.nodes.iter_mut().for_each(|v| *v += offset);
+    }
+
     /// Shape-function gradients of element e in the rest shape, `G[a][j]` flattened
     /// (d+1)·d: rows 1..=d are Dm⁻¹, row 0 minus their sum.
     pub fn grads(&self, e: usize) -> &[f64] {
@@ -181,7 +224,7 @@ impl NeoHookean {
         let d = self.dim;
         let g = self.grads(e);
         f[..d * d].iter_mut().for_each(|v| *v = 0.0);
-        for (a, &node) in self.elements[e].iter().enumerate() {
+        for (a, &node) in self.nodes(e).iter().enumerate() {
             for i in 0..d {
                 let xi = x[node * d + i];
                 for j in 0..d {
@@ -427,15 +470,25 @@ impl NeoHookean {
 
     /// The smallest J over the elements at x, with its element (the first one on ties);
     /// None without elements.
+    /// A NaN J wins over every number, and the last NaN over earlier ones. Fixed chunks
+    /// of elements in parallel, merged in order by the same rule: the element a
+    /// sequential scan finds, on any number of threads.
     pub fn min_volume_ratio(&self, x: &[f64]) -> Option<(f64, usize)> {
-        let mut best: Option<(f64, usize)> = None;
-        for e in 0..self.elements.len() {
-            let j = self.volume_ratio(x, e);
+        let keep = |best: Option<(f64, usize)>, (j, e): (f64, usize)| {
             if best.is_none_or(|(b, _)| j < b || j.is_nan()) {
-                best = Some((j, e));
+                Some((j, e))
+            } else {
+                best
             }
-        }
-        best
+        };
+        let chunks: Vec<Option<(f64, usize)>> = (0..self.len().div_ceil(SCAN_CHUNK))
+            .into_par_iter()
+            .map(|c| {
+                (c * SCAN_CHUNK..((c + 1) * SCAN_CHUNK).min(self.len()))
+                    .fold(None, |best, e| keep(best, (self.volume_ratio(x, e), e)))
+            })
+            .collect();
+        chunks.into_iter().flatten().fold(None, keep)
     }
 
     /// The step-size bound that keeps every element's J positive along x + αΔx: the
@@ -470,14 +523,32 @@ impl NeoHookean {
     ) -> Result<Option<(f64, usize)>, (usize, f64)> {
         let d = self.dim;
         let rest_factor = if d == 2 { 2.0 } else { 6.0 };
+        // Fixed chunks in parallel, each from `below`; merged in order, a chunk's root
+        // counts only below the bound so far: the first strict minimum (and the first
+        // inverted element) in element order, whatever the threads.
+        type Chunk = Result<Option<(f64, usize)>, (usize, f64)>;
+        let chunks: Vec<Chunk> = (0..self.len().div_ceil(SCAN_CHUNK))
+            .into_par_iter()
+            .map(|k| {
+                let mut best: Option<(f64, usize)> = None;
+                for e in k * SCAN_CHUNK..((k + 1) * SCAN_CHUNK).min(self.len()) {
+                    let c = step_det_polynomial(d, self.nodes(e), x, dx);
+                    if c[0].is_nan() || c[0] <= 0.0 {
+                        return Err((e, c[0] / (rest_factor * self.volume[e])));
+                    }
+                    if let Some(r) = root_below(&c, max, best.map(|(r, _)| r).or(below)) {
+                        best = Some((r, e));
+                    }
+                }
+                Ok(best)
+            })
+            .collect();
         let mut best: Option<(f64, usize)> = None;
-        for (e, el) in self.elements.iter().enumerate() {
-            let c = step_det_polynomial(d, el, x, dx);
-            if c[0].is_nan() || c[0] <= 0.0 {
-                return Err((e, c[0] / (rest_factor * self.volume[e])));
-            }
-            if let Some(r) = root_below(&c, max, best.map(|(r, _)| r).or(below)) {
-                best = Some((r, e));
+        for chunk in chunks {
+            if let Some((r, e)) = chunk? {
+                if best.is_none_or(|(b, _)| r < b) {
+                    best = Some((r, e));
+                }
             }
         }
         Ok(best)
@@ -486,7 +557,7 @@ impl NeoHookean {
 
 /// det(Ds + α ΔDs) of element `el` (node indices) at positions `x` along the step `dx`
 /// ([`det_polynomial`]); Ds and ΔDs row-major, column a − 1 node a minus node 0.
-fn step_det_polynomial(d: usize, el: &[usize], x: &[f64], dx: &[f64]) -> [f64; 4] {
+pub(super) fn step_det_polynomial(d: usize, el: &[usize], x: &[f64], dx: &[f64]) -> [f64; 4] {
     let mut a = [0.0; 9];
     let mut b = [0.0; 9];
     for k in 1..=d {
@@ -989,7 +1060,7 @@ mod tests {
                 };
                 let got = nh.inversion_bound(&x, &dx, max).expect("not inverted");
                 let mut want: Option<(f64, usize)> = None;
-                for (e, el) in nh.elements.iter().enumerate() {
+                for (e, el) in nh.all_nodes().enumerate() {
                     let c = step_det_polynomial(d, el, &x, &dx);
                     if let Some(r) = first_root(&c, max) {
                         if want.is_none_or(|(w, _)| r < w) {

@@ -12,9 +12,10 @@ use super::linear::LinearStats;
 use super::report::GpuRunReport;
 use super::state::State;
 use super::targets::MovingTargets;
-use crate::gpu::{Phase, PhaseGuard};
+use crate::gpu::{Phase, Profile};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
 use crate::sim::energy::{InversionLimit, Inverted};
+use crate::sim::phases::PhaseSpan;
 
 /// The state at the end of a step, read back from wherever it lived.
 pub(super) struct EndState {
@@ -131,9 +132,14 @@ pub(super) trait Backend {
     /// The GPU adapter this loop uses, if any.
     fn adapter(&self) -> Option<&str>;
 
-    /// Opens `phase` of the device's profile until the guard drops (`None`: no device
-    /// profile).
-    fn phase(&self, _phase: Phase) -> Option<PhaseGuard> {
+    /// Opens `phase` of the loop's profile until the span drops (`None`: no profile).
+    fn phase(&self, _phase: Phase) -> Option<PhaseSpan> {
+        None
+    }
+
+    /// The CPU loop's profile so far (None for the device loop, whose profile is in its
+    /// [`GpuRunReport`]).
+    fn host_profile(&self) -> Option<Profile> {
         None
     }
 

@@ -30,9 +30,7 @@ use super::report::GpuRunReport;
 use super::state::{Contact, State, CCD_FRACTION, INVERSION_FRACTION};
 use super::targets::MovingTargets;
 use crate::gpu::pcg::{DeviceCg, DeviceCgParams, DeviceFrames, Tail};
-use crate::gpu::{
-    GpuContext, GpuError, GpuOptions, Phase, PhaseGuard, Precision, ReadRange, TrafficCount,
-};
+use crate::gpu::{GpuContext, GpuError, GpuOptions, Phase, Precision, ReadRange, TrafficCount};
 use crate::sim::device::assembly::GpuAssembly;
 use crate::sim::device::checks::{BalanceFrames, NewtonChecks};
 use crate::sim::device::elements::{GpuElements, TermKind};
@@ -42,6 +40,7 @@ use crate::sim::device::newton_ops::NewtonOps;
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
 use crate::sim::energy::Law;
 use crate::sim::energy::{InversionLimit, Inverted};
+use crate::sim::phases::PhaseSpan;
 use crate::sim::scene::Scene;
 use crate::solve::multilevel::reuse::KeptLevels;
 use crate::solve::multilevel::Hierarchy;
@@ -842,8 +841,8 @@ impl Backend for DeviceLoop {
         Some(self.adapter_name())
     }
 
-    fn phase(&self, phase: Phase) -> Option<PhaseGuard> {
-        Some(self.ctx.phase(phase))
+    fn phase(&self, phase: Phase) -> Option<PhaseSpan> {
+        Some(self.ctx.phase(phase).into())
     }
 
     fn started_at(&self, run_start: Instant) {

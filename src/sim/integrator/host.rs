@@ -12,9 +12,11 @@ use super::state::{State, CCD_FRACTION};
 use super::targets::{offset, projector, MovingTargets};
 use crate::core::elimination::{ConstrainedDiagonal, Eliminated};
 use crate::core::sparse::BlockCsr;
+use crate::gpu::{Phase, Profile};
 use crate::sim::energy::barrier::{Ccd, HalfSpace};
 use crate::sim::energy::{inertia, AssemblyWork, InversionLimit, Inverted};
 use crate::sim::memory::try_vec;
+use crate::sim::phases::{HostPhases, PhaseSpan};
 use crate::sim::scene::{BcShape, SolverSpec};
 use crate::Precision;
 
@@ -35,6 +37,8 @@ pub(super) struct HostBackend {
     xtry: Vec<f64>,
     /// The last Newton direction.
     dx: Vec<f64>,
+    /// Where the loop's seconds go (the assembly's buffers share it).
+    pub(super) phases: HostPhases,
 }
 
 impl HostBackend {
@@ -44,6 +48,7 @@ impl HostBackend {
         let n = state.x.len();
         let linear = LinearSolver::new(linear).map_err(InitError::Solver)?;
         let vector = || try_vec(n, 0.0, "the Newton loop's vectors").map_err(InitError::Memory);
+        let phases = HostPhases::default();
         Ok(HostBackend {
             linear,
             hmat: state
@@ -51,13 +56,14 @@ impl HostBackend {
                 .model
                 .try_zero_matrix()
                 .map_err(InitError::Memory)?,
-            assembly: AssemblyWork::default(),
+            assembly: AssemblyWork::timed(phases.clone()),
             x: vector()?,
             xn: vector()?,
             xt: vector()?,
             g: vector()?,
             xtry: vector()?,
             dx: vector()?,
+            phases,
         })
     }
 
@@ -72,7 +78,10 @@ impl HostBackend {
     ) -> Result<LinearStats, StepError> {
         let snapped = &moving.snapped;
         let frames = &state.frames[snapped];
+        let eliminating = self.phases.open(Phase::Elimination);
         let e = Eliminated::new(&self.hmat, &self.g, frames, ConstrainedDiagonal::Identity);
+        drop(eliminating);
+        let _solving = self.phases.open(Phase::LinearSolve);
         let (dx, stats) = self
             .linear
             .solve(snapped, &e, tolerance)
@@ -121,6 +130,7 @@ impl Backend for HostBackend {
         iteration: usize,
         forcing: &mut Forcing,
     ) -> Result<LinearStats, StepError> {
+        let p = &self.phases;
         gradient(
             state,
             &self.x,
@@ -128,8 +138,17 @@ impl Backend for HostBackend {
             moving,
             &mut self.g,
             &mut self.assembly,
+            p,
         );
-        hessian(state, &self.x, moving, &mut self.hmat, &mut self.assembly);
+        hessian(
+            state,
+            &self.x,
+            moving,
+            &mut self.hmat,
+            &mut self.assembly,
+            p,
+        );
+        let checking = self.phases.open(Phase::Checks);
         // Positions far beyond the scene (a moving target running off at 1e300 m/s) overflow the element
         // terms; say so here rather than as a failed factorization of a non-finite H.
         for (what, v) in [
@@ -144,6 +163,7 @@ impl Backend for HostBackend {
                 });
             }
         }
+        drop(checking);
         self.solve(state, moving, iteration, &mut |n| forcing.tolerance(n))
     }
 
@@ -175,14 +195,18 @@ impl Backend for HostBackend {
         state: &State,
         snapped: &[bool],
     ) -> Result<ForceBalance, StepError> {
-        Ok(force_balance(
+        // The force scale's element passes are the check's, not the assembly's.
+        let timed = self.assembly.phases.take();
+        let b = force_balance(
             state,
             &self.x,
             &self.xt,
             &self.g,
             &state.frames[snapped],
             &mut self.assembly,
-        ))
+        );
+        self.assembly.phases = timed;
+        Ok(b)
     }
 
     fn energy(
@@ -192,7 +216,8 @@ impl Backend for HostBackend {
         trial: bool,
     ) -> Result<f64, StepError> {
         let x = if trial { &self.xtry } else { &self.x };
-        Ok(energy(state, x, &self.xt, &moving.shapes, &moving.snapped))
+        let (shapes, snapped) = (&moving.shapes, &moving.snapped);
+        Ok(energy(state, x, &self.xt, shapes, snapped, &self.phases))
     }
 
     fn slope(&mut self) -> Result<f64, StepError> {
@@ -248,6 +273,21 @@ impl Backend for HostBackend {
         self.linear.adapter.as_deref()
     }
 
+    fn phase(&self, phase: Phase) -> Option<PhaseSpan> {
+        Some(self.phases.open(phase))
+    }
+
+    fn host_profile(&self) -> Option<Profile> {
+        Some(self.phases.profile())
+    }
+
+    fn started_at(&self, run_start: std::time::Instant) {
+        // The time before the loop existed: the scene, the mesh, the model's tables.
+        let profiled = self.phases.profile().wall_seconds;
+        let before = run_start.elapsed().as_secs_f64() - profiled;
+        self.phases.add(Phase::Setup, before.max(0.0));
+    }
+
     fn multilevel_levels(&self) -> (usize, usize) {
         self.linear.solver.multilevel_levels()
     }
@@ -282,11 +322,19 @@ impl Backend for HostBackend {
 }
 
 /// E(x) for the current step.
-fn energy(state: &State, x: &[f64], xt: &[f64], targets: &[BcShape], snapped: &[bool]) -> f64 {
+fn energy(
+    state: &State,
+    x: &[f64],
+    xt: &[f64],
+    targets: &[BcShape],
+    snapped: &[bool],
+    phases: &HostPhases,
+) -> f64 {
     let sc = state.scene;
     let h = sc.time_step;
     let d = sc.dim;
     let mut e = inertia::energy(&sc.model.mass, d, x, xt) + h * h * sc.model.potential(x);
+    let moving = phases.open(Phase::MovingBoundary);
     for (j, &k) in state.moving_bcs.iter().enumerate() {
         if snapped[j] {
             continue;
@@ -298,7 +346,9 @@ fn energy(state: &State, x: &[f64], xt: &[f64], targets: &[BcShape], snapped: &[
         let lr: f64 = (0..3).map(|a| state.lambda[j][a] * r[a]).sum();
         e += 0.5 * state.k_m * m * rr - m.sqrt() * lr;
     }
+    drop(moving);
     if let Some(c) = &state.contact {
+        let _contact = phases.open(Phase::Contact);
         state.count_barrier(1);
         e += h * h * c.barrier.energy(x, &c.planes);
     }
@@ -313,13 +363,17 @@ fn gradient(
     moving: &MovingTargets,
     g: &mut [f64],
     assembly: &mut AssemblyWork,
+    phases: &HostPhases,
 ) {
     let sc = state.scene;
     let d = sc.dim;
     let h = sc.time_step;
+    let assembling = phases.open(Phase::Assembly);
     g.iter_mut().for_each(|v| *v = 0.0);
     inertia::add_gradient(&sc.model.mass, d, x, xt, g);
     sc.model.add_potential_gradient_with(x, h * h, g, assembly);
+    drop(assembling);
+    let moving_terms = phases.open(Phase::MovingBoundary);
     for (j, &k) in state.moving_bcs.iter().enumerate() {
         if moving.snapped[j] {
             continue;
@@ -334,7 +388,9 @@ fn gradient(
             g[node * d + a] += state.k_m * m * r[a] - m.sqrt() * pl;
         }
     }
+    drop(moving_terms);
     if let Some(c) = &state.contact {
+        let _contact = phases.open(Phase::Contact);
         state.count_barrier(1);
         c.barrier.add_gradient(x, &c.planes, h * h, g);
     }
@@ -347,14 +403,16 @@ fn hessian(
     moving: &MovingTargets,
     hmat: &mut BlockCsr,
     assembly: &mut AssemblyWork,
+    phases: &HostPhases,
 ) {
     let sc = state.scene;
     let d = sc.dim;
     let h = sc.time_step;
-    hmat.values.iter_mut().for_each(|v| *v = 0.0);
-    sc.model.add_mass(hmat);
+    let assembling = phases.open(Phase::Assembly);
     sc.model
-        .add_potential_hessian_with(x, h * h, true, hmat, assembly);
+        .mass_and_potential_hessian_with(x, h * h, true, hmat, assembly);
+    drop(assembling);
+    let moving_terms = phases.open(Phase::MovingBoundary);
     for (j, &k) in state.moving_bcs.iter().enumerate() {
         if moving.snapped[j] {
             continue;
@@ -369,7 +427,9 @@ fn hessian(
             }
         }
     }
+    drop(moving_terms);
     if let Some(c) = &state.contact {
+        let _contact = phases.open(Phase::Contact);
         state.count_barrier(1);
         c.barrier.add_hessian(x, &c.planes, h * h, hmat);
     }

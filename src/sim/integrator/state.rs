@@ -408,7 +408,8 @@ impl<'s> State<'s> {
             let ElementSet::NeoHookean(nh) = &sc.model.sets[m.set] else {
                 unreachable!("first_inverted_by names neo-Hookean elements")
             };
-            let node = nh.elements[m.element]
+            let node = nh
+                .nodes(m.element)
                 .iter()
                 .copied()
                 .max_by(|&a, &b| moved(a).total_cmp(&moved(b)))

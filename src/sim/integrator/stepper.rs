@@ -11,8 +11,10 @@ use super::host::HostBackend;
 use super::report::{GpuRunReport, StepReport};
 use super::state::{Snapshot, State, ARMIJO, ENERGY_ULPS, INVERSION_FRACTION, MAX_HALVINGS};
 use super::targets::MovingTargets;
+use crate::gpu::{Phase, Profile};
 use crate::sim::energy::barrier::Ccd;
 use crate::sim::energy::Law;
+use crate::sim::phases::PhaseSpan;
 use crate::sim::scene::InversionPolicy;
 use crate::sim::scene::{check_solver_size, joint_targets, LinearKind, NewtonLoop, Scene};
 
@@ -122,6 +124,7 @@ impl<'s> Stepper<'s> {
         } else {
             Some(HostBackend::new(&state, &linear)?)
         };
+        let _setup = host.as_ref().map(|h| h.phases.open(Phase::Setup));
         // Build (and validate) the static constraint set up front: bad conditions fail
         // before the first step; then every moving node eliminated at once, the largest
         // set a step can reach.
@@ -171,10 +174,15 @@ impl<'s> Stepper<'s> {
         self.backend.adapter()
     }
 
-    /// Opens `phase` of the device loop's profile until the guard drops (`None` without
-    /// one).
-    pub fn phase(&self, phase: crate::gpu::Phase) -> Option<crate::gpu::PhaseGuard> {
+    /// Opens `phase` of the loop's profile until the span drops (`None` without one).
+    pub fn phase(&self, phase: Phase) -> Option<PhaseSpan> {
         self.backend.phase(phase)
+    }
+
+    /// The CPU loop's profile so far: every second since the run began, by phase (None
+    /// for the device loop, whose profile is in [`Stepper::gpu_report`]).
+    pub fn host_profile(&self) -> Option<Profile> {
+        self.backend.host_profile()
     }
 
     /// The run began at `run_start` (its set-up before the device existed is profiled).
@@ -210,11 +218,13 @@ impl<'s> Stepper<'s> {
         // 1. Static projection, xⁿ and x̃; obstacles at t^{n+1}.
         self.backend.begin_step(&self.state)?;
         if self.state.contact.is_some() {
+            let _contact = self.backend.phase(Phase::Contact);
             self.advance_obstacles(t1)?;
             rep.min_distance = Some(self.check_distance("at the start of the step")?);
         }
         // The classical neo-Hookean law needs every element's J > 0 in the starting state.
         if sc.model.has_law(Law::NeoHookean) {
+            let _checks = self.backend.phase(Phase::Checks);
             let x = self.backend.positions(None)?;
             let inverted = sc
                 .model
@@ -232,6 +242,7 @@ impl<'s> Stepper<'s> {
             }
         }
         // 2. Moving targets at t^{n+1}; nodes already within ε are snapped now.
+        let moving_terms = self.backend.phase(Phase::MovingBoundary);
         let mut moving = MovingTargets {
             shapes: self
                 .state
@@ -242,6 +253,7 @@ impl<'s> Stepper<'s> {
             snapped: vec![false; self.state.moving_bcs.len()],
         };
         self.snap(&mut moving)?;
+        drop(moving_terms);
         // 3. Newton.
         let levels = self.backend.multilevel_levels();
         self.newton(&mut moving, &mut rep, &mut dump)?;
@@ -249,8 +261,10 @@ impl<'s> Stepper<'s> {
         (rep.multilevel_built, rep.multilevel_kept) = (built - levels.0, kept - levels.1);
         // 4. Reactions and contact forces at the converged iterate.
         let end = self.backend.end_step(&self.state)?;
+        let checks = self.backend.phase(Phase::Checks);
         self.check_inversion(&end.x, &mut rep)?;
         self.state.recover_forces(&end.x, &end.g, &moving.snapped);
+        drop(checks);
         // 5. Velocity and state.
         self.state.finish_step(end.x, end.v, t1)?;
         Ok(rep)
@@ -313,6 +327,7 @@ impl<'s> Stepper<'s> {
     /// Snaps the unsnapped moving nodes within ε·h of their targets, on the backend's
     /// positions.
     fn snap(&mut self, moving: &mut MovingTargets) -> Result<(), StepError> {
+        let _moving = self.backend.phase(Phase::MovingBoundary);
         let nodes = self.state.unsnapped_nodes(&moving.snapped);
         if nodes.is_empty() {
             return Ok(());
@@ -383,7 +398,9 @@ impl<'s> Stepper<'s> {
                 forcing.restart();
                 sequence_of.clone_from(&moving.snapped);
             }
+            let frames = self.backend.phase(Phase::Elimination);
             self.state.build_frames(&moving.snapped)?;
+            drop(frames);
             let stats = self
                 .backend
                 .direction(&self.state, moving, iter, &mut forcing)?;
@@ -402,6 +419,7 @@ impl<'s> Stepper<'s> {
             }
             forcing.step_taken(dmax);
             if let Some(sink) = dump.as_mut() {
+                let _output = self.backend.phase(Phase::Output);
                 let a = self.backend.system()?;
                 sink(NewtonSystem {
                     step: rep.step,
@@ -424,6 +442,7 @@ impl<'s> Stepper<'s> {
                 if moving.snapped.iter().all(|&s| s) {
                     // Short steps are not enough: the forces must balance too (a huge h
                     // or a stiff barrier makes every step short).
+                    let _checks = self.backend.phase(Phase::Checks);
                     let b = self.backend.force_balance(&self.state, &moving.snapped)?;
                     rep.force_residual = Some(b.residual / b.scale);
                     if b.stationary(dmax, sc.solver.force_tolerance) {
@@ -432,6 +451,7 @@ impl<'s> Stepper<'s> {
                     unbalanced = Some(b);
                 } else {
                     // Converged with the penalty but nodes still off target.
+                    let _moving = self.backend.phase(Phase::MovingBoundary);
                     let nodes = self.state.unsnapped_nodes(&moving.snapped);
                     let x = self.backend.positions(Some(&nodes))?;
                     if self
@@ -448,6 +468,7 @@ impl<'s> Stepper<'s> {
             self.line_search(moving, dmax, iter, rep)?;
             self.snap(moving)?;
             if self.state.contact.is_some() {
+                let _contact = self.backend.phase(Phase::Contact);
                 let d = self.check_distance(&format!("after Newton iteration {iter}"))?;
                 rep.min_distance = Some(rep.min_distance.map_or(d, |m| m.min(d)));
             }
@@ -483,6 +504,7 @@ impl<'s> Stepper<'s> {
         rep: &mut StepReport,
     ) -> Result<(), StepError> {
         let h = self.state.scene.time_step;
+        let _line_search = self.backend.phase(Phase::LineSearch);
         let e0 = self.backend.energy(&self.state, moving, false)?;
         if !e0.is_finite() {
             // Positions far beyond the scene (a moving target running off at 1e300 m/s) overflow the
@@ -498,6 +520,7 @@ impl<'s> Stepper<'s> {
             rep.ascent_directions += 1;
         }
         let ccd = if self.state.contact.is_some() {
+            let _contact = self.backend.phase(Phase::Contact);
             self.state.ccd_calls += 1;
             self.backend.ccd(&self.state)?
         } else {
@@ -512,10 +535,12 @@ impl<'s> Stepper<'s> {
         }
         // Classical neo-Hookean elements: start below the first step size that inverts one.
         if self.state.scene.model.has_law(Law::NeoHookean) {
-            match self
-                .backend
-                .inversion_bound(&self.state, 1.0 / INVERSION_FRACTION)?
-            {
+            let bound = {
+                let _bound = self.backend.phase(Phase::InversionBound);
+                self.backend
+                    .inversion_bound(&self.state, 1.0 / INVERSION_FRACTION)?
+            };
+            match bound {
                 Ok(Some(b)) if INVERSION_FRACTION * b.alpha < alpha_c => {
                     alpha_c = INVERSION_FRACTION * b.alpha;
                     rep.inversion_limited += 1;
@@ -571,6 +596,7 @@ impl<'s> Stepper<'s> {
         }
         if alpha == ccd.alpha {
             if let Some((node, _)) = ccd.limit {
+                let _contact = self.backend.phase(Phase::Contact);
                 let x = self.backend.positions(Some(&[node]))?;
                 self.state.check_unbarriered_limit(x, &ccd, iter)?;
             }

@@ -370,7 +370,25 @@ impl Obstacle {
 #[derive(Debug, Clone)]
 pub struct CellBlock {
     pub kind: ElementKind,
-    pub cells: Vec<Vec<usize>>,
+    /// Every cell's `kind.nodes()` nodes, cell after cell (one flat array: no heap block
+    /// per cell).
+    pub nodes: Vec<usize>,
+}
+
+impl CellBlock {
+    /// The cells.
+    pub fn len(&self) -> usize {
+        self.nodes.len() / self.kind.nodes()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.nodes.is_empty()
+    }
+
+    /// Each cell's nodes, in order.
+    pub fn cells(&self) -> impl Iterator<Item = &[usize]> {
+        self.nodes.chunks_exact(self.kind.nodes())
+    }
 }
 
 /// A scene ready to run.

@@ -233,7 +233,7 @@ fn build_bodies(c: &Ctx, spec: &SceneFile, dim: usize, size: f64) -> Result<Bodi
     let with_contact = !spec.obstacle.is_empty();
     for (b, body) in spec.bodies.iter().enumerate() {
         let key = format!("bodies[{b}]");
-        let mut mesh = build_mesh(c, &key, &body.mesh, dim, size, out.x0.len() / dim)?;
+        let mesh = build_mesh(c, &key, &body.mesh, dim, size, out.x0.len() / dim)?;
         let mk = format!("{key}.material");
         let density = c.positive(&format!("{mk}.density"), body.material.density)?;
         let offset = out.x0.len() / dim;
@@ -247,10 +247,15 @@ fn build_bodies(c: &Ctx, spec: &SceneFile, dim: usize, size: f64) -> Result<Bodi
             Some(v) => c.vector(&format!("{key}.velocity"), v, dim)?,
             None => [0.0; 3],
         };
-        shift_elements(&mut mesh.elements, offset);
+        let nodes = mesh
+            .elements
+            .iter()
+            .flatten()
+            .map(|&i| i + offset)
+            .collect();
         out.cells.push(CellBlock {
             kind: mesh.kind,
-            cells: mesh.elements.clone(),
+            nodes,
         });
         for _ in 0..mesh.n_nodes() {
             out.v0.extend_from_slice(&vel[..dim]);
@@ -321,7 +326,7 @@ fn build_material(
             }
             let mut nh = NeoHookean::new(mesh, young, nu, law)
                 .map_err(|e| c.err(format!("{key}.mesh"), e))?;
-            shift_elements(&mut nh.elements, offset);
+            nh.shift_nodes(offset);
             Ok((ElementSet::NeoHookean(nh), young))
         }
         MaterialModel::MassSpring => {
@@ -587,14 +592,6 @@ fn build_obstacles(
         });
     }
     Ok(out)
-}
-
-fn shift_elements(els: &mut [Vec<usize>], offset: usize) {
-    for e in els.iter_mut() {
-        for i in e.iter_mut() {
-            *i += offset;
-        }
-    }
 }
 
 fn point(x: &[f64], dim: usize, i: usize) -> [f64; 3] {
