@@ -102,6 +102,16 @@ pub fn pack_lower_f32(m: usize, x: &[f64], out: &mut [f32]) {
     }
 }
 
+/// The lower triangle of the m×m row-major `x` packed row by row into `out`
+/// ([`packed_len`] values).
+pub fn pack_lower(m: usize, x: &[f64], out: &mut [f64]) {
+    let mut at = 0;
+    for k in 0..m {
+        out[at..at + k + 1].copy_from_slice(&x[k * m..k * m + k + 1]);
+        at += k + 1;
+    }
+}
+
 /// z = Gᵀ(G r) for G lower-triangular m×m packed row by row in f32
 /// ([`pack_lower_f32`]), every sum in f64: row k gives y_k = G[k]·r and, while in cache,
 /// its share of Gᵀy (z[..=k] += y_k G[k]), so G is read once. zᵀr = ‖y‖² up to the f64

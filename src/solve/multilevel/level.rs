@@ -3,7 +3,8 @@
 //! sum into the next level).
 
 use super::dense::{
-    apply_packed, cholesky_dropping, explicit_inverse, factor_inverse, pack_lower_f32, packed_len,
+    apply_packed, cholesky_dropping, explicit_inverse, factor_inverse, pack_lower, pack_lower_f32,
+    packed_len,
 };
 use crate::core::elimination::{rotate_block, Eliminated};
 use rayon::prelude::*;
@@ -120,15 +121,87 @@ impl Level {
 /// One level's cluster blocks, in two forms. The V-cycle of the CPU CG applies cluster
 /// c's G = L⁺ (the inverse of its dropping Cholesky factor, lower triangular, rounded to
 /// f32, packed row by row at `g[g_start[c]..]`) as GᵀG: a quarter of an f64 explicit
-/// inverse's bytes, and semidefinite whatever the rounding ([`apply_packed`]). The
-/// explicit (L Lᵀ)⁺ = XᵀX in f64 (m×m with m = d·|c|, symmetric, at `factor[start[c]..]`)
-/// is what the device V-cycle holds ([`super::LevelView`]).
+/// inverse's bytes, and semidefinite whatever the rounding ([`apply_packed`]). The same
+/// X = L⁺ in f64, packed alike at `x[g_start[c]..]`, is what the explicit (L Lᵀ)⁺ = XᵀX
+/// the device V-cycle holds is computed from, only when asked ([`Factors::inverses`]):
+/// a CPU solve never reads it.
 #[derive(Debug, Clone)]
 pub(super) struct Factors {
-    pub(super) start: Vec<usize>,
-    pub(super) factor: Vec<f64>,
     pub(super) g_start: Vec<usize>,
     pub(super) g: Vec<f32>,
+    x: Vec<f64>,
+}
+
+/// One level's explicit cluster inverses (L Lᵀ)⁺ = XᵀX in f64: cluster c's m×m symmetric
+/// block (m = d·|c|, row-major) at `inv[start[c]..start[c + 1]]`.
+#[derive(Debug, Clone)]
+pub(super) struct Inverses {
+    pub(super) start: Vec<usize>,
+    pub(super) inv: Vec<f64>,
+}
+
+impl Factors {
+    /// The explicit inverses XᵀX of every cluster from the f64 factor inverses X
+    /// ([`explicit_inverse`]'s arithmetic on the build's X, so the same bits whenever
+    /// asked).
+    pub(super) fn inverses(&self, lev: &Level, d: usize) -> Inverses {
+        let nc = lev.clusters();
+        let mut start = Vec::with_capacity(nc + 1);
+        let mut total = 0;
+        for c in 0..nc {
+            start.push(total);
+            let m = (lev.ptr[c + 1] - lev.ptr[c]) * d;
+            total += m * m;
+        }
+        start.push(total);
+        let mut inv = vec![0.0; total];
+        split_at_starts(&mut inv, &start)
+            .into_par_iter()
+            .enumerate()
+            .for_each(|(c, out)| {
+                let m = (lev.ptr[c + 1] - lev.ptr[c]) * d;
+                let mut x = vec![0.0; m * m];
+                unpack_lower(m, &self.x[self.g_start[c]..self.g_start[c + 1]], &mut x);
+                out.copy_from_slice(&explicit_inverse(m, &x));
+            });
+        Inverses { start, inv }
+    }
+
+    /// Cluster c's G and X with component `row` (of m) masked: row and column zeroed,
+    /// `1/√D` on the diagonal (`sqrt_inv`), as a build gives a component whose block row
+    /// is D alone.
+    pub(super) fn mask(&mut self, c: usize, m: usize, row: usize, sqrt_inv: f64) {
+        let at0 = self.g_start[c];
+        let at = at0 + row * (row + 1) / 2;
+        self.g[at..at + row].fill(0.0);
+        self.x[at..at + row].fill(0.0);
+        for k in row + 1..m {
+            self.g[at0 + k * (k + 1) / 2 + row] = 0.0;
+            self.x[at0 + k * (k + 1) / 2 + row] = 0.0;
+        }
+        self.g[at + row] = sqrt_inv as f32;
+        self.x[at + row] = sqrt_inv;
+    }
+}
+
+/// The m×m row-major lower-triangular matrix packed row by row in `packed` into `out`
+/// (its upper part left as it is: [`explicit_inverse`] reads the lower one only).
+fn unpack_lower(m: usize, packed: &[f64], out: &mut [f64]) {
+    let mut at = 0;
+    for k in 0..m {
+        out[k * m..k * m + k + 1].copy_from_slice(&packed[at..at + k + 1]);
+        at += k + 1;
+    }
+}
+
+/// Cluster block `inv` (m×m) with component `row` masked: row and column zeroed, `diag`
+/// on the diagonal.
+pub(super) fn mask_inverse(inv: &mut [f64], m: usize, row: usize, diag: f64) {
+    for k in 0..m {
+        inv[row * m + k] = 0.0;
+        inv[k * m + row] = 0.0;
+    }
+    inv[row * m + row] = diag;
 }
 
 /// Ĥ's stored blocks in the node frames ([`frame_block`]), on H's pattern.
@@ -326,29 +399,26 @@ pub(super) fn factor_level(
     block: impl Fn(usize, usize, usize, &mut [f64]) + Sync,
 ) -> (Factors, usize) {
     let nc = lev.clusters();
-    let mut start = Vec::with_capacity(nc + 1);
     let mut g_start = Vec::with_capacity(nc + 1);
-    let (mut total, mut g_total) = (0, 0);
+    let mut g_total = 0;
     for c in 0..nc {
-        start.push(total);
         g_start.push(g_total);
         let m = (lev.ptr[c + 1] - lev.ptr[c]) * d;
-        total += m * m;
         g_total += packed_len(m);
     }
-    start.push(total);
     g_start.push(g_total);
-    let mut factor = vec![0.0; total];
     let mut g = vec![0.0f32; g_total];
-    let parts = split_at_starts(&mut factor, &start);
+    let mut x64 = vec![0.0f64; g_total];
     let g_parts = split_at_starts(&mut g, &g_start);
-    let dropped: usize = parts
+    let x_parts = split_at_starts(&mut x64, &g_start);
+    let dropped: usize = g_parts
         .into_par_iter()
-        .zip(g_parts)
+        .zip(x_parts)
         .enumerate()
-        .map(|(c, (a, gc))| {
+        .map(|(c, (gc, xc))| {
             let items = &lev.items[lev.ptr[c]..lev.ptr[c + 1]];
             let m = items.len() * d;
+            let mut a = vec![0.0f64; m * m];
             let mut b = [0.0f64; 9];
             for (p, &i) in items.iter().enumerate() {
                 let i = i as usize;
@@ -366,22 +436,14 @@ pub(super) fn factor_level(
                     }
                 }
             }
-            let dropped = cholesky_dropping(m, a);
-            let x = factor_inverse(m, a);
+            let dropped = cholesky_dropping(m, &mut a);
+            let x = factor_inverse(m, &a);
             pack_lower_f32(m, &x, gc);
-            a.copy_from_slice(&explicit_inverse(m, &x));
+            pack_lower(m, &x, xc);
             dropped
         })
         .sum();
-    (
-        Factors {
-            start,
-            factor,
-            g_start,
-            g,
-        },
-        dropped,
-    )
+    (Factors { g_start, g, x: x64 }, dropped)
 }
 
 /// `v` split at `start` (ascending offsets, the last one its length).
@@ -445,13 +507,13 @@ pub(super) fn smooth_level(
         });
 }
 
-/// out = B⁺ src over a level's clusters: each cluster's items gathered into its own
+/// out = B⁺ src over a level's clusters (their explicit inverses): each cluster's items gathered into its own
 /// slice of a cluster-ordered copy and solved there, then scattered back.
 /// `tmp` holds the cluster-ordered copy (resized to the level's length).
 pub(super) fn solve_level(
     lev: &Level,
     d: usize,
-    f: &Factors,
+    f: &Inverses,
     src: &[f64],
     out: &mut [f64],
     tmp: &mut Vec<f64>,
@@ -464,7 +526,7 @@ pub(super) fn solve_level(
         .enumerate()
         .for_each(|(c, x)| {
             let items = &lev.items[lev.ptr[c]..lev.ptr[c + 1]];
-            let inv = &f.factor[f.start[c]..f.start[c + 1]];
+            let inv = &f.inv[f.start[c]..f.start[c + 1]];
             let m = x.len();
             x.iter_mut().for_each(|v| *v = 0.0);
             // x = Σ_k inv[:, k] b_k (inv is symmetric: its rows are its columns), in a

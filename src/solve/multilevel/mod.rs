@@ -21,8 +21,9 @@
 //! block as its factor inverse G = L⁺ packed by rows and applied as GᵀG, with every sum in
 //! f64. A V-cycle is bound by the bytes it reads, and these are about a third of f64
 //! explicit inverses' and matrices'; the iterations stay those of the f64 cycle
-//! (docs/design/multilevel.md). The f64 matrices and explicit inverses stay too: they are
-//! what the device V-cycle uploads ([`Multilevel::levels`]).
+//! (docs/design/multilevel.md). The f64 matrices stay too, with G in f64 packed alike:
+//! the device V-cycle uploads the matrices and the explicit inverses GᵀG in f64, which
+//! [`Multilevel::levels`] computes from those when first asked (a CPU solve never does).
 //!
 //! Why this design (BENCHMARKS.md, "The multilevel preconditioner", has the numbers): on
 //! the twist systems the additive sum of the levels' block inverses (MAS) took about
@@ -57,8 +58,9 @@ pub use dense::PIVOT_DROP;
 pub use dense::{cholesky_dropping, inverse_from_factor};
 pub use level::LAMBDA_STEPS;
 use level::{
-    block_matvec, block_residual, factor_level, frame_values, frame_values_into, mirror_blocks,
-    power_estimate, smooth_level, solve_level, symmetric_f32, Factors, Level,
+    block_matvec, block_residual, factor_level, frame_values, frame_values_into, mask_inverse,
+    mirror_blocks, power_estimate, smooth_level, solve_level, symmetric_f32, Factors, Inverses,
+    Level,
 };
 use partition::partition;
 pub use partition::CLUSTER_NODES;
@@ -317,6 +319,12 @@ pub struct Multilevel {
     /// The smoother's damping per level for the levels as [`Multilevel::levels`] gives
     /// them (f64 explicit inverses and matrices), estimated when first asked.
     view_omega: std::sync::OnceLock<Vec<f64>>,
+    /// Each level's explicit cluster inverses for [`Multilevel::levels`], computed from
+    /// the factors when first asked (a CPU solve never asks), with `masked` applied.
+    inverses: std::sync::OnceLock<Vec<Inverses>>,
+    /// The finest level's components masked since the build, in order: cluster, row in
+    /// the cluster block and the diagonal 1/D its explicit inverse takes.
+    masked: Vec<(usize, usize, f64)>,
     /// Each level's smoothed prolongation, on `hierarchy.smooth`'s patterns.
     p: Vec<Vec<f64>>,
     /// P's blocks transposed, in the restriction's order.
@@ -455,6 +463,8 @@ impl Multilevel {
             pt,
             p,
             view_omega: std::sync::OnceLock::new(),
+            inverses: std::sync::OnceLock::new(),
+            masked: Vec::new(),
             cycle,
             dropped,
             built_for: e.frames.clone(),
@@ -522,33 +532,24 @@ impl Multilevel {
             }
             let c = lev.of[i] as usize;
             let m = (lev.ptr[c + 1] - lev.ptr[c]) * d;
-            let inv = &mut f.factor[f.start[c]..f.start[c + 1]];
-            let g = &mut f.g[f.g_start[c]..f.g_start[c + 1]];
             for a in (0..d).filter(|a| new & (1 << a) != 0) {
                 let row = lev.pos[i] as usize * d + a;
-                for k in 0..m {
-                    inv[row * m + k] = 0.0;
-                    inv[k * m + row] = 0.0;
-                }
                 let dg = e.diag[i * d + a];
-                inv[row * m + row] = if dg > 0.0 { 1.0 / dg } else { 0.0 };
-                // The factor form G (packed rows, row k from offset k(k+1)/2): row and
-                // column `row` zeroed, 1/√D on the diagonal, as a build gives a component
-                // whose block row is D alone. GᵀG is semidefinite whatever G holds, and
-                // the component decouples with 1/D; on the others G keeps a lower
-                // triangle with the kept pivots' non-zero diagonals, so GᵀG stays
-                // definite on the same components: a valid cluster block (the inverse of
-                // the masked block exactly when `row` is the cluster's last component).
-                let at = row * (row + 1) / 2;
-                g[at..at + row].fill(0.0);
-                for k in row + 1..m {
-                    g[k * (k + 1) / 2 + row] = 0.0;
+                // The factor forms G and X: row and column `row` zeroed, 1/√D on the
+                // diagonal, as a build gives a component whose block row is D alone.
+                // GᵀG is semidefinite whatever G holds, and the component decouples with
+                // 1/D; on the others G keeps a lower triangle with the kept pivots'
+                // non-zero diagonals, so GᵀG stays definite on the same components: a
+                // valid cluster block (the inverse of the masked block exactly when `row`
+                // is the cluster's last component).
+                f.mask(c, m, row, if dg > 0.0 { 1.0 / dg.sqrt() } else { 0.0 });
+                // The explicit inverse: 1/D on the diagonal, as its own build gives.
+                let diag = if dg > 0.0 { 1.0 / dg } else { 0.0 };
+                self.masked.push((c, row, diag));
+                if let Some(inv) = self.inverses.get_mut() {
+                    let b = &mut inv[0];
+                    mask_inverse(&mut b.inv[b.start[c]..b.start[c + 1]], m, row, diag);
                 }
-                g[at + row] = if dg > 0.0 {
-                    (1.0 / dg.sqrt()) as f32
-                } else {
-                    0.0
-                };
                 if let Some(sp) = self.hierarchy.smooth.first() {
                     let (p0, p1) = (sp.p_ptr[i], sp.p_ptr[i + 1]);
                     let cy = &mut self.cycle[0];
@@ -610,10 +611,11 @@ impl Multilevel {
         let omega = self
             .view_omega
             .get_or_init(|| (0..nl).map(|l| self.omega_of(l)).collect());
+        let inverses = self.inverses();
         (0..nl)
             .map(|l| {
                 let lev = &self.hierarchy.levels[l];
-                let f = &self.factors[l];
+                let f = &inverses[l];
                 LevelView {
                     n: lev.n,
                     of: &lev.of,
@@ -624,7 +626,7 @@ impl Multilevel {
                     col_idx: &lev.col_idx,
                     values: &self.values[l],
                     inv_start: &f.start,
-                    inv: &f.factor,
+                    inv: &f.inv,
                     omega: if l + 1 < nl { omega[l] } else { 1.0 },
                     to_next: self.hierarchy.smooth.get(l).map(|sp| ProlongationView {
                         p_ptr: &sp.p_ptr,
@@ -639,6 +641,23 @@ impl Multilevel {
             .collect()
     }
 
+    /// Every level's explicit cluster inverses (computed on the first call, the masks
+    /// since the build replayed on the finest level's in their order).
+    fn inverses(&self) -> &[Inverses] {
+        self.inverses.get_or_init(|| {
+            let mut inv: Vec<Inverses> = (self.hierarchy.levels.iter().zip(&self.factors))
+                .map(|(lev, f)| f.inverses(lev, self.dim))
+                .collect();
+            let lev = &self.hierarchy.levels[0];
+            for &(c, row, diag) in &self.masked {
+                let m = (lev.ptr[c + 1] - lev.ptr[c]) * self.dim;
+                let b = &mut inv[0];
+                mask_inverse(&mut b.inv[b.start[c]..b.start[c + 1]], m, row, diag);
+            }
+            inv
+        })
+    }
+
     /// Pivots dropped (singular or indefinite directions), all levels together.
     pub fn dropped_pivots(&self) -> usize {
         self.dropped
@@ -649,10 +668,11 @@ impl Multilevel {
     pub fn lambda_max(&self, l: usize, steps: usize) -> f64 {
         let d = self.dim;
         let lev = &self.hierarchy.levels[l];
+        let inverses = self.inverses();
         let mut tmp = Vec::new();
         power_estimate(lev.n * d, steps, |x, ax, y| {
             block_matvec(d, lev, &self.values[l], x, ax);
-            solve_level(lev, d, &self.factors[l], ax, y, &mut tmp);
+            solve_level(lev, d, &inverses[l], ax, y, &mut tmp);
         })
     }
 
