@@ -705,7 +705,20 @@ impl Multilevel {
 
     /// z = M⁻¹ r in `work` (from [`Multilevel::workspace`]).
     pub fn apply_with(&self, r: &[f64], z: &mut [f64], work: &mut VcycleWork) {
-        self.vcycle(0, r, z, &mut work.levels);
+        self.vcycle(0, r, z, &mut work.levels, None);
+    }
+
+    /// [`Multilevel::apply_with`], timed: wall seconds of each level's passes
+    /// ([`CYCLE_PASSES`], in order; the coarsest level's solve as its pre-smoothing),
+    /// added to `seconds` (one row per level). For profiling (`examples/vcycle_ab.rs`).
+    pub fn apply_timed(
+        &self,
+        r: &[f64],
+        z: &mut [f64],
+        work: &mut VcycleWork,
+        seconds: &mut [[f64; 6]],
+    ) {
+        self.vcycle(0, r, z, &mut work.levels, Some(seconds));
     }
 
     /// x = one symmetric V-cycle on level l for the right-hand side b: smooth
@@ -714,7 +727,19 @@ impl Multilevel {
     /// the level's [`CycleLevel`].
     /// `work[0]` is level l's (its `res`, `tmp`), `work[1]` the next level's (its `b` and
     /// `x` receive the restricted residual and the correction).
-    fn vcycle(&self, l: usize, b: &[f64], x: &mut [f64], work: &mut [LevelWork]) {
+    fn vcycle(
+        &self,
+        l: usize,
+        b: &[f64],
+        x: &mut [f64],
+        work: &mut [LevelWork],
+        mut seconds: Option<&mut [[f64; 6]]>,
+    ) {
+        // The clock is read only when timed.
+        let mut t = seconds.as_ref().map(|_| std::time::Instant::now());
+        let lap = |seconds: &mut Option<&mut [[f64; 6]]>, t: &mut Option<_>, k: usize| {
+            lap_pass(seconds.as_deref_mut(), t, l, k);
+        };
         let d = self.dim;
         let lev = &self.hierarchy.levels[l];
         let cy = &self.cycle[l];
@@ -724,23 +749,57 @@ impl Multilevel {
         };
         let Some(next) = below.first_mut() else {
             smooth_level(lev, d, f, 1.0, false, b, x, &mut w.tmp);
+            lap(&mut seconds, &mut t, 0);
             return;
         };
         smooth_level(lev, d, f, cy.omega, false, b, x, &mut w.tmp);
+        lap(&mut seconds, &mut t, 0);
         let res = &mut w.res;
         block_residual(d, lev, &cy.values, b, x, res);
+        lap(&mut seconds, &mut t, 1);
         // The next level's vectors leave `below` while it recurses (a move, no copy).
         let mut bc = std::mem::take(&mut next.b);
         let mut xc = std::mem::take(&mut next.x);
         let sp = &self.hierarchy.smooth[l];
         sp.restrict(d, &cy.pt, res, &mut bc);
-        self.vcycle(l + 1, &bc, &mut xc, below);
+        lap(&mut seconds, &mut t, 2);
+        self.vcycle(l + 1, &bc, &mut xc, below, seconds.as_deref_mut());
+        // The levels below timed themselves: their seconds are not this level's.
+        if let Some(t) = t.as_mut() {
+            *t = std::time::Instant::now();
+        }
         sp.prolong_add(d, &cy.p, &xc, x);
+        lap(&mut seconds, &mut t, 3);
         block_residual(d, lev, &cy.values, b, x, res);
+        lap(&mut seconds, &mut t, 4);
         smooth_level(lev, d, f, cy.omega, true, res, x, &mut w.tmp);
+        lap(&mut seconds, &mut t, 5);
         let next = &mut below[0];
         next.b = bc;
         next.x = xc;
+    }
+}
+
+/// The passes of one level of a V-cycle as [`Multilevel::apply_timed`] times them.
+pub const CYCLE_PASSES: [&str; 6] = [
+    "pre-smoothing",
+    "residual",
+    "restriction",
+    "prolongation",
+    "residual again",
+    "post-smoothing",
+];
+
+/// Adds the seconds since `t` to pass `k` of level `l` and restarts `t` (when timed).
+fn lap_pass(
+    seconds: Option<&mut [[f64; 6]]>,
+    t: &mut Option<std::time::Instant>,
+    l: usize,
+    k: usize,
+) {
+    if let (Some(s), Some(t)) = (seconds, t.as_mut()) {
+        s[l][k] += t.elapsed().as_secs_f64();
+        *t = std::time::Instant::now();
     }
 }
 
