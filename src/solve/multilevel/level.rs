@@ -167,20 +167,18 @@ impl Factors {
         Inverses { start, inv }
     }
 
-    /// Cluster c's G and X with component `row` (of m) masked: row and column zeroed,
-    /// `1/√D` on the diagonal (`sqrt_inv`), as a build gives a component whose block row
-    /// is D alone.
+    /// Cluster c's G with component `row` (of m) masked: row and column zeroed, `1/√D`
+    /// on the diagonal (`sqrt_inv`), as a build gives a component whose block row is D
+    /// alone. X stays the build's: the explicit inverse is masked on its own
+    /// ([`mask_inverse`]), its other entries the build's.
     pub(super) fn mask(&mut self, c: usize, m: usize, row: usize, sqrt_inv: f64) {
         let at0 = self.g_start[c];
         let at = at0 + row * (row + 1) / 2;
         self.g[at..at + row].fill(0.0);
-        self.x[at..at + row].fill(0.0);
         for k in row + 1..m {
             self.g[at0 + k * (k + 1) / 2 + row] = 0.0;
-            self.x[at0 + k * (k + 1) / 2 + row] = 0.0;
         }
         self.g[at + row] = sqrt_inv as f32;
-        self.x[at + row] = sqrt_inv;
     }
 }
 

@@ -535,7 +535,7 @@ impl Multilevel {
             for a in (0..d).filter(|a| new & (1 << a) != 0) {
                 let row = lev.pos[i] as usize * d + a;
                 let dg = e.diag[i * d + a];
-                // The factor forms G and X: row and column `row` zeroed, 1/√D on the
+                // The factor form G: row and column `row` zeroed, 1/√D on the
                 // diagonal, as a build gives a component whose block row is D alone.
                 // GᵀG is semidefinite whatever G holds, and the component decouples with
                 // 1/D; on the others G keeps a lower triangle with the kept pivots'
@@ -885,6 +885,54 @@ mod tests {
                     .filter(|&(t, _)| t != k)
                     .fold(0.0f64, |w, (_, v)| w.max(v.abs()));
                 assert_eq!(off, 0.0, "{dim}D: the masked component couples");
+            }
+        }
+    }
+
+    /// The explicit inverses a device reads are the same bits whether first asked for
+    /// before a remasking (the mask applied to them) or after it (the masks replayed on
+    /// inverses formed then), and each is (L Lᵀ)⁺ of its cluster's masked block: the
+    /// masked component's row holds only 1/D.
+    #[test]
+    fn explicit_inverses_asked_before_or_after_a_remasking_agree() {
+        let s = random_system(&SystemSpec::with_nodes(3, 900, 7));
+        let f = &s.frames;
+        let e = Eliminated::new(&s.h, &s.g, f, ConstrainedDiagonal::Identity);
+        let hier = std::sync::Arc::new(Hierarchy::new(&s.h));
+        let mut early = Multilevel::new(&e, hier.clone());
+        let mut late = Multilevel::new(&e, hier);
+        let before: Vec<Vec<f64>> = early.levels().iter().map(|v| v.inv.to_vec()).collect();
+        let free = (0..f.n_nodes)
+            .find(|&i| f.mask[i] == 0 && f.rotation(i).is_none())
+            .expect("a free node");
+        let mut more = f.clone();
+        more.mask[free] = 0b111;
+        let e2 = Eliminated::new(&s.h, &s.g, &more, ConstrainedDiagonal::Identity);
+        early.refresh(&e2);
+        late.refresh(&e2);
+        let (a, b) = (early.levels(), late.levels());
+        for (l, (va, vb)) in a.iter().zip(&b).enumerate() {
+            let same = va
+                .inv
+                .iter()
+                .zip(vb.inv)
+                .all(|(x, y)| x.to_bits() == y.to_bits());
+            assert!(same && va.inv.len() == vb.inv.len(), "level {l}");
+        }
+        assert_ne!(before[0], a[0].inv, "the finest inverses are masked");
+        let lev = &early.hierarchy.levels[0];
+        let c = lev.of[free] as usize;
+        let m = (lev.ptr[c + 1] - lev.ptr[c]) * 3;
+        let blk = &a[0].inv[a[0].inv_start[c]..a[0].inv_start[c + 1]];
+        for k in 0..3 {
+            let row = lev.pos[free] as usize * 3 + k;
+            for j in 0..m {
+                let want = if j == row {
+                    1.0 / e2.diag[free * 3 + k]
+                } else {
+                    0.0
+                };
+                assert_eq!(blk[row * m + j], want, "row {row}, column {j}");
             }
         }
     }
