@@ -378,7 +378,7 @@ pub fn symmetric_eigen3(m: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
 }
 
 /// Lanes of [`symmetric_eigen3_lanes`]: elements whose eigenproblems run side by side.
-pub const LANES: usize = 4;
+pub const LANES: usize = 8;
 
 /// [`symmetric_eigen3`] of [`LANES`] matrices at once, laid out lane-innermost
 /// (`m[r][c][lane]`), so that the rotations of independent matrices overlap (and map to
