@@ -378,6 +378,8 @@ pub fn symmetric_eigen3(m: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
 }
 
 /// Lanes of [`symmetric_eigen3_lanes`]: elements whose eigenproblems run side by side.
+/// Eight: two AVX2 registers of four, so that two independent chains of divisions and
+/// square roots (the rotations are latency-bound) overlap.
 pub const LANES: usize = 8;
 
 /// [`symmetric_eigen3`] of [`LANES`] matrices at once, laid out lane-innermost
