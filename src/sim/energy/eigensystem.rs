@@ -378,9 +378,9 @@ pub fn symmetric_eigen3(m: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
 }
 
 /// Lanes of [`symmetric_eigen3_lanes`]: elements whose eigenproblems run side by side.
-/// Eight: two AVX2 registers of four, so that two independent chains of divisions and
-/// square roots (the rotations are latency-bound) overlap.
-pub const LANES: usize = 8;
+/// Twelve: three AVX2 registers of four, so that three independent chains of divisions
+/// and square roots (the rotations are latency-bound) overlap; more lanes spill registers.
+pub const LANES: usize = 12;
 
 /// [`symmetric_eigen3`] of [`LANES`] matrices at once, laid out lane-innermost
 /// (`m[r][c][lane]`), so that the rotations of independent matrices overlap (and map to

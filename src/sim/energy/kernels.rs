@@ -174,7 +174,7 @@ impl NeoHookean {
         self.projected_run3(x, first, out);
     }
 
-    /// [`NeoHookean::projected_run3`] compiled for AVX2 (the lanes in two registers).
+    /// [`NeoHookean::projected_run3`] compiled for AVX2 (the lanes in three registers).
     /// Same operations, so the same bits: Rust never fuses a multiply and an add.
     ///
     /// # Safety
