@@ -3,7 +3,7 @@
 //! (`NeoHookean::element_hessian`, a full matrix then split into the assembly's upper
 //! node blocks) beside the fixed-size kernel that writes the blocks directly
 //! (`NeoHookean::element_hessian_blocks`) and the assembly's kernel, which runs the 3D
-//! elements' eigenproblems four at a time (`NeoHookean::element_hessian_blocks_run`), in
+//! elements' eigenproblems twelve at a time (`NeoHookean::element_hessian_blocks_run`), in
 //! one run so that their ratios are measured under the same load. `cargo bench --bench elements`.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};

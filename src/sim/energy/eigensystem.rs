@@ -378,7 +378,9 @@ pub fn symmetric_eigen3(m: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
 }
 
 /// Lanes of [`symmetric_eigen3_lanes`]: elements whose eigenproblems run side by side.
-pub const LANES: usize = 4;
+/// Twelve: three AVX2 registers of four, so that three independent chains of divisions
+/// and square roots (the rotations are latency-bound) overlap; more lanes spill registers.
+pub const LANES: usize = 12;
 
 /// [`symmetric_eigen3`] of [`LANES`] matrices at once, laid out lane-innermost
 /// (`m[r][c][lane]`), so that the rotations of independent matrices overlap (and map to
@@ -392,9 +394,6 @@ pub fn symmetric_eigen3_lanes(
     m: &[[[f64; LANES]; 3]; 3],
 ) -> ([[f64; LANES]; 3], [[[f64; LANES]; 3]; 3]) {
     const L: usize = LANES;
-    let pick = |c: [bool; L], x: [f64; L], y: [f64; L]| -> [f64; L] {
-        std::array::from_fn(|l| if c[l] { x[l] } else { y[l] })
-    };
     let mut a: [[[f64; L]; 3]; 3] =
         std::array::from_fn(|r| std::array::from_fn(|c| if c >= r { m[r][c] } else { m[c][r] }));
     let mut v = [[[0.0; L]; 3]; 3];
@@ -416,62 +415,79 @@ pub fn symmetric_eigen3_lanes(
         if !active.iter().any(|&x| x) {
             break;
         }
-        for (p, q) in [(0, 1), (0, 2), (1, 2)] {
-            let apq = a[p][q];
-            let go: [bool; L] = std::array::from_fn(|l| active[l] && apq[l] != 0.0);
-            let tau: [f64; L] = std::array::from_fn(|l| (a[q][q][l] - a[p][p][l]) / (2.0 * apq[l]));
-            // The reference's three quotients as one: its numerator and denominator
-            // picked per lane (no branch), then divided.
-            let root: [f64; L] = std::array::from_fn(|l| (1.0 + tau[l] * tau[l]).sqrt());
-            let big: [bool; L] = std::array::from_fn(|l| tau[l].abs() > 1e150);
-            let pos: [bool; L] = std::array::from_fn(|l| tau[l] >= 0.0);
-            let den = pick(
-                big,
-                tau,
-                pick(
-                    pos,
-                    std::array::from_fn(|l| tau[l] + root[l]),
-                    std::array::from_fn(|l| -tau[l] + root[l]),
-                ),
-            );
-            let num = pick(big, [0.5; L], pick(pos, [1.0; L], [-1.0; L]));
-            let t: [f64; L] = std::array::from_fn(|l| num[l] / den[l]);
-            let c: [f64; L] = std::array::from_fn(|l| 1.0 / (1.0 + t[l] * t[l]).sqrt());
-            let s: [f64; L] = std::array::from_fn(|l| t[l] * c[l]);
-            let r = 3 - p - q;
-            a[p][p] = pick(
-                go,
-                std::array::from_fn(|l| a[p][p][l] - t[l] * apq[l]),
-                a[p][p],
-            );
-            a[q][q] = pick(
-                go,
-                std::array::from_fn(|l| a[q][q][l] + t[l] * apq[l]),
-                a[q][q],
-            );
-            a[p][q] = pick(go, [0.0; L], a[p][q]);
-            a[q][p] = pick(go, [0.0; L], a[q][p]);
-            let (arp, arq) = (a[r][p], a[r][q]);
-            a[r][p] = pick(
-                go,
-                std::array::from_fn(|l| c[l] * arp[l] - s[l] * arq[l]),
-                arp,
-            );
-            a[r][q] = pick(
-                go,
-                std::array::from_fn(|l| s[l] * arp[l] + c[l] * arq[l]),
-                arq,
-            );
-            a[p][r] = a[r][p];
-            a[q][r] = a[r][q];
-            for row in v.iter_mut() {
-                let (vp, vq) = (row[p], row[q]);
-                row[p] = pick(go, std::array::from_fn(|l| c[l] * vp[l] - s[l] * vq[l]), vp);
-                row[q] = pick(go, std::array::from_fn(|l| s[l] * vp[l] + c[l] * vq[l]), vq);
-            }
-        }
+        // The pivots unrolled (constant indices keep the lanes in registers).
+        rotate_lanes::<0, 1>(&mut a, &mut v, &active);
+        rotate_lanes::<0, 2>(&mut a, &mut v, &active);
+        rotate_lanes::<1, 2>(&mut a, &mut v, &active);
     }
     ([a[0][0], a[1][1], a[2][2]], v)
+}
+
+/// One Jacobi rotation of [`symmetric_eigen3_lanes`] at the pivot (P, Q), in the lanes
+/// still `active`: [`symmetric_eigen3`]'s rotation, lane by lane.
+#[inline(always)]
+fn rotate_lanes<const P: usize, const Q: usize>(
+    a: &mut [[[f64; LANES]; 3]; 3],
+    v: &mut [[[f64; LANES]; 3]; 3],
+    active: &[bool; LANES],
+) {
+    const L: usize = LANES;
+    let pick = |c: [bool; L], x: [f64; L], y: [f64; L]| -> [f64; L] {
+        std::array::from_fn(|l| if c[l] { x[l] } else { y[l] })
+    };
+    let (p, q) = (P, Q);
+    let apq = a[p][q];
+    let go: [bool; L] = std::array::from_fn(|l| active[l] && apq[l] != 0.0);
+    let tau: [f64; L] = std::array::from_fn(|l| (a[q][q][l] - a[p][p][l]) / (2.0 * apq[l]));
+    // The reference's three quotients as one: its numerator and denominator
+    // picked per lane (no branch), then divided.
+    let root: [f64; L] = std::array::from_fn(|l| (1.0 + tau[l] * tau[l]).sqrt());
+    let big: [bool; L] = std::array::from_fn(|l| tau[l].abs() > 1e150);
+    let pos: [bool; L] = std::array::from_fn(|l| tau[l] >= 0.0);
+    let den = pick(
+        big,
+        tau,
+        pick(
+            pos,
+            std::array::from_fn(|l| tau[l] + root[l]),
+            std::array::from_fn(|l| -tau[l] + root[l]),
+        ),
+    );
+    let num = pick(big, [0.5; L], pick(pos, [1.0; L], [-1.0; L]));
+    let t: [f64; L] = std::array::from_fn(|l| num[l] / den[l]);
+    let c: [f64; L] = std::array::from_fn(|l| 1.0 / (1.0 + t[l] * t[l]).sqrt());
+    let s: [f64; L] = std::array::from_fn(|l| t[l] * c[l]);
+    let r = 3 - p - q;
+    a[p][p] = pick(
+        go,
+        std::array::from_fn(|l| a[p][p][l] - t[l] * apq[l]),
+        a[p][p],
+    );
+    a[q][q] = pick(
+        go,
+        std::array::from_fn(|l| a[q][q][l] + t[l] * apq[l]),
+        a[q][q],
+    );
+    a[p][q] = pick(go, [0.0; L], a[p][q]);
+    a[q][p] = pick(go, [0.0; L], a[q][p]);
+    let (arp, arq) = (a[r][p], a[r][q]);
+    a[r][p] = pick(
+        go,
+        std::array::from_fn(|l| c[l] * arp[l] - s[l] * arq[l]),
+        arp,
+    );
+    a[r][q] = pick(
+        go,
+        std::array::from_fn(|l| s[l] * arp[l] + c[l] * arq[l]),
+        arq,
+    );
+    a[p][r] = a[r][p];
+    a[q][r] = a[r][q];
+    for row in v.iter_mut() {
+        let (vp, vq) = (row[p], row[q]);
+        row[p] = pick(go, std::array::from_fn(|l| c[l] * vp[l] - s[l] * vq[l]), vp);
+        row[q] = pick(go, std::array::from_fn(|l| s[l] * vp[l] + c[l] * vq[l]), vq);
+    }
 }
 
 /// 3D [`signed_svd`]: V from the eigenvectors of FᵀF ([`symmetric_eigen3`]), sorted by

@@ -174,7 +174,7 @@ impl NeoHookean {
         self.projected_run3(x, first, out);
     }
 
-    /// [`NeoHookean::projected_run3`] compiled for AVX2 (the lanes in one register).
+    /// [`NeoHookean::projected_run3`] compiled for AVX2 (the lanes in three registers).
     /// Same operations, so the same bits: Rust never fuses a multiply and an add.
     ///
     /// # Safety
@@ -190,25 +190,16 @@ impl NeoHookean {
     #[inline(always)]
     fn projected_run3(&self, x: &[f64], first: usize, out: &mut [f64]) {
         let size = 10 * 9;
+        // A short last group writes its spare lanes here.
+        let mut spare = [[0.0f64; 90]; LANES];
         for (b, group) in out.chunks_mut(LANES * size).enumerate() {
             let count = group.len() / size;
             let e0 = first + b * LANES;
             // A short last group repeats its last element in the spare lanes.
             let e = std::array::from_fn(|l| e0 + l.min(count - 1));
-            if count == LANES {
-                let (a, rest) = group.split_at_mut(size);
-                let (b, rest) = rest.split_at_mut(size);
-                let (c, d) = rest.split_at_mut(size);
-                self.projected_blocks3_lanes(x, e, count, &mut [a, b, c, d]);
-                continue;
-            }
-            let mut spare = [[0.0f64; 90]; LANES];
-            let mut parts = group.chunks_exact_mut(size);
             let mut outs: [&mut [f64]; LANES] = spare.each_mut().map(|s| &mut s[..]);
-            for o in outs.iter_mut().take(count) {
-                if let Some(p) = parts.next() {
-                    *o = p;
-                }
+            for (o, p) in outs.iter_mut().zip(group.chunks_exact_mut(size)) {
+                *o = p;
             }
             self.projected_blocks3_lanes(x, e, count, &mut outs);
         }
