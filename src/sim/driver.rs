@@ -31,8 +31,8 @@ use crate::sim::scene::Scene;
 use crate::sim::scene_setup::build_scene;
 pub use crate::sim::scene_setup::{load_scene, open_scene, MAX_SYSTEM_ENTRY};
 pub use crate::sim::summary::{
-    ContactSummary, MovingSummary, MultilevelLevels, PhaseSummary, RunStatus, RunSummary,
-    CPU_PHASES,
+    largest_phases, ContactSummary, MovingSummary, MultilevelLevels, PhaseSummary, RunStatus,
+    RunSummary, CPU_PHASES,
 };
 pub use crate::sim::time_loop::{request_interrupt, STEPS_PLOT, SYSTEM_FILES};
 use crate::sim::time_loop::{simulate, write_summary, Run};

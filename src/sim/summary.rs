@@ -205,21 +205,26 @@ impl PhaseSummary {
 
     /// One line: the seconds outside the solve and the three largest phases.
     pub fn line(&self) -> String {
-        let mut v = self.seconds.clone();
-        v.sort_by(|a, b| b.1.total_cmp(&a.1));
-        let out = self.outside_solve_seconds;
-        let parts: Vec<String> = v
-            .iter()
-            .take(3)
-            .map(|(p, s)| {
-                let share = if out > 0.0 { 100.0 * s / out } else { 0.0 };
-                format!("{} {s:.2} s ({share:.0} %)", p.name().replace('_', " "))
-            })
-            .collect();
         format!(
-            "outside the linear solve: {out:.2} s of {:.2} s; largest phases: {}",
+            "outside the linear solve: {:.2} s of {:.2} s; {}",
+            self.outside_solve_seconds,
             self.wall_seconds,
-            parts.join(", ")
+            largest_phases(&self.seconds, self.outside_solve_seconds)
         )
     }
+}
+
+/// The three phases with the most seconds, each with its share of `total`, in one line.
+pub fn largest_phases(phases: &[(Phase, f64)], total: f64) -> String {
+    let mut v = phases.to_vec();
+    v.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let parts: Vec<String> = v
+        .iter()
+        .take(3)
+        .map(|(p, s)| {
+            let share = if total > 0.0 { 100.0 * s / total } else { 0.0 };
+            format!("{} {s:.2} s ({share:.0} %)", p.name().replace('_', " "))
+        })
+        .collect();
+    format!("largest phases: {}", parts.join(", "))
 }

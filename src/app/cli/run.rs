@@ -42,7 +42,10 @@ pub fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
                     summary.out_dir
                 );
                 if let Some(g) = summary.gpu.as_ref().filter(|g| !g.phases.is_empty()) {
-                    eprintln!("{}", largest_phases(&g.phases, summary.wall_seconds));
+                    eprintln!(
+                        "{}",
+                        crate::sim::driver::largest_phases(&g.phases, summary.wall_seconds)
+                    );
                 }
                 if let Some(p) = &summary.phases {
                     eprintln!("{}", p.line());
@@ -78,19 +81,4 @@ fn stop_after_the_step_on_signals() {
             libc::signal(libc::SIGTERM, handler);
         }
     }
-}
-
-/// The three phases of a device run with the most wall seconds, in one line.
-fn largest_phases(phases: &[(crate::gpu::Phase, f64)], wall: f64) -> String {
-    let mut v = phases.to_vec();
-    v.sort_by(|a, b| b.1.total_cmp(&a.1));
-    let parts: Vec<String> = v
-        .iter()
-        .take(3)
-        .map(|(p, s)| {
-            let share = if wall > 0.0 { 100.0 * s / wall } else { 0.0 };
-            format!("{} {s:.2} s ({share:.0} %)", p.name().replace('_', " "))
-        })
-        .collect();
-    format!("largest phases: {}", parts.join(", "))
 }
