@@ -8,7 +8,19 @@
 //! on which one ran.
 
 use super::eigensystem::{self, SingularValueHessian, LANES, PAIRS};
+use super::lanes::{self, Lanes, SingularValueHessianLanes, BLOCK_VALUES};
 use super::neohookean::{Coefficients, NeoHookean};
+
+/// Lanes as plain arrays (the eigensolver's layout).
+#[inline(always)]
+fn to_arrays(m: &lanes::Mat3) -> [[[f64; LANES]; 3]; 3] {
+    m.map(|row| row.map(|x| x.0))
+}
+
+#[inline(always)]
+fn from_arrays(m: &[[[f64; LANES]; 3]; 3]) -> lanes::Mat3 {
+    m.map(|row| row.map(Lanes))
+}
 
 impl NeoHookean {
     /// F of element e (row-major D×D in the leading entries), summed over the nodes in
@@ -101,49 +113,89 @@ impl NeoHookean {
     }
 
     /// The projected Hessians of the 3D elements `e` ([`LANES`] of them, repeats allowed)
-    /// as their upper node blocks, into `out[lane]` for the lanes below `count`: the
-    /// elements' two 3×3 eigenproblems (of FᵀF and of ∂²ψ/∂σ²) run side by side
-    /// ([`eigensystem::symmetric_eigen3_lanes`]), the rest per element. Bit for bit
+    /// as their upper node blocks, element after element into `out`, for the first
+    /// `out.len() / 90` lanes: every stage runs lane-innermost ([`lanes`],
+    /// [`eigensystem::symmetric_eigen3_lanes`]). Bit for bit
     /// [`NeoHookean::element_hessian`] with `project` of each element.
     #[inline(always)]
     fn projected_blocks3_lanes(
         &self,
         x: &[f64],
         e: [usize; LANES],
-        count: usize,
-        out: &mut [&mut [f64]; LANES],
+        modes: &mut lanes::Modes,
+        out: &mut [f64],
     ) {
-        let f: [[f64; 9]; LANES] =
-            std::array::from_fn(|l| self.deformation_gradient_fixed::<3>(x, e[l]));
-        let gram: [[[f64; 3]; 3]; LANES] = std::array::from_fn(|l| eigensystem::gram3(&f[l]));
-        let (lam, ev) = eigensystem::symmetric_eigen3_lanes(&std::array::from_fn(|r| {
-            std::array::from_fn(|c| std::array::from_fn(|l| gram[l][r][c]))
-        }));
-        let mut svd = [([0.0; 9], [0.0; 3], [0.0; 9]); LANES];
-        let mut h = [SingularValueHessian::default(); LANES];
+        let (f, g, scale) = self.gather3(x, &e);
+        let (lam, ev) = eigensystem::symmetric_eigen3_lanes(&to_arrays(&lanes::gram3(&f)));
+        let (u, sigma, v) = lanes::signed_svd3(&f, &lam.map(Lanes), &from_arrays(&ev));
+        let h = self.singular_value_hessian_lanes(&sigma);
+        let (vals, vecs) = eigensystem::symmetric_eigen3_lanes(&to_arrays(&h.a));
+        modes.fill(
+            (&u, &v),
+            &h,
+            (&vals.map(Lanes), &from_arrays(&vecs)),
+            &g,
+            scale,
+        );
+        modes.store_upper_blocks(out);
+    }
+
+    /// Per lane, F, the shape gradients `G[a][j]` and the rest volume of element `e[l]`.
+    #[inline(always)]
+    fn gather3(&self, x: &[f64], e: &[usize; LANES]) -> (lanes::Mat3, [lanes::Vec3; 4], Lanes) {
+        let zero = Lanes::splat(0.0);
+        let mut f = [[zero; 3]; 3];
+        let mut g = [[zero; 3]; 4];
+        let mut scale = zero;
+        for (l, &el) in e.iter().enumerate() {
+            let fl = self.deformation_gradient_fixed::<3>(x, el);
+            let gl = self.grads(el);
+            for r in 0..3 {
+                for c in 0..3 {
+                    f[r][c].0[l] = fl[r * 3 + c];
+                }
+            }
+            for a in 0..4 {
+                for j in 0..3 {
+                    g[a][j].0[l] = gl[a * 3 + j];
+                }
+            }
+            scale.0[l] = self.volume[el];
+        }
+        (f, g, scale)
+    }
+
+    /// [`NeoHookean::singular_value_hessian_fixed`] (3D) of each lane.
+    #[inline(always)]
+    fn singular_value_hessian_lanes(&self, s3: &lanes::Vec3) -> SingularValueHessianLanes {
+        let ic = s3[0] * s3[0] + s3[1] * s3[1] + s3[2] * s3[2];
+        let j = s3[0] * s3[1] * s3[2];
+        let zero = Lanes::splat(0.0);
+        let (mut s, mut q, mut w, mut t) = (zero, zero, zero, zero);
         for l in 0..LANES {
-            let lam_l = std::array::from_fn(|k| lam[k][l]);
-            let ev_l = std::array::from_fn(|r| std::array::from_fn(|k| ev[r][k][l]));
-            svd[l] = eigensystem::signed_svd3_from_eigen(&f[l], &lam_l, &ev_l);
-            h[l] = self.singular_value_hessian_fixed::<3>(&svd[l].1);
+            let c = self.coefficients(ic.0[l], j.0[l]);
+            (s.0[l], q.0[l], w.0[l], t.0[l]) = (c.s, c.q, c.w, c.t);
         }
-        let (vals, vecs) = eigensystem::symmetric_eigen3_lanes(&std::array::from_fn(|r| {
-            std::array::from_fn(|c| std::array::from_fn(|l| h[l].a[r][c]))
-        }));
-        for l in 0..count {
-            let vals_l = std::array::from_fn(|k| vals[k][l]);
-            let vecs_l = std::array::from_fn(|r| std::array::from_fn(|k| vecs[r][k][l]));
-            let (u, _, v) = &svd[l];
-            eigensystem::projected_element_blocks::<3, 12, 9>(
-                u,
-                v,
-                &h[l],
-                (&vals_l, &vecs_l),
-                self.grads(e[l]),
-                self.volume[e[l]],
-                out[l],
-            );
+        let others1 = [s3[1] * s3[2], s3[0] * s3[2], s3[0] * s3[1]];
+        let a = lanes::mat3(|a, b| {
+            let v = q * s3[a] * s3[b] + w * others1[a] * others1[b];
+            if a == b {
+                v + s
+            } else {
+                v + t * s3[3 - a - b]
+            }
+        });
+        let mut h = SingularValueHessianLanes {
+            a,
+            twist: [zero; 3],
+            flip: [zero; 3],
+        };
+        for (p, &(a, b)) in PAIRS.iter().enumerate() {
+            let k = s3[3 - a - b];
+            h.twist[p] = s + t * k;
+            h.flip[p] = s - t * k;
         }
+        h
     }
 
     /// The Hessians of the elements `first..first + n` (n = `out.len()` / the block
@@ -189,19 +241,13 @@ impl NeoHookean {
     /// [`LANES`] elements at a time.
     #[inline(always)]
     fn projected_run3(&self, x: &[f64], first: usize, out: &mut [f64]) {
-        let size = 10 * 9;
-        // A short last group writes its spare lanes here.
-        let mut spare = [[0.0f64; 90]; LANES];
-        for (b, group) in out.chunks_mut(LANES * size).enumerate() {
-            let count = group.len() / size;
+        let mut modes = lanes::Modes::default();
+        for (b, group) in out.chunks_mut(LANES * BLOCK_VALUES).enumerate() {
+            let count = group.len() / BLOCK_VALUES;
             let e0 = first + b * LANES;
             // A short last group repeats its last element in the spare lanes.
             let e = std::array::from_fn(|l| e0 + l.min(count - 1));
-            let mut outs: [&mut [f64]; LANES] = spare.each_mut().map(|s| &mut s[..]);
-            for (o, p) in outs.iter_mut().zip(group.chunks_exact_mut(size)) {
-                *o = p;
-            }
-            self.projected_blocks3_lanes(x, e, count, &mut outs);
+            self.projected_blocks3_lanes(x, e, &mut modes, group);
         }
     }
 
@@ -361,5 +407,44 @@ mod tests {
         // The deformations reach inverted elements too (the clamp and the classical
         // law's NaN are exercised).
         assert!(inverted > 0);
+    }
+
+    /// Half the nodes moved onto a line (elements there flat: F of rank one, U's second
+    /// column from the fallback) or onto a point (collapsed: F = 0, U's first column from
+    /// the fallback too), beside ordinary elements in the same lane groups: every lane
+    /// takes the per-element reference's branch, bit for bit.
+    #[test]
+    fn lanes_equal_the_reference_on_flat_and_collapsed_elements() {
+        let mut rng = StdRng::seed_from_u64(43);
+        for law in [Law::NeoHookean, Law::StableNeoHookean] {
+            let (nh, x) = deformed(3, law, &mut rng);
+            let nodes = x.len() / 3;
+            for first_kept_axis in [1, 0] {
+                let mut y = x.clone();
+                for p in &mut y[..nodes / 2 * 3] {
+                    *p = 0.0;
+                }
+                for node in 0..nodes / 2 {
+                    y[node * 3..node * 3 + first_kept_axis]
+                        .copy_from_slice(&x[node * 3..node * 3 + first_kept_axis]);
+                }
+                // det F is exactly zero when two rows of F are.
+                let degenerate = (0..nh.len())
+                    .filter(|&e| nh.volume_ratio(&y, e) == 0.0)
+                    .count();
+                assert!(degenerate > 0 && degenerate < nh.len(), "{degenerate}");
+                let size = BLOCK_VALUES;
+                let mut run = vec![0.0; nh.len() * size];
+                nh.element_hessian_blocks_run(&y, 0, true, &mut run);
+                for (e, got) in run.chunks_exact(size).enumerate() {
+                    let mut full = vec![0.0; 144];
+                    nh.element_hessian(&y, e, true, &mut full);
+                    let mut want = vec![0.0; size];
+                    upper_blocks_of(3, 4, &full, &mut want);
+                    let bits = |v: &[f64]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
+                    assert_eq!(bits(got), bits(&want), "{law:?} element {e}");
+                }
+            }
+        }
     }
 }

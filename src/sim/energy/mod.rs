@@ -14,6 +14,7 @@ pub mod eigensystem;
 pub mod gravity;
 pub mod inertia;
 pub mod kernels;
+pub mod lanes;
 pub mod neohookean;
 pub mod spring;
 
