@@ -383,16 +383,17 @@ impl Modes {
 
     /// The element Hessians' upper node blocks (a ≤ b, each 3×3 row-major, 90 values an
     /// element) into `out`, element after element, for the first `out.len() / 90` lanes.
-    /// Entry (i, j ≥ i) is Σ_k lw[i][k] w[j][k] in k order from zero, as per element.
     #[inline(always)]
     pub fn store_upper_blocks(&mut self, out: &mut [f64]) {
         for i in 0..12 {
-            for j in i..12 {
-                let mut s = Lanes::splat(0.0);
-                for k in 0..9 {
-                    s = s + self.lw[i][k] * self.w[j][k];
-                }
-                self.upper[i][j] = s;
+            // The rest of the diagonal block's row, then the blocks right of it.
+            match i % 3 {
+                0 => self.row_sums::<3>(i, i),
+                1 => self.row_sums::<2>(i, i),
+                _ => self.row_sums::<1>(i, i),
+            }
+            for j0 in (3 * (i / 3 + 1)..12).step_by(3) {
+                self.row_sums::<3>(i, j0);
             }
         }
         for (l, blocks) in out.chunks_exact_mut(BLOCK_VALUES).enumerate() {
@@ -400,6 +401,21 @@ impl Modes {
                 *o = self.upper[i as usize][j as usize].0[l];
             }
         }
+    }
+
+    /// Entries (i, j0..j0 + N), j0 ≥ i, of the upper triangle: Σ_k lw[i][k] w[j][k] in k
+    /// order from zero, as per element; the N sums side by side, so that their additions
+    /// overlap instead of waiting on each other.
+    #[inline(always)]
+    fn row_sums<const N: usize>(&mut self, i: usize, j0: usize) {
+        let mut s = [Lanes::splat(0.0); N];
+        for k in 0..9 {
+            let l = self.lw[i][k];
+            for (n, e) in s.iter_mut().enumerate() {
+                *e = *e + l * self.w[j0 + n][k];
+            }
+        }
+        self.upper[i][j0..j0 + N].copy_from_slice(&s);
     }
 }
 
