@@ -177,19 +177,21 @@ impl NeoHookean {
             (s.0[l], q.0[l], w.0[l], t.0[l]) = (c.s, c.q, c.w, c.t);
         }
         let others1 = [s3[1] * s3[2], s3[0] * s3[2], s3[0] * s3[1]];
-        let a = lanes::mat3(|a, b| {
-            let v = q * s3[a] * s3[b] + w * others1[a] * others1[b];
-            if a == b {
-                v + s
-            } else {
-                v + t * s3[3 - a - b]
-            }
-        });
         let mut h = SingularValueHessianLanes {
-            a,
+            a: [[zero; 3]; 3],
             twist: [zero; 3],
             flip: [zero; 3],
         };
+        for a in 0..3 {
+            for b in 0..3 {
+                let v = q * s3[a] * s3[b] + w * others1[a] * others1[b];
+                h.a[a][b] = if a == b {
+                    v + s
+                } else {
+                    v + t * s3[3 - a - b]
+                };
+            }
+        }
         for (p, &(a, b)) in PAIRS.iter().enumerate() {
             let k = s3[3 - a - b];
             h.twist[p] = s + t * k;
