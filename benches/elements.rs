@@ -2,9 +2,9 @@
 //! deformed mesh, per element and thread: the per-element reference
 //! (`NeoHookean::element_hessian`, a full matrix then split into the assembly's upper
 //! node blocks) beside the fixed-size kernel that writes the blocks directly
-//! (`NeoHookean::element_hessian_blocks`) and the assembly's kernel, which runs the 3D
-//! elements' eigenproblems twelve at a time (`NeoHookean::element_hessian_blocks_run`), in
-//! one run so that their ratios are measured under the same load. `cargo bench --bench elements`.
+//! (`NeoHookean::element_hessian_blocks`) and the assembly's kernel, which runs twelve 3D
+//! elements side by side, every stage lane-innermost (`NeoHookean::element_hessian_blocks_run`),
+//! in one run so that their ratios are measured under the same load. `cargo bench --bench elements`.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use stickslip::sim::energy::kernels::upper_blocks_of;

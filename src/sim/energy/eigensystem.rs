@@ -502,7 +502,7 @@ fn signed_svd3(f: &[f64]) -> ([f64; 9], [f64; 3], [f64; 9]) {
 
 /// FᵀF of a row-major 3×3 F.
 #[inline(always)]
-pub fn gram3(f: &[f64]) -> [[f64; 3]; 3] {
+fn gram3(f: &[f64]) -> [[f64; 3]; 3] {
     let mut ata = [[0.0f64; 3]; 3];
     for (r, row) in ata.iter_mut().enumerate() {
         for (c, e) in row.iter_mut().enumerate() {
@@ -515,7 +515,7 @@ pub fn gram3(f: &[f64]) -> [[f64; 3]; 3] {
 /// [`signed_svd`] of a 3×3 F from the eigenpairs of FᵀF ([`gram3`],
 /// [`symmetric_eigen3`]).
 #[inline(always)]
-pub fn signed_svd3_from_eigen(
+fn signed_svd3_from_eigen(
     f: &[f64],
     lam: &[f64; 3],
     ev: &[[f64; 3]; 3],

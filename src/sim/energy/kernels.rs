@@ -185,11 +185,7 @@ impl NeoHookean {
         for a in 0..3 {
             for b in 0..3 {
                 let v = q * s3[a] * s3[b] + w * others1[a] * others1[b];
-                h.a[a][b] = if a == b {
-                    v + s
-                } else {
-                    v + t * s3[3 - a - b]
-                };
+                h.a[a][b] = if a == b { v + s } else { v + t * s3[3 - a - b] };
             }
         }
         for (p, &(a, b)) in PAIRS.iter().enumerate() {

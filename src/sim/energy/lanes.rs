@@ -1,8 +1,9 @@
 //! The 3D projected element Hessian of [`LANES`] elements side by side: every quantity is
 //! a [`Lanes`], one value per element, so that each step maps to SIMD registers. Each
 //! lane runs the same operations, in the same order, as the per-element functions of
-//! [`super::eigensystem`] ([`signed_svd3_from_eigen`](super::eigensystem::signed_svd3_from_eigen),
-//! [`projected_element_blocks`](super::eigensystem::projected_element_blocks)); where
+//! [`super::eigensystem`] (`signed_svd3_from_eigen` and
+//! [`projected_element_blocks`](super::eigensystem::projected_element_blocks); the two
+//! eigenproblems run in [`symmetric_eigen3_lanes`](super::eigensystem::symmetric_eigen3_lanes)); where
 //! those branch, the lanes compute both sides and select (an exact choice), so each
 //! lane's result equals the per-element one bit for bit. Rust never fuses a multiply and
 //! an add, so this holds whatever vector width the code is compiled for.
@@ -265,8 +266,8 @@ fn det3(m: &Mat3) -> Lanes {
         + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
 }
 
-/// [`signed_svd3_from_eigen`](super::eigensystem::signed_svd3_from_eigen) per lane: (U, σ,
-/// V) of F from the eigenpairs (λ, E) of FᵀF.
+/// `eigensystem::signed_svd3_from_eigen` per lane: (U, σ, V) of F from the eigenpairs
+/// (λ, E) of FᵀF.
 #[inline(always)]
 pub fn signed_svd3(f: &Mat3, lam: &Vec3, ev: &Mat3) -> (Mat3, Vec3, Mat3) {
     let mut v = sorted_columns(lam, ev);
