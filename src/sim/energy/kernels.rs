@@ -1,7 +1,8 @@
 //! The neo-Hookean element kernels of the assembly with the dimension a compile-time
 //! constant: fixed-size stack arrays, unrolled loops, no per-element dispatch on d, and
 //! each element Hessian written straight into its upper node blocks (the slots the
-//! assembly gathers from). Every value is the same expression, evaluated in the same
+//! assembly gathers from); projected 3D Hessians run [`LANES`] elements side by side
+//! ([`super::lanes`]). Every value is the same expression, evaluated in the same
 //! order, as the per-element reference ([`NeoHookean::element_hessian`],
 //! [`NeoHookean::element_gradient`], [`NeoHookean::element_energy`]), so the results are
 //! equal to it bit for bit (the tests check it), and a scene's trajectory does not depend
