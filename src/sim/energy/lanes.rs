@@ -310,7 +310,7 @@ pub struct SingularValueHessianLanes {
 /// The modes of the element Hessians, `w[i][k]` (entry i of mode k) and
 /// `lw[i][k] = max(λ_k, 0)·scale·w[i][k]`, per lane, as the per-element `modes` of
 /// [`super::eigensystem`], and the upper triangle of the element Hessians they sum to.
-/// About 30 KiB: made once and refilled group after group (no copies of it move).
+/// About 34 KiB: made once and refilled group after group (no copies of it move).
 pub struct Modes {
     w: [[Lanes; 9]; 12],
     lw: [[Lanes; 9]; 12],
