@@ -119,6 +119,30 @@ pub fn pack_lower(m: usize, x: &[f64], out: &mut [f64]) {
 /// the factor to f32 cannot make it indefinite, as rounding an explicit inverse can on a
 /// stiff block. `y` is scratch of m values.
 pub fn apply_packed(g: &[f32], r: &[f64], z: &mut [f64], y: &mut [f64]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2, checked just above.
+        unsafe { apply_packed_avx2(g, r, z, y) };
+        return;
+    }
+    apply_packed_body(g, r, z, y);
+}
+
+/// [`apply_packed`] compiled for AVX2: four f32 → f64 conversions and products per
+/// instruction instead of two. The same operations in the same order, so the same bits
+/// (Rust never fuses a multiply and an add).
+///
+/// # Safety
+/// The CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn apply_packed_avx2(g: &[f32], r: &[f64], z: &mut [f64], y: &mut [f64]) {
+    apply_packed_body(g, r, z, y);
+}
+
+/// [`apply_packed`]'s loops, inlined into each of its compilations.
+#[inline(always)]
+fn apply_packed_body(g: &[f32], r: &[f64], z: &mut [f64], y: &mut [f64]) {
     let m = r.len();
     z.iter_mut().for_each(|v| *v = 0.0);
     // Row k of G gives y_k and, while in cache, its part of Gᵀy: z[..=k] += G[k] y_k.

@@ -10,7 +10,7 @@
 //! ([`SmoothPattern`], once per mesh); the values are rebuilt for every system.
 
 use super::dense::{block9, cholesky_dropping, inverse_from_factor};
-use super::level::{block_matvec, group, power_estimate, Level, LAMBDA_STEPS};
+use super::level::{block_matvec, group, power_estimate, split_rows, Level, LAMBDA_STEPS};
 use crate::core::elimination::Eliminated;
 use rayon::prelude::*;
 
@@ -142,72 +142,103 @@ impl SmoothPattern {
         rows.concat()
     }
 
-    /// Pᵀ (A P) on `a_ptr`/`a_col`, summed in a fixed order (row c: its P blocks by
-    /// item, each item's Q row by column).
+    /// Pᵀ (A P) on `a_ptr`/`a_col` for the level matrix `a` (d×d row-major blocks on
+    /// `row_ptr`/`col_idx`), summed in a fixed order (row c: its P blocks by item, each
+    /// item's Q row by column).
     pub fn galerkin(
         &self,
         d: usize,
         row_ptr: &[usize],
         col_idx: &[usize],
         p: &[f64],
-        hblock: &(dyn Fn(usize) -> [f64; 9] + Sync),
+        a: &[f64],
     ) -> Vec<f64> {
-        let dd = d * d;
-        let n = self.p_ptr.len() - 1;
+        match d {
+            2 => self.galerkin_d::<2, 4>(row_ptr, col_idx, p, a),
+            _ => self.galerkin_d::<3, 9>(row_ptr, col_idx, p, a),
+        }
+    }
+
+    /// [`Self::galerkin`] for d = D. Each row's blocks find their slot in a per-thread
+    /// map from column to position in the row (set from the row's sorted columns before
+    /// use; every column looked up is one of them).
+    fn galerkin_d<const D: usize, const DD: usize>(
+        &self,
+        row_ptr: &[usize],
+        col_idx: &[usize],
+        p: &[f64],
+        a: &[f64],
+    ) -> Vec<f64> {
+        let nc = self.a_ptr.len() - 1;
+        let block = |v: &[f64], k: usize| -> [f64; DD] {
+            v[k * DD..(k + 1) * DD].try_into().expect("D·D values")
+        };
         // Q = A P, row by row.
-        let q_rows: Vec<Vec<f64>> = (0..n)
+        let mut q = vec![0.0; self.q_col.len() * DD];
+        split_rows(&mut q, &self.q_ptr, DD)
             .into_par_iter()
             .with_min_len(64)
-            .map(|i| {
-                let cols = &self.q_col[self.q_ptr[i]..self.q_ptr[i + 1]];
-                let mut v = vec![0.0; cols.len() * dd];
-                for (k, &j) in col_idx
-                    .iter()
-                    .enumerate()
-                    .take(row_ptr[i + 1])
-                    .skip(row_ptr[i])
-                {
-                    let h = hblock(k);
-                    for pk in self.p_ptr[j]..self.p_ptr[j + 1] {
-                        let m = mul(d, &h, &block9(d, &p[pk * dd..(pk + 1) * dd]));
-                        let s = cols.binary_search(&self.p_col[pk]).unwrap_or(0) * dd;
-                        for (o, x) in v[s..s + dd].iter_mut().zip(&m[..dd]) {
-                            *o += x;
-                        }
+            .enumerate()
+            .for_each_init(
+                || vec![0u32; nc],
+                |slot, (i, v)| {
+                    let cols = &self.q_col[self.q_ptr[i]..self.q_ptr[i + 1]];
+                    for (s, &c) in cols.iter().enumerate() {
+                        slot[c as usize] = s as u32;
                     }
-                }
-                v
-            })
-            .collect();
-        let q = q_rows.concat();
-        let nc = self.a_ptr.len() - 1;
-        let rows: Vec<Vec<f64>> = (0..nc)
-            .into_par_iter()
-            .map(|c| {
-                let cols = &self.a_col[self.a_ptr[c]..self.a_ptr[c + 1]];
-                let mut v = vec![0.0; cols.len() * dd];
-                for &(i, pk) in &self.pt[self.pt_ptr[c]..self.pt_ptr[c + 1]] {
-                    let (i, pk) = (i as usize, pk as usize);
-                    let pb = &p[pk * dd..(pk + 1) * dd];
-                    for qk in self.q_ptr[i]..self.q_ptr[i + 1] {
-                        let qb = &q[qk * dd..(qk + 1) * dd];
-                        let s = cols.binary_search(&(self.q_col[qk] as usize)).unwrap_or(0) * dd;
-                        // Pᵀ block times Q block.
-                        for r in 0..d {
-                            for cc in 0..d {
-                                let mut acc = 0.0;
-                                for k in 0..d {
-                                    acc += pb[k * d + r] * qb[k * d + cc];
+                    for k in row_ptr[i]..row_ptr[i + 1] {
+                        let j = col_idx[k];
+                        let h = block(a, k);
+                        for pk in self.p_ptr[j]..self.p_ptr[j + 1] {
+                            let pb = block(p, pk);
+                            let s = slot[self.p_col[pk] as usize] as usize * DD;
+                            let o = &mut v[s..s + DD];
+                            for r in 0..D {
+                                for c in 0..D {
+                                    let mut acc = 0.0;
+                                    for t in 0..D {
+                                        acc += h[r * D + t] * pb[t * D + c];
+                                    }
+                                    o[r * D + c] += acc;
                                 }
-                                v[s + r * d + cc] += acc;
                             }
                         }
                     }
-                }
-                v
-            })
-            .collect();
-        rows.concat()
+                },
+            );
+        let mut out = vec![0.0; self.a_col.len() * DD];
+        split_rows(&mut out, &self.a_ptr, DD)
+            .into_par_iter()
+            .enumerate()
+            .for_each_init(
+                || vec![0u32; nc],
+                |slot, (c, v)| {
+                    let cols = &self.a_col[self.a_ptr[c]..self.a_ptr[c + 1]];
+                    for (s, &k) in cols.iter().enumerate() {
+                        slot[k] = s as u32;
+                    }
+                    for &(i, pk) in &self.pt[self.pt_ptr[c]..self.pt_ptr[c + 1]] {
+                        let (i, pk) = (i as usize, pk as usize);
+                        let pb = block(p, pk);
+                        for qk in self.q_ptr[i]..self.q_ptr[i + 1] {
+                            let qb = block(&q, qk);
+                            let s = slot[self.q_col[qk] as usize] as usize * DD;
+                            let o = &mut v[s..s + DD];
+                            // Pᵀ block times Q block.
+                            for r in 0..D {
+                                for cc in 0..D {
+                                    let mut acc = 0.0;
+                                    for k in 0..D {
+                                        acc += pb[k * D + r] * qb[k * D + cc];
+                                    }
+                                    o[r * D + cc] += acc;
+                                }
+                            }
+                        }
+                    }
+                },
+            );
+        out
     }
 
     /// P's blocks in `pt`'s order (cluster by cluster), each transposed: what the
