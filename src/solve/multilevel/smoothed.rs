@@ -267,21 +267,76 @@ impl SmoothPattern {
         r: &[f64],
         out: &mut [f64],
     ) {
-        let dd = d * d;
-        out.par_chunks_mut(d).enumerate().for_each(|(c, o)| {
-            o.iter_mut().for_each(|v| *v = 0.0);
+        match d {
+            2 => self.restrict_d::<T, 2, 4>(pt_values, r, out),
+            _ => self.restrict_d::<T, 3, 9>(pt_values, r, out),
+        }
+    }
+
+    fn restrict_d<T: Copy + Into<f64> + Sync, const D: usize, const DD: usize>(
+        &self,
+        pt_values: &[T],
+        r: &[f64],
+        out: &mut [f64],
+    ) {
+        out.par_chunks_mut(D * CHUNK)
+            .enumerate()
+            .for_each(|(chunk, o)| {
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the CPU has AVX2, checked just above.
+                    unsafe { self.restrict_rows_avx2::<T, D, DD>(pt_values, r, chunk * CHUNK, o) };
+                    return;
+                }
+                self.restrict_rows::<T, D, DD>(pt_values, r, chunk * CHUNK, o);
+            });
+    }
+
+    /// [`Self::restrict_rows`] compiled for AVX2; the same operations in the same order,
+    /// so the same bits.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn restrict_rows_avx2<T: Copy + Into<f64>, const D: usize, const DD: usize>(
+        &self,
+        pt_values: &[T],
+        r: &[f64],
+        first: usize,
+        out: &mut [f64],
+    ) {
+        self.restrict_rows::<T, D, DD>(pt_values, r, first, out);
+    }
+
+    /// Clusters `first..` of the restriction into `out`.
+    #[inline(always)]
+    fn restrict_rows<T: Copy + Into<f64>, const D: usize, const DD: usize>(
+        &self,
+        pt_values: &[T],
+        r: &[f64],
+        first: usize,
+        out: &mut [f64],
+    ) {
+        for (c0, o) in out.chunks_exact_mut(D).enumerate() {
+            let c = first + c0;
+            let mut acc = [0.0f64; D];
             for t in self.pt_ptr[c]..self.pt_ptr[c + 1] {
                 let i = self.pt[t].0 as usize;
-                let pb = &pt_values[t * dd..(t + 1) * dd];
-                for a in 0..d {
+                let pb: &[T; DD] = pt_values[t * DD..(t + 1) * DD]
+                    .try_into()
+                    .expect("D·D values");
+                let ri: &[f64; D] = r[i * D..(i + 1) * D].try_into().expect("D values");
+                for a in 0..D {
                     let mut s = 0.0;
-                    for k in 0..d {
-                        s += pb[a * d + k].into() * r[i * d + k];
+                    for k in 0..D {
+                        s += pb[a * D + k].into() * ri[k];
                     }
-                    o[a] += s;
+                    acc[a] += s;
                 }
             }
-        });
+            o.copy_from_slice(&acc);
+        }
     }
 
     /// z_i += Σ_c P_ic x_c.
@@ -292,25 +347,77 @@ impl SmoothPattern {
         x: &[f64],
         z: &mut [f64],
     ) {
-        let dd = d * d;
-        z.par_chunks_mut(d)
-            .with_min_len(64)
+        match d {
+            2 => self.prolong_add_d::<T, 2, 4>(p, x, z),
+            _ => self.prolong_add_d::<T, 3, 9>(p, x, z),
+        }
+    }
+
+    fn prolong_add_d<T: Copy + Into<f64> + Sync, const D: usize, const DD: usize>(
+        &self,
+        p: &[T],
+        x: &[f64],
+        z: &mut [f64],
+    ) {
+        z.par_chunks_mut(D * CHUNK)
             .enumerate()
-            .for_each(|(i, zi)| {
-                for pk in self.p_ptr[i]..self.p_ptr[i + 1] {
-                    let c = self.p_col[pk] as usize;
-                    let pb = &p[pk * dd..(pk + 1) * dd];
-                    for a in 0..d {
-                        let mut s = 0.0;
-                        for k in 0..d {
-                            s += pb[a * d + k].into() * x[c * d + k];
-                        }
-                        zi[a] += s;
-                    }
+            .for_each(|(chunk, zs)| {
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the CPU has AVX2, checked just above.
+                    unsafe { self.prolong_rows_avx2::<T, D, DD>(p, x, chunk * CHUNK, zs) };
+                    return;
                 }
+                self.prolong_rows::<T, D, DD>(p, x, chunk * CHUNK, zs);
             });
     }
+
+    /// [`Self::prolong_rows`] compiled for AVX2; the same operations in the same order,
+    /// so the same bits.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn prolong_rows_avx2<T: Copy + Into<f64>, const D: usize, const DD: usize>(
+        &self,
+        p: &[T],
+        x: &[f64],
+        first: usize,
+        z: &mut [f64],
+    ) {
+        self.prolong_rows::<T, D, DD>(p, x, first, z);
+    }
+
+    /// Rows `first..` of the prolongation, added into `z`.
+    #[inline(always)]
+    fn prolong_rows<T: Copy + Into<f64>, const D: usize, const DD: usize>(
+        &self,
+        p: &[T],
+        x: &[f64],
+        first: usize,
+        z: &mut [f64],
+    ) {
+        for (i0, zi) in z.chunks_exact_mut(D).enumerate() {
+            let i = first + i0;
+            for pk in self.p_ptr[i]..self.p_ptr[i + 1] {
+                let c = self.p_col[pk] as usize;
+                let pb: &[T; DD] = p[pk * DD..(pk + 1) * DD].try_into().expect("D·D values");
+                let xc: &[f64; D] = x[c * D..(c + 1) * D].try_into().expect("D values");
+                for a in 0..D {
+                    let mut s = 0.0;
+                    for k in 0..D {
+                        s += pb[a * D + k].into() * xc[k];
+                    }
+                    zi[a] += s;
+                }
+            }
+        }
+    }
 }
+
+/// Rows (or clusters) per task of the restriction and the prolongation.
+const CHUNK: usize = 64;
 
 /// The smoothed prolongation's values from level `lev` (matrix `a` on its pattern) to
 /// the next, with ω = 4 / (3 λ̂), λ̂ a power estimate of λmax(D⁻¹A) with D the item
