@@ -6,8 +6,8 @@ use crate::solve::ordering::METIS_LOCK;
 pub const CLUSTER_NODES: usize = 16;
 
 /// Cluster of each of `n` items: a METIS k-way partition into ⌈n / CLUSTER_NODES⌉ parts
-/// of the graph (self-loops dropped), empty parts removed. Consecutive runs of items
-/// where METIS fails or the graph exceeds its 32-bit indices.
+/// of the graph (self-loops dropped) from one initial partition, empty parts removed.
+/// Consecutive runs of items where METIS fails or the graph exceeds its 32-bit indices.
 pub(super) fn partition(n: usize, row_ptr: &[usize], col_idx: &[usize]) -> Vec<u32> {
     let parts = n.div_ceil(CLUSTER_NODES);
     let runs = || (0..n).map(|i| (i / CLUSTER_NODES) as u32).collect();
@@ -30,6 +30,10 @@ pub(super) fn partition(n: usize, row_ptr: &[usize], col_idx: &[usize]) -> Vec<u
         // METIS's documented "absent" for the weights and target fractions.
         unsafe {
             metis_sys::METIS_SetDefaultOptions(options.as_mut_ptr());
+            // With ~16 items per part METIS hardly coarsens, and its initial partition
+            // (a recursive bisection of the whole graph) is most of the time: one try
+            // instead of its default best of four, the k-way refinement after it kept.
+            options[metis_sys::moptions_et_METIS_OPTION_NIPARTS as usize] = 1;
             metis_sys::METIS_PartGraphKway(
                 &mut nvtxs,
                 &mut ncon,
