@@ -186,8 +186,8 @@ impl SmoothPattern {
                     for (s, &c) in cols.iter().enumerate() {
                         slot[c as usize] = s as u32;
                     }
-                    for k in row_ptr[i]..row_ptr[i + 1] {
-                        let j = col_idx[k];
+                    let (rs, re) = (row_ptr[i], row_ptr[i + 1]);
+                    for (k, &j) in (rs..re).zip(&col_idx[rs..re]) {
                         let h = block(a, k);
                         for pk in self.p_ptr[j]..self.p_ptr[j + 1] {
                             let pb = block(p, pk);
