@@ -26,7 +26,26 @@ pub fn cholesky_dropping(m: usize, a: &mut [f64]) -> usize {
         }
         let l = p.sqrt();
         a[k * m + k] = l;
-        for r in k + 1..m {
+        // Four rows' sums side by side (each in its own order, s ascending): four
+        // independent chains of subtractions instead of one waiting on the last.
+        let mut r = k + 1;
+        while r + 4 <= m {
+            let mut v = [0.0f64; 4];
+            for (q, vq) in v.iter_mut().enumerate() {
+                *vq = a[(r + q) * m + k];
+            }
+            for s in 0..k {
+                let ks = a[k * m + s];
+                for (q, vq) in v.iter_mut().enumerate() {
+                    *vq -= a[(r + q) * m + s] * ks;
+                }
+            }
+            for (q, vq) in v.iter().enumerate() {
+                a[(r + q) * m + k] = vq / l;
+            }
+            r += 4;
+        }
+        for r in r..m {
             let mut v = a[r * m + k];
             for s in 0..k {
                 v -= a[r * m + s] * a[k * m + s];
@@ -51,7 +70,28 @@ pub fn factor_inverse(m: usize, l: &[f64]) -> Vec<f64> {
         if piv == 0.0 {
             continue;
         }
-        for j in 0..=k {
+        // Four columns' sums side by side, each over s = j.. in ascending order: the
+        // first ones' leading terms alone, then all four together.
+        let mut j = 0;
+        while j + 4 <= k {
+            let mut v = [0.0f64; 4];
+            for q in 0..3 {
+                for s in j + q..j + 3 {
+                    v[q] -= l[k * m + s] * x[s * m + j + q];
+                }
+            }
+            for s in j + 3..k {
+                let ks = l[k * m + s];
+                for (q, vq) in v.iter_mut().enumerate() {
+                    *vq -= ks * x[s * m + j + q];
+                }
+            }
+            for (q, vq) in v.iter().enumerate() {
+                x[k * m + j + q] = vq / piv;
+            }
+            j += 4;
+        }
+        for j in j..=k {
             let mut v = if j == k { 1.0 } else { 0.0 };
             for s in j..k {
                 v -= l[k * m + s] * x[s * m + j];
