@@ -224,7 +224,11 @@ pub(super) fn frame_values_into(e: &Eliminated, v: &mut Vec<f64>) {
 }
 
 /// `v` split at the rows of a block pattern (`per` values per stored block).
-fn split_rows<'v, T>(mut v: &'v mut [T], row_ptr: &[usize], per: usize) -> Vec<&'v mut [T]> {
+pub(super) fn split_rows<'v, T>(
+    mut v: &'v mut [T],
+    row_ptr: &[usize],
+    per: usize,
+) -> Vec<&'v mut [T]> {
     let mut out = Vec::with_capacity(row_ptr.len().saturating_sub(1));
     for w in row_ptr.windows(2) {
         let (a, rest) = std::mem::take(&mut v).split_at_mut((w[1] - w[0]) * per);
@@ -279,8 +283,46 @@ fn block_matvec_d<T: Copy + Into<f64> + Sync, const D: usize, const DD: usize>(
         });
 }
 
-/// Rows `first..` of y = A x (or b − A x) into `ys`.
+/// Rows `first..` of y = A x (or b − A x) into `ys`, compiled for AVX2 where the CPU has
+/// it ([`block_rows_body`]).
 fn block_rows<T: Copy + Into<f64>, const D: usize, const DD: usize>(
+    lev: &Level,
+    a: &[T],
+    b: Option<&[f64]>,
+    x: &[f64],
+    first: usize,
+    ys: &mut [f64],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2, checked just above.
+        unsafe { block_rows_avx2::<T, D, DD>(lev, a, b, x, first, ys) };
+        return;
+    }
+    block_rows_body::<T, D, DD>(lev, a, b, x, first, ys);
+}
+
+/// [`block_rows_body`] compiled for AVX2 (wider f32 → f64 conversions); the same
+/// operations in the same order, so the same bits.
+///
+/// # Safety
+/// The CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn block_rows_avx2<T: Copy + Into<f64>, const D: usize, const DD: usize>(
+    lev: &Level,
+    a: &[T],
+    b: Option<&[f64]>,
+    x: &[f64],
+    first: usize,
+    ys: &mut [f64],
+) {
+    block_rows_body::<T, D, DD>(lev, a, b, x, first, ys);
+}
+
+/// Rows `first..` of y = A x (or b − A x) into `ys`.
+#[inline(always)]
+fn block_rows_body<T: Copy + Into<f64>, const D: usize, const DD: usize>(
     lev: &Level,
     a: &[T],
     b: Option<&[f64]>,

@@ -53,7 +53,6 @@ mod level;
 mod partition;
 pub mod reuse;
 mod smoothed;
-use dense::block9;
 pub use dense::PIVOT_DROP;
 pub use dense::{cholesky_dropping, inverse_from_factor};
 pub use level::LAMBDA_STEPS;
@@ -414,8 +413,7 @@ impl Multilevel {
             } else {
                 smoothed_p(d, lev, sp, a, &|_| identity(d))
             };
-            let hb = |k: usize| block9(d, &a[k * d * d..(k + 1) * d * d]);
-            let next = sp.galerkin(d, &lev.row_ptr, &lev.col_idx, &pv, &hb);
+            let next = sp.galerkin(d, &lev.row_ptr, &lev.col_idx, &pv, a);
             p.push(pv);
             values.push(next);
         }

@@ -10,7 +10,7 @@
 //! ([`SmoothPattern`], once per mesh); the values are rebuilt for every system.
 
 use super::dense::{block9, cholesky_dropping, inverse_from_factor};
-use super::level::{block_matvec, group, power_estimate, Level, LAMBDA_STEPS};
+use super::level::{block_matvec, group, power_estimate, split_rows, Level, LAMBDA_STEPS};
 use crate::core::elimination::Eliminated;
 use rayon::prelude::*;
 
@@ -142,72 +142,103 @@ impl SmoothPattern {
         rows.concat()
     }
 
-    /// Pᵀ (A P) on `a_ptr`/`a_col`, summed in a fixed order (row c: its P blocks by
-    /// item, each item's Q row by column).
+    /// Pᵀ (A P) on `a_ptr`/`a_col` for the level matrix `a` (d×d row-major blocks on
+    /// `row_ptr`/`col_idx`), summed in a fixed order (row c: its P blocks by item, each
+    /// item's Q row by column).
     pub fn galerkin(
         &self,
         d: usize,
         row_ptr: &[usize],
         col_idx: &[usize],
         p: &[f64],
-        hblock: &(dyn Fn(usize) -> [f64; 9] + Sync),
+        a: &[f64],
     ) -> Vec<f64> {
-        let dd = d * d;
-        let n = self.p_ptr.len() - 1;
+        match d {
+            2 => self.galerkin_d::<2, 4>(row_ptr, col_idx, p, a),
+            _ => self.galerkin_d::<3, 9>(row_ptr, col_idx, p, a),
+        }
+    }
+
+    /// [`Self::galerkin`] for d = D. Each row's blocks find their slot in a per-thread
+    /// map from column to position in the row (set from the row's sorted columns before
+    /// use; every column looked up is one of them).
+    fn galerkin_d<const D: usize, const DD: usize>(
+        &self,
+        row_ptr: &[usize],
+        col_idx: &[usize],
+        p: &[f64],
+        a: &[f64],
+    ) -> Vec<f64> {
+        let nc = self.a_ptr.len() - 1;
+        let block = |v: &[f64], k: usize| -> [f64; DD] {
+            v[k * DD..(k + 1) * DD].try_into().expect("D·D values")
+        };
         // Q = A P, row by row.
-        let q_rows: Vec<Vec<f64>> = (0..n)
+        let mut q = vec![0.0; self.q_col.len() * DD];
+        split_rows(&mut q, &self.q_ptr, DD)
             .into_par_iter()
             .with_min_len(64)
-            .map(|i| {
-                let cols = &self.q_col[self.q_ptr[i]..self.q_ptr[i + 1]];
-                let mut v = vec![0.0; cols.len() * dd];
-                for (k, &j) in col_idx
-                    .iter()
-                    .enumerate()
-                    .take(row_ptr[i + 1])
-                    .skip(row_ptr[i])
-                {
-                    let h = hblock(k);
-                    for pk in self.p_ptr[j]..self.p_ptr[j + 1] {
-                        let m = mul(d, &h, &block9(d, &p[pk * dd..(pk + 1) * dd]));
-                        let s = cols.binary_search(&self.p_col[pk]).unwrap_or(0) * dd;
-                        for (o, x) in v[s..s + dd].iter_mut().zip(&m[..dd]) {
-                            *o += x;
-                        }
+            .enumerate()
+            .for_each_init(
+                || vec![0u32; nc],
+                |slot, (i, v)| {
+                    let cols = &self.q_col[self.q_ptr[i]..self.q_ptr[i + 1]];
+                    for (s, &c) in cols.iter().enumerate() {
+                        slot[c as usize] = s as u32;
                     }
-                }
-                v
-            })
-            .collect();
-        let q = q_rows.concat();
-        let nc = self.a_ptr.len() - 1;
-        let rows: Vec<Vec<f64>> = (0..nc)
-            .into_par_iter()
-            .map(|c| {
-                let cols = &self.a_col[self.a_ptr[c]..self.a_ptr[c + 1]];
-                let mut v = vec![0.0; cols.len() * dd];
-                for &(i, pk) in &self.pt[self.pt_ptr[c]..self.pt_ptr[c + 1]] {
-                    let (i, pk) = (i as usize, pk as usize);
-                    let pb = &p[pk * dd..(pk + 1) * dd];
-                    for qk in self.q_ptr[i]..self.q_ptr[i + 1] {
-                        let qb = &q[qk * dd..(qk + 1) * dd];
-                        let s = cols.binary_search(&(self.q_col[qk] as usize)).unwrap_or(0) * dd;
-                        // Pᵀ block times Q block.
-                        for r in 0..d {
-                            for cc in 0..d {
-                                let mut acc = 0.0;
-                                for k in 0..d {
-                                    acc += pb[k * d + r] * qb[k * d + cc];
+                    let (rs, re) = (row_ptr[i], row_ptr[i + 1]);
+                    for (k, &j) in (rs..re).zip(&col_idx[rs..re]) {
+                        let h = block(a, k);
+                        for pk in self.p_ptr[j]..self.p_ptr[j + 1] {
+                            let pb = block(p, pk);
+                            let s = slot[self.p_col[pk] as usize] as usize * DD;
+                            let o = &mut v[s..s + DD];
+                            for r in 0..D {
+                                for c in 0..D {
+                                    let mut acc = 0.0;
+                                    for t in 0..D {
+                                        acc += h[r * D + t] * pb[t * D + c];
+                                    }
+                                    o[r * D + c] += acc;
                                 }
-                                v[s + r * d + cc] += acc;
                             }
                         }
                     }
-                }
-                v
-            })
-            .collect();
-        rows.concat()
+                },
+            );
+        let mut out = vec![0.0; self.a_col.len() * DD];
+        split_rows(&mut out, &self.a_ptr, DD)
+            .into_par_iter()
+            .enumerate()
+            .for_each_init(
+                || vec![0u32; nc],
+                |slot, (c, v)| {
+                    let cols = &self.a_col[self.a_ptr[c]..self.a_ptr[c + 1]];
+                    for (s, &k) in cols.iter().enumerate() {
+                        slot[k] = s as u32;
+                    }
+                    for &(i, pk) in &self.pt[self.pt_ptr[c]..self.pt_ptr[c + 1]] {
+                        let (i, pk) = (i as usize, pk as usize);
+                        let pb = block(p, pk);
+                        for qk in self.q_ptr[i]..self.q_ptr[i + 1] {
+                            let qb = block(&q, qk);
+                            let s = slot[self.q_col[qk] as usize] as usize * DD;
+                            let o = &mut v[s..s + DD];
+                            // Pᵀ block times Q block.
+                            for r in 0..D {
+                                for cc in 0..D {
+                                    let mut acc = 0.0;
+                                    for k in 0..D {
+                                        acc += pb[k * D + r] * qb[k * D + cc];
+                                    }
+                                    o[r * D + cc] += acc;
+                                }
+                            }
+                        }
+                    }
+                },
+            );
+        out
     }
 
     /// P's blocks in `pt`'s order (cluster by cluster), each transposed: what the
@@ -236,21 +267,76 @@ impl SmoothPattern {
         r: &[f64],
         out: &mut [f64],
     ) {
-        let dd = d * d;
-        out.par_chunks_mut(d).enumerate().for_each(|(c, o)| {
-            o.iter_mut().for_each(|v| *v = 0.0);
+        match d {
+            2 => self.restrict_d::<T, 2, 4>(pt_values, r, out),
+            _ => self.restrict_d::<T, 3, 9>(pt_values, r, out),
+        }
+    }
+
+    fn restrict_d<T: Copy + Into<f64> + Sync, const D: usize, const DD: usize>(
+        &self,
+        pt_values: &[T],
+        r: &[f64],
+        out: &mut [f64],
+    ) {
+        out.par_chunks_mut(D * CHUNK)
+            .enumerate()
+            .for_each(|(chunk, o)| {
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the CPU has AVX2, checked just above.
+                    unsafe { self.restrict_rows_avx2::<T, D, DD>(pt_values, r, chunk * CHUNK, o) };
+                    return;
+                }
+                self.restrict_rows::<T, D, DD>(pt_values, r, chunk * CHUNK, o);
+            });
+    }
+
+    /// [`Self::restrict_rows`] compiled for AVX2; the same operations in the same order,
+    /// so the same bits.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn restrict_rows_avx2<T: Copy + Into<f64>, const D: usize, const DD: usize>(
+        &self,
+        pt_values: &[T],
+        r: &[f64],
+        first: usize,
+        out: &mut [f64],
+    ) {
+        self.restrict_rows::<T, D, DD>(pt_values, r, first, out);
+    }
+
+    /// Clusters `first..` of the restriction into `out`.
+    #[inline(always)]
+    fn restrict_rows<T: Copy + Into<f64>, const D: usize, const DD: usize>(
+        &self,
+        pt_values: &[T],
+        r: &[f64],
+        first: usize,
+        out: &mut [f64],
+    ) {
+        for (c0, o) in out.chunks_exact_mut(D).enumerate() {
+            let c = first + c0;
+            let mut acc = [0.0f64; D];
             for t in self.pt_ptr[c]..self.pt_ptr[c + 1] {
                 let i = self.pt[t].0 as usize;
-                let pb = &pt_values[t * dd..(t + 1) * dd];
-                for a in 0..d {
+                let pb: &[T; DD] = pt_values[t * DD..(t + 1) * DD]
+                    .try_into()
+                    .expect("D·D values");
+                let ri: &[f64; D] = r[i * D..(i + 1) * D].try_into().expect("D values");
+                for a in 0..D {
                     let mut s = 0.0;
-                    for k in 0..d {
-                        s += pb[a * d + k].into() * r[i * d + k];
+                    for k in 0..D {
+                        s += pb[a * D + k].into() * ri[k];
                     }
-                    o[a] += s;
+                    acc[a] += s;
                 }
             }
-        });
+            o.copy_from_slice(&acc);
+        }
     }
 
     /// z_i += Σ_c P_ic x_c.
@@ -261,25 +347,77 @@ impl SmoothPattern {
         x: &[f64],
         z: &mut [f64],
     ) {
-        let dd = d * d;
-        z.par_chunks_mut(d)
-            .with_min_len(64)
+        match d {
+            2 => self.prolong_add_d::<T, 2, 4>(p, x, z),
+            _ => self.prolong_add_d::<T, 3, 9>(p, x, z),
+        }
+    }
+
+    fn prolong_add_d<T: Copy + Into<f64> + Sync, const D: usize, const DD: usize>(
+        &self,
+        p: &[T],
+        x: &[f64],
+        z: &mut [f64],
+    ) {
+        z.par_chunks_mut(D * CHUNK)
             .enumerate()
-            .for_each(|(i, zi)| {
-                for pk in self.p_ptr[i]..self.p_ptr[i + 1] {
-                    let c = self.p_col[pk] as usize;
-                    let pb = &p[pk * dd..(pk + 1) * dd];
-                    for a in 0..d {
-                        let mut s = 0.0;
-                        for k in 0..d {
-                            s += pb[a * d + k].into() * x[c * d + k];
-                        }
-                        zi[a] += s;
-                    }
+            .for_each(|(chunk, zs)| {
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the CPU has AVX2, checked just above.
+                    unsafe { self.prolong_rows_avx2::<T, D, DD>(p, x, chunk * CHUNK, zs) };
+                    return;
                 }
+                self.prolong_rows::<T, D, DD>(p, x, chunk * CHUNK, zs);
             });
     }
+
+    /// [`Self::prolong_rows`] compiled for AVX2; the same operations in the same order,
+    /// so the same bits.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn prolong_rows_avx2<T: Copy + Into<f64>, const D: usize, const DD: usize>(
+        &self,
+        p: &[T],
+        x: &[f64],
+        first: usize,
+        z: &mut [f64],
+    ) {
+        self.prolong_rows::<T, D, DD>(p, x, first, z);
+    }
+
+    /// Rows `first..` of the prolongation, added into `z`.
+    #[inline(always)]
+    fn prolong_rows<T: Copy + Into<f64>, const D: usize, const DD: usize>(
+        &self,
+        p: &[T],
+        x: &[f64],
+        first: usize,
+        z: &mut [f64],
+    ) {
+        for (i0, zi) in z.chunks_exact_mut(D).enumerate() {
+            let i = first + i0;
+            for pk in self.p_ptr[i]..self.p_ptr[i + 1] {
+                let c = self.p_col[pk] as usize;
+                let pb: &[T; DD] = p[pk * DD..(pk + 1) * DD].try_into().expect("D·D values");
+                let xc: &[f64; D] = x[c * D..(c + 1) * D].try_into().expect("D values");
+                for a in 0..D {
+                    let mut s = 0.0;
+                    for k in 0..D {
+                        s += pb[a * D + k].into() * xc[k];
+                    }
+                    zi[a] += s;
+                }
+            }
+        }
+    }
 }
+
+/// Rows (or clusters) per task of the restriction and the prolongation.
+const CHUNK: usize = 64;
 
 /// The smoothed prolongation's values from level `lev` (matrix `a` on its pattern) to
 /// the next, with ω = 4 / (3 λ̂), λ̂ a power estimate of λmax(D⁻¹A) with D the item
