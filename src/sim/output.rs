@@ -45,13 +45,13 @@ pub fn write_vtk(
     let _ = writeln!(s, "{}", title.replace('\n', " "));
     let _ = writeln!(s, "ASCII\nDATASET UNSTRUCTURED_GRID");
     let _ = writeln!(s, "POINTS {n} double");
-    let vec3 = |s: &mut String, a: &[f64], i: usize| {
-        let z = if d == 3 { a[i * 3 + 2] } else { 0.0 };
-        let _ = writeln!(s, "{:e} {:e} {:e}", a[i * d], a[i * d + 1], z);
+    let vectors = |s: &mut String, a: &[f64]| {
+        par_lines(s, n, |s, i| {
+            let z = if d == 3 { a[i * 3 + 2] } else { 0.0 };
+            let _ = writeln!(s, "{:e} {:e} {:e}", a[i * d], a[i * d + 1], z);
+        })
     };
-    for i in 0..n {
-        vec3(&mut s, x, i);
-    }
+    vectors(&mut s, x);
     let ncells: usize = scene.cells.iter().map(|b| b.len()).sum();
     let size: usize = scene
         .cells
@@ -60,13 +60,15 @@ pub fn write_vtk(
         .sum();
     let _ = writeln!(s, "CELLS {ncells} {size}");
     for b in &scene.cells {
-        for c in b.cells() {
+        let k = b.kind.nodes();
+        par_lines(&mut s, b.len(), |s, e| {
+            let c = &b.nodes[e * k..(e + 1) * k];
             let _ = write!(s, "{}", c.len());
             for i in c {
                 let _ = write!(s, " {i}");
             }
             s.push('\n');
-        }
+        });
     }
     let _ = writeln!(s, "CELL_TYPES {ncells}");
     for b in &scene.cells {
@@ -76,20 +78,37 @@ pub fn write_vtk(
     }
     let _ = writeln!(s, "POINT_DATA {n}");
     let _ = writeln!(s, "VECTORS velocity double");
-    for i in 0..n {
-        vec3(&mut s, v, i);
-    }
+    vectors(&mut s, v);
     let _ = writeln!(s, "VECTORS reaction_force double");
-    for i in 0..n {
-        vec3(&mut s, f, i);
-    }
+    vectors(&mut s, f);
     if let Some(c) = c {
         let _ = writeln!(s, "VECTORS contact_force double");
-        for i in 0..n {
-            vec3(&mut s, c, i);
-        }
+        vectors(&mut s, c);
     }
     crate::io::files::write_atomic_bytes(path, s.as_bytes())
+}
+
+/// Lines per task of [`par_lines`]: enough to amortise a task, few enough to share.
+const LINES_PER_TASK: usize = 8192;
+
+/// Appends `line(·, i)` for i in 0..n to `s`, in order: the lines are formatted in
+/// parallel chunks (float formatting is most of a frame's cost) and joined in order,
+/// so the text is the same on any number of threads.
+fn par_lines(s: &mut String, n: usize, line: impl Fn(&mut String, usize) + Sync) {
+    use rayon::prelude::*;
+    let chunks: Vec<String> = (0..n.div_ceil(LINES_PER_TASK))
+        .into_par_iter()
+        .map(|c| {
+            let mut t = String::with_capacity(64 * LINES_PER_TASK);
+            for i in c * LINES_PER_TASK..((c + 1) * LINES_PER_TASK).min(n) {
+                line(&mut t, i);
+            }
+            t
+        })
+        .collect();
+    for t in chunks {
+        s.push_str(&t);
+    }
 }
 
 /// The ParaView collection of a run's frames, in its output folder: each frame with its
