@@ -40,61 +40,69 @@ pub fn write_vtk(
 ) -> std::io::Result<()> {
     let d = scene.dim;
     let n = x.len() / d;
-    let mut s = String::with_capacity(64 * n);
-    let _ = writeln!(s, "# vtk DataFile Version 3.0");
-    let _ = writeln!(s, "{}", title.replace('\n', " "));
-    let _ = writeln!(s, "ASCII\nDATASET UNSTRUCTURED_GRID");
-    let _ = writeln!(s, "POINTS {n} double");
-    let vectors = |s: &mut String, a: &[f64]| {
-        par_lines(s, n, |s, i| {
-            let z = if d == 3 { a[i * 3 + 2] } else { 0.0 };
-            let _ = writeln!(s, "{:e} {:e} {:e}", a[i * d], a[i * d + 1], z);
-        })
-    };
-    vectors(&mut s, x);
-    let ncells: usize = scene.cells.iter().map(|b| b.len()).sum();
-    let size: usize = scene
-        .cells
-        .iter()
-        .map(|b| b.len() * (b.kind.nodes() + 1))
-        .sum();
-    let _ = writeln!(s, "CELLS {ncells} {size}");
-    for b in &scene.cells {
-        let k = b.kind.nodes();
-        par_lines(&mut s, b.len(), |s, e| {
-            let c = &b.nodes[e * k..(e + 1) * k];
-            let _ = write!(s, "{}", c.len());
-            for i in c {
-                let _ = write!(s, " {i}");
-            }
-            s.push('\n');
-        });
-    }
-    let _ = writeln!(s, "CELL_TYPES {ncells}");
-    for b in &scene.cells {
-        for _ in 0..b.len() {
-            let _ = writeln!(s, "{}", b.kind.vtk_type());
+    // Each section is formatted (in parallel chunks) and written before the next, so a
+    // frame never holds more than one section's text in memory.
+    crate::io::files::write_atomic(path, |w| {
+        let mut s = String::new();
+        let _ = writeln!(s, "# vtk DataFile Version 3.0");
+        let _ = writeln!(s, "{}", title.replace('\n', " "));
+        let _ = writeln!(s, "ASCII\nDATASET UNSTRUCTURED_GRID");
+        let _ = writeln!(s, "POINTS {n} double");
+        w.write_all(s.as_bytes())?;
+        let vectors = |w: &mut dyn Write, a: &[f64]| {
+            par_lines(w, n, |s, i| {
+                let z = if d == 3 { a[i * 3 + 2] } else { 0.0 };
+                let _ = writeln!(s, "{:e} {:e} {:e}", a[i * d], a[i * d + 1], z);
+            })
+        };
+        vectors(w, x)?;
+        let ncells: usize = scene.cells.iter().map(|b| b.len()).sum();
+        let size: usize = scene
+            .cells
+            .iter()
+            .map(|b| b.len() * (b.kind.nodes() + 1))
+            .sum();
+        writeln!(w, "CELLS {ncells} {size}")?;
+        for b in &scene.cells {
+            let k = b.kind.nodes();
+            par_lines(w, b.len(), |s, e| {
+                let c = &b.nodes[e * k..(e + 1) * k];
+                let _ = write!(s, "{}", c.len());
+                for i in c {
+                    let _ = write!(s, " {i}");
+                }
+                s.push('\n');
+            })?;
         }
-    }
-    let _ = writeln!(s, "POINT_DATA {n}");
-    let _ = writeln!(s, "VECTORS velocity double");
-    vectors(&mut s, v);
-    let _ = writeln!(s, "VECTORS reaction_force double");
-    vectors(&mut s, f);
-    if let Some(c) = c {
-        let _ = writeln!(s, "VECTORS contact_force double");
-        vectors(&mut s, c);
-    }
-    crate::io::files::write_atomic_bytes(path, s.as_bytes())
+        writeln!(w, "CELL_TYPES {ncells}")?;
+        for b in &scene.cells {
+            let line = format!("{}\n", b.kind.vtk_type());
+            w.write_all(line.repeat(b.len()).as_bytes())?;
+        }
+        writeln!(w, "POINT_DATA {n}")?;
+        writeln!(w, "VECTORS velocity double")?;
+        vectors(w, v)?;
+        writeln!(w, "VECTORS reaction_force double")?;
+        vectors(w, f)?;
+        if let Some(c) = c {
+            writeln!(w, "VECTORS contact_force double")?;
+            vectors(w, c)?;
+        }
+        Ok(())
+    })
 }
 
 /// Lines per task of [`par_lines`]: enough to amortise a task, few enough to share.
 const LINES_PER_TASK: usize = 8192;
 
-/// Appends `line(·, i)` for i in 0..n to `s`, in order: the lines are formatted in
-/// parallel chunks (float formatting is most of a frame's cost) and joined in order,
-/// so the text is the same on any number of threads.
-fn par_lines(s: &mut String, n: usize, line: impl Fn(&mut String, usize) + Sync) {
+/// Writes the lines `line(·, i)` for i in 0..n to `w`, in order: formatted in parallel
+/// chunks (float formatting is most of a frame's cost) and written in order, so the text
+/// is the same on any number of threads.
+fn par_lines(
+    w: &mut dyn Write,
+    n: usize,
+    line: impl Fn(&mut String, usize) + Sync,
+) -> std::io::Result<()> {
     use rayon::prelude::*;
     let chunks: Vec<String> = (0..n.div_ceil(LINES_PER_TASK))
         .into_par_iter()
@@ -106,9 +114,7 @@ fn par_lines(s: &mut String, n: usize, line: impl Fn(&mut String, usize) + Sync)
             t
         })
         .collect();
-    for t in chunks {
-        s.push_str(&t);
-    }
+    chunks.iter().try_for_each(|t| w.write_all(t.as_bytes()))
 }
 
 /// The ParaView collection of a run's frames, in its output folder: each frame with its
