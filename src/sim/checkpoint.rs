@@ -27,7 +27,7 @@ use std::path::Path;
 pub const FILE_NAME: &str = "checkpoint.bin";
 
 /// The format this build writes and reads.
-pub const FORMAT_VERSION: u32 = 2;
+pub const FORMAT_VERSION: u32 = 3;
 
 const MAGIC: &[u8] = b"stickslip-checkpoint\n";
 
@@ -131,10 +131,13 @@ pub struct RunIdentity {
     pub steps_digest: String,
 }
 
-/// FNV-1a, 64 bits: the checksum of the file, the scene's fingerprint and the digest of
-/// steps.csv.
+/// FNV-1a, 64 bits: the checksum of the file, the scene's fingerprint (its bulk arrays
+/// word by word, [`Fnv::update_words`]) and the digest of steps.csv.
 #[derive(Debug, Clone, Copy)]
 pub struct Fnv(u64);
+
+/// The 64-bit FNV prime.
+const FNV_PRIME: u64 = 0x0000_0100_0000_01b3;
 
 impl Default for Fnv {
     fn default() -> Self {
@@ -153,8 +156,25 @@ impl Fnv {
     pub fn update(&mut self, bytes: &[u8]) {
         for &b in bytes {
             self.0 ^= b as u64;
-            self.0 = self.0.wrapping_mul(0x0000_0100_0000_01b3);
+            self.0 = self.0.wrapping_mul(FNV_PRIME);
         }
+    }
+
+    /// Folds `bytes` in as 8-byte little-endian words (a trailing part word byte by byte,
+    /// as [`Fnv::update`]): an eighth of the multiplications, for the bulk arrays of a
+    /// fingerprint. Each word is xor-ed in, multiplied by the FNV prime and rotated: the
+    /// multiplication carries a difference only upwards, the rotation brings the high bits
+    /// (an f64's sign and exponent) down into what later words multiply.
+    pub fn update_words(&mut self, bytes: &[u8]) {
+        let mut words = bytes.chunks_exact(8);
+        for w in &mut words {
+            let mut word = [0u8; 8];
+            word.copy_from_slice(w);
+            self.0 = (self.0 ^ u64::from_le_bytes(word))
+                .wrapping_mul(FNV_PRIME)
+                .rotate_left(23);
+        }
+        self.update(words.remainder());
     }
 }
 
@@ -179,7 +199,7 @@ pub fn fingerprint(scene: &Scene) -> String {
         "{:?}|{}|{:?}|{:?}|{:?}|{:?}|",
         s.name, s.dim, s.time_step, s.output, s.solver, s.moving
     );
-    let mut out = |b: &[u8]| h.update(b);
+    let mut out = |b: &[u8]| h.update_words(b);
     s.model.digest(&mut out);
     digest_f64s(&mut out, &s.x0);
     digest_f64s(&mut out, &s.v0);
