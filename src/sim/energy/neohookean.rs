@@ -118,8 +118,11 @@ impl NeoHookean {
         };
         let mut shape_grads = Vec::with_capacity(mesh.elements.len() * nn * d);
         let mut volume = Vec::with_capacity(mesh.elements.len());
+        // Dm, Dm / its longest edge and Dm⁻¹, allocated once and overwritten per element.
+        let mut dm = nalgebra::DMatrix::<f64>::zeros(d, d);
+        let mut scaled = nalgebra::DMatrix::<f64>::zeros(d, d);
+        let mut inv = nalgebra::DMatrix::<f64>::zeros(d, d);
         for (e, el) in mesh.elements.iter().enumerate() {
-            let mut dm = nalgebra::DMatrix::<f64>::zeros(d, d);
             for a in 1..nn {
                 for i in 0..d {
                     dm[(i, a - 1)] = mesh.x[el[a] * d + i] - mesh.x[el[0] * d + i];
@@ -133,7 +136,9 @@ impl NeoHookean {
             // Flat beyond f64's resolution (a box 1e-300 thick): its volume relative to its
             // longest edge^d is rounding, and its shape gradients would overflow.
             let longest = (0..d).map(|c| dm.column(c).norm()).fold(0.0f64, f64::max);
-            let relative = (&dm / longest).determinant();
+            scaled.copy_from(&dm);
+            scaled /= longest;
+            let relative = scaled.determinant();
             if relative.is_nan() || relative <= DEGENERATE_RELATIVE_VOLUME {
                 return Err(format!(
                     "element {e} is degenerate at rest: its volume is {relative:.1e} of its \
@@ -142,11 +147,12 @@ impl NeoHookean {
                 ));
             }
             volume.push(det / if d == 2 { 2.0 } else { 6.0 });
-            let inv = dm
-                .try_inverse()
-                .ok_or_else(|| format!("element {e} is degenerate at rest"))?;
+            inv.copy_from(&dm);
+            if !inv.try_inverse_mut() {
+                return Err(format!("element {e} is degenerate at rest"));
+            }
             // F = Ds Dm⁻¹ ⇒ ∂F_ij/∂x_{a,i} = (Dm⁻¹)_{a−1, j} for a ≥ 1; node 0 takes minus the sum.
-            let mut g0 = vec![0.0; d];
+            let mut g0 = [0.0; 3];
             let start = shape_grads.len();
             shape_grads.extend(std::iter::repeat_n(0.0, nn * d));
             for a in 1..nn {
@@ -156,7 +162,7 @@ impl NeoHookean {
                     g0[j] -= v;
                 }
             }
-            shape_grads[start..start + d].copy_from_slice(&g0);
+            shape_grads[start..start + d].copy_from_slice(&g0[..d]);
         }
         let mut s = NeoHookean {
             dim: d,
