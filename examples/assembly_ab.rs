@@ -3,11 +3,14 @@
 //! on 1 and 2 threads, and whether the results are bitwise equal across thread counts:
 //! `cargo run --release --example assembly_ab -- [scene] [size] [repeats]`. Wall seconds
 //! are the best of the repeats; CPU seconds (all threads, Unix only) their mean, which a
-//! loaded machine disturbs less.
+//! loaded machine disturbs less; the Hessian's element passes and gathers are the means of
+//! the assembly's own phase timers.
 
 use std::time::Instant;
+use stickslip::gpu::Phase;
 use stickslip::sim::driver::load_scene;
 use stickslip::sim::energy::AssemblyWork;
+use stickslip::sim::phases::HostPhases;
 
 /// CPU seconds of this process so far (all threads); 0 where unavailable.
 fn cpu_seconds() -> f64 {
@@ -57,8 +60,8 @@ fn main() {
         "{name} size {size}: {} nodes, {elements} elements, best of {reps}",
         m.n_nodes
     );
-    println!("| threads | energy s | gradient s | Hessian s | energy CPU s | gradient CPU s | Hessian CPU s |");
-    println!("|---|---|---|---|---|---|---|");
+    println!("| threads | energy s | gradient s | Hessian s | gradient's element terms s | gradient's gather s | Hessian's element terms s | Hessian's gather s | energy CPU s | gradient CPU s | Hessian CPU s |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
     let mut results = Vec::new();
     for threads in [1, 2] {
         let pool = rayon::ThreadPoolBuilder::new()
@@ -71,6 +74,12 @@ fn main() {
             let mut g = vec![0.0; x.len()];
             let (mut te, mut tg, mut th) = (f64::MAX, f64::MAX, f64::MAX);
             let mut cpu = [0.0f64; 3];
+            // The passes' own timers: element terms and gathers, best of the repeats.
+            let seconds = |p: &HostPhases, want: Phase| -> f64 {
+                let profile = p.profile();
+                profile.phases.iter().filter(|(q, _)| *q == want).map(|(_, s)| s).sum()
+            };
+            let mut split = [f64::MAX; 4];
             let mut e = 0.0;
             for _ in 0..reps {
                 let (t, c) = (Instant::now(), cpu_seconds());
@@ -78,19 +87,29 @@ fn main() {
                 te = te.min(t.elapsed().as_secs_f64());
                 cpu[0] += cpu_seconds() - c;
                 g.iter_mut().for_each(|v| *v = 0.0);
+                let timers = HostPhases::default();
+                work.phases = Some(timers.clone());
                 let (t, c) = (Instant::now(), cpu_seconds());
                 m.add_potential_gradient_with(&x, 1.0, &mut g, &mut work);
                 tg = tg.min(t.elapsed().as_secs_f64());
                 cpu[1] += cpu_seconds() - c;
+                split[0] = split[0].min(seconds(&timers, Phase::ElementTerms));
+                split[1] = split[1].min(seconds(&timers, Phase::Assembly));
                 h.values.iter_mut().for_each(|v| *v = 0.0);
+                let timers = HostPhases::default();
+                work.phases = Some(timers.clone());
                 let (t, c) = (Instant::now(), cpu_seconds());
                 m.add_potential_hessian_with(&x, 1.0, true, &mut h, &mut work);
                 th = th.min(t.elapsed().as_secs_f64());
                 cpu[2] += cpu_seconds() - c;
+                split[2] = split[2].min(seconds(&timers, Phase::ElementTerms));
+                split[3] = split[3].min(seconds(&timers, Phase::Assembly));
+                work.phases = None;
             }
+            let [gelements, ggather, elements, gather] = split;
             let n = reps as f64;
             println!(
-                "| {threads} | {te:.4} | {tg:.4} | {th:.4} | {:.4} | {:.4} | {:.4} |",
+                "| {threads} | {te:.4} | {tg:.4} | {th:.4} | {gelements:.4} | {ggather:.4} | {elements:.4} | {gather:.4} | {:.4} | {:.4} | {:.4} |",
                 cpu[0] / n,
                 cpu[1] / n,
                 cpu[2] / n
