@@ -273,10 +273,10 @@ fn fill_summary(run: &Run, stepper: &Stepper, summary: &mut RunSummary) {
     // Every neo-Hookean law of the scene, with zero when no step ended inverted.
     summary.inverted_steps = scene
         .model
-        .min_volume_ratio(&scene.x0)
+        .solid_laws()
         .iter()
-        .map(|m| {
-            let name = m.law.name().to_string();
+        .map(|law| {
+            let name = law.name().to_string();
             let n = t.inverted_steps.get(&name).copied().unwrap_or(0);
             (name, n)
         })
@@ -325,7 +325,7 @@ pub(crate) fn simulate(
         .map_err(|e| out_err(dir.path(), e))?;
     let resuming = summary.resumed_from_step.is_some();
     let (dim, moving, contact) = (scene.dim, stepper.has_moving(), stepper.has_contact());
-    let solid = !scene.model.min_volume_ratio(&scene.x0).is_empty();
+    let solid = !scene.model.solid_laws().is_empty();
     let mut csv = if resuming {
         StepsCsv::append(&csv_path, moving, contact, solid)
     } else {

@@ -267,6 +267,46 @@ struct Gather {
     grad_src: Vec<u32>,
     /// Per node: its diagonal block in the pattern.
     diag: Vec<usize>,
+    /// Per set, per pass of the Hessian's ([`hess_pass`] elements) and of the gradient's
+    /// ([`grad_pass`]) assembly: the node rows its elements touch, `lo..=hi` (the
+    /// gathers visit those rows only).
+    hess_rows: Vec<Vec<(usize, usize)>>,
+    grad_rows: Vec<Vec<(usize, usize)>>,
+}
+
+/// Elements per pass of the Hessian's assembly of `s`: whole chunks, at most
+/// [`HESS_BUFFER_BLOCKS`] element blocks.
+fn hess_pass(s: &ElementSet) -> usize {
+    let np = s.arity() * (s.arity() + 1) / 2;
+    (HESS_BUFFER_BLOCKS / np / CHUNK).max(1) * CHUNK
+}
+
+/// Elements per pass of the gradient's assembly of `s`: whole chunks, at most
+/// [`GRAD_BUFFER_NODES`] element node vectors.
+fn grad_pass(s: &ElementSet) -> usize {
+    (GRAD_BUFFER_NODES / s.arity() / CHUNK).max(1) * CHUNK
+}
+
+/// Per pass of `per_pass` elements of `s`, the smallest and largest node its elements
+/// hold ((1, 0) for a pass without nodes).
+fn pass_rows(s: &ElementSet, per_pass: usize) -> Vec<(usize, usize)> {
+    (0..s.len())
+        .step_by(per_pass)
+        .map(|e0| {
+            let (mut lo, mut hi) = (usize::MAX, 0);
+            for e in e0..(e0 + per_pass).min(s.len()) {
+                for &a in s.nodes(e) {
+                    lo = lo.min(a);
+                    hi = hi.max(a);
+                }
+            }
+            if lo > hi {
+                (1, 0)
+            } else {
+                (lo, hi)
+            }
+        })
+        .collect()
 }
 
 /// The Hessian's block pattern: every node's diagonal block and the blocks of every
@@ -346,6 +386,18 @@ impl Gather {
         let (mut hs, mut gs) = (0usize, 0usize);
         let mut hess_count = try_vec(nb + 1, 0usize, WHAT)?;
         let mut grad_count = try_vec(n + 1, 0usize, WHAT)?;
+        // Every element's ordered node pairs' blocks (a·arity + b), searched once: the
+        // count below and the fill after it read them.
+        let pairs: usize = sets.iter().map(|s| s.len() * s.arity() * s.arity()).sum();
+        let mut block_of = try_vec(pairs, 0u32, WHAT)?;
+        if nb > u32::MAX as usize {
+            return Err(AllocError {
+                what: WHAT.to_string(),
+                bytes: (nb as u64).saturating_mul(8),
+                nodes: None,
+            });
+        }
+        let mut at = 0;
         for s in sets {
             let ar = s.arity();
             hess_base.push(hs);
@@ -361,6 +413,8 @@ impl Gather {
                             .find(a, b)
                             .expect("pattern holds every element pair");
                         hess_count[k + 1] += 1;
+                        block_of[at] = k as u32;
+                        at += 1;
                     }
                 }
             }
@@ -390,18 +444,21 @@ impl Gather {
         // Filled in set and element order: each block's (node's) list is in the order of
         // the sequential loop.
         let (mut hnext, mut gnext) = (hess_count, grad_count);
+        let mut at = 0;
         for (si, s) in sets.iter().enumerate() {
             let ar = s.arity();
             let np = ar * (ar + 1) / 2;
             for e in 0..s.len() {
                 let nodes = s.nodes(e);
+                let blocks = &block_of[at..at + ar * ar];
+                at += ar * ar;
                 for (p, (a, b)) in upper_pairs(ar).enumerate() {
                     let slot = hess_base[si] + e * np + p;
-                    let k = pattern.find(nodes[a], nodes[b]).expect("pattern pair");
+                    let k = blocks[a * ar + b] as usize;
                     hess_src[hnext[k]] = (2 * slot) as u32;
                     hnext[k] += 1;
                     if a != b {
-                        let k = pattern.find(nodes[b], nodes[a]).expect("pattern pair");
+                        let k = blocks[b * ar + a] as usize;
                         hess_src[hnext[k]] = (2 * slot + 1) as u32;
                         hnext[k] += 1;
                     }
@@ -418,6 +475,7 @@ impl Gather {
                 .diag_index(i)
                 .expect("every node has a diagonal block");
         }
+        drop(block_of);
         Ok(Gather {
             hess_base,
             grad_base,
@@ -426,6 +484,8 @@ impl Gather {
             grad_ptr,
             grad_src,
             diag,
+            hess_rows: sets.iter().map(|s| pass_rows(s, hess_pass(s))).collect(),
+            grad_rows: sets.iter().map(|s| pass_rows(s, grad_pass(s))).collect(),
         })
     }
 }
@@ -648,22 +708,21 @@ impl Model {
     ) {
         let d = self.dim;
         let gt = &self.gather;
-        let pass = |s: &ElementSet| (GRAD_BUFFER_NODES / s.arity() / CHUNK).max(1) * CHUNK;
         let buffer = self
             .sets
             .iter()
-            .map(|s| pass(s).min(s.len()) * s.arity())
+            .map(|s| grad_pass(s).min(s.len()) * s.arity())
             .max()
             .unwrap_or(0);
         work.grad.resize(buffer * d, 0.0);
         work.grad_cursor.clear();
         work.grad_cursor
             .extend_from_slice(&gt.grad_ptr[..self.n_nodes]);
-        for (s, &base) in self.sets.iter().zip(&gt.grad_base) {
+        for ((s, &base), rows) in self.sets.iter().zip(&gt.grad_base).zip(&gt.grad_rows) {
             let ar = s.arity();
             let nl = ar * d;
-            let per_pass = pass(s);
-            for e0 in (0..s.len()).step_by(per_pass) {
+            let per_pass = grad_pass(s);
+            for (e0, &(rlo, rhi)) in (0..s.len()).step_by(per_pass).zip(rows) {
                 let e1 = (e0 + per_pass).min(s.len());
                 let (lo, hi) = (base + e0 * ar, base + e1 * ar);
                 let elements = phases::open(work.phases.as_ref(), Phase::ElementTerms);
@@ -677,13 +736,6 @@ impl Model {
                     });
                 drop(elements);
                 let _gather = phases::open(work.phases.as_ref(), Phase::Assembly);
-                let (mut rlo, mut rhi) = (usize::MAX, 0);
-                for e in e0..e1 {
-                    for &a in s.nodes(e) {
-                        rlo = rlo.min(a);
-                        rhi = rhi.max(a);
-                    }
-                }
                 if rlo > rhi {
                     continue;
                 }
@@ -772,24 +824,20 @@ impl Model {
         let gt = &self.gather;
         let nb = self.pattern.nnz_blocks();
         assert_eq!(h.nnz_blocks(), nb, "h must have the model's pattern");
-        let pass = |s: &ElementSet| {
-            let np = s.arity() * (s.arity() + 1) / 2;
-            (HESS_BUFFER_BLOCKS / np / CHUNK).max(1) * CHUNK
-        };
         let buffer = self
             .sets
             .iter()
-            .map(|s| pass(s).min(s.len()) * s.arity() * (s.arity() + 1) / 2)
+            .map(|s| hess_pass(s).min(s.len()) * s.arity() * (s.arity() + 1) / 2)
             .max()
             .unwrap_or(0);
         work.hess.resize(buffer * dd, 0.0);
         work.cursor.clear();
         work.cursor
             .extend(gt.hess_ptr[..nb].iter().map(|&p| p as u32));
-        for (s, &base) in self.sets.iter().zip(&gt.hess_base) {
+        for ((s, &base), rows) in self.sets.iter().zip(&gt.hess_base).zip(&gt.hess_rows) {
             let np = s.arity() * (s.arity() + 1) / 2;
-            let per_pass = pass(s);
-            for e0 in (0..s.len()).step_by(per_pass) {
+            let per_pass = hess_pass(s);
+            for (e0, &(rlo, rhi)) in (0..s.len()).step_by(per_pass).zip(rows) {
                 let e1 = (e0 + per_pass).min(s.len());
                 let (lo, hi) = (base + e0 * np, base + e1 * np);
                 let elements = phases::open(work.phases.as_ref(), Phase::ElementTerms);
@@ -799,15 +847,8 @@ impl Model {
                     .for_each(|(c, b)| s.hessian_blocks_run(x, e0 + c * CHUNK, project, b));
                 drop(elements);
                 let _gather = phases::open(work.phases.as_ref(), Phase::Assembly);
-                // The rows the pass's elements touch: a block's slots belong to elements
-                // holding its row's node.
-                let (mut rlo, mut rhi) = (usize::MAX, 0);
-                for e in e0..e1 {
-                    for &a in s.nodes(e) {
-                        rlo = rlo.min(a);
-                        rhi = rhi.max(a);
-                    }
-                }
+                // The rows the pass's elements touch (a block's slots belong to elements
+                // holding its row's node), found with the model.
                 if rlo > rhi {
                     continue;
                 }
@@ -848,6 +889,22 @@ impl Model {
         self.sets
             .iter()
             .any(|s| matches!(s, ElementSet::NeoHookean(nh) if nh.law == law))
+    }
+
+    /// The neo-Hookean laws that some element follows, in [`Law`] order: the laws
+    /// [`Model::min_volume_ratio`] reports, without evaluating an element.
+    pub fn solid_laws(&self) -> Vec<Law> {
+        let mut laws: Vec<Law> = self
+            .sets
+            .iter()
+            .filter_map(|s| match s {
+                ElementSet::NeoHookean(nh) if nh.len() > 0 => Some(nh.law),
+                _ => None,
+            })
+            .collect();
+        laws.sort();
+        laws.dedup();
+        laws
     }
 
     /// Per neo-Hookean law of the model (in [`Law`] order): the smallest element volume
@@ -1045,6 +1102,38 @@ mod tests {
         let got = nh.min_volume_ratio(&y).expect("elements");
         assert!(got.0.is_nan());
         assert_eq!(bits(Some(got)), bits(sequential_min(&y)));
+    }
+
+    /// The laws a model reports without evaluating an element are those whose volume
+    /// ratios it reports: a set of springs and a stable set before a classical one, each
+    /// law once.
+    #[test]
+    fn solid_laws_are_the_laws_of_the_volume_ratios() {
+        let mesh = crate::sim::mesh::cuboid([1.0, 1.0, 1.0], [2, 2, 2]);
+        let n = mesh.x.len() / 3;
+        let springs = Springs::new(3, &mesh.x, vec![[0, 1]], 50.0).expect("valid spring");
+        let set =
+            |law| ElementSet::NeoHookean(NeoHookean::new(&mesh, 1e5, 0.4, law).expect("mesh"));
+        let model = Model::new(
+            3,
+            vec![1.0; n],
+            None,
+            vec![
+                ElementSet::Springs(springs),
+                set(Law::StableNeoHookean),
+                set(Law::NeoHookean),
+                set(Law::StableNeoHookean),
+            ],
+        );
+        let reported: Vec<Law> = model
+            .min_volume_ratio(&mesh.x)
+            .iter()
+            .map(|m| m.law)
+            .collect();
+        assert_eq!(model.solid_laws(), reported);
+        assert_eq!(reported, vec![Law::NeoHookean, Law::StableNeoHookean]);
+        let plain = Model::new(3, vec![1.0; n], None, Vec::new());
+        assert!(plain.solid_laws().is_empty() && plain.min_volume_ratio(&mesh.x).is_empty());
     }
 
     /// h = M + scale·∇²Ψ in one pass over h gives the bits of zeroing h, adding the mass,

@@ -325,12 +325,12 @@ impl<'s> Stepper<'s> {
     }
 
     /// Snaps the unsnapped moving nodes within ε·h of their targets, on the backend's
-    /// positions.
-    fn snap(&mut self, moving: &mut MovingTargets) -> Result<(), StepError> {
+    /// positions; true when a node snapped (the iterate and E changed).
+    fn snap(&mut self, moving: &mut MovingTargets) -> Result<bool, StepError> {
         let _moving = self.backend.phase(Phase::MovingBoundary);
         let nodes = self.state.unsnapped_nodes(&moving.snapped);
         if nodes.is_empty() {
-            return Ok(());
+            return Ok(false);
         }
         let before = moving.snapped.clone();
         let x = self.backend.positions(Some(&nodes))?;
@@ -343,7 +343,7 @@ impl<'s> Stepper<'s> {
         if !newly.is_empty() {
             self.backend.write_positions(Some(&newly))?;
         }
-        Ok(())
+        Ok(!newly.is_empty())
     }
 
     /// Newton on E from the starting iterate: per iteration the eliminated solve; when it
@@ -368,6 +368,10 @@ impl<'s> Stepper<'s> {
         let mut sequence_of = moving.snapped.clone();
         // The last iterate that passed the ‖Δx‖∞ test without balancing its forces.
         let mut unbalanced: Option<ForceBalance> = None;
+        // E at the current iterate when the last line search evaluated it there (its
+        // accepted trial) and nothing has changed E or the iterate since: a snap moves
+        // nodes and drops their penalty terms, a moving-boundary update changes k_M.
+        let mut energy_here: Option<f64> = None;
         loop {
             if iter >= sc.solver.max_newton_iterations {
                 return Err(StepError::NewtonLimit {
@@ -462,11 +466,14 @@ impl<'s> Stepper<'s> {
                     }
                     // The penalty changed the energy: a new forcing sequence.
                     forcing.restart();
+                    energy_here = None;
                     continue;
                 }
             }
-            self.line_search(moving, dmax, iter, rep)?;
-            self.snap(moving)?;
+            self.line_search(moving, dmax, iter, rep, &mut energy_here)?;
+            if self.snap(moving)? {
+                energy_here = None;
+            }
             if self.state.contact.is_some() {
                 let _contact = self.backend.phase(Phase::Contact);
                 let d = self.check_distance(&format!("after Newton iteration {iter}"))?;
@@ -495,17 +502,23 @@ impl<'s> Stepper<'s> {
     /// step, naming it); the accepted iterate becomes the current one. When no step decreases E,
     /// the bounded step is taken if the energy is flat to round-off near the minimum and
     /// the step fails otherwise. A bounded step taken whole is checked by
-    /// [`State::check_unbarriered_limit`].
+    /// [`State::check_unbarriered_limit`]. `energy_here` is E at the current iterate when
+    /// known (the same function at the same positions, so the same bits as evaluating it
+    /// again); it leaves as E at the accepted iterate when the search evaluated it there.
     fn line_search(
         &mut self,
         moving: &MovingTargets,
         dmax: f64,
         iter: usize,
         rep: &mut StepReport,
+        energy_here: &mut Option<f64>,
     ) -> Result<(), StepError> {
         let h = self.state.scene.time_step;
         let _line_search = self.backend.phase(Phase::LineSearch);
-        let e0 = self.backend.energy(&self.state, moving, false)?;
+        let e0 = match energy_here.take() {
+            Some(e) => e,
+            None => self.backend.energy(&self.state, moving, false)?,
+        };
         if !e0.is_finite() {
             // Positions far beyond the scene (a moving target running off at 1e300 m/s) overflow the
             // energy; line-searching NaN would "converge" and write NaN results.
@@ -578,6 +591,7 @@ impl<'s> Stepper<'s> {
             let e1 = self.backend.energy(&self.state, moving, true)?;
             if e1 <= e0 + ARMIJO * alpha * slope.min(0.0) {
                 accepted = true;
+                *energy_here = Some(e1);
                 break;
             }
             alpha *= 0.5;
