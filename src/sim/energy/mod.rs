@@ -944,16 +944,22 @@ impl Model {
             let ElementSet::NeoHookean(nh) = s else {
                 continue;
             };
-            for e in 0..nh.len() {
-                let j = nh.volume_ratio(after, e);
-                if (j.is_nan() || j <= 0.0) && nh.volume_ratio(before, e) > 0.0 {
-                    return Some(MinVolumeRatio {
-                        law: nh.law,
-                        j,
-                        set: k,
-                        element: e,
-                    });
-                }
+            // In parallel, the first such element in order (whatever the threads).
+            let inverted = |e: &usize| {
+                let j = nh.volume_ratio(after, *e);
+                (j.is_nan() || j <= 0.0) && nh.volume_ratio(before, *e) > 0.0
+            };
+            let first = (0..nh.len())
+                .into_par_iter()
+                .with_min_len(neohookean::SCAN_CHUNK)
+                .find_first(inverted);
+            if let Some(e) = first {
+                return Some(MinVolumeRatio {
+                    law: nh.law,
+                    j: nh.volume_ratio(after, e),
+                    set: k,
+                    element: e,
+                });
             }
         }
         None
@@ -1102,6 +1108,30 @@ mod tests {
         let got = nh.min_volume_ratio(&y).expect("elements");
         assert!(got.0.is_nan());
         assert_eq!(bits(Some(got)), bits(sequential_min(&y)));
+        // The first element that moving the nodes inverts, in element order.
+        let sequential_first = |before: &[f64], after: &[f64]| {
+            (0..nh.len()).find(|&e| {
+                let j = nh.volume_ratio(after, e);
+                (j.is_nan() || j <= 0.0) && nh.volume_ratio(before, e) > 0.0
+            })
+        };
+        let want = sequential_first(&mesh.x, &x).expect("an inverted element");
+        assert!(
+            want > neohookean::SCAN_CHUNK,
+            "the first inverted element is past a chunk"
+        );
+        let model = Model::new(
+            3,
+            vec![1.0; mesh.x.len() / 3],
+            None,
+            vec![ElementSet::NeoHookean(nh.clone())],
+        );
+        let got = model
+            .first_inverted_by(&mesh.x, &x)
+            .expect("an inverted element");
+        assert_eq!((got.set, got.element), (0, want));
+        assert_eq!(got.j.to_bits(), nh.volume_ratio(&x, want).to_bits());
+        assert!(model.first_inverted_by(&mesh.x, &mesh.x).is_none());
     }
 
     /// The laws a model reports without evaluating an element are those whose volume
