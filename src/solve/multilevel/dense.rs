@@ -130,18 +130,6 @@ pub fn packed_len(m: usize) -> usize {
     m * (m + 1) / 2
 }
 
-/// The lower triangle of the m×m row-major `x`, rounded to f32, packed row by row into
-/// `out` ([`packed_len`] values).
-pub fn pack_lower_f32(m: usize, x: &[f64], out: &mut [f32]) {
-    let mut at = 0;
-    for k in 0..m {
-        for (o, v) in out[at..at + k + 1].iter_mut().zip(&x[k * m..k * m + k + 1]) {
-            *o = *v as f32;
-        }
-        at += k + 1;
-    }
-}
-
 /// The lower triangle of the m×m row-major `x` packed row by row into `out`
 /// ([`packed_len`] values).
 pub fn pack_lower(m: usize, x: &[f64], out: &mut [f64]) {
@@ -152,70 +140,140 @@ pub fn pack_lower(m: usize, x: &[f64], out: &mut [f64]) {
     }
 }
 
-/// z = Gᵀ(G r) for G lower-triangular m×m packed row by row in f32
-/// ([`pack_lower_f32`]), every sum in f64: row k gives y_k = G[k]·r and, while in cache,
-/// its share of Gᵀy (z[..=k] += y_k G[k]), so G is read once. zᵀr = ‖y‖² up to the f64
-/// roundings of the sums, so the block is semidefinite whatever G's entries are: rounding
-/// the factor to f32 cannot make it indefinite, as rounding an explicit inverse can on a
-/// stiff block. `y` is scratch of m values.
-pub fn apply_packed(g: &[f32], r: &[f64], z: &mut [f64], y: &mut [f64]) {
+/// The side of a [`pack_tiled_f32`] tile: four rows by four columns.
+pub const TILE: usize = 4;
+
+/// m rounded up to whole tiles: the length of the vectors [`apply_tiled`] reads and
+/// writes (the components past m are zero).
+pub fn tiled_side(m: usize) -> usize {
+    m.div_ceil(TILE) * TILE
+}
+
+/// Values of an m×m lower-triangular matrix in 4×4 tiles ([`pack_tiled_f32`]): tile row b
+/// holds b + 1 tiles of 16, so (b + 1)(b + 2)/2 · 16 for b = ⌈m/4⌉ − 1.
+pub fn tiled_len(m: usize) -> usize {
+    let nb = m.div_ceil(TILE);
+    TILE * TILE * nb * (nb + 1) / 2
+}
+
+/// Where entry (k, j), j ≤ k, of a tiled lower triangle sits ([`pack_tiled_f32`]).
+pub fn tiled_index(k: usize, j: usize) -> usize {
+    let (b, q) = (k / TILE, k % TILE);
+    let (t, c) = (j / TILE, j % TILE);
+    TILE * TILE * (b * (b + 1) / 2 + t) + TILE * q + c
+}
+
+/// The lower triangle of the m×m row-major `x`, rounded to f32, in 4×4 tiles: tile row b
+/// (rows 4b..4b + 4) holds its tiles t = 0..=b (columns 4t..4t + 4) one after the
+/// other, each row-major; entries above the diagonal or past m are zero. Every row of
+/// tiles is whole, so [`apply_tiled`] runs four lanes wide with no remainder, at about
+/// 6 % more values than the triangle packed by rows (m ≈ 48).
+pub fn pack_tiled_f32(m: usize, x: &[f64], out: &mut [f32]) {
+    out.iter_mut().for_each(|v| *v = 0.0);
+    for k in 0..m {
+        for j in 0..=k {
+            out[tiled_index(k, j)] = x[k * m + j] as f32;
+        }
+    }
+}
+
+/// z = Gᵀ(G r) for G lower-triangular in f32 tiles ([`pack_tiled_f32`]), every product
+/// and sum in f64; `r` and `z` have [`tiled_side`] components (r's past m zero). Tile row
+/// b gives y = G[4b..4b + 4]·r (four rows side by side, each in four lanes over the
+/// columns, the lanes added as (l0 + l1) + (l2 + l3)) and, while in cache, its share of
+/// Gᵀy (z[..4b + 4] += Σ_q y_q G[4b + q], q in order), so G is read once. zᵀr = ‖y‖² up
+/// to the f64 roundings of the sums, so the block is semidefinite whatever G's entries
+/// are: rounding the factor to f32 cannot make it indefinite, as rounding an explicit
+/// inverse can on a stiff block.
+pub fn apply_tiled(g: &[f32], r: &[f64], z: &mut [f64]) {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU has AVX2, checked just above.
-        unsafe { apply_packed_avx2(g, r, z, y) };
+        unsafe { apply_tiled_avx2(g, r, z) };
         return;
     }
-    apply_packed_body(g, r, z, y);
+    apply_tiled_scalar(g, r, z);
 }
 
-/// [`apply_packed`] compiled for AVX2: four f32 → f64 conversions and products per
-/// instruction instead of two. The same operations in the same order, so the same bits
-/// (Rust never fuses a multiply and an add).
+/// [`apply_tiled`] without vector instructions: the same products and sums in the same
+/// order as [`apply_tiled_avx2`] (a multiply, then an add: never fused), so the same bits.
+fn apply_tiled_scalar(g: &[f32], r: &[f64], z: &mut [f64]) {
+    const T: usize = TILE;
+    let nb = r.len() / T;
+    z.iter_mut().for_each(|v| *v = 0.0);
+    let mut at = 0;
+    for b in 0..nb {
+        let tiles = &g[at..at + T * T * (b + 1)];
+        let mut acc = [[0.0f64; T]; T];
+        for (tile, rj) in tiles.chunks_exact(T * T).zip(r.chunks_exact(T)) {
+            for (q, aq) in acc.iter_mut().enumerate() {
+                for l in 0..T {
+                    aq[l] += f64::from(tile[q * T + l]) * rj[l];
+                }
+            }
+        }
+        let y = acc.map(|a| (a[0] + a[1]) + (a[2] + a[3]));
+        for (tile, zj) in tiles.chunks_exact(T * T).zip(z.chunks_exact_mut(T)) {
+            for (q, yq) in y.iter().enumerate() {
+                for l in 0..T {
+                    zj[l] += f64::from(tile[q * T + l]) * yq;
+                }
+            }
+        }
+        at += T * T * (b + 1);
+    }
+}
+
+/// [`apply_tiled`] in AVX2: a tile row's four rows in four f64 lanes each (f32 → f64
+/// four at a time), the lanes reduced by pairwise adds in [`apply_tiled_scalar`]'s order.
 ///
 /// # Safety
 /// The CPU must have AVX2.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn apply_packed_avx2(g: &[f32], r: &[f64], z: &mut [f64], y: &mut [f64]) {
-    apply_packed_body(g, r, z, y);
-}
-
-/// [`apply_packed`]'s loops, inlined into each of its compilations.
-#[inline(always)]
-fn apply_packed_body(g: &[f32], r: &[f64], z: &mut [f64], y: &mut [f64]) {
-    let m = r.len();
+unsafe fn apply_tiled_avx2(g: &[f32], r: &[f64], z: &mut [f64]) {
+    use std::arch::x86_64::*;
+    const T: usize = TILE;
+    let nb = r.len() / T;
     z.iter_mut().for_each(|v| *v = 0.0);
-    // Row k of G gives y_k and, while in cache, its part of Gᵀy: z[..=k] += G[k] y_k.
+    assert!(g.len() >= tiled_len(nb * T) && z.len() == nb * T);
+    let (gp, rp, zp) = (g.as_ptr(), r.as_ptr(), z.as_mut_ptr());
     let mut at = 0;
-    for k in 0..m {
-        let row = &g[at..at + k + 1];
-        let yk = dot_f32_f64(row, &r[..k + 1]);
-        y[k] = yk;
-        for (zv, gv) in z[..k + 1].iter_mut().zip(row) {
-            *zv += f64::from(*gv) * yk;
+    for b in 0..nb {
+        // SAFETY (every access below): tile row b's tiles lie in g[at..at + 16(b + 1)]
+        // and its columns in r and z [0..4(b + 1)], within the lengths asserted above.
+        let mut acc = [_mm256_setzero_pd(); T];
+        for t in 0..=b {
+            let rj = _mm256_loadu_pd(rp.add(T * t));
+            let tile = gp.add(at + T * T * t);
+            for (q, aq) in acc.iter_mut().enumerate() {
+                let gq = _mm256_cvtps_pd(_mm_loadu_ps(tile.add(T * q)));
+                *aq = _mm256_add_pd(*aq, _mm256_mul_pd(gq, rj));
+            }
         }
-        at += k + 1;
-    }
-}
-
-/// Σ a_k b_k in f64, in eight interleaved partial sums added in a fixed order: the same
-/// bits on every run, and lanes a vector unit fills (one running sum would wait on each
-/// addition).
-#[inline(always)]
-fn dot_f32_f64(a: &[f32], b: &[f64]) -> f64 {
-    const L: usize = 8;
-    let mut acc = [0.0f64; L];
-    let (ac, bc) = (a.chunks_exact(L), b.chunks_exact(L));
-    let (ar, br) = (ac.remainder(), bc.remainder());
-    for (x, y) in ac.zip(bc) {
-        for l in 0..L {
-            acc[l] += f64::from(x[l]) * y[l];
+        // [a0 + a1, b0 + b1, a2 + a3, b2 + b3] and the same for rows 2 and 3, then the
+        // low halves plus the high ones: y_q = (l0 + l1) + (l2 + l3).
+        let h01 = _mm256_hadd_pd(acc[0], acc[1]);
+        let h23 = _mm256_hadd_pd(acc[2], acc[3]);
+        let y = _mm256_add_pd(
+            _mm256_permute2f128_pd(h01, h23, 0x20),
+            _mm256_permute2f128_pd(h01, h23, 0x31),
+        );
+        let mut ys = [0.0f64; T];
+        _mm256_storeu_pd(ys.as_mut_ptr(), y);
+        let yq = ys.map(|v| _mm256_set1_pd(v));
+        for t in 0..=b {
+            let zt = zp.add(T * t);
+            let tile = gp.add(at + T * T * t);
+            let mut zj = _mm256_loadu_pd(zt);
+            for (q, yv) in yq.iter().enumerate() {
+                let gq = _mm256_cvtps_pd(_mm_loadu_ps(tile.add(T * q)));
+                zj = _mm256_add_pd(zj, _mm256_mul_pd(gq, *yv));
+            }
+            _mm256_storeu_pd(zt, zj);
         }
+        at += T * T * (b + 1);
     }
-    for (l, (x, y)) in ar.iter().zip(br).enumerate() {
-        acc[l] += f64::from(*x) * y;
-    }
-    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]))
 }
 
 /// The first d² values of a block, in a 9-array.
@@ -294,10 +352,10 @@ mod tests {
             (rounded < 0.0).then_some((seed, l, r, rounded))
         });
         let (seed, l, r, rounded) = found.expect("a seed whose rounded inverse is indefinite");
-        let mut g = vec![0.0f32; packed_len(m)];
-        pack_lower_f32(m, &factor_inverse(m, &l), &mut g);
-        let (mut z, mut y) = (vec![0.0; m], vec![0.0; m]);
-        apply_packed(&g, &r, &mut z, &mut y);
+        let mut g = vec![0.0f32; tiled_len(m)];
+        pack_tiled_f32(m, &factor_inverse(m, &l), &mut g);
+        let mut z = vec![0.0; tiled_side(m)];
+        apply_tiled(&g, &r, &mut z);
         let zr: f64 = z.iter().zip(&r).map(|(a, b)| a * b).sum();
         // rᵀB⁻¹r = ‖G r‖² = 1; G's rounding (entries up to √κ = 1e5, each a relative
         // 6e-8) moves G r by about 1e-2 at most, far from 0.
@@ -309,16 +367,17 @@ mod tests {
             let v: Vec<f64> = (0..m)
                 .map(|i| ((i * 7 + k * 13) % 11) as f64 - 5.0)
                 .collect();
-            apply_packed(&g, &v, &mut z, &mut y);
+            apply_tiled(&g, &v, &mut z);
             let zv: f64 = z.iter().zip(&v).map(|(a, b)| a * b).sum();
             assert!(zv > 0.0, "seed {seed}, vector {k}: zᵀv = {zv:e}");
         }
     }
 
-    /// GᵀG from the packed f32 factor is the explicit inverse XᵀX of the f32-rounded X:
-    /// the packing reads the lower triangle row by row.
+    /// GᵀG from the tiled f32 factor is the explicit inverse XᵀX of the f32-rounded X, on
+    /// a block whose side is not a whole number of tiles: the tiles hold the lower
+    /// triangle and zeros past it.
     #[test]
-    fn the_packed_factor_applies_its_explicit_inverse() {
+    fn the_tiled_factor_applies_its_explicit_inverse() {
         let m = 7;
         let (a, _) = stiff_block(m, 3);
         let mut l = a;
@@ -326,13 +385,14 @@ mod tests {
         let x = factor_inverse(m, &l);
         let x32: Vec<f64> = x.iter().map(|&v| f64::from(v as f32)).collect();
         let inv = explicit_inverse(m, &x32);
-        let mut g = vec![0.0f32; packed_len(m)];
-        pack_lower_f32(m, &x, &mut g);
-        let (mut z, mut y) = (vec![0.0; m], vec![0.0; m]);
+        let mut g = vec![0.0f32; tiled_len(m)];
+        pack_tiled_f32(m, &x, &mut g);
+        let mut z = vec![0.0; tiled_side(m)];
         for k in 0..m {
-            let mut e = vec![0.0; m];
+            let mut e = vec![0.0; tiled_side(m)];
             e[k] = 1.0;
-            apply_packed(&g, &e, &mut z, &mut y);
+            apply_tiled(&g, &e, &mut z);
+            assert!(z[m..].iter().all(|&v| v == 0.0), "past m: {:?}", &z[m..]);
             for i in 0..m {
                 let want = inv[i * m + k];
                 // The same products summed in another order: a few ulps of the terms'
@@ -346,6 +406,31 @@ mod tests {
                     z[i]
                 );
             }
+        }
+    }
+
+    /// The vector build of the tiled product (where the CPU has AVX2) gives the bits of
+    /// the scalar one: the same products and sums in the same order.
+    #[test]
+    fn the_tiled_product_has_the_same_bits_in_every_build() {
+        for mm in [2, 6, 13, 48] {
+            let (a, _) = stiff_block(mm, 5);
+            let mut l = a;
+            cholesky_dropping(mm, &mut l);
+            let mut g = vec![0.0f32; tiled_len(mm)];
+            pack_tiled_f32(mm, &factor_inverse(mm, &l), &mut g);
+            let mut r = vec![0.0; tiled_side(mm)];
+            for (k, v) in r[..mm].iter_mut().enumerate() {
+                *v = ((k * 7919) % 23) as f64 - 11.3;
+            }
+            let (mut fast, mut slow) = (vec![0.0; r.len()], vec![0.0; r.len()]);
+            apply_tiled(&g, &r, &mut fast);
+            apply_tiled_scalar(&g, &r, &mut slow);
+            let same = fast
+                .iter()
+                .zip(&slow)
+                .all(|(a, b)| a.to_bits() == b.to_bits());
+            assert!(same, "m = {mm}: {fast:?} vs {slow:?}");
         }
     }
 }

@@ -3,8 +3,8 @@
 //! sum into the next level).
 
 use super::dense::{
-    apply_packed, cholesky_dropping, explicit_inverse, factor_inverse, pack_lower, pack_lower_f32,
-    packed_len,
+    apply_tiled, cholesky_dropping, explicit_inverse, factor_inverse, pack_lower, pack_tiled_f32,
+    packed_len, tiled_index, tiled_len, tiled_side,
 };
 use crate::core::elimination::{rotate_block, Eliminated};
 use rayon::prelude::*;
@@ -120,16 +120,20 @@ impl Level {
 
 /// One level's cluster blocks, in two forms. The V-cycle of the CPU CG applies cluster
 /// c's G = L⁺ (the inverse of its dropping Cholesky factor, lower triangular, rounded to
-/// f32, packed row by row at `g[g_start[c]..]`) as GᵀG: a quarter of an f64 explicit
-/// inverse's bytes, and semidefinite whatever the rounding ([`apply_packed`]). The same
-/// X = L⁺ in f64, packed alike at `x[g_start[c]..]`, is what the explicit (L Lᵀ)⁺ = XᵀX
-/// the device V-cycle holds is computed from, only when asked ([`Factors::inverses`]):
-/// a CPU solve never reads it.
+/// f32, in 4×4 tiles at `g[g_start[c]..]`, [`pack_tiled_f32`]) as GᵀG: about a quarter
+/// of an f64 explicit inverse's bytes, run four lanes wide, and semidefinite whatever
+/// the rounding ([`apply_tiled`]). The same X = L⁺ in f64, packed by rows at
+/// `x[x_start[c]..]`, is what the explicit (L Lᵀ)⁺ = XᵀX the device V-cycle holds is
+/// computed from, only when asked ([`Factors::inverses`]): a CPU solve never reads it.
 #[derive(Debug, Clone)]
 pub(super) struct Factors {
     pub(super) g_start: Vec<usize>,
     pub(super) g: Vec<f32>,
+    x_start: Vec<usize>,
     x: Vec<f64>,
+    /// Cluster c's vectors in the smoother's scratch at `side_start[c]..side_start[c + 1]`
+    /// (its unknowns rounded up to whole tiles, [`tiled_side`]).
+    side_start: Vec<usize>,
 }
 
 /// One level's explicit cluster inverses (L Lᵀ)⁺ = XᵀX in f64: cluster c's m×m symmetric
@@ -161,7 +165,7 @@ impl Factors {
             .for_each(|(c, out)| {
                 let m = (lev.ptr[c + 1] - lev.ptr[c]) * d;
                 let mut x = vec![0.0; m * m];
-                unpack_lower(m, &self.x[self.g_start[c]..self.g_start[c + 1]], &mut x);
+                unpack_lower(m, &self.x[self.x_start[c]..self.x_start[c + 1]], &mut x);
                 out.copy_from_slice(&explicit_inverse(m, &x));
             });
         Inverses { start, inv }
@@ -172,13 +176,14 @@ impl Factors {
     /// alone. X stays the build's: the explicit inverse is masked on its own
     /// ([`mask_inverse`]), its other entries the build's.
     pub(super) fn mask(&mut self, c: usize, m: usize, row: usize, sqrt_inv: f64) {
-        let at0 = self.g_start[c];
-        let at = at0 + row * (row + 1) / 2;
-        self.g[at..at + row].fill(0.0);
-        for k in row + 1..m {
-            self.g[at0 + k * (k + 1) / 2 + row] = 0.0;
+        let g = &mut self.g[self.g_start[c]..self.g_start[c + 1]];
+        for j in 0..row {
+            g[tiled_index(row, j)] = 0.0;
         }
-        self.g[at + row] = sqrt_inv as f32;
+        for k in row + 1..m {
+            g[tiled_index(k, row)] = 0.0;
+        }
+        g[tiled_index(row, row)] = sqrt_inv as f32;
     }
 }
 
@@ -248,47 +253,30 @@ pub(super) fn block_matvec<T: Copy + Into<f64> + Sync>(
     y: &mut [f64],
 ) {
     match d {
-        2 => block_matvec_d::<T, 2, 4>(lev, a, None, x, y),
-        _ => block_matvec_d::<T, 3, 9>(lev, a, None, x, y),
+        2 => block_matvec_d::<T, 2, 4>(lev, a, x, y),
+        _ => block_matvec_d::<T, 3, 9>(lev, a, x, y),
     }
 }
 
-/// res = b − A x for a level's matrix, in one pass ([`block_matvec`]'s sums).
-pub(super) fn block_residual<T: Copy + Into<f64> + Sync>(
-    d: usize,
-    lev: &Level,
-    a: &[T],
-    b: &[f64],
-    x: &[f64],
-    res: &mut [f64],
-) {
-    match d {
-        2 => block_matvec_d::<T, 2, 4>(lev, a, Some(b), x, res),
-        _ => block_matvec_d::<T, 3, 9>(lev, a, Some(b), x, res),
-    }
-}
-
-/// y = A x, or y = b − A x with `b`.
+/// y = A x for d = D.
 fn block_matvec_d<T: Copy + Into<f64> + Sync, const D: usize, const DD: usize>(
     lev: &Level,
     a: &[T],
-    b: Option<&[f64]>,
     x: &[f64],
     y: &mut [f64],
 ) {
     y.par_chunks_mut(D * 64)
         .enumerate()
         .for_each(|(chunk, ys)| {
-            block_rows::<T, D, DD>(lev, a, b, x, chunk * 64, ys);
+            block_rows::<T, D, DD>(lev, a, x, chunk * 64, ys);
         });
 }
 
-/// Rows `first..` of y = A x (or b − A x) into `ys`, compiled for AVX2 where the CPU has
+/// Rows `first..` of y = A x into `ys`, compiled for AVX2 where the CPU has
 /// it ([`block_rows_body`]).
 fn block_rows<T: Copy + Into<f64>, const D: usize, const DD: usize>(
     lev: &Level,
     a: &[T],
-    b: Option<&[f64]>,
     x: &[f64],
     first: usize,
     ys: &mut [f64],
@@ -296,10 +284,10 @@ fn block_rows<T: Copy + Into<f64>, const D: usize, const DD: usize>(
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU has AVX2, checked just above.
-        unsafe { block_rows_avx2::<T, D, DD>(lev, a, b, x, first, ys) };
+        unsafe { block_rows_avx2::<T, D, DD>(lev, a, x, first, ys) };
         return;
     }
-    block_rows_body::<T, D, DD>(lev, a, b, x, first, ys);
+    block_rows_body::<T, D, DD>(lev, a, x, first, ys);
 }
 
 /// [`block_rows_body`] compiled for AVX2 (wider f32 → f64 conversions); the same
@@ -312,20 +300,18 @@ fn block_rows<T: Copy + Into<f64>, const D: usize, const DD: usize>(
 unsafe fn block_rows_avx2<T: Copy + Into<f64>, const D: usize, const DD: usize>(
     lev: &Level,
     a: &[T],
-    b: Option<&[f64]>,
     x: &[f64],
     first: usize,
     ys: &mut [f64],
 ) {
-    block_rows_body::<T, D, DD>(lev, a, b, x, first, ys);
+    block_rows_body::<T, D, DD>(lev, a, x, first, ys);
 }
 
-/// Rows `first..` of y = A x (or b − A x) into `ys`.
+/// Rows `first..` of y = A x into `ys`.
 #[inline(always)]
 fn block_rows_body<T: Copy + Into<f64>, const D: usize, const DD: usize>(
     lev: &Level,
     a: &[T],
-    b: Option<&[f64]>,
     x: &[f64],
     first: usize,
     ys: &mut [f64],
@@ -347,14 +333,7 @@ fn block_rows_body<T: Copy + Into<f64>, const D: usize, const DD: usize>(
                 acc[r] += s;
             }
         }
-        match b {
-            Some(b) => {
-                for r in 0..D {
-                    yi[r] = b[i * D + r] - acc[r];
-                }
-            }
-            None => yi.copy_from_slice(&acc),
-        }
+        yi.copy_from_slice(&acc);
     }
 }
 
@@ -362,11 +341,13 @@ fn block_rows_body<T: Copy + Into<f64>, const D: usize, const DD: usize>(
 /// and (j, i) has the smaller row (its transpose for the other; a diagonal block from its
 /// upper triangle): the rounded matrix is exactly symmetric, as the V-cycle's symmetry
 /// needs, even where the f64 one is symmetric only to its roundings. `mirror[k]` is the
-/// index of block k's transposed partner.
+/// index of block k's transposed partner. Each block is stored by columns and one zero
+/// follows the last ([`cycle_product`] reads a column as four values).
 pub(super) fn symmetric_f32(d: usize, lev: &Level, mirror: &[u32], a: &[f64], out: &mut Vec<f32>) {
     let dd = d * d;
-    out.resize(a.len(), 0.0);
-    let rows: Vec<&mut [f32]> = split_rows(out, &lev.row_ptr, dd);
+    out.resize(a.len() + 1, 0.0);
+    out[a.len()] = 0.0;
+    let rows: Vec<&mut [f32]> = split_rows(&mut out[..a.len()], &lev.row_ptr, dd);
     rows.into_par_iter().enumerate().for_each(|(i, o)| {
         let (rs, re) = (lev.row_ptr[i], lev.row_ptr[i + 1]);
         for ((k, &j), ob) in (rs..re)
@@ -385,11 +366,133 @@ pub(super) fn symmetric_f32(d: usize, lev: &Level, mirror: &[u32], a: &[f64], ou
                     } else {
                         other[c * d + r]
                     };
-                    ob[r * d + c] = v as f32;
+                    ob[c * d + r] = v as f32;
                 }
             }
         }
     });
+}
+
+/// y = A x, or y = b − A x with `b`, for a level's matrix as the V-cycle stores it
+/// ([`symmetric_f32`]: f32 blocks by columns), every product and sum in f64: row i sums
+/// each column c of its blocks times x_j[c] into its own accumulator (d independent
+/// chains of additions, in block order), then adds them as (acc_0 + acc_1) + acc_2.
+pub(super) fn cycle_product(
+    d: usize,
+    lev: &Level,
+    a: &[f32],
+    b: Option<&[f64]>,
+    x: &[f64],
+    y: &mut [f64],
+) {
+    assert!(a.len() > lev.row_ptr[lev.n] * d * d, "the trailing zero");
+    match d {
+        2 => cycle_product_d::<2, 4>(lev, a, b, x, y),
+        _ => cycle_product_d::<3, 9>(lev, a, b, x, y),
+    }
+}
+
+fn cycle_product_d<const D: usize, const DD: usize>(
+    lev: &Level,
+    a: &[f32],
+    b: Option<&[f64]>,
+    x: &[f64],
+    y: &mut [f64],
+) {
+    y.par_chunks_mut(D * 64)
+        .enumerate()
+        .for_each(|(chunk, ys)| {
+            #[cfg(target_arch = "x86_64")]
+            if D == 3 && std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU has AVX2, checked just above; `a` ends in the zero
+                // `cycle_product` asserted.
+                unsafe { cycle_rows3_avx2(lev, a, b, x, chunk * 64, ys) };
+                return;
+            }
+            cycle_rows::<D, DD>(lev, a, b, x, chunk * 64, ys);
+        });
+}
+
+/// Rows `first..` of [`cycle_product`] into `ys`.
+fn cycle_rows<const D: usize, const DD: usize>(
+    lev: &Level,
+    a: &[f32],
+    b: Option<&[f64]>,
+    x: &[f64],
+    first: usize,
+    ys: &mut [f64],
+) {
+    let (row_ptr, col_idx) = (&lev.row_ptr, &lev.col32);
+    for (r0, yi) in ys.chunks_exact_mut(D).enumerate() {
+        let i = first + r0;
+        let mut acc = [[0.0f64; D]; D];
+        let (rs, re) = (row_ptr[i], row_ptr[i + 1]);
+        for (blk, &j) in a[rs * DD..re * DD].chunks_exact(DD).zip(&col_idx[rs..re]) {
+            let j = j as usize;
+            for (c, ac) in acc.iter_mut().enumerate() {
+                let xc = x[j * D + c];
+                for r in 0..D {
+                    ac[r] += f64::from(blk[c * D + r]) * xc;
+                }
+            }
+        }
+        for r in 0..D {
+            let mut s = acc[0][r] + acc[1][r];
+            if D == 3 {
+                s += acc[2][r];
+            }
+            yi[r] = match b {
+                Some(b) => b[i * D + r] - s,
+                None => s,
+            };
+        }
+    }
+}
+
+/// [`cycle_rows`] for d = 3 in AVX2: a block column's three values (and the next one,
+/// whose lane is dropped) in four f64 lanes; the same products and sums in the same
+/// order, so the same bits.
+///
+/// # Safety
+/// The CPU must have AVX2, and `a` hold one value past the level's last block.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn cycle_rows3_avx2(
+    lev: &Level,
+    a: &[f32],
+    b: Option<&[f64]>,
+    x: &[f64],
+    first: usize,
+    ys: &mut [f64],
+) {
+    use std::arch::x86_64::*;
+    let (row_ptr, col_idx) = (&lev.row_ptr, &lev.col32);
+    let ap = a.as_ptr();
+    for (r0, yi) in ys.chunks_exact_mut(3).enumerate() {
+        let i = first + r0;
+        let mut acc = [_mm256_setzero_pd(); 3];
+        let (rs, re) = (row_ptr[i], row_ptr[i + 1]);
+        for (k, &j) in (rs..re).zip(&col_idx[rs..re]) {
+            let xj: &[f64; 3] = x[j as usize * 3..j as usize * 3 + 3]
+                .try_into()
+                .expect("3 values");
+            for (c, ac) in acc.iter_mut().enumerate() {
+                // SAFETY: block k's column c is a[9k + 3c..9k + 3c + 3], and the
+                // fourth value read is within a (the trailing zero at the latest).
+                let col = _mm256_cvtps_pd(_mm_loadu_ps(ap.add(9 * k + 3 * c)));
+                *ac = _mm256_add_pd(*ac, _mm256_mul_pd(col, _mm256_set1_pd(xj[c])));
+            }
+        }
+        let s = _mm256_add_pd(_mm256_add_pd(acc[0], acc[1]), acc[2]);
+        let mut sv = [0.0f64; 4];
+        _mm256_storeu_pd(sv.as_mut_ptr(), s);
+        for r in 0..3 {
+            yi[r] = match b {
+                Some(b) => b[i * 3 + r] - sv[r],
+                None => sv[r],
+            };
+        }
+    }
 }
 
 /// For each stored block k = (i, j) of a level's pattern (both triangles stored), the
@@ -439,18 +542,23 @@ pub(super) fn factor_level(
     block: impl Fn(usize, usize, usize, &mut [f64]) + Sync,
 ) -> (Factors, usize) {
     let nc = lev.clusters();
-    let mut g_start = Vec::with_capacity(nc + 1);
-    let mut g_total = 0;
-    for c in 0..nc {
-        g_start.push(g_total);
-        let m = (lev.ptr[c + 1] - lev.ptr[c]) * d;
-        g_total += packed_len(m);
-    }
-    g_start.push(g_total);
-    let mut g = vec![0.0f32; g_total];
-    let mut x64 = vec![0.0f64; g_total];
+    let offsets = |len: &dyn Fn(usize) -> usize| {
+        let mut start = Vec::with_capacity(nc + 1);
+        let mut total = 0;
+        for c in 0..nc {
+            start.push(total);
+            total += len((lev.ptr[c + 1] - lev.ptr[c]) * d);
+        }
+        start.push(total);
+        start
+    };
+    let g_start = offsets(&tiled_len);
+    let x_start = offsets(&packed_len);
+    let side_start = offsets(&tiled_side);
+    let mut g = vec![0.0f32; g_start[nc]];
+    let mut x64 = vec![0.0f64; x_start[nc]];
     let g_parts = split_at_starts(&mut g, &g_start);
-    let x_parts = split_at_starts(&mut x64, &g_start);
+    let x_parts = split_at_starts(&mut x64, &x_start);
     let dropped: usize = g_parts
         .into_par_iter()
         .zip(x_parts)
@@ -478,12 +586,21 @@ pub(super) fn factor_level(
             }
             let dropped = cholesky_dropping(m, &mut a);
             let x = factor_inverse(m, &a);
-            pack_lower_f32(m, &x, gc);
+            pack_tiled_f32(m, &x, gc);
             pack_lower(m, &x, xc);
             dropped
         })
         .sum();
-    (Factors { g_start, g, x: x64 }, dropped)
+    (
+        Factors {
+            g_start,
+            g,
+            x_start,
+            x: x64,
+            side_start,
+        },
+        dropped,
+    )
 }
 
 /// `v` split at `start` (ascending offsets, the last one its length).
@@ -499,9 +616,9 @@ fn split_at_starts<'v, T>(mut v: &'v mut [T], start: &[usize]) -> Vec<&'v mut [T
 
 /// out = scale · GᵀG src over a level's clusters (the f32 factor form of B⁺, [`Factors`]),
 /// or out += that with `add`: each cluster's items gathered into its own slice of a
-/// cluster-ordered scratch, applied there ([`apply_packed`]), then scattered back. `tmp`
-/// is the scratch (resized to three values per unknown: the gathered source, G src and
-/// the result).
+/// cluster-ordered scratch (zeros past its unknowns, to whole tiles), applied there
+/// ([`apply_tiled`]), then scattered back. `tmp` is the scratch (resized to two such
+/// vectors: the gathered source and the result).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn smooth_level(
     lev: &Level,
@@ -513,32 +630,33 @@ pub(super) fn smooth_level(
     out: &mut [f64],
     tmp: &mut Vec<f64>,
 ) {
-    tmp.resize(3 * lev.n * d, 0.0);
-    let parts = split_rows(tmp, &lev.ptr, 3 * d);
-    parts
+    let total = f.side_start[lev.clusters()];
+    tmp.resize(2 * total, 0.0);
+    let (rs, zs) = tmp.split_at_mut(total);
+    let r_parts = split_at_starts(rs, &f.side_start);
+    let z_parts = split_at_starts(zs, &f.side_start);
+    r_parts
         .into_par_iter()
-        .with_min_len(8)
+        .zip(z_parts)
         .enumerate()
-        .for_each(|(c, buf)| {
+        .with_min_len(8)
+        .for_each(|(c, (r, z))| {
             let items = &lev.items[lev.ptr[c]..lev.ptr[c + 1]];
             let m = items.len() * d;
-            let (r, rest) = buf.split_at_mut(m);
-            let (y, z) = rest.split_at_mut(m);
-            for (rp, &i) in r.chunks_exact_mut(d).zip(items) {
+            for (rp, &i) in r[..m].chunks_exact_mut(d).zip(items) {
                 let i = i as usize;
                 rp.copy_from_slice(&src[i * d..(i + 1) * d]);
             }
-            apply_packed(&f.g[f.g_start[c]..f.g_start[c + 1]], r, z, y);
+            r[m..].iter_mut().for_each(|v| *v = 0.0);
+            apply_tiled(&f.g[f.g_start[c]..f.g_start[c + 1]], r, z);
         });
-    let tmp = &tmp[..];
+    let zs = &tmp[total..];
     out.par_chunks_mut(d)
         .with_min_len(256)
         .enumerate()
         .for_each(|(i, o)| {
-            let c = lev.of[i] as usize;
-            let m = (lev.ptr[c + 1] - lev.ptr[c]) * d;
-            let at = 3 * lev.ptr[c] * d + 2 * m + lev.pos[i] as usize * d;
-            let z = &tmp[at..at + d];
+            let at = f.side_start[lev.of[i] as usize] + lev.pos[i] as usize * d;
+            let z = &zs[at..at + d];
             if add {
                 o.iter_mut().zip(z).for_each(|(v, w)| *v += scale * w);
             } else {

@@ -17,11 +17,11 @@
 //! ω λmax(B_l⁺A_l) < 2: ω_l comes from a power estimate of that λmax ([`OMEGA_MAX`]).
 //!
 //! The CPU V-cycle reads f32 copies (`CycleLevel`): every level's matrix (level 0: Ĥ in
-//! the node frames; the CG's own product with Ĥ stays f64), P and Pᵀ, and each cluster
-//! block as its factor inverse G = L⁺ packed by rows and applied as GᵀG, with every sum in
-//! f64. A V-cycle is bound by the bytes it reads, and these are about a third of f64
-//! explicit inverses' and matrices'; the iterations stay those of the f64 cycle
-//! (docs/design/multilevel.md). The f64 matrices stay too, with G in f64 packed alike:
+//! the node frames, each block stored by columns; the CG's own product with Ĥ stays f64),
+//! P and Pᵀ, and each cluster block as its factor inverse G = L⁺ in 4×4 tiles applied as
+//! GᵀG, with every product and sum in f64, four lanes wide. These are about a third of
+//! f64 explicit inverses' and matrices' bytes; the iterations stay those of the f64 cycle
+//! (docs/design/multilevel.md). The f64 matrices stay too, with G in f64 packed by rows:
 //! the device V-cycle uploads the matrices and the explicit inverses GᵀG in f64, which
 //! [`Multilevel::levels`] computes from those when first asked (a CPU solve never does).
 //!
@@ -57,7 +57,7 @@ pub use dense::PIVOT_DROP;
 pub use dense::{cholesky_dropping, inverse_from_factor};
 pub use level::LAMBDA_STEPS;
 use level::{
-    block_matvec, block_residual, factor_level, frame_values, frame_values_into, mask_inverse,
+    block_matvec, cycle_product, factor_level, frame_values, frame_values_into, mask_inverse,
     mirror_blocks, power_estimate, smooth_level, solve_level, symmetric_f32, Factors, Inverses,
     Level,
 };
@@ -586,7 +586,7 @@ impl Multilevel {
         let a = &self.cycle[l].values;
         let mut tmp = Vec::new();
         omega_for(power_estimate(lev.n * d, LAMBDA_STEPS, |x, ax, y| {
-            block_matvec(d, lev, a, x, ax);
+            cycle_product(d, lev, a, None, x, ax);
             smooth_level(lev, d, &self.factors[l], 1.0, false, ax, y, &mut tmp);
         }))
     }
@@ -753,7 +753,7 @@ impl Multilevel {
         smooth_level(lev, d, f, cy.omega, false, b, x, &mut w.tmp);
         lap(&mut seconds, &mut t, 0);
         let res = &mut w.res;
-        block_residual(d, lev, &cy.values, b, x, res);
+        cycle_product(d, lev, &cy.values, Some(b), x, res);
         lap(&mut seconds, &mut t, 1);
         // The next level's vectors leave `below` while it recurses (a move, no copy).
         let mut bc = std::mem::take(&mut next.b);
@@ -768,7 +768,7 @@ impl Multilevel {
         }
         sp.prolong_add(d, &cy.p, &xc, x);
         lap(&mut seconds, &mut t, 3);
-        block_residual(d, lev, &cy.values, b, x, res);
+        cycle_product(d, lev, &cy.values, Some(b), x, res);
         lap(&mut seconds, &mut t, 4);
         smooth_level(lev, d, f, cy.omega, true, res, x, &mut w.tmp);
         lap(&mut seconds, &mut t, 5);
