@@ -5,7 +5,7 @@
 //! are the best of the repeats; CPU seconds (all threads, Unix only) their mean, which a
 //! loaded machine disturbs less; the Hessian's element passes and gathers are the means of
 //! the assembly's own phase timers. The inversion bound (`Model::inversion_bound`) runs
-//! along a fixed pseudo-random step of about a third of the node spacing, which inverts
+//! along a fixed pseudo-random step of about a tenth of the node spacing, which inverts
 //! some elements before α = 1.
 
 use std::time::Instant;
@@ -58,7 +58,7 @@ fn main() {
         }
     }
     let elements: usize = m.sets.iter().map(|s| s.len()).sum();
-    // The step: per coordinate a SplitMix64 value in [-1, 1), times a third of the node
+    // The step: per coordinate a SplitMix64 value in [-1, 1), times a tenth of the node
     // spacing (the bounding box's volume per node, to the power 1/d).
     let (lo, hi) = (0..d).fold(
         (vec![f64::MAX; d], vec![f64::MIN; d]),
@@ -79,7 +79,7 @@ fn main() {
             z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
             z ^= z >> 31;
             let unit = (z >> 11) as f64 / (1u64 << 53) as f64;
-            spacing / 3.0 * (2.0 * unit - 1.0)
+            spacing / 10.0 * (2.0 * unit - 1.0)
         })
         .collect();
     println!(

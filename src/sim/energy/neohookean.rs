@@ -27,6 +27,7 @@
 
 use super::digest::{digest_f64s, digest_usizes};
 use super::eigensystem::{self, SingularValueHessian, PAIRS};
+use super::lanes::{self, Lanes};
 use crate::sim::mesh::Mesh;
 use rayon::prelude::*;
 
@@ -285,6 +286,59 @@ impl NeoHookean {
         }
     }
 
+    /// [`NeoHookean::coefficients`] of each lane, (s, q, w, t): the same expressions in
+    /// the same order, and each lane's logarithm the same `ln` call.
+    #[inline(always)]
+    pub(super) fn coefficients_lanes(&self, ic: Lanes, j: Lanes) -> (Lanes, Lanes, Lanes, Lanes) {
+        let (mu, lambda) = (Lanes::splat(self.mu), Lanes::splat(self.lambda));
+        match self.law {
+            Law::NeoHookean => {
+                let l = j.map(|v| if v > 0.0 { v.ln() } else { f64::NAN });
+                (
+                    mu,
+                    Lanes::splat(0.0),
+                    (lambda * (Lanes::splat(1.0) - l) + mu) / (j * j),
+                    (lambda * l - mu) / j,
+                )
+            }
+            Law::StableNeoHookean => {
+                let one = Lanes::splat(1.0);
+                (
+                    mu - mu / (ic + one),
+                    Lanes::splat(2.0 * self.mu) / ((ic + one) * (ic + one)),
+                    lambda,
+                    lambda * (j - Lanes::splat(self.alpha)),
+                )
+            }
+        }
+    }
+
+    /// [`NeoHookean::density`] (3D) of each lane's F: the same expressions in the same
+    /// order (the classical law's +∞ where J ≤ 0 or NaN chosen per lane), and each lane's
+    /// logarithm the same `ln` call.
+    #[inline(always)]
+    pub(super) fn density_lanes(&self, f: &lanes::Mat3) -> Lanes {
+        let ic = lanes::entry_dot(f, f);
+        let j = lanes::det3(f);
+        let half_mu = Lanes::splat(0.5 * self.mu);
+        let stretch = half_mu * (ic - Lanes::splat(3.0));
+        let raw = match self.law {
+            Law::NeoHookean => {
+                let l = j.map(f64::ln);
+                let v =
+                    stretch - Lanes::splat(self.mu) * l + Lanes::splat(0.5 * self.lambda) * l * l;
+                // !(J > 0): J ≤ 0 or NaN.
+                Lanes::select(!j.gt(Lanes::splat(0.0)), Lanes::splat(f64::INFINITY), v)
+            }
+            Law::StableNeoHookean => {
+                let dj = (j - Lanes::splat(self.alpha)).map(|v| v.powi(2));
+                stretch + Lanes::splat(0.5 * self.lambda) * dj
+                    - half_mu * (ic + Lanes::splat(1.0)).map(f64::ln)
+            }
+        };
+        raw - Lanes::splat(self.rest_density)
+    }
+
     /// Ψ(F) per unit rest volume, zero at F = I.
     pub fn density(&self, f: &[f64]) -> f64 {
         self.density_raw(f) - self.rest_density
@@ -536,8 +590,12 @@ impl NeoHookean {
         let chunks: Vec<Chunk> = (0..self.len().div_ceil(SCAN_CHUNK))
             .into_par_iter()
             .map(|k| {
+                let range = k * SCAN_CHUNK..((k + 1) * SCAN_CHUNK).min(self.len());
+                if d == 3 {
+                    return self.inversion_scan3(x, dx, max, below, range.start, range.len());
+                }
                 let mut best: Option<(f64, usize)> = None;
-                for e in k * SCAN_CHUNK..((k + 1) * SCAN_CHUNK).min(self.len()) {
+                for e in range {
                     let c = step_det_polynomial(d, self.nodes(e), x, dx);
                     if c[0].is_nan() || c[0] <= 0.0 {
                         return Err((e, c[0] / (rest_factor * self.volume[e])));
@@ -606,7 +664,7 @@ pub fn first_root(c: &[f64; 4], max: f64) -> Option<f64> {
 /// [`first_root`]'s, ended early once the root is known to lie above `stop` (the bracket's
 /// left end reached it: the root returned is always right of that end), so whatever it
 /// returns is [`first_root`]'s value, bit for bit.
-fn root_below(c: &[f64; 4], max: f64, stop: Option<f64>) -> Option<f64> {
+pub(super) fn root_below(c: &[f64; 4], max: f64, stop: Option<f64>) -> Option<f64> {
     let beyond = |v: f64| stop.is_some_and(|s| v >= s);
     let p = |a: f64| ((c[3] * a + c[2]) * a + c[1]) * a + c[0];
     let mut cuts = [max; 3];
