@@ -1,16 +1,19 @@
 //! The neo-Hookean element kernels of the assembly with the dimension a compile-time
 //! constant: fixed-size stack arrays, unrolled loops, no per-element dispatch on d, and
 //! each element Hessian written straight into its upper node blocks (the slots the
-//! assembly gathers from); projected 3D Hessians run [`LANES`] elements side by side
-//! ([`super::lanes`]). Every value is the same expression, evaluated in the same
-//! order, as the per-element reference ([`NeoHookean::element_hessian`],
-//! [`NeoHookean::element_gradient`], [`NeoHookean::element_energy`]), so the results are
-//! equal to it bit for bit (the tests check it), and a scene's trajectory does not depend
-//! on which one ran.
+//! assembly gathers from). In 3D the projected Hessians, the gradients, the energies
+//! and the inversion bound's step polynomials run [`LANES`] elements side by side
+//! ([`super::lanes`]), AVX2 where the CPU has it (`lane_pass!`); sums over elements (the
+//! energy's, the inversion bound's minimum) still take the elements one after another in
+//! order. Every value is the same expression, evaluated in the same order, as the
+//! per-element reference ([`NeoHookean::element_hessian`],
+//! [`NeoHookean::element_gradient`], [`NeoHookean::element_energy`],
+//! `neohookean::step_det_polynomial`), so the results are equal to it bit for bit (the
+//! tests check it), and a scene's trajectory does not depend on which one ran.
 
 use super::eigensystem::{self, SingularValueHessian, LANES, PAIRS};
 use super::lanes::{self, Lanes, SingularValueHessianLanes, BLOCK_VALUES};
-use super::neohookean::{root_below, Coefficients, NeoHookean};
+use super::neohookean::{root_below, Coefficients, Law, NeoHookean};
 
 /// Defines the method `$name`, which calls `self.$body(args)` (an `#[inline(always)]`
 /// lane pass) compiled for AVX2 where the CPU has it (a [`Lanes`] in three registers),
@@ -350,6 +353,59 @@ impl NeoHookean {
         lanes::mat3(|r, k| s * f[r][k] + t * c[r][k])
     }
 
+    /// [`NeoHookean::coefficients`] of each lane, (s, q, w, t): the same expressions in
+    /// the same order, and each lane's logarithm the same `ln` call.
+    #[inline(always)]
+    fn coefficients_lanes(&self, ic: Lanes, j: Lanes) -> (Lanes, Lanes, Lanes, Lanes) {
+        let (mu, lambda) = (Lanes::splat(self.mu), Lanes::splat(self.lambda));
+        match self.law {
+            Law::NeoHookean => {
+                let l = j.map(|v| if v > 0.0 { v.ln() } else { f64::NAN });
+                (
+                    mu,
+                    Lanes::splat(0.0),
+                    (lambda * (Lanes::splat(1.0) - l) + mu) / (j * j),
+                    (lambda * l - mu) / j,
+                )
+            }
+            Law::StableNeoHookean => {
+                let one = Lanes::splat(1.0);
+                (
+                    mu - mu / (ic + one),
+                    Lanes::splat(2.0 * self.mu) / ((ic + one) * (ic + one)),
+                    lambda,
+                    lambda * (j - Lanes::splat(self.alpha)),
+                )
+            }
+        }
+    }
+
+    /// [`NeoHookean::density`] (3D) of each lane's F: the same expressions in the same
+    /// order (the classical law's +∞ where J ≤ 0 or NaN chosen per lane), and each lane's
+    /// logarithm the same `ln` call.
+    #[inline(always)]
+    fn density_lanes(&self, f: &lanes::Mat3) -> Lanes {
+        let ic = lanes::entry_dot(f, f);
+        let j = lanes::det3(f);
+        let half_mu = Lanes::splat(0.5 * self.mu);
+        let stretch = half_mu * (ic - Lanes::splat(3.0));
+        let raw = match self.law {
+            Law::NeoHookean => {
+                let l = j.map(f64::ln);
+                let v =
+                    stretch - Lanes::splat(self.mu) * l + Lanes::splat(0.5 * self.lambda) * l * l;
+                // !(J > 0): J ≤ 0 or NaN.
+                Lanes::select(!j.gt(Lanes::splat(0.0)), Lanes::splat(f64::INFINITY), v)
+            }
+            Law::StableNeoHookean => {
+                let dj = (j - Lanes::splat(self.alpha)).map(|v| v.powi(2));
+                stretch + Lanes::splat(0.5 * self.lambda) * dj
+                    - half_mu * (ic + Lanes::splat(1.0)).map(f64::ln)
+            }
+        };
+        raw - Lanes::splat(self.rest_density)
+    }
+
     /// Σ of the energies of the elements `first..first + n` in element order:
     /// `.sum::<f64>()` of [`NeoHookean::element_energy_fast`] of each, bit for bit; 3D
     /// energies [`LANES`] at a time, then added one after another.
@@ -378,7 +434,7 @@ impl NeoHookean {
             let (f, _, volume) = self.gather3(x, &lane_elements(e0, count));
             let energy = volume * self.density_lanes(&f);
             for e in &energy.0[..count] {
-                sum = sum + e;
+                sum += e;
             }
         }
         sum

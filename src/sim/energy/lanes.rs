@@ -6,7 +6,13 @@
 //! eigenproblems run in [`symmetric_eigen3_lanes`](super::eigensystem::symmetric_eigen3_lanes)); where
 //! those branch, the lanes compute both sides and select (an exact choice), so each
 //! lane's result equals the per-element one bit for bit. Rust never fuses a multiply and
-//! an add, so this holds whatever vector width the code is compiled for.
+//! an add, so this holds whatever vector width the code is compiled for. The 3D
+//! gradients, energies and step polynomials of [`super::kernels`] use the same types
+//! (with [`cofactor3`], [`det3`] and [`entry_dot`]).
+//!
+//! Arrays of lanes are built and converted with written-out loops or [`vec3`]/[`mat3`],
+//! not `array::map`/`array::from_fn`: whether the optimiser inlines those depends on the
+//! rest of the code generation unit, and out of line they keep a lane group in memory.
 
 // Lane loops index several arrays by the same lane: the form that vectorises.
 #![allow(clippy::needless_range_loop)]

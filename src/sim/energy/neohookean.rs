@@ -27,7 +27,6 @@
 
 use super::digest::{digest_f64s, digest_usizes};
 use super::eigensystem::{self, SingularValueHessian, PAIRS};
-use super::lanes::{self, Lanes};
 use crate::sim::mesh::Mesh;
 use rayon::prelude::*;
 
@@ -76,8 +75,10 @@ pub struct NeoHookean {
     pub volume: Vec<f64>,
     pub mu: f64,
     pub lambda: f64,
-    alpha: f64,
-    rest_density: f64,
+    /// The stable law's rest J of the volume term (1 for the classical law).
+    pub(super) alpha: f64,
+    /// Ψ(I) before the shift that makes the density zero at rest.
+    pub(super) rest_density: f64,
 }
 
 /// Lamé parameters (μ_L, λ_L) of Young's modulus and Poisson ratio.
@@ -284,59 +285,6 @@ impl NeoHookean {
                 t: lambda * (j - self.alpha),
             },
         }
-    }
-
-    /// [`NeoHookean::coefficients`] of each lane, (s, q, w, t): the same expressions in
-    /// the same order, and each lane's logarithm the same `ln` call.
-    #[inline(always)]
-    pub(super) fn coefficients_lanes(&self, ic: Lanes, j: Lanes) -> (Lanes, Lanes, Lanes, Lanes) {
-        let (mu, lambda) = (Lanes::splat(self.mu), Lanes::splat(self.lambda));
-        match self.law {
-            Law::NeoHookean => {
-                let l = j.map(|v| if v > 0.0 { v.ln() } else { f64::NAN });
-                (
-                    mu,
-                    Lanes::splat(0.0),
-                    (lambda * (Lanes::splat(1.0) - l) + mu) / (j * j),
-                    (lambda * l - mu) / j,
-                )
-            }
-            Law::StableNeoHookean => {
-                let one = Lanes::splat(1.0);
-                (
-                    mu - mu / (ic + one),
-                    Lanes::splat(2.0 * self.mu) / ((ic + one) * (ic + one)),
-                    lambda,
-                    lambda * (j - Lanes::splat(self.alpha)),
-                )
-            }
-        }
-    }
-
-    /// [`NeoHookean::density`] (3D) of each lane's F: the same expressions in the same
-    /// order (the classical law's +∞ where J ≤ 0 or NaN chosen per lane), and each lane's
-    /// logarithm the same `ln` call.
-    #[inline(always)]
-    pub(super) fn density_lanes(&self, f: &lanes::Mat3) -> Lanes {
-        let ic = lanes::entry_dot(f, f);
-        let j = lanes::det3(f);
-        let half_mu = Lanes::splat(0.5 * self.mu);
-        let stretch = half_mu * (ic - Lanes::splat(3.0));
-        let raw = match self.law {
-            Law::NeoHookean => {
-                let l = j.map(f64::ln);
-                let v =
-                    stretch - Lanes::splat(self.mu) * l + Lanes::splat(0.5 * self.lambda) * l * l;
-                // !(J > 0): J ≤ 0 or NaN.
-                Lanes::select(!j.gt(Lanes::splat(0.0)), Lanes::splat(f64::INFINITY), v)
-            }
-            Law::StableNeoHookean => {
-                let dj = (j - Lanes::splat(self.alpha)).map(|v| v.powi(2));
-                stretch + Lanes::splat(0.5 * self.lambda) * dj
-                    - half_mu * (ic + Lanes::splat(1.0)).map(f64::ln)
-            }
-        };
-        raw - Lanes::splat(self.rest_density)
     }
 
     /// Ψ(F) per unit rest volume, zero at F = I.
