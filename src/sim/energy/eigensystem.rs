@@ -394,13 +394,18 @@ pub fn symmetric_eigen3_lanes(
     m: &[[[f64; LANES]; 3]; 3],
 ) -> ([[f64; LANES]; 3], [[[f64; LANES]; 3]; 3]) {
     const L: usize = LANES;
-    let mut a: [[[f64; L]; 3]; 3] =
-        std::array::from_fn(|r| std::array::from_fn(|c| if c >= r { m[r][c] } else { m[c][r] }));
+    // The upper triangle, mirrored.
+    let mut a = *m;
+    for r in 1..3 {
+        for c in 0..r {
+            a[r][c] = m[c][r];
+        }
+    }
     let mut v = [[[0.0; L]; 3]; 3];
     for (k, row) in v.iter_mut().enumerate() {
         row[k] = [1.0; L];
     }
-    let tiny: [f64; L] = std::array::from_fn(|l| {
+    let tiny: [f64; L] = lanewise(|l| {
         let norm2: f64 = a.iter().flatten().map(|x| x[l] * x[l]).sum();
         0.25 * f64::EPSILON * f64::EPSILON * norm2
     });
@@ -423,6 +428,18 @@ pub fn symmetric_eigen3_lanes(
     ([a[0][0], a[1][1], a[2][2]], v)
 }
 
+/// `[f(0), …, f(LANES − 1)]`, as a loop the lane functions inline whatever the
+/// optimiser's budget (an out-of-line `std::array::from_fn` would keep each lane group's
+/// values in memory).
+#[inline(always)]
+fn lanewise<T: Copy + Default>(f: impl Fn(usize) -> T) -> [T; LANES] {
+    let mut r = [T::default(); LANES];
+    for (l, e) in r.iter_mut().enumerate() {
+        *e = f(l);
+    }
+    r
+}
+
 /// One Jacobi rotation of [`symmetric_eigen3_lanes`] at the pivot (P, Q), in the lanes
 /// still `active`: [`symmetric_eigen3`]'s rotation, lane by lane.
 #[inline(always)]
@@ -433,60 +450,44 @@ fn rotate_lanes<const P: usize, const Q: usize>(
 ) {
     const L: usize = LANES;
     let pick = |c: [bool; L], x: [f64; L], y: [f64; L]| -> [f64; L] {
-        std::array::from_fn(|l| if c[l] { x[l] } else { y[l] })
+        lanewise(|l| if c[l] { x[l] } else { y[l] })
     };
     let (p, q) = (P, Q);
     let apq = a[p][q];
-    let go: [bool; L] = std::array::from_fn(|l| active[l] && apq[l] != 0.0);
-    let tau: [f64; L] = std::array::from_fn(|l| (a[q][q][l] - a[p][p][l]) / (2.0 * apq[l]));
+    let go: [bool; L] = lanewise(|l| active[l] && apq[l] != 0.0);
+    let tau: [f64; L] = lanewise(|l| (a[q][q][l] - a[p][p][l]) / (2.0 * apq[l]));
     // The reference's three quotients as one: its numerator and denominator
     // picked per lane (no branch), then divided.
-    let root: [f64; L] = std::array::from_fn(|l| (1.0 + tau[l] * tau[l]).sqrt());
-    let big: [bool; L] = std::array::from_fn(|l| tau[l].abs() > 1e150);
-    let pos: [bool; L] = std::array::from_fn(|l| tau[l] >= 0.0);
+    let root: [f64; L] = lanewise(|l| (1.0 + tau[l] * tau[l]).sqrt());
+    let big: [bool; L] = lanewise(|l| tau[l].abs() > 1e150);
+    let pos: [bool; L] = lanewise(|l| tau[l] >= 0.0);
     let den = pick(
         big,
         tau,
         pick(
             pos,
-            std::array::from_fn(|l| tau[l] + root[l]),
-            std::array::from_fn(|l| -tau[l] + root[l]),
+            lanewise(|l| tau[l] + root[l]),
+            lanewise(|l| -tau[l] + root[l]),
         ),
     );
     let num = pick(big, [0.5; L], pick(pos, [1.0; L], [-1.0; L]));
-    let t: [f64; L] = std::array::from_fn(|l| num[l] / den[l]);
-    let c: [f64; L] = std::array::from_fn(|l| 1.0 / (1.0 + t[l] * t[l]).sqrt());
-    let s: [f64; L] = std::array::from_fn(|l| t[l] * c[l]);
+    let t: [f64; L] = lanewise(|l| num[l] / den[l]);
+    let c: [f64; L] = lanewise(|l| 1.0 / (1.0 + t[l] * t[l]).sqrt());
+    let s: [f64; L] = lanewise(|l| t[l] * c[l]);
     let r = 3 - p - q;
-    a[p][p] = pick(
-        go,
-        std::array::from_fn(|l| a[p][p][l] - t[l] * apq[l]),
-        a[p][p],
-    );
-    a[q][q] = pick(
-        go,
-        std::array::from_fn(|l| a[q][q][l] + t[l] * apq[l]),
-        a[q][q],
-    );
+    a[p][p] = pick(go, lanewise(|l| a[p][p][l] - t[l] * apq[l]), a[p][p]);
+    a[q][q] = pick(go, lanewise(|l| a[q][q][l] + t[l] * apq[l]), a[q][q]);
     a[p][q] = pick(go, [0.0; L], a[p][q]);
     a[q][p] = pick(go, [0.0; L], a[q][p]);
     let (arp, arq) = (a[r][p], a[r][q]);
-    a[r][p] = pick(
-        go,
-        std::array::from_fn(|l| c[l] * arp[l] - s[l] * arq[l]),
-        arp,
-    );
-    a[r][q] = pick(
-        go,
-        std::array::from_fn(|l| s[l] * arp[l] + c[l] * arq[l]),
-        arq,
-    );
+    a[r][p] = pick(go, lanewise(|l| c[l] * arp[l] - s[l] * arq[l]), arp);
+    a[r][q] = pick(go, lanewise(|l| s[l] * arp[l] + c[l] * arq[l]), arq);
     a[p][r] = a[r][p];
     a[q][r] = a[r][q];
     for row in v.iter_mut() {
         let (vp, vq) = (row[p], row[q]);
-        row[p] = pick(go, std::array::from_fn(|l| c[l] * vp[l] - s[l] * vq[l]), vp);
-        row[q] = pick(go, std::array::from_fn(|l| s[l] * vp[l] + c[l] * vq[l]), vq);
+        row[p] = pick(go, lanewise(|l| c[l] * vp[l] - s[l] * vq[l]), vp);
+        row[q] = pick(go, lanewise(|l| s[l] * vp[l] + c[l] * vq[l]), vq);
     }
 }
 

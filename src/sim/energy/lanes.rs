@@ -6,7 +6,13 @@
 //! eigenproblems run in [`symmetric_eigen3_lanes`](super::eigensystem::symmetric_eigen3_lanes)); where
 //! those branch, the lanes compute both sides and select (an exact choice), so each
 //! lane's result equals the per-element one bit for bit. Rust never fuses a multiply and
-//! an add, so this holds whatever vector width the code is compiled for.
+//! an add, so this holds whatever vector width the code is compiled for. The 3D
+//! gradients, energies and step polynomials of [`super::kernels`] use the same types
+//! (with [`cofactor3`], [`det3`] and [`entry_dot`]).
+//!
+//! Arrays of lanes are built and converted with written-out loops or [`vec3`]/[`mat3`],
+//! not `array::map`/`array::from_fn`: whether the optimiser inlines those depends on the
+//! rest of the code generation unit, and out of line they keep a lane group in memory.
 
 // Lane loops index several arrays by the same lane: the form that vectorises.
 #![allow(clippy::needless_range_loop)]
@@ -177,7 +183,7 @@ fn select3(m: Mask, a: Vec3, b: Vec3) -> Vec3 {
 
 #[inline(always)]
 fn splat3(x: [f64; 3]) -> Vec3 {
-    x.map(Lanes::splat)
+    vec3(|r| Lanes::splat(x[r]))
 }
 
 #[inline(always)]
@@ -208,7 +214,7 @@ fn normalized(x: Vec3) -> (Vec3, Mask) {
 /// of equals), or e₃ where that vanishes.
 #[inline(always)]
 fn orthogonal(x: &Vec3) -> Vec3 {
-    let ax = x.map(Lanes::abs);
+    let ax = vec3(|r| x[r].abs());
     let k1 = ax[1].lt(ax[0]);
     let k2 = ax[2].lt(Lanes::select(k1, ax[1], ax[0]));
     let e = [
@@ -218,6 +224,44 @@ fn orthogonal(x: &Vec3) -> Vec3 {
     ];
     let (n, ok) = normalized(cross(x, &e));
     select3(ok, n, splat3([0.0, 0.0, 1.0]))
+}
+
+/// The cofactor matrix ∂(det m)/∂m, as `neohookean::cofactor` (3D): entry (i, j) is the
+/// 2×2 minor of the rows and columns after i and j, cyclically.
+#[inline(always)]
+pub fn cofactor3(m: &Mat3) -> Mat3 {
+    mat3(|i, j| {
+        let (i1, i2) = ((i + 1) % 3, (i + 2) % 3);
+        let (j1, j2) = ((j + 1) % 3, (j + 2) % 3);
+        m[i1][j1] * m[i2][j2] - m[i1][j2] * m[i2][j1]
+    })
+}
+
+/// Σ_k x_k y_k over the nine entries in row-major order, added one after another from the
+/// start of `Iterator::sum`: a per-element `.map(|k| x[k] * y[k]).sum::<f64>()`, bit for bit.
+#[inline(always)]
+pub fn entry_dot(x: &Mat3, y: &Mat3) -> Lanes {
+    let mut s = sum_start();
+    for r in 0..3 {
+        for c in 0..3 {
+            s = s + x[r][c] * y[r][c];
+        }
+    }
+    s
+}
+
+/// The value `Iterator::sum` of f64 starts from (its neutral element), in every lane:
+/// starting a lane sum there keeps the bits of a per-element `.sum::<f64>()` also where
+/// all its terms are zeros of one sign.
+#[inline(always)]
+pub fn sum_start() -> Lanes {
+    Lanes::splat(sum_start_f64())
+}
+
+/// [`sum_start`] of one value.
+#[inline(always)]
+pub fn sum_start_f64() -> f64 {
+    std::iter::empty::<f64>().sum()
 }
 
 /// FᵀF.
@@ -242,7 +286,11 @@ fn total_order_keys(x: Lanes) -> [i64; LANES] {
 /// where the later one is strictly greater.
 #[inline(always)]
 fn sorted_columns(lam: &Vec3, ev: &Mat3) -> Mat3 {
-    let mut key = lam.map(total_order_keys);
+    let mut key = [
+        total_order_keys(lam[0]),
+        total_order_keys(lam[1]),
+        total_order_keys(lam[2]),
+    ];
     let mut col: [Vec3; 3] = mat3(|k, r| ev[r][k]);
     for (i, j) in [(0, 1), (1, 2), (0, 1)] {
         let mut swap = [false; LANES];
@@ -259,8 +307,9 @@ fn sorted_columns(lam: &Vec3, ev: &Mat3) -> Mat3 {
     mat3(|r, k| col[k][r])
 }
 
+/// det m, as `neohookean::det` (3D).
 #[inline(always)]
-fn det3(m: &Mat3) -> Lanes {
+pub fn det3(m: &Mat3) -> Lanes {
     m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
         - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
         + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])

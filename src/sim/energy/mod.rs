@@ -620,9 +620,13 @@ impl Model {
             let chunks: Vec<f64> = (0..s.len().div_ceil(CHUNK))
                 .into_par_iter()
                 .map(|c| {
-                    (c * CHUNK..((c + 1) * CHUNK).min(s.len()))
-                        .map(|e| s.energy(x, e))
-                        .sum::<f64>()
+                    let range = c * CHUNK..((c + 1) * CHUNK).min(s.len());
+                    match s {
+                        ElementSet::NeoHookean(nh) => {
+                            nh.element_energy_sum(x, range.start, range.len())
+                        }
+                        ElementSet::Springs(_) => range.map(|e| s.energy(x, e)).sum::<f64>(),
+                    }
                 })
                 .collect();
             total += chunks.iter().sum::<f64>();
@@ -729,9 +733,14 @@ impl Model {
                 work.grad[..(hi - lo) * d]
                     .par_chunks_mut(CHUNK * nl)
                     .enumerate()
-                    .for_each(|(c, buf)| {
-                        for (k, b) in buf.chunks_exact_mut(nl).enumerate() {
-                            s.gradient(x, e0 + c * CHUNK + k, b);
+                    .for_each(|(c, buf)| match s {
+                        ElementSet::NeoHookean(nh) => {
+                            nh.element_gradients_run(x, e0 + c * CHUNK, buf)
+                        }
+                        ElementSet::Springs(_) => {
+                            for (k, b) in buf.chunks_exact_mut(nl).enumerate() {
+                                s.gradient(x, e0 + c * CHUNK + k, b);
+                            }
                         }
                     });
                 drop(elements);

@@ -75,8 +75,10 @@ pub struct NeoHookean {
     pub volume: Vec<f64>,
     pub mu: f64,
     pub lambda: f64,
-    alpha: f64,
-    rest_density: f64,
+    /// The stable law's rest J of the volume term (1 for the classical law).
+    pub(super) alpha: f64,
+    /// Ψ(I) before the shift that makes the density zero at rest.
+    pub(super) rest_density: f64,
 }
 
 /// Lamé parameters (μ_L, λ_L) of Young's modulus and Poisson ratio.
@@ -536,8 +538,12 @@ impl NeoHookean {
         let chunks: Vec<Chunk> = (0..self.len().div_ceil(SCAN_CHUNK))
             .into_par_iter()
             .map(|k| {
+                let range = k * SCAN_CHUNK..((k + 1) * SCAN_CHUNK).min(self.len());
+                if d == 3 {
+                    return self.inversion_scan3(x, dx, max, below, range.start, range.len());
+                }
                 let mut best: Option<(f64, usize)> = None;
-                for e in k * SCAN_CHUNK..((k + 1) * SCAN_CHUNK).min(self.len()) {
+                for e in range {
                     let c = step_det_polynomial(d, self.nodes(e), x, dx);
                     if c[0].is_nan() || c[0] <= 0.0 {
                         return Err((e, c[0] / (rest_factor * self.volume[e])));
@@ -606,7 +612,7 @@ pub fn first_root(c: &[f64; 4], max: f64) -> Option<f64> {
 /// [`first_root`]'s, ended early once the root is known to lie above `stop` (the bracket's
 /// left end reached it: the root returned is always right of that end), so whatever it
 /// returns is [`first_root`]'s value, bit for bit.
-fn root_below(c: &[f64; 4], max: f64, stop: Option<f64>) -> Option<f64> {
+pub(super) fn root_below(c: &[f64; 4], max: f64, stop: Option<f64>) -> Option<f64> {
     let beyond = |v: f64| stop.is_some_and(|s| v >= s);
     let p = |a: f64| ((c[3] * a + c[2]) * a + c[1]) * a + c[0];
     let mut cuts = [max; 3];
