@@ -305,6 +305,12 @@ fn new_summary(scene: &Scene, out: &Path, run_id: String) -> RunSummary {
                 .linear_choice
                 .reason(scene.dim, scene.model.n_nodes),
         },
+        preconditioner: (scene.solver.newton == NewtonLoop::Gpu
+            || scene.solver.linear != crate::sim::scene::LinearKind::Cholesky)
+            .then(|| scene.solver.preconditioner.name().to_string()),
+        preconditioner_choice: scene
+            .solver
+            .preconditioner_reason(scene.dim, scene.model.n_nodes),
         adapter: None,
         characteristic_length: scene.characteristic_length,
         newton_tolerance: 0.0,

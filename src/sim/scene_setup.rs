@@ -128,6 +128,10 @@ pub(crate) fn build_scene(
     if let Some(t) = start.cg_tolerance {
         scene.solver.cg_tolerance = t;
     }
+    // "auto" depends on the solver and the Newton loop, which the options may change.
+    scene
+        .solver
+        .resolve_preconditioner(scene.dim, scene.model.n_nodes);
     if steps.is_some() && end_time.is_some() {
         return Err(InputError::new("--end-time", "", "give either --steps or --end-time").into());
     }

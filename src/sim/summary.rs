@@ -79,6 +79,11 @@ pub struct RunSummary {
     pub solver: String,
     /// Why `[solver] linear = "auto"` chose `solver` (None for an explicit choice).
     pub linear_choice: Option<String>,
+    /// The CG's preconditioner (None for Cholesky).
+    pub preconditioner: Option<String>,
+    /// Why `[solver] preconditioner = "auto"` chose `preconditioner` (None for an
+    /// explicit choice or Cholesky).
+    pub preconditioner_choice: Option<String>,
     pub adapter: Option<String>,
     pub characteristic_length: f64,
     /// Newton stops when ‖Δx‖∞/h is below this (m/s).

@@ -59,8 +59,8 @@ mod spec;
 pub use spec::{
     BcKindSpec, BodySpec, BoundarySpec, BoxRegion, CgTolerance, InversionPolicy, LinearChoice,
     LinearKind, MaterialModel, MaterialSpec, MeshKind, MeshSpec, MotionSpec, MovingSpec,
-    NewtonLoop, ObstacleKind, ObstacleSpec, OutputSpec, PlaneRegion, RegionSpec, SceneFile,
-    SolverSpec,
+    NewtonLoop, ObstacleKind, ObstacleSpec, OutputSpec, PlaneRegion, PreconditionerChoice,
+    RegionSpec, SceneFile, SolverSpec,
 };
 
 pub use model::{

@@ -104,9 +104,14 @@ pub(super) fn resolve(spec: SceneFile, file: &str, size: f64) -> Result<Scene, L
         time_step: h,
         steps,
         output: spec.output.clone(),
-        solver: SolverSpec {
-            linear: spec.solver.linear_choice.resolve(dim, x0.len() / dim),
-            ..spec.solver.clone()
+        solver: {
+            let nodes = x0.len() / dim;
+            let mut solver = SolverSpec {
+                linear: spec.solver.linear_choice.resolve(dim, nodes),
+                ..spec.solver.clone()
+            };
+            solver.resolve_preconditioner(dim, nodes);
+            solver
         },
         moving: spec.moving.clone(),
         model,

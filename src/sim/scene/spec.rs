@@ -107,7 +107,14 @@ pub struct SolverSpec {
     pub cg_tolerance: CgTolerance,
     #[serde(default = "default_cg_iters")]
     pub cg_max_iterations: usize,
-    #[serde(default)]
+    /// `preconditioner` as the scene file says it: a preconditioner or "auto" (the
+    /// default).
+    #[serde(rename = "preconditioner", default)]
+    pub preconditioner_choice: PreconditionerChoice,
+    /// The preconditioner that runs: `preconditioner_choice` resolved for the scene's size,
+    /// dimension and solver when the scene is read (again after `run --solver` or
+    /// `--newton`).
+    #[serde(skip)]
     pub preconditioner: Preconditioner,
     /// Multilevel: when its levels are rebuilt ("reuse", the default for scenes: kept
     /// across the Newton systems of a step with the same constraint set while the solves
@@ -218,6 +225,98 @@ impl LinearChoice {
             let side = if nodes <= max { "≤" } else { ">" };
             format!("linear = \"auto\": {nodes} nodes {side} {max} in {dim}D")
         })
+    }
+}
+
+/// `[solver] preconditioner`: a preconditioner, or "auto".
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PreconditionerChoice {
+    /// The multilevel preconditioner where the CPU CG solves a scene of at least
+    /// [`PreconditionerChoice::AUTO_MULTILEVEL_MIN_NODES_2D`] or
+    /// [`PreconditionerChoice::AUTO_MULTILEVEL_MIN_NODES_3D`] nodes, Jacobi (with the
+    /// scene's coarse correction) otherwise: where each takes fewer linear seconds on a
+    /// 2-core machine (BENCHMARKS.md, "The preconditioner a scene gets"). The GPU solvers
+    /// get Jacobi.
+    #[default]
+    Auto,
+    None,
+    Jacobi,
+    BlockJacobi,
+    Multilevel,
+}
+
+impl PreconditionerChoice {
+    /// The fewest nodes of a 2D scene whose CPU CG takes the multilevel preconditioner
+    /// under "auto".
+    pub const AUTO_MULTILEVEL_MIN_NODES_2D: usize = 8_000;
+    /// The fewest nodes of a 3D scene whose CPU CG takes the multilevel preconditioner
+    /// under "auto".
+    pub const AUTO_MULTILEVEL_MIN_NODES_3D: usize = 5_000;
+
+    /// The fewest nodes of a `dim`-dimensional scene that takes multilevel under "auto".
+    fn auto_multilevel_min(dim: usize) -> usize {
+        if dim == 3 {
+            Self::AUTO_MULTILEVEL_MIN_NODES_3D
+        } else {
+            Self::AUTO_MULTILEVEL_MIN_NODES_2D
+        }
+    }
+
+    /// Whether "auto" takes the multilevel preconditioner for this solver and size.
+    fn auto_multilevel(dim: usize, nodes: usize, linear: LinearKind, newton: NewtonLoop) -> bool {
+        newton == NewtonLoop::Cpu
+            && linear == LinearKind::Cg
+            && nodes >= Self::auto_multilevel_min(dim)
+    }
+
+    /// The preconditioner this choice runs on a scene of `nodes` nodes in `dim`
+    /// dimensions solved by `linear` in the `newton` loop.
+    pub fn resolve(
+        self,
+        dim: usize,
+        nodes: usize,
+        linear: LinearKind,
+        newton: NewtonLoop,
+    ) -> Preconditioner {
+        match self {
+            PreconditionerChoice::Auto => {
+                if Self::auto_multilevel(dim, nodes, linear, newton) {
+                    Preconditioner::Multilevel
+                } else {
+                    Preconditioner::Jacobi
+                }
+            }
+            PreconditionerChoice::None => Preconditioner::None,
+            PreconditionerChoice::Jacobi => Preconditioner::Jacobi,
+            PreconditionerChoice::BlockJacobi => Preconditioner::BlockJacobi,
+            PreconditionerChoice::Multilevel => Preconditioner::Multilevel,
+        }
+    }
+
+    /// Why "auto" picked what it did, for the run's report; None for an explicit choice
+    /// or a solver without a preconditioner (Cholesky).
+    pub fn reason(
+        self,
+        dim: usize,
+        nodes: usize,
+        linear: LinearKind,
+        newton: NewtonLoop,
+    ) -> Option<String> {
+        if self != PreconditionerChoice::Auto {
+            return None;
+        }
+        if newton == NewtonLoop::Gpu || linear == LinearKind::Gpu {
+            return Some("preconditioner = \"auto\": jacobi on the GPU".to_string());
+        }
+        if linear != LinearKind::Cg {
+            return None;
+        }
+        let min = Self::auto_multilevel_min(dim);
+        let side = if nodes >= min { "≥" } else { "<" };
+        Some(format!(
+            "preconditioner = \"auto\": {nodes} nodes {side} {min} in {dim}D"
+        ))
     }
 }
 
@@ -341,6 +440,20 @@ impl NewtonLoop {
 }
 
 impl SolverSpec {
+    /// Resolves `preconditioner_choice` for a scene of `nodes` nodes in `dim` dimensions
+    /// with the solver and Newton loop set now.
+    pub fn resolve_preconditioner(&mut self, dim: usize, nodes: usize) {
+        self.preconditioner =
+            self.preconditioner_choice
+                .resolve(dim, nodes, self.linear, self.newton);
+    }
+
+    /// Why `[solver] preconditioner = "auto"` chose `preconditioner`, for the report.
+    pub fn preconditioner_reason(&self, dim: usize, nodes: usize) -> Option<String> {
+        self.preconditioner_choice
+            .reason(dim, nodes, self.linear, self.newton)
+    }
+
     /// The library solver configuration this scene's solver settings ask for.
     pub fn config(&self) -> crate::SolverConfig {
         match self.linear {
@@ -386,6 +499,7 @@ impl Default for SolverSpec {
             linear: default_linear(),
             cg_tolerance: CgTolerance::Adaptive,
             cg_max_iterations: default_cg_iters(),
+            preconditioner_choice: PreconditionerChoice::Auto,
             preconditioner: Preconditioner::default(),
             multilevel_setup: default_multilevel_setup(),
             coarse: CoarseSpace::default(),
@@ -600,6 +714,45 @@ mod tests {
         }
     }
 
+    /// "auto" takes multilevel for the CPU CG from the measured sizes, Jacobi below them
+    /// and on the GPU; an explicit choice is itself whatever the size.
+    #[test]
+    fn auto_picks_multilevel_for_the_cpu_cg_from_the_measured_sizes() {
+        let auto = PreconditionerChoice::Auto;
+        let (cg, cpu) = (LinearKind::Cg, NewtonLoop::Cpu);
+        assert_eq!(auto.resolve(3, 4_999, cg, cpu), Preconditioner::Jacobi);
+        assert_eq!(auto.resolve(3, 5_000, cg, cpu), Preconditioner::Multilevel);
+        assert_eq!(auto.resolve(2, 7_999, cg, cpu), Preconditioner::Jacobi);
+        assert_eq!(auto.resolve(2, 8_000, cg, cpu), Preconditioner::Multilevel);
+        for (linear, newton) in [
+            (LinearKind::Gpu, NewtonLoop::Cpu),
+            (LinearKind::Cg, NewtonLoop::Gpu),
+            (LinearKind::Cholesky, NewtonLoop::Cpu),
+        ] {
+            assert_eq!(
+                auto.resolve(3, 1 << 20, linear, newton),
+                Preconditioner::Jacobi
+            );
+        }
+        assert_eq!(
+            PreconditionerChoice::BlockJacobi.resolve(3, 1 << 20, cg, cpu),
+            Preconditioner::BlockJacobi
+        );
+        assert_eq!(
+            PreconditionerChoice::Multilevel.resolve(2, 10, cg, cpu),
+            Preconditioner::Multilevel
+        );
+        let why = auto.reason(3, 44_541, cg, cpu).expect("auto says why");
+        assert!(why.contains("44541 nodes ≥ 5000 in 3D"), "{why}");
+        let why = auto.reason(2, 2_401, cg, cpu).expect("auto says why");
+        assert!(why.contains("2401 nodes < 8000 in 2D"), "{why}");
+        assert_eq!(auto.reason(3, 99, LinearKind::Cholesky, cpu), None);
+        assert_eq!(
+            PreconditionerChoice::Jacobi.reason(3, 44_541, cg, cpu),
+            None
+        );
+    }
+
     #[test]
     fn scene_solver_keys_parse() {
         let spec: SolverSpec = toml::from_str("").expect("defaults");
@@ -623,6 +776,17 @@ mod tests {
         }
         // Scenes keep the multilevel levels across Newton systems unless told otherwise.
         assert_eq!(spec.multilevel_setup, MultilevelSetup::Reuse);
+        assert_eq!(spec.preconditioner_choice, PreconditionerChoice::Auto);
+        let spec: SolverSpec =
+            toml::from_str("preconditioner = \"block-jacobi\"").expect("explicit");
+        assert_eq!(
+            spec.preconditioner_choice,
+            PreconditionerChoice::BlockJacobi
+        );
+        let e = toml::from_str::<SolverSpec>("preconditioner = \"ilu\"")
+            .expect_err("unknown preconditioner")
+            .to_string();
+        assert!(e.contains("auto") && e.contains("multilevel"), "{e}");
         let spec: SolverSpec = toml::from_str("multilevel_setup = \"every\"").expect("every");
         assert_eq!(spec.multilevel_setup, MultilevelSetup::Every);
         assert_eq!(spec.config().multilevel_setup, MultilevelSetup::Every);
