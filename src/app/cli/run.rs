@@ -26,7 +26,7 @@ pub fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
         Ok(summary) => {
             if !quiet {
                 eprintln!(
-                    "{}: {} steps of {} s on {} nodes with {}{} in {:.2} s ({} Newton, {} linear iterations); output in {}",
+                    "{}: {} steps of {} s on {} nodes with {}{}{} in {:.2} s ({} Newton, {} linear iterations); output in {}",
                     summary.scene,
                     summary.steps,
                     summary.time_step,
@@ -36,6 +36,13 @@ pub fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
                         .linear_choice
                         .as_ref()
                         .map_or(String::new(), |r| format!(" ({r})")),
+                    summary.preconditioner.as_ref().map_or(String::new(), |p| {
+                        let why = summary.preconditioner_choice.as_ref();
+                        format!(
+                            " and {p}{}",
+                            why.map_or(String::new(), |r| format!(" ({r})"))
+                        )
+                    }),
                     summary.wall_seconds,
                     summary.newton_iterations,
                     summary.linear_iterations,
