@@ -259,3 +259,54 @@ fn cpu_phases_account_for_the_time_outside_the_solve() {
         let _ = std::fs::remove_dir_all(&out);
     }
 }
+
+/// A scene that leaves `[solver] preconditioner` at "auto" runs the CPU CG with Jacobi
+/// below the 3D threshold and with multilevel from it, and summary.json says which and
+/// why; `run --solver cholesky` names no preconditioner.
+#[test]
+fn auto_preconditioner_follows_the_scene_size() {
+    // Twist at size 4 has 3,321 nodes, at size 5 6,171 (the threshold is 5,000).
+    for (size, solver, want, why) in [
+        (4.0, None, Some("jacobi"), Some("3321 nodes < 5000 in 3D")),
+        (
+            5.0,
+            None,
+            Some("multilevel"),
+            Some("6171 nodes ≥ 5000 in 3D"),
+        ),
+        (5.0, Some(stickslip::SolverKind::Cholesky), None, None),
+    ] {
+        let out = std::env::temp_dir().join(format!(
+            "stickslip-sim-run-auto-pc-{size}-{}-{}",
+            solver.is_some(),
+            std::process::id()
+        ));
+        let opts = RunOptions {
+            scene: Some("twist".into()),
+            size: Some(size),
+            out: Some(out.clone()),
+            steps: Some(1),
+            solver,
+            quiet: true,
+            ..RunOptions::default()
+        };
+        run(&opts).unwrap_or_else(|e| panic!("size {size}: {e}"));
+        let json: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(out.join("summary.json")).expect("summary"),
+        )
+        .expect("json");
+        assert_eq!(json["preconditioner"].as_str(), want, "size {size}");
+        let reason = json["preconditioner_choice"].as_str();
+        match why {
+            Some(w) => assert!(reason.is_some_and(|r| r.contains(w)), "{reason:?}"),
+            None => assert_eq!(reason, None),
+        }
+        // The multilevel run reports its levels; the others have none.
+        assert_eq!(
+            json.get("multilevel_levels").is_some_and(|v| !v.is_null()),
+            want == Some("multilevel"),
+            "size {size}"
+        );
+        let _ = std::fs::remove_dir_all(&out);
+    }
+}
