@@ -3,8 +3,8 @@
 //! sum into the next level).
 
 use super::dense::{
-    apply_tiled, cholesky_dropping, explicit_inverse, factor_inverse, pack_lower, pack_tiled_f32,
-    packed_len, tiled_index, tiled_len, tiled_side,
+    cholesky_dropping, explicit_inverse, factor_inverse, pack_lower, pack_tiled_f32, packed_len,
+    tiled_index, tiled_len,
 };
 use crate::core::elimination::{rotate_block, Eliminated};
 use rayon::prelude::*;
@@ -131,9 +131,6 @@ pub(super) struct Factors {
     pub(super) g: Vec<f32>,
     x_start: Vec<usize>,
     x: Vec<f64>,
-    /// Cluster c's vectors in the smoother's scratch at `side_start[c]..side_start[c + 1]`
-    /// (its unknowns rounded up to whole tiles, [`tiled_side`]).
-    side_start: Vec<usize>,
 }
 
 /// One level's explicit cluster inverses (L Lᵀ)⁺ = XᵀX in f64: cluster c's m×m symmetric
@@ -337,164 +334,6 @@ fn block_rows_body<T: Copy + Into<f64>, const D: usize, const DD: usize>(
     }
 }
 
-/// Each stored block's d×d values rounded to f32, from the values of whichever of (i, j)
-/// and (j, i) has the smaller row (its transpose for the other; a diagonal block from its
-/// upper triangle): the rounded matrix is exactly symmetric, as the V-cycle's symmetry
-/// needs, even where the f64 one is symmetric only to its roundings. `mirror[k]` is the
-/// index of block k's transposed partner. Each block is stored by columns and one zero
-/// follows the last ([`cycle_product`] reads a column as four values).
-pub(super) fn symmetric_f32(d: usize, lev: &Level, mirror: &[u32], a: &[f64], out: &mut Vec<f32>) {
-    let dd = d * d;
-    out.resize(a.len() + 1, 0.0);
-    out[a.len()] = 0.0;
-    let rows: Vec<&mut [f32]> = split_rows(&mut out[..a.len()], &lev.row_ptr, dd);
-    rows.into_par_iter().enumerate().for_each(|(i, o)| {
-        let (rs, re) = (lev.row_ptr[i], lev.row_ptr[i + 1]);
-        for ((k, &j), ob) in (rs..re)
-            .zip(&lev.col_idx[rs..re])
-            .zip(o.chunks_exact_mut(dd))
-        {
-            let own = &a[k * dd..(k + 1) * dd];
-            let t = mirror[k] as usize;
-            let other = &a[t * dd..(t + 1) * dd];
-            for r in 0..d {
-                for c in 0..d {
-                    // An off-diagonal block without a stored partner keeps its own.
-                    let upper = i < j || (i == j && r <= c) || (i != j && t == k);
-                    let v = if upper {
-                        own[r * d + c]
-                    } else {
-                        other[c * d + r]
-                    };
-                    ob[c * d + r] = v as f32;
-                }
-            }
-        }
-    });
-}
-
-/// y = A x, or y = b − A x with `b`, for a level's matrix as the V-cycle stores it
-/// ([`symmetric_f32`]: f32 blocks by columns), every product and sum in f64: row i sums
-/// each column c of its blocks times x_j[c] into its own accumulator (d independent
-/// chains of additions, in block order), then adds them as (acc_0 + acc_1) + acc_2.
-pub(super) fn cycle_product(
-    d: usize,
-    lev: &Level,
-    a: &[f32],
-    b: Option<&[f64]>,
-    x: &[f64],
-    y: &mut [f64],
-) {
-    assert!(a.len() > lev.row_ptr[lev.n] * d * d, "the trailing zero");
-    match d {
-        2 => cycle_product_d::<2, 4>(lev, a, b, x, y),
-        _ => cycle_product_d::<3, 9>(lev, a, b, x, y),
-    }
-}
-
-fn cycle_product_d<const D: usize, const DD: usize>(
-    lev: &Level,
-    a: &[f32],
-    b: Option<&[f64]>,
-    x: &[f64],
-    y: &mut [f64],
-) {
-    y.par_chunks_mut(D * 64)
-        .enumerate()
-        .for_each(|(chunk, ys)| {
-            #[cfg(target_arch = "x86_64")]
-            if D == 3 && std::arch::is_x86_feature_detected!("avx2") {
-                // SAFETY: the CPU has AVX2, checked just above; `a` ends in the zero
-                // `cycle_product` asserted.
-                unsafe { cycle_rows3_avx2(lev, a, b, x, chunk * 64, ys) };
-                return;
-            }
-            cycle_rows::<D, DD>(lev, a, b, x, chunk * 64, ys);
-        });
-}
-
-/// Rows `first..` of [`cycle_product`] into `ys`.
-fn cycle_rows<const D: usize, const DD: usize>(
-    lev: &Level,
-    a: &[f32],
-    b: Option<&[f64]>,
-    x: &[f64],
-    first: usize,
-    ys: &mut [f64],
-) {
-    let (row_ptr, col_idx) = (&lev.row_ptr, &lev.col32);
-    for (r0, yi) in ys.chunks_exact_mut(D).enumerate() {
-        let i = first + r0;
-        let mut acc = [[0.0f64; D]; D];
-        let (rs, re) = (row_ptr[i], row_ptr[i + 1]);
-        for (blk, &j) in a[rs * DD..re * DD].chunks_exact(DD).zip(&col_idx[rs..re]) {
-            let j = j as usize;
-            for (c, ac) in acc.iter_mut().enumerate() {
-                let xc = x[j * D + c];
-                for r in 0..D {
-                    ac[r] += f64::from(blk[c * D + r]) * xc;
-                }
-            }
-        }
-        for r in 0..D {
-            let mut s = acc[0][r] + acc[1][r];
-            if D == 3 {
-                s += acc[2][r];
-            }
-            yi[r] = match b {
-                Some(b) => b[i * D + r] - s,
-                None => s,
-            };
-        }
-    }
-}
-
-/// [`cycle_rows`] for d = 3 in AVX2: a block column's three values (and the next one,
-/// whose lane is dropped) in four f64 lanes; the same products and sums in the same
-/// order, so the same bits.
-///
-/// # Safety
-/// The CPU must have AVX2, and `a` hold one value past the level's last block.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn cycle_rows3_avx2(
-    lev: &Level,
-    a: &[f32],
-    b: Option<&[f64]>,
-    x: &[f64],
-    first: usize,
-    ys: &mut [f64],
-) {
-    use std::arch::x86_64::*;
-    let (row_ptr, col_idx) = (&lev.row_ptr, &lev.col32);
-    let ap = a.as_ptr();
-    for (r0, yi) in ys.chunks_exact_mut(3).enumerate() {
-        let i = first + r0;
-        let mut acc = [_mm256_setzero_pd(); 3];
-        let (rs, re) = (row_ptr[i], row_ptr[i + 1]);
-        for (k, &j) in (rs..re).zip(&col_idx[rs..re]) {
-            let xj: &[f64; 3] = x[j as usize * 3..j as usize * 3 + 3]
-                .try_into()
-                .expect("3 values");
-            for (c, ac) in acc.iter_mut().enumerate() {
-                // SAFETY: block k's column c is a[9k + 3c..9k + 3c + 3], and the
-                // fourth value read is within a (the trailing zero at the latest).
-                let col = _mm256_cvtps_pd(_mm_loadu_ps(ap.add(9 * k + 3 * c)));
-                *ac = _mm256_add_pd(*ac, _mm256_mul_pd(col, _mm256_set1_pd(xj[c])));
-            }
-        }
-        let s = _mm256_add_pd(_mm256_add_pd(acc[0], acc[1]), acc[2]);
-        let mut sv = [0.0f64; 4];
-        _mm256_storeu_pd(sv.as_mut_ptr(), s);
-        for r in 0..3 {
-            yi[r] = match b {
-                Some(b) => b[i * 3 + r] - sv[r],
-                None => sv[r],
-            };
-        }
-    }
-}
-
 /// For each stored block k = (i, j) of a level's pattern (both triangles stored), the
 /// index of block (j, i).
 pub(super) fn mirror_blocks(lev: &Level) -> Vec<u32> {
@@ -554,7 +393,6 @@ pub(super) fn factor_level(
     };
     let g_start = offsets(&tiled_len);
     let x_start = offsets(&packed_len);
-    let side_start = offsets(&tiled_side);
     let mut g = vec![0.0f32; g_start[nc]];
     let mut x64 = vec![0.0f64; x_start[nc]];
     let g_parts = split_at_starts(&mut g, &g_start);
@@ -597,14 +435,13 @@ pub(super) fn factor_level(
             g,
             x_start,
             x: x64,
-            side_start,
         },
         dropped,
     )
 }
 
 /// `v` split at `start` (ascending offsets, the last one its length).
-fn split_at_starts<'v, T>(mut v: &'v mut [T], start: &[usize]) -> Vec<&'v mut [T]> {
+pub(super) fn split_at_starts<'v, T>(mut v: &'v mut [T], start: &[usize]) -> Vec<&'v mut [T]> {
     let mut parts = Vec::with_capacity(start.len().saturating_sub(1));
     for w in start.windows(2) {
         let (a, b) = std::mem::take(&mut v).split_at_mut(w[1] - w[0]);
@@ -612,57 +449,6 @@ fn split_at_starts<'v, T>(mut v: &'v mut [T], start: &[usize]) -> Vec<&'v mut [T
         v = b;
     }
     parts
-}
-
-/// out = scale · GᵀG src over a level's clusters (the f32 factor form of B⁺, [`Factors`]),
-/// or out += that with `add`: each cluster's items gathered into its own slice of a
-/// cluster-ordered scratch (zeros past its unknowns, to whole tiles), applied there
-/// ([`apply_tiled`]), then scattered back. `tmp` is the scratch (resized to two such
-/// vectors: the gathered source and the result).
-#[allow(clippy::too_many_arguments)]
-pub(super) fn smooth_level(
-    lev: &Level,
-    d: usize,
-    f: &Factors,
-    scale: f64,
-    add: bool,
-    src: &[f64],
-    out: &mut [f64],
-    tmp: &mut Vec<f64>,
-) {
-    let total = f.side_start[lev.clusters()];
-    tmp.resize(2 * total, 0.0);
-    let (rs, zs) = tmp.split_at_mut(total);
-    let r_parts = split_at_starts(rs, &f.side_start);
-    let z_parts = split_at_starts(zs, &f.side_start);
-    r_parts
-        .into_par_iter()
-        .zip(z_parts)
-        .enumerate()
-        .with_min_len(8)
-        .for_each(|(c, (r, z))| {
-            let items = &lev.items[lev.ptr[c]..lev.ptr[c + 1]];
-            let m = items.len() * d;
-            for (rp, &i) in r[..m].chunks_exact_mut(d).zip(items) {
-                let i = i as usize;
-                rp.copy_from_slice(&src[i * d..(i + 1) * d]);
-            }
-            r[m..].iter_mut().for_each(|v| *v = 0.0);
-            apply_tiled(&f.g[f.g_start[c]..f.g_start[c + 1]], r, z);
-        });
-    let zs = &tmp[total..];
-    out.par_chunks_mut(d)
-        .with_min_len(256)
-        .enumerate()
-        .for_each(|(i, o)| {
-            let at = f.side_start[lev.of[i] as usize] + lev.pos[i] as usize * d;
-            let z = &zs[at..at + d];
-            if add {
-                o.iter_mut().zip(z).for_each(|(v, w)| *v += scale * w);
-            } else {
-                o.iter_mut().zip(z).for_each(|(v, w)| *v = scale * w);
-            }
-        });
 }
 
 /// out = B⁺ src over a level's clusters (their explicit inverses): each cluster's items gathered into its own

@@ -21,7 +21,9 @@
 //! P and Pᵀ, and each cluster block as its factor inverse G = L⁺ in 4×4 tiles applied as
 //! GᵀG, with every product and sum in f64, four lanes wide. These are about a third of
 //! f64 explicit inverses' and matrices' bytes; the iterations stay those of the f64 cycle
-//! (docs/design/multilevel.md). The f64 matrices stay too, with G in f64 packed by rows:
+//! (docs/design/multilevel.md). Its vectors lie cluster by cluster, as the smoother reads
+//! them (`slots`): the smoothing works in place, and only the cycle's input and output
+//! are permuted. The f64 matrices stay too, with G in f64 packed by rows:
 //! the device V-cycle uploads the matrices and the explicit inverses GᵀG in f64, which
 //! [`Multilevel::levels`] computes from those when first asked (a CPU solve never does).
 //!
@@ -52,28 +54,28 @@ mod dense;
 mod level;
 mod partition;
 pub mod reuse;
+mod slots;
 mod smoothed;
 pub use dense::PIVOT_DROP;
 pub use dense::{cholesky_dropping, inverse_from_factor};
 pub use level::LAMBDA_STEPS;
 use level::{
-    block_matvec, cycle_product, factor_level, frame_values, frame_values_into, mask_inverse,
-    mirror_blocks, power_estimate, smooth_level, solve_level, symmetric_f32, Factors, Inverses,
-    Level,
+    block_matvec, factor_level, frame_values, frame_values_into, mask_inverse, mirror_blocks,
+    power_estimate, solve_level, Factors, Inverses, Level,
 };
 use partition::partition;
 pub use partition::CLUSTER_NODES;
+use slots::{Slots, TransferSlots};
 use smoothed::{identity, node_translation, smoothed_p, SmoothPattern};
 
-/// One level's vectors in a V-cycle.
+/// One level's vectors in a V-cycle, in the level's slots ([`slots`]).
 #[derive(Debug, Clone)]
 struct LevelWork {
-    /// The restricted right-hand side and the correction (levels below the finest).
+    /// The right-hand side and the correction.
     b: Vec<f64>,
     x: Vec<f64>,
-    /// The residual and the smoother's cluster-ordered scratch.
+    /// The residual.
     res: Vec<f64>,
-    tmp: Vec<f64>,
 }
 
 /// The vectors of every level of a V-cycle ([`Multilevel::workspace`]).
@@ -93,6 +95,10 @@ pub struct Hierarchy {
     smooth: Vec<SmoothPattern>,
     /// Per level, each stored block's transposed partner ([`level::mirror_blocks`]).
     mirror: Vec<Vec<u32>>,
+    /// Per level, the CPU V-cycle's layout of its vectors and matrix rows.
+    slots: Vec<Slots>,
+    /// From each level to the next, P's and Pᵀ's slots.
+    transfers: Vec<TransferSlots>,
 }
 
 impl Hierarchy {
@@ -119,11 +125,21 @@ impl Hierarchy {
             levels.push(level);
         }
         let mirror = levels.iter().map(mirror_blocks).collect();
+        let slots: Vec<Slots> = levels.iter().map(|lev| Slots::new(lev, h.dim)).collect();
+        let transfers = smooth
+            .iter()
+            .enumerate()
+            .map(|(l, sp)| {
+                TransferSlots::new(sp, &levels[l], &slots[l], &levels[l + 1], &slots[l + 1])
+            })
+            .collect();
         Hierarchy {
             n: h.n,
             levels,
             smooth,
             mirror,
+            slots,
+            transfers,
         }
     }
 
@@ -435,20 +451,20 @@ impl Multilevel {
         let cycle = (0..nl)
             .map(|l| {
                 let mut v32 = Vec::new();
-                symmetric_f32(
+                hierarchy.slots[l].fill(
                     d,
                     &hierarchy.levels[l],
                     &hierarchy.mirror[l],
                     &values[l],
                     &mut v32,
                 );
-                let f32s = |v: Option<&Vec<f64>>| {
-                    v.map_or(Vec::new(), |v| v.iter().map(|&x| x as f32).collect())
-                };
                 CycleLevel {
                     values: v32,
-                    p: f32s(p.get(l)),
-                    pt: f32s(pt.get(l)),
+                    p: p.get(l)
+                        .map_or(Vec::new(), |v| hierarchy.transfers[l].p_f32(d * d, v)),
+                    pt: pt
+                        .get(l)
+                        .map_or(Vec::new(), |v| hierarchy.transfers[l].pt_f32(d * d, v)),
                     omega: 1.0,
                 }
             })
@@ -496,7 +512,7 @@ impl Multilevel {
         }
         frame_values_into(e, &mut self.values[0]);
         let (d, hi) = (self.dim, &self.hierarchy);
-        symmetric_f32(
+        hi.slots[0].fill(
             d,
             &hi.levels[0],
             &hi.mirror[0],
@@ -548,15 +564,19 @@ impl Multilevel {
                     let b = &mut inv[0];
                     mask_inverse(&mut b.inv[b.start[c]..b.start[c + 1]], m, row, diag);
                 }
-                if let Some(sp) = self.hierarchy.smooth.first() {
+                if let (Some(sp), Some(tr)) = (
+                    self.hierarchy.smooth.first(),
+                    self.hierarchy.transfers.first(),
+                ) {
                     let (p0, p1) = (sp.p_ptr[i], sp.p_ptr[i + 1]);
                     let cy = &mut self.cycle[0];
                     for (pk, &t) in (p0..p1).zip(&t_of[p0..p1]) {
                         self.p[0][pk * dd + a * d..pk * dd + (a + 1) * d].fill(0.0);
-                        cy.p[pk * dd + a * d..pk * dd + (a + 1) * d].fill(0.0);
+                        let q = tr.p_pos[pk] as usize;
+                        cy.p[q * dd + a * d..q * dd + (a + 1) * d].fill(0.0);
                         for r in 0..d {
                             self.pt[0][t * dd + r * d + a] = 0.0;
-                            cy.pt[t * dd + r * d + a] = 0.0;
+                            cy.pt[tr.pt_pos[t] as usize * dd + r * d + a] = 0.0;
                         }
                     }
                 }
@@ -583,11 +603,21 @@ impl Multilevel {
     fn cycle_omega(&self, l: usize) -> f64 {
         let d = self.dim;
         let lev = &self.hierarchy.levels[l];
+        let sl = &self.hierarchy.slots[l];
         let a = &self.cycle[l].values;
-        let mut tmp = Vec::new();
+        // The estimate's vectors stay in item order (its sums in the order they always
+        // had); the products run in slots.
+        let (mut xs, mut axs, mut ys) = (
+            vec![0.0; sl.len()],
+            vec![0.0; sl.len()],
+            vec![0.0; sl.len()],
+        );
         omega_for(power_estimate(lev.n * d, LAMBDA_STEPS, |x, ax, y| {
-            cycle_product(d, lev, a, None, x, ax);
-            smooth_level(lev, d, &self.factors[l], 1.0, false, ax, y, &mut tmp);
+            sl.gather(d, x, &mut xs);
+            sl.product(d, a, None, &xs, &mut axs);
+            sl.scatter(d, &axs, ax);
+            sl.smooth(&self.factors[l], 1.0, false, &axs, &mut ys);
+            sl.scatter(d, &ys, y);
         }))
     }
 
@@ -682,13 +712,13 @@ impl Multilevel {
                 .hierarchy
                 .levels
                 .iter()
-                .map(|lev| {
-                    let n = lev.n * self.dim;
+                .zip(&self.hierarchy.slots)
+                .map(|(_, sl)| {
+                    let n = sl.len();
                     LevelWork {
                         b: vec![0.0; n],
                         x: vec![0.0; n],
                         res: vec![0.0; n],
-                        tmp: vec![0.0; 3 * n],
                     }
                 })
                 .collect(),
@@ -703,7 +733,28 @@ impl Multilevel {
 
     /// z = M⁻¹ r in `work` (from [`Multilevel::workspace`]).
     pub fn apply_with(&self, r: &[f64], z: &mut [f64], work: &mut VcycleWork) {
-        self.vcycle(0, r, z, &mut work.levels, None);
+        self.apply_slots(r, z, work, None);
+    }
+
+    /// r into level 0's slots, the V-cycle, and its correction back to item order.
+    fn apply_slots(
+        &self,
+        r: &[f64],
+        z: &mut [f64],
+        work: &mut VcycleWork,
+        seconds: Option<&mut [[f64; 6]]>,
+    ) {
+        let (d, sl) = (self.dim, &self.hierarchy.slots[0]);
+        let Some(w) = work.levels.first_mut() else {
+            return;
+        };
+        let mut b = std::mem::take(&mut w.b);
+        let mut x = std::mem::take(&mut w.x);
+        sl.gather(d, r, &mut b);
+        self.vcycle(0, &b, &mut x, &mut work.levels, seconds);
+        sl.scatter(d, &x, z);
+        work.levels[0].b = b;
+        work.levels[0].x = x;
     }
 
     /// [`Multilevel::apply_with`], timed: wall seconds of each level's passes
@@ -716,7 +767,7 @@ impl Multilevel {
         work: &mut VcycleWork,
         seconds: &mut [[f64; 6]],
     ) {
-        self.vcycle(0, r, z, &mut work.levels, Some(seconds));
+        self.apply_slots(r, z, work, Some(seconds));
     }
 
     /// x = one symmetric V-cycle on level l for the right-hand side b: smooth
@@ -739,38 +790,39 @@ impl Multilevel {
             lap_pass(seconds.as_deref_mut(), t, l, k);
         };
         let d = self.dim;
-        let lev = &self.hierarchy.levels[l];
+        let hi = &self.hierarchy;
+        let sl = &hi.slots[l];
         let cy = &self.cycle[l];
         let f = &self.factors[l];
         let Some((w, below)) = work.split_first_mut() else {
             return;
         };
         let Some(next) = below.first_mut() else {
-            smooth_level(lev, d, f, 1.0, false, b, x, &mut w.tmp);
+            sl.smooth(f, 1.0, false, b, x);
             lap(&mut seconds, &mut t, 0);
             return;
         };
-        smooth_level(lev, d, f, cy.omega, false, b, x, &mut w.tmp);
+        sl.smooth(f, cy.omega, false, b, x);
         lap(&mut seconds, &mut t, 0);
         let res = &mut w.res;
-        cycle_product(d, lev, &cy.values, Some(b), x, res);
+        sl.product(d, &cy.values, Some(b), x, res);
         lap(&mut seconds, &mut t, 1);
         // The next level's vectors leave `below` while it recurses (a move, no copy).
         let mut bc = std::mem::take(&mut next.b);
         let mut xc = std::mem::take(&mut next.x);
-        let sp = &self.hierarchy.smooth[l];
-        sp.restrict(d, &cy.pt, res, &mut bc);
+        let tr = &hi.transfers[l];
+        tr.restrict(d, &hi.slots[l + 1], &hi.levels[l + 1], &cy.pt, res, &mut bc);
         lap(&mut seconds, &mut t, 2);
         self.vcycle(l + 1, &bc, &mut xc, below, seconds.as_deref_mut());
         // The levels below timed themselves: their seconds are not this level's.
         if let Some(t) = t.as_mut() {
             *t = std::time::Instant::now();
         }
-        sp.prolong_add(d, &cy.p, &xc, x);
+        tr.prolong_add(d, sl, &hi.levels[l], &cy.p, &xc, x);
         lap(&mut seconds, &mut t, 3);
-        cycle_product(d, lev, &cy.values, Some(b), x, res);
+        sl.product(d, &cy.values, Some(b), x, res);
         lap(&mut seconds, &mut t, 4);
-        smooth_level(lev, d, f, cy.omega, true, res, x, &mut w.tmp);
+        sl.smooth(f, cy.omega, true, res, x);
         lap(&mut seconds, &mut t, 5);
         let next = &mut below[0];
         next.b = bc;
@@ -813,6 +865,34 @@ fn omega_for(lam: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// z += P x in item order, with P's f64 blocks (the V-cycle applies f32 copies).
+    fn prolong_f64(d: usize, sp: &SmoothPattern, p: &[f64], x: &[f64], z: &mut [f64]) {
+        for i in 0..sp.p_ptr.len() - 1 {
+            for pk in sp.p_ptr[i]..sp.p_ptr[i + 1] {
+                let c = sp.p_col[pk] as usize;
+                for a in 0..d {
+                    for k in 0..d {
+                        z[i * d + a] += p[pk * d * d + a * d + k] * x[c * d + k];
+                    }
+                }
+            }
+        }
+    }
+
+    /// out = Pᵀ r in item order, with Pᵀ's f64 blocks in the restriction's order.
+    fn restrict_f64(d: usize, sp: &SmoothPattern, pt: &[f64], r: &[f64], out: &mut [f64]) {
+        for c in 0..sp.pt_ptr.len() - 1 {
+            for t in sp.pt_ptr[c]..sp.pt_ptr[c + 1] {
+                let i = sp.pt[t].0 as usize;
+                for a in 0..d {
+                    for k in 0..d {
+                        out[c * d + a] += pt[t * d * d + a * d + k] * r[i * d + k];
+                    }
+                }
+            }
+        }
+    }
     use crate::cases::generate::{random_system, SystemSpec};
     use crate::core::elimination::ConstrainedDiagonal;
 
@@ -978,7 +1058,7 @@ mod tests {
                     let mut ek = vec![0.0; nc];
                     ek[k] = 1.0;
                     let mut pk = vec![0.0; n];
-                    sp.prolong_add(dim, &m.p[l], &ek, &mut pk);
+                    prolong_f64(dim, sp, &m.p[l], &ek, &mut pk);
                     let mut hp = vec![0.0; n];
                     if l == 0 {
                         e.apply(&pk, &mut hp, &mut work);
@@ -986,7 +1066,7 @@ mod tests {
                         block_matvec(dim, &hier.levels[l], &m.values[l], &pk, &mut hp);
                     }
                     let mut col = vec![0.0; nc];
-                    sp.restrict(dim, &m.pt[l], &hp, &mut col);
+                    restrict_f64(dim, sp, &m.pt[l], &hp, &mut col);
                     // Column k from the stored blocks (row c, block column k / dim).
                     let (kc, kb) = (k / dim, k % dim);
                     for c in 0..next.n {
