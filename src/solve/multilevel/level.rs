@@ -156,7 +156,7 @@ impl Factors {
         }
         start.push(total);
         let mut inv = vec![0.0; total];
-        split_at_starts(&mut inv, &start)
+        split_rows(&mut inv, &start, 1)
             .into_par_iter()
             .enumerate()
             .for_each(|(c, out)| {
@@ -395,8 +395,8 @@ pub(super) fn factor_level(
     let x_start = offsets(&packed_len);
     let mut g = vec![0.0f32; g_start[nc]];
     let mut x64 = vec![0.0f64; x_start[nc]];
-    let g_parts = split_at_starts(&mut g, &g_start);
-    let x_parts = split_at_starts(&mut x64, &x_start);
+    let g_parts = split_rows(&mut g, &g_start, 1);
+    let x_parts = split_rows(&mut x64, &x_start, 1);
     let dropped: usize = g_parts
         .into_par_iter()
         .zip(x_parts)
@@ -438,17 +438,6 @@ pub(super) fn factor_level(
         },
         dropped,
     )
-}
-
-/// `v` split at `start` (ascending offsets, the last one its length).
-pub(super) fn split_at_starts<'v, T>(mut v: &'v mut [T], start: &[usize]) -> Vec<&'v mut [T]> {
-    let mut parts = Vec::with_capacity(start.len().saturating_sub(1));
-    for w in start.windows(2) {
-        let (a, b) = std::mem::take(&mut v).split_at_mut(w[1] - w[0]);
-        parts.push(a);
-        v = b;
-    }
-    parts
 }
 
 /// out = B⁺ src over a level's clusters (their explicit inverses): each cluster's items gathered into its own

@@ -460,11 +460,12 @@ impl Multilevel {
                 );
                 CycleLevel {
                     values: v32,
-                    p: p.get(l)
-                        .map_or(Vec::new(), |v| hierarchy.transfers[l].p_f32(d * d, v)),
-                    pt: pt
-                        .get(l)
-                        .map_or(Vec::new(), |v| hierarchy.transfers[l].pt_f32(d * d, v)),
+                    p: p.get(l).map_or(Vec::new(), |v| {
+                        hierarchy.transfers[l].p.f32_values(d * d, v)
+                    }),
+                    pt: pt.get(l).map_or(Vec::new(), |v| {
+                        hierarchy.transfers[l].pt.f32_values(d * d, v)
+                    }),
                     omega: 1.0,
                 }
             })
@@ -572,11 +573,11 @@ impl Multilevel {
                     let cy = &mut self.cycle[0];
                     for (pk, &t) in (p0..p1).zip(&t_of[p0..p1]) {
                         self.p[0][pk * dd + a * d..pk * dd + (a + 1) * d].fill(0.0);
-                        let q = tr.p_pos[pk] as usize;
+                        let q = tr.p.pos[pk] as usize;
                         cy.p[q * dd + a * d..q * dd + (a + 1) * d].fill(0.0);
                         for r in 0..d {
                             self.pt[0][t * dd + r * d + a] = 0.0;
-                            cy.pt[tr.pt_pos[t] as usize * dd + r * d + a] = 0.0;
+                            cy.pt[tr.pt.pos[t] as usize * dd + r * d + a] = 0.0;
                         }
                     }
                 }
@@ -614,7 +615,7 @@ impl Multilevel {
         );
         omega_for(power_estimate(lev.n * d, LAMBDA_STEPS, |x, ax, y| {
             sl.gather(d, x, &mut xs);
-            sl.product(d, a, None, &xs, &mut axs);
+            sl.product(d, lev, a, None, &xs, &mut axs);
             sl.scatter(d, &axs, ax);
             sl.smooth(&self.factors[l], 1.0, false, &axs, &mut ys);
             sl.scatter(d, &ys, y);
@@ -805,22 +806,23 @@ impl Multilevel {
         sl.smooth(f, cy.omega, false, b, x);
         lap(&mut seconds, &mut t, 0);
         let res = &mut w.res;
-        sl.product(d, &cy.values, Some(b), x, res);
+        sl.product(d, &hi.levels[l], &cy.values, Some(b), x, res);
         lap(&mut seconds, &mut t, 1);
         // The next level's vectors leave `below` while it recurses (a move, no copy).
         let mut bc = std::mem::take(&mut next.b);
         let mut xc = std::mem::take(&mut next.x);
         let tr = &hi.transfers[l];
-        tr.restrict(d, &hi.slots[l + 1], &hi.levels[l + 1], &cy.pt, res, &mut bc);
+        let coarse = (&hi.levels[l + 1], &hi.slots[l + 1]);
+        tr.pt.apply(d, coarse, &cy.pt, res, false, &mut bc);
         lap(&mut seconds, &mut t, 2);
         self.vcycle(l + 1, &bc, &mut xc, below, seconds.as_deref_mut());
         // The levels below timed themselves: their seconds are not this level's.
         if let Some(t) = t.as_mut() {
             *t = std::time::Instant::now();
         }
-        tr.prolong_add(d, sl, &hi.levels[l], &cy.p, &xc, x);
+        tr.p.apply(d, (&hi.levels[l], sl), &cy.p, &xc, true, x);
         lap(&mut seconds, &mut t, 3);
-        sl.product(d, &cy.values, Some(b), x, res);
+        sl.product(d, &hi.levels[l], &cy.values, Some(b), x, res);
         lap(&mut seconds, &mut t, 4);
         sl.smooth(f, cy.omega, true, res, x);
         lap(&mut seconds, &mut t, 5);

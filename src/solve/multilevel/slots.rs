@@ -7,7 +7,7 @@
 //! in the order of the node-order passes, so the V-cycle's values are the same bits.
 
 use super::dense::{apply_tiled, tiled_side};
-use super::level::{split_at_starts, split_rows, Factors, Level};
+use super::level::{split_rows, Factors, Level};
 use super::smoothed::SmoothPattern;
 use rayon::prelude::*;
 
@@ -24,8 +24,6 @@ pub(super) struct Slots {
     ptr: Vec<usize>,
     col: Vec<u32>,
     src: Vec<usize>,
-    /// Rows per cluster: `lev.ptr` (the items of cluster c are rows `rows[c]..rows[c + 1]`).
-    rows: Vec<usize>,
 }
 
 impl Slots {
@@ -56,7 +54,6 @@ impl Slots {
             ptr,
             col,
             src,
-            rows: lev.ptr.clone(),
         }
     }
 
@@ -128,44 +125,53 @@ impl Slots {
             });
     }
 
-    /// y = A x, or y = b − A x with `b`, all in slots, for `a` from [`Slots::fill`];
+    /// y = A x, or y = b − A x with `b`, all in slots, for `a` from [`Slots::fill`] (`lev`
+    /// the level of these slots: cluster c's rows are `lev.ptr[c]..lev.ptr[c + 1]`);
     /// every product and sum in f64 and in the order of the node-order product: row i
     /// sums each column c of its blocks times x_j[c] into its own accumulator, in block
     /// order, then adds them as (acc_0 + acc_1) + acc_2.
-    pub(super) fn product(&self, d: usize, a: &[f32], b: Option<&[f64]>, x: &[f64], y: &mut [f64]) {
+    pub(super) fn product(
+        &self,
+        d: usize,
+        lev: &Level,
+        a: &[f32],
+        b: Option<&[f64]>,
+        x: &[f64],
+        y: &mut [f64],
+    ) {
         assert!(a.len() > self.src.len() * d * d, "the trailing zero");
-        let parts = split_at_starts(y, &self.start);
+        let parts = split_rows(y, &self.start, 1);
         parts
             .into_par_iter()
             .enumerate()
             .with_min_len(8)
             .for_each(|(c, ys)| {
-                let base = self.start[c];
+                let (base, rows) = (self.start[c], lev.ptr[c]..lev.ptr[c + 1]);
                 #[cfg(target_arch = "x86_64")]
                 if d == 3 && std::arch::is_x86_feature_detected!("avx2") {
                     // SAFETY: the CPU has AVX2, checked just above; `a` ends in the zero
                     // asserted above.
-                    unsafe { self.rows3_avx2(c, a, b, x, base, ys) };
+                    unsafe { self.rows3_avx2(rows, a, b, x, base, ys) };
                     return;
                 }
                 match d {
-                    2 => self.rows::<2, 4>(c, a, b, x, base, ys),
-                    _ => self.rows::<3, 9>(c, a, b, x, base, ys),
+                    2 => self.rows::<2, 4>(rows, a, b, x, base, ys),
+                    _ => self.rows::<3, 9>(rows, a, b, x, base, ys),
                 }
             });
     }
 
-    /// Cluster c's rows of [`Slots::product`] into its slice `ys` (slot `base` first).
+    /// One cluster's rows of [`Slots::product`] into its slice `ys` (slot `base` first).
     fn rows<const D: usize, const DD: usize>(
         &self,
-        c: usize,
+        rows: std::ops::Range<usize>,
         a: &[f32],
         b: Option<&[f64]>,
         x: &[f64],
         base: usize,
         ys: &mut [f64],
     ) {
-        for (p, t) in (self.rows[c]..self.rows[c + 1]).enumerate() {
+        for (p, t) in rows.clone().enumerate() {
             let mut acc = [[0.0f64; D]; D];
             let (rs, re) = (self.ptr[t], self.ptr[t + 1]);
             for (blk, &j) in a[rs * DD..re * DD].chunks_exact(DD).zip(&self.col[rs..re]) {
@@ -200,7 +206,7 @@ impl Slots {
     #[target_feature(enable = "avx2")]
     unsafe fn rows3_avx2(
         &self,
-        c: usize,
+        rows: std::ops::Range<usize>,
         a: &[f32],
         b: Option<&[f64]>,
         x: &[f64],
@@ -209,7 +215,7 @@ impl Slots {
     ) {
         use std::arch::x86_64::*;
         let ap = a.as_ptr();
-        for (p, t) in (self.rows[c]..self.rows[c + 1]).enumerate() {
+        for (p, t) in rows.clone().enumerate() {
             let mut acc = [_mm256_setzero_pd(); 3];
             let (rs, re) = (self.ptr[t], self.ptr[t + 1]);
             for (k, &j) in (rs..re).zip(&self.col[rs..re]) {
@@ -236,7 +242,7 @@ impl Slots {
     /// out = scale·B⁺src (or out += with `add`), all in slots, each cluster's block
     /// applied where its values lie ([`apply_tiled`], G in `f`).
     pub(super) fn smooth(&self, f: &Factors, scale: f64, add: bool, src: &[f64], out: &mut [f64]) {
-        let parts = split_at_starts(out, &self.start);
+        let parts = split_rows(out, &self.start, 1);
         parts
             .into_par_iter()
             .enumerate()
@@ -256,25 +262,159 @@ impl Slots {
     }
 }
 
-/// The smoothed prolongation's transfers between two levels' slots: P's rows in the fine
-/// level's cluster order and Pᵀ's lists in the coarse level's, so that both passes read
-/// their blocks as one stream and write their slots in order.
+/// A block matrix between two levels' slots with its rows in the cluster order of the
+/// slots it writes, so that a pass reads its blocks as one stream and writes its slots
+/// in order: P (fine rows, coarse columns) or Pᵀ (coarse rows, fine columns).
+#[derive(Debug, Clone)]
+pub(super) struct SlotBlocks {
+    /// Row t's blocks (rows in cluster order): `ptr[t]..ptr[t + 1]`, each's index in the
+    /// pattern it comes from (`src`) and its column's slot (`at`).
+    ptr: Vec<usize>,
+    src: Vec<u32>,
+    at: Vec<u32>,
+    /// Each block of the source pattern's place in this order.
+    pub(super) pos: Vec<u32>,
+}
+
+impl SlotBlocks {
+    /// Row by row over `rows` (items in cluster order), `row_blocks(i)` giving item i's
+    /// blocks as (index in the source pattern, column item) among `blocks` in all.
+    fn new<I: Iterator<Item = (usize, u32)>>(
+        rows: &[u32],
+        blocks: usize,
+        columns: &Slots,
+        row_blocks: impl Fn(usize) -> I,
+    ) -> Self {
+        let (mut ptr, mut src, mut at) = (vec![0usize], Vec::new(), Vec::new());
+        let mut pos = vec![0u32; blocks];
+        for &i in rows {
+            for (k, j) in row_blocks(i as usize) {
+                pos[k] = src.len() as u32;
+                src.push(k as u32);
+                at.push(columns.at[j as usize]);
+            }
+            ptr.push(src.len());
+        }
+        SlotBlocks { ptr, src, at, pos }
+    }
+
+    /// The blocks of `v` (in the source pattern's order, dd values each) in this order,
+    /// rounded to f32.
+    pub(super) fn f32_values(&self, dd: usize, v: &[f64]) -> Vec<f32> {
+        let mut out = vec![0.0f32; self.src.len() * dd];
+        out.par_chunks_mut(dd)
+            .zip(self.src.par_iter())
+            .for_each(|(o, &k)| {
+                let b = &v[k as usize * dd..(k as usize + 1) * dd];
+                o.iter_mut().zip(b).for_each(|(o, &x)| *o = x as f32);
+            });
+        out
+    }
+
+    /// out = M x, or out += M x with `add` (x and out in slots, `rows` the levels the
+    /// rows and the output belong to), `m` from [`SlotBlocks::f32_values`]; each row's
+    /// sum in block order, starting from out's value with `add`.
+    pub(super) fn apply(
+        &self,
+        d: usize,
+        rows: (&Level, &Slots),
+        m: &[f32],
+        x: &[f64],
+        add: bool,
+        out: &mut [f64],
+    ) {
+        let (lev, slots) = rows;
+        split_rows(out, &slots.start, 1)
+            .into_par_iter()
+            .enumerate()
+            .with_min_len(8)
+            .for_each(|(cl, o)| {
+                let rows = lev.ptr[cl]..lev.ptr[cl + 1];
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the CPU has AVX2, checked just above.
+                    unsafe { self.rows_avx2(d, rows, m, x, add, o) };
+                    return;
+                }
+                self.rows(d, rows, m, x, add, o);
+            });
+    }
+
+    /// [`SlotBlocks::rows`] compiled for AVX2: the same operations in the same order,
+    /// so the same bits.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn rows_avx2(
+        &self,
+        d: usize,
+        rows: std::ops::Range<usize>,
+        m: &[f32],
+        x: &[f64],
+        add: bool,
+        o: &mut [f64],
+    ) {
+        self.rows(d, rows, m, x, add, o);
+    }
+
+    #[inline(always)]
+    fn rows(
+        &self,
+        d: usize,
+        rows: std::ops::Range<usize>,
+        m: &[f32],
+        x: &[f64],
+        add: bool,
+        o: &mut [f64],
+    ) {
+        // `add` as a constant: the fill below leaves the loop without a branch.
+        match (d, add) {
+            (2, false) => self.rows_d::<2, 4, false>(rows, m, x, o),
+            (2, true) => self.rows_d::<2, 4, true>(rows, m, x, o),
+            (_, false) => self.rows_d::<3, 9, false>(rows, m, x, o),
+            (_, true) => self.rows_d::<3, 9, true>(rows, m, x, o),
+        }
+    }
+
+    /// One cluster's rows of [`SlotBlocks::apply`] into its slice `o`.
+    #[inline(always)]
+    fn rows_d<const D: usize, const DD: usize, const ADD: bool>(
+        &self,
+        rows: std::ops::Range<usize>,
+        m: &[f32],
+        x: &[f64],
+        o: &mut [f64],
+    ) {
+        for (q, row) in rows.enumerate() {
+            let oi = &mut o[q * D..(q + 1) * D];
+            if !ADD {
+                oi.fill(0.0);
+            }
+            for k in self.ptr[row]..self.ptr[row + 1] {
+                let b: &[f32; DD] = m[k * DD..(k + 1) * DD].try_into().expect("D·D values");
+                let at = self.at[k] as usize;
+                let xc: &[f64; D] = x[at..at + D].try_into().expect("D values");
+                for a in 0..D {
+                    let mut s = 0.0;
+                    for c in 0..D {
+                        s += f64::from(b[a * D + c]) * xc[c];
+                    }
+                    oi[a] += s;
+                }
+            }
+        }
+    }
+}
+
+/// The smoothed prolongation between two levels' slots: P with its rows in the fine
+/// level's cluster order, Pᵀ with its rows (the lists of `SmoothPattern::pt`) in the
+/// coarse level's.
 #[derive(Debug, Clone)]
 pub(super) struct TransferSlots {
-    /// P's blocks by fine row in cluster order (row t: `p_ptr[t]..p_ptr[t + 1]`), each's
-    /// index in `SmoothPattern`'s P (`p_src`) and its coarse column's slot (`p_at`).
-    p_ptr: Vec<usize>,
-    p_src: Vec<u32>,
-    p_at: Vec<u32>,
-    /// Each P block's place in that order.
-    pub(super) p_pos: Vec<u32>,
-    /// Pᵀ's lists by coarse item in cluster order (`pt_ptr[t]..pt_ptr[t + 1]`), each
-    /// entry's index in `SmoothPattern::pt` (`pt_src`) and its fine row's slot (`pt_at`).
-    pt_ptr: Vec<usize>,
-    pt_src: Vec<u32>,
-    pt_at: Vec<u32>,
-    /// Each entry of `SmoothPattern::pt`'s place in that order.
-    pub(super) pt_pos: Vec<u32>,
+    pub(super) p: SlotBlocks,
+    pub(super) pt: SlotBlocks,
 }
 
 impl TransferSlots {
@@ -285,240 +425,14 @@ impl TransferSlots {
         coarse_lev: &Level,
         coarse: &Slots,
     ) -> Self {
-        let (mut p_ptr, mut p_src, mut p_at) = (vec![0usize], Vec::new(), Vec::new());
-        let mut p_pos = vec![0u32; sp.p_col.len()];
-        for &i in &fine_lev.items {
-            let blocks = sp.p_ptr[i as usize]..sp.p_ptr[i as usize + 1];
-            for (pk, &c) in blocks.clone().zip(&sp.p_col[blocks]) {
-                p_pos[pk] = p_src.len() as u32;
-                p_src.push(pk as u32);
-                p_at.push(coarse.at[c as usize]);
-            }
-            p_ptr.push(p_src.len());
-        }
-        let (mut pt_ptr, mut pt_src, mut pt_at) = (vec![0usize], Vec::new(), Vec::new());
-        let mut pt_pos = vec![0u32; sp.pt.len()];
-        for &c in &coarse_lev.items {
-            let list = sp.pt_ptr[c as usize]..sp.pt_ptr[c as usize + 1];
-            for (t, &(i, _)) in list.clone().zip(&sp.pt[list]) {
-                pt_pos[t] = pt_src.len() as u32;
-                pt_src.push(t as u32);
-                pt_at.push(fine.at[i as usize]);
-            }
-            pt_ptr.push(pt_src.len());
-        }
-        TransferSlots {
-            p_ptr,
-            p_src,
-            p_at,
-            p_pos,
-            pt_ptr,
-            pt_src,
-            pt_at,
-            pt_pos,
-        }
-    }
-
-    /// P's f32 blocks in this order, from `p` in `SmoothPattern`'s (d×d each).
-    pub(super) fn p_f32(&self, dd: usize, p: &[f64]) -> Vec<f32> {
-        permuted_f32(dd, &self.p_src, p)
-    }
-
-    /// Pᵀ's f32 blocks in this order, from `pt` in `SmoothPattern::pt`'s.
-    pub(super) fn pt_f32(&self, dd: usize, pt: &[f64]) -> Vec<f32> {
-        permuted_f32(dd, &self.pt_src, pt)
-    }
-
-    /// out (coarse slots) = Pᵀ r (r in fine slots), `pt_values` from
-    /// [`TransferSlots::pt_f32`]; each coarse item's sum in the order of its list.
-    #[allow(clippy::too_many_arguments)]
-    pub(super) fn restrict(
-        &self,
-        d: usize,
-        coarse: &Slots,
-        coarse_lev: &Level,
-        pt_values: &[f32],
-        r: &[f64],
-        out: &mut [f64],
-    ) {
-        let parts = split_at_starts(out, &coarse.start);
-        parts
-            .into_par_iter()
-            .enumerate()
-            .with_min_len(8)
-            .for_each(|(cl, o)| {
-                let rows = coarse_lev.ptr[cl]..coarse_lev.ptr[cl + 1];
-                #[cfg(target_arch = "x86_64")]
-                if std::arch::is_x86_feature_detected!("avx2") {
-                    // SAFETY: the CPU has AVX2, checked just above.
-                    unsafe { self.restrict_avx2(d, rows, pt_values, r, o) };
-                    return;
-                }
-                self.restrict_items(d, rows, pt_values, r, o);
-            });
-    }
-
-    /// [`TransferSlots::restrict_items`] compiled for AVX2: the same operations in the
-    /// same order, so the same bits.
-    ///
-    /// # Safety
-    /// The CPU must have AVX2.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn restrict_avx2(
-        &self,
-        d: usize,
-        rows: std::ops::Range<usize>,
-        pt_values: &[f32],
-        r: &[f64],
-        o: &mut [f64],
-    ) {
-        self.restrict_items(d, rows, pt_values, r, o);
-    }
-
-    #[inline(always)]
-    fn restrict_items(
-        &self,
-        d: usize,
-        rows: std::ops::Range<usize>,
-        pt_values: &[f32],
-        r: &[f64],
-        o: &mut [f64],
-    ) {
-        match d {
-            2 => self.restrict_d::<2, 4>(rows, pt_values, r, o),
-            _ => self.restrict_d::<3, 9>(rows, pt_values, r, o),
-        }
-    }
-
-    /// A coarse cluster's items of [`TransferSlots::restrict`] into its slice `o`.
-    #[inline(always)]
-    fn restrict_d<const D: usize, const DD: usize>(
-        &self,
-        rows: std::ops::Range<usize>,
-        pt_values: &[f32],
-        r: &[f64],
-        o: &mut [f64],
-    ) {
-        for (p, row) in rows.enumerate() {
-            let mut acc = [0.0f64; D];
-            for t in self.pt_ptr[row]..self.pt_ptr[row + 1] {
-                let at = self.pt_at[t] as usize;
-                let ri: &[f64; D] = r[at..at + D].try_into().expect("D values");
-                let pb: &[f32; DD] = pt_values[t * DD..(t + 1) * DD]
-                    .try_into()
-                    .expect("D·D values");
-                for a in 0..D {
-                    let mut s = 0.0;
-                    for k in 0..D {
-                        s += f64::from(pb[a * D + k]) * ri[k];
-                    }
-                    acc[a] += s;
-                }
-            }
-            o[p * D..(p + 1) * D].copy_from_slice(&acc);
-        }
-    }
-
-    /// z (fine slots) += P x (x in coarse slots), `p` from [`TransferSlots::p_f32`]; each
-    /// fine item's sum in the order of its row.
-    #[allow(clippy::too_many_arguments)]
-    pub(super) fn prolong_add(
-        &self,
-        d: usize,
-        fine: &Slots,
-        fine_lev: &Level,
-        p: &[f32],
-        x: &[f64],
-        z: &mut [f64],
-    ) {
-        let parts = split_at_starts(z, &fine.start);
-        parts
-            .into_par_iter()
-            .enumerate()
-            .with_min_len(8)
-            .for_each(|(cl, zs)| {
-                let rows = fine_lev.ptr[cl]..fine_lev.ptr[cl + 1];
-                #[cfg(target_arch = "x86_64")]
-                if std::arch::is_x86_feature_detected!("avx2") {
-                    // SAFETY: the CPU has AVX2, checked just above.
-                    unsafe { self.prolong_avx2(d, rows, p, x, zs) };
-                    return;
-                }
-                self.prolong_items(d, rows, p, x, zs);
-            });
-    }
-
-    /// [`TransferSlots::prolong_items`] compiled for AVX2: the same operations in the
-    /// same order, so the same bits.
-    ///
-    /// # Safety
-    /// The CPU must have AVX2.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn prolong_avx2(
-        &self,
-        d: usize,
-        rows: std::ops::Range<usize>,
-        p: &[f32],
-        x: &[f64],
-        zs: &mut [f64],
-    ) {
-        self.prolong_items(d, rows, p, x, zs);
-    }
-
-    #[inline(always)]
-    fn prolong_items(
-        &self,
-        d: usize,
-        rows: std::ops::Range<usize>,
-        p: &[f32],
-        x: &[f64],
-        zs: &mut [f64],
-    ) {
-        match d {
-            2 => self.prolong_d::<2, 4>(rows, p, x, zs),
-            _ => self.prolong_d::<3, 9>(rows, p, x, zs),
-        }
-    }
-
-    /// A fine cluster's items of [`TransferSlots::prolong_add`], added into its slice.
-    #[inline(always)]
-    fn prolong_d<const D: usize, const DD: usize>(
-        &self,
-        rows: std::ops::Range<usize>,
-        p: &[f32],
-        x: &[f64],
-        zs: &mut [f64],
-    ) {
-        for (q, row) in rows.enumerate() {
-            let zi = &mut zs[q * D..(q + 1) * D];
-            for pk in self.p_ptr[row]..self.p_ptr[row + 1] {
-                let pb: &[f32; DD] = p[pk * DD..(pk + 1) * DD].try_into().expect("D·D values");
-                let at = self.p_at[pk] as usize;
-                let xc: &[f64; D] = x[at..at + D].try_into().expect("D values");
-                for a in 0..D {
-                    let mut s = 0.0;
-                    for k in 0..D {
-                        s += f64::from(pb[a * D + k]) * xc[k];
-                    }
-                    zi[a] += s;
-                }
-            }
-        }
-    }
-}
-
-/// Blocks `src[t]` of `v` (dd values each), in order, rounded to f32.
-fn permuted_f32(dd: usize, src: &[u32], v: &[f64]) -> Vec<f32> {
-    let mut out = vec![0.0f32; src.len() * dd];
-    out.par_chunks_mut(dd)
-        .zip(src.par_iter())
-        .for_each(|(o, &k)| {
-            let b = &v[k as usize * dd..(k as usize + 1) * dd];
-            o.iter_mut().zip(b).for_each(|(o, &x)| *o = x as f32);
+        let p = SlotBlocks::new(&fine_lev.items, sp.p_col.len(), coarse, |i| {
+            (sp.p_ptr[i]..sp.p_ptr[i + 1]).map(|k| (k, sp.p_col[k]))
         });
-    out
+        let pt = SlotBlocks::new(&coarse_lev.items, sp.pt.len(), fine, |c| {
+            (sp.pt_ptr[c]..sp.pt_ptr[c + 1]).map(|t| (t, sp.pt[t].0))
+        });
+        TransferSlots { p, pt }
+    }
 }
 
 #[cfg(test)]
@@ -570,7 +484,7 @@ mod tests {
             );
             sl.gather(d, &x, &mut xs);
             sl.gather(d, &b, &mut bs);
-            sl.product(d, &vals, Some(&bs), &xs, &mut ys);
+            sl.product(d, &lev, &vals, Some(&bs), &xs, &mut ys);
             let mut y = vec![0.0; n * d];
             sl.scatter(d, &ys, &mut y);
             // Item order, block by block in the pattern's order, each column into its own
@@ -578,9 +492,10 @@ mod tests {
             let mut portable = vec![0.0; sl.len()];
             for c in 0..lev.clusters() {
                 let (s, e) = (sl.start[c], sl.start[c + 1]);
+                let rows = lev.ptr[c]..lev.ptr[c + 1];
                 match d {
-                    2 => sl.rows::<2, 4>(c, &vals, Some(&bs), &xs, s, &mut portable[s..e]),
-                    _ => sl.rows::<3, 9>(c, &vals, Some(&bs), &xs, s, &mut portable[s..e]),
+                    2 => sl.rows::<2, 4>(rows, &vals, Some(&bs), &xs, s, &mut portable[s..e]),
+                    _ => sl.rows::<3, 9>(rows, &vals, Some(&bs), &xs, s, &mut portable[s..e]),
                 }
             }
             assert!(
