@@ -265,14 +265,14 @@ fn cpu_phases_account_for_the_time_outside_the_solve() {
 /// why; `run --solver cholesky` names no preconditioner.
 #[test]
 fn auto_preconditioner_follows_the_scene_size() {
-    // Twist at size 4 has 3,321 nodes, at size 5 6,171 (the threshold is 5,000).
+    // Twist at size 5 has 6,171 nodes, at size 6 10,309 (the threshold is 8,000).
     for (size, solver, want, why) in [
-        (4.0, None, Some("jacobi"), Some("3321 nodes < 5000 in 3D")),
+        (5.0, None, Some("jacobi"), Some("6171 nodes < 8000 in 3D")),
         (
-            5.0,
+            6.0,
             None,
             Some("multilevel"),
-            Some("6171 nodes ≥ 5000 in 3D"),
+            Some("10309 nodes ≥ 8000 in 3D"),
         ),
         (5.0, Some(stickslip::SolverKind::Cholesky), None, None),
     ] {

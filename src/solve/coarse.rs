@@ -751,9 +751,14 @@ pub fn softest_translations(
     let full = (1u8 << d) - 1;
     let q = node_projections(frames);
     let free = |i: usize| frames.mask[i] & full != full;
-    // Q_i B Q_j of block kb (i's row), into `out`.
-    let project = |i: usize, kb: usize, out: &mut [f64]| {
+    // Q_i B Q_j of block kb (i's row): the stored block itself where neither node is
+    // projected (most nodes of a mesh), else formed in `buf`. Reading the block in place
+    // keeps this check, which every CG solve runs, a small part of the solve.
+    let project = |i: usize, kb: usize, buf: &'_ mut [f64; 9]| -> bool {
         let j = h.col_idx[kb];
+        if q[i].is_none() && q[j].is_none() {
+            return false;
+        }
         let b = h.block(kb);
         let mut t = [0.0; 9];
         match &q[j] {
@@ -761,13 +766,14 @@ pub fn softest_translations(
             Some(qj) => mat_mul(d, b, &qj[..dd], &mut t[..dd]),
         }
         match &q[i] {
-            None => out.copy_from_slice(&t[..dd]),
-            Some(qi) => mat_mul(d, &qi[..dd], &t[..dd], out),
+            None => buf[..dd].copy_from_slice(&t[..dd]),
+            Some(qi) => mat_mul(d, &qi[..dd], &t[..dd], &mut buf[..dd]),
         }
+        true
     };
     let mut group = vec![u32::MAX; n];
     let mut stack = Vec::new();
-    let mut pb = [0.0; 9];
+    let mut buf = [0.0; 9];
     let mut count = 0u32;
     for seed in 0..n {
         if group[seed] != u32::MAX || !free(seed) {
@@ -781,8 +787,12 @@ pub fn softest_translations(
                 if group[j] != u32::MAX || !free(j) {
                     continue;
                 }
-                project(i, kb, &mut pb[..dd]);
-                if pb[..dd].iter().any(|v| *v != 0.0) {
+                let pb = if project(i, kb, &mut buf) {
+                    &buf[..dd]
+                } else {
+                    h.block(kb)
+                };
+                if pb.iter().any(|v| *v != 0.0) {
                     group[j] = count;
                     stack.push(j);
                 }
@@ -815,8 +825,12 @@ pub fn softest_translations(
             if group[j] != c as u32 {
                 continue;
             }
-            project(i, kb, &mut pb[..dd]);
-            for (r, v) in row[..dd].iter_mut().zip(&pb[..dd]) {
+            let pb = if project(i, kb, &mut buf) {
+                &buf[..dd]
+            } else {
+                h.block(kb)
+            };
+            for (r, v) in row[..dd].iter_mut().zip(pb) {
                 *r += v;
             }
             // Scaled by 2^-64 while summed: rows near the top of the f64 range would

@@ -252,7 +252,7 @@ impl PreconditionerChoice {
     pub const AUTO_MULTILEVEL_MIN_NODES_2D: usize = 8_000;
     /// The fewest nodes of a 3D scene whose CPU CG takes the multilevel preconditioner
     /// under "auto".
-    pub const AUTO_MULTILEVEL_MIN_NODES_3D: usize = 5_000;
+    pub const AUTO_MULTILEVEL_MIN_NODES_3D: usize = 8_000;
 
     /// The fewest nodes of a `dim`-dimensional scene that takes multilevel under "auto".
     fn auto_multilevel_min(dim: usize) -> usize {
@@ -720,8 +720,8 @@ mod tests {
     fn auto_picks_multilevel_for_the_cpu_cg_from_the_measured_sizes() {
         let auto = PreconditionerChoice::Auto;
         let (cg, cpu) = (LinearKind::Cg, NewtonLoop::Cpu);
-        assert_eq!(auto.resolve(3, 4_999, cg, cpu), Preconditioner::Jacobi);
-        assert_eq!(auto.resolve(3, 5_000, cg, cpu), Preconditioner::Multilevel);
+        assert_eq!(auto.resolve(3, 7_999, cg, cpu), Preconditioner::Jacobi);
+        assert_eq!(auto.resolve(3, 8_000, cg, cpu), Preconditioner::Multilevel);
         assert_eq!(auto.resolve(2, 7_999, cg, cpu), Preconditioner::Jacobi);
         assert_eq!(auto.resolve(2, 8_000, cg, cpu), Preconditioner::Multilevel);
         for (linear, newton) in [
@@ -743,7 +743,7 @@ mod tests {
             Preconditioner::Multilevel
         );
         let why = auto.reason(3, 44_541, cg, cpu).expect("auto says why");
-        assert!(why.contains("44541 nodes ≥ 5000 in 3D"), "{why}");
+        assert!(why.contains("44541 nodes ≥ 8000 in 3D"), "{why}");
         let why = auto.reason(2, 2_401, cg, cpu).expect("auto says why");
         assert!(why.contains("2401 nodes < 8000 in 2D"), "{why}");
         assert_eq!(auto.reason(3, 99, LinearKind::Cholesky, cpu), None);
