@@ -26,7 +26,7 @@
 #   GPU_EVAL_TEST_BINS     test binaries for step 1, space separated [none: step skipped]
 #   GPU_EVAL_SIZES         ladder node counts, 3D [100000,1000000 / 3000000]
 #   GPU_EVAL_NEWTON_SIZES  bench --newton node counts [10000,100000 / 1000000]
-#   GPU_EVAL_TWIST_SIZE    run twist --size [6 / 10]
+#   GPU_EVAL_TWIST_SIZE    run twist --size, three runs (step 4) [6 / 10]
 #   GPU_EVAL_HARD_SCALE    bench --hard-scale [2 / 5]
 #   GPU_EVAL_CUPY_SIZES    node counts solved by CuPy and stickslip [100000 / 1000000]
 #   GPU_EVAL_PYTHON        the Python with CuPy [python3]
@@ -168,16 +168,39 @@ step ladder "$t_ladder" "$bin" bench --quick --sizes "$sizes" --dims 3 \
 step newton "$t_newton" "$bin" bench --newton --sizes "$newton_sizes" --reps 1 \
     --out "$work/newton" > "$work/newton/tables.md" 2> "$work/newton/log.txt"
 
-# 4. One step of a twist, the whole Newton step on the GPU against the CPU loop.
+# 4. One step of a twist, the whole Newton step on the GPU against the CPU loop, and the
+#    device loop with the multilevel preconditioner against its default (Jacobi with the
+#    aggregates): linear seconds and iterations of each in the summary.
 twist_both() {
     "$bin" run twist --size "$twist_size" --steps 1 --newton gpu --quiet --overwrite \
         --out "$work/twist/gpu" || return 1
+    "$bin" run twist --size "$twist_size" --steps 1 --newton gpu --preconditioner multilevel \
+        --quiet --overwrite --out "$work/twist/gpu-multilevel" || return 1
     "$bin" run twist --size "$twist_size" --steps 1 --solver cg --quiet --overwrite \
         --out "$work/twist/cpu" || return 1
 }
 export work bin twist_size
 export -f twist_both
 step twist "$t_twist" bash -c twist_both 2> "$work/twist/log.txt"
+# summary.json's figures, one line per run (grep: the device machine may lack jq); the
+# table joins the others at the end of the summary.
+twist_field() {
+    grep -o "\"$2\": *[^,}]*" "$1/summary.json" 2>/dev/null | head -1 | sed 's/.*: *//; s/"//g'
+}
+{
+    echo "twist --size $twist_size --steps 1:"
+    echo
+    echo "| run | nodes | preconditioner | Newton | CG iterations | linear s | wall s |"
+    echo "|---|---|---|---|---|---|---|"
+    for r in gpu gpu-multilevel cpu; do
+        d=$work/twist/$r
+        [ -s "$d/summary.json" ] || continue
+        printf '| %s | %s | %s | %s | %s | %.3f | %.3f |\n' "$r" "$(twist_field "$d" nodes)" \
+            "$(twist_field "$d" preconditioner)" "$(twist_field "$d" newton_iterations)" \
+            "$(twist_field "$d" linear_iterations)" "$(twist_field "$d" linear_seconds)" \
+            "$(twist_field "$d" wall_seconds)"
+    done
+} > "$work/twist/runs.md"
 
 # 5. The hard cases: f64 against mixed.
 step hard "$t_hard" "$bin" bench --hard --hard-scale "$hard_scale" \
@@ -225,7 +248,7 @@ for s in ladder newton cupy; do
 done
 [ -s "$work/hard/hard.md" ] && cp "$work/hard/hard.md" "$out/hard.md"
 {
-    for f in "$work"/ladder/*.md "$work"/newton/*.md; do
+    for f in "$work"/ladder/*.md "$work"/newton/*.md "$work"/twist/runs.md; do
         [ -s "$f" ] || continue
         echo
         echo "## ${f#"$work"/}"

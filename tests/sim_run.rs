@@ -260,6 +260,34 @@ fn cpu_phases_account_for_the_time_outside_the_solve() {
     }
 }
 
+/// `run --preconditioner` replaces the scene's choice (here below auto's threshold), and
+/// summary.json then gives no "auto" reason.
+#[test]
+fn run_preconditioner_overrides_the_scene() {
+    let out = std::env::temp_dir().join(format!(
+        "stickslip-sim-run-pc-override-{}",
+        std::process::id()
+    ));
+    let opts = RunOptions {
+        scene: Some("twist".into()),
+        size: Some(2.0),
+        out: Some(out.clone()),
+        steps: Some(1),
+        solver: Some(stickslip::SolverKind::Cg),
+        preconditioner: Some(stickslip::sim::scene::PreconditionerChoice::Multilevel),
+        quiet: true,
+        ..RunOptions::default()
+    };
+    run(&opts).unwrap_or_else(|e| panic!("{e}"));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary"))
+            .expect("json");
+    assert_eq!(json["preconditioner"].as_str(), Some("multilevel"));
+    assert!(json["preconditioner_choice"].is_null(), "{json}");
+    assert!(json["multilevel_levels"]["built"].as_u64().unwrap_or(0) >= 1);
+    let _ = std::fs::remove_dir_all(&out);
+}
+
 /// A scene that leaves `[solver] preconditioner` at "auto" runs the CPU CG with Jacobi
 /// below the 3D threshold and with multilevel from it, and summary.json says which and
 /// why; `run --solver cholesky` names no preconditioner.

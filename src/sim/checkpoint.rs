@@ -46,6 +46,9 @@ pub struct StartOptions {
     pub ordering: Option<crate::CholeskyOrdering>,
     pub newton: Option<crate::sim::scene::NewtonLoop>,
     pub cg_tolerance: Option<crate::sim::scene::CgTolerance>,
+    /// `--preconditioner` (absent from checkpoints written before the option existed).
+    #[serde(default)]
+    pub preconditioner: Option<crate::sim::scene::PreconditionerChoice>,
     /// The steps whose Newton systems the run dumps (`--dump-systems`).
     pub dump_systems: Option<crate::sim::integrator::StepSelection>,
 }
@@ -413,6 +416,7 @@ mod tests {
             ordering: None,
             newton: None,
             cg_tolerance: None,
+            preconditioner: None,
             dump_systems: Some(crate::sim::integrator::StepSelection::All),
         }
     }

@@ -225,6 +225,7 @@ fn start_options(opts: &RunOptions, resumed: Option<&Checkpoint>) -> StartOption
             ordering: opts.ordering,
             newton: opts.newton,
             cg_tolerance: opts.cg_tolerance,
+            preconditioner: opts.preconditioner,
             dump_systems: opts.dump_systems.clone(),
         },
     }

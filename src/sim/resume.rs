@@ -25,6 +25,7 @@ pub fn refuse_options(opts: &RunOptions) -> Result<(), RunError> {
         ("--ordering", opts.ordering.is_some()),
         ("--newton", opts.newton.is_some()),
         ("--cg-tolerance", opts.cg_tolerance.is_some()),
+        ("--preconditioner", opts.preconditioner.is_some()),
         ("--overwrite", opts.overwrite),
     ];
     for (what, given) in fixed {

@@ -42,6 +42,8 @@ pub struct RunOptions {
     pub newton: Option<crate::sim::scene::NewtonLoop>,
     /// Overrides the CG tolerance policy of the Newton systems (`[solver] cg_tolerance`).
     pub cg_tolerance: Option<crate::sim::scene::CgTolerance>,
+    /// Overrides the preconditioner of the CG solvers (`[solver] preconditioner`).
+    pub preconditioner: Option<crate::sim::scene::PreconditionerChoice>,
     /// Overrides the number of steps by the end time: round(T / h) steps.
     pub end_time: Option<f64>,
     /// Write every Newton system of these steps under `systems/step_S/iter_K/` in the

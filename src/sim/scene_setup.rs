@@ -128,6 +128,9 @@ pub(crate) fn build_scene(
     if let Some(t) = start.cg_tolerance {
         scene.solver.cg_tolerance = t;
     }
+    if let Some(p) = start.preconditioner {
+        scene.solver.preconditioner_choice = p;
+    }
     // "auto" depends on the solver and the Newton loop, which the options may change.
     scene
         .solver

@@ -359,6 +359,11 @@ pub struct RunArgs {
     /// else adaptive].
     #[arg(long, value_name = "adaptive|TOL", value_parser = str::parse::<crate::sim::scene::CgTolerance>)]
     pub cg_tolerance: Option<crate::sim::scene::CgTolerance>,
+    /// The CG solvers' preconditioner: auto, none, jacobi, block-jacobi or multilevel
+    /// (jacobi and block-jacobi add the scene's `[solver] coarse` correction) [default: the
+    /// scene's `[solver] preconditioner`, else auto].
+    #[arg(long, value_name = "PRECONDITIONER", value_parser = str::parse::<crate::sim::scene::PreconditionerChoice>)]
+    pub preconditioner: Option<crate::sim::scene::PreconditionerChoice>,
     /// Write every Newton system of these steps (all, or step numbers from 1: 1,10) under
     /// DIR/systems/step_S/iter_K/: H.mtx, g.mtx, bc.json (the input of `solve` and
     /// `export`), x.mtx (the iterate), dx.mtx (the direction the run used), system.json.

@@ -16,6 +16,7 @@ pub fn run_scene(a: &RunArgs, quiet: bool) -> Result<(), CliError> {
         ordering: a.ordering,
         newton: a.newton,
         cg_tolerance: a.cg_tolerance,
+        preconditioner: a.preconditioner,
         dump_systems: a.dump_systems.clone(),
         end_time: a.end_time,
         resume: a.resume.clone(),

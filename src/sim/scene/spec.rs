@@ -246,6 +246,23 @@ pub enum PreconditionerChoice {
     Multilevel,
 }
 
+impl std::str::FromStr for PreconditionerChoice {
+    type Err = String;
+    /// A name as `[solver] preconditioner` spells it (`run --preconditioner`).
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "auto" => Ok(PreconditionerChoice::Auto),
+            "none" => Ok(PreconditionerChoice::None),
+            "jacobi" => Ok(PreconditionerChoice::Jacobi),
+            "block-jacobi" => Ok(PreconditionerChoice::BlockJacobi),
+            "multilevel" => Ok(PreconditionerChoice::Multilevel),
+            _ => Err(format!(
+                "expected auto, none, jacobi, block-jacobi or multilevel, got \"{s}\""
+            )),
+        }
+    }
+}
+
 impl PreconditionerChoice {
     /// The fewest nodes of a 2D scene whose CPU CG takes the multilevel preconditioner
     /// under "auto".
