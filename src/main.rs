@@ -10,7 +10,7 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 /// enum has it between `mi_option_eager_commit_delay` (14) and `mi_option_use_numa_nodes`.
 const MI_OPTION_PURGE_DELAY: libmimalloc_sys::mi_option_t = 15;
 const _: () = assert!(libmimalloc_sys::mi_option_use_numa_nodes == MI_OPTION_PURGE_DELAY + 1);
-/// Its default in the bundled mimalloc (src/options.c), milliseconds.
+/// Its default in the bundled mimalloc (its options.c), milliseconds.
 const PURGE_DELAY_DEFAULT: std::ffi::c_long = 1000;
 
 /// Freed memory stays with the process instead of going back to the OS after the purge
