@@ -286,6 +286,20 @@ fn run_preconditioner_overrides_the_scene() {
     assert!(json["preconditioner_choice"].is_null(), "{json}");
     assert!(json["multilevel_levels"]["built"].as_u64().unwrap_or(0) >= 1);
     let _ = std::fs::remove_dir_all(&out);
+    // Multilevel where the scene's GPU solver runs in mixed precision: refused before
+    // anything runs, naming the option rather than the scene's key.
+    let gpu = RunOptions {
+        solver: Some(stickslip::SolverKind::Gpu),
+        ..opts
+    };
+    let err = run(&gpu)
+        .expect_err("multilevel in mixed precision")
+        .to_string();
+    assert!(
+        err.contains("--preconditioner") && err.contains("mixed"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&out);
 }
 
 /// A scene that leaves `[solver] preconditioner` at "auto" runs the CPU CG with Jacobi

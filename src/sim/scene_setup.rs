@@ -195,9 +195,14 @@ pub(crate) fn build_scene(
         && scene.solver.newton != crate::sim::scene::NewtonLoop::Gpu
         && scene.solver.precision != crate::gpu::Precision::F64
     {
+        // Name what asked for it: the command line's option or the scene's key.
+        let (source, key) = match start.preconditioner {
+            Some(_) => ("command line".to_string(), "--preconditioner"),
+            None => (scene.file.clone(), "solver.preconditioner"),
+        };
         return Err(InputError::new(
-            scene.file.clone(),
-            "solver.preconditioner",
+            source,
+            key,
             format!(
                 "{}; this scene's linear = \"gpu\" runs in {} (set [solver] precision = \"f64\")",
                 crate::gpu::MULTILEVEL_ON_CPU,
