@@ -2,6 +2,9 @@
 //! summary.json and VTK frames, and the frames parse (a small legacy-VTK reader checks the
 //! counts and that every number is finite). Also: input errors name their key.
 
+mod common;
+
+use common::cli::summary;
 use std::path::Path;
 use stickslip::sim::driver::{run, RunError, RunOptions};
 
@@ -96,9 +99,7 @@ fn default_scene_runs_and_writes_frames_that_parse() {
     }
     let csv = std::fs::read_to_string(out.join("steps.csv")).expect("steps.csv");
     assert_eq!(csv.lines().count(), s.steps + 2);
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary"))
-            .expect("json");
+    let json = summary(&out);
     for key in [
         "total_mass",
         "time_step",
@@ -215,10 +216,7 @@ fn cpu_phases_account_for_the_time_outside_the_solve() {
             ..RunOptions::default()
         };
         run(&opts).unwrap_or_else(|e| panic!("{scene}: {e}"));
-        let json: serde_json::Value = serde_json::from_str(
-            &std::fs::read_to_string(out.join("summary.json")).expect("summary"),
-        )
-        .expect("json");
+        let json = summary(&out);
         let p = &json["phases"];
         let num = |v: &serde_json::Value| v.as_f64().expect("a number");
         let seconds = p["seconds"].as_object().expect("phases.seconds");
@@ -279,9 +277,7 @@ fn run_preconditioner_overrides_the_scene() {
         ..RunOptions::default()
     };
     run(&opts).unwrap_or_else(|e| panic!("{e}"));
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary"))
-            .expect("json");
+    let json = summary(&out);
     assert_eq!(json["preconditioner"].as_str(), Some("multilevel"));
     assert!(json["preconditioner_choice"].is_null(), "{json}");
     assert!(json["multilevel_levels"]["built"].as_u64().unwrap_or(0) >= 1);
@@ -333,10 +329,7 @@ fn auto_preconditioner_follows_the_scene_size() {
             ..RunOptions::default()
         };
         run(&opts).unwrap_or_else(|e| panic!("size {size}: {e}"));
-        let json: serde_json::Value = serde_json::from_str(
-            &std::fs::read_to_string(out.join("summary.json")).expect("summary"),
-        )
-        .expect("json");
+        let json = summary(&out);
         assert_eq!(json["preconditioner"].as_str(), want, "size {size}");
         let reason = json["preconditioner_choice"].as_str();
         match why {

@@ -248,22 +248,34 @@ pub enum PreconditionerChoice {
 
 impl std::str::FromStr for PreconditionerChoice {
     type Err = String;
-    /// A name as `[solver] preconditioner` spells it (`run --preconditioner`).
+    /// "auto" or a preconditioner's name ([`Preconditioner`]'s parser): as `[solver]
+    /// preconditioner` spells it (`run --preconditioner`).
     fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "auto" => Ok(PreconditionerChoice::Auto),
-            "none" => Ok(PreconditionerChoice::None),
-            "jacobi" => Ok(PreconditionerChoice::Jacobi),
-            "block-jacobi" => Ok(PreconditionerChoice::BlockJacobi),
-            "multilevel" => Ok(PreconditionerChoice::Multilevel),
-            _ => Err(format!(
-                "expected auto, none, jacobi, block-jacobi or multilevel, got \"{s}\""
-            )),
+        if s == "auto" {
+            return Ok(PreconditionerChoice::Auto);
         }
+        s.parse::<Preconditioner>()
+            .map(PreconditionerChoice::of)
+            .map_err(|_| {
+                format!(
+                    "unknown preconditioner '{s}' (expected auto, none, jacobi, block-jacobi or \
+                     multilevel)"
+                )
+            })
     }
 }
 
 impl PreconditionerChoice {
+    /// The explicit choice of `p`.
+    pub fn of(p: Preconditioner) -> Self {
+        match p {
+            Preconditioner::None => PreconditionerChoice::None,
+            Preconditioner::Jacobi => PreconditionerChoice::Jacobi,
+            Preconditioner::BlockJacobi => PreconditionerChoice::BlockJacobi,
+            Preconditioner::Multilevel => PreconditionerChoice::Multilevel,
+        }
+    }
+
     /// The fewest nodes of a 2D scene whose CPU CG takes the multilevel preconditioner
     /// under "auto".
     pub const AUTO_MULTILEVEL_MIN_NODES_2D: usize = 8_000;
