@@ -739,6 +739,36 @@ pub fn unpinned_translation(
 /// device device PCG's).
 pub const ABS_SUM_SCALE: f64 = 1.0 / 18_446_744_073_709_551_616.0;
 
+/// Q_i B Q_j of H's block `kb` (row i), with the projections `q` of
+/// [`node_projections`]: the stored block itself where neither node is projected (most
+/// nodes of a mesh), else formed in `buf`. Reading the block in place keeps
+/// [`softest_translations`], which every CG solve runs, a small part of the solve.
+fn projected_block<'a>(
+    h: &'a crate::core::sparse::BlockCsr,
+    q: &[Option<[f64; 9]>],
+    i: usize,
+    kb: usize,
+    buf: &'a mut [f64; 9],
+) -> &'a [f64] {
+    let d = h.dim;
+    let dd = d * d;
+    let j = h.col_idx[kb];
+    if q[i].is_none() && q[j].is_none() {
+        return h.block(kb);
+    }
+    let b = h.block(kb);
+    let mut t = [0.0; 9];
+    match &q[j] {
+        None => t[..dd].copy_from_slice(b),
+        Some(qj) => mat_mul(d, b, &qj[..dd], &mut t[..dd]),
+    }
+    match &q[i] {
+        None => buf[..dd].copy_from_slice(&t[..dd]),
+        Some(qi) => mat_mul(d, &qi[..dd], &t[..dd], &mut buf[..dd]),
+    }
+    &buf[..dd]
+}
+
 /// The softest translation of every connected group of free nodes (see
 /// [`unpinned_translation`]), in the order of the groups' first nodes.
 pub fn softest_translations(
@@ -751,26 +781,6 @@ pub fn softest_translations(
     let full = (1u8 << d) - 1;
     let q = node_projections(frames);
     let free = |i: usize| frames.mask[i] & full != full;
-    // Q_i B Q_j of block kb (i's row): the stored block itself where neither node is
-    // projected (most nodes of a mesh), else formed in `buf`. Reading the block in place
-    // keeps this check, which every CG solve runs, a small part of the solve.
-    let project = |i: usize, kb: usize, buf: &'_ mut [f64; 9]| -> bool {
-        let j = h.col_idx[kb];
-        if q[i].is_none() && q[j].is_none() {
-            return false;
-        }
-        let b = h.block(kb);
-        let mut t = [0.0; 9];
-        match &q[j] {
-            None => t[..dd].copy_from_slice(b),
-            Some(qj) => mat_mul(d, b, &qj[..dd], &mut t[..dd]),
-        }
-        match &q[i] {
-            None => buf[..dd].copy_from_slice(&t[..dd]),
-            Some(qi) => mat_mul(d, &qi[..dd], &t[..dd], &mut buf[..dd]),
-        }
-        true
-    };
     let mut group = vec![u32::MAX; n];
     let mut stack = Vec::new();
     let mut buf = [0.0; 9];
@@ -787,11 +797,7 @@ pub fn softest_translations(
                 if group[j] != u32::MAX || !free(j) {
                     continue;
                 }
-                let pb = if project(i, kb, &mut buf) {
-                    &buf[..dd]
-                } else {
-                    h.block(kb)
-                };
+                let pb = projected_block(h, &q, i, kb, &mut buf);
                 if pb.iter().any(|v| *v != 0.0) {
                     group[j] = count;
                     stack.push(j);
@@ -825,11 +831,7 @@ pub fn softest_translations(
             if group[j] != c as u32 {
                 continue;
             }
-            let pb = if project(i, kb, &mut buf) {
-                &buf[..dd]
-            } else {
-                h.block(kb)
-            };
+            let pb = projected_block(h, &q, i, kb, &mut buf);
             for (r, v) in row[..dd].iter_mut().zip(pb) {
                 *r += v;
             }
