@@ -653,7 +653,7 @@ impl Solver {
         let mut levels_s = 0.0;
         loop {
             let t = Instant::now();
-            let (levels, _) = self.levels.for_system(e);
+            let (levels, _) = self.levels.for_cpu_system(e);
             levels_s += t.elapsed().as_secs_f64();
             let pre = BuiltPreconditioner::with_levels(levels);
             match crate::solve::cg::solve_with(e, &pre, None, &params) {

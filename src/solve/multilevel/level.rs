@@ -44,19 +44,33 @@ impl Level {
     }
 }
 
-/// λmax(M⁻¹A) estimated by `steps` power steps from a fixed start, as the Rayleigh
-/// quotient in the A inner product (a lower bound); `step(x, ax, y)` sets ax = A x and
-/// y = M⁻¹ ax. 0 when a step meets a non-positive xᵀAx or a vanishing y.
+/// λmax(M⁻¹A) estimated by `steps` power steps from a fixed start ([`power_start`]), as
+/// the Rayleigh quotient in the A inner product (a lower bound); `step(x, ax, y)` sets
+/// ax = A x and y = M⁻¹ ax. 0 when a step meets a non-positive xᵀAx or a vanishing y.
 pub(super) fn power_estimate(
     n: usize,
+    steps: usize,
+    step: impl FnMut(&[f64], &mut [f64], &mut [f64]),
+) -> f64 {
+    power_estimate_from(power_start(n), steps, step)
+}
+
+/// The power steps' start: every component non-zero, the same on every run.
+pub(super) fn power_start(n: usize) -> Vec<f64> {
+    (0..n)
+        .map(|k| 1.0 + ((k * 7919) % 13) as f64 / 13.0)
+        .collect()
+}
+
+/// [`power_estimate`] from the start `x` (any layout the step works in: zeros where it
+/// holds no values stay zero).
+pub(super) fn power_estimate_from(
+    mut x: Vec<f64>,
     steps: usize,
     mut step: impl FnMut(&[f64], &mut [f64], &mut [f64]),
 ) -> f64 {
     use crate::core::linalg::{dot, norm2};
-    // Every component non-zero, the same on every run.
-    let mut x: Vec<f64> = (0..n)
-        .map(|k| 1.0 + ((k * 7919) % 13) as f64 / 13.0)
-        .collect();
+    let n = x.len();
     let (mut ax, mut y) = (vec![0.0; n], vec![0.0; n]);
     let mut lam = 0.0;
     for _ in 0..steps {
@@ -353,7 +367,7 @@ pub(super) fn mirror_blocks(lev: &Level) -> Vec<u32> {
 
 /// Ĥ_ij for stored block k = (i, j): P_i V_iᵀ H_ij V_j P_j, with D on the constrained
 /// diagonal.
-fn frame_block(e: &Eliminated, i: usize, k: usize, j: usize, out: &mut [f64]) {
+pub(super) fn frame_block(e: &Eliminated, i: usize, k: usize, j: usize, out: &mut [f64]) {
     let d = e.h.dim;
     let f = e.frames;
     rotate_block(d, e.h.block(k), f.rotation(i), f.rotation(j), out);

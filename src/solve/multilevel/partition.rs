@@ -5,16 +5,18 @@ use crate::solve::ordering::METIS_LOCK;
 /// Nodes (or clusters of the level below) per cluster, aimed at.
 pub const CLUSTER_NODES: usize = 16;
 
-/// From this many items on, METIS's k-way partition starts from one initial partition
-/// instead of its default best of four. With ~16 items per part METIS hardly coarsens,
-/// and each initial partition is a recursive bisection of the whole graph: most of the
-/// 1.7 s the hierarchy took on 44,541 nodes, where one try builds it in 0.6–1.1 s with the
-/// same V-cycle iterations (±1 in 40). Smaller graphs (coarse levels, small meshes) keep
-/// the four tries.
-const ONE_TRY_ITEMS: usize = 10_000;
+/// METIS's k-way partition runs with one initial partition (its default: the best of
+/// four) and one refinement pass per uncoarsening level (default: ten). With ~16 items
+/// per part METIS hardly coarsens, and each initial partition is a recursive bisection of
+/// the whole graph: the defaults took 0.7–0.8 s of the hierarchy on 44,541 nodes, these
+/// 0.45–0.5 s, with the same V-cycle iterations (84 against 85 on four captured twist
+/// systems; docs/design/multilevel.md, "Fixed costs").
+const METIS_TRIES: metis_sys::idx_t = 1;
+/// See [`METIS_TRIES`].
+const METIS_REFINE_PASSES: metis_sys::idx_t = 1;
 
 /// Cluster of each of `n` items: a METIS k-way partition into ⌈n / CLUSTER_NODES⌉ parts
-/// of the graph (self-loops dropped), empty parts removed ([`ONE_TRY_ITEMS`]).
+/// of the graph (self-loops dropped), empty parts removed ([`METIS_TRIES`]).
 /// Consecutive runs of items where METIS fails or the graph exceeds its 32-bit indices.
 pub(super) fn partition(n: usize, row_ptr: &[usize], col_idx: &[usize]) -> Vec<u32> {
     let parts = n.div_ceil(CLUSTER_NODES);
@@ -38,9 +40,8 @@ pub(super) fn partition(n: usize, row_ptr: &[usize], col_idx: &[usize]) -> Vec<u
         // METIS's documented "absent" for the weights and target fractions.
         unsafe {
             metis_sys::METIS_SetDefaultOptions(options.as_mut_ptr());
-            if n >= ONE_TRY_ITEMS {
-                options[metis_sys::moptions_et_METIS_OPTION_NIPARTS as usize] = 1;
-            }
+            options[metis_sys::moptions_et_METIS_OPTION_NIPARTS as usize] = METIS_TRIES;
+            options[metis_sys::moptions_et_METIS_OPTION_NITER as usize] = METIS_REFINE_PASSES;
             metis_sys::METIS_PartGraphKway(
                 &mut nvtxs,
                 &mut ncon,

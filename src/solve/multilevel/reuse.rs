@@ -134,12 +134,30 @@ impl KeptLevels {
     /// The levels for the system `e`, built on the host: kept and refreshed when
     /// [`KeptLevels::plan`] keeps them, else built.
     pub fn for_system(&mut self, e: &Eliminated) -> (Arc<Multilevel>, Levels) {
+        self.levels_for(e, Multilevel::refresh)
+    }
+
+    /// [`KeptLevels::for_system`] for the CPU V-cycle alone: kept levels are refreshed
+    /// by [`Multilevel::refresh_cycle`], so their [`Multilevel::levels`] are not asked
+    /// until a [`KeptLevels::for_system`] refreshes them again.
+    pub fn for_cpu_system(&mut self, e: &Eliminated) -> (Arc<Multilevel>, Levels) {
+        self.levels_for(e, Multilevel::refresh_cycle)
+    }
+
+    fn levels_for(
+        &mut self,
+        e: &Eliminated,
+        refresh: fn(&mut Multilevel, &Eliminated),
+    ) -> (Arc<Multilevel>, Levels) {
         let hierarchy = self.hierarchy_for(e.h);
         let how = self.decide(&hierarchy, e.frames, self.levels.is_some());
         if let Some(ml) = self.levels.as_mut().filter(|_| how != Levels::Built) {
-            Arc::make_mut(ml).refresh(e);
+            refresh(Arc::make_mut(ml), e);
             return (ml.clone(), how);
         }
+        // The old levels go first: their memory serves the new ones (at 44,541 nodes,
+        // faulting in fresh pages made a build take 0.46 s instead of 0.16 s).
+        self.levels = None;
         let ml = Arc::new(Multilevel::new(e, hierarchy));
         self.levels = (self.setup == MultilevelSetup::Reuse).then(|| ml.clone());
         (ml, Levels::Built)

@@ -79,16 +79,39 @@ impl Slots {
     }
 
     /// The level matrix `a` (d×d row-major blocks on the level's pattern, both
-    /// triangles) rounded to f32 in this order of rows, each block stored by columns,
-    /// from the upper triangle's values (so exactly symmetric; `mirror[k]`: the index of
-    /// block k's transposed partner), with one zero after the last block (the product
-    /// reads a column as four values).
+    /// triangles) rounded to f32 in this order of rows ([`Slots::fill_with`]).
     pub(super) fn fill(
         &self,
         d: usize,
         lev: &Level,
         mirror: &[u32],
         a: &[f64],
+        out: &mut Vec<f32>,
+    ) {
+        let dd = d * d;
+        self.fill_with(
+            d,
+            lev,
+            mirror,
+            |_, k, _, o| {
+                o.copy_from_slice(&a[k * dd..(k + 1) * dd]);
+            },
+            out,
+        );
+    }
+
+    /// The level matrix rounded to f32 in this order of rows, each block stored by
+    /// columns, from the upper triangle's values (so exactly symmetric; `mirror[k]`: the
+    /// index of block k's transposed partner), with one zero after the last block (the
+    /// product reads a column as four values). `block(i, k, j, out)` gives stored block
+    /// k = (i, j) as d×d row-major f64 values: the level's values, or Ĥ's blocks rotated
+    /// into the node frames as they are needed (a refresh, with no f64 copy of the level).
+    pub(super) fn fill_with(
+        &self,
+        d: usize,
+        lev: &Level,
+        mirror: &[u32],
+        block: impl Fn(usize, usize, usize, &mut [f64]) + Sync,
         out: &mut Vec<f32>,
     ) {
         let dd = d * d;
@@ -99,26 +122,38 @@ impl Slots {
         rows.into_par_iter()
             .zip(lev.items.par_iter())
             .enumerate()
+            .with_min_len(64)
             .for_each(|(t, (o, &i))| {
                 let i = i as usize;
+                let mut v = [0.0f64; 9];
+                let v = &mut v[..dd];
                 for (&k, ob) in self.src[self.ptr[t]..self.ptr[t + 1]]
                     .iter()
                     .zip(o.chunks_exact_mut(dd))
                 {
                     let j = lev.col_idx[k];
-                    let own = &a[k * dd..(k + 1) * dd];
                     let m = mirror[k] as usize;
-                    let other = &a[m * dd..(m + 1) * dd];
+                    if i > j && m != k {
+                        // The lower triangle: the partner (j, i) by columns is (i, j)'s
+                        // transpose by rows, value for value.
+                        block(j, m, i, v);
+                        ob.iter_mut()
+                            .zip(v.iter())
+                            .for_each(|(o, &x)| *o = x as f32);
+                        continue;
+                    }
+                    block(i, k, j, v);
                     for r in 0..d {
                         for c in 0..d {
-                            // An off-diagonal block without a stored partner keeps its own.
-                            let upper = i < j || (i == j && r <= c) || (i != j && m == k);
-                            let v = if upper {
-                                own[r * d + c]
+                            // A diagonal block is read from its upper triangle; an
+                            // off-diagonal block above the diagonal, or without a
+                            // stored partner, keeps its own values.
+                            let x = if i == j && r > c {
+                                v[c * d + r]
                             } else {
-                                other[c * d + r]
+                                v[r * d + c]
                             };
-                            ob[c * d + r] = v as f32;
+                            ob[c * d + r] = x as f32;
                         }
                     }
                 }
@@ -298,15 +333,22 @@ impl SlotBlocks {
         SlotBlocks { ptr, src, at, pos }
     }
 
-    /// The blocks of `v` (in the source pattern's order, dd values each) in this order,
-    /// rounded to f32.
-    pub(super) fn f32_values(&self, dd: usize, v: &[f64]) -> Vec<f32> {
-        let mut out = vec![0.0f32; self.src.len() * dd];
-        out.par_chunks_mut(dd)
+    /// The blocks of `v` (in the source pattern's order, d×d row-major values each) in
+    /// this order, rounded to f32, each block stored by columns, with one zero after the
+    /// last block (the AVX2 pass reads a column as four values).
+    pub(super) fn f32_values(&self, d: usize, v: &[f64]) -> Vec<f32> {
+        let dd = d * d;
+        let mut out = vec![0.0f32; self.src.len() * dd + 1];
+        out[..self.src.len() * dd]
+            .par_chunks_mut(dd)
             .zip(self.src.par_iter())
             .for_each(|(o, &k)| {
                 let b = &v[k as usize * dd..(k as usize + 1) * dd];
-                o.iter_mut().zip(b).for_each(|(o, &x)| *o = x as f32);
+                for r in 0..d {
+                    for c in 0..d {
+                        o[c * d + r] = b[r * d + c] as f32;
+                    }
+                }
             });
         out
     }
@@ -324,6 +366,7 @@ impl SlotBlocks {
         out: &mut [f64],
     ) {
         let (lev, slots) = rows;
+        assert!(m.len() > self.src.len() * d * d, "the trailing zero");
         split_rows(out, &slots.start, 1)
             .into_par_iter()
             .enumerate()
@@ -331,32 +374,58 @@ impl SlotBlocks {
             .for_each(|(cl, o)| {
                 let rows = lev.ptr[cl]..lev.ptr[cl + 1];
                 #[cfg(target_arch = "x86_64")]
-                if std::arch::is_x86_feature_detected!("avx2") {
-                    // SAFETY: the CPU has AVX2, checked just above.
-                    unsafe { self.rows_avx2(d, rows, m, x, add, o) };
+                if d == 3 && std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the CPU has AVX2, checked just above; `m` ends in the zero
+                    // asserted above.
+                    unsafe { self.rows3_avx2(rows, m, x, add, o) };
                     return;
                 }
                 self.rows(d, rows, m, x, add, o);
             });
     }
 
-    /// [`SlotBlocks::rows`] compiled for AVX2: the same operations in the same order,
-    /// so the same bits.
+    /// [`SlotBlocks::rows`] for d = 3 in AVX2: a block column's three values (and the
+    /// next one, whose lane is dropped) in four f64 lanes, so a block is three products
+    /// and sums across the row's three outputs at once; the same products and sums in
+    /// the same order as [`SlotBlocks::rows`], so the same bits.
     ///
     /// # Safety
-    /// The CPU must have AVX2.
+    /// The CPU must have AVX2, and `m` hold one value past the last block.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    unsafe fn rows_avx2(
+    unsafe fn rows3_avx2(
         &self,
-        d: usize,
         rows: std::ops::Range<usize>,
         m: &[f32],
         x: &[f64],
         add: bool,
         o: &mut [f64],
     ) {
-        self.rows(d, rows, m, x, add, o);
+        use std::arch::x86_64::*;
+        let mp = m.as_ptr();
+        for (q, row) in rows.enumerate() {
+            let oi: &mut [f64; 3] = (&mut o[q * 3..q * 3 + 3]).try_into().expect("3 values");
+            let mut acc = if add {
+                _mm256_setr_pd(oi[0], oi[1], oi[2], 0.0)
+            } else {
+                _mm256_setzero_pd()
+            };
+            for k in self.ptr[row]..self.ptr[row + 1] {
+                let at = self.at[k] as usize;
+                let xc: &[f64; 3] = x[at..at + 3].try_into().expect("3 values");
+                // SAFETY: block k's column c is m[9k + 3c..9k + 3c + 3], and the fourth
+                // value read is within m (the trailing zero at the latest).
+                let col =
+                    |c: usize| unsafe { _mm256_cvtps_pd(_mm_loadu_ps(mp.add(9 * k + 3 * c))) };
+                let mut s = _mm256_mul_pd(col(0), _mm256_set1_pd(xc[0]));
+                s = _mm256_add_pd(s, _mm256_mul_pd(col(1), _mm256_set1_pd(xc[1])));
+                s = _mm256_add_pd(s, _mm256_mul_pd(col(2), _mm256_set1_pd(xc[2])));
+                acc = _mm256_add_pd(acc, s);
+            }
+            let mut sv = [0.0f64; 4];
+            _mm256_storeu_pd(sv.as_mut_ptr(), acc);
+            oi.copy_from_slice(&sv[..3]);
+        }
     }
 
     #[inline(always)]
@@ -399,7 +468,7 @@ impl SlotBlocks {
                 for a in 0..D {
                     let mut s = 0.0;
                     for c in 0..D {
-                        s += f64::from(b[a * D + c]) * xc[c];
+                        s += f64::from(b[c * D + a]) * xc[c];
                     }
                     oi[a] += s;
                 }
@@ -456,6 +525,64 @@ mod tests {
         // Clusters that interleave the items, so that slots and items differ in order.
         let of = (0..n).map(|i| ((i * 7) % n / 5) as u32).collect();
         Level::new(n, of, row_ptr, col_idx)
+    }
+
+    /// A transfer in slots (here the level's own matrix pattern as the block matrix) is
+    /// the row-major blocks rounded to f32 times x, each row summed in block order, each
+    /// block's products summed column by column; its AVX2 rows are its portable rows.
+    #[test]
+    fn the_transfer_is_the_row_major_sum_in_every_build() {
+        for d in [2usize, 3] {
+            let n = 201;
+            let lev = level(n);
+            let sl = Slots::new(&lev, d);
+            let dd = d * d;
+            let nnz = lev.row_ptr[n];
+            let v: Vec<f64> = (0..nnz * dd)
+                .map(|k| ((k * 2654435761) % 2003) as f64 / 997.0 - 1.0)
+                .collect();
+            let blocks = SlotBlocks::new(&lev.items, nnz, &sl, |i| {
+                (lev.row_ptr[i]..lev.row_ptr[i + 1]).map(|k| (k, lev.col_idx[k] as u32))
+            });
+            let m = blocks.f32_values(d, &v);
+            let x: Vec<f64> = (0..n * d)
+                .map(|k| ((k * 7919) % 23) as f64 / 7.0 - 1.3)
+                .collect();
+            let mut xs = vec![0.0; sl.len()];
+            sl.gather(d, &x, &mut xs);
+            for add in [false, true] {
+                let start: Vec<f64> = (0..sl.len()).map(|k| (k % 3) as f64 * 0.25).collect();
+                let mut ys = start.clone();
+                blocks.apply(d, (&lev, &sl), &m, &xs, add, &mut ys);
+                let mut portable = start.clone();
+                for c in 0..lev.clusters() {
+                    let (s, e) = (sl.start[c], sl.start[c + 1]);
+                    let rows = lev.ptr[c]..lev.ptr[c + 1];
+                    blocks.rows(d, rows, &m, &xs, add, &mut portable[s..e]);
+                }
+                assert!(
+                    ys.iter()
+                        .zip(&portable)
+                        .all(|(p, q)| p.to_bits() == q.to_bits()),
+                    "d = {d}, add = {add}: dispatched and portable rows"
+                );
+                for i in 0..n {
+                    let at = sl.at[i] as usize;
+                    for r in 0..d {
+                        let mut want = if add { start[at + r] } else { 0.0 };
+                        for k in lev.row_ptr[i]..lev.row_ptr[i + 1] {
+                            let j = lev.col_idx[k];
+                            let mut s = 0.0;
+                            for c in 0..d {
+                                s += f64::from(v[k * dd + r * d + c] as f32) * x[j * d + c];
+                            }
+                            want += s;
+                        }
+                        assert_eq!(ys[at + r].to_bits(), want.to_bits(), "d = {d}, item {i}");
+                    }
+                }
+            }
+        }
     }
 
     /// The product in slots is the item-order product of the same f32 values (the same
