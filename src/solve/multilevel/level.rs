@@ -370,7 +370,11 @@ pub(super) fn mirror_blocks(lev: &Level) -> Vec<u32> {
 pub(super) fn frame_block(e: &Eliminated, i: usize, k: usize, j: usize, out: &mut [f64]) {
     let d = e.h.dim;
     let f = e.frames;
-    rotate_block(d, e.h.block(k), f.rotation(i), f.rotation(j), out);
+    match (f.rotation(i), f.rotation(j)) {
+        // Most nodes keep the world frame: the block as it is (what the rotation gives).
+        (None, None) => out.copy_from_slice(e.h.block(k)),
+        (vi, vj) => rotate_block(d, e.h.block(k), vi, vj, out),
+    }
     let (mi, mj) = (f.mask[i], f.mask[j]);
     if mi | mj == 0 {
         return;

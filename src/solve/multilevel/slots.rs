@@ -119,45 +119,57 @@ impl Slots {
         out.resize(nb * dd + 1, 0.0);
         out[nb * dd] = 0.0;
         let rows = split_rows(&mut out[..nb * dd], &self.ptr, dd);
+        let fill = |t: usize, o: &mut [f32], i: usize| match d {
+            2 => self.fill_row::<2, 4>(t, o, i, lev, mirror, &block),
+            _ => self.fill_row::<3, 9>(t, o, i, lev, mirror, &block),
+        };
         rows.into_par_iter()
             .zip(lev.items.par_iter())
             .enumerate()
             .with_min_len(64)
-            .for_each(|(t, (o, &i))| {
-                let i = i as usize;
-                let mut v = [0.0f64; 9];
-                let v = &mut v[..dd];
-                for (&k, ob) in self.src[self.ptr[t]..self.ptr[t + 1]]
-                    .iter()
-                    .zip(o.chunks_exact_mut(dd))
-                {
-                    let j = lev.col_idx[k];
-                    let m = mirror[k] as usize;
-                    if i > j && m != k {
-                        // The lower triangle: the partner (j, i) by columns is (i, j)'s
-                        // transpose by rows, value for value.
-                        block(j, m, i, v);
-                        ob.iter_mut()
-                            .zip(v.iter())
-                            .for_each(|(o, &x)| *o = x as f32);
-                        continue;
-                    }
-                    block(i, k, j, v);
-                    for r in 0..d {
-                        for c in 0..d {
-                            // A diagonal block is read from its upper triangle; an
-                            // off-diagonal block above the diagonal, or without a
-                            // stored partner, keeps its own values.
-                            let x = if i == j && r > c {
-                                v[c * d + r]
-                            } else {
-                                v[r * d + c]
-                            };
-                            ob[c * d + r] = x as f32;
-                        }
-                    }
+            .for_each(|(t, (o, &i))| fill(t, o, i as usize));
+    }
+
+    /// Row t (item i) of [`Slots::fill_with`] into its blocks `o`.
+    #[inline(always)]
+    fn fill_row<const D: usize, const DD: usize>(
+        &self,
+        t: usize,
+        o: &mut [f32],
+        i: usize,
+        lev: &Level,
+        mirror: &[u32],
+        block: &(impl Fn(usize, usize, usize, &mut [f64]) + Sync),
+    ) {
+        let mut v = [0.0f64; DD];
+        for (&k, ob) in self.src[self.ptr[t]..self.ptr[t + 1]]
+            .iter()
+            .zip(o.chunks_exact_mut(DD))
+        {
+            let j = lev.col_idx[k];
+            let m = mirror[k] as usize;
+            if i > j && m != k {
+                // The lower triangle: the partner (j, i) by columns is (i, j)'s transpose
+                // by rows, value for value.
+                block(j, m, i, &mut v);
+                ob.iter_mut().zip(&v).for_each(|(o, &x)| *o = x as f32);
+                continue;
+            }
+            block(i, k, j, &mut v);
+            for r in 0..D {
+                for c in 0..D {
+                    // A diagonal block is read from its upper triangle; an off-diagonal
+                    // block above the diagonal, or without a stored partner, keeps its
+                    // own values.
+                    let x = if i == j && r > c {
+                        v[c * D + r]
+                    } else {
+                        v[r * D + c]
+                    };
+                    ob[c * D + r] = x as f32;
                 }
-            });
+            }
+        }
     }
 
     /// y = A x, or y = b − A x with `b`, all in slots, for `a` from [`Slots::fill`] (`lev`
