@@ -5,7 +5,8 @@
 //! preconditioner"). So the levels of one system serve the next ones of the same pattern
 //! and constraint set ([`Multilevel::refresh`]: the finest matrix and its smoothing weight
 //! are the new system's) until a solve on them takes more than [`REBUILD_GROWTH`] times
-//! the iterations per decade of residual reduction of the first solve after the build, or
+//! the iterations per decade of residual reduction of the first solve after the build (or
+//! after their first remasking), or
 //! fails, or a new Newton solve begins ([`KeptLevels::new_newton_solve`]: a simulation
 //! step's first system builds its own levels, so that a run resumed at a step boundary
 //! decides and builds as the run that went through it). Every decision comes from
@@ -25,7 +26,8 @@ use crate::solve::options::MultilevelSetup;
 use std::sync::Arc;
 
 /// A solve on kept levels taking more than this many times the iterations per decade of
-/// the first solve on them has the next system rebuild them.
+/// the first solve on them (since their build or their first remasking) has the next
+/// system rebuild them.
 pub const REBUILD_GROWTH: f64 = 1.5;
 
 /// What [`KeptLevels::plan`] decided (and [`KeptLevels::for_system`] did).
@@ -53,8 +55,11 @@ pub struct KeptLevels {
     /// The hierarchy and the constraint set the current levels were built on (or
     /// remasked to), when they may be kept.
     serving: Option<(Arc<Hierarchy>, Frames)>,
-    /// Iterations per decade of the first solve on the current levels.
+    /// Iterations per decade of the first solve on the current levels (or after their
+    /// first remasking).
     fresh_rate: Option<f64>,
+    /// No remasking since the build yet.
+    first_remask: bool,
     /// The next system rebuilds the levels.
     rebuild: bool,
     last: Levels,
@@ -70,6 +75,7 @@ impl KeptLevels {
             levels: None,
             serving: None,
             fresh_rate: None,
+            first_remask: false,
             rebuild: false,
             last: Levels::Built,
             builds: 0,
@@ -116,6 +122,16 @@ impl KeptLevels {
             if let Some(how) = how {
                 if how == Levels::Remasked {
                     self.serving = Some((hierarchy.clone(), frames.clone()));
+                    if std::mem::take(&mut self.first_remask) {
+                        // The constraint set the levels mostly serve starts here: its
+                        // first solve sets the rate. (A step's first system, with its
+                        // moving nodes free, converges faster than the rest of the
+                        // step's; held to its rate, the first remasked system rebuilt the
+                        // levels in every step, and the levels built then did no
+                        // better.) Later remaskings keep the rate, or a run of them would
+                        // let it drift up with levels that get worse.
+                        self.fresh_rate = None;
+                    }
                 }
                 self.last = how;
                 self.kept += 1;
@@ -126,6 +142,7 @@ impl KeptLevels {
             (self.setup == MultilevelSetup::Reuse).then(|| (hierarchy.clone(), frames.clone()));
         self.rebuild = false;
         self.fresh_rate = None;
+        self.first_remask = true;
         self.last = Levels::Built;
         self.builds += 1;
         Levels::Built
@@ -308,6 +325,42 @@ mod tests {
         every.for_system(&e);
         every.solved(20, 1e-4);
         assert_eq!(every.for_system(&e).1, Levels::Built);
+    }
+
+    /// The first remasking after a build starts the rate over: the first solve on the new
+    /// constraint set sets the rate the next ones are held to, whatever the build's first
+    /// solve took; a second remasking keeps it.
+    #[test]
+    fn the_first_remasking_sets_the_rate_anew() {
+        let s = random_system(&SystemSpec::with_nodes(3, 700, 12));
+        let e = Eliminated::new(&s.h, &s.g, &s.frames, ConstrainedDiagonal::Hessian);
+        let mut kept = KeptLevels::new(MultilevelSetup::Reuse);
+        assert_eq!(kept.for_system(&e).1, Levels::Built);
+        kept.solved(10, 1e-4);
+        let mut free = (0..s.frames.n_nodes)
+            .filter(|&i| s.frames.mask[i] == 0 && s.frames.rotation(i).is_none());
+        let mut more = s.frames.clone();
+        more.mask[free.next().expect("a free node")] = 0b111;
+        let e3 = Eliminated::new(&s.h, &s.g, &more, ConstrainedDiagonal::Hessian);
+        assert_eq!(kept.for_system(&e3).1, Levels::Remasked);
+        // Twice the build's rate, but the first on this constraint set.
+        kept.solved(20, 1e-4);
+        assert!(!kept.rebuild_due());
+        assert_eq!(kept.for_system(&e3).1, Levels::Kept);
+        kept.solved(28, 1e-4);
+        assert!(
+            !kept.rebuild_due(),
+            "1.4× the remasked rate keeps the levels"
+        );
+        more.mask[free.next().expect("a second free node")] = 0b111;
+        let e4 = Eliminated::new(&s.h, &s.g, &more, ConstrainedDiagonal::Hessian);
+        assert_eq!(kept.for_system(&e4).1, Levels::Remasked);
+        kept.solved(32, 1e-4);
+        assert!(
+            kept.rebuild_due(),
+            "1.6× the first remasked rate rebuilds them"
+        );
+        assert_eq!(kept.for_system(&e4).1, Levels::Built);
     }
 
     /// The decision alone ([`KeptLevels::plan`], what the device loop asks) is the host
