@@ -517,9 +517,7 @@ impl Multilevel {
     /// coarse correction only adds a semidefinite term, and the smoother is convergent
     /// while ω_0 λmax(B_0⁺Ĥ) < 2, which the new ω_0 keeps as a fresh build does.
     pub fn refresh(&mut self, e: &Eliminated) {
-        if self.fit(e.frames) == FramesFit::Masked {
-            self.mask_new(e);
-        }
+        self.remask(e);
         frame_values_into(e, &mut self.values[0]);
         self.finest_current = true;
         let (d, hi) = (self.dim, &self.hierarchy);
@@ -538,9 +536,7 @@ impl Multilevel {
     /// f64 copy of the finest level (a third of a refresh's time at 44,541 nodes). The
     /// device's view ([`Multilevel::levels`]) needs a [`Multilevel::refresh`] first.
     pub fn refresh_cycle(&mut self, e: &Eliminated) {
-        if self.fit(e.frames) == FramesFit::Masked {
-            self.mask_new(e);
-        }
+        self.remask(e);
         self.finest_current = false;
         let (d, hi) = (self.dim, &self.hierarchy);
         hi.slots[0].fill_with(
@@ -551,6 +547,14 @@ impl Multilevel {
             &mut self.cycle[0].values,
         );
         self.refreshed();
+    }
+
+    /// Before a refresh: the components `e` constrains since the levels' constraint set
+    /// masked out of them.
+    fn remask(&mut self, e: &Eliminated) {
+        if self.fit(e.frames) == FramesFit::Masked {
+            self.mask_new(e);
+        }
     }
 
     /// After a refresh: the finest smoothing weights estimated again.

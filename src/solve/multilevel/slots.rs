@@ -392,8 +392,33 @@ impl SlotBlocks {
                     unsafe { self.rows3_avx2(rows, m, x, add, o) };
                     return;
                 }
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the CPU has AVX2, checked just above.
+                    unsafe { self.rows_avx2(d, rows, m, x, add, o) };
+                    return;
+                }
                 self.rows(d, rows, m, x, add, o);
             });
+    }
+
+    /// [`SlotBlocks::rows`] compiled for AVX2 (d = 2): the same operations in the same
+    /// order, so the same bits.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn rows_avx2(
+        &self,
+        d: usize,
+        rows: std::ops::Range<usize>,
+        m: &[f32],
+        x: &[f64],
+        add: bool,
+        o: &mut [f64],
+    ) {
+        self.rows(d, rows, m, x, add, o);
     }
 
     /// [`SlotBlocks::rows`] for d = 3 in AVX2: a block column's three values (and the
@@ -521,6 +546,11 @@ mod tests {
     use super::*;
     use crate::solve::multilevel::level::mirror_blocks;
 
+    /// Whether two vectors hold the same bits, value for value.
+    fn same_bits(a: &[f64], b: &[f64]) -> bool {
+        a.len() == b.len() && a.iter().zip(b).all(|(p, q)| p.to_bits() == q.to_bits())
+    }
+
     /// A level of `n` items in clusters of 5 (the last one shorter), each item joined to
     /// the items up to 3 away and to one far item.
     fn level(n: usize) -> Level {
@@ -573,9 +603,7 @@ mod tests {
                     blocks.rows(d, rows, &m, &xs, add, &mut portable[s..e]);
                 }
                 assert!(
-                    ys.iter()
-                        .zip(&portable)
-                        .all(|(p, q)| p.to_bits() == q.to_bits()),
+                    same_bits(&ys, &portable),
                     "d = {d}, add = {add}: dispatched and portable rows"
                 );
                 for i in 0..n {
@@ -638,9 +666,7 @@ mod tests {
                 }
             }
             assert!(
-                ys.iter()
-                    .zip(&portable)
-                    .all(|(p, q)| p.to_bits() == q.to_bits()),
+                same_bits(&ys, &portable),
                 "d = {d}: dispatched and portable rows"
             );
             for i in 0..n {
