@@ -649,7 +649,7 @@ impl Multilevel {
         // The power steps run in slots, from the item-order start gathered (the padding
         // stays zero: the product leaves it alone, the smoothing writes zeros there).
         let mut x = vec![0.0; sl.len()];
-        sl.gather(d, &power_start(lev.n * d), &mut x);
+        sl.gather(d, lev, &power_start(lev.n * d), &mut x);
         omega_for(power_estimate_from(x, LAMBDA_STEPS, |x, ax, y| {
             sl.product(d, lev, a, None, x, ax);
             sl.smooth(&self.factors[l], 1.0, false, ax, y);
@@ -800,7 +800,7 @@ impl Multilevel {
         };
         let mut b = std::mem::take(&mut w.b);
         let mut x = std::mem::take(&mut w.x);
-        sl.gather(d, r, &mut b);
+        sl.gather(d, &self.hierarchy.levels[0], r, &mut b);
         self.vcycle(0, &b, &mut x, &mut work.levels, seconds);
         sl.scatter(d, &x, z);
         work.levels[0].b = b;

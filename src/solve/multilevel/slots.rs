@@ -62,12 +62,22 @@ impl Slots {
         *self.start.last().unwrap_or(&0)
     }
 
-    /// out (slots) = v (item order); padding left as it is (zero).
-    pub(super) fn gather(&self, d: usize, v: &[f64], out: &mut [f64]) {
-        for (i, &a) in self.at.iter().enumerate() {
-            let a = a as usize;
-            out[a..a + d].copy_from_slice(&v[i * d..(i + 1) * d]);
-        }
+    /// out (slots) = v (item order), for the level `lev` of these slots, cluster by
+    /// cluster in parallel; padding left as it is (zero).
+    pub(super) fn gather(&self, d: usize, lev: &Level, v: &[f64], out: &mut [f64]) {
+        split_rows(out, &self.start, 1)
+            .into_par_iter()
+            .enumerate()
+            .with_min_len(64)
+            .for_each(|(c, o)| {
+                for (oi, &i) in o
+                    .chunks_exact_mut(d)
+                    .zip(&lev.items[lev.ptr[c]..lev.ptr[c + 1]])
+                {
+                    let i = i as usize;
+                    oi.copy_from_slice(&v[i * d..(i + 1) * d]);
+                }
+            });
     }
 
     /// out (item order) = v (slots).
@@ -591,7 +601,7 @@ mod tests {
                 .map(|k| ((k * 7919) % 23) as f64 / 7.0 - 1.3)
                 .collect();
             let mut xs = vec![0.0; sl.len()];
-            sl.gather(d, &x, &mut xs);
+            sl.gather(d, &lev, &x, &mut xs);
             for add in [false, true] {
                 let start: Vec<f64> = (0..sl.len()).map(|k| (k % 3) as f64 * 0.25).collect();
                 let mut ys = start.clone();
@@ -649,8 +659,8 @@ mod tests {
                 vec![0.0; sl.len()],
                 vec![0.0; sl.len()],
             );
-            sl.gather(d, &x, &mut xs);
-            sl.gather(d, &b, &mut bs);
+            sl.gather(d, &lev, &x, &mut xs);
+            sl.gather(d, &lev, &b, &mut bs);
             sl.product(d, &lev, &vals, Some(&bs), &xs, &mut ys);
             let mut y = vec![0.0; n * d];
             sl.scatter(d, &ys, &mut y);

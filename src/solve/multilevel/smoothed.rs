@@ -95,7 +95,9 @@ impl SmoothPattern {
 
     /// P's values: row i's blocks (d×d, row-major) δ_{c,c(i)} T_i − ω Σ_{j: c(j)=c} S_ij T_j
     /// with S_ij = D_i⁻¹ A_ij; `hblock(k)` is the level matrix's stored block k,
-    /// `dinv(i)` is D_i⁻¹ and `t(i)` is T_i.
+    /// `dinv[i]` is D_i⁻¹ and `t[i]` is T_i, `None` where T_i is the identity: A_ij T_j
+    /// is then A_ij itself (most items of a mesh; for finite values the product with I
+    /// would give S_ij T_j the same bits).
     #[allow(clippy::too_many_arguments)]
     pub fn p_values(
         &self,
@@ -104,42 +106,39 @@ impl SmoothPattern {
         col_idx: &[usize],
         of: &[u32],
         omega: f64,
-        hblock: &(dyn Fn(usize) -> [f64; 9] + Sync),
-        dinv: &(dyn Fn(usize) -> [f64; 9] + Sync),
-        t: &(dyn Fn(usize) -> [f64; 9] + Sync),
+        hblock: impl Fn(usize) -> [f64; 9] + Sync,
+        dinv: &[[f64; 9]],
+        t: &[Option<[f64; 9]>],
     ) -> Vec<f64> {
         let dd = d * d;
-        let n = of.len();
-        let rows: Vec<Vec<f64>> = (0..n)
+        let mut out = vec![0.0; self.p_col.len() * dd];
+        split_rows(&mut out, &self.p_ptr, dd)
             .into_par_iter()
             .with_min_len(64)
-            .map(|i| {
+            .enumerate()
+            .for_each(|(i, v)| {
                 let cols = &self.p_col[self.p_ptr[i]..self.p_ptr[i + 1]];
-                let mut v = vec![0.0; cols.len() * dd];
-                let di = dinv(i);
-                for (k, &j) in col_idx
-                    .iter()
-                    .enumerate()
-                    .take(row_ptr[i + 1])
-                    .skip(row_ptr[i])
-                {
+                let di = &dinv[i];
+                let (rs, re) = (row_ptr[i], row_ptr[i + 1]);
+                for (k, &j) in (rs..re).zip(&col_idx[rs..re]) {
                     // S_ij T_j = D_i⁻¹ (A_ij T_j)
-                    let ht = mul(d, &hblock(k), &t(j));
-                    let st = mul(d, &di, &ht);
+                    let h = hblock(k);
+                    let st = match &t[j] {
+                        None => mul(d, di, &h),
+                        Some(tj) => mul(d, di, &mul(d, &h, tj)),
+                    };
                     let s = cols.binary_search(&of[j]).unwrap_or(0) * dd;
                     for (o, x) in v[s..s + dd].iter_mut().zip(&st[..dd]) {
                         *o -= omega * x;
                     }
                 }
                 let s = cols.binary_search(&of[i]).unwrap_or(0) * dd;
-                let ti = t(i);
+                let ti = t[i].unwrap_or_else(|| identity(d));
                 for (o, x) in v[s..s + dd].iter_mut().zip(&ti[..dd]) {
                     *o += x;
                 }
-                v
-            })
-            .collect();
-        rows.concat()
+            });
+        out
     }
 
     /// Pᵀ (A P) on `a_ptr`/`a_col` for the level matrix `a` (d×d row-major blocks on
@@ -308,8 +307,21 @@ pub(super) fn smoothed_p(
         0.0
     };
     let hb = |k: usize| block9(d, &a[k * dd..(k + 1) * dd]);
-    let di = |i: usize| dinv[i];
-    sp.p_values(d, &lev.row_ptr, &lev.col_idx, &lev.of, omega, &hb, &di, t)
+    let id = identity(d);
+    let tv: Vec<Option<[f64; 9]>> = (0..n)
+        .into_par_iter()
+        .map(|i| Some(t(i)).filter(|ti| *ti != id))
+        .collect();
+    sp.p_values(
+        d,
+        &lev.row_ptr,
+        &lev.col_idx,
+        &lev.of,
+        omega,
+        hb,
+        &dinv,
+        &tv,
+    )
 }
 
 /// T_i = P_i V_iᵀ of the nodes (level 0): row a is column a of V_i, zero where a is
@@ -355,4 +367,72 @@ fn mul(d: usize, a: &[f64; 9], b: &[f64; 9]) -> [f64; 9] {
         }
     }
     o
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// T_j left out where it is the identity gives P the same bits as the product with I,
+    /// with zeros of either sign among the level's values.
+    #[test]
+    fn an_identity_translation_left_out_gives_the_same_bits() {
+        for d in [2usize, 3] {
+            let dd = d * d;
+            let n = 40;
+            let (mut row_ptr, mut col_idx) = (vec![0usize], Vec::new());
+            for i in 0..n {
+                let mut cols = vec![
+                    i,
+                    (i + 1) % n,
+                    (i + n - 1) % n,
+                    (i + 5) % n,
+                    (i + n - 5) % n,
+                ];
+                cols.sort_unstable();
+                cols.dedup();
+                col_idx.extend(cols);
+                row_ptr.push(col_idx.len());
+            }
+            let of: Vec<u32> = (0..n).map(|i| ((i * 7) % n / 4) as u32).collect();
+            let sp = SmoothPattern::new(&row_ptr, &col_idx, &of, n / 4);
+            let a: Vec<f64> = (0..col_idx.len() * dd)
+                .map(|k| match k % 11 {
+                    3 => -0.0,
+                    7 => 0.0,
+                    _ => ((k * 2654435761) % 1999) as f64 / 999.0 - 1.0,
+                })
+                .collect();
+            let dinv: Vec<[f64; 9]> = (0..n)
+                .map(|i| {
+                    let mut b = [0.0; 9];
+                    for (k, v) in b[..dd].iter_mut().enumerate() {
+                        *v = ((i * 31 + k * 7) % 13) as f64 / 13.0 - 0.4;
+                    }
+                    b
+                })
+                .collect();
+            let id = identity(d);
+            // Every third item has its first component masked (T_i's first row zero).
+            let left_out: Vec<Option<[f64; 9]>> = (0..n)
+                .map(|i| {
+                    (i % 3 == 0).then(|| {
+                        let mut t = id;
+                        t[..d].fill(0.0);
+                        t
+                    })
+                })
+                .collect();
+            let given: Vec<Option<[f64; 9]>> =
+                left_out.iter().map(|t| Some(t.unwrap_or(id))).collect();
+            let hb = |k: usize| block9(d, &a[k * dd..(k + 1) * dd]);
+            let p1 = sp.p_values(d, &row_ptr, &col_idx, &of, 0.7, hb, &dinv, &left_out);
+            let p2 = sp.p_values(d, &row_ptr, &col_idx, &of, 0.7, hb, &dinv, &given);
+            assert_eq!(p1.len(), sp.p_col.len() * dd);
+            assert!(
+                p1.iter().zip(&p2).all(|(x, y)| x.to_bits() == y.to_bits()),
+                "d = {d}"
+            );
+        }
+    }
 }
