@@ -6,10 +6,10 @@
 //! and constraint set ([`Multilevel::refresh`]: the finest matrix and its smoothing weight
 //! are the new system's) until a solve on them takes more than [`REBUILD_GROWTH`] times
 //! the iterations per decade of residual reduction of the first solve after the build (or
-//! after their first remasking), or
-//! fails, or a new Newton solve begins ([`KeptLevels::new_newton_solve`]: a simulation
-//! step's first system builds its own levels, so that a run resumed at a step boundary
-//! decides and builds as the run that went through it). Every decision comes from
+//! after their first remasking), or fails, or a new Newton solve begins
+//! ([`KeptLevels::new_newton_solve`]: a simulation step's first system builds its own
+//! levels, so that a run resumed at a step boundary decides and builds as the run that
+//! went through it). Every decision comes from
 //! iteration counts, tolerances and constraint sets, so the CPU CG and the device PCG,
 //! which take the same iterations, keep and rebuild on the same systems.
 //!
