@@ -102,7 +102,7 @@ pub fn factor_inverse(m: usize, l: &[f64]) -> Vec<f64> {
     x
 }
 
-/// (L Lᵀ)⁺ for a factor from [`cholesky_dropping`]: X = L⁺ ([`factor_inverse`]), then
+/// (L Lᵀ)⁺ for a factor from [`cholesky_dropping`]: X = L⁺ (`factor_inverse`), then
 /// XᵀX, m×m symmetric row-major.
 pub fn inverse_from_factor(m: usize, l: &[f64]) -> Vec<f64> {
     explicit_inverse(m, &factor_inverse(m, l))
